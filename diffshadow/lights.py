@@ -1,0 +1,138 @@
+"""Light directions: Fibonacci sphere, a region of it for training, held-out unseen directions.
+
+A direction is a unit vector pointing toward the light (paper eq. 2). Spherical coordinates in the
+JSON are (theta, phi): theta the polar angle from +z, phi the azimuth from +x toward +y, in radians.
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+
+from diffshadow.io import atomic_write_text
+
+GOLDEN_ANGLE = np.pi * (3.0 - np.sqrt(5.0))
+
+
+class LightError(ValueError):
+    """A light direction or light set that cannot be used."""
+
+
+def as_direction(light_dir, *, name: str = "light_dir") -> np.ndarray:
+    """Validate and normalise one direction; rejects zero, non-finite and wrong-length input."""
+    try:
+        w = np.asarray(light_dir, dtype=np.float64).reshape(-1)
+    except (TypeError, ValueError):
+        raise LightError(f"{name}: expected 3 numbers, got {light_dir!r}") from None
+    if w.shape != (3,):
+        raise LightError(f"{name}: expected 3 numbers (x, y, z), got {w.size}")
+    if not np.all(np.isfinite(w)):
+        raise LightError(f"{name}: must be finite, got {w.tolist()}")
+    norm = float(np.linalg.norm(w))
+    if norm < 1e-12:
+        raise LightError(f"{name}: must be non-zero, got {w.tolist()}")
+    return w / norm
+
+
+def fibonacci_sphere(n: int) -> np.ndarray:
+    """`n` nearly uniform unit vectors on the sphere (golden spiral), deterministic. Returns (n, 3)."""
+    if int(n) < 1:
+        raise LightError(f"fibonacci_sphere: n must be >= 1, got {n}")
+    i = np.arange(int(n), dtype=np.float64)
+    z = 1.0 - (2.0 * i + 1.0) / n
+    r = np.sqrt(np.clip(1.0 - z * z, 0.0, None))
+    phi = GOLDEN_ANGLE * i
+    return np.stack([r * np.cos(phi), r * np.sin(phi), z], axis=1)
+
+
+def select_region(directions, center, count: int) -> np.ndarray:
+    """Indices of the `count` directions closest in angle to `center` (ties by index)."""
+    dirs = np.asarray(directions, dtype=np.float64)
+    c = as_direction(center, name="center")
+    if not 1 <= count <= len(dirs):
+        raise LightError(f"select_region: count must be in 1..{len(dirs)}, got {count}")
+    return np.argsort(-(dirs @ c), kind="stable")[:count]
+
+
+def unseen_directions(train, center, count: int, *, seed: int = 0, min_angle: float = 1e-3) -> np.ndarray:
+    """`count` random directions from the training set's cap around `center`, none equal to a training one.
+
+    The cap is the smallest around `center` that holds every training direction; a candidate closer than
+    `min_angle` radians to a training direction is drawn again. Returns (count, 3).
+    """
+    train = np.asarray(train, dtype=np.float64)
+    c = as_direction(center, name="center")
+    cos_max = float(np.min(train @ c))
+    rng = np.random.default_rng(seed)
+    basis = _orthonormal_basis(c)
+    out: list[np.ndarray] = []
+    for _ in range(1000):
+        need = count - len(out)
+        if need <= 0:
+            break
+        # uniform on the cap: cos(angle) uniform in [cos_max, 1]
+        cos_t = rng.uniform(cos_max, 1.0, size=4 * need)
+        phi = rng.uniform(0.0, 2.0 * np.pi, size=4 * need)
+        sin_t = np.sqrt(np.clip(1.0 - cos_t**2, 0.0, None))
+        cand = (sin_t * np.cos(phi))[:, None] * basis[0] + (sin_t * np.sin(phi))[:, None] * basis[1]
+        cand += cos_t[:, None] * c
+        closest = np.max(cand @ train.T, axis=1)
+        keep = cand[closest < np.cos(min_angle)]
+        out.extend(keep[:need])
+    if len(out) < count:
+        raise LightError(f"unseen_directions: could not find {count} directions apart from the training set")
+    return np.asarray(out[:count])
+
+
+def _orthonormal_basis(c: np.ndarray) -> np.ndarray:
+    helper = np.array([1.0, 0.0, 0.0]) if abs(c[0]) < 0.9 else np.array([0.0, 1.0, 0.0])
+    u = np.cross(c, helper)
+    u /= np.linalg.norm(u)
+    return np.stack([u, np.cross(c, u)])
+
+
+def to_spherical(directions) -> np.ndarray:
+    """(n, 3) unit vectors → (n, 2) of (theta, phi) in radians."""
+    d = np.asarray(directions, dtype=np.float64)
+    theta = np.arccos(np.clip(d[:, 2], -1.0, 1.0))
+    phi = np.arctan2(d[:, 1], d[:, 0])
+    return np.stack([theta, phi], axis=1)
+
+
+def make_light_sets(sphere: int, count: int, center, unseen: int, seed: int = 0) -> dict:
+    """Training directions (a region of a Fibonacci sphere) and held-out unseen ones, as a JSON-able dict."""
+    sphere_dirs = fibonacci_sphere(sphere)
+    idx = select_region(sphere_dirs, center, count)
+    train = sphere_dirs[idx]
+    held = unseen_directions(train, center, unseen, seed=seed) if unseen > 0 else np.zeros((0, 3))
+    return {
+        "sphere": int(sphere),
+        "center": as_direction(center, name="center").tolist(),
+        "seed": int(seed),
+        "spherical_convention": "theta: polar angle from +z; phi: azimuth from +x toward +y; radians",
+        "train": {
+            "sphere_index": idx.tolist(),
+            "cartesian": train.tolist(),
+            "spherical": to_spherical(train).tolist(),
+        },
+        "unseen": {"cartesian": held.tolist(), "spherical": to_spherical(held).tolist()},
+    }
+
+
+def write_lights(path: str | Path, lights: dict) -> None:
+    """Write a light-set dict as JSON, atomically."""
+    atomic_write_text(path, json.dumps(lights, indent=1) + "\n")
+
+
+def read_lights(path: str | Path) -> dict:
+    """Read a light-set JSON; `train`/`unseen` come back as (n, 3) float64 arrays."""
+    path = Path(path)
+    try:
+        d = json.loads(path.read_text())
+        train = np.asarray(d["train"]["cartesian"], dtype=np.float64).reshape(-1, 3)
+        unseen = np.asarray(d["unseen"]["cartesian"], dtype=np.float64).reshape(-1, 3)
+    except (OSError, ValueError, KeyError, TypeError) as e:
+        raise LightError(f"{path}: not a light-set file ({e})") from None
+    return {**d, "train": train, "unseen": unseen}

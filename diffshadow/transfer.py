@@ -1,0 +1,132 @@
+"""Transfer functions: normalised scalar → opacity, colour, extinction.
+
+Piecewise-linear in the scalar `s` ∈ [0, 1], clamped outside the first and last control point.
+Repeated `s` values make a step. Extinction μ(s) = density_scale · opacity(s), in 1 / box-length.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+
+
+class TransferFunctionError(ValueError):
+    """A malformed transfer function; the message names the key and the problem."""
+
+
+def _piecewise_linear(s: torch.Tensor, xs: torch.Tensor, ys: torch.Tensor) -> torch.Tensor:
+    """Evaluate the polyline (xs, ys[:, c]) at s; ys is (K, C). Returns s.shape + (C,)."""
+    s = s.contiguous().clamp(xs[0], xs[-1])
+    # right=True puts s exactly on a repeated x into the later segment, so steps take their upper value
+    hi = torch.bucketize(s, xs, right=True).clamp(1, len(xs) - 1)
+    lo = hi - 1
+    x0, x1 = xs[lo], xs[hi]
+    w = ((s - x0) / (x1 - x0).clamp_min(1e-12)).clamp(0.0, 1.0)
+    return ys[lo] + w.unsqueeze(-1) * (ys[hi] - ys[lo])
+
+
+def _as_tensor(s) -> torch.Tensor:
+    if isinstance(s, torch.Tensor):
+        return s.float() if s.dtype != torch.float32 else s
+    return torch.as_tensor(np.asarray(s, dtype=np.float32))
+
+
+@dataclass(frozen=True)
+class TransferFunction:
+    """Opacity and colour as piecewise-linear functions of the normalised scalar."""
+
+    opacity_points: np.ndarray  # (K, 2): s, alpha
+    color_points: np.ndarray  # (L, 4): s, r, g, b
+    density_scale: float
+
+    @classmethod
+    def from_config(cls, d: Mapping) -> TransferFunction:
+        """Build from `{"opacity": [[s, a], ...], "color": [[s, r, g, b], ...], "density_scale": k}`."""
+        if not isinstance(d, Mapping):
+            raise TransferFunctionError(f"transfer function: expected a mapping, got {type(d).__name__}")
+        unknown = set(d) - {"opacity", "color", "density_scale"}
+        if unknown:
+            raise TransferFunctionError(
+                f"transfer function: unknown key(s) {sorted(unknown)}; expected opacity, color, density_scale"
+            )
+        for key in ("opacity", "color", "density_scale"):
+            if key not in d:
+                raise TransferFunctionError(f"transfer function: missing key {key!r}")
+        opacity = _points("opacity", d["opacity"], 2)
+        color = _points("color", d["color"], 4)
+        try:
+            k = float(d["density_scale"])
+        except (TypeError, ValueError):
+            raise TransferFunctionError(
+                f"transfer function: density_scale must be a number, got {d['density_scale']!r}"
+            ) from None
+        if not np.isfinite(k) or k < 0:
+            raise TransferFunctionError(f"transfer function: density_scale must be finite and >= 0, got {k}")
+        return cls(opacity, color, k)
+
+    def to_config(self) -> dict:
+        """The inverse of `from_config` (plain lists, for JSON/YAML/Zarr attrs)."""
+        return {
+            "opacity": self.opacity_points.tolist(),
+            "color": self.color_points.tolist(),
+            "density_scale": self.density_scale,
+        }
+
+    def opacity(self, s) -> torch.Tensor:
+        """Opacity in [0, 1] at scalar values `s` (any shape)."""
+        s = _as_tensor(s)
+        pts = torch.as_tensor(self.opacity_points, dtype=torch.float32, device=s.device)
+        return _piecewise_linear(s, pts[:, 0].contiguous(), pts[:, 1:]).squeeze(-1)
+
+    def extinction(self, s) -> torch.Tensor:
+        """μ(s) = density_scale · opacity(s), in 1 / box-length."""
+        return self.density_scale * self.opacity(s)
+
+    def color(self, s) -> torch.Tensor:
+        """RGB in [0, 1]; returns s.shape + (3,)."""
+        s = _as_tensor(s)
+        pts = torch.as_tensor(self.color_points, dtype=torch.float32, device=s.device)
+        return _piecewise_linear(s, pts[:, 0].contiguous(), pts[:, 1:])
+
+    def max_opacity(self, lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
+        """Largest opacity over each scalar interval [lo, hi] (macro-cell bounds).
+
+        A piecewise-linear function reaches its maximum on an interval at an end or at a control point.
+        """
+        lo = np.asarray(lo, dtype=np.float64)
+        hi = np.asarray(hi, dtype=np.float64)
+        xs, ys = self.opacity_points[:, 0], self.opacity_points[:, 1]
+        best = np.maximum(np.interp(lo, xs, ys), np.interp(hi, xs, ys))
+        for x, y in zip(xs, ys, strict=True):
+            inside = (lo <= x) & (x <= hi)
+            best = np.where(inside, np.maximum(best, y), best)
+        # np.interp takes the left value at a step; the right one may be larger
+        for i in range(len(xs) - 1):
+            if xs[i] == xs[i + 1]:
+                inside = (lo <= xs[i]) & (xs[i] <= hi)
+                best = np.where(inside, np.maximum(best, ys[i + 1]), best)
+        return best
+
+
+def _points(key: str, value, width: int) -> np.ndarray:
+    try:
+        arr = np.asarray(value, dtype=np.float64)
+    except (TypeError, ValueError):
+        raise TransferFunctionError(f"transfer function: {key} must be a list of numbers, got {value!r}") from None
+    if arr.ndim != 2 or arr.shape[1] != width:
+        raise TransferFunctionError(
+            f"transfer function: {key} must be a list of [{', '.join(['s'] + ['v'] * (width - 1))}] rows, "
+            f"got shape {arr.shape}"
+        )
+    if arr.shape[0] < 2:
+        raise TransferFunctionError(f"transfer function: {key} needs at least 2 points, got {arr.shape[0]}")
+    if not np.all(np.isfinite(arr)):
+        raise TransferFunctionError(f"transfer function: {key} has non-finite values")
+    if np.any(arr < 0) or np.any(arr > 1):
+        raise TransferFunctionError(f"transfer function: {key} values must lie in [0, 1]")
+    if np.any(np.diff(arr[:, 0]) < 0):
+        raise TransferFunctionError(f"transfer function: {key} points must be sorted by s, got {arr[:, 0].tolist()}")
+    return arr

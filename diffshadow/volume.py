@@ -1,0 +1,197 @@
+"""Scalar volumes: loading, normalisation and the box they live in.
+
+Grid convention (DESIGN.md §4, used everywhere): a volume of X×Y×Z voxels is stored as a float32
+array `(Z, Y, X)`; it fills a box whose longest side is 1. Vertex-centred: voxel `i` of `n` along an
+axis sits at `i / (n - 1) · extent`; values between voxels are trilinear; μ = 0 outside the box.
+"""
+
+from __future__ import annotations
+
+import re
+import warnings
+from dataclasses import dataclass
+from importlib import resources
+from pathlib import Path
+
+import numpy as np
+
+RAW_NAME = re.compile(r"_(\d+)x(\d+)x(\d+)_([a-z]+\d*)\.raw$")
+RAW_DTYPES = {
+    "uint8": np.uint8,
+    "int8": np.int8,
+    "uint16": np.uint16,
+    "int16": np.int16,
+    "uint32": np.uint32,
+    "int32": np.int32,
+    "float32": np.float32,
+    "float64": np.float64,
+}
+BUNDLED = {"nucleon": "nucleon_41x41x41_uint8.raw"}
+
+
+class VolumeError(ValueError):
+    """A volume file that cannot be used; the message names the file and the problem."""
+
+
+@dataclass(frozen=True)
+class Volume:
+    """A scalar field on a vertex-centred grid, normalised to [0, 1]."""
+
+    data: np.ndarray  # (Z, Y, X) float32 in [0, 1]
+    extent: np.ndarray  # (3,) box size along (x, y, z); longest side 1
+    name: str
+
+    @property
+    def dims(self) -> tuple[int, int, int]:
+        """Voxel counts along (x, y, z)."""
+        z, y, x = self.data.shape
+        return x, y, z
+
+    @property
+    def voxel_size(self) -> np.ndarray:
+        """Distance between neighbouring voxels along (x, y, z), in box units."""
+        return self.extent / (np.asarray(self.dims, dtype=np.float64) - 1)
+
+
+def bundled_path(name: str = "nucleon") -> Path:
+    """Path of a volume shipped inside the package (the default scene needs nothing else)."""
+    if name not in BUNDLED:
+        raise VolumeError(f"no bundled volume {name!r}; bundled: {sorted(BUNDLED)}")
+    return Path(str(resources.files("diffshadow") / "data" / BUNDLED[name]))
+
+
+def resolve_path(spec: str | Path) -> Path:
+    """`bundled:NAME` → the packaged file; anything else is a filesystem path."""
+    text = str(spec)
+    if text.startswith("bundled:"):
+        return bundled_path(text.split(":", 1)[1])
+    return Path(text)
+
+
+def load_volume(
+    path: str | Path,
+    *,
+    dims: tuple[int, int, int] | None = None,
+    dtype: str | None = None,
+    key: str | None = None,
+    value_range: tuple[float, float] | None = None,
+    spacing: tuple[float, float, float] | None = None,
+) -> Volume:
+    """Load `.raw`, `.npy`, `.h5/.hdf5` or `.zarr` into a normalised `Volume`.
+
+    `dims` is (x, y, z) and `dtype` a numpy name, both parsed from `name_XxYxZ_dtype.raw` when not
+    given. `key` picks the HDF5 dataset or Zarr array. `value_range` replaces the data's min/max for
+    normalisation; `spacing` (x, y, z) makes the box anisotropic.
+    """
+    path = resolve_path(path)
+    if not path.exists():
+        raise VolumeError(f"{path}: no such file")
+    suffix = path.suffix.lower()
+    if suffix == ".raw":
+        raw = _read_raw(path, dims, dtype)
+    elif suffix == ".npy":
+        raw = np.load(path, mmap_mode="r", allow_pickle=False)
+    elif suffix in (".h5", ".hdf5"):
+        raw = _read_hdf5(path, key)
+    elif suffix == ".zarr":
+        raw = _read_zarr(path, key)
+    else:
+        raise VolumeError(f"{path}: unsupported file type {suffix!r}; expected .raw, .npy, .h5/.hdf5 or .zarr")
+    return _to_volume(path, raw, value_range, spacing)
+
+
+def _read_raw(path: Path, dims, dtype) -> np.ndarray:
+    match = RAW_NAME.search(path.name)
+    if dims is None:
+        if match is None:
+            raise VolumeError(
+                f"{path}: cannot tell the dimensions: the name is not 'name_XxYxZ_dtype.raw' and no dims= given"
+            )
+        dims = tuple(int(v) for v in match.group(1, 2, 3))
+    if dtype is None:
+        if match is None:
+            raise VolumeError(f"{path}: cannot tell the dtype: the name has none and no dtype= given")
+        dtype = match.group(4)
+    if dtype not in RAW_DTYPES:
+        raise VolumeError(f"{path}: unsupported dtype {dtype!r}; supported: {', '.join(RAW_DTYPES)}")
+    if len(dims) != 3 or any(int(d) < 1 for d in dims):
+        raise VolumeError(f"{path}: dims must be three positive integers (x, y, z), got {dims}")
+    np_dtype = np.dtype(RAW_DTYPES[dtype]).newbyteorder("<")
+    expected = int(np.prod(dims)) * np_dtype.itemsize
+    actual = path.stat().st_size
+    if actual != expected:
+        x, y, z = dims
+        raise VolumeError(
+            f"{path}: file has {actual} bytes but {x}x{y}x{z} {dtype} needs {expected} bytes"
+        )
+    x, y, z = (int(d) for d in dims)
+    return np.fromfile(path, dtype=np_dtype).reshape(z, y, x)
+
+
+def _read_hdf5(path: Path, key: str | None) -> np.ndarray:
+    import h5py
+
+    with h5py.File(path, "r") as f:
+        names: list[str] = []
+        f.visititems(lambda name, obj: names.append(name) if isinstance(obj, h5py.Dataset) else None)
+        if key is None:
+            if len(names) != 1:
+                raise VolumeError(f"{path}: give key= to choose a dataset; present: {names}")
+            key = names[0]
+        if key not in f or not isinstance(f[key], h5py.Dataset):
+            raise VolumeError(f"{path}: no dataset {key!r}; present: {names}")
+        return f[key][()]
+
+
+def _read_zarr(path: Path, key: str | None) -> np.ndarray:
+    import zarr
+
+    node = zarr.open(str(path), mode="r")
+    if isinstance(node, zarr.Array):
+        if key is not None:
+            raise VolumeError(f"{path}: is a single array, but key={key!r} was given")
+        return node[...]
+    names = sorted(name for name, _ in node.arrays())
+    if key is None:
+        if len(names) != 1:
+            raise VolumeError(f"{path}: give key= to choose an array; present: {names}")
+        key = names[0]
+    if key not in names:
+        raise VolumeError(f"{path}: no array {key!r}; present: {names}")
+    return node[key][...]
+
+
+def _to_volume(path: Path, raw: np.ndarray, value_range, spacing) -> Volume:
+    raw = np.asarray(raw)
+    if raw.ndim != 3:
+        raise VolumeError(f"{path}: expected a 3-D array, got shape {raw.shape}")
+    if not (np.issubdtype(raw.dtype, np.integer) or np.issubdtype(raw.dtype, np.floating)):
+        raise VolumeError(f"{path}: unsupported dtype {raw.dtype}; expected integers or floats")
+    if min(raw.shape) < 2:
+        raise VolumeError(f"{path}: every axis needs at least 2 voxels, got shape (z, y, x) = {raw.shape}")
+    data = raw.astype(np.float64)
+    bad = ~np.isfinite(data)
+    if bad.any():
+        z, y, x = np.argwhere(bad)[0]
+        raise VolumeError(
+            f"{path}: {int(bad.sum())} NaN/Inf voxels; first at (x, y, z) = ({x}, {y}, {z})"
+        )
+    if value_range is None:
+        lo, hi = float(data.min()), float(data.max())
+    else:
+        lo, hi = (float(v) for v in value_range)
+        if not hi > lo:
+            raise VolumeError(f"{path}: value_range must be (low, high) with high > low, got {value_range}")
+    if hi > lo:
+        data = np.clip((data - lo) / (hi - lo), 0.0, 1.0)
+    else:
+        warnings.warn(f"{path}: the volume is constant ({lo}); it normalises to all zeros", stacklevel=3)
+        data = np.zeros_like(data)
+    dims = np.array(raw.shape[::-1], dtype=np.float64)  # (x, y, z)
+    spacing_arr = np.ones(3) if spacing is None else np.asarray(spacing, dtype=np.float64)
+    if spacing_arr.shape != (3,) or not np.all(spacing_arr > 0):
+        raise VolumeError(f"{path}: spacing must be three positive numbers (x, y, z), got {spacing}")
+    size = (dims - 1) * spacing_arr
+    extent = size / size.max()
+    name = RAW_NAME.sub("", path.name) if RAW_NAME.search(path.name) else path.stem
+    return Volume(data=np.ascontiguousarray(data, dtype=np.float32), extent=extent, name=name)
