@@ -280,7 +280,14 @@ def _sweep(volume: Volume, tf: TransferFunction, w: np.ndarray, step: float, dev
         out = _sweep_region(s, tf, delta, du, dv, (jlo, jhi), (ulo, uhi), (vlo, vhi), factor, block)
     if flip:
         out = out.flip(0)
-    return out.permute(np.argsort(order).tolist()).contiguous()
+    out = out.permute(np.argsort(order).tolist()).contiguous()
+    # A voxel on a face the light leaves through sees nothing (τ = 0 exactly); the bilinear lookup
+    # would blend in the depth of lines just inside, where τ jumps.
+    for axis_xyz, comp in enumerate(w):
+        if comp != 0:
+            index = out.shape[2 - axis_xyz] - 1 if comp > 0 else 0
+            out.select(2 - axis_xyz, index).fill_(1.0)
+    return out
 
 
 def _sweep_region(s, tf, delta, du, dv, jr, ur, vr, factor, block) -> torch.Tensor:

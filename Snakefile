@@ -1,0 +1,20 @@
+# diffshadow workflow: config + schema validation, the stage rules, `rule all`.
+# Run: snakemake --profile local -j2   (after `diffshadow install-profiles`; or --profile profiles/local)
+import os
+
+from snakemake.utils import validate
+
+
+configfile: os.path.join(workflow.basedir, "config", "config.yaml")
+
+
+validate(config, os.path.join(workflow.basedir, "workflow", "schemas", "config.schema.yaml"))
+
+
+include: "workflow/rules/common.smk"
+include: "workflow/rules/lights.smk"
+
+
+rule all:
+    input:
+        expand("results/{scene}/lights.json", scene=config["scenes"]),

@@ -1,0 +1,68 @@
+import json
+
+import numpy as np
+import pytest
+
+from diffshadow.cli import main
+from diffshadow.lights import (
+    LightError,
+    fibonacci_sphere,
+    make_light_sets,
+    read_lights,
+    select_region,
+    unseen_directions,
+)
+
+
+def test_fibonacci_sphere_is_unit_deterministic_and_even():
+    d = fibonacci_sphere(1000)
+    assert d.shape == (1000, 3)
+    np.testing.assert_allclose(np.linalg.norm(d, axis=1), 1.0, atol=1e-12)
+    np.testing.assert_array_equal(d, fibonacci_sphere(1000))
+    assert np.abs(d.mean(axis=0)).max() < 2e-3  # no hemisphere favoured
+    # nearly uniform: every point's nearest neighbour is at a similar distance
+    nn = np.sort(np.arccos(np.clip(d @ d.T, -1, 1)), axis=1)[:, 1]
+    assert nn.max() / nn.min() < 2.0
+
+
+def test_select_region_takes_the_closest():
+    d = fibonacci_sphere(500)
+    center = np.array([1.0, 1.0, 0.0])
+    idx = select_region(d, center, 50)
+    cos = d @ (center / np.linalg.norm(center))
+    assert len(set(idx.tolist())) == 50
+    assert cos[idx].min() >= np.delete(cos, idx).max()
+
+
+def test_unseen_in_region_and_disjoint():
+    d = fibonacci_sphere(800)
+    center = (0.0, 0.3, 1.0)
+    train = d[select_region(d, center, 200)]
+    unseen = unseen_directions(train, center, 50, seed=3)
+    c = np.asarray(center) / np.linalg.norm(center)
+    assert (unseen @ c).min() >= (train @ c).min() - 1e-12
+    assert (unseen @ train.T).max() < np.cos(1e-3)
+    np.testing.assert_array_equal(unseen, unseen_directions(train, center, 50, seed=3))
+
+
+def test_bad_center_and_count():
+    d = fibonacci_sphere(10)
+    with pytest.raises(LightError, match="center: must be non-zero"):
+        select_region(d, (0, 0, 0), 3)
+    with pytest.raises(LightError, match="center: must be finite"):
+        select_region(d, (np.nan, 0, 1), 3)
+    with pytest.raises(LightError, match=r"count must be in 1..10"):
+        select_region(d, (0, 0, 1), 11)
+
+
+def test_cli_writes_json(tmp_path):
+    out = tmp_path / "lights.json"
+    main(["lights", "--sphere", "300", "--count", "40", "--unseen", "7", "--center", "0", "1", "1",
+          "--out", str(out)])
+    raw = json.loads(out.read_text())
+    assert len(raw["train"]["cartesian"]) == 40 and len(raw["unseen"]["spherical"]) == 7
+    lights = read_lights(out)
+    theta, phi = np.asarray(raw["train"]["spherical"]).T
+    back = np.stack([np.sin(theta) * np.cos(phi), np.sin(theta) * np.sin(phi), np.cos(theta)], axis=1)
+    np.testing.assert_allclose(back, lights["train"], atol=1e-12)
+    assert make_light_sets(300, 40, (0, 1, 1), 7) == raw

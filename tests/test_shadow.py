@@ -1,0 +1,206 @@
+"""Ground-truth shadows: an analytic case, convergence, invariances, extremes and bad input."""
+
+import math
+import warnings
+
+import numpy as np
+import pytest
+import torch
+from conftest import gaussian_blob, identity_tf
+
+from diffshadow.lights import LightError
+from diffshadow.shadow import ShadowField, shadow_grid, transmittance
+from diffshadow.transfer import TransferFunction
+from diffshadow.volume import load_volume
+
+SIGMA, K = 0.12, 10.0
+FIXED = [(1, 0, 0), (-1, 0, 0), (0, 0, 1), (0, 0, -1), (0, 1, 0), (1, 1, 1), (-1, 1, -1), (1, -1, 1)]
+
+
+@pytest.fixture(scope="module")
+def blob(tmp_path_factory):
+    path = tmp_path_factory.mktemp("blob") / "blob.npy"
+    np.save(path, gaussian_blob(65, SIGMA))
+    return load_volume(path)
+
+
+def exact_transmittance(p: np.ndarray, w: np.ndarray) -> float:
+    """exp(-∫ K·exp(-|p + tw - c|²/2σ²) dt) from t = 0 to the box exit, in closed form with erf."""
+    d = p - 0.5
+    s0 = float(d @ w)
+    perp2 = float(d @ d) - s0**2
+    exits = [((1.0 if wa > 0 else 0.0) - pa) / wa for pa, wa in zip(p, w, strict=True) if wa != 0]
+    t_exit = min(exits)
+    r = SIGMA * math.sqrt(2)
+    depth = K * math.exp(-perp2 / (2 * SIGMA**2)) * SIGMA * math.sqrt(math.pi / 2) * (
+        math.erf((t_exit + s0) / r) - math.erf(s0 / r))
+    return math.exp(-depth)
+
+
+def analytic_cases(seed=0):
+    """1,000 (point, direction) pairs: axis-aligned, diagonal and random directions."""
+    rng = np.random.default_rng(seed)
+    dirs = [np.asarray(d, float) / np.linalg.norm(d) for d in FIXED]
+    dirs += [v / np.linalg.norm(v) for v in rng.normal(size=(40, 3))]
+    counts = [45] * len(FIXED) + [16] * 40
+    return [(w, rng.uniform(0, 1, size=(c, 3))) for w, c in zip(dirs, counts, strict=True)]
+
+
+def errors(blob, step):
+    field = ShadowField.build(blob, identity_tf(K))
+    errs = []
+    for w, pts in analytic_cases():
+        got = transmittance(field, field.tf, w, pts, step=step).numpy()
+        errs.extend(abs(g - exact_transmittance(p, w)) for g, p in zip(got, pts, strict=True))
+    return np.asarray(errs)
+
+
+def test_analytic_gaussian_at_default_step(blob):
+    err = errors(blob, step=0.5)
+    assert len(err) == 1000
+    assert err.max() <= 3e-3 and err.mean() <= 5e-4, (err.max(), err.mean())
+
+
+def test_converges_as_step_halves(blob):
+    """Midpoint rule: the change between successive halvings shrinks about 4x (second order)."""
+    field = ShadowField.build(blob, identity_tf(K))
+    rng = np.random.default_rng(5)
+    pts = rng.uniform(0, 1, size=(300, 3))
+    w = np.array([0.3, -0.5, 0.8])
+    g = [transmittance(field, field.tf, w, pts, step=s).double() for s in (2.0, 1.0, 0.5, 0.25)]
+    diffs = [float((a - b).abs().max()) for a, b in zip(g, g[1:], strict=False)]
+    assert diffs[0] > diffs[1] > diffs[2]
+    assert diffs[0] / diffs[1] > 2.5 and diffs[1] / diffs[2] > 2.5
+
+
+def test_sweep_agrees_with_march(blob):
+    tf = identity_tf(K)
+    field = ShadowField.build(blob, tf)
+    idx = torch.randint(0, 65, (3000, 3), generator=torch.Generator().manual_seed(1))  # (z, y, x)
+    pts = idx.flip(1).float() / 64
+    for w in [(1, 0, 0), (0.3, -0.5, 0.8), (-1, -1, 1)]:
+        ref = transmittance(field, tf, w, pts, step=0.25)
+        sweep = shadow_grid(blob, tf, w, method="sweep")[idx[:, 0], idx[:, 1], idx[:, 2]]
+        err = (sweep - ref).abs()
+        assert err.max() < 5e-3 and err.mean() < 5e-4, (w, err.max(), err.mean())
+
+
+def test_sweep_exit_faces_are_unshadowed(blob):
+    g = shadow_grid(blob, identity_tf(100.0), (0.3, -0.5, 0.8), method="sweep")
+    assert torch.equal(g[:, :, -1], torch.ones_like(g[:, :, -1]))  # +x face
+    assert torch.equal(g[:, 0, :], torch.ones_like(g[:, 0, :]))  # -y face
+    assert torch.equal(g[-1], torch.ones_like(g[-1]))  # +z face
+    assert g[:, :, 0].min() < 0.5  # the face the light enters through is shadowed
+
+
+def test_skipping_changes_nothing():
+    rng = np.random.default_rng(2)
+    data = np.zeros((30, 26, 23), np.float32)
+    data[5:12, 14:20, 3:9] = rng.uniform(0.3, 1, size=(7, 6, 6))  # sparse blocks in an empty volume
+    data[20:26, 4:9, 12:20] = rng.uniform(0.3, 1, size=(6, 5, 8))
+    from diffshadow.volume import Volume
+    vol = Volume(data=data, extent=np.array([22, 25, 29]) / 29, name="blocks")
+    tf = TransferFunction.from_config({"opacity": [[0, 0], [0.2, 0], [1, 1]], "color": [[0, 1, 1, 1], [1, 1, 1, 1]],
+                                       "density_scale": 30})
+    field = ShadowField.build(vol, tf)
+    assert 0.3 < field.empty.float().mean() < 1.0
+    for w in [(0.2, 0.9, -0.3), (-1, 0, 0), (0.5, 0.5, 0.7)]:
+        a = shadow_grid(vol, tf, w, method="march", skip_empty=True)
+        b = shadow_grid(vol, tf, w, method="march", skip_empty=False)
+        assert (a - b).abs().max() <= 1e-6
+        assert a.min() < 0.5  # the blocks do cast shadows here
+
+
+def test_chunking_and_samples_per_iteration_do_not_matter(blob):
+    tf = identity_tf(K)
+    pts = torch.rand(500, 3, generator=torch.Generator().manual_seed(0))
+    w = (0.1, 0.7, -0.2)
+    base = transmittance(blob, tf, w, pts)
+    for chunk, spi in [(64, 1), (1000, 8), (37, 3)]:
+        torch.testing.assert_close(transmittance(blob, tf, w, pts, chunk=chunk, samples_per_iter=spi), base,
+                                   atol=1e-6, rtol=0)
+
+
+def test_empty_volume_is_exactly_one(blob):
+    from diffshadow.volume import Volume
+    vol = Volume(data=np.zeros((9, 9, 9), np.float32), extent=np.ones(3), name="empty")
+    pts = torch.rand(100, 3)
+    assert torch.equal(transmittance(vol, identity_tf(K), (0, 0, 1), pts), torch.ones(100))
+    for method in ("march", "sweep"):
+        assert torch.equal(shadow_grid(vol, identity_tf(K), (0.3, 0.1, 1), method=method), torch.ones(9, 9, 9))
+    # and a zero density scale makes any volume transparent
+    pts = torch.rand(2000, 3)
+    assert torch.equal(transmittance(blob, identity_tf(0.0), (1, 2, 3), pts), torch.ones(2000))
+
+
+def test_huge_density_is_zero_without_nan_or_warnings(blob, tmp_path):
+    np.save(tmp_path / "small.npy", gaussian_blob(33, SIGMA))
+    small = load_volume(tmp_path / "small.npy")
+    tf = identity_tf(1e6)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        centre = transmittance(blob, tf, (0, 0, 1), [[0.5, 0.5, 0.5], [0.5, 0.5, 0.1]])
+        grids = [shadow_grid(small, tf, (0.3, -0.2, 1), method=m) for m in ("march", "sweep")]
+    assert centre.max() < 1e-12
+    for g in grids:
+        assert torch.isfinite(g).all() and g.min() >= 0 and g.max() <= 1
+        assert g[16, 16, 16] < 1e-12
+
+
+@pytest.mark.parametrize("w", [(1, 0, 0), (-1, 0, 0), (0, -1, 0), (0, 0, -1), (1e-7, 1, 0),
+                               (1, 1e-9, -1e-9), (-0.3, -0.4, -0.5), (0.0, -0.0, 1.0)])
+def test_axis_grazing_and_negative_directions(blob, w):
+    tf = identity_tf(K)
+    pts = np.array([[0.5, 0.5, 0.5], [0.0, 0.0, 0.0], [1.0, 1.0, 1.0], [0.5, 0.0, 0.5], [0.2, 0.7, 1.0]])
+    got = transmittance(blob, tf, w, pts).numpy()
+    wn = np.asarray(w, float) / np.linalg.norm(w)
+    for g, p in zip(got, pts, strict=True):
+        assert abs(g - exact_transmittance(p, wn)) < 3e-3
+    grid = shadow_grid(blob, tf, w, method="sweep")
+    assert torch.isfinite(grid).all() and 0 <= grid.min() and grid.max() <= 1
+
+
+def test_points_outside_the_box_march_from_where_they_enter(blob):
+    tf = identity_tf(K)
+    w = np.array([0.0, 0.0, 1.0])
+    outside = transmittance(blob, tf, w, [[0.5, 0.5, -0.3], [1.5, 0.5, 0.5], [0.5, 0.5, 1.2]])
+    inside = transmittance(blob, tf, w, [[0.5, 0.5, 0.0]])
+    assert outside[0] == pytest.approx(float(inside[0]), abs=1e-6)
+    assert outside[1] == 1.0 and outside[2] == 1.0  # misses the box / beyond it toward the light
+
+
+@pytest.mark.parametrize("w, message", [((0, 0, 0), "must be non-zero"), ((np.nan, 0, 1), "must be finite"),
+                                        ((0, np.inf, 1), "must be finite"), ((1, 2), "expected 3 numbers")])
+def test_bad_light_direction(blob, w, message):
+    with pytest.raises(LightError, match=f"light_dir: .*{message}|light_dir: {message}"):
+        transmittance(blob, identity_tf(), w, [[0.5, 0.5, 0.5]])
+    with pytest.raises(LightError, match=message):
+        shadow_grid(blob, identity_tf(), w, method="sweep")
+
+
+def test_bad_step_method_and_points(blob):
+    tf = identity_tf()
+    with pytest.raises(ValueError, match="step: expected a positive number"):
+        transmittance(blob, tf, (0, 0, 1), [[0.5, 0.5, 0.5]], step=0)
+    with pytest.raises(ValueError, match="sweep needs 1/k voxels"):
+        shadow_grid(blob, tf, (0, 0, 1), method="sweep", step=0.3)
+    with pytest.raises(ValueError, match="method: expected 'march' or 'sweep'"):
+        shadow_grid(blob, tf, (0, 0, 1), method="raytrace")
+    with pytest.raises(ValueError, match=r"points: expected shape \(P, 3\)"):
+        transmittance(blob, tf, (0, 0, 1), [0.5, 0.5, 0.5])
+
+
+def test_same_input_same_bytes(blob):
+    tf = identity_tf()
+    a = shadow_grid(blob, tf, (0.2, 0.3, 0.9), method="sweep").numpy().tobytes()
+    b = shadow_grid(blob, tf, (0.2, 0.3, 0.9), method="sweep").numpy().tobytes()
+    assert a == b
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="no CUDA device")
+def test_cuda_matches_cpu(blob):
+    tf = identity_tf()
+    for method in ("march", "sweep"):
+        cpu = shadow_grid(blob, tf, (0.2, 0.3, 0.9), method=method)
+        gpu = shadow_grid(blob, tf, (0.2, 0.3, 0.9), method=method, device="cuda").cpu()
+        assert (cpu - gpu).abs().max() < 1e-5

@@ -1,0 +1,122 @@
+import h5py
+import numpy as np
+import pytest
+import zarr
+
+from diffshadow.volume import VolumeError, bundled_path, load_volume
+
+
+def test_raw_name_gives_dims_and_dtype(tmp_path):
+    data = np.arange(4 * 3 * 2, dtype=np.uint16).reshape(2, 3, 4)  # (Z, Y, X) for X=4, Y=3, Z=2
+    path = tmp_path / "thing_4x3x2_uint16.raw"
+    data.astype("<u2").tofile(path)
+    vol = load_volume(path)
+    assert vol.data.shape == (2, 3, 4) and vol.data.dtype == np.float32
+    assert vol.dims == (4, 3, 2)
+    np.testing.assert_allclose(vol.data, data / data.max(), atol=1e-7)
+    np.testing.assert_allclose(vol.extent, [1.0, 2 / 3, 1 / 3])  # (n - 1) spacing, longest side 1
+    assert vol.name == "thing"
+
+
+def test_npy_h5_zarr_round_trip(tmp_path):
+    rng = np.random.default_rng(0)
+    data = rng.uniform(-3, 5, size=(5, 6, 7)).astype(np.float32)
+    expected = (data - data.min()) / (data.max() - data.min())
+    np.save(tmp_path / "v.npy", data)
+    with h5py.File(tmp_path / "v.h5", "w") as f:
+        f["group/density"] = data
+        f["other"] = data[0]
+    root = zarr.open_group(str(tmp_path / "v.zarr"), mode="w")
+    root.create_array("density", data=data)
+    for vol in (load_volume(tmp_path / "v.npy"), load_volume(tmp_path / "v.h5", key="group/density"),
+                load_volume(tmp_path / "v.zarr", key="density"), load_volume(tmp_path / "v.zarr")):
+        np.testing.assert_allclose(vol.data, expected, atol=1e-6)
+        assert vol.data.min() == 0.0 and vol.data.max() == 1.0
+
+
+def test_given_range_and_spacing(tmp_path):
+    np.save(tmp_path / "v.npy", np.full((3, 3, 3), 5.0))
+    np.save(tmp_path / "w.npy", np.linspace(0, 20, 27).reshape(3, 3, 3))
+    vol = load_volume(tmp_path / "w.npy", value_range=(0, 10), spacing=(1, 1, 4))
+    assert vol.data.max() == 1.0 and vol.data.min() == 0.0
+    np.testing.assert_allclose(vol.extent, [0.25, 0.25, 1.0])
+
+
+def test_constant_volume_warns_and_is_zero(tmp_path):
+    np.save(tmp_path / "c.npy", np.full((3, 4, 5), 7.0))
+    with pytest.warns(UserWarning, match="constant"):
+        vol = load_volume(tmp_path / "c.npy")
+    assert not vol.data.any()
+
+
+def test_bundled_nucleon():
+    vol = load_volume(bundled_path("nucleon"))
+    assert vol.data.shape == (41, 41, 41) and vol.name == "nucleon"
+    assert load_volume("bundled:nucleon").data.shape == (41, 41, 41)
+
+
+def test_size_mismatch_names_both_numbers(tmp_path):
+    path = tmp_path / "bad_4x4x4_uint8.raw"
+    path.write_bytes(b"\0" * 60)
+    with pytest.raises(VolumeError, match=r"bad_4x4x4_uint8.raw.*60 bytes.*64 bytes"):
+        load_volume(path)
+
+
+def test_raw_without_dims(tmp_path):
+    path = tmp_path / "nodims.raw"
+    path.write_bytes(b"\0" * 8)
+    with pytest.raises(VolumeError, match=r"nodims.raw.*dims"):
+        load_volume(path)
+    assert load_volume(path, dims=(2, 2, 2), dtype="uint8").data.shape == (2, 2, 2)
+
+
+def test_unsupported_dtype(tmp_path):
+    path = tmp_path / "v_2x2x2_complex64.raw"
+    path.write_bytes(b"\0" * 64)
+    with pytest.raises(VolumeError, match=r"v_2x2x2_complex64.raw.*unsupported dtype 'complex64'"):
+        load_volume(path)
+
+
+def test_nan_voxels_counted_with_first_position(tmp_path):
+    data = np.zeros((4, 5, 6), dtype=np.float32)
+    data[3, 1, 2] = np.nan  # (z, y, x)
+    data[3, 4, 5] = np.inf
+    np.save(tmp_path / "n.npy", data)
+    with pytest.raises(VolumeError, match=r"n.npy: 2 NaN/Inf voxels; first at \(x, y, z\) = \(2, 1, 3\)"):
+        load_volume(tmp_path / "n.npy")
+
+
+def test_missing_keys_list_those_present(tmp_path):
+    with h5py.File(tmp_path / "v.h5", "w") as f:
+        f["a"] = np.zeros((2, 2, 2))
+        f["b"] = np.zeros((2, 2, 2))
+    with pytest.raises(VolumeError, match=r"v.h5: no dataset 'c'; present: \['a', 'b'\]"):
+        load_volume(tmp_path / "v.h5", key="c")
+    with pytest.raises(VolumeError, match=r"v.h5: give key="):
+        load_volume(tmp_path / "v.h5")
+    root = zarr.open_group(str(tmp_path / "v.zarr"), mode="w")
+    root.create_array("x", data=np.zeros((2, 2, 2)))
+    with pytest.raises(VolumeError, match=r"v.zarr: no array 'y'; present: \['x'\]"):
+        load_volume(tmp_path / "v.zarr", key="y")
+
+
+def test_not_3d(tmp_path):
+    np.save(tmp_path / "flat.npy", np.zeros((4, 4)))
+    with pytest.raises(VolumeError, match=r"flat.npy: expected a 3-D array, got shape \(4, 4\)"):
+        load_volume(tmp_path / "flat.npy")
+
+
+def test_missing_file_and_unknown_suffix(tmp_path):
+    with pytest.raises(VolumeError, match="no such file"):
+        load_volume(tmp_path / "nothing.npy")
+    (tmp_path / "v.vtk").write_text("x")
+    with pytest.raises(VolumeError, match=r"v.vtk: unsupported file type"):
+        load_volume(tmp_path / "v.vtk")
+
+
+def test_shared_volumes_load(shared_data):
+    vol = load_volume(shared_data / "tooth_103x94x161_uint8.raw")
+    assert vol.data.shape == (161, 94, 103)
+    assert vol.extent[2] == 1.0
+    bi = load_volume(shared_data / "bi2o3_ch0_80x80x80_float32.raw")
+    assert bi.data.max() == 1.0

@@ -1,0 +1,9 @@
+rule lights:
+    output:
+        "results/{scene}/lights.json",
+    params:
+        lights=lambda wc: scene_config(wc.scene)["lights"],
+    shell:
+        "diffshadow lights --sphere {params.lights[sphere]} --count {params.lights[count]}"
+        " --center {params.lights[center][0]} {params.lights[center][1]} {params.lights[center][2]}"
+        " --unseen {params.lights[unseen]} --seed {params.lights[seed]} --out {output}"
