@@ -13,8 +13,9 @@ validate(config, os.path.join(workflow.basedir, "workflow", "schemas", "config.s
 
 include: "workflow/rules/common.smk"
 include: "workflow/rules/lights.smk"
+include: "workflow/rules/stage1.smk"
 
 
 rule all:
     input:
-        expand("results/{scene}/lights.json", scene=config["scenes"]),
+        expand("results/{scene}/weights.zarr", scene=config["scenes"]),

@@ -64,6 +64,7 @@ def bench_shadow(
                                                       device=device))
         rows = [{"method": "march", "step": REFERENCE_STEP, "seconds": t_ref, "max_err": 0.0, "mean_err": 0.0}]
         cases = [("march", s, True) for s in march_steps] + [("march_noskip", DEFAULT_STEP, False)]
+        cases += [("march_auto", DEFAULT_STEP, None)]
         cases += [("sweep", s, None) for s in sweep_steps]
         shadow_grid(vol, tf, light, method="sweep", device=device)  # warm-up
         grids = {}

@@ -4,9 +4,12 @@ from __future__ import annotations
 
 import argparse
 import filecmp
+import json
 import os
 import sys
 from pathlib import Path
+
+import numpy as np
 
 
 def _lights(args: argparse.Namespace) -> None:
@@ -27,6 +30,114 @@ def _bench_shadow(args: argparse.Namespace) -> None:
         torch.set_num_threads(args.threads)
     volumes = [Path(v) for v in args.volumes] if args.volumes else default_volumes()
     bench_shadow(volumes, Path(args.out), device=args.device)
+
+
+def _json(text: str) -> dict:
+    try:
+        value = json.loads(text)
+    except json.JSONDecodeError as e:
+        raise ValueError(f"--config-json: not valid JSON ({e})") from None
+    if not isinstance(value, dict):
+        raise ValueError("--config-json: expected a JSON object")
+    return value
+
+
+def _threads(n: int) -> None:
+    if n:
+        import torch
+
+        torch.set_num_threads(n)
+
+
+def _prepare_volume(args: argparse.Namespace) -> None:
+    from diffshadow.shadow import MACRO_CELL
+    from diffshadow.transfer import TransferFunction
+    from diffshadow.volume import load_volume, save_prepared
+
+    cfg = _json(args.config_json)
+    tf = TransferFunction.from_config(cfg["transfer_function"])
+    volume = load_volume(cfg["volume"], **cfg.get("load", {}))
+    save_prepared(args.out, volume, tf, cell=MACRO_CELL)
+    print(f"wrote {args.out}: {volume.name} {volume.dims}, extent {volume.extent.round(4).tolist()}")
+
+
+def _stage1_inputs(args):
+    from diffshadow.fit import FitConfig
+    from diffshadow.lights import read_lights
+    from diffshadow.siren import SirenConfig, WeightLayout
+    from diffshadow.volume import load_prepared
+
+    cfg = _json(args.config_json)
+    volume, tf = load_prepared(args.volume)
+    lights = read_lights(args.lights)["train"]
+    siren = SirenConfig.from_config(cfg["siren"])
+    return cfg, volume, tf, lights, siren, WeightLayout.for_siren(siren), FitConfig.from_config(cfg["fit"])
+
+
+def _preoptimize(args: argparse.Namespace) -> None:
+    import torch
+
+    from diffshadow.fit import fit_sirens, seeded
+    from diffshadow.io import atomic_save
+    from diffshadow.siren import init_siren
+
+    _threads(args.threads)
+    cfg, volume, tf, lights, siren, layout, fit = _stage1_inputs(args)
+    pre = cfg["preoptimize"]
+    fit = fit.__class__(**{**fit.__dict__, "steps": int(pre["steps"]), "lr": float(pre["lr"])})
+    init = layout.flatten(init_siren(siren, seeded(fit.seed, -1)))
+    if pre["steps"] > 0:
+        print(f"pre-optimising one SIREN on light 0 for {fit.steps} steps", flush=True)
+        init = fit_sirens(init, layout, siren, volume, tf, lights[:1], fit, stream=-1, light_index=[0],
+                          device=args.device)[0]
+    state = {"weights": init, "layout": layout.to_config(), "siren": siren.to_config()}
+    atomic_save(args.out, lambda tmp: torch.save(state, tmp), suffix=".pt")
+    print(f"wrote {args.out}")
+
+
+def subset_indices(n_lights: int, subset_size: int, subset: int) -> list[int]:
+    """Lights of subset `subset` (0..S-1, S = ceil(n / size))."""
+    n_subsets = -(-n_lights // subset_size)
+    if not 0 <= subset < n_subsets:
+        raise ValueError(f"subset {subset} does not exist: {n_lights} lights in subsets of {subset_size} "
+                         f"give subsets 0..{n_subsets - 1}")
+    return list(range(subset * subset_size, min(n_lights, (subset + 1) * subset_size)))
+
+
+def _fit_siren(args: argparse.Namespace) -> None:
+    import torch
+
+    from diffshadow.fit import evaluate_psnr, fit_sirens
+    from diffshadow.store import write_subset
+
+    _threads(args.threads)
+    cfg, volume, tf, lights, siren, layout, fit = _stage1_inputs(args)
+    idx = subset_indices(len(lights), int(cfg["subset_size"]), args.subset)
+    init_state = torch.load(args.init, map_location="cpu", weights_only=True)
+    if init_state["layout"] != layout.to_config():
+        raise ValueError(f"{args.init}: SIREN layout differs from the config's siren settings; rerun preoptimize")
+    out = Path(args.out)
+    print(f"subset {args.subset}: fitting lights {idx[0]}..{idx[-1]} jointly", flush=True)
+    weights = fit_sirens(init_state["weights"], layout, siren, volume, tf, lights[idx], fit, stream=args.subset,
+                         light_index=idx, checkpoint=out.with_name(out.name + ".ckpt"), device=args.device)
+    box, vis = evaluate_psnr(weights, layout, siren, volume, tf, lights[idx], n_points=fit.eval_points,
+                             seed=fit.seed + 7919 * (args.subset + 1), device=args.device)
+    write_subset(out, weights=weights.numpy(), light_index=idx, lights=lights[idx], psnr=box, psnr_visible=vis,
+                 layout=layout, siren=siren, config=cfg)
+    print(f"wrote {out}: PSNR box median {float(np.median(box)):.2f} dB (min {box.min():.2f}), "
+          f"visible median {float(np.median(vis)):.2f} dB")
+
+
+def _collect_weights(args: argparse.Namespace) -> None:
+    from diffshadow.lights import read_lights
+    from diffshadow.store import collect_subsets, write_store
+
+    lights = read_lights(args.lights)["train"]
+    store = collect_subsets(args.subsets, len(lights), lights)
+    write_store(args.out, store)
+    print(f"wrote {args.out}: {len(lights)} SIRENs of {store.layout.n_params} parameters; voxel PSNR median "
+          f"{float(np.median(store.psnr)):.2f} dB, min {store.psnr.min():.2f} dB "
+          f"(visible: median {float(np.median(store.psnr_visible)):.2f} dB)")
 
 
 def config_home() -> Path:
@@ -98,6 +209,31 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--device", default=None)
     p.add_argument("--threads", type=int, default=0, help="torch threads (0: torch's default)")
     p.set_defaults(func=_bench_shadow)
+
+    p = sub.add_parser("prepare-volume", help="normalised grid + TF + macro-cells as Zarr")
+    p.add_argument("--config-json", required=True, help='{"volume": PATH, "transfer_function": {...}}')
+    p.add_argument("--out", required=True)
+    p.set_defaults(func=_prepare_volume)
+
+    for name, func, helptext in (("preoptimize", _preoptimize, "fit the shared initial SIREN on light 0"),
+                                 ("fit-siren", _fit_siren, "fit one subset of SIRENs jointly")):
+        p = sub.add_parser(name, help=helptext)
+        p.add_argument("--volume", required=True, help="prepare_volume's volume.zarr")
+        p.add_argument("--lights", required=True, help="lights.json")
+        p.add_argument("--config-json", required=True, help='{"siren": ..., "fit": ..., ...}')
+        p.add_argument("--out", required=True)
+        p.add_argument("--device", default=None)
+        p.add_argument("--threads", type=int, default=0, help="torch threads (0: torch's default)")
+        if name == "fit-siren":
+            p.add_argument("--init", required=True, help="preoptimize's siren_init.pt")
+            p.add_argument("--subset", type=int, required=True)
+        p.set_defaults(func=func)
+
+    p = sub.add_parser("collect-weights", help="merge subset files into the Zarr weight store")
+    p.add_argument("--lights", required=True)
+    p.add_argument("--subsets", nargs="+", required=True)
+    p.add_argument("--out", required=True)
+    p.set_defaults(func=_collect_weights)
 
     p = sub.add_parser("install-profiles", help="make the repo's Snakemake profiles usable by bare name")
     p.add_argument("--source", default="profiles", help="folder of profiles (default: ./profiles)")

@@ -32,6 +32,9 @@ DEFAULT_STEP = 0.5  # marcher step in voxels; bench shadow shows max error < 1e-
 DEFAULT_SWEEP_STEP = 1.0  # sweep slice spacing in voxels (1, 1/2, 1/4, ...)
 TAU_MAX = 30.0  # optical depth past which a point counts as fully shadowed: exp(-30) ≈ 1e-13
 MACRO_CELL = 8  # voxels per macro-cell edge for empty-space skipping
+# Skipping costs a table lookup per sample; bench shadow: a net loss at 46 % empty cells (neghip, 0.93x),
+# a gain from 90 % (hydrogen_atom 2.8x, bi2o3 4x). `skip_empty=None` turns it on from this fraction.
+AUTO_SKIP_FRACTION = 0.5
 SAMPLES_PER_ITER = 4  # lattice samples per point per marching iteration (amortises Python overhead)
 CHUNK = 1 << 20  # samples held in memory at once
 
@@ -122,7 +125,7 @@ def transmittance(
     points,
     *,
     step: float = DEFAULT_STEP,
-    skip_empty: bool = True,
+    skip_empty: bool | None = None,
     tau_max: float = TAU_MAX,
     samples_per_iter: int = SAMPLES_PER_ITER,
     chunk: int = CHUNK,
@@ -131,7 +134,8 @@ def transmittance(
     """Shadow coefficient at each point (P, 3) for a light in direction `light_dir` → (P,) in [0, 1].
 
     `step` is in voxels (of the finest axis). Points outside the box are marched from where their ray
-    enters it. `skip_empty` jumps over macro-cells whose μ is 0 under `tf`.
+    enters it. `skip_empty` jumps over macro-cells whose μ is 0 under `tf` (None: when at least
+    `AUTO_SKIP_FRACTION` of the cells are empty).
     """
     if not (isinstance(step, int | float) and math.isfinite(step) and step > 0):
         raise ValueError(f"step: expected a positive number of voxels, got {step!r}")
@@ -151,12 +155,14 @@ def transmittance(
     q0 = (pts + t0[:, None] * w) / field.voxel_size  # voxel coordinates where marching starts
     dq = (w / field.voxel_size)[None, :] * dt[:, None]  # voxel displacement per sample
 
+    if skip_empty is None:
+        skip_empty = float(field.empty.float().mean()) >= AUTO_SKIP_FRACTION
+    skip = bool(skip_empty) and field.cell > 0
     tau = torch.zeros(len(pts), dtype=torch.float32, device=pts.device)
     per_chunk = max(1, chunk // samples_per_iter)
     for start in range(0, len(pts), per_chunk):
         sl = slice(start, start + per_chunk)
-        tau[sl] = _march_chunk(field, q0[sl], dq[sl], dt[sl], n[sl], skip_empty and field.cell > 0,
-                               tau_max, samples_per_iter)
+        tau[sl] = _march_chunk(field, q0[sl], dq[sl], dt[sl], n[sl], skip, tau_max, samples_per_iter)
     return torch.exp(-tau)
 
 

@@ -1,0 +1,173 @@
+"""The shadow INR: a NeurComp-style SIREN (paper §3.2, DESIGN.md §6), and K of them evaluated at once.
+
+    x ∈ [-1, 1]³ → sin(ω0 (W0 x + b0))                      first sine layer, 3 → H
+                 → x ← ½ (x + sin(ω0 L2(sin(ω0 L1(½ x)))))   residual blocks (NeurComp's averaging)
+                 → ½ (W x + b) + ½                            linear H → 1, output around [0, 1]
+
+Every parameter tensor is a named entry of a `WeightLayout`; a SIREN's weights travel as one flat
+float32 vector in that order (the Zarr store, the diffusion model's tokens). `BatchedSiren` evaluates K
+weight vectors on K point sets with batched matmuls: the one implementation used by fitting, the
+diffusion geometry loss and the renderer.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import torch
+from torch import nn
+
+OMEGA = 30.0  # sine frequency ω0 (SIREN)
+RES_WEIGHT = 0.5  # NeurComp's averaging weight on residual blocks
+
+
+@dataclass(frozen=True)
+class SirenConfig:
+    """SIREN size: `width` H (paper 128, 64 for small data) and residual `blocks`."""
+
+    width: int = 64
+    blocks: int = 2
+
+    @classmethod
+    def from_config(cls, d: dict) -> SirenConfig:
+        return cls(width=int(d["width"]), blocks=int(d["blocks"]))
+
+    def to_config(self) -> dict:
+        return {"width": self.width, "blocks": self.blocks}
+
+
+@dataclass(frozen=True)
+class WeightLayout:
+    """Ordered (name, shape) of every parameter tensor; flat vector ↔ named tensors."""
+
+    entries: tuple[tuple[str, tuple[int, ...]], ...]
+
+    @classmethod
+    def for_siren(cls, cfg: SirenConfig) -> WeightLayout:
+        h = cfg.width
+        entries = [("first.weight", (h, 3)), ("first.bias", (h,))]
+        for i in range(cfg.blocks):
+            for j in (1, 2):
+                entries += [(f"blocks.{i}.l{j}.weight", (h, h)), (f"blocks.{i}.l{j}.bias", (h,))]
+        entries += [("last.weight", (1, h)), ("last.bias", (1,))]
+        return cls(tuple(entries))
+
+    @classmethod
+    def from_config(cls, rows) -> WeightLayout:
+        return cls(tuple((str(name), tuple(int(s) for s in shape)) for name, shape in rows))
+
+    def to_config(self) -> list:
+        return [[name, list(shape)] for name, shape in self.entries]
+
+    @property
+    def sizes(self) -> list[int]:
+        return [math.prod(shape) for _, shape in self.entries]
+
+    @property
+    def n_params(self) -> int:
+        return sum(self.sizes)
+
+    def flatten(self, tensors: dict[str, torch.Tensor]) -> torch.Tensor:
+        """Named tensors (each with optional leading batch dims) → (..., n_params)."""
+        parts = []
+        for name, shape in self.entries:
+            t = tensors[name]
+            parts.append(t.reshape(*t.shape[: t.ndim - len(shape)], -1))
+        return torch.cat(parts, dim=-1)
+
+    def unflatten(self, flat: torch.Tensor) -> dict[str, torch.Tensor]:
+        """(..., n_params) → named tensors of shape (..., *shape); views, so gradients flow."""
+        if flat.shape[-1] != self.n_params:
+            raise ValueError(f"weight vector has {flat.shape[-1]} values, layout needs {self.n_params}")
+        out = {}
+        for (name, shape), part in zip(self.entries, flat.split(self.sizes, dim=-1), strict=True):
+            out[name] = part.reshape(*flat.shape[:-1], *shape)
+        return out
+
+
+def init_siren(cfg: SirenConfig, generator: torch.Generator | None = None) -> dict[str, torch.Tensor]:
+    """SIREN initialisation: first layer U(±1/in), others U(±√(6/in)/ω0); biases likewise by fan-in."""
+    out = {}
+    for name, shape in WeightLayout.for_siren(cfg).entries:
+        fan_in = shape[-1] if name.endswith("weight") else (3 if name.startswith("first") else cfg.width)
+        bound = 1.0 / fan_in if name.startswith("first") else math.sqrt(6.0 / fan_in) / OMEGA
+        if name.endswith("bias"):
+            bound = 1.0 / math.sqrt(fan_in)  # PyTorch's default bias init, as in SIREN/NeurComp code
+        out[name] = (torch.rand(shape, generator=generator) * 2 - 1) * bound
+    return out
+
+
+def _forward(p: dict[str, torch.Tensor], x: torch.Tensor, blocks: int) -> torch.Tensor:
+    """Shared maths for one SIREN (weights (out, in)) or K of them (weights (K, out, in), x (K, N, 3))."""
+
+    def linear(name: str, h: torch.Tensor) -> torch.Tensor:
+        w, b = p[f"{name}.weight"], p[f"{name}.bias"]
+        if w.ndim == 2:
+            return torch.addmm(b, h, w.t()) if h.ndim == 2 else h @ w.t() + b
+        return torch.baddbmm(b.unsqueeze(1), h, w.transpose(1, 2))  # (K, N, out)
+
+    h = torch.sin(OMEGA * linear("first", x))
+    for i in range(blocks):
+        inner = torch.sin(OMEGA * linear(f"blocks.{i}.l1", RES_WEIGHT * h))
+        h = RES_WEIGHT * (h + torch.sin(OMEGA * linear(f"blocks.{i}.l2", inner)))
+    return (0.5 * linear("last", h) + 0.5).squeeze(-1)
+
+
+class Siren(nn.Module):
+    """One shadow SIREN: (N, 3) points in [-1, 1]³ → (N,) shadow coefficients."""
+
+    def __init__(self, cfg: SirenConfig, generator: torch.Generator | None = None):
+        super().__init__()
+        self.cfg = cfg
+        self.layout = WeightLayout.for_siren(cfg)
+        self.params = nn.ParameterDict({k.replace(".", "_"): nn.Parameter(v)
+                                        for k, v in init_siren(cfg, generator).items()})
+
+    def named_tensors(self) -> dict[str, torch.Tensor]:
+        return {name: self.params[name.replace(".", "_")] for name, _ in self.layout.entries}
+
+    def flat(self) -> torch.Tensor:
+        return self.layout.flatten(self.named_tensors())
+
+    @classmethod
+    def from_flat(cls, vector, layout: WeightLayout, cfg: SirenConfig | None = None) -> Siren:
+        """A SIREN whose weights are `vector` in `layout` (the store's format)."""
+        vector = torch.as_tensor(vector, dtype=torch.float32)
+        if cfg is None:
+            cfg = SirenConfig(width=layout.entries[0][1][0], blocks=(len(layout.entries) - 4) // 4)
+        if WeightLayout.for_siren(cfg) != layout:
+            raise ValueError(f"layout does not match a SIREN of width {cfg.width} with {cfg.blocks} blocks")
+        model = cls(cfg)
+        with torch.no_grad():
+            for name, t in layout.unflatten(vector).items():
+                model.params[name.replace(".", "_")].copy_(t)
+        return model
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        return _forward(self.named_tensors(), x, self.cfg.blocks)
+
+
+class BatchedSiren:
+    """K SIRENs from a (K, n_params) weight matrix, evaluated on (K, N, 3) points → (K, N).
+
+    The weights may carry a graph (the diffusion model's prediction) or be leaf parameters (fitting).
+    """
+
+    def __init__(self, weights: torch.Tensor, layout: WeightLayout, blocks: int):
+        if weights.ndim != 2:
+            raise ValueError(f"BatchedSiren: weights must be (K, n_params), got {tuple(weights.shape)}")
+        self.weights = weights
+        self.layout = layout
+        self.blocks = blocks
+        self.params = layout.unflatten(weights)
+
+    def __call__(self, x: torch.Tensor) -> torch.Tensor:
+        if x.ndim != 3 or x.shape[0] != self.weights.shape[0]:
+            raise ValueError(f"BatchedSiren: points must be (K={self.weights.shape[0]}, N, 3), got {tuple(x.shape)}")
+        return _forward(self.params, x, self.blocks)
+
+
+def box_to_siren(points: torch.Tensor, extent: torch.Tensor) -> torch.Tensor:
+    """Box coordinates (x, y, z) in [0, extent] → SIREN input in [-1, 1]³ per axis."""
+    return points / extent * 2 - 1

@@ -1,0 +1,145 @@
+"""The SIREN weight store (DESIGN.md §3): per-subset `.npz` files and the collected Zarr v3 store.
+
+`results/{scene}/weights.zarr`: array `weights` (n_lights, n_params) float32, one light per chunk;
+`lights` (n_lights, 3); `psnr` and `psnr_visible` (n_lights,); attrs `layout` ([name, shape] rows),
+`siren` (width, blocks) and `config`. Generated SIRENs of later stages use the same layout and reader.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import tempfile
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from diffshadow.io import atomic_save
+from diffshadow.siren import SirenConfig, WeightLayout
+
+
+class StoreError(ValueError):
+    """A subset file or store that is missing, incomplete or inconsistent."""
+
+
+@dataclass
+class WeightStore:
+    weights: np.ndarray  # (n_lights, n_params) float32
+    lights: np.ndarray  # (n_lights, 3)
+    psnr: np.ndarray  # (n_lights,) voxel PSNR over the box
+    psnr_visible: np.ndarray  # (n_lights,) over the visible region
+    layout: WeightLayout
+    siren: SirenConfig
+    config: dict
+
+
+def write_subset(path, *, weights, light_index, lights, psnr, psnr_visible, layout: WeightLayout,
+                 siren: SirenConfig, config: dict) -> None:
+    """One `fit_siren` job's result, written atomically."""
+    meta = json.dumps({"layout": layout.to_config(), "siren": siren.to_config(), "config": config})
+
+    def save(tmp: Path) -> None:
+        with open(tmp, "wb") as f:
+            np.savez(f, weights=np.asarray(weights, np.float32), light_index=np.asarray(light_index, np.int64),
+                     lights=np.asarray(lights, np.float64), psnr=np.asarray(psnr, np.float64),
+                     psnr_visible=np.asarray(psnr_visible, np.float64), meta=np.array(meta))
+
+    atomic_save(path, save, suffix=".npz")
+
+
+def read_subset(path) -> dict:
+    path = Path(path)
+    try:
+        with np.load(path, allow_pickle=False) as z:
+            out = {k: z[k] for k in ("weights", "light_index", "lights", "psnr", "psnr_visible")}
+            meta = json.loads(str(z["meta"]))
+    except (OSError, ValueError, KeyError) as e:
+        raise StoreError(f"{path}: not a readable subset file ({e})") from None
+    out["layout"] = WeightLayout.from_config(meta["layout"])
+    out["siren"] = SirenConfig.from_config(meta["siren"])
+    out["config"] = meta["config"]
+    return out
+
+
+def write_store(path, store: WeightStore) -> None:
+    """Write a Zarr v3 store atomically: build it beside the target, then swap it in."""
+    import zarr
+
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = Path(tempfile.mkdtemp(prefix=f".{path.name}.", dir=path.parent))
+    try:
+        root = zarr.open_group(str(tmp), mode="w", zarr_format=3)
+        n, p = store.weights.shape
+        root.create_array("weights", data=np.asarray(store.weights, np.float32), chunks=(1, p))
+        root.create_array("lights", data=np.asarray(store.lights, np.float64))
+        root.create_array("psnr", data=np.asarray(store.psnr, np.float64))
+        root.create_array("psnr_visible", data=np.asarray(store.psnr_visible, np.float64))
+        root.attrs.update({"layout": store.layout.to_config(), "siren": store.siren.to_config(),
+                           "config": store.config, "n_lights": n, "n_params": p})
+        old = None
+        if path.exists():
+            old = path.with_name(f".{path.name}.old-{os.getpid()}")
+            os.replace(path, old)
+        os.replace(tmp, path)
+        if old is not None:
+            shutil.rmtree(old)
+    finally:
+        if tmp.exists():
+            shutil.rmtree(tmp)
+
+
+def open_store(path) -> WeightStore:
+    """Read a weight store (stage 1's `weights.zarr` or a generated one)."""
+    import zarr
+
+    path = Path(path)
+    try:
+        root = zarr.open_group(str(path), mode="r")
+        attrs = dict(root.attrs)
+        return WeightStore(
+            weights=np.asarray(root["weights"][...]),
+            lights=np.asarray(root["lights"][...]),
+            psnr=np.asarray(root["psnr"][...]),
+            psnr_visible=np.asarray(root["psnr_visible"][...]),
+            layout=WeightLayout.from_config(attrs["layout"]),
+            siren=SirenConfig.from_config(attrs["siren"]),
+            config=attrs.get("config", {}),
+        )
+    except (FileNotFoundError, KeyError) as e:
+        raise StoreError(f"{path}: not a weight store (missing {e})") from None
+
+
+def collect_subsets(subset_paths: list, n_lights: int, lights: np.ndarray) -> WeightStore:
+    """Merge subset files; every light must appear exactly once and every layout must agree."""
+    parts = [(Path(p), read_subset(p)) for p in subset_paths]
+    if not parts:
+        raise StoreError("collect_weights: no subset files given")
+    layout, siren = parts[0][1]["layout"], parts[0][1]["siren"]
+    weights = np.full((n_lights, layout.n_params), np.nan, np.float32)
+    psnr = np.full(n_lights, np.nan)
+    psnr_vis = np.full(n_lights, np.nan)
+    owner: dict[int, Path] = {}
+    for path, part in parts:
+        if part["layout"] != layout:
+            raise StoreError(f"{path}: its SIREN layout differs from {parts[0][0]}'s")
+        for row, idx in enumerate(part["light_index"].tolist()):
+            if not 0 <= idx < n_lights:
+                raise StoreError(f"{path}: light index {idx} outside 0..{n_lights - 1}")
+            if idx in owner:
+                raise StoreError(f"{path}: light {idx} is also in {owner[idx]}")
+            if not np.allclose(part["lights"][row], lights[idx], atol=1e-9):
+                raise StoreError(f"{path}: light {idx} has direction {part['lights'][row].tolist()}, "
+                                 f"lights.json says {lights[idx].tolist()}")
+            owner[idx] = path
+            weights[idx] = part["weights"][row]
+            psnr[idx] = part["psnr"][row]
+            psnr_vis[idx] = part["psnr_visible"][row]
+    missing = sorted(set(range(n_lights)) - set(owner))
+    if missing:
+        raise StoreError(f"collect_weights: lights {missing[:10]}{'...' if len(missing) > 10 else ''} are in "
+                         f"no subset file; given: {[str(p) for p, _ in parts]}")
+    return WeightStore(weights=weights, lights=np.asarray(lights), psnr=psnr, psnr_visible=psnr_vis,
+                       layout=layout, siren=siren, config=parts[0][1]["config"])

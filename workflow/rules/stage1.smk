@@ -1,0 +1,60 @@
+# Stage 1 (paper §3.2): the prepared volume, the shared initial SIREN, subset fits, the weight store.
+
+
+rule prepare_volume:
+    output:
+        directory("results/{scene}/volume.zarr"),
+    params:
+        cfg=lambda wc: json.dumps({k: v for k, v in scene_config(wc.scene).items()
+                                   if k in ("volume", "load", "transfer_function")}, sort_keys=True),
+    shell:
+        "diffshadow prepare-volume --config-json {params.cfg:q} --out {output}"
+
+
+rule preoptimize:
+    input:
+        volume="results/{scene}/volume.zarr",
+        lights="results/{scene}/lights.json",
+    output:
+        "results/{scene}/siren_init.pt",
+    params:
+        cfg=lambda wc: as_json(wc.scene, "siren", "fit", "preoptimize"),
+    threads: 1
+    log:
+        "results/{scene}/logs/preoptimize.log",
+    shell:
+        "diffshadow preoptimize --volume {input.volume} --lights {input.lights} --config-json {params.cfg:q}"
+        " --threads {threads} --out {output} 2>&1 | tee {log}"
+
+
+rule fit_siren:
+    input:
+        volume="results/{scene}/volume.zarr",
+        lights="results/{scene}/lights.json",
+        init="results/{scene}/siren_init.pt",
+    output:
+        "results/{scene}/sirens/subset_{subset}.npz",
+    params:
+        cfg=lambda wc: as_json(wc.scene, "siren", "fit", "subset_size"),
+    wildcard_constraints:
+        subset=r"\d+",
+    threads: 1
+    log:
+        "results/{scene}/logs/fit_siren_{subset}.log",
+    shell:
+        "diffshadow fit-siren --volume {input.volume} --lights {input.lights} --init {input.init}"
+        " --subset {wildcards.subset} --config-json {params.cfg:q} --threads {threads} --out {output}"
+        " 2>&1 | tee {log}"
+
+
+rule collect_weights:
+    input:
+        lights="results/{scene}/lights.json",
+        subsets=subset_files,
+    output:
+        directory("results/{scene}/weights.zarr"),
+    log:
+        "results/{scene}/logs/collect_weights.log",
+    shell:
+        "diffshadow collect-weights --lights {input.lights} --subsets {input.subsets} --out {output}"
+        " 2>&1 | tee {log}"
