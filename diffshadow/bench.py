@@ -126,3 +126,70 @@ def _plot(results: dict, path: Path) -> None:
     fig.tight_layout()
     atomic_save(path, lambda tmp: fig.savefig(tmp, dpi=110, format="png"), suffix=".png")
     plt.close(fig)
+
+
+def bench_siren(out_dir: Path, *, k: int = 16, points: int = 4096, widths=(32, 64, 128), blocks: int = 2,
+                chunks=(0, 1024, 512, 256), steps: int = 20, device=None) -> dict:
+    """Training throughput (points/s, forward + backward + Adam) of K SIRENs fitted jointly with
+    `BatchedSiren` (optionally in point chunks with gradient accumulation) vs K `Siren`s one after another."""
+    from diffshadow.siren import BatchedSiren, Siren, SirenConfig, WeightLayout, init_siren
+
+    device = torch.device(device or "cpu")
+    gen = torch.Generator().manual_seed(0)
+    results: dict = {"k": k, "points": points, "blocks": blocks, "device": str(device),
+                     "torch_threads": torch.get_num_threads(), "widths": {}}
+    for width in widths:
+        cfg = SirenConfig(width, blocks)
+        layout = WeightLayout.for_siren(cfg)
+        x = (torch.rand(k, points, 3, generator=gen) * 2 - 1).to(device)
+        y = torch.rand(k, points, generator=gen).to(device)
+
+        def sync():
+            if device.type == "cuda":
+                torch.cuda.synchronize()
+
+        def sequential():
+            models = [Siren(cfg).to(device) for _ in range(k)]
+            opts = [torch.optim.Adam(m.parameters(), lr=1e-4) for m in models]
+
+            def step():
+                for i, (m, o) in enumerate(zip(models, opts, strict=True)):
+                    o.zero_grad(set_to_none=True)
+                    ((m(x[i]) - y[i]) ** 2).mean().backward()
+                    o.step()
+            return step
+
+        def joint(chunk):
+            w = layout.flatten(init_siren(cfg)).expand(k, -1).clone().to(device).requires_grad_(True)
+            opt = torch.optim.Adam([w], lr=1e-4)
+            c = chunk or points
+
+            def step():
+                opt.zero_grad(set_to_none=True)
+                for c0 in range(0, points, c):
+                    pred = BatchedSiren(w, layout, blocks)(x[:, c0:c0 + c])
+                    (((pred - y[:, c0:c0 + c]) ** 2).sum(dim=1) / points).sum().backward()
+                opt.step()
+            return step
+
+        variants = {"sequential": sequential()} | {f"joint_chunk{c or points}": joint(c) for c in chunks}
+        rates = {}
+        for _round in range(2):  # interleaved rounds: drift on a shared machine hits every variant alike
+            for name, step in variants.items():
+                step()
+                sync()
+                t = time.perf_counter()
+                for _ in range(steps):
+                    step()
+                sync()
+                rates.setdefault(name, []).append(k * points * steps / (time.perf_counter() - t))
+        best = {name: max(r) for name, r in rates.items()}
+        ratios = {name: best[name] / best["sequential"] for name in best if name != "sequential"}
+        results["widths"][width] = {"points_per_s": best, "ratio_vs_sequential": ratios}
+        print(f"[bench siren] width {width}: sequential {best['sequential']:,.0f} pts/s; "
+              + ", ".join(f"{n} {r:.2f}x" for n, r in ratios.items()), flush=True)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    name = f"bench_siren_{device.type}.json"
+    atomic_write_text(out_dir / name, json.dumps(results, indent=1) + "\n")
+    print(f"[bench siren] wrote {out_dir / name}")
+    return results

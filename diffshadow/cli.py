@@ -140,6 +140,13 @@ def _collect_weights(args: argparse.Namespace) -> None:
           f"(visible: median {float(np.median(store.psnr_visible)):.2f} dB)")
 
 
+def _bench_siren(args: argparse.Namespace) -> None:
+    from diffshadow.bench import bench_siren
+
+    _threads(args.threads)
+    bench_siren(Path(args.out), k=args.k, points=args.points, widths=args.widths, device=args.device)
+
+
 def config_home() -> Path:
     return Path(os.environ.get("XDG_CONFIG_HOME") or Path.home() / ".config")
 
@@ -209,6 +216,15 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--device", default=None)
     p.add_argument("--threads", type=int, default=0, help="torch threads (0: torch's default)")
     p.set_defaults(func=_bench_shadow)
+
+    p = bench_sub.add_parser("siren", help="throughput of K SIRENs fitted jointly vs one after another")
+    p.add_argument("--k", type=int, default=16)
+    p.add_argument("--points", type=int, default=4096, help="points per SIREN per step")
+    p.add_argument("--widths", type=int, nargs="+", default=[32, 64, 128])
+    p.add_argument("--out", default="bench")
+    p.add_argument("--device", default=None)
+    p.add_argument("--threads", type=int, default=0)
+    p.set_defaults(func=_bench_siren)
 
     p = sub.add_parser("prepare-volume", help="normalised grid + TF + macro-cells as Zarr")
     p.add_argument("--config-json", required=True, help='{"volume": PATH, "transfer_function": {...}}')

@@ -1,0 +1,75 @@
+import numpy as np
+import pytest
+import torch
+from conftest import gaussian_blob, identity_tf
+
+from diffshadow.fit import FitConfig, FitError, fit_sirens
+from diffshadow.siren import SirenConfig, WeightLayout, init_siren
+from diffshadow.volume import Volume
+
+CFG = SirenConfig(8, 1)
+LAYOUT = WeightLayout.for_siren(CFG)
+
+
+@pytest.fixture
+def scene():
+    rng = np.random.default_rng(0)
+    vol = Volume(data=rng.uniform(0, 1, (9, 9, 9)).astype(np.float32), extent=np.ones(3), name="noise")
+    return vol, identity_tf(2.0), np.array([[0.0, 0.0, 1.0], [0.6, 0.0, 0.8]])
+
+
+def init():
+    return LAYOUT.flatten(init_siren(CFG, torch.Generator().manual_seed(0)))
+
+
+def test_resume_gives_the_same_weights(scene, tmp_path):
+    vol, tf, lights = scene
+    cfg = FitConfig(steps=12, points=64, checkpoint_every=4, eval_points=16)
+    full = fit_sirens(init(), LAYOUT, CFG, vol, tf, lights, cfg, log=lambda *a: None)
+
+    ckpt = tmp_path / "subset.ckpt"
+    calls = []
+
+    def interrupt(msg):  # progress is logged every step here; stop the run after step 6
+        calls.append(msg)
+        if len(calls) == 6:
+            raise KeyboardInterrupt
+
+    with pytest.raises(KeyboardInterrupt):
+        fit_sirens(init(), LAYOUT, CFG, vol, tf, lights, cfg, checkpoint=ckpt, log=interrupt)
+    assert ckpt.exists()  # saved at step 4
+    messages = []
+    resumed = fit_sirens(init(), LAYOUT, CFG, vol, tf, lights, cfg, checkpoint=ckpt, log=messages.append)
+    assert messages[0].startswith(f"resuming from {ckpt} at step 4")
+    assert torch.equal(resumed, full)
+    assert not ckpt.exists()
+
+
+def test_chunked_gradients_match_one_pass(scene):
+    vol, tf, lights = scene
+    a = fit_sirens(init(), LAYOUT, CFG, vol, tf, lights, FitConfig(steps=5, points=64), log=lambda *a: None)
+    b = fit_sirens(init(), LAYOUT, CFG, vol, tf, lights, FitConfig(steps=5, points=64, chunk=16),
+                   log=lambda *a: None)
+    assert (a - b).abs().max() < 1e-5
+
+
+def test_divergence_names_the_light(scene):
+    vol, tf, lights = scene
+    bad = init()
+    bad[0] = float("inf")
+    with pytest.raises(FitError, match=r"loss is not finite for light\(s\) \[7, 8\]"):
+        fit_sirens(bad, LAYOUT, CFG, vol, tf, lights, FitConfig(steps=3, points=16), light_index=[7, 8],
+                   log=lambda *a: None)
+
+
+def test_fitting_reduces_the_error():
+    vol = Volume(data=gaussian_blob(17, 0.15), extent=np.ones(3), name="blob")
+    lights = np.array([[0.0, 0.0, 1.0], [0.6, 0.0, 0.8]])
+    cfg = SirenConfig(16, 1)
+    layout = WeightLayout.for_siren(cfg)
+    msgs = []
+    fit_sirens(layout.flatten(init_siren(cfg, torch.Generator().manual_seed(0))), layout, cfg, vol, identity_tf(5.0),
+               lights, FitConfig(steps=150, points=512, lr=3e-3), log=msgs.append)
+    first = float(msgs[0].split("PSNR(train batch) ")[1].split(" dB")[0])
+    last = float(msgs[-1].split("PSNR(train batch) ")[1].split(" dB")[0])
+    assert last > first + 10, (first, last)

@@ -1,0 +1,53 @@
+import pytest
+import torch
+
+from diffshadow.siren import BatchedSiren, Siren, SirenConfig, WeightLayout, box_to_siren, init_siren
+
+
+@pytest.mark.parametrize("cfg", [SirenConfig(16, 0), SirenConfig(32, 2), SirenConfig(24, 3)])
+def test_batched_equals_separate_sirens(cfg):
+    gen = torch.Generator().manual_seed(0)
+    layout = WeightLayout.for_siren(cfg)
+    weights = torch.stack([layout.flatten(init_siren(cfg, gen)) for _ in range(5)])
+    x = torch.rand(5, 300, 3, generator=gen) * 2 - 1
+    batched = BatchedSiren(weights, layout, cfg.blocks)(x)
+    for i in range(5):
+        single = Siren.from_flat(weights[i], layout)(x[i])
+        assert (batched[i] - single).abs().max() <= 1e-5
+
+
+def test_layout_round_trip_and_order():
+    cfg = SirenConfig(8, 2)
+    layout = WeightLayout.for_siren(cfg)
+    assert [n for n, _ in layout.entries][:2] == ["first.weight", "first.bias"]
+    assert layout.n_params == 8 * 3 + 8 + 2 * 2 * (8 * 8 + 8) + 8 + 1
+    flat = torch.randn(4, layout.n_params)
+    assert torch.equal(layout.flatten(layout.unflatten(flat)), flat)
+    assert WeightLayout.from_config(layout.to_config()) == layout
+    model = Siren.from_flat(flat[2], layout)
+    assert torch.equal(model.flat(), flat[2])
+
+
+def test_gradients_reach_the_flat_vector():
+    cfg = SirenConfig(8, 1)
+    layout = WeightLayout.for_siren(cfg)
+    w = layout.flatten(init_siren(cfg)).expand(3, -1).clone().requires_grad_(True)
+    BatchedSiren(w, layout, 1)(torch.rand(3, 10, 3)).sum().backward()
+    assert w.grad is not None and torch.isfinite(w.grad).all() and (w.grad.abs().sum(1) > 0).all()
+
+
+def test_bad_shapes_are_named():
+    cfg = SirenConfig(8, 1)
+    layout = WeightLayout.for_siren(cfg)
+    with pytest.raises(ValueError, match=f"weight vector has 5 values, layout needs {layout.n_params}"):
+        layout.unflatten(torch.zeros(5))
+    with pytest.raises(ValueError, match=r"points must be \(K=2, N, 3\)"):
+        BatchedSiren(torch.zeros(2, layout.n_params), layout, 1)(torch.zeros(3, 4, 3))
+    with pytest.raises(ValueError, match="layout does not match"):
+        Siren.from_flat(torch.zeros(layout.n_params), layout, SirenConfig(16, 1))
+
+
+def test_box_to_siren_maps_box_corners_to_unit_cube():
+    extent = torch.tensor([1.0, 0.5, 0.25])
+    pts = torch.tensor([[0.0, 0.0, 0.0], [1.0, 0.5, 0.25], [0.5, 0.25, 0.125]])
+    torch.testing.assert_close(box_to_siren(pts, extent), torch.tensor([[-1.0] * 3, [1.0] * 3, [0.0] * 3]))

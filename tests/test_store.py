@@ -1,0 +1,61 @@
+import numpy as np
+import pytest
+
+from diffshadow.io import atomic_path
+from diffshadow.siren import SirenConfig, WeightLayout
+from diffshadow.store import StoreError, collect_subsets, open_store, read_subset, write_store, write_subset
+
+CFG = SirenConfig(4, 1)
+LAYOUT = WeightLayout.for_siren(CFG)
+LIGHTS = np.eye(3)[[0, 1, 2, 0]] * np.array([[1], [1], [1], [-1]])
+
+
+def subset(path, idx, layout=LAYOUT):
+    write_subset(path, weights=np.full((len(idx), layout.n_params), idx[0], np.float32), light_index=idx,
+                 lights=LIGHTS[idx], psnr=np.full(len(idx), 40.0), psnr_visible=np.full(len(idx), 42.0),
+                 layout=layout, siren=CFG, config={"fit": {"steps": 3}})
+
+
+def test_collect_round_trip(tmp_path):
+    subset(tmp_path / "subset_0.npz", [0, 1])
+    subset(tmp_path / "subset_1.npz", [2, 3])
+    store = collect_subsets([tmp_path / "subset_0.npz", tmp_path / "subset_1.npz"], 4, LIGHTS)
+    write_store(tmp_path / "weights.zarr", store)
+    back = open_store(tmp_path / "weights.zarr")
+    np.testing.assert_array_equal(back.weights[:, 0], [0, 0, 2, 2])
+    assert back.layout == LAYOUT and back.siren == CFG and back.config == {"fit": {"steps": 3}}
+    np.testing.assert_array_equal(back.lights, LIGHTS)
+    import zarr
+    assert zarr.open_group(str(tmp_path / "weights.zarr"), mode="r")["weights"].chunks == (1, LAYOUT.n_params)
+    write_store(tmp_path / "weights.zarr", store)  # replacing an existing store works
+    assert open_store(tmp_path / "weights.zarr").weights.shape == (4, LAYOUT.n_params)
+
+
+def test_missing_subset_is_named(tmp_path):
+    subset(tmp_path / "subset_0.npz", [0, 1])
+    with pytest.raises(StoreError, match=r"lights \[2, 3\] are in no subset file"):
+        collect_subsets([tmp_path / "subset_0.npz"], 4, LIGHTS)
+
+
+def test_duplicate_light_and_layout_mismatch(tmp_path):
+    subset(tmp_path / "a.npz", [0, 1])
+    subset(tmp_path / "b.npz", [1, 2])
+    with pytest.raises(StoreError, match=r"b.npz: light 1 is also in .*a.npz"):
+        collect_subsets([tmp_path / "a.npz", tmp_path / "b.npz"], 4, LIGHTS)
+    subset(tmp_path / "c.npz", [2, 3], layout=WeightLayout.for_siren(SirenConfig(5, 1)))
+    with pytest.raises(StoreError, match=r"c.npz: its SIREN layout differs"):
+        collect_subsets([tmp_path / "a.npz", tmp_path / "c.npz"], 4, LIGHTS)
+
+
+def test_corrupt_subset_file_is_named(tmp_path):
+    (tmp_path / "subset_1.npz").write_bytes(b"not a zip")
+    with pytest.raises(StoreError, match=r"subset_1.npz: not a readable subset file"):
+        read_subset(tmp_path / "subset_1.npz")
+
+
+def test_interrupted_write_leaves_nothing(tmp_path):
+    target = tmp_path / "out.npz"
+    with pytest.raises(KeyboardInterrupt), atomic_path(target) as tmp:
+        tmp.write_bytes(b"half")
+        raise KeyboardInterrupt
+    assert list(tmp_path.iterdir()) == []

@@ -1,0 +1,122 @@
+"""The Snakemake workflow end to end on a tiny configuration (one test module, one real run)."""
+
+import os
+import re
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+import yaml
+
+from diffshadow.store import open_store
+
+REPO = Path(__file__).resolve().parents[1]
+TINY = {
+    "lights": {"sphere": 40, "count": 4, "center": [0.0, 0.0, 1.0], "unseen": 2, "seed": 0},
+    "siren": {"width": 8, "blocks": 1},
+    "subset_size": 2,
+    "preoptimize": {"steps": 5, "lr": 1.0e-3},
+    "fit": {"steps": 6, "points": 128, "eval_points": 256, "grid_upsample": 1, "chunk": 0},
+}
+
+
+def snakemake(workdir: Path, *args: str, config: dict = TINY, check: bool = True) -> subprocess.CompletedProcess:
+    cfg = workdir / "tiny.yaml"
+    cfg.write_text(yaml.safe_dump(config))
+    env = {**os.environ, "PATH": f"{Path(sys.executable).parent}{os.pathsep}{os.environ['PATH']}"}
+    cmd = [sys.executable, "-m", "snakemake", "-s", str(REPO / "Snakefile"), "--directory", str(workdir),
+           "--configfile", str(cfg), "--cores", "2", *args]
+    proc = subprocess.run(cmd, env=env, capture_output=True, text=True, timeout=600)
+    if check and proc.returncode != 0:
+        raise AssertionError(f"snakemake failed:\n{proc.stdout[-3000:]}\n{proc.stderr[-3000:]}")
+    return proc
+
+
+def planned(proc: subprocess.CompletedProcess) -> dict[str, int]:
+    """Job counts from a dry run's 'Job stats' table."""
+    text = proc.stdout + proc.stderr
+    if "Nothing to be done" in text:
+        return {}
+    table = text.split("Job stats:")[1].split("total")[0]
+    return {m[1]: int(m[2]) for m in re.finditer(r"^(\w+)\s+(\d+)\s*$", table, re.M)}
+
+
+@pytest.fixture(scope="module")
+def finished(tmp_path_factory):
+    workdir = tmp_path_factory.mktemp("workflow")
+    snakemake(workdir)
+    return workdir
+
+
+def test_builds_the_weight_store(finished):
+    store = open_store(finished / "results/nucleon/weights.zarr")
+    assert store.weights.shape == (4, store.layout.n_params)
+    assert np.isfinite(store.weights).all() and np.isfinite(store.psnr).all()
+    assert sorted(p.name for p in (finished / "results/nucleon/sirens").glob("*.npz")) == \
+        ["subset_0.npz", "subset_1.npz"]
+
+
+def test_nothing_left_to_do(finished):
+    assert planned(snakemake(finished, "-n")) == {}
+
+
+def test_diffusion_settings_do_not_refit(finished):
+    changed = {**TINY, "diffusion": {"preset": "small", "epochs": 7, "seed": 3}}
+    assert "fit_siren" not in planned(snakemake(finished, "-n", config=changed))
+    refit = {**TINY, "fit": {**TINY["fit"], "steps": 7}}  # the control: a fit setting does refit
+    assert planned(snakemake(finished, "-n", config=refit))["fit_siren"] == 2
+
+
+def test_rerun_one_subset(finished):
+    sirens = finished / "results/nucleon/sirens"
+    before = (sirens / "subset_0.npz").read_bytes(), (sirens / "subset_0.npz").stat().st_mtime_ns
+    target = "results/nucleon/sirens/subset_1.npz"
+    assert planned(snakemake(finished, "-n", "-f", target)) == {"fit_siren": 1}
+    assert planned(snakemake(finished, "-n", "-R", target)) == {"fit_siren": 1, "collect_weights": 1, "all": 1}
+    # a corrupted subset is newer than the store: collecting again fails and names the file
+    (sirens / "subset_1.npz").write_bytes(b"garbage")
+    proc = snakemake(finished, check=False)
+    assert proc.returncode != 0 and "subset_1.npz: not a readable subset file" in proc.stdout + proc.stderr
+    snakemake(finished, "-R", target)
+    assert open_store(finished / "results/nucleon/weights.zarr").weights.shape[0] == 4
+    assert ((sirens / "subset_0.npz").read_bytes(), (sirens / "subset_0.npz").stat().st_mtime_ns) == before
+    assert not list(sirens.glob(".*"))  # no temporary or half-written files left behind
+
+
+def test_config_typo_fails_before_any_job(tmp_path):
+    bad = {**TINY, "fit": {**TINY["fit"], "stpes": 3}}
+    proc = snakemake(tmp_path, "-n", config=bad, check=False)
+    assert proc.returncode != 0 and "stpes" in proc.stdout + proc.stderr
+    wrong_type = {**TINY, "subset_size": "two"}
+    proc = snakemake(tmp_path, "-n", config=wrong_type, check=False)
+    assert proc.returncode != 0 and "'two' is not of type 'integer'" in proc.stdout + proc.stderr
+    assert not (tmp_path / "results").exists()
+
+
+def test_killed_fit_leaves_no_output_and_resumes(finished, tmp_path):
+    import json
+    import signal
+    import time
+
+    cfg = json.dumps({"siren": TINY["siren"], "subset_size": 2,
+                      "fit": {**TINY["fit"], "steps": 3000, "checkpoint_every": 10}})
+    res = finished / "results/nucleon"
+    out = tmp_path / "subset_1.npz"
+    ckpt = tmp_path / "subset_1.npz.ckpt"
+    cmd = [str(Path(sys.executable).parent / "diffshadow"), "fit-siren", "--volume", str(res / "volume.zarr"),
+           "--lights", str(res / "lights.json"), "--init", str(res / "siren_init.pt"), "--subset", "1",
+           "--config-json", cfg, "--threads", "1", "--out", str(out)]
+    proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    deadline = time.time() + 120
+    while not ckpt.exists() and time.time() < deadline and proc.poll() is None:
+        time.sleep(0.05)
+    time.sleep(0.3)
+    proc.send_signal(signal.SIGKILL)
+    proc.wait()
+    assert ckpt.exists(), "no checkpoint was written before the kill"
+    assert not out.exists()
+    done = subprocess.run(cmd, capture_output=True, text=True, timeout=600)
+    assert done.returncode == 0, done.stderr
+    assert "resuming from" in done.stdout and out.exists() and not ckpt.exists()
