@@ -147,6 +147,23 @@ def _bench_siren(args: argparse.Namespace) -> None:
     bench_siren(Path(args.out), k=args.k, points=args.points, widths=args.widths, device=args.device)
 
 
+def _bench_init_spread(args: argparse.Namespace) -> None:
+    from diffshadow.bench import bench_init_spread
+
+    _threads(args.threads)
+    bench_init_spread(Path(args.results), Path(args.out), n_lights=args.lights)
+
+
+def _check_store(args: argparse.Namespace) -> None:
+    from diffshadow.bench import check_store
+
+    _threads(args.threads)
+    result = check_store(Path(args.results))
+    if result["max_abs_diff_db"] > args.tolerance:
+        raise SystemExit(f"check-store: stored and recomputed PSNR differ by {result['max_abs_diff_db']:.2f} dB "
+                         f"(> {args.tolerance} dB)")
+
+
 def config_home() -> Path:
     return Path(os.environ.get("XDG_CONFIG_HOME") or Path.home() / ".config")
 
@@ -225,6 +242,19 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--device", default=None)
     p.add_argument("--threads", type=int, default=0)
     p.set_defaults(func=_bench_siren)
+
+    p = bench_sub.add_parser("init-spread", help="weight spread across lights: shared init vs random inits")
+    p.add_argument("--results", default="results/nucleon", help="a finished scene's results folder")
+    p.add_argument("--lights", type=int, default=8, help="lights to refit from random inits")
+    p.add_argument("--out", default="bench")
+    p.add_argument("--threads", type=int, default=0)
+    p.set_defaults(func=_bench_init_spread)
+
+    p = sub.add_parser("check-store", help="re-evaluate every stored SIREN independently against the store's PSNR")
+    p.add_argument("--results", default="results/nucleon")
+    p.add_argument("--tolerance", type=float, default=0.5, help="dB")
+    p.add_argument("--threads", type=int, default=0)
+    p.set_defaults(func=_check_store)
 
     p = sub.add_parser("prepare-volume", help="normalised grid + TF + macro-cells as Zarr")
     p.add_argument("--config-json", required=True, help='{"volume": PATH, "transfer_function": {...}}')

@@ -33,14 +33,14 @@ class FitError(ValueError):
 
 @dataclass(frozen=True)
 class FitConfig:
-    steps: int = 600  # paper: 2000
+    steps: int = 700  # paper: 2000
     points: int = 4096  # per SIREN per step (paper: 32,768)
     lr: float = 1e-3  # Adam, paper §3.4
     lr_final: float = 1e-3  # cosine decay to lr · lr_final (authors' code)
     visible_fraction: float = 0.5  # share of points drawn in the visible region
     target: str = "sweep"  # "sweep" or "march" (a grid per light) or "transmittance" (exact per point)
     grid_upsample: int = 2  # target grids on a lattice this much finer than the voxels
-    eval_points: int = 16384  # held-out points per light for the stored PSNR
+    eval_points: int = 32768  # held-out points per light for the stored PSNR
     chunk: int = 0  # points per SIREN per forward/backward pass; 0: all at once
     checkpoint_every: int = 100
     seed: int = 0
