@@ -14,8 +14,9 @@ validate(config, os.path.join(workflow.basedir, "workflow", "schemas", "config.s
 include: "workflow/rules/common.smk"
 include: "workflow/rules/lights.smk"
 include: "workflow/rules/stage1.smk"
+include: "workflow/rules/stage2.smk"
 
 
 rule all:
     input:
-        expand("results/{scene}/weights.zarr", scene=config["scenes"]),
+        expand("results/{scene}/voxel_metrics.json", scene=config["scenes"]),

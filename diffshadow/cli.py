@@ -164,6 +164,154 @@ def _check_store(args: argparse.Namespace) -> None:
                          f"(> {args.tolerance} dB)")
 
 
+def _presample(args: argparse.Namespace) -> None:
+    import zarr
+
+    from diffshadow.diffusion.train import DiffusionConfig
+    from diffshadow.evaluate import presample
+    from diffshadow.lights import read_lights
+    from diffshadow.store import write_zarr_group
+    from diffshadow.volume import load_prepared
+
+    _threads(args.threads)
+    cfg = DiffusionConfig.from_config(_json(args.config_json)["diffusion"])
+    volume, tf = load_prepared(args.volume)
+    lights = read_lights(args.lights)["train"]
+    print(f"presampling {cfg.presample_points} points for each of {len(lights)} lights", flush=True)
+    pts, values = presample(volume, tf, lights, cfg.presample_points, seed=cfg.seed)
+
+    def fill(root: zarr.Group) -> None:
+        root.create_array("points", data=pts.numpy(), chunks=(1, *pts.shape[1:]))
+        root.create_array("values", data=values.numpy(), chunks=(1, values.shape[1]))
+        root.create_array("lights", data=lights)
+        root.attrs.update({"extent": volume.extent.tolist()})
+
+    write_zarr_group(args.out, fill)
+    print(f"wrote {args.out}")
+
+
+def _load_training_data(weights_path: str, points_path: str):
+    import torch
+    import zarr
+
+    from diffshadow.diffusion.train import TrainingData
+    from diffshadow.store import open_store
+
+    store = open_store(weights_path)
+    geo = zarr.open_group(points_path, mode="r")
+    if not np.allclose(np.asarray(geo["lights"][...]), store.lights):
+        raise ValueError(f"{points_path}: its lights differ from {weights_path}'s; rerun presample")
+    return TrainingData(weights=torch.as_tensor(store.weights), lights=torch.as_tensor(store.lights),
+                        points=torch.as_tensor(np.asarray(geo["points"][...])),
+                        values=torch.as_tensor(np.asarray(geo["values"][...])),
+                        extent=torch.as_tensor(geo.attrs["extent"], dtype=torch.float32),
+                        layout=store.layout, siren=store.siren), store
+
+
+def _train_diffusion(args: argparse.Namespace) -> None:
+    from diffshadow.diffusion.train import DiffusionConfig, train_diffusion
+
+    _threads(args.threads)
+    cfg = DiffusionConfig.from_config(_json(args.config_json)["diffusion"])
+    data, _ = _load_training_data(args.weights, args.points)
+    out = Path(args.out)
+    train_diffusion(data, cfg, out.with_name(out.name + ".part"), device=args.device)
+    os.replace(out.with_name(out.name + ".part"), out)
+    print(f"wrote {out}")
+
+
+def _sample_shadows(args: argparse.Namespace) -> None:
+    import torch
+
+    from diffshadow.diffusion.train import generate, load_sampler
+    from diffshadow.evaluate import TruthPoints, psnr_per_light
+    from diffshadow.lights import read_lights
+    from diffshadow.store import WeightStore, write_store
+    from diffshadow.volume import load_prepared
+
+    _threads(args.threads)
+    state = torch.load(args.checkpoint, map_location="cpu", weights_only=False)
+    model, std, layout, siren = load_sampler(state, args.device)
+    cfg = state["config"]
+    light_sets = read_lights(args.lights)
+    lights = np.concatenate([light_sets["train"], light_sets["unseen"]])
+    seen = np.arange(len(lights)) < len(light_sets["train"])
+    print(f"sampling {len(lights)} shadow SIRENs ({seen.sum()} seen, {(~seen).sum()} unseen) with "
+          f"DDIM {cfg['ddim_steps']} steps", flush=True)
+    weights = generate(model, std, lights, method="ddim", steps=cfg["ddim_steps"], seed=cfg["seed"],
+                       device=args.device).numpy()
+    volume, tf = load_prepared(args.volume)
+    points = TruthPoints(volume, tf, args.eval_points, seed=cfg["seed"] + 1)
+    scores = psnr_per_light(points.sirens(weights, layout, siren), points.truth(lights))
+    store = WeightStore(weights=weights, lights=lights, psnr=scores["box"],
+                        psnr_visible=scores.get("visible", scores["box"]), layout=layout, siren=siren,
+                        config={"diffusion": cfg, "checkpoint": str(args.checkpoint)}, seen=seen)
+    write_store(args.out, store)
+    print(f"wrote {args.out}: PSNR median seen {np.median(store.psnr[seen]):.2f} dB, "
+          f"unseen {np.median(store.psnr[~seen]) if (~seen).any() else float('nan'):.2f} dB")
+
+
+def _evaluate_voxels(args: argparse.Namespace) -> None:
+    import torch
+
+    from diffshadow.diffusion.train import load_sampler
+    from diffshadow.evaluate import TruthPoints, blend_baseline, nearest, psnr_per_light, seconds_per_inr
+    from diffshadow.io import atomic_write_text
+    from diffshadow.lights import read_lights
+    from diffshadow.store import open_store
+    from diffshadow.volume import load_prepared
+
+    _threads(args.threads)
+    stage1, generated = open_store(args.weights), open_store(args.generated)
+    volume, tf = load_prepared(args.volume)
+    light_sets = read_lights(args.lights)
+    train, unseen = light_sets["train"], light_sets["unseen"]
+    seen = generated.seen
+    state = torch.load(args.checkpoint, map_location="cpu", weights_only=False)
+    model, std, layout, siren = load_sampler(state)
+    points = TruthPoints(volume, tf, args.eval_points, seed=int(state["config"]["seed"]) + 2)
+    truth_train, truth_unseen = points.truth(train), points.truth(unseen)
+    gen_seen = psnr_per_light(points.sirens(generated.weights[seen], layout, siren), truth_train)
+    stage1_seen = psnr_per_light(points.sirens(stage1.weights, layout, siren), truth_train)
+    result = {"seen": {"count": int(seen.sum()),
+                       "generated_psnr_median": float(np.median(gen_seen["box"])),
+                       "generated_psnr_min": float(gen_seen["box"].min()),
+                       "stage1_psnr_median": float(np.median(stage1_seen["box"])),
+                       "generated_minus_stage1_median_db": float(np.median(gen_seen["box"] - stage1_seen["box"]))}}
+    if "visible" in gen_seen:
+        result["seen"]["generated_psnr_visible_median"] = float(np.median(gen_seen["visible"]))
+        result["seen"]["stage1_psnr_visible_median"] = float(np.median(stage1_seen["visible"]))
+    if len(unseen):
+        idx, angles = nearest(train, unseen, args.blend_k)
+        gen_unseen = psnr_per_light(points.sirens(generated.weights[~seen], layout, siren), truth_unseen)
+        near = psnr_per_light(points.sirens(stage1.weights[idx[:, 0]], layout, siren), truth_unseen)
+        blend = psnr_per_light(blend_baseline(truth_train, idx, angles), truth_unseen)
+        result["unseen"] = {"count": len(unseen),
+                            "generated_psnr_median": float(np.median(gen_unseen["box"])),
+                            "nearest_psnr_median": float(np.median(near["box"])),
+                            "blend_psnr_median": float(np.median(blend["box"])),
+                            "blend_k": args.blend_k,
+                            "nearest_angle_median_deg": float(np.degrees(np.median(angles[:, 0])))}
+    # DDIM vs 500-step DDPM: time per INR and quality on the seen lights
+    from diffshadow.diffusion.train import generate
+
+    ddim_steps = int(state["config"]["ddim_steps"])
+    ddpm_w = generate(model, std, train, method="ddpm", seed=int(state["config"]["seed"])).numpy()
+    ddpm_seen = psnr_per_light(points.sirens(ddpm_w, layout, siren), truth_train)
+    t_ddim = seconds_per_inr(model, std, train[0], method="ddim", steps=ddim_steps)
+    t_ddpm = seconds_per_inr(model, std, train[0], method="ddpm", steps=500, repeats=1)
+    result["sampling"] = {"ddim_steps": ddim_steps, "ddim_psnr_median": result["seen"]["generated_psnr_median"],
+                          "ddpm_psnr_median": float(np.median(ddpm_seen["box"])), "speedup": t_ddpm / t_ddim}
+    result["seconds_per_inr"] = {"ddim": t_ddim, "ddpm": t_ddpm}
+    n_voxels = int(np.prod(volume.data.shape))
+    result["storage_bytes"] = {"model": int(sum(p.numel() * p.element_size() for p in model.parameters())
+                                            + 2 * 8 * len(layout.sizes)),
+                               "sirens": int(len(train) * layout.n_params * 4),
+                               "grids": int(len(train) * n_voxels * 2)}
+    atomic_write_text(args.out, json.dumps(result, indent=1) + "\n")
+    print(json.dumps(result, indent=1))
+
+
 def config_home() -> Path:
     return Path(os.environ.get("XDG_CONFIG_HOME") or Path.home() / ".config")
 
@@ -280,6 +428,45 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--subsets", nargs="+", required=True)
     p.add_argument("--out", required=True)
     p.set_defaults(func=_collect_weights)
+
+    p = sub.add_parser("presample", help="points and true shadow per training light (geometry loss)")
+    p.add_argument("--volume", required=True)
+    p.add_argument("--lights", required=True)
+    p.add_argument("--config-json", required=True, help='{"diffusion": {...}}')
+    p.add_argument("--out", required=True)
+    p.add_argument("--threads", type=int, default=0)
+    p.set_defaults(func=_presample)
+
+    p = sub.add_parser("train-diffusion", help="train the weight-space diffusion model (geometry loss)")
+    p.add_argument("--weights", required=True, help="weights.zarr")
+    p.add_argument("--points", required=True, help="geometry_points.zarr")
+    p.add_argument("--config-json", required=True, help='{"diffusion": {...}}')
+    p.add_argument("--out", required=True)
+    p.add_argument("--device", default=None)
+    p.add_argument("--threads", type=int, default=0)
+    p.set_defaults(func=_train_diffusion)
+
+    p = sub.add_parser("sample-shadows", help="generate SIRENs for every training and unseen light")
+    p.add_argument("--checkpoint", required=True)
+    p.add_argument("--volume", required=True)
+    p.add_argument("--lights", required=True)
+    p.add_argument("--eval-points", type=int, default=32768)
+    p.add_argument("--out", required=True)
+    p.add_argument("--device", default=None)
+    p.add_argument("--threads", type=int, default=0)
+    p.set_defaults(func=_sample_shadows)
+
+    p = sub.add_parser("evaluate-voxels", help="voxel PSNR of generated SIRENs, baselines, storage, timing")
+    p.add_argument("--checkpoint", required=True)
+    p.add_argument("--weights", required=True)
+    p.add_argument("--generated", required=True)
+    p.add_argument("--volume", required=True)
+    p.add_argument("--lights", required=True)
+    p.add_argument("--eval-points", type=int, default=32768)
+    p.add_argument("--blend-k", type=int, default=4)
+    p.add_argument("--out", required=True)
+    p.add_argument("--threads", type=int, default=0)
+    p.set_defaults(func=_evaluate_voxels)
 
     p = sub.add_parser("install-profiles", help="make the repo's Snakemake profiles usable by bare name")
     p.add_argument("--source", default="profiles", help="folder of profiles (default: ./profiles)")

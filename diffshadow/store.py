@@ -33,6 +33,7 @@ class WeightStore:
     layout: WeightLayout
     siren: SirenConfig
     config: dict
+    seen: np.ndarray | None = None  # generated stores: True for training lights, False for unseen ones
 
 
 def write_subset(path, *, weights, light_index, lights, psnr, psnr_visible, layout: WeightLayout,
@@ -63,22 +64,15 @@ def read_subset(path) -> dict:
     return out
 
 
-def write_store(path, store: WeightStore) -> None:
-    """Write a Zarr v3 store atomically: build it beside the target, then swap it in."""
+def write_zarr_group(path, fill) -> None:
+    """Build a Zarr v3 group with `fill(root)` beside `path`, then swap it in (atomic for readers)."""
     import zarr
 
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     tmp = Path(tempfile.mkdtemp(prefix=f".{path.name}.", dir=path.parent))
     try:
-        root = zarr.open_group(str(tmp), mode="w", zarr_format=3)
-        n, p = store.weights.shape
-        root.create_array("weights", data=np.asarray(store.weights, np.float32), chunks=(1, p))
-        root.create_array("lights", data=np.asarray(store.lights, np.float64))
-        root.create_array("psnr", data=np.asarray(store.psnr, np.float64))
-        root.create_array("psnr_visible", data=np.asarray(store.psnr_visible, np.float64))
-        root.attrs.update({"layout": store.layout.to_config(), "siren": store.siren.to_config(),
-                           "config": store.config, "n_lights": n, "n_params": p})
+        fill(zarr.open_group(str(tmp), mode="w", zarr_format=3))
         old = None
         if path.exists():
             old = path.with_name(f".{path.name}.old-{os.getpid()}")
@@ -89,6 +83,23 @@ def write_store(path, store: WeightStore) -> None:
     finally:
         if tmp.exists():
             shutil.rmtree(tmp)
+
+
+def write_store(path, store: WeightStore) -> None:
+    """Write a weight store (Zarr v3) atomically."""
+
+    def fill(root) -> None:
+        n, p = store.weights.shape
+        root.create_array("weights", data=np.asarray(store.weights, np.float32), chunks=(1, p))
+        root.create_array("lights", data=np.asarray(store.lights, np.float64))
+        root.create_array("psnr", data=np.asarray(store.psnr, np.float64))
+        root.create_array("psnr_visible", data=np.asarray(store.psnr_visible, np.float64))
+        if store.seen is not None:
+            root.create_array("seen", data=np.asarray(store.seen, bool))
+        root.attrs.update({"layout": store.layout.to_config(), "siren": store.siren.to_config(),
+                           "config": store.config, "n_lights": n, "n_params": p})
+
+    write_zarr_group(path, fill)
 
 
 def open_store(path) -> WeightStore:
@@ -107,6 +118,7 @@ def open_store(path) -> WeightStore:
             layout=WeightLayout.from_config(attrs["layout"]),
             siren=SirenConfig.from_config(attrs["siren"]),
             config=attrs.get("config", {}),
+            seen=np.asarray(root["seen"][...]) if "seen" in root else None,
         )
     except (FileNotFoundError, KeyError) as e:
         raise StoreError(f"{path}: not a weight store (missing {e})") from None

@@ -19,6 +19,8 @@ TINY = {
     "subset_size": 2,
     "preoptimize": {"steps": 5, "lr": 1.0e-3},
     "fit": {"steps": 6, "points": 128, "eval_points": 256, "grid_upsample": 1, "chunk": 0},
+    "diffusion": {"preset": "tiny", "epochs": 3, "batch_size": 2, "geometry_points": 16, "presample_points": 64,
+                  "checkpoint_every": 1, "ddim_steps": 5},
 }
 
 
@@ -58,12 +60,25 @@ def test_builds_the_weight_store(finished):
         ["subset_0.npz", "subset_1.npz"]
 
 
+def test_stage2_outputs(finished):
+    import json
+    metrics = json.loads((finished / "results/nucleon/voxel_metrics.json").read_text())
+    for key in ("generated_psnr_median", "stage1_psnr_median"):
+        assert np.isfinite(metrics["seen"][key])
+    for key in ("generated_psnr_median", "nearest_psnr_median", "blend_psnr_median"):
+        assert np.isfinite(metrics["unseen"][key])
+    assert set(metrics["storage_bytes"]) == {"model", "sirens", "grids"}
+    assert set(metrics["seconds_per_inr"]) == {"ddim", "ddpm"}
+    generated = open_store(finished / "results/nucleon/generated.zarr")
+    assert generated.seen.tolist() == [True] * 4 + [False] * 2 and np.isfinite(generated.psnr).all()
+
+
 def test_nothing_left_to_do(finished):
     assert planned(snakemake(finished, "-n")) == {}
 
 
 def test_diffusion_settings_do_not_refit(finished):
-    changed = {**TINY, "diffusion": {"preset": "small", "epochs": 7, "seed": 3}}
+    changed = {**TINY, "diffusion": {**TINY["diffusion"], "epochs": 4, "seed": 3}}
     assert "fit_siren" not in planned(snakemake(finished, "-n", config=changed))
     refit = {**TINY, "fit": {**TINY["fit"], "steps": 7}}  # the control: a fit setting does refit
     assert planned(snakemake(finished, "-n", config=refit))["fit_siren"] == 2
@@ -74,7 +89,9 @@ def test_rerun_one_subset(finished):
     before = (sirens / "subset_0.npz").read_bytes(), (sirens / "subset_0.npz").stat().st_mtime_ns
     target = "results/nucleon/sirens/subset_1.npz"
     assert planned(snakemake(finished, "-n", "-f", target)) == {"fit_siren": 1}
-    assert planned(snakemake(finished, "-n", "-R", target)) == {"fit_siren": 1, "collect_weights": 1, "all": 1}
+    downstream = {"fit_siren": 1, "collect_weights": 1, "train_diffusion": 1, "sample_shadows": 1,
+                  "evaluate_voxels": 1, "all": 1}
+    assert planned(snakemake(finished, "-n", "-R", target)) == downstream
     # a corrupted subset is newer than the store: collecting again fails and names the file
     (sirens / "subset_1.npz").write_bytes(b"garbage")
     proc = snakemake(finished, check=False)

@@ -1,0 +1,142 @@
+"""The weight-space transformer (paper §3.3, HyperDiffusion / G.pt): a GPT without the causal mask.
+
+One token per SIREN parameter tensor (each weight matrix, each bias), each with its own linear map into
+the model width and back out; a timestep token and a light token appended in context; a learned
+positional embedding; pre-LayerNorm blocks. It predicts the clean (standardised) weights x0.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import torch
+from torch import nn
+
+from diffshadow.siren import WeightLayout
+
+
+@dataclass(frozen=True)
+class TransformerConfig:
+    n_layer: int = 4
+    n_embd: int = 128
+    n_head: int = 4
+    light_freqs: int = 6  # NeRF positional encoding of the direction: sin/cos(2^k π w), k < light_freqs
+    dropout: float = 0.0
+
+
+PRESETS = {
+    "paper": TransformerConfig(n_layer=12, n_embd=720, n_head=16),  # paper §3.4
+    "small": TransformerConfig(n_layer=4, n_embd=192, n_head=4),  # CPU default for the tiny scene
+    "tiny": TransformerConfig(n_layer=2, n_embd=64, n_head=2),  # tests
+}
+
+
+# ---------------------------------------------------------------- embedding layers
+
+
+def timestep_embedding(t: torch.Tensor, dim: int, max_period: float = 10000.0) -> torch.Tensor:
+    """Sinusoidal frequency embedding of integer timesteps (DDPM / DiT). (B,) → (B, dim)."""
+    half = dim // 2
+    freqs = torch.exp(-math.log(max_period) * torch.arange(half, device=t.device, dtype=torch.float32) / half)
+    args = t.float()[:, None] * freqs[None]
+    emb = torch.cat([torch.cos(args), torch.sin(args)], dim=-1)
+    return torch.cat([emb, torch.zeros_like(emb[:, :1])], dim=-1) if dim % 2 else emb
+
+
+def light_encoding(w: torch.Tensor, n_freqs: int) -> torch.Tensor:
+    """NeRF positional encoding of unit directions: (B, 3) → (B, 3 + 6·n_freqs)."""
+    scales = (2.0 ** torch.arange(n_freqs, device=w.device, dtype=w.dtype)) * math.pi
+    x = w[:, :, None] * scales  # (B, 3, F)
+    return torch.cat([w, torch.sin(x).flatten(1), torch.cos(x).flatten(1)], dim=-1)
+
+
+# ---------------------------------------------------------------- core model
+
+
+class SelfAttention(nn.Module):
+    """Multi-head self-attention over all tokens (no causal mask: weights attend across layers)."""
+
+    def __init__(self, cfg: TransformerConfig):
+        super().__init__()
+        assert cfg.n_embd % cfg.n_head == 0, "n_embd must be a multiple of n_head"
+        self.n_head = cfg.n_head
+        self.qkv = nn.Linear(cfg.n_embd, 3 * cfg.n_embd)
+        self.proj = nn.Linear(cfg.n_embd, cfg.n_embd)
+        self.dropout = cfg.dropout
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        b, t, c = x.shape
+        q, k, v = self.qkv(x).split(c, dim=2)
+        q, k, v = (z.view(b, t, self.n_head, c // self.n_head).transpose(1, 2) for z in (q, k, v))  # (B, H, T, D)
+        y = nn.functional.scaled_dot_product_attention(q, k, v, dropout_p=self.dropout if self.training else 0.0)
+        return self.proj(y.transpose(1, 2).reshape(b, t, c))
+
+
+class MLP(nn.Module):
+    def __init__(self, cfg: TransformerConfig):
+        super().__init__()
+        self.fc = nn.Linear(cfg.n_embd, 4 * cfg.n_embd)
+        self.proj = nn.Linear(4 * cfg.n_embd, cfg.n_embd)
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        return self.proj(nn.functional.gelu(self.fc(x)))
+
+
+class Block(nn.Module):
+    """Pre-LayerNorm transformer block (GPT-2)."""
+
+    def __init__(self, cfg: TransformerConfig):
+        super().__init__()
+        self.ln_1 = nn.LayerNorm(cfg.n_embd)
+        self.attn = SelfAttention(cfg)
+        self.ln_2 = nn.LayerNorm(cfg.n_embd)
+        self.mlp = MLP(cfg)
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        x = x + self.attn(self.ln_1(x))
+        return x + self.mlp(self.ln_2(x))
+
+
+class WeightTransformer(nn.Module):
+    """Noisy standardised SIREN weights (B, n_params), timestep (B,), light (B, 3) → predicted x0 (B, n_params)."""
+
+    def __init__(self, layout: WeightLayout, cfg: TransformerConfig):
+        super().__init__()
+        self.layout = layout
+        self.cfg = cfg
+        d = cfg.n_embd
+        self.token_in = nn.ModuleList(nn.Linear(size, d) for size in layout.sizes)
+        self.token_out = nn.ModuleList(nn.Linear(d, size) for size in layout.sizes)
+        self.time_mlp = nn.Sequential(nn.Linear(d, d), nn.SiLU(), nn.Linear(d, d))
+        self.light_in = nn.Linear(3 + 6 * cfg.light_freqs, d)
+        self.pos = nn.Parameter(torch.zeros(1, len(layout.sizes) + 2, d))
+        self.blocks = nn.ModuleList(Block(cfg) for _ in range(cfg.n_layer))
+        self.ln_f = nn.LayerNorm(d)
+        self.initialize()
+
+    def initialize(self) -> None:
+        """GPT-2 style: normal(0, 0.02) linears, zero biases; the output maps start at zero so the first
+        prediction is the mean (standardised 0) rather than noise."""
+        for m in self.modules():
+            if isinstance(m, nn.Linear):
+                nn.init.normal_(m.weight, std=0.02)
+                nn.init.zeros_(m.bias)
+        nn.init.normal_(self.pos, std=0.02)
+        for m in self.token_out:
+            nn.init.zeros_(m.weight)
+
+    def n_params(self) -> int:
+        return sum(p.numel() for p in self.parameters())
+
+    def forward(self, x: torch.Tensor, t: torch.Tensor, light: torch.Tensor) -> torch.Tensor:
+        parts = x.split(self.layout.sizes, dim=1)
+        tokens = [proj(p) for proj, p in zip(self.token_in, parts, strict=True)]  # each (B, d)
+        tokens.append(self.time_mlp(timestep_embedding(t, self.cfg.n_embd)))
+        tokens.append(self.light_in(light_encoding(light, self.cfg.light_freqs)))
+        h = torch.stack(tokens, dim=1) + self.pos  # (B, T, d)
+        for block in self.blocks:
+            h = block(h)
+        h = self.ln_f(h)
+        outs = [proj(h[:, i]) for i, proj in enumerate(self.token_out)]
+        return torch.cat(outs, dim=1)  # (B, n_params)

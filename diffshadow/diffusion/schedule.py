@@ -1,0 +1,70 @@
+"""The diffusion maths, apart from the network: linear betas, forward noising, DDPM and DDIM sampling.
+
+The model predicts x0 (paper §3.3); samplers turn that into the previous step's mean.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+
+import torch
+
+T_STEPS = 500  # paper §3.4
+BETA_START, BETA_END = 1e-4, 2e-2  # linear schedule (DDPM)
+
+Denoiser = Callable[[torch.Tensor, torch.Tensor], torch.Tensor]  # (x_t, t) -> predicted x0
+
+
+class Schedule:
+    def __init__(self, steps: int = T_STEPS, beta_start: float = BETA_START, beta_end: float = BETA_END):
+        self.steps = steps
+        self.betas = torch.linspace(beta_start, beta_end, steps, dtype=torch.float64)
+        self.alpha_bar = torch.cumprod(1.0 - self.betas, dim=0)
+
+    def _ab(self, t: torch.Tensor, like: torch.Tensor) -> torch.Tensor:
+        return self.alpha_bar.to(like.device)[t].to(like.dtype).view(-1, *([1] * (like.ndim - 1)))
+
+    def q_sample(self, x0: torch.Tensor, t: torch.Tensor, noise: torch.Tensor) -> torch.Tensor:
+        """x_t = √ᾱ_t x0 + √(1-ᾱ_t) ε."""
+        ab = self._ab(t, x0)
+        return ab.sqrt() * x0 + (1 - ab).sqrt() * noise
+
+    def ddpm_sample(self, model: Denoiser, shape, *, generator: torch.Generator, device=None) -> torch.Tensor:
+        """Ancestral sampling over all T steps with the posterior q(x_{t-1} | x_t, x0̂)."""
+        x = torch.randn(shape, generator=generator).to(device)
+        ab = self.alpha_bar
+        for t in range(self.steps - 1, -1, -1):
+            x0 = model(x, torch.full((shape[0],), t, device=device, dtype=torch.long))
+            if t == 0:
+                return x0
+            ab_t, ab_prev, beta = float(ab[t]), float(ab[t - 1]), float(self.betas[t])
+            c0 = ab_prev**0.5 * beta / (1 - ab_t)
+            ct = (1 - beta) ** 0.5 * (1 - ab_prev) / (1 - ab_t)
+            var = beta * (1 - ab_prev) / (1 - ab_t)
+            noise = torch.randn(shape, generator=generator).to(device)
+            x = c0 * x0 + ct * x + var**0.5 * noise
+        return x
+
+    def ddim_timesteps(self, n: int) -> list[int]:
+        if not 1 <= n <= self.steps:
+            raise ValueError(f"DDIM steps: expected 1..{self.steps}, got {n}")
+        return torch.linspace(self.steps - 1, 0, n).round().long().unique_consecutive().tolist()
+
+    def ddim_sample(self, model: Denoiser, shape, *, steps: int, generator: torch.Generator, eta: float = 0.0,
+                    device=None) -> torch.Tensor:
+        """DDIM (Song et al.) on a subsequence of timesteps; deterministic given the start noise when eta = 0."""
+        x = torch.randn(shape, generator=generator).to(device)
+        ts = self.ddim_timesteps(steps)
+        x0 = x
+        for i, t in enumerate(ts):
+            x0 = model(x, torch.full((shape[0],), t, device=device, dtype=torch.long))
+            if i == len(ts) - 1:
+                break
+            ab_t, ab_next = float(self.alpha_bar[t]), float(self.alpha_bar[ts[i + 1]])
+            eps = (x - ab_t**0.5 * x0) / (1 - ab_t) ** 0.5
+            sigma = eta * ((1 - ab_next) / (1 - ab_t) * (1 - ab_t / ab_next)) ** 0.5
+            x = ab_next**0.5 * x0 + max(1 - ab_next - sigma**2, 0.0) ** 0.5 * eps
+            if sigma > 0:
+                x = x + sigma * torch.randn(shape, generator=generator).to(device)
+        # the last model call is at t = 0 (or the last step taken): its x0 is the sample
+        return x0

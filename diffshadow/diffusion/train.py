@@ -1,0 +1,276 @@
+"""Training the weight-space diffusion model (paper §3.3): x0 MSE + geometry loss, resumable.
+
+Per-token standardisation: each parameter tensor's values get one scalar mean and std over the training
+set. The std is rounded to a power of two, so standardising and de-standardising (in float64) is an
+exact round trip; a tensor with zero spread gets std 1 instead of a division by zero.
+"""
+
+from __future__ import annotations
+
+import copy
+import hashlib
+import json
+import math
+import time
+from dataclasses import asdict, dataclass
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from diffshadow.diffusion.model import PRESETS, WeightTransformer
+from diffshadow.diffusion.schedule import Schedule
+from diffshadow.fit import seeded
+from diffshadow.io import atomic_save
+from diffshadow.siren import BatchedSiren, SirenConfig, WeightLayout, box_to_siren
+
+
+class DiffusionError(ValueError):
+    """Training or sampling that cannot go on; the message says why and what was kept."""
+
+
+@dataclass(frozen=True)
+class DiffusionConfig:
+    preset: str = "small"
+    epochs: int = 2000  # paper: 7000 (geometry stage)
+    batch_size: int = 16
+    lr: float = 2e-4  # AdamW, paper §3.4
+    weight_decay: float = 0.0
+    lr_step_epochs: int = 200  # StepLR, paper §3.4
+    lr_gamma: float = 0.9
+    grad_clip: float = 1.0
+    ema: float = 0.0  # EMA decay of the weights used for sampling; 0: off
+    geometry_weight: float = 1.0
+    geometry_points: int = 1024  # per light per step, drawn from the presampled set (authors: 4096)
+    presample_points: int = 8192  # per light in geometry_points.zarr (paper: 500,000)
+    checkpoint_every: int = 100  # epochs
+    ddim_steps: int = 50
+    standardize: str = "token"  # "token": paper; "param": per weight across lights (see README)
+    seed: int = 0
+
+    @classmethod
+    def from_config(cls, d: dict) -> DiffusionConfig:
+        unknown = set(d) - set(cls.__dataclass_fields__)
+        if unknown:
+            raise ValueError(f"diffusion config: unknown key(s) {sorted(unknown)}")
+        cfg = cls(**d)
+        if cfg.preset not in PRESETS:
+            raise ValueError(f"diffusion.preset: expected one of {sorted(PRESETS)}, got {cfg.preset!r}")
+        return cfg
+
+
+def _pow2_std(s: torch.Tensor) -> torch.Tensor:
+    """Round a spread to a power of two (exact scaling); 1 where it is zero or not finite."""
+    ok = torch.isfinite(s) & (s > 1e-12)
+    return torch.where(ok, 2.0 ** torch.round(torch.log2(torch.where(ok, s, torch.ones_like(s)))), torch.ones_like(s))
+
+
+class Standardizer:
+    """Mean and power-of-two std, per token (paper: one scalar per parameter tensor) or per parameter."""
+
+    def __init__(self, layout: WeightLayout, mean: torch.Tensor, std: torch.Tensor):
+        self.layout = layout
+        self.mean = mean.double()  # (n_tokens,) or (n_params,)
+        self.std = std.double()
+
+    @classmethod
+    def fit(cls, layout: WeightLayout, weights: torch.Tensor, mode: str = "token") -> Standardizer:
+        w = weights.double()
+        if mode == "param":
+            # across lights, per weight: what is left is the light-dependent part, at unit scale
+            mean = w.mean(dim=0).float().double()  # representable in float32: keeps the round trip exact
+            std = w.std(dim=0) if len(w) > 1 else torch.zeros_like(mean)
+            return cls(layout, mean, _pow2_std(std))
+        if mode != "token":
+            raise ValueError(f"diffusion.standardize: expected 'token' or 'param', got {mode!r}")
+        parts = w.split(layout.sizes, dim=1)
+        mean = torch.tensor([float(p.mean().float()) for p in parts], dtype=torch.float64)
+        std = torch.tensor([float(p.std()) if p.numel() > 1 else 0.0 for p in parts], dtype=torch.float64)
+        return cls(layout, mean, _pow2_std(std))
+
+    def _expand(self, v: torch.Tensor, like: torch.Tensor) -> torch.Tensor:
+        if len(v) == self.layout.n_params:
+            return v.to(like.device)
+        return torch.repeat_interleave(v.to(like.device), torch.tensor(self.layout.sizes, device=like.device))
+
+    def standardize(self, w: torch.Tensor) -> torch.Tensor:
+        """(..., n_params) weights → standardised, in float64."""
+        return (w.double() - self._expand(self.mean, w)) / self._expand(self.std, w)
+
+    def destandardize(self, z: torch.Tensor) -> torch.Tensor:
+        """Inverse of `standardize`; keeps the autograd graph (the geometry loss differentiates through it)."""
+        return z * self._expand(self.std, z).to(z.dtype) + self._expand(self.mean, z).to(z.dtype)
+
+    def state(self) -> dict:
+        return {"mean": self.mean, "std": self.std}
+
+
+def geometry_loss(pred_weights: torch.Tensor, layout: WeightLayout, siren: SirenConfig, points: torch.Tensor,
+                  values: torch.Tensor, extent: torch.Tensor) -> torch.Tensor:
+    """MSE between the predicted SIRENs at presampled points (B, G, 3) and the true shadow there (B, G)."""
+    pred = BatchedSiren(pred_weights, layout, siren.blocks)(box_to_siren(points, extent))
+    return ((pred - values) ** 2).mean()
+
+
+_geometry_loss = geometry_loss  # indirection so tests can inject a failure mid-run
+
+
+@dataclass
+class TrainingData:
+    weights: torch.Tensor  # (N, n_params)
+    lights: torch.Tensor  # (N, 3)
+    points: torch.Tensor  # (N, M, 3) box coordinates
+    values: torch.Tensor  # (N, M) true shadow
+    extent: torch.Tensor  # (3,)
+    layout: WeightLayout
+    siren: SirenConfig
+
+
+def _fingerprint(data: TrainingData, cfg: DiffusionConfig) -> str:
+    h = hashlib.sha256()
+    for t in (data.weights, data.lights, data.points, data.values):
+        h.update(t.detach().cpu().numpy().tobytes())
+    h.update(json.dumps(asdict(cfg), sort_keys=True).encode())
+    return h.hexdigest()
+
+
+def build_model(layout: WeightLayout, cfg: DiffusionConfig) -> WeightTransformer:
+    return WeightTransformer(layout, PRESETS[cfg.preset])
+
+
+def train_diffusion(data: TrainingData, cfg: DiffusionConfig, checkpoint: Path, *, device=None, log=print,
+                    stop_after_epoch: int | None = None) -> dict:
+    """Train (or resume) and return the final state; the checkpoint file holds it when done.
+
+    `stop_after_epoch` ends the run early (as if killed after that epoch's checkpoint): tests use it.
+    """
+    device = torch.device(device or "cpu")
+    torch.manual_seed(cfg.seed)
+    model = build_model(data.layout, cfg).to(device)
+    log(f"weight-space transformer '{cfg.preset}': {model.n_params():,} parameters, "
+        f"{len(data.layout.sizes)} weight tokens, {len(data.weights)} training lights")
+    std = Standardizer.fit(data.layout, data.weights, cfg.standardize)
+    z_all = std.standardize(data.weights).float().to(device)
+    lights = data.lights.float().to(device)
+    points, values = data.points.to(device), data.values.to(device)
+    extent = data.extent.to(device)
+    schedule = Schedule()
+    opt = torch.optim.AdamW(model.parameters(), lr=cfg.lr, weight_decay=cfg.weight_decay)
+    sched = torch.optim.lr_scheduler.StepLR(opt, step_size=cfg.lr_step_epochs, gamma=cfg.lr_gamma)
+    ema = copy.deepcopy(model).requires_grad_(False) if cfg.ema > 0 else None
+    fingerprint = _fingerprint(data, cfg)
+    start = 0
+    good: int | None = None  # epoch of the checkpoint this run resumed from or saved
+    if checkpoint.exists():
+        state = torch.load(checkpoint, map_location=device, weights_only=False)
+        if state.get("fingerprint") == fingerprint:
+            model.load_state_dict(state["model"])
+            opt.load_state_dict(state["optimizer"])
+            sched.load_state_dict(state["scheduler"])
+            if ema is not None:
+                ema.load_state_dict(state["ema"])
+            start = good = int(state["epoch"])
+            log(f"resuming from {checkpoint} at epoch {start}/{cfg.epochs}")
+        else:
+            log(f"ignoring {checkpoint}: it belongs to other data or settings")
+
+    def save(epoch: int) -> dict:
+        state = {"fingerprint": fingerprint, "epoch": epoch, "model": model.state_dict(),
+                 "optimizer": opt.state_dict(), "scheduler": sched.state_dict(),
+                 "ema": ema.state_dict() if ema is not None else None, "standardizer": std.state(),
+                 "layout": data.layout.to_config(), "siren": data.siren.to_config(), "config": asdict(cfg),
+                 "extent": data.extent.tolist(), "train_lights": data.lights.tolist()}
+        atomic_save(checkpoint, lambda tmp: torch.save(state, tmp), suffix=".pt")
+        return state
+
+    n = len(z_all)
+    t0 = time.perf_counter()
+    state = None
+    for epoch in range(start, cfg.epochs):
+        gen = seeded(cfg.seed, 1, epoch)
+        order = torch.randperm(n, generator=gen)
+        totals = torch.zeros(2, dtype=torch.float64)
+        for b0 in range(0, n, cfg.batch_size):
+            idx = order[b0:b0 + cfg.batch_size]
+            b = len(idx)
+            t = torch.randint(0, schedule.steps, (b,), generator=gen).to(device)
+            noise = torch.randn(b, z_all.shape[1], generator=gen).to(device)
+            x0 = z_all[idx.to(device)]
+            pred = model(schedule.q_sample(x0, t, noise), t, lights[idx.to(device)])
+            loss_x0 = ((pred - x0) ** 2).mean()
+            loss = loss_x0
+            loss_geo = torch.zeros((), device=device)
+            if cfg.geometry_weight > 0:
+                pick = torch.randint(0, points.shape[1], (b, cfg.geometry_points), generator=gen).to(device)
+                pts = torch.gather(points[idx.to(device)], 1, pick[..., None].expand(-1, -1, 3))
+                vals = torch.gather(values[idx.to(device)], 1, pick)
+                loss_geo = _geometry_loss(std.destandardize(pred), data.layout, data.siren, pts, vals, extent)
+                loss = loss + cfg.geometry_weight * loss_geo
+            if not torch.isfinite(loss):
+                kept = f"the last good checkpoint {checkpoint} (epoch {good})" if good is not None else \
+                    "no checkpoint (none was written yet)"
+                raise DiffusionError(f"train_diffusion: loss became {float(loss)} at epoch {epoch}; keeping {kept}; "
+                                     f"lower diffusion.lr (now {cfg.lr}) or check the weight store")
+            opt.zero_grad(set_to_none=True)
+            loss.backward()
+            torch.nn.utils.clip_grad_norm_(model.parameters(), cfg.grad_clip)
+            opt.step()
+            if ema is not None:
+                with torch.no_grad():
+                    for pe, pm in zip(ema.parameters(), model.parameters(), strict=True):
+                        pe.lerp_(pm, 1 - cfg.ema)
+            totals += torch.tensor([float(loss_x0.detach()) * b, float(loss_geo.detach()) * b], dtype=torch.float64)
+        sched.step()
+        done = epoch + 1
+        if done % cfg.checkpoint_every == 0 or done == cfg.epochs:
+            state = save(done)
+            good = done
+        if done % max(1, cfg.epochs // 20) == 0 or done == cfg.epochs:
+            lx, lg = (totals / n).tolist()
+            log(f"epoch {done}/{cfg.epochs}  loss x0 {lx:.4e}  geometry {lg:.4e} "
+                f"(≈{-10 * math.log10(max(lg, 1e-30)):.1f} dB)  lr {sched.get_last_lr()[0]:.2e}  "
+                f"{time.perf_counter() - t0:.0f} s")
+        if stop_after_epoch is not None and done >= stop_after_epoch:
+            return state
+    if state is None:  # nothing left to train: the checkpoint is already final
+        state = torch.load(checkpoint, map_location="cpu", weights_only=False)
+    return state
+
+
+def load_sampler(state: dict, device=None):
+    """(model for sampling, standardizer, layout, siren) from a checkpoint state."""
+    layout = WeightLayout.from_config(state["layout"])
+    cfg = DiffusionConfig.from_config(state["config"])
+    model = build_model(layout, cfg)
+    model.load_state_dict(state["ema"] if state.get("ema") else state["model"])
+    model.to(device or "cpu").eval()
+    std = Standardizer(layout, state["standardizer"]["mean"], state["standardizer"]["std"])
+    return model, std, layout, SirenConfig.from_config(state["siren"])
+
+
+@torch.no_grad()
+def generate(model: WeightTransformer, std: Standardizer, lights, *, method: str = "ddim", steps: int = 50,
+             seed: int = 0, batch: int = 64, device=None) -> torch.Tensor:
+    """SIREN weights (N, n_params) for light directions (N, 3) (any direction, seen or not)."""
+    from diffshadow.lights import as_direction
+
+    lights = np.stack([as_direction(w, name=f"light {i}") for i, w in enumerate(np.asarray(lights).reshape(-1, 3))])
+    device = torch.device(device or "cpu")
+    schedule = Schedule()
+    out = []
+    for b0 in range(0, len(lights), batch):
+        w = torch.as_tensor(lights[b0:b0 + batch], dtype=torch.float32, device=device)
+
+        def denoise(x, t, w=w):
+            return model(x, t, w)
+
+        gen = seeded(seed, 2, b0)
+        shape = (len(w), std.layout.n_params)
+        if method == "ddim":
+            z = schedule.ddim_sample(denoise, shape, steps=steps, generator=gen, device=device)
+        elif method == "ddpm":
+            z = schedule.ddpm_sample(denoise, shape, generator=gen, device=device)
+        else:
+            raise ValueError(f"method: expected 'ddim' or 'ddpm', got {method!r}")
+        out.append(std.destandardize(z.double()).float().cpu())
+    return torch.cat(out)

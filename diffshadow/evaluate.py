@@ -1,0 +1,78 @@
+"""Stage-2 voxel evaluation: generated SIRENs against the ground truth, beside the stage-1 SIRENs and
+baselines for unseen lights, plus storage and time per shadow INR."""
+
+from __future__ import annotations
+
+import time
+
+import numpy as np
+import torch
+
+from diffshadow.fit import PointSampler, seeded
+from diffshadow.metrics import psnr
+from diffshadow.shadow import ShadowField, transmittance
+from diffshadow.siren import BatchedSiren, SirenConfig, WeightLayout, box_to_siren
+from diffshadow.volume import Volume
+
+
+def presample(volume: Volume, tf, lights: np.ndarray, n_points: int, *, seed: int,
+              visible_fraction: float = 0.5) -> tuple[torch.Tensor, torch.Tensor]:
+    """Points (N, M, 3) and their true shadow (N, M) per light, for the geometry loss (paper §3.3)."""
+    field = ShadowField.build(volume, tf)
+    pts = PointSampler(volume, tf, visible_fraction).sample(len(lights), n_points, seeded(seed, 3))
+    values = torch.stack([transmittance(field, tf, w, p) for w, p in zip(lights, pts, strict=True)])
+    return pts, values
+
+
+class TruthPoints:
+    """Fixed evaluation points (box and visible) with the true shadow of every light that is asked for."""
+
+    def __init__(self, volume: Volume, tf, n_points: int, seed: int):
+        self.volume, self.tf = volume, tf
+        self.field = ShadowField.build(volume, tf)
+        self.extent = torch.as_tensor(volume.extent, dtype=torch.float32)
+        gen = seeded(seed, 4)
+        self.sets = {"box": torch.rand(n_points, 3, generator=gen) * self.extent}
+        vis = PointSampler(volume, tf, 1.0)
+        if vis.visible_fraction:
+            self.sets["visible"] = vis.sample(1, n_points, gen)[0]
+
+    def truth(self, lights: np.ndarray) -> dict[str, torch.Tensor]:
+        return {k: torch.stack([transmittance(self.field, self.tf, w, p) for w in lights])
+                for k, p in self.sets.items()}
+
+    def sirens(self, weights: np.ndarray, layout: WeightLayout, siren: SirenConfig) -> dict[str, torch.Tensor]:
+        w = torch.as_tensor(np.asarray(weights), dtype=torch.float32)
+        with torch.no_grad():
+            model = BatchedSiren(w, layout, siren.blocks)
+            return {k: model(box_to_siren(p.expand(len(w), -1, -1), self.extent)) for k, p in self.sets.items()}
+
+
+def psnr_per_light(pred: dict, truth: dict) -> dict[str, np.ndarray]:
+    return {k: psnr(pred[k], truth[k], dim=1).numpy() for k in truth}
+
+
+def nearest(train: np.ndarray, query: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray]:
+    """Indices (Q, k) of the k training directions closest in angle, and their angles (Q, k)."""
+    cos = np.clip(query @ train.T, -1, 1)
+    idx = np.argsort(-cos, axis=1, kind="stable")[:, :k]
+    return idx, np.arccos(np.take_along_axis(cos, idx, axis=1))
+
+
+def blend_baseline(truth_train: dict, idx: np.ndarray, angles: np.ndarray) -> dict[str, torch.Tensor]:
+    """Inverse-angle-weighted blend of the k nearest training lights' true shadows."""
+    w = 1.0 / np.maximum(angles, 1e-6)
+    w = torch.as_tensor(w / w.sum(axis=1, keepdims=True), dtype=torch.float32)  # (Q, k)
+    return {key: (vals[torch.as_tensor(idx)] * w[..., None]).sum(dim=1) for key, vals in truth_train.items()}
+
+
+def seconds_per_inr(model, std, light, *, method: str, steps: int, repeats: int = 3) -> float:
+    """Wall time to generate one shadow INR (batch of one), best of `repeats`."""
+    from diffshadow.diffusion.train import generate
+
+    best = float("inf")
+    for r in range(repeats):
+        t = time.perf_counter()
+        generate(model, std, light[None], method=method, steps=steps, seed=r)
+        best = min(best, time.perf_counter() - t)
+    return best

@@ -1,0 +1,137 @@
+import numpy as np
+import pytest
+import torch
+
+from diffshadow.diffusion.model import WeightTransformer
+from diffshadow.diffusion.schedule import Schedule
+from diffshadow.diffusion.train import (
+    DiffusionConfig,
+    DiffusionError,
+    Standardizer,
+    TrainingData,
+    generate,
+    geometry_loss,
+    load_sampler,
+    train_diffusion,
+)
+from diffshadow.lights import LightError
+from diffshadow.siren import BatchedSiren, Siren, SirenConfig, WeightLayout, box_to_siren, init_siren
+
+SIREN = SirenConfig(8, 1)
+LAYOUT = WeightLayout.for_siren(SIREN)
+
+
+def weights(n=6, seed=0):
+    gen = torch.Generator().manual_seed(seed)
+    base = LAYOUT.flatten(init_siren(SIREN, gen))
+    return base + 0.01 * torch.randn(n, LAYOUT.n_params, generator=gen)
+
+
+@pytest.mark.parametrize("mode", ["token", "param"])
+def test_standardize_round_trip_is_exact(mode):
+    w = weights() * torch.logspace(-3, 2, LAYOUT.n_params)  # tiny and huge scales
+    std = Standardizer.fit(LAYOUT, w, mode)
+    back = std.destandardize(std.standardize(w)).float()
+    assert torch.equal(back, w)
+
+
+@pytest.mark.parametrize("mode", ["token", "param"])
+def test_zero_variance_tensor_gives_no_nan(mode):
+    w = weights()
+    w[:, :24] = 0.5  # first.weight constant across lights and within the tensor
+    std = Standardizer.fit(LAYOUT, w, mode)
+    z = std.standardize(w)
+    assert torch.isfinite(z).all() and torch.isfinite(std.std).all()
+    assert torch.equal(std.destandardize(z).float(), w)
+
+
+def test_geometry_loss_batched_equals_one_by_one():
+    w = weights(4)
+    gen = torch.Generator().manual_seed(1)
+    pts = torch.rand(4, 50, 3, generator=gen)
+    vals = torch.rand(4, 50, generator=gen)
+    extent = torch.ones(3)
+    batched = geometry_loss(w, LAYOUT, SIREN, pts, vals, extent).detach()
+    with torch.no_grad():
+        separate = torch.stack([((Siren.from_flat(w[i], LAYOUT)(box_to_siren(pts[i], extent)) - vals[i]) ** 2)
+                                .mean() for i in range(4)]).mean()
+    assert abs(float(batched) - float(separate)) < 1e-6
+
+
+def test_transformer_shapes_and_light_sensitivity():
+    from diffshadow.diffusion.model import PRESETS
+    model = WeightTransformer(LAYOUT, PRESETS["tiny"])
+    for p in model.token_out:  # leave the zero init so the output depends on the input
+        torch.nn.init.normal_(p.weight, std=0.02)
+    x = torch.randn(3, LAYOUT.n_params)
+    t = torch.tensor([0, 250, 499])
+    a = model(x, t, torch.tensor([[0.0, 0, 1]] * 3))
+    b = model(x, t, torch.tensor([[1.0, 0, 0]] * 3))
+    assert a.shape == (3, LAYOUT.n_params) and not torch.allclose(a, b)
+
+
+def test_schedule_edges_and_ddim_steps():
+    s = Schedule()
+    assert s.steps == 500 and abs(float(s.betas[0]) - 1e-4) < 1e-12 and abs(float(s.betas[-1]) - 2e-2) < 1e-12
+    x0 = torch.randn(2, 5)
+    assert torch.allclose(s.q_sample(x0, torch.tensor([0, 0]), torch.zeros(2, 5)), x0 * s.alpha_bar[0].sqrt().float())
+    assert s.ddim_timesteps(1) == [499] and s.ddim_timesteps(500) == list(range(499, -1, -1))
+    with pytest.raises(ValueError, match=r"DDIM steps: expected 1..500, got 0"):
+        s.ddim_timesteps(0)
+
+
+def tiny_data(n=4):
+    gen = torch.Generator().manual_seed(2)
+    return TrainingData(weights=weights(n), lights=torch.nn.functional.normalize(torch.randn(n, 3, generator=gen)),
+                        points=torch.rand(n, 64, 3, generator=gen), values=torch.rand(n, 64, generator=gen),
+                        extent=torch.ones(3), layout=LAYOUT, siren=SIREN)
+
+
+CFG = DiffusionConfig(preset="tiny", epochs=6, batch_size=2, geometry_points=16, checkpoint_every=2,
+                      lr_step_epochs=2, ema=0.9)
+
+
+def test_resume_matches_uninterrupted(tmp_path):
+    data = tiny_data()
+    full = train_diffusion(data, CFG, tmp_path / "a.ckpt", log=lambda *a: None)
+    train_diffusion(data, CFG, tmp_path / "b.ckpt", log=lambda *a: None, stop_after_epoch=4)
+    msgs = []
+    resumed = train_diffusion(data, CFG, tmp_path / "b.ckpt", log=msgs.append)
+    assert any(m.startswith("resuming from") and "epoch 4/6" in m for m in msgs)
+    for key in ("model", "ema"):
+        for name, value in full[key].items():
+            assert torch.equal(value, resumed[key][name]), name
+
+
+def test_nan_loss_stops_and_keeps_the_checkpoint(tmp_path, monkeypatch):
+    import diffshadow.diffusion.train as train
+    calls = []
+
+    def failing(*args):
+        calls.append(1)
+        loss = geometry_loss(*args)
+        return loss * float("nan") if len(calls) == 7 else loss  # epoch 3 (2 batches per epoch)
+
+    monkeypatch.setattr(train, "_geometry_loss", failing)
+    ckpt = tmp_path / "c.ckpt"
+    with pytest.raises(DiffusionError, match=r"loss became nan at epoch 3; keeping the last good checkpoint "
+                                             r".*c.ckpt \(epoch 2\)"):
+        train_diffusion(tiny_data(), CFG, ckpt, log=lambda *a: None)
+    state = torch.load(ckpt, weights_only=False)
+    assert state["epoch"] == 2
+    assert all(torch.isfinite(v).all() for v in state["model"].values())
+
+
+def test_sampling_is_deterministic_and_checks_directions(tmp_path):
+    state = train_diffusion(tiny_data(), CFG, tmp_path / "d.ckpt", log=lambda *a: None)
+    model, std, layout, siren = load_sampler(state)
+    lights = np.array([[0.0, 0.0, 1.0], [0.3, 0.2, 0.9]])  # the second was never trained on: allowed
+    a = generate(model, std, lights, steps=5, seed=3)
+    assert torch.equal(a, generate(model, std, lights, steps=5, seed=3))
+    assert torch.isfinite(a).all() and a.shape == (2, layout.n_params)
+    ddpm = generate(model, std, lights[:1], method="ddpm", seed=0)
+    assert torch.isfinite(BatchedSiren(ddpm, layout, siren.blocks)(torch.rand(1, 10, 3))).all()
+    with pytest.raises(LightError, match="light 1: must be non-zero"):
+        generate(model, std, [[0, 0, 1], [0, 0, 0]])
+    with pytest.raises(LightError, match="light 0: must be finite"):
+        generate(model, std, [[np.nan, 0, 1]])
