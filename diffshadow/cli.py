@@ -239,7 +239,7 @@ def _sample_shadows(args: argparse.Namespace) -> None:
     print(f"sampling {len(lights)} shadow SIRENs ({seen.sum()} seen, {(~seen).sum()} unseen) with "
           f"DDIM {cfg['ddim_steps']} steps", flush=True)
     weights = generate(model, std, lights, method="ddim", steps=cfg["ddim_steps"], seed=cfg["seed"],
-                       device=args.device).numpy()
+                       temperature=cfg["temperature"], device=args.device).numpy()
     volume, tf = load_prepared(args.volume)
     points = TruthPoints(volume, tf, args.eval_points, seed=cfg["seed"] + 1)
     scores = psnr_per_light(points.sirens(weights, layout, siren), points.truth(lights))
@@ -298,7 +298,8 @@ def _evaluate_voxels(args: argparse.Namespace) -> None:
     ddim_steps = int(state["config"]["ddim_steps"])
     ddpm_w = generate(model, std, train, method="ddpm", seed=int(state["config"]["seed"])).numpy()
     ddpm_seen = psnr_per_light(points.sirens(ddpm_w, layout, siren), truth_train)
-    t_ddim = seconds_per_inr(model, std, train[0], method="ddim", steps=ddim_steps)
+    t_ddim = seconds_per_inr(model, std, train[0], method="ddim", steps=ddim_steps,
+                             temperature=state["config"]["temperature"])
     t_ddpm = seconds_per_inr(model, std, train[0], method="ddpm", steps=500, repeats=1)
     result["sampling"] = {"ddim_steps": ddim_steps, "ddim_psnr_median": result["seen"]["generated_psnr_median"],
                           "ddpm_psnr_median": float(np.median(ddpm_seen["box"])), "speedup": t_ddpm / t_ddim}

@@ -66,13 +66,14 @@ def blend_baseline(truth_train: dict, idx: np.ndarray, angles: np.ndarray) -> di
     return {key: (vals[torch.as_tensor(idx)] * w[..., None]).sum(dim=1) for key, vals in truth_train.items()}
 
 
-def seconds_per_inr(model, std, light, *, method: str, steps: int, repeats: int = 3) -> float:
+def seconds_per_inr(model, std, light, *, method: str, steps: int, repeats: int = 3,
+                    temperature: float = 1.0) -> float:
     """Wall time to generate one shadow INR (batch of one), best of `repeats`."""
     from diffshadow.diffusion.train import generate
 
     best = float("inf")
     for r in range(repeats):
         t = time.perf_counter()
-        generate(model, std, light[None], method=method, steps=steps, seed=r)
+        generate(model, std, light[None], method=method, steps=steps, seed=r, temperature=temperature)
         best = min(best, time.perf_counter() - t)
     return best

@@ -213,32 +213,21 @@ def _to_volume(path: Path, raw: np.ndarray, value_range, spacing) -> Volume:
 
 def save_prepared(path: str | Path, volume: Volume, tf, *, cell: int) -> None:
     """`prepare_volume`'s output: the normalised grid, its box, the TF and the macro-cell table (Zarr v3)."""
-    import os
-    import shutil
-    import tempfile
-
     import torch
-    import zarr
 
     from diffshadow.shadow import macro_cells
+    from diffshadow.store import write_zarr_group
 
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = Path(tempfile.mkdtemp(prefix=f".{path.name}.", dir=path.parent))
-    try:
-        root = zarr.open_group(str(tmp), mode="w", zarr_format=3)
+    empty = macro_cells(torch.as_tensor(volume.data), tf, cell).numpy()
+
+    def fill(root) -> None:
         root.create_array("scalar", data=volume.data)
-        empty = macro_cells(torch.as_tensor(volume.data), tf, cell).numpy()
         root.create_array("macro_empty", data=empty)
         root.attrs.update({"extent": volume.extent.tolist(), "name": volume.name,
                            "transfer_function": tf.to_config(), "macro_cell": cell,
                            "empty_fraction": float(empty.mean())})
-        if path.exists():
-            shutil.rmtree(path)
-        os.replace(tmp, path)
-    finally:
-        if tmp.exists():
-            shutil.rmtree(tmp)
+
+    write_zarr_group(path, fill)
 
 
 def load_prepared(path: str | Path):

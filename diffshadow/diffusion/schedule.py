@@ -51,9 +51,10 @@ class Schedule:
         return torch.linspace(self.steps - 1, 0, n).round().long().unique_consecutive().tolist()
 
     def ddim_sample(self, model: Denoiser, shape, *, steps: int, generator: torch.Generator, eta: float = 0.0,
-                    device=None) -> torch.Tensor:
-        """DDIM (Song et al.) on a subsequence of timesteps; deterministic given the start noise when eta = 0."""
-        x = torch.randn(shape, generator=generator).to(device)
+                    temperature: float = 1.0, device=None) -> torch.Tensor:
+        """DDIM (Song et al.) on a subsequence of timesteps; deterministic given the start noise when eta = 0.
+        `temperature` scales the start noise (0: start from the mean, one path per light)."""
+        x = temperature * torch.randn(shape, generator=generator).to(device)
         ts = self.ddim_timesteps(steps)
         x0 = x
         for i, t in enumerate(ts):

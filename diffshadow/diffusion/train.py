@@ -8,6 +8,7 @@ exact round trip; a tensor with zero spread gets std 1 instead of a division by 
 from __future__ import annotations
 
 import copy
+import dataclasses
 import hashlib
 import json
 import math
@@ -46,6 +47,8 @@ class DiffusionConfig:
     checkpoint_every: int = 100  # epochs
     ddim_steps: int = 50
     standardize: str = "token"  # "token": paper; "param": per weight across lights (see README)
+    light_freqs: int = 3  # NeRF encoding of the light direction; 3 interpolates best between lights (README)
+    temperature: float = 0.0  # DDIM start noise scale; 0: one deterministic path per light (see README)
     seed: int = 0
 
     @classmethod
@@ -135,7 +138,7 @@ def _fingerprint(data: TrainingData, cfg: DiffusionConfig) -> str:
 
 
 def build_model(layout: WeightLayout, cfg: DiffusionConfig) -> WeightTransformer:
-    return WeightTransformer(layout, PRESETS[cfg.preset])
+    return WeightTransformer(layout, dataclasses.replace(PRESETS[cfg.preset], light_freqs=cfg.light_freqs))
 
 
 def train_diffusion(data: TrainingData, cfg: DiffusionConfig, checkpoint: Path, *, device=None, log=print,
@@ -250,7 +253,7 @@ def load_sampler(state: dict, device=None):
 
 @torch.no_grad()
 def generate(model: WeightTransformer, std: Standardizer, lights, *, method: str = "ddim", steps: int = 50,
-             seed: int = 0, batch: int = 64, device=None) -> torch.Tensor:
+             seed: int = 0, batch: int = 64, temperature: float = 1.0, device=None) -> torch.Tensor:
     """SIREN weights (N, n_params) for light directions (N, 3) (any direction, seen or not)."""
     from diffshadow.lights import as_direction
 
@@ -267,7 +270,8 @@ def generate(model: WeightTransformer, std: Standardizer, lights, *, method: str
         gen = seeded(seed, 2, b0)
         shape = (len(w), std.layout.n_params)
         if method == "ddim":
-            z = schedule.ddim_sample(denoise, shape, steps=steps, generator=gen, device=device)
+            z = schedule.ddim_sample(denoise, shape, steps=steps, generator=gen, temperature=temperature,
+                                     device=device)
         elif method == "ddpm":
             z = schedule.ddpm_sample(denoise, shape, generator=gen, device=device)
         else:
