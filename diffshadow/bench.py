@@ -44,6 +44,29 @@ def _timed(fn):
     return out, time.perf_counter() - t
 
 
+def bench_analytic(steps=(2.0, 1.0, 0.5, 0.25)) -> dict:
+    """`transmittance` against the closed form on the 65³ Gaussian blob (1,000 points and directions)."""
+    import tempfile
+
+    from diffshadow.analytic import BLOB_DENSITY, blob_cases, blob_transmittance, gaussian_blob
+    from diffshadow.shadow import ShadowField, transmittance
+
+    with tempfile.TemporaryDirectory() as tmp:  # through load_volume, as a user's .npy would go
+        np.save(Path(tmp) / "blob.npy", gaussian_blob())
+        vol = load_volume(Path(tmp) / "blob.npy")
+    tf = TransferFunction.from_config({"opacity": [[0, 0], [1, 1]], "color": [[0, 1, 1, 1], [1, 1, 1, 1]],
+                                       "density_scale": BLOB_DENSITY})
+    field = ShadowField.build(vol, tf)
+    out = {}
+    for step in steps:
+        err = np.concatenate([np.abs(transmittance(field, tf, w, pts, step=step).numpy()
+                                     - np.array([blob_transmittance(p, w) for p in pts])) for w, pts in blob_cases()])
+        out[step] = {"max_err": float(err.max()), "mean_err": float(err.mean()), "points": len(err)}
+        print(f"[bench shadow] analytic blob, step {step:g}: max {err.max():.2e}  mean {err.mean():.2e} "
+              f"({len(err)} points)", flush=True)
+    return out
+
+
 def bench_shadow(
     volumes: list[Path],
     out_dir: Path,
@@ -57,7 +80,7 @@ def bench_shadow(
     """Time and error of every method and step on each volume; writes JSON and a log-log plot."""
     tf = TransferFunction.from_config(tf_config or BENCH_TF)
     results: dict = {"light": list(light), "tf": tf.to_config(), "reference_step": REFERENCE_STEP,
-                     "torch_threads": torch.get_num_threads(), "volumes": {}}
+                     "torch_threads": torch.get_num_threads(), "analytic_blob": bench_analytic(), "volumes": {}}
     for path in volumes:
         vol = load_volume(path)
         print(f"[bench shadow] {vol.name} {vol.dims}: reference march at {REFERENCE_STEP} voxel ...", flush=True)

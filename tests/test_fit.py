@@ -1,8 +1,9 @@
 import numpy as np
 import pytest
 import torch
-from conftest import gaussian_blob, identity_tf
+from conftest import identity_tf
 
+from diffshadow.analytic import gaussian_blob
 from diffshadow.fit import FitConfig, FitError, fit_sirens
 from diffshadow.siren import SirenConfig, WeightLayout, init_siren
 from diffshadow.volume import Volume

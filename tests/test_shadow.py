@@ -1,20 +1,19 @@
 """Ground-truth shadows: an analytic case, convergence, invariances, extremes and bad input."""
 
-import math
 import warnings
 
 import numpy as np
 import pytest
 import torch
-from conftest import gaussian_blob, identity_tf
+from conftest import identity_tf
 
+from diffshadow.analytic import BLOB_DENSITY as K
+from diffshadow.analytic import BLOB_SIGMA as SIGMA
+from diffshadow.analytic import blob_cases, blob_transmittance, gaussian_blob
 from diffshadow.lights import LightError
 from diffshadow.shadow import ShadowField, shadow_grid, transmittance
 from diffshadow.transfer import TransferFunction
 from diffshadow.volume import load_volume
-
-SIGMA, K = 0.12, 10.0
-FIXED = [(1, 0, 0), (-1, 0, 0), (0, 0, 1), (0, 0, -1), (0, 1, 0), (1, 1, 1), (-1, 1, -1), (1, -1, 1)]
 
 
 @pytest.fixture(scope="module")
@@ -24,34 +23,12 @@ def blob(tmp_path_factory):
     return load_volume(path)
 
 
-def exact_transmittance(p: np.ndarray, w: np.ndarray) -> float:
-    """exp(-∫ K·exp(-|p + tw - c|²/2σ²) dt) from t = 0 to the box exit, in closed form with erf."""
-    d = p - 0.5
-    s0 = float(d @ w)
-    perp2 = float(d @ d) - s0**2
-    exits = [((1.0 if wa > 0 else 0.0) - pa) / wa for pa, wa in zip(p, w, strict=True) if wa != 0]
-    t_exit = min(exits)
-    r = SIGMA * math.sqrt(2)
-    depth = K * math.exp(-perp2 / (2 * SIGMA**2)) * SIGMA * math.sqrt(math.pi / 2) * (
-        math.erf((t_exit + s0) / r) - math.erf(s0 / r))
-    return math.exp(-depth)
-
-
-def analytic_cases(seed=0):
-    """1,000 (point, direction) pairs: axis-aligned, diagonal and random directions."""
-    rng = np.random.default_rng(seed)
-    dirs = [np.asarray(d, float) / np.linalg.norm(d) for d in FIXED]
-    dirs += [v / np.linalg.norm(v) for v in rng.normal(size=(40, 3))]
-    counts = [45] * len(FIXED) + [16] * 40
-    return [(w, rng.uniform(0, 1, size=(c, 3))) for w, c in zip(dirs, counts, strict=True)]
-
-
 def errors(blob, step):
     field = ShadowField.build(blob, identity_tf(K))
     errs = []
-    for w, pts in analytic_cases():
+    for w, pts in blob_cases():
         got = transmittance(field, field.tf, w, pts, step=step).numpy()
-        errs.extend(abs(g - exact_transmittance(p, w)) for g, p in zip(got, pts, strict=True))
+        errs.extend(abs(g - blob_transmittance(p, w)) for g, p in zip(got, pts, strict=True))
     return np.asarray(errs)
 
 
@@ -155,7 +132,7 @@ def test_axis_grazing_and_negative_directions(blob, w):
     got = transmittance(blob, tf, w, pts).numpy()
     wn = np.asarray(w, float) / np.linalg.norm(w)
     for g, p in zip(got, pts, strict=True):
-        assert abs(g - exact_transmittance(p, wn)) < 3e-3
+        assert abs(g - blob_transmittance(p, wn)) < 3e-3
     grid = shadow_grid(blob, tf, w, method="sweep")
     assert torch.isfinite(grid).all() and 0 <= grid.min() and grid.max() <= 1
 

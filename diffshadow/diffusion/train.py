@@ -212,8 +212,8 @@ def train_diffusion(data: TrainingData, cfg: DiffusionConfig, checkpoint: Path, 
             if not torch.isfinite(loss):
                 kept = f"the last good checkpoint {checkpoint} (epoch {good})" if good is not None else \
                     "no checkpoint (none was written yet)"
-                raise DiffusionError(f"train_diffusion: loss became {float(loss.detach())} at epoch {epoch}; keeping {kept}; "
-                                     f"lower diffusion.lr (now {cfg.lr}) or check the weight store")
+                raise DiffusionError(f"train_diffusion: loss became {float(loss.detach())} at epoch {epoch}; "
+                                     f"keeping {kept}; lower diffusion.lr (now {cfg.lr}) or check the weight store")
             opt.zero_grad(set_to_none=True)
             loss.backward()
             torch.nn.utils.clip_grad_norm_(model.parameters(), cfg.grad_clip)
