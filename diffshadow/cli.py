@@ -361,6 +361,14 @@ def _install_profiles(args: argparse.Namespace) -> None:
         print(f"profile {path.name}: {path} -> {path.resolve()}")
 
 
+def _run_options(p: argparse.ArgumentParser, *, device: bool = True) -> None:
+    """--out, --device, --threads: shared by the rule subcommands."""
+    p.add_argument("--out", required=True)
+    if device:
+        p.add_argument("--device", default=None, help="torch device (default: cpu)")
+    p.add_argument("--threads", type=int, default=0, help="torch threads (0: torch's default)")
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="diffshadow", description=__doc__)
     sub = parser.add_subparsers(dest="command", required=True)
@@ -416,9 +424,7 @@ def build_parser() -> argparse.ArgumentParser:
         p.add_argument("--volume", required=True, help="prepare_volume's volume.zarr")
         p.add_argument("--lights", required=True, help="lights.json")
         p.add_argument("--config-json", required=True, help='{"siren": ..., "fit": ..., ...}')
-        p.add_argument("--out", required=True)
-        p.add_argument("--device", default=None)
-        p.add_argument("--threads", type=int, default=0, help="torch threads (0: torch's default)")
+        _run_options(p)
         if name == "fit-siren":
             p.add_argument("--init", required=True, help="preoptimize's siren_init.pt")
             p.add_argument("--subset", type=int, required=True)
@@ -434,17 +440,14 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--volume", required=True)
     p.add_argument("--lights", required=True)
     p.add_argument("--config-json", required=True, help='{"diffusion": {...}}')
-    p.add_argument("--out", required=True)
-    p.add_argument("--threads", type=int, default=0)
+    _run_options(p, device=False)
     p.set_defaults(func=_presample)
 
     p = sub.add_parser("train-diffusion", help="train the weight-space diffusion model (geometry loss)")
     p.add_argument("--weights", required=True, help="weights.zarr")
     p.add_argument("--points", required=True, help="geometry_points.zarr")
     p.add_argument("--config-json", required=True, help='{"diffusion": {...}}')
-    p.add_argument("--out", required=True)
-    p.add_argument("--device", default=None)
-    p.add_argument("--threads", type=int, default=0)
+    _run_options(p)
     p.set_defaults(func=_train_diffusion)
 
     p = sub.add_parser("sample-shadows", help="generate SIRENs for every training and unseen light")
@@ -452,9 +455,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--volume", required=True)
     p.add_argument("--lights", required=True)
     p.add_argument("--eval-points", type=int, default=32768)
-    p.add_argument("--out", required=True)
-    p.add_argument("--device", default=None)
-    p.add_argument("--threads", type=int, default=0)
+    _run_options(p)
     p.set_defaults(func=_sample_shadows)
 
     p = sub.add_parser("evaluate-voxels", help="voxel PSNR of generated SIRENs, baselines, storage, timing")
@@ -465,8 +466,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--lights", required=True)
     p.add_argument("--eval-points", type=int, default=32768)
     p.add_argument("--blend-k", type=int, default=4)
-    p.add_argument("--out", required=True)
-    p.add_argument("--threads", type=int, default=0)
+    _run_options(p, device=False)
     p.set_defaults(func=_evaluate_voxels)
 
     p = sub.add_parser("install-profiles", help="make the repo's Snakemake profiles usable by bare name")
