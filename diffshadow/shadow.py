@@ -7,10 +7,12 @@ Two ways to compute them (DESIGN.md §6):
   optical depth accumulated (never a product of transmittances), early termination once the depth
   exceeds `TAU_MAX`, and empty macro-cells jumped over. Skipping only ever removes samples whose μ is
   exactly 0, so results with and without it agree to rounding.
-* `shadow_grid(method="sweep")` propagates optical depth slice by slice along the light's dominant
-  axis: τ(x) = τ(x + Δw) + ∫_0^Δ μ, where x + Δw lies on the neighbouring slice (bilinear lookup of τ
-  there) and the segment integral uses Simpson's rule. One pass over the grid instead of one ray per
-  voxel; its error is the numerical diffusion of the bilinear lookups, reduced by a finer `step`.
+* `shadow_grid(method="sweep")` works slice by slice along the light's dominant axis: it samples μ
+  along sheared light-parallel lines (one line per in-plane lattice point, restricted to the bounding
+  box of non-empty cells), accumulates optical depth along them with the trapezoid rule, and looks the
+  depth up bilinearly at each voxel. Two interpolations in all, none repeated from slice to slice (a
+  slice-to-slice recurrence smeared thin shadows over many voxels); the error left is that one lookup,
+  largest right at sharp shadow edges (see `diffshadow bench shadow`).
 
 Everything is torch and runs on CPU or CUDA through the same code.
 """
@@ -231,8 +233,8 @@ def shadow_grid(
     """Shadow coefficient at every voxel → (Z, Y, X) float32.
 
     `method="march"`: `transmittance` at every voxel (the reference); `step` in voxels, default
-    `DEFAULT_STEP`. `method="sweep"`: slice-by-slice propagation; `step` is the slice spacing in voxels
-    and must be 1/k for an integer k (default 1).
+    `DEFAULT_STEP`. `method="sweep"`: the shear sweep; `step` is the sample spacing along the lines in
+    slices and must be 1/k for an integer k (default 1).
     """
     w = as_direction(light_dir)
     if method == "march":
