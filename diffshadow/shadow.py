@@ -151,11 +151,15 @@ def transmittance(
     t0, t1 = _ray_box(pts, w, field.extent)
     t0 = t0.clamp_min(0.0)
     length = (t1 - t0).clamp_min(0.0)
-    base_dt = step * float(field.voxel_size.min())
-    n = torch.ceil(length / base_dt).to(torch.int64)
-    dt = torch.where(n > 0, length / n.clamp_min(1), torch.zeros_like(length))  # lattice fits the segment
-    q0 = (pts + t0[:, None] * w) / field.voxel_size  # voxel coordinates where marching starts
-    dq = (w / field.voxel_size)[None, :] * dt[:, None]  # voxel displacement per sample
+    dt = step * float(field.voxel_size.min())
+    # The lattice is anchored where the ray leaves the box and runs back toward the point, so every
+    # point on one ray shares it: a nearer point's sum is a prefix of a farther one's, and shadows are
+    # monotone along the light up to rounding. The last cell is partial and reuses its full cell's sample.
+    n = torch.ceil(length / dt).to(torch.int64)
+    last = length - (n - 1).clamp_min(0) * dt  # width of the last (partial) cell, in (0, dt]
+    exit_vox = torch.where((n > 0)[:, None], (pts + t1.clamp(max=1e30)[:, None] * w) / field.voxel_size,
+                           torch.zeros_like(pts))
+    dq = (-w / field.voxel_size)[None, :].expand(len(pts), 3) * dt  # voxel displacement per sample
 
     if skip_empty is None:
         skip_empty = float(field.empty.float().mean()) >= AUTO_SKIP_FRACTION
@@ -164,12 +168,14 @@ def transmittance(
     per_chunk = max(1, chunk // samples_per_iter)
     for start in range(0, len(pts), per_chunk):
         sl = slice(start, start + per_chunk)
-        tau[sl] = _march_chunk(field, q0[sl], dq[sl], dt[sl], n[sl], skip, tau_max, samples_per_iter)
+        tau[sl] = _march_chunk(field, exit_vox[sl], dq[sl], dt, last[sl], n[sl], skip, tau_max, samples_per_iter)
     return torch.exp(-tau)
 
 
-def _march_chunk(field: ShadowField, q0, dq, dt, n, skip: bool, tau_max: float, S: int) -> torch.Tensor:
-    """Optical depth for one chunk of rays; sample j of a ray sits at q0 + (j + ½) dq."""
+def _march_chunk(field: ShadowField, q0, dq, dt: float, last, n, skip: bool, tau_max: float,
+                 S: int) -> torch.Tensor:
+    """Optical depth for one chunk of rays; sample j of a ray sits at q0 + (j + ½) dq and weighs dt,
+    except the last (j = n - 1), which weighs `last`."""
     device = q0.device
     tau = torch.zeros(len(q0), dtype=torch.float32, device=device)
     k = torch.zeros(len(q0), dtype=torch.int64, device=device)
@@ -190,7 +196,8 @@ def _march_chunk(field: ShadowField, q0, dq, dt, n, skip: bool, tau_max: float, 
         mu = torch.zeros(kk.shape, dtype=torch.float32, device=device)
         if occupied.any():
             mu[occupied] = field.mu(pos[occupied])
-        tau[live] += mu.sum(dim=1) * dt[live]
+        weight = torch.where(kk == n[live, None] - 1, last[live, None], torch.full_like(mu, dt))
+        tau[live] += (mu * weight).sum(dim=1)
         k_next = k[live] + S
         if skip:
             # The last sample sits in an empty cell: jump to the first lattice sample past its exit.

@@ -1,0 +1,120 @@
+"""Stress: ground-truth shadows on generated volumes, transfer functions and directions (hypothesis)."""
+
+import os
+
+import numpy as np
+import pytest
+import torch
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
+
+from diffshadow.shadow import shadow_grid, transmittance
+from diffshadow.transfer import TransferFunction
+from diffshadow.volume import Volume
+
+pytestmark = pytest.mark.stress
+
+# STRESS_EXAMPLES=2000 pytest tests/stress  hunts harder than CI's default
+SETTINGS = settings(max_examples=int(os.environ.get("STRESS_EXAMPLES", 40)), deadline=None,
+                    suppress_health_check=[HealthCheck.too_slow])
+
+
+@st.composite
+def volumes(draw):
+    nx, ny, nz = (draw(st.integers(2, 14)) for _ in range(3))
+    kind = draw(st.sampled_from(["random", "zero", "one", "hot", "checker"]))
+    if kind == "random":
+        seed = draw(st.integers(0, 2**16))
+        data = np.random.default_rng(seed).uniform(0, 1, (nz, ny, nx))
+    elif kind == "zero":
+        data = np.zeros((nz, ny, nx))
+    elif kind == "one":
+        data = np.ones((nz, ny, nx))
+    elif kind == "hot":
+        data = np.zeros((nz, ny, nx))
+        data[draw(st.integers(0, nz - 1)), draw(st.integers(0, ny - 1)), draw(st.integers(0, nx - 1))] = 1
+    else:
+        z, y, x = np.indices((nz, ny, nx))
+        data = ((x + y + z) % 2).astype(float)
+    spacing = np.array([draw(st.floats(0.2, 5.0)) for _ in range(3)])
+    size = (np.array([nx, ny, nz]) - 1) * spacing
+    return Volume(data=data.astype(np.float32), extent=size / size.max(), name=kind)
+
+
+@st.composite
+def transfer_functions(draw):
+    xs = sorted(draw(st.lists(st.floats(0, 1), min_size=2, max_size=6)))
+    alphas = draw(st.lists(st.floats(0, 1), min_size=len(xs), max_size=len(xs)))
+    density = draw(st.sampled_from([0.0, 1e-3, 1.0, 30.0, 1e3, 1e8]))
+    return TransferFunction.from_config({"opacity": [[x, a] for x, a in zip(xs, alphas, strict=True)],
+                                         "color": [[0, 1, 1, 1], [1, 1, 1, 1]], "density_scale": density})
+
+
+@st.composite
+def directions(draw):
+    kind = draw(st.sampled_from(["axis", "signed_zero", "grazing", "random"]))
+    if kind == "axis":
+        w = np.zeros(3)
+        w[draw(st.integers(0, 2))] = draw(st.sampled_from([-1.0, 1.0]))
+    elif kind == "signed_zero":
+        w = np.array([draw(st.sampled_from([0.0, -0.0])), draw(st.sampled_from([0.0, -0.0])), -1.0])
+    elif kind == "grazing":
+        w = np.array([1.0, draw(st.floats(-1e-6, 1e-6)), draw(st.floats(-1e-6, 1e-6))])
+    else:
+        w = np.array([draw(st.floats(-1, 1)) for _ in range(3)])
+        if np.linalg.norm(w) < 1e-3:
+            w = np.array([0.3, 0.4, 0.5])
+    return w
+
+
+@SETTINGS
+@given(volumes(), transfer_functions(), directions(), st.integers(0, 2**16))
+def test_transmittance_is_finite_bounded_and_monotone(vol, tf, w, seed):
+    if tf.density_scale > 1e3:  # known defect, see test_constant_region_is_exact_under_steep_tf
+        tf = TransferFunction(tf.opacity_points, tf.color_points, 1e3)
+    rng = np.random.default_rng(seed)
+    wn = w / np.linalg.norm(w)
+    near = rng.uniform(-0.2, 1.2, (64, 3)) * vol.extent  # inside and outside the box
+    far = near - rng.uniform(0, 0.5, (64, 1)) * wn  # same rays, farther from the light
+    g_near = transmittance(vol, tf, w, near)
+    g_far = transmittance(vol, tf, w, far)
+    for g in (g_near, g_far):
+        assert torch.isfinite(g).all() and g.min() >= 0 and g.max() <= 1
+    # The farther point sees everything the nearer one does: never brighter. All points of a ray share
+    # one sample lattice anchored at the box exit, so this holds up to float32 rounding of the points
+    # (they sit ~1e-7 off the shared ray, which μ turns into a depth difference).
+    mu_max = tf.density_scale * float(tf.opacity_points[:, 1].max())
+    assert (g_far - g_near).max() <= 1e-4 + 1e-6 * mu_max
+
+
+@SETTINGS
+@given(volumes(), transfer_functions(), directions())
+def test_march_and_sweep_are_bounded_and_agree(vol, tf, w):
+    march = shadow_grid(vol, tf, w, method="march")
+    sweep = shadow_grid(vol, tf, w, method="sweep")
+    for g in (march, sweep):
+        assert g.shape == vol.data.shape and torch.isfinite(g).all() and g.min() >= 0 and g.max() <= 1
+    if tf.density_scale == 0 or not vol.data.any() and float(tf.opacity(torch.zeros(1))) == 0:
+        assert torch.equal(march, torch.ones_like(march)) and torch.equal(sweep, torch.ones_like(sweep))
+    # Agreement, both resolved finely: at default steps a TF feature narrower than a sample on a grid of
+    # 2 voxels is simply missed by one method and smeared by the other (found here: 1.0 vs 0.07 vs 0.56).
+    # On the box boundary τ jumps for rays along a face (the sweep's stated max error), so compare the
+    # interior of grids that have one; density > 1e3 hits the known defect below.
+    if min(vol.data.shape) < 8 or tf.density_scale > 1e3:
+        return
+    fine_march = shadow_grid(vol, tf, w, method="march", step=0.125)[1:-1, 1:-1, 1:-1]
+    fine_sweep = shadow_grid(vol, tf, w, method="sweep", step=0.125)[1:-1, 1:-1, 1:-1]
+    assert (fine_march - fine_sweep).abs().mean() <= 0.05, (float((fine_march - fine_sweep).abs().mean()),
+                                                            tf.to_config(), w.tolist(), vol.extent.tolist())
+
+
+@pytest.mark.xfail(strict=True, reason="known defect: grid_sample's weighted-sum trilinear gives 1 - 6e-8 on an "
+                   "all-ones volume; times a TF slope and density 1e8 that is mu ~ 6 where the true mu is 0. "
+                   "Fix: lerp-form trilinear (exact on constant regions), then re-run bench shadow.")
+def test_constant_region_is_exact_under_steep_tf():
+    vol = Volume(data=np.ones((2, 2, 2), np.float32), extent=np.array([0.5, 0.5, 1.0]), name="one")
+    # opacity(1) = 1e-30: the cells are not empty (no skipping), true mu = 1e-22, true T = 1 to float32
+    tf = TransferFunction.from_config({"opacity": [[0, 0], [0, 1], [1, 1e-30]], "color": [[0, 1, 1, 1], [1, 1, 1, 1]],
+                                       "density_scale": 1e8})
+    pts = np.random.default_rng(0).uniform(0, 1, (64, 3)) * vol.extent
+    assert transmittance(vol, tf, (1, 0, 0), pts).min() > 0.999
