@@ -254,61 +254,17 @@ def _sample_shadows(args: argparse.Namespace) -> None:
 def _evaluate_voxels(args: argparse.Namespace) -> None:
     import torch
 
-    from diffshadow.diffusion.train import load_sampler
-    from diffshadow.evaluate import TruthPoints, blend_baseline, nearest, psnr_per_light, seconds_per_inr
+    from diffshadow.evaluate import voxel_metrics
     from diffshadow.io import atomic_write_text
     from diffshadow.lights import read_lights
     from diffshadow.store import open_store
     from diffshadow.volume import load_prepared
 
     _threads(args.threads)
-    stage1, generated = open_store(args.weights), open_store(args.generated)
     volume, tf = load_prepared(args.volume)
-    light_sets = read_lights(args.lights)
-    train, unseen = light_sets["train"], light_sets["unseen"]
-    seen = generated.seen
     state = torch.load(args.checkpoint, map_location="cpu", weights_only=False)
-    model, std, layout, siren = load_sampler(state)
-    points = TruthPoints(volume, tf, args.eval_points, seed=int(state["config"]["seed"]) + 2)
-    truth_train, truth_unseen = points.truth(train), points.truth(unseen)
-    gen_seen = psnr_per_light(points.sirens(generated.weights[seen], layout, siren), truth_train)
-    stage1_seen = psnr_per_light(points.sirens(stage1.weights, layout, siren), truth_train)
-    result = {"seen": {"count": int(seen.sum()),
-                       "generated_psnr_median": float(np.median(gen_seen["box"])),
-                       "generated_psnr_min": float(gen_seen["box"].min()),
-                       "stage1_psnr_median": float(np.median(stage1_seen["box"])),
-                       "generated_minus_stage1_median_db": float(np.median(gen_seen["box"] - stage1_seen["box"]))}}
-    if "visible" in gen_seen:
-        result["seen"]["generated_psnr_visible_median"] = float(np.median(gen_seen["visible"]))
-        result["seen"]["stage1_psnr_visible_median"] = float(np.median(stage1_seen["visible"]))
-    if len(unseen):
-        idx, angles = nearest(train, unseen, args.blend_k)
-        gen_unseen = psnr_per_light(points.sirens(generated.weights[~seen], layout, siren), truth_unseen)
-        near = psnr_per_light(points.sirens(stage1.weights[idx[:, 0]], layout, siren), truth_unseen)
-        blend = psnr_per_light(blend_baseline(truth_train, idx, angles), truth_unseen)
-        result["unseen"] = {"count": len(unseen),
-                            "generated_psnr_median": float(np.median(gen_unseen["box"])),
-                            "nearest_psnr_median": float(np.median(near["box"])),
-                            "blend_psnr_median": float(np.median(blend["box"])),
-                            "blend_k": args.blend_k,
-                            "nearest_angle_median_deg": float(np.degrees(np.median(angles[:, 0])))}
-    # DDIM vs 500-step DDPM: time per INR and quality on the seen lights
-    from diffshadow.diffusion.train import generate
-
-    ddim_steps = int(state["config"]["ddim_steps"])
-    ddpm_w = generate(model, std, train, method="ddpm", seed=int(state["config"]["seed"])).numpy()
-    ddpm_seen = psnr_per_light(points.sirens(ddpm_w, layout, siren), truth_train)
-    t_ddim = seconds_per_inr(model, std, train[0], method="ddim", steps=ddim_steps,
-                             temperature=state["config"]["temperature"])
-    t_ddpm = seconds_per_inr(model, std, train[0], method="ddpm", steps=500, repeats=1)
-    result["sampling"] = {"ddim_steps": ddim_steps, "ddim_psnr_median": result["seen"]["generated_psnr_median"],
-                          "ddpm_psnr_median": float(np.median(ddpm_seen["box"])), "speedup": t_ddpm / t_ddim}
-    result["seconds_per_inr"] = {"ddim": t_ddim, "ddpm": t_ddpm}
-    n_voxels = int(np.prod(volume.data.shape))
-    result["storage_bytes"] = {"model": int(sum(p.numel() * p.element_size() for p in model.parameters())
-                                            + 2 * 8 * len(layout.sizes)),
-                               "sirens": int(len(train) * layout.n_params * 4),
-                               "grids": int(len(train) * n_voxels * 2)}
+    result = voxel_metrics(state, open_store(args.weights), open_store(args.generated), volume, tf,
+                           read_lights(args.lights), eval_points=args.eval_points, blend_k=args.blend_k)
     atomic_write_text(args.out, json.dumps(result, indent=1) + "\n")
     print(json.dumps(result, indent=1))
 

@@ -77,3 +77,56 @@ def seconds_per_inr(model, std, light, *, method: str, steps: int, repeats: int 
         generate(model, std, light[None], method=method, steps=steps, seed=r, temperature=temperature)
         best = min(best, time.perf_counter() - t)
     return best
+
+
+def _median(a) -> float:
+    return float(np.median(a))
+
+
+def voxel_metrics(state: dict, stage1, generated, volume: Volume, tf, light_sets: dict, *, eval_points: int,
+                  blend_k: int) -> dict:
+    """`voxel_metrics.json`: generated SIRENs (seen and unseen) against the ground truth, beside the stage-1
+    SIRENs, the nearest and blend baselines, DDIM vs DDPM, and storage."""
+    from diffshadow.diffusion.train import generate, load_sampler
+
+    train, unseen = light_sets["train"], light_sets["unseen"]
+    seen = generated.seen
+    cfg = state["config"]
+    model, std, layout, siren = load_sampler(state)
+    points = TruthPoints(volume, tf, eval_points, seed=int(cfg["seed"]) + 2)
+    truth_train, truth_unseen = points.truth(train), points.truth(unseen)
+    gen_seen = psnr_per_light(points.sirens(generated.weights[seen], layout, siren), truth_train)
+    stage1_seen = psnr_per_light(points.sirens(stage1.weights, layout, siren), truth_train)
+    result = {"seen": {"count": int(seen.sum()),
+                       "generated_psnr_median": _median(gen_seen["box"]),
+                       "generated_psnr_min": float(gen_seen["box"].min()),
+                       "stage1_psnr_median": _median(stage1_seen["box"]),
+                       "generated_minus_stage1_median_db": _median(gen_seen["box"] - stage1_seen["box"])}}
+    if "visible" in gen_seen:
+        result["seen"]["generated_psnr_visible_median"] = _median(gen_seen["visible"])
+        result["seen"]["stage1_psnr_visible_median"] = _median(stage1_seen["visible"])
+    if len(unseen):
+        idx, angles = nearest(train, unseen, blend_k)
+        gen_unseen = psnr_per_light(points.sirens(generated.weights[~seen], layout, siren), truth_unseen)
+        near = psnr_per_light(points.sirens(stage1.weights[idx[:, 0]], layout, siren), truth_unseen)
+        blend = psnr_per_light(blend_baseline(truth_train, idx, angles), truth_unseen)
+        result["unseen"] = {"count": len(unseen),
+                            "generated_psnr_median": _median(gen_unseen["box"]),
+                            "nearest_psnr_median": _median(near["box"]),
+                            "blend_psnr_median": _median(blend["box"]),
+                            "blend_k": blend_k,
+                            "nearest_angle_median_deg": float(np.degrees(np.median(angles[:, 0])))}
+    # DDIM vs 500-step DDPM: time per INR and quality on the seen lights
+    ddim_steps = int(cfg["ddim_steps"])
+    ddpm_w = generate(model, std, train, method="ddpm", seed=int(cfg["seed"])).numpy()
+    ddpm_seen = psnr_per_light(points.sirens(ddpm_w, layout, siren), truth_train)
+    t_ddim = seconds_per_inr(model, std, train[0], method="ddim", steps=ddim_steps, temperature=cfg["temperature"])
+    t_ddpm = seconds_per_inr(model, std, train[0], method="ddpm", steps=500, repeats=1)
+    result["sampling"] = {"ddim_steps": ddim_steps, "ddim_psnr_median": result["seen"]["generated_psnr_median"],
+                          "ddpm_psnr_median": _median(ddpm_seen["box"]), "speedup": t_ddpm / t_ddim}
+    result["seconds_per_inr"] = {"ddim": t_ddim, "ddpm": t_ddpm}
+    result["storage_bytes"] = {"model": int(sum(p.numel() * p.element_size() for p in model.parameters())
+                                            + 2 * 8 * len(layout.sizes)),
+                               "sirens": int(len(train) * layout.n_params * 4),
+                               "grids": int(len(train) * np.prod(volume.data.shape) * 2)}
+    return result

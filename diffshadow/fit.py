@@ -122,12 +122,13 @@ def fit_sirens(
     light_index = list(range(k)) if light_index is None else list(light_index)
     extent = torch.as_tensor(volume.extent, dtype=torch.float32, device=device)
     sampler = PointSampler(volume, tf, cfg.visible_fraction)
-    field = ShadowField.build(volume, tf, device=device)
-    grids = None
-    if cfg.target in ("sweep", "march"):
+    grids = field = None
+    if cfg.target == "transmittance":
+        field = ShadowField.build(volume, tf, device=device)
+    elif cfg.target in ("sweep", "march"):
         fine = refine(volume, cfg.grid_upsample)
         grids = torch.stack([shadow_grid(fine, tf, w, method=cfg.target, device=device) for w in lights])
-    elif cfg.target != "transmittance":
+    else:
         raise ValueError(f"fit.target: expected 'sweep', 'march' or 'transmittance', got {cfg.target!r}")
 
     weights = init.to(device=device, dtype=torch.float32).expand(k, -1).clone().requires_grad_(True)

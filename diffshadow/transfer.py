@@ -7,7 +7,7 @@ Repeated `s` values make a step. Extinction μ(s) = density_scale · opacity(s),
 from __future__ import annotations
 
 from collections.abc import Mapping
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 import torch
@@ -41,6 +41,8 @@ class TransferFunction:
     opacity_points: np.ndarray  # (K, 2): s, alpha
     color_points: np.ndarray  # (L, 4): s, r, g, b
     density_scale: float
+    # control points as tensors per (kind, device): the marcher classifies samples every iteration
+    _tensors: dict = field(default_factory=dict, init=False, repr=False, compare=False)
 
     @classmethod
     def from_config(cls, d: Mapping) -> TransferFunction:
@@ -75,11 +77,18 @@ class TransferFunction:
             "density_scale": self.density_scale,
         }
 
+    def _control(self, kind: str, device) -> tuple[torch.Tensor, torch.Tensor]:
+        key = (kind, str(device))
+        if key not in self._tensors:
+            pts = torch.as_tensor(self.opacity_points if kind == "opacity" else self.color_points,
+                                  dtype=torch.float32, device=device)
+            self._tensors[key] = (pts[:, 0].contiguous(), pts[:, 1:].contiguous())
+        return self._tensors[key]
+
     def opacity(self, s) -> torch.Tensor:
         """Opacity in [0, 1] at scalar values `s` (any shape)."""
         s = _as_tensor(s)
-        pts = torch.as_tensor(self.opacity_points, dtype=torch.float32, device=s.device)
-        return _piecewise_linear(s, pts[:, 0].contiguous(), pts[:, 1:]).squeeze(-1)
+        return _piecewise_linear(s, *self._control("opacity", s.device)).squeeze(-1)
 
     def extinction(self, s) -> torch.Tensor:
         """μ(s) = density_scale · opacity(s), in 1 / box-length."""
@@ -88,8 +97,7 @@ class TransferFunction:
     def color(self, s) -> torch.Tensor:
         """RGB in [0, 1]; returns s.shape + (3,)."""
         s = _as_tensor(s)
-        pts = torch.as_tensor(self.color_points, dtype=torch.float32, device=s.device)
-        return _piecewise_linear(s, pts[:, 0].contiguous(), pts[:, 1:])
+        return _piecewise_linear(s, *self._control("color", s.device))
 
     def max_opacity(self, lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
         """Largest opacity over each scalar interval [lo, hi] (macro-cell bounds).

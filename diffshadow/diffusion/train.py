@@ -194,19 +194,19 @@ def train_diffusion(data: TrainingData, cfg: DiffusionConfig, checkpoint: Path, 
         order = torch.randperm(n, generator=gen)
         totals = torch.zeros(2, dtype=torch.float64)
         for b0 in range(0, n, cfg.batch_size):
-            idx = order[b0:b0 + cfg.batch_size]
+            idx = order[b0:b0 + cfg.batch_size].to(device)
             b = len(idx)
             t = torch.randint(0, schedule.steps, (b,), generator=gen).to(device)
             noise = torch.randn(b, z_all.shape[1], generator=gen).to(device)
-            x0 = z_all[idx.to(device)]
-            pred = model(schedule.q_sample(x0, t, noise), t, lights[idx.to(device)])
+            x0 = z_all[idx]
+            pred = model(schedule.q_sample(x0, t, noise), t, lights[idx])
             loss_x0 = ((pred - x0) ** 2).mean()
             loss = loss_x0
             loss_geo = torch.zeros((), device=device)
             if cfg.geometry_weight > 0:
                 pick = torch.randint(0, points.shape[1], (b, cfg.geometry_points), generator=gen).to(device)
-                pts = torch.gather(points[idx.to(device)], 1, pick[..., None].expand(-1, -1, 3))
-                vals = torch.gather(values[idx.to(device)], 1, pick)
+                pts = torch.gather(points[idx], 1, pick[..., None].expand(-1, -1, 3))
+                vals = torch.gather(values[idx], 1, pick)
                 loss_geo = _geometry_loss(std.destandardize(pred), data.layout, data.siren, pts, vals, extent)
                 loss = loss + cfg.geometry_weight * loss_geo
             if not torch.isfinite(loss):
