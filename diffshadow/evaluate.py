@@ -125,8 +125,9 @@ def voxel_metrics(state: dict, stage1, generated, volume: Volume, tf, light_sets
     result["sampling"] = {"ddim_steps": ddim_steps, "ddim_psnr_median": result["seen"]["generated_psnr_median"],
                           "ddpm_psnr_median": _median(ddpm_seen["box"]), "speedup": t_ddpm / t_ddim}
     result["seconds_per_inr"] = {"ddim": t_ddim, "ddpm": t_ddpm}
+    # the model's weights plus its standardiser (float64 mean and std, per token or per parameter)
     result["storage_bytes"] = {"model": int(sum(p.numel() * p.element_size() for p in model.parameters())
-                                            + 2 * 8 * len(layout.sizes)),
+                                            + 2 * 8 * len(std.mean)),
                                "sirens": int(len(train) * layout.n_params * 4),
                                "grids": int(len(train) * np.prod(volume.data.shape) * 2)}
     return result
