@@ -1,0 +1,176 @@
+"""The data INR: one SIREN of the scalar field (the same module as the shadow INRs), which the renderer
+queries instead of the raw volume. Its worst voxel error widens the macro-cell ranges so that empty-space
+skipping never drops a sample the INR would draw.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import time
+from dataclasses import asdict, dataclass
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from diffshadow.fit import PointSampler, cosine_lr, lookup_grids, seeded
+from diffshadow.io import atomic_save
+from diffshadow.metrics import psnr
+from diffshadow.shadow import voxel_points
+from diffshadow.siren import Siren, SirenConfig, WeightLayout, box_to_siren
+from diffshadow.transfer import TransferFunction
+from diffshadow.volume import Volume
+
+
+@dataclass(frozen=True)
+class DataInrConfig:
+    width: int = 64
+    blocks: int = 2
+    steps: int = 2000
+    points: int = 16384  # per step
+    lr: float = 1e-3
+    lr_final: float = 1e-2  # cosine decay to lr · lr_final
+    visible_fraction: float = 0.5  # share of points near voxels the TF makes visible
+    checkpoint_every: int = 200
+    seed: int = 0
+
+    @classmethod
+    def from_config(cls, d: dict) -> DataInrConfig:
+        unknown = set(d) - set(cls.__dataclass_fields__)
+        if unknown:
+            raise ValueError(f"data_inr config: unknown key(s) {sorted(unknown)}; known: "
+                             f"{sorted(cls.__dataclass_fields__)}")
+        return cls(**d)
+
+    @property
+    def siren(self) -> SirenConfig:
+        return SirenConfig(self.width, self.blocks)
+
+
+@dataclass
+class DataInr:
+    model: Siren
+    extent: np.ndarray
+    psnr: float  # over every voxel
+    max_error: float  # worst |INR − voxel|
+    config: dict
+    cell_lo: np.ndarray | None = None  # the INR's own range per RENDER_CELL macro-cell (renderer skipping)
+    cell_hi: np.ndarray | None = None
+
+    @property
+    def n_params(self) -> int:
+        return self.model.layout.n_params
+
+
+def voxel_errors(model: Siren, volume: Volume, *, chunk: int = 1 << 16, device=None) -> tuple[float, float]:
+    """(PSNR, max |error|) of the INR over every voxel of `volume`."""
+    device = torch.device(device or "cpu")
+    pts = voxel_points(volume, device)
+    extent = torch.as_tensor(volume.extent, dtype=torch.float32, device=device)
+    truth = torch.as_tensor(volume.data, device=device).reshape(-1)
+    with torch.no_grad():
+        pred = torch.cat([model(box_to_siren(pts[i:i + chunk], extent)) for i in range(0, len(pts), chunk)])
+    return float(psnr(pred, truth)), float((pred - truth).abs().max())
+
+
+def fit_data_inr(volume: Volume, tf: TransferFunction, cfg: DataInrConfig, *, checkpoint: Path | None = None,
+                 device=None, log=print) -> DataInr:
+    """Fit the data INR to trilinear samples of the volume (Adam, cosine decay, resumable)."""
+    device = torch.device(device or "cpu")
+    model = Siren(cfg.siren, seeded(cfg.seed, 7)).to(device)
+    opt = torch.optim.Adam(model.parameters(), lr=cfg.lr)
+    grid = torch.as_tensor(volume.data, device=device)[None]
+    extent = torch.as_tensor(volume.extent, dtype=torch.float32, device=device)
+    sampler = PointSampler(volume, tf, cfg.visible_fraction)
+    fingerprint = _fingerprint(volume, cfg)
+    start = 0
+    if checkpoint is not None and checkpoint.exists():
+        state = torch.load(checkpoint, map_location=device, weights_only=True)
+        if state.get("fingerprint") == fingerprint:
+            model.load_state_dict(state["model"])
+            opt.load_state_dict(state["optimizer"])
+            start = int(state["step"])
+            log(f"resuming from {checkpoint} at step {start}/{cfg.steps}")
+        else:
+            log(f"ignoring {checkpoint}: it belongs to another configuration")
+    t0 = time.perf_counter()
+    for step in range(start, cfg.steps):
+        for group in opt.param_groups:
+            group["lr"] = cosine_lr(step, cfg)  # same fields as FitConfig
+        pts = sampler.sample(1, cfg.points, seeded(cfg.seed, 8, step)).to(device)
+        with torch.no_grad():
+            target = lookup_grids(grid, pts, extent)[0]
+        loss = ((model(box_to_siren(pts[0], extent)) - target) ** 2).mean()
+        if not torch.isfinite(loss):
+            raise ValueError(f"data INR fit diverged at step {step} (loss {float(loss)}); lower data_inr.lr "
+                             f"(now {cfg.lr})")
+        opt.zero_grad(set_to_none=True)
+        loss.backward()
+        opt.step()
+        done = step + 1
+        if checkpoint is not None and done % cfg.checkpoint_every == 0 and done < cfg.steps:
+            state = {"fingerprint": fingerprint, "step": done, "model": model.state_dict(),
+                     "optimizer": opt.state_dict()}
+            atomic_save(checkpoint, lambda tmp, s=state: torch.save(s, tmp), suffix=".pt")
+        if done % max(1, cfg.steps // 10) == 0 or done == cfg.steps:
+            rate = (done - start) * cfg.points / (time.perf_counter() - t0)
+            batch_psnr = float(-10 * torch.log10(loss.detach()))
+            log(f"step {done}/{cfg.steps}  PSNR(batch) {batch_psnr:.1f} dB  {rate:,.0f} points/s")
+    if checkpoint is not None and checkpoint.exists():
+        checkpoint.unlink()
+    value, worst = voxel_errors(model, volume, device=device)
+    lo, hi = inr_cell_ranges(model, volume, device=device)
+    log(f"data INR: {model.layout.n_params} parameters, voxel PSNR {value:.2f} dB, max error {worst:.4f}")
+    return DataInr(model.cpu(), np.asarray(volume.extent), value, worst, asdict(cfg), lo, hi)
+
+
+def inr_cell_ranges(model: Siren, volume: Volume, *, cell: int = 16, refine: int = 2, margin: float = 0.01,
+                    chunk: int = 1 << 16, device=None) -> tuple[np.ndarray, np.ndarray]:
+    """The INR's (min, max) per `cell`³-voxel macro-cell, from the INR itself on a lattice `refine`× finer
+    than the voxels, widened by `margin` for the values between lattice points.
+
+    Ranges of the raw volume would not do: where the INR overshoots a sharp feature (its worst voxel
+    error), a cell the volume calls empty can hold visible INR values, and the renderer would drop them.
+    """
+    from diffshadow.render import cell_ranges
+
+    device = torch.device(device or "cpu")
+    nz, ny, nx = volume.data.shape
+    axes = [torch.linspace(0, float(e), (n - 1) * refine + 1, device=device)
+            for e, n in zip(volume.extent[::-1], (nz, ny, nx), strict=True)]
+    zz, yy, xx = torch.meshgrid(*axes, indexing="ij")
+    pts = torch.stack([xx, yy, zz], -1).reshape(-1, 3)
+    extent = torch.as_tensor(volume.extent, dtype=torch.float32, device=device)
+    with torch.no_grad():
+        values = torch.cat([model(box_to_siren(pts[i:i + chunk], extent)) for i in range(0, len(pts), chunk)])
+    lo, hi = cell_ranges(values.view(*zz.shape).cpu(), cell * refine)
+    return (lo - margin).numpy(), (hi + margin).numpy()
+
+
+def _fingerprint(volume: Volume, cfg: DataInrConfig) -> str:
+    h = hashlib.sha256(volume.data.tobytes())
+    h.update(json.dumps([asdict(cfg), np.asarray(volume.extent).tolist()]).encode())
+    return h.hexdigest()
+
+
+def save_data_inr(path, inr: DataInr) -> None:
+    state = {"weights": inr.model.flat().detach().cpu(), "layout": inr.model.layout.to_config(),
+             "siren": inr.model.cfg.to_config(), "extent": np.asarray(inr.extent).tolist(), "psnr": inr.psnr,
+             "max_error": inr.max_error, "config": inr.config,
+             "cell_lo": torch.as_tensor(inr.cell_lo), "cell_hi": torch.as_tensor(inr.cell_hi)}
+    atomic_save(path, lambda tmp: torch.save(state, tmp), suffix=".pt")
+
+
+def load_data_inr(path) -> DataInr:
+    path = Path(path)
+    try:
+        state = torch.load(path, map_location="cpu", weights_only=True)
+        layout = WeightLayout.from_config(state["layout"])
+        model = Siren.from_flat(state["weights"], layout, SirenConfig.from_config(state["siren"]))
+        return DataInr(model, np.asarray(state["extent"]), float(state["psnr"]), float(state["max_error"]),
+                       dict(state["config"]), state["cell_lo"].numpy(), state["cell_hi"].numpy())
+    except FileNotFoundError:
+        raise ValueError(f"{path}: no such data INR file (train_data_inr's data_inr.pt)") from None
+    except (KeyError, RuntimeError, TypeError) as e:
+        raise ValueError(f"{path}: not a data INR file ({e})") from None

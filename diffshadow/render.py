@@ -1,0 +1,613 @@
+"""The INR volume renderer (paper appendix, DESIGN.md §6): cameras, a wavefront ray marcher, macro-cells,
+shading, and the naive secondary-ray baseline.
+
+The wavefront marcher keeps a pool of at most `batch // samples_per_iter` live rays. Each iteration
+
+1. a coordinate step gathers the next `samples_per_iter` lattice samples of every live ray, jumping
+   over macro-cells whose opacity is 0 under the transfer function;
+2. one batched inference evaluates the scalar field there (the data INR or the raw grid), and the
+   shadow source in the same pass (the shadow INR, a shadow grid, or secondary rays);
+3. a shading/compositing step adds them front to back, with α = 1 − exp(−μ·Δt) (opacity corrected
+   for the step, consistent with the shadow's optical depth);
+4. rays that left the box or whose transmittance fell below `min_transmittance` leave the pool, and
+   waiting rays take their place.
+
+Memory is bounded by `batch` (plus a few floats per pixel of state), never by pixels × samples.
+The naive baseline (`MarchedShadow`) pauses after step 2 and marches a secondary ray toward the light
+from every sample through the same scalar field, itself with this wavefront loop and skipping.
+
+Shading: colour × (0.1 + 0.9·g) with shadow coefficient g (the authors' code); with `phong=True` the
+colour is first lit by Blinn-Phong from the field's gradient. `noshadow` has g = 1.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+
+from diffshadow.lights import as_direction
+from diffshadow.siren import BatchedSiren, Siren, WeightLayout, box_to_siren
+from diffshadow.transfer import TransferFunction
+from diffshadow.volume import Volume
+
+RENDER_CELL = 16  # voxels per macro-cell edge (the authors' renderer)
+DEFAULT_STEP = 0.5  # primary and secondary step, in voxels of the finest axis
+MIN_TRANSMITTANCE = 1e-3  # early ray termination
+SHADOW_TAU_MAX = 10.0  # secondary rays stop here: g < 5e-5, below an 8-bit pixel's resolution
+SAMPLES_PER_ITER = 8  # bench: 16³ cells, hydrogen_atom: 8 halves the loop overhead of 4; 16 wastes samples
+BATCH = 1 << 16  # samples per network inference
+BACKGROUND = 1.0
+AMBIENT, DIFFUSE, SPECULAR, SHININESS = 0.3, 0.7, 0.2, 32.0
+MODES = ("noshadow", "gt", "inr", "naive")
+
+
+class RenderError(ValueError):
+    """Bad renderer input; the message names the argument."""
+
+
+# ----------------------------------------------------------------------------------------------- cameras
+
+
+@dataclass(frozen=True)
+class Camera:
+    """A pinhole camera in box coordinates; `fov` is vertical, in degrees."""
+
+    eye: tuple[float, float, float]
+    target: tuple[float, float, float]
+    up: tuple[float, float, float] = (0.0, 0.0, 1.0)
+    fov: float = 60.0
+    width: int = 128
+    height: int = 128
+
+    def __post_init__(self):
+        if not (0 < self.fov < 180):
+            raise RenderError(f"camera fov: expected degrees in (0, 180), got {self.fov}")
+        if self.width < 1 or self.height < 1:
+            raise RenderError(f"camera image size: expected positive, got {self.width}x{self.height}")
+        forward = np.asarray(self.target, float) - np.asarray(self.eye, float)
+        if not np.all(np.isfinite(forward)) or np.linalg.norm(forward) == 0:
+            raise RenderError(f"camera: eye {self.eye} and target {self.target} must differ and be finite")
+
+    @classmethod
+    def look_at(cls, eye, target, *, up=(0.0, 0.0, 1.0), fov: float = 60.0, size: int | tuple[int, int] = 128):
+        w, h = (size, size) if isinstance(size, int) else size
+        return cls(tuple(map(float, eye)), tuple(map(float, target)), tuple(map(float, up)), float(fov), w, h)
+
+    @classmethod
+    def orbit(cls, extent, *, azimuth: float, elevation: float, distance: float = 2.2, fov: float = 60.0,
+              size: int | tuple[int, int] = 128) -> Camera:
+        """Looking at the box centre from (azimuth, elevation) in degrees; `distance` in box half-diagonals."""
+        extent = np.asarray(extent, dtype=float)
+        center = extent / 2
+        az, el = math.radians(azimuth), math.radians(elevation)
+        direction = np.array([math.cos(el) * math.cos(az), math.cos(el) * math.sin(az), math.sin(el)])
+        eye = center + distance * np.linalg.norm(center) * direction
+        up = (0.0, 0.0, 1.0) if abs(direction[2]) < 0.999 else (0.0, 1.0, 0.0)
+        return cls.look_at(eye, center, up=up, fov=fov, size=size)
+
+    def rays(self, device=None) -> tuple[torch.Tensor, torch.Tensor]:
+        """Origins and unit directions (H·W, 3), row 0 at the top of the image."""
+        eye = np.asarray(self.eye, float)
+        fwd = np.asarray(self.target, float) - eye
+        fwd /= np.linalg.norm(fwd)
+        right = np.cross(fwd, np.asarray(self.up, float))
+        if np.linalg.norm(right) < 1e-9:
+            raise RenderError(f"camera: up {self.up} is parallel to the view direction")
+        right /= np.linalg.norm(right)
+        up = np.cross(right, fwd)
+        half_h = math.tan(math.radians(self.fov) / 2)
+        half_w = half_h * self.width / self.height
+        u = ((np.arange(self.width) + 0.5) / self.width * 2 - 1) * half_w
+        v = (1 - (np.arange(self.height) + 0.5) / self.height * 2) * half_h
+        d = fwd[None, None] + u[None, :, None] * right[None, None] + v[:, None, None] * up[None, None]
+        d /= np.linalg.norm(d, axis=-1, keepdims=True)
+        dirs = torch.as_tensor(d.reshape(-1, 3), dtype=torch.float32, device=device)
+        origins = torch.as_tensor(eye, dtype=torch.float32, device=device).expand_as(dirs).contiguous()
+        return origins, dirs
+
+
+def default_views(extent, n: int, *, size: int = 128, elevation: float = 25.0, fov: float = 60.0) -> list[Camera]:
+    """`n` orbit cameras evenly spaced in azimuth (the evaluation and rendering-loss views)."""
+    return [Camera.orbit(extent, azimuth=30.0 + 360.0 * i / n, elevation=elevation, fov=fov, size=size)
+            for i in range(n)]
+
+
+# ------------------------------------------------------------------------------------------- macro-cells
+
+
+@dataclass
+class MacroGrid:
+    """Per 16³-voxel cell: the scalar range and the TF's maximum opacity over it; zero means skip.
+
+    `ranges` replaces the volume's own (min, max) per cell: the data INR's ranges, so that a cell is
+    only skipped when the field actually rendered has no opaque value in it.
+    """
+
+    max_opacity: torch.Tensor  # (cz, cy, cx)
+    empty: torch.Tensor  # (cz, cy, cx) bool
+    cell: int
+    voxel_size: torch.Tensor  # (3,) box units per voxel
+    dims: torch.Tensor  # (3,) voxels (x, y, z)
+    # per empty cell, r such that the (2r+1)³ cells around it are all empty: a ray jumps out of that
+    # whole block at once (a Chebyshev distance transform of the occupied cells)
+    radius: torch.Tensor = field(init=False)
+    ncell: torch.Tensor = field(init=False)
+
+    def __post_init__(self):
+        self.ncell = torch.tensor(self.empty.shape[::-1], device=self.empty.device)
+        occupied = (~self.empty).float()[None, None]
+        radius = torch.zeros(self.empty.shape, dtype=torch.long, device=self.empty.device)
+        for r in range(1, max(self.empty.shape)):
+            clear = F.max_pool3d(occupied, 2 * r + 1, stride=1, padding=r)[0, 0] == 0
+            if not bool(clear.any()):
+                break
+            radius[clear] = r
+        self.radius = radius
+
+    @classmethod
+    def build(cls, volume: Volume, tf: TransferFunction, *, cell: int = RENDER_CELL, ranges=None,
+              device=None) -> MacroGrid:
+        if ranges is None:
+            lo, hi = (r.double().numpy() for r in cell_ranges(torch.as_tensor(volume.data), cell))
+        else:
+            lo, hi = (np.asarray(r, dtype=np.float64) for r in ranges)
+        peak = tf.max_opacity(np.clip(lo, 0, 1), np.clip(hi, 0, 1))
+        peak = torch.as_tensor(peak, dtype=torch.float32, device=device)
+        if tf.density_scale == 0:
+            peak = torch.zeros_like(peak)
+        return cls(peak, peak <= 0, cell,
+                   torch.as_tensor(volume.voxel_size, dtype=torch.float32, device=device),
+                   torch.as_tensor(volume.dims, dtype=torch.float32, device=device))
+
+    @classmethod
+    def disabled(cls, volume: Volume, device=None) -> MacroGrid:
+        one = torch.ones(1, 1, 1, device=device)
+        return cls(one, one < 0, max(volume.dims), torch.as_tensor(volume.voxel_size, dtype=torch.float32,
+                   device=device), torch.as_tensor(volume.dims, dtype=torch.float32, device=device))
+
+    @property
+    def empty_fraction(self) -> float:
+        return float(self.empty.float().mean())
+
+    def cell_of(self, p: torch.Tensor) -> torch.Tensor:
+        """Integer cell (x, y, z) of box points (N, 3)."""
+        c = torch.floor(p / self.voxel_size / self.cell).long()
+        return torch.minimum(c.clamp_min(0), self.ncell - 1)
+
+    def is_empty(self, c: torch.Tensor) -> torch.Tensor:
+        return self.empty[c[:, 2], c[:, 1], c[:, 0]]
+
+    def exit_t(self, o: torch.Tensor, d: torch.Tensor, c: torch.Tensor) -> torch.Tensor:
+        """Ray parameter where rays o + t d leave the empty block around cell c (box units)."""
+        r = self.radius[c[:, 2], c[:, 1], c[:, 0]][:, None]
+        lo = (c - r) * self.cell * self.voxel_size
+        hi = torch.minimum((c + r + 1) * self.cell, self.dims - 1) * self.voxel_size
+        bound = torch.where(d > 0, hi, lo)
+        t = torch.where(d != 0, (bound - o) / torch.where(d != 0, d, torch.ones_like(d)), torch.full_like(d, math.inf))
+        return t.min(dim=1).values
+
+
+def cell_ranges(scalar: torch.Tensor, cell: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """(min, max) of the voxels of each vertex-centred cell, boundary voxels included: (cz, cy, cx) each."""
+    n = torch.tensor(scalar.shape)
+    nc = torch.clamp((n - 1 + cell - 1) // cell, min=1)
+    pad = []
+    for axis in (2, 1, 0):  # F.pad takes the last axis first
+        pad += [0, int(nc[axis] * cell + 1 - n[axis])]
+    x = F.pad(scalar[None, None], pad, mode="replicate")
+    hi = F.max_pool3d(x, kernel_size=cell + 1, stride=cell)[0, 0]
+    lo = -F.max_pool3d(-x, kernel_size=cell + 1, stride=cell)[0, 0]
+    return lo, hi
+
+
+def _ray_box(o: torch.Tensor, d: torch.Tensor, extent: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    safe = torch.where(d != 0, d, torch.ones_like(d))
+    ta, tb = (0 - o) / safe, (extent - o) / safe
+    inside = (o >= 0) & (o <= extent)
+    lo = torch.where(d != 0, torch.minimum(ta, tb), torch.where(inside, -math.inf, math.inf))
+    hi = torch.where(d != 0, torch.maximum(ta, tb), torch.where(inside, math.inf, -math.inf))
+    return lo.max(dim=1).values.clamp_min(0), hi.min(dim=1).values
+
+
+# ------------------------------------------------------------------------------------------------ fields
+
+
+class GridScalar:
+    """The raw volume: trilinear value and (central-difference) gradient from one 4-channel lookup."""
+
+    def __init__(self, volume: Volume, device=None):
+        self.extent = torch.as_tensor(volume.extent, dtype=torch.float32, device=device)
+        data = volume.data.astype(np.float64)
+        spacing = volume.voxel_size  # (x, y, z)
+        gz, gy, gx = np.gradient(data, spacing[2], spacing[1], spacing[0])
+        stack = np.stack([data, gx, gy, gz]).astype(np.float32)
+        self.channels = torch.as_tensor(stack, device=device)[None]  # (1, 4, Z, Y, X)
+
+    def _lookup(self, p: torch.Tensor, channels: slice) -> torch.Tensor:
+        g = box_to_siren(p, self.extent).view(1, 1, 1, -1, 3)
+        out = F.grid_sample(self.channels[:, channels], g, mode="bilinear", padding_mode="border",
+                            align_corners=True)
+        return out.view(out.shape[1], -1)
+
+    def value(self, p: torch.Tensor) -> torch.Tensor:
+        return self._lookup(p, slice(0, 1))[0]
+
+    def value_and_grad(self, p: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        out = self._lookup(p, slice(0, 4))
+        return out[0], out[1:].t()
+
+
+class InrScalar:
+    """The data INR (a SIREN of the scalar field); gradients by autograd through the network."""
+
+    def __init__(self, model: Siren, extent, device=None):
+        self.model = model.to(device).eval()
+        for q in self.model.parameters():
+            q.requires_grad_(False)
+        self.extent = torch.as_tensor(np.asarray(extent), dtype=torch.float32, device=device)
+
+    def value(self, p: torch.Tensor) -> torch.Tensor:
+        return self.model(box_to_siren(p, self.extent))
+
+    def value_and_grad(self, p: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        with torch.enable_grad():
+            p = p.detach().requires_grad_(True)
+            s = self.model(box_to_siren(p, self.extent))
+            (g,) = torch.autograd.grad(s.sum(), p)
+        return s.detach(), g
+
+
+class GridShadow:
+    """Shadow coefficients looked up trilinearly in a (Z, Y, X) grid (`shadow_grid`'s output)."""
+
+    def __init__(self, grid, extent, device=None):
+        self.grid = torch.as_tensor(grid, dtype=torch.float32, device=device)[None, None]
+        self.extent = torch.as_tensor(np.asarray(extent), dtype=torch.float32, device=device)
+
+    def __call__(self, p: torch.Tensor) -> torch.Tensor:
+        g = box_to_siren(p, self.extent).view(1, 1, 1, -1, 3)
+        return F.grid_sample(self.grid, g, mode="bilinear", padding_mode="border", align_corners=True).view(-1)
+
+
+class SirenShadow:
+    """A shadow INR (one flat weight vector in `layout`), evaluated in the same pass as the data INR."""
+
+    def __init__(self, weights, layout: WeightLayout, blocks: int, extent, device=None):
+        w = torch.as_tensor(np.asarray(weights), dtype=torch.float32, device=device).reshape(1, -1)
+        self.model = BatchedSiren(w, layout, blocks)
+        self.extent = torch.as_tensor(np.asarray(extent), dtype=torch.float32, device=device)
+
+    def __call__(self, p: torch.Tensor) -> torch.Tensor:
+        return self.model(box_to_siren(p, self.extent)[None])[0].clamp(0.0, 1.0)
+
+
+# -------------------------------------------------------------------------------------- the wavefront loop
+
+
+@dataclass
+class Counters:
+    primary_samples: int = 0  # samples sent to the network (after skipping)
+    secondary_samples: int = 0
+    iterations: int = 0
+
+
+def _gather(o, d, k, t0, t1, dt, macro: MacroGrid | None, n: int):
+    """The coordinate step: the next `n` lattice samples t = t0 + (k + ½)·dt of each ray.
+
+    A ray whose next sample lies in an empty macro-cell first jumps to the first lattice sample past
+    that cell (repeatedly, across runs of empty cells); of the `n` samples then taken, any in an empty
+    cell is marked invalid (μ = 0 there). Returns points (R, n, 3), valid (R, n) and the advanced k (R,).
+    """
+    if macro is not None:
+        for _ in range(4 * sum(macro.empty.shape)):  # every cell along a ray at most once
+            t = t0 + (k + 0.5) * dt
+            cell = macro.cell_of(o + t[:, None] * d)
+            jump = (t < t1) & macro.is_empty(cell)
+            if not bool(jump.any()):
+                break
+            t_out = macro.exit_t(o[jump], d[jump], cell[jump])
+            k[jump] = torch.maximum(torch.ceil((t_out - t0[jump]) / dt - 0.5), k[jump] + 1)
+    t = t0[:, None] + (k[:, None] + 0.5 + torch.arange(n, device=k.device)) * dt
+    pts = o[:, None] + t[..., None] * d[:, None]
+    valid = t < t1[:, None]
+    if macro is not None:
+        valid &= ~macro.is_empty(macro.cell_of(pts.view(-1, 3))).view(valid.shape)
+    return pts, valid, k + n
+
+
+@dataclass
+class Shading:
+    phong: bool = False
+    background: float = BACKGROUND
+
+
+def _shade(tf: TransferFunction, s, grad, g, view_dir, light: torch.Tensor, shading: Shading) -> torch.Tensor:
+    """Sample colour: TF colour, Blinn-Phong lit when asked, times (0.1 + 0.9·g) when there is a shadow."""
+    rgb = tf.color(s)
+    if shading.phong:
+        n = grad / grad.norm(dim=1, keepdim=True).clamp_min(1e-6)
+        h = light[None] - view_dir
+        h = h / h.norm(dim=1, keepdim=True).clamp_min(1e-6)
+        diffuse = (n @ light).abs()
+        specular = (n * h).sum(1).abs() ** SHININESS
+        rgb = rgb * (AMBIENT + DIFFUSE * diffuse)[:, None] + SPECULAR * specular[:, None]
+    if g is not None:
+        rgb = rgb * (0.1 + 0.9 * g)[:, None]
+    return rgb.clamp(0.0, 1.0)
+
+
+class MarchedShadow:
+    """The naive baseline: a secondary ray toward the light from every sample, marched through `scalar`
+    (wavefront-batched, empty cells skipped, stopped at optical depth `tau_max`)."""
+
+    def __init__(self, scalar, tf: TransferFunction, extent, voxel: float, *, step: float = DEFAULT_STEP,
+                 macro: MacroGrid | None = None, tau_max: float = SHADOW_TAU_MAX,
+                 samples_per_iter: int = SAMPLES_PER_ITER, batch: int = BATCH):
+        self.scalar, self.tf, self.macro = scalar, tf, macro
+        self.extent = torch.as_tensor(np.asarray(extent), dtype=torch.float32)
+        self.dt = step * voxel
+        self.tau_max, self.n, self.batch = tau_max, samples_per_iter, batch
+        self.light: torch.Tensor | None = None
+        self.counters: Counters | None = None
+
+    def __call__(self, p: torch.Tensor) -> torch.Tensor:
+        device = p.device
+        extent = self.extent.to(device)
+        m = len(p)
+        d = self.light.to(device).expand(m, 3).contiguous()
+        _, t1 = _ray_box(p, d, extent)
+        tau = torch.zeros(m, device=device)
+        k = torch.zeros(m, device=device)
+        t0 = torch.zeros(m, device=device)
+        pending = torch.arange(m, device=device)
+        cap = max(1, self.batch // self.n)
+        active = pending[:cap]
+        pending = pending[cap:]
+        while len(active):
+            pts, valid, k_new = _gather(p[active], d[active], k[active], t0[active], t1[active], self.dt,
+                                        self.macro, self.n)
+            k[active] = k_new
+            s = torch.zeros(valid.shape, device=device)
+            flat = pts[valid]
+            if len(flat):
+                s[valid] = self.scalar.value(flat)
+                if self.counters is not None:
+                    self.counters.secondary_samples += len(flat)
+            tau[active] += (self.tf.extinction(s) * valid).sum(1) * self.dt
+            alive = (tau[active] < self.tau_max) & (t0[active] + (k[active] + 0.5) * self.dt < t1[active])
+            active = active[alive]
+            free = cap - len(active)
+            if free > 0 and len(pending):
+                active = torch.cat([active, pending[:free]])
+                pending = pending[free:]
+        return torch.exp(-tau)
+
+
+@dataclass
+class Image:
+    rgb: torch.Tensor  # (H, W, 3) composited over the background
+    alpha: torch.Tensor  # (H, W) accumulated opacity
+    seconds: float
+    counters: Counters = field(default_factory=Counters)
+
+    def to_uint8(self) -> np.ndarray:
+        return (self.rgb.clamp(0, 1).cpu().numpy() * 255 + 0.5).astype(np.uint8)
+
+
+def render(
+    camera: Camera,
+    scalar,
+    tf: TransferFunction,
+    extent,
+    voxel: float,
+    *,
+    light=None,
+    shadow=None,
+    shading: Shading | None = None,
+    step: float = DEFAULT_STEP,
+    macro: MacroGrid | None = None,
+    min_transmittance: float = MIN_TRANSMITTANCE,
+    samples_per_iter: int = SAMPLES_PER_ITER,
+    batch: int = BATCH,
+    device=None,
+) -> Image:
+    """Render one image with the wavefront marcher.
+
+    `scalar`: `GridScalar` or `InrScalar`. `shadow`: None (no shadow), `GridShadow`, `SirenShadow` or
+    `MarchedShadow`; `light` (toward the light) is needed for a shadow or Phong. `voxel` is the
+    finest voxel size in box units; `step` is in voxels.
+    """
+    shading = shading or Shading()
+    if step <= 0 or not math.isfinite(step):
+        raise RenderError(f"step: expected a positive number of voxels, got {step}")
+    if batch < samples_per_iter:
+        raise RenderError(f"batch: expected at least samples_per_iter ({samples_per_iter}), got {batch}")
+    w = None
+    if shadow is not None or shading.phong:
+        if light is None:
+            raise RenderError("light: a light direction is needed for shadows and Phong shading")
+        w = torch.as_tensor(as_direction(light), dtype=torch.float32, device=device)
+    counters = Counters()
+    if isinstance(shadow, MarchedShadow):
+        shadow.light, shadow.counters = w, counters
+    start = time.perf_counter()
+    extent_t = torch.as_tensor(np.asarray(extent), dtype=torch.float32, device=device)
+    o, d = camera.rays(device)
+    r = len(o)
+    t0, t1 = _ray_box(o, d, extent_t)
+    dt = step * voxel
+    k = torch.zeros(r, device=device)
+    trans = torch.ones(r, device=device)
+    color = torch.zeros(r, 3, device=device)
+    pending = torch.nonzero(t0 < t1).flatten()
+    cap = max(1, batch // samples_per_iter)
+    active, pending = pending[:cap], pending[cap:]
+    while len(active):
+        counters.iterations += 1
+        pts, valid, k_new = _gather(o[active], d[active], k[active], t0[active], t1[active], dt, macro,
+                                    samples_per_iter)
+        k[active] = k_new
+        alpha = torch.zeros(valid.shape, device=device)
+        rgb = torch.zeros(*valid.shape, 3, device=device)
+        flat = pts[valid]
+        if len(flat):
+            counters.primary_samples += len(flat)
+            if shading.phong:
+                s, grad = scalar.value_and_grad(flat)
+            else:
+                s, grad = scalar.value(flat), None
+            g = shadow(flat) if shadow is not None else None
+            mu = tf.extinction(s)
+            alpha[valid] = 1 - torch.exp(-mu * dt)
+            view = d[active][:, None].expand_as(pts)[valid]
+            rgb[valid] = _shade(tf, s, grad, g, view, w, shading)
+        # front to back: each sample is seen through the transmittance of those before it
+        before = torch.cumprod(torch.cat([torch.ones_like(alpha[:, :1]), 1 - alpha[:, :-1]], 1), 1)
+        weight = trans[active, None] * before * alpha
+        color[active] += (weight[..., None] * rgb).sum(1)
+        trans[active] = trans[active] * (1 - alpha).prod(1)
+        alive = (trans[active] >= min_transmittance) & (t0[active] + (k[active] + 0.5) * dt < t1[active])
+        active = active[alive]
+        free = cap - len(active)
+        if free > 0 and len(pending):
+            active = torch.cat([active, pending[:free]])
+            pending = pending[free:]
+    out = color + trans[:, None] * shading.background
+    h, wdt = camera.height, camera.width
+    seconds = time.perf_counter() - start
+    return Image(out.view(h, wdt, 3), (1 - trans).view(h, wdt), seconds, counters)
+
+
+def render_all_at_once(camera: Camera, scalar, tf: TransferFunction, extent, voxel: float, *, light=None,
+                       shadow=None, shading: Shading | None = None, step: float = DEFAULT_STEP,
+                       device=None) -> Image:
+    """The straightforward reference: every lattice sample of every ray at once, no skipping, no early
+    termination. Memory grows with pixels × samples: for tests on small images only."""
+    shading = shading or Shading()
+    w = torch.as_tensor(as_direction(light), dtype=torch.float32, device=device) if light is not None else None
+    if isinstance(shadow, MarchedShadow):
+        shadow.light = w
+    start = time.perf_counter()
+    extent_t = torch.as_tensor(np.asarray(extent), dtype=torch.float32, device=device)
+    o, d = camera.rays(device)
+    t0, t1 = _ray_box(o, d, extent_t)
+    dt = step * voxel
+    n = int(torch.ceil(((t1 - t0).clamp_min(0) / dt).max()).item()) + 1
+    t = t0[:, None] + (torch.arange(n, device=device) + 0.5) * dt
+    valid = t < t1[:, None]
+    pts = o[:, None] + t[..., None] * d[:, None]
+    flat = pts[valid]
+    s, grad = scalar.value_and_grad(flat) if shading.phong else (scalar.value(flat), None)
+    g = shadow(flat) if shadow is not None else None
+    alpha = torch.zeros(valid.shape, device=device)
+    rgb = torch.zeros(*valid.shape, 3, device=device)
+    alpha[valid] = 1 - torch.exp(-tf.extinction(s) * dt)
+    rgb[valid] = _shade(tf, s, grad, g, d[:, None].expand_as(pts)[valid], w, shading)
+    before = torch.cumprod(torch.cat([torch.ones_like(alpha[:, :1]), 1 - alpha[:, :-1]], 1), 1)
+    color = ((before * alpha)[..., None] * rgb).sum(1)
+    trans = (1 - alpha).prod(1)
+    out = color + trans[:, None] * shading.background
+    return Image(out.view(camera.height, camera.width, 3), (1 - trans).view(camera.height, camera.width),
+                 time.perf_counter() - start)
+
+
+# ------------------------------------------------------------------------------------------------ modes
+
+
+class RenderScene:
+    """One volume, its TF and (optionally) its data INR on one device, with the per-mode pieces cached.
+
+    Modes: `noshadow`; `gt` (scalar and shadow from the raw volume; shadow by `shadow_grid`); `inr`
+    (shadow INR co-rendered with the scalar field: ours); `naive` (secondary rays through the scalar
+    field). `scalar="inr"` renders the data INR, `"grid"` the raw volume (to isolate the shadow's error).
+    """
+
+    def __init__(self, volume: Volume, tf: TransferFunction, data_inr=None, *, device=None,
+                 gt_method: str = "march", cell: int = RENDER_CELL):
+        self.volume, self.tf, self.data_inr = volume, tf, data_inr
+        self.device = torch.device(device or "cpu")
+        self.gt_method, self.cell = gt_method, cell
+        self.voxel = float(np.min(volume.voxel_size))
+        self._cache: dict = {}
+
+    def _cached(self, key, make):
+        if key not in self._cache:
+            self._cache[key] = make()
+        return self._cache[key]
+
+    def scalar(self, source: str):
+        if source == "grid":
+            return self._cached("grid", lambda: GridScalar(self.volume, self.device))
+        if source == "inr":
+            if self.data_inr is None:
+                raise RenderError("scalar 'inr' needs a data INR (train_data_inr's data_inr.pt)")
+            return self._cached("inr", lambda: InrScalar(self.data_inr.model, self.volume.extent, self.device))
+        raise RenderError(f"scalar: expected 'grid' or 'inr', got {source!r}")
+
+    def macro(self, source: str, skip: bool) -> MacroGrid | None:
+        if not skip:
+            return None
+        ranges = None
+        if source == "inr":
+            ranges = (self.data_inr.cell_lo, self.data_inr.cell_hi)
+            if ranges[0] is None or self.cell != RENDER_CELL:
+                from diffshadow.data_inr import inr_cell_ranges
+
+                ranges = self._cached(("ranges", self.cell), lambda: inr_cell_ranges(
+                    self.data_inr.model, self.volume, cell=self.cell, device=self.device))
+        return self._cached(("macro", source), lambda: MacroGrid.build(self.volume, self.tf, cell=self.cell,
+                                                                     ranges=ranges, device=self.device))
+
+    def gt_shadow(self, light) -> GridShadow:
+        from diffshadow.shadow import shadow_grid
+
+        w = tuple(np.round(as_direction(light), 12).tolist())
+        return self._cached(("gt", w), lambda: GridShadow(
+            shadow_grid(self.volume, self.tf, w, method=self.gt_method, device=self.device),
+            self.volume.extent, self.device))
+
+    def render(self, mode: str, camera: Camera, *, light=None, siren=None, scalar: str | None = None,
+               phong: bool = False, step: float = DEFAULT_STEP, skip: bool = True, batch: int = BATCH,
+               samples_per_iter: int = SAMPLES_PER_ITER, min_transmittance: float = MIN_TRANSMITTANCE,
+               background: float = BACKGROUND) -> Image:
+        """`siren`: (weights, layout, blocks) of the shadow INR, for mode `inr`."""
+        if mode not in MODES:
+            raise RenderError(f"mode: expected one of {MODES}, got {mode!r}")
+        if scalar is None:
+            scalar = "grid" if mode == "gt" or self.data_inr is None else "inr"
+        if mode == "gt":
+            scalar = "grid"
+        field_ = self.scalar(scalar)
+        macro = self.macro(scalar, skip)
+        shadow = None
+        if mode != "noshadow" and light is None:
+            raise RenderError(f"mode {mode!r}: needs a light direction")
+        if mode == "gt":
+            shadow = self.gt_shadow(light)
+        elif mode == "inr":
+            if siren is None:
+                raise RenderError("mode 'inr': needs the shadow INR's weights")
+            weights, layout, blocks = siren
+            shadow = SirenShadow(weights, layout, blocks, self.volume.extent, self.device)
+        elif mode == "naive":
+            shadow = MarchedShadow(field_, self.tf, self.volume.extent, self.voxel, step=step, macro=macro,
+                                   samples_per_iter=samples_per_iter, batch=batch)
+        with torch.no_grad():
+            return render(camera, field_, self.tf, self.volume.extent, self.voxel, light=light, shadow=shadow,
+                          shading=Shading(phong=phong, background=background), step=step, macro=macro,
+                          min_transmittance=min_transmittance, samples_per_iter=samples_per_iter, batch=batch,
+                          device=self.device)
+
+
+def write_png(path, image: Image) -> None:
+    """An 8-bit RGB PNG, written atomically."""
+    from PIL import Image as PILImage
+
+    from diffshadow.io import atomic_save
+
+    atomic_save(path, lambda tmp: PILImage.fromarray(image.to_uint8()).save(tmp, format="PNG"), suffix=".png")

@@ -1,0 +1,184 @@
+"""The renderer: wavefront vs all-at-once, gt against shadow_grid and the exact march, skipping,
+bounded batches, analytic shadow values, extremes and bad input."""
+
+import math
+
+import numpy as np
+import pytest
+import torch
+
+from diffshadow.analytic import gaussian_blob
+from diffshadow.render import (
+    Camera,
+    GridScalar,
+    GridShadow,
+    MacroGrid,
+    MarchedShadow,
+    RenderError,
+    RenderScene,
+    Shading,
+    render,
+    render_all_at_once,
+)
+from diffshadow.shadow import ShadowField, shadow_grid, transmittance
+from diffshadow.siren import SirenConfig, WeightLayout, init_siren
+from diffshadow.transfer import TransferFunction
+from diffshadow.volume import Volume
+
+LIGHT = (0.3, -0.5, 0.8)
+TF = TransferFunction.from_config({
+    # opacity 0 below 0.2 leaves the corners of the blob's box empty: skipping has work to do
+    "opacity": [[0.0, 0.0], [0.2, 0.0], [1.0, 0.8]],
+    "color": [[0.0, 0.1, 0.3, 0.9], [0.5, 0.9, 0.8, 0.4], [1.0, 1.0, 0.2, 0.1]],
+    "density_scale": 25.0,
+})
+
+
+@pytest.fixture(scope="module")
+def blob():
+    # two blobs, so that one shadows the other
+    a = gaussian_blob(49, 0.12)
+    b = np.roll(a, (8, -6, 10), axis=(0, 1, 2))
+    return Volume(data=np.maximum(a, b), extent=np.array([1.0, 1.0, 1.0]), name="blobs")
+
+
+def setup(vol, size=24):
+    cam = Camera.orbit(vol.extent, azimuth=40, elevation=20, size=size)
+    return cam, GridScalar(vol), float(np.min(vol.voxel_size))
+
+
+@pytest.mark.parametrize("case", ["noshadow_phong", "gt", "naive"])
+def test_wavefront_equals_all_at_once(blob, case):
+    cam, scalar, vox = setup(blob)
+    phong = case == "noshadow_phong"
+    shadow = None
+    if case == "gt":
+        shadow = GridShadow(shadow_grid(blob, TF, LIGHT, method="sweep"), blob.extent)
+    elif case == "naive":
+        shadow = MarchedShadow(scalar, TF, blob.extent, vox, macro=MacroGrid.build(blob, TF, cell=8), batch=512)
+    # a small batch forces many pool refills; skipping on; termination far below the tolerance
+    wave = render(cam, scalar, TF, blob.extent, vox, light=LIGHT, shadow=shadow, shading=Shading(phong=phong),
+                  macro=MacroGrid.build(blob, TF, cell=8), batch=256, min_transmittance=1e-7)
+    if case == "naive":
+        shadow = MarchedShadow(scalar, TF, blob.extent, vox, macro=None)
+    ref = render_all_at_once(cam, scalar, TF, blob.extent, vox, light=LIGHT, shadow=shadow,
+                             shading=Shading(phong=phong))
+    assert float(wave.alpha.max()) > 0.5  # the image shows something
+    assert float((wave.rgb - ref.rgb).abs().max()) <= 1e-4
+    assert float((wave.alpha - ref.alpha).abs().max()) <= 1e-4
+
+
+def test_gt_mode_uses_shadow_grid_and_agrees_with_exact_march(blob):
+    cam, scalar, vox = setup(blob)
+    scene = RenderScene(blob, TF)
+    gt = scene.render("gt", cam, light=LIGHT, min_transmittance=1e-7)
+    direct = GridShadow(shadow_grid(blob, TF, LIGHT, method="march"), blob.extent)
+    ref = render_all_at_once(cam, scalar, TF, blob.extent, vox, light=LIGHT, shadow=direct)
+    assert float((gt.rgb - ref.rgb).abs().max()) <= 1e-4
+    field = ShadowField.build(blob, TF)
+    exact = render_all_at_once(cam, scalar, TF, blob.extent, vox, light=LIGHT,
+                               shadow=lambda p: transmittance(field, TF, LIGHT, p))
+    err = (gt.rgb - exact.rgb).abs()
+    assert float(err.mean()) <= 2e-3 and float(err.max()) <= 5e-2, (float(err.mean()), float(err.max()))
+    # and the shadow shows: the same scene without it is brighter somewhere by a visible amount
+    plain = scene.render("noshadow", cam)
+    assert float((plain.rgb - gt.rgb).max()) > 0.05
+
+
+def test_naive_through_the_grid_matches_gt(blob):
+    cam, _, _ = setup(blob)
+    scene = RenderScene(blob, TF)
+    gt = scene.render("gt", cam, light=LIGHT)
+    naive = scene.render("naive", cam, light=LIGHT, scalar="grid")
+    assert float((gt.rgb - naive.rgb).abs().mean()) <= 2e-3
+
+
+def test_skipping_drops_only_empty_samples(blob):
+    cam, _, _ = setup(blob, size=32)
+    scene = RenderScene(blob, TF, cell=8)
+    a = scene.render("gt", cam, light=LIGHT, skip=True)
+    b = scene.render("gt", cam, light=LIGHT, skip=False)
+    assert a.counters.primary_samples < 0.8 * b.counters.primary_samples
+    assert float((a.rgb - b.rgb).abs().max()) <= 1e-6
+
+
+def test_inference_batches_never_exceed_batch(blob):
+    cam, scalar, vox = setup(blob, size=32)
+    sizes = []
+
+    class Spy:
+        def value(self, p):
+            sizes.append(len(p))
+            return scalar.value(p)
+
+    shadow = MarchedShadow(Spy(), TF, blob.extent, vox, batch=128)
+    render(cam, Spy(), TF, blob.extent, vox, light=LIGHT, shadow=shadow, batch=128)
+    assert max(sizes) <= 128 and len(sizes) > 10
+
+
+def test_constant_shadow_inr_scales_colour_by_the_authors_formula(blob):
+    cam, scalar, vox = setup(blob)
+    cfg = SirenConfig(16, 1)
+    layout = WeightLayout.for_siren(cfg)
+    p = init_siren(cfg, torch.Generator().manual_seed(0))
+    g = 0.3
+    p["last.weight"].zero_()
+    p["last.bias"].fill_(2 * g - 1)  # output ½·b + ½ = g everywhere
+    scene = RenderScene(blob, TF)
+    inr = scene.render("inr", cam, light=LIGHT, siren=(layout.flatten(p), layout, cfg.blocks), scalar="grid")
+    plain = scene.render("noshadow", cam, background=0.0)
+    inr0 = scene.render("inr", cam, light=LIGHT, siren=(layout.flatten(p), layout, cfg.blocks), scalar="grid",
+                        background=0.0)
+    assert torch.allclose(inr0.rgb, plain.rgb * (0.1 + 0.9 * g), atol=1e-6)
+    assert torch.allclose(inr.alpha, plain.alpha)
+
+
+def test_empty_and_opaque_extremes():
+    vol = Volume(data=np.zeros((9, 9, 9), np.float32), extent=np.ones(3), name="zero")
+    cam = Camera.orbit(vol.extent, azimuth=0, elevation=0, size=8)
+    img = RenderScene(vol, TF).render("gt", cam, light=LIGHT)
+    assert torch.all(img.rgb == 1.0) and torch.all(img.alpha == 0)
+    dense = TransferFunction.from_config({**TF.to_config(), "density_scale": 1e6})
+    full = Volume(data=np.ones((9, 9, 9), np.float32), extent=np.ones(3), name="one")
+    img = RenderScene(full, dense).render("gt", cam, light=LIGHT)
+    hit = img.alpha > 0  # the corner pixels miss the box
+    assert torch.isfinite(img.rgb).all() and hit.sum() > 10 and float(img.alpha[hit].min()) > 0.999
+
+
+def test_camera_geometry():
+    cam = Camera.orbit([1.0, 0.5, 0.25], azimuth=90, elevation=0, distance=2.0, size=(5, 3))
+    o, d = cam.rays()
+    assert o.shape == d.shape == (15, 3)
+    assert torch.allclose(d.norm(dim=1), torch.ones(15))
+    centre = d[7]  # the middle pixel looks at the box centre
+    to_target = torch.tensor(cam.target) - torch.tensor(cam.eye)
+    assert torch.allclose(centre, (to_target / to_target.norm()).float(), atol=1e-6)
+    assert math.isclose(float(np.linalg.norm(np.subtract(cam.eye, cam.target))), 2.0 * math.hypot(0.5, 0.25, 0.125))
+    # row 0 is the top of the image: its rays point further up (z) than the last row's
+    assert d[0, 2] > d[-1, 2]
+
+
+@pytest.mark.parametrize("kwargs, match", [
+    ({"fov": 0.0}, "fov"),
+    ({"fov": 180.0}, "fov"),
+    ({"eye": (0.5, 0.5, 0.5)}, "must differ"),
+])
+def test_camera_rejects_bad_input(kwargs, match):
+    args = {"eye": (2.0, 0.5, 0.5), "target": (0.5, 0.5, 0.5), **kwargs}
+    with pytest.raises(RenderError, match=match):
+        Camera(**args)
+
+
+def test_render_rejects_bad_input(blob):
+    cam, scalar, vox = setup(blob, size=4)
+    scene = RenderScene(blob, TF)
+    with pytest.raises(RenderError, match="mode"):
+        scene.render("shadowy", cam, light=LIGHT)
+    with pytest.raises(RenderError, match="light"):
+        scene.render("gt", cam)
+    with pytest.raises(RenderError, match="data INR"):
+        scene.render("noshadow", cam, scalar="inr")
+    with pytest.raises(RenderError, match="shadow INR"):
+        scene.render("inr", cam, light=LIGHT)
+    with pytest.raises(RenderError, match="step"):
+        render(cam, scalar, TF, blob.extent, vox, step=0.0)
