@@ -15,8 +15,11 @@ include: "workflow/rules/common.smk"
 include: "workflow/rules/lights.smk"
 include: "workflow/rules/stage1.smk"
 include: "workflow/rules/stage2.smk"
+include: "workflow/rules/render.smk"
 
 
 rule all:
     input:
         expand("results/{scene}/voxel_metrics.json", scene=config["scenes"]),
+        expand("results/{scene}/image_metrics.json", scene=config["scenes"]),
+        expand("results/{scene}/bench.json", scene=config["scenes"]),

@@ -273,6 +273,155 @@ def config_home() -> Path:
     return Path(os.environ.get("XDG_CONFIG_HOME") or Path.home() / ".config")
 
 
+def _train_data_inr(args: argparse.Namespace) -> None:
+    from diffshadow.data_inr import DataInrConfig, fit_data_inr, save_data_inr
+    from diffshadow.volume import load_prepared
+
+    _threads(args.threads)
+    cfg = DataInrConfig.from_config(_json(args.config_json)["data_inr"])
+    volume, tf = load_prepared(args.volume)
+    out = Path(args.out)
+    inr = fit_data_inr(volume, tf, cfg, checkpoint=out.with_name(out.name + ".ckpt"), device=args.device)
+    save_data_inr(out, inr)
+    print(f"wrote {out}: {inr.n_params} parameters, voxel PSNR {inr.psnr:.2f} dB, max error {inr.max_error:.4f}")
+
+
+def _render_scene(volume_path: str, data_inr: str | None, device, tf_json: str | None = None):
+    """A RenderScene from a prepared volume.zarr, or from a raw volume file with a TF (JSON)."""
+    from diffshadow.data_inr import load_data_inr
+    from diffshadow.render import RenderScene
+    from diffshadow.transfer import TransferFunction
+    from diffshadow.volume import load_prepared, load_volume
+
+    if Path(volume_path).suffix == ".zarr" and (Path(volume_path) / "zarr.json").exists() and not tf_json:
+        volume, tf = load_prepared(volume_path)
+    else:
+        from diffshadow.bench import BENCH_TF
+
+        volume = load_volume(volume_path)
+        tf = TransferFunction.from_config(_json(tf_json) if tf_json else BENCH_TF)
+    inr = load_data_inr(data_inr) if data_inr else None
+    if inr is not None and not np.allclose(inr.extent, volume.extent):
+        raise ValueError(f"{data_inr}: fitted to a box of {inr.extent.tolist()}, the volume's is "
+                         f"{volume.extent.tolist()}")
+    return RenderScene(volume, tf, inr, device=device)
+
+
+def _render(args: argparse.Namespace) -> None:
+    from diffshadow.render import Camera, write_png
+    from diffshadow.store import open_store
+
+    _threads(args.threads)
+    scene = _render_scene(args.volume, args.data_inr, args.device)
+    siren = None
+    light = args.light
+    if args.weights:
+        store = open_store(args.weights)
+        if not 0 <= args.light_index < len(store.weights):
+            raise ValueError(f"--light-index: {args.weights} holds lights 0..{len(store.weights) - 1}, "
+                             f"got {args.light_index}")
+        siren = (store.weights[args.light_index], store.layout, store.siren.blocks)
+        light = light or store.lights[args.light_index].tolist()
+    if args.mode == "inr" and siren is None:
+        raise ValueError("--mode inr needs --weights (a weight store) and --light-index")
+    cam = Camera.orbit(scene.volume.extent, azimuth=args.azimuth, elevation=args.elevation,
+                       distance=args.distance, fov=args.fov, size=args.size)
+    img = scene.render(args.mode, cam, light=light, siren=siren, scalar=args.scalar, phong=args.phong,
+                       step=args.step, skip=not args.no_skip)
+    write_png(args.out, img)
+    c = img.counters
+    print(f"wrote {args.out}: {args.mode}, {args.size}x{args.size} in {img.seconds:.3f} s "
+          f"({c.primary_samples:,} samples, {c.secondary_samples:,} on shadow rays)")
+
+
+def _bench_render(args: argparse.Namespace) -> None:
+    import yaml
+
+    from diffshadow.bench import BENCH_LIGHT
+    from diffshadow.bench_render import bench_render, write_bench
+    from diffshadow.data_inr import DataInrConfig, fit_data_inr
+    from diffshadow.fit import FitConfig, fit_sirens, seeded
+    from diffshadow.render import RenderScene
+    from diffshadow.siren import SirenConfig, WeightLayout, init_siren
+    from diffshadow.store import open_store
+    from diffshadow.transfer import TransferFunction
+    from diffshadow.volume import load_volume
+
+    _threads(args.threads)
+    if args.scene_config:
+        with open(args.scene_config) as f:
+            sc = yaml.safe_load(f) or {}
+        for key in ("volume", "transfer_function"):
+            if key not in sc:
+                raise ValueError(f"{args.scene_config}: missing key {key!r}")
+        volume = load_volume(sc["volume"], **sc.get("load", {}))
+        scene = RenderScene(volume, TransferFunction.from_config(sc["transfer_function"]), device=args.device)
+        name = Path(args.scene_config).stem
+    elif args.volume:
+        scene = _render_scene(args.volume, None, args.device, args.tf_json)
+        name = scene.volume.name
+    else:
+        raise ValueError("bench render: give --scene-config FILE or --volume PATH")
+    if args.data_inr:
+        from diffshadow.data_inr import load_data_inr
+
+        scene.data_inr = load_data_inr(args.data_inr)
+    else:
+        print(f"[bench render] fitting a data INR ({args.inr_steps} steps; pass --data-inr to reuse one) ...")
+        scene.data_inr = fit_data_inr(scene.volume, scene.tf, DataInrConfig(steps=args.inr_steps),
+                                      device=args.device, log=lambda m: None)
+    if args.weights:
+        store = open_store(args.weights)
+        siren = (store.weights[args.light_index], store.layout, store.siren.blocks)
+        light = store.lights[args.light_index]
+    else:
+        cfg = SirenConfig(args.siren_width, 2)
+        layout = WeightLayout.for_siren(cfg)
+        light = np.asarray(BENCH_LIGHT, float) / np.linalg.norm(BENCH_LIGHT)
+        print(f"[bench render] fitting a shadow INR ({args.siren_steps} steps; pass --weights to reuse one) ...")
+        w = fit_sirens(layout.flatten(init_siren(cfg, seeded(0))), layout, cfg, scene.volume, scene.tf,
+                       light[None], FitConfig(steps=args.siren_steps, grid_upsample=1, chunk=4096),
+                       device=args.device, log=lambda m: None)[0]
+        siren = (w, layout, cfg.blocks)
+    results = bench_render(scene, siren, light, sizes=args.sizes, step=args.step, repeats=args.repeats)
+    results.update({"scene": name, "dims": list(scene.volume.dims),
+                    "data_inr": {"params": scene.data_inr.n_params, "psnr": scene.data_inr.psnr},
+                    "shadow_inr": {"params": int(siren[1].n_params)}})
+    write_bench(Path(args.out), results)
+    print(f"wrote {args.out} and {Path(args.out).with_suffix('.png')}")
+
+
+def _evaluate_images(args: argparse.Namespace) -> None:
+    import json as _json_mod
+
+    from diffshadow.bench_render import finite_json
+    from diffshadow.evaluate import image_evaluation
+    from diffshadow.io import atomic_write_text
+    from diffshadow.lights import read_lights
+    from diffshadow.metrics import lpips_model
+    from diffshadow.render import default_views
+    from diffshadow.store import open_store
+
+    _threads(args.threads)
+    cfg = _json(args.config_json)["render"]
+    scene = _render_scene(args.volume, args.data_inr, args.device)
+    light_sets = read_lights(args.lights)
+    stage1 = open_store(args.weights)
+    generated = open_store(args.generated) if args.generated else None
+    views = default_views(scene.volume.extent, cfg["views"], size=cfg["image_size"], fov=cfg["fov"])
+    lpips, reason = lpips_model()
+    result = image_evaluation(scene, light_sets, stage1, generated, views, step=cfg["step"],
+                              out_dir=Path(args.images), lights_per_set=cfg["lights_per_set"], lpips=lpips)
+    result.update({"lpips": "available (VGG)" if lpips is not None else f"unavailable: {reason}",
+                   "image_size": cfg["image_size"], "views": cfg["views"], "step": cfg["step"],
+                   "reference": "gt: raw scalar field and shadow_grid (march), same step",
+                   "data_inr_psnr": scene.data_inr.psnr if scene.data_inr is not None else None})
+    atomic_write_text(args.out, _json_mod.dumps(finite_json(result), indent=2) + "\n")
+    for name, m in sorted(result["modes"].items()):
+        print(f"{name:24s} PSNR {m['psnr']:.2f} dB  SSIM {m['ssim']:.4f}  over {m['count']} images")
+    print(f"wrote {args.out}")
+
+
 def _same_profile(a: Path, b: Path) -> bool:
     if a.resolve() == b.resolve():
         return True
@@ -363,6 +512,24 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--threads", type=int, default=0)
     p.set_defaults(func=_bench_init_spread)
 
+    p = bench_sub.add_parser("render", help="fps and peak memory of noshadow / inr / naive; skipping; step curve")
+    p.add_argument("--scene-config", help="a scene YAML (volume, transfer_function), e.g. config/scenes/neghip.yaml")
+    p.add_argument("--volume", help="or a volume: prepare_volume's volume.zarr, or a raw file (with --tf-json)")
+    p.add_argument("--tf-json", help="transfer function for a raw --volume (default: the bench TF)")
+    p.add_argument("--data-inr", help="train_data_inr's data_inr.pt (default: fit one)")
+    p.add_argument("--inr-steps", type=int, default=600, help="steps when fitting the data INR here")
+    p.add_argument("--weights", help="a weight store whose SIREN --light-index is the shadow INR (default: fit one)")
+    p.add_argument("--light-index", type=int, default=0)
+    p.add_argument("--siren-width", type=int, default=32)
+    p.add_argument("--siren-steps", type=int, default=300)
+    p.add_argument("--sizes", type=int, nargs="+", default=[64, 128])
+    p.add_argument("--step", type=float, default=0.5, help="voxels")
+    p.add_argument("--repeats", type=int, default=3)
+    p.add_argument("--out", default="bench/bench_render.json")
+    p.add_argument("--device", default=None)
+    p.add_argument("--threads", type=int, default=0)
+    p.set_defaults(func=_bench_render)
+
     p = sub.add_parser("check-store", help="re-evaluate every stored SIREN independently against the store's PSNR")
     p.add_argument("--results", default="results/nucleon")
     p.add_argument("--tolerance", type=float, default=0.5, help="dB")
@@ -424,6 +591,42 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--blend-k", type=int, default=4)
     _run_options(p, device=False)
     p.set_defaults(func=_evaluate_voxels)
+
+    p = sub.add_parser("train-data-inr", help="fit the data INR (a SIREN of the scalar field)")
+    p.add_argument("--volume", required=True, help="prepare_volume's volume.zarr")
+    p.add_argument("--config-json", required=True, help='{"data_inr": {...}}')
+    _run_options(p)
+    p.set_defaults(func=_train_data_inr)
+
+    p = sub.add_parser("render", help="render one image (PNG) in a shading mode")
+    p.add_argument("--volume", required=True, help="volume.zarr (or a raw volume file)")
+    p.add_argument("--mode", choices=["noshadow", "gt", "inr", "naive"], default="gt")
+    p.add_argument("--data-inr", help="data_inr.pt (needed for --scalar inr and mode naive)")
+    p.add_argument("--weights", help="weight store for mode inr (weights.zarr or generated.zarr)")
+    p.add_argument("--light-index", type=int, default=0, help="row of --weights (its light is used)")
+    p.add_argument("--light", type=float, nargs=3, metavar=("X", "Y", "Z"), help="toward the light")
+    p.add_argument("--scalar", choices=["grid", "inr"], default=None, help="default: inr when --data-inr")
+    p.add_argument("--phong", action="store_true", help="Blinn-Phong lighting from the field's gradient")
+    p.add_argument("--azimuth", type=float, default=30.0)
+    p.add_argument("--elevation", type=float, default=25.0)
+    p.add_argument("--distance", type=float, default=2.2, help="in box half-diagonals")
+    p.add_argument("--fov", type=float, default=60.0)
+    p.add_argument("--size", type=int, default=128)
+    p.add_argument("--step", type=float, default=0.5, help="voxels")
+    p.add_argument("--no-skip", action="store_true", help="turn macro-cell skipping off")
+    _run_options(p)
+    p.set_defaults(func=_render)
+
+    p = sub.add_parser("evaluate-images", help="images and image metrics of every mode against gt")
+    p.add_argument("--volume", required=True)
+    p.add_argument("--lights", required=True)
+    p.add_argument("--data-inr", required=True)
+    p.add_argument("--weights", required=True, help="stage 1's weights.zarr")
+    p.add_argument("--generated", help="stage 2's generated.zarr (optional)")
+    p.add_argument("--config-json", required=True, help='{"render": {...}}')
+    p.add_argument("--images", required=True, help="folder for the PNGs")
+    _run_options(p)
+    p.set_defaults(func=_evaluate_images)
 
     p = sub.add_parser("install-profiles", help="make the repo's Snakemake profiles usable by bare name")
     p.add_argument("--source", default="profiles", help="folder of profiles (default: ./profiles)")

@@ -131,3 +131,81 @@ def voxel_metrics(state: dict, stage1, generated, volume: Volume, tf, light_sets
                                "sirens": int(len(train) * layout.n_params * 4),
                                "grids": int(len(train) * np.prod(volume.data.shape) * 2)}
     return result
+
+
+# ------------------------------------------------------------------------------------------- images
+
+
+def pick(n_total: int, n: int) -> list[int]:
+    """`n` indices spread evenly over 0..n_total-1 (the first and last included)."""
+    if n <= 0 or n_total == 0:
+        return []
+    return sorted(set(np.linspace(0, n_total - 1, min(n, n_total)).round().astype(int).tolist()))
+
+
+def image_evaluation(scene, light_sets: dict, stage1, generated, views: list, *, step: float, out_dir,
+                     lights_per_set: int = 2, lpips=None, log=print) -> dict:
+    """`image_metrics.json`: every mode against `gt` over a few training and unseen lights and views.
+
+    Modes: `inr_stage1` / `inr_generated` (shadow INR on the raw scalar field, so only the shadow's error
+    shows), `inr_generated_data_inr` (the deployed path: data INR + generated shadow INR), `naive`
+    (secondary rays through the data INR: it carries the data INR's error) and `noshadow` (Blinn-Phong).
+    """
+    from pathlib import Path
+
+    from diffshadow.metrics import image_metrics
+    from diffshadow.render import write_png
+
+    out_dir = Path(out_dir)
+    layout, blocks = stage1.layout, stage1.siren.blocks
+    have_inr = scene.data_inr is not None
+    gen_rows = {}
+    if generated is not None:
+        seen = generated.seen
+        gen_rows = {"train": np.flatnonzero(seen), "unseen": np.flatnonzero(~seen)}
+    per_image, sums = [], {}
+    for set_name in ("train", "unseen"):
+        for i in pick(len(light_sets[set_name]), lights_per_set):
+            light = light_sets[set_name][i]
+            for v, cam in enumerate(views):
+                tag = f"{set_name}{i}_view{v}"
+                gt = scene.render("gt", cam, light=light, step=step)
+                write_png(out_dir / f"{tag}_gt.png", gt)
+                modes = {}
+                if set_name == "train":
+                    modes["inr_stage1"] = {"mode": "inr", "scalar": "grid",
+                                           "siren": (stage1.weights[i], layout, blocks)}
+                if gen_rows:
+                    w = generated.weights[gen_rows[set_name][i]]
+                    modes["inr_generated"] = {"mode": "inr", "scalar": "grid", "siren": (w, layout, blocks)}
+                    if have_inr:
+                        modes["inr_generated_data_inr"] = {"mode": "inr", "scalar": "inr",
+                                                           "siren": (w, layout, blocks)}
+                if have_inr:
+                    modes["naive"] = {"mode": "naive", "scalar": "inr"}
+                modes["noshadow"] = {"mode": "noshadow", "scalar": "grid", "phong": True}
+                for name, spec in modes.items():
+                    img = scene.render(spec["mode"], cam, light=light, siren=spec.get("siren"),
+                                       scalar=spec["scalar"], phong=spec.get("phong", False), step=step)
+                    write_png(out_dir / f"{tag}_{name}.png", img)
+                    m = image_metrics(img.rgb, gt.rgb, gt.alpha, lpips)
+                    per_image.append({"set": set_name, "light": i, "view": v, "mode": name, **m,
+                                      "seconds": img.seconds})
+                    sums.setdefault((set_name, name), []).append(m)
+                    log(f"[evaluate images] {tag} {name:24s} PSNR {m['psnr']:6.2f} dB  SSIM {m['ssim']:.4f}  "
+                        f"{img.seconds:.2f} s")
+    by_set: dict = {}
+    overall: dict = {}
+    for (set_name, name), rows in sums.items():
+        by_set.setdefault(set_name, {})[name] = _mean_metrics(rows)
+    for name in {n for _, n in sums}:
+        overall[name] = _mean_metrics([r for (s, n), rows in sums.items() if n == name for r in rows])
+    return {"modes": overall, "by_set": by_set, "images": per_image}
+
+
+def _mean_metrics(rows: list[dict]) -> dict:
+    out = {"count": len(rows)}
+    for key in ("psnr", "ssim", "ms_ssim", "lpips"):
+        vals = [r[key] for r in rows if r.get(key) is not None]
+        out[key] = float(np.mean(vals)) if vals and len(vals) == len(rows) else None
+    return out

@@ -2,6 +2,9 @@
 
 from __future__ import annotations
 
+from pathlib import Path
+
+import numpy as np
 import torch
 
 
@@ -10,3 +13,80 @@ def psnr(pred: torch.Tensor, target: torch.Tensor, *, dim=None, data_range: floa
     mse = ((pred.double() - target.double()) ** 2).mean(dim=dim) if dim is not None else \
         ((pred.double() - target.double()) ** 2).mean()
     return 10.0 * torch.log10(data_range**2 / mse)
+
+
+# --------------------------------------------------------------------------------------- image metrics
+
+FOREGROUND_ALPHA = 1.0 / 255.0  # a pixel is foreground when the reference's opacity shows in 8 bits
+
+
+def foreground(alpha: torch.Tensor, threshold: float = FOREGROUND_ALPHA) -> torch.Tensor:
+    """(H, W) bool: the pixels the reference image covers."""
+    return alpha >= threshold
+
+
+def image_psnr(pred: torch.Tensor, target: torch.Tensor, mask: torch.Tensor | None = None) -> float:
+    """PSNR of (H, W, 3) images in [0, 1] over the `mask` pixels (all when None)."""
+    if pred.shape != target.shape:
+        raise ValueError(f"image_psnr: shapes differ, {tuple(pred.shape)} vs {tuple(target.shape)}")
+    if mask is not None:
+        if not bool(mask.any()):
+            raise ValueError("image_psnr: the foreground mask is empty (the reference image shows nothing)")
+        pred, target = pred[mask], target[mask]
+    return float(psnr(pred, target))
+
+
+def ssim(pred: torch.Tensor, target: torch.Tensor) -> float:
+    """SSIM of (H, W, 3) images in [0, 1] (scikit-image, Gaussian window as Wang et al.)."""
+    from skimage.metrics import structural_similarity
+
+    a, b = (np.asarray(x.detach().cpu().double()) for x in (pred, target))
+    win = min(7, _odd_below(min(a.shape[:2]) + 1))
+    if win < 3:
+        raise ValueError(f"ssim: images of {a.shape[:2]} pixels are too small")
+    return float(structural_similarity(a, b, channel_axis=-1, data_range=1.0, win_size=win))
+
+
+def ms_ssim(pred: torch.Tensor, target: torch.Tensor) -> float | None:
+    """MS-SSIM (pytorch-msssim, data range 1, the standard 5 scales). The Gaussian window shrinks from 11
+    until the coarsest scale still holds it (7 at 128², 3 at 64²); None for images smaller than that."""
+    from pytorch_msssim import ms_ssim as _ms_ssim
+
+    side = min(pred.shape[:2])
+    win = 11
+    while win >= 3 and (win - 1) * 16 >= side:
+        win -= 2
+    if win < 3:
+        return None
+    a, b = (x.detach().cpu().float().permute(2, 0, 1)[None] for x in (pred, target))
+    return float(_ms_ssim(a, b, data_range=1.0, win_size=win))
+
+
+def _odd_below(n: int) -> int:
+    return n - 1 if n % 2 == 0 else n - 2
+
+
+def lpips_model():
+    """(model, None) when LPIPS with VGG weights can be built from files on this machine, else
+    (None, reason). Never downloads: these machines are offline, and a fake score would be worse than none."""
+    try:
+        import lpips  # noqa: F401
+    except ImportError:
+        return None, "the lpips package is not installed"
+    hub = Path(torch.hub.get_dir()) / "checkpoints"
+    if not any(hub.glob("vgg16-*.pth")):
+        return None, f"no VGG16 weights in {hub} (LPIPS needs them; this machine cannot download)"
+    import lpips
+
+    return lpips.LPIPS(net="vgg", verbose=False), None
+
+
+def image_metrics(pred: torch.Tensor, target: torch.Tensor, target_alpha: torch.Tensor, lpips=None) -> dict:
+    """Foreground PSNR, SSIM, MS-SSIM (and LPIPS when a model is given) of one image against a reference."""
+    out = {"psnr": image_psnr(pred, target, foreground(target_alpha)), "ssim": ssim(pred, target),
+           "ms_ssim": ms_ssim(pred, target)}
+    if lpips is not None:
+        a, b = (x.detach().cpu().float().permute(2, 0, 1)[None] * 2 - 1 for x in (pred, target))
+        with torch.no_grad():
+            out["lpips"] = float(lpips(a, b))
+    return out

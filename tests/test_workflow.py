@@ -21,6 +21,8 @@ TINY = {
     "fit": {"steps": 6, "points": 128, "eval_points": 256, "grid_upsample": 1, "chunk": 0},
     "diffusion": {"preset": "tiny", "epochs": 3, "batch_size": 2, "geometry_points": 16, "presample_points": 64,
                   "checkpoint_every": 1, "ddim_steps": 5},
+    "data_inr": {"width": 8, "blocks": 1, "steps": 20, "points": 512},
+    "render": {"image_size": 16, "views": 1, "lights_per_set": 1, "bench_sizes": [8], "bench_repeats": 1},
 }
 
 
@@ -73,6 +75,23 @@ def test_stage2_outputs(finished):
     assert generated.seen.tolist() == [True] * 4 + [False] * 2 and np.isfinite(generated.psnr).all()
 
 
+def test_render_outputs(finished):
+    import json
+    res = finished / "results/nucleon"
+    images = json.loads((res / "image_metrics.json").read_text())
+    # one training and one unseen light, one view: stage-1 only for the training light
+    assert images["modes"]["inr_stage1"]["count"] == 1 and images["modes"]["inr_generated"]["count"] == 2
+    for mode in ("inr_stage1", "inr_generated", "inr_generated_data_inr", "naive", "noshadow"):
+        assert np.isfinite(images["modes"][mode]["psnr"]) and 0 < images["modes"][mode]["ssim"] <= 1
+    assert images["lpips"].startswith(("available", "unavailable"))
+    assert len(list((res / "images").glob("*.png"))) == 2 * 6 - 1
+    bench = json.loads((res / "bench.json").read_text())
+    row = bench["sizes"]["8"]
+    assert set(row["fps"]) == set(row["peak_mem_bytes"]) == {"noshadow", "inr", "naive"}
+    assert row["speedup"] > 1 and row["overhead"] > 0
+    assert (res / "bench.png").stat().st_size > 1000
+
+
 def test_nothing_left_to_do(finished):
     assert planned(snakemake(finished, "-n")) == {}
 
@@ -90,7 +109,7 @@ def test_rerun_one_subset(finished):
     target = "results/nucleon/sirens/subset_1.npz"
     assert planned(snakemake(finished, "-n", "-f", target)) == {"fit_siren": 1}
     downstream = {"fit_siren": 1, "collect_weights": 1, "train_diffusion": 1, "sample_shadows": 1,
-                  "evaluate_voxels": 1, "all": 1}
+                  "evaluate_voxels": 1, "evaluate_images": 1, "benchmark": 1, "all": 1}
     assert planned(snakemake(finished, "-n", "-R", target)) == downstream
     # a corrupted subset is newer than the store: collecting again fails and names the file
     (sirens / "subset_1.npz").write_bytes(b"garbage")

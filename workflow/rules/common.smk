@@ -4,7 +4,7 @@ import json
 import yaml
 from snakemake.utils import validate
 
-SECTIONS = ("lights", "siren", "subset_size", "preoptimize", "fit", "diffusion", "render")
+SECTIONS = ("lights", "siren", "subset_size", "preoptimize", "fit", "diffusion", "data_inr", "render")
 _SCENES = {}
 
 

@@ -1,0 +1,238 @@
+"""`diffshadow bench render`: frames per second and peak memory of `noshadow`, `inr` and `naive`, side
+by side in one process; macro-cell skipping on against off; the renderer's step against error and time.
+
+Peak memory: on CUDA `max_memory_allocated`; on CPU the resident set size, sampled every 2 ms by a
+thread during the render, minus the RSS just before it. glibc keeps freed blocks and moves its mmap
+threshold as it goes, which makes RSS wander by tens of MiB; the memory pass therefore runs after all
+timings with every allocation above 128 KiB forced onto its own mapping (`mallopt`), so RSS follows the
+live bytes. (Forcing that slows allocation, which is why the timed runs come first, untouched.)
+"""
+
+from __future__ import annotations
+
+import ctypes
+import json
+import os
+import statistics
+import threading
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from diffshadow.io import atomic_path, atomic_write_text
+from diffshadow.metrics import foreground, image_psnr
+from diffshadow.render import DEFAULT_STEP, Camera, RenderScene
+
+BENCH_MODES = ("noshadow", "inr", "naive")
+REFERENCE_STEP = 0.125
+
+
+def _rss() -> int:
+    with open("/proc/self/statm") as f:
+        return int(f.read().split()[1]) * os.sysconf("SC_PAGE_SIZE")
+
+
+def _exact_cpu_heap() -> None:
+    try:
+        libc = ctypes.CDLL("libc.so.6")
+        libc.mallopt(-3, 128 * 1024)  # M_MMAP_THRESHOLD: fixed, so freed big blocks go back at once
+        libc.mallopt(-1, 0)  # M_TRIM_THRESHOLD
+    except (OSError, AttributeError):
+        pass
+
+
+def _trim() -> None:
+    try:
+        ctypes.CDLL("libc.so.6").malloc_trim(0)
+    except (OSError, AttributeError):
+        pass
+
+
+class PeakMemory:
+    """Context manager: peak bytes the enclosed code added (CUDA allocator, or sampled CPU RSS)."""
+
+    def __init__(self, device: torch.device, interval: float = 0.002):
+        self.device, self.interval = device, interval
+        self.peak = 0
+
+    def __enter__(self):
+        if self.device.type == "cuda":
+            torch.cuda.synchronize(self.device)
+            torch.cuda.reset_peak_memory_stats(self.device)
+            self.base = torch.cuda.memory_allocated(self.device)
+            return self
+        _trim()
+        self.base = _rss()
+        self._max = self.base
+        self._stop = threading.Event()
+
+        def poll():
+            while not self._stop.is_set():
+                self._max = max(self._max, _rss())
+                self._stop.wait(self.interval)
+
+        self._thread = threading.Thread(target=poll, daemon=True)
+        self._thread.start()
+        return self
+
+    def __exit__(self, *exc):
+        if self.device.type == "cuda":
+            torch.cuda.synchronize(self.device)
+            self.peak = torch.cuda.max_memory_allocated(self.device) - self.base
+        else:
+            self._max = max(self._max, _rss())
+            self._stop.set()
+            self._thread.join()
+            self.peak = self._max - self.base
+        return False
+
+
+def _sync(device: torch.device) -> None:
+    if device.type == "cuda":
+        torch.cuda.synchronize(device)
+
+
+def bench_render(scene: RenderScene, siren, light, *, sizes=(64, 128), step: float = DEFAULT_STEP,
+                 repeats: int = 3, azimuth: float = 30.0, elevation: float = 25.0,
+                 curve_steps=(2.0, 1.0, 0.5, 0.25), curve_size: int | None = None, log=print) -> dict:
+    """All measurements for one scene; `siren` = (weights, layout, blocks) of a shadow INR for `light`."""
+    device = scene.device
+    out: dict = {"device": str(device), "torch_threads": torch.get_num_threads(), "step": step,
+                 "repeats": repeats, "light": [float(v) for v in light], "sizes": {}}
+    cams = {n: Camera.orbit(scene.volume.extent, azimuth=azimuth, elevation=elevation, size=n) for n in sizes}
+    kwargs = {"light": light, "siren": siren, "step": step}
+    scene.render("inr", Camera.orbit(scene.volume.extent, azimuth=azimuth, elevation=elevation, size=8), **kwargs)
+    for n in sizes:
+        row: dict = {"seconds": {m: [] for m in BENCH_MODES}, "samples": {}}
+        for rep in range(repeats):  # modes interleaved, so drift on a shared machine hits all alike
+            for mode in BENCH_MODES:
+                _sync(device)
+                img = scene.render(mode, cams[n], **kwargs)
+                _sync(device)
+                row["seconds"][mode].append(img.seconds)
+                row["samples"][mode] = {"primary": img.counters.primary_samples,
+                                        "secondary": img.counters.secondary_samples}
+                log(f"[bench render] {n}x{n} {mode:8s} run {rep + 1}/{repeats}: {img.seconds:.3f} s")
+        med = {m: statistics.median(v) for m, v in row["seconds"].items()}
+        row["fps"] = {m: 1.0 / t for m, t in med.items()}
+        row["speedup"] = med["naive"] / med["inr"]
+        row["overhead"] = med["inr"] / med["noshadow"]
+        log(f"[bench render] {n}x{n}: fps " + ", ".join(f"{m} {row['fps'][m]:.2f}" for m in BENCH_MODES)
+            + f"; naive/inr {row['speedup']:.1f}x, inr/noshadow {row['overhead']:.2f}x")
+        out["sizes"][str(n)] = row
+
+    # macro-cell skipping, noshadow at the largest size
+    n = max(sizes)
+    times = {True: [], False: []}
+    images = {}
+    for _ in range(repeats):
+        for skip in (True, False):
+            img = scene.render("noshadow", cams[n], step=step, skip=skip)
+            times[skip].append(img.seconds)
+            images[skip] = img
+    mask = foreground(images[False].alpha)
+    macro = scene.macro("inr" if scene.data_inr is not None else "grid", True)
+    out["macro_cells"] = {
+        "cell": scene.cell, "empty_fraction": macro.empty_fraction, "size": n,
+        "seconds_skip": statistics.median(times[True]), "seconds_noskip": statistics.median(times[False]),
+        "speedup": statistics.median(times[False]) / statistics.median(times[True]),
+        "psnr_skip_vs_noskip": image_psnr(images[True].rgb, images[False].rgb, mask if mask.any() else None),
+        "samples_skip": images[True].counters.primary_samples,
+        "samples_noskip": images[False].counters.primary_samples,
+    }
+    log(f"[bench render] macro-cells ({out['macro_cells']['empty_fraction']:.0%} empty): "
+        f"{out['macro_cells']['speedup']:.2f}x faster, images equal to "
+        f"{out['macro_cells']['psnr_skip_vs_noskip']:.1f} dB")
+
+    # the renderer's time-versus-error curve: inr mode against itself at a tiny step
+    curve_size = curve_size or min(64, max(sizes))
+    cam = Camera.orbit(scene.volume.extent, azimuth=azimuth, elevation=elevation, size=curve_size)
+    # early termination off (1e-6) throughout, so the curve shows the step's error alone
+    ref = scene.render("inr", cam, light=light, siren=siren, step=REFERENCE_STEP, min_transmittance=1e-6)
+    mask = foreground(ref.alpha)
+    curve = []
+    for s in curve_steps:
+        t = []
+        for _ in range(repeats):
+            img = scene.render("inr", cam, light=light, siren=siren, step=s, min_transmittance=1e-6)
+            t.append(img.seconds)
+        curve.append({"step": s, "seconds": statistics.median(t),
+                      "psnr": image_psnr(img.rgb, ref.rgb, mask if mask.any() else None)})
+        log(f"[bench render] step {s}: {curve[-1]['seconds']:.3f} s, {curve[-1]['psnr']:.1f} dB vs step "
+            f"{REFERENCE_STEP}")
+    out["step_curve"] = {"size": curve_size, "reference_step": REFERENCE_STEP, "mode": "inr", "points": curve}
+
+    # memory, after every timing: each mode at the bench sizes, then noshadow and inr at 2x and 4x the
+    # largest side (naive would take minutes per frame there). Bounded by `batch`: it stops growing once
+    # the ray pool is full.
+    if device.type == "cpu":
+        _exact_cpu_heap()
+    n0 = max(sizes)
+    scaling: dict = {"noshadow": {}, "inr": {}}
+    for n in [*sizes, 2 * n0, 4 * n0]:
+        cam = cams.get(n) or Camera.orbit(scene.volume.extent, azimuth=azimuth, elevation=elevation, size=n)
+        for mode in BENCH_MODES if n in cams else ("noshadow", "inr"):
+            with PeakMemory(device) as mem:
+                scene.render(mode, cam, **kwargs)
+                _sync(device)
+            if n in cams:
+                out["sizes"][str(n)].setdefault("peak_mem_bytes", {})[mode] = mem.peak
+            if mode in scaling:
+                scaling[mode][str(n)] = mem.peak
+    for mode, row in scaling.items():
+        log(f"[bench render] memory {mode}: " + ", ".join(f"{n}² +{b / 2**20:.1f} MiB" for n, b in row.items()))
+    for n in sizes:
+        mem = out["sizes"][str(n)]["peak_mem_bytes"]
+        log(f"[bench render] memory {n}²: " + ", ".join(f"{m} +{mem[m] / 2**20:.1f} MiB" for m in BENCH_MODES))
+    out["memory_scaling"] = scaling
+    return out
+
+
+def finite_json(value):
+    """JSON has no infinity: an exact match (PSNR +inf) is written as the string "inf"."""
+    if isinstance(value, dict):
+        return {k: finite_json(v) for k, v in value.items()}
+    if isinstance(value, list | tuple):
+        return [finite_json(v) for v in value]
+    if isinstance(value, float) and not np.isfinite(value):
+        return str(value)
+    return value
+
+
+def write_bench(path: Path, results: dict) -> None:
+    atomic_write_text(path, json.dumps(finite_json(results), indent=2) + "\n")
+    _plot(results, path.with_suffix(".png"))
+
+
+def _plot(results: dict, path: Path) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(1, 3, figsize=(14, 4))
+    sizes = list(results["sizes"])
+    x = np.arange(len(sizes))
+    for i, mode in enumerate(BENCH_MODES):
+        ax[0].bar(x + (i - 1) * 0.25, [results["sizes"][s]["fps"][mode] for s in sizes], 0.25, label=mode)
+        ax[1].bar(x + (i - 1) * 0.25, [results["sizes"][s]["peak_mem_bytes"][mode] / 2**20 for s in sizes], 0.25,
+                  label=mode)
+    for a, label in ((ax[0], "frames per second"), (ax[1], "peak memory added (MiB)")):
+        a.set_xticks(x, [f"{s}²" for s in sizes])
+        a.set_ylabel(label)
+        a.legend()
+    ax[0].set_yscale("log")
+    pts = results["step_curve"]["points"]
+    ax[2].plot([p["seconds"] for p in pts], [p["psnr"] for p in pts], "o-")
+    for p in pts:
+        ax[2].annotate(f"step {p['step']}", (p["seconds"], p["psnr"]))
+    ax[2].set_xlabel("seconds per frame")
+    ax[2].set_ylabel(f"PSNR vs step {results['step_curve']['reference_step']} (dB)")
+    ax[2].set_xscale("log")
+    fig.suptitle(f"{results.get('scene', '')} on {results['device']}")
+    fig.tight_layout()
+    with atomic_path(path, suffix=".png") as tmp:
+        fig.savefig(tmp, format="png", dpi=100)
+    plt.close(fig)
+

@@ -1,0 +1,58 @@
+# The renderer (paper §4.4 and appendix): the data INR, image evaluation against gt, the benchmark.
+
+
+rule train_data_inr:
+    input:
+        volume="results/{scene}/volume.zarr",
+    output:
+        "results/{scene}/data_inr.pt",
+    params:
+        cfg=lambda wc: as_json(wc.scene, "data_inr"),
+    threads: 2
+    log:
+        "results/{scene}/logs/train_data_inr.log",
+    shell:
+        "diffshadow train-data-inr --volume {input.volume} --config-json {params.cfg:q} --threads {threads}"
+        " --out {output} 2>&1 | tee {log}"
+
+
+rule evaluate_images:
+    input:
+        volume="results/{scene}/volume.zarr",
+        lights="results/{scene}/lights.json",
+        data_inr="results/{scene}/data_inr.pt",
+        weights="results/{scene}/weights.zarr",
+        generated="results/{scene}/generated.zarr",
+    output:
+        metrics="results/{scene}/image_metrics.json",
+        images=directory("results/{scene}/images"),
+    params:
+        cfg=lambda wc: as_json(wc.scene, "render"),
+    threads: 2
+    log:
+        "results/{scene}/logs/evaluate_images.log",
+    shell:
+        "diffshadow evaluate-images --volume {input.volume} --lights {input.lights} --data-inr {input.data_inr}"
+        " --weights {input.weights} --generated {input.generated} --config-json {params.cfg:q}"
+        " --images {output.images} --threads {threads} --out {output.metrics} 2>&1 | tee {log}"
+
+
+rule benchmark:
+    input:
+        volume="results/{scene}/volume.zarr",
+        data_inr="results/{scene}/data_inr.pt",
+        weights="results/{scene}/weights.zarr",
+    output:
+        bench="results/{scene}/bench.json",
+        plot="results/{scene}/bench.png",
+    params:
+        sizes=lambda wc: " ".join(str(n) for n in scene_config(wc.scene)["render"]["bench_sizes"]),
+        step=lambda wc: scene_config(wc.scene)["render"]["step"],
+        repeats=lambda wc: scene_config(wc.scene)["render"]["bench_repeats"],
+    threads: workflow.cores  # alone on the machine: timings shared with another job would mean little
+    log:
+        "results/{scene}/logs/benchmark.log",
+    shell:
+        "diffshadow bench render --volume {input.volume} --data-inr {input.data_inr} --weights {input.weights}"
+        " --sizes {params.sizes} --step {params.step} --repeats {params.repeats} --threads {threads}"
+        " --out {output.bench} 2>&1 | tee {log}"
