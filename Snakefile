@@ -2,6 +2,7 @@
 # Run: snakemake --profile local -j2   (after `diffshadow install-profiles`; or --profile profiles/local)
 import os
 
+from snakemake.exceptions import WorkflowError
 from snakemake.utils import validate
 
 
@@ -9,6 +10,14 @@ configfile: os.path.join(workflow.basedir, "config", "config.yaml")
 
 
 validate(config, os.path.join(workflow.basedir, "workflow", "schemas", "config.schema.yaml"))
+
+if config.get("pbs_system"):  # set by the polaris and sophia profiles
+    if not os.environ.get("PBS_ACCOUNT"):
+        raise WorkflowError(
+            f"profile {config['pbs_system']}: PBS_ACCOUNT is not set, and every ALCF job needs -A PROJECT; "
+            "run `export PBS_ACCOUNT=<your project>` and try again"
+        )
+    os.makedirs("results/pbs", exist_ok=True)  # qsub -o writes each job's log here
 
 
 include: "workflow/rules/common.smk"

@@ -163,29 +163,48 @@ def bench_render(scene: RenderScene, siren, light, *, sizes=(64, 128), step: flo
             f"{REFERENCE_STEP}")
     out["step_curve"] = {"size": curve_size, "reference_step": REFERENCE_STEP, "mode": "inr", "points": curve}
 
-    # memory, after every timing: each mode at the bench sizes, then noshadow and inr at 2x and 4x the
-    # largest side (naive would take minutes per frame there). Bounded by `batch`: it stops growing once
-    # the ray pool is full.
+    # memory, after every timing, in a fresh process (see the module docstring): each mode at the bench
+    # sizes, then noshadow and inr at 2x and 4x the largest side (naive would take minutes per frame).
+    if device.type == "cpu":
+        import multiprocessing
+
+        scene._cache.clear()
+        with multiprocessing.get_context("spawn").Pool(1) as pool:
+            mem = pool.apply(_memory_pass, (scene, siren, light, list(sizes), step, azimuth, elevation,
+                                            torch.get_num_threads()))
+    else:
+        mem = _memory_pass(scene, siren, light, list(sizes), step, azimuth, elevation, 0)
+    for n in sizes:
+        out["sizes"][str(n)]["peak_mem_bytes"] = mem["sizes"][str(n)]
+        log(f"[bench render] memory {n}²: " + ", ".join(f"{m} +{mem['sizes'][str(n)][m] / 2**20:.1f} MiB"
+                                                      for m in BENCH_MODES))
+    for mode, row in mem["scaling"].items():
+        log(f"[bench render] memory {mode}: " + ", ".join(f"{n}² +{b / 2**20:.1f} MiB" for n, b in row.items()))
+    out["memory_scaling"] = mem["scaling"]
+    return out
+
+
+def _memory_pass(scene: RenderScene, siren, light, sizes: list[int], step: float, azimuth: float,
+                 elevation: float, threads: int) -> dict:
+    device = scene.device
     if device.type == "cpu":
         _exact_cpu_heap()
+        if threads:
+            torch.set_num_threads(threads)
+    kwargs = {"light": light, "siren": siren, "step": step}
+    scene.render("inr", Camera.orbit(scene.volume.extent, azimuth=azimuth, elevation=elevation, size=8), **kwargs)
     n0 = max(sizes)
-    scaling: dict = {"noshadow": {}, "inr": {}}
+    out: dict = {"sizes": {}, "scaling": {"noshadow": {}, "inr": {}}}
     for n in [*sizes, 2 * n0, 4 * n0]:
-        cam = cams.get(n) or Camera.orbit(scene.volume.extent, azimuth=azimuth, elevation=elevation, size=n)
-        for mode in BENCH_MODES if n in cams else ("noshadow", "inr"):
+        cam = Camera.orbit(scene.volume.extent, azimuth=azimuth, elevation=elevation, size=n)
+        for mode in BENCH_MODES if n in sizes else ("noshadow", "inr"):
             with PeakMemory(device) as mem:
                 scene.render(mode, cam, **kwargs)
                 _sync(device)
-            if n in cams:
-                out["sizes"][str(n)].setdefault("peak_mem_bytes", {})[mode] = mem.peak
-            if mode in scaling:
-                scaling[mode][str(n)] = mem.peak
-    for mode, row in scaling.items():
-        log(f"[bench render] memory {mode}: " + ", ".join(f"{n}² +{b / 2**20:.1f} MiB" for n, b in row.items()))
-    for n in sizes:
-        mem = out["sizes"][str(n)]["peak_mem_bytes"]
-        log(f"[bench render] memory {n}²: " + ", ".join(f"{m} +{mem[m] / 2**20:.1f} MiB" for m in BENCH_MODES))
-    out["memory_scaling"] = scaling
+            if n in sizes:
+                out["sizes"].setdefault(str(n), {})[mode] = mem.peak
+            if mode in out["scaling"]:
+                out["scaling"][mode][str(n)] = mem.peak
     return out
 
 

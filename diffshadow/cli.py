@@ -286,6 +286,82 @@ def _train_data_inr(args: argparse.Namespace) -> None:
     print(f"wrote {out}: {inr.n_params} parameters, voxel PSNR {inr.psnr:.2f} dB, max error {inr.max_error:.4f}")
 
 
+def _render_targets(args: argparse.Namespace) -> None:
+    from diffshadow.finetune import FinetuneConfig, build_bundle, fibonacci_views, render_targets, write_targets
+    from diffshadow.lights import read_lights
+    from diffshadow.volume import load_prepared
+
+    _threads(args.threads)
+    cfg = FinetuneConfig.from_config(_json(args.config_json)["finetune"])
+    volume, tf = load_prepared(args.volume)
+    lights = read_lights(args.lights)["train"]
+    cams = fibonacci_views(volume.extent, cfg.views, size=cfg.image_size, fov=cfg.fov)
+    bundle = build_bundle(volume, tf, cams, step=cfg.step)
+    print(f"{cfg.views} views of {cfg.image_size}²: {bundle.count.tolist()} foreground pixels, up to "
+          f"{bundle.pts.shape[2]} samples each", flush=True)
+    images = render_targets(volume, tf, lights, cams, step=cfg.step)
+    write_targets(args.out, images, bundle, cams, lights, step=cfg.step, extent=volume.extent)
+    print(f"wrote {args.out}: {len(lights)} lights x {cfg.views} views")
+
+
+def _finetune_render(args: argparse.Namespace) -> None:
+    import json as _json_mod
+
+    import torch
+
+    from diffshadow.finetune import (
+        FinetuneConfig,
+        FinetuneData,
+        finetune,
+        image_psnr_of_model,
+        init_distributed,
+        read_targets,
+    )
+    from diffshadow.io import atomic_write_text
+
+    cfg = FinetuneConfig.from_config(_json(args.config_json)["finetune"])
+    rank, world, device = init_distributed(cfg, args.device)
+    _threads(args.threads)
+    log = print if rank == 0 else (lambda m: print(m) if m.startswith(f"rank {rank}") else None)
+    geometry = torch.load(args.checkpoint, map_location="cpu", weights_only=False)
+    train, _ = _load_training_data(args.weights, args.points)
+    images, bundle, lights = read_targets(args.targets)
+    if not np.allclose(lights, train.lights.numpy()):
+        raise ValueError(f"{args.targets}: its lights differ from {args.weights}'s; rerun render_targets")
+    data = FinetuneData(train, bundle, images)
+    out = Path(args.out)
+    part = out.with_name(out.name + ".part")
+    import time as _time
+
+    t0 = _time.perf_counter()
+    state = finetune(geometry, data, cfg, part, rank=rank, world=world, device=device, log=log)
+    seconds = _time.perf_counter() - t0
+    if rank == 0:
+        before = image_psnr_of_model(geometry, data)
+        after = image_psnr_of_model(state, data)
+        metrics = {"image_psnr_geometry_only": {"mean": float(before.mean()), "median": float(np.median(before)),
+                                                "min": float(before.min())},
+                   "image_psnr_finetuned": {"mean": float(after.mean()), "median": float(np.median(after)),
+                                            "min": float(after.min())},
+                   "lights": len(before), "views": int(len(bundle.count)), "processes": world,
+                   "ranks": state.get("finetune_ranks"),
+                   "seconds": seconds, "config": cfg.__dict__}
+        print(f"image PSNR of generated shadows on training lights (foreground, {len(bundle.count)} views): "
+              f"geometry only {before.mean():.2f} dB (min {before.min():.2f}), fine-tuned {after.mean():.2f} dB "
+              f"(min {after.min():.2f}); {seconds:.0f} s on {world} process(es)")
+        for r in state.get("finetune_ranks") or []:
+            step_s = f"{r['median_step_s']:.3f} s" if r["median_step_s"] is not None else "n/a"
+            print(f"rank {r['rank']}: median step {step_s}, peak memory {r['peak_mem_bytes'] / 2**20:.0f} MiB")
+        atomic_write_text(args.metrics, _json_mod.dumps(metrics, indent=2) + "\n")
+        os.replace(part, out)
+        print(f"wrote {out} and {args.metrics}")
+    if world > 1:
+        import torch.distributed as dist
+
+        dist.barrier()
+        dist.destroy_process_group()
+
+
 def _render_scene(volume_path: str, data_inr: str | None, device, tf_json: str | None = None):
     """A RenderScene from a prepared volume.zarr, or from a raw volume file with a TF (JSON)."""
     from diffshadow.data_inr import load_data_inr
@@ -411,7 +487,8 @@ def _evaluate_images(args: argparse.Namespace) -> None:
     views = default_views(scene.volume.extent, cfg["views"], size=cfg["image_size"], fov=cfg["fov"])
     lpips, reason = lpips_model()
     result = image_evaluation(scene, light_sets, stage1, generated, views, step=cfg["step"],
-                              out_dir=Path(args.images), lights_per_set=cfg["lights_per_set"], lpips=lpips)
+                              out_dir=Path(args.images), lights_per_set=cfg["lights_per_set"],
+                              naive_views=cfg.get("naive_views"), lpips=lpips)
     result.update({"lpips": "available (VGG)" if lpips is not None else f"unavailable: {reason}",
                    "image_size": cfg["image_size"], "views": cfg["views"], "step": cfg["step"],
                    "reference": "gt: raw scalar field and shadow_grid (march), same step",
@@ -628,6 +705,23 @@ def build_parser() -> argparse.ArgumentParser:
     _run_options(p)
     p.set_defaults(func=_evaluate_images)
 
+    p = sub.add_parser("render-targets", help="ground-truth images per training light and view (rendering loss)")
+    p.add_argument("--volume", required=True)
+    p.add_argument("--lights", required=True)
+    p.add_argument("--config-json", required=True, help='{"finetune": {...}}')
+    _run_options(p, device=False)
+    p.set_defaults(func=_render_targets)
+
+    p = sub.add_parser("finetune-render", help="rendering-loss fine-tuning (run under torchrun for DDP)")
+    p.add_argument("--checkpoint", required=True, help="diffusion_geometry.ckpt")
+    p.add_argument("--weights", required=True)
+    p.add_argument("--points", required=True)
+    p.add_argument("--targets", required=True)
+    p.add_argument("--config-json", required=True, help='{"finetune": {...}}')
+    p.add_argument("--metrics", required=True, help="JSON: image PSNR before and after, wall time")
+    _run_options(p)
+    p.set_defaults(func=_finetune_render)
+
     p = sub.add_parser("install-profiles", help="make the repo's Snakemake profiles usable by bare name")
     p.add_argument("--source", default="profiles", help="folder of profiles (default: ./profiles)")
     p.add_argument("--target", default=None, help="default: ${XDG_CONFIG_HOME:-~/.config}/snakemake")
@@ -636,8 +730,21 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+# subcommands that use one GPU: on a node shared by several jobs each claims its own (DIFFSHADOW_GPU_LOCK)
+_ONE_GPU = {"preoptimize", "fit-siren", "train-data-inr", "presample", "train-diffusion", "sample-shadows",
+            "evaluate-voxels", "render-targets", "evaluate-images", "render"}
+
+
 def main(argv: list[str] | None = None) -> None:
     args = build_parser().parse_args(argv)
+    if hasattr(args, "device") and args.device is None:
+        args.device = os.environ.get("DIFFSHADOW_DEVICE") or None  # the profile's jobscript sets it on GPU nodes
+    gpus = os.environ.get("DIFFSHADOW_GPU_LOCK")
+    if gpus and args.command in _ONE_GPU:
+        from diffshadow.hpc import claim_gpu
+
+        gpu = claim_gpu(int(gpus))
+        print(f"diffshadow {args.command}: claimed GPU {gpu} of {gpus} (CUDA_VISIBLE_DEVICES={gpu})", flush=True)
     try:
         args.func(args)
     except ValueError as e:  # the library's input errors: one line, no traceback

@@ -21,6 +21,8 @@ TINY = {
     "fit": {"steps": 6, "points": 128, "eval_points": 256, "grid_upsample": 1, "chunk": 0},
     "diffusion": {"preset": "tiny", "epochs": 3, "batch_size": 2, "geometry_points": 16, "presample_points": 64,
                   "checkpoint_every": 1, "ddim_steps": 5},
+    "finetune": {"views": 1, "image_size": 16, "pixels": 4, "epochs": 2, "batch_size": 4, "nproc": 2,
+                 "checkpoint_every": 1},
     "data_inr": {"width": 8, "blocks": 1, "steps": 20, "points": 512},
     "render": {"image_size": 16, "views": 1, "lights_per_set": 1, "bench_sizes": [8], "bench_repeats": 1},
 }
@@ -108,8 +110,8 @@ def test_rerun_one_subset(finished):
     before = (sirens / "subset_0.npz").read_bytes(), (sirens / "subset_0.npz").stat().st_mtime_ns
     target = "results/nucleon/sirens/subset_1.npz"
     assert planned(snakemake(finished, "-n", "-f", target)) == {"fit_siren": 1}
-    downstream = {"fit_siren": 1, "collect_weights": 1, "train_diffusion": 1, "sample_shadows": 1,
-                  "evaluate_voxels": 1, "evaluate_images": 1, "benchmark": 1, "all": 1}
+    downstream = {"fit_siren": 1, "collect_weights": 1, "train_diffusion": 1, "finetune_render": 1,
+                  "sample_shadows": 1, "evaluate_voxels": 1, "evaluate_images": 1, "benchmark": 1, "all": 1}
     assert planned(snakemake(finished, "-n", "-R", target)) == downstream
     # a corrupted subset is newer than the store: collecting again fails and names the file
     (sirens / "subset_1.npz").write_bytes(b"garbage")
@@ -156,3 +158,44 @@ def test_killed_fit_leaves_no_output_and_resumes(finished, tmp_path):
     done = subprocess.run(cmd, capture_output=True, text=True, timeout=600)
     assert done.returncode == 0, done.stderr
     assert "resuming from" in done.stdout and out.exists() and not ckpt.exists()
+
+
+def test_finetune_ran_under_ddp(finished):
+    import json
+    metrics = json.loads((finished / "results/nucleon/finetune_metrics.json").read_text())
+    assert metrics["processes"] == 2 and metrics["lights"] == 4
+    for key in ("image_psnr_geometry_only", "image_psnr_finetuned"):
+        assert np.isfinite(metrics[key]["mean"])
+    log = (finished / "results/nucleon/logs/finetune_render.log").read_text()
+    assert "2 process(es) on cpu, global batch 4" in log
+
+
+def test_killed_rank_fails_the_job_and_rerun_resumes(finished, tmp_path):
+    import json
+    import signal
+    import time
+
+    res = finished / "results/nucleon"
+    cfg = json.dumps({"finetune": {**TINY["finetune"], "epochs": 400, "timeout_s": 20}})
+    out, metrics = tmp_path / "diffusion.ckpt", tmp_path / "ft.json"
+    part = tmp_path / "diffusion.ckpt.part"
+    cmd = [str(Path(sys.executable).parent / "torchrun"), "--standalone", "--nproc_per_node=2", "-m",
+           "diffshadow.cli", "finetune-render", "--checkpoint", str(res / "diffusion_geometry.ckpt"),
+           "--weights", str(res / "weights.zarr"), "--points", str(res / "geometry_points.zarr"),
+           "--targets", str(res / "targets.zarr"), "--config-json", cfg, "--threads", "1",
+           "--metrics", str(metrics), "--out", str(out)]
+    proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    deadline = time.time() + 120
+    while not part.exists() and time.time() < deadline and proc.poll() is None:
+        time.sleep(0.05)
+    assert part.exists(), "no checkpoint before the kill"
+    ranks = subprocess.run(["pgrep", "-P", str(proc.pid)], capture_output=True, text=True).stdout.split()
+    assert len(ranks) == 2, ranks
+    t_kill = time.time()
+    os.kill(int(ranks[1]), signal.SIGKILL)
+    proc.wait(timeout=90)  # torchrun notices the dead rank and stops the other: no hang
+    assert proc.returncode != 0 and time.time() - t_kill < 60
+    assert not out.exists() and part.exists()
+    done = subprocess.run(cmd, capture_output=True, text=True, timeout=600)
+    assert done.returncode == 0, done.stdout[-2000:] + done.stderr[-2000:]
+    assert "resuming from" in done.stdout + done.stderr and out.exists() and not part.exists()

@@ -4,7 +4,7 @@ import json
 import yaml
 from snakemake.utils import validate
 
-SECTIONS = ("lights", "siren", "subset_size", "preoptimize", "fit", "diffusion", "data_inr", "render")
+SECTIONS = ("lights", "siren", "subset_size", "preoptimize", "fit", "diffusion", "finetune", "data_inr", "render")
 _SCENES = {}
 
 
@@ -40,3 +40,10 @@ def as_json(scene, *keys):
     """The config sections a rule depends on, as one JSON argument (and its params: rerun trigger)."""
     cfg = scene_config(scene)
     return json.dumps({k: cfg[k] for k in keys}, sort_keys=True)
+
+
+def sampler_checkpoint(wildcards):
+    """The diffusion model that samples: fine-tuned with the rendering loss when the scene enables it."""
+    if scene_config(wildcards.scene)["finetune"]["enabled"]:
+        return f"results/{wildcards.scene}/diffusion.ckpt"
+    return f"results/{wildcards.scene}/diffusion_geometry.ckpt"

@@ -42,6 +42,9 @@ rule benchmark:
         volume="results/{scene}/volume.zarr",
         data_inr="results/{scene}/data_inr.pt",
         weights="results/{scene}/weights.zarr",
+        # not read: they make the benchmark the scene's last job, so no other job shares the cores with
+        # its timings (Snakemake's local scheduler may start two multi-threaded jobs on -j2)
+        after=["results/{scene}/image_metrics.json", "results/{scene}/voxel_metrics.json"],
     output:
         bench="results/{scene}/bench.json",
         plot="results/{scene}/bench.png",
@@ -49,7 +52,7 @@ rule benchmark:
         sizes=lambda wc: " ".join(str(n) for n in scene_config(wc.scene)["render"]["bench_sizes"]),
         step=lambda wc: scene_config(wc.scene)["render"]["step"],
         repeats=lambda wc: scene_config(wc.scene)["render"]["bench_repeats"],
-    threads: workflow.cores  # alone on the machine: timings shared with another job would mean little
+    threads: 2
     log:
         "results/{scene}/logs/benchmark.log",
     shell:

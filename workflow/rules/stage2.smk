@@ -33,7 +33,7 @@ rule train_diffusion:
 
 rule sample_shadows:
     input:
-        checkpoint="results/{scene}/diffusion_geometry.ckpt",
+        checkpoint=sampler_checkpoint,
         volume="results/{scene}/volume.zarr",
         lights="results/{scene}/lights.json",
     output:
@@ -48,7 +48,7 @@ rule sample_shadows:
 
 rule evaluate_voxels:
     input:
-        checkpoint="results/{scene}/diffusion_geometry.ckpt",
+        checkpoint=sampler_checkpoint,
         weights="results/{scene}/weights.zarr",
         generated="results/{scene}/generated.zarr",
         volume="results/{scene}/volume.zarr",
@@ -62,3 +62,45 @@ rule evaluate_voxels:
         "diffshadow evaluate-voxels --checkpoint {input.checkpoint} --weights {input.weights}"
         " --generated {input.generated} --volume {input.volume} --lights {input.lights} --threads {threads}"
         " --out {output} 2>&1 | tee {log}"
+
+
+rule render_targets:
+    input:
+        volume="results/{scene}/volume.zarr",
+        lights="results/{scene}/lights.json",
+    output:
+        directory("results/{scene}/targets.zarr"),
+    params:  # only what the images depend on: a new learning rate must not re-render them
+        cfg=lambda wc: json.dumps({"finetune": {k: scene_config(wc.scene)["finetune"][k]
+                                                for k in ("views", "image_size", "fov", "step")}}, sort_keys=True),
+    threads: 2
+    log:
+        "results/{scene}/logs/render_targets.log",
+    shell:
+        "diffshadow render-targets --volume {input.volume} --lights {input.lights} --config-json {params.cfg:q}"
+        " --threads {threads} --out {output} 2>&1 | tee {log}"
+
+
+rule finetune_render:
+    input:
+        checkpoint="results/{scene}/diffusion_geometry.ckpt",
+        weights="results/{scene}/weights.zarr",
+        points="results/{scene}/geometry_points.zarr",
+        targets="results/{scene}/targets.zarr",
+    output:
+        checkpoint="results/{scene}/diffusion.ckpt",
+        metrics="results/{scene}/finetune_metrics.json",
+    params:
+        cfg=lambda wc: as_json(wc.scene, "finetune"),
+        nproc=lambda wc: scene_config(wc.scene)["finetune"]["nproc"],
+        launcher=lambda wc: config.get("torchrun", "torchrun --standalone"),
+    threads: lambda wc: scene_config(wc.scene)["finetune"]["nproc"]
+    resources:
+        gpu=lambda wc: scene_config(wc.scene)["finetune"]["nproc"],
+    log:
+        "results/{scene}/logs/finetune_render.log",
+    shell:
+        "{params.launcher} --nproc_per_node={params.nproc} -m diffshadow.cli finetune-render"
+        " --checkpoint {input.checkpoint} --weights {input.weights} --points {input.points}"
+        " --targets {input.targets} --config-json {params.cfg:q} --threads 1 --metrics {output.metrics}"
+        " --out {output.checkpoint} 2>&1 | tee {log}"

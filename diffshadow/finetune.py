@@ -1,0 +1,433 @@
+"""Rendering-loss fine-tuning of the diffusion model (paper §3.3 "Rendering loss"), data-parallel.
+
+Target images: the renderer's `gt` mode for every training light from V views. The colour of a pixel is
+
+    C = Σ_k w_k c_k (0.1 + 0.9 g_k) + T·background,     w_k = T_k α_k,
+
+where only g (the shadow) depends on the light: the sample points, w_k c_k and T of each view are the
+same for every light. `RayBundle` stores them once per view (foreground pixels, samples with w > 0), so
+a rendering-loss step is one batched evaluation of the predicted shadow SIRENs at the samples of P random
+pixels per view, and a weighted sum: exact with respect to the renderer, differentiable, no marching.
+
+Data parallelism: every random draw of a step (timestep, noise, geometry points, pixels) comes from a
+generator seeded by (seed, epoch, light index), never by rank, and each rank's loss is scaled so that
+DDP's gradient average equals the single-process gradient of the same global batch.
+"""
+
+from __future__ import annotations
+
+import datetime
+import hashlib
+import json
+import math
+import os
+import time
+from dataclasses import asdict, dataclass
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from diffshadow.diffusion.schedule import Schedule
+from diffshadow.diffusion.train import DiffusionConfig, Standardizer, TrainingData, build_model, generate
+from diffshadow.fit import seeded
+from diffshadow.io import atomic_save
+from diffshadow.lights import fibonacci_sphere
+from diffshadow.render import (
+    BACKGROUND,
+    Camera,
+    GridScalar,
+    RenderScene,
+    _ray_box,
+)
+from diffshadow.siren import BatchedSiren, WeightLayout, box_to_siren
+from diffshadow.transfer import TransferFunction
+from diffshadow.volume import Volume
+
+
+@dataclass(frozen=True)
+class FinetuneConfig:
+    enabled: bool = True
+    views: int = 3  # authors 7 (Fibonacci views, fov 60°)
+    image_size: int = 64  # paper 128
+    fov: float = 60.0
+    pixels: int = 24  # random foreground pixels per view per light per step (paper 24 of 128²)
+    render_weight: float = 1.0
+    epochs: int = 60  # paper 2000
+    lr: float = 3e-5  # paper 2e-4: too high after our geometry stage (README)
+    batch_size: int = 16  # global, over all ranks
+    nproc: int = 2  # DDP processes (local: CPU + gloo; Polaris: 4 GPUs + NCCL)
+    checkpoint_every: int = 10
+    step: float = 0.5  # renderer step (voxels)
+    timeout_s: int = 120  # collective timeout: a dead rank ends the job instead of hanging it
+    seed: int = 0
+
+    @classmethod
+    def from_config(cls, d: dict) -> FinetuneConfig:
+        unknown = set(d) - set(cls.__dataclass_fields__)
+        if unknown:
+            raise ValueError(f"finetune config: unknown key(s) {sorted(unknown)}; known: "
+                             f"{sorted(cls.__dataclass_fields__)}")
+        return cls(**d)
+
+
+def fibonacci_views(extent, n: int, *, size: int, fov: float = 60.0, distance: float = 2.2) -> list[Camera]:
+    """`n` cameras on a Fibonacci sphere around the box, looking at its centre (the authors' views)."""
+    extent = np.asarray(extent, dtype=float)
+    center = extent / 2
+    out = []
+    for d in fibonacci_sphere(n) if n > 1 else np.array([[0.6, 0.6, 0.52915026]]):
+        up = (0.0, 0.0, 1.0) if abs(d[2]) < 0.999 else (0.0, 1.0, 0.0)
+        out.append(Camera.look_at(center + distance * np.linalg.norm(center) * d, center, up=up, fov=fov, size=size))
+    return out
+
+
+# ------------------------------------------------------------------------------------------ ray bundles
+
+
+@dataclass
+class RayBundle:
+    """Per view: foreground pixel ids (V, F), their samples (V, F, N, 3) with weights w·c (V, F, N, 3)
+    (zero-padded), the background term T·bg (V, F, 3) and the number of foreground pixels (V,)."""
+
+    pix: torch.Tensor
+    pts: torch.Tensor
+    wc: torch.Tensor
+    base: torch.Tensor
+    count: torch.Tensor
+
+    def to(self, device) -> RayBundle:
+        return RayBundle(*(t.to(device) for t in (self.pix, self.pts, self.wc, self.base, self.count)))
+
+
+def view_samples(volume: Volume, tf: TransferFunction, camera: Camera, *, step: float,
+                 background: float = BACKGROUND, min_weight: float = 1e-6, chunk: int = 4096):
+    """One view's foreground pixels and their light-independent samples (see the module docstring)."""
+    scalar = GridScalar(volume)
+    extent = torch.as_tensor(volume.extent, dtype=torch.float32)
+    dt = step * float(np.min(volume.voxel_size))
+    o, d = camera.rays()
+    pix_all, pts_all, wc_all, base_all = [], [], [], []
+    for r0 in range(0, len(o), chunk):
+        oc, dc = o[r0:r0 + chunk], d[r0:r0 + chunk]
+        t0, t1 = _ray_box(oc, dc, extent)
+        n = int(torch.ceil(((t1 - t0).clamp_min(0) / dt).max()).item()) + 1 if bool((t0 < t1).any()) else 1
+        t = t0[:, None] + (torch.arange(n) + 0.5) * dt
+        valid = t < t1[:, None]
+        pts = oc[:, None] + t[..., None] * dc[:, None]
+        alpha = torch.zeros(valid.shape)
+        color = torch.zeros(*valid.shape, 3)
+        s = scalar.value(pts[valid])
+        alpha[valid] = 1 - torch.exp(-tf.extinction(s) * dt)
+        color[valid] = tf.color(s)
+        before = torch.cumprod(torch.cat([torch.ones_like(alpha[:, :1]), 1 - alpha[:, :-1]], 1), 1)
+        w = before * alpha
+        trans = (1 - alpha).prod(1)
+        fg = (1 - trans) >= 1.0 / 255.0
+        for i in torch.nonzero(fg).flatten().tolist():
+            keep = w[i] > min_weight
+            pix_all.append(r0 + i)
+            pts_all.append(pts[i][keep])
+            wc_all.append(w[i][keep, None] * color[i][keep])
+            base_all.append(trans[i] * background * torch.ones(3))
+    return pix_all, pts_all, wc_all, base_all
+
+
+def build_bundle(volume: Volume, tf: TransferFunction, cameras: list[Camera], *, step: float,
+                 background: float = BACKGROUND) -> RayBundle:
+    views = [view_samples(volume, tf, cam, step=step, background=background) for cam in cameras]
+    for v, (pix_v, *_rest) in enumerate(views):
+        if not pix_v:
+            raise ValueError(f"finetune view {v} (eye {np.round(cameras[v].eye, 3).tolist()}) shows no foreground "
+                             f"pixel: the volume is invisible under this TF, or the camera misses it")
+    f = max(1, max(len(v[0]) for v in views))
+    n = max(1, max((len(p) for v in views for p in v[1]), default=1))
+    nv = len(cameras)
+    pix = torch.zeros(nv, f, dtype=torch.long)
+    pts = torch.zeros(nv, f, n, 3)
+    wc = torch.zeros(nv, f, n, 3)
+    base = torch.zeros(nv, f, 3)
+    count = torch.zeros(nv, dtype=torch.long)
+    for v, (pv, ptv, wcv, bv) in enumerate(views):
+        count[v] = len(pv)
+        for j, (p, q, c, b) in enumerate(zip(pv, ptv, wcv, bv, strict=True)):
+            pix[v, j] = p
+            pts[v, j, :len(q)] = q
+            wc[v, j, :len(c)] = c
+            base[v, j] = b
+    return RayBundle(pix, pts, wc, base, count)
+
+
+def bundle_colors(bundle: RayBundle, g: torch.Tensor, view_idx: torch.Tensor, pix_idx: torch.Tensor) -> torch.Tensor:
+    """Pixel colours (..., 3) from shadow values g (..., N) at the samples of the chosen pixels."""
+    wc = bundle.wc[view_idx, pix_idx]
+    return bundle.base[view_idx, pix_idx] + (wc * (0.1 + 0.9 * g)[..., None]).sum(-2)
+
+
+def render_targets(volume: Volume, tf: TransferFunction, lights: np.ndarray, cameras: list[Camera], *,
+                   step: float, log=print) -> torch.Tensor:
+    """Ground-truth images (L, V, H, W, 3) by the renderer's `gt` mode (early termination far below 8 bits)."""
+    scene = RenderScene(volume, tf)
+    out = torch.zeros(len(lights), len(cameras), cameras[0].height, cameras[0].width, 3)
+    t0 = time.perf_counter()
+    for i, w in enumerate(lights):
+        for v, cam in enumerate(cameras):
+            out[i, v] = scene.render("gt", cam, light=w, step=step, min_transmittance=1e-6).rgb
+        scene._cache.pop(("gt", tuple(np.round(np.asarray(w, float) / np.linalg.norm(w), 12).tolist())), None)
+        if (i + 1) % max(1, len(lights) // 10) == 0 or i + 1 == len(lights):
+            log(f"target images: {i + 1}/{len(lights)} lights ({time.perf_counter() - t0:.0f} s)")
+    return out
+
+
+# -------------------------------------------------------------------------------------------- training
+
+
+@dataclass
+class FinetuneData:
+    train: TrainingData
+    bundle: RayBundle
+    targets: torch.Tensor  # (L, V, H·W, 3)
+
+
+def _draws(cfg: FinetuneConfig, dcfg: DiffusionConfig, epoch: int, light: int, n_params: int, n_points: int,
+           count: torch.Tensor, steps: int):
+    """Every random draw for one light in one epoch: rank-independent by construction."""
+    gen = seeded(cfg.seed, 12, epoch, light)
+    t = torch.randint(0, steps, (1,), generator=gen)
+    noise = torch.randn(1, n_params, generator=gen)
+    pick = torch.randint(0, n_points, (dcfg.geometry_points,), generator=gen)
+    u = torch.rand(len(count), cfg.pixels, generator=gen)
+    pix = (u * count[:, None].float()).long().clamp(max=(count[:, None] - 1).clamp_min(0))
+    return t, noise, pick, pix
+
+
+def step_loss(model, std: Standardizer, data: FinetuneData, z_all: torch.Tensor, local: list[int], epoch: int,
+              cfg: FinetuneConfig, dcfg: DiffusionConfig, schedule: Schedule, scale: float):
+    """Sum over the `local` lights of (x0 + geometry + rendering) loss, times `scale`; and the parts."""
+    device = z_all.device
+    if not local:  # a rank with no light this step still joins the gradient all-reduce
+        zero = sum(p.sum() for p in model.parameters()) * 0.0
+        return zero, torch.zeros(3, dtype=torch.float64)
+    tr = data.train
+    draws = [_draws(cfg, dcfg, epoch, i, z_all.shape[1], tr.points.shape[1], data.bundle.count, schedule.steps)
+             for i in local]
+    idx = torch.tensor(local, device=device)
+    t = torch.cat([d[0] for d in draws]).to(device)
+    noise = torch.cat([d[1] for d in draws]).to(device)
+    x0 = z_all[idx]
+    pred = model(schedule.q_sample(x0, t, noise), t, tr.lights[idx].float().to(device))
+    l_x0 = ((pred - x0) ** 2).mean(1)
+    weights = std.destandardize(pred)
+    siren = BatchedSiren(weights, tr.layout, tr.siren.blocks)
+    extent = tr.extent.to(device)
+    pick = torch.stack([d[2] for d in draws]).to(device)
+    pts = torch.gather(tr.points.to(device)[idx], 1, pick[..., None].expand(-1, -1, 3))
+    vals = torch.gather(tr.values.to(device)[idx], 1, pick)
+    l_geo = ((siren(box_to_siren(pts, extent)) - vals) ** 2).mean(1)
+    b = data.bundle
+    nv, p = len(b.count), cfg.pixels
+    pix = torch.stack([d[3] for d in draws]).to(device)  # (B, V, P) rows of the bundle
+    views = torch.arange(nv, device=device)[None, :, None].expand_as(pix)
+    spts = b.pts[views, pix]  # (B, V, P, N, 3)
+    n = spts.shape[-2]
+    g = siren(box_to_siren(spts.reshape(len(local), -1, 3), extent)).view(len(local), nv, p, n)
+    color = bundle_colors(b, g, views, pix)
+    flat_pix = b.pix[views, pix]  # image pixel ids (B, V, P)
+    target = data.targets[idx[:, None, None], views, flat_pix]
+    l_render = ((color - target) ** 2).mean((1, 2, 3))
+    per_light = l_x0 + dcfg.geometry_weight * l_geo + cfg.render_weight * l_render
+    parts = torch.stack([l_x0.detach().sum(), l_geo.detach().sum(), l_render.detach().sum()]).double().cpu()
+    return per_light.sum() * scale, parts
+
+
+def fingerprint(state: dict, cfg: FinetuneConfig, data: FinetuneData) -> str:
+    h = hashlib.sha256(str(state.get("fingerprint")).encode())
+    h.update(json.dumps(asdict(cfg), sort_keys=True).encode())
+    h.update(data.targets.numpy().tobytes()[:1 << 20])
+    h.update(str(tuple(data.targets.shape)).encode())
+    return h.hexdigest()
+
+
+def init_distributed(cfg: FinetuneConfig, device_arg: str | None) -> tuple[int, int, torch.device]:
+    """(rank, world size, device) under torchrun, or (0, 1, device) when run alone."""
+    world = int(os.environ.get("WORLD_SIZE", "1"))
+    rank = int(os.environ.get("RANK", "0"))
+    want_cuda = (device_arg or "").startswith("cuda") or (device_arg is None and torch.cuda.is_available())
+    if want_cuda:
+        device = torch.device("cuda", int(os.environ.get("LOCAL_RANK", "0")))
+        torch.cuda.set_device(device)
+    else:
+        device = torch.device(device_arg or "cpu")
+    if world > 1:
+        import torch.distributed as dist
+
+        dist.init_process_group("nccl" if device.type == "cuda" else "gloo",
+                                timeout=datetime.timedelta(seconds=cfg.timeout_s))
+    return rank, world, device
+
+
+def finetune(geometry_state: dict, data: FinetuneData, cfg: FinetuneConfig, checkpoint: Path, *,
+             rank: int = 0, world: int = 1, device=None, log=print, stop_after_epoch: int | None = None) -> dict:
+    """Fine-tune from the geometry-stage checkpoint state; resumable; only rank 0 writes."""
+    import torch.distributed as dist
+
+    device = torch.device(device or "cpu")
+    dcfg = DiffusionConfig.from_config(geometry_state["config"])
+    layout = WeightLayout.from_config(geometry_state["layout"])
+    torch.manual_seed(cfg.seed)
+    base = build_model(layout, dcfg)
+    base.load_state_dict(geometry_state["ema"] if geometry_state.get("ema") else geometry_state["model"])
+    base.to(device)
+    std = Standardizer(layout, geometry_state["standardizer"]["mean"], geometry_state["standardizer"]["std"])
+    opt = torch.optim.AdamW(base.parameters(), lr=cfg.lr, weight_decay=dcfg.weight_decay)
+    fp = fingerprint(geometry_state, cfg, data)
+    start = 0
+    if checkpoint.exists():
+        state = torch.load(checkpoint, map_location=device, weights_only=False)
+        if state.get("finetune_fingerprint") == fp:
+            base.load_state_dict(state["model"])
+            opt.load_state_dict(state["optimizer"])
+            start = int(state["finetune_epoch"])
+            log(f"rank {rank}: resuming from {checkpoint} at epoch {start}/{cfg.epochs}")
+        else:
+            log(f"rank {rank}: ignoring {checkpoint}: it belongs to another configuration")
+    model = base
+    if world > 1:
+        from torch.nn.parallel import DistributedDataParallel
+
+        model = DistributedDataParallel(base, device_ids=[device.index] if device.type == "cuda" else None)
+    schedule = Schedule()
+    z_all = std.standardize(data.train.weights).float().to(device)
+    data = FinetuneData(data.train, data.bundle.to(device), data.targets.to(device))
+    n = len(z_all)
+    if rank == 0:
+        log(f"fine-tuning with the rendering loss: {world} process(es) on {device.type}, global batch "
+            f"{cfg.batch_size} ({cfg.batch_size // world}+ per rank), lr {cfg.lr:g}, {cfg.pixels} pixels x "
+            f"{len(data.bundle.count)} views per light, {cfg.epochs} epochs")
+
+    def save(epoch: int) -> dict:
+        state = {**geometry_state, "model": base.state_dict(), "ema": None, "optimizer": opt.state_dict(),
+                 "finetune_fingerprint": fp, "finetune_epoch": epoch, "finetune": asdict(cfg)}
+        if rank == 0:
+            atomic_save(checkpoint, lambda tmp: torch.save(state, tmp), suffix=".pt")
+        if world > 1:
+            dist.barrier()
+        return state
+
+    state = None
+    t_start = t_step = time.perf_counter()
+    step_times: list[float] = []
+    for epoch in range(start, cfg.epochs):
+        order = torch.randperm(n, generator=seeded(cfg.seed, 11, epoch)).tolist()
+        totals = torch.zeros(3, dtype=torch.float64)
+        for b0 in range(0, n, cfg.batch_size):
+            batch = order[b0:b0 + cfg.batch_size]
+            local = batch[rank::world]
+            loss, parts = step_loss(model, std, data, z_all, local, epoch, cfg, dcfg, schedule,
+                                    scale=world / len(batch))
+            if not torch.isfinite(loss):
+                raise ValueError(f"finetune: loss became {float(loss.detach())} at epoch {epoch} on rank {rank}; "
+                                 f"lower finetune.lr (now {cfg.lr})")
+            opt.zero_grad(set_to_none=True)
+            loss.backward()
+            torch.nn.utils.clip_grad_norm_(base.parameters(), dcfg.grad_clip)
+            opt.step()
+            totals += parts
+            step_times.append(time.perf_counter() - t_step)
+            t_step = time.perf_counter()
+        if world > 1:
+            dist.all_reduce(totals_t := totals.to(device))
+            totals = totals_t.cpu()
+        done = epoch + 1
+        if done % cfg.checkpoint_every == 0 or done == cfg.epochs:
+            state = save(done)
+        if rank == 0 and (done % max(1, cfg.epochs // 10) == 0 or done == cfg.epochs):
+            lx, lg, lr_ = (totals / n).tolist()
+            log(f"epoch {done}/{cfg.epochs}  x0 {lx:.3e}  geometry {lg:.3e}  render {lr_:.3e} "
+                f"(≈{-10 * math.log10(max(lr_, 1e-30)):.1f} dB)  {time.perf_counter() - t_start:.0f} s")
+        if stop_after_epoch is not None and done >= stop_after_epoch:
+            return state
+    if state is None:
+        state = torch.load(checkpoint, map_location="cpu", weights_only=False)
+    # per-rank cost, gathered to every rank: median seconds per step and peak memory
+    mine = {"rank": rank, "median_step_s": float(np.median(step_times)) if step_times else None,
+            "peak_mem_bytes": _peak_memory(device)}
+    ranks = [mine]
+    if world > 1:
+        ranks = [None] * world
+        dist.all_gather_object(ranks, mine)
+    return {**state, "finetune_ranks": ranks}
+
+
+def _peak_memory(device: torch.device) -> int:
+    """CUDA: the allocator's peak; CPU: the process's peak resident set (torch itself included)."""
+    if device.type == "cuda":
+        return int(torch.cuda.max_memory_allocated(device))
+    import resource
+
+    return int(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss) * 1024
+
+
+@torch.no_grad()
+def image_psnr_of_model(state: dict, data: FinetuneData, *, device=None, chunk: int = 512) -> np.ndarray:
+    """Per training light: foreground image PSNR (all target views) of the DDIM-generated shadow SIREN."""
+    from diffshadow.diffusion.train import load_sampler
+
+    model, std, layout, siren_cfg = load_sampler(state, device)
+    dcfg = DiffusionConfig.from_config(state["config"])
+    lights = data.train.lights.numpy()
+    weights = generate(model, std, lights, method="ddim", steps=dcfg.ddim_steps, seed=dcfg.seed,
+                       temperature=dcfg.temperature, device=device)
+    b = data.bundle
+    extent = data.train.extent
+    out = []
+    for i in range(len(lights)):
+        siren = BatchedSiren(weights[i:i + 1], layout, siren_cfg.blocks)
+        se, count = 0.0, 0
+        for v in range(len(b.count)):
+            f = int(b.count[v])
+            for j0 in range(0, f, chunk):
+                rows = torch.arange(j0, min(f, j0 + chunk))
+                pts = b.pts[v, rows]
+                g = siren(box_to_siren(pts.reshape(1, -1, 3), extent)).view(len(rows), -1).clamp(0, 1)
+                vv = torch.full_like(rows, v)
+                color = bundle_colors(b, g, vv, rows)
+                target = data.targets[i, v, b.pix[v, rows]]
+                se += float(((color - target) ** 2).sum())
+                count += color.numel()
+        out.append(10 * math.log10(1.0 / max(se / max(count, 1), 1e-30)))
+    return np.asarray(out)
+
+
+# ------------------------------------------------------------------------------------------------- I/O
+
+
+def write_targets(path, images: torch.Tensor, bundle: RayBundle, cameras: list[Camera], lights: np.ndarray,
+                  *, step: float, extent) -> None:
+    from diffshadow.store import write_zarr_group
+
+    def fill(root) -> None:
+        root.create_array("images", data=images.numpy(), chunks=(1, *images.shape[1:]))
+        for name in ("pix", "pts", "wc", "base", "count"):
+            root.create_array(f"bundle_{name}", data=getattr(bundle, name).numpy())
+        root.create_array("lights", data=np.asarray(lights))
+        root.attrs.update({"step": step, "extent": np.asarray(extent).tolist(),
+                           "cameras": [{"eye": c.eye, "target": c.target, "up": c.up, "fov": c.fov,
+                                        "width": c.width, "height": c.height} for c in cameras]})
+
+    write_zarr_group(path, fill)
+
+
+def read_targets(path) -> tuple[torch.Tensor, RayBundle, np.ndarray]:
+    """(images (L, V, H·W, 3), bundle, lights) from `render_targets`' targets.zarr."""
+    import zarr
+
+    try:
+        root = zarr.open_group(str(path), mode="r")
+        images = torch.as_tensor(np.asarray(root["images"][...]))
+        bundle = RayBundle(*(torch.as_tensor(np.asarray(root[f"bundle_{k}"][...]))
+                             for k in ("pix", "pts", "wc", "base", "count")))
+        lights = np.asarray(root["lights"][...])
+    except (FileNotFoundError, KeyError) as e:
+        raise ValueError(f"{path}: not a targets store from render_targets (missing {e})") from None
+    return images.reshape(images.shape[0], images.shape[1], -1, 3), bundle, lights
