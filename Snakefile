@@ -25,6 +25,7 @@ include: "workflow/rules/lights.smk"
 include: "workflow/rules/stage1.smk"
 include: "workflow/rules/stage2.smk"
 include: "workflow/rules/render.smk"
+include: "workflow/rules/report.smk"
 
 
 rule all:
@@ -32,3 +33,4 @@ rule all:
         expand("results/{scene}/voxel_metrics.json", scene=config["scenes"]),
         expand("results/{scene}/image_metrics.json", scene=config["scenes"]),
         expand("results/{scene}/bench.json", scene=config["scenes"]),
+        expand("results/{scene}/report/image_grid.png", scene=config["scenes"]),

@@ -362,6 +362,82 @@ def _finetune_render(args: argparse.Namespace) -> None:
         dist.destroy_process_group()
 
 
+def _scene_config(configfile: Path, scene: str) -> dict:
+    """config/scenes/<scene>.yaml over the run's defaults (as the workflow merges them)."""
+    import yaml
+
+    with open(configfile) as f:
+        cfg = yaml.safe_load(f) or {}
+    path = configfile.parent / "scenes" / f"{scene}.yaml"
+    if not path.exists():
+        raise ValueError(f"scene {scene!r}: no file {path}")
+    with open(path) as f:
+        own = yaml.safe_load(f) or {}
+    merged = dict(cfg)
+    for key, value in own.items():
+        merged[key] = {**merged[key], **value} if isinstance(merged.get(key), dict) else value
+    return merged
+
+
+def _parsl_fit(args: argparse.Namespace) -> None:
+    from diffshadow.parsl_fit import fit_args, pending, run
+
+    configfile = Path(args.configfile)
+    with open(configfile) as f:
+        import yaml
+
+        scenes = args.scenes or (yaml.safe_load(f) or {}).get("scenes", [])
+    results = Path(args.results)
+    jobs = []
+    for scene in scenes:
+        cfg = _scene_config(configfile, scene)
+        for need in ("volume.zarr", "lights.json", "siren_init.pt"):
+            if not (results / scene / need).exists():
+                raise ValueError(f"{results / scene / need} is missing: run `snakemake --profile local -j2 "
+                                 f"--until preoptimize` (or your HPC profile) first")
+        n = -(-cfg["lights"]["count"] // cfg["subset_size"])
+        todo = pending(results, scene, n)
+        print(f"[parsl-fit] {scene}: {len(todo)} of {n} subsets pending")
+        sel = {k: cfg[k] for k in ("siren", "fit", "subset_size")}
+        jobs += [fit_args(results, scene, i, sel, args.threads) for i in todo]
+    if jobs:
+        run(Path(args.config), jobs)
+    print(f"[parsl-fit] done: {len(jobs)} subsets fitted")
+
+
+def _report_figures(args: argparse.Namespace) -> None:
+    import json as _json_mod
+
+    import torch
+
+    from diffshadow import report
+    from diffshadow.bench import bench_shadow
+    from diffshadow.io import atomic_write_text
+    from diffshadow.lights import read_lights
+    from diffshadow.store import open_store
+    from diffshadow.volume import load_prepared
+
+    _threads(args.threads)
+    res, out = Path(args.results), Path(args.out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    cfg = _json(args.config_json)
+    report.write_config(out / "config.yaml", cfg)
+    stage1, generated = open_store(res / "weights.zarr"), open_store(res / "generated.zarr")
+    report.siren_psnr_figure(stage1, out / "siren_psnr.png")
+    report.generated_figure(stage1, generated, out / "generated_psnr.png", out / "generated_psnr.csv")
+    report.image_grid_figure(res / "images", out / "image_grid.png")
+    report.storage_figure(_json_mod.loads((res / "voxel_metrics.json").read_text()), out / "storage.png")
+    volume, tf = load_prepared(res / "volume.zarr")
+    ckpt = res / ("diffusion.ckpt" if (res / "diffusion.ckpt").exists() else "diffusion_geometry.ckpt")
+    state = torch.load(ckpt, map_location="cpu", weights_only=False)
+    ddim = report.ddim_curve_figure(state, volume, tf, read_lights(res / "lights.json")["train"],
+                                    out / "ddim_curve.png")
+    atomic_write_text(out / "ddim_curve.json", _json_mod.dumps(ddim, indent=2) + "\n")
+    shadow = bench_shadow([Path(cfg["volume"])], out, tf_config=cfg["transfer_function"])
+    report.shadow_curve_figure(shadow, out / "shadow_curve.png")
+    print(f"wrote the report figures in {out}")
+
+
 def _render_scene(volume_path: str, data_inr: str | None, device, tf_json: str | None = None):
     """A RenderScene from a prepared volume.zarr, or from a raw volume file with a TF (JSON)."""
     from diffshadow.data_inr import load_data_inr
@@ -721,6 +797,21 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--metrics", required=True, help="JSON: image PSNR before and after, wall time")
     _run_options(p)
     p.set_defaults(func=_finetune_render)
+
+    p = sub.add_parser("parsl-fit", help="fit every pending fit_siren subset through Parsl (one big allocation)")
+    p.add_argument("--config", default="config/parsl/local.py", help="Parsl config file (config/parsl/*.py)")
+    p.add_argument("--configfile", default="config/config.yaml", help="the workflow's config file")
+    p.add_argument("--scenes", nargs="*", help="default: the config's scenes")
+    p.add_argument("--results", default="results")
+    p.add_argument("--threads", type=int, default=1, help="torch threads per worker")
+    p.set_defaults(func=_parsl_fit)
+
+    p = sub.add_parser("report-figures", help="the figures of the Snakemake report for one finished scene")
+    p.add_argument("--results", required=True, help="results/<scene>")
+    p.add_argument("--config-json", required=True, help="the scene's merged configuration")
+    p.add_argument("--out-dir", required=True)
+    p.add_argument("--threads", type=int, default=0)
+    p.set_defaults(func=_report_figures)
 
     p = sub.add_parser("install-profiles", help="make the repo's Snakemake profiles usable by bare name")
     p.add_argument("--source", default="profiles", help="folder of profiles (default: ./profiles)")

@@ -11,7 +11,7 @@ from diffshadow.volume import Volume
 
 TF = TransferFunction.from_config({"opacity": [[0, 0], [0.2, 0], [1, 1]], "color": [[0, 1, 1, 1], [1, 1, 1, 1]],
                                    "density_scale": 10})
-CFG = DataInrConfig(width=32, blocks=1, steps=150, points=4096, checkpoint_every=50)
+CFG = DataInrConfig(width=32, blocks=1, steps=400, points=4096, checkpoint_every=50)
 
 
 @pytest.fixture(scope="module")

@@ -15,7 +15,7 @@ def test_foreground_psnr_ignores_the_background():
     pred = target.clone()
     pred[8:24, 8:24] += 0.1  # every foreground value off by 0.1: PSNR = 20 dB exactly
     pred[:4] = 0.0  # background differences do not count
-    assert math.isclose(image_psnr(pred, target, foreground(alpha)), 20.0, abs_tol=1e-6)
+    assert math.isclose(image_psnr(pred, target, foreground(alpha)), 20.0, abs_tol=1e-4)  # float32 0.6 - 0.5
     assert image_psnr(pred, target) < 20.0
 
 
@@ -28,7 +28,7 @@ def test_identical_images_score_perfectly():
 
 
 def test_small_images_have_no_ms_ssim():
-    img = torch.rand(40, 40, 3)
+    img = torch.rand(30, 30, 3)  # the coarsest of 5 scales holds no 3-pixel window
     assert ms_ssim(img, img) is None
 
 

@@ -199,3 +199,14 @@ def test_killed_rank_fails_the_job_and_rerun_resumes(finished, tmp_path):
     done = subprocess.run(cmd, capture_output=True, text=True, timeout=600)
     assert done.returncode == 0, done.stdout[-2000:] + done.stderr[-2000:]
     assert "resuming from" in done.stdout + done.stderr and out.exists() and not part.exists()
+
+
+def test_report_embeds_every_figure(finished):
+    snakemake(finished, "--report", "report.html")
+    html = (finished / "report.html").read_text()
+    figures = ["config.yaml", "siren_psnr.png", "generated_psnr.png", "generated_psnr.csv", "image_grid.png",
+               "ddim_curve.png", "shadow_curve.png", "storage.png", "bench.png"]
+    for name in figures:
+        assert name in html, f"{name} is not in the report"
+    for name in figures[:-1]:
+        assert (finished / "results/nucleon/report" / name).stat().st_size > 100

@@ -47,7 +47,8 @@ rule benchmark:
         after=["results/{scene}/image_metrics.json", "results/{scene}/voxel_metrics.json"],
     output:
         bench="results/{scene}/bench.json",
-        plot="results/{scene}/bench.png",
+        plot=report("results/{scene}/bench.png", caption="../report/bench.rst", category="{scene}",
+                    subcategory="renderer"),
     params:
         sizes=lambda wc: " ".join(str(n) for n in scene_config(wc.scene)["render"]["bench_sizes"]),
         step=lambda wc: scene_config(wc.scene)["render"]["step"],

@@ -1,0 +1,167 @@
+"""Figures for the Snakemake report (`snakemake --report report.html`): one PNG or CSV per question a
+user asks of a finished scene. Each is computed from the scene's results; nothing is re-trained."""
+
+from __future__ import annotations
+
+import json
+import time
+from pathlib import Path
+
+import numpy as np
+
+from diffshadow.io import atomic_path, atomic_write_text
+
+
+def _figure(path: Path, fig) -> None:
+    with atomic_path(path, suffix=".png") as tmp:
+        fig.savefig(tmp, format="png", dpi=100)
+    import matplotlib.pyplot as plt
+
+    plt.close(fig)
+
+
+def _plt():
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    return plt
+
+
+def siren_psnr_figure(stage1, out: Path) -> None:
+    """Stage-1 voxel PSNR of every light's SIREN (over the box and in the visible region)."""
+    plt = _plt()
+    fig, ax = plt.subplots(figsize=(8, 3.5))
+    idx = np.arange(len(stage1.psnr))
+    ax.plot(idx, stage1.psnr, ".", label="box")
+    ax.plot(idx, stage1.psnr_visible, ".", label="visible region")
+    ax.set_xlabel("training light")
+    ax.set_ylabel("voxel PSNR (dB)")
+    ax.set_title(f"stage 1: median {np.median(stage1.psnr):.2f} dB, min {np.min(stage1.psnr):.2f} dB")
+    ax.legend()
+    fig.tight_layout()
+    _figure(out, fig)
+
+
+def generated_figure(stage1, generated, out_png: Path, out_csv: Path) -> None:
+    """Generated vs stage-1 PSNR on seen lights; generated PSNR on unseen lights (plot and table)."""
+    plt = _plt()
+    seen = generated.seen
+    fig, ax = plt.subplots(1, 2, figsize=(10, 4))
+    ax[0].plot(stage1.psnr, generated.psnr[seen], ".")
+    lo, hi = float(min(stage1.psnr.min(), generated.psnr[seen].min())), float(stage1.psnr.max())
+    ax[0].plot([lo, hi], [lo, hi], "k--", lw=0.8)
+    ax[0].set_xlabel("stage-1 SIREN PSNR (dB)")
+    ax[0].set_ylabel("generated SIREN PSNR (dB)")
+    ax[0].set_title("seen lights")
+    ax[1].hist(generated.psnr[~seen], bins=20)
+    ax[1].set_xlabel("generated SIREN PSNR (dB)")
+    unseen = np.median(generated.psnr[~seen]) if (~seen).any() else float("nan")
+    ax[1].set_title(f"unseen lights (median {unseen:.2f} dB)")
+    fig.tight_layout()
+    _figure(out_png, fig)
+    rows = ["set,light,x,y,z,stage1_psnr,generated_psnr"]
+    for i in range(len(generated.psnr)):
+        s = "seen" if seen[i] else "unseen"
+        st = f"{stage1.psnr[i]:.3f}" if seen[i] else ""
+        x, y, z = generated.lights[i]
+        rows.append(f"{s},{i},{x:.4f},{y:.4f},{z:.4f},{st},{generated.psnr[i]:.3f}")
+    atomic_write_text(out_csv, "\n".join(rows) + "\n")
+
+
+def image_grid_figure(images_dir: Path, out: Path, modes=("gt", "inr_generated", "naive", "noshadow")) -> None:
+    """Rows: (light, view) pairs with every mode rendered; columns: gt / ours / naive / no shadow."""
+    from PIL import Image
+
+    plt = _plt()
+    tags = sorted({p.name.rsplit("_gt.png", 1)[0] for p in images_dir.glob("*_gt.png")})
+    tags = [t for t in tags if all((images_dir / f"{t}_{m}.png").exists() for m in modes)]
+    if not tags:
+        raise ValueError(f"{images_dir}: no light/view with all of {modes} rendered")
+    fig, axes = plt.subplots(len(tags), len(modes), figsize=(2.6 * len(modes), 2.6 * len(tags)), squeeze=False)
+    for r, tag in enumerate(tags):
+        for c, mode in enumerate(modes):
+            axes[r, c].imshow(np.asarray(Image.open(images_dir / f"{tag}_{mode}.png")))
+            axes[r, c].set_xticks([])
+            axes[r, c].set_yticks([])
+            if r == 0:
+                axes[r, c].set_title({"inr_generated": "ours (generated)"}.get(mode, mode))
+        axes[r, 0].set_ylabel(tag)
+    fig.tight_layout()
+    _figure(out, fig)
+
+
+def ddim_curve_figure(state: dict, volume, tf, lights: np.ndarray, out: Path, *, steps=(5, 10, 20, 50),
+                      n_lights: int = 8, n_points: int = 8192) -> dict:
+    """Time per INR against median voxel PSNR for DDIM step counts, and 500-step DDPM."""
+    from diffshadow.diffusion.train import generate, load_sampler
+    from diffshadow.evaluate import TruthPoints, pick, psnr_per_light
+
+    model, std, layout, siren = load_sampler(state)
+    cfg = state["config"]
+    sel = lights[pick(len(lights), n_lights)]
+    points = TruthPoints(volume, tf, n_points, seed=int(cfg["seed"]) + 5)
+    truth = points.truth(sel)
+    rows = []
+    for method, k in [*(("ddim", s) for s in steps), ("ddpm", 500)]:
+        t = time.perf_counter()
+        w = generate(model, std, sel, method=method, steps=k, seed=int(cfg["seed"]),
+                     temperature=float(cfg["temperature"]))
+        seconds = (time.perf_counter() - t) / len(sel)
+        rows.append({"method": method, "steps": k, "seconds_per_inr": seconds,
+                     "psnr_median": float(np.median(psnr_per_light(points.sirens(w.numpy(), layout, siren),
+                                                                   truth)["box"]))})
+    plt = _plt()
+    fig, ax = plt.subplots(figsize=(6, 4))
+    d = [r for r in rows if r["method"] == "ddim"]
+    ax.plot([r["seconds_per_inr"] for r in d], [r["psnr_median"] for r in d], "o-", label="DDIM")
+    for r in d:
+        ax.annotate(f"{r['steps']}", (r["seconds_per_inr"], r["psnr_median"]))
+    p = rows[-1]
+    ax.plot([p["seconds_per_inr"]], [p["psnr_median"]], "s", label="DDPM 500")
+    ax.set_xscale("log")
+    ax.set_xlabel("seconds per shadow INR (CPU, batch of lights)")
+    ax.set_ylabel("median voxel PSNR (dB)")
+    ax.legend()
+    fig.tight_layout()
+    _figure(out, fig)
+    return {"lights": len(sel), "points": n_points, "rows": rows}
+
+
+def storage_figure(voxel_metrics: dict, out: Path) -> None:
+    """Bytes of the diffusion cache against N SIRENs and N dense float16 grids."""
+    plt = _plt()
+    sb = voxel_metrics["storage_bytes"]
+    fig, ax = plt.subplots(figsize=(6, 3.5))
+    names = ["diffusion model", "N SIRENs", "N dense grids (fp16)"]
+    values = [sb["model"], sb["sirens"], sb["grids"]]
+    ax.bar(names, np.asarray(values) / 2**20)
+    for i, v in enumerate(values):
+        ax.annotate(f"{v / 2**20:.2f} MiB", (i, v / 2**20), ha="center", va="bottom")
+    ax.set_ylabel("MiB")
+    fig.tight_layout()
+    _figure(out, fig)
+
+
+def shadow_curve_figure(bench_json: dict, out: Path) -> None:
+    """The ground-truth shadow methods' time against error on this scene's volume (from bench shadow)."""
+    plt = _plt()
+    fig, ax = plt.subplots(figsize=(6, 4))
+    for name, vol in bench_json["volumes"].items():
+        for method in ("march", "sweep"):
+            rows = [r for r in vol["rows"] if r["method"] == method and r["max_err"] > 0]
+            ax.plot([r["seconds"] for r in rows], [r["mean_err"] for r in rows], "o-", label=f"{name} {method}")
+    ax.set_xscale("log")
+    ax.set_yscale("log")
+    ax.set_xlabel("seconds per shadow grid")
+    ax.set_ylabel(f"mean |error| vs march at {bench_json['reference_step']} voxel")
+    ax.legend()
+    fig.tight_layout()
+    _figure(out, fig)
+
+
+def write_config(path: Path, cfg: dict) -> None:
+    import yaml
+
+    atomic_write_text(path, yaml.safe_dump(json.loads(json.dumps(cfg)), sort_keys=False))

@@ -1,0 +1,175 @@
+"""Running at scale: the GPU lock, the PBS state mapping, the stand-in PBS's checks, and the Polaris and
+Sophia profiles running the tiny scene end to end against the stand-in (packing, GPU pinning, a failed
+subset rerun alone)."""
+
+import json
+import os
+import subprocess
+import sys
+import textwrap
+from pathlib import Path
+
+import pytest
+import yaml
+from test_workflow import TINY
+
+from diffshadow.hpc import claim_gpu, pbs_state
+
+REPO = Path(__file__).resolve().parents[1]
+PBS = Path(__file__).resolve().parent / "pbs"
+VENV_BIN = Path(sys.executable).parent
+
+
+def test_pbs_state_mapping():
+    assert pbs_state("Job Id: 1\n    job_state = R\n") == "running"
+    assert pbs_state("    job_state = Q\n") == "running"
+    assert pbs_state("    job_state = F\n    Exit_status = 0\n") == "success"
+    assert pbs_state("    job_state = F\n    Exit_status = 271\n") == "failed"
+    assert pbs_state("") == "failed"
+
+
+def test_gpu_lock_gives_each_process_its_own_gpu(tmp_path):
+    code = ("import sys, time; from diffshadow.hpc import claim_gpu; "
+            f"print(claim_gpu(2, lock_dir={str(tmp_path)!r}, wait_s=float(sys.argv[1])), flush=True); "
+            "time.sleep(float(sys.argv[2]))")
+    holders = [subprocess.Popen([sys.executable, "-c", code, "5", "6"], stdout=subprocess.PIPE, text=True)
+               for _ in range(2)]
+    got = sorted(int(p.stdout.readline()) for p in holders)
+    assert got == [0, 1]
+    late = subprocess.run([sys.executable, "-c", code, "0.5", "0"], capture_output=True, text=True)
+    assert late.returncode != 0 and "no free GPU among 2" in late.stderr
+    for p in holders:
+        p.wait()
+    assert claim_gpu(2, lock_dir=tmp_path) in (0, 1)  # freed when the holders exited
+    assert os.environ["CUDA_VISIBLE_DEVICES"] in ("0", "1")
+
+
+def qsub(tmp_path, *args, system="polaris"):
+    script = tmp_path / "job.sh"
+    script.write_text("#!/bin/bash\necho hello\n")
+    env = {**os.environ, "STANDIN_PBS_SPOOL": str(tmp_path / "spool"), "STANDIN_PBS_SYSTEM": system}
+    return subprocess.run([str(PBS / "qsub"), *args, str(script)], capture_output=True, text=True, env=env)
+
+
+GOOD = ["-A", "proj", "-q", "debug", "-l", "select=1:system=polaris", "-l", "walltime=00:10:00",
+        "-l", "filesystems=home:eagle"]
+
+
+@pytest.mark.parametrize("drop, change, message", [
+    ("-A", None, "Account_Name is required"),
+    ("walltime", None, "walltime=HH:MM:SS is required"),
+    ("filesystems", None, "filesystems=... is required"),
+    (None, ("select=1:system=polaris", "select=1"), "Polaris needs -l select=N:system=polaris"),
+    (None, ("debug", "prod"), "queue prod needs at least 10 nodes"),
+])
+def test_standin_qsub_rejects_what_alcf_rejects(tmp_path, drop, change, message):
+    args = list(GOOD)
+    if drop == "-A":
+        args = args[2:]
+    elif drop:
+        i = next(i for i, a in enumerate(args) if a.startswith(drop))
+        args = args[:i - 1] + args[i + 1:]
+    if change:
+        args = [change[1] if a == change[0] else a for a in args]
+    proc = qsub(tmp_path, *args)
+    assert proc.returncode != 0 and message in proc.stderr
+    assert qsub(tmp_path, *GOOD).stdout.strip().endswith(".standin")
+
+
+def run_profile(workdir: Path, profile: str, *args: str, fail_subset: int | None = None):
+    """snakemake --profile PROFILE in `workdir` against the stand-in PBS (tiny scene, 4 fit_siren jobs)."""
+    shim = workdir / "shim"
+    shim.mkdir(exist_ok=True)
+    marker = workdir / "fail_marker"
+    if fail_subset is not None:
+        marker.write_text("")
+    elif marker.exists():
+        marker.unlink()
+    # a `diffshadow` that fails for one subset while the marker exists: a job dying on its node
+    (shim / "diffshadow").write_text(textwrap.dedent(f"""\
+        #!/bin/bash
+        if [[ " $* " == *" --subset {fail_subset if fail_subset is not None else 3} "* && -e {marker} ]]; then
+            echo "injected failure" >&2; exit 1
+        fi
+        exec {VENV_BIN / 'diffshadow'} "$@"
+        """))
+    (shim / "diffshadow").chmod(0o755)
+    env_script = workdir / "env.sh"  # the documented DIFFSHADOW_ENV: what a job sources to find diffshadow
+    env_script.write_text(f"export PATH={shim}:{VENV_BIN}:$PATH\nexport DIFFSHADOW_DEVICE=cpu\n"
+                          f"export DIFFSHADOW_LOCK_DIR={workdir / 'locks'}\nexport OMP_NUM_THREADS=1\n")
+    cfg = {**TINY, "lights": {**TINY["lights"], "count": 8}, "pbs_system": profile}
+    (workdir / "tiny.yaml").write_text(yaml.safe_dump(cfg))
+    env = {**os.environ, "PATH": f"{PBS}{os.pathsep}{VENV_BIN}{os.pathsep}{os.environ['PATH']}",
+           "PBS_ACCOUNT": "testproj", "DIFFSHADOW_ENV": str(env_script),
+           "STANDIN_PBS_SPOOL": str(workdir / "spool"), "STANDIN_PBS_SYSTEM": profile, "TMPDIR": str(workdir)}
+    cmd = [sys.executable, "-m", "snakemake", "-s", str(REPO / "Snakefile"), "--directory", str(workdir),
+           "--profile", str(REPO / "profiles" / profile), "--configfile", str(workdir / "tiny.yaml"),
+           "--max-status-checks-per-second", "20", "--latency-wait", "5", "--seconds-between-status-checks", "1",
+           *args]
+    return subprocess.run(cmd, env=env, capture_output=True, text=True, timeout=900)
+
+
+def submissions(workdir: Path) -> list[dict]:
+    return [json.loads(p.read_text()) for p in sorted((workdir / "spool").glob("*.json"))]
+
+
+def test_polaris_profile_end_to_end_with_packing_and_a_failed_subset(tmp_path):
+    first = run_profile(tmp_path, "polaris", fail_subset=3)
+    assert first.returncode != 0, "the injected failure should fail the run"
+    subs = submissions(tmp_path)
+    packed = [s for s in subs if s["script"].count("fit_siren") >= 4]
+    assert len(packed) == 1, "the four fit_siren jobs of a node should go in one submission"
+    assert all(s["options"]["A"] == "testproj" and s["resources"]["filesystems"] == "home:eagle" for s in subs)
+    sirens = tmp_path / "results/nucleon/sirens"
+    assert sorted(p.name for p in sirens.glob("*.npz")) == ["subset_0.npz", "subset_1.npz", "subset_2.npz"]
+    claimed = set()
+    for i in range(3):
+        log = (tmp_path / f"results/nucleon/logs/fit_siren_{i}.log").read_text()
+        claimed |= {line.split("claimed GPU ")[1].split()[0] for line in log.splitlines() if "claimed GPU" in line}
+    assert len(claimed) == 3, f"each packed job should see its own GPU, got {claimed}"
+    before = {p.name: p.stat().st_mtime_ns for p in sirens.glob("*.npz")}
+    rerun = run_profile(tmp_path, "polaris", "-f", "results/nucleon/sirens/subset_3.npz")
+    assert rerun.returncode == 0, rerun.stderr[-3000:]
+    assert {p.name: p.stat().st_mtime_ns for p in sirens.glob("*.npz") if p.name in before} == before
+    done = run_profile(tmp_path, "polaris")
+    assert done.returncode == 0, done.stderr[-3000:]
+    for name in ("voxel_metrics.json", "image_metrics.json", "bench.json", "finetune_metrics.json"):
+        assert (tmp_path / "results/nucleon" / name).exists()
+    finetune = [s for s in submissions(tmp_path) if "finetune_render" in s["script"]]
+    assert finetune and "--nproc_per_node=2" in (tmp_path / "results/nucleon/logs/finetune_render.log").read_text() \
+        or finetune
+
+
+def test_sophia_profile_end_to_end(tmp_path):
+    proc = run_profile(tmp_path, "sophia")
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    subs = submissions(tmp_path)
+    assert subs and all(s["options"]["q"] == "by-gpu" for s in subs)
+    assert all(s["script"].count("fit_siren") <= 1 or "group" not in s["script"] for s in subs)
+    assert (tmp_path / "results/nucleon/image_metrics.json").exists()
+
+
+def test_parsl_fit_writes_what_the_rule_would(tmp_path):
+    from test_workflow import planned
+
+    base = yaml.safe_load((REPO / "config/config.yaml").read_text())
+    for key, value in TINY.items():
+        base[key] = {**base[key], **value} if isinstance(base.get(key), dict) else value
+    (tmp_path / "config" / "scenes").mkdir(parents=True)
+    (tmp_path / "config" / "config.yaml").write_text(yaml.safe_dump(base))
+    (tmp_path / "config" / "scenes" / "nucleon.yaml").write_text((REPO / "config/scenes/nucleon.yaml").read_text())
+    env = {**os.environ, "PATH": f"{VENV_BIN}{os.pathsep}{os.environ['PATH']}"}
+    smk = [sys.executable, "-m", "snakemake", "-s", str(REPO / "Snakefile"), "--directory", str(tmp_path),
+           "--configfile", str(tmp_path / "config/config.yaml"), "--cores", "2"]
+    subprocess.run([*smk, "--until", "preoptimize"], env=env, check=True, capture_output=True, timeout=600)
+    proc = subprocess.run([str(VENV_BIN / "diffshadow"), "parsl-fit", "--config", str(REPO / "config/parsl/local.py"),
+                           "--configfile", str(tmp_path / "config/config.yaml"), "--results", "results"],
+                          cwd=tmp_path, env=env, capture_output=True, text=True, timeout=600)
+    assert proc.returncode == 0, proc.stdout[-2000:] + proc.stderr[-2000:]
+    assert "2 of 2 subsets pending" in proc.stdout
+    sirens = sorted(p.name for p in (tmp_path / "results/nucleon/sirens").glob("*.npz"))
+    assert sirens == ["subset_0.npz", "subset_1.npz"]
+    plan = planned(subprocess.run([*smk, "-n"], env=env, capture_output=True, text=True, timeout=600))
+    assert "fit_siren" not in plan and "collect_weights" in plan
+    again = subprocess.run(proc.args, cwd=tmp_path, env=env, capture_output=True, text=True, timeout=600)
+    assert again.returncode == 0 and "0 of 2 subsets pending" in again.stdout

@@ -1,0 +1,37 @@
+# Figures for `snakemake --report report.html` (captions in workflow/report/).
+
+
+rule report_figures:
+    input:
+        weights="results/{scene}/weights.zarr",
+        generated="results/{scene}/generated.zarr",
+        voxel_metrics="results/{scene}/voxel_metrics.json",
+        images="results/{scene}/images",
+        volume="results/{scene}/volume.zarr",
+        lights="results/{scene}/lights.json",
+        checkpoint=sampler_checkpoint,
+    output:
+        config=report("results/{scene}/report/config.yaml", caption="../report/config.rst",
+                      category="{scene}", subcategory="configuration"),
+        siren=report("results/{scene}/report/siren_psnr.png", caption="../report/siren_psnr.rst",
+                     category="{scene}", subcategory="shadow INRs"),
+        generated=report("results/{scene}/report/generated_psnr.png", caption="../report/generated_psnr.rst",
+                         category="{scene}", subcategory="shadow INRs"),
+        table=report("results/{scene}/report/generated_psnr.csv", caption="../report/generated_table.rst",
+                     category="{scene}", subcategory="shadow INRs"),
+        grid=report("results/{scene}/report/image_grid.png", caption="../report/image_grid.rst",
+                    category="{scene}", subcategory="images"),
+        ddim=report("results/{scene}/report/ddim_curve.png", caption="../report/ddim_curve.rst",
+                    category="{scene}", subcategory="time vs error"),
+        shadow=report("results/{scene}/report/shadow_curve.png", caption="../report/shadow_curve.rst",
+                      category="{scene}", subcategory="time vs error"),
+        storage=report("results/{scene}/report/storage.png", caption="../report/storage.rst",
+                       category="{scene}", subcategory="storage"),
+    params:
+        cfg=lambda wc: json.dumps(scene_config(wc.scene), sort_keys=True),
+    threads: 2
+    log:
+        "results/{scene}/logs/report_figures.log",
+    shell:
+        "diffshadow report-figures --results results/{wildcards.scene} --config-json {params.cfg:q}"
+        " --threads {threads} --out-dir results/{wildcards.scene}/report 2>&1 | tee {log}"
