@@ -111,7 +111,8 @@ def test_rerun_one_subset(finished):
     target = "results/nucleon/sirens/subset_1.npz"
     assert planned(snakemake(finished, "-n", "-f", target)) == {"fit_siren": 1}
     downstream = {"fit_siren": 1, "collect_weights": 1, "train_diffusion": 1, "finetune_render": 1,
-                  "sample_shadows": 1, "evaluate_voxels": 1, "evaluate_images": 1, "benchmark": 1, "all": 1}
+                  "sample_shadows": 1, "evaluate_voxels": 1, "evaluate_images": 1, "benchmark": 1,
+                  "report_figures": 1, "all": 1}
     assert planned(snakemake(finished, "-n", "-R", target)) == downstream
     # a corrupted subset is newer than the store: collecting again fails and names the file
     (sirens / "subset_1.npz").write_bytes(b"garbage")
