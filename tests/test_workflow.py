@@ -196,6 +196,7 @@ def test_killed_rank_fails_the_job_and_rerun_resumes(finished, tmp_path):
     os.kill(int(ranks[1]), signal.SIGKILL)
     proc.wait(timeout=90)  # torchrun notices the dead rank and stops the other: no hang
     assert proc.returncode != 0 and time.time() - t_kill < 60
+    print(f"killed rank 1: torchrun exited {proc.returncode} after {time.time() - t_kill:.1f} s")
     assert not out.exists() and part.exists()
     done = subprocess.run(cmd, capture_output=True, text=True, timeout=600)
     assert done.returncode == 0, done.stdout[-2000:] + done.stderr[-2000:]
