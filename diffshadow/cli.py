@@ -438,6 +438,20 @@ def _report_figures(args: argparse.Namespace) -> None:
     print(f"wrote the report figures in {out}")
 
 
+def _pbs_status(args: argparse.Namespace) -> None:
+    """Snakemake's cluster-generic status command: running | success | failed, always exit 0."""
+    import subprocess
+
+    from diffshadow.hpc import pbs_state
+
+    try:
+        out = subprocess.run(["qstat", "-fx", args.job], capture_output=True, text=True, timeout=60)
+    except (OSError, subprocess.TimeoutExpired):
+        print("running")  # the server did not answer: ask again at the next check
+        return
+    print(pbs_state(out.stdout) if out.returncode == 0 else "failed")
+
+
 def _render_scene(volume_path: str, data_inr: str | None, device, tf_json: str | None = None):
     """A RenderScene from a prepared volume.zarr, or from a raw volume file with a TF (JSON)."""
     from diffshadow.data_inr import load_data_inr
@@ -812,6 +826,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--out-dir", required=True)
     p.add_argument("--threads", type=int, default=0)
     p.set_defaults(func=_report_figures)
+
+    p = sub.add_parser("pbs-status", help="PBS job state for Snakemake's cluster-generic executor")
+    p.add_argument("job", help="PBS job id")
+    p.set_defaults(func=_pbs_status)
 
     p = sub.add_parser("install-profiles", help="make the repo's Snakemake profiles usable by bare name")
     p.add_argument("--source", default="profiles", help="folder of profiles (default: ./profiles)")
