@@ -380,13 +380,12 @@ def _scene_config(configfile: Path, scene: str) -> dict:
 
 
 def _parsl_fit(args: argparse.Namespace) -> None:
+    import yaml
+
     from diffshadow.parsl_fit import fit_args, pending, run
 
     configfile = Path(args.configfile)
-    with open(configfile) as f:
-        import yaml
-
-        scenes = args.scenes or (yaml.safe_load(f) or {}).get("scenes", [])
+    scenes = args.scenes or (yaml.safe_load(configfile.read_text()) or {}).get("scenes", [])
     results = Path(args.results)
     jobs = []
     for scene in scenes:

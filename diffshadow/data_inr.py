@@ -17,7 +17,7 @@ import torch
 from diffshadow.fit import PointSampler, cosine_lr, lookup_grids, seeded
 from diffshadow.io import atomic_save
 from diffshadow.metrics import psnr
-from diffshadow.shadow import voxel_points
+from diffshadow.shadow import cell_ranges, voxel_points
 from diffshadow.siren import Siren, SirenConfig, WeightLayout, box_to_siren
 from diffshadow.transfer import TransferFunction
 from diffshadow.volume import Volume
@@ -133,8 +133,6 @@ def inr_cell_ranges(model: Siren, volume: Volume, *, cell: int = 16, refine: int
     Ranges of the raw volume would not do: where the INR overshoots a sharp feature (its worst voxel
     error), a cell the volume calls empty can hold visible INR values, and the renderer would drop them.
     """
-    from diffshadow.render import cell_ranges
-
     device = torch.device(device or "cpu")
     nz, ny, nx = volume.data.shape
     axes = [torch.linspace(0, float(e), (n - 1) * refine + 1, device=device)

@@ -39,6 +39,7 @@ from diffshadow.render import (
     GridScalar,
     RenderScene,
     _ray_box,
+    front_to_back,
 )
 from diffshadow.siren import BatchedSiren, WeightLayout, box_to_siren
 from diffshadow.transfer import TransferFunction
@@ -120,9 +121,7 @@ def view_samples(volume: Volume, tf: TransferFunction, camera: Camera, *, step: 
         s = scalar.value(pts[valid])
         alpha[valid] = 1 - torch.exp(-tf.extinction(s) * dt)
         color[valid] = tf.color(s)
-        before = torch.cumprod(torch.cat([torch.ones_like(alpha[:, :1]), 1 - alpha[:, :-1]], 1), 1)
-        w = before * alpha
-        trans = (1 - alpha).prod(1)
+        w, trans = front_to_back(alpha)
         fg = (1 - trans) >= 1.0 / 255.0
         for i in torch.nonzero(fg).flatten().tolist():
             keep = w[i] > min_weight
@@ -173,7 +172,7 @@ def render_targets(volume: Volume, tf: TransferFunction, lights: np.ndarray, cam
     for i, w in enumerate(lights):
         for v, cam in enumerate(cameras):
             out[i, v] = scene.render("gt", cam, light=w, step=step, min_transmittance=1e-6).rgb
-        scene._cache.pop(("gt", tuple(np.round(np.asarray(w, float) / np.linalg.norm(w), 12).tolist())), None)
+        scene.forget_gt(w)
         if (i + 1) % max(1, len(lights) // 10) == 0 or i + 1 == len(lights):
             log(f"target images: {i + 1}/{len(lights)} lights ({time.perf_counter() - t0:.0f} s)")
     return out

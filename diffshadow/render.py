@@ -31,6 +31,7 @@ import torch
 import torch.nn.functional as F
 
 from diffshadow.lights import as_direction
+from diffshadow.shadow import cell_ranges, ray_box
 from diffshadow.siren import BatchedSiren, Siren, WeightLayout, box_to_siren
 from diffshadow.transfer import TransferFunction
 from diffshadow.volume import Volume
@@ -192,26 +193,16 @@ class MacroGrid:
         return t.min(dim=1).values
 
 
-def cell_ranges(scalar: torch.Tensor, cell: int) -> tuple[torch.Tensor, torch.Tensor]:
-    """(min, max) of the voxels of each vertex-centred cell, boundary voxels included: (cz, cy, cx) each."""
-    n = torch.tensor(scalar.shape)
-    nc = torch.clamp((n - 1 + cell - 1) // cell, min=1)
-    pad = []
-    for axis in (2, 1, 0):  # F.pad takes the last axis first
-        pad += [0, int(nc[axis] * cell + 1 - n[axis])]
-    x = F.pad(scalar[None, None], pad, mode="replicate")
-    hi = F.max_pool3d(x, kernel_size=cell + 1, stride=cell)[0, 0]
-    lo = -F.max_pool3d(-x, kernel_size=cell + 1, stride=cell)[0, 0]
-    return lo, hi
-
-
 def _ray_box(o: torch.Tensor, d: torch.Tensor, extent: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-    safe = torch.where(d != 0, d, torch.ones_like(d))
-    ta, tb = (0 - o) / safe, (extent - o) / safe
-    inside = (o >= 0) & (o <= extent)
-    lo = torch.where(d != 0, torch.minimum(ta, tb), torch.where(inside, -math.inf, math.inf))
-    hi = torch.where(d != 0, torch.maximum(ta, tb), torch.where(inside, math.inf, -math.inf))
-    return lo.max(dim=1).values.clamp_min(0), hi.min(dim=1).values
+    """Entry (never before the ray's origin) and exit t of rays o + t d against the box."""
+    t0, t1 = ray_box(o, d, extent)
+    return t0.clamp_min(0), t1
+
+
+def front_to_back(alpha: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """Compositing weights (R, S) of samples seen through those before them, and what gets through (R,)."""
+    before = torch.cumprod(torch.cat([torch.ones_like(alpha[:, :1]), 1 - alpha[:, :-1]], 1), 1)
+    return before * alpha, (1 - alpha).prod(1)
 
 
 # ------------------------------------------------------------------------------------------------ fields
@@ -464,13 +455,11 @@ def render(
             g = shadow(flat) if shadow is not None else None
             mu = tf.extinction(s)
             alpha[valid] = 1 - torch.exp(-mu * dt)
-            view = d[active][:, None].expand_as(pts)[valid]
+            view = d[active][:, None].expand_as(pts)[valid] if shading.phong else None
             rgb[valid] = _shade(tf, s, grad, g, view, w, shading)
-        # front to back: each sample is seen through the transmittance of those before it
-        before = torch.cumprod(torch.cat([torch.ones_like(alpha[:, :1]), 1 - alpha[:, :-1]], 1), 1)
-        weight = trans[active, None] * before * alpha
-        color[active] += (weight[..., None] * rgb).sum(1)
-        trans[active] = trans[active] * (1 - alpha).prod(1)
+        weight, through = front_to_back(alpha)
+        color[active] += ((trans[active, None] * weight)[..., None] * rgb).sum(1)
+        trans[active] = trans[active] * through
         alive = (trans[active] >= min_transmittance) & (t0[active] + (k[active] + 0.5) * dt < t1[active])
         active = active[alive]
         free = cap - len(active)
@@ -508,9 +497,8 @@ def render_all_at_once(camera: Camera, scalar, tf: TransferFunction, extent, vox
     rgb = torch.zeros(*valid.shape, 3, device=device)
     alpha[valid] = 1 - torch.exp(-tf.extinction(s) * dt)
     rgb[valid] = _shade(tf, s, grad, g, d[:, None].expand_as(pts)[valid], w, shading)
-    before = torch.cumprod(torch.cat([torch.ones_like(alpha[:, :1]), 1 - alpha[:, :-1]], 1), 1)
-    color = ((before * alpha)[..., None] * rgb).sum(1)
-    trans = (1 - alpha).prod(1)
+    weight, trans = front_to_back(alpha)
+    color = (weight[..., None] * rgb).sum(1)
     out = color + trans[:, None] * shading.background
     return Image(out.view(camera.height, camera.width, 3), (1 - trans).view(camera.height, camera.width),
                  time.perf_counter() - start)
@@ -563,11 +551,20 @@ class RenderScene:
         return self._cached(("macro", source), lambda: MacroGrid.build(self.volume, self.tf, cell=self.cell,
                                                                      ranges=ranges, device=self.device))
 
+    @staticmethod
+    def _gt_key(light) -> tuple:
+        return ("gt", tuple(np.round(as_direction(light), 12).tolist()))
+
+    def forget_gt(self, light) -> None:
+        """Drop the cached shadow grid of `light` (a loop over many lights need not keep them all)."""
+        self._cache.pop(self._gt_key(light), None)
+
     def gt_shadow(self, light) -> GridShadow:
         from diffshadow.shadow import shadow_grid
 
-        w = tuple(np.round(as_direction(light), 12).tolist())
-        return self._cached(("gt", w), lambda: GridShadow(
+        key = self._gt_key(light)
+        w = key[1]
+        return self._cached(key, lambda: GridShadow(
             shadow_grid(self.volume, self.tf, w, method=self.gt_method, device=self.device),
             self.volume.extent, self.device))
 

@@ -84,19 +84,24 @@ def macro_cells(scalar: torch.Tensor, tf: TransferFunction, cell: int) -> torch.
     trilinear sample in the closed cell lies in [min, max] of the cell's voxels, and the TF's maximum
     opacity over that range bounds μ in the cell.
     """
-    n = torch.tensor(scalar.shape)
-    nc = torch.clamp((n - 1 + cell - 1) // cell, min=1)
-    pad_to = nc * cell + 1
-    pad = []
-    for axis in (2, 1, 0):  # F.pad takes the last axis first
-        pad += [0, int(pad_to[axis] - n[axis])]
-    x = F.pad(scalar[None, None], pad, mode="replicate")
-    hi = F.max_pool3d(x, kernel_size=cell + 1, stride=cell)[0, 0]
-    lo = -F.max_pool3d(-x, kernel_size=cell + 1, stride=cell)[0, 0]
+    lo, hi = cell_ranges(scalar, cell)
     if tf.density_scale == 0:
         return torch.ones_like(hi, dtype=torch.bool)
     peak = tf.max_opacity(lo.cpu().double().numpy(), hi.cpu().double().numpy())
     return torch.as_tensor(peak <= 0, device=scalar.device)
+
+
+def cell_ranges(scalar: torch.Tensor, cell: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """(min, max) of the voxels of each vertex-centred cell, boundary voxels included: (cz, cy, cx) each."""
+    n = torch.tensor(scalar.shape)
+    nc = torch.clamp((n - 1 + cell - 1) // cell, min=1)
+    pad = []
+    for axis in (2, 1, 0):  # F.pad takes the last axis first
+        pad += [0, int(nc[axis] * cell + 1 - n[axis])]
+    x = F.pad(scalar[None, None], pad, mode="replicate")
+    hi = F.max_pool3d(x, kernel_size=cell + 1, stride=cell)[0, 0]
+    lo = -F.max_pool3d(-x, kernel_size=cell + 1, stride=cell)[0, 0]
+    return lo, hi
 
 
 def _as_points(points, device) -> torch.Tensor:
@@ -108,7 +113,7 @@ def _as_points(points, device) -> torch.Tensor:
     return pts.to(device)
 
 
-def _ray_box(p: torch.Tensor, w: torch.Tensor, extent: torch.Tensor):
+def ray_box(p: torch.Tensor, w: torch.Tensor, extent: torch.Tensor):
     """Entry and exit t of rays p + t w against the box [0, extent] (slab method)."""
     inv = torch.where(w != 0, 1.0 / w, torch.full_like(w, math.inf))
     t_a = (0 - p) * inv
@@ -148,7 +153,7 @@ def transmittance(
     pts = _as_points(points, field.scalar.device)
     w = torch.as_tensor(w64, dtype=torch.float32, device=pts.device)
 
-    t0, t1 = _ray_box(pts, w, field.extent)
+    t0, t1 = ray_box(pts, w, field.extent)
     t0 = t0.clamp_min(0.0)
     length = (t1 - t0).clamp_min(0.0)
     dt = step * float(field.voxel_size.min())
