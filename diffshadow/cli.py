@@ -107,7 +107,7 @@ def subset_indices(n_lights: int, subset_size: int, subset: int) -> list[int]:
 def _fit_siren(args: argparse.Namespace) -> None:
     import torch
 
-    from diffshadow.fit import evaluate_psnr, fit_sirens
+    from diffshadow.fit import check_psnr, evaluate_psnr, fit_sirens
     from diffshadow.store import write_subset
 
     _threads(args.threads)
@@ -122,6 +122,8 @@ def _fit_siren(args: argparse.Namespace) -> None:
                          light_index=idx, checkpoint=out.with_name(out.name + ".ckpt"), device=args.device)
     box, vis = evaluate_psnr(weights, layout, siren, volume, tf, lights[idx], n_points=fit.eval_points,
                              seed=fit.seed + 7919 * (args.subset + 1), device=args.device)
+    if fit.min_psnr > 0:
+        check_psnr(box, idx, fit.min_psnr, f"fit_siren subset {args.subset} ({args.volume})")
     write_subset(out, weights=weights.numpy(), light_index=idx, lights=lights[idx], psnr=box, psnr_visible=vis,
                  layout=layout, siren=siren, config=cfg)
     print(f"wrote {out}: PSNR box median {float(np.median(box)):.2f} dB (min {box.min():.2f}), "

@@ -31,7 +31,7 @@ import torch
 import torch.nn.functional as F
 
 from diffshadow.lights import as_direction
-from diffshadow.shadow import cell_ranges, ray_box
+from diffshadow.shadow import cell_ranges, ray_box, trilinear
 from diffshadow.siren import BatchedSiren, Siren, WeightLayout, box_to_siren
 from diffshadow.transfer import TransferFunction
 from diffshadow.volume import Volume
@@ -213,6 +213,7 @@ class GridScalar:
 
     def __init__(self, volume: Volume, device=None):
         self.extent = torch.as_tensor(volume.extent, dtype=torch.float32, device=device)
+        self.voxel = torch.as_tensor(volume.voxel_size, dtype=torch.float32, device=device)
         data = volume.data.astype(np.float64)
         spacing = volume.voxel_size  # (x, y, z)
         gz, gy, gx = np.gradient(data, spacing[2], spacing[1], spacing[0])
@@ -220,10 +221,7 @@ class GridScalar:
         self.channels = torch.as_tensor(stack, device=device)[None]  # (1, 4, Z, Y, X)
 
     def _lookup(self, p: torch.Tensor, channels: slice) -> torch.Tensor:
-        g = box_to_siren(p, self.extent).view(1, 1, 1, -1, 3)
-        out = F.grid_sample(self.channels[:, channels], g, mode="bilinear", padding_mode="border",
-                            align_corners=True)
-        return out.view(out.shape[1], -1)
+        return trilinear(self.channels[0, channels], p / self.voxel)
 
     def value(self, p: torch.Tensor) -> torch.Tensor:
         return self._lookup(p, slice(0, 1))[0]
