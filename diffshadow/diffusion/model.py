@@ -132,8 +132,9 @@ class WeightTransformer(nn.Module):
     def forward(self, x: torch.Tensor, t: torch.Tensor, light: torch.Tensor) -> torch.Tensor:
         parts = x.split(self.layout.sizes, dim=1)
         tokens = [proj(p) for proj, p in zip(self.token_in, parts, strict=True)]  # each (B, d)
-        tokens.append(self.time_mlp(timestep_embedding(t, self.cfg.n_embd)))
-        tokens.append(self.light_in(light_encoding(light, self.cfg.light_freqs)))
+        # the encodings are computed in float32 (sin of 2^k π w), then cast to the network's dtype
+        tokens.append(self.time_mlp(timestep_embedding(t, self.cfg.n_embd).to(x.dtype)))
+        tokens.append(self.light_in(light_encoding(light.float(), self.cfg.light_freqs).to(x.dtype)))
         h = torch.stack(tokens, dim=1) + self.pos  # (B, T, d)
         for block in self.blocks:
             h = block(h)
