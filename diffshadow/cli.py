@@ -75,10 +75,9 @@ def _stage1_inputs(args):
 
 
 def _preoptimize(args: argparse.Namespace) -> None:
-    import torch
 
     from diffshadow.fit import fit_sirens, seeded
-    from diffshadow.io import atomic_save
+    from diffshadow.io import atomic_torch_save
     from diffshadow.siren import init_siren
 
     _threads(args.threads)
@@ -91,7 +90,7 @@ def _preoptimize(args: argparse.Namespace) -> None:
         init = fit_sirens(init, layout, siren, volume, tf, lights[:1], fit, stream=-1, light_index=[0],
                           device=args.device)[0]
     state = {"weights": init, "layout": layout.to_config(), "siren": siren.to_config()}
-    atomic_save(args.out, lambda tmp: torch.save(state, tmp), suffix=".pt")
+    atomic_torch_save(args.out, state)
     print(f"wrote {args.out}")
 
 
@@ -107,7 +106,7 @@ def subset_indices(n_lights: int, subset_size: int, subset: int) -> list[int]:
 def _fit_siren(args: argparse.Namespace) -> None:
     import torch
 
-    from diffshadow.fit import check_psnr, evaluate_psnr, fit_sirens
+    from diffshadow.fit import FitError, check_psnr, evaluate_psnr, fit_sirens
     from diffshadow.store import write_subset
 
     _threads(args.threads)
@@ -118,8 +117,11 @@ def _fit_siren(args: argparse.Namespace) -> None:
         raise ValueError(f"{args.init}: SIREN layout differs from the config's siren settings; rerun preoptimize")
     out = Path(args.out)
     print(f"subset {args.subset}: fitting lights {idx[0]}..{idx[-1]} jointly", flush=True)
-    weights = fit_sirens(init_state["weights"], layout, siren, volume, tf, lights[idx], fit, stream=args.subset,
-                         light_index=idx, checkpoint=out.with_name(out.name + ".ckpt"), device=args.device)
+    try:
+        weights = fit_sirens(init_state["weights"], layout, siren, volume, tf, lights[idx], fit, stream=args.subset,
+                             light_index=idx, checkpoint=out.with_name(out.name + ".ckpt"), device=args.device)
+    except FitError as e:
+        raise FitError(f"fit_siren subset {args.subset} ({args.volume}, lights {args.lights}): {e}") from None
     box, vis = evaluate_psnr(weights, layout, siren, volume, tf, lights[idx], n_points=fit.eval_points,
                              seed=fit.seed + 7919 * (args.subset + 1), device=args.device)
     if fit.min_psnr > 0:
@@ -211,13 +213,16 @@ def _load_training_data(weights_path: str, points_path: str):
 
 
 def _train_diffusion(args: argparse.Namespace) -> None:
-    from diffshadow.diffusion.train import DiffusionConfig, train_diffusion
+    from diffshadow.diffusion.train import DiffusionConfig, DiffusionError, train_diffusion
 
     _threads(args.threads)
     cfg = DiffusionConfig.from_config(_json(args.config_json)["diffusion"])
     data, _ = _load_training_data(args.weights, args.points)
     out = Path(args.out)
-    train_diffusion(data, cfg, out.with_name(out.name + ".part"), device=args.device)
+    try:
+        train_diffusion(data, cfg, out.with_name(out.name + ".part"), device=args.device)
+    except DiffusionError as e:
+        raise DiffusionError(f"train_diffusion ({args.weights}): {e}") from None
     os.replace(out.with_name(out.name + ".part"), out)
     print(f"wrote {out}")
 

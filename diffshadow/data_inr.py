@@ -15,7 +15,7 @@ import numpy as np
 import torch
 
 from diffshadow.fit import PointSampler, cosine_lr, lookup_grids, seeded
-from diffshadow.io import atomic_save
+from diffshadow.io import atomic_torch_save
 from diffshadow.metrics import psnr
 from diffshadow.shadow import cell_ranges, voxel_points
 from diffshadow.siren import Siren, SirenConfig, WeightLayout, box_to_siren
@@ -112,7 +112,7 @@ def fit_data_inr(volume: Volume, tf: TransferFunction, cfg: DataInrConfig, *, ch
         if checkpoint is not None and done % cfg.checkpoint_every == 0 and done < cfg.steps:
             state = {"fingerprint": fingerprint, "step": done, "model": model.state_dict(),
                      "optimizer": opt.state_dict()}
-            atomic_save(checkpoint, lambda tmp, s=state: torch.save(s, tmp), suffix=".pt")
+            atomic_torch_save(checkpoint, state)
         if done % max(1, cfg.steps // 10) == 0 or done == cfg.steps:
             rate = (done - start) * cfg.points / (time.perf_counter() - t0)
             batch_psnr = float(-10 * torch.log10(loss.detach()))
@@ -157,7 +157,7 @@ def save_data_inr(path, inr: DataInr) -> None:
              "siren": inr.model.cfg.to_config(), "extent": np.asarray(inr.extent).tolist(), "psnr": inr.psnr,
              "max_error": inr.max_error, "config": inr.config,
              "cell_lo": torch.as_tensor(inr.cell_lo), "cell_hi": torch.as_tensor(inr.cell_hi)}
-    atomic_save(path, lambda tmp: torch.save(state, tmp), suffix=".pt")
+    atomic_torch_save(path, state)
 
 
 def load_data_inr(path) -> DataInr:

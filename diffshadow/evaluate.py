@@ -198,7 +198,7 @@ def image_evaluation(scene, light_sets: dict, stage1, generated, views: list, *,
     overall: dict = {}
     for (set_name, name), rows in sums.items():
         by_set.setdefault(set_name, {})[name] = _mean_metrics(rows)
-    for name in {n for _, n in sums}:
+    for name in dict.fromkeys(n for _, n in sums):  # first-seen order: a set's order changes run to run
         overall[name] = _mean_metrics([r for (s, n), rows in sums.items() if n == name for r in rows])
     return {"modes": overall, "by_set": by_set, "images": per_image}
 

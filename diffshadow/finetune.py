@@ -31,7 +31,7 @@ import torch
 from diffshadow.diffusion.schedule import Schedule
 from diffshadow.diffusion.train import DiffusionConfig, Standardizer, TrainingData, build_model, generate
 from diffshadow.fit import seeded
-from diffshadow.io import atomic_save
+from diffshadow.io import atomic_torch_save
 from diffshadow.lights import fibonacci_sphere
 from diffshadow.render import (
     BACKGROUND,
@@ -308,7 +308,7 @@ def finetune(geometry_state: dict, data: FinetuneData, cfg: FinetuneConfig, chec
         state = {**geometry_state, "model": base.state_dict(), "ema": None, "optimizer": opt.state_dict(),
                  "finetune_fingerprint": fp, "finetune_epoch": epoch, "finetune": asdict(cfg)}
         if rank == 0:
-            atomic_save(checkpoint, lambda tmp: torch.save(state, tmp), suffix=".pt")
+            atomic_torch_save(checkpoint, state)
         if world > 1:
             dist.barrier()
         return state

@@ -19,7 +19,7 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-from diffshadow.io import atomic_save
+from diffshadow.io import atomic_torch_save
 from diffshadow.metrics import psnr
 from diffshadow.shadow import ShadowField, shadow_grid, transmittance
 from diffshadow.siren import BatchedSiren, SirenConfig, WeightLayout, box_to_siren
@@ -207,7 +207,7 @@ def fit_sirens(
         if checkpoint is not None and (done % cfg.checkpoint_every == 0) and done < cfg.steps:
             state = {"fingerprint": fingerprint, "step": done, "weights": weights.detach().cpu(),
                      "optimizer": opt.state_dict(), "initial_loss": initial.cpu()}
-            atomic_save(checkpoint, lambda tmp, s=state: torch.save(s, tmp), suffix=".pt")
+            atomic_torch_save(checkpoint, state)
         if done % max(1, cfg.steps // 10) == 0 or done == cfg.steps:
             recent = window / window_steps
             # Judged at the end only: from a pre-optimised init, Adam's first steps lift the init light's

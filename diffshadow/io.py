@@ -42,3 +42,12 @@ def atomic_save(path: str | Path, save: Callable[[Path], None], *, suffix: str |
     """Call `save(tmp_path)` and move the result into place (for writers that insist on a suffix)."""
     with atomic_path(path, suffix=suffix) as tmp:
         save(tmp)
+
+
+def atomic_torch_save(path: str | Path, obj) -> None:
+    """`torch.save` atomically, through a file object: given a path, torch names the archive's folder after
+    the (random) temporary name, so two identical runs wrote different bytes (stress suite)."""
+    import torch
+
+    with atomic_path(path, suffix=".pt") as tmp, open(tmp, "wb") as f:
+        torch.save(obj, f)

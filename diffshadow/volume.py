@@ -197,7 +197,11 @@ def _to_volume(path: Path, raw: np.ndarray, value_range, spacing) -> Volume:
         if not hi > lo:
             raise VolumeError(f"{path}: value_range must be (low, high) with high > low, got {value_range}")
     if hi > lo:
-        data = np.clip((data - lo) / (hi - lo), 0.0, 1.0)
+        # Scaled into [-1, 1] first (found by the stress suite): with float64 data near ±1.8e308, hi - lo
+        # overflowed to inf and inf/inf left NaN voxels, silently.
+        scale = max(abs(lo), abs(hi))
+        d, lo_s, hi_s = data / scale, lo / scale, hi / scale
+        data = np.clip((d - lo_s) / (hi_s - lo_s), 0.0, 1.0)
     else:
         warnings.warn(f"{path}: the volume is constant ({lo}); it normalises to all zeros", stacklevel=3)
         data = np.zeros_like(data)

@@ -18,7 +18,8 @@ TINY = {
     "siren": {"width": 8, "blocks": 1},
     "subset_size": 2,
     "preoptimize": {"steps": 5, "lr": 1.0e-3},
-    "fit": {"steps": 6, "points": 128, "eval_points": 256, "grid_upsample": 1, "chunk": 0},
+    # min_psnr 0: six steps fit nothing well; the floor itself is tested in tests/stress/test_siren_stress.py
+    "fit": {"steps": 6, "points": 128, "eval_points": 256, "grid_upsample": 1, "chunk": 0, "min_psnr": 0.0},
     "diffusion": {"preset": "tiny", "epochs": 3, "batch_size": 2, "geometry_points": 16, "presample_points": 64,
                   "checkpoint_every": 1, "ddim_steps": 5},
     "finetune": {"views": 1, "image_size": 16, "pixels": 4, "epochs": 2, "batch_size": 4, "nproc": 2,
@@ -92,6 +93,87 @@ def test_render_outputs(finished):
     assert set(row["fps"]) == set(row["peak_mem_bytes"]) == {"noshadow", "inr", "naive"}
     assert row["speedup"] > 1 and row["overhead"] > 0
     assert (res / "bench.png").stat().st_size > 1000
+
+
+# Determinism (tests/stress, issue 8): a second run of the whole tiny workflow with the same seed must write
+# the same bytes, stage by stage. Timings are the exception: files that are measurements of time or memory are
+# left out, and in JSON the timing keys are dropped before comparing.
+STAGE_OUTPUTS = {
+    "prepare_volume": ["volume.zarr"],
+    "lights": ["lights.json"],
+    "preoptimize": ["siren_init.pt"],
+    "fit_siren": ["sirens/subset_0.npz", "sirens/subset_1.npz"],
+    "collect_weights": ["weights.zarr"],
+    "presample": ["geometry_points.zarr"],
+    "train_diffusion": ["diffusion_geometry.ckpt"],
+    "render_targets": ["targets.zarr"],
+    "finetune_render": ["diffusion.ckpt", "finetune_metrics.json"],
+    "sample_shadows": ["generated.zarr"],
+    "evaluate_voxels": ["voxel_metrics.json"],
+    "train_data_inr": ["data_inr.pt"],
+    "evaluate_images": ["image_metrics.json", "images"],
+    "report_figures": ["report/config.yaml", "report/siren_psnr.png", "report/generated_psnr.png",
+                       "report/generated_psnr.csv", "report/image_grid.png", "report/storage.png",
+                       "report/ddim_curve.json"],
+}
+TIMED = {"bench.json", "bench.png", "report/bench_shadow.json", "report/bench_shadow.png", "report/ddim_curve.png",
+         "report/shadow_curve.png"}  # measurements of time or memory by design
+TIMING_KEY = re.compile(r"second|_s$|fps|speedup|peak_mem")
+
+
+def _without_timings(x):
+    if isinstance(x, dict):
+        return {k: _without_timings(v) for k, v in x.items() if not TIMING_KEY.search(k)}
+    if isinstance(x, list):
+        return [_without_timings(v) for v in x]
+    return x
+
+
+def _first_difference(x, y, where: str = "") -> str:
+    """Where two JSON values or byte strings first differ (for the failure message)."""
+    if isinstance(x, dict) and isinstance(y, dict):
+        for k in sorted(set(x) | set(y)):
+            if x.get(k) != y.get(k):
+                return _first_difference(x.get(k), y.get(k), f"{where}.{k}")
+    if isinstance(x, list) and isinstance(y, list) and len(x) == len(y):
+        for i, (a, b) in enumerate(zip(x, y, strict=True)):
+            if a != b:
+                return _first_difference(a, b, f"{where}[{i}]")
+    if isinstance(x, bytes) and isinstance(y, bytes):
+        n = next((i for i, (a, b) in enumerate(zip(x, y, strict=False)) if a != b), min(len(x), len(y)))
+        return f"byte {n} of {len(x)} vs {len(y)}"
+    return f"{where or 'value'}: {x!r} vs {y!r}"
+
+
+@pytest.fixture(scope="module")
+def second_run(finished, tmp_path_factory):
+    workdir = tmp_path_factory.mktemp("workflow_again")
+    snakemake(workdir)
+    return workdir
+
+
+def test_every_output_belongs_to_a_compared_stage_or_is_a_timing(finished):
+    res = finished / "results/nucleon"
+    covered = {p for paths in STAGE_OUTPUTS.values() for p in paths} | TIMED | {"logs"}
+    covered |= {p.split("/")[0] for p in covered}
+    tops = {p.relative_to(res).as_posix() for p in res.iterdir()} | \
+        {p.relative_to(res).as_posix() for p in (res / "report").iterdir()}
+    assert tops - {"report"} <= covered, sorted(tops - covered - {"report"})
+
+
+@pytest.mark.stress
+@pytest.mark.parametrize("stage", sorted(STAGE_OUTPUTS))
+def test_a_second_run_writes_identical_bytes(finished, second_run, stage):
+    import json
+    for rel in STAGE_OUTPUTS[stage]:
+        a, b = finished / "results/nucleon" / rel, second_run / "results/nucleon" / rel
+        files = sorted(p.relative_to(a) for p in a.rglob("*") if p.is_file()) if a.is_dir() else [Path()]
+        assert files == (sorted(p.relative_to(b) for p in b.rglob("*") if p.is_file()) if b.is_dir() else [Path()])
+        for f in files:
+            x, y = (a / f).read_bytes(), (b / f).read_bytes()
+            if (a / f).suffix == ".json":
+                x, y = (_without_timings(json.loads(v)) for v in (x, y))
+            assert x == y, f"{stage}: {rel}/{f} differs between two runs with one seed: {_first_difference(x, y)}"
 
 
 def test_nothing_left_to_do(finished):

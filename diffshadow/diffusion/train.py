@@ -23,7 +23,7 @@ import torch
 from diffshadow.diffusion.model import PRESETS, WeightTransformer
 from diffshadow.diffusion.schedule import Schedule
 from diffshadow.fit import seeded
-from diffshadow.io import atomic_save
+from diffshadow.io import atomic_torch_save
 from diffshadow.siren import BatchedSiren, SirenConfig, WeightLayout, box_to_siren
 
 
@@ -196,7 +196,7 @@ def train_diffusion(data: TrainingData, cfg: DiffusionConfig, checkpoint: Path, 
                  "ema": ema.state_dict() if ema is not None else None, "standardizer": std.state(),
                  "layout": data.layout.to_config(), "siren": data.siren.to_config(), "config": asdict(cfg),
                  "extent": data.extent.tolist(), "train_lights": data.lights.tolist()}
-        atomic_save(checkpoint, lambda tmp: torch.save(state, tmp), suffix=".pt")
+        atomic_torch_save(checkpoint, state)
         return state
 
     n = len(z_all)

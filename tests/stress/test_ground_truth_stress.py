@@ -1,6 +1,7 @@
 """Stress: ground-truth shadows on generated volumes, transfer functions and directions (hypothesis)."""
 
 import os
+import warnings
 
 import numpy as np
 import pytest
@@ -10,7 +11,7 @@ from hypothesis import strategies as st
 
 from diffshadow.shadow import shadow_grid, transmittance
 from diffshadow.transfer import TransferFunction
-from diffshadow.volume import Volume, refine
+from diffshadow.volume import Volume, VolumeError, load_volume, refine
 
 pytestmark = pytest.mark.stress
 
@@ -135,3 +136,29 @@ def test_sweep_error_on_white_noise_is_second_order_in_line_spacing():
         errors.append(float(diff.abs().mean()))
     assert errors[0] > 0.05  # the hazard is real at one line per voxel
     assert errors[1] < errors[0] / 2 and errors[2] < errors[1] / 2, errors
+
+
+EXTREMES = [0.0, 1.0, -1.0, 1e-45, -1e-45, 3.4028235e38, -3.4028235e38, 1e-310, 1.7976931348623157e308,
+            -1.7976931348623157e308]
+
+
+@SETTINGS
+@given(st.sampled_from(["float32", "float64"]), st.lists(st.sampled_from(EXTREMES), min_size=8, max_size=8),
+       st.integers(0, 2**16))
+def test_normalisation_of_values_at_the_float_extremes(tmp_path_factory, dtype, values, seed):
+    # raw data at its type's extremes (and denormals) before normalisation: finite, in [0, 1], ends at 0 and 1
+    raw = np.random.default_rng(seed).choice(np.array(values, dtype=np.float64), size=(2, 2, 2))
+    with np.errstate(over="ignore"):
+        raw = raw.astype(dtype)  # float64 extremes overflow float32 to ±inf: those must be refused
+    path = tmp_path_factory.mktemp("v") / "v.npy"
+    np.save(path, raw)
+    if not np.isfinite(raw).all():
+        with pytest.raises(VolumeError, match=r"v.npy: \d+ NaN/Inf voxels"):
+            load_volume(path)
+        return
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # a constant volume warns
+        vol = load_volume(path)
+    assert np.isfinite(vol.data).all() and vol.data.min() >= 0 and vol.data.max() <= 1
+    if raw.max() > raw.min():
+        assert vol.data.flat[np.argmin(raw)] == 0 and vol.data.flat[np.argmax(raw)] == 1
