@@ -206,6 +206,22 @@ def test_rerun_one_subset(finished):
     assert not list(sirens.glob(".*"))  # no temporary or half-written files left behind
 
 
+def test_a_fit_below_the_psnr_floor_is_refused_and_not_stored(finished, tmp_path):
+    import json
+    res = finished / "results/nucleon"
+    cfg = {"siren": TINY["siren"], "subset_size": TINY["subset_size"],
+           "fit": {**TINY["fit"], "min_psnr": 99.0}}  # a floor no fit reaches
+    out = tmp_path / "subset_0.npz"
+    proc = subprocess.run([sys.executable, "-m", "diffshadow.cli", "fit-siren", "--volume", str(res / "volume.zarr"),
+                           "--lights", str(res / "lights.json"), "--init", str(res / "siren_init.pt"), "--subset", "0",
+                           "--config-json", json.dumps(cfg), "--threads", "1", "--out", str(out)],
+                          capture_output=True, text=True, timeout=300)
+    assert proc.returncode == 2, proc.stderr[-2000:]
+    assert re.search(r"diffshadow fit-siren: error: fit_siren subset 0 \(.*volume.zarr\): held-out PSNR below "
+                     r"fit.min_psnr = 99.0 dB \(light 0: [\d.]+ dB, light 1: [\d.]+ dB\)", proc.stderr), proc.stderr
+    assert "Traceback" not in proc.stderr and not out.exists() and not list(tmp_path.iterdir())
+
+
 def test_config_typo_fails_before_any_job(tmp_path):
     bad = {**TINY, "fit": {**TINY["fit"], "stpes": 3}}
     proc = snakemake(tmp_path, "-n", config=bad, check=False)
