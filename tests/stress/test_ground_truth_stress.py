@@ -6,6 +6,7 @@ import warnings
 import numpy as np
 import pytest
 import torch
+import torch.nn.functional as F
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
@@ -21,10 +22,16 @@ SETTINGS = settings(max_examples=int(os.environ.get("STRESS_EXAMPLES", 40)), dea
 
 
 @st.composite
-def volumes(draw):
-    nx, ny, nz = (draw(st.integers(2, 14)) for _ in range(3))
-    kind = draw(st.sampled_from(["random", "zero", "one", "hot", "checker"]))
-    if kind == "random":
+def volumes(draw, kinds=("random", "smooth", "zero", "one", "hot", "checker"), min_size=2):
+    nx, ny, nz = (draw(st.integers(min_size, 14)) for _ in range(3))
+    kind = draw(st.sampled_from(list(kinds)))
+    if kind == "smooth":  # a few random waves longer than the box: no voxel-scale structure
+        rng = np.random.default_rng(draw(st.integers(0, 2**16)))
+        z, y, x = np.meshgrid(*(np.linspace(0, 1, n) for n in (nz, ny, nx)), indexing="ij")
+        data = sum(np.cos(2 * np.pi * (k[0] * x + k[1] * y + k[2] * z) + phase)
+                   for k, phase in zip(rng.uniform(-0.7, 0.7, (3, 3)), rng.uniform(0, 2 * np.pi, 3), strict=True))
+        data = (data - data.min()) / max(float(data.max() - data.min()), 1e-12)
+    elif kind == "random":
         seed = draw(st.integers(0, 2**16))
         data = np.random.default_rng(seed).uniform(0, 1, (nz, ny, nx))
     elif kind == "zero":
@@ -101,24 +108,39 @@ def test_transmittance_is_finite_bounded_and_monotone(vol, tf, w, seed):
 
 @SETTINGS
 @given(volumes(), transfer_functions(), directions())
-def test_march_and_sweep_are_bounded_and_agree(vol, tf, w):
+def test_march_and_sweep_are_bounded(vol, tf, w):
     march = shadow_grid(vol, tf, w, method="march")
     sweep = shadow_grid(vol, tf, w, method="sweep")
     for g in (march, sweep):
         assert g.shape == vol.data.shape and torch.isfinite(g).all() and g.min() >= 0 and g.max() <= 1
     if tf.density_scale == 0 or not vol.data.any() and float(tf.opacity(torch.zeros(1))) == 0:
         assert torch.equal(march, torch.ones_like(march)) and torch.equal(sweep, torch.ones_like(sweep))
-    # Agreement, both resolved finely: at default steps a TF feature narrower than a sample on a grid of
-    # 2 voxels is simply missed by one method and smeared by the other (found here: 1.0 vs 0.07 vs 0.56).
-    # On the box boundary τ jumps for rays along a face (the sweep's stated max error), so compare the
-    # interior of grids that have one. White noise is left to the test below: the sweep's one τ lookup
-    # between lines a voxel apart is second order in the smoothness of τ, which noise does not have.
-    if min(vol.data.shape) < 8 or vol.name == "random":
-        return
-    fine_march = shadow_grid(vol, tf, w, method="march", step=0.125)[1:-1, 1:-1, 1:-1]
-    fine_sweep = shadow_grid(vol, tf, w, method="sweep", step=0.125)[1:-1, 1:-1, 1:-1]
-    assert (fine_march - fine_sweep).abs().mean() <= 0.05, (float((fine_march - fine_sweep).abs().mean()),
-                                                            tf.to_config(), w.tolist(), vol.extent.tolist())
+
+
+@SETTINGS
+@given(volumes(kinds=("smooth", "zero", "one"), min_size=8), transfer_functions(kinds=("smooth", "step")),
+       directions())
+def test_march_and_sweep_agree_where_both_resolve_the_data(vol, tf, w):
+    # Both resolved finely: at default steps a TF feature narrower than a sample on a grid of 2 voxels is
+    # simply missed by one method and smeared by the other (found here: 1.0 vs 0.07 vs 0.56). On the box
+    # boundary τ jumps for rays along a face (the sweep's stated max error), so compare the interior.
+    # Left out, each found here and documented in docs/numerics.md:
+    # - voxel-scale data (white noise, checkerboards: 0.26 mean difference under a step TF; a single hot voxel,
+    #   whose shadow under a step TF is a tube thinner than a voxel: 0.27): the sweep's one τ lookup between
+    #   lines a voxel apart is second order in the smoothness of τ (test below);
+    # - TF spikes narrower than a sample's change in value (2e-3 wide at density 1e3; 0.097): neither
+    #   method resolves a shell thinner than its step, so the "reference" is not one either.
+    # - hard shadow edges (a step TF at density 1e8 on a smooth volume: 0.079 mean on an 8³ grid): the lookup
+    #   blends the depths of lines on both sides of an edge. So the property is local: the sweep's value at a
+    #   voxel lies within the range of the march over the voxels within 2 of it (the lines it blends pass
+    #   within one voxel), up to 0.05 of quadrature error.
+    fine_march = shadow_grid(vol, tf, w, method="march", step=0.125)
+    fine_sweep = shadow_grid(vol, tf, w, method="sweep", step=0.125)[2:-2, 2:-2, 2:-2]
+    padded = F.pad(fine_march[None, None], (2, 2, 2, 2, 2, 2), mode="replicate")
+    hi = F.max_pool3d(padded, 5, stride=1)[0, 0][2:-2, 2:-2, 2:-2]
+    lo = -F.max_pool3d(-padded, 5, stride=1)[0, 0][2:-2, 2:-2, 2:-2]
+    outside = torch.maximum(fine_sweep - hi, lo - fine_sweep)
+    assert outside.max() <= 0.05, (float(outside.max()), tf.to_config(), w.tolist(), vol.extent.tolist())
 
 
 def test_constant_region_is_exact_under_steep_tf():
