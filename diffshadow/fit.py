@@ -209,11 +209,11 @@ def fit_sirens(
                      "optimizer": opt.state_dict(), "initial_loss": initial.cpu()}
             atomic_torch_save(checkpoint, state)
         if done % max(1, cfg.steps // 10) == 0 or done == cfg.steps:
-            recent = window / window_steps
             # Judged at the end only: from a pre-optimised init, Adam's first steps lift the init light's
             # loss 100x before it recovers (nucleon: 41 -> 21 -> 35 dB), a rise that is no divergence.
-            bad = (recent > DIVERGENCE_RATIO * initial) & (recent > DIVERGENCE_FLOOR)
-            if done == cfg.steps and bad.any():
+            recent = window / window_steps
+            bad = (recent > DIVERGENCE_RATIO * initial) & (recent > DIVERGENCE_FLOOR) if done == cfg.steps else None
+            if bad is not None and bad.any():
                 rows = ", ".join(f"light {light_index[i]}: {float(initial[i]):.2e} -> {float(recent[i]):.2e}"
                                  for i in torch.nonzero(bad).flatten().tolist())
                 raise FitError(f"fit diverged: over the last {window_steps} steps the training loss was over "
