@@ -129,20 +129,6 @@ def _without_timings(x):
     return x
 
 
-def _close(x, y) -> bool:
-    """Equal, except floats within 1e-6 relative. Two CI runs out of about ten gave metrics that differed in
-    the 7th digit on byte-identical inputs (18.137315514 vs 18.137316050 dB). A suspected cause, a BLAS product
-    in `evaluate.nearest`, is now elementwise sums; others are not ruled out (MKL's results may depend on
-    memory alignment), so metrics JSON is held to 1e-6 while every data file is held to identical bytes."""
-    if isinstance(x, dict) and isinstance(y, dict):
-        return x.keys() == y.keys() and all(_close(x[k], y[k]) for k in x)
-    if isinstance(x, list) and isinstance(y, list):
-        return len(x) == len(y) and all(_close(a, b) for a, b in zip(x, y, strict=True))
-    if isinstance(x, float) and isinstance(y, float):
-        return abs(x - y) <= 1e-6 * max(abs(x), abs(y))
-    return x == y
-
-
 def _first_difference(x, y, where: str = "") -> str:
     """Where two JSON values or byte strings first differ (for the failure message)."""
     if isinstance(x, dict) and isinstance(y, dict):
@@ -188,10 +174,8 @@ def test_a_second_run_writes_identical_bytes(finished, second_run, stage):
         for f in files:
             x, y = (a / f).read_bytes(), (b / f).read_bytes()
             if (a / f).suffix == ".json":
+                # every float to its last digit: JSON holds Python's shortest repr of the float64
                 x, y = (_without_timings(json.loads(v)) for v in (x, y))
-                if x != y:  # metrics: see _close
-                    assert _close(x, y), f"{stage}: {rel}/{f}: {_first_difference(x, y)}"
-                    continue
             assert x == y, f"{stage}: {rel}/{f} differs between two runs with one seed: {_first_difference(x, y)}"
 
 
