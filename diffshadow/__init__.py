@@ -3,7 +3,7 @@
 import os
 
 # MKL (PyTorch's CPU BLAS on x86) splits a long matrix product's inner sum across threads, so by default
-# its last bits depend on the thread count: a light subset rerun with other threads would give other bytes.
+# its last bits depend on the thread count: sample-shadows rerun with other threads wrote other bytes.
 # Strict conditional numerical reproducibility fixes the split and keeps the fastest code path
 # (docs/numerics.md). MKL reads this at its first call, so it holds when diffshadow is imported before
 # any matrix product; a user's own MKL_CBWR wins.

@@ -54,8 +54,8 @@ def psnr_per_light(pred: dict, truth: dict) -> dict[str, np.ndarray]:
 
 def nearest(train: np.ndarray, query: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray]:
     """Indices (Q, k) of the k training directions closest in angle, and their angles (Q, k)."""
-    # elementwise products, not `@`: BLAS may sum in an order that depends on memory alignment, and a last-bit
-    # difference in an angle moved the blend baseline's PSNR between two identical runs (stress suite)
+    # elementwise products, not `@`: a BLAS product sums in an order the library picks at run time (threads,
+    # code path), and a last-bit difference in an angle moved the blend baseline's PSNR between two runs
     cos = np.clip((query[:, None, :] * train[None, :, :]).sum(axis=-1), -1, 1)
     idx = np.argsort(-cos, axis=1, kind="stable")[:, :k]
     return idx, np.arccos(np.take_along_axis(cos, idx, axis=1))

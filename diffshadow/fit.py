@@ -221,8 +221,7 @@ def fit_sirens(
             # Judged at the end only: from a pre-optimised init, Adam's first steps lift the init light's
             # loss 100x before it recovers (nucleon: 41 -> 21 -> 35 dB), a rise that is no divergence.
             recent = window / window_steps
-            bad = diverged(initial, recent) if done == cfg.steps else None
-            if bad is not None and bad.any():
+            if done == cfg.steps and (bad := diverged(initial, recent)).any():
                 rows = ", ".join(f"light {light_index[i]}: {float(initial[i]):.2e} -> {float(recent[i]):.2e}"
                                  for i in torch.nonzero(bad).flatten().tolist())
                 raise FitError(f"fit diverged: over the last {window_steps} steps the training loss rose far above "
