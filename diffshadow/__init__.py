@@ -1,6 +1,12 @@
 """diffshadow: diffusion-based shadow caching for neural volume rendering."""
 
 import os
+from importlib.metadata import PackageNotFoundError, version
+
+try:
+    __version__ = version("diffshadow")
+except PackageNotFoundError:  # run from a checkout without installing
+    __version__ = "0+unknown"
 
 # MKL (PyTorch's CPU BLAS on x86) splits a long matrix product's inner sum across threads, so by default
 # its last bits depend on the thread count: sample-shadows rerun with other threads wrote other bytes.

@@ -14,34 +14,32 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from diffshadow.fit import PointSampler, cosine_lr, lookup_grids, seeded
-from diffshadow.io import atomic_torch_save
+from diffshadow.config import section
+from diffshadow.grid import cell_ranges, lookup_grids, voxel_points
+from diffshadow.io import atomic_torch_save, resume
 from diffshadow.metrics import psnr
-from diffshadow.shadow import cell_ranges, voxel_points
-from diffshadow.siren import Siren, SirenConfig, WeightLayout, box_to_siren
+from diffshadow.sampling import PointSampler, seeded
+from diffshadow.siren import Siren, SirenConfig, box_to_siren, cosine_lr
 from diffshadow.transfer import TransferFunction
 from diffshadow.volume import Volume
 
 
 @dataclass(frozen=True)
 class DataInrConfig:
-    width: int = 64
-    blocks: int = 2
-    steps: int = 2000
-    points: int = 16384  # per step
-    lr: float = 1e-3
-    lr_final: float = 1e-2  # cosine decay to lr · lr_final
-    visible_fraction: float = 0.5  # share of points near voxels the TF makes visible
-    checkpoint_every: int = 200
-    seed: int = 0
+    width: int
+    blocks: int
+    steps: int
+    points: int  # per step
+    lr: float
+    lr_final: float  # cosine decay to lr · lr_final
+    visible_fraction: float  # share of points near voxels the TF makes visible
+    checkpoint_every: int
+    seed: int
 
     @classmethod
-    def from_config(cls, d: dict) -> DataInrConfig:
-        unknown = set(d) - set(cls.__dataclass_fields__)
-        if unknown:
-            raise ValueError(f"data_inr config: unknown key(s) {sorted(unknown)}; known: "
-                             f"{sorted(cls.__dataclass_fields__)}")
-        return cls(**d)
+    def from_config(cls, d: dict | None = None) -> DataInrConfig:
+        """config.yaml's `data_inr` section overridden by `d`."""
+        return section(cls, "data_inr", d)
 
     @property
     def siren(self) -> SirenConfig:
@@ -63,9 +61,10 @@ class DataInr:
         return self.model.layout.n_params
 
 
-def voxel_errors(model: Siren, volume: Volume, *, chunk: int = 1 << 16, device=None) -> tuple[float, float]:
+def voxel_errors(model: Siren, volume: Volume, *, chunk: int = 1 << 16,
+                 device: torch.device | str = "cpu") -> tuple[float, float]:
     """(PSNR, max |error|) of the INR over every voxel of `volume`."""
-    device = torch.device(device or "cpu")
+    device = torch.device(device)
     pts = voxel_points(volume, device)
     extent = torch.as_tensor(volume.extent, dtype=torch.float32, device=device)
     truth = torch.as_tensor(volume.data, device=device).reshape(-1)
@@ -75,9 +74,9 @@ def voxel_errors(model: Siren, volume: Volume, *, chunk: int = 1 << 16, device=N
 
 
 def fit_data_inr(volume: Volume, tf: TransferFunction, cfg: DataInrConfig, *, checkpoint: Path | None = None,
-                 device=None, log=print) -> DataInr:
+                 device: torch.device | str = "cpu", log=print) -> DataInr:
     """Fit the data INR to trilinear samples of the volume (Adam, cosine decay, resumable)."""
-    device = torch.device(device or "cpu")
+    device = torch.device(device)
     model = Siren(cfg.siren, seeded(cfg.seed, 7)).to(device)
     opt = torch.optim.Adam(model.parameters(), lr=cfg.lr)
     grid = torch.as_tensor(volume.data, device=device)[None]
@@ -85,15 +84,11 @@ def fit_data_inr(volume: Volume, tf: TransferFunction, cfg: DataInrConfig, *, ch
     sampler = PointSampler(volume, tf, cfg.visible_fraction)
     fingerprint = _fingerprint(volume, cfg)
     start = 0
-    if checkpoint is not None and checkpoint.exists():
-        state = torch.load(checkpoint, map_location=device, weights_only=True)
-        if state.get("fingerprint") == fingerprint:
-            model.load_state_dict(state["model"])
-            opt.load_state_dict(state["optimizer"])
-            start = int(state["step"])
-            log(f"resuming from {checkpoint} at step {start}/{cfg.steps}")
-        else:
-            log(f"ignoring {checkpoint}: it belongs to another configuration")
+    if state := resume(checkpoint, fingerprint, log=log, map_location=device, weights_only=True):
+        model.load_state_dict(state["model"])
+        opt.load_state_dict(state["optimizer"])
+        start = int(state["step"])
+        log(f"resuming from {checkpoint} at step {start}/{cfg.steps}")
     t0 = time.perf_counter()
     for step in range(start, cfg.steps):
         for group in opt.param_groups:
@@ -126,14 +121,14 @@ def fit_data_inr(volume: Volume, tf: TransferFunction, cfg: DataInrConfig, *, ch
 
 
 def inr_cell_ranges(model: Siren, volume: Volume, *, cell: int = 16, refine: int = 2, margin: float = 0.01,
-                    chunk: int = 1 << 16, device=None) -> tuple[np.ndarray, np.ndarray]:
+                    chunk: int = 1 << 16, device: torch.device | str = "cpu") -> tuple[np.ndarray, np.ndarray]:
     """The INR's (min, max) per `cell`³-voxel macro-cell, from the INR itself on a lattice `refine`× finer
     than the voxels, widened by `margin` for the values between lattice points.
 
     Ranges of the raw volume would not do: where the INR overshoots a sharp feature (its worst voxel
     error), a cell the volume calls empty can hold visible INR values, and the renderer would drop them.
     """
-    device = torch.device(device or "cpu")
+    device = torch.device(device)
     nz, ny, nx = volume.data.shape
     axes = [torch.linspace(0, float(e), (n - 1) * refine + 1, device=device)
             for e, n in zip(volume.extent[::-1], (nz, ny, nx), strict=True)]
@@ -152,23 +147,5 @@ def _fingerprint(volume: Volume, cfg: DataInrConfig) -> str:
     return h.hexdigest()
 
 
-def save_data_inr(path, inr: DataInr) -> None:
-    state = {"weights": inr.model.flat().detach().cpu(), "layout": inr.model.layout.to_config(),
-             "siren": inr.model.cfg.to_config(), "extent": np.asarray(inr.extent).tolist(), "psnr": inr.psnr,
-             "max_error": inr.max_error, "config": inr.config,
-             "cell_lo": torch.as_tensor(inr.cell_lo), "cell_hi": torch.as_tensor(inr.cell_hi)}
-    atomic_torch_save(path, state)
 
 
-def load_data_inr(path) -> DataInr:
-    path = Path(path)
-    try:
-        state = torch.load(path, map_location="cpu", weights_only=True)
-        layout = WeightLayout.from_config(state["layout"])
-        model = Siren.from_flat(state["weights"], layout, SirenConfig.from_config(state["siren"]))
-        return DataInr(model, np.asarray(state["extent"]), float(state["psnr"]), float(state["max_error"]),
-                       dict(state["config"]), state["cell_lo"].numpy(), state["cell_hi"].numpy())
-    except FileNotFoundError:
-        raise ValueError(f"{path}: no such data INR file (train_data_inr's data_inr.pt)") from None
-    except (KeyError, RuntimeError, TypeError) as e:
-        raise ValueError(f"{path}: not a data INR file ({e})") from None

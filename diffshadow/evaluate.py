@@ -8,20 +8,11 @@ import time
 import numpy as np
 import torch
 
-from diffshadow.fit import PointSampler, seeded
 from diffshadow.metrics import psnr
+from diffshadow.sampling import PointSampler, seeded
 from diffshadow.shadow import ShadowField, transmittance
 from diffshadow.siren import BatchedSiren, SirenConfig, WeightLayout, box_to_siren
 from diffshadow.volume import Volume
-
-
-def presample(volume: Volume, tf, lights: np.ndarray, n_points: int, *, seed: int,
-              visible_fraction: float = 0.5) -> tuple[torch.Tensor, torch.Tensor]:
-    """Points (N, M, 3) and their true shadow (N, M) per light, for the geometry loss (paper §3.3)."""
-    field = ShadowField.build(volume, tf)
-    pts = PointSampler(volume, tf, visible_fraction).sample(len(lights), n_points, seeded(seed, 3))
-    values = torch.stack([transmittance(field, tf, w, p) for w, p in zip(lights, pts, strict=True)])
-    return pts, values
 
 
 class TruthPoints:
@@ -71,7 +62,7 @@ def blend_baseline(truth_train: dict, idx: np.ndarray, angles: np.ndarray) -> di
 def seconds_per_inr(model, std, light, *, method: str, steps: int, repeats: int = 3,
                     temperature: float = 1.0) -> float:
     """Wall time to generate one shadow INR (batch of one), best of `repeats`."""
-    from diffshadow.diffusion.train import generate
+    from diffshadow.diffusion.sample import generate
 
     best = float("inf")
     for r in range(repeats):
@@ -89,7 +80,7 @@ def voxel_metrics(state: dict, stage1, generated, volume: Volume, tf, light_sets
                   blend_k: int) -> dict:
     """`voxel_metrics.json`: generated SIRENs (seen and unseen) against the ground truth, beside the stage-1
     SIRENs, the nearest and blend baselines, DDIM vs DDPM, and storage."""
-    from diffshadow.diffusion.train import generate, load_sampler
+    from diffshadow.diffusion.sample import generate, load_sampler
 
     train, unseen = light_sets["train"], light_sets["unseen"]
     seen = generated.seen

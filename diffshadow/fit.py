@@ -10,19 +10,20 @@ from __future__ import annotations
 
 import hashlib
 import json
-import math
 import time
 from dataclasses import asdict, dataclass
 from pathlib import Path
 
 import numpy as np
 import torch
-import torch.nn.functional as F
 
-from diffshadow.io import atomic_torch_save
+from diffshadow.config import section
+from diffshadow.grid import lookup_grids
+from diffshadow.io import atomic_torch_save, resume
 from diffshadow.metrics import psnr
+from diffshadow.sampling import PointSampler, seeded
 from diffshadow.shadow import ShadowField, shadow_grid, transmittance
-from diffshadow.siren import BatchedSiren, SirenConfig, WeightLayout, box_to_siren
+from diffshadow.siren import BatchedSiren, SirenConfig, WeightLayout, box_to_siren, cosine_lr
 from diffshadow.transfer import TransferFunction
 from diffshadow.volume import Volume, refine
 
@@ -60,71 +61,35 @@ def check_psnr(psnr: np.ndarray, light_index: list[int], min_psnr: float, where:
 
 @dataclass(frozen=True)
 class FitConfig:
-    steps: int = 700  # paper: 2000
-    points: int = 4096  # per SIREN per step (paper: 32,768)
-    lr: float = 1e-3  # Adam, paper §3.4
-    lr_final: float = 1e-3  # cosine decay to lr · lr_final (authors' code)
-    visible_fraction: float = 0.5  # share of points drawn in the visible region
-    target: str = "sweep"  # "sweep" or "march" (a grid per light) or "transmittance" (exact per point)
-    grid_upsample: int = 2  # target grids on a lattice this much finer than the voxels
-    eval_points: int = 32768  # held-out points per light for the stored PSNR
-    chunk: int = 0  # points per SIREN per forward/backward pass; 0: all at once
-    checkpoint_every: int = 100
-    min_psnr: float = 20.0  # held-out box PSNR below this fails the subset instead of storing it; 0: off
-    precision: str = "float32"  # or "bfloat16": autocast for the SIREN's forward (see docs/numerics.md)
-    seed: int = 0
+    steps: int  # paper: 2000
+    points: int  # per SIREN per step (paper: 32,768)
+    lr: float  # Adam, paper §3.4
+    lr_final: float  # cosine decay to lr · lr_final (authors' code)
+    visible_fraction: float  # share of points drawn in the visible region
+    target: str  # "sweep" or "march" (a grid per light) or "transmittance" (exact per point)
+    grid_upsample: int  # target grids on a lattice this much finer than the voxels
+    eval_points: int  # held-out points per light for the stored PSNR
+    chunk: int  # points per SIREN per forward/backward pass; 0: all at once
+    checkpoint_every: int
+    min_psnr: float  # held-out box PSNR below this fails the subset instead of storing it; 0: off
+    precision: str  # or "bfloat16": autocast for the SIREN's forward (see docs/numerics.md)
+    seed: int
 
     @classmethod
-    def from_config(cls, d: dict) -> FitConfig:
-        known = set(cls.__dataclass_fields__)
-        unknown = set(d) - known
-        if unknown:
-            raise ValueError(f"fit config: unknown key(s) {sorted(unknown)}; known: {sorted(known)}")
-        cfg = cls(**d)
+    def from_config(cls, d: dict | None = None) -> FitConfig:
+        """config.yaml's `fit` section overridden by `d`."""
+        cfg = section(cls, "fit", d)
         if cfg.precision not in ("float32", "bfloat16"):
             raise ValueError(f"fit.precision: expected 'float32' or 'bfloat16', got {cfg.precision!r}")
         return cfg
 
 
-def seeded(*parts: int) -> torch.Generator:
-    """A generator seeded from a tuple of ints (stable across runs and platforms)."""
-    digest = hashlib.sha256(json.dumps(list(parts)).encode()).digest()
-    return torch.Generator().manual_seed(int.from_bytes(digest[:8], "little") & (2**63 - 1))
 
 
-class PointSampler:
-    """Random box points; a share of them jittered around visible voxels."""
-
-    def __init__(self, volume: Volume, tf: TransferFunction, visible_fraction: float):
-        self.extent = torch.as_tensor(volume.extent, dtype=torch.float32)
-        self.voxel = torch.as_tensor(volume.voxel_size, dtype=torch.float32)
-        opacity = tf.opacity(torch.as_tensor(volume.data))
-        zyx = torch.nonzero(opacity > 0)
-        self.visible = zyx.flip(1).float() * self.voxel  # (V, 3) box coordinates of visible voxels
-        self.visible_fraction = visible_fraction if len(self.visible) else 0.0
-
-    def sample(self, k: int, n: int, generator: torch.Generator) -> torch.Tensor:
-        """(k, n, 3) points in box coordinates."""
-        n_vis = int(round(n * self.visible_fraction))
-        pts = torch.rand(k, n, 3, generator=generator) * self.extent
-        if n_vis:
-            idx = torch.randint(len(self.visible), (k, n_vis), generator=generator)
-            jitter = (torch.rand(k, n_vis, 3, generator=generator) - 0.5) * self.voxel
-            pts[:, :n_vis] = torch.minimum(torch.clamp(self.visible[idx] + jitter, min=0), self.extent)
-        return pts
 
 
-def lookup_grids(grids: torch.Tensor, points: torch.Tensor, extent: torch.Tensor) -> torch.Tensor:
-    """Trilinear values of K grids (K, Z, Y, X) at (K, N, 3) box points → (K, N)."""
-    g = box_to_siren(points, extent)
-    out = F.grid_sample(grids[:, None], g[:, None, None], mode="bilinear", padding_mode="border",
-                        align_corners=True)
-    return out[:, 0, 0, 0]
 
 
-def cosine_lr(step: int, cfg: FitConfig) -> float:
-    final = cfg.lr * cfg.lr_final
-    return final + 0.5 * (cfg.lr - final) * (1 + math.cos(math.pi * step / max(1, cfg.steps)))
 
 
 def fit_sirens(
@@ -139,7 +104,7 @@ def fit_sirens(
     stream: int = 0,
     light_index: list[int] | None = None,
     checkpoint: Path | None = None,
-    device=None,
+    device: torch.device | str = "cpu",
     log=print,
 ) -> torch.Tensor:
     """Fit K = len(lights) SIRENs jointly from `init` (n_params,) → (K, n_params) float32.
@@ -148,7 +113,7 @@ def fit_sirens(
     every `cfg.checkpoint_every` steps and a rerun resumes from it (same result as an uninterrupted run:
     the points of step s depend only on (seed, stream, s)).
     """
-    device = torch.device(device or "cpu")
+    device = torch.device(device)
     lights = np.asarray(lights, dtype=np.float64)
     k = len(lights)
     light_index = list(range(k)) if light_index is None else list(light_index)
@@ -167,16 +132,12 @@ def fit_sirens(
     opt = torch.optim.Adam([weights], lr=cfg.lr)
     start = 0
     fingerprint = _fingerprint(init, lights, cfg, siren, stream)
-    if checkpoint is not None and checkpoint.exists():
-        state = torch.load(checkpoint, map_location=device, weights_only=True)
-        if state.get("fingerprint") == fingerprint:
-            with torch.no_grad():
-                weights.copy_(state["weights"])
-            opt.load_state_dict(state["optimizer"])
-            start = int(state["step"])
-            log(f"resuming from {checkpoint} at step {start}/{cfg.steps}")
-        else:
-            log(f"ignoring {checkpoint}: it belongs to another configuration")
+    if state := resume(checkpoint, fingerprint, log=log, map_location=device, weights_only=True):
+        with torch.no_grad():
+            weights.copy_(state["weights"])
+        opt.load_state_dict(state["optimizer"])
+        start = int(state["step"])
+        log(f"resuming from {checkpoint} at step {start}/{cfg.steps}")
 
     chunk = cfg.chunk or cfg.points
     autocast = torch.autocast(device.type, dtype=torch.bfloat16, enabled=cfg.precision == "bfloat16")
@@ -253,10 +214,10 @@ def evaluate_psnr(
     *,
     n_points: int,
     seed: int,
-    device=None,
+    device: torch.device | str = "cpu",
 ) -> tuple[np.ndarray, np.ndarray]:
     """Voxel PSNR of each SIREN against `transmittance` at fresh random points: (over the box, visible)."""
-    device = torch.device(device or "cpu")
+    device = torch.device(device)
     extent = torch.as_tensor(volume.extent, dtype=torch.float32)
     field = ShadowField.build(volume, tf, device=device)
     gen = seeded(seed, 0x5EED, len(lights))  # a stream no training step uses

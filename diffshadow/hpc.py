@@ -1,4 +1,4 @@
-"""Running on shared GPU nodes: a node-local GPU lock and the PBS job-state mapping.
+"""Running on HPC systems: a node-local GPU lock, the PBS job state for Snakemake, the profiles' install.
 
 Snakemake does not assign GPU ids inside a node (snakemake issue #281). When several single-GPU jobs share
 a node (Polaris packs four `fit_siren` jobs per node), each job claims a GPU by taking an exclusive
@@ -9,7 +9,9 @@ as the process, so a finished or killed job frees its GPU.
 from __future__ import annotations
 
 import fcntl
+import filecmp
 import os
+import subprocess
 import time
 from pathlib import Path
 
@@ -53,3 +55,54 @@ def pbs_state(qstat_text: str) -> str:
     if state in ("F", "X"):  # finished (X: a finished subjob)
         return "success" if fields.get("Exit_status") == "0" else "failed"
     return "failed"  # unknown to PBS: a job that never ran cannot have succeeded
+
+
+def config_home() -> Path:
+    return Path(os.environ.get("XDG_CONFIG_HOME") or Path.home() / ".config")
+
+
+def _same_profile(a: Path, b: Path) -> bool:
+    if a.resolve() == b.resolve():
+        return True
+    if not (a.is_dir() and b.is_dir()):
+        return False
+    cmp = filecmp.dircmp(a, b)
+    return not (cmp.left_only or cmp.right_only or cmp.diff_files or cmp.funny_files)
+
+
+def install_profiles(source: Path, target_root: Path, *, force: bool = False) -> list[Path]:
+    """Link each profile folder of `source` into `target_root` (Snakemake's search path).
+
+    An existing profile of the same name is left alone when it is this one (or identical) and
+    refused otherwise, unless `force`.
+    """
+    if not source.is_dir():
+        raise SystemExit(f"install-profiles: no profiles folder at {source} (run from the repository root "
+                         f"or pass --source)")
+    target_root.mkdir(parents=True, exist_ok=True)
+    installed = []
+    for profile in sorted(p for p in source.iterdir() if p.is_dir()):
+        target = target_root / profile.name
+        if target.exists() or target.is_symlink():
+            if _same_profile(profile, target):
+                installed.append(target)
+                continue
+            if not force:
+                raise SystemExit(f"install-profiles: {target} exists and differs from {profile}; "
+                                 f"remove it or pass --force")
+            if target.is_symlink() or target.is_file():
+                target.unlink()
+            else:
+                raise SystemExit(f"install-profiles: {target} is a real folder; remove it by hand")
+        target.symlink_to(profile.resolve(), target_is_directory=True)
+        installed.append(target)
+    return installed
+
+
+def pbs_status(job: str) -> str:
+    """Snakemake's cluster-generic status of a PBS job: running | success | failed."""
+    try:
+        out = subprocess.run(["qstat", "-fx", job], capture_output=True, text=True, timeout=60)
+    except (OSError, subprocess.TimeoutExpired):
+        return "running"  # the server did not answer: ask again at the next check
+    return pbs_state(out.stdout) if out.returncode == 0 else "failed"

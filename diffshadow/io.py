@@ -6,10 +6,13 @@ A killed job therefore never leaves a file that looks finished (DESIGN.md §3).
 from __future__ import annotations
 
 import os
+import shutil
 import tempfile
 from collections.abc import Callable
 from contextlib import contextmanager
 from pathlib import Path
+
+import numpy as np
 
 
 @contextmanager
@@ -51,3 +54,50 @@ def atomic_torch_save(path: str | Path, obj) -> None:
 
     with atomic_path(path, suffix=".pt") as tmp, open(tmp, "wb") as f:
         torch.save(obj, f)
+
+
+def write_zarr_group(path, fill) -> None:
+    """Build a Zarr v3 group with `fill(root)` beside `path`, then swap it in (atomic for readers)."""
+    import zarr
+
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = Path(tempfile.mkdtemp(prefix=f".{path.name}.", dir=path.parent))
+    try:
+        fill(zarr.open_group(str(tmp), mode="w", zarr_format=3))
+        old = None
+        if path.exists():
+            old = path.with_name(f".{path.name}.old-{os.getpid()}")
+            os.replace(path, old)
+        os.replace(tmp, path)
+        if old is not None:
+            shutil.rmtree(old)
+    finally:
+        if tmp.exists():
+            shutil.rmtree(tmp)
+
+
+def resume(checkpoint: str | Path | None, fingerprint: str, *, log=print, map_location="cpu",
+           weights_only: bool = False, key: str = "fingerprint") -> dict | None:
+    """The state saved in `checkpoint` when it was written for this `fingerprint` (same inputs and
+    settings), else None; a checkpoint of other inputs is left alone and said so."""
+    import torch
+
+    if checkpoint is None or not Path(checkpoint).exists():
+        return None
+    state = torch.load(checkpoint, map_location=map_location, weights_only=weights_only)
+    if state.get(key) == fingerprint:
+        return state
+    log(f"ignoring {checkpoint}: it belongs to other inputs or settings")
+    return None
+
+
+def finite_json(value):
+    """JSON has no infinity: an exact match (PSNR +inf) is written as the string "inf"."""
+    if isinstance(value, dict):
+        return {k: finite_json(v) for k, v in value.items()}
+    if isinstance(value, list | tuple):
+        return [finite_json(v) for v in value]
+    if isinstance(value, float) and not np.isfinite(value):
+        return str(value)
+    return value

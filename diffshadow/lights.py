@@ -145,3 +145,17 @@ def read_lights(path: str | Path) -> dict:
     except (OSError, ValueError, KeyError, TypeError) as e:
         raise LightError(f"{path}: not a light-set file ({e})") from None
     return {**d, "train": train, "unseen": unseen}
+
+
+def n_subsets(n_lights: int, subset_size: int) -> int:
+    """Light subsets of a scene: S = ceil(n / size), numbered 0..S-1."""
+    return -(-n_lights // subset_size)
+
+
+def subset_indices(n_lights: int, subset_size: int, subset: int) -> list[int]:
+    """Lights of subset `subset` (0..S-1, S = ceil(n / size))."""
+    count = n_subsets(n_lights, subset_size)
+    if not 0 <= subset < count:
+        raise ValueError(f"subset {subset} does not exist: {n_lights} lights in subsets of {subset_size} "
+                         f"give subsets 0..{count - 1}")
+    return list(range(subset * subset_size, min(n_lights, (subset + 1) * subset_size)))

@@ -1,38 +1,42 @@
 """`diffshadow parsl-fit`: every pending `fit_siren` subset in one Parsl run (e.g. one ≥10-node Polaris
 `prod` job), writing exactly the files the rule writes, so Snakemake then counts them as done.
 
-The work per subset is the same CLI entry point the rule calls (`diffshadow fit-siren`), in a Parsl
-worker; the log goes where the rule's `tee` would put it.
+The work per subset is the stage function the rule's command calls (`stages.stage1.fit_subset`), in a
+Parsl worker; the log goes where the rule's `tee` would put it. The caller names every path.
 """
 
 from __future__ import annotations
 
-import json
 import runpy
 from pathlib import Path
 
 
-def fit_task(argv: list[str], log_path: str) -> str:
-    """Run in a Parsl worker: `diffshadow fit-siren ARGV` with stdout and stderr to `log_path`."""
+def fit_task(paths: dict[str, str], subset: int, cfg: dict, device: str | None, threads: int, log_path: str) -> str:
+    """Run in a Parsl worker: one subset's fit, stdout and stderr to `log_path`; returns the file written."""
     import contextlib
     import os
-    from pathlib import Path
 
-    from diffshadow.cli import main
+    from diffshadow.fit import FitConfig
+    from diffshadow.runtime import resolve_device, set_threads
+    from diffshadow.siren import SirenConfig
+    from diffshadow.stages.stage1 import fit_subset
 
     Path(log_path).parent.mkdir(parents=True, exist_ok=True)
     with open(log_path, "w") as log, contextlib.redirect_stdout(log), contextlib.redirect_stderr(log):
         print(f"parsl worker pid {os.getpid()}, CUDA_VISIBLE_DEVICES={os.environ.get('CUDA_VISIBLE_DEVICES')}")
-        main(argv)
-    return argv[argv.index("--out") + 1]
+        set_threads(threads)
+        fit_subset(Path(paths["volume"]), Path(paths["lights"]), Path(paths["init"]), subset, Path(paths["out"]),
+                   siren=SirenConfig.from_config(cfg["siren"]), fit=FitConfig.from_config(cfg["fit"]),
+                   subset_size=int(cfg["subset_size"]), config=cfg, device=resolve_device(None, device))
+    return paths["out"]
 
 
 def pending(results: Path, scene: str, n_subsets: int) -> list[int]:
     return [i for i in range(n_subsets) if not (results / scene / "sirens" / f"subset_{i}.npz").exists()]
 
 
-def run(parsl_config: Path, jobs: list[tuple[list[str], str]], log=print) -> list[str]:
-    """Submit every (argv, log path) through the Parsl config in `parsl_config`; return the written files."""
+def run(parsl_config: Path, jobs: list[dict], log=print) -> list[str]:
+    """Submit every job (`fit_task`'s keyword arguments) through the Parsl config file; return the files."""
     import parsl
     from parsl import python_app
 
@@ -42,10 +46,10 @@ def run(parsl_config: Path, jobs: list[tuple[list[str], str]], log=print) -> lis
     app = python_app(fit_task)
     parsl.load(cfg)
     try:
-        futures = [(argv, app(argv, log_path)) for argv, log_path in jobs]
+        futures = [(job, app(**job)) for job in jobs]
         done, failed = [], []
-        for argv, fut in futures:
-            subset = argv[argv.index("--subset") + 1]
+        for job, fut in futures:
+            subset = job["subset"]
             try:
                 done.append(fut.result())
                 log(f"[parsl-fit] subset {subset}: wrote {done[-1]}")
@@ -60,10 +64,29 @@ def run(parsl_config: Path, jobs: list[tuple[list[str], str]], log=print) -> lis
         parsl.dfk().cleanup()
 
 
-def fit_args(results: Path, scene: str, subset: int, cfg_json: dict, threads: int) -> tuple[list[str], str]:
-    base = results / scene
-    argv = ["fit-siren", "--volume", str(base / "volume.zarr"), "--lights", str(base / "lights.json"),
-            "--init", str(base / "siren_init.pt"), "--subset", str(subset),
-            "--config-json", json.dumps(cfg_json, sort_keys=True), "--threads", str(threads),
-            "--out", str(base / "sirens" / f"subset_{subset}.npz")]
-    return argv, str(base / "logs" / f"fit_siren_{subset}.log")
+def fit_pending(parsl_config: Path, configfile: Path, scenes: list[str] | None, results: Path, *,
+                threads: int = 1, log=print) -> None:
+    """Every subset of `scenes` (default: the config's) whose file under `results` is missing."""
+    from diffshadow.config import load_run, scene_config
+    from diffshadow.lights import n_subsets
+
+    run_cfg = load_run(configfile)
+    jobs = []
+    for scene in scenes or run_cfg["scenes"]:
+        cfg = scene_config(run_cfg, scene, scenes_dir=configfile.parent / "scenes")
+        base = results / scene
+        paths = {"volume": base / "volume.zarr", "lights": base / "lights.json", "init": base / "siren_init.pt"}
+        for path in paths.values():
+            if not path.exists():
+                raise ValueError(f"{path} is missing: run `snakemake --profile local -j2 --until preoptimize` "
+                                 f"(or your HPC profile) first")
+        n = n_subsets(cfg["lights"]["count"], cfg["subset_size"])
+        todo = pending(results, scene, n)
+        log(f"[parsl-fit] {scene}: {len(todo)} of {n} subsets pending")
+        sel = {k: cfg[k] for k in ("siren", "fit", "subset_size")}
+        jobs += [{"paths": {**{k: str(v) for k, v in paths.items()}, "out": str(base / "sirens" / f"subset_{i}.npz")},
+                  "subset": i, "cfg": sel, "device": run_cfg.get("device"), "threads": threads,
+                  "log_path": str(base / "logs" / f"fit_siren_{i}.log")} for i in todo]
+    if jobs:
+        run(parsl_config, jobs, log=log)
+    log(f"[parsl-fit] done: {len(jobs)} subsets fitted")

@@ -30,8 +30,8 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
+from diffshadow.grid import cell_ranges, ray_span, trilinear
 from diffshadow.lights import as_direction
-from diffshadow.shadow import cell_ranges, ray_box, trilinear
 from diffshadow.siren import BatchedSiren, Siren, WeightLayout, box_to_siren
 from diffshadow.transfer import TransferFunction
 from diffshadow.volume import Volume
@@ -91,7 +91,7 @@ class Camera:
         up = (0.0, 0.0, 1.0) if abs(direction[2]) < 0.999 else (0.0, 1.0, 0.0)
         return cls.look_at(eye, center, up=up, fov=fov, size=size)
 
-    def rays(self, device=None) -> tuple[torch.Tensor, torch.Tensor]:
+    def rays(self, device: torch.device | str = "cpu") -> tuple[torch.Tensor, torch.Tensor]:
         """Origins and unit directions (H·W, 3), row 0 at the top of the image."""
         eye = np.asarray(self.eye, float)
         fwd = np.asarray(self.target, float) - eye
@@ -152,7 +152,7 @@ class MacroGrid:
 
     @classmethod
     def build(cls, volume: Volume, tf: TransferFunction, *, cell: int = RENDER_CELL, ranges=None,
-              device=None) -> MacroGrid:
+              device: torch.device | str = "cpu") -> MacroGrid:
         if ranges is None:
             lo, hi = (r.double().numpy() for r in cell_ranges(torch.as_tensor(volume.data), cell))
         else:
@@ -166,7 +166,7 @@ class MacroGrid:
                    torch.as_tensor(volume.dims, dtype=torch.float32, device=device))
 
     @classmethod
-    def disabled(cls, volume: Volume, device=None) -> MacroGrid:
+    def disabled(cls, volume: Volume, device: torch.device | str = "cpu") -> MacroGrid:
         one = torch.ones(1, 1, 1, device=device)
         return cls(one, one < 0, max(volume.dims), torch.as_tensor(volume.voxel_size, dtype=torch.float32,
                    device=device), torch.as_tensor(volume.dims, dtype=torch.float32, device=device))
@@ -193,10 +193,6 @@ class MacroGrid:
         return t.min(dim=1).values
 
 
-def _ray_box(o: torch.Tensor, d: torch.Tensor, extent: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-    """Entry (never before the ray's origin) and exit t of rays o + t d against the box."""
-    t0, t1 = ray_box(o, d, extent)
-    return t0.clamp_min(0), t1
 
 
 def front_to_back(alpha: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
@@ -211,7 +207,7 @@ def front_to_back(alpha: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
 class GridScalar:
     """The raw volume: trilinear value and (central-difference) gradient from one 4-channel lookup."""
 
-    def __init__(self, volume: Volume, device=None):
+    def __init__(self, volume: Volume, device: torch.device | str = "cpu"):
         self.extent = torch.as_tensor(volume.extent, dtype=torch.float32, device=device)
         self.voxel = torch.as_tensor(volume.voxel_size, dtype=torch.float32, device=device)
         data = volume.data.astype(np.float64)
@@ -234,7 +230,7 @@ class GridScalar:
 class InrScalar:
     """The data INR (a SIREN of the scalar field); gradients by autograd through the network."""
 
-    def __init__(self, model: Siren, extent, device=None):
+    def __init__(self, model: Siren, extent, device: torch.device | str = "cpu"):
         self.model = model.to(device).eval()
         for q in self.model.parameters():
             q.requires_grad_(False)
@@ -254,7 +250,7 @@ class InrScalar:
 class GridShadow:
     """Shadow coefficients looked up trilinearly in a (Z, Y, X) grid (`shadow_grid`'s output)."""
 
-    def __init__(self, grid, extent, device=None):
+    def __init__(self, grid, extent, device: torch.device | str = "cpu"):
         self.grid = torch.as_tensor(grid, dtype=torch.float32, device=device)[None, None]
         self.extent = torch.as_tensor(np.asarray(extent), dtype=torch.float32, device=device)
 
@@ -266,7 +262,7 @@ class GridShadow:
 class SirenShadow:
     """A shadow INR (one flat weight vector in `layout`), evaluated in the same pass as the data INR."""
 
-    def __init__(self, weights, layout: WeightLayout, blocks: int, extent, device=None):
+    def __init__(self, weights, layout: WeightLayout, blocks: int, extent, device: torch.device | str = "cpu"):
         w = torch.as_tensor(np.asarray(weights), dtype=torch.float32, device=device).reshape(1, -1)
         self.model = BatchedSiren(w, layout, blocks)
         self.extent = torch.as_tensor(np.asarray(extent), dtype=torch.float32, device=device)
@@ -349,7 +345,7 @@ class MarchedShadow:
         extent = self.extent.to(device)
         m = len(p)
         d = self.light.to(device).expand(m, 3).contiguous()
-        _, t1 = _ray_box(p, d, extent)
+        _, t1 = ray_span(p, d, extent)
         tau = torch.zeros(m, device=device)
         k = torch.zeros(m, device=device)
         t0 = torch.zeros(m, device=device)
@@ -403,7 +399,7 @@ def render(
     min_transmittance: float = MIN_TRANSMITTANCE,
     samples_per_iter: int = SAMPLES_PER_ITER,
     batch: int = BATCH,
-    device=None,
+    device: torch.device | str = "cpu",
 ) -> Image:
     """Render one image with the wavefront marcher.
 
@@ -428,7 +424,7 @@ def render(
     extent_t = torch.as_tensor(np.asarray(extent), dtype=torch.float32, device=device)
     o, d = camera.rays(device)
     r = len(o)
-    t0, t1 = _ray_box(o, d, extent_t)
+    t0, t1 = ray_span(o, d, extent_t)
     dt = step * voxel
     k = torch.zeros(r, device=device)
     trans = torch.ones(r, device=device)
@@ -472,7 +468,7 @@ def render(
 
 def render_all_at_once(camera: Camera, scalar, tf: TransferFunction, extent, voxel: float, *, light=None,
                        shadow=None, shading: Shading | None = None, step: float = DEFAULT_STEP,
-                       device=None) -> Image:
+                       device: torch.device | str = "cpu") -> Image:
     """The straightforward reference: every lattice sample of every ray at once, no skipping, no early
     termination. Memory grows with pixels × samples: for tests on small images only."""
     shading = shading or Shading()
@@ -482,7 +478,7 @@ def render_all_at_once(camera: Camera, scalar, tf: TransferFunction, extent, vox
     start = time.perf_counter()
     extent_t = torch.as_tensor(np.asarray(extent), dtype=torch.float32, device=device)
     o, d = camera.rays(device)
-    t0, t1 = _ray_box(o, d, extent_t)
+    t0, t1 = ray_span(o, d, extent_t)
     dt = step * voxel
     n = int(torch.ceil(((t1 - t0).clamp_min(0) / dt).max()).item()) + 1
     t = t0[:, None] + (torch.arange(n, device=device) + 0.5) * dt
@@ -513,10 +509,10 @@ class RenderScene:
     field). `scalar="inr"` renders the data INR, `"grid"` the raw volume (to isolate the shadow's error).
     """
 
-    def __init__(self, volume: Volume, tf: TransferFunction, data_inr=None, *, device=None,
+    def __init__(self, volume: Volume, tf: TransferFunction, data_inr=None, *, device: torch.device | str = "cpu",
                  gt_method: str = "march", cell: int = RENDER_CELL):
         self.volume, self.tf, self.data_inr = volume, tf, data_inr
-        self.device = torch.device(device or "cpu")
+        self.device = torch.device(device)
         self.gt_method, self.cell = gt_method, cell
         self.voxel = float(np.min(volume.voxel_size))
         self._cache: dict = {}

@@ -95,7 +95,7 @@ def image_grid_figure(images_dir: Path, out: Path, modes=("gt", "inr_generated",
 def ddim_curve_figure(state: dict, volume, tf, lights: np.ndarray, out: Path, *, steps=(5, 10, 20, 50),
                       n_lights: int = 8, n_points: int = 8192) -> dict:
     """Time per INR against median voxel PSNR for DDIM step counts, and 500-step DDPM."""
-    from diffshadow.diffusion.train import generate, load_sampler
+    from diffshadow.diffusion.sample import generate, load_sampler
     from diffshadow.evaluate import TruthPoints, pick, psnr_per_light
 
     model, std, layout, siren = load_sampler(state)

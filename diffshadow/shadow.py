@@ -26,6 +26,7 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
+from diffshadow.grid import macro_cells, ray_box, trilinear, voxel_points
 from diffshadow.lights import as_direction
 from diffshadow.transfer import TransferFunction
 from diffshadow.volume import Volume
@@ -55,9 +56,9 @@ class ShadowField:
 
     @classmethod
     def build(
-        cls, volume: Volume, tf: TransferFunction, *, device=None, cell: int = MACRO_CELL
+        cls, volume: Volume, tf: TransferFunction, *, device: torch.device | str = "cpu", cell: int = MACRO_CELL
     ) -> ShadowField:
-        device = torch.device(device or "cpu")
+        device = torch.device(device)
         scalar = torch.as_tensor(volume.data, dtype=torch.float32, device=device)[None, None]
         return cls(
             scalar=scalar,
@@ -74,57 +75,10 @@ class ShadowField:
         return self.tf.extinction(trilinear(self.scalar[0], pos_vox)[0])
 
 
-def trilinear(grid: torch.Tensor, pos_vox: torch.Tensor) -> torch.Tensor:
-    """Trilinear values of a (C, Z, Y, X) grid at (N, 3) voxel positions (x, y, z) → (C, N), clamped to the grid.
-
-    Nested lerps rather than grid_sample's weighted sum of 8 corners: a lerp between equal values is that
-    value exactly, so a constant region stays constant. grid_sample's weights sum to 1 - 6e-8, which a steep
-    transfer function times density 1e8 turns into μ ≈ 6 where the true μ is 0 (stress suite).
-    """
-    c, nz, ny, nx = grid.shape
-    top = torch.tensor([nx - 1, ny - 1, nz - 1], dtype=pos_vox.dtype, device=pos_vox.device)
-    p = torch.minimum(pos_vox.clamp_min(0), top)
-    i0 = torch.minimum(p.floor(), (top - 1).clamp_min(0))  # the last cell includes its far face
-    f = p - i0
-    stride = torch.tensor([1, nx, nx * ny], device=pos_vox.device)
-    base = (i0.long() * stride).sum(dim=1)
-    sx, sy, sz = (int(s) if int(n) > 1 else 0 for s, n in zip(stride, (nx, ny, nz), strict=True))
-    flat = grid.reshape(c, -1)
-
-    def at(offset: int) -> torch.Tensor:
-        return flat[:, base + offset]
-
-    fx, fy, fz = f[:, 0], f[:, 1], f[:, 2]
-    y0 = torch.lerp(torch.lerp(at(0), at(sx), fx), torch.lerp(at(sy), at(sy + sx), fx), fy)
-    y1 = torch.lerp(torch.lerp(at(sz), at(sz + sx), fx), torch.lerp(at(sz + sy), at(sz + sy + sx), fx), fy)
-    return torch.lerp(y0, y1, fz)
 
 
-def macro_cells(scalar: torch.Tensor, tf: TransferFunction, cell: int) -> torch.Tensor:
-    """(cz, cy, cx) bool: True where every point of the cell has μ = 0.
-
-    Vertex-centred cells include their boundary voxels (cell c spans voxels c·M .. c·M+M), so any
-    trilinear sample in the closed cell lies in [min, max] of the cell's voxels, and the TF's maximum
-    opacity over that range bounds μ in the cell.
-    """
-    lo, hi = cell_ranges(scalar, cell)
-    if tf.density_scale == 0:
-        return torch.ones_like(hi, dtype=torch.bool)
-    peak = tf.max_opacity(lo.cpu().double().numpy(), hi.cpu().double().numpy())
-    return torch.as_tensor(peak <= 0, device=scalar.device)
 
 
-def cell_ranges(scalar: torch.Tensor, cell: int) -> tuple[torch.Tensor, torch.Tensor]:
-    """(min, max) of the voxels of each vertex-centred cell, boundary voxels included: (cz, cy, cx) each."""
-    n = torch.tensor(scalar.shape)
-    nc = torch.clamp((n - 1 + cell - 1) // cell, min=1)
-    pad = []
-    for axis in (2, 1, 0):  # F.pad takes the last axis first
-        pad += [0, int(nc[axis] * cell + 1 - n[axis])]
-    x = F.pad(scalar[None, None], pad, mode="replicate")
-    hi = F.max_pool3d(x, kernel_size=cell + 1, stride=cell)[0, 0]
-    lo = -F.max_pool3d(-x, kernel_size=cell + 1, stride=cell)[0, 0]
-    return lo, hi
 
 
 def _as_points(points, device) -> torch.Tensor:
@@ -136,16 +90,6 @@ def _as_points(points, device) -> torch.Tensor:
     return pts.to(device)
 
 
-def ray_box(p: torch.Tensor, w: torch.Tensor, extent: torch.Tensor):
-    """Entry and exit t of rays p + t w against the box [0, extent] (slab method)."""
-    inv = torch.where(w != 0, 1.0 / w, torch.full_like(w, math.inf))
-    t_a = (0 - p) * inv
-    t_b = (extent - p) * inv
-    # a zero direction component: the slab is (-inf, inf) when inside it and empty otherwise
-    inside = (p >= 0) & (p <= extent)
-    lo = torch.where(w != 0, torch.minimum(t_a, t_b), torch.where(inside, -math.inf, math.inf))
-    hi = torch.where(w != 0, torch.maximum(t_a, t_b), torch.where(inside, math.inf, -math.inf))
-    return lo.max(dim=-1).values, hi.min(dim=-1).values
 
 
 def transmittance(
@@ -159,7 +103,7 @@ def transmittance(
     tau_max: float = TAU_MAX,
     samples_per_iter: int = SAMPLES_PER_ITER,
     chunk: int = CHUNK,
-    device=None,
+    device: torch.device | str = "cpu",
 ) -> torch.Tensor:
     """Shadow coefficient at each point (P, 3) for a light in direction `light_dir` → (P,) in [0, 1].
 
@@ -246,13 +190,6 @@ def _march_chunk(field: ShadowField, q0, dq, dt: float, last, n, skip: bool, tau
     return tau
 
 
-def voxel_points(volume: Volume, device=None) -> torch.Tensor:
-    """Box coordinates (x, y, z) of every voxel, in (Z, Y, X) order → (Z·Y·X, 3)."""
-    nz, ny, nx = volume.data.shape
-    axes = [torch.linspace(0, float(e), int(m), device=device)
-            for e, m in zip(volume.extent[::-1], (nz, ny, nx), strict=True)]
-    z, y, x = torch.meshgrid(*axes, indexing="ij")
-    return torch.stack([x, y, z], dim=-1).reshape(-1, 3)
 
 
 def shadow_grid(
@@ -262,7 +199,7 @@ def shadow_grid(
     *,
     method: str = "sweep",
     step: float | None = None,
-    device=None,
+    device: torch.device | str = "cpu",
     **march_options,
 ) -> torch.Tensor:
     """Shadow coefficient at every voxel → (Z, Y, X) float32.
@@ -297,7 +234,7 @@ def _sweep(volume: Volume, tf: TransferFunction, w: np.ndarray, step: float, dev
     factor = round(1.0 / step) if step > 0 else 0
     if factor < 1 or abs(factor * step - 1.0) > 1e-9:
         raise ValueError(f"step: the sweep needs 1/k voxels for an integer k >= 1, got {step!r}")
-    device = torch.device(device or "cpu")
+    device = torch.device(device)
     s = torch.as_tensor(volume.data, dtype=torch.float32, device=device)
     wv = w / volume.voxel_size  # voxels per box length along (x, y, z)
     a = int(np.argmax(np.abs(wv)))  # dominant axis (x=0, y=1, z=2)

@@ -18,6 +18,8 @@ from dataclasses import dataclass
 import torch
 from torch import nn
 
+from diffshadow.config import check_keys
+
 OMEGA = 30.0  # sine frequency ω0 (SIREN)
 RES_WEIGHT = 0.5  # NeurComp's averaging weight on residual blocks
 
@@ -26,11 +28,13 @@ RES_WEIGHT = 0.5  # NeurComp's averaging weight on residual blocks
 class SirenConfig:
     """SIREN size: `width` H (paper 128, 64 for small data) and residual `blocks`."""
 
-    width: int = 64
-    blocks: int = 2
+    width: int
+    blocks: int
 
     @classmethod
     def from_config(cls, d: dict) -> SirenConfig:
+        """A SIREN size as stored (no defaults: a layout is what was fitted)."""
+        check_keys(cls, "siren", d)
         return cls(width=int(d["width"]), blocks=int(d["blocks"]))
 
     def to_config(self) -> dict:
@@ -171,3 +175,9 @@ class BatchedSiren:
 def box_to_siren(points: torch.Tensor, extent: torch.Tensor) -> torch.Tensor:
     """Box coordinates (x, y, z) in [0, extent] → SIREN input in [-1, 1]³ per axis."""
     return points / extent * 2 - 1
+
+
+def cosine_lr(step: int, cfg) -> float:
+    """Cosine decay from cfg.lr to cfg.lr · cfg.lr_final over cfg.steps (the authors' schedule)."""
+    final = cfg.lr * cfg.lr_final
+    return final + 0.5 * (cfg.lr - final) * (1 + math.cos(math.pi * step / max(1, cfg.steps)))

@@ -8,15 +8,12 @@
 from __future__ import annotations
 
 import json
-import os
-import shutil
-import tempfile
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
-from diffshadow.io import atomic_save
+from diffshadow.io import atomic_save, write_zarr_group
 from diffshadow.siren import SirenConfig, WeightLayout
 
 
@@ -64,25 +61,6 @@ def read_subset(path) -> dict:
     return out
 
 
-def write_zarr_group(path, fill) -> None:
-    """Build a Zarr v3 group with `fill(root)` beside `path`, then swap it in (atomic for readers)."""
-    import zarr
-
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = Path(tempfile.mkdtemp(prefix=f".{path.name}.", dir=path.parent))
-    try:
-        fill(zarr.open_group(str(tmp), mode="w", zarr_format=3))
-        old = None
-        if path.exists():
-            old = path.with_name(f".{path.name}.old-{os.getpid()}")
-            os.replace(path, old)
-        os.replace(tmp, path)
-        if old is not None:
-            shutil.rmtree(old)
-    finally:
-        if tmp.exists():
-            shutil.rmtree(tmp)
 
 
 def write_store(path, store: WeightStore) -> None:

@@ -213,39 +213,3 @@ def _to_volume(path: Path, raw: np.ndarray, value_range, spacing) -> Volume:
     extent = size / size.max()
     name = RAW_NAME.sub("", path.name) if RAW_NAME.search(path.name) else path.stem
     return Volume(data=np.ascontiguousarray(data, dtype=np.float32), extent=extent, name=name)
-
-
-def save_prepared(path: str | Path, volume: Volume, tf, *, cell: int) -> None:
-    """`prepare_volume`'s output: the normalised grid, its box, the TF and the macro-cell table (Zarr v3)."""
-    import torch
-
-    from diffshadow.shadow import macro_cells
-    from diffshadow.store import write_zarr_group
-
-    empty = macro_cells(torch.as_tensor(volume.data), tf, cell).numpy()
-
-    def fill(root) -> None:
-        root.create_array("scalar", data=volume.data)
-        root.create_array("macro_empty", data=empty)
-        root.attrs.update({"extent": volume.extent.tolist(), "name": volume.name,
-                           "transfer_function": tf.to_config(), "macro_cell": cell,
-                           "empty_fraction": float(empty.mean())})
-
-    write_zarr_group(path, fill)
-
-
-def load_prepared(path: str | Path):
-    """(Volume, TransferFunction) from `prepare_volume`'s Zarr store."""
-    import zarr
-
-    from diffshadow.transfer import TransferFunction
-
-    path = Path(path)
-    try:
-        root = zarr.open_group(str(path), mode="r")
-        attrs = dict(root.attrs)
-        volume = Volume(data=np.asarray(root["scalar"][...], dtype=np.float32),
-                        extent=np.asarray(attrs["extent"], dtype=np.float64), name=attrs["name"])
-        return volume, TransferFunction.from_config(attrs["transfer_function"])
-    except (FileNotFoundError, KeyError) as e:
-        raise VolumeError(f"{path}: not a prepared volume (missing {e})") from None

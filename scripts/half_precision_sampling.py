@@ -7,7 +7,7 @@ and how closely the SIRENs' outputs agree (4 training and 4 unseen lights, 5 ste
 import numpy as np
 import torch
 
-from diffshadow.diffusion.train import generate, load_sampler
+from diffshadow.diffusion.sample import generate, load_sampler
 from diffshadow.lights import read_lights
 from diffshadow.metrics import psnr
 from diffshadow.siren import BatchedSiren

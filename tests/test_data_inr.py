@@ -5,13 +5,14 @@ import pytest
 import torch
 
 from diffshadow.analytic import gaussian_blob
-from diffshadow.data_inr import DataInrConfig, fit_data_inr, inr_cell_ranges, load_data_inr, save_data_inr
+from diffshadow.artifacts import load_data_inr, save_data_inr
+from diffshadow.data_inr import DataInrConfig, fit_data_inr, inr_cell_ranges
 from diffshadow.transfer import TransferFunction
 from diffshadow.volume import Volume
 
 TF = TransferFunction.from_config({"opacity": [[0, 0], [0.2, 0], [1, 1]], "color": [[0, 1, 1, 1], [1, 1, 1, 1]],
                                    "density_scale": 10})
-CFG = DataInrConfig(width=32, blocks=1, steps=400, points=4096, checkpoint_every=50)
+CFG = DataInrConfig.from_config(dict(width=32, blocks=1, steps=400, points=4096, checkpoint_every=50))
 
 
 @pytest.fixture(scope="module")

@@ -2,16 +2,15 @@ import numpy as np
 import pytest
 import torch
 
+from diffshadow.diffusion.geometry import geometry_loss
 from diffshadow.diffusion.model import WeightTransformer
+from diffshadow.diffusion.sample import generate, load_sampler
 from diffshadow.diffusion.schedule import Schedule
 from diffshadow.diffusion.train import (
     DiffusionConfig,
     DiffusionError,
     Standardizer,
     TrainingData,
-    generate,
-    geometry_loss,
-    load_sampler,
     train_diffusion,
 )
 from diffshadow.lights import LightError
@@ -87,8 +86,8 @@ def tiny_data(n=4):
                         extent=torch.ones(3), layout=LAYOUT, siren=SIREN)
 
 
-CFG = DiffusionConfig(preset="tiny", epochs=6, batch_size=2, geometry_points=16, checkpoint_every=2,
-                      lr_step_epochs=2, ema=0.9)
+CFG = DiffusionConfig.from_config(dict(preset="tiny", epochs=6, batch_size=2, geometry_points=16, checkpoint_every=2,
+                      lr_step_epochs=2, ema=0.9))
 
 
 def test_resume_matches_uninterrupted(tmp_path):

@@ -10,8 +10,7 @@ import torch
 import torch.multiprocessing as mp
 
 from diffshadow.analytic import gaussian_blob
-from diffshadow.diffusion.train import DiffusionConfig, TrainingData, train_diffusion
-from diffshadow.finetune import (
+from diffshadow.diffusion.finetune import (
     FinetuneConfig,
     FinetuneData,
     build_bundle,
@@ -20,6 +19,7 @@ from diffshadow.finetune import (
     finetune,
     render_targets,
 )
+from diffshadow.diffusion.train import DiffusionConfig, TrainingData, train_diffusion
 from diffshadow.render import GridShadow
 from diffshadow.shadow import shadow_grid
 from diffshadow.siren import SirenConfig, WeightLayout, init_siren
@@ -29,7 +29,8 @@ from diffshadow.volume import Volume
 TF = TransferFunction.from_config({"opacity": [[0, 0], [0.2, 0], [1, 0.8]],
                                    "color": [[0, 0.2, 0.4, 0.9], [1, 1, 0.3, 0.2]], "density_scale": 20})
 LIGHTS = np.array([[0.0, 0.0, 1.0], [0.6, 0.0, 0.8], [0.0, 0.6, 0.8], [-0.6, 0.0, 0.8]])
-FT = FinetuneConfig(views=2, image_size=16, pixels=5, epochs=1, batch_size=4, checkpoint_every=1, lr=2e-4)
+FT = FinetuneConfig.from_config(dict(views=2, image_size=16, pixels=5, epochs=1, batch_size=4,
+                                     checkpoint_every=1, lr=2e-4))
 
 
 @pytest.fixture(scope="module")
@@ -49,7 +50,8 @@ def setup(volume, tmp_path_factory):
     train = TrainingData(weights=weights, lights=torch.as_tensor(LIGHTS, dtype=torch.float32),
                          points=torch.rand(4, 64, 3, generator=gen), values=torch.rand(4, 64, generator=gen),
                          extent=torch.ones(3), layout=layout, siren=cfg)
-    dcfg = DiffusionConfig(preset="tiny", epochs=1, batch_size=4, geometry_points=16, checkpoint_every=1)
+    dcfg = DiffusionConfig.from_config(dict(preset="tiny", epochs=1, batch_size=4, geometry_points=16,
+                                              checkpoint_every=1))
     state = train_diffusion(train, dcfg, tmp_path_factory.mktemp("geo") / "geo.ckpt", log=lambda m: None)
     return cams, bundle, images, FinetuneData(train, bundle, images.reshape(4, FT.views, -1, 3)), state
 

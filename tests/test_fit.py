@@ -25,7 +25,7 @@ def init():
 
 def test_resume_gives_the_same_weights(scene, tmp_path):
     vol, tf, lights = scene
-    cfg = FitConfig(steps=12, points=64, checkpoint_every=4, eval_points=16)
+    cfg = FitConfig.from_config(dict(steps=12, points=64, checkpoint_every=4, eval_points=16))
     full = fit_sirens(init(), LAYOUT, CFG, vol, tf, lights, cfg, log=lambda *a: None)
 
     ckpt = tmp_path / "subset.ckpt"
@@ -48,8 +48,9 @@ def test_resume_gives_the_same_weights(scene, tmp_path):
 
 def test_chunked_gradients_match_one_pass(scene):
     vol, tf, lights = scene
-    a = fit_sirens(init(), LAYOUT, CFG, vol, tf, lights, FitConfig(steps=5, points=64), log=lambda *a: None)
-    b = fit_sirens(init(), LAYOUT, CFG, vol, tf, lights, FitConfig(steps=5, points=64, chunk=16),
+    a = fit_sirens(init(), LAYOUT, CFG, vol, tf, lights, FitConfig.from_config(dict(steps=5, points=64)),
+                   log=lambda *a: None)
+    b = fit_sirens(init(), LAYOUT, CFG, vol, tf, lights, FitConfig.from_config(dict(steps=5, points=64, chunk=16)),
                    log=lambda *a: None)
     assert (a - b).abs().max() < 1e-5
 
@@ -59,7 +60,8 @@ def test_divergence_names_the_light(scene):
     bad = init()
     bad[0] = float("inf")
     with pytest.raises(FitError, match=r"loss is not finite for light\(s\) \[7, 8\]"):
-        fit_sirens(bad, LAYOUT, CFG, vol, tf, lights, FitConfig(steps=3, points=16), light_index=[7, 8],
+        fit_sirens(bad, LAYOUT, CFG, vol, tf, lights, FitConfig.from_config(dict(steps=3, points=16)),
+                   light_index=[7, 8],
                    log=lambda *a: None)
 
 
@@ -80,7 +82,7 @@ def test_fitting_reduces_the_error():
     layout = WeightLayout.for_siren(cfg)
     msgs = []
     fit_sirens(layout.flatten(init_siren(cfg, torch.Generator().manual_seed(0))), layout, cfg, vol, identity_tf(5.0),
-               lights, FitConfig(steps=150, points=512, lr=3e-3), log=msgs.append)
+               lights, FitConfig.from_config(dict(steps=150, points=512, lr=3e-3)), log=msgs.append)
     first = float(msgs[0].split("PSNR(train batch) ")[1].split(" dB")[0])
     last = float(msgs[-1].split("PSNR(train batch) ")[1].split(" dB")[0])
     assert last > first + 10, (first, last)

@@ -17,14 +17,15 @@ import time
 from dataclasses import asdict, dataclass
 from pathlib import Path
 
-import numpy as np
 import torch
 
+from diffshadow.config import section
+from diffshadow.diffusion.geometry import geometry_loss
 from diffshadow.diffusion.model import PRESETS, WeightTransformer
 from diffshadow.diffusion.schedule import Schedule
-from diffshadow.fit import seeded
-from diffshadow.io import atomic_torch_save
-from diffshadow.siren import BatchedSiren, SirenConfig, WeightLayout, box_to_siren
+from diffshadow.io import atomic_torch_save, resume
+from diffshadow.sampling import seeded
+from diffshadow.siren import SirenConfig, WeightLayout
 
 
 class DiffusionError(ValueError):
@@ -33,31 +34,29 @@ class DiffusionError(ValueError):
 
 @dataclass(frozen=True)
 class DiffusionConfig:
-    preset: str = "small"
-    epochs: int = 2000  # paper: 7000 (geometry stage)
-    batch_size: int = 16
-    lr: float = 2e-4  # AdamW, paper §3.4
-    weight_decay: float = 0.0
-    lr_step_epochs: int = 200  # StepLR, paper §3.4
-    lr_gamma: float = 0.9
-    grad_clip: float = 1.0
-    ema: float = 0.0  # EMA decay of the weights used for sampling; 0: off
-    geometry_weight: float = 1.0
-    geometry_points: int = 1024  # per light per step, drawn from the presampled set (authors: 4096)
-    presample_points: int = 8192  # per light in geometry_points.zarr (paper: 500,000)
-    checkpoint_every: int = 100  # epochs
-    ddim_steps: int = 50
-    standardize: str = "token"  # "token": paper; "param": per weight across lights (see README)
-    light_freqs: int = 3  # NeRF encoding of the light direction; 3 interpolates best between lights (README)
-    temperature: float = 0.0  # DDIM start noise scale; 0: one deterministic path per light (see README)
-    seed: int = 0
+    preset: str
+    epochs: int  # paper: 7000 (geometry stage)
+    batch_size: int
+    lr: float  # AdamW, paper §3.4
+    weight_decay: float
+    lr_step_epochs: int  # StepLR, paper §3.4
+    lr_gamma: float
+    grad_clip: float
+    ema: float  # EMA decay of the weights used for sampling; 0: off
+    geometry_weight: float
+    geometry_points: int  # per light per step, drawn from the presampled set (authors: 4096)
+    presample_points: int  # per light in geometry_points.zarr (paper: 500,000)
+    checkpoint_every: int  # epochs
+    ddim_steps: int
+    standardize: str  # "token": paper; "param": per weight across lights (see README)
+    light_freqs: int  # NeRF encoding of the light direction; 3 interpolates best between lights (README)
+    temperature: float  # DDIM start noise scale; 0: one deterministic path per light (see README)
+    seed: int
 
     @classmethod
-    def from_config(cls, d: dict) -> DiffusionConfig:
-        unknown = set(d) - set(cls.__dataclass_fields__)
-        if unknown:
-            raise ValueError(f"diffusion config: unknown key(s) {sorted(unknown)}")
-        cfg = cls(**d)
+    def from_config(cls, d: dict | None = None) -> DiffusionConfig:
+        """config.yaml's `diffusion` section overridden by `d`."""
+        cfg = section(cls, "diffusion", d)
         if cfg.preset not in PRESETS:
             raise ValueError(f"diffusion.preset: expected one of {sorted(PRESETS)}, got {cfg.preset!r}")
         return cfg
@@ -121,11 +120,6 @@ class Standardizer:
         return {"mean": self.mean, "std": self.std}
 
 
-def geometry_loss(pred_weights: torch.Tensor, layout: WeightLayout, siren: SirenConfig, points: torch.Tensor,
-                  values: torch.Tensor, extent: torch.Tensor) -> torch.Tensor:
-    """MSE between the predicted SIRENs at presampled points (B, G, 3) and the true shadow there (B, G)."""
-    pred = BatchedSiren(pred_weights, layout, siren.blocks)(box_to_siren(points, extent))
-    return ((pred - values) ** 2).mean()
 
 
 _geometry_loss = geometry_loss  # indirection so tests can inject a failure mid-run
@@ -154,13 +148,14 @@ def build_model(layout: WeightLayout, cfg: DiffusionConfig) -> WeightTransformer
     return WeightTransformer(layout, dataclasses.replace(PRESETS[cfg.preset], light_freqs=cfg.light_freqs))
 
 
-def train_diffusion(data: TrainingData, cfg: DiffusionConfig, checkpoint: Path, *, device=None, log=print,
+def train_diffusion(data: TrainingData, cfg: DiffusionConfig, checkpoint: Path, *,
+                    device: torch.device | str = "cpu", log=print,
                     stop_after_epoch: int | None = None) -> dict:
     """Train (or resume) and return the final state; the checkpoint file holds it when done.
 
     `stop_after_epoch` ends the run early (as if killed after that epoch's checkpoint): tests use it.
     """
-    device = torch.device(device or "cpu")
+    device = torch.device(device)
     torch.manual_seed(cfg.seed)
     model = build_model(data.layout, cfg).to(device)
     log(f"weight-space transformer '{cfg.preset}': {model.n_params():,} parameters, "
@@ -177,18 +172,14 @@ def train_diffusion(data: TrainingData, cfg: DiffusionConfig, checkpoint: Path, 
     fingerprint = _fingerprint(data, cfg)
     start = 0
     good: int | None = None  # epoch of the checkpoint this run resumed from or saved
-    if checkpoint.exists():
-        state = torch.load(checkpoint, map_location=device, weights_only=False)
-        if state.get("fingerprint") == fingerprint:
-            model.load_state_dict(state["model"])
-            opt.load_state_dict(state["optimizer"])
-            sched.load_state_dict(state["scheduler"])
-            if ema is not None:
-                ema.load_state_dict(state["ema"])
-            start = good = int(state["epoch"])
-            log(f"resuming from {checkpoint} at epoch {start}/{cfg.epochs}")
-        else:
-            log(f"ignoring {checkpoint}: it belongs to other data or settings")
+    if state := resume(checkpoint, fingerprint, log=log, map_location=device):
+        model.load_state_dict(state["model"])
+        opt.load_state_dict(state["optimizer"])
+        sched.load_state_dict(state["scheduler"])
+        if ema is not None:
+            ema.load_state_dict(state["ema"])
+        start = good = int(state["epoch"])
+        log(f"resuming from {checkpoint} at epoch {start}/{cfg.epochs}")
 
     def save(epoch: int) -> dict:
         state = {"fingerprint": fingerprint, "epoch": epoch, "model": model.state_dict(),
@@ -253,51 +244,5 @@ def train_diffusion(data: TrainingData, cfg: DiffusionConfig, checkpoint: Path, 
     return state
 
 
-def load_sampler(state: dict, device=None):
-    """(model for sampling, standardizer, layout, siren) from a checkpoint state."""
-    layout = WeightLayout.from_config(state["layout"])
-    cfg = DiffusionConfig.from_config(state["config"])
-    model = build_model(layout, cfg)
-    model.load_state_dict(state["ema"] if state.get("ema") else state["model"])
-    model.to(device or "cpu").eval()
-    std = Standardizer(layout, state["standardizer"]["mean"], state["standardizer"]["std"])
-    return model, std, layout, SirenConfig.from_config(state["siren"])
 
 
-@torch.no_grad()
-def generate(model: WeightTransformer, std: Standardizer, lights, *, method: str = "ddim", steps: int = 50,
-             seed: int = 0, batch: int = 64, temperature: float = 1.0, device=None,
-             dtype: torch.dtype = torch.float32) -> torch.Tensor:
-    """SIREN weights (N, n_params) for light directions (N, 3) (any direction, seen or not).
-
-    `dtype` float16/bfloat16 runs the network in half precision (a copy of it); the sampler's noise is
-    drawn in float32 and de-standardisation is float64 either way."""
-    from diffshadow.lights import as_direction
-
-    lights = np.stack([as_direction(w, name=f"light {i}") for i, w in enumerate(np.asarray(lights).reshape(-1, 3))])
-    device = torch.device(device or "cpu")
-    if dtype != torch.float32:
-        model = copy.deepcopy(model).to(dtype)
-    schedule = Schedule()
-    out = []
-    for b0 in range(0, len(lights), batch):
-        w = torch.as_tensor(lights[b0:b0 + batch], dtype=torch.float32, device=device)
-
-        def denoise(x, t, w=w, b0=b0):
-            out = model(x.to(dtype), t, w.to(dtype)).float()
-            if not torch.isfinite(out).all():
-                raise DiffusionError(f"generate: the model's x0 is not finite at timestep {int(t[0])} ({dtype}, "
-                                     f"lights {b0}..{b0 + len(w) - 1}); sample in float32")
-            return out
-
-        gen = seeded(seed, 2, b0)
-        shape = (len(w), std.layout.n_params)
-        if method == "ddim":
-            z = schedule.ddim_sample(denoise, shape, steps=steps, generator=gen, temperature=temperature,
-                                     device=device)
-        elif method == "ddpm":
-            z = schedule.ddpm_sample(denoise, shape, generator=gen, device=device)
-        else:
-            raise ValueError(f"method: expected 'ddim' or 'ddpm', got {method!r}")
-        out.append(std.destandardize(z.double()).float().cpu())
-    return torch.cat(out)

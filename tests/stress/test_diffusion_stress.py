@@ -8,14 +8,13 @@ from hypothesis import given
 from hypothesis import strategies as st
 from test_ground_truth_stress import SETTINGS
 
+from diffshadow.diffusion.sample import generate, load_sampler
 from diffshadow.diffusion.schedule import Schedule
 from diffshadow.diffusion.train import (
     DiffusionConfig,
     DiffusionError,
     Standardizer,
     TrainingData,
-    generate,
-    load_sampler,
     train_diffusion,
 )
 from diffshadow.siren import BatchedSiren, SirenConfig, WeightLayout
@@ -109,7 +108,8 @@ def sampler(tmp_path_factory):
     data = TrainingData(weights=w, lights=torch.nn.functional.normalize(torch.randn(n, 3, generator=gen)),
                         points=torch.rand(n, 64, 3, generator=gen), values=torch.rand(n, 64, generator=gen),
                         extent=torch.ones(3), layout=LAYOUT, siren=SIREN)
-    cfg = DiffusionConfig(preset="tiny", epochs=20, batch_size=3, geometry_points=16, checkpoint_every=20)
+    cfg = DiffusionConfig.from_config(dict(preset="tiny", epochs=20, batch_size=3, geometry_points=16,
+                                           checkpoint_every=20))
     state = train_diffusion(data, cfg, tmp_path_factory.mktemp("d") / "d.ckpt", log=lambda *a: None)
     return load_sampler(state)
 

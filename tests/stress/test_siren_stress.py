@@ -64,8 +64,9 @@ def fit_and_check(vol, t, cfg):
 def test_a_fit_is_finite_and_good_or_fails_naming_its_lights(kind, lr_scale, precision):
     # every combination (24), enumerated rather than sampled
     vol, t = target_volume(kind)
-    cfg = FitConfig(steps=60, points=128, lr=1e-2 * lr_scale, target="transmittance", precision=precision,
-                    min_psnr=15.0)
+    cfg = FitConfig.from_config(dict(steps=60, points=128, lr=1e-2 * lr_scale, target="transmittance",
+                                     precision=precision,
+                    min_psnr=15.0))
     try:
         w, box = fit_and_check(vol, t, cfg)
     except FitError as e:
@@ -87,8 +88,8 @@ def test_a_tenfold_learning_rate_is_caught_not_stored():
     lights = np.array([[0.3, -0.5, 0.8], [0.0, 0.6, 0.8], [-0.8, 0.0, 0.6]])
     quiet = {"log": lambda *a: None}
     pre = fit_sirens(layout.flatten(init_siren(siren, torch.Generator().manual_seed(0))), layout, siren, vol, t,
-                     lights[:1], FitConfig(steps=300, points=2048, chunk=512), **quiet)[0]
-    fine = FitConfig(steps=150, points=2048, chunk=512)
+                     lights[:1], FitConfig.from_config(dict(steps=300, points=2048, chunk=512)), **quiet)[0]
+    fine = FitConfig.from_config(dict(steps=150, points=2048, chunk=512))
     good = fit_sirens(pre, layout, siren, vol, t, lights, fine, light_index=[4, 5, 6], **quiet)
     box, _ = evaluate_psnr(good, layout, siren, vol, t, lights, n_points=4096, seed=1)
     check_psnr(box, [4, 5, 6], 20.0, "nucleon at fit.lr")
@@ -104,7 +105,8 @@ def test_an_exact_init_thrown_off_by_a_huge_step_is_reported():
     p["last.weight"].zero_()
     p["last.bias"].fill_(1.0)  # ½ (0·x + 1) + ½ = 1 everywhere
     with pytest.raises(FitError, match=r"fit diverged: .*light 11: 1.*e-1\d -> .*lower fit.lr \(now 1.0\)"):
-        fit_sirens(LAYOUT.flatten(p), LAYOUT, SIREN, vol, t, LIGHTS, FitConfig(steps=30, points=256, lr=1.0),
+        fit_sirens(LAYOUT.flatten(p), LAYOUT, SIREN, vol, t, LIGHTS,
+                   FitConfig.from_config(dict(steps=30, points=256, lr=1.0)),
                    light_index=INDEX, log=lambda *a: None)
 
 
@@ -118,5 +120,6 @@ def test_constant_targets_are_fitted_closely():
     # g = 0 is not constant near the faces the light enters through: a step there, hence the lower bar
     for kind, bar in (("constant_one", 30.0), ("constant_zero", 20.0)):
         vol, t = target_volume(kind)
-        w, box = fit_and_check(vol, t, FitConfig(steps=100, points=256, lr=1e-2, target="transmittance"))
+        w, box = fit_and_check(vol, t, FitConfig.from_config(dict(steps=100, points=256, lr=1e-2,
+                                                                        target="transmittance")))
         assert box.min() > bar, (kind, box)

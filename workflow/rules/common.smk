@@ -1,34 +1,25 @@
-# Per-scene configuration and path helpers shared by the rules (look-ups only, no logic).
+# Per-scene configuration and path helpers shared by the rules (look-ups only: the merge and its
+# validation are diffshadow.config's, the same for the CLI and Parsl).
 import json
 
-import yaml
-from snakemake.utils import validate
+from diffshadow.config import as_json as _as_json
+from diffshadow.config import scene_config as _scene_config
+from diffshadow.lights import n_subsets as _n_subsets
 
-SECTIONS = ("lights", "siren", "subset_size", "preoptimize", "fit", "diffusion", "finetune", "data_inr", "render")
 _SCENES = {}
+DEVICE = config.get("device", "auto")  # passed as --config-device: --device and DIFFSHADOW_DEVICE win
 
 
 def scene_config(scene):
-    """config/scenes/<scene>.yaml over the defaults, validated (a typo fails at parse time)."""
+    """config/scenes/<scene>.yaml over the run's config, validated (a typo fails at parse time)."""
     if scene not in _SCENES:
-        path = os.path.join(workflow.basedir, "config", "scenes", f"{scene}.yaml")
-        if not os.path.exists(path):
-            raise ValueError(f"scene {scene!r}: no file {path}")
-        with open(path) as f:
-            own = yaml.safe_load(f) or {}
-        validate(own, os.path.join(workflow.basedir, "workflow", "schemas", "scene.schema.yaml"))
-        merged = {k: config[k] for k in SECTIONS}
-        for key, value in own.items():
-            merged[key] = {**merged[key], **value} if isinstance(merged.get(key), dict) else value
-        validate({**{k: merged[k] for k in SECTIONS}, "scenes": config["scenes"]},
-                 os.path.join(workflow.basedir, "workflow", "schemas", "config.schema.yaml"))
-        _SCENES[scene] = merged
+        _SCENES[scene] = _scene_config(config, scene, scenes_dir=os.path.join(workflow.basedir, "config", "scenes"))
     return _SCENES[scene]
 
 
 def n_subsets(scene):
     cfg = scene_config(scene)
-    return -(-cfg["lights"]["count"] // cfg["subset_size"])
+    return _n_subsets(cfg["lights"]["count"], cfg["subset_size"])
 
 
 def subset_files(wildcards):
@@ -38,8 +29,7 @@ def subset_files(wildcards):
 
 def as_json(scene, *keys):
     """The config sections a rule depends on, as one JSON argument (and its params: rerun trigger)."""
-    cfg = scene_config(scene)
-    return json.dumps({k: cfg[k] for k in keys}, sort_keys=True)
+    return _as_json(scene_config(scene), *keys)
 
 
 def sampler_checkpoint(wildcards):

@@ -12,7 +12,7 @@ rule train_data_inr:
     log:
         "results/{scene}/logs/train_data_inr.log",
     shell:
-        "diffshadow train-data-inr --volume {input.volume} --config-json {params.cfg:q} --threads {threads}"
+        "diffshadow train-data-inr --volume {input.volume} --config-json {params.cfg:q} --config-device {DEVICE} --threads {threads}"
         " --out {output} 2>&1 | tee {log}"
 
 
@@ -34,7 +34,7 @@ rule evaluate_images:
     shell:
         "diffshadow evaluate-images --volume {input.volume} --lights {input.lights} --data-inr {input.data_inr}"
         " --weights {input.weights} --generated {input.generated} --config-json {params.cfg:q}"
-        " --images {output.images} --threads {threads} --out {output.metrics} 2>&1 | tee {log}"
+        " --images {output.images} --config-device {DEVICE} --threads {threads} --out {output.metrics} 2>&1 | tee {log}"
 
 
 rule benchmark:
@@ -59,5 +59,5 @@ rule benchmark:
         "results/{scene}/logs/benchmark.log",
     shell:
         "diffshadow bench render --volume {input.volume} --data-inr {input.data_inr} --weights {input.weights}"
-        " --sizes {params.sizes} --step {params.step} --repeats {params.repeats} --threads {threads}"
+        " --sizes {params.sizes} --step {params.step} --repeats {params.repeats} --config-device {DEVICE} --threads {threads}"
         " --out {output.bench} 2>&1 | tee {log}"

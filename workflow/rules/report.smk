@@ -33,5 +33,6 @@ rule report_figures:
     log:
         "results/{scene}/logs/report_figures.log",
     shell:
-        "diffshadow report-figures --results results/{wildcards.scene} --config-json {params.cfg:q}"
+        "diffshadow report-figures --results results/{wildcards.scene} --checkpoint {input.checkpoint}"
+        " --config-json {params.cfg:q}"
         " --threads {threads} --out-dir results/{wildcards.scene}/report 2>&1 | tee {log}"

@@ -24,7 +24,7 @@ rule preoptimize:
         "results/{scene}/logs/preoptimize.log",
     shell:
         "diffshadow preoptimize --volume {input.volume} --lights {input.lights} --config-json {params.cfg:q}"
-        " --threads {threads} --out {output} 2>&1 | tee {log}"
+        " --config-device {DEVICE} --threads {threads} --out {output} 2>&1 | tee {log}"
 
 
 rule fit_siren:
@@ -43,7 +43,7 @@ rule fit_siren:
         "results/{scene}/logs/fit_siren_{subset}.log",
     shell:
         "diffshadow fit-siren --volume {input.volume} --lights {input.lights} --init {input.init}"
-        " --subset {wildcards.subset} --config-json {params.cfg:q} --threads {threads} --out {output}"
+        " --subset {wildcards.subset} --config-json {params.cfg:q} --config-device {DEVICE} --threads {threads} --out {output}"
         " 2>&1 | tee {log}"
 
 

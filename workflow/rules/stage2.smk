@@ -12,7 +12,7 @@ rule presample:
     threads: 2
     shell:
         "diffshadow presample --volume {input.volume} --lights {input.lights} --config-json {params.cfg:q}"
-        " --threads {threads} --out {output}"
+        " --config-device {DEVICE} --threads {threads} --out {output}"
 
 
 rule train_diffusion:
@@ -28,7 +28,7 @@ rule train_diffusion:
         "results/{scene}/logs/train_diffusion.log",
     shell:
         "diffshadow train-diffusion --weights {input.weights} --points {input.points}"
-        " --config-json {params.cfg:q} --threads {threads} --out {output} 2>&1 | tee {log}"
+        " --config-json {params.cfg:q} --config-device {DEVICE} --threads {threads} --out {output} 2>&1 | tee {log}"
 
 
 rule sample_shadows:
@@ -43,7 +43,7 @@ rule sample_shadows:
         "results/{scene}/logs/sample_shadows.log",
     shell:
         "diffshadow sample-shadows --checkpoint {input.checkpoint} --volume {input.volume}"
-        " --lights {input.lights} --threads {threads} --out {output} 2>&1 | tee {log}"
+        " --lights {input.lights} --config-device {DEVICE} --threads {threads} --out {output} 2>&1 | tee {log}"
 
 
 rule evaluate_voxels:
@@ -78,7 +78,7 @@ rule render_targets:
         "results/{scene}/logs/render_targets.log",
     shell:
         "diffshadow render-targets --volume {input.volume} --lights {input.lights} --config-json {params.cfg:q}"
-        " --threads {threads} --out {output} 2>&1 | tee {log}"
+        " --config-device {DEVICE} --threads {threads} --out {output} 2>&1 | tee {log}"
 
 
 rule finetune_render:
@@ -100,7 +100,9 @@ rule finetune_render:
     log:
         "results/{scene}/logs/finetune_render.log",
     shell:
-        "{params.launcher} --nproc_per_node={params.nproc} -m diffshadow.cli finetune-render"
+        # no more processes than the device takes (one per GPU on CUDA), said in one line
+        "n=$(diffshadow ddp-processes --nproc {params.nproc} --config-device {DEVICE}) &&"
+        " {params.launcher} --nproc_per_node=$n -m diffshadow.cli finetune-render"
         " --checkpoint {input.checkpoint} --weights {input.weights} --points {input.points}"
-        " --targets {input.targets} --config-json {params.cfg:q} --threads 1 --metrics {output.metrics}"
-        " --out {output.checkpoint} 2>&1 | tee {log}"
+        " --targets {input.targets} --config-json {params.cfg:q} --config-device {DEVICE} --threads 1"
+        " --metrics {output.metrics} --out {output.checkpoint} 2>&1 | tee {log}"

@@ -20,7 +20,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from diffshadow.io import atomic_path, atomic_write_text
+from diffshadow.io import atomic_path, atomic_write_text, finite_json
 from diffshadow.metrics import foreground, image_psnr
 from diffshadow.render import DEFAULT_STEP, Camera, RenderScene
 
@@ -208,15 +208,6 @@ def _memory_pass(scene: RenderScene, siren, light, sizes: list[int], step: float
     return out
 
 
-def finite_json(value):
-    """JSON has no infinity: an exact match (PSNR +inf) is written as the string "inf"."""
-    if isinstance(value, dict):
-        return {k: finite_json(v) for k, v in value.items()}
-    if isinstance(value, list | tuple):
-        return [finite_json(v) for v in value]
-    if isinstance(value, float) and not np.isfinite(value):
-        return str(value)
-    return value
 
 
 def write_bench(path: Path, results: dict) -> None:
@@ -255,3 +246,67 @@ def _plot(results: dict, path: Path) -> None:
         fig.savefig(tmp, format="png", dpi=100)
     plt.close(fig)
 
+
+
+def run(out: Path, *, scene_config: Path | None = None, volume: Path | None = None, tf_config: dict | None = None,
+        data_inr: Path | None = None, inr_steps: int = 600, weights: Path | None = None, light_index: int = 0,
+        siren_width: int = 32, siren_steps: int = 300, sizes=(64, 128), step: float = 0.5, repeats: int = 3,
+        device: torch.device | str = "cpu") -> dict:
+    """`diffshadow bench render`: a scene (scene file, prepared volume, or raw file with the bench TF), its data
+    INR and one shadow INR (given, or fitted here), then `bench_render`; writes JSON and a plot."""
+    import dataclasses
+
+    from diffshadow.artifacts import load_data_inr
+    from diffshadow.bench import BENCH_LIGHT, BENCH_TF
+    from diffshadow.config import read_yaml
+    from diffshadow.data_inr import DataInrConfig, fit_data_inr
+    from diffshadow.fit import FitConfig, fit_sirens
+    from diffshadow.sampling import seeded
+    from diffshadow.siren import SirenConfig, WeightLayout, init_siren
+    from diffshadow.stages.images import render_scene
+    from diffshadow.store import open_store
+    from diffshadow.transfer import TransferFunction
+    from diffshadow.volume import load_volume
+
+    if scene_config:
+        sc = read_yaml(scene_config)
+        for key in ("volume", "transfer_function"):
+            if key not in sc:
+                raise ValueError(f"{scene_config}: missing key {key!r}")
+        vol = load_volume(sc["volume"], **sc.get("load", {}))
+        scene = RenderScene(vol, TransferFunction.from_config(sc["transfer_function"]), device=device)
+        name = Path(scene_config).stem
+    elif volume:
+        from diffshadow.artifacts import is_prepared
+
+        tf = tf_config if tf_config is not None or is_prepared(volume) else BENCH_TF
+        scene = render_scene(volume, None, device, tf)
+        name = scene.volume.name
+    else:
+        raise ValueError("bench render: give --scene-config FILE or --volume PATH")
+    if data_inr:
+        scene.data_inr = load_data_inr(data_inr)
+    else:
+        print(f"[bench render] fitting a data INR ({inr_steps} steps; pass --data-inr to reuse one) ...")
+        scene.data_inr = fit_data_inr(scene.volume, scene.tf, DataInrConfig.from_config({"steps": inr_steps}),
+                                      device=device, log=lambda m: None)
+    if weights:
+        store = open_store(weights)
+        siren = (store.weights[light_index], store.layout, store.siren.blocks)
+        light = store.lights[light_index]
+    else:
+        cfg = SirenConfig(siren_width, 2)
+        layout = WeightLayout.for_siren(cfg)
+        light = np.asarray(BENCH_LIGHT, float) / np.linalg.norm(BENCH_LIGHT)
+        print(f"[bench render] fitting a shadow INR ({siren_steps} steps; pass --weights to reuse one) ...")
+        fit = dataclasses.replace(FitConfig.from_config(), steps=siren_steps, grid_upsample=1, chunk=4096)
+        w = fit_sirens(layout.flatten(init_siren(cfg, seeded(0))), layout, cfg, scene.volume, scene.tf,
+                       light[None], fit, device=device, log=lambda m: None)[0]
+        siren = (w, layout, cfg.blocks)
+    results = bench_render(scene, siren, light, sizes=sizes, step=step, repeats=repeats)
+    results.update({"scene": name, "dims": list(scene.volume.dims),
+                    "data_inr": {"params": scene.data_inr.n_params, "psnr": scene.data_inr.psnr},
+                    "shadow_inr": {"params": int(siren[1].n_params)}})
+    write_bench(Path(out), results)
+    print(f"wrote {out} and {Path(out).with_suffix('.png')}")
+    return results

@@ -16,11 +16,9 @@ DDP's gradient average equals the single-process gradient of the same global bat
 
 from __future__ import annotations
 
-import datetime
 import hashlib
 import json
 import math
-import os
 import time
 from dataclasses import asdict, dataclass
 from pathlib import Path
@@ -28,19 +26,21 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from diffshadow.config import section
+from diffshadow.diffusion.sample import generate, load_sampler
 from diffshadow.diffusion.schedule import Schedule
-from diffshadow.diffusion.train import DiffusionConfig, Standardizer, TrainingData, build_model, generate
-from diffshadow.fit import seeded
-from diffshadow.io import atomic_torch_save
+from diffshadow.diffusion.train import DiffusionConfig, Standardizer, TrainingData, build_model
+from diffshadow.grid import ray_span
+from diffshadow.io import atomic_torch_save, resume
 from diffshadow.lights import fibonacci_sphere
 from diffshadow.render import (
     BACKGROUND,
     Camera,
     GridScalar,
     RenderScene,
-    _ray_box,
     front_to_back,
 )
+from diffshadow.sampling import seeded
 from diffshadow.siren import BatchedSiren, WeightLayout, box_to_siren
 from diffshadow.transfer import TransferFunction
 from diffshadow.volume import Volume
@@ -48,28 +48,25 @@ from diffshadow.volume import Volume
 
 @dataclass(frozen=True)
 class FinetuneConfig:
-    enabled: bool = True
-    views: int = 3  # authors 7 (Fibonacci views, fov 60°)
-    image_size: int = 64  # paper 128
-    fov: float = 60.0
-    pixels: int = 24  # random foreground pixels per view per light per step (paper 24 of 128²)
-    render_weight: float = 1.0
-    epochs: int = 60  # paper 2000
-    lr: float = 3e-5  # paper 2e-4: too high after our geometry stage (README)
-    batch_size: int = 16  # global, over all ranks
-    nproc: int = 2  # DDP processes (local: CPU + gloo; Polaris: 4 GPUs + NCCL)
-    checkpoint_every: int = 10
-    step: float = 0.5  # renderer step (voxels)
-    timeout_s: int = 120  # collective timeout: a dead rank ends the job instead of hanging it
-    seed: int = 0
+    enabled: bool
+    views: int  # authors 7 (Fibonacci views, fov 60°)
+    image_size: int  # paper 128
+    fov: float
+    pixels: int  # random foreground pixels per view per light per step (paper 24 of 128²)
+    render_weight: float
+    epochs: int  # paper 2000
+    lr: float  # paper 2e-4: too high after our geometry stage (README)
+    batch_size: int  # global, over all ranks
+    nproc: int  # DDP processes (local: CPU + gloo; Polaris: 4 GPUs + NCCL)
+    checkpoint_every: int
+    step: float  # renderer step (voxels)
+    timeout_s: int  # collective timeout: a dead rank ends the job instead of hanging it
+    seed: int
 
     @classmethod
-    def from_config(cls, d: dict) -> FinetuneConfig:
-        unknown = set(d) - set(cls.__dataclass_fields__)
-        if unknown:
-            raise ValueError(f"finetune config: unknown key(s) {sorted(unknown)}; known: "
-                             f"{sorted(cls.__dataclass_fields__)}")
-        return cls(**d)
+    def from_config(cls, d: dict | None = None) -> FinetuneConfig:
+        """config.yaml's `finetune` section overridden by `d`."""
+        return section(cls, "finetune", d)
 
 
 def fibonacci_views(extent, n: int, *, size: int, fov: float = 60.0, distance: float = 2.2) -> list[Camera]:
@@ -111,7 +108,7 @@ def view_samples(volume: Volume, tf: TransferFunction, camera: Camera, *, step: 
     pix_all, pts_all, wc_all, base_all = [], [], [], []
     for r0 in range(0, len(o), chunk):
         oc, dc = o[r0:r0 + chunk], d[r0:r0 + chunk]
-        t0, t1 = _ray_box(oc, dc, extent)
+        t0, t1 = ray_span(oc, dc, extent)
         n = int(torch.ceil(((t1 - t0).clamp_min(0) / dt).max()).item()) + 1 if bool((t0 < t1).any()) else 1
         t = t0[:, None] + (torch.arange(n) + 0.5) * dt
         valid = t < t1[:, None]
@@ -164,9 +161,10 @@ def bundle_colors(bundle: RayBundle, g: torch.Tensor, view_idx: torch.Tensor, pi
 
 
 def render_targets(volume: Volume, tf: TransferFunction, lights: np.ndarray, cameras: list[Camera], *,
-                   step: float, log=print) -> torch.Tensor:
-    """Ground-truth images (L, V, H, W, 3) by the renderer's `gt` mode (early termination far below 8 bits)."""
-    scene = RenderScene(volume, tf)
+                   step: float, device: torch.device | str = "cpu", log=print) -> torch.Tensor:
+    """Ground-truth images (L, V, H, W, 3) on the CPU, rendered on `device` by the renderer's `gt` mode
+    (early termination far below 8 bits)."""
+    scene = RenderScene(volume, tf, device=device)
     out = torch.zeros(len(lights), len(cameras), cameras[0].height, cameras[0].width, 3)
     t0 = time.perf_counter()
     for i, w in enumerate(lights):
@@ -247,30 +245,15 @@ def fingerprint(state: dict, cfg: FinetuneConfig, data: FinetuneData) -> str:
     return h.hexdigest()
 
 
-def init_distributed(cfg: FinetuneConfig, device_arg: str | None) -> tuple[int, int, torch.device]:
-    """(rank, world size, device) under torchrun, or (0, 1, device) when run alone."""
-    world = int(os.environ.get("WORLD_SIZE", "1"))
-    rank = int(os.environ.get("RANK", "0"))
-    want_cuda = (device_arg or "").startswith("cuda") or (device_arg is None and torch.cuda.is_available())
-    if want_cuda:
-        device = torch.device("cuda", int(os.environ.get("LOCAL_RANK", "0")))
-        torch.cuda.set_device(device)
-    else:
-        device = torch.device(device_arg or "cpu")
-    if world > 1:
-        import torch.distributed as dist
-
-        dist.init_process_group("nccl" if device.type == "cuda" else "gloo",
-                                timeout=datetime.timedelta(seconds=cfg.timeout_s))
-    return rank, world, device
 
 
 def finetune(geometry_state: dict, data: FinetuneData, cfg: FinetuneConfig, checkpoint: Path, *,
-             rank: int = 0, world: int = 1, device=None, log=print, stop_after_epoch: int | None = None) -> dict:
+             rank: int = 0, world: int = 1, device: torch.device | str = "cpu",
+             log=print, stop_after_epoch: int | None = None) -> dict:
     """Fine-tune from the geometry-stage checkpoint state; resumable; only rank 0 writes."""
     import torch.distributed as dist
 
-    device = torch.device(device or "cpu")
+    device = torch.device(device)
     dcfg = DiffusionConfig.from_config(geometry_state["config"])
     layout = WeightLayout.from_config(geometry_state["layout"])
     torch.manual_seed(cfg.seed)
@@ -281,15 +264,11 @@ def finetune(geometry_state: dict, data: FinetuneData, cfg: FinetuneConfig, chec
     opt = torch.optim.AdamW(base.parameters(), lr=cfg.lr, weight_decay=dcfg.weight_decay)
     fp = fingerprint(geometry_state, cfg, data)
     start = 0
-    if checkpoint.exists():
-        state = torch.load(checkpoint, map_location=device, weights_only=False)
-        if state.get("finetune_fingerprint") == fp:
-            base.load_state_dict(state["model"])
-            opt.load_state_dict(state["optimizer"])
-            start = int(state["finetune_epoch"])
-            log(f"rank {rank}: resuming from {checkpoint} at epoch {start}/{cfg.epochs}")
-        else:
-            log(f"rank {rank}: ignoring {checkpoint}: it belongs to another configuration")
+    if state := resume(checkpoint, fp, log=log, map_location=device, key="finetune_fingerprint"):
+        base.load_state_dict(state["model"])
+        opt.load_state_dict(state["optimizer"])
+        start = int(state["finetune_epoch"])
+        log(f"rank {rank}: resuming from {checkpoint} at epoch {start}/{cfg.epochs}")
     model = base
     if world > 1:
         from torch.nn.parallel import DistributedDataParallel
@@ -368,10 +347,9 @@ def _peak_memory(device: torch.device) -> int:
 
 
 @torch.no_grad()
-def image_psnr_of_model(state: dict, data: FinetuneData, *, device=None, chunk: int = 512) -> np.ndarray:
+def image_psnr_of_model(state: dict, data: FinetuneData, *,
+                        device: torch.device | str = "cpu", chunk: int = 512) -> np.ndarray:
     """Per training light: foreground image PSNR (all target views) of the DDIM-generated shadow SIREN."""
-    from diffshadow.diffusion.train import load_sampler
-
     model, std, layout, siren_cfg = load_sampler(state, device)
     dcfg = DiffusionConfig.from_config(state["config"])
     lights = data.train.lights.numpy()
@@ -396,37 +374,3 @@ def image_psnr_of_model(state: dict, data: FinetuneData, *, device=None, chunk: 
                 count += color.numel()
         out.append(10 * math.log10(1.0 / max(se / max(count, 1), 1e-30)))
     return np.asarray(out)
-
-
-# ------------------------------------------------------------------------------------------------- I/O
-
-
-def write_targets(path, images: torch.Tensor, bundle: RayBundle, cameras: list[Camera], lights: np.ndarray,
-                  *, step: float, extent) -> None:
-    from diffshadow.store import write_zarr_group
-
-    def fill(root) -> None:
-        root.create_array("images", data=images.numpy(), chunks=(1, *images.shape[1:]))
-        for name in ("pix", "pts", "wc", "base", "count"):
-            root.create_array(f"bundle_{name}", data=getattr(bundle, name).numpy())
-        root.create_array("lights", data=np.asarray(lights))
-        root.attrs.update({"step": step, "extent": np.asarray(extent).tolist(),
-                           "cameras": [{"eye": c.eye, "target": c.target, "up": c.up, "fov": c.fov,
-                                        "width": c.width, "height": c.height} for c in cameras]})
-
-    write_zarr_group(path, fill)
-
-
-def read_targets(path) -> tuple[torch.Tensor, RayBundle, np.ndarray]:
-    """(images (L, V, H·W, 3), bundle, lights) from `render_targets`' targets.zarr."""
-    import zarr
-
-    try:
-        root = zarr.open_group(str(path), mode="r")
-        images = torch.as_tensor(np.asarray(root["images"][...]))
-        bundle = RayBundle(*(torch.as_tensor(np.asarray(root[f"bundle_{k}"][...]))
-                             for k in ("pix", "pts", "wc", "base", "count")))
-        lights = np.asarray(root["lights"][...])
-    except (FileNotFoundError, KeyError) as e:
-        raise ValueError(f"{path}: not a targets store from render_targets (missing {e})") from None
-    return images.reshape(images.shape[0], images.shape[1], -1, 3), bundle, lights

@@ -1,0 +1,190 @@
+"""Every file the stages pass to each other, in one place (DESIGN.md §3), each written atomically:
+
+| file | written by | here |
+|---|---|---|
+| `volume.zarr` | prepare_volume | `save_prepared` / `load_prepared`: normalised grid, box, TF |
+| `siren_init.pt` | preoptimize | `save_siren_init` / `load_siren_init`: the shared initial SIREN |
+| `sirens/subset_N.npz`, `weights.zarr`, `generated.zarr` | fit_siren, collect_weights, sample_shadows | `store` |
+| `geometry_points.zarr` | presample | `write_geometry_points` / `read_training_data` |
+| `diffusion_geometry.ckpt`, `diffusion.ckpt` | train_diffusion, finetune_render | `load_checkpoint` |
+| `targets.zarr` | render_targets | `write_targets` / `read_targets` |
+| `data_inr.pt` | train_data_inr | `save_data_inr` / `load_data_inr` |
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from diffshadow.data_inr import DataInr
+from diffshadow.diffusion.finetune import RayBundle
+from diffshadow.diffusion.train import TrainingData
+from diffshadow.io import atomic_torch_save, write_zarr_group
+from diffshadow.render import Camera
+from diffshadow.siren import Siren, SirenConfig, WeightLayout
+from diffshadow.store import WeightStore, open_store
+from diffshadow.transfer import TransferFunction
+from diffshadow.volume import Volume, VolumeError
+
+
+class ArtifactError(ValueError):
+    """A stage's input file that is missing or is not what that stage writes; the message names it."""
+
+
+# --------------------------------------------------------------------------------------- prepared volume
+
+
+def save_prepared(path: str | Path, volume: Volume, tf: TransferFunction) -> None:
+    """`prepare_volume`'s output: the normalised grid, its box and the TF (Zarr v3)."""
+
+    def fill(root) -> None:
+        root.create_array("scalar", data=volume.data)
+        root.attrs.update({"extent": volume.extent.tolist(), "name": volume.name,
+                           "transfer_function": tf.to_config()})
+
+    write_zarr_group(path, fill)
+
+
+def load_prepared(path: str | Path) -> tuple[Volume, TransferFunction]:
+    """(Volume, TransferFunction) from `prepare_volume`'s Zarr store."""
+    import zarr
+
+    path = Path(path)
+    try:
+        root = zarr.open_group(str(path), mode="r")
+        attrs = dict(root.attrs)
+        volume = Volume(data=np.asarray(root["scalar"][...], dtype=np.float32),
+                        extent=np.asarray(attrs["extent"], dtype=np.float64), name=attrs["name"])
+        return volume, TransferFunction.from_config(attrs["transfer_function"])
+    except (FileNotFoundError, KeyError) as e:
+        raise VolumeError(f"{path}: not a prepared volume (missing {e})") from None
+
+
+def is_prepared(path: str | Path) -> bool:
+    return Path(path).suffix == ".zarr" and (Path(path) / "zarr.json").exists()
+
+
+# ------------------------------------------------------------------------------------- shared initial SIREN
+
+
+def save_siren_init(path: str | Path, weights: torch.Tensor, layout: WeightLayout, siren: SirenConfig) -> None:
+    atomic_torch_save(path, {"weights": weights, "layout": layout.to_config(), "siren": siren.to_config()})
+
+
+def load_siren_init(path: str | Path, layout: WeightLayout) -> torch.Tensor:
+    """The flat initial weights; refused when they were fitted for another SIREN layout."""
+    try:
+        state = torch.load(path, map_location="cpu", weights_only=True)
+    except FileNotFoundError:
+        raise ArtifactError(f"{path}: no such file (preoptimize's siren_init.pt)") from None
+    if state.get("layout") != layout.to_config():
+        raise ArtifactError(f"{path}: SIREN layout differs from the config's siren settings; rerun preoptimize")
+    return state["weights"]
+
+
+# ---------------------------------------------------------------------------------------- geometry points
+
+
+def write_geometry_points(path: str | Path, points: torch.Tensor, values: torch.Tensor, lights: np.ndarray,
+                          extent) -> None:
+    """`presample`'s points (N, M, 3) and true shadow (N, M) per training light, one light per chunk."""
+
+    def fill(root) -> None:
+        root.create_array("points", data=points.numpy(), chunks=(1, *points.shape[1:]))
+        root.create_array("values", data=values.numpy(), chunks=(1, values.shape[1]))
+        root.create_array("lights", data=lights)
+        root.attrs.update({"extent": np.asarray(extent).tolist()})
+
+    write_zarr_group(path, fill)
+
+
+def read_training_data(weights_path: str | Path, points_path: str | Path) -> tuple[TrainingData, WeightStore]:
+    """The diffusion model's training set: the weight store with the presampled geometry points."""
+    import zarr
+
+    store = open_store(weights_path)
+    try:
+        geo = zarr.open_group(str(points_path), mode="r")
+        geo_lights = np.asarray(geo["lights"][...])
+        points, values = np.asarray(geo["points"][...]), np.asarray(geo["values"][...])
+        extent = geo.attrs["extent"]
+    except (FileNotFoundError, KeyError) as e:
+        raise ArtifactError(f"{points_path}: not presample's geometry points (missing {e})") from None
+    if geo_lights.shape != store.lights.shape or not np.allclose(geo_lights, store.lights):
+        raise ArtifactError(f"{points_path}: its lights differ from {weights_path}'s; rerun presample")
+    data = TrainingData(weights=torch.as_tensor(store.weights), lights=torch.as_tensor(store.lights),
+                        points=torch.as_tensor(points), values=torch.as_tensor(values),
+                        extent=torch.as_tensor(extent, dtype=torch.float32), layout=store.layout, siren=store.siren)
+    return data, store
+
+
+# -------------------------------------------------------------------------------------------- checkpoints
+
+
+def load_checkpoint(path: str | Path) -> dict:
+    """A diffusion checkpoint (train_diffusion's or finetune_render's), on the CPU."""
+    try:
+        state = torch.load(path, map_location="cpu", weights_only=False)
+    except FileNotFoundError:
+        raise ArtifactError(f"{path}: no such checkpoint") from None
+    if not isinstance(state, dict) or not {"model", "standardizer", "layout", "config"} <= set(state):
+        raise ArtifactError(f"{path}: not a diffusion checkpoint (train_diffusion or finetune_render)")
+    return state
+
+
+# ---------------------------------------------------------------------------------------- rendering targets
+
+
+def write_targets(path, images: torch.Tensor, bundle: RayBundle, cameras: list[Camera], lights: np.ndarray,
+                  *, step: float, extent) -> None:
+    """`render_targets`' gt images per light × view, and each view's light-independent ray samples."""
+
+    def fill(root) -> None:
+        root.create_array("images", data=images.numpy(), chunks=(1, *images.shape[1:]))
+        for name in ("pix", "pts", "wc", "base", "count"):
+            root.create_array(f"bundle_{name}", data=getattr(bundle, name).numpy())
+        root.create_array("lights", data=np.asarray(lights))
+        root.attrs.update({"step": step, "extent": np.asarray(extent).tolist(),
+                           "cameras": [{"eye": c.eye, "target": c.target, "up": c.up, "fov": c.fov,
+                                        "width": c.width, "height": c.height} for c in cameras]})
+
+    write_zarr_group(path, fill)
+
+
+def read_targets(path) -> tuple[torch.Tensor, RayBundle, np.ndarray]:
+    """(images (L, V, H·W, 3), bundle, lights) from `render_targets`' targets.zarr."""
+    import zarr
+
+    try:
+        root = zarr.open_group(str(path), mode="r")
+        images = torch.as_tensor(np.asarray(root["images"][...]))
+        bundle = RayBundle(*(torch.as_tensor(np.asarray(root[f"bundle_{k}"][...]))
+                             for k in ("pix", "pts", "wc", "base", "count")))
+        lights = np.asarray(root["lights"][...])
+    except (FileNotFoundError, KeyError) as e:
+        raise ArtifactError(f"{path}: not a targets store from render_targets (missing {e})") from None
+    return images.reshape(images.shape[0], images.shape[1], -1, 3), bundle, lights
+
+
+def save_data_inr(path, inr: DataInr) -> None:
+    state = {"weights": inr.model.flat().detach().cpu(), "layout": inr.model.layout.to_config(),
+             "siren": inr.model.cfg.to_config(), "extent": np.asarray(inr.extent).tolist(), "psnr": inr.psnr,
+             "max_error": inr.max_error, "config": inr.config,
+             "cell_lo": torch.as_tensor(inr.cell_lo), "cell_hi": torch.as_tensor(inr.cell_hi)}
+    atomic_torch_save(path, state)
+
+
+def load_data_inr(path) -> DataInr:
+    path = Path(path)
+    try:
+        state = torch.load(path, map_location="cpu", weights_only=True)
+        layout = WeightLayout.from_config(state["layout"])
+        model = Siren.from_flat(state["weights"], layout, SirenConfig.from_config(state["siren"]))
+        return DataInr(model, np.asarray(state["extent"]), float(state["psnr"]), float(state["max_error"]),
+                       dict(state["config"]), state["cell_lo"].numpy(), state["cell_hi"].numpy())
+    except FileNotFoundError:
+        raise ValueError(f"{path}: no such data INR file (train_data_inr's data_inr.pt)") from None
+    except (KeyError, RuntimeError, TypeError) as e:
+        raise ValueError(f"{path}: not a data INR file ({e})") from None

@@ -1,0 +1,128 @@
+"""The one configuration: `config/config.yaml` is the only source of run defaults, a scene file
+(`config/scenes/<scene>.yaml`) overrides its sections, and the merge is validated once against
+`workflow/schemas/` — for Snakemake (`workflow/rules/common.smk`), Parsl and the CLI alike.
+
+Config dataclasses (`FitConfig`, `DiffusionConfig`, ...) declare fields without defaults; `section`
+fills them from `config.yaml` and rejects unknown keys, naming the section.
+"""
+
+from __future__ import annotations
+
+import functools
+import json
+from pathlib import Path
+from typing import Any, TypeVar
+
+import yaml
+
+ROOT = Path(__file__).resolve().parents[1]
+DEFAULTS_FILE = ROOT / "config" / "config.yaml"
+SCHEMAS = ROOT / "workflow" / "schemas"
+# the sections a scene file may override (everything in config.yaml but the run-wide keys)
+SECTIONS = ("lights", "siren", "subset_size", "preoptimize", "fit", "diffusion", "finetune", "data_inr", "render")
+
+T = TypeVar("T")
+
+
+class ConfigError(ValueError):
+    """A configuration file or key that is missing or wrong; the message names the file and the key."""
+
+
+def read_yaml(path: str | Path) -> dict:
+    path = Path(path)
+    if not path.is_file():
+        raise ConfigError(f"{path}: no such file")
+    try:
+        value = yaml.safe_load(path.read_text()) or {}
+    except yaml.YAMLError as e:
+        raise ConfigError(f"{path}: not valid YAML ({str(e).splitlines()[0]})") from None
+    if not isinstance(value, dict):
+        raise ConfigError(f"{path}: expected a mapping of keys, got {type(value).__name__}")
+    return value
+
+
+@functools.cache
+def defaults() -> dict:
+    """config/config.yaml of this checkout: every run default."""
+    if not DEFAULTS_FILE.is_file():
+        raise ConfigError(f"{DEFAULTS_FILE}: missing; diffshadow reads its defaults from the repository's "
+                          f"config/config.yaml (install with `pip install -e .` from a clone)")
+    return read_yaml(DEFAULTS_FILE)
+
+
+def check_keys(cls: type, name: str, values: dict) -> set[str]:
+    """The fields of dataclass `cls`; a key of `values` that is none of them is an error naming `name`."""
+    known = set(cls.__dataclass_fields__)
+    unknown = set(values) - known
+    if unknown:
+        raise ConfigError(f"{name}: unknown key(s) {sorted(unknown)}; known: {sorted(known)}")
+    return known
+
+
+def section(cls: type[T], name: str, values: dict | None = None) -> T:
+    """`cls` built from config.yaml's section `name`, overridden by `values`; unknown keys are an error."""
+    values = dict(values or {})
+    known = check_keys(cls, name, values)
+    base = {k: v for k, v in defaults().get(name, {}).items() if k in known}
+    missing = known - set(base) - set(values)
+    if missing:
+        raise ConfigError(f"{name}: no value for {sorted(missing)} in {DEFAULTS_FILE} or the given settings")
+    return cls(**{**base, **values})
+
+
+def _validate(value: dict, schema_file: str, where: str) -> None:
+    """jsonschema validation with a one-line error naming `where` and the key path."""
+    import jsonschema
+
+    schema = read_yaml(SCHEMAS / schema_file)
+    error = jsonschema.exceptions.best_match(jsonschema.Draft202012Validator(schema).iter_errors(value))
+    if error is not None:
+        key = ".".join(str(p) for p in error.absolute_path) or "(top level)"
+        raise ConfigError(f"{where}: key {key}: {error.message}")
+
+
+def merge(base: dict, own: dict) -> dict:
+    """`own`'s sections over `base`'s, one level deep (a section is merged key by key)."""
+    merged = dict(base)
+    for key, value in own.items():
+        merged[key] = {**merged[key], **value} if isinstance(merged.get(key), dict) else value
+    return merged
+
+
+def scene_config(run: dict, scene: str, *, scenes_dir: str | Path | None = None) -> dict:
+    """The scene file over the run's sections, validated: what every stage of `scene` runs with."""
+    path = Path(scenes_dir or ROOT / "config" / "scenes") / f"{scene}.yaml"
+    if not path.is_file():
+        raise ConfigError(f"scene {scene!r}: no file {path}")
+    own = read_yaml(path)
+    _validate(own, "scene.schema.yaml", str(path))
+    merged = merge({k: run[k] for k in SECTIONS if k in run}, own)
+    try:
+        _validate({**{k: merged[k] for k in SECTIONS}, "scenes": [scene]}, "config.schema.yaml",
+                  f"{path} over the run's config")
+    except KeyError as e:
+        raise ConfigError(f"scene {scene!r}: section {e} is in neither {path} nor the run's config") from None
+    return merged
+
+
+def load_run(configfile: str | Path | None = None) -> dict:
+    """A run configuration file (default: config/config.yaml), validated."""
+    path = Path(configfile) if configfile else DEFAULTS_FILE
+    run = read_yaml(path)
+    _validate(run, "config.schema.yaml", str(path))
+    return run
+
+
+def as_json(cfg: dict, *keys: str) -> str:
+    """The sections a stage depends on, as one canonical JSON argument."""
+    return json.dumps({k: cfg[k] for k in keys}, sort_keys=True)
+
+
+def parse_json(text: str, what: str = "--config-json") -> dict[str, Any]:
+    try:
+        value = json.loads(text)
+    except json.JSONDecodeError as e:
+        raise ConfigError(f"{what}: not valid JSON ({e})") from None
+    if not isinstance(value, dict):
+        raise ConfigError(f"{what}: expected a JSON object")
+    return value

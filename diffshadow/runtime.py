@@ -1,0 +1,116 @@
+"""Where and how a stage runs: the device (chosen once, here), threads, the node-local GPU lock, and a
+DDP context that pairs process-group set-up with teardown. Concept modules receive a `torch.device` and
+never work one out; only the stage layer and the CLI call this module.
+
+Device order: the `--device` flag, then `DIFFSHADOW_DEVICE` (the PBS job scripts set it on GPU nodes),
+then the config key `device` (`auto | cpu | cuda | cuda:N`); `auto` is CUDA when a GPU is visible.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import datetime
+import os
+from collections.abc import Iterator
+from dataclasses import dataclass
+
+import torch
+
+CPU = torch.device("cpu")
+DEVICE_CHOICES = "auto, cpu, cuda or cuda:N"
+
+
+def resolve_device(flag: str | None = None, config: str | None = None) -> torch.device:
+    """The device of a stage: flag → DIFFSHADOW_DEVICE → config → auto."""
+    spec = flag or os.environ.get("DIFFSHADOW_DEVICE") or config or "auto"
+    source = "--device" if flag else "DIFFSHADOW_DEVICE" if os.environ.get("DIFFSHADOW_DEVICE") else "device"
+    if spec == "auto":
+        return torch.device("cuda") if torch.cuda.is_available() else CPU
+    try:
+        device = torch.device(spec)
+    except (RuntimeError, ValueError):
+        raise ValueError(f"{source}: expected {DEVICE_CHOICES}, got {spec!r}") from None
+    if device.type not in ("cpu", "cuda"):
+        raise ValueError(f"{source}: expected {DEVICE_CHOICES}, got {spec!r}")
+    if device.type == "cuda":
+        if not torch.cuda.is_available():
+            raise ValueError(f"{source} is {spec!r} but this torch sees no CUDA device (torch {torch.__version__}, "
+                             f"built with CUDA {torch.version.cuda}); use 'cpu' or 'auto'")
+        if device.index is not None and device.index >= torch.cuda.device_count():
+            raise ValueError(f"{source} is {spec!r} but only {torch.cuda.device_count()} GPU(s) are visible")
+    return device
+
+
+def set_threads(n: int) -> None:
+    """torch's intra-op threads (0: torch's default)."""
+    if n:
+        torch.set_num_threads(n)
+
+
+def claim_gpu_lock(command: str) -> None:
+    """On a node shared by several one-GPU jobs (`DIFFSHADOW_GPU_LOCK` = GPUs per node), take a free GPU."""
+    gpus = os.environ.get("DIFFSHADOW_GPU_LOCK")
+    if not gpus:
+        return
+    from diffshadow.hpc import claim_gpu
+
+    gpu = claim_gpu(int(gpus))
+    print(f"diffshadow {command}: claimed GPU {gpu} of {gpus} (CUDA_VISIBLE_DEVICES={gpu})", flush=True)
+
+
+def ddp_processes(requested: int, device: torch.device) -> tuple[int, str]:
+    """How many DDP processes to launch for `requested` on `device`, and a one-line reason.
+
+    On CUDA one process per visible GPU at most (NCCL cannot put two ranks on one GPU); on CPU as asked.
+    """
+    if device.type == "cuda":
+        gpus = torch.cuda.device_count()
+        if requested > gpus:
+            return gpus, f"finetune.nproc is {requested} but {gpus} GPU(s) are visible: running {gpus} process(es)"
+        return requested, f"{requested} process(es), one GPU each (NCCL)"
+    return requested, f"{requested} CPU process(es) (gloo)"
+
+
+@dataclass(frozen=True)
+class Distributed:
+    rank: int
+    world: int
+    device: torch.device
+
+
+@contextlib.contextmanager
+def distributed(device: torch.device, *, timeout_s: float) -> Iterator[Distributed]:
+    """This process's rank, world size and device under torchrun (or rank 0 of 1 alone).
+
+    The process group is created on entry and destroyed on exit (after a barrier on success). Under
+    torchrun with more ranks than visible GPUs every rank agrees to fall back to gloo on CPU, and rank 0
+    says so in one line.
+    """
+    world = int(os.environ.get("WORLD_SIZE", "1"))
+    rank = int(os.environ.get("RANK", "0"))
+    if device.type == "cuda" and world > 1:
+        gpus = torch.cuda.device_count()
+        if world > gpus:
+            if rank == 0:
+                print(f"DDP: {world} ranks but {gpus} visible GPU(s): running gloo on CPU instead "
+                      f"(launch at most {gpus} process(es) to use the GPUs)", flush=True)
+            device = CPU
+        else:
+            device = torch.device("cuda", int(os.environ.get("LOCAL_RANK", "0")))
+    if device.type == "cuda":
+        torch.cuda.set_device(device)
+    if world == 1:
+        yield Distributed(rank, world, device)
+        return
+    import torch.distributed as dist
+
+    dist.init_process_group("nccl" if device.type == "cuda" else "gloo",
+                            timeout=datetime.timedelta(seconds=timeout_s))
+    ok = False
+    try:
+        yield Distributed(rank, world, device)
+        ok = True
+    finally:
+        if ok:
+            dist.barrier()
+        dist.destroy_process_group()

@@ -1,0 +1,128 @@
+"""The renderer's stages (paper §4.4 and appendix): the data INR, rendering-loss targets, image evaluation
+against `gt`, single renders, the renderer benchmark, and the report's figures."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from diffshadow import artifacts, report
+from diffshadow.data_inr import DataInrConfig, fit_data_inr
+from diffshadow.diffusion.finetune import FinetuneConfig, build_bundle, fibonacci_views
+from diffshadow.diffusion.finetune import render_targets as targets
+from diffshadow.evaluate import image_evaluation
+from diffshadow.io import atomic_write_text, finite_json
+from diffshadow.lights import read_lights
+from diffshadow.metrics import lpips_model
+from diffshadow.render import Camera, RenderScene, default_views, write_png
+from diffshadow.store import open_store
+from diffshadow.transfer import TransferFunction
+from diffshadow.volume import load_volume
+
+
+def train_data_inr(volume_path: Path, out: Path, *, cfg: DataInrConfig, device: torch.device) -> None:
+    """The SIREN of the scalar field the renderer queries; resumable from `<out>.ckpt`."""
+    volume, tf = artifacts.load_prepared(volume_path)
+    inr = fit_data_inr(volume, tf, cfg, checkpoint=out.with_name(out.name + ".ckpt"), device=device)
+    artifacts.save_data_inr(out, inr)
+    print(f"wrote {out}: {inr.n_params} parameters, voxel PSNR {inr.psnr:.2f} dB, max error {inr.max_error:.4f}")
+
+
+def render_targets(volume_path: Path, lights_path: Path, out: Path, *, cfg: FinetuneConfig,
+                   device: torch.device) -> None:
+    """`gt` images per training light × Fibonacci view, and each view's ray samples."""
+    volume, tf = artifacts.load_prepared(volume_path)
+    train = read_lights(lights_path)["train"]
+    cams = fibonacci_views(volume.extent, cfg.views, size=cfg.image_size, fov=cfg.fov)
+    bundle = build_bundle(volume, tf, cams, step=cfg.step)  # one pass per view: CPU
+    print(f"{cfg.views} views of {cfg.image_size}²: {bundle.count.tolist()} foreground pixels, up to "
+          f"{bundle.pts.shape[2]} samples each", flush=True)
+    images = targets(volume, tf, train, cams, step=cfg.step, device=device)
+    artifacts.write_targets(out, images, bundle, cams, train, step=cfg.step, extent=volume.extent)
+    print(f"wrote {out}: {len(train)} lights x {cfg.views} views")
+
+
+def render_scene(volume_path: Path, data_inr: Path | None, device: torch.device,
+                 tf_config: dict | None = None) -> RenderScene:
+    """A RenderScene from a prepared volume.zarr, or from a raw volume file with its transfer function."""
+    if artifacts.is_prepared(volume_path) and tf_config is None:
+        volume, tf = artifacts.load_prepared(volume_path)
+    else:
+        if tf_config is None:
+            raise ValueError(f"{volume_path}: not a prepared volume.zarr, so it needs a transfer function "
+                             f"(--tf-json '{{\"opacity\": [[s, a], ...], \"color\": [[s, r, g, b], ...], "
+                             f"\"density_scale\": K}}')")
+        volume = load_volume(volume_path)
+        tf = TransferFunction.from_config(tf_config)
+    inr = artifacts.load_data_inr(data_inr) if data_inr else None
+    if inr is not None and not np.allclose(inr.extent, volume.extent):
+        raise ValueError(f"{data_inr}: fitted to a box of {inr.extent.tolist()}, the volume's is "
+                         f"{volume.extent.tolist()}")
+    return RenderScene(volume, tf, inr, device=device)
+
+
+def render_image(scene: RenderScene, out: Path, *, mode: str, camera: Camera, light=None,
+                 weights_path: Path | None = None, light_index: int = 0, scalar: str | None = None,
+                 phong: bool = False, step: float, skip: bool = True) -> None:
+    """One image (PNG) in a shading mode; the shadow INR of mode `inr` is row `light_index` of a store."""
+    siren = None
+    if weights_path:
+        store = open_store(weights_path)
+        if not 0 <= light_index < len(store.weights):
+            raise ValueError(f"--light-index: {weights_path} holds lights 0..{len(store.weights) - 1}, "
+                             f"got {light_index}")
+        siren = (store.weights[light_index], store.layout, store.siren.blocks)
+        light = light or store.lights[light_index].tolist()
+    if mode == "inr" and siren is None:
+        raise ValueError("--mode inr needs --weights (a weight store) and --light-index")
+    img = scene.render(mode, camera, light=light, siren=siren, scalar=scalar, phong=phong, step=step, skip=skip)
+    write_png(out, img)
+    c = img.counters
+    print(f"wrote {out}: {mode}, {camera.width}x{camera.height} in {img.seconds:.3f} s "
+          f"({c.primary_samples:,} samples, {c.secondary_samples:,} on shadow rays)")
+
+
+def evaluate_images(volume_path: Path, lights_path: Path, data_inr: Path, weights_path: Path,
+                    generated_path: Path | None, images_dir: Path, out: Path, *, cfg: dict,
+                    device: torch.device) -> None:
+    """`image_metrics.json` and the PNGs: every shading mode against `gt`."""
+    scene = render_scene(volume_path, data_inr, device)
+    light_sets = read_lights(lights_path)
+    stage1 = open_store(weights_path)
+    generated = open_store(generated_path) if generated_path else None
+    views = default_views(scene.volume.extent, cfg["views"], size=cfg["image_size"], fov=cfg["fov"])
+    lpips, reason = lpips_model()
+    result = image_evaluation(scene, light_sets, stage1, generated, views, step=cfg["step"], out_dir=images_dir,
+                              lights_per_set=cfg["lights_per_set"], naive_views=cfg.get("naive_views"), lpips=lpips)
+    result.update({"lpips": "available (VGG)" if lpips is not None else f"unavailable: {reason}",
+                   "image_size": cfg["image_size"], "views": cfg["views"], "step": cfg["step"],
+                   "reference": "gt: raw scalar field and shadow_grid (march), same step",
+                   "data_inr_psnr": scene.data_inr.psnr if scene.data_inr is not None else None})
+    atomic_write_text(out, json.dumps(finite_json(result), indent=2) + "\n")
+    for name, m in sorted(result["modes"].items()):
+        print(f"{name:24s} PSNR {m['psnr']:.2f} dB  SSIM {m['ssim']:.4f}  over {m['count']} images")
+    print(f"wrote {out}")
+
+
+def report_figures(results: Path, checkpoint: Path, cfg: dict, out: Path) -> None:
+    """The report's figures for one finished scene, from its results (nothing is re-trained)."""
+    from diffshadow.bench.shadow import bench_shadow
+
+    out.mkdir(parents=True, exist_ok=True)
+    report.write_config(out / "config.yaml", cfg)
+    stage1, generated = open_store(results / "weights.zarr"), open_store(results / "generated.zarr")
+    report.siren_psnr_figure(stage1, out / "siren_psnr.png")
+    report.generated_figure(stage1, generated, out / "generated_psnr.png", out / "generated_psnr.csv")
+    report.image_grid_figure(results / "images", out / "image_grid.png")
+    report.storage_figure(json.loads((results / "voxel_metrics.json").read_text()), out / "storage.png")
+    volume, tf = artifacts.load_prepared(results / "volume.zarr")
+    state = artifacts.load_checkpoint(checkpoint)  # the model that sampled generated.zarr
+    ddim = report.ddim_curve_figure(state, volume, tf, read_lights(results / "lights.json")["train"],
+                                    out / "ddim_curve.png")
+    atomic_write_text(out / "ddim_curve.json", json.dumps(ddim, indent=2) + "\n")
+    shadow = bench_shadow([Path(cfg["volume"])], out, tf_config=cfg["transfer_function"])
+    report.shadow_curve_figure(shadow, out / "shadow_curve.png")
+    print(f"wrote the report figures in {out}")

@@ -1,0 +1,90 @@
+"""Stage 1 (paper §3.2): light directions, the prepared volume, the shared initial SIREN, one fit per
+light subset, the collected weight store."""
+
+from __future__ import annotations
+
+import dataclasses
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from diffshadow import artifacts
+from diffshadow.fit import FitConfig, FitError, check_psnr, evaluate_psnr, fit_sirens
+from diffshadow.lights import make_light_sets, read_lights, subset_indices, write_lights
+from diffshadow.sampling import seeded
+from diffshadow.siren import SirenConfig, WeightLayout, init_siren
+from diffshadow.store import collect_subsets, write_store, write_subset
+from diffshadow.transfer import TransferFunction
+from diffshadow.volume import load_volume
+
+
+def heldout_seed(fit: FitConfig, subset: int) -> int:
+    """The seed of a subset's held-out evaluation points: apart from every training stream."""
+    return fit.seed + 7919 * (subset + 1)
+
+
+def lights(out: Path, *, sphere: int, count: int, center, unseen: int, seed: int) -> None:
+    sets = make_light_sets(sphere, count, center, unseen, seed=seed)
+    write_lights(out, sets)
+    print(f"wrote {out}: {count} training and {unseen} unseen directions "
+          f"(region of a {sphere}-point Fibonacci sphere around {sets['center']})")
+
+
+def prepare_volume(out: Path, scene: dict) -> None:
+    """The scene's volume normalised to [0, 1] in its box, with its transfer function."""
+    tf = TransferFunction.from_config(scene["transfer_function"])
+    volume = load_volume(scene["volume"], **scene.get("load", {}))
+    artifacts.save_prepared(out, volume, tf)
+    print(f"wrote {out}: {volume.name} {volume.dims}, extent {volume.extent.round(4).tolist()}")
+
+
+def preoptimize(volume_path: Path, lights_path: Path, out: Path, *, siren: SirenConfig, fit: FitConfig,
+                steps: int, lr: float, device: torch.device) -> None:
+    """One SIREN fitted to light 0: the initial weights of every other SIREN."""
+    volume, tf = artifacts.load_prepared(volume_path)
+    train = read_lights(lights_path)["train"]
+    layout = WeightLayout.for_siren(siren)
+    fit = dataclasses.replace(fit, steps=int(steps), lr=float(lr))
+    init = layout.flatten(init_siren(siren, seeded(fit.seed, -1)))
+    if steps > 0:
+        print(f"pre-optimising one SIREN on light 0 for {fit.steps} steps", flush=True)
+        init = fit_sirens(init, layout, siren, volume, tf, train[:1], fit, stream=-1, light_index=[0],
+                          device=device)[0]
+    artifacts.save_siren_init(out, init, layout, siren)
+    print(f"wrote {out}")
+
+
+def fit_subset(volume_path: Path, lights_path: Path, init_path: Path, subset: int, out: Path, *,
+               siren: SirenConfig, fit: FitConfig, subset_size: int, config: dict, device: torch.device) -> None:
+    """The SIRENs of one light subset, fitted jointly and checked on held-out points (resumable)."""
+    volume, tf = artifacts.load_prepared(volume_path)
+    train = read_lights(lights_path)["train"]
+    layout = WeightLayout.for_siren(siren)
+    idx = subset_indices(len(train), subset_size, subset)
+    init = artifacts.load_siren_init(init_path, layout)
+    out = Path(out)
+    where = f"fit_siren subset {subset} ({volume_path}"
+    print(f"subset {subset}: fitting lights {idx[0]}..{idx[-1]} jointly", flush=True)
+    try:
+        weights = fit_sirens(init, layout, siren, volume, tf, train[idx], fit, stream=subset, light_index=idx,
+                             checkpoint=out.with_name(out.name + ".ckpt"), device=device)
+    except FitError as e:
+        raise FitError(f"{where}, lights {lights_path}): {e}") from None
+    box, vis = evaluate_psnr(weights, layout, siren, volume, tf, train[idx], n_points=fit.eval_points,
+                             seed=heldout_seed(fit, subset), device=device)
+    if fit.min_psnr > 0:
+        check_psnr(box, idx, fit.min_psnr, f"{where})")
+    write_subset(out, weights=weights.numpy(), light_index=idx, lights=train[idx], psnr=box, psnr_visible=vis,
+                 layout=layout, siren=siren, config=config)
+    print(f"wrote {out}: PSNR box median {float(np.median(box)):.2f} dB (min {box.min():.2f}), "
+          f"visible median {float(np.median(vis)):.2f} dB")
+
+
+def collect_weights(lights_path: Path, subset_paths: list[Path], out: Path) -> None:
+    train = read_lights(lights_path)["train"]
+    store = collect_subsets(subset_paths, len(train), train)
+    write_store(out, store)
+    print(f"wrote {out}: {len(train)} SIRENs of {store.layout.n_params} parameters; voxel PSNR median "
+          f"{float(np.median(store.psnr)):.2f} dB, min {store.psnr.min():.2f} dB "
+          f"(visible: median {float(np.median(store.psnr_visible)):.2f} dB)")

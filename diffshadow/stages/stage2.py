@@ -1,0 +1,124 @@
+"""Stage 2 (paper §3.3): presampled geometry points, diffusion training (geometry loss), rendering-loss
+fine-tuning under DDP, sampling every seen and unseen light, the voxel evaluation."""
+
+from __future__ import annotations
+
+import json
+import os
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from diffshadow import artifacts
+from diffshadow.diffusion.finetune import FinetuneConfig, FinetuneData, finetune, image_psnr_of_model
+from diffshadow.diffusion.geometry import presample as presample_points
+from diffshadow.diffusion.sample import generate, load_sampler
+from diffshadow.diffusion.train import DiffusionConfig, DiffusionError
+from diffshadow.diffusion.train import train_diffusion as train
+from diffshadow.evaluate import TruthPoints, psnr_per_light, voxel_metrics
+from diffshadow.io import atomic_write_text
+from diffshadow.lights import read_lights
+from diffshadow.runtime import distributed
+from diffshadow.store import WeightStore, open_store, write_store
+
+
+def presample(volume_path: Path, lights_path: Path, out: Path, *, cfg: DiffusionConfig,
+              device: torch.device) -> None:
+    """Points and their true shadow per training light, for the geometry loss."""
+    volume, tf = artifacts.load_prepared(volume_path)
+    train_lights = read_lights(lights_path)["train"]
+    print(f"presampling {cfg.presample_points} points for each of {len(train_lights)} lights", flush=True)
+    pts, values = presample_points(volume, tf, train_lights, cfg.presample_points, seed=cfg.seed, device=device)
+    artifacts.write_geometry_points(out, pts, values, train_lights, volume.extent)
+    print(f"wrote {out}")
+
+
+def train_diffusion(weights_path: Path, points_path: Path, out: Path, *, cfg: DiffusionConfig,
+                    device: torch.device) -> None:
+    """The geometry-stage model; resumable from `<out>.part`, renamed to `out` when complete."""
+    data, _ = artifacts.read_training_data(weights_path, points_path)
+    part = out.with_name(out.name + ".part")
+    try:
+        train(data, cfg, part, device=device)
+    except DiffusionError as e:
+        raise DiffusionError(f"train_diffusion ({weights_path}): {e}") from None
+    os.replace(part, out)
+    print(f"wrote {out}")
+
+
+def _summary(psnr: np.ndarray) -> dict:
+    return {"mean": float(psnr.mean()), "median": float(np.median(psnr)), "min": float(psnr.min())}
+
+
+def finetune_render(checkpoint: Path, weights_path: Path, points_path: Path, targets_path: Path, out: Path,
+                    metrics_path: Path, *, cfg: FinetuneConfig, device: torch.device, threads: int = 0) -> None:
+    """Rendering-loss fine-tuning from the geometry-stage checkpoint, one DDP rank per process."""
+    from diffshadow.runtime import set_threads
+
+    with distributed(device, timeout_s=cfg.timeout_s) as ddp:
+        set_threads(threads)
+        rank, world = ddp.rank, ddp.world
+        log = print if rank == 0 else (lambda m: print(m) if m.startswith(f"rank {rank}") else None)
+        geometry = artifacts.load_checkpoint(checkpoint)
+        train_data, _ = artifacts.read_training_data(weights_path, points_path)
+        images, bundle, target_lights = artifacts.read_targets(targets_path)
+        if not np.allclose(target_lights, train_data.lights.numpy()):
+            raise ValueError(f"{targets_path}: its lights differ from {weights_path}'s; rerun render_targets")
+        data = FinetuneData(train_data, bundle, images)
+        part = out.with_name(out.name + ".part")
+        t0 = time.perf_counter()
+        state = finetune(geometry, data, cfg, part, rank=rank, world=world, device=ddp.device, log=log)
+        seconds = time.perf_counter() - t0
+        if rank != 0:
+            return
+        before = image_psnr_of_model(geometry, data)
+        after = image_psnr_of_model(state, data)
+        metrics = {"image_psnr_geometry_only": _summary(before), "image_psnr_finetuned": _summary(after),
+                   "lights": len(before), "views": int(len(bundle.count)), "processes": world,
+                   "ranks": state.get("finetune_ranks"), "seconds": seconds, "config": cfg.__dict__}
+        print(f"image PSNR of generated shadows on training lights (foreground, {len(bundle.count)} views): "
+              f"geometry only {before.mean():.2f} dB (min {before.min():.2f}), fine-tuned {after.mean():.2f} dB "
+              f"(min {after.min():.2f}); {seconds:.0f} s on {world} process(es)")
+        for r in state.get("finetune_ranks") or []:
+            step_s = f"{r['median_step_s']:.3f} s" if r["median_step_s"] is not None else "n/a"
+            print(f"rank {r['rank']}: median step {step_s}, peak memory {r['peak_mem_bytes'] / 2**20:.0f} MiB")
+        atomic_write_text(metrics_path, json.dumps(metrics, indent=2) + "\n")
+        os.replace(part, out)
+        print(f"wrote {out} and {metrics_path}")
+
+
+def sample_shadows(checkpoint: Path, volume_path: Path, lights_path: Path, out: Path, *, eval_points: int,
+                   device: torch.device) -> None:
+    """SIRENs generated for every training and unseen light, with their voxel PSNR."""
+    state = artifacts.load_checkpoint(checkpoint)
+    model, std, layout, siren = load_sampler(state, device)
+    cfg = state["config"]
+    light_sets = read_lights(lights_path)
+    all_lights = np.concatenate([light_sets["train"], light_sets["unseen"]])
+    seen = np.arange(len(all_lights)) < len(light_sets["train"])
+    print(f"sampling {len(all_lights)} shadow SIRENs ({seen.sum()} seen, {(~seen).sum()} unseen) with "
+          f"DDIM {cfg['ddim_steps']} steps", flush=True)
+    weights = generate(model, std, all_lights, method="ddim", steps=cfg["ddim_steps"], seed=cfg["seed"],
+                       temperature=cfg["temperature"], device=device).numpy()
+    volume, tf = artifacts.load_prepared(volume_path)
+    points = TruthPoints(volume, tf, eval_points, seed=cfg["seed"] + 1)
+    scores = psnr_per_light(points.sirens(weights, layout, siren), points.truth(all_lights))
+    store = WeightStore(weights=weights, lights=all_lights, psnr=scores["box"],
+                        psnr_visible=scores.get("visible", scores["box"]), layout=layout, siren=siren,
+                        config={"diffusion": cfg, "checkpoint": str(checkpoint)}, seen=seen)
+    write_store(out, store)
+    print(f"wrote {out}: PSNR median seen {np.median(store.psnr[seen]):.2f} dB, "
+          f"unseen {np.median(store.psnr[~seen]) if (~seen).any() else float('nan'):.2f} dB")
+
+
+def evaluate_voxels(checkpoint: Path, weights_path: Path, generated_path: Path, volume_path: Path,
+                    lights_path: Path, out: Path, *, eval_points: int, blend_k: int) -> None:
+    """`voxel_metrics.json`: generated against stage 1 and the baselines, storage, time per INR."""
+    volume, tf = artifacts.load_prepared(volume_path)
+    result = voxel_metrics(artifacts.load_checkpoint(checkpoint), open_store(weights_path),
+                           open_store(generated_path), volume, tf, read_lights(lights_path),
+                           eval_points=eval_points, blend_k=blend_k)
+    atomic_write_text(out, json.dumps(result, indent=1) + "\n")
+    print(json.dumps(result, indent=1))
