@@ -11,19 +11,9 @@ import sys
 from pathlib import Path
 
 from diffshadow import __version__
-
-
-def _cfg(args: argparse.Namespace) -> dict:
-    from diffshadow.config import parse_json
-
-    return parse_json(args.config_json)
-
-
-def _device(args: argparse.Namespace):
-    from diffshadow.runtime import resolve_device
-
-    return resolve_device(args.device, args.config_device)
-
+from diffshadow.argparsing import add_subcommand as _add
+from diffshadow.argparsing import config_of as _cfg
+from diffshadow.argparsing import device_of as _device
 
 # ------------------------------------------------------------------------------------------- stage 1
 
@@ -168,45 +158,7 @@ def _report_figures(a):
     images.report_figures(Path(a.results), Path(a.checkpoint), _cfg(a), Path(a.out_dir))
 
 
-# -------------------------------------------------------------------------------- benchmarks, tools
-
-
-def _bench_shadow(a):
-    from diffshadow.bench import default_volumes
-    from diffshadow.bench.shadow import bench_shadow
-
-    bench_shadow([Path(v) for v in a.volumes] if a.volumes else default_volumes(), Path(a.out), device=_device(a))
-
-
-def _bench_siren(a):
-    from diffshadow.bench.siren import bench_siren
-
-    bench_siren(Path(a.out), k=a.k, points=a.points, widths=a.widths, device=_device(a))
-
-
-def _bench_init_spread(a):
-    from diffshadow.bench.siren import bench_init_spread
-
-    bench_init_spread(Path(a.results), Path(a.out), n_lights=a.lights)
-
-
-def _bench_render(a):
-    from diffshadow.bench.render import run
-    from diffshadow.config import parse_json
-
-    run(a.out, scene_config=a.scene_config, volume=a.volume, data_inr=a.data_inr, inr_steps=a.inr_steps,
-        tf_config=parse_json(a.tf_json, "--tf-json") if a.tf_json else None, weights=a.weights,
-        light_index=a.light_index, siren_width=a.siren_width, siren_steps=a.siren_steps, sizes=a.sizes,
-        step=a.step, repeats=a.repeats, device=_device(a))
-
-
-def _check_store(a):
-    from diffshadow.bench.siren import check_store
-
-    result = check_store(Path(a.results))
-    if result["max_abs_diff_db"] > a.tolerance:
-        raise SystemExit(f"check-store: stored and recomputed PSNR differ by {result['max_abs_diff_db']:.2f} dB "
-                         f"(> {a.tolerance} dB)")
+# ------------------------------------------------------------------------------------------- tools
 
 
 def _parsl_fit(a):
@@ -232,26 +184,9 @@ def _install_profiles(a):
 # ------------------------------------------------------------------------------------------- parser
 
 
-def _add(sub, name: str, func, helptext: str, *paths: str, out: bool = True, device: bool = True,
-         config: str | None = None) -> argparse.ArgumentParser:
-    """A subcommand with required path options, --out, --device/--config-device, --threads, --config-json."""
-    p = sub.add_parser(name, help=helptext)
-    for path in paths:
-        p.add_argument(f"--{path}", required=True)
-    if config:
-        p.add_argument("--config-json", required=True, help=config)
-    if out:
-        p.add_argument("--out", required=True)
-    if device:
-        p.add_argument("--device", default=None, help="cpu, cuda, cuda:N or auto (default: DIFFSHADOW_DEVICE, "
-                       "then --config-device, then auto)")
-        p.add_argument("--config-device", default=None, help="the run config's `device` (the workflow passes it)")
-    p.add_argument("--threads", type=int, default=0, help="torch threads (0: torch's default)")
-    p.set_defaults(func=func)
-    return p
-
-
 def build_parser() -> argparse.ArgumentParser:
+    from diffshadow.bench.cli import add_bench_parsers
+
     parser = argparse.ArgumentParser(prog="diffshadow", description=__doc__.splitlines()[0])
     parser.add_argument("--version", action="version", version=f"diffshadow {__version__}")
     sub = parser.add_subparsers(dest="command", required=True)
@@ -300,11 +235,12 @@ def build_parser() -> argparse.ArgumentParser:
     p = _add(sub, "render", _render, "render one image (PNG) in a shading mode", "volume")
     p.add_argument("--tf-json", help="transfer function when --volume is a raw file, not a volume.zarr")
     p.add_argument("--mode", choices=["noshadow", "gt", "inr", "naive"], default="gt")
-    p.add_argument("--data-inr", help="data_inr.pt (needed for --scalar inr and mode naive)")
-    p.add_argument("--weights", help="weight store for mode inr (weights.zarr or generated.zarr)")
+    p.add_argument("--scalar", choices=["grid", "inr"], default=None, help="default: inr when --data-inr")
+    for name, helptext in (("data-inr", "data_inr.pt (needed for --scalar inr and mode naive)"),
+                           ("weights", "weight store for mode inr (weights.zarr or generated.zarr)")):
+        p.add_argument(f"--{name}", help=helptext)
     p.add_argument("--light-index", type=int, default=0, help="row of --weights (its light is used)")
     p.add_argument("--light", type=float, nargs=3, metavar=("X", "Y", "Z"), help="toward the light")
-    p.add_argument("--scalar", choices=["grid", "inr"], default=None, help="default: inr when --data-inr")
     p.add_argument("--phong", action="store_true", help="Blinn-Phong lighting from the field's gradient")
     for name, value in (("azimuth", 30.0), ("elevation", 25.0), ("distance", 2.2), ("fov", 60.0), ("step", 0.5)):
         p.add_argument(f"--{name}", type=float, default=value)
@@ -313,46 +249,13 @@ def build_parser() -> argparse.ArgumentParser:
     p = _add(sub, "report-figures", _report_figures, "the report's figures for one finished scene", "results",
              "checkpoint", "out-dir", out=False, device=False, config="the scene's merged configuration")
 
-    bench = sub.add_parser("bench", help="benchmarks that print and save figures").add_subparsers(
-        dest="bench", required=True)
-    p = _add(bench, "shadow", _bench_shadow, "time vs error of the ground-truth shadow methods", out=False)
-    p.add_argument("--volumes", nargs="*", help="volume files (default: bundled nucleon + ../shared/data)")
-    p.add_argument("--out", default="bench")
-    p = _add(bench, "siren", _bench_siren, "K SIRENs fitted jointly vs one after another", out=False)
-    p.add_argument("--k", type=int, default=16)
-    p.add_argument("--points", type=int, default=4096, help="points per SIREN per step")
-    p.add_argument("--widths", type=int, nargs="+", default=[32, 64, 128])
-    p.add_argument("--out", default="bench")
-    p = _add(bench, "init-spread", _bench_init_spread, "weight spread: shared init vs random inits", out=False,
-             device=False)
-    p.add_argument("--results", default="results/nucleon", help="a finished scene's results folder")
-    p.add_argument("--lights", type=int, default=8, help="lights to refit from random inits")
-    p.add_argument("--out", default="bench")
-    p = _add(bench, "render", _bench_render, "fps and memory of noshadow / inr / naive; skipping; step curve",
-             out=False)
-    p.add_argument("--scene-config", help="a scene YAML (volume, transfer_function)")
-    p.add_argument("--volume", help="or prepare_volume's volume.zarr, or a raw file (--tf-json, else the bench TF)")
-    p.add_argument("--tf-json", help="transfer function for a raw --volume")
-    p.add_argument("--data-inr", help="train_data_inr's data_inr.pt (default: fit one)")
-    p.add_argument("--inr-steps", type=int, default=600, help="steps when fitting the data INR here")
-    p.add_argument("--weights", help="a weight store whose SIREN --light-index is the shadow INR (default: fit one)")
-    p.add_argument("--light-index", type=int, default=0)
-    p.add_argument("--siren-width", type=int, default=32)
-    p.add_argument("--siren-steps", type=int, default=300)
-    p.add_argument("--sizes", type=int, nargs="+", default=[64, 128])
-    p.add_argument("--step", type=float, default=0.5, help="voxels")
-    p.add_argument("--repeats", type=int, default=3)
-    p.add_argument("--out", default="bench/bench_render.json")
-
-    p = _add(sub, "check-store", _check_store, "re-evaluate every stored SIREN against the store's PSNR",
-             out=False, device=False)
-    p.add_argument("--results", default="results/nucleon")
-    p.add_argument("--tolerance", type=float, default=0.5, help="dB")
+    add_bench_parsers(sub)
     p = sub.add_parser("parsl-fit", help="fit every pending fit_siren subset through Parsl (one big allocation)")
-    p.add_argument("--config", default="config/parsl/local.py", help="Parsl config file (config/parsl/*.py)")
-    p.add_argument("--configfile", default="config/config.yaml", help="the workflow's config file")
+    for name, default, helptext in (("config", "config/parsl/local.py", "Parsl config file (config/parsl/*.py)"),
+                                    ("configfile", "config/config.yaml", "the workflow's config file"),
+                                    ("results", "results", None)):
+        p.add_argument(f"--{name}", default=default, help=helptext)
     p.add_argument("--scenes", nargs="*", help="default: the config's scenes")
-    p.add_argument("--results", default="results")
     p.add_argument("--threads", type=int, default=1, help="torch threads per worker")
     p.set_defaults(func=_parsl_fit)
     p = sub.add_parser("pbs-status", help="PBS job state for Snakemake's cluster-generic executor")

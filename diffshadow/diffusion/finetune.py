@@ -16,6 +16,7 @@ DDP's gradient average equals the single-process gradient of the same global bat
 
 from __future__ import annotations
 
+import dataclasses
 import hashlib
 import json
 import math
@@ -206,20 +207,21 @@ def step_loss(model, std: Standardizer, data: FinetuneData, z_all: torch.Tensor,
         zero = sum(p.sum() for p in model.parameters()) * 0.0
         return zero, torch.zeros(3, dtype=torch.float64)
     tr = data.train
-    draws = [_draws(cfg, dcfg, epoch, i, z_all.shape[1], tr.points.shape[1], data.bundle.count, schedule.steps)
+    # drawn on the CPU (the same numbers on every device), then moved
+    draws = [_draws(cfg, dcfg, epoch, i, z_all.shape[1], tr.points.shape[1], data.bundle.count.cpu(), schedule.steps)
              for i in local]
     idx = torch.tensor(local, device=device)
     t = torch.cat([d[0] for d in draws]).to(device)
     noise = torch.cat([d[1] for d in draws]).to(device)
     x0 = z_all[idx]
-    pred = model(schedule.q_sample(x0, t, noise), t, tr.lights[idx].float().to(device))
+    pred = model(schedule.q_sample(x0, t, noise), t, tr.lights[idx].float())
     l_x0 = ((pred - x0) ** 2).mean(1)
     weights = std.destandardize(pred)
     siren = BatchedSiren(weights, tr.layout, tr.siren.blocks)
     extent = tr.extent.to(device)
     pick = torch.stack([d[2] for d in draws]).to(device)
-    pts = torch.gather(tr.points.to(device)[idx], 1, pick[..., None].expand(-1, -1, 3))
-    vals = torch.gather(tr.values.to(device)[idx], 1, pick)
+    pts = torch.gather(tr.points[idx], 1, pick[..., None].expand(-1, -1, 3))
+    vals = torch.gather(tr.values[idx], 1, pick)
     l_geo = ((siren(box_to_siren(pts, extent)) - vals) ** 2).mean(1)
     b = data.bundle
     nv, p = len(b.count), cfg.pixels
@@ -276,7 +278,10 @@ def finetune(geometry_state: dict, data: FinetuneData, cfg: FinetuneConfig, chec
         model = DistributedDataParallel(base, device_ids=[device.index] if device.type == "cuda" else None)
     schedule = Schedule()
     z_all = std.standardize(data.train.weights).float().to(device)
-    data = FinetuneData(data.train, data.bundle.to(device), data.targets.to(device))
+    # the training set on the device once, not per step
+    train = dataclasses.replace(data.train, lights=data.train.lights.to(device), points=data.train.points.to(device),
+                                values=data.train.values.to(device), extent=data.train.extent.to(device))
+    data = FinetuneData(train, data.bundle.to(device), data.targets.to(device))
     n = len(z_all)
     if rank == 0:
         log(f"fine-tuning with the rendering loss: {world} process(es) on {device.type}, global batch "

@@ -1,0 +1,37 @@
+"""Argument conventions shared by the `diffshadow` subcommands (`cli`, `bench.cli`): path options,
+--out, --device / --config-device, --threads, --config-json, and what they resolve to."""
+
+from __future__ import annotations
+
+import argparse
+
+
+def config_of(args: argparse.Namespace) -> dict:
+    from diffshadow.config import parse_json
+
+    return parse_json(args.config_json)
+
+
+def device_of(args: argparse.Namespace):
+    from diffshadow.runtime import resolve_device
+
+    return resolve_device(args.device, args.config_device)
+
+
+def add_subcommand(sub, name: str, func, helptext: str, *paths: str, out: bool = True, device: bool = True,
+         config: str | None = None) -> argparse.ArgumentParser:
+    """A subcommand with required path options, --out, --device/--config-device, --threads, --config-json."""
+    p = sub.add_parser(name, help=helptext)
+    for path in paths:
+        p.add_argument(f"--{path}", required=True)
+    if config:
+        p.add_argument("--config-json", required=True, help=config)
+    if out:
+        p.add_argument("--out", required=True)
+    if device:
+        p.add_argument("--device", default=None, help="cpu, cuda, cuda:N or auto (default: DIFFSHADOW_DEVICE, "
+                       "then --config-device, then auto)")
+        p.add_argument("--config-device", default=None, help="the run config's `device` (the workflow passes it)")
+    p.add_argument("--threads", type=int, default=0, help="torch threads (0: torch's default)")
+    p.set_defaults(func=func)
+    return p
