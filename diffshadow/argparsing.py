@@ -19,7 +19,7 @@ def device_of(args: argparse.Namespace):
 
 
 def add_subcommand(sub, name: str, func, helptext: str, *paths: str, out: bool = True, device: bool = True,
-         config: str | None = None) -> argparse.ArgumentParser:
+                   config: str | None = None) -> argparse.ArgumentParser:
     """A subcommand with required path options, --out, --device/--config-device, --threads, --config-json."""
     p = sub.add_parser(name, help=helptext)
     for path in paths:

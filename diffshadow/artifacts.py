@@ -8,7 +8,7 @@
 | `geometry_points.zarr` | presample | `write_geometry_points` / `read_training_data` |
 | `diffusion_geometry.ckpt`, `diffusion.ckpt` | train_diffusion, finetune_render | `load_checkpoint` |
 | `targets.zarr` | render_targets | `write_targets` / `read_targets` |
-| `data_inr.pt` | train_data_inr | `save_data_inr` / `load_data_inr` |
+| `data_inr.pt` | train_data_inr | `save_data_inr` / `load_data_inr`; with a volume: `load_render_scene` |
 """
 
 from __future__ import annotations
@@ -22,11 +22,11 @@ from diffshadow.data_inr import DataInr
 from diffshadow.diffusion.finetune import RayBundle
 from diffshadow.diffusion.train import TrainingData
 from diffshadow.io import atomic_torch_save, write_zarr_group
-from diffshadow.render import Camera
+from diffshadow.render import Camera, RenderScene
 from diffshadow.siren import Siren, SirenConfig, WeightLayout
 from diffshadow.store import WeightStore, open_store
 from diffshadow.transfer import TransferFunction
-from diffshadow.volume import Volume, VolumeError
+from diffshadow.volume import Volume, VolumeError, load_volume
 
 
 class ArtifactError(ValueError):
@@ -188,3 +188,25 @@ def load_data_inr(path) -> DataInr:
         raise ValueError(f"{path}: no such data INR file (train_data_inr's data_inr.pt)") from None
     except (KeyError, RuntimeError, TypeError) as e:
         raise ValueError(f"{path}: not a data INR file ({e})") from None
+
+
+# ------------------------------------------------------------------------------------------ render scene
+
+
+def load_render_scene(volume_path: Path, data_inr: Path | None, device: torch.device,
+                 tf_config: dict | None = None) -> RenderScene:
+    """A RenderScene from a prepared volume.zarr, or from a raw volume file with its transfer function."""
+    if is_prepared(volume_path) and tf_config is None:
+        volume, tf = load_prepared(volume_path)
+    else:
+        if tf_config is None:
+            raise ValueError(f"{volume_path}: not a prepared volume.zarr, so it needs a transfer function "
+                             f"(--tf-json '{{\"opacity\": [[s, a], ...], \"color\": [[s, r, g, b], ...], "
+                             f"\"density_scale\": K}}')")
+        volume = load_volume(volume_path)
+        tf = TransferFunction.from_config(tf_config)
+    inr = load_data_inr(data_inr) if data_inr else None
+    if inr is not None and not np.allclose(inr.extent, volume.extent):
+        raise ValueError(f"{data_inr}: fitted to a box of {inr.extent.tolist()}, the volume's is "
+                         f"{volume.extent.tolist()}")
+    return RenderScene(volume, tf, inr, device=device)

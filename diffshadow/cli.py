@@ -139,12 +139,13 @@ def _evaluate_images(a):
 
 
 def _render(a):
+    from diffshadow.artifacts import load_render_scene
     from diffshadow.config import parse_json
     from diffshadow.render import Camera
     from diffshadow.stages import images
 
     tf = parse_json(a.tf_json, "--tf-json") if a.tf_json else None
-    scene = images.render_scene(Path(a.volume), Path(a.data_inr) if a.data_inr else None, _device(a), tf)
+    scene = load_render_scene(Path(a.volume), Path(a.data_inr) if a.data_inr else None, _device(a), tf)
     cam = Camera.orbit(scene.volume.extent, azimuth=a.azimuth, elevation=a.elevation, distance=a.distance,
                        fov=a.fov, size=a.size)
     images.render_image(scene, Path(a.out), mode=a.mode, camera=cam, light=a.light,

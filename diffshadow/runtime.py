@@ -88,16 +88,14 @@ def distributed(device: torch.device, *, timeout_s: float) -> Iterator[Distribut
     """
     world = int(os.environ.get("WORLD_SIZE", "1"))
     rank = int(os.environ.get("RANK", "0"))
-    if device.type == "cuda" and world > 1:
-        gpus = torch.cuda.device_count()
-        if world > gpus:
-            if rank == 0:
-                print(f"DDP: {world} ranks but {gpus} visible GPU(s): running gloo on CPU instead "
-                      f"(launch at most {gpus} process(es) to use the GPUs)", flush=True)
-            device = CPU
-        else:
-            device = torch.device("cuda", int(os.environ.get("LOCAL_RANK", "0")))
+    if device.type == "cuda" and world > torch.cuda.device_count():
+        if rank == 0:
+            print(f"DDP: {world} ranks but {torch.cuda.device_count()} visible GPU(s): running gloo on CPU "
+                  f"instead (launch at most that many processes to use the GPUs)", flush=True)
+        device = CPU
     if device.type == "cuda":
+        if world > 1 or device.index is None:  # one GPU per rank; set_device needs an index
+            device = torch.device("cuda", int(os.environ.get("LOCAL_RANK", "0")))
         torch.cuda.set_device(device)
     if world == 1:
         yield Distributed(rank, world, device)

@@ -256,14 +256,13 @@ def run(out: Path, *, scene_config: Path | None = None, volume: Path | None = No
     INR and one shadow INR (given, or fitted here), then `bench_render`; writes JSON and a plot."""
     import dataclasses
 
-    from diffshadow.artifacts import load_data_inr
+    from diffshadow.artifacts import is_prepared, load_data_inr, load_render_scene
     from diffshadow.bench import BENCH_LIGHT, BENCH_TF
     from diffshadow.config import read_yaml
     from diffshadow.data_inr import DataInrConfig, fit_data_inr
     from diffshadow.fit import FitConfig, fit_sirens
     from diffshadow.sampling import seeded
     from diffshadow.siren import SirenConfig, WeightLayout, init_siren
-    from diffshadow.stages.images import render_scene
     from diffshadow.store import open_store
     from diffshadow.transfer import TransferFunction
     from diffshadow.volume import load_volume
@@ -277,10 +276,8 @@ def run(out: Path, *, scene_config: Path | None = None, volume: Path | None = No
         scene = RenderScene(vol, TransferFunction.from_config(sc["transfer_function"]), device=device)
         name = Path(scene_config).stem
     elif volume:
-        from diffshadow.artifacts import is_prepared
-
         tf = tf_config if tf_config is not None or is_prepared(volume) else BENCH_TF
-        scene = render_scene(volume, None, device, tf)
+        scene = load_render_scene(volume, None, device, tf)
         name = scene.volume.name
     else:
         raise ValueError("bench render: give --scene-config FILE or --volume PATH")

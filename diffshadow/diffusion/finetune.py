@@ -207,9 +207,8 @@ def step_loss(model, std: Standardizer, data: FinetuneData, z_all: torch.Tensor,
         zero = sum(p.sum() for p in model.parameters()) * 0.0
         return zero, torch.zeros(3, dtype=torch.float64)
     tr = data.train
-    # drawn on the CPU (the same numbers on every device), then moved
-    draws = [_draws(cfg, dcfg, epoch, i, z_all.shape[1], tr.points.shape[1], data.bundle.count.cpu(), schedule.steps)
-             for i in local]
+    count = data.bundle.count.cpu()  # draws are made on the CPU (the same numbers on every device), then moved
+    draws = [_draws(cfg, dcfg, epoch, i, z_all.shape[1], tr.points.shape[1], count, schedule.steps) for i in local]
     idx = torch.tensor(local, device=device)
     t = torch.cat([d[0] for d in draws]).to(device)
     noise = torch.cat([d[1] for d in draws]).to(device)
@@ -266,7 +265,8 @@ def finetune(geometry_state: dict, data: FinetuneData, cfg: FinetuneConfig, chec
     opt = torch.optim.AdamW(base.parameters(), lr=cfg.lr, weight_decay=dcfg.weight_decay)
     fp = fingerprint(geometry_state, cfg, data)
     start = 0
-    if state := resume(checkpoint, fp, log=log, map_location=device, key="finetune_fingerprint"):
+    if state := resume(checkpoint, fp, log=lambda m: log(f"rank {rank}: {m}"), map_location=device,
+                       key="finetune_fingerprint"):
         base.load_state_dict(state["model"])
         opt.load_state_dict(state["optimizer"])
         start = int(state["finetune_epoch"])

@@ -6,7 +6,6 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
-import numpy as np
 import torch
 
 from diffshadow import artifacts, report
@@ -19,8 +18,6 @@ from diffshadow.lights import read_lights
 from diffshadow.metrics import lpips_model
 from diffshadow.render import Camera, RenderScene, default_views, write_png
 from diffshadow.store import open_store
-from diffshadow.transfer import TransferFunction
-from diffshadow.volume import load_volume
 
 
 def train_data_inr(volume_path: Path, out: Path, *, cfg: DataInrConfig, device: torch.device) -> None:
@@ -45,23 +42,6 @@ def render_targets(volume_path: Path, lights_path: Path, out: Path, *, cfg: Fine
     print(f"wrote {out}: {len(train)} lights x {cfg.views} views")
 
 
-def render_scene(volume_path: Path, data_inr: Path | None, device: torch.device,
-                 tf_config: dict | None = None) -> RenderScene:
-    """A RenderScene from a prepared volume.zarr, or from a raw volume file with its transfer function."""
-    if artifacts.is_prepared(volume_path) and tf_config is None:
-        volume, tf = artifacts.load_prepared(volume_path)
-    else:
-        if tf_config is None:
-            raise ValueError(f"{volume_path}: not a prepared volume.zarr, so it needs a transfer function "
-                             f"(--tf-json '{{\"opacity\": [[s, a], ...], \"color\": [[s, r, g, b], ...], "
-                             f"\"density_scale\": K}}')")
-        volume = load_volume(volume_path)
-        tf = TransferFunction.from_config(tf_config)
-    inr = artifacts.load_data_inr(data_inr) if data_inr else None
-    if inr is not None and not np.allclose(inr.extent, volume.extent):
-        raise ValueError(f"{data_inr}: fitted to a box of {inr.extent.tolist()}, the volume's is "
-                         f"{volume.extent.tolist()}")
-    return RenderScene(volume, tf, inr, device=device)
 
 
 def render_image(scene: RenderScene, out: Path, *, mode: str, camera: Camera, light=None,
@@ -89,7 +69,7 @@ def evaluate_images(volume_path: Path, lights_path: Path, data_inr: Path, weight
                     generated_path: Path | None, images_dir: Path, out: Path, *, cfg: dict,
                     device: torch.device) -> None:
     """`image_metrics.json` and the PNGs: every shading mode against `gt`."""
-    scene = render_scene(volume_path, data_inr, device)
+    scene = artifacts.load_render_scene(volume_path, data_inr, device)
     light_sets = read_lights(lights_path)
     stage1 = open_store(weights_path)
     generated = open_store(generated_path) if generated_path else None

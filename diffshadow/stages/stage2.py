@@ -20,7 +20,7 @@ from diffshadow.diffusion.train import train_diffusion as train
 from diffshadow.evaluate import TruthPoints, psnr_per_light, voxel_metrics
 from diffshadow.io import atomic_write_text
 from diffshadow.lights import read_lights
-from diffshadow.runtime import distributed
+from diffshadow.runtime import distributed, set_threads
 from diffshadow.store import WeightStore, open_store, write_store
 
 
@@ -55,8 +55,6 @@ def _summary(psnr: np.ndarray) -> dict:
 def finetune_render(checkpoint: Path, weights_path: Path, points_path: Path, targets_path: Path, out: Path,
                     metrics_path: Path, *, cfg: FinetuneConfig, device: torch.device, threads: int = 0) -> None:
     """Rendering-loss fine-tuning from the geometry-stage checkpoint, one DDP rank per process."""
-    from diffshadow.runtime import set_threads
-
     with distributed(device, timeout_s=cfg.timeout_s) as ddp:
         set_threads(threads)
         rank, world = ddp.rank, ddp.world
