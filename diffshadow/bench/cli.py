@@ -1,0 +1,82 @@
+"""The `diffshadow bench ...` and `check-store` subcommands: parse and dispatch to the benchmarks."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+from diffshadow.argparsing import add_subcommand as _add
+from diffshadow.argparsing import device_of as _device
+
+
+def _bench_shadow(a):
+    from diffshadow.bench import default_volumes
+    from diffshadow.bench.shadow import bench_shadow
+
+    bench_shadow([Path(v) for v in a.volumes] if a.volumes else default_volumes(), Path(a.out), device=_device(a))
+
+
+def _bench_siren(a):
+    from diffshadow.bench.siren import bench_siren
+
+    bench_siren(Path(a.out), k=a.k, points=a.points, widths=a.widths, device=_device(a))
+
+
+def _bench_init_spread(a):
+    from diffshadow.bench.siren import bench_init_spread
+
+    bench_init_spread(Path(a.results), Path(a.out), n_lights=a.lights)
+
+
+def _bench_render(a):
+    from diffshadow.bench.render import run
+    from diffshadow.config import parse_json
+
+    run(a.out, scene_config=a.scene_config, volume=a.volume, data_inr=a.data_inr, inr_steps=a.inr_steps,
+        tf_config=parse_json(a.tf_json, "--tf-json") if a.tf_json else None, weights=a.weights,
+        light_index=a.light_index, siren_width=a.siren_width, siren_steps=a.siren_steps, sizes=a.sizes,
+        step=a.step, repeats=a.repeats, device=_device(a))
+
+
+def _check_store(a):
+    from diffshadow.bench.siren import check_store
+
+    result = check_store(Path(a.results))
+    if result["max_abs_diff_db"] > a.tolerance:
+        raise SystemExit(f"check-store: stored and recomputed PSNR differ by {result['max_abs_diff_db']:.2f} dB "
+                         f"(> {a.tolerance} dB)")
+
+
+def add_bench_parsers(sub) -> None:
+    bench = sub.add_parser("bench", help="benchmarks that print and save figures").add_subparsers(
+        dest="bench", required=True)
+    p = _add(bench, "shadow", _bench_shadow, "time vs error of the ground-truth shadow methods", out=False)
+    p.add_argument("--volumes", nargs="*", help="volume files (default: bundled nucleon + ../shared/data)")
+    p.add_argument("--out", default="bench")
+    p = _add(bench, "siren", _bench_siren, "K SIRENs fitted jointly vs one after another", out=False)
+    p.add_argument("--k", type=int, default=16)
+    p.add_argument("--points", type=int, default=4096, help="points per SIREN per step")
+    p.add_argument("--widths", type=int, nargs="+", default=[32, 64, 128])
+    p.add_argument("--out", default="bench")
+    p = _add(bench, "init-spread", _bench_init_spread, "weight spread: shared init vs random inits", out=False,
+             device=False)
+    p.add_argument("--results", default="results/nucleon", help="a finished scene's results folder")
+    p.add_argument("--lights", type=int, default=8, help="lights to refit from random inits")
+    p.add_argument("--out", default="bench")
+    p = _add(bench, "render", _bench_render, "fps and memory of noshadow / inr / naive; skipping; step curve",
+             out=False)
+    for name, kind, default, helptext in (
+            ("scene-config", str, None, "a scene YAML (volume, transfer_function)"),
+            ("volume", str, None, "or prepare_volume's volume.zarr, or a raw file (--tf-json, else the bench TF)"),
+            ("tf-json", str, None, "transfer function for a raw --volume"),
+            ("data-inr", str, None, "train_data_inr's data_inr.pt (default: fit one)"),
+            ("inr-steps", int, 600, "steps when fitting the data INR here"),
+            ("weights", str, None, "a weight store whose SIREN --light-index is the shadow INR (default: fit one)"),
+            ("light-index", int, 0, None), ("siren-width", int, 32, None), ("siren-steps", int, 300, None),
+            ("step", float, 0.5, "voxels"), ("repeats", int, 3, None), ("out", str, "bench/bench_render.json", None)):
+        p.add_argument(f"--{name}", type=kind, default=default, help=helptext)
+    p.add_argument("--sizes", type=int, nargs="+", default=[64, 128])
+
+    p = _add(sub, "check-store", _check_store, "re-evaluate every stored SIREN against the store's PSNR",
+             out=False, device=False)
+    p.add_argument("--results", default="results/nucleon")
+    p.add_argument("--tolerance", type=float, default=0.5, help="dB")

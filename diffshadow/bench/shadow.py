@@ -1,0 +1,125 @@
+"""Time against error of the ground-truth shadow methods (`diffshadow bench shadow`)."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from diffshadow.bench import BENCH_LIGHT, BENCH_TF, REFERENCE_STEP, timed
+from diffshadow.io import atomic_save, atomic_write_text
+from diffshadow.shadow import DEFAULT_STEP, DEFAULT_SWEEP_STEP, shadow_grid
+from diffshadow.transfer import TransferFunction
+from diffshadow.volume import load_volume
+
+
+def bench_analytic(steps=(2.0, 1.0, 0.5, 0.25)) -> dict:
+    """`transmittance` against the closed form on the 65³ Gaussian blob (1,000 points and directions)."""
+    import tempfile
+
+    from diffshadow.analytic import BLOB_DENSITY, blob_cases, blob_transmittance, gaussian_blob
+    from diffshadow.shadow import ShadowField, transmittance
+
+    with tempfile.TemporaryDirectory() as tmp:  # through load_volume, as a user's .npy would go
+        np.save(Path(tmp) / "blob.npy", gaussian_blob())
+        vol = load_volume(Path(tmp) / "blob.npy")
+    tf = TransferFunction.from_config({"opacity": [[0, 0], [1, 1]], "color": [[0, 1, 1, 1], [1, 1, 1, 1]],
+                                       "density_scale": BLOB_DENSITY})
+    field = ShadowField.build(vol, tf)
+    out = {}
+    for step in steps:
+        err = np.concatenate([np.abs(transmittance(field, tf, w, pts, step=step).numpy()
+                                     - np.array([blob_transmittance(p, w) for p in pts])) for w, pts in blob_cases()])
+        out[step] = {"max_err": float(err.max()), "mean_err": float(err.mean()), "points": len(err)}
+        print(f"[bench shadow] analytic blob, step {step:g}: max {err.max():.2e}  mean {err.mean():.2e} "
+              f"({len(err)} points)", flush=True)
+    return out
+
+
+def bench_shadow(
+    volumes: list[Path],
+    out_dir: Path,
+    *,
+    light=BENCH_LIGHT,
+    tf_config: dict | None = None,
+    march_steps=(2.0, 1.0, 0.5, 0.25),
+    sweep_steps=(1.0, 0.5, 0.25),
+    device: torch.device | str = "cpu",
+) -> dict:
+    """Time and error of every method and step on each volume; writes JSON and a log-log plot."""
+    tf = TransferFunction.from_config(tf_config or BENCH_TF)
+    results: dict = {"light": list(light), "tf": tf.to_config(), "reference_step": REFERENCE_STEP,
+                     "torch_threads": torch.get_num_threads(), "analytic_blob": bench_analytic(), "volumes": {}}
+    for path in volumes:
+        vol = load_volume(path)
+        print(f"[bench shadow] {vol.name} {vol.dims}: reference march at {REFERENCE_STEP} voxel ...", flush=True)
+        ref, t_ref = timed(lambda v=vol: shadow_grid(v, tf, light, method="march", step=REFERENCE_STEP,
+                                                      device=device))
+        rows = [{"method": "march", "step": REFERENCE_STEP, "seconds": t_ref, "max_err": 0.0, "mean_err": 0.0}]
+        cases = [("march", s, True) for s in march_steps] + [("march_noskip", DEFAULT_STEP, False)]
+        cases += [("march_auto", DEFAULT_STEP, None)]
+        cases += [("sweep", s, None) for s in sweep_steps]
+        shadow_grid(vol, tf, light, method="sweep", device=device)  # warm-up
+        grids = {}
+        for method, step, skip in cases:
+            if method == "sweep":
+                g, t = timed(lambda v=vol, s=step: shadow_grid(v, tf, light, method="sweep", step=s,
+                                                                device=device))
+            else:
+                g, t = timed(lambda v=vol, s=step, k=skip: shadow_grid(v, tf, light, method="march", step=s,
+                                                                        skip_empty=k, device=device))
+            err = (g - ref).abs()
+            row = {"method": method, "step": step, "seconds": t, "max_err": float(err.max()),
+                   "mean_err": float(err.mean())}
+            rows.append(row)
+            grids[(method, step)] = g
+            print(f"  {method:13s} step {step:<6g} {t:8.3f} s  max {row['max_err']:.2e}  "
+                  f"mean {row['mean_err']:.2e}", flush=True)
+        t_of = {(r["method"], r["step"]): r["seconds"] for r in rows}
+        summary = {
+            "sweep_speedup": t_of[("march", DEFAULT_STEP)] / t_of[("sweep", DEFAULT_SWEEP_STEP)],
+            "skip_speedup": t_of[("march_noskip", DEFAULT_STEP)] / t_of[("march", DEFAULT_STEP)],
+            "skip_max_diff": float((grids[("march", DEFAULT_STEP)]
+                                    - grids[("march_noskip", DEFAULT_STEP)]).abs().max()),
+            "min_transmittance": float(ref.min()),
+        }
+        print(f"  sweep {summary['sweep_speedup']:.1f}x faster than march at default steps; "
+              f"skipping {summary['skip_speedup']:.2f}x (max diff {summary['skip_max_diff']:.1e})", flush=True)
+        results["volumes"][vol.name] = {"dims": list(vol.dims), "rows": rows, "summary": summary}
+    out_dir.mkdir(parents=True, exist_ok=True)
+    atomic_write_text(out_dir / "bench_shadow.json", json.dumps(results, indent=1) + "\n")
+    _plot(results, out_dir / "bench_shadow.png")
+    print(f"[bench shadow] wrote {out_dir / 'bench_shadow.json'} and {out_dir / 'bench_shadow.png'}")
+    return results
+
+
+def _plot(results: dict, path: Path) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    names = list(results["volumes"])
+    fig, axes = plt.subplots(1, len(names), figsize=(4.2 * len(names), 3.8), squeeze=False)
+    for ax, name in zip(axes[0], names, strict=True):
+        rows = [r for r in results["volumes"][name]["rows"] if r["mean_err"] > 0]
+        for method, marker in (("march", "o"), ("march_noskip", "x"), ("sweep", "s")):
+            pts = sorted((r["seconds"], r["mean_err"], r["step"]) for r in rows if r["method"] == method)
+            if not pts:
+                continue
+            ax.loglog([p[0] for p in pts], [p[1] for p in pts], marker=marker, label=method)
+            for t, e, s in pts:
+                ax.annotate(f"{s:g}", (t, e), fontsize=7, textcoords="offset points", xytext=(3, 3))
+        ax.set_title(f"{name} {results['volumes'][name]['dims']}")
+        ax.set_xlabel("wall time [s]")
+        ax.set_ylabel("mean |error| vs march @ 1/8 voxel")
+        ax.grid(True, which="both", alpha=0.3)
+        ax.legend(fontsize=8)
+    fig.suptitle("Ground-truth shadow: time vs error (labels: step in voxels)")
+    fig.tight_layout()
+    atomic_save(path, lambda tmp: fig.savefig(tmp, dpi=110, format="png"), suffix=".png")
+    plt.close(fig)
+
+
