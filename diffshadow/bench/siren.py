@@ -90,10 +90,10 @@ def bench_siren(out_dir: Path, *, k: int = 16, points: int = 4096, widths=(32, 6
 
 
 def _scene_inputs(results: Path):
+    from diffshadow.artifacts import load_prepared
     from diffshadow.fit import FitConfig
     from diffshadow.lights import read_lights
     from diffshadow.store import open_store
-    from diffshadow.artifacts import load_prepared
 
     volume, tf = load_prepared(results / "volume.zarr")
     store = open_store(results / "weights.zarr")
@@ -145,8 +145,8 @@ def bench_init_spread(results: Path, out_dir: Path, *, n_lights: int = 8) -> dic
 def check_store(results: Path, *, n_points: int = 65536, seed: int = 12345) -> dict:
     """Re-evaluate every stored SIREN independently (`Siren.from_flat`, fresh points, `transmittance`)
     and compare with the PSNR recorded in the store."""
-    from diffshadow.sampling import PointSampler, seeded
     from diffshadow.metrics import psnr
+    from diffshadow.sampling import PointSampler, seeded
     from diffshadow.shadow import ShadowField, transmittance
     from diffshadow.siren import Siren, box_to_siren
 
