@@ -13,8 +13,9 @@ def config_of(args: argparse.Namespace) -> dict:
 
 
 def device_of(args: argparse.Namespace):
-    from diffshadow.runtime import resolve_device
+    from diffshadow.runtime import resolve_device, set_deterministic_from_env
 
+    set_deterministic_from_env()
     return resolve_device(args.device, args.config_device)
 
 

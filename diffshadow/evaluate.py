@@ -23,7 +23,7 @@ class TruthPoints:
         self.field = ShadowField.build(volume, tf)
         self.extent = torch.as_tensor(volume.extent, dtype=torch.float32)
         gen = seeded(seed, 4)
-        self.sets = {"box": torch.rand(n_points, 3, generator=gen) * self.extent}
+        self.sets = {"box": torch.rand(n_points, 3, generator=gen, device=gen.device) * self.extent}
         vis = PointSampler(volume, tf, 1.0)
         if vis.visible_fraction:
             self.sets["visible"] = vis.sample(1, n_points, gen)[0]

@@ -57,7 +57,7 @@ def macro_cells(scalar: torch.Tensor, tf: TransferFunction, cell: int) -> torch.
 
 def cell_ranges(scalar: torch.Tensor, cell: int) -> tuple[torch.Tensor, torch.Tensor]:
     """(min, max) of the voxels of each vertex-centred cell, boundary voxels included: (cz, cy, cx) each."""
-    n = torch.tensor(scalar.shape)
+    n = torch.tensor(scalar.shape, device="cpu")  # sizes, read on the host
     nc = torch.clamp((n - 1 + cell - 1) // cell, min=1)
     pad = []
     for axis in (2, 1, 0):  # F.pad takes the last axis first

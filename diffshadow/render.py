@@ -22,6 +22,7 @@ colour is first lit by Blinn-Phong from the field's gradient. `noshadow` has g =
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import time
 from dataclasses import dataclass, field
@@ -41,7 +42,8 @@ DEFAULT_STEP = 0.5  # primary and secondary step, in voxels of the finest axis
 MIN_TRANSMITTANCE = 1e-3  # early ray termination
 SHADOW_TAU_MAX = 10.0  # secondary rays stop here: g < 5e-5, below an 8-bit pixel's resolution
 SAMPLES_PER_ITER = 8  # bench: 16³ cells, hydrogen_atom: 8 halves the loop overhead of 4; 16 wastes samples
-BATCH = 1 << 16  # samples per network inference
+BATCH = 1 << 16  # samples per network inference on a CPU
+CUDA_BATCH = 1 << 20  # on a GPU: enough work to fill it between host syncs
 BACKGROUND = 1.0
 AMBIENT, DIFFUSE, SPECULAR, SHININESS = 0.3, 0.7, 0.2, 32.0
 MODES = ("noshadow", "gt", "inr", "naive")
@@ -134,27 +136,18 @@ class MacroGrid:
     cell: int
     voxel_size: torch.Tensor  # (3,) box units per voxel
     dims: torch.Tensor  # (3,) voxels (x, y, z)
-    # per empty cell, r such that the (2r+1)³ cells around it are all empty: a ray jumps out of that
-    # whole block at once (a Chebyshev distance transform of the occupied cells)
-    radius: torch.Tensor = field(init=False)
     ncell: torch.Tensor = field(init=False)
+    any_empty: bool = field(init=False)  # read once here, so marching needs no host read for it
 
     def __post_init__(self):
         self.ncell = torch.tensor(self.empty.shape[::-1], device=self.empty.device)
-        occupied = (~self.empty).float()[None, None]
-        radius = torch.zeros(self.empty.shape, dtype=torch.long, device=self.empty.device)
-        for r in range(1, max(self.empty.shape)):
-            clear = F.max_pool3d(occupied, 2 * r + 1, stride=1, padding=r)[0, 0] == 0
-            if not bool(clear.any()):
-                break
-            radius[clear] = r
-        self.radius = radius
+        self.any_empty = bool(self.empty.any())
 
     @classmethod
     def build(cls, volume: Volume, tf: TransferFunction, *, cell: int = RENDER_CELL, ranges=None,
               device: torch.device | str = "cpu") -> MacroGrid:
         if ranges is None:
-            lo, hi = (r.double().numpy() for r in cell_ranges(torch.as_tensor(volume.data), cell))
+            lo, hi = (r.double().numpy() for r in cell_ranges(torch.from_numpy(volume.data), cell))
         else:
             lo, hi = (np.asarray(r, dtype=np.float64) for r in ranges)
         peak = tf.max_opacity(np.clip(lo, 0, 1), np.clip(hi, 0, 1))
@@ -182,17 +175,6 @@ class MacroGrid:
 
     def is_empty(self, c: torch.Tensor) -> torch.Tensor:
         return self.empty[c[:, 2], c[:, 1], c[:, 0]]
-
-    def exit_t(self, o: torch.Tensor, d: torch.Tensor, c: torch.Tensor) -> torch.Tensor:
-        """Ray parameter where rays o + t d leave the empty block around cell c (box units)."""
-        r = self.radius[c[:, 2], c[:, 1], c[:, 0]][:, None]
-        lo = (c - r) * self.cell * self.voxel_size
-        hi = torch.minimum((c + r + 1) * self.cell, self.dims - 1) * self.voxel_size
-        bound = torch.where(d > 0, hi, lo)
-        t = torch.where(d != 0, (bound - o) / torch.where(d != 0, d, torch.ones_like(d)), torch.full_like(d, math.inf))
-        return t.min(dim=1).values
-
-
 
 
 def front_to_back(alpha: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
@@ -281,28 +263,113 @@ class Counters:
     iterations: int = 0
 
 
-def _gather(o, d, k, t0, t1, dt, macro: MacroGrid | None, n: int):
-    """The coordinate step: the next `n` lattice samples t = t0 + (k + ½)·dt of each ray.
+@dataclass(frozen=True)
+class MarchPlan:
+    """How the marcher sizes its work on one device (the images do not depend on it).
 
-    A ray whose next sample lies in an empty macro-cell first jumps to the first lattice sample past
-    that cell (repeatedly, across runs of empty cells); of the `n` samples then taken, any in an empty
-    cell is marked invalid (μ = 0 there). Returns points (R, n, 3), valid (R, n) and the advanced k (R,).
+    Each iteration sends about `batch` samples to the network: every live ray takes the same number of
+    samples, `batch` / live rays, at least `min_samples`. On a CPU the live rays are compacted every
+    iteration and only samples inside occupied cells are evaluated (two host syncs per iteration, both
+    cheap there). On a GPU a host sync stalls the queue, so the shapes stay fixed for `compact_every`
+    iterations: finished rays ride along masked, and padding samples are evaluated and thrown away.
+    Rays are marched in tiles of `batch // min_samples`, so memory is bounded by the batch whatever the
+    image size.
     """
-    if macro is not None:
-        for _ in range(4 * sum(macro.empty.shape)):  # every cell along a ray at most once
-            t = t0 + (k + 0.5) * dt
-            cell = macro.cell_of(o + t[:, None] * d)
-            jump = (t < t1) & macro.is_empty(cell)
-            if not bool(jump.any()):
-                break
-            t_out = macro.exit_t(o[jump], d[jump], cell[jump])
-            k[jump] = torch.maximum(torch.ceil((t_out - t0[jump]) / dt - 0.5), k[jump] + 1)
-    t = t0[:, None] + (k[:, None] + 0.5 + torch.arange(n, device=k.device)) * dt
-    pts = o[:, None] + t[..., None] * d[:, None]
-    valid = t < t1[:, None]
-    if macro is not None:
-        valid &= ~macro.is_empty(macro.cell_of(pts.view(-1, 3))).view(valid.shape)
-    return pts, valid, k + n
+
+    batch: int = BATCH
+    min_samples: int = SAMPLES_PER_ITER
+    max_samples: int = 256
+    compact_every: int = 1
+    compact_samples: bool = True
+
+    @classmethod
+    def for_device(cls, device: torch.device, batch: int | None = None, min_samples: int | None = None) -> MarchPlan:
+        plan = cls(batch=CUDA_BATCH, compact_every=4, compact_samples=False) if device.type == "cuda" else cls()
+        return dataclasses.replace(plan, batch=batch or plan.batch, min_samples=min_samples or plan.min_samples)
+
+    @property
+    def tile(self) -> int:
+        return max(1, self.batch // self.min_samples)
+
+    def samples_per_ray(self, live: int) -> int:
+        return int(min(self.max_samples, max(self.min_samples, self.batch // max(live, 1))))
+
+
+@dataclass
+class Runs:
+    """The lattice samples t = t0 + (k + ½)·dt of each ray that lie in occupied macro-cells, as runs.
+
+    Run j of a ray holds its occupied samples number cum[j-1] .. cum[j]-1, at lattice index
+    k = m + offset[j] for sample number m. Built once per ray, in one vectorised pass over the cell
+    boundaries the ray crosses (fixed shape: every interior plane of the macro grid), so marching needs
+    no data-dependent jumps: the m-th occupied sample is one `searchsorted` away.
+    """
+
+    cum: torch.Tensor  # (R, J) inclusive running count of occupied samples
+    offset: torch.Tensor  # (R, J) lattice index minus sample number within run j
+    total: torch.Tensor  # (R,) occupied samples of each ray
+
+    @classmethod
+    def build(cls, o, d, t0, t1, dt: float, macro: MacroGrid | None) -> Runs:
+        def lattice(t):  # first lattice index whose sample lies at or after t
+            return torch.ceil((t - t0[:, None]) / dt - 0.5).clamp_min(0)
+
+        if macro is None or not macro.any_empty:
+            count = lattice(t1[:, None])[:, 0] * (t1 > t0)
+            return cls(count[:, None], torch.zeros_like(count)[:, None], count)
+        planes = []
+        for axis in range(3):
+            n = macro.empty.shape[2 - axis]
+            if n > 1:
+                x = torch.arange(1, n, device=o.device, dtype=o.dtype) * (macro.cell * macro.voxel_size[axis])
+                safe = torch.where(d[:, axis] != 0, d[:, axis], torch.ones_like(d[:, axis]))
+                t = (x[None] - o[:, axis, None]) / safe[:, None]
+                planes.append(torch.where(d[:, axis, None] != 0, t, t1[:, None]))
+        t = torch.cat([t0[:, None], *planes, t1[:, None]], 1)
+        t = torch.minimum(torch.maximum(t, t0[:, None]), t1[:, None]).sort(1).values
+        ta, tb = t[:, :-1], t[:, 1:]
+        mid = 0.5 * (ta + tb)
+        cells = macro.cell_of((o[:, None] + mid[..., None] * d[:, None]).view(-1, 3))
+        occupied = ~macro.is_empty(cells).view(mid.shape)
+        ka, kb = lattice(ta), lattice(tb)
+        length = (kb - ka) * occupied
+        cum = length.cumsum(1)
+        return cls(cum, ka - (cum - length), cum[:, -1])
+
+    def samples(self, rows: torch.Tensor, m: torch.Tensor, n: int) -> tuple[torch.Tensor, torch.Tensor]:
+        """Lattice indices (R', n) of occupied samples m .. m+n-1 of `rows`, and which exist."""
+        ms = m[:, None] + torch.arange(n, device=m.device, dtype=m.dtype)
+        cum = self.cum[rows]
+        j = torch.searchsorted(cum, ms, right=True).clamp_max(cum.shape[1] - 1)
+        return ms + self.offset[rows].gather(1, j), ms < self.total[rows, None]
+
+
+def _march(o, d, t0, t1, dt: float, macro: MacroGrid | None, plan: MarchPlan, step, done) -> int:
+    """March rays (R,) through their occupied samples. Per iteration, `step(rows, t, valid)` gets the
+    live rows, their sample parameters t (R', n) and which samples exist; afterwards `done(rows)` says
+    which rows have finished early (opaque, or optically deep). Returns the number of iterations."""
+    iterations = 0
+    for a in range(0, len(o), plan.tile):
+        sl = slice(a, a + plan.tile)
+        runs = Runs.build(o[sl], d[sl], t0[sl], t1[sl], dt, macro)
+        rows = torch.nonzero(runs.total > 0).flatten()
+        m = torch.zeros(len(o[sl]), dtype=runs.cum.dtype, device=o.device)
+        left = int(runs.total.max()) if len(rows) else 0  # iterations bound: one host read per tile
+        i = 0
+        while len(rows) and left > 0:
+            n = plan.samples_per_ray(len(rows))
+            k, valid = runs.samples(rows, m[rows], n)
+            rr = rows + a
+            t = t0[rr, None] + (k + 0.5) * dt
+            valid &= t < t1[rr, None]
+            step(rr, t, valid)
+            m[rows] += n
+            left -= n
+            i += 1
+            if i % plan.compact_every == 0 or left <= 0:
+                rows = rows[(m[rows] < runs.total[rows]) & ~done(rr)]
+        iterations += i
+    return iterations
 
 
 @dataclass
@@ -328,48 +395,40 @@ def _shade(tf: TransferFunction, s, grad, g, view_dir, light: torch.Tensor, shad
 
 class MarchedShadow:
     """The naive baseline: a secondary ray toward the light from every sample, marched through `scalar`
-    (wavefront-batched, empty cells skipped, stopped at optical depth `tau_max`)."""
+    by the same marcher as the primary rays (empty cells skipped, stopped at optical depth `tau_max`)."""
 
     def __init__(self, scalar, tf: TransferFunction, extent, voxel: float, *, step: float = DEFAULT_STEP,
                  macro: MacroGrid | None = None, tau_max: float = SHADOW_TAU_MAX,
-                 samples_per_iter: int = SAMPLES_PER_ITER, batch: int = BATCH):
+                 samples_per_iter: int | None = None, batch: int | None = None):
         self.scalar, self.tf, self.macro = scalar, tf, macro
-        self.extent = torch.as_tensor(np.asarray(extent), dtype=torch.float32)
+        self.extent = torch.as_tensor(np.asarray(extent), dtype=torch.float32, device="cpu")
         self.dt = step * voxel
-        self.tau_max, self.n, self.batch = tau_max, samples_per_iter, batch
+        self.tau_max, self.min_samples, self.batch = tau_max, samples_per_iter, batch
         self.light: torch.Tensor | None = None
         self.counters: Counters | None = None
 
     def __call__(self, p: torch.Tensor) -> torch.Tensor:
         device = p.device
-        extent = self.extent.to(device)
-        m = len(p)
-        d = self.light.to(device).expand(m, 3).contiguous()
-        _, t1 = ray_span(p, d, extent)
-        tau = torch.zeros(m, device=device)
-        k = torch.zeros(m, device=device)
-        t0 = torch.zeros(m, device=device)
-        pending = torch.arange(m, device=device)
-        cap = max(1, self.batch // self.n)
-        active = pending[:cap]
-        pending = pending[cap:]
-        while len(active):
-            pts, valid, k_new = _gather(p[active], d[active], k[active], t0[active], t1[active], self.dt,
-                                        self.macro, self.n)
-            k[active] = k_new
-            s = torch.zeros(valid.shape, device=device)
-            flat = pts[valid]
-            if len(flat):
-                s[valid] = self.scalar.value(flat)
-                if self.counters is not None:
-                    self.counters.secondary_samples += len(flat)
-            tau[active] += (self.tf.extinction(s) * valid).sum(1) * self.dt
-            alive = (tau[active] < self.tau_max) & (t0[active] + (k[active] + 0.5) * self.dt < t1[active])
-            active = active[alive]
-            free = cap - len(active)
-            if free > 0 and len(pending):
-                active = torch.cat([active, pending[:free]])
-                pending = pending[free:]
+        plan = MarchPlan.for_device(device, self.batch, self.min_samples)
+        d = self.light.to(device).expand(len(p), 3).contiguous()
+        _, t1 = ray_span(p, d, self.extent.to(device))
+        t0 = torch.zeros_like(t1)
+        tau = torch.zeros_like(t1)
+
+        def step(rows, t, valid):
+            pts = (p[rows, None] + t[..., None] * d[rows, None]).view(-1, 3)
+            if plan.compact_samples:
+                idx = torch.nonzero(valid.view(-1)).flatten()
+                s = torch.zeros(valid.numel(), device=device)
+                s[idx] = self.scalar.value(pts[idx])
+                n = len(idx)
+            else:
+                s, n = self.scalar.value(pts), valid.numel()
+            if self.counters is not None:
+                self.counters.secondary_samples += n
+            tau[rows] += (self.tf.extinction(s.view(valid.shape)) * valid).sum(1) * self.dt
+
+        _march(p, d, t0, t1, self.dt, self.macro, plan, step, lambda rows: tau[rows] >= self.tau_max)
         return torch.exp(-tau)
 
 
@@ -397,8 +456,8 @@ def render(
     step: float = DEFAULT_STEP,
     macro: MacroGrid | None = None,
     min_transmittance: float = MIN_TRANSMITTANCE,
-    samples_per_iter: int = SAMPLES_PER_ITER,
-    batch: int = BATCH,
+    samples_per_iter: int | None = None,
+    batch: int | None = None,
     device: torch.device | str = "cpu",
 ) -> Image:
     """Render one image with the wavefront marcher.
@@ -410,8 +469,9 @@ def render(
     shading = shading or Shading()
     if step <= 0 or not math.isfinite(step):
         raise RenderError(f"step: expected a positive number of voxels, got {step}")
-    if batch < samples_per_iter:
-        raise RenderError(f"batch: expected at least samples_per_iter ({samples_per_iter}), got {batch}")
+    if batch is not None and batch < (samples_per_iter or SAMPLES_PER_ITER):
+        raise RenderError(f"batch: expected at least samples_per_iter ({samples_per_iter or SAMPLES_PER_ITER}), "
+                          f"got {batch}")
     w = None
     if shadow is not None or shading.phong:
         if light is None:
@@ -420,46 +480,41 @@ def render(
     counters = Counters()
     if isinstance(shadow, MarchedShadow):
         shadow.light, shadow.counters = w, counters
+    plan = MarchPlan.for_device(torch.device(device), batch, samples_per_iter)
     start = time.perf_counter()
     extent_t = torch.as_tensor(np.asarray(extent), dtype=torch.float32, device=device)
     o, d = camera.rays(device)
-    r = len(o)
     t0, t1 = ray_span(o, d, extent_t)
     dt = step * voxel
-    k = torch.zeros(r, device=device)
-    trans = torch.ones(r, device=device)
-    color = torch.zeros(r, 3, device=device)
-    pending = torch.nonzero(t0 < t1).flatten()
-    cap = max(1, batch // samples_per_iter)
-    active, pending = pending[:cap], pending[cap:]
-    while len(active):
-        counters.iterations += 1
-        pts, valid, k_new = _gather(o[active], d[active], k[active], t0[active], t1[active], dt, macro,
-                                    samples_per_iter)
-        k[active] = k_new
-        alpha = torch.zeros(valid.shape, device=device)
-        rgb = torch.zeros(*valid.shape, 3, device=device)
-        flat = pts[valid]
-        if len(flat):
-            counters.primary_samples += len(flat)
-            if shading.phong:
-                s, grad = scalar.value_and_grad(flat)
-            else:
-                s, grad = scalar.value(flat), None
-            g = shadow(flat) if shadow is not None else None
-            mu = tf.extinction(s)
-            alpha[valid] = 1 - torch.exp(-mu * dt)
-            view = d[active][:, None].expand_as(pts)[valid] if shading.phong else None
-            rgb[valid] = _shade(tf, s, grad, g, view, w, shading)
-        weight, through = front_to_back(alpha)
-        color[active] += ((trans[active, None] * weight)[..., None] * rgb).sum(1)
-        trans[active] = trans[active] * through
-        alive = (trans[active] >= min_transmittance) & (t0[active] + (k[active] + 0.5) * dt < t1[active])
-        active = active[alive]
-        free = cap - len(active)
-        if free > 0 and len(pending):
-            active = torch.cat([active, pending[:free]])
-            pending = pending[free:]
+    trans = torch.ones(len(o), device=device)
+    color = torch.zeros(len(o), 3, device=device)
+
+    def composite(rows, t, valid):
+        pts = (o[rows, None] + t[..., None] * d[rows, None]).view(-1, 3)
+        idx = torch.nonzero(valid.view(-1)).flatten() if plan.compact_samples else None
+        flat = pts if idx is None else pts[idx]
+        counters.primary_samples += len(flat)
+        if len(flat) == 0:
+            return
+        s, grad = scalar.value_and_grad(flat) if shading.phong else (scalar.value(flat), None)
+        g = shadow(flat) if shadow is not None else None
+        view = None
+        if shading.phong:
+            view = d[rows, None].expand(*valid.shape, 3).reshape(-1, 3)
+            view = view if idx is None else view[idx]
+        a = 1 - torch.exp(-tf.extinction(s) * dt)
+        c = _shade(tf, s, grad, g, view, w, shading)
+        if idx is None:
+            alpha, rgb = a * valid.view(-1), c
+        else:
+            alpha = torch.zeros(valid.numel(), device=device).index_copy_(0, idx, a)
+            rgb = torch.zeros(valid.numel(), 3, device=device).index_copy_(0, idx, c)
+        weight, through = front_to_back(alpha.view(valid.shape))
+        color[rows] += ((trans[rows, None] * weight)[..., None] * rgb.view(*valid.shape, 3)).sum(1)
+        trans[rows] *= through
+
+    counters.iterations = _march(o, d, t0, t1, dt, macro, plan, composite,
+                                 lambda rows: trans[rows] < min_transmittance)
     out = color + trans[:, None] * shading.background
     h, wdt = camera.height, camera.width
     seconds = time.perf_counter() - start
@@ -563,8 +618,8 @@ class RenderScene:
             self.volume.extent, self.device))
 
     def render(self, mode: str, camera: Camera, *, light=None, siren=None, scalar: str | None = None,
-               phong: bool = False, step: float = DEFAULT_STEP, skip: bool = True, batch: int = BATCH,
-               samples_per_iter: int = SAMPLES_PER_ITER, min_transmittance: float = MIN_TRANSMITTANCE,
+               phong: bool = False, step: float = DEFAULT_STEP, skip: bool = True, batch: int | None = None,
+               samples_per_iter: int | None = None, min_transmittance: float = MIN_TRANSMITTANCE,
                background: float = BACKGROUND) -> Image:
         """`siren`: (weights, layout, blocks) of the shadow INR, for mode `inr`."""
         if mode not in MODES:

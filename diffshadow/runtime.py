@@ -41,6 +41,21 @@ def resolve_device(flag: str | None = None, config: str | None = None) -> torch.
     return device
 
 
+def set_deterministic_from_env() -> bool:
+    """DIFFSHADOW_DETERMINISTIC=1: the same bytes from the same seed on one GPU too, at some speed cost.
+
+    CPU runs are deterministic anyway. On CUDA this asks PyTorch for deterministic kernels (an op
+    without one raises instead of varying) and cuBLAS for a fixed workspace; it must happen before the
+    first CUDA call, so the CLI calls it when it resolves the device.
+    """
+    if os.environ.get("DIFFSHADOW_DETERMINISTIC", "0") in ("", "0"):
+        return False
+    os.environ.setdefault("CUBLAS_WORKSPACE_CONFIG", ":4096:8")
+    torch.use_deterministic_algorithms(True)
+    torch.backends.cudnn.benchmark = False
+    return True
+
+
 def set_threads(n: int) -> None:
     """torch's intra-op threads (0: torch's default)."""
     if n:

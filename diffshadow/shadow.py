@@ -65,7 +65,8 @@ class ShadowField:
             extent=torch.as_tensor(volume.extent, dtype=torch.float32, device=device),
             voxel_size=torch.as_tensor(volume.voxel_size, dtype=torch.float32, device=device),
             dims=torch.as_tensor(volume.dims, dtype=torch.float32, device=device),
-            empty=macro_cells(scalar[0, 0], tf, cell) if cell > 0 else torch.zeros(1, 1, 1, dtype=torch.bool),
+            empty=(macro_cells(scalar[0, 0], tf, cell) if cell > 0
+                   else torch.zeros(1, 1, 1, dtype=torch.bool, device=device)),
             cell=cell,
             tf=tf,
         )
@@ -82,7 +83,8 @@ class ShadowField:
 
 
 def _as_points(points, device) -> torch.Tensor:
-    pts = torch.as_tensor(points, dtype=torch.float32)
+    host = points.device if isinstance(points, torch.Tensor) else "cpu"
+    pts = torch.as_tensor(points, dtype=torch.float32, device=host)
     if pts.ndim != 2 or pts.shape[1] != 3:
         raise ValueError(f"points: expected shape (P, 3), got {tuple(pts.shape)}")
     if not torch.isfinite(pts).all():

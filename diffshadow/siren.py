@@ -93,12 +93,13 @@ class WeightLayout:
 def init_siren(cfg: SirenConfig, generator: torch.Generator | None = None) -> dict[str, torch.Tensor]:
     """SIREN initialisation: first layer U(±1/in), others U(±√(6/in)/ω0); biases likewise by fan-in."""
     out = {}
+    host = generator.device if generator is not None else torch.device("cpu")  # the same on every device
     for name, shape in WeightLayout.for_siren(cfg).entries:
         fan_in = shape[-1] if name.endswith("weight") else (3 if name.startswith("first") else cfg.width)
         bound = 1.0 / fan_in if name.startswith("first") else math.sqrt(6.0 / fan_in) / OMEGA
         if name.endswith("bias"):
             bound = 1.0 / math.sqrt(fan_in)  # PyTorch's default bias init, as in SIREN/NeurComp code
-        out[name] = (torch.rand(shape, generator=generator) * 2 - 1) * bound
+        out[name] = (torch.rand(shape, generator=generator, device=host) * 2 - 1) * bound
     return out
 
 
@@ -137,7 +138,8 @@ class Siren(nn.Module):
     @classmethod
     def from_flat(cls, vector, layout: WeightLayout, cfg: SirenConfig | None = None) -> Siren:
         """A SIREN whose weights are `vector` in `layout` (the store's format)."""
-        vector = torch.as_tensor(vector, dtype=torch.float32)
+        vector = torch.as_tensor(vector, dtype=torch.float32,
+                                 device=vector.device if isinstance(vector, torch.Tensor) else "cpu")
         if cfg is None:
             cfg = SirenConfig(width=layout.entries[0][1][0], blocks=(len(layout.entries) - 4) // 4)
         if WeightLayout.for_siren(cfg) != layout:

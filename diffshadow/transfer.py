@@ -31,7 +31,7 @@ def _piecewise_linear(s: torch.Tensor, xs: torch.Tensor, ys: torch.Tensor) -> to
 def _as_tensor(s) -> torch.Tensor:
     if isinstance(s, torch.Tensor):
         return s.float() if s.dtype != torch.float32 else s
-    return torch.as_tensor(np.asarray(s, dtype=np.float32))
+    return torch.from_numpy(np.asarray(s, dtype=np.float32))  # host data stays on the host
 
 
 @dataclass(frozen=True)

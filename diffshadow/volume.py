@@ -62,7 +62,7 @@ def refine(volume: Volume, factor: int) -> Volume:
     import torch.nn.functional as F
 
     size = [(n - 1) * factor + 1 for n in volume.data.shape]
-    data = F.interpolate(torch.as_tensor(volume.data)[None, None], size=size, mode="trilinear",
+    data = F.interpolate(torch.from_numpy(np.ascontiguousarray(volume.data))[None, None], size=size, mode="trilinear",
                          align_corners=True)[0, 0]
     return Volume(data=data.numpy(), extent=volume.extent, name=volume.name)
 

@@ -1,6 +1,8 @@
+import contextlib
 from pathlib import Path
 
 import pytest
+import torch
 
 from diffshadow.transfer import TransferFunction
 
@@ -20,3 +22,14 @@ def shared_data() -> Path:
     if not SHARED_DATA.is_dir():
         pytest.skip("../shared/data is absent")
     return SHARED_DATA
+
+
+@contextlib.contextmanager
+def default_device_meta():
+    """Guard for the CUDA path on a machine without CUDA: a tensor made without naming its device lands
+    on "meta" and fails as soon as it meets real data, as a CPU tensor fails next to CUDA tensors."""
+    torch.set_default_device("meta")
+    try:
+        yield
+    finally:
+        torch.set_default_device(None)

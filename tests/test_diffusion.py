@@ -1,6 +1,7 @@
 import numpy as np
 import pytest
 import torch
+from conftest import default_device_meta
 
 from diffshadow.diffusion.geometry import geometry_loss
 from diffshadow.diffusion.model import WeightTransformer
@@ -134,3 +135,20 @@ def test_sampling_is_deterministic_and_checks_directions(tmp_path):
         generate(model, std, [[0, 0, 1], [0, 0, 0]])
     with pytest.raises(LightError, match="light 0: must be finite"):
         generate(model, std, [[np.nan, 0, 1]])
+
+
+def test_training_and_sampling_make_no_tensor_on_the_implicit_default_device(tmp_path):
+    """Guard for the CUDA path (see conftest.default_device_meta): the same bytes with the default device
+    "meta" as without, so every tensor is made on a named device."""
+    data = tiny_data()
+    state = train_diffusion(data, CFG, tmp_path / "a.ckpt", log=lambda *a: None)
+    model, std, _, _ = load_sampler(state)
+    lights = np.array([[0.0, 0.0, 1.0], [0.3, 0.2, 0.9]])
+    with default_device_meta():
+        guarded = train_diffusion(data, CFG, tmp_path / "b.ckpt", device="cpu", log=lambda *a: None)
+        g_model, g_std, _, _ = load_sampler(guarded, "cpu")
+        ddim = generate(g_model, g_std, lights, steps=5, seed=3, device="cpu")
+        ddpm = generate(g_model, g_std, lights[:1], method="ddpm", seed=0, device="cpu")
+    assert all(torch.equal(state["model"][k], guarded["model"][k]) for k in state["model"])
+    assert torch.equal(ddim, generate(model, std, lights, steps=5, seed=3))
+    assert torch.equal(ddpm, generate(model, std, lights[:1], method="ddpm", seed=0))

@@ -1,23 +1,27 @@
 """Rendering-loss fine-tuning: the ray-bundle colour equals the renderer's, and a DDP step over 2 gloo
 processes equals one single-process step on the same global batch."""
 
-import tempfile
 from pathlib import Path
 
 import numpy as np
 import pytest
 import torch
 import torch.multiprocessing as mp
+from conftest import default_device_meta
 
 from diffshadow.analytic import gaussian_blob
 from diffshadow.diffusion.finetune import (
     FinetuneConfig,
     FinetuneData,
+    Schedule,
+    Standardizer,
     build_bundle,
+    build_model,
     bundle_colors,
     fibonacci_views,
     finetune,
     render_targets,
+    step_loss,
 )
 from diffshadow.diffusion.train import DiffusionConfig, TrainingData, train_diffusion
 from diffshadow.render import GridShadow
@@ -40,6 +44,11 @@ def volume():
 
 @pytest.fixture(scope="module")
 def setup(volume, tmp_path_factory):
+    return make_setup(volume, tmp_path_factory.mktemp("geo"))
+
+
+def make_setup(volume, workdir):
+    """Cameras, ray bundle, target images, FinetuneData and a geometry-stage state for LIGHTS."""
     cams = fibonacci_views(volume.extent, FT.views, size=FT.image_size)
     bundle = build_bundle(volume, TF, cams, step=FT.step)
     images = render_targets(volume, TF, LIGHTS, cams, step=FT.step, log=lambda m: None)
@@ -52,7 +61,7 @@ def setup(volume, tmp_path_factory):
                          extent=torch.ones(3), layout=layout, siren=cfg)
     dcfg = DiffusionConfig.from_config(dict(preset="tiny", epochs=1, batch_size=4, geometry_points=16,
                                               checkpoint_every=1))
-    state = train_diffusion(train, dcfg, tmp_path_factory.mktemp("geo") / "geo.ckpt", log=lambda m: None)
+    state = train_diffusion(train, dcfg, workdir / "geo.ckpt", log=lambda m: None)
     return cams, bundle, images, FinetuneData(train, bundle, images.reshape(4, FT.views, -1, 3)), state
 
 
@@ -70,25 +79,37 @@ def test_bundle_colour_equals_the_renderer(volume, setup):
             assert float((color - target).abs().max()) <= 1e-4
 
 
-def _ddp_worker(rank, world, init_file, data, state, out_dir):
-    import torch.distributed as dist
+def _ddp_worker(rank, world, port, data, state, out_dir):
+    # the production path (runtime.distributed, as under torchrun): it ends with a barrier before the
+    # teardown; without one, gloo can abort a rank whose peer is still writing ("terminate called
+    # without an active exception")
+    import os
 
+    from diffshadow.runtime import CPU, distributed
+
+    os.environ.update(RANK=str(rank), LOCAL_RANK=str(rank), WORLD_SIZE=str(world), MASTER_ADDR="127.0.0.1",
+                      MASTER_PORT=str(port))
     torch.set_num_threads(1)
-    dist.init_process_group("gloo", init_method=f"file://{init_file}", rank=rank, world_size=world)
-    try:
-        result = finetune(state, data, FT, Path(out_dir) / "ddp.ckpt", rank=rank, world=world, log=lambda m: None)
-        if rank == 0:
+    with distributed(CPU, timeout_s=120) as d:
+        result = finetune(state, data, FT, Path(out_dir) / "ddp.ckpt", rank=d.rank, world=d.world,
+                          log=lambda m: None)
+        if d.rank == 0:
             torch.save(result["model"], Path(out_dir) / "ddp_model.pt")
-    finally:
-        dist.destroy_process_group()
+
+
+def _free_port() -> int:
+    import socket
+
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
 
 
 def test_one_ddp_step_equals_one_single_process_step(setup, tmp_path):
     _, _, _, data, state = setup
     torch.set_num_threads(1)
     single = finetune(state, data, FT, tmp_path / "single.ckpt", log=lambda m: None)["model"]
-    init_file = Path(tempfile.mkdtemp()) / "init"
-    mp.spawn(_ddp_worker, args=(2, str(init_file), data, state, str(tmp_path)), nprocs=2, join=True)
+    mp.spawn(_ddp_worker, args=(2, _free_port(), data, state, str(tmp_path)), nprocs=2, join=True)
     ddp = torch.load(tmp_path / "ddp_model.pt", weights_only=True)
     start = state["model"]
     moved = max(float((single[k] - start[k]).abs().max()) for k in single)
@@ -115,3 +136,31 @@ def test_bad_config_is_named():
     with pytest.raises(ValueError, match="unknown key"):
         FinetuneConfig.from_config({"epoch": 3})
 
+
+
+# Two guards for the CUDA path, which CI cannot run. The stages' rule: a tensor is made on the device that
+# uses it, or on the CPU by name (random draws, module initialisation) and then moved.
+
+def test_a_finetune_step_runs_on_a_second_device(setup):
+    """Everything the step touches must have been moved to the working device: "meta" plays the GPU and
+    the CPU the host, so a tensor left on the host (the training lights once were) fails here."""
+    _, _, _, data, state = setup
+    dcfg = DiffusionConfig.from_config(state["config"])
+    layout = WeightLayout.from_config(state["layout"])
+    meta = torch.device("meta")
+    model = build_model(layout, dcfg).to(meta)
+    std = Standardizer(layout, state["standardizer"]["mean"], state["standardizer"]["std"])
+    z_all = std.standardize(data.train.weights).float().to(meta)
+    loss, parts = step_loss(model, std, data.to(meta), z_all, [0, 2], 0, FT, dcfg, Schedule(), scale=0.5)
+    loss.backward()
+    assert loss.device == meta and loss.shape == () and parts.shape == (3,)
+
+
+def test_finetune_makes_no_tensor_on_the_implicit_default_device(setup, tmp_path):
+    """With the default device "meta" and the working device the CPU, a tensor made without naming its
+    device (the pixel draws once were: a CPU tensor beside CUDA counts) fails."""
+    _, _, _, data, state = setup
+    reference = finetune(state, data, FT, tmp_path / "a.ckpt", log=lambda m: None)["model"]
+    with default_device_meta():
+        guarded = finetune(state, data, FT, tmp_path / "b.ckpt", device="cpu", log=lambda m: None)["model"]
+    assert all(torch.equal(reference[k], guarded[k]) for k in reference)

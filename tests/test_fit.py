@@ -1,7 +1,7 @@
 import numpy as np
 import pytest
 import torch
-from conftest import identity_tf
+from conftest import default_device_meta, identity_tf
 
 from diffshadow.analytic import gaussian_blob
 from diffshadow.fit import FitConfig, FitError, diverged, fit_sirens
@@ -86,3 +86,13 @@ def test_fitting_reduces_the_error():
     first = float(msgs[0].split("PSNR(train batch) ")[1].split(" dB")[0])
     last = float(msgs[-1].split("PSNR(train batch) ")[1].split(" dB")[0])
     assert last > first + 10, (first, last)
+
+
+def test_fitting_makes_no_tensor_on_the_implicit_default_device(scene):
+    """Guard for the CUDA path (see conftest.default_device_meta)."""
+    vol, tf, lights = scene
+    cfg = FitConfig.from_config(dict(steps=5, points=64, chunk=16, eval_points=16))
+    a = fit_sirens(init(), LAYOUT, CFG, vol, tf, lights, cfg, log=lambda *a: None)
+    with default_device_meta():
+        b = fit_sirens(init(), LAYOUT, CFG, vol, tf, lights, cfg, device="cpu", log=lambda *a: None)
+    assert torch.equal(a, b)

@@ -6,6 +6,7 @@ import math
 import numpy as np
 import pytest
 import torch
+from conftest import default_device_meta
 
 from diffshadow.analytic import gaussian_blob
 from diffshadow.render import (
@@ -182,3 +183,18 @@ def test_render_rejects_bad_input(blob):
         scene.render("inr", cam, light=LIGHT)
     with pytest.raises(RenderError, match="step"):
         render(cam, scalar, TF, blob.extent, vox, step=0.0)
+
+
+@pytest.mark.parametrize("mode", ["noshadow", "gt", "naive", "inr"])
+def test_rendering_makes_no_tensor_on_the_implicit_default_device(blob, mode):
+    """Guard for the CUDA path (see conftest.default_device_meta): the same image with the default device
+    "meta" as without."""
+    cam, _, _ = setup(blob, size=16)
+    layout = WeightLayout.for_siren(SirenConfig(8, 1))
+    siren = (layout.flatten(init_siren(SirenConfig(8, 1), torch.Generator().manual_seed(0))), layout, 1)
+    light = None if mode == "noshadow" else LIGHT
+    a = RenderScene(blob, TF, cell=8).render(mode, cam, light=light, siren=siren, phong=mode == "gt")
+    with default_device_meta():
+        b = RenderScene(blob, TF, cell=8, device="cpu").render(mode, cam, light=light, siren=siren,
+                                                                phong=mode == "gt")
+    assert torch.equal(a.rgb, b.rgb)

@@ -20,6 +20,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from diffshadow.bench.profile import op_counts
 from diffshadow.io import atomic_path, atomic_write_text, finite_json
 from diffshadow.metrics import foreground, image_psnr
 from diffshadow.render import DEFAULT_STEP, Camera, RenderScene
@@ -114,6 +115,11 @@ def bench_render(scene: RenderScene, siren, light, *, sizes=(64, 128), step: flo
                 row["samples"][mode] = {"primary": img.counters.primary_samples,
                                         "secondary": img.counters.secondary_samples}
                 log(f"[bench render] {n}x{n} {mode:8s} run {rep + 1}/{repeats}: {img.seconds:.3f} s")
+        # naive's count takes minutes past the smallest size: its secondary rays are the point anyway
+        counted = BENCH_MODES if n == min(sizes) else ("noshadow", "inr")
+        row["counts"] = {m: op_counts(lambda m=m, n=n: scene.render(m, cams[n], **kwargs)) for m in counted}
+        log(f"[bench render] {n}x{n} per frame: " + ", ".join(
+            f"{m} {c['ops']:,} ops {c['syncs']} host syncs" for m, c in row["counts"].items()))
         med = {m: statistics.median(v) for m, v in row["seconds"].items()}
         row["fps"] = {m: 1.0 / t for m, t in med.items()}
         row["speedup"] = med["naive"] / med["inr"]
@@ -221,7 +227,7 @@ def _plot(results: dict, path: Path) -> None:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    fig, ax = plt.subplots(1, 3, figsize=(14, 4))
+    fig, ax = plt.subplots(1, 4, figsize=(18, 4))
     sizes = list(results["sizes"])
     x = np.arange(len(sizes))
     for i, mode in enumerate(BENCH_MODES):
@@ -233,6 +239,17 @@ def _plot(results: dict, path: Path) -> None:
         a.set_ylabel(label)
         a.legend()
     ax[0].set_yscale("log")
+    for i, mode in enumerate(BENCH_MODES):  # per-frame counts: device-independent, so they do not drift
+        xs = [j for j, s in enumerate(sizes) if mode in results["sizes"][s].get("counts", {})]
+        ops = [results["sizes"][sizes[j]]["counts"][mode]["ops"] for j in xs]
+        bars = ax[3].bar(np.array(xs) + (i - 1) * 0.25, ops, 0.25, label=mode)
+        for bar, j in zip(bars, xs, strict=True):
+            ax[3].annotate(f"{results['sizes'][sizes[j]]['counts'][mode]['syncs']}", (bar.get_x() + 0.125,
+                           bar.get_height()), ha="center", va="bottom", fontsize=8)
+    ax[3].set_xticks(x, [f"{s}²" for s in sizes])
+    ax[3].set_ylabel("ops per frame (bar label: host syncs)")
+    ax[3].set_yscale("log")
+    ax[3].legend()
     pts = results["step_curve"]["points"]
     ax[2].plot([p["seconds"] for p in pts], [p["psnr"] for p in pts], "o-")
     for p in pts:

@@ -50,9 +50,11 @@ def bench_siren(out_dir: Path, *, k: int = 16, points: int = 4096, widths=(32, 6
                 chunks=(0, 1024, 512, 256), steps: int = 20, device: torch.device | str = "cpu") -> dict:
     """Training throughput (points/s, forward + backward + Adam) of K SIRENs fitted jointly with
     `BatchedSiren` (optionally in point chunks with gradient accumulation) vs K `Siren`s one after another."""
+    from diffshadow.fit import FitConfig, points_per_pass
     from diffshadow.siren import SirenConfig
 
     device = torch.device(device)
+    default_chunk = points_per_pass(FitConfig.from_config().chunk, points, device)
     gen = torch.Generator().manual_seed(0)
     results: dict = {"k": k, "points": points, "blocks": blocks, "device": str(device),
                      "torch_threads": torch.get_num_threads(), "widths": {}}
@@ -63,10 +65,13 @@ def bench_siren(out_dir: Path, *, k: int = 16, points: int = 4096, widths=(32, 6
 
     for width in widths:
         cfg = SirenConfig(width, blocks)
-        x = (torch.rand(k, points, 3, generator=gen) * 2 - 1).to(device)
-        y = torch.rand(k, points, generator=gen).to(device)
+        x = (torch.rand(k, points, 3, generator=gen, device=gen.device) * 2 - 1).to(device)
+        y = torch.rand(k, points, generator=gen, device=gen.device).to(device)
         variants = {"sequential": _sequential_step(cfg, x, y)}
-        variants |= {f"joint_chunk{c or points}": _joint_step(cfg, x, y, c) for c in chunks}
+        # the default (config.yaml's fit.chunk for this device) first; the other sizes for comparison
+        variants[f"joint_default_chunk{default_chunk}"] = _joint_step(cfg, x, y, default_chunk)
+        variants |= {f"joint_chunk{c or points}": _joint_step(cfg, x, y, c) for c in chunks
+                     if (c or points) != default_chunk}
         rates: dict[str, list[float]] = {}
         for _round in range(2):  # interleaved rounds: drift on a shared machine hits every variant alike
             for name, step in variants.items():
@@ -159,7 +164,7 @@ def check_store(results: Path, *, n_points: int = 65536, seed: int = 12345) -> d
         for i, w in enumerate(lights):
             gen = seeded(seed, i)
             model = Siren.from_flat(store.weights[i], store.layout, store.siren)
-            for pts, out in ((torch.rand(n_points, 3, generator=gen) * extent, box),
+            for pts, out in ((torch.rand(n_points, 3, generator=gen, device=gen.device) * extent, box),
                              (sampler.sample(1, n_points, gen)[0], vis)):
                 out.append(float(psnr(model(box_to_siren(pts, extent)), transmittance(field, tf, w, pts))))
     box, vis = np.asarray(box), np.asarray(vis)

@@ -16,7 +16,6 @@ DDP's gradient average equals the single-process gradient of the same global bat
 
 from __future__ import annotations
 
-import dataclasses
 import hashlib
 import json
 import math
@@ -186,17 +185,20 @@ class FinetuneData:
     bundle: RayBundle
     targets: torch.Tensor  # (L, V, H·W, 3)
 
+    def to(self, device) -> FinetuneData:
+        return FinetuneData(self.train.to(device), self.bundle.to(device), self.targets.to(device))
+
 
 def _draws(cfg: FinetuneConfig, dcfg: DiffusionConfig, epoch: int, light: int, n_params: int, n_points: int,
-           count: torch.Tensor, steps: int):
+           n_views: int, steps: int):
     """Every random draw for one light in one epoch: rank-independent by construction."""
     gen = seeded(cfg.seed, 12, epoch, light)
-    t = torch.randint(0, steps, (1,), generator=gen)
-    noise = torch.randn(1, n_params, generator=gen)
-    pick = torch.randint(0, n_points, (dcfg.geometry_points,), generator=gen)
-    u = torch.rand(len(count), cfg.pixels, generator=gen)
-    pix = (u * count[:, None].float()).long().clamp(max=(count[:, None] - 1).clamp_min(0))
-    return t, noise, pick, pix
+    cpu = gen.device  # the same numbers on every device: drawn here, moved by the caller
+    t = torch.randint(0, steps, (1,), generator=gen, device=cpu)
+    noise = torch.randn(1, n_params, generator=gen, device=cpu)
+    pick = torch.randint(0, n_points, (dcfg.geometry_points,), generator=gen, device=cpu)
+    u = torch.rand(n_views, cfg.pixels, generator=gen, device=cpu)  # scaled to each view's pixel count later
+    return t, noise, pick, u
 
 
 def step_loss(model, std: Standardizer, data: FinetuneData, z_all: torch.Tensor, local: list[int], epoch: int,
@@ -205,10 +207,11 @@ def step_loss(model, std: Standardizer, data: FinetuneData, z_all: torch.Tensor,
     device = z_all.device
     if not local:  # a rank with no light this step still joins the gradient all-reduce
         zero = sum(p.sum() for p in model.parameters()) * 0.0
-        return zero, torch.zeros(3, dtype=torch.float64)
+        return zero, torch.zeros(3, dtype=torch.float64, device=device)
     tr = data.train
-    count = data.bundle.count.cpu()  # draws are made on the CPU (the same numbers on every device), then moved
-    draws = [_draws(cfg, dcfg, epoch, i, z_all.shape[1], tr.points.shape[1], count, schedule.steps) for i in local]
+    b = data.bundle
+    nv, p = len(b.count), cfg.pixels
+    draws = [_draws(cfg, dcfg, epoch, i, z_all.shape[1], tr.points.shape[1], nv, schedule.steps) for i in local]
     idx = torch.tensor(local, device=device)
     t = torch.cat([d[0] for d in draws]).to(device)
     noise = torch.cat([d[1] for d in draws]).to(device)
@@ -222,9 +225,9 @@ def step_loss(model, std: Standardizer, data: FinetuneData, z_all: torch.Tensor,
     pts = torch.gather(tr.points[idx], 1, pick[..., None].expand(-1, -1, 3))
     vals = torch.gather(tr.values[idx], 1, pick)
     l_geo = ((siren(box_to_siren(pts, extent)) - vals) ** 2).mean(1)
-    b = data.bundle
-    nv, p = len(b.count), cfg.pixels
-    pix = torch.stack([d[3] for d in draws]).to(device)  # (B, V, P) rows of the bundle
+    u = torch.stack([d[3] for d in draws]).to(device)
+    count = b.count[None, :, None]
+    pix = (u * count.float()).long().clamp(max=(count - 1).clamp_min(0))  # (B, V, P) rows of the bundle
     views = torch.arange(nv, device=device)[None, :, None].expand_as(pix)
     spts = b.pts[views, pix]  # (B, V, P, N, 3)
     n = spts.shape[-2]
@@ -234,7 +237,7 @@ def step_loss(model, std: Standardizer, data: FinetuneData, z_all: torch.Tensor,
     target = data.targets[idx[:, None, None], views, flat_pix]
     l_render = ((color - target) ** 2).mean((1, 2, 3))
     per_light = l_x0 + dcfg.geometry_weight * l_geo + cfg.render_weight * l_render
-    parts = torch.stack([l_x0.detach().sum(), l_geo.detach().sum(), l_render.detach().sum()]).double().cpu()
+    parts = torch.stack([l_x0.detach().sum(), l_geo.detach().sum(), l_render.detach().sum()]).double()
     return per_light.sum() * scale, parts
 
 
@@ -278,10 +281,7 @@ def finetune(geometry_state: dict, data: FinetuneData, cfg: FinetuneConfig, chec
         model = DistributedDataParallel(base, device_ids=[device.index] if device.type == "cuda" else None)
     schedule = Schedule()
     z_all = std.standardize(data.train.weights).float().to(device)
-    # the training set on the device once, not per step
-    train = dataclasses.replace(data.train, lights=data.train.lights.to(device), points=data.train.points.to(device),
-                                values=data.train.values.to(device), extent=data.train.extent.to(device))
-    data = FinetuneData(train, data.bundle.to(device), data.targets.to(device))
+    data = data.to(device)  # the training set on the device once, not per step
     n = len(z_all)
     if rank == 0:
         log(f"fine-tuning with the rendering loss: {world} process(es) on {device.type}, global batch "
@@ -301,8 +301,9 @@ def finetune(geometry_state: dict, data: FinetuneData, cfg: FinetuneConfig, chec
     t_start = t_step = time.perf_counter()
     step_times: list[float] = []
     for epoch in range(start, cfg.epochs):
-        order = torch.randperm(n, generator=seeded(cfg.seed, 11, epoch)).tolist()
-        totals = torch.zeros(3, dtype=torch.float64)
+        gen = seeded(cfg.seed, 11, epoch)
+        order = torch.randperm(n, generator=gen, device=gen.device).tolist()
+        totals = torch.zeros(3, dtype=torch.float64, device=device)  # summed on the device: no sync per step
         for b0 in range(0, n, cfg.batch_size):
             batch = order[b0:b0 + cfg.batch_size]
             local = batch[rank::world]
@@ -319,8 +320,8 @@ def finetune(geometry_state: dict, data: FinetuneData, cfg: FinetuneConfig, chec
             step_times.append(time.perf_counter() - t_step)
             t_step = time.perf_counter()
         if world > 1:
-            dist.all_reduce(totals_t := totals.to(device))
-            totals = totals_t.cpu()
+            dist.all_reduce(totals)
+        totals = totals.cpu()
         done = epoch + 1
         if done % cfg.checkpoint_every == 0 or done == cfg.epochs:
             state = save(done)

@@ -18,7 +18,8 @@ Denoiser = Callable[[torch.Tensor, torch.Tensor], torch.Tensor]  # (x_t, t) -> p
 class Schedule:
     def __init__(self, steps: int = T_STEPS, beta_start: float = BETA_START, beta_end: float = BETA_END):
         self.steps = steps
-        self.betas = torch.linspace(beta_start, beta_end, steps, dtype=torch.float64)
+        # host-side tables: moved per use, so one Schedule serves every device
+        self.betas = torch.linspace(beta_start, beta_end, steps, dtype=torch.float64, device="cpu")
         self.alpha_bar = torch.cumprod(1.0 - self.betas, dim=0)
 
     def _coefficient(self, c: torch.Tensor, t: torch.Tensor, like: torch.Tensor) -> torch.Tensor:
@@ -33,7 +34,7 @@ class Schedule:
 
     def ddpm_sample(self, model: Denoiser, shape, *, generator: torch.Generator, device=None) -> torch.Tensor:
         """Ancestral sampling over all T steps with the posterior q(x_{t-1} | x_t, x0̂)."""
-        x = torch.randn(shape, generator=generator).to(device)
+        x = torch.randn(shape, generator=generator, device=generator.device).to(device)
         ab = self.alpha_bar
         for t in range(self.steps - 1, -1, -1):
             x0 = model(x, torch.full((shape[0],), t, device=device, dtype=torch.long))
@@ -43,20 +44,20 @@ class Schedule:
             c0 = ab_prev**0.5 * beta / (1 - ab_t)
             ct = (1 - beta) ** 0.5 * (1 - ab_prev) / (1 - ab_t)
             var = beta * (1 - ab_prev) / (1 - ab_t)
-            noise = torch.randn(shape, generator=generator).to(device)
+            noise = torch.randn(shape, generator=generator, device=generator.device).to(device)
             x = c0 * x0 + ct * x + var**0.5 * noise
         return x
 
     def ddim_timesteps(self, n: int) -> list[int]:
         if not 1 <= n <= self.steps:
             raise ValueError(f"DDIM steps: expected 1..{self.steps}, got {n}")
-        return torch.linspace(self.steps - 1, 0, n).round().long().unique_consecutive().tolist()
+        return torch.linspace(self.steps - 1, 0, n, device="cpu").round().long().unique_consecutive().tolist()
 
     def ddim_sample(self, model: Denoiser, shape, *, steps: int, generator: torch.Generator, eta: float = 0.0,
                     temperature: float = 1.0, device=None) -> torch.Tensor:
         """DDIM (Song et al.) on a subsequence of timesteps; deterministic given the start noise when eta = 0.
         `temperature` scales the start noise (0: start from the mean, one path per light)."""
-        x = temperature * torch.randn(shape, generator=generator).to(device)
+        x = temperature * torch.randn(shape, generator=generator, device=generator.device).to(device)
         ts = self.ddim_timesteps(steps)
         x0 = x
         for i, t in enumerate(ts):
@@ -68,6 +69,6 @@ class Schedule:
             sigma = eta * ((1 - ab_next) / (1 - ab_t) * (1 - ab_t / ab_next)) ** 0.5
             x = ab_next**0.5 * x0 + max(1 - ab_next - sigma**2, 0.0) ** 0.5 * eps
             if sigma > 0:
-                x = x + sigma * torch.randn(shape, generator=generator).to(device)
+                x = x + sigma * torch.randn(shape, generator=generator, device=generator.device).to(device)
         # the last model call is at t = 0 (or the last step taken): its x0 is the sample
         return x0

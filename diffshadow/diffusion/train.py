@@ -135,6 +135,11 @@ class TrainingData:
     layout: WeightLayout
     siren: SirenConfig
 
+    def to(self, device) -> TrainingData:
+        return dataclasses.replace(self, weights=self.weights.to(device), lights=self.lights.to(device),
+                                   points=self.points.to(device), values=self.values.to(device),
+                                   extent=self.extent.to(device))
+
 
 def _fingerprint(data: TrainingData, cfg: DiffusionConfig) -> str:
     h = hashlib.sha256()
@@ -145,7 +150,9 @@ def _fingerprint(data: TrainingData, cfg: DiffusionConfig) -> str:
 
 
 def build_model(layout: WeightLayout, cfg: DiffusionConfig) -> WeightTransformer:
-    return WeightTransformer(layout, dataclasses.replace(PRESETS[cfg.preset], light_freqs=cfg.light_freqs))
+    """The model, initialised on the CPU (the same seed gives the same weights on every device)."""
+    with torch.device("cpu"):
+        return WeightTransformer(layout, dataclasses.replace(PRESETS[cfg.preset], light_freqs=cfg.light_freqs))
 
 
 def train_diffusion(data: TrainingData, cfg: DiffusionConfig, checkpoint: Path, *,
@@ -195,20 +202,21 @@ def train_diffusion(data: TrainingData, cfg: DiffusionConfig, checkpoint: Path, 
     state = None
     for epoch in range(start, cfg.epochs):
         gen = seeded(cfg.seed, 1, epoch)
-        order = torch.randperm(n, generator=gen)
-        totals = torch.zeros(2, dtype=torch.float64)
+        order = torch.randperm(n, generator=gen, device=gen.device)
+        totals = torch.zeros(2, dtype=torch.float64, device=device)  # summed on the device: no sync per step
         for b0 in range(0, n, cfg.batch_size):
             idx = order[b0:b0 + cfg.batch_size].to(device)
             b = len(idx)
-            t = torch.randint(0, schedule.steps, (b,), generator=gen).to(device)
-            noise = torch.randn(b, z_all.shape[1], generator=gen).to(device)
+            t = torch.randint(0, schedule.steps, (b,), generator=gen, device=gen.device).to(device)
+            noise = torch.randn(b, z_all.shape[1], generator=gen, device=gen.device).to(device)
             x0 = z_all[idx]
             pred = model(schedule.q_sample(x0, t, noise), t, lights[idx])
             loss_x0 = ((pred - x0) ** 2).mean()
             loss = loss_x0
             loss_geo = torch.zeros((), device=device)
             if cfg.geometry_weight > 0:
-                pick = torch.randint(0, points.shape[1], (b, cfg.geometry_points), generator=gen).to(device)
+                pick = torch.randint(0, points.shape[1], (b, cfg.geometry_points), generator=gen,
+                                     device=gen.device).to(device)
                 pts = torch.gather(points[idx], 1, pick[..., None].expand(-1, -1, 3))
                 vals = torch.gather(values[idx], 1, pick)
                 loss_geo = _geometry_loss(std.destandardize(pred), data.layout, data.siren, pts, vals, extent)
@@ -226,14 +234,14 @@ def train_diffusion(data: TrainingData, cfg: DiffusionConfig, checkpoint: Path, 
                 with torch.no_grad():
                     for pe, pm in zip(ema.parameters(), model.parameters(), strict=True):
                         pe.lerp_(pm, 1 - cfg.ema)
-            totals += torch.tensor([float(loss_x0.detach()) * b, float(loss_geo.detach()) * b], dtype=torch.float64)
+            totals += torch.stack([loss_x0.detach(), loss_geo.detach()]).double() * b
         sched.step()
         done = epoch + 1
         if done % cfg.checkpoint_every == 0 or done == cfg.epochs:
             state = save(done)
             good = done
         if done % max(1, cfg.epochs // 20) == 0 or done == cfg.epochs:
-            lx, lg = (totals / n).tolist()
+            lx, lg = (totals / n).cpu().tolist()
             log(f"epoch {done}/{cfg.epochs}  loss x0 {lx:.4e}  geometry {lg:.4e} "
                 f"(≈{-10 * math.log10(max(lg, 1e-30)):.1f} dB)  lr {sched.get_last_lr()[0]:.2e}  "
                 f"{time.perf_counter() - t0:.0f} s")

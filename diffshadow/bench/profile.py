@@ -1,0 +1,42 @@
+"""Counts that do not drift with the machine's load: kernel-launching ops and host syncs of a call.
+
+Counted with torch.profiler on any device. An *op* is a leaf aten op that does work (a kernel launch on
+a GPU): views, reshapes, allocations and scalar reads are left out, and a composite op counts through
+its leaves. A *host sync* is an op whose result the host must wait for: a scalar read
+(`_local_scalar_dense`, behind `.item()`, `bool()`, `int()`), `nonzero` (behind boolean indexing) and
+the other ops whose output shape depends on data.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+
+from torch.profiler import ProfilerActivity, profile
+
+NO_WORK = frozenset({
+    "aten::view", "aten::reshape", "aten::_reshape_alias", "aten::expand", "aten::expand_as", "aten::as_strided",
+    "aten::slice", "aten::select", "aten::unsqueeze", "aten::squeeze", "aten::t", "aten::transpose",
+    "aten::permute", "aten::detach", "aten::detach_", "aten::alias", "aten::empty", "aten::empty_strided",
+    "aten::empty_like", "aten::resolve_conj", "aten::resolve_neg", "aten::_unsafe_view", "aten::split",
+    "aten::split_with_sizes", "aten::unbind", "aten::chunk", "aten::narrow", "aten::lift_fresh",
+    "aten::lift_fresh_copy", "aten::result_type", "aten::view_as", "aten::numpy_T", "aten::contiguous",
+    "aten::to", "aten::_to_copy", "aten::set_", "aten::is_nonzero", "aten::item", "aten::_local_scalar_dense",
+    "aten::dim", "aten::size", "aten::stride",
+})
+SYNCS = frozenset({"aten::_local_scalar_dense", "aten::nonzero", "aten::masked_select", "aten::_unique2",
+                   "aten::unique_consecutive", "aten::unique_dim"})
+
+
+def op_counts(fn: Callable[[], object]) -> dict[str, int]:
+    """{"ops": kernel-launching ops, "syncs": host syncs} of one call of `fn`."""
+    with profile(activities=[ProfilerActivity.CPU]) as prof:
+        fn()
+    ops = syncs = 0
+    for e in prof.events():
+        if not e.name.startswith("aten::"):
+            continue
+        syncs += e.name in SYNCS
+        if e.name in NO_WORK or any(c.name.startswith("aten::") and c.name not in NO_WORK for c in e.cpu_children):
+            continue
+        ops += 1
+    return {"ops": ops, "syncs": syncs}

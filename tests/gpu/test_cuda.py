@@ -1,0 +1,148 @@
+"""On a CUDA device: each stage function agrees with the CPU, deterministic mode repeats bytes, DDP over
+NCCL equals one process, and the tiny workflow runs end to end with fine-tuning. Skipped without CUDA
+(CI has none: the CPU guards in test_finetune/test_fit/test_diffusion/test_render cover what they can).
+
+Tolerances: TF32 is off (PyTorch's default for matmuls), so CPU and CUDA differ only in float32
+summation order: ~1e-6 relative per op. A few optimiser steps of a SIREN (ω0 = 30) amplify that, hence
+1e-3 on fitted SIREN outputs; renders and shadow grids, which have no training, are held to 1e-4.
+"""
+
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+import torch.multiprocessing as mp
+
+from diffshadow.analytic import gaussian_blob
+from diffshadow.diffusion.sample import generate, load_sampler
+from diffshadow.diffusion.train import DiffusionConfig, TrainingData, train_diffusion
+from diffshadow.fit import FitConfig, fit_sirens
+from diffshadow.render import Camera, RenderScene
+from diffshadow.siren import BatchedSiren, SirenConfig, WeightLayout, init_siren
+from diffshadow.transfer import TransferFunction
+from diffshadow.volume import Volume
+
+pytestmark = [pytest.mark.gpu, pytest.mark.skipif(not torch.cuda.is_available(), reason="no CUDA device")]
+
+CUDA = torch.device("cuda")
+TF = TransferFunction.from_config({"opacity": [[0, 0], [0.2, 0], [1, 0.8]],
+                                   "color": [[0, 0.2, 0.4, 0.9], [1, 1, 0.3, 0.2]], "density_scale": 20})
+LIGHTS = np.array([[0.0, 0.0, 1.0], [0.6, 0.0, 0.8], [0.0, 0.6, 0.8], [-0.6, 0.0, 0.8]])
+SIREN = SirenConfig(16, 1)
+LAYOUT = WeightLayout.for_siren(SIREN)
+REPO = Path(__file__).resolve().parents[2]
+
+
+@pytest.fixture(scope="module")
+def volume():
+    a = gaussian_blob(33, 0.15)
+    return Volume(data=np.maximum(a, np.roll(a, (6, -4, 8), axis=(0, 1, 2))), extent=np.ones(3), name="blobs")
+
+
+def _init():
+    return LAYOUT.flatten(init_siren(SIREN, torch.Generator().manual_seed(0)))
+
+
+def test_fit_agrees_with_cpu(volume):
+    cfg = FitConfig.from_config(dict(steps=20, points=2048, eval_points=512, grid_upsample=1, min_psnr=0.0,
+                                     chunk=0))
+    cpu = fit_sirens(_init(), LAYOUT, SIREN, volume, TF, LIGHTS, cfg, device="cpu", log=lambda m: None)
+    gpu = fit_sirens(_init(), LAYOUT, SIREN, volume, TF, LIGHTS, cfg, device=CUDA, log=lambda m: None).cpu()
+    pts = torch.rand(len(LIGHTS), 1000, 3, generator=torch.Generator().manual_seed(1)) * 2 - 1
+    a, b = BatchedSiren(cpu, LAYOUT, SIREN.blocks)(pts), BatchedSiren(gpu, LAYOUT, SIREN.blocks)(pts)
+    assert float((a - b).abs().max()) <= 1e-3
+
+
+def _training_data():
+    gen = torch.Generator().manual_seed(0)
+    weights = _init() + 0.01 * torch.randn(len(LIGHTS), LAYOUT.n_params, generator=gen)
+    return TrainingData(weights=weights, lights=torch.as_tensor(LIGHTS, dtype=torch.float32),
+                        points=torch.rand(len(LIGHTS), 64, 3, generator=gen),
+                        values=torch.rand(len(LIGHTS), 64, generator=gen), extent=torch.ones(3), layout=LAYOUT,
+                        siren=SIREN)
+
+
+DCFG = DiffusionConfig.from_config(dict(preset="tiny", epochs=4, batch_size=2, geometry_points=16, checkpoint_every=2))
+
+
+def test_diffusion_training_and_sampling_agree_with_cpu(tmp_path):
+    data = _training_data()
+    cpu = train_diffusion(data, DCFG, tmp_path / "cpu.ckpt", device="cpu", log=lambda m: None)
+    gpu = train_diffusion(data, DCFG, tmp_path / "gpu.ckpt", device=CUDA, log=lambda m: None)
+    diff = max(float((cpu["model"][k] - gpu["model"][k].cpu()).abs().max()) for k in cpu["model"])
+    assert diff <= 1e-4, diff
+    model, std, _, _ = load_sampler(cpu, "cpu")
+    g_model, g_std, _, _ = load_sampler(cpu, CUDA)  # the same weights: sampling alone
+    a = generate(model, std, LIGHTS, steps=10, seed=3, device="cpu")
+    b = generate(g_model, g_std, LIGHTS, steps=10, seed=3, device=CUDA).cpu()
+    assert float((a - b).abs().max() / a.abs().max()) <= 1e-4
+
+
+@pytest.mark.parametrize("mode", ["noshadow", "gt", "naive", "inr"])
+def test_render_agrees_with_cpu(volume, mode):
+    cam = Camera.orbit(volume.extent, azimuth=40, elevation=20, size=48)
+    gen = torch.Generator().manual_seed(0)
+    siren = (LAYOUT.flatten(init_siren(SIREN, gen)), LAYOUT, SIREN.blocks) if mode == "inr" else None
+    light = None if mode == "noshadow" else LIGHTS[1]
+    a = RenderScene(volume, TF, device="cpu").render(mode, cam, light=light, siren=siren)
+    b = RenderScene(volume, TF, device=CUDA).render(mode, cam, light=light, siren=siren)
+    assert float(a.alpha.max()) > 0.3
+    assert float((a.rgb - b.rgb.cpu()).abs().max()) <= 1e-4
+
+
+def test_deterministic_mode_repeats_bytes(tmp_path):
+    """DIFFSHADOW_DETERMINISTIC=1 in a fresh process: two trainings on CUDA give the same bytes."""
+    script = tmp_path / "twice.py"
+    script.write_text(
+        "import sys\nfrom pathlib import Path\nimport torch\n"
+        "from diffshadow.runtime import set_deterministic_from_env\n"
+        "assert set_deterministic_from_env()\n"
+        "sys.path.insert(0, sys.argv[1])\nimport test_cuda as T\n"
+        "s = [T.train_diffusion(T._training_data(), T.DCFG, Path(sys.argv[2]) / f'{i}.ckpt', device=T.CUDA,\n"
+        "                       log=lambda m: None)['model'] for i in range(2)]\n"
+        "assert all(torch.equal(s[0][k], s[1][k]) for k in s[0])\n")
+    env = {**os.environ, "DIFFSHADOW_DETERMINISTIC": "1"}
+    proc = subprocess.run([sys.executable, str(script), str(Path(__file__).parent), str(tmp_path)], env=env,
+                          capture_output=True, text=True, timeout=300)
+    assert proc.returncode == 0, proc.stderr[-2000:]
+
+
+def _nccl_worker(rank, port, data, state, ft, out_dir):
+    from diffshadow.diffusion.finetune import finetune
+    from diffshadow.runtime import distributed
+
+    os.environ.update(RANK=str(rank), LOCAL_RANK=str(rank), WORLD_SIZE="2", MASTER_ADDR="127.0.0.1",
+                      MASTER_PORT=str(port))
+    with distributed(CUDA, timeout_s=120) as d:
+        result = finetune(state, data, ft, Path(out_dir) / "ddp.ckpt", rank=d.rank, world=d.world, device=d.device,
+                          log=lambda m: None)
+        if d.rank == 0:
+            torch.save(result["model"], Path(out_dir) / "ddp_model.pt")
+
+
+@pytest.mark.skipif(torch.cuda.device_count() < 2, reason="NCCL DDP needs two GPUs")
+def test_one_nccl_ddp_step_equals_one_single_process_step(tmp_path):
+    sys.path.insert(0, str(REPO / "tests"))
+    import test_finetune as T
+    from test_finetune import _free_port
+
+    vol = Volume(data=gaussian_blob(17, 0.3), extent=np.ones(3), name="blob")
+    _, _, _, data, state = T.make_setup(vol, tmp_path)
+    single = T.finetune(state, data, T.FT, tmp_path / "single.ckpt", device=CUDA, log=lambda m: None)["model"]
+    mp.spawn(_nccl_worker, args=(_free_port(), data, state, T.FT, str(tmp_path)), nprocs=2, join=True)
+    ddp = torch.load(tmp_path / "ddp_model.pt", weights_only=True, map_location="cpu")
+    diff = max(float((single[k].cpu() - ddp[k]).abs().max()) for k in single)
+    assert diff <= 1e-6, diff
+
+
+def test_tiny_workflow_on_cuda_with_finetuning(tmp_path):
+    sys.path.insert(0, str(REPO / "tests"))
+    from test_workflow import TINY, snakemake
+
+    snakemake(tmp_path, config={**TINY, "device": "cuda"})
+    assert (tmp_path / "results/nucleon/diffusion.ckpt").exists()  # the fine-tuned model
+    assert (tmp_path / "results/nucleon/image_metrics.json").exists()
