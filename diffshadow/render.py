@@ -1,20 +1,21 @@
 """The INR volume renderer (paper appendix, DESIGN.md §6): cameras, a wavefront ray marcher, macro-cells,
 shading, and the naive secondary-ray baseline.
 
-The wavefront marcher keeps a pool of at most `batch // samples_per_iter` live rays. Each iteration
+The wavefront marcher works on tiles of rays. For each tile, `Runs.build` turns every ray's crossings of
+the macro-cell planes into runs of lattice samples t = t0 + (k + ½)·dt that lie in cells whose opacity
+is not 0 under the transfer function (one vectorised pass, fixed shape). Then each iteration
 
-1. a coordinate step gathers the next `samples_per_iter` lattice samples of every live ray, jumping
-   over macro-cells whose opacity is 0 under the transfer function;
+1. every live ray takes its next occupied samples (one `searchsorted` into its runs);
 2. one batched inference evaluates the scalar field there (the data INR or the raw grid), and the
    shadow source in the same pass (the shadow INR, a shadow grid, or secondary rays);
 3. a shading/compositing step adds them front to back, with α = 1 − exp(−μ·Δt) (opacity corrected
    for the step, consistent with the shadow's optical depth);
-4. rays that left the box or whose transmittance fell below `min_transmittance` leave the pool, and
-   waiting rays take their place.
+4. rays out of samples or whose transmittance fell below `min_transmittance` leave.
 
-Memory is bounded by `batch` (plus a few floats per pixel of state), never by pixels × samples.
-The naive baseline (`MarchedShadow`) pauses after step 2 and marches a secondary ray toward the light
-from every sample through the same scalar field, itself with this wavefront loop and skipping.
+`MarchPlan` sizes the work per device: a CPU drops finished rays and absent samples every iteration; a
+GPU keeps shapes fixed between host syncs. Memory is bounded by the plan's batch, never by pixels ×
+samples. The naive baseline (`MarchedShadow`) pauses after step 2 and marches a secondary ray toward
+the light from every sample through the same scalar field, with the same marcher.
 
 Shading: colour × (0.1 + 0.9·g) with shadow coefficient g (the authors' code); with `phong=True` the
 colour is first lit by Blinn-Phong from the field's gradient. `noshadow` has g = 1.
@@ -41,8 +42,8 @@ RENDER_CELL = 16  # voxels per macro-cell edge (the authors' renderer)
 DEFAULT_STEP = 0.5  # primary and secondary step, in voxels of the finest axis
 MIN_TRANSMITTANCE = 1e-3  # early ray termination
 SHADOW_TAU_MAX = 10.0  # secondary rays stop here: g < 5e-5, below an 8-bit pixel's resolution
-SAMPLES_PER_ITER = 8  # bench: 16³ cells, hydrogen_atom: 8 halves the loop overhead of 4; 16 wastes samples
-BATCH = 1 << 16  # samples per network inference on a CPU
+SAMPLES_PER_ITER = 8  # the fewest samples a live ray takes per iteration (more when fewer rays are live)
+BATCH = 1 << 16  # samples per network inference on a CPU (2 cores, hydrogen_atom: 2^17 0.8x, 2^18 0.5x)
 CUDA_BATCH = 1 << 20  # on a GPU: enough work to fill it between host syncs
 BACKGROUND = 1.0
 AMBIENT, DIFFUSE, SPECULAR, SHININESS = 0.3, 0.7, 0.2, 32.0
