@@ -33,4 +33,5 @@ rule all:
         expand("results/{scene}/voxel_metrics.json", scene=config["scenes"]),
         expand("results/{scene}/image_metrics.json", scene=config["scenes"]),
         expand("results/{scene}/bench.json", scene=config["scenes"]),
+        expand("results/{scene}/stage_costs.tsv", scene=config["scenes"]),
         expand("results/{scene}/report/image_grid.png", scene=config["scenes"]),

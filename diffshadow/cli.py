@@ -159,6 +159,12 @@ def _report_figures(a):
     images.report_figures(Path(a.results), Path(a.checkpoint), _cfg(a), Path(a.out_dir))
 
 
+def _stage_costs(a):
+    from diffshadow.report import stage_costs
+
+    stage_costs([Path(b) for b in a.benchmarks], Path(a.out))
+
+
 # ------------------------------------------------------------------------------------------- tools
 
 
@@ -250,6 +256,10 @@ def build_parser() -> argparse.ArgumentParser:
     p = _add(sub, "report-figures", _report_figures, "the report's figures for one finished scene", "results",
              "checkpoint", "out-dir", out=False, device=False, config="the scene's merged configuration")
 
+    p = sub.add_parser("stage-costs", help="a table of every rule's cost from Snakemake's benchmark files")
+    p.add_argument("--benchmarks", nargs="+", required=True, help="results/<scene>/benchmarks/*.tsv")
+    p.add_argument("--out", required=True)
+    p.set_defaults(func=_stage_costs)
     add_bench_parsers(sub)
     p = sub.add_parser("parsl-fit", help="fit every pending fit_siren subset through Parsl (one big allocation)")
     for name, default, helptext in (("config", "config/parsl/local.py", "Parsl config file (config/parsl/*.py)"),

@@ -15,6 +15,8 @@ def fit_task(paths: dict[str, str], subset: int, cfg: dict, device: str | None, 
     """Run in a Parsl worker: one subset's fit, stdout and stderr to `log_path`; returns the file written."""
     import contextlib
     import os
+    import resource
+    import time
 
     from diffshadow.fit import FitConfig
     from diffshadow.runtime import resolve_device, set_threads
@@ -22,13 +24,29 @@ def fit_task(paths: dict[str, str], subset: int, cfg: dict, device: str | None, 
     from diffshadow.stages.stage1 import fit_subset
 
     Path(log_path).parent.mkdir(parents=True, exist_ok=True)
+    start, usage = time.perf_counter(), resource.getrusage(resource.RUSAGE_SELF)
     with open(log_path, "w") as log, contextlib.redirect_stdout(log), contextlib.redirect_stderr(log):
         print(f"parsl worker pid {os.getpid()}, CUDA_VISIBLE_DEVICES={os.environ.get('CUDA_VISIBLE_DEVICES')}")
         set_threads(threads)
         fit_subset(Path(paths["volume"]), Path(paths["lights"]), Path(paths["init"]), subset, Path(paths["out"]),
                    siren=SirenConfig.from_config(cfg["siren"]), fit=FitConfig.from_config(cfg["fit"]),
                    subset_size=int(cfg["subset_size"]), config=cfg, device=resolve_device(None, device))
+    if paths.get("benchmark"):
+        end = resource.getrusage(resource.RUSAGE_SELF)
+        write_benchmark(Path(paths["benchmark"]), time.perf_counter() - start,
+                        end.ru_utime + end.ru_stime - usage.ru_utime - usage.ru_stime, end.ru_maxrss / 1024)
     return paths["out"]
+
+
+def write_benchmark(path: Path, wall_s: float, cpu_s: float, max_rss_mib: float) -> None:
+    """The rule's `benchmark:` file, in Snakemake's columns (those it cannot know here are NA), so the
+    stage-cost table counts subsets fitted through Parsl too. max_rss is the worker's peak so far."""
+    from diffshadow.io import atomic_write_text
+
+    h, rest = divmod(int(wall_s), 3600)
+    atomic_write_text(path, "s\th:m:s\tmax_rss\tmax_vms\tmax_uss\tmax_pss\tio_in\tio_out\tmean_load\tcpu_time\n"
+                      f"{wall_s:.4f}\t{h}:{rest // 60:02d}:{rest % 60:02d}\t{max_rss_mib:.2f}\tNA\tNA\tNA\tNA\tNA\tNA"
+                      f"\t{cpu_s:.2f}\n")
 
 
 def pending(results: Path, scene: str, n_subsets: int) -> list[int]:
@@ -84,7 +102,8 @@ def fit_pending(parsl_config: Path, configfile: Path, scenes: list[str] | None, 
         todo = pending(results, scene, n)
         log(f"[parsl-fit] {scene}: {len(todo)} of {n} subsets pending")
         sel = {k: cfg[k] for k in ("siren", "fit", "subset_size")}
-        jobs += [{"paths": {**{k: str(v) for k, v in paths.items()}, "out": str(base / "sirens" / f"subset_{i}.npz")},
+        jobs += [{"paths": {**{k: str(v) for k, v in paths.items()}, "out": str(base / "sirens" / f"subset_{i}.npz"),
+                            "benchmark": str(base / "benchmarks" / f"fit_siren_{i}.tsv")},
                   "subset": i, "cfg": sel, "device": run_cfg.get("device"), "threads": threads,
                   "log_path": str(base / "logs" / f"fit_siren_{i}.log")} for i in todo]
     if jobs:

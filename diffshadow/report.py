@@ -165,3 +165,42 @@ def write_config(path: Path, cfg: dict) -> None:
     import yaml
 
     atomic_write_text(path, yaml.safe_dump(json.loads(json.dumps(cfg)), sort_keys=False))
+
+
+STAGE_COST_COLUMNS = ("stage", "jobs", "wall_s", "cpu_s", "max_rss_mib")
+
+
+def stage_costs(benchmarks: list[Path], out: Path) -> list[dict]:
+    """One row per rule from Snakemake's `benchmark:` files (`<rule>.tsv`, or `<rule>_<n>.tsv` per job of a
+    fanned-out rule): jobs, summed wall and CPU seconds, the largest resident set; and a total row (the
+    sum of jobs' wall times, which exceeds the run's wall time where jobs overlapped). Written as TSV."""
+    rows: dict[str, dict] = {}
+    for path in benchmarks:
+        lines = Path(path).read_text().splitlines()
+        if len(lines) < 2:
+            raise ValueError(f"{path}: expected a Snakemake benchmark file (a header and one row)")
+        rec = dict(zip(lines[0].split("\t"), lines[1].split("\t"), strict=False))
+        def num(key):  # Snakemake writes NA where it could not measure (e.g. a job shorter than its poll)
+            v = rec.get(key, "NA")
+            return 0.0 if v == "NA" else float(v)
+
+        try:
+            wall, cpu, rss = float(rec["s"]), num("cpu_time"), num("max_rss")
+        except (KeyError, ValueError):
+            raise ValueError(f"{path}: expected numeric columns s, cpu_time, max_rss; got {lines[:2]}") from None
+        stem = Path(path).stem
+        stage = stem.rsplit("_", 1)[0] if stem.rsplit("_", 1)[-1].isdigit() else stem
+        row = rows.setdefault(stage, {"stage": stage, "jobs": 0, "wall_s": 0.0, "cpu_s": 0.0, "max_rss_mib": 0.0})
+        row["jobs"] += 1
+        row["wall_s"] += wall
+        row["cpu_s"] += cpu
+        row["max_rss_mib"] = max(row["max_rss_mib"], rss)
+    table = sorted(rows.values(), key=lambda r: -r["wall_s"])
+    total = {"stage": "total (sum over jobs)", "jobs": sum(r["jobs"] for r in table),
+             "wall_s": sum(r["wall_s"] for r in table), "cpu_s": sum(r["cpu_s"] for r in table),
+             "max_rss_mib": max((r["max_rss_mib"] for r in table), default=0.0)}
+    text = "\t".join(STAGE_COST_COLUMNS) + "\n" + "".join(
+        f"{r['stage']}\t{r['jobs']}\t{r['wall_s']:.1f}\t{r['cpu_s']:.1f}\t{r['max_rss_mib']:.0f}\n"
+        for r in [*table, total])
+    atomic_write_text(out, text)
+    return [*table, total]

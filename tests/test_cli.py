@@ -31,3 +31,19 @@ def test_bad_input_is_one_line_without_traceback(tmp_path, capsys):
     err = capsys.readouterr().err
     assert err.strip().count("\n") == 0 and "missing.raw: no such file" in err
     assert not (tmp_path / "v.zarr").exists()
+
+
+def test_stage_costs_sums_a_fanned_out_rule_and_names_a_bad_file(tmp_path):
+    from diffshadow.report import stage_costs
+
+    header = "s\th:m:s\tmax_rss\tmax_vms\tmax_uss\tmax_pss\tio_in\tio_out\tmean_load\tcpu_time\n"
+    for name, s, rss, cpu in (("fit_siren_0", 2.0, 100, 1.5), ("fit_siren_1", 3.0, 120, 2.5), ("lights", 0.5, 50, 0.4)):
+        (tmp_path / f"{name}.tsv").write_text(header + f"{s}\t0:00:0{int(s)}\t{rss}\t0\t0\t0\t0\t0\t0\t{cpu}\n")
+    rows = stage_costs(sorted(tmp_path.glob("*.tsv")), tmp_path / "costs.tsv")
+    fit = next(r for r in rows if r["stage"] == "fit_siren")
+    assert (fit["jobs"], fit["wall_s"], fit["cpu_s"], fit["max_rss_mib"]) == (2, 5.0, 4.0, 120)
+    assert rows[-1]["jobs"] == 3 and rows[-1]["wall_s"] == 5.5
+    bad = tmp_path / "broken.tsv"
+    bad.write_text("s\n")
+    with pytest.raises(ValueError, match="broken.tsv: expected a Snakemake benchmark file"):
+        stage_costs([bad], tmp_path / "x.tsv")

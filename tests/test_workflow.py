@@ -117,7 +117,7 @@ STAGE_OUTPUTS = {
                        "report/ddim_curve.json"],
 }
 TIMED = {"bench.json", "bench.png", "report/bench_shadow.json", "report/bench_shadow.png", "report/ddim_curve.png",
-         "report/shadow_curve.png"}  # measurements of time or memory by design
+         "report/shadow_curve.png", "benchmarks", "stage_costs.tsv"}  # measurements of time or memory by design
 TIMING_KEY = re.compile(r"second|_s$|fps|speedup|peak_mem")
 
 
@@ -197,7 +197,7 @@ def test_rerun_one_subset(finished):
     assert planned(snakemake(finished, "-n", "-f", target)) == {"fit_siren": 1}
     downstream = {"fit_siren": 1, "collect_weights": 1, "train_diffusion": 1, "finetune_render": 1,
                   "sample_shadows": 1, "evaluate_voxels": 1, "evaluate_images": 1, "benchmark": 1,
-                  "report_figures": 1, "all": 1}
+                  "report_figures": 1, "stage_costs": 1, "all": 1}
     assert planned(snakemake(finished, "-n", "-R", target)) == downstream
     # a corrupted subset is newer than the store: collecting again fails and names the file
     (sirens / "subset_1.npz").write_bytes(b"garbage")
@@ -313,3 +313,14 @@ def test_report_embeds_every_figure(finished):
         assert name in html, f"{name} is not in the report"
     for name in figures[:-1]:
         assert (finished / "results/nucleon/report" / name).stat().st_size > 100
+
+
+def test_stage_costs_come_from_snakemakes_benchmarks(finished):
+    res = finished / "results/nucleon"
+    rules = {p.stem for p in (res / "benchmarks").glob("*.tsv")}
+    assert {"fit_siren_0", "fit_siren_1", "finetune_render", "benchmark", "report_figures"} <= rules
+    lines = (res / "stage_costs.tsv").read_text().splitlines()
+    assert lines[0].split("\t") == ["stage", "jobs", "wall_s", "cpu_s", "max_rss_mib"]
+    rows = {line.split("\t")[0]: line.split("\t") for line in lines[1:]}
+    assert rows["fit_siren"][1] == "2" and "fit_siren_0" not in rows
+    assert int(rows["total (sum over jobs)"][1]) == len(rules)

@@ -3,6 +3,8 @@ rule lights:
         "results/{scene}/lights.json",
     params:
         lights=lambda wc: scene_config(wc.scene)["lights"],
+    benchmark:
+        "results/{scene}/benchmarks/lights.tsv",
     shell:
         "diffshadow lights --sphere {params.lights[sphere]} --count {params.lights[count]}"
         " --center {params.lights[center][0]} {params.lights[center][1]} {params.lights[center][2]}"

@@ -11,6 +11,8 @@ rule train_data_inr:
     threads: 2
     log:
         "results/{scene}/logs/train_data_inr.log",
+    benchmark:
+        "results/{scene}/benchmarks/train_data_inr.tsv",
     shell:
         "diffshadow train-data-inr --volume {input.volume} --config-json {params.cfg:q} --config-device {DEVICE} --threads {threads}"
         " --out {output} 2>&1 | tee {log}"
@@ -31,6 +33,8 @@ rule evaluate_images:
     threads: 2
     log:
         "results/{scene}/logs/evaluate_images.log",
+    benchmark:
+        "results/{scene}/benchmarks/evaluate_images.tsv",
     shell:
         "diffshadow evaluate-images --volume {input.volume} --lights {input.lights} --data-inr {input.data_inr}"
         " --weights {input.weights} --generated {input.generated} --config-json {params.cfg:q}"
@@ -57,6 +61,8 @@ rule benchmark:
     threads: 2
     log:
         "results/{scene}/logs/benchmark.log",
+    benchmark:
+        "results/{scene}/benchmarks/benchmark.tsv",
     shell:
         "diffshadow bench render --volume {input.volume} --data-inr {input.data_inr} --weights {input.weights}"
         " --sizes {params.sizes} --step {params.step} --repeats {params.repeats} --config-device {DEVICE} --threads {threads}"

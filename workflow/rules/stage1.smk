@@ -7,6 +7,8 @@ rule prepare_volume:
     params:
         cfg=lambda wc: json.dumps({k: v for k, v in scene_config(wc.scene).items()
                                    if k in ("volume", "load", "transfer_function")}, sort_keys=True),
+    benchmark:
+        "results/{scene}/benchmarks/prepare_volume.tsv",
     shell:
         "diffshadow prepare-volume --config-json {params.cfg:q} --out {output}"
 
@@ -22,6 +24,8 @@ rule preoptimize:
     threads: 1
     log:
         "results/{scene}/logs/preoptimize.log",
+    benchmark:
+        "results/{scene}/benchmarks/preoptimize.tsv",
     shell:
         "diffshadow preoptimize --volume {input.volume} --lights {input.lights} --config-json {params.cfg:q}"
         " --config-device {DEVICE} --threads {threads} --out {output} 2>&1 | tee {log}"
@@ -41,6 +45,8 @@ rule fit_siren:
     threads: 1
     log:
         "results/{scene}/logs/fit_siren_{subset}.log",
+    benchmark:
+        "results/{scene}/benchmarks/fit_siren_{subset}.tsv",
     shell:
         "diffshadow fit-siren --volume {input.volume} --lights {input.lights} --init {input.init}"
         " --subset {wildcards.subset} --config-json {params.cfg:q} --config-device {DEVICE} --threads {threads} --out {output}"
@@ -55,6 +61,8 @@ rule collect_weights:
         directory("results/{scene}/weights.zarr"),
     log:
         "results/{scene}/logs/collect_weights.log",
+    benchmark:
+        "results/{scene}/benchmarks/collect_weights.tsv",
     shell:
         "diffshadow collect-weights --lights {input.lights} --subsets {input.subsets} --out {output}"
         " 2>&1 | tee {log}"

@@ -10,6 +10,8 @@ rule presample:
     params:
         cfg=lambda wc: as_json(wc.scene, "diffusion"),
     threads: 2
+    benchmark:
+        "results/{scene}/benchmarks/presample.tsv",
     shell:
         "diffshadow presample --volume {input.volume} --lights {input.lights} --config-json {params.cfg:q}"
         " --config-device {DEVICE} --threads {threads} --out {output}"
@@ -26,6 +28,8 @@ rule train_diffusion:
     threads: 2
     log:
         "results/{scene}/logs/train_diffusion.log",
+    benchmark:
+        "results/{scene}/benchmarks/train_diffusion.tsv",
     shell:
         "diffshadow train-diffusion --weights {input.weights} --points {input.points}"
         " --config-json {params.cfg:q} --config-device {DEVICE} --threads {threads} --out {output} 2>&1 | tee {log}"
@@ -41,6 +45,8 @@ rule sample_shadows:
     threads: 2
     log:
         "results/{scene}/logs/sample_shadows.log",
+    benchmark:
+        "results/{scene}/benchmarks/sample_shadows.tsv",
     shell:
         "diffshadow sample-shadows --checkpoint {input.checkpoint} --volume {input.volume}"
         " --lights {input.lights} --config-device {DEVICE} --threads {threads} --out {output} 2>&1 | tee {log}"
@@ -58,6 +64,8 @@ rule evaluate_voxels:
     threads: 2
     log:
         "results/{scene}/logs/evaluate_voxels.log",
+    benchmark:
+        "results/{scene}/benchmarks/evaluate_voxels.tsv",
     shell:
         "diffshadow evaluate-voxels --checkpoint {input.checkpoint} --weights {input.weights}"
         " --generated {input.generated} --volume {input.volume} --lights {input.lights} --threads {threads}"
@@ -76,6 +84,8 @@ rule render_targets:
     threads: 2
     log:
         "results/{scene}/logs/render_targets.log",
+    benchmark:
+        "results/{scene}/benchmarks/render_targets.tsv",
     shell:
         "diffshadow render-targets --volume {input.volume} --lights {input.lights} --config-json {params.cfg:q}"
         " --config-device {DEVICE} --threads {threads} --out {output} 2>&1 | tee {log}"
@@ -99,6 +109,8 @@ rule finetune_render:
         gpu=lambda wc: scene_config(wc.scene)["finetune"]["nproc"],
     log:
         "results/{scene}/logs/finetune_render.log",
+    benchmark:
+        "results/{scene}/benchmarks/finetune_render.tsv",
     shell:
         # no more processes than the device takes (one per GPU on CUDA), said in one line
         "n=$(diffshadow ddp-processes --nproc {params.nproc} --config-device {DEVICE}) &&"
