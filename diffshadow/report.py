@@ -180,12 +180,11 @@ def stage_costs(benchmarks: list[Path], out: Path) -> list[dict]:
         if len(lines) < 2:
             raise ValueError(f"{path}: expected a Snakemake benchmark file (a header and one row)")
         rec = dict(zip(lines[0].split("\t"), lines[1].split("\t"), strict=False))
-        def num(key):  # Snakemake writes NA where it could not measure (e.g. a job shorter than its poll)
-            v = rec.get(key, "NA")
-            return 0.0 if v == "NA" else float(v)
-
         try:
-            wall, cpu, rss = float(rec["s"]), num("cpu_time"), num("max_rss")
+            # Snakemake writes NA where it could not measure (e.g. a job shorter than its poll)
+            wall, cpu, rss = (float(rec.get(k, "0").replace("NA", "0")) for k in ("s", "cpu_time", "max_rss"))
+            if "s" not in rec:
+                raise KeyError("s")
         except (KeyError, ValueError):
             raise ValueError(f"{path}: expected numeric columns s, cpu_time, max_rss; got {lines[:2]}") from None
         stem = Path(path).stem
