@@ -237,7 +237,6 @@ def _plot(results: dict, path: Path) -> None:
     for a, label in ((ax[0], "frames per second"), (ax[1], "peak memory added (MiB)")):
         a.set_xticks(x, [f"{s}²" for s in sizes])
         a.set_ylabel(label)
-        a.legend()
     ax[0].set_yscale("log")
     for i, mode in enumerate(BENCH_MODES):  # per-frame counts: device-independent, so they do not drift
         xs = [j for j, s in enumerate(sizes) if mode in results["sizes"][s].get("counts", {})]
@@ -249,7 +248,6 @@ def _plot(results: dict, path: Path) -> None:
     ax[3].set_xticks(x, [f"{s}²" for s in sizes])
     ax[3].set_ylabel("ops per frame (bar label: host syncs)")
     ax[3].set_yscale("log")
-    ax[3].legend()
     pts = results["step_curve"]["points"]
     ax[2].plot([p["seconds"] for p in pts], [p["psnr"] for p in pts], "o-")
     for p in pts:
@@ -257,6 +255,13 @@ def _plot(results: dict, path: Path) -> None:
     ax[2].set_xlabel("seconds per frame")
     ax[2].set_ylabel(f"PSNR vs step {results['step_curve']['reference_step']} (dB)")
     ax[2].set_xscale("log")
+    from matplotlib.ticker import NullFormatter
+
+    for a in (ax[0], ax[3]):  # decade labels only: the minor ones overlap
+        a.yaxis.set_minor_formatter(NullFormatter())
+    ax[2].xaxis.set_minor_formatter(NullFormatter())
+    handles, labels = ax[0].get_legend_handles_labels()
+    fig.legend(handles, labels, loc="upper right", ncol=len(labels))  # one legend, clear of the bars
     fig.suptitle(f"{results.get('scene', '')} on {results['device']}")
     fig.tight_layout()
     with atomic_path(path, suffix=".png") as tmp:
