@@ -28,6 +28,10 @@ include: "workflow/rules/render.smk"
 include: "workflow/rules/report.smk"
 
 
+# jobs of a second or less run where Snakemake runs, not as batch jobs (PBS queueing would dwarf them)
+localrules: all, lights, prepare_volume, collect_weights, stage_costs
+
+
 rule all:
     input:
         expand("results/{scene}/voxel_metrics.json", scene=config["scenes"]),

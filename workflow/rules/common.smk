@@ -5,9 +5,11 @@ import json
 from diffshadow.config import as_json as _as_json
 from diffshadow.config import scene_config as _scene_config
 from diffshadow.lights import n_subsets as _n_subsets
+from diffshadow.volume import resolve_path as _resolve_path
 
 _SCENES = {}
 DEVICE = config.get("device", "auto")  # passed as --config-device: --device and DIFFSHADOW_DEVICE win
+LAUNCHER = config.get("torchrun", "torchrun --standalone")  # how finetune_render starts its DDP processes
 
 
 def scene_config(scene):
@@ -37,3 +39,24 @@ def sampler_checkpoint(wildcards):
     if scene_config(wildcards.scene)["finetune"]["enabled"]:
         return f"results/{wildcards.scene}/diffusion.ckpt"
     return f"results/{wildcards.scene}/diffusion_geometry.ckpt"
+
+
+def finetune_json(scene):
+    """finetune_render's settings without `nproc` (how many processes, not what they compute)."""
+    return json.dumps({"finetune": {k: v for k, v in scene_config(scene)["finetune"].items() if k != "nproc"}},
+                      sort_keys=True)
+
+
+def stage_benchmarks(wildcards):
+    """Snakemake's benchmark file of every job that this scene runs."""
+    rules = ["lights", "prepare_volume", "preoptimize", "collect_weights", "presample", "train_diffusion",
+             "sample_shadows", "evaluate_voxels", "train_data_inr", "evaluate_images", "report_figures", "benchmark"]
+    if scene_config(wildcards.scene)["finetune"]["enabled"]:
+        rules += ["render_targets", "finetune_render"]
+    fits = [f"fit_siren_{i}" for i in range(n_subsets(wildcards.scene))]
+    return [f"results/{wildcards.scene}/benchmarks/{r}.tsv" for r in rules + fits]
+
+
+def volume_file(wildcards):
+    """The scene's volume file (`bundled:<name>` is the copy inside the package)."""
+    return str(_resolve_path(scene_config(wildcards.scene)["volume"]))

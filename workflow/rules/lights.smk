@@ -5,7 +5,10 @@ rule lights:
         lights=lambda wc: scene_config(wc.scene)["lights"],
     benchmark:
         "results/{scene}/benchmarks/lights.tsv",
+    log:
+        "results/{scene}/logs/lights.log",
     shell:
         "diffshadow lights --sphere {params.lights[sphere]} --count {params.lights[count]}"
         " --center {params.lights[center][0]} {params.lights[center][1]} {params.lights[center][2]}"
         " --unseen {params.lights[unseen]} --seed {params.lights[seed]} --out {output}"
+        " 2>&1 | tee {log}"

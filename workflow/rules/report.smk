@@ -40,21 +40,13 @@ rule report_figures:
         " --threads {threads} --out-dir results/{wildcards.scene}/report 2>&1 | tee {log}"
 
 
-def stage_benchmarks(wildcards):
-    """Snakemake's benchmark file of every job that this scene runs."""
-    rules = ["lights", "prepare_volume", "preoptimize", "collect_weights", "presample", "train_diffusion",
-             "sample_shadows", "evaluate_voxels", "train_data_inr", "evaluate_images", "report_figures", "benchmark"]
-    if scene_config(wildcards.scene)["finetune"]["enabled"]:
-        rules += ["render_targets", "finetune_render"]
-    fits = [f"fit_siren_{i}" for i in range(n_subsets(wildcards.scene))]
-    return [f"results/{wildcards.scene}/benchmarks/{r}.tsv" for r in rules + fits]
-
-
 rule stage_costs:
     input:
         stage_benchmarks,
     output:
         report("results/{scene}/stage_costs.tsv", caption="../report/stage_costs.rst", category="{scene}",
                subcategory="run"),
+    log:
+        "results/{scene}/logs/stage_costs.log",
     shell:
-        "diffshadow stage-costs --benchmarks {input} --out {output}"
+        "diffshadow stage-costs --benchmarks {input} --out {output} 2>&1 | tee {log}"

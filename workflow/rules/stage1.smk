@@ -2,6 +2,8 @@
 
 
 rule prepare_volume:
+    input:
+        volume_file,  # so a dry run already names a missing volume, and a changed file reruns the scene
     output:
         directory("results/{scene}/volume.zarr"),
     params:
@@ -9,8 +11,11 @@ rule prepare_volume:
                                    if k in ("volume", "load", "transfer_function")}, sort_keys=True),
     benchmark:
         "results/{scene}/benchmarks/prepare_volume.tsv",
+    log:
+        "results/{scene}/logs/prepare_volume.log",
     shell:
         "diffshadow prepare-volume --config-json {params.cfg:q} --out {output}"
+        " 2>&1 | tee {log}"
 
 
 rule preoptimize:

@@ -12,9 +12,12 @@ rule presample:
     threads: 2
     benchmark:
         "results/{scene}/benchmarks/presample.tsv",
+    log:
+        "results/{scene}/logs/presample.log",
     shell:
         "diffshadow presample --volume {input.volume} --lights {input.lights} --config-json {params.cfg:q}"
         " --config-device {DEVICE} --threads {threads} --out {output}"
+        " 2>&1 | tee {log}"
 
 
 rule train_diffusion:
@@ -101,9 +104,9 @@ rule finetune_render:
         checkpoint="results/{scene}/diffusion.ckpt",
         metrics="results/{scene}/finetune_metrics.json",
     params:
-        cfg=lambda wc: as_json(wc.scene, "finetune"),
-        nproc=lambda wc: scene_config(wc.scene)["finetune"]["nproc"],
-        launcher=lambda wc: config.get("torchrun", "torchrun --standalone"),
+        # nproc and the launcher are left out: they change how the step runs, not its result (DDP equals
+        # one process, tests/test_finetune.py), so a profile that sets them reruns nothing
+        cfg=lambda wc: finetune_json(wc.scene),
     threads: lambda wc: scene_config(wc.scene)["finetune"]["nproc"]
     resources:
         gpu=lambda wc: scene_config(wc.scene)["finetune"]["nproc"],
@@ -112,9 +115,10 @@ rule finetune_render:
     benchmark:
         "results/{scene}/benchmarks/finetune_render.tsv",
     shell:
-        # no more processes than the device takes (one per GPU on CUDA), said in one line
-        "n=$(diffshadow ddp-processes --nproc {params.nproc} --config-device {DEVICE}) &&"
-        " {params.launcher} --nproc_per_node=$n -m diffshadow.cli finetune-render"
+        # finetune.nproc processes as `threads` (so -j caps them on a laptop), no more than the device takes
+        # (one per GPU on CUDA), said in one line
+        "n=$(diffshadow ddp-processes --nproc {threads} --config-device {DEVICE}) &&"
+        " {LAUNCHER} --nproc_per_node=$n -m diffshadow.cli finetune-render"
         " --checkpoint {input.checkpoint} --weights {input.weights} --points {input.points}"
         " --targets {input.targets} --config-json {params.cfg:q} --config-device {DEVICE} --threads 1"
         " --metrics {output.metrics} --out {output.checkpoint} 2>&1 | tee {log}"
