@@ -289,6 +289,9 @@ def main(argv: list[str] | None = None) -> None:
     from diffshadow.runtime import claim_gpu_lock, set_threads
 
     args = build_parser().parse_args(argv)
+    # a rule pipes the output through `tee`: without line buffering its progress would arrive at the end
+    if hasattr(sys.stdout, "reconfigure"):
+        sys.stdout.reconfigure(line_buffering=True)
     if args.command in _ONE_GPU:
         claim_gpu_lock(args.command)
     if args.command not in ("finetune-render", "parsl-fit"):  # threads per rank and per worker: set there

@@ -28,9 +28,18 @@ class TruthPoints:
         if vis.visible_fraction:
             self.sets["visible"] = vis.sample(1, n_points, gen)[0]
 
-    def truth(self, lights: np.ndarray) -> dict[str, torch.Tensor]:
-        return {k: torch.stack([transmittance(self.field, self.tf, w, p) for w in lights])
-                for k, p in self.sets.items()}
+    def truth(self, lights: np.ndarray, log=None, what: str = "lights") -> dict[str, torch.Tensor]:
+        """True shadow (L, P) per point set, by the exact march; progress every ~10% when `log` is given."""
+        out = {k: [] for k in self.sets}
+        start, every = time.perf_counter(), max(1, len(lights) // 10)
+        for i, w in enumerate(lights):
+            for k, p in self.sets.items():
+                out[k].append(transmittance(self.field, self.tf, w, p))
+            if log and ((i + 1) % every == 0 or i + 1 == len(lights)):
+                spent = time.perf_counter() - start
+                log(f"[evaluate voxels] ground truth, {what}: {i + 1}/{len(lights)} ({spent:.0f} s, "
+                    f"~{spent / (i + 1) * (len(lights) - i - 1):.0f} s left)")
+        return {k: torch.stack(v) for k, v in out.items()}
 
     def sirens(self, weights: np.ndarray, layout: WeightLayout, siren: SirenConfig) -> dict[str, torch.Tensor]:
         w = torch.as_tensor(np.asarray(weights), dtype=torch.float32)
@@ -77,7 +86,7 @@ def _median(a) -> float:
 
 
 def voxel_metrics(state: dict, stage1, generated, volume: Volume, tf, light_sets: dict, *, eval_points: int,
-                  blend_k: int) -> dict:
+                  blend_k: int, log=print) -> dict:
     """`voxel_metrics.json`: generated SIRENs (seen and unseen) against the ground truth, beside the stage-1
     SIRENs, the nearest and blend baselines, DDIM vs DDPM, and storage."""
     from diffshadow.diffusion.sample import generate, load_sampler
@@ -87,7 +96,8 @@ def voxel_metrics(state: dict, stage1, generated, volume: Volume, tf, light_sets
     cfg = state["config"]
     model, std, layout, siren = load_sampler(state)
     points = TruthPoints(volume, tf, eval_points, seed=int(cfg["seed"]) + 2)
-    truth_train, truth_unseen = points.truth(train), points.truth(unseen)
+    truth_train = points.truth(train, log, "training lights")
+    truth_unseen = points.truth(unseen, log, "unseen lights")
     gen_seen = psnr_per_light(points.sirens(generated.weights[seen], layout, siren), truth_train)
     stage1_seen = psnr_per_light(points.sirens(stage1.weights, layout, siren), truth_train)
     result = {"seen": {"count": int(seen.sum()),
@@ -111,8 +121,11 @@ def voxel_metrics(state: dict, stage1, generated, volume: Volume, tf, light_sets
                             "nearest_angle_median_deg": float(np.degrees(np.median(angles[:, 0])))}
     # DDIM vs 500-step DDPM: time per INR and quality on the seen lights
     ddim_steps = int(cfg["ddim_steps"])
+    t0 = time.perf_counter()
+    log(f"[evaluate voxels] 500-step DDPM for the {len(train)} training lights (the DDIM comparison) ...")
     ddpm_w = generate(model, std, train, method="ddpm", seed=int(cfg["seed"])).numpy()
     ddpm_seen = psnr_per_light(points.sirens(ddpm_w, layout, siren), truth_train)
+    log(f"[evaluate voxels] DDPM done ({time.perf_counter() - t0:.0f} s); timing one INR per sampler ...")
     t_ddim = seconds_per_inr(model, std, train[0], method="ddim", steps=ddim_steps, temperature=cfg["temperature"])
     t_ddpm = seconds_per_inr(model, std, train[0], method="ddpm", steps=500, repeats=1)
     result["sampling"] = {"ddim_steps": ddim_steps, "ddim_psnr_median": result["seen"]["generated_psnr_median"],
