@@ -6,6 +6,7 @@
 | `siren_init.pt` | preoptimize | `save_siren_init` / `load_siren_init`: the shared initial SIREN |
 | `sirens/subset_N.npz`, `weights.zarr`, `generated.zarr` | fit_siren, collect_weights, sample_shadows | `store` |
 | `geometry_points.zarr` | presample | `write_geometry_points` / `read_training_data` |
+| `eval_truth.zarr` | eval_truth | `write_eval_truth` / `read_eval_truth`: evaluation points, exact shadows |
 | `diffusion_geometry.ckpt`, `diffusion.ckpt` | train_diffusion, finetune_render | `load_checkpoint` |
 | `targets.zarr` | render_targets | `write_targets` / `read_targets` |
 | `data_inr.pt` | train_data_inr | `save_data_inr` / `load_data_inr`; with a volume: `load_render_scene` |
@@ -21,6 +22,7 @@ import torch
 from diffshadow.data_inr import DataInr
 from diffshadow.diffusion.finetune import RayBundle
 from diffshadow.diffusion.train import TrainingData
+from diffshadow.evaluate import EvalTruth
 from diffshadow.io import atomic_torch_save, write_zarr_group
 from diffshadow.render import Camera, RenderScene
 from diffshadow.siren import Siren, SirenConfig, WeightLayout
@@ -118,6 +120,35 @@ def read_training_data(weights_path: str | Path, points_path: str | Path) -> tup
                         points=torch.as_tensor(points), values=torch.as_tensor(values),
                         extent=torch.as_tensor(extent, dtype=torch.float32), layout=store.layout, siren=store.siren)
     return data, store
+
+
+def write_eval_truth(path: str | Path, truth: EvalTruth) -> None:
+    """`eval_truth`'s points per set (P, 3) and exact shadow (L, P) of every light, one light per chunk."""
+
+    def fill(root) -> None:
+        for name, pts in truth.points.items():
+            root.create_array(f"points_{name}", data=pts.numpy())
+            root.create_array(f"values_{name}", data=truth.values[name].numpy(),
+                              chunks=(1, truth.values[name].shape[1]))
+        root.create_array("lights", data=truth.lights)
+        root.attrs.update({"sets": list(truth.points), "extent": truth.extent.tolist()})
+
+    write_zarr_group(path, fill)
+
+
+def read_eval_truth(path: str | Path) -> EvalTruth:
+    import zarr
+
+    try:
+        root = zarr.open_group(str(path), mode="r")
+        sets = list(root.attrs["sets"])
+        points = {k: torch.from_numpy(np.asarray(root[f"points_{k}"][...])) for k in sets}
+        values = {k: torch.from_numpy(np.asarray(root[f"values_{k}"][...])) for k in sets}
+        lights, extent = np.asarray(root["lights"][...]), root.attrs["extent"]
+    except (FileNotFoundError, KeyError) as e:
+        raise ArtifactError(f"{path}: not eval_truth's evaluation points (missing {e})") from None
+    return EvalTruth(points=points, lights=lights, values=values,
+                     extent=torch.as_tensor(extent, dtype=torch.float32))
 
 
 # -------------------------------------------------------------------------------------------- checkpoints

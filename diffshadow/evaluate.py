@@ -4,6 +4,7 @@ baselines for unseen lights, plus storage and time per shadow INR."""
 from __future__ import annotations
 
 import time
+from dataclasses import dataclass
 
 import numpy as np
 import torch
@@ -42,10 +43,47 @@ class TruthPoints:
         return {k: torch.stack(v) for k, v in out.items()}
 
     def sirens(self, weights: np.ndarray, layout: WeightLayout, siren: SirenConfig) -> dict[str, torch.Tensor]:
-        w = torch.as_tensor(np.asarray(weights), dtype=torch.float32)
-        with torch.no_grad():
-            model = BatchedSiren(w, layout, siren.blocks)
-            return {k: model(box_to_siren(p.expand(len(w), -1, -1), self.extent)) for k, p in self.sets.items()}
+        return _siren_values(self.sets, self.extent, weights, layout, siren)
+
+
+@dataclass
+class EvalTruth:
+    """`eval_truth`'s fixed evaluation points (per set: box, visible) and the exact shadow of every light
+    at them, computed once and read by `sample_shadows` and `evaluate_voxels` (the march is their cost)."""
+
+    points: dict[str, torch.Tensor]  # set -> (P, 3)
+    lights: np.ndarray  # (L, 3)
+    values: dict[str, torch.Tensor]  # set -> (L, P)
+    extent: torch.Tensor
+
+    @classmethod
+    def compute(cls, volume: Volume, tf, lights: np.ndarray, n_points: int, seed: int, log=None) -> EvalTruth:
+        points = TruthPoints(volume, tf, n_points, seed)
+        return cls(points=points.sets, lights=np.asarray(lights, dtype=np.float64),
+                   values=points.truth(lights, log, "all lights"), extent=points.extent)
+
+    def of(self, lights: np.ndarray, where: str = "eval_truth") -> dict[str, torch.Tensor]:
+        """The truth rows (L', P) per set for `lights`, each of which must be one this truth was made for."""
+        lights = np.asarray(lights, dtype=np.float64).reshape(-1, 3)
+        dist = np.abs(lights[:, None, :] - self.lights[None, :, :]).max(axis=-1)
+        rows = dist.argmin(axis=1) if len(self.lights) else np.zeros(len(lights), dtype=np.int64)
+        missing = [i for i, r in enumerate(rows) if not len(self.lights) or dist[i, r] > 1e-9]
+        if missing:
+            raise ValueError(f"{where}: no ground truth for light {lights[missing[0]].tolist()} "
+                             f"({len(missing)} of {len(lights)} missing); rerun eval_truth for these lights")
+        idx = torch.as_tensor(rows)
+        return {k: v[idx] for k, v in self.values.items()}
+
+    def sirens(self, weights: np.ndarray, layout: WeightLayout, siren: SirenConfig) -> dict[str, torch.Tensor]:
+        return _siren_values(self.points, self.extent, weights, layout, siren)
+
+
+def _siren_values(sets: dict, extent: torch.Tensor, weights, layout: WeightLayout,
+                  siren: SirenConfig) -> dict[str, torch.Tensor]:
+    w = torch.as_tensor(np.asarray(weights), dtype=torch.float32)
+    with torch.no_grad():
+        model = BatchedSiren(w, layout, siren.blocks)
+        return {k: model(box_to_siren(p.expand(len(w), -1, -1), extent)) for k, p in sets.items()}
 
 
 def psnr_per_light(pred: dict, truth: dict) -> dict[str, np.ndarray]:
@@ -85,33 +123,33 @@ def _median(a) -> float:
     return float(np.median(a))
 
 
-def voxel_metrics(state: dict, stage1, generated, volume: Volume, tf, light_sets: dict, *, eval_points: int,
-                  blend_k: int, log=print) -> dict:
+def voxel_metrics(state: dict, stage1, generated, truth: EvalTruth, light_sets: dict, *, blend_k: int,
+                  grid_voxels: int, ddpm_lights: int = 8, log=print) -> dict:
     """`voxel_metrics.json`: generated SIRENs (seen and unseen) against the ground truth, beside the stage-1
-    SIRENs, the nearest and blend baselines, DDIM vs DDPM, and storage."""
+    SIRENs, the nearest and blend baselines, DDIM vs DDPM on `ddpm_lights` training lights, and storage."""
     from diffshadow.diffusion.sample import generate, load_sampler
 
     train, unseen = light_sets["train"], light_sets["unseen"]
     seen = generated.seen
     cfg = state["config"]
     model, std, layout, siren = load_sampler(state)
-    points = TruthPoints(volume, tf, eval_points, seed=int(cfg["seed"]) + 2)
-    truth_train = points.truth(train, log, "training lights")
-    truth_unseen = points.truth(unseen, log, "unseen lights")
-    gen_seen = psnr_per_light(points.sirens(generated.weights[seen], layout, siren), truth_train)
-    stage1_seen = psnr_per_light(points.sirens(stage1.weights, layout, siren), truth_train)
+    truth_train = truth.of(train)
+    truth_unseen = truth.of(unseen) if len(unseen) else {}
+    gen_seen = psnr_per_light(truth.sirens(generated.weights[seen], layout, siren), truth_train)
+    stage1_seen = psnr_per_light(truth.sirens(stage1.weights, layout, siren), truth_train)
     result = {"seen": {"count": int(seen.sum()),
                        "generated_psnr_median": _median(gen_seen["box"]),
                        "generated_psnr_min": float(gen_seen["box"].min()),
                        "stage1_psnr_median": _median(stage1_seen["box"]),
-                       "generated_minus_stage1_median_db": _median(gen_seen["box"] - stage1_seen["box"])}}
+                       "generated_minus_stage1_median_db": _median(gen_seen["box"] - stage1_seen["box"])},
+              "eval_points": int(len(truth.points["box"]))}
     if "visible" in gen_seen:
         result["seen"]["generated_psnr_visible_median"] = _median(gen_seen["visible"])
         result["seen"]["stage1_psnr_visible_median"] = _median(stage1_seen["visible"])
     if len(unseen):
         idx, angles = nearest(train, unseen, blend_k)
-        gen_unseen = psnr_per_light(points.sirens(generated.weights[~seen], layout, siren), truth_unseen)
-        near = psnr_per_light(points.sirens(stage1.weights[idx[:, 0]], layout, siren), truth_unseen)
+        gen_unseen = psnr_per_light(truth.sirens(generated.weights[~seen], layout, siren), truth_unseen)
+        near = psnr_per_light(truth.sirens(stage1.weights[idx[:, 0]], layout, siren), truth_unseen)
         blend = psnr_per_light(blend_baseline(truth_train, idx, angles), truth_unseen)
         result["unseen"] = {"count": len(unseen),
                             "generated_psnr_median": _median(gen_unseen["box"]),
@@ -119,23 +157,25 @@ def voxel_metrics(state: dict, stage1, generated, volume: Volume, tf, light_sets
                             "blend_psnr_median": _median(blend["box"]),
                             "blend_k": blend_k,
                             "nearest_angle_median_deg": float(np.degrees(np.median(angles[:, 0])))}
-    # DDIM vs 500-step DDPM: time per INR and quality on the seen lights
+    # DDIM vs 500-step DDPM on a spread of training lights: quality on the same lights, time per INR
     ddim_steps = int(cfg["ddim_steps"])
+    sel = pick(len(train), ddpm_lights)
     t0 = time.perf_counter()
-    log(f"[evaluate voxels] 500-step DDPM for the {len(train)} training lights (the DDIM comparison) ...")
-    ddpm_w = generate(model, std, train, method="ddpm", seed=int(cfg["seed"])).numpy()
-    ddpm_seen = psnr_per_light(points.sirens(ddpm_w, layout, siren), truth_train)
+    log(f"[evaluate voxels] 500-step DDPM for {len(sel)} of the {len(train)} training lights (beside DDIM) ...")
+    ddpm_w = generate(model, std, train[sel], method="ddpm", seed=int(cfg["seed"])).numpy()
+    ddpm_seen = psnr_per_light(truth.sirens(ddpm_w, layout, siren), {k: v[sel] for k, v in truth_train.items()})
     log(f"[evaluate voxels] DDPM done ({time.perf_counter() - t0:.0f} s); timing one INR per sampler ...")
     t_ddim = seconds_per_inr(model, std, train[0], method="ddim", steps=ddim_steps, temperature=cfg["temperature"])
     t_ddpm = seconds_per_inr(model, std, train[0], method="ddpm", steps=500, repeats=1)
-    result["sampling"] = {"ddim_steps": ddim_steps, "ddim_psnr_median": result["seen"]["generated_psnr_median"],
+    result["sampling"] = {"ddim_steps": ddim_steps, "lights": len(sel),
+                          "ddim_psnr_median": _median(gen_seen["box"][sel]),
                           "ddpm_psnr_median": _median(ddpm_seen["box"]), "speedup": t_ddpm / t_ddim}
     result["seconds_per_inr"] = {"ddim": t_ddim, "ddpm": t_ddpm}
     # the model's weights plus its standardiser (float64 mean and std, per token or per parameter)
     result["storage_bytes"] = {"model": int(sum(p.numel() * p.element_size() for p in model.parameters())
                                             + 2 * 8 * len(std.mean)),
                                "sirens": int(len(train) * layout.n_params * 4),
-                               "grids": int(len(train) * np.prod(volume.data.shape) * 2)}
+                               "grids": int(len(train) * grid_voxels * 2)}
     return result
 
 
@@ -150,7 +190,8 @@ def pick(n_total: int, n: int) -> list[int]:
 
 
 def image_evaluation(scene, light_sets: dict, stage1, generated, views: list, *, step: float, out_dir,
-                     lights_per_set: int = 2, naive_views: int | None = None, lpips=None, log=print) -> dict:
+                     lights_per_set: int = 2, naive_views: int | None = None, naive_lights: int | None = None,
+                     lpips=None, log=print) -> dict:
     """`image_metrics.json`: every mode against `gt` over a few training and unseen lights and views.
 
     Modes: `inr_stage1` / `inr_generated` (shadow INR on the raw scalar field, so only the shadow's error
@@ -171,7 +212,7 @@ def image_evaluation(scene, light_sets: dict, stage1, generated, views: list, *,
         gen_rows = {"train": np.flatnonzero(seen), "unseen": np.flatnonzero(~seen)}
     per_image, sums = [], {}
     for set_name in ("train", "unseen"):
-        for i in pick(len(light_sets[set_name]), lights_per_set):
+        for j, i in enumerate(pick(len(light_sets[set_name]), lights_per_set)):
             light = light_sets[set_name][i]
             for v, cam in enumerate(views):
                 tag = f"{set_name}{i}_view{v}"
@@ -187,7 +228,8 @@ def image_evaluation(scene, light_sets: dict, stage1, generated, views: list, *,
                     if have_inr:
                         modes["inr_generated_data_inr"] = {"mode": "inr", "scalar": "inr",
                                                            "siren": (w, layout, blocks)}
-                if have_inr and (naive_views is None or v < naive_views):  # the slow baseline: fewer views
+                # the slow baseline, on fewer views and lights: its comparison needs a few images, not all
+                if have_inr and (naive_views is None or v < naive_views) and (naive_lights is None or j < naive_lights):
                     modes["naive"] = {"mode": "naive", "scalar": "inr"}
                 modes["noshadow"] = {"mode": "noshadow", "scalar": "grid", "phong": True}
                 for name, spec in modes.items():

@@ -74,6 +74,9 @@ class FitConfig:
     min_psnr: float  # held-out box PSNR below this fails the subset instead of storing it; 0: off
     precision: str  # or "bfloat16": autocast for the SIREN's forward (see docs/numerics.md)
     seed: int
+    # every SIREN of every subset sees the same points at a step: the sampling noise in the weights is then
+    # common to all lights, so neighbouring lights' SIRENs stay close in weight space (docs/tuning.md)
+    shared_points: bool = False
 
     @classmethod
     def from_config(cls, d: dict | None = None) -> FitConfig:
@@ -90,6 +93,7 @@ class FitConfig:
 # at 512 (larger passes fall out of cache). A GPU wants every point in one pass (0.26x at 512, 2.1-5.0x at
 # 32,768 on an H100: issue 15).
 CPU_CHUNK = 512
+SHARED_STREAM = -2  # the random stream of `shared_points` (subsets use 0.., preoptimize -1)
 
 
 def points_per_pass(chunk: int | str, points: int, device: torch.device) -> int:
@@ -154,7 +158,10 @@ def fit_sirens(
     for step in range(start, cfg.steps):
         for group in opt.param_groups:
             group["lr"] = cosine_lr(step, cfg)
-        pts = sampler.sample(k, cfg.points, seeded(cfg.seed, stream, step)).to(device)
+        if cfg.shared_points:
+            pts = sampler.sample(1, cfg.points, seeded(cfg.seed, SHARED_STREAM, step)).expand(k, -1, -1).to(device)
+        else:
+            pts = sampler.sample(k, cfg.points, seeded(cfg.seed, stream, step)).to(device)
         with torch.no_grad():
             if grids is not None:
                 target = lookup_grids(grids, pts, extent)

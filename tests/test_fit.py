@@ -96,3 +96,17 @@ def test_fitting_makes_no_tensor_on_the_implicit_default_device(scene):
     with default_device_meta():
         b = fit_sirens(init(), LAYOUT, CFG, vol, tf, lights, cfg, device="cpu", log=lambda *a: None)
     assert torch.equal(a, b)
+
+
+def test_shared_points_make_a_lights_siren_independent_of_its_subset(scene):
+    # with shared points a step's points depend on (seed, step) alone: light 1 fitted with light 0 in subset 0
+    # equals light 1 fitted alone in subset 5, so neighbours in different subsets see the same sampling noise
+    vol, tf, lights = scene
+    quiet = {"log": lambda *a: None}
+    shared = FitConfig.from_config(dict(steps=8, points=64, shared_points=True))
+    pair = fit_sirens(init(), LAYOUT, CFG, vol, tf, lights, shared, stream=0, **quiet)
+    alone = fit_sirens(init(), LAYOUT, CFG, vol, tf, lights[1:], shared, stream=5, **quiet)
+    assert (pair[1] - alone[0]).abs().max() < 1e-6
+    own = FitConfig.from_config(dict(steps=8, points=64, shared_points=False))  # the control: per-light points
+    apart = fit_sirens(init(), LAYOUT, CFG, vol, tf, lights[1:], own, stream=5, **quiet)
+    assert (pair[1] - apart[0]).abs().max() > 1e-4

@@ -180,3 +180,21 @@ def test_parsl_fit_writes_what_the_rule_would(tmp_path):
     assert "fit_siren" not in plan and "collect_weights" in plan
     again = subprocess.run(proc.args, cwd=tmp_path, env=env, capture_output=True, text=True, timeout=600)
     assert again.returncode == 0 and "0 of 2 subsets pending" in again.stdout
+
+
+def test_local_profile_packs_jobs_by_threads(tmp_path):
+    # `snakemake --profile local -j2` (the README's command) must never run two 2-thread jobs on 2 cores:
+    # with `cores:` in the profile, Snakemake 9 read -j2 as two jobs of any size and did
+    rules = "".join(f'''
+rule job{i}:
+    output: "{i}.txt"
+    threads: 2
+    shell: "date +%s.%N > {{output}}; sleep 1; date +%s.%N >> {{output}}"
+''' for i in range(2))
+    (tmp_path / "Snakefile").write_text('rule all:\n    input: "0.txt", "1.txt"\n' + rules)
+    proc = subprocess.run([sys.executable, "-m", "snakemake", "--profile", str(REPO / "profiles" / "local"), "-j2",
+                           "-d", str(tmp_path), "-s", str(tmp_path / "Snakefile")],
+                          capture_output=True, text=True, timeout=120)
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    (s0, e0), (s1, e1) = ([float(t) for t in (tmp_path / f"{i}.txt").read_text().split()] for i in range(2))
+    assert e0 <= s1 or e1 <= s0, "two 2-thread jobs ran at once on -j2"

@@ -25,7 +25,8 @@ TINY = {
     "finetune": {"views": 1, "image_size": 16, "pixels": 4, "epochs": 2, "batch_size": 4, "nproc": 2,
                  "checkpoint_every": 1},
     "data_inr": {"width": 8, "blocks": 1, "steps": 20, "points": 512},
-    "render": {"image_size": 16, "views": 1, "lights_per_set": 1, "bench_sizes": [8], "bench_repeats": 1},
+    "render": {"image_size": 16, "views": 1, "lights_per_set": 1, "bench_sizes": [8], "bench_repeats": 1,
+               "bench_memory_sizes": [16]},
 }
 
 
@@ -105,6 +106,7 @@ STAGE_OUTPUTS = {
     "fit_siren": ["sirens/subset_0.npz", "sirens/subset_1.npz"],
     "collect_weights": ["weights.zarr"],
     "presample": ["geometry_points.zarr"],
+    "eval_truth": ["eval_truth.zarr"],
     "train_diffusion": ["diffusion_geometry.ckpt"],
     "render_targets": ["targets.zarr"],
     "finetune_render": ["diffusion.ckpt", "finetune_metrics.json"],

@@ -34,7 +34,7 @@ def _bench_render(a):
     run(a.out, scene_config=a.scene_config, volume=a.volume, data_inr=a.data_inr, inr_steps=a.inr_steps,
         tf_config=parse_json(a.tf_json, "--tf-json") if a.tf_json else None, weights=a.weights,
         light_index=a.light_index, siren_width=a.siren_width, siren_steps=a.siren_steps, sizes=a.sizes,
-        step=a.step, repeats=a.repeats, device=_device(a))
+        step=a.step, repeats=a.repeats, memory_sizes=a.memory_sizes, device=_device(a))
 
 
 def _check_store(a):
@@ -69,12 +69,14 @@ def add_bench_parsers(sub) -> None:
             ("volume", str, None, "or prepare_volume's volume.zarr, or a raw file (--tf-json, else the bench TF)"),
             ("tf-json", str, None, "transfer function for a raw --volume"),
             ("data-inr", str, None, "train_data_inr's data_inr.pt (default: fit one)"),
-            ("inr-steps", int, 600, "steps when fitting the data INR here"),
+            ("inr-steps", int, None, "steps when fitting the data INR here (default: config's data_inr.steps)"),
             ("weights", str, None, "a weight store whose SIREN --light-index is the shadow INR (default: fit one)"),
             ("light-index", int, 0, None), ("siren-width", int, 32, None), ("siren-steps", int, 300, None),
             ("step", float, 0.5, "voxels"), ("repeats", int, 3, None), ("out", str, "bench/bench_render.json", None)):
         p.add_argument(f"--{name}", type=kind, default=default, help=helptext)
     p.add_argument("--sizes", type=int, nargs="+", default=[64, 128])
+    p.add_argument("--memory-sizes", type=int, nargs="*", default=None,
+                   help="larger sides measured for peak memory only (default: 2x and 4x the largest size)")
 
     p = _add(sub, "check-store", _check_store, "re-evaluate every stored SIREN against the store's PSNR",
              out=False, device=False)

@@ -94,10 +94,17 @@ def _sync(device: torch.device) -> None:
         torch.cuda.synchronize(device)
 
 
+SLOW_FRAME_S = 2.0  # a mode this slow per frame is timed once: its run-to-run noise is small beside it
+
+
 def bench_render(scene: RenderScene, siren, light, *, sizes=(64, 128), step: float = DEFAULT_STEP,
-                 repeats: int = 3, azimuth: float = 30.0, elevation: float = 25.0,
+                 repeats: int = 3, memory_sizes=None, azimuth: float = 30.0, elevation: float = 25.0,
                  curve_steps=(2.0, 1.0, 0.5, 0.25), curve_size: int | None = None, log=print) -> dict:
-    """All measurements for one scene; `siren` = (weights, layout, blocks) of a shadow INR for `light`."""
+    """All measurements for one scene; `siren` = (weights, layout, blocks) of a shadow INR for `light`.
+
+    `memory_sizes`: larger sides where only the peak memory of noshadow and inr is measured (default 2x and 4x
+    the largest of `sizes`).
+    """
     device = scene.device
     out: dict = {"device": str(device), "torch_threads": torch.get_num_threads(), "step": step,
                  "repeats": repeats, "light": [float(v) for v in light], "sizes": {}}
@@ -108,6 +115,8 @@ def bench_render(scene: RenderScene, siren, light, *, sizes=(64, 128), step: flo
         row: dict = {"seconds": {m: [] for m in BENCH_MODES}, "samples": {}}
         for rep in range(repeats):  # modes interleaved, so drift on a shared machine hits all alike
             for mode in BENCH_MODES:
+                if rep and min(row["seconds"][mode]) > SLOW_FRAME_S:
+                    continue
                 _sync(device)
                 img = scene.render(mode, cams[n], **kwargs)
                 _sync(device)
@@ -176,21 +185,21 @@ def bench_render(scene: RenderScene, siren, light, *, sizes=(64, 128), step: flo
 
         scene._cache.clear()
         with multiprocessing.get_context("spawn").Pool(1) as pool:
-            mem = pool.apply(_memory_pass, (scene, siren, light, list(sizes), step, azimuth, elevation,
-                                            torch.get_num_threads()))
+            mem = pool.apply(_memory_pass, (scene, siren, light, list(sizes), memory_sizes, step, azimuth,
+                                            elevation, torch.get_num_threads()))
     else:
-        mem = _memory_pass(scene, siren, light, list(sizes), step, azimuth, elevation, 0)
+        mem = _memory_pass(scene, siren, light, list(sizes), memory_sizes, step, azimuth, elevation, 0)
     for n in sizes:
         out["sizes"][str(n)]["peak_mem_bytes"] = mem["sizes"][str(n)]
-        log(f"[bench render] memory {n}²: " + ", ".join(f"{m} +{mem['sizes'][str(n)][m] / 2**20:.1f} MiB"
-                                                      for m in BENCH_MODES))
+        log(f"[bench render] memory {n}²: " + ", ".join(f"{m} +{b / 2**20:.1f} MiB"
+                                                      for m, b in mem["sizes"][str(n)].items()))
     for mode, row in mem["scaling"].items():
         log(f"[bench render] memory {mode}: " + ", ".join(f"{n}² +{b / 2**20:.1f} MiB" for n, b in row.items()))
     out["memory_scaling"] = mem["scaling"]
     return out
 
 
-def _memory_pass(scene: RenderScene, siren, light, sizes: list[int], step: float, azimuth: float,
+def _memory_pass(scene: RenderScene, siren, light, sizes: list[int], memory_sizes, step: float, azimuth: float,
                  elevation: float, threads: int) -> dict:
     device = scene.device
     if device.type == "cpu":
@@ -200,10 +209,14 @@ def _memory_pass(scene: RenderScene, siren, light, sizes: list[int], step: float
     kwargs = {"light": light, "siren": siren, "step": step}
     scene.render("inr", Camera.orbit(scene.volume.extent, azimuth=azimuth, elevation=elevation, size=8), **kwargs)
     n0 = max(sizes)
+    memory_sizes = [2 * n0, 4 * n0] if memory_sizes is None else [n for n in memory_sizes if n not in sizes]
     out: dict = {"sizes": {}, "scaling": {"noshadow": {}, "inr": {}}}
-    for n in [*sizes, 2 * n0, 4 * n0]:
+    for n in [*sizes, *memory_sizes]:
         cam = Camera.orbit(scene.volume.extent, azimuth=azimuth, elevation=elevation, size=n)
-        for mode in BENCH_MODES if n in sizes else ("noshadow", "inr"):
+        # naive at the smallest size only: its secondary rays are chunked like the others' samples, and
+        # with the exact heap (mmap per block) one naive frame at 128² takes 20 s
+        modes = ("noshadow", "inr") if n not in sizes else BENCH_MODES if n == min(sizes) else ("noshadow", "inr")
+        for mode in modes:
             with PeakMemory(device) as mem:
                 scene.render(mode, cam, **kwargs)
                 _sync(device)
@@ -232,7 +245,8 @@ def _plot(results: dict, path: Path) -> None:
     x = np.arange(len(sizes))
     for i, mode in enumerate(BENCH_MODES):
         ax[0].bar(x + (i - 1) * 0.25, [results["sizes"][s]["fps"][mode] for s in sizes], 0.25, label=mode)
-        ax[1].bar(x + (i - 1) * 0.25, [results["sizes"][s]["peak_mem_bytes"][mode] / 2**20 for s in sizes], 0.25,
+        ax[1].bar(x + (i - 1) * 0.25, [results["sizes"][s]["peak_mem_bytes"].get(mode, np.nan) / 2**20
+                                                for s in sizes], 0.25,
                   label=mode)
     for a, label in ((ax[0], "frames per second"), (ax[1], "peak memory added (MiB)")):
         a.set_xticks(x, [f"{s}²" for s in sizes])
@@ -271,9 +285,9 @@ def _plot(results: dict, path: Path) -> None:
 
 
 def run(out: Path, *, scene_config: Path | None = None, volume: Path | None = None, tf_config: dict | None = None,
-        data_inr: Path | None = None, inr_steps: int = 600, weights: Path | None = None, light_index: int = 0,
+        data_inr: Path | None = None, inr_steps: int | None = None, weights: Path | None = None, light_index: int = 0,
         siren_width: int = 32, siren_steps: int = 300, sizes=(64, 128), step: float = 0.5, repeats: int = 3,
-        device: torch.device | str = "cpu") -> dict:
+        memory_sizes=None, device: torch.device | str = "cpu") -> dict:
     """`diffshadow bench render`: a scene (scene file, prepared volume, or raw file with the bench TF), its data
     INR and one shadow INR (given, or fitted here), then `bench_render`; writes JSON and a plot."""
     import dataclasses
@@ -306,9 +320,9 @@ def run(out: Path, *, scene_config: Path | None = None, volume: Path | None = No
     if data_inr:
         scene.data_inr = load_data_inr(data_inr)
     else:
-        print(f"[bench render] fitting a data INR ({inr_steps} steps; pass --data-inr to reuse one) ...")
-        scene.data_inr = fit_data_inr(scene.volume, scene.tf, DataInrConfig.from_config({"steps": inr_steps}),
-                                      device=device, log=lambda m: None)
+        inr_cfg = DataInrConfig.from_config({} if inr_steps is None else {"steps": inr_steps})
+        print(f"[bench render] fitting a data INR ({inr_cfg.steps} steps; pass --data-inr to reuse one) ...")
+        scene.data_inr = fit_data_inr(scene.volume, scene.tf, inr_cfg, device=device, log=lambda m: None)
     if weights:
         store = open_store(weights)
         siren = (store.weights[light_index], store.layout, store.siren.blocks)
@@ -322,7 +336,7 @@ def run(out: Path, *, scene_config: Path | None = None, volume: Path | None = No
         w = fit_sirens(layout.flatten(init_siren(cfg, seeded(0))), layout, cfg, scene.volume, scene.tf,
                        light[None], fit, device=device, log=lambda m: None)[0]
         siren = (w, layout, cfg.blocks)
-    results = bench_render(scene, siren, light, sizes=sizes, step=step, repeats=repeats)
+    results = bench_render(scene, siren, light, sizes=sizes, step=step, repeats=repeats, memory_sizes=memory_sizes)
     results.update({"scene": name, "dims": list(scene.volume.dims),
                     "data_inr": {"params": scene.data_inr.n_params, "psnr": scene.data_inr.psnr},
                     "shadow_inr": {"params": int(siren[1].n_params)}})

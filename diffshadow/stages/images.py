@@ -76,7 +76,8 @@ def evaluate_images(volume_path: Path, lights_path: Path, data_inr: Path, weight
     views = default_views(scene.volume.extent, cfg["views"], size=cfg["image_size"], fov=cfg["fov"])
     lpips, reason = lpips_model()
     result = image_evaluation(scene, light_sets, stage1, generated, views, step=cfg["step"], out_dir=images_dir,
-                              lights_per_set=cfg["lights_per_set"], naive_views=cfg.get("naive_views"), lpips=lpips)
+                              lights_per_set=cfg["lights_per_set"], naive_views=cfg.get("naive_views"),
+                              naive_lights=cfg.get("naive_lights"), lpips=lpips)
     result.update({"lpips": "available (VGG)" if lpips is not None else f"unavailable: {reason}",
                    "image_size": cfg["image_size"], "views": cfg["views"], "step": cfg["step"],
                    "reference": "gt: raw scalar field and shadow_grid (march), same step",

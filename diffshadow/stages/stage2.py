@@ -17,7 +17,7 @@ from diffshadow.diffusion.geometry import presample as presample_points
 from diffshadow.diffusion.sample import generate, load_sampler
 from diffshadow.diffusion.train import DiffusionConfig, DiffusionError
 from diffshadow.diffusion.train import train_diffusion as train
-from diffshadow.evaluate import TruthPoints, psnr_per_light, voxel_metrics
+from diffshadow.evaluate import EvalTruth, psnr_per_light, voxel_metrics
 from diffshadow.io import atomic_write_text
 from diffshadow.lights import read_lights
 from diffshadow.runtime import distributed, set_threads
@@ -87,7 +87,20 @@ def finetune_render(checkpoint: Path, weights_path: Path, points_path: Path, tar
         print(f"wrote {out} and {metrics_path}")
 
 
-def sample_shadows(checkpoint: Path, volume_path: Path, lights_path: Path, out: Path, *, eval_points: int,
+def eval_truth(volume_path: Path, lights_path: Path, out: Path, *, eval_points: int, seed: int) -> None:
+    """Evaluation points and the exact shadow of every training and unseen light at them (the march),
+    once per scene: it needs only the volume, so it runs beside stage 1, not after sampling."""
+    volume, tf = artifacts.load_prepared(volume_path)
+    light_sets = read_lights(lights_path)
+    lights = np.concatenate([light_sets["train"], light_sets["unseen"]])
+    print(f"exact shadows of {len(lights)} lights at {eval_points} points per set", flush=True)
+    truth = EvalTruth.compute(volume, tf, lights, eval_points, seed,
+                              log=lambda m: print(m.replace("evaluate voxels", "eval truth"), flush=True))
+    artifacts.write_eval_truth(out, truth)
+    print(f"wrote {out}: sets {', '.join(truth.points)}")
+
+
+def sample_shadows(checkpoint: Path, truth_path: Path, lights_path: Path, out: Path, *,
                    device: torch.device) -> None:
     """SIRENs generated for every training and unseen light, with their voxel PSNR."""
     state = artifacts.load_checkpoint(checkpoint)
@@ -100,9 +113,8 @@ def sample_shadows(checkpoint: Path, volume_path: Path, lights_path: Path, out: 
           f"DDIM {cfg['ddim_steps']} steps", flush=True)
     weights = generate(model, std, all_lights, method="ddim", steps=cfg["ddim_steps"], seed=cfg["seed"],
                        temperature=cfg["temperature"], device=device).numpy()
-    volume, tf = artifacts.load_prepared(volume_path)
-    points = TruthPoints(volume, tf, eval_points, seed=cfg["seed"] + 1)
-    scores = psnr_per_light(points.sirens(weights, layout, siren), points.truth(all_lights))
+    truth = artifacts.read_eval_truth(truth_path)
+    scores = psnr_per_light(truth.sirens(weights, layout, siren), truth.of(all_lights, str(truth_path)))
     store = WeightStore(weights=weights, lights=all_lights, psnr=scores["box"],
                         psnr_visible=scores.get("visible", scores["box"]), layout=layout, siren=siren,
                         config={"diffusion": cfg, "checkpoint": str(checkpoint)}, seen=seen)
@@ -111,12 +123,13 @@ def sample_shadows(checkpoint: Path, volume_path: Path, lights_path: Path, out: 
           f"unseen {np.median(store.psnr[~seen]) if (~seen).any() else float('nan'):.2f} dB")
 
 
-def evaluate_voxels(checkpoint: Path, weights_path: Path, generated_path: Path, volume_path: Path,
-                    lights_path: Path, out: Path, *, eval_points: int, blend_k: int) -> None:
+def evaluate_voxels(checkpoint: Path, weights_path: Path, generated_path: Path, truth_path: Path,
+                    volume_path: Path, lights_path: Path, out: Path, *, blend_k: int, ddpm_lights: int) -> None:
     """`voxel_metrics.json`: generated against stage 1 and the baselines, storage, time per INR."""
-    volume, tf = artifacts.load_prepared(volume_path)
+    volume, _ = artifacts.load_prepared(volume_path)
     result = voxel_metrics(artifacts.load_checkpoint(checkpoint), open_store(weights_path),
-                           open_store(generated_path), volume, tf, read_lights(lights_path),
-                           eval_points=eval_points, blend_k=blend_k)
+                           open_store(generated_path), artifacts.read_eval_truth(truth_path),
+                           read_lights(lights_path), blend_k=blend_k, grid_voxels=int(np.prod(volume.data.shape)),
+                           ddpm_lights=ddpm_lights)
     atomic_write_text(out, json.dumps(result, indent=1) + "\n")
     print(json.dumps(result, indent=1))

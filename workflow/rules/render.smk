@@ -58,6 +58,7 @@ rule benchmark:
         sizes=lambda wc: " ".join(str(n) for n in scene_config(wc.scene)["render"]["bench_sizes"]),
         step=lambda wc: scene_config(wc.scene)["render"]["step"],
         repeats=lambda wc: scene_config(wc.scene)["render"]["bench_repeats"],
+        memory=lambda wc: " ".join(str(n) for n in scene_config(wc.scene)["render"].get("bench_memory_sizes", [])),
     threads: 2
     log:
         "results/{scene}/logs/benchmark.log",
@@ -65,5 +66,6 @@ rule benchmark:
         "results/{scene}/benchmarks/benchmark.tsv",
     shell:
         "diffshadow bench render --volume {input.volume} --data-inr {input.data_inr} --weights {input.weights}"
-        " --sizes {params.sizes} --step {params.step} --repeats {params.repeats} --config-device {DEVICE} --threads {threads}"
+        " --sizes {params.sizes} --memory-sizes {params.memory} --step {params.step} --repeats {params.repeats}"
+        " --config-device {DEVICE} --threads {threads}"
         " --out {output.bench} 2>&1 | tee {log}"

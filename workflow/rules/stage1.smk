@@ -27,6 +27,7 @@ rule preoptimize:
     params:
         cfg=lambda wc: as_json(wc.scene, "siren", "fit", "preoptimize"),
     threads: 1
+    priority: 10  # the head of the longest chain: the side jobs (targets, data INR, truth) fill the other core
     log:
         "results/{scene}/logs/preoptimize.log",
     benchmark:
@@ -48,6 +49,7 @@ rule fit_siren:
     wildcard_constraints:
         subset=r"\d+",
     threads: 1
+    priority: 10
     log:
         "results/{scene}/logs/fit_siren_{subset}.log",
     benchmark:

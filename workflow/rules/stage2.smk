@@ -9,7 +9,8 @@ rule presample:
         directory("results/{scene}/geometry_points.zarr"),
     params:
         cfg=lambda wc: as_json(wc.scene, "diffusion"),
-    threads: 2
+    threads: 1  # one core beside a fit: train_diffusion needs it as soon as the fits are done
+    priority: 5
     benchmark:
         "results/{scene}/benchmarks/presample.tsv",
     log:
@@ -38,10 +39,28 @@ rule train_diffusion:
         " --config-json {params.cfg:q} --config-device {DEVICE} --threads {threads} --out {output} 2>&1 | tee {log}"
 
 
+rule eval_truth:
+    input:
+        volume="results/{scene}/volume.zarr",
+        lights="results/{scene}/lights.json",
+    output:
+        directory("results/{scene}/eval_truth.zarr"),
+    params:
+        seed=lambda wc: scene_config(wc.scene)["diffusion"]["seed"] + 2,
+    threads: 2
+    log:
+        "results/{scene}/logs/eval_truth.log",
+    benchmark:
+        "results/{scene}/benchmarks/eval_truth.tsv",
+    shell:
+        "diffshadow eval-truth --volume {input.volume} --lights {input.lights} --seed {params.seed}"
+        " --threads {threads} --out {output} 2>&1 | tee {log}"
+
+
 rule sample_shadows:
     input:
         checkpoint=sampler_checkpoint,
-        volume="results/{scene}/volume.zarr",
+        truth="results/{scene}/eval_truth.zarr",
         lights="results/{scene}/lights.json",
     output:
         directory("results/{scene}/generated.zarr"),
@@ -51,7 +70,7 @@ rule sample_shadows:
     benchmark:
         "results/{scene}/benchmarks/sample_shadows.tsv",
     shell:
-        "diffshadow sample-shadows --checkpoint {input.checkpoint} --volume {input.volume}"
+        "diffshadow sample-shadows --checkpoint {input.checkpoint} --truth {input.truth}"
         " --lights {input.lights} --config-device {DEVICE} --threads {threads} --out {output} 2>&1 | tee {log}"
 
 
@@ -60,6 +79,7 @@ rule evaluate_voxels:
         checkpoint=sampler_checkpoint,
         weights="results/{scene}/weights.zarr",
         generated="results/{scene}/generated.zarr",
+        truth="results/{scene}/eval_truth.zarr",
         volume="results/{scene}/volume.zarr",
         lights="results/{scene}/lights.json",
     output:
@@ -71,7 +91,8 @@ rule evaluate_voxels:
         "results/{scene}/benchmarks/evaluate_voxels.tsv",
     shell:
         "diffshadow evaluate-voxels --checkpoint {input.checkpoint} --weights {input.weights}"
-        " --generated {input.generated} --volume {input.volume} --lights {input.lights} --threads {threads}"
+        " --generated {input.generated} --truth {input.truth} --volume {input.volume} --lights {input.lights}"
+        " --threads {threads}"
         " --out {output} 2>&1 | tee {log}"
 
 
@@ -84,7 +105,7 @@ rule render_targets:
     params:  # only what the images depend on: a new learning rate must not re-render them
         cfg=lambda wc: json.dumps({"finetune": {k: scene_config(wc.scene)["finetune"][k]
                                                 for k in ("views", "image_size", "fov", "step")}}, sort_keys=True),
-    threads: 2
+    threads: 1  # its march per light is one thread's work; a second thread sped it up by 1.0x
     log:
         "results/{scene}/logs/render_targets.log",
     benchmark:

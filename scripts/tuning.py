@@ -1,0 +1,91 @@
+"""The runs behind the tiny scene's defaults (docs/tuning.md): one stage refitted with settings given as JSON
+over config.yaml's, on a finished run's inputs, timed on one thread, scored on held-out points.
+
+    python scripts/tuning.py fit '{}' '{"points": 4096}' '{"points": 1024, "lr": 2e-3}'   # 4 lights, like a subset
+    python scripts/tuning.py data-inr '{}' '{"steps": 1500, "points": 16384}'
+    python scripts/tuning.py diffusion '{}' '{"epochs": 400}' '{"preset": "tiny"}'     # seen/unseen DDIM PSNR
+
+`--results DIR` (default results/nucleon) must hold volume.zarr, lights.json, siren_init.pt; the diffusion
+runs also need weights.zarr, geometry_points.zarr and eval_truth.zarr.
+"""
+
+import argparse
+import dataclasses
+import json
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from diffshadow import artifacts
+from diffshadow.lights import read_lights
+
+FIT_LIGHTS = [5, 21, 38, 60]  # spread over the 64 training lights
+
+
+def fit(results: Path, spec: dict) -> str:
+    from diffshadow.fit import FitConfig, evaluate_psnr, fit_sirens
+    from diffshadow.siren import SirenConfig, WeightLayout
+
+    volume, tf = artifacts.load_prepared(results / "volume.zarr")
+    lights = read_lights(results / "lights.json")["train"][FIT_LIGHTS]
+    siren = SirenConfig(32, 2)
+    layout = WeightLayout.for_siren(siren)
+    init = artifacts.load_siren_init(results / "siren_init.pt", layout)
+    cfg = FitConfig.from_config(spec)
+    t = time.perf_counter()
+    w = fit_sirens(init, layout, siren, volume, tf, lights, cfg, stream=0, log=lambda m: None)
+    seconds = time.perf_counter() - t
+    box, vis = evaluate_psnr(w, layout, siren, volume, tf, lights, n_points=16384, seed=99)
+    return f"{seconds:6.1f} s  box median {np.median(box):.2f} dB (min {box.min():.2f}), visible {np.median(vis):.2f}"
+
+
+def data_inr(results: Path, spec: dict) -> str:
+    from diffshadow.data_inr import DataInrConfig, fit_data_inr
+
+    volume, tf = artifacts.load_prepared(results / "volume.zarr")
+    t = time.perf_counter()
+    inr = fit_data_inr(volume, tf, DataInrConfig.from_config(spec), log=lambda m: None)
+    return f"{time.perf_counter() - t:6.1f} s  voxel PSNR {inr.psnr:.2f} dB, max error {inr.max_error:.4f}"
+
+
+def diffusion(results: Path, spec: dict) -> str:
+    from diffshadow.diffusion.sample import generate, load_sampler
+    from diffshadow.diffusion.train import DiffusionConfig, train_diffusion
+    from diffshadow.evaluate import psnr_per_light
+
+    data, _ = artifacts.read_training_data(results / "weights.zarr", results / "geometry_points.zarr")
+    truth = artifacts.read_eval_truth(results / "eval_truth.zarr")
+    light_sets = read_lights(results / "lights.json")
+    cfg = dataclasses.replace(DiffusionConfig.from_config(spec), checkpoint_every=10**9)
+    part = Path(f"/tmp/tuning_diffusion_{abs(hash(json.dumps(spec, sort_keys=True)))}.part")
+    part.unlink(missing_ok=True)
+    t = time.perf_counter()
+    state = train_diffusion(data, cfg, part, log=lambda m: None)
+    seconds = time.perf_counter() - t
+    part.unlink(missing_ok=True)
+    model, std, layout, siren = load_sampler(state)
+    scores = []
+    for name in ("train", "unseen"):
+        w = generate(model, std, light_sets[name], method="ddim", steps=cfg.ddim_steps, seed=cfg.seed,
+                     temperature=cfg.temperature).numpy()
+        scores.append(np.median(psnr_per_light(truth.sirens(w, layout, siren), truth.of(light_sets[name]))["box"]))
+    return f"{seconds:6.1f} s  generated median seen {scores[0]:.2f} dB, unseen {scores[1]:.2f} dB (geometry stage)"
+
+
+def main() -> None:
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("stage", choices=["fit", "data-inr", "diffusion"])
+    p.add_argument("specs", nargs="+", help="JSON settings over config.yaml's section, one run each")
+    p.add_argument("--results", type=Path, default=Path("results/nucleon"))
+    p.add_argument("--threads", type=int, default=1)
+    a = p.parse_args()
+    torch.set_num_threads(a.threads)
+    run = {"fit": fit, "data-inr": data_inr, "diffusion": diffusion}[a.stage]
+    for spec in a.specs:
+        print(f"{a.stage} {spec:48s} {run(a.results, json.loads(spec))}", flush=True)
+
+
+if __name__ == "__main__":
+    main()

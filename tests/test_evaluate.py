@@ -1,0 +1,50 @@
+import numpy as np
+import pytest
+import torch
+from conftest import identity_tf
+
+from diffshadow.artifacts import read_eval_truth, write_eval_truth
+from diffshadow.evaluate import EvalTruth, TruthPoints, pick
+from diffshadow.lights import fibonacci_sphere
+from diffshadow.shadow import transmittance
+from diffshadow.volume import Volume
+
+
+def _blob(n: int = 12) -> Volume:
+    x = np.linspace(-1, 1, n)
+    data = np.exp(-4 * (x[:, None, None] ** 2 + x[None, :, None] ** 2 + x[None, None, :] ** 2)).astype(np.float32)
+    return Volume(data=data, extent=np.ones(3), name="blob")
+
+
+def test_eval_truth_is_the_exact_march_and_survives_a_round_trip(tmp_path):
+    volume, tf = _blob(), identity_tf()
+    lights = fibonacci_sphere(6)
+    truth = EvalTruth.compute(volume, tf, lights, 64, seed=3)
+    for i, w in enumerate(lights):
+        for name, pts in truth.points.items():
+            assert torch.equal(truth.values[name][i], transmittance(volume, tf, w, pts))
+    write_eval_truth(tmp_path / "t.zarr", truth)
+    back = read_eval_truth(tmp_path / "t.zarr")
+    assert set(back.points) == set(truth.points) and np.array_equal(back.lights, truth.lights)
+    for name in truth.points:
+        assert torch.equal(back.points[name], truth.points[name])
+        assert torch.equal(back.values[name], truth.values[name])
+    # the same points as a TruthPoints of the same seed: one evaluation sample whoever asks
+    assert torch.equal(TruthPoints(volume, tf, 64, seed=3).sets["box"], truth.points["box"])
+
+
+def test_eval_truth_rows_follow_the_lights_asked_for_and_a_missing_light_is_named():
+    volume, tf = _blob(), identity_tf()
+    lights = fibonacci_sphere(5)
+    truth = EvalTruth.compute(volume, tf, lights, 32, seed=0)
+    order = [4, 0, 2]
+    rows = truth.of(lights[order])
+    for k, v in rows.items():
+        assert torch.equal(v, truth.values[k][order])
+    with pytest.raises(ValueError, match=r"t\.zarr: no ground truth for light \[0\.0, 0\.0, 1\.0\]"):
+        truth.of(np.array([[0.0, 0.0, 1.0]]), "t.zarr")
+
+
+def test_pick_spreads_evenly_and_keeps_both_ends():
+    assert pick(64, 8) == [0, 9, 18, 27, 36, 45, 54, 63]
+    assert pick(3, 8) == [0, 1, 2] and pick(5, 0) == []
