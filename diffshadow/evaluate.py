@@ -38,7 +38,7 @@ class TruthPoints:
                 out[k].append(transmittance(self.field, self.tf, w, p))
             if log and ((i + 1) % every == 0 or i + 1 == len(lights)):
                 spent = time.perf_counter() - start
-                log(f"[evaluate voxels] ground truth, {what}: {i + 1}/{len(lights)} ({spent:.0f} s, "
+                log(f"ground truth, {what}: {i + 1}/{len(lights)} ({spent:.0f} s, "
                     f"~{spent / (i + 1) * (len(lights) - i - 1):.0f} s left)")
         return {k: torch.stack(v) for k, v in out.items()}
 

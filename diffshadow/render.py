@@ -295,6 +295,11 @@ class MarchPlan:
     def samples_per_ray(self, live: int) -> int:
         return int(min(self.max_samples, max(self.min_samples, self.batch // max(live, 1))))
 
+    def evaluated(self, valid: torch.Tensor) -> torch.Tensor | None:
+        """Flat indices of the samples to evaluate: the existing ones when this plan compacts samples, else
+        None (all of them; absent ones are masked afterwards)."""
+        return torch.nonzero(valid.view(-1)).flatten() if self.compact_samples else None
+
 
 @dataclass
 class Runs:
@@ -418,13 +423,12 @@ class MarchedShadow:
 
         def step(rows, t, valid):
             pts = (p[rows, None] + t[..., None] * d[rows, None]).view(-1, 3)
-            if plan.compact_samples:
-                idx = torch.nonzero(valid.view(-1)).flatten()
-                s = torch.zeros(valid.numel(), device=device)
-                s[idx] = self.scalar.value(pts[idx])
-                n = len(idx)
-            else:
+            idx = plan.evaluated(valid)
+            if idx is None:
                 s, n = self.scalar.value(pts), valid.numel()
+            else:
+                s = torch.zeros(valid.numel(), device=device).index_copy_(0, idx, self.scalar.value(pts[idx]))
+                n = len(idx)
             if self.counters is not None:
                 self.counters.secondary_samples += n
             tau[rows] += (self.tf.extinction(s.view(valid.shape)) * valid).sum(1) * self.dt
@@ -492,7 +496,7 @@ def render(
 
     def composite(rows, t, valid):
         pts = (o[rows, None] + t[..., None] * d[rows, None]).view(-1, 3)
-        idx = torch.nonzero(valid.view(-1)).flatten() if plan.compact_samples else None
+        idx = plan.evaluated(valid)
         flat = pts if idx is None else pts[idx]
         counters.primary_samples += len(flat)
         if len(flat) == 0:

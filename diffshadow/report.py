@@ -182,9 +182,8 @@ def stage_costs(benchmarks: list[Path], out: Path) -> list[dict]:
         rec = dict(zip(lines[0].split("\t"), lines[1].split("\t"), strict=False))
         try:
             # Snakemake writes NA where it could not measure (e.g. a job shorter than its poll)
-            wall, cpu, rss = (float(rec.get(k, "0").replace("NA", "0")) for k in ("s", "cpu_time", "max_rss"))
-            if "s" not in rec:
-                raise KeyError("s")
+            wall = float(rec["s"].replace("NA", "0"))
+            cpu, rss = (float(rec.get(k, "0").replace("NA", "0")) for k in ("cpu_time", "max_rss"))
         except (KeyError, ValueError):
             raise ValueError(f"{path}: expected numeric columns s, cpu_time, max_rss; got {lines[:2]}") from None
         stem = Path(path).stem

@@ -215,8 +215,7 @@ def _memory_pass(scene: RenderScene, siren, light, sizes: list[int], memory_size
         cam = Camera.orbit(scene.volume.extent, azimuth=azimuth, elevation=elevation, size=n)
         # naive at the smallest size only: its secondary rays are chunked like the others' samples, and
         # with the exact heap (mmap per block) one naive frame at 128² takes 20 s
-        modes = ("noshadow", "inr") if n not in sizes else BENCH_MODES if n == min(sizes) else ("noshadow", "inr")
-        for mode in modes:
+        for mode in BENCH_MODES if n == min(sizes) else ("noshadow", "inr"):
             with PeakMemory(device) as mem:
                 scene.render(mode, cam, **kwargs)
                 _sync(device)

@@ -169,9 +169,8 @@ def train_diffusion(data: TrainingData, cfg: DiffusionConfig, checkpoint: Path, 
         f"{len(data.layout.sizes)} weight tokens, {len(data.weights)} training lights")
     std = Standardizer.fit(data.layout, data.weights, cfg.standardize)
     z_all = std.standardize(data.weights).float().to(device)
-    lights = data.lights.float().to(device)
-    points, values = data.points.to(device), data.values.to(device)
-    extent = data.extent.to(device)
+    on_device = data.to(device)  # the training set moved once, not per step
+    lights, points, values, extent = on_device.lights.float(), on_device.points, on_device.values, on_device.extent
     schedule = Schedule()
     opt = torch.optim.AdamW(model.parameters(), lr=cfg.lr, weight_decay=cfg.weight_decay)
     sched = torch.optim.lr_scheduler.StepLR(opt, step_size=cfg.lr_step_epochs, gamma=cfg.lr_gamma)

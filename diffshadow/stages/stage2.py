@@ -95,7 +95,7 @@ def eval_truth(volume_path: Path, lights_path: Path, out: Path, *, eval_points: 
     lights = np.concatenate([light_sets["train"], light_sets["unseen"]])
     print(f"exact shadows of {len(lights)} lights at {eval_points} points per set", flush=True)
     truth = EvalTruth.compute(volume, tf, lights, eval_points, seed,
-                              log=lambda m: print(m.replace("evaluate voxels", "eval truth"), flush=True))
+                              log=lambda m: print(f"[eval truth] {m}", flush=True))
     artifacts.write_eval_truth(out, truth)
     print(f"wrote {out}: sets {', '.join(truth.points)}")
 
