@@ -29,7 +29,11 @@ include: "workflow/rules/report.smk"
 
 
 # jobs of a second or less run where Snakemake runs, not as batch jobs (PBS queueing would dwarf them)
-localrules: all, lights, prepare_volume, collect_weights, stage_costs
+localrules: all, lights, prepare_volume, collect_weights, stage_costs, summary
+
+
+# the report's landing page: what was run and each scene's headline numbers (results/<scene>/report/landing.rst)
+report: "workflow/report/workflow.rst"
 
 
 rule all:
@@ -39,3 +43,4 @@ rule all:
         expand("results/{scene}/bench.json", scene=config["scenes"]),
         expand("results/{scene}/stage_costs.tsv", scene=config["scenes"]),
         expand("results/{scene}/report/image_grid.png", scene=config["scenes"]),
+        expand("results/{scene}/report/landing.rst", scene=config["scenes"]),

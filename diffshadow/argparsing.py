@@ -4,6 +4,7 @@
 from __future__ import annotations
 
 import argparse
+import os
 
 
 def config_of(args: argparse.Namespace) -> dict:
@@ -32,7 +33,8 @@ def add_subcommand(sub, name: str, func, helptext: str, *paths: str, out: bool =
     if device:
         p.add_argument("--device", default=None, help="cpu, cuda, cuda:N or auto (default: DIFFSHADOW_DEVICE, "
                        "then --config-device, then auto)")
-        p.add_argument("--config-device", default=None, help="the run config's `device` (the workflow passes it)")
+        p.add_argument("--config-device", default=os.environ.get("DIFFSHADOW_CONFIG_DEVICE"),
+                       help="the run config's `device` (default: DIFFSHADOW_CONFIG_DEVICE, which the workflow sets)")
     p.add_argument("--threads", type=int, default=0, help="torch threads (0: torch's default)")
     p.set_defaults(func=func)
     return p

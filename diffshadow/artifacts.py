@@ -224,6 +224,16 @@ def load_data_inr(path) -> DataInr:
 # ------------------------------------------------------------------------------------------ render scene
 
 
+def load_scene_file(scene_file: Path, device: torch.device) -> RenderScene:
+    """A RenderScene straight from a scene file (its volume, `load:` keys and transfer function): what the
+    workflow's prepare_volume would make of it, for previews and benchmarks."""
+    from diffshadow.config import read_scene_file
+
+    sc = read_scene_file(scene_file)
+    volume = load_volume(sc["volume"], **sc.get("load", {}))
+    return RenderScene(volume, TransferFunction.from_config(sc["transfer_function"]), device=device)
+
+
 def load_render_scene(volume_path: Path, data_inr: Path | None, device: torch.device,
                  tf_config: dict | None = None) -> RenderScene:
     """A RenderScene from a prepared volume.zarr, or from a raw volume file with its transfer function."""

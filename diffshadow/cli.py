@@ -144,13 +144,20 @@ def _evaluate_images(a):
 
 
 def _render(a):
-    from diffshadow.artifacts import load_render_scene
+    from diffshadow.artifacts import load_render_scene, load_scene_file
     from diffshadow.config import parse_json
     from diffshadow.render import Camera
     from diffshadow.stages import images
 
-    tf = parse_json(a.tf_json, "--tf-json") if a.tf_json else None
-    scene = load_render_scene(Path(a.volume), Path(a.data_inr) if a.data_inr else None, _device(a), tf)
+    if (a.volume is None) == (a.scene_config is None):
+        raise ValueError("render: give --volume (a volume.zarr, or a raw file with --tf-json) or --scene-config")
+    if a.scene_config:
+        scene = load_scene_file(Path(a.scene_config), _device(a))
+        if a.data_inr:
+            raise ValueError("render: --data-inr needs --volume results/<scene>/volume.zarr, not --scene-config")
+    else:
+        tf = parse_json(a.tf_json, "--tf-json") if a.tf_json else None
+        scene = load_render_scene(Path(a.volume), Path(a.data_inr) if a.data_inr else None, _device(a), tf)
     cam = Camera.orbit(scene.volume.extent, azimuth=a.azimuth, elevation=a.elevation, distance=a.distance,
                        fov=a.fov, size=a.size)
     images.render_image(scene, Path(a.out), mode=a.mode, camera=cam, light=a.light,
@@ -168,6 +175,14 @@ def _stage_costs(a):
     from diffshadow.report import stage_costs
 
     stage_costs([Path(b) for b in a.benchmarks], Path(a.out))
+
+
+def _summary(a):
+    from diffshadow.summary import write_summary
+
+    out = Path(a.out_dir)
+    write_summary(Path(a.results), a.scene, out / "summary.html", out / "landing.rst")
+    print(f"wrote {out / 'summary.html'} and {out / 'landing.rst'}")
 
 
 # ------------------------------------------------------------------------------------------- tools
@@ -246,7 +261,10 @@ def build_parser() -> argparse.ArgumentParser:
     p = _add(sub, "evaluate-images", _evaluate_images, "images and image metrics of every mode against gt",
              "volume", "lights", "data-inr", "weights", "images", config='{"render": {...}}')
     p.add_argument("--generated", help="stage 2's generated.zarr (optional)")
-    p = _add(sub, "render", _render, "render one image (PNG) in a shading mode", "volume")
+    p = _add(sub, "render", _render, "render one image (PNG) in a shading mode")
+    p.add_argument("--volume", help="results/<scene>/volume.zarr, or a raw volume file with --tf-json")
+    p.add_argument("--scene-config", help="a scene file (config/scenes/<scene>.yaml): preview its volume and "
+                   "transfer function before a run")
     p.add_argument("--tf-json", help="transfer function when --volume is a raw file, not a volume.zarr")
     p.add_argument("--mode", choices=["noshadow", "gt", "inr", "naive"], default="gt")
     p.add_argument("--scalar", choices=["grid", "inr"], default=None, help="default: inr when --data-inr")
@@ -267,6 +285,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--benchmarks", nargs="+", required=True, help="results/<scene>/benchmarks/*.tsv")
     p.add_argument("--out", required=True)
     p.set_defaults(func=_stage_costs)
+    p = _add(sub, "summary", _summary, "one finished scene's headline numbers and tables (the report's front page)",
+             "results", "scene", "out-dir", out=False, device=False)
     add_bench_parsers(sub)
     p = sub.add_parser("parsl-fit", help="fit every pending fit_siren subset through Parsl (one big allocation)")
     for name, default, helptext in (("config", "config/parsl/local.py", "Parsl config file (config/parsl/*.py)"),

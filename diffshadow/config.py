@@ -89,13 +89,19 @@ def merge(base: dict, own: dict) -> dict:
     return merged
 
 
+def read_scene_file(path: str | Path) -> dict:
+    """One scene file on its own (volume, load, transfer function, overrides), validated."""
+    own = read_yaml(path)
+    _validate(own, "scene.schema.yaml", str(path))
+    return own
+
+
 def scene_config(run: dict, scene: str, *, scenes_dir: str | Path | None = None) -> dict:
     """The scene file over the run's sections, validated: what every stage of `scene` runs with."""
     path = Path(scenes_dir or ROOT / "config" / "scenes") / f"{scene}.yaml"
     if not path.is_file():
         raise ConfigError(f"scene {scene!r}: no file {path}")
-    own = read_yaml(path)
-    _validate(own, "scene.schema.yaml", str(path))
+    own = read_scene_file(path)
     merged = merge({k: run[k] for k in SECTIONS if k in run}, own)
     try:
         _validate({**{k: merged[k] for k in SECTIONS}, "scenes": [scene]}, "config.schema.yaml",

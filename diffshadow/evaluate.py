@@ -191,12 +191,13 @@ def pick(n_total: int, n: int) -> list[int]:
 
 def image_evaluation(scene, light_sets: dict, stage1, generated, views: list, *, step: float, out_dir,
                      lights_per_set: int = 2, naive_views: int | None = None, naive_lights: int | None = None,
-                     lpips=None, log=print) -> dict:
+                     lpips=None, phong: bool = False, log=print) -> dict:
     """`image_metrics.json`: every mode against `gt` over a few training and unseen lights and views.
 
     Modes: `inr_stage1` / `inr_generated` (shadow INR on the raw scalar field, so only the shadow's error
     shows), `inr_generated_data_inr` (the deployed path: data INR + generated shadow INR), `naive`
-    (secondary rays through the data INR: it carries the data INR's error) and `noshadow` (Blinn-Phong).
+    (secondary rays through the data INR: it carries the data INR's error) and `noshadow` (the same shading
+    without the shadow term, so its error is what the shadow adds). `phong` lights every mode, gt included.
     """
     from pathlib import Path
 
@@ -216,7 +217,7 @@ def image_evaluation(scene, light_sets: dict, stage1, generated, views: list, *,
             light = light_sets[set_name][i]
             for v, cam in enumerate(views):
                 tag = f"{set_name}{i}_view{v}"
-                gt = scene.render("gt", cam, light=light, step=step)
+                gt = scene.render("gt", cam, light=light, phong=phong, step=step)
                 write_png(out_dir / f"{tag}_gt.png", gt)
                 modes = {}
                 if set_name == "train":
@@ -231,10 +232,10 @@ def image_evaluation(scene, light_sets: dict, stage1, generated, views: list, *,
                 # the slow baseline, on fewer views and lights: its comparison needs a few images, not all
                 if have_inr and (naive_views is None or v < naive_views) and (naive_lights is None or j < naive_lights):
                     modes["naive"] = {"mode": "naive", "scalar": "inr"}
-                modes["noshadow"] = {"mode": "noshadow", "scalar": "grid", "phong": True}
+                modes["noshadow"] = {"mode": "noshadow", "scalar": "grid"}
                 for name, spec in modes.items():
                     img = scene.render(spec["mode"], cam, light=light, siren=spec.get("siren"),
-                                       scalar=spec["scalar"], phong=spec.get("phong", False), step=step)
+                                       scalar=spec["scalar"], phong=phong, step=step)
                     write_png(out_dir / f"{tag}_{name}.png", img)
                     m = image_metrics(img.rgb, gt.rgb, gt.alpha, lpips)
                     per_image.append({"set": set_name, "light": i, "view": v, "mode": name, **m,

@@ -10,8 +10,10 @@ from __future__ import annotations
 
 import fcntl
 import filecmp
+import json
 import os
 import subprocess
+import sys
 import time
 from pathlib import Path
 
@@ -42,18 +44,16 @@ def claim_gpu(n_gpus: int, *, lock_dir: str | Path | None = None, wait_s: float 
         time.sleep(poll_s)
 
 
-def pbs_state(qstat_text: str) -> str:
-    """`qstat -fx` output → Snakemake's running | success | failed."""
-    fields = {}
-    for line in qstat_text.splitlines():
-        if " = " in line:
-            key, value = line.strip().split(" = ", 1)
-            fields[key.strip()] = value.strip()
-    state = fields.get("job_state", "")
+QSTAT_UNKNOWN_JOB = 153  # PBSE_UNKJOBID (15001) as an exit status
+
+
+def pbs_state(job: dict) -> str:
+    """One job of `qstat -fx -F json` → Snakemake's running | success | failed."""
+    state = job.get("job_state", "")
     if state in ("Q", "H", "W", "R", "E", "B", "T", "S", "U"):  # queued, held, waiting, running, exiting...
         return "running"
     if state in ("F", "X"):  # finished (X: a finished subjob)
-        return "success" if fields.get("Exit_status") == "0" else "failed"
+        return "success" if str(job.get("Exit_status")) == "0" else "failed"
     return "failed"  # unknown to PBS: a job that never ran cannot have succeeded
 
 
@@ -99,10 +99,31 @@ def install_profiles(source: Path, target_root: Path, *, force: bool = False) ->
     return installed
 
 
-def pbs_status(job: str) -> str:
-    """Snakemake's cluster-generic status of a PBS job: running | success | failed."""
-    try:
-        out = subprocess.run(["qstat", "-fx", job], capture_output=True, text=True, timeout=60)
-    except (OSError, subprocess.TimeoutExpired):
-        return "running"  # the server did not answer: ask again at the next check
-    return pbs_state(out.stdout) if out.returncode == 0 else "failed"
+def pbs_status(job: str, *, tries: int = 3, wait_s: float = 2.0) -> str:
+    """Snakemake's cluster-generic status of a PBS job: running | success | failed.
+
+    Only PBS saying it does not know the job means failed. Any other qstat failure (server busy or
+    restarting, a timeout) is retried, then answered "running" so that Snakemake asks again at its next
+    check: a transient error must not fail a job that is still running.
+    """
+    why = ""
+    for attempt in range(tries):
+        if attempt:
+            time.sleep(wait_s * attempt)
+        try:
+            out = subprocess.run(["qstat", "-fx", "-F", "json", job], capture_output=True, text=True, timeout=60)
+        except (OSError, subprocess.TimeoutExpired) as e:
+            why = str(e)
+            continue
+        if out.returncode == 0:
+            try:
+                jobs = json.loads(out.stdout).get("Jobs", {})
+            except json.JSONDecodeError:
+                why = f"unreadable qstat output {out.stdout[:80]!r}"
+                continue
+            return pbs_state(next(iter(jobs.values()), {}))
+        if out.returncode == QSTAT_UNKNOWN_JOB or "Unknown Job Id" in out.stderr:
+            return "failed"
+        why = f"qstat exit {out.returncode}: {out.stderr.strip()[:200]}"
+    print(f"pbs-status {job}: {why}; reported as running, asked again at the next check", file=sys.stderr)
+    return "running"

@@ -36,34 +36,34 @@ def image_psnr(pred: torch.Tensor, target: torch.Tensor, mask: torch.Tensor | No
     return float(psnr(pred, target))
 
 
+# The standard window of SSIM and MS-SSIM (Wang et al. 2003, 2004): Gaussian, sigma 1.5, 11 pixels wide
+SSIM_SIGMA = 1.5
+MS_SSIM_WINDOW = 11
+MS_SSIM_MIN_SIDE = (MS_SSIM_WINDOW - 1) * 2**4 + 1  # 5 scales: the window must fit the coarsest (161 px)
+
+
 def ssim(pred: torch.Tensor, target: torch.Tensor) -> float:
-    """SSIM of (H, W, 3) images in [0, 1] (scikit-image, Gaussian window as Wang et al.)."""
+    """SSIM of (H, W, 3) images in [0, 1] with the standard window (Gaussian, sigma 1.5; scikit-image's
+    settings that match Wang et al.)."""
     from skimage.metrics import structural_similarity
 
     a, b = (np.asarray(x.detach().cpu().double()) for x in (pred, target))
-    win = min(7, _odd_below(min(a.shape[:2]) + 1))
-    if win < 3:
-        raise ValueError(f"ssim: images of {a.shape[:2]} pixels are too small")
-    return float(structural_similarity(a, b, channel_axis=-1, data_range=1.0, win_size=win))
+    if min(a.shape[:2]) < MS_SSIM_WINDOW:
+        raise ValueError(f"ssim: images of {a.shape[:2]} pixels are smaller than the {MS_SSIM_WINDOW}-pixel window")
+    return float(structural_similarity(a, b, channel_axis=-1, data_range=1.0, gaussian_weights=True,
+                                       sigma=SSIM_SIGMA, use_sample_covariance=False))
 
 
 def ms_ssim(pred: torch.Tensor, target: torch.Tensor) -> float | None:
-    """MS-SSIM (pytorch-msssim, data range 1, the standard 5 scales). The Gaussian window shrinks from 11
-    until the coarsest scale still holds it (7 at 128², 3 at 64²); None for images smaller than that."""
+    """MS-SSIM as published (pytorch-msssim: 5 scales, the standard 11-pixel window and weights, data range
+    1); None for images under 161 pixels, where the window does not fit the coarsest scale. A shrunk window
+    would give numbers that are not comparable with published MS-SSIM."""
     from pytorch_msssim import ms_ssim as _ms_ssim
 
-    side = min(pred.shape[:2])
-    win = 11
-    while win >= 3 and (win - 1) * 16 >= side:
-        win -= 2
-    if win < 3:
+    if min(pred.shape[:2]) < MS_SSIM_MIN_SIDE:
         return None
     a, b = (x.detach().cpu().float().permute(2, 0, 1)[None] for x in (pred, target))
-    return float(_ms_ssim(a, b, data_range=1.0, win_size=win))
-
-
-def _odd_below(n: int) -> int:
-    return n - 1 if n % 2 == 0 else n - 2
+    return float(_ms_ssim(a, b, data_range=1.0, win_size=MS_SSIM_WINDOW))
 
 
 def lpips_model():

@@ -4,7 +4,6 @@ user asks of a finished scene. Each is computed from the scene's results; nothin
 from __future__ import annotations
 
 import json
-import time
 from pathlib import Path
 
 import numpy as np
@@ -27,6 +26,13 @@ def _plt():
     import matplotlib.pyplot as plt
 
     return plt
+
+
+def _decade_labels(axis) -> None:
+    """Label a log axis at its decades only: the minor labels overlap."""
+    from matplotlib.ticker import NullFormatter
+
+    axis.set_minor_formatter(NullFormatter())
 
 
 def siren_psnr_figure(stage1, out: Path) -> None:
@@ -54,9 +60,13 @@ def generated_figure(stage1, generated, out_png: Path, out_csv: Path) -> None:
     ax[0].plot([lo, hi], [lo, hi], "k--", lw=0.8)
     ax[0].set_xlabel("stage-1 SIREN PSNR (dB)")
     ax[0].set_ylabel("generated SIREN PSNR (dB)")
-    ax[0].set_title("seen lights")
+    ax[0].set_title(f"seen lights (median {np.median(generated.psnr[seen]):.2f} dB)")
     ax[1].hist(generated.psnr[~seen], bins=20)
     ax[1].set_xlabel("generated SIREN PSNR (dB)")
+    ax[1].set_ylabel("unseen lights")
+    from matplotlib.ticker import MaxNLocator
+
+    ax[1].yaxis.set_major_locator(MaxNLocator(integer=True))  # counts of lights
     unseen = np.median(generated.psnr[~seen]) if (~seen).any() else float("nan")
     ax[1].set_title(f"unseen lights (median {unseen:.2f} dB)")
     fig.tight_layout()
@@ -70,8 +80,15 @@ def generated_figure(stage1, generated, out_png: Path, out_csv: Path) -> None:
     atomic_write_text(out_csv, "\n".join(rows) + "\n")
 
 
-def image_grid_figure(images_dir: Path, out: Path, modes=("gt", "inr_generated", "naive", "noshadow")) -> None:
-    """Rows: (light, view) pairs with every mode rendered; columns: gt / ours / naive / no shadow."""
+DIFF_RANGE = 0.1  # the difference maps' colour scale: 0 to 10% of the colour range, the same in every row
+
+
+def image_grid_figure(images_dir: Path, lights: dict, out: Path,
+                      modes=("gt", "inr_generated", "naive", "noshadow")) -> None:
+    """Rows: (light, view) pairs with every mode rendered, labelled with the light's direction; columns:
+    gt / ours / naive / no shadow, then |ours - gt| and |no shadow - gt| (what the shadow term adds)."""
+    import re
+
     from PIL import Image
 
     plt = _plt()
@@ -79,24 +96,49 @@ def image_grid_figure(images_dir: Path, out: Path, modes=("gt", "inr_generated",
     tags = [t for t in tags if all((images_dir / f"{t}_{m}.png").exists() for m in modes)]
     if not tags:
         raise ValueError(f"{images_dir}: no light/view with all of {modes} rendered")
-    fig, axes = plt.subplots(len(tags), len(modes), figsize=(2.6 * len(modes), 2.6 * len(tags)), squeeze=False)
+    titles = {"gt": "ground truth", "inr_generated": "ours (generated)", "naive": "naive secondary rays",
+              "noshadow": "no shadow"}
+    diffs = [("inr_generated", "|ours - gt|"), ("noshadow", "|no shadow - gt|")]
+    ncol = len(modes) + len(diffs)
+    fig, axes = plt.subplots(len(tags), ncol, figsize=(2.3 * ncol, 2.4 * len(tags)), squeeze=False)
     for r, tag in enumerate(tags):
+        img = {m: np.asarray(Image.open(images_dir / f"{tag}_{m}.png").convert("RGB"), dtype=np.float32) / 255
+               for m in modes}
         for c, mode in enumerate(modes):
-            axes[r, c].imshow(np.asarray(Image.open(images_dir / f"{tag}_{mode}.png")))
-            axes[r, c].set_xticks([])
-            axes[r, c].set_yticks([])
+            axes[r, c].imshow(img[mode])
             if r == 0:
-                axes[r, c].set_title({"inr_generated": "ours (generated)"}.get(mode, mode))
-        axes[r, 0].set_ylabel(tag)
-    fig.tight_layout()
+                axes[r, c].set_title(titles.get(mode, mode), fontsize=9)
+        for k, (mode, title) in enumerate(diffs):
+            shown = axes[r, len(modes) + k].imshow(np.abs(img[mode] - img["gt"]).max(axis=2), cmap="magma",
+                                                  vmin=0, vmax=DIFF_RANGE)
+            if r == 0:
+                axes[r, len(modes) + k].set_title(title, fontsize=9)
+        for a in axes[r]:
+            a.set_xticks([])
+            a.set_yticks([])
+        m = re.fullmatch(r"(train|unseen)(\d+)_view(\d+)", tag)
+        if m:
+            x, y, z = lights[m[1]][int(m[2])]
+            kind = "training" if m[1] == "train" else "unseen"
+            label = f"{kind} light {m[2]}\n({x:+.2f}, {y:+.2f}, {z:+.2f})\nview {m[3]}"
+        else:
+            label = tag
+        axes[r, 0].set_ylabel(label, fontsize=8)
+    fig.tight_layout(rect=(0, 0, 0.93, 1))
+    bar = fig.colorbar(shown, ax=axes[:, -2:].ravel().tolist(), fraction=0.04, pad=0.02)
+    bar.set_label("max over RGB of the difference", fontsize=8)
     _figure(out, fig)
 
 
 def ddim_curve_figure(state: dict, volume, tf, lights: np.ndarray, out: Path, *, steps=(5, 10, 20, 50),
                       n_lights: int = 8, n_points: int = 8192) -> dict:
-    """Time per INR against median voxel PSNR for DDIM step counts, and 500-step DDPM."""
+    """Time per INR against median voxel PSNR for DDIM step counts, and 500-step DDPM.
+
+    Quality is over `n_lights` training lights generated in one batch; time is that of one INR alone
+    (batch of one, best of 3; DDPM once), as `voxel_metrics.json`'s `seconds_per_inr` measures it.
+    """
     from diffshadow.diffusion.sample import generate, load_sampler
-    from diffshadow.evaluate import TruthPoints, pick, psnr_per_light
+    from diffshadow.evaluate import TruthPoints, pick, psnr_per_light, seconds_per_inr
 
     model, std, layout, siren = load_sampler(state)
     cfg = state["config"]
@@ -105,10 +147,10 @@ def ddim_curve_figure(state: dict, volume, tf, lights: np.ndarray, out: Path, *,
     truth = points.truth(sel)
     rows = []
     for method, k in [*(("ddim", s) for s in steps), ("ddpm", 500)]:
-        t = time.perf_counter()
         w = generate(model, std, sel, method=method, steps=k, seed=int(cfg["seed"]),
                      temperature=float(cfg["temperature"]))
-        seconds = (time.perf_counter() - t) / len(sel)
+        seconds = seconds_per_inr(model, std, sel[0], method=method, steps=k, repeats=3 if method == "ddim" else 1,
+                                  temperature=float(cfg["temperature"]))
         rows.append({"method": method, "steps": k, "seconds_per_inr": seconds,
                      "psnr_median": float(np.median(psnr_per_light(points.sirens(w.numpy(), layout, siren),
                                                                    truth)["box"]))})
@@ -121,25 +163,36 @@ def ddim_curve_figure(state: dict, volume, tf, lights: np.ndarray, out: Path, *,
     p = rows[-1]
     ax.plot([p["seconds_per_inr"]], [p["psnr_median"]], "s", label="DDPM 500")
     ax.set_xscale("log")
-    ax.set_xlabel("seconds per shadow INR (CPU, batch of lights)")
-    ax.set_ylabel("median voxel PSNR (dB)")
+    _decade_labels(ax.xaxis)
+    ax.set_xlabel("seconds per shadow INR (one INR alone, CPU)")
+    ax.set_ylabel(f"median voxel PSNR over {len(sel)} training lights (dB)")
+    # at least 2 dB of axis: a spread of a tenth of a dB is sampling noise, not a trend
+    mid = float(np.median([r["psnr_median"] for r in rows]))
+    lo, hi = min(r["psnr_median"] for r in rows), max(r["psnr_median"] for r in rows)
+    ax.set_ylim(min(lo - 0.3, mid - 1.0), max(hi + 0.3, mid + 1.0))
     ax.legend()
     fig.tight_layout()
     _figure(out, fig)
     return {"lights": len(sel), "points": n_points, "rows": rows}
 
 
-def storage_figure(voxel_metrics: dict, out: Path) -> None:
-    """Bytes of the diffusion cache against N SIRENs and N dense float16 grids."""
+def storage_figure(voxel_metrics: dict, n_lights: int, out: Path) -> None:
+    """Bytes of the diffusion cache against the N SIRENs and N dense float16 grids it replaces."""
     plt = _plt()
     sb = voxel_metrics["storage_bytes"]
-    fig, ax = plt.subplots(figsize=(6, 3.5))
-    names = ["diffusion model", "N SIRENs", "N dense grids (fp16)"]
-    values = [sb["model"], sb["sirens"], sb["grids"]]
-    ax.bar(names, np.asarray(values) / 2**20)
+    fig, ax = plt.subplots(figsize=(6.5, 3.8))
+    names = ["diffusion model", f"{n_lights} SIRENs (fp32)", f"{n_lights} dense grids (fp16)"]
+    values = np.asarray([sb["model"], sb["sirens"], sb["grids"]]) / 2**20
+    ax.bar(names, values, color=["C0", "C1", "C2"])
     for i, v in enumerate(values):
-        ax.annotate(f"{v / 2**20:.2f} MiB", (i, v / 2**20), ha="center", va="bottom")
+        ax.annotate(f"{v:.2f} MiB", (i, v), ha="center", va="bottom")
     ax.set_ylabel("MiB")
+    ax.set_ylim(0, values.max() * 1.2)
+    ratio = values[0] / values[2]
+    # the model's size does not grow with the light count; the grids grow with lights x voxels
+    verdict = (f"the model is {ratio:.1f}x the grids it replaces at this scale" if ratio > 1
+               else f"the model is {1 / ratio:.1f}x smaller than the grids it replaces")
+    ax.set_title(f"{verdict}\n(the model's size is fixed; grids grow with lights x voxels)", fontsize=9)
     fig.tight_layout()
     _figure(out, fig)
 
@@ -154,6 +207,8 @@ def shadow_curve_figure(bench_json: dict, out: Path) -> None:
             ax.plot([r["seconds"] for r in rows], [r["mean_err"] for r in rows], "o-", label=f"{name} {method}")
     ax.set_xscale("log")
     ax.set_yscale("log")
+    _decade_labels(ax.xaxis)
+    _decade_labels(ax.yaxis)
     ax.set_xlabel("seconds per shadow grid")
     ax.set_ylabel(f"mean |error| vs march at {bench_json['reference_step']} voxel")
     ax.legend()

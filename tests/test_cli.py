@@ -1,5 +1,6 @@
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 from diffshadow.cli import main
@@ -47,3 +48,25 @@ def test_stage_costs_sums_a_fanned_out_rule_and_names_a_bad_file(tmp_path):
     bad.write_text("s\n")
     with pytest.raises(ValueError, match="broken.tsv: expected a Snakemake benchmark file"):
         stage_costs([bad], tmp_path / "x.tsv")
+
+
+def test_render_previews_a_scene_file_and_names_its_typo(tmp_path, capsys):
+    from PIL import Image
+
+    scene = (REPO / "config/scenes/nucleon.yaml").read_text()
+    good = tmp_path / "mine.yaml"
+    good.write_text(scene)
+    out = tmp_path / "tf.png"
+    main(["render", "--scene-config", str(good), "--mode", "noshadow", "--size", "24", "--out", str(out)])
+    img = np.asarray(Image.open(out).convert("RGB"))
+    assert img.shape == (24, 24, 3) and len(np.unique(img.reshape(-1, 3), axis=0)) > 1  # the volume shows
+    bad = tmp_path / "typo.yaml"
+    bad.write_text(scene.replace("transfer_function:", "transfer_functon:"))
+    with pytest.raises(SystemExit) as exit_info:
+        main(["render", "--scene-config", str(bad), "--mode", "noshadow", "--out", str(tmp_path / "x.png")])
+    assert exit_info.value.code == 2
+    err = capsys.readouterr().err
+    assert err.strip().count("\n") == 0 and "typo.yaml" in err and "transfer_functon" in err
+    with pytest.raises(SystemExit):  # neither a volume nor a scene file
+        main(["render", "--mode", "noshadow", "--out", str(tmp_path / "y.png")])
+    assert "give --volume" in capsys.readouterr().err

@@ -20,16 +20,30 @@ def test_foreground_psnr_ignores_the_background():
 
 
 def test_identical_images_score_perfectly():
-    img = torch.rand(128, 128, 3, generator=torch.Generator().manual_seed(0))
-    m = image_metrics(img, img, torch.ones(128, 128))
+    img = torch.rand(176, 176, 3, generator=torch.Generator().manual_seed(0))
+    m = image_metrics(img, img, torch.ones(176, 176))
     assert m["psnr"] == math.inf and m["ssim"] == pytest.approx(1.0) and m["ms_ssim"] == pytest.approx(1.0)
-    noisy = (img + 0.05 * torch.randn(128, 128, 3, generator=torch.Generator().manual_seed(1))).clamp(0, 1)
+    noisy = (img + 0.05 * torch.randn(176, 176, 3, generator=torch.Generator().manual_seed(1))).clamp(0, 1)
     assert ssim(noisy, img) < 0.99 and ms_ssim(noisy, img) < 0.999
 
 
-def test_small_images_have_no_ms_ssim():
-    img = torch.rand(30, 30, 3)  # the coarsest of 5 scales holds no 3-pixel window
-    assert ms_ssim(img, img) is None
+def test_ssim_uses_the_standard_window():
+    # two implementations of Wang et al.'s SSIM (Gaussian window, sigma 1.5) agree; a 7-pixel uniform
+    # window (scikit-image's default) gives 0.9463 here, not 0.9454
+    from pytorch_msssim import ssim as reference
+
+    g = torch.Generator().manual_seed(0)
+    img = torch.rand(64, 64, 3, generator=g)
+    noisy = (img + 0.1 * torch.randn(64, 64, 3, generator=g)).clamp(0, 1)
+    expected = float(reference(noisy.permute(2, 0, 1)[None], img.permute(2, 0, 1)[None], data_range=1.0))
+    assert ssim(noisy, img) == pytest.approx(expected, abs=1e-6)
+
+
+def test_ms_ssim_needs_room_for_the_standard_window_at_five_scales():
+    # 161 pixels is the smallest side where the 11-pixel window fits the 5th scale; below it, no value
+    # (a shrunk window would not be the published MS-SSIM)
+    assert ms_ssim(torch.ones(160, 160, 3), torch.ones(160, 160, 3)) is None
+    assert ms_ssim(torch.ones(161, 161, 3), torch.ones(161, 161, 3)) == pytest.approx(1.0)
 
 
 def test_bad_input_is_named():

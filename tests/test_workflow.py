@@ -119,7 +119,8 @@ STAGE_OUTPUTS = {
                        "report/ddim_curve.json"],
 }
 TIMED = {"bench.json", "bench.png", "report/bench_shadow.json", "report/bench_shadow.png", "report/ddim_curve.png",
-         "report/shadow_curve.png", "benchmarks", "stage_costs.tsv"}  # measurements of time or memory by design
+         "report/shadow_curve.png", "benchmarks", "stage_costs.tsv",
+         "report/summary.html", "report/landing.rst"}  # measurements of time or memory by design (or tables of them)
 TIMING_KEY = re.compile(r"second|_s$|fps|speedup|peak_mem")
 
 
@@ -199,7 +200,7 @@ def test_rerun_one_subset(finished):
     assert planned(snakemake(finished, "-n", "-f", target)) == {"fit_siren": 1}
     downstream = {"fit_siren": 1, "collect_weights": 1, "train_diffusion": 1, "finetune_render": 1,
                   "sample_shadows": 1, "evaluate_voxels": 1, "evaluate_images": 1, "benchmark": 1,
-                  "report_figures": 1, "stage_costs": 1, "all": 1}
+                  "report_figures": 1, "stage_costs": 1, "summary": 1, "all": 1}
     assert planned(snakemake(finished, "-n", "-R", target)) == downstream
     # a corrupted subset is newer than the store: collecting again fails and names the file
     (sirens / "subset_1.npz").write_bytes(b"garbage")
@@ -234,6 +235,10 @@ def test_config_typo_fails_before_any_job(tmp_path):
     wrong_type = {**TINY, "subset_size": "two"}
     proc = snakemake(tmp_path, "-n", config=wrong_type, check=False)
     assert proc.returncode != 0 and "'two' is not of type 'integer'" in proc.stdout + proc.stderr
+    # a scene that has no file is named when the workflow is parsed, not from inside a rule's input function
+    proc = snakemake(tmp_path, "-n", config={**TINY, "scenes": ["nosuch"]}, check=False)
+    assert proc.returncode != 0 and "scene 'nosuch': no file" in proc.stdout + proc.stderr
+    assert "InputFunctionException" not in proc.stdout + proc.stderr
     assert not (tmp_path / "results").exists()
 
 
@@ -315,6 +320,22 @@ def test_report_embeds_every_figure(finished):
         assert name in html, f"{name} is not in the report"
     for name in figures[:-1]:
         assert (finished / "results/nucleon/report" / name).stat().st_size > 100
+
+
+def test_report_front_page_has_the_runs_numbers(finished):
+    import json
+    snakemake(finished, "--report", "report.html")
+    page = (finished / "report.html").read_text()
+    res = finished / "results/nucleon"
+    voxel = json.loads((res / "voxel_metrics.json").read_text())
+    tables = (res / "report/summary.html").read_text()
+    for value in (voxel["seen"]["generated_psnr_median"], voxel["unseen"]["blend_psnr_median"]):
+        # the landing page (RST included into the report) and the summary tables both state the run's values
+        assert f"{value:.2f} dB" in page and f"{value:.2f}" in tables
+    assert "Scene nucleon" in page and "summary.html" in page
+    for title in ("Shadow INRs", "Sampling", "Rendering-loss fine-tuning", "Images", "Renderer", "Storage",
+                  "Stage costs"):
+        assert f"<h2>{title}" in tables, title
 
 
 def test_stage_costs_come_from_snakemakes_benchmarks(finished):

@@ -291,24 +291,16 @@ def run(out: Path, *, scene_config: Path | None = None, volume: Path | None = No
     INR and one shadow INR (given, or fitted here), then `bench_render`; writes JSON and a plot."""
     import dataclasses
 
-    from diffshadow.artifacts import is_prepared, load_data_inr, load_render_scene
+    from diffshadow.artifacts import is_prepared, load_data_inr, load_render_scene, load_scene_file
     from diffshadow.bench import BENCH_LIGHT, BENCH_TF
-    from diffshadow.config import read_yaml
     from diffshadow.data_inr import DataInrConfig, fit_data_inr
     from diffshadow.fit import FitConfig, fit_sirens
     from diffshadow.sampling import seeded
     from diffshadow.siren import SirenConfig, WeightLayout, init_siren
     from diffshadow.store import open_store
-    from diffshadow.transfer import TransferFunction
-    from diffshadow.volume import load_volume
 
     if scene_config:
-        sc = read_yaml(scene_config)
-        for key in ("volume", "transfer_function"):
-            if key not in sc:
-                raise ValueError(f"{scene_config}: missing key {key!r}")
-        vol = load_volume(sc["volume"], **sc.get("load", {}))
-        scene = RenderScene(vol, TransferFunction.from_config(sc["transfer_function"]), device=device)
+        scene = load_scene_file(Path(scene_config), device)
         name = Path(scene_config).stem
     elif volume:
         tf = tf_config if tf_config is not None or is_prepared(volume) else BENCH_TF

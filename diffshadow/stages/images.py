@@ -15,7 +15,7 @@ from diffshadow.diffusion.finetune import render_targets as targets
 from diffshadow.evaluate import image_evaluation
 from diffshadow.io import atomic_write_text, finite_json
 from diffshadow.lights import read_lights
-from diffshadow.metrics import lpips_model
+from diffshadow.metrics import MS_SSIM_MIN_SIDE, lpips_model
 from diffshadow.render import Camera, RenderScene, default_views, write_png
 from diffshadow.store import open_store
 
@@ -77,9 +77,14 @@ def evaluate_images(volume_path: Path, lights_path: Path, data_inr: Path, weight
     lpips, reason = lpips_model()
     result = image_evaluation(scene, light_sets, stage1, generated, views, step=cfg["step"], out_dir=images_dir,
                               lights_per_set=cfg["lights_per_set"], naive_views=cfg.get("naive_views"),
-                              naive_lights=cfg.get("naive_lights"), lpips=lpips)
+                              naive_lights=cfg.get("naive_lights"), lpips=lpips,
+                              phong=bool(cfg.get("phong", False)))
     result.update({"lpips": "available (VGG)" if lpips is not None else f"unavailable: {reason}",
                    "image_size": cfg["image_size"], "views": cfg["views"], "step": cfg["step"],
+                   "shading": "Blinn-Phong" if cfg.get("phong") else "unlit (colour x (0.1 + 0.9 g))",
+                   "ms_ssim": "standard (5 scales, 11-pixel Gaussian window)" if cfg["image_size"] >= MS_SSIM_MIN_SIDE
+                   else f"not computed: {cfg['image_size']}-pixel images are below the {MS_SSIM_MIN_SIDE} pixels that "
+                        "5 scales of the standard window need",
                    "reference": "gt: raw scalar field and shadow_grid (march), same step",
                    "data_inr_psnr": scene.data_inr.psnr if scene.data_inr is not None else None})
     atomic_write_text(out, json.dumps(finite_json(result), indent=2) + "\n")
@@ -97,12 +102,13 @@ def report_figures(results: Path, checkpoint: Path, cfg: dict, out: Path) -> Non
     stage1, generated = open_store(results / "weights.zarr"), open_store(results / "generated.zarr")
     report.siren_psnr_figure(stage1, out / "siren_psnr.png")
     report.generated_figure(stage1, generated, out / "generated_psnr.png", out / "generated_psnr.csv")
-    report.image_grid_figure(results / "images", out / "image_grid.png")
-    report.storage_figure(json.loads((results / "voxel_metrics.json").read_text()), out / "storage.png")
+    lights = read_lights(results / "lights.json")
+    report.image_grid_figure(results / "images", lights, out / "image_grid.png")
+    report.storage_figure(json.loads((results / "voxel_metrics.json").read_text()), len(lights["train"]),
+                          out / "storage.png")
     volume, tf = artifacts.load_prepared(results / "volume.zarr")
     state = artifacts.load_checkpoint(checkpoint)  # the model that sampled generated.zarr
-    ddim = report.ddim_curve_figure(state, volume, tf, read_lights(results / "lights.json")["train"],
-                                    out / "ddim_curve.png")
+    ddim = report.ddim_curve_figure(state, volume, tf, lights["train"], out / "ddim_curve.png")
     atomic_write_text(out / "ddim_curve.json", json.dumps(ddim, indent=2) + "\n")
     shadow = bench_shadow([Path(cfg["volume"])], out, tf_config=cfg["transfer_function"])
     report.shadow_curve_figure(shadow, out / "shadow_curve.png")

@@ -100,18 +100,31 @@ def qsub(argv: list[str]) -> None:
 
 
 def qstat(argv: list[str]) -> None:
-    jobs = [a for a in argv if not a.startswith("-")]
+    # STANDIN_PBS_QSTAT_FAILS=N: the first N calls fail as a busy or restarting server does
+    fails = int(os.environ.get("STANDIN_PBS_QSTAT_FAILS", "0"))
+    counter = SPOOL / "qstat_calls"
+    calls = int(counter.read_text()) if counter.exists() else 0
+    counter.write_text(str(calls + 1))
+    if calls < fails:
+        print("Connection refused\nqstat: cannot connect to server pbs01 (errno=111)", file=sys.stderr)
+        sys.exit(1)
+    as_json = "-F" in argv and argv[argv.index("-F") + 1] == "json"
+    jobs = [a for a in argv if not a.startswith("-") and a != "json"]
+    found = {}
     for job in jobs:
         if not (SPOOL / f"{job}.json").exists():
             print(f"qstat: Unknown Job Id {job}", file=sys.stderr)
             sys.exit(153)
         exit_file = SPOOL / f"{job}.exit"
         code = exit_file.read_text().strip() if exit_file.exists() else ""
+        found[job] = {"job_state": "F", "Exit_status": int(code)} if code else {"job_state": "R"}
+    if as_json:
+        print(json.dumps({"pbs_version": "2022.1.5", "Jobs": found}, indent=4))
+        return
+    for job, fields in found.items():
         print(f"Job Id: {job}")
-        if code:
-            print(f"    job_state = F\n    Exit_status = {code}")
-        else:
-            print("    job_state = R")
+        for key, value in fields.items():
+            print(f"    {key} = {value}")
 
 
 def qdel(argv: list[str]) -> None:

@@ -2,14 +2,18 @@
 # validation are diffshadow.config's, the same for the CLI and Parsl).
 import json
 
+from diffshadow.config import ConfigError as _ConfigError
 from diffshadow.config import as_json as _as_json
 from diffshadow.config import scene_config as _scene_config
 from diffshadow.lights import n_subsets as _n_subsets
 from diffshadow.volume import resolve_path as _resolve_path
 
 _SCENES = {}
-DEVICE = config.get("device", "auto")  # passed as --config-device: --device and DIFFSHADOW_DEVICE win
-LAUNCHER = config.get("torchrun", "torchrun --standalone")  # how finetune_render starts its DDP processes
+# Result-neutral settings reach the jobs through their environment, not `params` (a changed param reruns the
+# job): the run's `device` (the CLI's --config-device; --device and DIFFSHADOW_DEVICE win) and the launcher of
+# finetune_render's DDP processes. A PBS job parses this file again, so it gets them too.
+os.environ.update(DIFFSHADOW_CONFIG_DEVICE=config.get("device", "auto"),
+                  DIFFSHADOW_TORCHRUN=config.get("torchrun", "torchrun --standalone"))
 
 
 def scene_config(scene):
@@ -30,7 +34,7 @@ def subset_files(wildcards):
 
 
 def as_json(scene, *keys):
-    """The config sections a rule depends on, as one JSON argument (and its params: rerun trigger)."""
+    """The config sections that a job depends on, as one JSON argument (a params entry, so a rerun trigger)."""
     return _as_json(scene_config(scene), *keys)
 
 
@@ -61,3 +65,35 @@ def stage_benchmarks(wildcards):
 def volume_file(wildcards):
     """The scene's volume file (`bundled:<name>` is the copy inside the package)."""
     return str(_resolve_path(scene_config(wildcards.scene)["volume"]))
+
+
+def check_scenes():
+    """Every scene of the run merged and validated when the workflow is parsed: a typo in a scene file stops
+    the run in one line naming the file and key, before any job starts."""
+    for scene in config["scenes"]:
+        try:
+            scene_config(scene)
+        except _ConfigError as e:
+            raise WorkflowError(str(e)) from None
+
+
+def summary_inputs(wildcards):
+    """What the scene's summary tables read: the metrics, the bench, the stage costs (and fine-tuning's)."""
+    files = {name: f"results/{wildcards.scene}/{name}" for name in
+             ("voxel_metrics.json", "image_metrics.json", "bench.json", "stage_costs.tsv", "lights.json")}
+    if scene_config(wildcards.scene)["finetune"]["enabled"]:
+        files["finetune_metrics.json"] = f"results/{wildcards.scene}/finetune_metrics.json"
+    return {k.replace(".", "_"): v for k, v in files.items()}
+
+
+def caption_values(scene):
+    """The scene's settings that the report's captions state (as `snakemake.params.run`)."""
+    cfg = scene_config(scene)
+    lights, render = cfg["lights"], cfg["render"]
+    return {"scene": scene, "train": lights["count"], "unseen": lights["unseen"], "eval_points": cfg["fit"]["eval_points"],
+            "ddim_steps": cfg["diffusion"]["ddim_steps"], "image_size": render["image_size"], "views": render["views"],
+            "lights_per_set": render["lights_per_set"], "step": render["step"],
+            "shading": "Blinn-Phong" if render.get("phong") else "unlit (colour x (0.1 + 0.9 g))"}
+
+
+check_scenes()

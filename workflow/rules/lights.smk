@@ -7,6 +7,8 @@ rule lights:
         "results/{scene}/benchmarks/lights.tsv",
     log:
         "results/{scene}/logs/lights.log",
+    conda:
+        "../envs/diffshadow.yaml"
     shell:
         "diffshadow lights --sphere {params.lights[sphere]} --count {params.lights[count]}"
         " --center {params.lights[center][0]} {params.lights[center][1]} {params.lights[center][2]}"

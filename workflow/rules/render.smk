@@ -13,8 +13,10 @@ rule train_data_inr:
         "results/{scene}/logs/train_data_inr.log",
     benchmark:
         "results/{scene}/benchmarks/train_data_inr.tsv",
+    conda:
+        "../envs/diffshadow.yaml"
     shell:
-        "diffshadow train-data-inr --volume {input.volume} --config-json {params.cfg:q} --config-device {DEVICE} --threads {threads}"
+        "diffshadow train-data-inr --volume {input.volume} --config-json {params.cfg:q} --threads {threads}"
         " --out {output} 2>&1 | tee {log}"
 
 
@@ -35,10 +37,12 @@ rule evaluate_images:
         "results/{scene}/logs/evaluate_images.log",
     benchmark:
         "results/{scene}/benchmarks/evaluate_images.tsv",
+    conda:
+        "../envs/diffshadow.yaml"
     shell:
         "diffshadow evaluate-images --volume {input.volume} --lights {input.lights} --data-inr {input.data_inr}"
         " --weights {input.weights} --generated {input.generated} --config-json {params.cfg:q}"
-        " --images {output.images} --config-device {DEVICE} --threads {threads} --out {output.metrics} 2>&1 | tee {log}"
+        " --images {output.images} --threads {threads} --out {output.metrics} 2>&1 | tee {log}"
 
 
 rule benchmark:
@@ -64,8 +68,10 @@ rule benchmark:
         "results/{scene}/logs/benchmark.log",
     benchmark:
         "results/{scene}/benchmarks/benchmark.tsv",
+    conda:
+        "../envs/diffshadow.yaml"
     shell:
         "diffshadow bench render --volume {input.volume} --data-inr {input.data_inr} --weights {input.weights}"
         " --sizes {params.sizes} --memory-sizes {params.memory} --step {params.step} --repeats {params.repeats}"
-        " --config-device {DEVICE} --threads {threads}"
+        " --threads {threads}"
         " --out {output.bench} 2>&1 | tee {log}"

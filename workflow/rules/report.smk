@@ -29,11 +29,14 @@ rule report_figures:
                        category="{scene}", subcategory="storage"),
     params:
         cfg=lambda wc: json.dumps(scene_config(wc.scene), sort_keys=True),
+        run=lambda wc: caption_values(wc.scene),  # for the captions
     threads: 2
     log:
         "results/{scene}/logs/report_figures.log",
     benchmark:
         "results/{scene}/benchmarks/report_figures.tsv",
+    conda:
+        "../envs/diffshadow.yaml"
     shell:
         "diffshadow report-figures --results results/{wildcards.scene} --checkpoint {input.checkpoint}"
         " --config-json {params.cfg:q}"
@@ -48,5 +51,23 @@ rule stage_costs:
                subcategory="run"),
     log:
         "results/{scene}/logs/stage_costs.log",
+    conda:
+        "../envs/diffshadow.yaml"
     shell:
         "diffshadow stage-costs --benchmarks {input} --out {output} 2>&1 | tee {log}"
+
+
+rule summary:
+    input:
+        unpack(summary_inputs),
+    output:
+        tables=report("results/{scene}/report/summary.html", caption="../report/summary.rst", category="{scene}",
+                      subcategory="summary", labels={"scene": "{scene}", "what": "all tables"}),
+        landing="results/{scene}/report/landing.rst",
+    log:
+        "results/{scene}/logs/summary.log",
+    conda:
+        "../envs/diffshadow.yaml"
+    shell:
+        "diffshadow summary --results results/{wildcards.scene} --scene {wildcards.scene}"
+        " --out-dir results/{wildcards.scene}/report 2>&1 | tee {log}"

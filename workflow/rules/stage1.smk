@@ -13,6 +13,8 @@ rule prepare_volume:
         "results/{scene}/benchmarks/prepare_volume.tsv",
     log:
         "results/{scene}/logs/prepare_volume.log",
+    conda:
+        "../envs/diffshadow.yaml"
     shell:
         "diffshadow prepare-volume --config-json {params.cfg:q} --out {output}"
         " 2>&1 | tee {log}"
@@ -32,9 +34,11 @@ rule preoptimize:
         "results/{scene}/logs/preoptimize.log",
     benchmark:
         "results/{scene}/benchmarks/preoptimize.tsv",
+    conda:
+        "../envs/diffshadow.yaml"
     shell:
         "diffshadow preoptimize --volume {input.volume} --lights {input.lights} --config-json {params.cfg:q}"
-        " --config-device {DEVICE} --threads {threads} --out {output} 2>&1 | tee {log}"
+        " --threads {threads} --out {output} 2>&1 | tee {log}"
 
 
 rule fit_siren:
@@ -54,9 +58,11 @@ rule fit_siren:
         "results/{scene}/logs/fit_siren_{subset}.log",
     benchmark:
         "results/{scene}/benchmarks/fit_siren_{subset}.tsv",
+    conda:
+        "../envs/diffshadow.yaml"
     shell:
         "diffshadow fit-siren --volume {input.volume} --lights {input.lights} --init {input.init}"
-        " --subset {wildcards.subset} --config-json {params.cfg:q} --config-device {DEVICE} --threads {threads} --out {output}"
+        " --subset {wildcards.subset} --config-json {params.cfg:q} --threads {threads} --out {output}"
         " 2>&1 | tee {log}"
 
 
@@ -70,6 +76,8 @@ rule collect_weights:
         "results/{scene}/logs/collect_weights.log",
     benchmark:
         "results/{scene}/benchmarks/collect_weights.tsv",
+    conda:
+        "../envs/diffshadow.yaml"
     shell:
         "diffshadow collect-weights --lights {input.lights} --subsets {input.subsets} --out {output}"
         " 2>&1 | tee {log}"

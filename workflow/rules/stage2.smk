@@ -15,9 +15,11 @@ rule presample:
         "results/{scene}/benchmarks/presample.tsv",
     log:
         "results/{scene}/logs/presample.log",
+    conda:
+        "../envs/diffshadow.yaml"
     shell:
         "diffshadow presample --volume {input.volume} --lights {input.lights} --config-json {params.cfg:q}"
-        " --config-device {DEVICE} --threads {threads} --out {output}"
+        " --threads {threads} --out {output}"
         " 2>&1 | tee {log}"
 
 
@@ -34,9 +36,11 @@ rule train_diffusion:
         "results/{scene}/logs/train_diffusion.log",
     benchmark:
         "results/{scene}/benchmarks/train_diffusion.tsv",
+    conda:
+        "../envs/diffshadow.yaml"
     shell:
         "diffshadow train-diffusion --weights {input.weights} --points {input.points}"
-        " --config-json {params.cfg:q} --config-device {DEVICE} --threads {threads} --out {output} 2>&1 | tee {log}"
+        " --config-json {params.cfg:q} --threads {threads} --out {output} 2>&1 | tee {log}"
 
 
 rule eval_truth:
@@ -52,6 +56,8 @@ rule eval_truth:
         "results/{scene}/logs/eval_truth.log",
     benchmark:
         "results/{scene}/benchmarks/eval_truth.tsv",
+    conda:
+        "../envs/diffshadow.yaml"
     shell:
         "diffshadow eval-truth --volume {input.volume} --lights {input.lights} --seed {params.seed}"
         " --threads {threads} --out {output} 2>&1 | tee {log}"
@@ -69,9 +75,11 @@ rule sample_shadows:
         "results/{scene}/logs/sample_shadows.log",
     benchmark:
         "results/{scene}/benchmarks/sample_shadows.tsv",
+    conda:
+        "../envs/diffshadow.yaml"
     shell:
         "diffshadow sample-shadows --checkpoint {input.checkpoint} --truth {input.truth}"
-        " --lights {input.lights} --config-device {DEVICE} --threads {threads} --out {output} 2>&1 | tee {log}"
+        " --lights {input.lights} --threads {threads} --out {output} 2>&1 | tee {log}"
 
 
 rule evaluate_voxels:
@@ -89,6 +97,8 @@ rule evaluate_voxels:
         "results/{scene}/logs/evaluate_voxels.log",
     benchmark:
         "results/{scene}/benchmarks/evaluate_voxels.tsv",
+    conda:
+        "../envs/diffshadow.yaml"
     shell:
         "diffshadow evaluate-voxels --checkpoint {input.checkpoint} --weights {input.weights}"
         " --generated {input.generated} --truth {input.truth} --volume {input.volume} --lights {input.lights}"
@@ -110,9 +120,11 @@ rule render_targets:
         "results/{scene}/logs/render_targets.log",
     benchmark:
         "results/{scene}/benchmarks/render_targets.tsv",
+    conda:
+        "../envs/diffshadow.yaml"
     shell:
         "diffshadow render-targets --volume {input.volume} --lights {input.lights} --config-json {params.cfg:q}"
-        " --config-device {DEVICE} --threads {threads} --out {output} 2>&1 | tee {log}"
+        " --threads {threads} --out {output} 2>&1 | tee {log}"
 
 
 rule finetune_render:
@@ -135,11 +147,13 @@ rule finetune_render:
         "results/{scene}/logs/finetune_render.log",
     benchmark:
         "results/{scene}/benchmarks/finetune_render.tsv",
+    conda:
+        "../envs/diffshadow.yaml"
     shell:
         # finetune.nproc processes as `threads` (so -j caps them on a laptop), no more than the device takes
         # (one per GPU on CUDA), said in one line
-        "n=$(diffshadow ddp-processes --nproc {threads} --config-device {DEVICE}) &&"
-        " {LAUNCHER} --nproc_per_node=$n -m diffshadow.cli finetune-render"
+        "n=$(diffshadow ddp-processes --nproc {threads}) &&"
+        " $DIFFSHADOW_TORCHRUN --nproc_per_node=$n -m diffshadow.cli finetune-render"
         " --checkpoint {input.checkpoint} --weights {input.weights} --points {input.points}"
-        " --targets {input.targets} --config-json {params.cfg:q} --config-device {DEVICE} --threads 1"
+        " --targets {input.targets} --config-json {params.cfg:q} --threads 1"
         " --metrics {output.metrics} --out {output.checkpoint} 2>&1 | tee {log}"

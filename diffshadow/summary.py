@@ -1,0 +1,181 @@
+"""The run's front page: one scene's headline numbers (an RST block for the report's landing page) and its
+tables (one HTML page: shadow INRs seen and unseen with their baselines, sampling, fine-tuning, images per
+mode, renderer speed, storage, stage costs), read from the results the rules wrote. Nothing is recomputed."""
+
+from __future__ import annotations
+
+import html
+import json
+from pathlib import Path
+
+from diffshadow.io import atomic_write_text
+from diffshadow.lights import read_lights
+
+MIB = 2**20
+
+
+def _num(value, fmt: str = ".2f", unit: str = "") -> str:
+    return "n/a" if value is None else f"{value:{fmt}}{unit}"
+
+
+def _table(title: str, header: list[str], rows: list[list], note: str = "") -> str:
+    head = "".join(f"<th>{html.escape(h)}</th>" for h in header)
+    body = "".join("<tr>" + "".join(f"<td>{html.escape(str(c))}</td>" for c in row) + "</tr>" for row in rows)
+    caption = f"<p class='note'>{html.escape(note)}</p>" if note else ""
+    table = f"<table><thead><tr>{head}</tr></thead><tbody>{body}</tbody></table>"
+    return f"<h2>{html.escape(title)}</h2>\n{table}{caption}\n"
+
+
+def _read_json(path: Path) -> dict | None:
+    return json.loads(path.read_text()) if path.exists() else None
+
+
+class RunResults:
+    """The files of one finished scene, read once."""
+
+    def __init__(self, results: Path, scene: str):
+        self.scene = scene
+        self.voxel = json.loads((results / "voxel_metrics.json").read_text())
+        self.images = json.loads((results / "image_metrics.json").read_text())
+        self.bench = _read_json(results / "bench.json")
+        self.finetune = _read_json(results / "finetune_metrics.json")
+        self.n_train = len(read_lights(results / "lights.json")["train"])
+        costs = results / "stage_costs.tsv"
+        lines = costs.read_text().splitlines() if costs.exists() else []
+        self.costs = [dict(zip(lines[0].split("\t"), line.split("\t"), strict=True)) for line in lines[1:]]
+
+    def headline(self) -> list[tuple[str, str]]:
+        v, seen, unseen = self.voxel, self.voxel["seen"], self.voxel.get("unseen")
+        rows = [("lights", f"{seen['count']} training, {unseen['count'] if unseen else 0} unseen"),
+                ("stage-1 SIRENs (median voxel PSNR)", f"{seen['stage1_psnr_median']:.2f} dB"),
+                ("generated, seen lights", f"{seen['generated_psnr_median']:.2f} dB "
+                 f"({seen['generated_minus_stage1_median_db']:+.2f} dB against stage 1)")]
+        if unseen:
+            rows.append(("generated, unseen lights",
+                         f"{unseen['generated_psnr_median']:.2f} dB (blend of {unseen['blend_k']} nearest true "
+                         f"shadows {unseen['blend_psnr_median']:.2f} dB, nearest training SIREN "
+                         f"{unseen['nearest_psnr_median']:.2f} dB)"))
+        deployed = self.images["modes"].get("inr_generated_data_inr")
+        if deployed:
+            rows.append(("image PSNR, deployed path (data INR + generated shadow)", f"{deployed['psnr']:.2f} dB"))
+        if self.finetune:
+            rows.append(("rendering-loss fine-tuning (image PSNR, training lights)",
+                         f"{self.finetune['image_psnr_geometry_only']['mean']:.2f} → "
+                         f"{self.finetune['image_psnr_finetuned']['mean']:.2f} dB"))
+        fps = self._fps()
+        if fps:
+            rows.append(("rendering speed", fps))
+        total = next((r for r in self.costs if r["stage"].startswith("total")), None)
+        if total:
+            rows.append(("run cost (summed over jobs)", f"{float(total['wall_s']) / 60:.1f} min wall, "
+                         f"{int(total['jobs'])} jobs"))
+        rows.append(("time per shadow INR (DDIM)", f"{v['seconds_per_inr']['ddim']:.3f} s"))
+        return rows
+
+    def _fps(self) -> str:
+        if not self.bench or not self.bench.get("sizes"):
+            return ""
+        size = max(self.bench["sizes"], key=int)
+        fps = self.bench["sizes"][size].get("fps", {})
+        parts = [f"{mode} {fps[mode]:.2f}" for mode in ("noshadow", "inr", "naive") if mode in fps]
+        return f"frames per second at {size}²: " + ", ".join(parts) if parts else ""
+
+    def rst(self) -> str:
+        """The scene's block of the landing page: a title and a two-column table of the headline numbers."""
+        title = f"Scene {self.scene}"
+        lines = [title, "-" * len(title), "", ".. list-table::", "   :widths: 45 55", ""]
+        for name, value in self.headline():
+            lines += [f"   * - {name}", f"     - {value}"]
+        return "\n".join(lines) + "\n"
+
+    def tables(self) -> str:
+        v, seen, unseen = self.voxel, self.voxel["seen"], self.voxel.get("unseen")
+        parts = [_table("Headline", ["", "value"], [list(r) for r in self.headline()])]
+        rows = [["seen", "stage-1 SIREN (fitted)", _num(seen["stage1_psnr_median"]),
+                 _num(seen.get("stage1_psnr_visible_median")), ""],
+                ["seen", "generated (DDIM)", _num(seen["generated_psnr_median"]),
+                 _num(seen.get("generated_psnr_visible_median")),
+                 f"min {seen['generated_psnr_min']:.2f}; {seen['generated_minus_stage1_median_db']:+.2f} vs stage 1"]]
+        if unseen:
+            rows += [["unseen", "generated (DDIM)", _num(unseen["generated_psnr_median"]), "", ""],
+                     ["unseen", f"blend of {unseen['blend_k']} nearest true shadows",
+                      _num(unseen["blend_psnr_median"]), "", "baseline"],
+                     ["unseen", "nearest training SIREN", _num(unseen["nearest_psnr_median"]), "",
+                      f"baseline; nearest light {unseen['nearest_angle_median_deg']:.1f}° away (median)"]]
+        parts.append(_table("Shadow INRs: voxel PSNR against the marched ground truth (median over lights, dB)",
+                            ["lights", "shadow INR", "box", "visible region", ""], rows,
+                            f"{v['eval_points']:,} fresh points per light and region that no fit used."))
+        s = v["sampling"]
+        t = v["seconds_per_inr"]
+        parts.append(_table(f"Sampling: DDIM against 500-step DDPM ({s['lights']} training lights)",
+                            ["sampler", "median voxel PSNR (dB)", "seconds per INR"],
+                            [[f"DDIM {s['ddim_steps']} steps", _num(s["ddim_psnr_median"]), _num(t["ddim"], ".3f")],
+                             ["DDPM 500 steps", _num(s["ddpm_psnr_median"]), _num(t["ddpm"], ".3f")]],
+                            f"DDIM is {s['speedup']:.0f}x faster; one INR alone, on evaluate_voxels' device."))
+        if self.finetune:
+            f = self.finetune
+            parts.append(_table(
+                "Rendering-loss fine-tuning: image PSNR of generated shadows on training lights (dB)",
+                ["model", "mean", "min"],
+                [["geometry loss only", _num(f["image_psnr_geometry_only"]["mean"]),
+                  _num(f["image_psnr_geometry_only"]["min"])],
+                 ["fine-tuned", _num(f["image_psnr_finetuned"]["mean"]), _num(f["image_psnr_finetuned"]["min"])]],
+                f"{f['lights']} lights x {f['views']} views, foreground pixels; {f['processes']} process(es), "
+                f"{f['seconds']:.0f} s."))
+        im = self.images
+        rows = [[mode, m["count"], _num(m["psnr"]), _num(m["ssim"], ".4f"), _num(m.get("ms_ssim"), ".4f"),
+                 _num(m.get("lpips"), ".4f")] for mode, m in im["modes"].items()]
+        parts.append(_table(
+            "Images: every mode against the ground truth (mean over images)",
+            ["mode", "images", "PSNR (dB)", "SSIM", "MS-SSIM", "LPIPS"], rows,
+            f"{im['image_size']}² images, {im['views']} views, step {im['step']} voxel; shading "
+            f"{im.get('shading', 'unlit')}; reference: {im['reference']}; MS-SSIM {im.get('ms_ssim', 'n/a')}; "
+            f"LPIPS {im['lpips']}. inr_stage1 and "
+            "inr_generated use the raw scalar field (only the shadow's error shows); inr_generated_data_inr is "
+            "the deployed path; naive marches secondary rays through the data INR; noshadow drops the shadow."))
+        if self.bench and self.bench.get("sizes"):
+            sizes = sorted(self.bench["sizes"], key=int)
+            modes = [m for m in ("noshadow", "inr", "naive") if any(m in self.bench["sizes"][s].get("fps", {})
+                                                                    for s in sizes)]
+            rows = []
+            for s in sizes:
+                r = self.bench["sizes"][s]
+                fps, mem = r.get("fps", {}), r.get("peak_mem_bytes", {})
+                rows.append([f"{s}²", *(_num(fps.get(m)) for m in modes),
+                             *(_num(mem[m] / MIB if m in mem else None, ".0f") for m in modes)])
+            parts.append(_table(f"Renderer ({self.bench.get('device', 'device n/a')})",
+                                ["image", *(f"{m} fps" for m in modes), *(f"{m} peak MiB" for m in modes)], rows,
+                                "Measured side by side in one process (diffshadow bench render); full figures "
+                                "in bench.json."))
+        sb = v["storage_bytes"]
+        n = self.n_train
+        parts.append(_table("Storage of the shadow cache", ["what", "MiB"],
+                            [["diffusion model (weights and standardiser)", _num(sb["model"] / MIB)],
+                             [f"{n} stage-1 SIRENs (fp32)", _num(sb["sirens"] / MIB)],
+                             [f"{n} dense shadow grids (fp16)", _num(sb["grids"] / MIB)]],
+                            "The model's size is fixed; SIRENs and grids grow with the light count."))
+        if self.costs:
+            parts.append(_table("Stage costs (Snakemake benchmark files)",
+                                ["stage", "jobs", "wall s", "CPU s", "max RSS MiB"],
+                                [[r["stage"], r["jobs"], r["wall_s"], r["cpu_s"], r["max_rss_mib"]]
+                                 for r in self.costs],
+                                "Wall and CPU seconds summed over a stage's jobs; jobs that ran side by side "
+                                "overlap, so the total exceeds the run's wall time. CPU seconds of short jobs are "
+                                "undercounted (Snakemake polls)."))
+        return "".join(parts)
+
+
+STYLE = """body{font-family:sans-serif;margin:1.5em;color:#222}table{border-collapse:collapse;margin:.4em 0}
+th,td{border:1px solid #ccc;padding:.25em .6em;text-align:left}th{background:#f2f2f2}
+td:not(:first-child){font-variant-numeric:tabular-nums}.note{color:#555;font-size:.9em;max-width:60em}
+h2{font-size:1.1em;margin-top:1.4em}"""
+
+
+def write_summary(results: Path, scene: str, out_html: Path, out_rst: Path) -> None:
+    """`summary.html` (every table) and `landing.rst` (the landing page's block) for one finished scene."""
+    run = RunResults(results, scene)
+    page = (f"<!DOCTYPE html><html><head><meta charset='utf-8'><title>diffshadow: {html.escape(scene)}</title>"
+            f"<style>{STYLE}</style></head><body><h1>diffshadow results: {html.escape(scene)}</h1>\n"
+            f"{run.tables()}</body></html>\n")
+    atomic_write_text(out_html, page)
+    atomic_write_text(out_rst, run.rst())
