@@ -64,6 +64,16 @@ def load_prepared(path: str | Path) -> tuple[Volume, TransferFunction]:
         raise VolumeError(f"{path}: not a prepared volume (missing {e})") from None
 
 
+def prepared_voxels(path: str | Path) -> int:
+    """The voxel count of a prepared volume, from its metadata (the grid is not read)."""
+    import zarr
+
+    try:
+        return int(np.prod(zarr.open_group(str(path), mode="r")["scalar"].shape))
+    except (FileNotFoundError, KeyError) as e:
+        raise VolumeError(f"{path}: not a prepared volume (missing {e})") from None
+
+
 def is_prepared(path: str | Path) -> bool:
     return Path(path).suffix == ".zarr" and (Path(path) / "zarr.json").exists()
 
@@ -224,14 +234,18 @@ def load_data_inr(path) -> DataInr:
 # ------------------------------------------------------------------------------------------ render scene
 
 
+def scene_volume(scene: dict) -> tuple[Volume, TransferFunction]:
+    """A scene's volume (its file and `load:` keys) and transfer function."""
+    return load_volume(scene["volume"], **scene.get("load", {})), TransferFunction.from_config(
+        scene["transfer_function"])
+
+
 def load_scene_file(scene_file: Path, device: torch.device) -> RenderScene:
-    """A RenderScene straight from a scene file (its volume, `load:` keys and transfer function): what the
-    workflow's prepare_volume would make of it, for previews and benchmarks."""
+    """A RenderScene straight from a scene file: what prepare_volume would make of it, for previews and
+    benchmarks."""
     from diffshadow.config import read_scene_file
 
-    sc = read_scene_file(scene_file)
-    volume = load_volume(sc["volume"], **sc.get("load", {}))
-    return RenderScene(volume, TransferFunction.from_config(sc["transfer_function"]), device=device)
+    return RenderScene(*scene_volume(read_scene_file(scene_file)), device=device)
 
 
 def load_render_scene(volume_path: Path, data_inr: Path | None, device: torch.device,

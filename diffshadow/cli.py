@@ -151,10 +151,10 @@ def _render(a):
 
     if (a.volume is None) == (a.scene_config is None):
         raise ValueError("render: give --volume (a volume.zarr, or a raw file with --tf-json) or --scene-config")
+    if a.scene_config and a.data_inr:
+        raise ValueError("render: --data-inr needs --volume results/<scene>/volume.zarr, not --scene-config")
     if a.scene_config:
         scene = load_scene_file(Path(a.scene_config), _device(a))
-        if a.data_inr:
-            raise ValueError("render: --data-inr needs --volume results/<scene>/volume.zarr, not --scene-config")
     else:
         tf = parse_json(a.tf_json, "--tf-json") if a.tf_json else None
         scene = load_render_scene(Path(a.volume), Path(a.data_inr) if a.data_inr else None, _device(a), tf)

@@ -66,6 +66,14 @@ def ms_ssim(pred: torch.Tensor, target: torch.Tensor) -> float | None:
     return float(_ms_ssim(a, b, data_range=1.0, win_size=MS_SSIM_WINDOW))
 
 
+def ms_ssim_status(side: int) -> str:
+    """Whether images `side` pixels wide get an MS-SSIM, in words for the metrics file."""
+    if side >= MS_SSIM_MIN_SIDE:
+        return "standard (5 scales, 11-pixel Gaussian window)"
+    return f"not computed: {side}-pixel images are below the {MS_SSIM_MIN_SIDE} pixels that 5 scales of the " \
+           "standard window need"
+
+
 def lpips_model():
     """(model, None) when LPIPS with VGG weights can be built from files on this machine, else
     (None, reason). Never downloads: these machines are offline, and a fake score would be worse than none."""

@@ -378,6 +378,11 @@ def _march(o, d, t0, t1, dt: float, macro: MacroGrid | None, plan: MarchPlan, st
     return iterations
 
 
+def shading_name(phong: bool) -> str:
+    """How the image modes shade a sample (what a report states beside image metrics)."""
+    return "Blinn-Phong" if phong else "unlit (colour x (0.1 + 0.9 g))"
+
+
 @dataclass
 class Shading:
     phong: bool = False

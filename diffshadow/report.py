@@ -28,7 +28,7 @@ def _plt():
     return plt
 
 
-def _decade_labels(axis) -> None:
+def decade_labels(axis) -> None:
     """Label a log axis at its decades only: the minor labels overlap."""
     from matplotlib.ticker import NullFormatter
 
@@ -163,7 +163,7 @@ def ddim_curve_figure(state: dict, volume, tf, lights: np.ndarray, out: Path, *,
     p = rows[-1]
     ax.plot([p["seconds_per_inr"]], [p["psnr_median"]], "s", label="DDPM 500")
     ax.set_xscale("log")
-    _decade_labels(ax.xaxis)
+    decade_labels(ax.xaxis)
     ax.set_xlabel("seconds per shadow INR (one INR alone, CPU)")
     ax.set_ylabel(f"median voxel PSNR over {len(sel)} training lights (dB)")
     # at least 2 dB of axis: a spread of a tenth of a dB is sampling noise, not a trend
@@ -207,8 +207,8 @@ def shadow_curve_figure(bench_json: dict, out: Path) -> None:
             ax.plot([r["seconds"] for r in rows], [r["mean_err"] for r in rows], "o-", label=f"{name} {method}")
     ax.set_xscale("log")
     ax.set_yscale("log")
-    _decade_labels(ax.xaxis)
-    _decade_labels(ax.yaxis)
+    decade_labels(ax.xaxis)
+    decade_labels(ax.yaxis)
     ax.set_xlabel("seconds per shadow grid")
     ax.set_ylabel(f"mean |error| vs march at {bench_json['reference_step']} voxel")
     ax.legend()

@@ -9,13 +9,12 @@ import json
 from pathlib import Path
 
 from diffshadow.io import atomic_write_text
-from diffshadow.lights import read_lights
 
 MIB = 2**20
 
 
-def _num(value, fmt: str = ".2f", unit: str = "") -> str:
-    return "n/a" if value is None else f"{value:{fmt}}{unit}"
+def _num(value, fmt: str = ".2f") -> str:
+    return "n/a" if value is None else f"{value:{fmt}}"
 
 
 def _table(title: str, header: list[str], rows: list[list], note: str = "") -> str:
@@ -39,7 +38,6 @@ class RunResults:
         self.images = json.loads((results / "image_metrics.json").read_text())
         self.bench = _read_json(results / "bench.json")
         self.finetune = _read_json(results / "finetune_metrics.json")
-        self.n_train = len(read_lights(results / "lights.json")["train"])
         costs = results / "stage_costs.tsv"
         lines = costs.read_text().splitlines() if costs.exists() else []
         self.costs = [dict(zip(lines[0].split("\t"), line.split("\t"), strict=True)) for line in lines[1:]]
@@ -148,7 +146,7 @@ class RunResults:
                                 "Measured side by side in one process (diffshadow bench render); full figures "
                                 "in bench.json."))
         sb = v["storage_bytes"]
-        n = self.n_train
+        n = seen["count"]
         parts.append(_table("Storage of the shadow cache", ["what", "MiB"],
                             [["diffusion model (weights and standardiser)", _num(sb["model"] / MIB)],
                              [f"{n} stage-1 SIRENs (fp32)", _num(sb["sirens"] / MIB)],

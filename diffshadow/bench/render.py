@@ -268,11 +268,10 @@ def _plot(results: dict, path: Path) -> None:
     ax[2].set_xlabel("seconds per frame")
     ax[2].set_ylabel(f"PSNR vs step {results['step_curve']['reference_step']} (dB)")
     ax[2].set_xscale("log")
-    from matplotlib.ticker import NullFormatter
+    from diffshadow.report import decade_labels
 
-    for a in (ax[0], ax[3]):  # decade labels only: the minor ones overlap
-        a.yaxis.set_minor_formatter(NullFormatter())
-    ax[2].xaxis.set_minor_formatter(NullFormatter())
+    for axis in (ax[0].yaxis, ax[3].yaxis, ax[2].xaxis):
+        decade_labels(axis)
     handles, labels = ax[0].get_legend_handles_labels()
     fig.legend(handles, labels, loc="upper right", ncol=len(labels))  # one legend, clear of the bars
     fig.suptitle(f"{results.get('scene', '')} on {results['device']}")

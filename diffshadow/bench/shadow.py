@@ -100,7 +100,8 @@ def _plot(results: dict, path: Path) -> None:
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
-    from matplotlib.ticker import NullFormatter
+
+    from diffshadow.report import decade_labels
 
     names = list(results["volumes"])
     fig, axes = plt.subplots(1, len(names), figsize=(4.2 * len(names), 3.8), squeeze=False)
@@ -118,8 +119,8 @@ def _plot(results: dict, path: Path) -> None:
         ax.set_ylabel("mean |error| vs march @ 1/8 voxel")
         ax.grid(True, which="both", alpha=0.3)
         ax.legend(fontsize=8)
-        for axis in (ax.xaxis, ax.yaxis):  # decade labels only: the minor ones overlap
-            axis.set_minor_formatter(NullFormatter())
+        decade_labels(ax.xaxis)
+        decade_labels(ax.yaxis)
     # two lines: one panel (one volume) is narrower than the title on one line
     fig.suptitle("Ground-truth shadow: time vs error\n(point labels: step in voxels)", fontsize=10)
     fig.tight_layout(rect=(0, 0, 1, 0.9))  # room for the suptitle

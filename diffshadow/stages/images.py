@@ -15,8 +15,8 @@ from diffshadow.diffusion.finetune import render_targets as targets
 from diffshadow.evaluate import image_evaluation
 from diffshadow.io import atomic_write_text, finite_json
 from diffshadow.lights import read_lights
-from diffshadow.metrics import MS_SSIM_MIN_SIDE, lpips_model
-from diffshadow.render import Camera, RenderScene, default_views, write_png
+from diffshadow.metrics import lpips_model, ms_ssim_status
+from diffshadow.render import Camera, RenderScene, default_views, shading_name, write_png
 from diffshadow.store import open_store
 
 
@@ -81,10 +81,7 @@ def evaluate_images(volume_path: Path, lights_path: Path, data_inr: Path, weight
                               phong=bool(cfg.get("phong", False)))
     result.update({"lpips": "available (VGG)" if lpips is not None else f"unavailable: {reason}",
                    "image_size": cfg["image_size"], "views": cfg["views"], "step": cfg["step"],
-                   "shading": "Blinn-Phong" if cfg.get("phong") else "unlit (colour x (0.1 + 0.9 g))",
-                   "ms_ssim": "standard (5 scales, 11-pixel Gaussian window)" if cfg["image_size"] >= MS_SSIM_MIN_SIDE
-                   else f"not computed: {cfg['image_size']}-pixel images are below the {MS_SSIM_MIN_SIDE} pixels that "
-                        "5 scales of the standard window need",
+                   "shading": shading_name(bool(cfg.get("phong"))), "ms_ssim": ms_ssim_status(cfg["image_size"]),
                    "reference": "gt: raw scalar field and shadow_grid (march), same step",
                    "data_inr_psnr": scene.data_inr.psnr if scene.data_inr is not None else None})
     atomic_write_text(out, json.dumps(finite_json(result), indent=2) + "\n")

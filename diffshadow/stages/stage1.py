@@ -15,8 +15,6 @@ from diffshadow.lights import make_light_sets, read_lights, subset_indices, writ
 from diffshadow.sampling import seeded
 from diffshadow.siren import SirenConfig, WeightLayout, init_siren
 from diffshadow.store import collect_subsets, write_store, write_subset
-from diffshadow.transfer import TransferFunction
-from diffshadow.volume import load_volume
 
 
 def heldout_seed(fit: FitConfig, subset: int) -> int:
@@ -33,8 +31,7 @@ def lights(out: Path, *, sphere: int, count: int, center, unseen: int, seed: int
 
 def prepare_volume(out: Path, scene: dict) -> None:
     """The scene's volume normalised to [0, 1] in its box, with its transfer function."""
-    tf = TransferFunction.from_config(scene["transfer_function"])
-    volume = load_volume(scene["volume"], **scene.get("load", {}))
+    volume, tf = artifacts.scene_volume(scene)
     artifacts.save_prepared(out, volume, tf)
     print(f"wrote {out}: {volume.name} {volume.dims}, extent {volume.extent.round(4).tolist()}")
 

@@ -126,10 +126,9 @@ def sample_shadows(checkpoint: Path, truth_path: Path, lights_path: Path, out: P
 def evaluate_voxels(checkpoint: Path, weights_path: Path, generated_path: Path, truth_path: Path,
                     volume_path: Path, lights_path: Path, out: Path, *, blend_k: int, ddpm_lights: int) -> None:
     """`voxel_metrics.json`: generated against stage 1 and the baselines, storage, time per INR."""
-    volume, _ = artifacts.load_prepared(volume_path)
     result = voxel_metrics(artifacts.load_checkpoint(checkpoint), open_store(weights_path),
                            open_store(generated_path), artifacts.read_eval_truth(truth_path),
-                           read_lights(lights_path), blend_k=blend_k, grid_voxels=int(np.prod(volume.data.shape)),
-                           ddpm_lights=ddpm_lights)
+                           read_lights(lights_path), blend_k=blend_k,
+                           grid_voxels=artifacts.prepared_voxels(volume_path), ddpm_lights=ddpm_lights)
     atomic_write_text(out, json.dumps(result, indent=1) + "\n")
     print(json.dumps(result, indent=1))

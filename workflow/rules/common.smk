@@ -6,6 +6,7 @@ from diffshadow.config import ConfigError as _ConfigError
 from diffshadow.config import as_json as _as_json
 from diffshadow.config import scene_config as _scene_config
 from diffshadow.lights import n_subsets as _n_subsets
+from diffshadow.render import shading_name as _shading_name
 from diffshadow.volume import resolve_path as _resolve_path
 
 _SCENES = {}
@@ -80,7 +81,7 @@ def check_scenes():
 def summary_inputs(wildcards):
     """What the scene's summary tables read: the metrics, the bench, the stage costs (and fine-tuning's)."""
     files = {name: f"results/{wildcards.scene}/{name}" for name in
-             ("voxel_metrics.json", "image_metrics.json", "bench.json", "stage_costs.tsv", "lights.json")}
+             ("voxel_metrics.json", "image_metrics.json", "bench.json", "stage_costs.tsv")}
     if scene_config(wildcards.scene)["finetune"]["enabled"]:
         files["finetune_metrics.json"] = f"results/{wildcards.scene}/finetune_metrics.json"
     return {k.replace(".", "_"): v for k, v in files.items()}
@@ -93,7 +94,7 @@ def caption_values(scene):
     return {"scene": scene, "train": lights["count"], "unseen": lights["unseen"], "eval_points": cfg["fit"]["eval_points"],
             "ddim_steps": cfg["diffusion"]["ddim_steps"], "image_size": render["image_size"], "views": render["views"],
             "lights_per_set": render["lights_per_set"], "step": render["step"],
-            "shading": "Blinn-Phong" if render.get("phong") else "unlit (colour x (0.1 + 0.9 g))"}
+            "shading": _shading_name(bool(render.get("phong")))}
 
 
 check_scenes()
