@@ -19,10 +19,12 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from diffshadow.capacity import Choice
 from diffshadow.data_inr import DataInr
 from diffshadow.diffusion.finetune import RayBundle
 from diffshadow.diffusion.train import TrainingData
 from diffshadow.evaluate import EvalTruth
+from diffshadow.fit import Stage1Layout
 from diffshadow.io import atomic_torch_save, write_zarr_group
 from diffshadow.render import Camera, RenderScene
 from diffshadow.siren import Siren, SirenConfig, WeightLayout
@@ -81,22 +83,33 @@ def is_prepared(path: str | Path) -> bool:
 # ------------------------------------------------------------------------------------- shared initial SIREN
 
 
-def save_siren_init(path: str | Path, weights: torch.Tensor, layout: WeightLayout, siren: SirenConfig) -> None:
-    atomic_torch_save(path, {"weights": weights, "layout": layout.to_config(), "siren": siren.to_config()})
+def save_siren_init(path: str | Path, chosen: Stage1Layout) -> None:
+    atomic_torch_save(path, {"weights": chosen.init, "layout": chosen.layout.to_config(),
+                             "siren": chosen.siren.to_config(), "fit_steps": chosen.steps,
+                             "capacity": chosen.choice.to_dict()})
 
 
-def load_siren_init(path: str | Path, layout: WeightLayout) -> torch.Tensor:
-    """The flat initial weights; refused when they were fitted for another SIREN layout."""
+def load_siren_init(path: str | Path, siren: SirenConfig) -> Stage1Layout:
+    """preoptimize's init, SIREN size and fit steps; refused when made from other siren settings than `siren`
+    (the configured start of the width ladder)."""
     try:
         state = torch.load(path, map_location="cpu", weights_only=True)
     except FileNotFoundError:
         raise ArtifactError(f"{path}: no such file (preoptimize's siren_init.pt)") from None
-    if state.get("layout") != layout.to_config():
-        raise ArtifactError(f"{path}: SIREN layout differs from the config's siren settings; rerun preoptimize")
-    return state["weights"]
-
-
-# ---------------------------------------------------------------------------------------- geometry points
+    try:
+        chosen = SirenConfig.from_config(state["siren"])
+        capacity = state["capacity"]
+        choice = Choice(float(capacity["target_psnr"]), list(capacity["rungs"]))
+        start = SirenConfig(int(choice.rungs[0]["width"]), chosen.blocks)
+        steps = int(state["fit_steps"])
+    except (KeyError, IndexError, TypeError, ValueError) as e:
+        raise ArtifactError(f"{path}: not a siren_init.pt of this version ({e!r} missing); rerun preoptimize") from None
+    if start != siren:
+        raise ArtifactError(f"{path}: made for siren {start.to_config()}, the config says {siren.to_config()}; "
+                            f"rerun preoptimize")
+    if state.get("layout") != WeightLayout.for_siren(chosen).to_config():
+        raise ArtifactError(f"{path}: its weight layout does not match its SIREN size; rerun preoptimize")
+    return Stage1Layout(state["weights"], chosen, steps, choice)
 
 
 def write_geometry_points(path: str | Path, points: torch.Tensor, values: torch.Tensor, lights: np.ndarray,

@@ -86,7 +86,7 @@ def _finetune_render(a):
 
     stage2.finetune_render(Path(a.checkpoint), Path(a.weights), Path(a.points), Path(a.targets), Path(a.out),
                            Path(a.metrics), cfg=FinetuneConfig.from_config(_cfg(a)["finetune"]),
-                           device=_device(a), threads=a.threads)
+                           device=_device(a), threads=a.threads, volume_path=Path(a.volume) if a.volume else None)
 
 
 def _ddp_processes(a):
@@ -113,7 +113,8 @@ def _evaluate_voxels(a):
     from diffshadow.stages import stage2
 
     stage2.evaluate_voxels(Path(a.checkpoint), Path(a.weights), Path(a.generated), Path(a.truth), Path(a.volume),
-                           Path(a.lights), Path(a.out), blend_k=a.blend_k, ddpm_lights=a.ddpm_lights)
+                           Path(a.lights), Path(a.out), blend_k=a.blend_k, ddpm_lights=a.ddpm_lights,
+                           geometry_checkpoint=Path(a.geometry_checkpoint) if a.geometry_checkpoint else None)
 
 
 # ------------------------------------------------------------------------------------- images, report
@@ -238,8 +239,9 @@ def build_parser() -> argparse.ArgumentParser:
          "volume", "lights", config='{"diffusion": {...}}')
     _add(sub, "train-diffusion", _train_diffusion, "train the weight-space diffusion model (geometry loss)",
          "weights", "points", config='{"diffusion": {...}}')
-    _add(sub, "finetune-render", _finetune_render, "rendering-loss fine-tuning (under torchrun for DDP)",
-         "checkpoint", "weights", "points", "targets", "metrics", config='{"finetune": {...}}')
+    p = _add(sub, "finetune-render", _finetune_render, "rendering-loss fine-tuning (under torchrun for DDP)",
+             "checkpoint", "weights", "points", "targets", "metrics", config='{"finetune": {...}}')
+    p.add_argument("--volume", help="the prepared volume: validation lights choose the model kept")
     p = _add(sub, "ddp-processes", _ddp_processes, "how many DDP processes to launch here (prints a number)",
              out=False)
     p.add_argument("--nproc", type=int, required=True, help="processes asked for (finetune.nproc)")
@@ -254,6 +256,7 @@ def build_parser() -> argparse.ArgumentParser:
              "checkpoint", "weights", "generated", "truth", "volume", "lights", device=False)
     p.add_argument("--blend-k", type=int, default=4)
     p.add_argument("--ddpm-lights", type=int, default=8, help="training lights sampled with 500-step DDPM too")
+    p.add_argument("--geometry-checkpoint", help="the model before fine-tuning: unseen lights before and after")
     _add(sub, "train-data-inr", _train_data_inr, "fit the data INR (a SIREN of the scalar field)", "volume",
          config='{"data_inr": {...}}')
     _add(sub, "render-targets", _render_targets, "ground-truth images per training light and view", "volume",

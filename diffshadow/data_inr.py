@@ -8,12 +8,13 @@ from __future__ import annotations
 import hashlib
 import json
 import time
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 
 import numpy as np
 import torch
 
+from diffshadow.capacity import Rung, climb, ladder
 from diffshadow.config import section
 from diffshadow.grid import cell_ranges, lookup_grids, voxel_points
 from diffshadow.io import atomic_torch_save, resume
@@ -35,6 +36,8 @@ class DataInrConfig:
     visible_fraction: float  # share of points near voxels the TF makes visible
     checkpoint_every: int
     seed: int
+    target_psnr: float = 0.0  # voxel PSNR to reach by growing steps, then width (capacity.ladder); 0: fixed size
+    max_width: int = 256
 
     @classmethod
     def from_config(cls, d: dict | None = None) -> DataInrConfig:
@@ -75,7 +78,27 @@ def voxel_errors(model: Siren, volume: Volume, *, chunk: int = 1 << 16,
 
 def fit_data_inr(volume: Volume, tf: TransferFunction, cfg: DataInrConfig, *, checkpoint: Path | None = None,
                  device: torch.device | str = "cpu", log=print) -> DataInr:
-    """Fit the data INR to trilinear samples of the volume (Adam, cosine decay, resumable)."""
+    """The data INR of the configured size, grown (steps, then width) until its voxel PSNR reaches
+    `cfg.target_psnr`; `config["capacity"]` records every size tried."""
+    rungs = ladder(cfg.width, cfg.steps, max(cfg.max_width, cfg.width))
+
+    def attempt(rung: Rung) -> tuple[DataInr, float]:
+        sized = replace(cfg, width=rung.width, steps=rung.steps)
+        ckpt = None if checkpoint is None else checkpoint.with_name(f"{checkpoint.name}.w{rung.width}s{rung.steps}")
+        inr = fit_data_inr_once(volume, tf, sized, checkpoint=ckpt, device=device, log=log)
+        return inr, inr.psnr
+
+    inr, choice = climb(rungs, cfg.target_psnr, attempt, log=log, what="data INR")
+    inr.config = {**inr.config, "capacity": choice.to_dict()}  # the stored size, and how it was chosen
+    if warning := choice.warning("the data INR's voxel PSNR", "data_inr.max_width or data_inr.steps"):
+        log(warning)
+    return inr
+
+
+def fit_data_inr_once(volume: Volume, tf: TransferFunction, cfg: DataInrConfig, *, checkpoint: Path | None = None,
+                      device: torch.device | str = "cpu", log=print) -> DataInr:
+    """Fit a data INR of exactly cfg's size to trilinear samples of the volume (Adam, cosine decay,
+    resumable)."""
     device = torch.device(device)
     model = Siren(cfg.siren, seeded(cfg.seed, 7)).to(device)
     opt = torch.optim.Adam(model.parameters(), lr=cfg.lr)

@@ -124,9 +124,11 @@ def _median(a) -> float:
 
 
 def voxel_metrics(state: dict, stage1, generated, truth: EvalTruth, light_sets: dict, *, blend_k: int,
-                  grid_voxels: int, ddpm_lights: int = 8, log=print) -> dict:
+                  grid_voxels: int, ddpm_lights: int = 8, geometry_state: dict | None = None, log=print) -> dict:
     """`voxel_metrics.json`: generated SIRENs (seen and unseen) against the ground truth, beside the stage-1
-    SIRENs, the nearest and blend baselines, DDIM vs DDPM on `ddpm_lights` training lights, and storage."""
+    SIRENs, the nearest and blend baselines, DDIM vs DDPM on `ddpm_lights` training lights, and storage.
+    With `geometry_state` (the model before rendering-loss fine-tuning), the unseen lights are also sampled
+    from it: what fine-tuning did to lights it never saw."""
     from diffshadow.diffusion.sample import generate, load_sampler
 
     train, unseen = light_sets["train"], light_sets["unseen"]
@@ -157,6 +159,15 @@ def voxel_metrics(state: dict, stage1, generated, truth: EvalTruth, light_sets: 
                             "blend_psnr_median": _median(blend["box"]),
                             "blend_k": blend_k,
                             "nearest_angle_median_deg": float(np.degrees(np.median(angles[:, 0])))}
+        if geometry_state is not None:
+            g_model, g_std, _, _ = load_sampler(geometry_state)
+            before = generate(g_model, g_std, unseen, method="ddim", steps=int(cfg["ddim_steps"]),
+                              seed=int(cfg["seed"]), temperature=cfg["temperature"]).numpy()
+            before_psnr = psnr_per_light(truth.sirens(before, layout, siren), truth_unseen)["box"]
+            result["unseen"]["geometry_only_psnr_median"] = _median(before_psnr)
+            result["unseen"]["finetune_change_median_db"] = _median(gen_unseen["box"] - before_psnr)
+    result["stage1"] = {"width": siren.width, "blocks": siren.blocks, "parameters": layout.n_params,
+                        "capacity": (stage1.config or {}).get("capacity")}
     # DDIM vs 500-step DDPM on a spread of training lights: quality on the same lights, time per INR
     ddim_steps = int(cfg["ddim_steps"])
     sel = pick(len(train), ddpm_lights)

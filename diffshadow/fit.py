@@ -11,19 +11,20 @@ from __future__ import annotations
 import hashlib
 import json
 import time
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 
 import numpy as np
 import torch
 
+from diffshadow.capacity import Choice, Rung, climb, ladder
 from diffshadow.config import section
 from diffshadow.grid import lookup_grids
 from diffshadow.io import atomic_torch_save, resume
 from diffshadow.metrics import psnr
 from diffshadow.sampling import PointSampler, seeded
 from diffshadow.shadow import ShadowField, shadow_grid, transmittance
-from diffshadow.siren import BatchedSiren, SirenConfig, WeightLayout, box_to_siren, cosine_lr
+from diffshadow.siren import BatchedSiren, SirenConfig, WeightLayout, box_to_siren, cosine_lr, init_siren
 from diffshadow.transfer import TransferFunction
 from diffshadow.volume import Volume, refine
 
@@ -74,6 +75,8 @@ class FitConfig:
     min_psnr: float  # held-out box PSNR below this fails the subset instead of storing it; 0: off
     precision: str  # or "bfloat16": autocast for the SIREN's forward (see docs/numerics.md)
     seed: int
+    target_psnr: float = 0.0  # held-out PSNR of preoptimize's probe light to reach by growing steps, then width
+    max_width: int = 128  # the SIREN width ladder's top (capacity.ladder)
     # every SIREN of every subset sees the same points at a step: the sampling noise in the weights is then
     # common to all lights, so neighbouring lights' SIRENs stay close in weight space (docs/tuning.md)
     shared_points: bool = False
@@ -246,3 +249,75 @@ def evaluate_psnr(
             truth = torch.stack([transmittance(field, tf, w, p.to(device)) for w, p in zip(lights, pts, strict=True)])
             out.append(psnr(pred, truth, dim=1).cpu().numpy())
     return out[0], out[1]
+
+
+PREOPTIMIZE_STREAM, PROBE_STREAM = -1, -3  # random streams apart from every subset's (0..) and SHARED_STREAM
+
+
+@dataclass
+class Stage1Layout:
+    """preoptimize's result: the shared initial weights, the SIREN size and the fit steps every subset uses,
+    and the record of the sizes tried (`capacity.Choice`)."""
+
+    init: torch.Tensor
+    siren: SirenConfig
+    steps: int
+    choice: Choice
+
+    @property
+    def layout(self) -> WeightLayout:
+        return WeightLayout.for_siren(self.siren)
+
+
+def probe_light(lights: np.ndarray) -> int:
+    """The training light farthest from light 0 (the pre-optimised one): the hardest fit from its init."""
+    lights = np.asarray(lights, dtype=np.float64)
+    return int(np.argmin(lights @ lights[0])) if len(lights) > 1 else 0
+
+
+def choose_layout(volume: Volume, tf: TransferFunction, lights: np.ndarray, siren: SirenConfig, cfg: FitConfig, *,
+                  preoptimize_steps: int, preoptimize_lr: float, device: torch.device | str = "cpu",
+                  log=print) -> Stage1Layout:
+    """The shared init (one SIREN fitted to light 0) and one SIREN size for every subset of the scene.
+
+    With `cfg.target_psnr` > 0, a probe fits the light farthest from light 0 from the init exactly as a
+    subset would, and its held-out PSNR decides: below the target, the fit steps double, then the width
+    does (capacity.ladder). Without a target, the configured size is kept and nothing is probed.
+    """
+    lights = np.asarray(lights, dtype=np.float64)
+    pre = replace(cfg, steps=int(preoptimize_steps), lr=float(preoptimize_lr))
+    probe = probe_light(lights)
+    inits: dict[int, torch.Tensor] = {}
+
+    def init_for(width: int) -> torch.Tensor:
+        if width not in inits:
+            s = SirenConfig(width, siren.blocks)
+            layout = WeightLayout.for_siren(s)
+            init = layout.flatten(init_siren(s, seeded(cfg.seed, PREOPTIMIZE_STREAM)))
+            if pre.steps > 0:
+                log(f"pre-optimising one SIREN of width {width} on light 0 for {pre.steps} steps")
+                init = fit_sirens(init, layout, s, volume, tf, lights[:1], pre, stream=PREOPTIMIZE_STREAM,
+                                  light_index=[0], device=device, log=log)[0]
+            inits[width] = init
+        return inits[width]
+
+    def attempt(rung: Rung) -> tuple[Stage1Layout, float]:
+        s = SirenConfig(rung.width, siren.blocks)
+        init = init_for(rung.width)
+        if cfg.target_psnr <= 0:
+            return Stage1Layout(init, s, rung.steps, Choice(0.0)), float("nan")
+        layout = WeightLayout.for_siren(s)
+        log(f"probe: fitting light {probe} (the farthest from light 0) at width {rung.width} for {rung.steps} steps")
+        w = fit_sirens(init, layout, s, volume, tf, lights[probe:probe + 1], replace(cfg, steps=rung.steps),
+                       stream=PROBE_STREAM, light_index=[probe], device=device, log=lambda m: None)
+        box, _ = evaluate_psnr(w, layout, s, volume, tf, lights[probe:probe + 1], n_points=cfg.eval_points,
+                               seed=cfg.seed + 104729, device=device)
+        log(f"probe: light {probe} held-out PSNR {float(box[0]):.2f} dB (target {cfg.target_psnr:g} dB)")
+        return Stage1Layout(init, s, rung.steps, Choice(0.0)), float(box[0])
+
+    rungs = ladder(siren.width, cfg.steps, max(cfg.max_width, siren.width))
+    chosen, choice = climb(rungs, cfg.target_psnr, attempt, log=log, what="stage-1 probe")
+    chosen.choice = choice
+    if warning := choice.warning(f"stage 1's probe light {probe}", "fit.max_width or fit.steps"):
+        log(warning)
+    return chosen

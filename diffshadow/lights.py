@@ -95,6 +95,19 @@ def unseen_directions(train, center, count: int, *, seed: int = 0, min_angle: fl
     return np.asarray(out[:count])
 
 
+def between_lights(train, n: int) -> np.ndarray:
+    """`n` directions halfway between a spread of training lights and each one's nearest other training light:
+    lights that no SIREN was fitted to, for validation (the unseen test set is drawn at random instead)."""
+    train = np.asarray(train, dtype=np.float64)
+    if len(train) < 2 or n <= 0:
+        return np.zeros((0, 3))
+    picks = sorted(set(np.linspace(0, len(train) - 1, min(n, len(train))).round().astype(int).tolist()))
+    cos = (train[picks][:, None, :] * train[None, :, :]).sum(-1)  # elementwise: no BLAS summation order
+    cos[np.arange(len(picks)), picks] = -np.inf
+    mid = train[picks] + train[np.argmax(cos, axis=1)]
+    return mid / np.linalg.norm(mid, axis=1, keepdims=True)
+
+
 def _orthonormal_basis(c: np.ndarray) -> np.ndarray:
     helper = np.array([1.0, 0.0, 0.0]) if abs(c[0]) < 0.9 else np.array([0.0, 1.0, 0.0])
     u = np.cross(c, helper)

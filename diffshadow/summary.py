@@ -68,6 +68,9 @@ class RunResults:
             rows.append(("run cost (summed over jobs)", f"{float(total['wall_s']) / 60:.1f} min wall, "
                          f"{int(total['jobs'])} jobs"))
         rows.append(("time per shadow INR (DDIM)", f"{v['seconds_per_inr']['ddim']:.3f} s"))
+        sizes = self.sizes()
+        if sizes:
+            rows.append(("SIREN sizes chosen", ", ".join(f"{r[0]} width {r[1]} ({r[4]} steps)" for r in sizes)))
         return rows
 
     def _fps(self) -> str:
@@ -77,6 +80,22 @@ class RunResults:
         fps = self.bench["sizes"][size].get("fps", {})
         parts = [f"{mode} {fps[mode]:.2f}" for mode in ("noshadow", "inr", "naive") if mode in fps]
         return f"frames per second at {size}²: " + ", ".join(parts) if parts else ""
+
+    def sizes(self) -> list[list]:
+        """Rows of the chosen-sizes table: stage-1 SIRENs and the data INR, with every size tried."""
+        rows = []
+        for name, size in (("stage-1 shadow SIRENs", self.voxel.get("stage1")),
+                           ("data INR", self.images.get("data_inr"))):
+            if not size:
+                continue
+            cap = size.get("capacity") or {}
+            tried = "; ".join(f"width {r['width']}, {r['steps']} steps: {_num(r['psnr'])} dB"
+                              for r in cap.get("rungs", []))
+            target = cap.get("target_psnr") or None
+            reached = _num(cap.get("psnr")) + ("" if cap.get("met", True) else " (missed)")
+            rows.append([name, size["width"], size["blocks"], f"{size['parameters']:,}", cap.get("steps", "n/a"),
+                         _num(target, "g"), reached, tried or "n/a"])
+        return rows
 
     def rst(self) -> str:
         """The scene's block of the landing page: a title and a two-column table of the headline numbers."""
@@ -95,6 +114,10 @@ class RunResults:
                  _num(seen.get("generated_psnr_visible_median")),
                  f"min {seen['generated_psnr_min']:.2f}; {seen['generated_minus_stage1_median_db']:+.2f} vs stage 1"]]
         if unseen:
+            if "geometry_only_psnr_median" in unseen:
+                rows.append(["unseen", "generated before fine-tuning (geometry loss only)",
+                             _num(unseen["geometry_only_psnr_median"]), "",
+                             f"fine-tuning changed it by {unseen['finetune_change_median_db']:+.2f} dB"])
             rows += [["unseen", "generated (DDIM)", _num(unseen["generated_psnr_median"]), "", ""],
                      ["unseen", f"blend of {unseen['blend_k']} nearest true shadows",
                       _num(unseen["blend_psnr_median"]), "", "baseline"],
@@ -145,6 +168,13 @@ class RunResults:
                                 ["image", *(f"{m} fps" for m in modes), *(f"{m} peak MiB" for m in modes)], rows,
                                 "Measured side by side in one process (diffshadow bench render); full figures "
                                 "in bench.json."))
+        sizes = self.sizes()
+        if sizes:
+            parts.append(_table("SIREN sizes chosen for this scene", ["network", "width", "blocks", "parameters",
+                                                                     "steps", "target (dB)", "reached (dB)", "tried"],
+                                sizes, "A stage with a target grows its SIREN until the target is reached: steps "
+                                "x2 first, then width x2 (capacity.ladder). Stage 1's PSNR is preoptimize's "
+                                "probe light (held-out points); the data INR's is over every voxel."))
         sb = v["storage_bytes"]
         n = seen["count"]
         parts.append(_table("Storage of the shadow cache", ["what", "MiB"],

@@ -164,3 +164,27 @@ def test_finetune_makes_no_tensor_on_the_implicit_default_device(setup, tmp_path
     with default_device_meta():
         guarded = finetune(state, data, FT, tmp_path / "b.ckpt", device="cpu", log=lambda m: None)["model"]
     assert all(torch.equal(reference[k], guarded[k]) for k in reference)
+
+
+def test_the_model_kept_is_the_last_one_not_below_the_geometry_stage_on_validation_lights(volume, setup, tmp_path):
+    from dataclasses import replace
+
+    from diffshadow.diffusion.finetune import validation_psnr
+    from diffshadow.diffusion.sample import load_sampler
+    from diffshadow.evaluate import EvalTruth
+    from diffshadow.lights import between_lights
+
+    _, _, _, data, state = setup
+    val = EvalTruth.compute(volume, TF, between_lights(LIGHTS, 3), 128, seed=1)
+    cfg = FinetuneConfig(**{**FT.__dict__, "epochs": 4, "lr": 3e-3})  # a large lr: epochs differ on validation
+    out = finetune(state, replace(data, val=val), cfg, tmp_path / "v.ckpt", log=lambda m: None)
+    history = out["selection"]["history"]
+    assert [e for e, _ in history] == [0, 1, 2, 3, 4]
+    floor = history[0][1]
+    assert out["selection"]["kept_epoch"] == max(e for e, v in history if v >= floor)
+    # the model returned, and the one on disk, is the kept one: scored again it gives the value recorded for it
+    model, std, layout, siren = load_sampler(out)
+    dcfg = DiffusionConfig.from_config(out["config"])
+    assert validation_psnr(model, std, val, layout, dcfg, siren, "cpu") == dict(history)[out["selection"]["kept_epoch"]]
+    on_disk = torch.load(tmp_path / "v.ckpt", weights_only=False)["model"]
+    assert all(torch.equal(on_disk[k], out["model"][k]) for k in on_disk)

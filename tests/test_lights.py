@@ -66,3 +66,16 @@ def test_cli_writes_json(tmp_path):
     back = np.stack([np.sin(theta) * np.cos(phi), np.sin(theta) * np.sin(phi), np.cos(theta)], axis=1)
     np.testing.assert_allclose(back, lights["train"], atol=1e-12)
     assert make_light_sets(300, 40, (0, 1, 1), 7) == raw
+
+
+def test_between_lights_are_halfway_and_new():
+    from diffshadow.lights import between_lights
+
+    train = fibonacci_sphere(40)[:12]
+    mid = between_lights(train, 5)
+    assert mid.shape == (5, 3) and np.allclose(np.linalg.norm(mid, axis=1), 1)
+    cos = np.clip(mid @ train.T, -1, 1)
+    top2 = np.sort(cos, axis=1)[:, -2:]
+    assert np.allclose(top2[:, 0], top2[:, 1])  # equally far from its two training lights
+    assert (cos < 1 - 1e-6).all()  # and none of them
+    assert between_lights(train[:1], 5).shape == (0, 3)

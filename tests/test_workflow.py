@@ -19,12 +19,14 @@ TINY = {
     "subset_size": 2,
     "preoptimize": {"steps": 5, "lr": 1.0e-3},
     # min_psnr 0: six steps fit nothing well; the floor itself is tested in tests/stress/test_siren_stress.py
-    "fit": {"steps": 6, "points": 128, "eval_points": 256, "grid_upsample": 1, "chunk": 0, "min_psnr": 0.0},
+    # target_psnr 0: the sizes as given (the ladder that grows them is tested in tests/test_capacity.py)
+    "fit": {"steps": 6, "points": 128, "eval_points": 256, "grid_upsample": 1, "chunk": 0, "min_psnr": 0.0,
+            "target_psnr": 0.0},
     "diffusion": {"preset": "tiny", "epochs": 3, "batch_size": 2, "geometry_points": 16, "presample_points": 64,
                   "checkpoint_every": 1, "ddim_steps": 5},
     "finetune": {"views": 1, "image_size": 16, "pixels": 4, "epochs": 2, "batch_size": 4, "nproc": 2,
                  "checkpoint_every": 1},
-    "data_inr": {"width": 8, "blocks": 1, "steps": 20, "points": 512},
+    "data_inr": {"width": 8, "blocks": 1, "steps": 20, "points": 512, "target_psnr": 0.0},
     "render": {"image_size": 16, "views": 1, "lights_per_set": 1, "bench_sizes": [8], "bench_repeats": 1,
                "bench_memory_sizes": [16]},
 }
@@ -333,8 +335,10 @@ def test_report_front_page_has_the_runs_numbers(finished):
         # the landing page (RST included into the report) and the summary tables both state the run's values
         assert f"{value:.2f} dB" in page and f"{value:.2f}" in tables
     assert "Scene nucleon" in page and "summary.html" in page
-    for title in ("Shadow INRs", "Sampling", "Rendering-loss fine-tuning", "Images", "Renderer", "Storage",
-                  "Stage costs"):
+    assert "before fine-tuning" in tables and voxel["unseen"]["finetune_change_median_db"] == pytest.approx(
+        voxel["unseen"]["generated_psnr_median"] - voxel["unseen"]["geometry_only_psnr_median"], abs=5.0)
+    for title in ("Shadow INRs", "Sampling", "Rendering-loss fine-tuning", "Images", "Renderer", "SIREN sizes chosen",
+                  "Storage", "Stage costs"):
         assert f"<h2>{title}" in tables, title
 
 

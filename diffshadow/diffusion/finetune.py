@@ -30,6 +30,7 @@ from diffshadow.config import section
 from diffshadow.diffusion.sample import generate, load_sampler
 from diffshadow.diffusion.schedule import Schedule
 from diffshadow.diffusion.train import DiffusionConfig, Standardizer, TrainingData, build_model
+from diffshadow.evaluate import EvalTruth, psnr_per_light
 from diffshadow.grid import ray_span
 from diffshadow.io import atomic_torch_save, resume
 from diffshadow.lights import fibonacci_sphere
@@ -41,7 +42,7 @@ from diffshadow.render import (
     front_to_back,
 )
 from diffshadow.sampling import seeded
-from diffshadow.siren import BatchedSiren, WeightLayout, box_to_siren
+from diffshadow.siren import BatchedSiren, SirenConfig, WeightLayout, box_to_siren
 from diffshadow.transfer import TransferFunction
 from diffshadow.volume import Volume
 
@@ -62,6 +63,10 @@ class FinetuneConfig:
     step: float  # renderer step (voxels)
     timeout_s: int  # collective timeout: a dead rank ends the job instead of hanging it
     seed: int
+    # lights halfway between training lights (lights.between_lights), scored at every checkpoint: the model
+    # kept is the last one whose median voxel PSNR there is not below the geometry stage's (0: no check)
+    val_lights: int = 8
+    val_points: int = 4096
 
     @classmethod
     def from_config(cls, d: dict | None = None) -> FinetuneConfig:
@@ -184,9 +189,26 @@ class FinetuneData:
     train: TrainingData
     bundle: RayBundle
     targets: torch.Tensor  # (L, V, H·W, 3)
+    val: EvalTruth | None = None  # exact shadows at validation lights (between training lights)
 
     def to(self, device) -> FinetuneData:
-        return FinetuneData(self.train.to(device), self.bundle.to(device), self.targets.to(device))
+        # the validation set stays on the CPU: it is scored there, between epochs
+        return FinetuneData(self.train.to(device), self.bundle.to(device), self.targets.to(device), self.val)
+
+
+@torch.no_grad()
+def validation_psnr(model, std: Standardizer, val: EvalTruth, layout: WeightLayout, dcfg: DiffusionConfig,
+                    siren_cfg, device) -> float:
+    """Median voxel PSNR (box points) of DDIM-generated SIRENs at the validation lights."""
+    was_training = model.training
+    model.eval()
+    try:
+        weights = generate(model, std, val.lights, method="ddim", steps=dcfg.ddim_steps, seed=dcfg.seed,
+                           temperature=dcfg.temperature, device=device).numpy()
+    finally:
+        model.train(was_training)
+    pred = val.sirens(weights, layout, siren_cfg)
+    return float(np.median(psnr_per_light(pred, val.of(val.lights))["box"]))
 
 
 def _draws(cfg: FinetuneConfig, dcfg: DiffusionConfig, epoch: int, light: int, n_params: int, n_points: int,
@@ -268,12 +290,31 @@ def finetune(geometry_state: dict, data: FinetuneData, cfg: FinetuneConfig, chec
     opt = torch.optim.AdamW(base.parameters(), lr=cfg.lr, weight_decay=dcfg.weight_decay)
     fp = fingerprint(geometry_state, cfg, data)
     start = 0
+    siren_cfg = SirenConfig.from_config(geometry_state["siren"])
+    # validation (rank 0): [epoch, median PSNR] per checkpoint, and the last model not below the geometry stage's
+    selection: dict = {"history": [], "kept_epoch": 0}
+    kept: dict = {"model": {k: v.detach().cpu().clone() for k, v in base.state_dict().items()}}
     if state := resume(checkpoint, fp, log=lambda m: log(f"rank {rank}: {m}"), map_location=device,
                        key="finetune_fingerprint"):
         base.load_state_dict(state["model"])
         opt.load_state_dict(state["optimizer"])
         start = int(state["finetune_epoch"])
+        selection = state.get("selection") or selection
+        kept["model"] = state.get("kept_model") or kept["model"]
         log(f"rank {rank}: resuming from {checkpoint} at epoch {start}/{cfg.epochs}")
+
+    def score(epoch: int) -> None:
+        if data.val is None or rank != 0:
+            return
+        value = validation_psnr(base, std, data.val, layout, dcfg, siren_cfg, device)
+        selection["history"].append([epoch, value])
+        floor = selection["history"][0][1]
+        if value >= floor:
+            selection["kept_epoch"] = epoch
+            kept["model"] = {k: v.detach().cpu().clone() for k, v in base.state_dict().items()}
+        log(f"validation: epoch {epoch}, median voxel PSNR {value:.2f} dB at {len(data.val.lights)} lights between "
+            f"training lights (geometry stage {floor:.2f} dB); keeping epoch {selection['kept_epoch']}")
+
     model = base
     if world > 1:
         from torch.nn.parallel import DistributedDataParallel
@@ -289,14 +330,18 @@ def finetune(geometry_state: dict, data: FinetuneData, cfg: FinetuneConfig, chec
             f"{len(data.bundle.count)} views per light, {cfg.epochs} epochs")
 
     def save(epoch: int) -> dict:
+        score(epoch)
         state = {**geometry_state, "model": base.state_dict(), "ema": None, "optimizer": opt.state_dict(),
-                 "finetune_fingerprint": fp, "finetune_epoch": epoch, "finetune": asdict(cfg)}
+                 "finetune_fingerprint": fp, "finetune_epoch": epoch, "finetune": asdict(cfg),
+                 "selection": selection, "kept_model": kept["model"] if data.val is not None else None}
         if rank == 0:
             atomic_torch_save(checkpoint, state)
         if world > 1:
             dist.barrier()
         return state
 
+    if start == 0:
+        score(0)  # the geometry stage's model: the floor
     state = None
     t_start = t_step = time.perf_counter()
     step_times: list[float] = []
@@ -333,6 +378,10 @@ def finetune(geometry_state: dict, data: FinetuneData, cfg: FinetuneConfig, chec
             return state
     if state is None:
         state = torch.load(checkpoint, map_location="cpu", weights_only=False)
+    if state.get("kept_model") is not None:  # the last epoch that kept validation at the geometry stage's level
+        state = {**state, "model": state["kept_model"], "kept_model": None}
+        if rank == 0:
+            atomic_torch_save(checkpoint, state)
     # per-rank cost, gathered to every rank: median seconds per step and peak memory
     mine = {"rank": rank, "median_step_s": float(np.median(step_times)) if step_times else None,
             "peak_mem_bytes": _peak_memory(device)}

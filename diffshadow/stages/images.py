@@ -83,11 +83,19 @@ def evaluate_images(volume_path: Path, lights_path: Path, data_inr: Path, weight
                    "image_size": cfg["image_size"], "views": cfg["views"], "step": cfg["step"],
                    "shading": shading_name(bool(cfg.get("phong"))), "ms_ssim": ms_ssim_status(cfg["image_size"]),
                    "reference": "gt: raw scalar field and shadow_grid (march), same step",
-                   "data_inr_psnr": scene.data_inr.psnr if scene.data_inr is not None else None})
+                   "data_inr_psnr": scene.data_inr.psnr if scene.data_inr is not None else None,
+                   "data_inr": _data_inr_size(scene.data_inr)})
     atomic_write_text(out, json.dumps(finite_json(result), indent=2) + "\n")
     for name, m in sorted(result["modes"].items()):
         print(f"{name:24s} PSNR {m['psnr']:.2f} dB  SSIM {m['ssim']:.4f}  over {m['count']} images")
     print(f"wrote {out}")
+
+
+def _data_inr_size(inr) -> dict | None:
+    if inr is None:
+        return None
+    return {"width": inr.model.cfg.width, "blocks": inr.model.cfg.blocks, "parameters": inr.n_params,
+            "psnr": inr.psnr, "capacity": inr.config.get("capacity")}
 
 
 def report_figures(results: Path, checkpoint: Path, cfg: dict, out: Path) -> None:

@@ -10,10 +10,9 @@ import numpy as np
 import torch
 
 from diffshadow import artifacts
-from diffshadow.fit import FitConfig, FitError, check_psnr, evaluate_psnr, fit_sirens
+from diffshadow.fit import FitConfig, FitError, check_psnr, choose_layout, evaluate_psnr, fit_sirens
 from diffshadow.lights import make_light_sets, read_lights, subset_indices, write_lights
-from diffshadow.sampling import seeded
-from diffshadow.siren import SirenConfig, WeightLayout, init_siren
+from diffshadow.siren import SirenConfig
 from diffshadow.store import collect_subsets, write_store, write_subset
 
 
@@ -38,18 +37,15 @@ def prepare_volume(out: Path, scene: dict) -> None:
 
 def preoptimize(volume_path: Path, lights_path: Path, out: Path, *, siren: SirenConfig, fit: FitConfig,
                 steps: int, lr: float, device: torch.device) -> None:
-    """One SIREN fitted to light 0: the initial weights of every other SIREN."""
+    """One SIREN fitted to light 0 (the initial weights of every other SIREN), and the SIREN size and fit
+    steps of every subset: grown until a probe light reaches `fit.target_psnr`."""
     volume, tf = artifacts.load_prepared(volume_path)
     train = read_lights(lights_path)["train"]
-    layout = WeightLayout.for_siren(siren)
-    fit = dataclasses.replace(fit, steps=int(steps), lr=float(lr))
-    init = layout.flatten(init_siren(siren, seeded(fit.seed, -1)))
-    if steps > 0:
-        print(f"pre-optimising one SIREN on light 0 for {fit.steps} steps", flush=True)
-        init = fit_sirens(init, layout, siren, volume, tf, train[:1], fit, stream=-1, light_index=[0],
-                          device=device)[0]
-    artifacts.save_siren_init(out, init, layout, siren)
-    print(f"wrote {out}")
+    chosen = choose_layout(volume, tf, train, siren, fit, preoptimize_steps=steps, preoptimize_lr=lr, device=device,
+                           log=lambda m: print(m, flush=True))
+    artifacts.save_siren_init(out, chosen)
+    print(f"wrote {out}: SIREN width {chosen.siren.width}, {chosen.siren.blocks} blocks "
+          f"({chosen.layout.n_params} parameters), {chosen.steps} fit steps per subset")
 
 
 def fit_subset(volume_path: Path, lights_path: Path, init_path: Path, subset: int, out: Path, *,
@@ -57,9 +53,10 @@ def fit_subset(volume_path: Path, lights_path: Path, init_path: Path, subset: in
     """The SIRENs of one light subset, fitted jointly and checked on held-out points (resumable)."""
     volume, tf = artifacts.load_prepared(volume_path)
     train = read_lights(lights_path)["train"]
-    layout = WeightLayout.for_siren(siren)
     idx = subset_indices(len(train), subset_size, subset)
-    init = artifacts.load_siren_init(init_path, layout)
+    chosen = artifacts.load_siren_init(init_path, siren)
+    init, layout, siren = chosen.init, chosen.layout, chosen.siren
+    fit = dataclasses.replace(fit, steps=chosen.steps)  # preoptimize's choice: one layout for every subset
     out = Path(out)
     where = f"fit_siren subset {subset} ({volume_path}"
     print(f"subset {subset}: fitting lights {idx[0]}..{idx[-1]} jointly", flush=True)
@@ -73,7 +70,7 @@ def fit_subset(volume_path: Path, lights_path: Path, init_path: Path, subset: in
     if fit.min_psnr > 0:
         check_psnr(box, idx, fit.min_psnr, f"{where})")
     write_subset(out, weights=weights.numpy(), light_index=idx, lights=train[idx], psnr=box, psnr_visible=vis,
-                 layout=layout, siren=siren, config=config)
+                 layout=layout, siren=siren, config={**config, "capacity": chosen.choice.to_dict()})
     print(f"wrote {out}: PSNR box median {float(np.median(box)):.2f} dB (min {box.min():.2f}), "
           f"visible median {float(np.median(vis)):.2f} dB")
 
@@ -85,3 +82,7 @@ def collect_weights(lights_path: Path, subset_paths: list[Path], out: Path) -> N
     print(f"wrote {out}: {len(train)} SIRENs of {store.layout.n_params} parameters; voxel PSNR median "
           f"{float(np.median(store.psnr)):.2f} dB, min {store.psnr.min():.2f} dB "
           f"(visible: median {float(np.median(store.psnr_visible)):.2f} dB)")
+    target = float((store.config.get("capacity") or {}).get("target_psnr") or 0.0)
+    if target > 0 and (median := float(np.median(store.psnr))) < target:
+        print(f"WARNING: stage-1 SIRENs reached a median {median:.2f} dB, below fit.target_psnr = {target:g} dB that "
+              f"preoptimize's probe light met; raise fit.steps or siren.width, or lower fit.target_psnr", flush=True)

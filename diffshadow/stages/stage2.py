@@ -19,7 +19,7 @@ from diffshadow.diffusion.train import DiffusionConfig, DiffusionError
 from diffshadow.diffusion.train import train_diffusion as train
 from diffshadow.evaluate import EvalTruth, psnr_per_light, voxel_metrics
 from diffshadow.io import atomic_write_text
-from diffshadow.lights import read_lights
+from diffshadow.lights import between_lights, read_lights
 from diffshadow.runtime import distributed, set_threads
 from diffshadow.store import WeightStore, open_store, write_store
 
@@ -53,8 +53,10 @@ def _summary(psnr: np.ndarray) -> dict:
 
 
 def finetune_render(checkpoint: Path, weights_path: Path, points_path: Path, targets_path: Path, out: Path,
-                    metrics_path: Path, *, cfg: FinetuneConfig, device: torch.device, threads: int = 0) -> None:
-    """Rendering-loss fine-tuning from the geometry-stage checkpoint, one DDP rank per process."""
+                    metrics_path: Path, *, cfg: FinetuneConfig, device: torch.device, threads: int = 0,
+                    volume_path: Path | None = None) -> None:
+    """Rendering-loss fine-tuning from the geometry-stage checkpoint, one DDP rank per process; with the
+    volume, the model kept is chosen on validation lights between the training lights."""
     with distributed(device, timeout_s=cfg.timeout_s) as ddp:
         set_threads(threads)
         rank, world = ddp.rank, ddp.world
@@ -64,7 +66,12 @@ def finetune_render(checkpoint: Path, weights_path: Path, points_path: Path, tar
         images, bundle, target_lights = artifacts.read_targets(targets_path)
         if not np.allclose(target_lights, train_data.lights.numpy()):
             raise ValueError(f"{targets_path}: its lights differ from {weights_path}'s; rerun render_targets")
-        data = FinetuneData(train_data, bundle, images)
+        val = None
+        if volume_path is not None and cfg.val_lights > 0 and rank == 0:
+            volume, tf = artifacts.load_prepared(volume_path)
+            lights = between_lights(train_data.lights.numpy(), cfg.val_lights)
+            val = EvalTruth.compute(volume, tf, lights, cfg.val_points, cfg.seed + 1)
+        data = FinetuneData(train_data, bundle, images, val)
         part = out.with_name(out.name + ".part")
         t0 = time.perf_counter()
         state = finetune(geometry, data, cfg, part, rank=rank, world=world, device=ddp.device, log=log)
@@ -75,7 +82,8 @@ def finetune_render(checkpoint: Path, weights_path: Path, points_path: Path, tar
         after = image_psnr_of_model(state, data)
         metrics = {"image_psnr_geometry_only": _summary(before), "image_psnr_finetuned": _summary(after),
                    "lights": len(before), "views": int(len(bundle.count)), "processes": world,
-                   "ranks": state.get("finetune_ranks"), "seconds": seconds, "config": cfg.__dict__}
+                   "ranks": state.get("finetune_ranks"), "seconds": seconds, "config": cfg.__dict__,
+                   "validation": state.get("selection")}
         print(f"image PSNR of generated shadows on training lights (foreground, {len(bundle.count)} views): "
               f"geometry only {before.mean():.2f} dB (min {before.min():.2f}), fine-tuned {after.mean():.2f} dB "
               f"(min {after.min():.2f}); {seconds:.0f} s on {world} process(es)")
@@ -124,11 +132,36 @@ def sample_shadows(checkpoint: Path, truth_path: Path, lights_path: Path, out: P
 
 
 def evaluate_voxels(checkpoint: Path, weights_path: Path, generated_path: Path, truth_path: Path,
-                    volume_path: Path, lights_path: Path, out: Path, *, blend_k: int, ddpm_lights: int) -> None:
-    """`voxel_metrics.json`: generated against stage 1 and the baselines, storage, time per INR."""
+                    volume_path: Path, lights_path: Path, out: Path, *, blend_k: int, ddpm_lights: int,
+                    geometry_checkpoint: Path | None = None) -> None:
+    """`voxel_metrics.json`: generated against stage 1 and the baselines, storage, time per INR; with the
+    geometry-stage checkpoint, unseen lights before and after fine-tuning."""
+    geometry = artifacts.load_checkpoint(geometry_checkpoint) if geometry_checkpoint else None
     result = voxel_metrics(artifacts.load_checkpoint(checkpoint), open_store(weights_path),
                            open_store(generated_path), artifacts.read_eval_truth(truth_path),
                            read_lights(lights_path), blend_k=blend_k,
-                           grid_voxels=artifacts.prepared_voxels(volume_path), ddpm_lights=ddpm_lights)
+                           grid_voxels=artifacts.prepared_voxels(volume_path), ddpm_lights=ddpm_lights,
+                           geometry_state=geometry)
     atomic_write_text(out, json.dumps(result, indent=1) + "\n")
     print(json.dumps(result, indent=1))
+    for line in quality_warnings(result):
+        print(line)
+
+
+def quality_warnings(result: dict, *, max_gap_db: float = 1.5) -> list[str]:
+    """One line per quality goal that `voxel_metrics.json` shows missed: generated seen lights more than
+    `max_gap_db` under stage 1, unseen lights under the blend baseline, fine-tuning that lowered unseen lights."""
+    out = []
+    gap = result["seen"]["generated_minus_stage1_median_db"]
+    if gap < -max_gap_db:
+        out.append(f"WARNING: generated SIRENs on seen lights are {-gap:.2f} dB under stage 1 (goal: within "
+                   f"{max_gap_db:g} dB); raise diffusion.epochs or use a larger diffusion.preset")
+    unseen = result.get("unseen")
+    if unseen and unseen["generated_psnr_median"] < unseen["blend_psnr_median"]:
+        out.append(f"WARNING: generated SIRENs on unseen lights ({unseen['generated_psnr_median']:.2f} dB) are under "
+                   f"the blend of the {unseen['blend_k']} nearest true shadows ({unseen['blend_psnr_median']:.2f} dB); "
+                   f"the training lights are too sparse for this scene: raise lights.count")
+    if unseen and unseen.get("finetune_change_median_db", 0.0) < -0.1:
+        out.append(f"WARNING: rendering-loss fine-tuning lowered unseen lights by "
+                   f"{-unseen['finetune_change_median_db']:.2f} dB; lower finetune.lr or finetune.epochs")
+    return out

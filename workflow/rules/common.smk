@@ -46,6 +46,13 @@ def sampler_checkpoint(wildcards):
     return f"results/{wildcards.scene}/diffusion_geometry.ckpt"
 
 
+def geometry_checkpoint(wildcards):
+    """The model before fine-tuning, for evaluate_voxels' unseen before/after (only when fine-tuning runs)."""
+    if scene_config(wildcards.scene)["finetune"]["enabled"]:
+        return {"geometry": f"results/{wildcards.scene}/diffusion_geometry.ckpt"}
+    return {}
+
+
 def finetune_json(scene):
     """finetune_render's settings without `nproc` (how many processes, not what they compute)."""
     return json.dumps({"finetune": {k: v for k, v in scene_config(scene)["finetune"].items() if k != "nproc"}},

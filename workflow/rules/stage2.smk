@@ -84,6 +84,7 @@ rule sample_shadows:
 
 rule evaluate_voxels:
     input:
+        unpack(geometry_checkpoint),
         checkpoint=sampler_checkpoint,
         weights="results/{scene}/weights.zarr",
         generated="results/{scene}/generated.zarr",
@@ -92,6 +93,8 @@ rule evaluate_voxels:
         lights="results/{scene}/lights.json",
     output:
         "results/{scene}/voxel_metrics.json",
+    params:
+        geometry=lambda wc, input: f"--geometry-checkpoint {input.geometry}" if "geometry" in input.keys() else "",
     threads: 2
     log:
         "results/{scene}/logs/evaluate_voxels.log",
@@ -102,7 +105,7 @@ rule evaluate_voxels:
     shell:
         "diffshadow evaluate-voxels --checkpoint {input.checkpoint} --weights {input.weights}"
         " --generated {input.generated} --truth {input.truth} --volume {input.volume} --lights {input.lights}"
-        " --threads {threads}"
+        " {params.geometry} --threads {threads}"
         " --out {output} 2>&1 | tee {log}"
 
 
@@ -133,6 +136,7 @@ rule finetune_render:
         weights="results/{scene}/weights.zarr",
         points="results/{scene}/geometry_points.zarr",
         targets="results/{scene}/targets.zarr",
+        volume="results/{scene}/volume.zarr",
     output:
         checkpoint="results/{scene}/diffusion.ckpt",
         metrics="results/{scene}/finetune_metrics.json",
@@ -155,5 +159,5 @@ rule finetune_render:
         "n=$(diffshadow ddp-processes --nproc {threads}) &&"
         " $DIFFSHADOW_TORCHRUN --nproc_per_node=$n -m diffshadow.cli finetune-render"
         " --checkpoint {input.checkpoint} --weights {input.weights} --points {input.points}"
-        " --targets {input.targets} --config-json {params.cfg:q} --threads 1"
+        " --targets {input.targets} --volume {input.volume} --config-json {params.cfg:q} --threads 1"
         " --metrics {output.metrics} --out {output.checkpoint} 2>&1 | tee {log}"

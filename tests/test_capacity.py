@@ -1,0 +1,94 @@
+"""Capacity that adapts to the volume: the ladder's order, where it stops, what it records and warns, the
+data INR and stage-1 layout grown by it, and preoptimize's file round trip."""
+
+import numpy as np
+import pytest
+from conftest import identity_tf
+
+from diffshadow.analytic import gaussian_blob
+from diffshadow.artifacts import ArtifactError, load_siren_init, save_siren_init
+from diffshadow.capacity import Rung, climb, ladder
+from diffshadow.data_inr import DataInrConfig, fit_data_inr
+from diffshadow.fit import FitConfig, choose_layout, probe_light
+from diffshadow.siren import SirenConfig
+from diffshadow.volume import Volume
+
+
+def test_ladder_doubles_steps_once_then_width():
+    assert ladder(32, 700, 128) == [Rung(32, 700), Rung(32, 1400), Rung(64, 1400), Rung(128, 1400)]
+    assert ladder(64, 10, 32) == [Rung(64, 10), Rung(64, 20)]  # max_width below the start: steps only
+    with pytest.raises(ValueError, match="width and steps"):
+        ladder(0, 10, 32)
+
+
+def test_climb_stops_at_the_first_rung_that_reaches_the_target():
+    psnr = {16: 30.0, 32: 36.0, 64: 41.0, 128: 45.0}
+    tried = []
+
+    def attempt(rung):
+        tried.append(rung)
+        return rung.width, psnr[rung.width] + (1.0 if rung.steps > 10 else 0.0)
+
+    result, choice = climb(ladder(16, 10, 128), 40.0, attempt, log=lambda m: None)
+    assert result == 64 and choice.met
+    assert [r["width"] for r in choice.rungs] == [16, 16, 32, 64]
+    assert choice.to_dict()["psnr"] == 42.0 and choice.warning("x", "y") is None
+
+
+def test_a_missed_target_is_recorded_and_warned():
+    _, choice = climb(ladder(8, 5, 16), 99.0, lambda r: (None, 20.0 + r.width / 8), log=lambda m: None)
+    assert not choice.met and len(choice.rungs) == 3
+    line = choice.warning("the data INR's voxel PSNR", "data_inr.max_width")
+    assert line.startswith("WARNING") and "22.00 dB" in line and "99 dB" in line and "data_inr.max_width" in line
+    assert "\n" not in line
+
+
+def test_no_target_tries_only_the_configured_size():
+    _, choice = climb(ladder(8, 5, 64), 0.0, lambda r: (None, float("nan")), log=lambda m: None)
+    assert choice.met and len(choice.rungs) == 1
+    assert {k: choice.rungs[0][k] for k in ("width", "steps", "psnr")} == {"width": 8, "steps": 5, "psnr": None}
+
+
+@pytest.fixture(scope="module")
+def blob():
+    return Volume(data=gaussian_blob(13, 0.2), extent=np.ones(3), name="blob")
+
+
+def test_data_inr_grows_until_its_target(blob):
+    tf = identity_tf(10.0)
+    base = dict(width=8, blocks=1, steps=40, points=512, checkpoint_every=1000)
+    easy = fit_data_inr(blob, tf, DataInrConfig.from_config({**base, "target_psnr": 1.0}), log=lambda m: None)
+    assert easy.config["capacity"]["met"] and len(easy.config["capacity"]["rungs"]) == 1
+    lines = []
+    hard = fit_data_inr(blob, tf, DataInrConfig.from_config({**base, "target_psnr": 200.0, "max_width": 16}),
+                        log=lines.append)
+    cap = hard.config["capacity"]
+    assert [(r["width"], r["steps"]) for r in cap["rungs"]] == [(8, 40), (8, 80), (16, 80)]
+    assert hard.model.cfg.width == 16 and hard.config["width"] == 16 and hard.config["steps"] == 80
+    assert hard.psnr == cap["psnr"] and not cap["met"]
+    assert sum(m.startswith("WARNING") for m in lines) == 1
+
+
+def test_stage1_layout_is_probed_grown_and_round_trips(blob, tmp_path):
+    tf = identity_tf(4.0)
+    lights = np.array([[0.0, 0.0, 1.0], [0.3, 0.0, 0.954], [0.0, -0.6, 0.8]])
+    assert probe_light(lights) == 2
+    fit = FitConfig.from_config(dict(steps=6, points=64, eval_points=64, grid_upsample=1, chunk=0, min_psnr=0.0,
+                                     target_psnr=200.0, max_width=16))
+    siren = SirenConfig(8, 1)
+    lines = []
+    chosen = choose_layout(blob, tf, lights, siren, fit, preoptimize_steps=3, preoptimize_lr=1e-3, log=lines.append)
+    assert chosen.siren == SirenConfig(16, 1) and chosen.steps == 12
+    assert [(r["width"], r["steps"]) for r in chosen.choice.rungs] == [(8, 6), (8, 12), (16, 12)]
+    assert len(chosen.init) == chosen.layout.n_params
+    assert any(m.startswith("WARNING") and "fit.max_width" in m for m in lines)
+
+    save_siren_init(tmp_path / "init.pt", chosen)
+    back = load_siren_init(tmp_path / "init.pt", siren)
+    assert back.siren == chosen.siren and back.steps == 12 and back.choice.to_dict() == chosen.choice.to_dict()
+    with pytest.raises(ArtifactError, match="made for siren .*'width': 8.* the config says .*'width': 32"):
+        load_siren_init(tmp_path / "init.pt", SirenConfig(32, 1))
+
+    fixed = choose_layout(blob, tf, lights, siren, FitConfig.from_config({**fit.__dict__, "target_psnr": 0.0}),
+                          preoptimize_steps=3, preoptimize_lr=1e-3, log=lambda m: None)
+    assert fixed.siren == siren and fixed.steps == 6 and fixed.choice.rungs[0]["psnr"] is None
