@@ -25,6 +25,17 @@ def _table(title: str, header: list[str], rows: list[list], note: str = "") -> s
     return f"<h2>{html.escape(title)}</h2>\n{table}{caption}\n"
 
 
+def _kept(validation: dict | None) -> str:
+    """The fine-tuning table's word on which checkpoint validation kept."""
+    if not validation or not validation.get("history"):
+        return ""
+    history = validation["history"]
+    last, floor = history[-1], history[0][1]
+    return (f" Kept: epoch {validation['kept_epoch']} of {last[0]}, the last whose median voxel PSNR at lights "
+            f"between the training lights is not below the geometry stage's {floor:.2f} dB (last epoch "
+            f"{last[1]:.2f} dB); epoch 0 means the geometry-stage model is used.")
+
+
 def _read_json(path: Path) -> dict | None:
     return json.loads(path.read_text()) if path.exists() else None
 
@@ -142,7 +153,7 @@ class RunResults:
                   _num(f["image_psnr_geometry_only"]["min"])],
                  ["fine-tuned", _num(f["image_psnr_finetuned"]["mean"]), _num(f["image_psnr_finetuned"]["min"])]],
                 f"{f['lights']} lights x {f['views']} views, foreground pixels; {f['processes']} process(es), "
-                f"{f['seconds']:.0f} s."))
+                f"{f['seconds']:.0f} s." + _kept(f.get("validation"))))
         im = self.images
         rows = [[mode, m["count"], _num(m["psnr"]), _num(m["ssim"], ".4f"), _num(m.get("ms_ssim"), ".4f"),
                  _num(m.get("lpips"), ".4f")] for mode, m in im["modes"].items()]
