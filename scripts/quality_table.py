@@ -25,8 +25,12 @@ REPO = Path(__file__).resolve().parent.parent
 
 def run(scene: str, lights: int, unseen: int) -> float:
     targets = [f"results/{scene}/{f}" for f in ("voxel_metrics.json", "image_metrics.json")]
-    cmd = ["snakemake", "--profile", "profiles/local", "-j2", "--config", f"scenes=[{scene}]",
-           f"lights={{count: {lights}, unseen: {unseen}}}", "--", *targets]
+    # a config file, not --config: Snakemake passes nested --config values as strings
+    overlay = REPO / "results" / f"quality_{scene}.yaml"
+    overlay.parent.mkdir(exist_ok=True)
+    overlay.write_text(f"scenes: [{scene}]\nlights: {{count: {lights}, unseen: {unseen}}}\n")
+    cmd = ["snakemake", "--profile", "profiles/local", "-j2", "--configfile", "config/config.yaml", str(overlay),
+           "--", *targets]
     t0 = time.perf_counter()
     print("+", " ".join(cmd), flush=True)
     subprocess.run(cmd, cwd=REPO, check=True)
