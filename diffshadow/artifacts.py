@@ -89,9 +89,9 @@ def save_siren_init(path: str | Path, chosen: Stage1Layout) -> None:
                              "capacity": chosen.choice.to_dict()})
 
 
-def load_siren_init(path: str | Path, siren: SirenConfig) -> Stage1Layout:
-    """preoptimize's init, SIREN size and fit steps; refused when made from other siren settings than `siren`
-    (the configured start of the width ladder)."""
+def load_siren_init(path: str | Path, siren: SirenConfig, steps: int | None = None) -> Stage1Layout:
+    """preoptimize's init, SIREN size and fit steps; refused when made from other settings than `siren` and
+    `steps` (the configured start of the ladder): the size it chose answers those settings, not others."""
     try:
         state = torch.load(path, map_location="cpu", weights_only=True)
     except FileNotFoundError:
@@ -101,15 +101,18 @@ def load_siren_init(path: str | Path, siren: SirenConfig) -> Stage1Layout:
         capacity = state["capacity"]
         choice = Choice(float(capacity["target_psnr"]), list(capacity["rungs"]))
         start = SirenConfig(int(choice.rungs[0]["width"]), chosen.blocks)
-        steps = int(state["fit_steps"])
+        fit_steps = int(state["fit_steps"])
     except (KeyError, IndexError, TypeError, ValueError) as e:
         raise ArtifactError(f"{path}: not a siren_init.pt of this version ({e!r} missing); rerun preoptimize") from None
     if start != siren:
         raise ArtifactError(f"{path}: made for siren {start.to_config()}, the config says {siren.to_config()}; "
                             f"rerun preoptimize")
+    if steps is not None and int(choice.rungs[0]["steps"]) != int(steps):
+        raise ArtifactError(f"{path}: made for fit.steps = {choice.rungs[0]['steps']}, the config says {steps}; "
+                            f"rerun preoptimize")
     if state.get("layout") != WeightLayout.for_siren(chosen).to_config():
         raise ArtifactError(f"{path}: its weight layout does not match its SIREN size; rerun preoptimize")
-    return Stage1Layout(state["weights"], chosen, steps, choice)
+    return Stage1Layout(state["weights"], chosen, fit_steps, choice)
 
 
 def write_geometry_points(path: str | Path, points: torch.Tensor, values: torch.Tensor, lights: np.ndarray,

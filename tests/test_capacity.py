@@ -88,6 +88,8 @@ def test_stage1_layout_is_probed_grown_and_round_trips(blob, tmp_path):
     assert back.siren == chosen.siren and back.steps == 12 and back.choice.to_dict() == chosen.choice.to_dict()
     with pytest.raises(ArtifactError, match="made for siren .*'width': 8.* the config says .*'width': 32"):
         load_siren_init(tmp_path / "init.pt", SirenConfig(32, 1))
+    with pytest.raises(ArtifactError, match="made for fit.steps = 6, the config says 700; rerun preoptimize"):
+        load_siren_init(tmp_path / "init.pt", siren, 700)
 
     fixed = choose_layout(blob, tf, lights, siren, FitConfig.from_config({**fit.__dict__, "target_psnr": 0.0}),
                           preoptimize_steps=3, preoptimize_lr=1e-3, log=lambda m: None)

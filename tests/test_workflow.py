@@ -254,8 +254,14 @@ def test_killed_fit_leaves_no_output_and_resumes(finished, tmp_path):
     res = finished / "results/nucleon"
     out = tmp_path / "subset_1.npz"
     ckpt = tmp_path / "subset_1.npz.ckpt"
-    cmd = [str(Path(sys.executable).parent / "diffshadow"), "fit-siren", "--volume", str(res / "volume.zarr"),
-           "--lights", str(res / "lights.json"), "--init", str(res / "siren_init.pt"), "--subset", "1",
+    exe = str(Path(sys.executable).parent / "diffshadow")
+    # an init made for these settings (preoptimize records the fit steps its size was chosen for)
+    pre = json.dumps({**json.loads(cfg), "preoptimize": TINY["preoptimize"]})
+    init = tmp_path / "siren_init.pt"
+    subprocess.run([exe, "preoptimize", "--volume", str(res / "volume.zarr"), "--lights", str(res / "lights.json"),
+                    "--config-json", pre, "--out", str(init)], check=True, capture_output=True)
+    cmd = [exe, "fit-siren", "--volume", str(res / "volume.zarr"),
+           "--lights", str(res / "lights.json"), "--init", str(init), "--subset", "1",
            "--config-json", cfg, "--threads", "1", "--out", str(out)]
     proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
     deadline = time.time() + 120

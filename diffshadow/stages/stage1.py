@@ -54,7 +54,7 @@ def fit_subset(volume_path: Path, lights_path: Path, init_path: Path, subset: in
     volume, tf = artifacts.load_prepared(volume_path)
     train = read_lights(lights_path)["train"]
     idx = subset_indices(len(train), subset_size, subset)
-    chosen = artifacts.load_siren_init(init_path, siren)
+    chosen = artifacts.load_siren_init(init_path, siren, fit.steps)
     init, layout, siren = chosen.init, chosen.layout, chosen.siren
     fit = dataclasses.replace(fit, steps=chosen.steps)  # preoptimize's choice: one layout for every subset
     out = Path(out)
