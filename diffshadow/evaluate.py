@@ -9,6 +9,7 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
+from diffshadow.lights import nearest, pick
 from diffshadow.metrics import psnr
 from diffshadow.sampling import PointSampler, seeded
 from diffshadow.shadow import ShadowField, transmittance
@@ -88,15 +89,6 @@ def _siren_values(sets: dict, extent: torch.Tensor, weights, layout: WeightLayou
 
 def psnr_per_light(pred: dict, truth: dict) -> dict[str, np.ndarray]:
     return {k: psnr(pred[k], truth[k], dim=1).numpy() for k in truth}
-
-
-def nearest(train: np.ndarray, query: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray]:
-    """Indices (Q, k) of the k training directions closest in angle, and their angles (Q, k)."""
-    # elementwise products, not `@`: a BLAS product sums in an order the library picks at run time (threads,
-    # code path), and a last-bit difference in an angle moved the blend baseline's PSNR between two runs
-    cos = np.clip((query[:, None, :] * train[None, :, :]).sum(axis=-1), -1, 1)
-    idx = np.argsort(-cos, axis=1, kind="stable")[:, :k]
-    return idx, np.arccos(np.take_along_axis(cos, idx, axis=1))
 
 
 def blend_baseline(truth_train: dict, idx: np.ndarray, angles: np.ndarray) -> dict[str, torch.Tensor]:
@@ -191,13 +183,6 @@ def voxel_metrics(state: dict, stage1, generated, truth: EvalTruth, light_sets: 
 
 
 # ------------------------------------------------------------------------------------------- images
-
-
-def pick(n_total: int, n: int) -> list[int]:
-    """`n` indices spread evenly over 0..n_total-1 (the first and last included)."""
-    if n <= 0 or n_total == 0:
-        return []
-    return sorted(set(np.linspace(0, n_total - 1, min(n, n_total)).round().astype(int).tolist()))
 
 
 def image_evaluation(scene, light_sets: dict, stage1, generated, views: list, *, step: float, out_dir,

@@ -301,11 +301,12 @@ def choose_layout(volume: Volume, tf: TransferFunction, lights: np.ndarray, sire
             inits[width] = init
         return inits[width]
 
-    def attempt(rung: Rung) -> tuple[Stage1Layout, float]:
+    def attempt(rung: Rung) -> tuple[Rung, float]:
+        if cfg.target_psnr <= 0:
+            init_for(rung.width)
+            return rung, float("nan")
         s = SirenConfig(rung.width, siren.blocks)
         init = init_for(rung.width)
-        if cfg.target_psnr <= 0:
-            return Stage1Layout(init, s, rung.steps, Choice(0.0)), float("nan")
         layout = WeightLayout.for_siren(s)
         log(f"probe: fitting light {probe} (the farthest from light 0) at width {rung.width} for {rung.steps} steps")
         w = fit_sirens(init, layout, s, volume, tf, lights[probe:probe + 1], replace(cfg, steps=rung.steps),
@@ -313,11 +314,10 @@ def choose_layout(volume: Volume, tf: TransferFunction, lights: np.ndarray, sire
         box, _ = evaluate_psnr(w, layout, s, volume, tf, lights[probe:probe + 1], n_points=cfg.eval_points,
                                seed=cfg.seed + 104729, device=device)
         log(f"probe: light {probe} held-out PSNR {float(box[0]):.2f} dB (target {cfg.target_psnr:g} dB)")
-        return Stage1Layout(init, s, rung.steps, Choice(0.0)), float(box[0])
+        return rung, float(box[0])
 
     rungs = ladder(siren.width, cfg.steps, max(cfg.max_width, siren.width))
-    chosen, choice = climb(rungs, cfg.target_psnr, attempt, log=log, what="stage-1 probe")
-    chosen.choice = choice
+    rung, choice = climb(rungs, cfg.target_psnr, attempt, log=log, what="stage-1 probe")
     if warning := choice.warning(f"stage 1's probe light {probe}", "fit.max_width or fit.steps"):
         log(warning)
-    return chosen
+    return Stage1Layout(inits[rung.width], SirenConfig(rung.width, siren.blocks), rung.steps, choice)

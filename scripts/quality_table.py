@@ -11,7 +11,6 @@ Snakemake's benchmark files. `--table-only` prints the table from results alread
 from __future__ import annotations
 
 import argparse
-import csv
 import json
 import subprocess
 import sys
@@ -19,6 +18,8 @@ import time
 from pathlib import Path
 
 import torch
+
+from diffshadow.report import stage_costs
 
 REPO = Path(__file__).resolve().parent.parent
 
@@ -44,12 +45,8 @@ def row(scene: str, wall: float | None) -> dict:
     stage1 = voxel.get("stage1") or {}
     inr = images.get("data_inr") or {}
     init = torch.load(res / "siren_init.pt", map_location="cpu", weights_only=True)
-    costs = {}
-    for tsv in (res / "benchmarks").glob("*.tsv"):
-        rule = "fit_siren" if tsv.stem.startswith("fit_siren") else tsv.stem
-        with tsv.open() as f:
-            r = next(csv.DictReader(f, delimiter="\t"))
-        costs[rule] = costs.get(rule, 0.0) + float(r["s"])
+    rows = stage_costs(sorted((res / "benchmarks").glob("*.tsv")), REPO / "results" / f"quality_{scene}_costs.tsv")
+    costs = {r["stage"]: r["wall_s"] for r in rows if not r["stage"].startswith("total")}
     unseen = voxel.get("unseen", {})
     deployed = images["modes"].get("inr_generated_data_inr", {})
     return {"scene": scene, "lights": voxel["seen"]["count"],

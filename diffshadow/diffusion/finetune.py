@@ -331,9 +331,12 @@ def finetune(geometry_state: dict, data: FinetuneData, cfg: FinetuneConfig, chec
 
     def save(epoch: int) -> dict:
         score(epoch)
-        state = {**geometry_state, "model": base.state_dict(), "ema": None, "optimizer": opt.state_dict(),
-                 "finetune_fingerprint": fp, "finetune_epoch": epoch, "finetune": asdict(cfg),
-                 "selection": selection, "kept_model": kept["model"] if data.val is not None else None}
+        # at the end the model written is the one validation kept; before it, the running one and the kept one
+        final = data.val is not None and epoch == cfg.epochs
+        state = {**geometry_state, "model": kept["model"] if final else base.state_dict(), "ema": None,
+                 "optimizer": opt.state_dict(), "finetune_fingerprint": fp, "finetune_epoch": epoch,
+                 "finetune": asdict(cfg), "selection": selection,
+                 "kept_model": kept["model"] if data.val is not None and not final else None}
         if rank == 0:
             atomic_torch_save(checkpoint, state)
         if world > 1:
@@ -378,10 +381,6 @@ def finetune(geometry_state: dict, data: FinetuneData, cfg: FinetuneConfig, chec
             return state
     if state is None:
         state = torch.load(checkpoint, map_location="cpu", weights_only=False)
-    if state.get("kept_model") is not None:  # the last epoch that kept validation at the geometry stage's level
-        state = {**state, "model": state["kept_model"], "kept_model": None}
-        if rank == 0:
-            atomic_torch_save(checkpoint, state)
     # per-rank cost, gathered to every rank: median seconds per step and peak memory
     mine = {"rank": rank, "median_step_s": float(np.median(step_times)) if step_times else None,
             "peak_mem_bytes": _peak_memory(device)}
