@@ -22,10 +22,11 @@ import torch
 from diffshadow.capacity import Choice
 from diffshadow.data_inr import DataInr
 from diffshadow.diffusion.finetune import RayBundle
-from diffshadow.diffusion.train import TrainingData
+from diffshadow.diffusion.train import BLEND_K, PoolLights, TrainingData
 from diffshadow.evaluate import EvalTruth
 from diffshadow.fit import Stage1Layout
 from diffshadow.io import atomic_torch_save, write_zarr_group
+from diffshadow.lights import blend_weights
 from diffshadow.render import Camera, RenderScene
 from diffshadow.siren import Siren, SirenConfig, WeightLayout
 from diffshadow.store import WeightStore, open_store
@@ -116,20 +117,26 @@ def load_siren_init(path: str | Path, siren: SirenConfig, steps: int | None = No
 
 
 def write_geometry_points(path: str | Path, points: torch.Tensor, values: torch.Tensor, lights: np.ndarray,
-                          extent) -> None:
-    """`presample`'s points (N, M, 3) and true shadow (N, M) per training light, one light per chunk."""
+                          extent, pool: tuple[np.ndarray, torch.Tensor, torch.Tensor] | None = None) -> None:
+    """`presample`'s points (N, M, 3) and true shadow (N, M) per training light, one light per chunk; and
+    `pool` (lights, points, values) for the lights trained on exact shadows only, when there are any."""
 
     def fill(root) -> None:
         root.create_array("points", data=points.numpy(), chunks=(1, *points.shape[1:]))
         root.create_array("values", data=values.numpy(), chunks=(1, values.shape[1]))
         root.create_array("lights", data=lights)
+        if pool is not None and len(pool[0]):
+            root.create_array("pool_lights", data=np.asarray(pool[0]))
+            root.create_array("pool_points", data=pool[1].numpy(), chunks=(1, *pool[1].shape[1:]))
+            root.create_array("pool_values", data=pool[2].numpy(), chunks=(1, pool[2].shape[1]))
         root.attrs.update({"extent": np.asarray(extent).tolist()})
 
     write_zarr_group(path, fill)
 
 
 def read_training_data(weights_path: str | Path, points_path: str | Path) -> tuple[TrainingData, WeightStore]:
-    """The diffusion model's training set: the weight store with the presampled geometry points."""
+    """The diffusion model's training set: the weight store with the presampled geometry points, and the
+    pool lights (exact shadows, x0 from the blend of their `BLEND_K` nearest training SIRENs) if presampled."""
     import zarr
 
     store = open_store(weights_path)
@@ -138,13 +145,21 @@ def read_training_data(weights_path: str | Path, points_path: str | Path) -> tup
         geo_lights = np.asarray(geo["lights"][...])
         points, values = np.asarray(geo["points"][...]), np.asarray(geo["values"][...])
         extent = geo.attrs["extent"]
+        pool = None
+        if "pool_lights" in geo:
+            pool_lights = np.asarray(geo["pool_lights"][...])
+            idx, blend = blend_weights(np.asarray(store.lights, dtype=np.float64), pool_lights, BLEND_K)
+            pool = PoolLights(lights=torch.as_tensor(pool_lights), points=torch.as_tensor(geo["pool_points"][...]),
+                              values=torch.as_tensor(geo["pool_values"][...]), neighbours=torch.as_tensor(idx),
+                              blend=torch.as_tensor(blend, dtype=torch.float32))
     except (FileNotFoundError, KeyError) as e:
         raise ArtifactError(f"{points_path}: not presample's geometry points (missing {e})") from None
     if geo_lights.shape != store.lights.shape or not np.allclose(geo_lights, store.lights):
         raise ArtifactError(f"{points_path}: its lights differ from {weights_path}'s; rerun presample")
     data = TrainingData(weights=torch.as_tensor(store.weights), lights=torch.as_tensor(store.lights),
                         points=torch.as_tensor(points), values=torch.as_tensor(values),
-                        extent=torch.as_tensor(extent, dtype=torch.float32), layout=store.layout, siren=store.siren)
+                        extent=torch.as_tensor(extent, dtype=torch.float32), layout=store.layout, siren=store.siren,
+                        pool=pool)
     return data, store
 
 

@@ -9,7 +9,7 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
-from diffshadow.lights import nearest, pick
+from diffshadow.lights import blend_weights, nearest, pick
 from diffshadow.metrics import psnr
 from diffshadow.sampling import PointSampler, seeded
 from diffshadow.shadow import ShadowField, transmittance
@@ -91,10 +91,9 @@ def psnr_per_light(pred: dict, truth: dict) -> dict[str, np.ndarray]:
     return {k: psnr(pred[k], truth[k], dim=1).numpy() for k in truth}
 
 
-def blend_baseline(truth_train: dict, idx: np.ndarray, angles: np.ndarray) -> dict[str, torch.Tensor]:
-    """Inverse-angle-weighted blend of the k nearest training lights' true shadows."""
-    w = 1.0 / np.maximum(angles, 1e-6)
-    w = torch.as_tensor(w / w.sum(axis=1, keepdims=True), dtype=torch.float32)  # (Q, k)
+def blend_baseline(truth_train: dict, idx: np.ndarray, weights: np.ndarray) -> dict[str, torch.Tensor]:
+    """The k nearest training lights' true shadows blended with `lights.blend_weights` (Q, k)."""
+    w = torch.as_tensor(weights, dtype=torch.float32)
     return {key: (vals[torch.as_tensor(idx)] * w[..., None]).sum(dim=1) for key, vals in truth_train.items()}
 
 
@@ -142,15 +141,25 @@ def voxel_metrics(state: dict, stage1, generated, truth: EvalTruth, light_sets: 
         result["seen"]["stage1_psnr_visible_median"] = _median(stage1_seen["visible"])
     if len(unseen):
         idx, angles = nearest(train, unseen, blend_k)
+        _, mix = blend_weights(train, unseen, blend_k)
         gen_unseen = psnr_per_light(truth.sirens(generated.weights[~seen], layout, siren), truth_unseen)
         near = psnr_per_light(truth.sirens(stage1.weights[idx[:, 0]], layout, siren), truth_unseen)
-        blend = psnr_per_light(blend_baseline(truth_train, idx, angles), truth_unseen)
+        blend = psnr_per_light(blend_baseline(truth_train, idx, mix), truth_unseen)
+        # the same blend of the stage-1 SIRENs' weights: one SIREN per unseen light, as the model gives
+        weight_blend = (np.asarray(stage1.weights, dtype=np.float64)[idx] * mix[..., None]).sum(1)
+        wblend = psnr_per_light(truth.sirens(weight_blend, layout, siren), truth_unseen)
         result["unseen"] = {"count": len(unseen),
                             "generated_psnr_median": _median(gen_unseen["box"]),
                             "nearest_psnr_median": _median(near["box"]),
                             "blend_psnr_median": _median(blend["box"]),
+                            "weight_blend_psnr_median": _median(wblend["box"]),
                             "blend_k": blend_k,
                             "nearest_angle_median_deg": float(np.degrees(np.median(angles[:, 0])))}
+        pool = np.asarray(state.get("pool_lights") or np.zeros((0, 3)), dtype=np.float64).reshape(-1, 3)
+        if len(pool):  # lights trained on exact shadows only: how close the test lights came to any of them
+            _, a_any = nearest(np.concatenate([train, pool]), unseen, 1)
+            result["unseen"]["pool_lights"] = len(pool)
+            result["unseen"]["nearest_trained_angle_median_deg"] = float(np.degrees(np.median(a_any[:, 0])))
         if geometry_state is not None:
             g_model, g_std, _, _ = load_sampler(geometry_state)
             before = generate(g_model, g_std, unseen, method="ddim", steps=int(cfg["ddim_steps"]),

@@ -65,7 +65,7 @@ def select_region(directions, center, count: int) -> np.ndarray:
     return np.argsort(-(dirs @ c), kind="stable")[:count]
 
 
-def unseen_directions(train, center, count: int, *, seed: int = 0, min_angle: float = 1e-3) -> np.ndarray:
+def unseen_directions(train, center, count: int, *, seed: int | list[int] = 0, min_angle: float = 1e-3) -> np.ndarray:
     """`count` random directions from the training set's cap around `center`, none equal to a training one.
 
     The cap is the smallest around `center` that holds every training direction; a candidate closer than
@@ -109,6 +109,21 @@ def nearest(train: np.ndarray, query: np.ndarray, k: int) -> tuple[np.ndarray, n
     cos = np.clip((query[:, None, :] * train[None, :, :]).sum(axis=-1), -1, 1)
     idx = np.argsort(-cos, axis=1, kind="stable")[:, :k]
     return idx, np.arccos(np.take_along_axis(cos, idx, axis=1))
+
+
+def blend_weights(train: np.ndarray, query: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray]:
+    """The k nearest training directions of each query (Q, k) and inverse-angle weights (Q, k) summing to 1."""
+    idx, angles = nearest(train, query, k)
+    w = 1.0 / np.maximum(angles, 1e-6)
+    return idx, w / w.sum(axis=1, keepdims=True)
+
+
+def training_pool(train, center, n: int, *, seed: int) -> np.ndarray:
+    """`n` random directions in the training lights' cap for diffusion training on exact shadows only (no
+    fitted SIREN): drawn like the unseen test set but from another random stream, so never the same lights."""
+    if n <= 0:
+        return np.zeros((0, 3))
+    return unseen_directions(train, center, n, seed=[seed, 1])
 
 
 def between_lights(train, n: int) -> np.ndarray:

@@ -33,7 +33,9 @@ def _kept(validation: dict | None) -> str:
     last, floor = history[-1], history[0][1]
     return (f" Kept: epoch {validation['kept_epoch']} of {last[0]}, the last whose median voxel PSNR at lights "
             f"between the training lights is not below the geometry stage's {floor:.2f} dB (last epoch "
-            f"{last[1]:.2f} dB); epoch 0 means the geometry-stage model is used.")
+            f"{last[1]:.2f} dB); epoch 0 means the geometry-stage model is used."
+            + (f" Stopped early at epoch {validation['stopped_epoch']}: the last checkpoints all scored under it."
+               if validation.get("stopped_epoch") else ""))
 
 
 def _read_json(path: Path) -> dict | None:
@@ -134,6 +136,14 @@ class RunResults:
                       _num(unseen["blend_psnr_median"]), "", "baseline"],
                      ["unseen", "nearest training SIREN", _num(unseen["nearest_psnr_median"]), "",
                       f"baseline; nearest light {unseen['nearest_angle_median_deg']:.1f}° away (median)"]]
+            if "weight_blend_psnr_median" in unseen:
+                rows.append(["unseen", f"blend of {unseen['blend_k']} nearest training SIRENs' weights",
+                             _num(unseen["weight_blend_psnr_median"]), "", "baseline (one SIREN per light)"])
+            if unseen.get("pool_lights"):
+                rows.append(["unseen", "pool lights (exact shadows, no fitted SIREN) in training",
+                             str(unseen["pool_lights"]), "",
+                             f"nearest light trained on {unseen['nearest_trained_angle_median_deg']:.1f}° away "
+                             f"(median); no unseen test light is one of them"])
         parts.append(_table("Shadow INRs: voxel PSNR against the marched ground truth (median over lights, dB)",
                             ["lights", "shadow INR", "box", "visible region", ""], rows,
                             f"{v['eval_points']:,} fresh points per light and region that no fit used."))

@@ -4,6 +4,7 @@ over config.yaml's, on a finished run's inputs, timed on one thread, scored on h
     python scripts/tuning.py fit '{}' '{"points": 4096}' '{"points": 1024, "lr": 2e-3}'   # 4 lights, like a subset
     python scripts/tuning.py data-inr '{}' '{"steps": 1500, "points": 16384}'
     python scripts/tuning.py diffusion '{}' '{"epochs": 400}' '{"preset": "tiny"}'     # seen/unseen DDIM PSNR
+    python scripts/tuning.py diffusion '{"pool_lights": 0}' '{"pool_lights": 128, "pool_x0_weight": 1.0}'
 
 `--results DIR` (default results/nucleon) must hold volume.zarr, lights.json, siren_init.pt; the diffusion
 runs also need weights.zarr, geometry_points.zarr and eval_truth.zarr.
@@ -50,6 +51,19 @@ def data_inr(results: Path, spec: dict) -> str:
     return f"{time.perf_counter() - t:6.1f} s  voxel PSNR {inr.psnr:.2f} dB, max error {inr.max_error:.4f}"
 
 
+def _pool(results: Path, light_sets: dict, cfg):
+    from diffshadow.diffusion.geometry import POOL_STREAM, presample
+    from diffshadow.diffusion.train import BLEND_K, PoolLights
+    from diffshadow.lights import blend_weights, training_pool
+
+    volume, tf = artifacts.load_prepared(results / "volume.zarr")
+    lights = training_pool(light_sets["train"], light_sets["center"], cfg.pool_lights, seed=cfg.seed)
+    pts, values = presample(volume, tf, lights, cfg.pool_points, seed=cfg.seed, stream=POOL_STREAM)
+    idx, blend = blend_weights(light_sets["train"], lights, BLEND_K)
+    return PoolLights(torch.as_tensor(lights), pts, values, torch.as_tensor(idx),
+                      torch.as_tensor(blend, dtype=torch.float32))
+
+
 def diffusion(results: Path, spec: dict) -> str:
     from diffshadow.diffusion.sample import generate, load_sampler
     from diffshadow.diffusion.train import DiffusionConfig, train_diffusion
@@ -59,6 +73,8 @@ def diffusion(results: Path, spec: dict) -> str:
     truth = artifacts.read_eval_truth(results / "eval_truth.zarr")
     light_sets = read_lights(results / "lights.json")
     cfg = dataclasses.replace(DiffusionConfig.from_config(spec), checkpoint_every=10**9)
+    if cfg.pool_lights and (data.pool is None or len(data.pool.lights) != cfg.pool_lights):
+        data.pool = _pool(results, light_sets, cfg)  # another count than presample's: drawn here the same way
     part = Path(f"/tmp/tuning_diffusion_{abs(hash(json.dumps(spec, sort_keys=True)))}.part")
     part.unlink(missing_ok=True)
     t = time.perf_counter()

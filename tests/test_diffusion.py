@@ -1,3 +1,5 @@
+import dataclasses
+
 import numpy as np
 import pytest
 import torch
@@ -10,6 +12,7 @@ from diffshadow.diffusion.schedule import Schedule
 from diffshadow.diffusion.train import (
     DiffusionConfig,
     DiffusionError,
+    PoolLights,
     Standardizer,
     TrainingData,
     train_diffusion,
@@ -152,3 +155,33 @@ def test_training_and_sampling_make_no_tensor_on_the_implicit_default_device(tmp
     assert all(torch.equal(state["model"][k], guarded["model"][k]) for k in state["model"])
     assert torch.equal(ddim, generate(model, std, lights, steps=5, seed=3))
     assert torch.equal(ddpm, generate(model, std, lights[:1], method="ddpm", seed=0))
+
+
+def pooled(data, n=3):
+    """`data` with `n` pool lights: each the blend of two training lights, with its own points and values."""
+    gen = torch.Generator().manual_seed(5)
+    lights = torch.nn.functional.normalize(data.lights[:n] + data.lights[1:n + 1])
+    idx = torch.stack([torch.arange(n), torch.arange(1, n + 1)], 1)
+    data.pool = PoolLights(lights=lights, points=torch.rand(n, 32, 3, generator=gen),
+                           values=torch.rand(n, 32, generator=gen), neighbours=idx, blend=torch.full((n, 2), 0.5))
+    return data
+
+
+POOLED = dataclasses.replace(CFG, pool_lights=3, pool_x0_weight=0.1)
+
+
+def test_pool_lights_are_trained_recorded_and_guarded(tmp_path):
+    data = pooled(tiny_data())
+    plain = train_diffusion(data, CFG, tmp_path / "a.ckpt", log=lambda *a: None)  # pool_lights 0: ignored
+    assert plain["pool_lights"] == [] and plain["fingerprint"] == train_diffusion(
+        tiny_data(), CFG, tmp_path / "b.ckpt", log=lambda *a: None)["fingerprint"]
+    state = train_diffusion(data, POOLED, tmp_path / "c.ckpt", log=lambda *a: None)
+    assert np.allclose(state["pool_lights"], data.pool.lights.numpy())
+    assert state["fingerprint"] != plain["fingerprint"]
+    assert not all(torch.equal(state["model"][k], plain["model"][k]) for k in state["model"])
+    with default_device_meta():  # the pool path makes no tensor on the implicit device either
+        guarded = train_diffusion(data, POOLED, tmp_path / "d.ckpt", device="cpu", log=lambda *a: None)
+    assert all(torch.equal(state["model"][k], guarded["model"][k]) for k in state["model"])
+    with pytest.raises(DiffusionError, match=r"diffusion.pool_lights is 3 but the geometry points hold 0 pool "
+                                             r"lights; rerun presample"):
+        train_diffusion(tiny_data(), POOLED, tmp_path / "e.ckpt", log=lambda *a: None)

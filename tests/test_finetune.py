@@ -176,7 +176,8 @@ def test_the_model_kept_is_the_last_one_not_below_the_geometry_stage_on_validati
 
     _, _, _, data, state = setup
     val = EvalTruth.compute(volume, TF, between_lights(LIGHTS, 3), 128, seed=1)
-    cfg = FinetuneConfig(**{**FT.__dict__, "epochs": 4, "lr": 3e-3})  # a large lr: epochs differ on validation
+    # a large lr: epochs differ on validation; patience 0: every epoch is scored
+    cfg = FinetuneConfig(**{**FT.__dict__, "epochs": 4, "lr": 3e-3, "patience": 0})
     out = finetune(state, replace(data, val=val), cfg, tmp_path / "v.ckpt", log=lambda m: None)
     history = out["selection"]["history"]
     assert [e for e, _ in history] == [0, 1, 2, 3, 4]
@@ -188,3 +189,28 @@ def test_the_model_kept_is_the_last_one_not_below_the_geometry_stage_on_validati
     assert validation_psnr(model, std, val, layout, dcfg, siren, "cpu") == dict(history)[out["selection"]["kept_epoch"]]
     on_disk = torch.load(tmp_path / "v.ckpt", weights_only=False)["model"]
     assert all(torch.equal(on_disk[k], out["model"][k]) for k in on_disk)
+
+
+def test_fine_tuning_stops_when_validation_stays_under_the_geometry_stage(volume, setup, tmp_path, monkeypatch):
+    from dataclasses import replace
+
+    import diffshadow.diffusion.finetune as ft
+    from diffshadow.evaluate import EvalTruth
+    from diffshadow.lights import between_lights
+
+    _, _, _, data, state = setup
+    val = EvalTruth.compute(volume, TF, between_lights(LIGHTS, 2), 64, seed=1)
+    scores = iter([30.0, 29.0, 31.0, 28.0, 27.5, 40.0, 40.0])  # epochs 0..6: under, over, under, under, ...
+    monkeypatch.setattr(ft, "validation_psnr", lambda *a: next(scores))
+    cfg = FinetuneConfig(**{**FT.__dict__, "epochs": 6, "patience": 2})
+    messages = []
+    out = finetune(state, replace(data, val=val), cfg, tmp_path / "s.ckpt", log=messages.append)
+    sel = out["selection"]
+    assert [e for e, _ in sel["history"]] == [0, 1, 2, 3, 4] and sel["stopped_epoch"] == 4
+    assert sel["kept_epoch"] == 2 and any("stopping at epoch 4/6 and keeping epoch 2" in m for m in messages)
+    # what is on disk is the kept model, and a rerun finds the run finished: no training, no scoring
+    on_disk = torch.load(tmp_path / "s.ckpt", weights_only=False)
+    assert on_disk["model"] is not None and all(torch.equal(on_disk["model"][k], out["model"][k]) for k in out["model"])
+    again = finetune(state, replace(data, val=val), cfg, tmp_path / "s.ckpt", log=lambda m: None)
+    assert all(torch.equal(again["model"][k], out["model"][k]) for k in out["model"])
+    assert next(scores) == 40.0  # not one more validation was asked for

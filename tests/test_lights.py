@@ -79,3 +79,32 @@ def test_between_lights_are_halfway_and_new():
     assert np.allclose(top2[:, 0], top2[:, 1])  # equally far from its two training lights
     assert (cos < 1 - 1e-6).all()  # and none of them
     assert between_lights(train[:1], 5).shape == (0, 3)
+
+
+def test_training_pool_lies_in_the_cap_apart_from_the_unseen_set():
+    from diffshadow.lights import training_pool
+
+    d = fibonacci_sphere(800)
+    center = (0.0, 0.3, 1.0)
+    train = d[select_region(d, center, 100)]
+    pool = training_pool(train, center, 64, seed=3)
+    c = np.asarray(center) / np.linalg.norm(center)
+    assert pool.shape == (64, 3) and (pool @ c).min() >= (train @ c).min() - 1e-12
+    assert (pool @ train.T).max() < np.cos(1e-3)
+    unseen = unseen_directions(train, center, 16, seed=3)  # the test set of the same seed: other lights
+    assert (pool @ unseen.T).max() < 1 - 1e-9
+    np.testing.assert_array_equal(pool, training_pool(train, center, 64, seed=3))
+    assert training_pool(train, center, 0, seed=3).shape == (0, 3)
+
+
+def test_blend_weights_sum_to_one_and_favour_the_closest():
+    from diffshadow.lights import blend_weights
+
+    train = fibonacci_sphere(40)[:12]
+    q = train[[2, 5]] * 0.9 + train[[3, 6]] * 0.1
+    q /= np.linalg.norm(q, axis=1, keepdims=True)
+    idx, w = blend_weights(train, q, 4)
+    assert np.allclose(w.sum(1), 1) and (w > 0).all()
+    assert idx[:, 0].tolist() == [2, 5] and (w[:, 0] == w.max(1)).all()
+    idx, w = blend_weights(train, train[[7]], 3)  # on a training light: (almost) all its own weight
+    assert idx[0, 0] == 7 and w[0, 0] > 1 - 1e-5

@@ -59,3 +59,26 @@ def test_interrupted_write_leaves_nothing(tmp_path):
         tmp.write_bytes(b"half")
         raise KeyboardInterrupt
     assert list(tmp_path.iterdir()) == []
+
+
+def test_geometry_points_round_trip_with_pool_lights(tmp_path):
+    import torch
+
+    from diffshadow import artifacts
+    from diffshadow.lights import blend_weights
+
+    subset(tmp_path / "subset_0.npz", [0, 1, 2, 3])
+    write_store(tmp_path / "weights.zarr", collect_subsets([tmp_path / "subset_0.npz"], 4, LIGHTS))
+    pts, vals = torch.rand(4, 8, 3), torch.rand(4, 8)
+    pool = np.array([[0.6, 0.8, 0.0], [0.0, 0.6, 0.8]])
+    pool_pts, pool_vals = torch.rand(2, 5, 3), torch.rand(2, 5)
+    artifacts.write_geometry_points(tmp_path / "plain.zarr", pts, vals, LIGHTS, [1, 1, 1])
+    artifacts.write_geometry_points(tmp_path / "pool.zarr", pts, vals, LIGHTS, [1, 1, 1], (pool, pool_pts, pool_vals))
+    plain, _ = artifacts.read_training_data(tmp_path / "weights.zarr", tmp_path / "plain.zarr")
+    data, _ = artifacts.read_training_data(tmp_path / "weights.zarr", tmp_path / "pool.zarr")
+    assert plain.pool is None and torch.equal(data.points, pts)
+    assert np.allclose(data.pool.lights.numpy(), pool) and torch.equal(data.pool.values, pool_vals)
+    assert torch.equal(data.pool.points, pool_pts)
+    idx, w = blend_weights(LIGHTS, pool, 4)
+    np.testing.assert_array_equal(data.pool.neighbours.numpy(), idx)
+    assert np.allclose(data.pool.blend.numpy(), w) and np.allclose(data.pool.blend.sum(1).numpy(), 1)

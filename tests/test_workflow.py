@@ -23,7 +23,7 @@ TINY = {
     "fit": {"steps": 6, "points": 128, "eval_points": 256, "grid_upsample": 1, "chunk": 0, "min_psnr": 0.0,
             "target_psnr": 0.0},
     "diffusion": {"preset": "tiny", "epochs": 3, "batch_size": 2, "geometry_points": 16, "presample_points": 64,
-                  "checkpoint_every": 1, "ddim_steps": 5},
+                  "checkpoint_every": 1, "ddim_steps": 5, "pool_lights": 4, "pool_points": 32},
     "finetune": {"views": 1, "image_size": 16, "pixels": 4, "epochs": 2, "batch_size": 4, "nproc": 2,
                  "checkpoint_every": 1},
     "data_inr": {"width": 8, "blocks": 1, "steps": 20, "points": 512, "target_psnr": 0.0},

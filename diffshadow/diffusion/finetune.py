@@ -67,6 +67,8 @@ class FinetuneConfig:
     # kept is the last one whose median voxel PSNR there is not below the geometry stage's (0: no check)
     val_lights: int = 8
     val_points: int = 4096
+    # validated checkpoints in a row under the geometry stage's before fine-tuning stops (0: never stops early)
+    patience: int = 2
 
     @classmethod
     def from_config(cls, d: dict | None = None) -> FinetuneConfig:
@@ -315,6 +317,17 @@ def finetune(geometry_state: dict, data: FinetuneData, cfg: FinetuneConfig, chec
         log(f"validation: epoch {epoch}, median voxel PSNR {value:.2f} dB at {len(data.val.lights)} lights between "
             f"training lights (geometry stage {floor:.2f} dB); keeping epoch {selection['kept_epoch']}")
 
+    def give_up() -> bool:
+        """Rank 0's verdict, shared: the last `patience` checkpoints all scored under the geometry stage."""
+        scores = [v for _, v in selection["history"]]
+        verdict = (data.val is not None and cfg.patience > 0 and len(scores) > cfg.patience
+                   and max(scores[-cfg.patience:]) < scores[0])
+        if world > 1:
+            flag = torch.tensor([int(verdict)], device=device)
+            dist.broadcast(flag, 0)
+            verdict = bool(flag.item())
+        return verdict
+
     model = base
     if world > 1:
         from torch.nn.parallel import DistributedDataParallel
@@ -329,10 +342,11 @@ def finetune(geometry_state: dict, data: FinetuneData, cfg: FinetuneConfig, chec
             f"{cfg.batch_size} ({cfg.batch_size // world}+ per rank), lr {cfg.lr:g}, {cfg.pixels} pixels x "
             f"{len(data.bundle.count)} views per light, {cfg.epochs} epochs")
 
-    def save(epoch: int) -> dict:
-        score(epoch)
+    def save(epoch: int, last: bool = False) -> dict:
+        if not last:
+            score(epoch)
         # at the end the model written is the one validation kept; before it, the running one and the kept one
-        final = data.val is not None and epoch == cfg.epochs
+        final = data.val is not None and (last or epoch == cfg.epochs)
         state = {**geometry_state, "model": kept["model"] if final else base.state_dict(), "ema": None,
                  "optimizer": opt.state_dict(), "finetune_fingerprint": fp, "finetune_epoch": epoch,
                  "finetune": asdict(cfg), "selection": selection,
@@ -348,7 +362,8 @@ def finetune(geometry_state: dict, data: FinetuneData, cfg: FinetuneConfig, chec
     state = None
     t_start = t_step = time.perf_counter()
     step_times: list[float] = []
-    for epoch in range(start, cfg.epochs):
+    end = start if selection.get("stopped_epoch") else cfg.epochs  # a run that stopped early has finished
+    for epoch in range(start, end):
         gen = seeded(cfg.seed, 11, epoch)
         order = torch.randperm(n, generator=gen, device=gen.device).tolist()
         totals = torch.zeros(3, dtype=torch.float64, device=device)  # summed on the device: no sync per step
@@ -373,6 +388,13 @@ def finetune(geometry_state: dict, data: FinetuneData, cfg: FinetuneConfig, chec
         done = epoch + 1
         if done % cfg.checkpoint_every == 0 or done == cfg.epochs:
             state = save(done)
+            if done < cfg.epochs and give_up():
+                if rank == 0:
+                    log(f"validation: the last {cfg.patience} checkpoints scored under the geometry stage; "
+                        f"stopping at epoch {done}/{cfg.epochs} and keeping epoch {selection['kept_epoch']}")
+                selection["stopped_epoch"] = done
+                state = save(done, last=True)
+                break
         if rank == 0 and (done % max(1, cfg.epochs // 10) == 0 or done == cfg.epochs):
             lx, lg, lr_ = (totals / n).tolist()
             log(f"epoch {done}/{cfg.epochs}  x0 {lx:.3e}  geometry {lg:.3e}  render {lr_:.3e} "

@@ -19,11 +19,14 @@ def geometry_loss(pred_weights: torch.Tensor, layout: WeightLayout, siren: Siren
     return ((pred - values) ** 2).mean()
 
 
-def presample(volume: Volume, tf, lights: np.ndarray, n_points: int, *, seed: int,
+TRAIN_STREAM, POOL_STREAM = 3, 13  # random streams of the training lights' points and the pool lights'
+
+
+def presample(volume: Volume, tf, lights: np.ndarray, n_points: int, *, seed: int, stream: int = TRAIN_STREAM,
               visible_fraction: float = 0.5, device: torch.device | str = "cpu") -> tuple[torch.Tensor, torch.Tensor]:
     """Points (N, M, 3) and their true shadow (N, M) per light, for the geometry loss (paper §3.3); on the
     CPU, whatever device marched them (the points are drawn on the CPU: the same on every device)."""
     field = ShadowField.build(volume, tf, device=device)
-    pts = PointSampler(volume, tf, visible_fraction).sample(len(lights), n_points, seeded(seed, 3))
+    pts = PointSampler(volume, tf, visible_fraction).sample(len(lights), n_points, seeded(seed, stream))
     values = torch.stack([transmittance(field, tf, w, p.to(device)).cpu() for w, p in zip(lights, pts, strict=True)])
     return pts, values

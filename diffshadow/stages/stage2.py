@@ -13,13 +13,14 @@ import torch
 
 from diffshadow import artifacts
 from diffshadow.diffusion.finetune import FinetuneConfig, FinetuneData, finetune, image_psnr_of_model
+from diffshadow.diffusion.geometry import POOL_STREAM
 from diffshadow.diffusion.geometry import presample as presample_points
 from diffshadow.diffusion.sample import generate, load_sampler
 from diffshadow.diffusion.train import DiffusionConfig, DiffusionError
 from diffshadow.diffusion.train import train_diffusion as train
 from diffshadow.evaluate import EvalTruth, psnr_per_light, voxel_metrics
 from diffshadow.io import atomic_write_text
-from diffshadow.lights import between_lights, read_lights
+from diffshadow.lights import between_lights, read_lights, training_pool
 from diffshadow.runtime import distributed, set_threads
 from diffshadow.store import WeightStore, open_store, write_store
 
@@ -28,10 +29,19 @@ def presample(volume_path: Path, lights_path: Path, out: Path, *, cfg: Diffusion
               device: torch.device) -> None:
     """Points and their true shadow per training light, for the geometry loss."""
     volume, tf = artifacts.load_prepared(volume_path)
-    train_lights = read_lights(lights_path)["train"]
+    sets = read_lights(lights_path)
+    train_lights = sets["train"]
     print(f"presampling {cfg.presample_points} points for each of {len(train_lights)} lights", flush=True)
     pts, values = presample_points(volume, tf, train_lights, cfg.presample_points, seed=cfg.seed, device=device)
-    artifacts.write_geometry_points(out, pts, values, train_lights, volume.extent)
+    pool = None
+    if cfg.pool_lights > 0:
+        t0 = time.perf_counter()
+        pool_lights = training_pool(train_lights, sets["center"], cfg.pool_lights, seed=cfg.seed)
+        pool = (pool_lights, *presample_points(volume, tf, pool_lights, cfg.pool_points, seed=cfg.seed,
+                                                stream=POOL_STREAM, device=device))
+        print(f"pool: {cfg.pool_points} points and exact shadows for each of {cfg.pool_lights} lights without a "
+              f"fitted SIREN ({time.perf_counter() - t0:.1f} s)", flush=True)
+    artifacts.write_geometry_points(out, pts, values, train_lights, volume.extent, pool)
     print(f"wrote {out}")
 
 
