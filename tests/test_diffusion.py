@@ -91,7 +91,7 @@ def tiny_data(n=4):
 
 
 CFG = DiffusionConfig.from_config(dict(preset="tiny", epochs=6, batch_size=2, geometry_points=16, checkpoint_every=2,
-                      lr_step_epochs=2, ema=0.9))
+                      lr_step_epochs=2, ema=0.9, pool_lights=0))
 
 
 def test_resume_matches_uninterrupted(tmp_path):

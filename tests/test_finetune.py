@@ -23,7 +23,7 @@ from diffshadow.diffusion.finetune import (
     render_targets,
     step_loss,
 )
-from diffshadow.diffusion.train import DiffusionConfig, TrainingData, train_diffusion
+from diffshadow.diffusion.train import DiffusionConfig, PoolLights, TrainingData, train_diffusion
 from diffshadow.render import GridShadow
 from diffshadow.shadow import shadow_grid
 from diffshadow.siren import SirenConfig, WeightLayout, init_siren
@@ -56,11 +56,16 @@ def make_setup(volume, workdir):
     layout = WeightLayout.for_siren(cfg)
     gen = torch.Generator().manual_seed(0)
     weights = torch.stack([layout.flatten(init_siren(cfg, gen)) for _ in LIGHTS])
+    # two pool lights (exact shadows, no fitted SIREN): every fine-tuning test runs their loss too
+    pool = PoolLights(lights=torch.nn.functional.normalize(torch.as_tensor(LIGHTS[:2] + LIGHTS[1:3],
+                                                                           dtype=torch.float32)),
+                      points=torch.rand(2, 32, 3, generator=gen), values=torch.rand(2, 32, generator=gen),
+                      neighbours=torch.tensor([[0, 1], [1, 2]]), blend=torch.full((2, 2), 0.5))
     train = TrainingData(weights=weights, lights=torch.as_tensor(LIGHTS, dtype=torch.float32),
                          points=torch.rand(4, 64, 3, generator=gen), values=torch.rand(4, 64, generator=gen),
-                         extent=torch.ones(3), layout=layout, siren=cfg)
+                         extent=torch.ones(3), layout=layout, siren=cfg, pool=pool)
     dcfg = DiffusionConfig.from_config(dict(preset="tiny", epochs=1, batch_size=4, geometry_points=16,
-                                              checkpoint_every=1))
+                                              checkpoint_every=1, pool_lights=2))
     state = train_diffusion(train, dcfg, workdir / "geo.ckpt", log=lambda m: None)
     return cams, bundle, images, FinetuneData(train, bundle, images.reshape(4, FT.views, -1, 3)), state
 
@@ -214,3 +219,21 @@ def test_fine_tuning_stops_when_validation_stays_under_the_geometry_stage(volume
     again = finetune(state, replace(data, val=val), cfg, tmp_path / "s.ckpt", log=lambda m: None)
     assert all(torch.equal(again["model"][k], out["model"][k]) for k in out["model"])
     assert next(scores) == 40.0  # not one more validation was asked for
+
+
+def test_pool_lights_add_their_loss_to_a_fine_tuning_step(setup):
+    """The pool's loss is added (so the lights between the training ones are held), the training lights'
+    own parts stay what they are without it."""
+    from dataclasses import replace
+
+    _, _, _, data, state = setup
+    dcfg = DiffusionConfig.from_config(state["config"])
+    layout = WeightLayout.from_config(state["layout"])
+    std = Standardizer(layout, state["standardizer"]["mean"], state["standardizer"]["std"])
+    model = build_model(layout, dcfg)
+    model.load_state_dict(state["model"])
+    z_all = std.standardize(data.train.weights).float()
+    with_pool, parts = step_loss(model, std, data, z_all, [0, 2], 0, FT, dcfg, Schedule(), scale=1.0)
+    without, parts0 = step_loss(model, std, data, z_all, [0, 2], 0, FT, replace(dcfg, pool_lights=0), Schedule(),
+                                scale=1.0)
+    assert float(with_pool.detach()) > float(without.detach()) > 0 and torch.allclose(parts, parts0)

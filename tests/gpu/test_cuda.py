@@ -66,7 +66,8 @@ def _training_data():
                         siren=SIREN)
 
 
-DCFG = DiffusionConfig.from_config(dict(preset="tiny", epochs=4, batch_size=2, geometry_points=16, checkpoint_every=2))
+DCFG = DiffusionConfig.from_config(dict(preset="tiny", epochs=4, batch_size=2, geometry_points=16, checkpoint_every=2,
+                                             pool_lights=0))
 
 
 def test_diffusion_training_and_sampling_agree_with_cpu(tmp_path):
