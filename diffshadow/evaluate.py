@@ -9,7 +9,7 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
-from diffshadow.lights import blend_weights, nearest, pick
+from diffshadow.lights import inverse_angle_weights, nearest, pick
 from diffshadow.metrics import psnr
 from diffshadow.sampling import PointSampler, seeded
 from diffshadow.shadow import ShadowField, transmittance
@@ -92,7 +92,7 @@ def psnr_per_light(pred: dict, truth: dict) -> dict[str, np.ndarray]:
 
 
 def blend_baseline(truth_train: dict, idx: np.ndarray, weights: np.ndarray) -> dict[str, torch.Tensor]:
-    """The k nearest training lights' true shadows blended with `lights.blend_weights` (Q, k)."""
+    """The k nearest training lights' true shadows blended with `lights.inverse_angle_weights` (Q, k)."""
     w = torch.as_tensor(weights, dtype=torch.float32)
     return {key: (vals[torch.as_tensor(idx)] * w[..., None]).sum(dim=1) for key, vals in truth_train.items()}
 
@@ -141,7 +141,7 @@ def voxel_metrics(state: dict, stage1, generated, truth: EvalTruth, light_sets: 
         result["seen"]["stage1_psnr_visible_median"] = _median(stage1_seen["visible"])
     if len(unseen):
         idx, angles = nearest(train, unseen, blend_k)
-        _, mix = blend_weights(train, unseen, blend_k)
+        mix = inverse_angle_weights(angles)
         gen_unseen = psnr_per_light(truth.sirens(generated.weights[~seen], layout, siren), truth_unseen)
         near = psnr_per_light(truth.sirens(stage1.weights[idx[:, 0]], layout, siren), truth_unseen)
         blend = psnr_per_light(blend_baseline(truth_train, idx, mix), truth_unseen)

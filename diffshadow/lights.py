@@ -111,11 +111,16 @@ def nearest(train: np.ndarray, query: np.ndarray, k: int) -> tuple[np.ndarray, n
     return idx, np.arccos(np.take_along_axis(cos, idx, axis=1))
 
 
+def inverse_angle_weights(angles: np.ndarray) -> np.ndarray:
+    """Blend weights (Q, k) summing to 1 from `nearest`'s angles (Q, k)."""
+    w = 1.0 / np.maximum(angles, 1e-6)
+    return w / w.sum(axis=1, keepdims=True)
+
+
 def blend_weights(train: np.ndarray, query: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray]:
     """The k nearest training directions of each query (Q, k) and inverse-angle weights (Q, k) summing to 1."""
     idx, angles = nearest(train, query, k)
-    w = 1.0 / np.maximum(angles, 1e-6)
-    return idx, w / w.sum(axis=1, keepdims=True)
+    return idx, inverse_angle_weights(angles)
 
 
 def training_pool(train, center, n: int, *, seed: int) -> np.ndarray:

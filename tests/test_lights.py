@@ -34,15 +34,27 @@ def test_select_region_takes_the_closest():
     assert cos[idx].min() >= np.delete(cos, idx).max()
 
 
-def test_unseen_in_region_and_disjoint():
+CAP_CENTER = (0.0, 0.3, 1.0)
+
+
+def cap_lights(n: int) -> np.ndarray:
+    """`n` Fibonacci directions around CAP_CENTER: a training set."""
     d = fibonacci_sphere(800)
-    center = (0.0, 0.3, 1.0)
-    train = d[select_region(d, center, 200)]
-    unseen = unseen_directions(train, center, 50, seed=3)
-    c = np.asarray(center) / np.linalg.norm(center)
-    assert (unseen @ c).min() >= (train @ c).min() - 1e-12
-    assert (unseen @ train.T).max() < np.cos(1e-3)
-    np.testing.assert_array_equal(unseen, unseen_directions(train, center, 50, seed=3))
+    return d[select_region(d, CAP_CENTER, n)]
+
+
+def assert_in_cap_apart(dirs: np.ndarray, train: np.ndarray) -> None:
+    """Inside the training lights' cap around CAP_CENTER, and none of them a training light."""
+    c = np.asarray(CAP_CENTER) / np.linalg.norm(CAP_CENTER)
+    assert (dirs @ c).min() >= (train @ c).min() - 1e-12
+    assert (dirs @ train.T).max() < np.cos(1e-3)
+
+
+def test_unseen_in_region_and_disjoint():
+    train = cap_lights(200)
+    unseen = unseen_directions(train, CAP_CENTER, 50, seed=3)
+    assert_in_cap_apart(unseen, train)
+    np.testing.assert_array_equal(unseen, unseen_directions(train, CAP_CENTER, 50, seed=3))
 
 
 def test_bad_center_and_count():
@@ -84,17 +96,14 @@ def test_between_lights_are_halfway_and_new():
 def test_training_pool_lies_in_the_cap_apart_from_the_unseen_set():
     from diffshadow.lights import training_pool
 
-    d = fibonacci_sphere(800)
-    center = (0.0, 0.3, 1.0)
-    train = d[select_region(d, center, 100)]
-    pool = training_pool(train, center, 64, seed=3)
-    c = np.asarray(center) / np.linalg.norm(center)
-    assert pool.shape == (64, 3) and (pool @ c).min() >= (train @ c).min() - 1e-12
-    assert (pool @ train.T).max() < np.cos(1e-3)
-    unseen = unseen_directions(train, center, 16, seed=3)  # the test set of the same seed: other lights
+    train = cap_lights(100)
+    pool = training_pool(train, CAP_CENTER, 64, seed=3)
+    assert pool.shape == (64, 3)
+    assert_in_cap_apart(pool, train)
+    unseen = unseen_directions(train, CAP_CENTER, 16, seed=3)  # the test set of the same seed: other lights
     assert (pool @ unseen.T).max() < 1 - 1e-9
-    np.testing.assert_array_equal(pool, training_pool(train, center, 64, seed=3))
-    assert training_pool(train, center, 0, seed=3).shape == (0, 3)
+    np.testing.assert_array_equal(pool, training_pool(train, CAP_CENTER, 64, seed=3))
+    assert training_pool(train, CAP_CENTER, 0, seed=3).shape == (0, 3)
 
 
 def test_blend_weights_sum_to_one_and_favour_the_closest():

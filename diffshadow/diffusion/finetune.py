@@ -256,7 +256,7 @@ def step_loss(model, std: Standardizer, data: FinetuneData, z_all: torch.Tensor,
     if pool is not None:  # one forward for both (DDP expects one forward per backward)
         j = torch.cat([d[4][0] for d in draws]).to(device)
         tp = torch.cat([d[4][1] for d in draws]).to(device)
-        x0p = (z_all[pool.neighbours[j]] * pool.blend[j][..., None]).sum(1)
+        x0p = pool.x0(z_all, j)
         x_t = torch.cat([x_t, schedule.q_sample(x0p, tp, torch.cat([d[4][2] for d in draws]).to(device))])
         t = torch.cat([t, tp])
         light_in = torch.cat([light_in, pool.lights[j].float()])
@@ -284,9 +284,7 @@ def step_loss(model, std: Standardizer, data: FinetuneData, z_all: torch.Tensor,
     per_light = l_x0 + dcfg.geometry_weight * l_geo + cfg.render_weight * l_render
     if pool is not None:
         pred_p = pred_all[len(local):]
-        pick_p = torch.stack([d[4][3] for d in draws]).to(device)
-        pts_p = torch.gather(pool.points[j], 1, pick_p[..., None].expand(-1, -1, 3))
-        vals_p = torch.gather(pool.values[j], 1, pick_p)
+        pts_p, vals_p = pool.samples(j, torch.stack([d[4][3] for d in draws]).to(device))
         siren_p = BatchedSiren(std.destandardize(pred_p), tr.layout, tr.siren.blocks)
         l_pool = ((siren_p(box_to_siren(pts_p, extent)) - vals_p) ** 2).mean(1)
         per_light = per_light + dcfg.pool_x0_weight * ((pred_p - x0p) ** 2).mean(1) + dcfg.geometry_weight * l_pool
@@ -371,11 +369,9 @@ def finetune(geometry_state: dict, data: FinetuneData, cfg: FinetuneConfig, chec
             f"{cfg.batch_size} ({cfg.batch_size // world}+ per rank), lr {cfg.lr:g}, {cfg.pixels} pixels x "
             f"{len(data.bundle.count)} views per light, {cfg.epochs} epochs")
 
-    def save(epoch: int, last: bool = False) -> dict:
-        if not last:
-            score(epoch)
+    def save(epoch: int, last: bool) -> dict:
         # at the end the model written is the one validation kept; before it, the running one and the kept one
-        final = data.val is not None and (last or epoch == cfg.epochs)
+        final = data.val is not None and last
         state = {**geometry_state, "model": kept["model"] if final else base.state_dict(), "ema": None,
                  "optimizer": opt.state_dict(), "finetune_fingerprint": fp, "finetune_epoch": epoch,
                  "finetune": asdict(cfg), "selection": selection,
@@ -416,13 +412,15 @@ def finetune(geometry_state: dict, data: FinetuneData, cfg: FinetuneConfig, chec
         totals = totals.cpu()
         done = epoch + 1
         if done % cfg.checkpoint_every == 0 or done == cfg.epochs:
-            state = save(done)
-            if done < cfg.epochs and give_up():
+            score(done)
+            stop = done < cfg.epochs and give_up()
+            if stop:
                 if rank == 0:
                     log(f"validation: the last {cfg.patience} checkpoints scored under the geometry stage; "
                         f"stopping at epoch {done}/{cfg.epochs} and keeping epoch {selection['kept_epoch']}")
                 selection["stopped_epoch"] = done
-                state = save(done, last=True)
+            state = save(done, last=stop or done == cfg.epochs)
+            if stop:
                 break
         if rank == 0 and (done % max(1, cfg.epochs // 10) == 0 or done == cfg.epochs):
             lx, lg, lr_ = (totals / n).tolist()

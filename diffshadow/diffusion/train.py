@@ -151,6 +151,14 @@ class PoolLights:
         return PoolLights(*(t.to(device) for t in (self.lights, self.points, self.values, self.neighbours,
                                                     self.blend)))
 
+    def x0(self, z_all: torch.Tensor, j: torch.Tensor) -> torch.Tensor:
+        """The x0 targets (B, n_params) of pool lights `j`: their blends of the standardised training weights."""
+        return (z_all[self.neighbours[j]] * self.blend[j][..., None]).sum(1)
+
+    def samples(self, j: torch.Tensor, pick: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """Points (B, G, 3) and exact shadow (B, G) of pool lights `j` at their presampled points `pick` (B, G)."""
+        return torch.gather(self.points[j], 1, pick[..., None].expand(-1, -1, 3)), torch.gather(self.values[j], 1, pick)
+
 
 @dataclass
 class TrainingData:
@@ -182,22 +190,23 @@ def _fingerprint(data: TrainingData, cfg: DiffusionConfig) -> str:
     return h.hexdigest()
 
 
-def _pool_loss(model, std: Standardizer, data: TrainingData, pool: PoolLights, z_all: torch.Tensor, b: int,
-               gen: torch.Generator, cfg: DiffusionConfig, schedule: Schedule, device) -> torch.Tensor:
-    """One step's loss on `b` random pool lights: x0 towards the neighbours' blend, geometry towards truth."""
+def _pool_loss(model, std: Standardizer, data: TrainingData, z_all: torch.Tensor, b: int, gen: torch.Generator,
+               cfg: DiffusionConfig, schedule: Schedule) -> torch.Tensor:
+    """One step's loss on `b` random pool lights of `data` (on the device): x0 towards the neighbours' blend,
+    geometry towards truth."""
+    pool, device = data.pool, z_all.device
     j = torch.randint(0, len(pool.lights), (b,), generator=gen, device=gen.device).to(device)
     t = torch.randint(0, schedule.steps, (b,), generator=gen, device=gen.device).to(device)
     noise = torch.randn(b, z_all.shape[1], generator=gen, device=gen.device).to(device)
-    x0 = (z_all[pool.neighbours[j]] * pool.blend[j][..., None]).sum(1)
+    x0 = pool.x0(z_all, j)
     pred = model(schedule.q_sample(x0, t, noise), t, pool.lights[j].float())
     loss = cfg.pool_x0_weight * ((pred - x0) ** 2).mean()
     if cfg.geometry_weight > 0:
         pick = torch.randint(0, pool.points.shape[1], (b, cfg.geometry_points), generator=gen,
                              device=gen.device).to(device)
-        pts = torch.gather(pool.points[j], 1, pick[..., None].expand(-1, -1, 3))
-        vals = torch.gather(pool.values[j], 1, pick)
+        pts, vals = pool.samples(j, pick)
         loss = loss + cfg.geometry_weight * _geometry_loss(std.destandardize(pred), data.layout, data.siren, pts,
-                                                           vals, data.extent.to(device))
+                                                           vals, data.extent)
     return loss
 
 
@@ -279,7 +288,7 @@ def train_diffusion(data: TrainingData, cfg: DiffusionConfig, checkpoint: Path, 
                 loss_geo = _geometry_loss(std.destandardize(pred), data.layout, data.siren, pts, vals, extent)
                 loss = loss + cfg.geometry_weight * loss_geo
             if pool is not None:
-                loss = loss + _pool_loss(model, std, data, pool, z_all, b, gen, cfg, schedule, device)
+                loss = loss + _pool_loss(model, std, on_device, z_all, b, gen, cfg, schedule)
             if not torch.isfinite(loss):
                 kept = f"the last good checkpoint {checkpoint} (epoch {good})" if good is not None else \
                     "no checkpoint (none was written yet)"
