@@ -31,10 +31,10 @@ def fit(results: Path, spec: dict) -> str:
 
     volume, tf = artifacts.load_prepared(results / "volume.zarr")
     lights = read_lights(results / "lights.json")["train"][FIT_LIGHTS]
-    siren = SirenConfig(32, 2)
+    chosen = artifacts.load_siren_init(results / "siren_init.pt", SirenConfig(32, 2))
+    siren, init = chosen.siren, chosen.init
     layout = WeightLayout.for_siren(siren)
-    init = artifacts.load_siren_init(results / "siren_init.pt", layout)
-    cfg = FitConfig.from_config(spec)
+    cfg = FitConfig.from_config({"steps": chosen.steps, **spec})
     t = time.perf_counter()
     w = fit_sirens(init, layout, siren, volume, tf, lights, cfg, stream=0, log=lambda m: None)
     seconds = time.perf_counter() - t

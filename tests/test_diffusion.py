@@ -5,7 +5,7 @@ import pytest
 import torch
 from conftest import default_device_meta
 
-from diffshadow.diffusion.geometry import geometry_loss
+from diffshadow.diffusion.geometry import geometry_error, geometry_loss
 from diffshadow.diffusion.model import WeightTransformer
 from diffshadow.diffusion.sample import generate, load_sampler
 from diffshadow.diffusion.schedule import Schedule
@@ -112,10 +112,10 @@ def test_nan_loss_stops_and_keeps_the_checkpoint(tmp_path, monkeypatch):
 
     def failing(*args):
         calls.append(1)
-        loss = geometry_loss(*args)
-        return loss * float("nan") if len(calls) == 7 else loss  # epoch 3 (2 batches per epoch)
+        err = geometry_error(*args)
+        return err * float("nan") if len(calls) == 7 else err  # epoch 3 (2 batches per epoch)
 
-    monkeypatch.setattr(train, "_geometry_loss", failing)
+    monkeypatch.setattr(train, "_geometry_error", failing)
     ckpt = tmp_path / "c.ckpt"
     with pytest.raises(DiffusionError, match=r"loss became nan at epoch 3; keeping the last good checkpoint "
                                              r".*c.ckpt \(epoch 2\)"):

@@ -16,6 +16,29 @@ def test_batched_equals_separate_sirens(cfg):
         assert (batched[i] - single).abs().max() <= 1e-5
 
 
+def test_siren_is_the_textbook_formula():
+    """ω0 and the residual weight are applied to the weights (cheaper than to the activations); the function
+    must stay sin(ω0 (W h + b)) with NeurComp's residual averaging, here written out in float64."""
+    from diffshadow.siren import OMEGA, RES_WEIGHT
+
+    cfg = SirenConfig(16, 2)
+    gen = torch.Generator().manual_seed(3)
+    p = {k: v.double() for k, v in init_siren(cfg, gen).items()}
+    x = (torch.rand(200, 3, generator=gen) * 2 - 1).double()
+
+    def lin(name, h):
+        return h @ p[f"{name}.weight"].T + p[f"{name}.bias"]
+
+    h = torch.sin(OMEGA * lin("first", x))
+    for i in range(cfg.blocks):
+        inner = torch.sin(OMEGA * lin(f"blocks.{i}.l1", RES_WEIGHT * h))
+        h = RES_WEIGHT * (h + torch.sin(OMEGA * lin(f"blocks.{i}.l2", inner)))
+    expected = 0.5 * lin("last", h).squeeze(-1) + 0.5
+    layout = WeightLayout.for_siren(cfg)
+    got = Siren.from_flat(layout.flatten({k: v.float() for k, v in p.items()}), layout)(x.float())
+    assert (got.double() - expected).abs().max() < 2e-5
+
+
 def test_layout_round_trip_and_order():
     cfg = SirenConfig(8, 2)
     layout = WeightLayout.for_siren(cfg)

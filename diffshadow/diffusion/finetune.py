@@ -27,9 +27,10 @@ import numpy as np
 import torch
 
 from diffshadow.config import section
+from diffshadow.diffusion.geometry import geometry_error
 from diffshadow.diffusion.sample import generate, load_sampler
 from diffshadow.diffusion.schedule import Schedule
-from diffshadow.diffusion.train import DiffusionConfig, Standardizer, TrainingData, build_model
+from diffshadow.diffusion.train import DiffusionConfig, Standardizer, TrainingData, build_model, make_optimizer
 from diffshadow.evaluate import EvalTruth, psnr_per_light
 from diffshadow.grid import ray_span
 from diffshadow.io import atomic_torch_save, resume
@@ -285,8 +286,7 @@ def step_loss(model, std: Standardizer, data: FinetuneData, z_all: torch.Tensor,
     if pool is not None:
         pred_p = pred_all[len(local):]
         pts_p, vals_p = pool.samples(j, torch.stack([d[4][3] for d in draws]).to(device))
-        siren_p = BatchedSiren(std.destandardize(pred_p), tr.layout, tr.siren.blocks)
-        l_pool = ((siren_p(box_to_siren(pts_p, extent)) - vals_p) ** 2).mean(1)
+        l_pool = geometry_error(std.destandardize(pred_p), tr.layout, tr.siren, pts_p, vals_p, extent)
         per_light = per_light + dcfg.pool_x0_weight * ((pred_p - x0p) ** 2).mean(1) + dcfg.geometry_weight * l_pool
     parts = torch.stack([l_x0.detach().sum(), l_geo.detach().sum(), l_render.detach().sum()]).double()
     return per_light.sum() * scale, parts
@@ -316,7 +316,7 @@ def finetune(geometry_state: dict, data: FinetuneData, cfg: FinetuneConfig, chec
     base.load_state_dict(geometry_state["ema"] if geometry_state.get("ema") else geometry_state["model"])
     base.to(device)
     std = Standardizer(layout, geometry_state["standardizer"]["mean"], geometry_state["standardizer"]["std"])
-    opt = torch.optim.AdamW(base.parameters(), lr=cfg.lr, weight_decay=dcfg.weight_decay)
+    opt = make_optimizer(base.parameters(), cfg.lr, dcfg.weight_decay)
     fp = fingerprint(geometry_state, cfg, data)
     start = 0
     siren_cfg = SirenConfig.from_config(geometry_state["siren"])

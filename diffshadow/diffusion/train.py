@@ -20,7 +20,7 @@ from pathlib import Path
 import torch
 
 from diffshadow.config import section
-from diffshadow.diffusion.geometry import geometry_loss
+from diffshadow.diffusion.geometry import geometry_error
 from diffshadow.diffusion.model import PRESETS, WeightTransformer
 from diffshadow.diffusion.schedule import Schedule
 from diffshadow.io import atomic_torch_save, resume
@@ -127,7 +127,7 @@ class Standardizer:
 
 
 
-_geometry_loss = geometry_loss  # indirection so tests can inject a failure mid-run
+_geometry_error = geometry_error  # indirection so tests can inject a failure mid-run
 
 
 BLEND_K = 4  # training SIRENs blended into a pool light's x0 target (the evaluation's blend baseline: 4 too)
@@ -190,24 +190,14 @@ def _fingerprint(data: TrainingData, cfg: DiffusionConfig) -> str:
     return h.hexdigest()
 
 
-def _pool_loss(model, std: Standardizer, data: TrainingData, z_all: torch.Tensor, b: int, gen: torch.Generator,
-               cfg: DiffusionConfig, schedule: Schedule) -> torch.Tensor:
-    """One step's loss on `b` random pool lights of `data` (on the device): x0 towards the neighbours' blend,
-    geometry towards truth."""
-    pool, device = data.pool, z_all.device
-    j = torch.randint(0, len(pool.lights), (b,), generator=gen, device=gen.device).to(device)
-    t = torch.randint(0, schedule.steps, (b,), generator=gen, device=gen.device).to(device)
-    noise = torch.randn(b, z_all.shape[1], generator=gen, device=gen.device).to(device)
-    x0 = pool.x0(z_all, j)
-    pred = model(schedule.q_sample(x0, t, noise), t, pool.lights[j].float())
-    loss = cfg.pool_x0_weight * ((pred - x0) ** 2).mean()
-    if cfg.geometry_weight > 0:
-        pick = torch.randint(0, pool.points.shape[1], (b, cfg.geometry_points), generator=gen,
-                             device=gen.device).to(device)
-        pts, vals = pool.samples(j, pick)
-        loss = loss + cfg.geometry_weight * _geometry_loss(std.destandardize(pred), data.layout, data.siren, pts,
-                                                           vals, data.extent)
-    return loss
+def make_optimizer(params, lr: float, weight_decay: float) -> torch.optim.AdamW:
+    """AdamW, fused where this torch has the kernel for the device (CPU since torch 2.4): on the small
+    preset's 3.5M parameters the per-tensor loop took 27 ms of a 270 ms CPU step, the fused one 5 ms."""
+    params = list(params)
+    try:
+        return torch.optim.AdamW(params, lr=lr, weight_decay=weight_decay, fused=True)
+    except RuntimeError:  # torch 2.3 on CPU: no fused kernel
+        return torch.optim.AdamW(params, lr=lr, weight_decay=weight_decay)
 
 
 def build_model(layout: WeightLayout, cfg: DiffusionConfig) -> WeightTransformer:
@@ -238,7 +228,7 @@ def train_diffusion(data: TrainingData, cfg: DiffusionConfig, checkpoint: Path, 
         raise DiffusionError(f"train_diffusion: diffusion.pool_lights is {cfg.pool_lights} but the geometry points "
                              f"hold {have} pool lights; rerun presample with this config")
     schedule = Schedule()
-    opt = torch.optim.AdamW(model.parameters(), lr=cfg.lr, weight_decay=cfg.weight_decay)
+    opt = make_optimizer(model.parameters(), cfg.lr, cfg.weight_decay)
     sched = torch.optim.lr_scheduler.StepLR(opt, step_size=cfg.lr_step_epochs, gamma=cfg.lr_gamma)
     ema = copy.deepcopy(model).requires_grad_(False) if cfg.ema > 0 else None
     fingerprint = _fingerprint(data, cfg)
@@ -276,19 +266,34 @@ def train_diffusion(data: TrainingData, cfg: DiffusionConfig, checkpoint: Path, 
             t = torch.randint(0, schedule.steps, (b,), generator=gen, device=gen.device).to(device)
             noise = torch.randn(b, z_all.shape[1], generator=gen, device=gen.device).to(device)
             x0 = z_all[idx]
-            pred = model(schedule.q_sample(x0, t, noise), t, lights[idx])
+            pick = torch.randint(0, points.shape[1], (b, cfg.geometry_points), generator=gen,
+                                 device=gen.device).to(device) if cfg.geometry_weight > 0 else None
+            x_t, t_in, light_in = schedule.q_sample(x0, t, noise), t, lights[idx]
+            if pool is not None:  # one forward for both: a batch of 2b costs 0.75 of two batches of b
+                j = torch.randint(0, len(pool.lights), (b,), generator=gen, device=gen.device).to(device)
+                tp = torch.randint(0, schedule.steps, (b,), generator=gen, device=gen.device).to(device)
+                noise_p = torch.randn(b, z_all.shape[1], generator=gen, device=gen.device).to(device)
+                x0p = pool.x0(z_all, j)
+                x_t = torch.cat([x_t, schedule.q_sample(x0p, tp, noise_p)])
+                t_in, light_in = torch.cat([t, tp]), torch.cat([light_in, pool.lights[j].float()])
+            pred_all = model(x_t, t_in, light_in)
+            pred = pred_all[:b]
             loss_x0 = ((pred - x0) ** 2).mean()
             loss = loss_x0
             loss_geo = torch.zeros((), device=device)
+            if pool is not None:
+                loss = loss + cfg.pool_x0_weight * ((pred_all[b:] - x0p) ** 2).mean()
             if cfg.geometry_weight > 0:
-                pick = torch.randint(0, points.shape[1], (b, cfg.geometry_points), generator=gen,
-                                     device=gen.device).to(device)
                 pts = torch.gather(points[idx], 1, pick[..., None].expand(-1, -1, 3))
                 vals = torch.gather(values[idx], 1, pick)
-                loss_geo = _geometry_loss(std.destandardize(pred), data.layout, data.siren, pts, vals, extent)
-                loss = loss + cfg.geometry_weight * loss_geo
-            if pool is not None:
-                loss = loss + _pool_loss(model, std, on_device, z_all, b, gen, cfg, schedule)
+                if pool is not None:
+                    pick_p = torch.randint(0, pool.points.shape[1], (b, cfg.geometry_points), generator=gen,
+                                           device=gen.device).to(device)
+                    pts_p, vals_p = pool.samples(j, pick_p)
+                    pts, vals = torch.cat([pts, pts_p]), torch.cat([vals, vals_p])
+                err = _geometry_error(std.destandardize(pred_all), data.layout, data.siren, pts, vals, extent)
+                loss_geo = err[:b].mean()
+                loss = loss + cfg.geometry_weight * err.sum() / b  # training and pool lights, each a mean over b
             if not torch.isfinite(loss):
                 kept = f"the last good checkpoint {checkpoint} (epoch {good})" if good is not None else \
                     "no checkpoint (none was written yet)"
