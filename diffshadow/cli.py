@@ -86,7 +86,8 @@ def _finetune_render(a):
 
     stage2.finetune_render(Path(a.checkpoint), Path(a.weights), Path(a.points), Path(a.targets), Path(a.out),
                            Path(a.metrics), cfg=FinetuneConfig.from_config(_cfg(a)["finetune"]),
-                           device=_device(a), threads=a.threads, volume_path=Path(a.volume) if a.volume else None)
+                           device=_device(a), threads=a.threads, volume_path=Path(a.volume) if a.volume else None,
+                           lights_path=Path(a.lights) if a.lights else None)
 
 
 def _ddp_processes(a):
@@ -242,6 +243,7 @@ def build_parser() -> argparse.ArgumentParser:
     p = _add(sub, "finetune-render", _finetune_render, "rendering-loss fine-tuning (under torchrun for DDP)",
              "checkpoint", "weights", "points", "targets", "metrics", config='{"finetune": {...}}')
     p.add_argument("--volume", help="the prepared volume: validation lights choose the model kept")
+    p.add_argument("--lights", help="the light sets (with --volume): validation lights are drawn in their cap")
     p = _add(sub, "ddp-processes", _ddp_processes, "how many DDP processes to launch here (prints a number)",
              out=False)
     p.add_argument("--nproc", type=int, required=True, help="processes asked for (finetune.nproc)")

@@ -31,8 +31,9 @@ def _kept(validation: dict | None) -> str:
         return ""
     history = validation["history"]
     last, floor = history[-1], history[0][1]
-    return (f" Kept: epoch {validation['kept_epoch']} of {last[0]}, the last whose median voxel PSNR at lights "
-            f"between the training lights is not below the geometry stage's {floor:.2f} dB (last epoch "
+    return (f" Kept: epoch {validation['kept_epoch']} of {last[0]}, the last whose median voxel PSNR at "
+            f"validation lights (random in the training cap, not the test set) is not below the geometry "
+            f"stage's {floor:.2f} dB (last epoch "
             f"{last[1]:.2f} dB); epoch 0 means the geometry-stage model is used."
             + (f" Stopped early at epoch {validation['stopped_epoch']}: the last checkpoints all scored under it."
                if validation.get("stopped_epoch") else ""))

@@ -177,10 +177,10 @@ def test_the_model_kept_is_the_last_one_not_below_the_geometry_stage_on_validati
     from diffshadow.diffusion.finetune import validation_psnr
     from diffshadow.diffusion.sample import load_sampler
     from diffshadow.evaluate import EvalTruth
-    from diffshadow.lights import between_lights
+    from diffshadow.lights import validation_lights
 
     _, _, _, data, state = setup
-    val = EvalTruth.compute(volume, TF, between_lights(LIGHTS, 3), 128, seed=1)
+    val = EvalTruth.compute(volume, TF, validation_lights(LIGHTS, LIGHTS[0], 3, seed=0), 128, seed=1)
     # a large lr: epochs differ on validation; patience 0: every epoch is scored
     cfg = FinetuneConfig(**{**FT.__dict__, "epochs": 4, "lr": 3e-3, "patience": 0})
     out = finetune(state, replace(data, val=val), cfg, tmp_path / "v.ckpt", log=lambda m: None)
@@ -201,10 +201,10 @@ def test_fine_tuning_stops_when_validation_stays_under_the_geometry_stage(volume
 
     import diffshadow.diffusion.finetune as ft
     from diffshadow.evaluate import EvalTruth
-    from diffshadow.lights import between_lights
+    from diffshadow.lights import validation_lights
 
     _, _, _, data, state = setup
-    val = EvalTruth.compute(volume, TF, between_lights(LIGHTS, 2), 64, seed=1)
+    val = EvalTruth.compute(volume, TF, validation_lights(LIGHTS, LIGHTS[0], 2, seed=0), 64, seed=1)
     scores = iter([30.0, 29.0, 31.0, 28.0, 27.5, 40.0, 40.0])  # epochs 0..6: under, over, under, under, ...
     monkeypatch.setattr(ft, "validation_psnr", lambda *a: next(scores))
     cfg = FinetuneConfig(**{**FT.__dict__, "epochs": 6, "patience": 2})

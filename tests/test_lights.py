@@ -80,30 +80,26 @@ def test_cli_writes_json(tmp_path):
     assert make_light_sets(300, 40, (0, 1, 1), 7) == raw
 
 
-def test_between_lights_are_halfway_and_new():
-    from diffshadow.lights import between_lights
-
-    train = fibonacci_sphere(40)[:12]
-    mid = between_lights(train, 5)
-    assert mid.shape == (5, 3) and np.allclose(np.linalg.norm(mid, axis=1), 1)
-    cos = np.clip(mid @ train.T, -1, 1)
-    top2 = np.sort(cos, axis=1)[:, -2:]
-    assert np.allclose(top2[:, 0], top2[:, 1])  # equally far from its two training lights
-    assert (cos < 1 - 1e-6).all()  # and none of them
-    assert between_lights(train[:1], 5).shape == (0, 3)
-
-
-def test_training_pool_lies_in_the_cap_apart_from_the_unseen_set():
-    from diffshadow.lights import training_pool
+@pytest.mark.parametrize("draw", ["training_pool", "validation_lights"])
+def test_pool_and_validation_lights_lie_in_the_cap_apart_from_the_unseen_set(draw):
+    import diffshadow.lights as lights
 
     train = cap_lights(100)
-    pool = training_pool(train, CAP_CENTER, 64, seed=3)
-    assert pool.shape == (64, 3)
-    assert_in_cap_apart(pool, train)
+    drawn = getattr(lights, draw)(train, CAP_CENTER, 64, seed=3)
+    assert drawn.shape == (64, 3)
+    assert_in_cap_apart(drawn, train)
     unseen = unseen_directions(train, CAP_CENTER, 16, seed=3)  # the test set of the same seed: other lights
-    assert (pool @ unseen.T).max() < 1 - 1e-9
-    np.testing.assert_array_equal(pool, training_pool(train, CAP_CENTER, 64, seed=3))
-    assert training_pool(train, CAP_CENTER, 0, seed=3).shape == (0, 3)
+    assert (drawn @ unseen.T).max() < 1 - 1e-9
+    np.testing.assert_array_equal(drawn, getattr(lights, draw)(train, CAP_CENTER, 64, seed=3))
+    assert getattr(lights, draw)(train, CAP_CENTER, 0, seed=3).shape == (0, 3)
+
+
+def test_validation_lights_are_not_pool_lights():
+    from diffshadow.lights import training_pool, validation_lights
+
+    train = cap_lights(100)
+    val, pool = validation_lights(train, CAP_CENTER, 16, seed=3), training_pool(train, CAP_CENTER, 512, seed=3)
+    assert (val @ pool.T).max() < 1 - 1e-9
 
 
 def test_blend_weights_sum_to_one_and_favour_the_closest():

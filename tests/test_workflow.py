@@ -25,7 +25,7 @@ TINY = {
     "diffusion": {"preset": "tiny", "epochs": 3, "batch_size": 2, "geometry_points": 16, "presample_points": 64,
                   "checkpoint_every": 1, "ddim_steps": 5, "pool_lights": 4, "pool_points": 32},
     "finetune": {"views": 1, "image_size": 16, "pixels": 4, "epochs": 2, "batch_size": 4, "nproc": 2,
-                 "checkpoint_every": 1},
+                 "checkpoint_every": 1, "val_lights": 4, "val_points": 1024},
     "data_inr": {"width": 8, "blocks": 1, "steps": 20, "points": 512, "target_psnr": 0.0},
     "render": {"image_size": 16, "views": 1, "lights_per_set": 1, "bench_sizes": [8], "bench_repeats": 1,
                "bench_memory_sizes": [16]},

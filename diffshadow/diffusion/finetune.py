@@ -64,9 +64,9 @@ class FinetuneConfig:
     step: float  # renderer step (voxels)
     timeout_s: int  # collective timeout: a dead rank ends the job instead of hanging it
     seed: int
-    # lights halfway between training lights (lights.between_lights), scored at every checkpoint: the model
+    # random lights in the training cap (lights.validation_lights), scored at every checkpoint: the model
     # kept is the last one whose median voxel PSNR there is not below the geometry stage's (0: no check)
-    val_lights: int = 8
+    val_lights: int = 16
     val_points: int = 4096
     # validated checkpoints in a row under the geometry stage's before fine-tuning stops (0: never stops early)
     patience: int = 2
@@ -192,7 +192,7 @@ class FinetuneData:
     train: TrainingData
     bundle: RayBundle
     targets: torch.Tensor  # (L, V, H·W, 3)
-    val: EvalTruth | None = None  # exact shadows at validation lights (between training lights)
+    val: EvalTruth | None = None  # exact shadows at validation lights (random in the training cap)
 
     def to(self, device) -> FinetuneData:
         # the validation set stays on the CPU: it is scored there, between epochs
@@ -341,8 +341,8 @@ def finetune(geometry_state: dict, data: FinetuneData, cfg: FinetuneConfig, chec
         if value >= floor:
             selection["kept_epoch"] = epoch
             kept["model"] = {k: v.detach().cpu().clone() for k, v in base.state_dict().items()}
-        log(f"validation: epoch {epoch}, median voxel PSNR {value:.2f} dB at {len(data.val.lights)} lights between "
-            f"training lights (geometry stage {floor:.2f} dB); keeping epoch {selection['kept_epoch']}")
+        log(f"validation: epoch {epoch}, median voxel PSNR {value:.2f} dB at {len(data.val.lights)} validation lights "
+            f"(geometry stage {floor:.2f} dB); keeping epoch {selection['kept_epoch']}")
 
     def give_up() -> bool:
         """Rank 0's verdict, shared: the last `patience` checkpoints all scored under the geometry stage."""

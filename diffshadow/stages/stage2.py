@@ -20,7 +20,7 @@ from diffshadow.diffusion.train import DiffusionConfig, DiffusionError
 from diffshadow.diffusion.train import train_diffusion as train
 from diffshadow.evaluate import EvalTruth, psnr_per_light, voxel_metrics
 from diffshadow.io import atomic_write_text
-from diffshadow.lights import between_lights, read_lights, training_pool
+from diffshadow.lights import read_lights, training_pool, validation_lights
 from diffshadow.runtime import distributed, set_threads
 from diffshadow.store import WeightStore, open_store, write_store
 
@@ -64,9 +64,9 @@ def _summary(psnr: np.ndarray) -> dict:
 
 def finetune_render(checkpoint: Path, weights_path: Path, points_path: Path, targets_path: Path, out: Path,
                     metrics_path: Path, *, cfg: FinetuneConfig, device: torch.device, threads: int = 0,
-                    volume_path: Path | None = None) -> None:
+                    volume_path: Path | None = None, lights_path: Path | None = None) -> None:
     """Rendering-loss fine-tuning from the geometry-stage checkpoint, one DDP rank per process; with the
-    volume, the model kept is chosen on validation lights between the training lights."""
+    volume and the light sets, the model kept is chosen on validation lights (lights.validation_lights)."""
     with distributed(device, timeout_s=cfg.timeout_s) as ddp:
         set_threads(threads)
         rank, world = ddp.rank, ddp.world
@@ -79,7 +79,10 @@ def finetune_render(checkpoint: Path, weights_path: Path, points_path: Path, tar
         val = None
         if volume_path is not None and cfg.val_lights > 0 and rank == 0:
             volume, tf = artifacts.load_prepared(volume_path)
-            lights = between_lights(train_data.lights.numpy(), cfg.val_lights)
+            if lights_path is None:
+                raise ValueError("finetune_render: validation lights need the light sets (--lights) with the volume")
+            lights = validation_lights(train_data.lights.numpy(), read_lights(lights_path)["center"], cfg.val_lights,
+                                       seed=cfg.seed)
             val = EvalTruth.compute(volume, tf, lights, cfg.val_points, cfg.seed + 1)
         data = FinetuneData(train_data, bundle, images, val)
         part = out.with_name(out.name + ".part")

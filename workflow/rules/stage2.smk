@@ -138,6 +138,7 @@ rule finetune_render:
         points="results/{scene}/geometry_points.zarr",
         targets="results/{scene}/targets.zarr",
         volume="results/{scene}/volume.zarr",
+        lights="results/{scene}/lights.json",
     output:
         checkpoint="results/{scene}/diffusion.ckpt",
         metrics="results/{scene}/finetune_metrics.json",
@@ -160,5 +161,5 @@ rule finetune_render:
         "n=$(diffshadow ddp-processes --nproc {threads}) &&"
         " $DIFFSHADOW_TORCHRUN --nproc_per_node=$n -m diffshadow.cli finetune-render"
         " --checkpoint {input.checkpoint} --weights {input.weights} --points {input.points}"
-        " --targets {input.targets} --volume {input.volume} --config-json {params.cfg:q} --threads 1"
+        " --targets {input.targets} --volume {input.volume} --lights {input.lights} --config-json {params.cfg:q} --threads 1"
         " --metrics {output.metrics} --out {output.checkpoint} 2>&1 | tee {log}"
