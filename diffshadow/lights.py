@@ -92,7 +92,7 @@ def unseen_directions(train, center, count: int, *, seed: int | list[int] = 0, m
         out.extend(keep[:need])
     if len(out) < count:
         raise LightError(f"unseen_directions: could not find {count} directions apart from the training set")
-    return np.asarray(out[:count])
+    return np.asarray(out[:count]).reshape(-1, 3)
 
 
 def pick(n_total: int, n: int) -> list[int]:
@@ -126,8 +126,6 @@ def blend_weights(train: np.ndarray, query: np.ndarray, k: int) -> tuple[np.ndar
 def training_pool(train, center, n: int, *, seed: int) -> np.ndarray:
     """`n` random directions in the training lights' cap for diffusion training on exact shadows only (no
     fitted SIREN): drawn like the unseen test set but from another random stream, so never the same lights."""
-    if n <= 0:
-        return np.zeros((0, 3))
     return unseen_directions(train, center, n, seed=[seed, 1])
 
 
@@ -136,8 +134,6 @@ def validation_lights(train, center, n: int, *, seed: int) -> np.ndarray:
     unseen test set, so they stand for it, but from a third random stream (never a test or pool light).
     Halfway points between neighbouring training lights had stood in before; they disagreed with the test
     set on whether fine-tuning helped (nucleon: +0.8 dB there, -0.4 dB on the unseen lights)."""
-    if n <= 0:
-        return np.zeros((0, 3))
     return unseen_directions(train, center, n, seed=[seed, 2])
 
 

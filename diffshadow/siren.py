@@ -106,24 +106,22 @@ def init_siren(cfg: SirenConfig, generator: torch.Generator | None = None) -> di
 def _forward(p: dict[str, torch.Tensor], x: torch.Tensor, blocks: int) -> torch.Tensor:
     """Shared maths for one SIREN (weights (out, in)) or K of them (weights (K, out, in), x (K, N, 3))."""
 
-    def linear(name: str, h: torch.Tensor, w_scale: float = 1.0, b_scale: float = 1.0) -> torch.Tensor:
-        w, b = p[f"{name}.weight"], p[f"{name}.bias"]
-        if w_scale != 1.0:
-            w, b = w * w_scale, b * b_scale
+    def linear(h: torch.Tensor, w: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
         if w.ndim == 2:
             return torch.addmm(b, h, w.t()) if h.ndim == 2 else h @ w.t() + b
         return torch.baddbmm(b.unsqueeze(1), h, w.transpose(1, 2))  # (K, N, out)
 
     def sine(name: str, h: torch.Tensor, in_scale: float = 1.0) -> torch.Tensor:
         # sin(ω0 · linear(in_scale · h)), the scales applied to the (out, in) weights rather than to the (N, out)
-        # activations: two fewer passes over the activations forward and two backward (fitting: -20% time)
-        return torch.sin(linear(name, h, OMEGA * in_scale, OMEGA))
+        # activations: two fewer passes over the activations forward and two backward (docs/tuning.md)
+        w, b = p[f"{name}.weight"], p[f"{name}.bias"]
+        return torch.sin(linear(h, w * (OMEGA * in_scale), b * OMEGA))
 
     h = sine("first", x)
     for i in range(blocks):
         inner = sine(f"blocks.{i}.l1", h, RES_WEIGHT)
         h = RES_WEIGHT * (h + sine(f"blocks.{i}.l2", inner))
-    return (0.5 * linear("last", h) + 0.5).squeeze(-1)
+    return (0.5 * linear(h, p["last.weight"], p["last.bias"]) + 0.5).squeeze(-1)
 
 
 class Siren(nn.Module):

@@ -257,10 +257,8 @@ def step_loss(model, std: Standardizer, data: FinetuneData, z_all: torch.Tensor,
     if pool is not None:  # one forward for both (DDP expects one forward per backward)
         j = torch.cat([d[4][0] for d in draws]).to(device)
         tp = torch.cat([d[4][1] for d in draws]).to(device)
-        x0p = pool.x0(z_all, j)
-        x_t = torch.cat([x_t, schedule.q_sample(x0p, tp, torch.cat([d[4][2] for d in draws]).to(device))])
-        t = torch.cat([t, tp])
-        light_in = torch.cat([light_in, pool.lights[j].float()])
+        x0p, x_tp, light_p = pool.noised(z_all, j, tp, torch.cat([d[4][2] for d in draws]).to(device), schedule)
+        x_t, t, light_in = torch.cat([x_t, x_tp]), torch.cat([t, tp]), torch.cat([light_in, light_p])
     pred_all = model(x_t, t, light_in)
     pred = pred_all[:len(local)]
     l_x0 = ((pred - x0) ** 2).mean(1)

@@ -155,6 +155,12 @@ class PoolLights:
         """The x0 targets (B, n_params) of pool lights `j`: their blends of the standardised training weights."""
         return (z_all[self.neighbours[j]] * self.blend[j][..., None]).sum(1)
 
+    def noised(self, z_all: torch.Tensor, j: torch.Tensor, t: torch.Tensor, noise: torch.Tensor,
+               schedule: Schedule) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """Pool lights `j` as model input beside the training lights: their x0 targets, noised x_t, directions."""
+        x0 = self.x0(z_all, j)
+        return x0, schedule.q_sample(x0, t, noise), self.lights[j].float()
+
     def samples(self, j: torch.Tensor, pick: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """Points (B, G, 3) and exact shadow (B, G) of pool lights `j` at their presampled points `pick` (B, G)."""
         return torch.gather(self.points[j], 1, pick[..., None].expand(-1, -1, 3)), torch.gather(self.values[j], 1, pick)
@@ -273,9 +279,8 @@ def train_diffusion(data: TrainingData, cfg: DiffusionConfig, checkpoint: Path, 
                 j = torch.randint(0, len(pool.lights), (b,), generator=gen, device=gen.device).to(device)
                 tp = torch.randint(0, schedule.steps, (b,), generator=gen, device=gen.device).to(device)
                 noise_p = torch.randn(b, z_all.shape[1], generator=gen, device=gen.device).to(device)
-                x0p = pool.x0(z_all, j)
-                x_t = torch.cat([x_t, schedule.q_sample(x0p, tp, noise_p)])
-                t_in, light_in = torch.cat([t, tp]), torch.cat([light_in, pool.lights[j].float()])
+                x0p, x_tp, light_p = pool.noised(z_all, j, tp, noise_p, schedule)
+                x_t, t_in, light_in = torch.cat([x_t, x_tp]), torch.cat([t, tp]), torch.cat([light_in, light_p])
             pred_all = model(x_t, t_in, light_in)
             pred = pred_all[:b]
             loss_x0 = ((pred - x0) ** 2).mean()
