@@ -100,7 +100,7 @@ def load_siren_init(path: str | Path, siren: SirenConfig, steps: int | None = No
     try:
         chosen = SirenConfig.from_config(state["siren"])
         capacity = state["capacity"]
-        choice = Choice(float(capacity["target_psnr"]), list(capacity["rungs"]))
+        choice = Choice.from_dict(capacity)
         start = SirenConfig(int(choice.rungs[0]["width"]), chosen.blocks)
         fit_steps = int(state["fit_steps"])
     except (KeyError, IndexError, TypeError, ValueError) as e:

@@ -5,7 +5,9 @@ what the scene cost and a missed target is named, not silently delivered.
 The ladder from a configured (width, steps) is (w, s), (w, 2s), (2w, 2s), (4w, 2s), … up to `max_width`.
 Measured on four volumes (docs/tuning.md): a SIREN's PSNR rises 4.5–6 dB per width doubling on the
 shared volumes, while doubling the steps gives 0.5–2 dB, so the ladder spends at most one step-doubling
-before it widens.
+before it widens. A width doubling that gains less than MIN_WIDTH_GAIN_DB ends the climb: the volume is then
+limited by something width does not buy (tooth's data INR: 39.6 → 40.4 → 40.6 dB at widths 64, 128, 256, the
+ceiling of its voxel-scale CT noise), and each doubling costs 2-4x in fitting and rendering.
 """
 
 from __future__ import annotations
@@ -16,6 +18,8 @@ from dataclasses import dataclass, field
 from typing import TypeVar
 
 T = TypeVar("T")
+
+MIN_WIDTH_GAIN_DB = 1.0
 
 
 @dataclass(frozen=True)
@@ -44,10 +48,12 @@ class Choice:
     # {"width", "steps", "psnr"} in the order tried; no timings (the files holding it are byte-deterministic:
     # each rung's seconds go to the log, the stage's to Snakemake's benchmark file)
     rungs: list[dict] = field(default_factory=list)
+    kept: int = -1  # index into rungs of the result kept: the first to meet the target, else the best
+    plateau: bool = False  # the climb stopped because widening gained < MIN_WIDTH_GAIN_DB
 
     @property
     def chosen(self) -> dict:
-        return self.rungs[-1]
+        return self.rungs[self.kept]
 
     @property
     def met(self) -> bool:
@@ -55,23 +61,35 @@ class Choice:
 
     def to_dict(self) -> dict:
         return {"target_psnr": self.target, "met": self.met, "width": self.chosen["width"],
-                "steps": self.chosen["steps"], "psnr": self.chosen["psnr"], "rungs": self.rungs}
+                "steps": self.chosen["steps"], "psnr": self.chosen["psnr"], "rungs": self.rungs,
+                "kept": self.kept % len(self.rungs), "plateau": self.plateau}
+
+    @classmethod
+    def from_dict(cls, d: dict) -> Choice:
+        return cls(float(d["target_psnr"]), list(d["rungs"]), int(d.get("kept", -1)), bool(d.get("plateau", False)))
 
     def warning(self, what: str, knobs: str) -> str | None:
         """One line when the target was missed: the value, the target, what to change."""
         if self.met:
             return None
         c = self.chosen
-        return (f"WARNING: {what} reached {c['psnr']:.2f} dB, below its target {self.target:g} dB, at the largest "
-                f"size tried (width {c['width']}, {c['steps']} steps); raise {knobs}, or lower the target")
+        if self.plateau:
+            return (f"WARNING: {what} reached {c['psnr']:.2f} dB, below its target {self.target:g} dB; widening "
+                    f"gained < {MIN_WIDTH_GAIN_DB:g} dB, so width is not what limits it (kept width {c['width']}, "
+                    f"{c['steps']} steps); lower the target")
+        return (f"WARNING: {what} reached {c['psnr']:.2f} dB, below its target {self.target:g} dB, the best of "
+                f"{len(self.rungs)} sizes tried (kept width {c['width']}, {c['steps']} steps); raise {knobs}, or lower "
+                f"the target")
 
 
 def climb(rungs: list[Rung], target: float, attempt: Callable[[Rung], tuple[T, float]],
           *, log: Callable[[str], None] = print, what: str = "fit") -> tuple[T, Choice]:
-    """Run `attempt` on each rung until its PSNR reaches `target` (only the first rung when target <= 0);
-    return the last result and the record of every rung."""
+    """Run `attempt` on each rung until its PSNR reaches `target` (only the first rung when target <= 0) or a
+    wider rung gains less than MIN_WIDTH_GAIN_DB over the best before it; return the result of the rung that
+    reached the target — else of the best one (a larger size can do worse: a wider SIREN that diverged must
+    not replace a narrower one that did not) — and the record of every rung."""
     choice = Choice(float(target))
-    result = None
+    kept, best = None, float("-inf")
     for i, rung in enumerate(rungs):
         t0 = time.perf_counter()
         result, value = attempt(rung)
@@ -79,10 +97,20 @@ def climb(rungs: list[Rung], target: float, attempt: Callable[[Rung], tuple[T, f
         choice.rungs.append({"width": rung.width, "steps": rung.steps, "psnr": value if value == value else None})
         if value == value:
             log(f"{what}: width {rung.width}, {rung.steps} steps: {value:.2f} dB ({time.perf_counter() - t0:.0f} s)")
+        widened = i > 0 and rung.width > rungs[i - 1].width
+        gain = value - best
+        if kept is None or value > best:
+            kept, best, choice.kept = result, value, i
         if target <= 0 or value >= target:
+            kept, choice.kept = result, i
+            break
+        if widened and gain < MIN_WIDTH_GAIN_DB:
+            log(f"{what}: widening to {rung.width} gained {gain:+.2f} dB (< {MIN_WIDTH_GAIN_DB:g} dB); not widening "
+                f"further")
+            choice.plateau = True
             break
         if i + 1 < len(rungs):
             nxt = rungs[i + 1]
             log(f"{what}: {value:.2f} dB at width {rung.width}, {rung.steps} steps is below the target "
                 f"{target:g} dB; trying width {nxt.width}, {nxt.steps} steps")
-    return result, choice
+    return kept, choice

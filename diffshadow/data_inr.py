@@ -115,7 +115,7 @@ def fit_data_inr_once(volume: Volume, tf: TransferFunction, cfg: DataInrConfig, 
     t0 = time.perf_counter()
     for step in range(start, cfg.steps):
         for group in opt.param_groups:
-            group["lr"] = cosine_lr(step, cfg)  # same fields as FitConfig
+            group["lr"] = cosine_lr(step, cfg, cfg.width)  # same fields as FitConfig
         pts = sampler.sample(1, cfg.points, seeded(cfg.seed, 8, step)).to(device)
         with torch.no_grad():
             target = lookup_grids(grid, pts, extent)[0]

@@ -160,7 +160,7 @@ def fit_sirens(
     t0 = time.perf_counter()
     for step in range(start, cfg.steps):
         for group in opt.param_groups:
-            group["lr"] = cosine_lr(step, cfg)
+            group["lr"] = cosine_lr(step, cfg, siren.width)
         if cfg.shared_points:
             pts = sampler.sample(1, cfg.points, seeded(cfg.seed, SHARED_STREAM, step)).expand(k, -1, -1).to(device)
         else:
@@ -205,7 +205,7 @@ def fit_sirens(
                 raise FitError(f"fit diverged: over the last {window_steps} steps the training loss rose far above "
                                f"its starting value ({rows}); lower fit.lr (now {cfg.lr})")
             rate = (done - start) * k * cfg.points / (time.perf_counter() - t0)
-            log(f"step {done}/{cfg.steps}  lr {cosine_lr(step, cfg):.2e}  median PSNR(train batch) "
+            log(f"step {done}/{cfg.steps}  lr {cosine_lr(step, cfg, siren.width):.2e}  median PSNR(train batch) "
                 f"{float(-10 * torch.log10(per_siren).median()):.1f} dB  {rate:,.0f} points/s")
             window, window_steps = torch.zeros(k, device=device), 0
     if checkpoint is not None and checkpoint.exists():

@@ -7,7 +7,7 @@ from conftest import identity_tf
 
 from diffshadow.analytic import gaussian_blob
 from diffshadow.artifacts import ArtifactError, load_siren_init, save_siren_init
-from diffshadow.capacity import Rung, climb, ladder
+from diffshadow.capacity import Choice, Rung, climb, ladder
 from diffshadow.data_inr import DataInrConfig, fit_data_inr
 from diffshadow.fit import FitConfig, choose_layout, probe_light
 from diffshadow.siren import SirenConfig
@@ -43,6 +43,28 @@ def test_a_missed_target_is_recorded_and_warned():
     assert "\n" not in line
 
 
+def test_a_missed_target_keeps_the_best_size_not_the_last():
+    # a wider SIREN can diverge (tooth's data INR: 39.6 dB at width 64, 20.7 dB at 128)
+    psnr = {8: 30.0, 16: 35.0, 32: 21.0}
+    result, choice = climb(ladder(8, 5, 32), 99.0, lambda r: (r, psnr[r.width] + r.steps / 100), log=lambda m: None)
+    assert result == Rung(16, 10) and choice.kept == 2 and choice.chosen["width"] == 16
+    assert choice.to_dict()["kept"] == 2 and choice.to_dict()["psnr"] == 35.1
+    assert "kept width 16, 10 steps" in choice.warning("x", "y") and choice.plateau
+    back = Choice.from_dict(choice.to_dict())
+    assert back.chosen == choice.chosen and back.to_dict() == choice.to_dict()
+
+
+def test_widening_that_gains_under_a_db_ends_the_climb():
+    psnr = {8: 30.0, 16: 30.6, 32: 40.0, 64: 50.0}  # 32 and 64 would reach the target, but are never tried
+    lines = []
+    result, choice = climb(ladder(8, 5, 64), 45.0, lambda r: (r, psnr[r.width]), log=lines.append)
+    assert [(r["width"], r["steps"]) for r in choice.rungs] == [(8, 5), (8, 10), (16, 10)]
+    assert result == Rung(16, 10) and choice.plateau and not choice.met
+    assert any("gained +0.60 dB" in m for m in lines)
+    line = choice.warning("the data INR's voxel PSNR", "data_inr.max_width")
+    assert "width is not what limits it" in line and "lower the target" in line and "max_width" not in line
+
+
 def test_no_target_tries_only_the_configured_size():
     _, choice = climb(ladder(8, 5, 64), 0.0, lambda r: (None, float("nan")), log=lambda m: None)
     assert choice.met and len(choice.rungs) == 1
@@ -64,8 +86,9 @@ def test_data_inr_grows_until_its_target(blob):
                         log=lines.append)
     cap = hard.config["capacity"]
     assert [(r["width"], r["steps"]) for r in cap["rungs"]] == [(8, 40), (8, 80), (16, 80)]
-    assert hard.model.cfg.width == 16 and hard.config["width"] == 16 and hard.config["steps"] == 80
-    assert hard.psnr == cap["psnr"] and not cap["met"]
+    best = max(range(3), key=lambda i: cap["rungs"][i]["psnr"])
+    assert cap["kept"] == best and hard.model.cfg.width == cap["rungs"][best]["width"] == hard.config["width"]
+    assert hard.psnr == cap["psnr"] == cap["rungs"][best]["psnr"] and not cap["met"]
     assert sum(m.startswith("WARNING") for m in lines) == 1
 
 
@@ -78,10 +101,12 @@ def test_stage1_layout_is_probed_grown_and_round_trips(blob, tmp_path):
     siren = SirenConfig(8, 1)
     lines = []
     chosen = choose_layout(blob, tf, lights, siren, fit, preoptimize_steps=3, preoptimize_lr=1e-3, log=lines.append)
-    assert chosen.siren == SirenConfig(16, 1) and chosen.steps == 12
-    assert [(r["width"], r["steps"]) for r in chosen.choice.rungs] == [(8, 6), (8, 12), (16, 12)]
+    rungs = chosen.choice.rungs
+    assert [(r["width"], r["steps"]) for r in rungs] == [(8, 6), (8, 12), (16, 12)]
+    kept = rungs[max(range(3), key=lambda i: rungs[i]["psnr"])]  # target missed: the best size
+    assert chosen.siren == SirenConfig(kept["width"], 1) and chosen.steps == kept["steps"] == 12
     assert len(chosen.init) == chosen.layout.n_params
-    assert any(m.startswith("WARNING") and "fit.max_width" in m for m in lines)
+    assert any(m.startswith("WARNING") and "stage 1's probe light 2" in m and "target 200 dB" in m for m in lines)
 
     save_siren_init(tmp_path / "init.pt", chosen)
     back = load_siren_init(tmp_path / "init.pt", siren)

@@ -74,3 +74,16 @@ def test_box_to_siren_maps_box_corners_to_unit_cube():
     extent = torch.tensor([1.0, 0.5, 0.25])
     pts = torch.tensor([[0.0, 0.0, 0.0], [1.0, 0.5, 0.25], [0.5, 0.25, 0.125]])
     torch.testing.assert_close(box_to_siren(pts, extent), torch.tensor([[-1.0] * 3, [1.0] * 3, [0.0] * 3]))
+
+
+def test_cosine_lr_decays_and_scales_down_above_lr_width():
+    from types import SimpleNamespace
+
+    from diffshadow.siren import LR_WIDTH, cosine_lr
+
+    cfg = SimpleNamespace(lr=1e-3, lr_final=0.01, steps=100)
+    assert cosine_lr(0, cfg, LR_WIDTH) == pytest.approx(1e-3)
+    assert cosine_lr(100, cfg, LR_WIDTH) == pytest.approx(1e-5)
+    assert cosine_lr(50, cfg, 16) == cosine_lr(50, cfg, LR_WIDTH) == pytest.approx(0.5 * (1e-3 + 1e-5))
+    for step in (0, 37, 100):  # a SIREN twice as wide: half the step size all along the schedule
+        assert cosine_lr(step, cfg, 2 * LR_WIDTH) == pytest.approx(0.5 * cosine_lr(step, cfg, LR_WIDTH))
