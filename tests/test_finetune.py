@@ -24,6 +24,7 @@ from diffshadow.diffusion.finetune import (
     step_loss,
 )
 from diffshadow.diffusion.train import DiffusionConfig, PoolLights, TrainingData, train_diffusion
+from diffshadow.metrics import psnr
 from diffshadow.render import GridShadow
 from diffshadow.shadow import shadow_grid
 from diffshadow.siren import SirenConfig, WeightLayout, init_siren
@@ -74,7 +75,7 @@ def test_bundle_colour_equals_the_renderer(volume, setup):
     cams, bundle, images, _, _ = setup
     assert (bundle.count > 10).all()
     for i, light in enumerate(LIGHTS):
-        g_of = GridShadow(shadow_grid(volume, TF, light, method="march"), volume.extent)
+        g_of = GridShadow(shadow_grid(volume, TF, light, method=FT.targets), volume.extent)
         for v in range(len(cams)):
             rows = torch.arange(int(bundle.count[v]))
             pts = bundle.pts[v, rows]
@@ -82,6 +83,15 @@ def test_bundle_colour_equals_the_renderer(volume, setup):
             color = bundle_colors(bundle, g, torch.full_like(rows, v), rows)
             target = images[i, v].reshape(-1, 3)[bundle.pix[v, rows]]
             assert float((color - target).abs().max()) <= 1e-4
+
+
+def test_sweep_targets_match_march_targets(volume, setup):
+    cams, _, images, _, _ = setup
+    assert FT.targets == "sweep"
+    march = render_targets(volume, TF, LIGHTS, cams, step=FT.step, method="march", log=lambda m: None)
+    assert 50.0 < float(psnr(images, march)) < float("inf")  # the grids differ by O(h²) in line spacing
+    with pytest.raises(ValueError, match="finetune.targets: expected 'sweep' or 'march', got 'exact'"):
+        render_targets(volume, TF, LIGHTS, cams, step=FT.step, method="exact")
 
 
 def _ddp_worker(rank, world, port, data, state, out_dir):

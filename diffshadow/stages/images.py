@@ -37,7 +37,7 @@ def render_targets(volume_path: Path, lights_path: Path, out: Path, *, cfg: Fine
     bundle = build_bundle(volume, tf, cams, step=cfg.step)  # one pass per view: CPU
     print(f"{cfg.views} views of {cfg.image_size}²: {bundle.count.tolist()} foreground pixels, up to "
           f"{bundle.pts.shape[2]} samples each", flush=True)
-    images = targets(volume, tf, train, cams, step=cfg.step, device=device)
+    images = targets(volume, tf, train, cams, step=cfg.step, method=cfg.targets, device=device)
     artifacts.write_targets(out, images, bundle, cams, train, step=cfg.step, extent=volume.extent)
     print(f"wrote {out}: {len(train)} lights x {cfg.views} views")
 

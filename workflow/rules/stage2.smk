@@ -118,8 +118,8 @@ rule render_targets:
         directory("results/{scene}/targets.zarr"),
     params:  # only what the images depend on: a new learning rate must not re-render them
         cfg=lambda wc: json.dumps({"finetune": {k: scene_config(wc.scene)["finetune"][k]
-                                                for k in ("views", "image_size", "fov", "step")}}, sort_keys=True),
-    threads: 1  # its march per light is one thread's work; a second thread sped it up by 1.0x
+                                                for k in ("views", "image_size", "fov", "step", "targets")}}, sort_keys=True),
+    threads: 1  # a sweep and 64² images per light: small work (the march took a second thread at 1.0x)
     log:
         "results/{scene}/logs/render_targets.log",
     benchmark:
