@@ -86,9 +86,8 @@ def climb(rungs: list[Rung], target: float, attempt: Callable[[Rung], tuple[T, f
           *, log: Callable[[str], None] = print, what: str = "fit") -> tuple[T, Choice]:
     """Run `attempt` on each rung until its PSNR reaches `target` (only the first rung when target <= 0) or a
     wider rung gains less than MIN_WIDTH_GAIN_DB over the best before it; return the result of the rung that
-    reached the target — else of the best one before a widening that did not pay (a larger size can do
-    worse: a wider SIREN that diverged must not replace a narrower one that did not) — and the record of
-    every rung."""
+    reached the target — else of the best one (a larger size can do worse: a wider SIREN that diverged must
+    not replace a narrower one that did not) — and the record of every rung."""
     choice = Choice(float(target))
     kept, best = None, float("-inf")
     for i, rung in enumerate(rungs):
@@ -98,17 +97,18 @@ def climb(rungs: list[Rung], target: float, attempt: Callable[[Rung], tuple[T, f
         choice.rungs.append({"width": rung.width, "steps": rung.steps, "psnr": value if value == value else None})
         if value == value:
             log(f"{what}: width {rung.width}, {rung.steps} steps: {value:.2f} dB ({time.perf_counter() - t0:.0f} s)")
+        widened = i > 0 and rung.width > rungs[i - 1].width
+        gain = value - best
+        if kept is None or value > best:
+            kept, best, choice.kept = result, value, i
         if target <= 0 or value >= target:
             kept, choice.kept = result, i
             break
-        if i > 0 and rung.width > rungs[i - 1].width and value - best < MIN_WIDTH_GAIN_DB:
-            # the narrower SIREN is kept: every sample the renderer draws evaluates it, at 2-4x less cost
-            log(f"{what}: widening to {rung.width} gained {value - best:+.2f} dB (< {MIN_WIDTH_GAIN_DB:g} dB); "
-                f"keeping width {rungs[choice.kept].width}")
+        if widened and gain < MIN_WIDTH_GAIN_DB:
+            log(f"{what}: widening to {rung.width} gained {gain:+.2f} dB (< {MIN_WIDTH_GAIN_DB:g} dB); not widening "
+                f"further")
             choice.plateau = True
             break
-        if kept is None or value > best:
-            kept, best, choice.kept = result, value, i
         if i + 1 < len(rungs):
             nxt = rungs[i + 1]
             log(f"{what}: {value:.2f} dB at width {rung.width}, {rung.steps} steps is below the target "
