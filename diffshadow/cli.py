@@ -131,10 +131,12 @@ def _train_data_inr(a):
 
 def _render_targets(a):
     from diffshadow.diffusion.finetune import FinetuneConfig
+    from diffshadow.fit import FitConfig
     from diffshadow.stages import images
 
-    images.render_targets(Path(a.volume), Path(a.lights), Path(a.out),
-                          cfg=FinetuneConfig.from_config(_cfg(a)["finetune"]), device=_device(a))
+    cfg = _cfg(a)
+    images.render_targets(Path(a.volume), Path(a.lights), Path(a.out), cfg=FinetuneConfig.from_config(cfg["finetune"]),
+                          upsample=FitConfig.from_config(cfg.get("fit")).grid_upsample, device=_device(a))
 
 
 def _evaluate_images(a):

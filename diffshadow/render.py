@@ -36,7 +36,7 @@ from diffshadow.grid import cell_ranges, ray_span, trilinear
 from diffshadow.lights import as_direction
 from diffshadow.siren import BatchedSiren, Siren, WeightLayout, box_to_siren
 from diffshadow.transfer import TransferFunction
-from diffshadow.volume import Volume
+from diffshadow.volume import Volume, refine
 
 RENDER_CELL = 16  # voxels per macro-cell edge (the authors' renderer)
 DEFAULT_STEP = 0.5  # primary and secondary step, in voxels of the finest axis
@@ -569,16 +569,17 @@ def render_all_at_once(camera: Camera, scalar, tf: TransferFunction, extent, vox
 class RenderScene:
     """One volume, its TF and (optionally) its data INR on one device, with the per-mode pieces cached.
 
-    Modes: `noshadow`; `gt` (scalar and shadow from the raw volume; shadow by `shadow_grid`); `inr`
+    Modes: `noshadow`; `gt` (scalar and shadow from the raw volume; shadow by `shadow_grid`, on the volume
+    refined `gt_upsample` times); `inr`
     (shadow INR co-rendered with the scalar field: ours); `naive` (secondary rays through the scalar
     field). `scalar="inr"` renders the data INR, `"grid"` the raw volume (to isolate the shadow's error).
     """
 
     def __init__(self, volume: Volume, tf: TransferFunction, data_inr=None, *, device: torch.device | str = "cpu",
-                 gt_method: str = "march", cell: int = RENDER_CELL):
+                 gt_method: str = "march", gt_upsample: int = 1, cell: int = RENDER_CELL):
         self.volume, self.tf, self.data_inr = volume, tf, data_inr
         self.device = torch.device(device)
-        self.gt_method, self.cell = gt_method, cell
+        self.gt_method, self.gt_upsample, self.cell = gt_method, gt_upsample, cell
         self.voxel = float(np.min(volume.voxel_size))
         self._cache: dict = {}
 
@@ -623,9 +624,9 @@ class RenderScene:
 
         key = self._gt_key(light)
         w = key[1]
+        fine = self._cached("gt_volume", lambda: refine(self.volume, self.gt_upsample))
         return self._cached(key, lambda: GridShadow(
-            shadow_grid(self.volume, self.tf, w, method=self.gt_method, device=self.device),
-            self.volume.extent, self.device))
+            shadow_grid(fine, self.tf, w, method=self.gt_method, device=self.device), self.volume.extent, self.device))
 
     def render(self, mode: str, camera: Camera, *, light=None, siren=None, scalar: str | None = None,
                phong: bool = False, step: float = DEFAULT_STEP, skip: bool = True, batch: int | None = None,

@@ -90,6 +90,8 @@ def test_sweep_targets_match_march_targets(volume, setup):
     assert FT.targets == "sweep"
     march = render_targets(volume, TF, LIGHTS, cams, step=FT.step, method="march", log=lambda m: None)
     assert 50.0 < float(psnr(images, march)) < float("inf")  # the grids differ by O(h²) in line spacing
+    fine = render_targets(volume, TF, LIGHTS, cams, step=FT.step, upsample=2, log=lambda m: None)
+    assert float(psnr(fine, march)) > float(psnr(images, march))  # stage 1's grid: lines half as far apart
     with pytest.raises(ValueError, match="finetune.targets: expected 'sweep' or 'march', got 'exact'"):
         render_targets(volume, TF, LIGHTS, cams, step=FT.step, method="exact")
 

@@ -70,8 +70,9 @@ class FinetuneConfig:
     val_points: int = 4096
     # validated checkpoints in a row under the geometry stage's before fine-tuning stops (0: never stops early)
     patience: int = 2
-    # shadow grid of the target images: "sweep" (what stage 1 fits to) or "march" (the renderer's gt). Their
-    # images agree to 55-62 dB (nucleon, tooth) and the sweep is 26-59x faster (docs/tuning.md)
+    # shadow grid of the target images: "sweep" (on the volume refined fit.grid_upsample times: the grid stage 1
+    # fits to) or "march" (the renderer's gt). Foreground pixels agree to 50-53 dB (nucleon, tooth); the
+    # sweep is 3-5x faster (docs/tuning.md)
     targets: str = "sweep"
 
     @classmethod
@@ -172,12 +173,14 @@ def bundle_colors(bundle: RayBundle, g: torch.Tensor, view_idx: torch.Tensor, pi
 
 
 def render_targets(volume: Volume, tf: TransferFunction, lights: np.ndarray, cameras: list[Camera], *,
-                   step: float, method: str = "sweep", device: torch.device | str = "cpu", log=print) -> torch.Tensor:
+                   step: float, method: str = "sweep", upsample: int = 1, device: torch.device | str = "cpu",
+                   log=print) -> torch.Tensor:
     """Ground-truth images (L, V, H, W, 3) on the CPU, rendered on `device` by the renderer's `gt` mode
-    (early termination far below 8 bits) with shadow grids by `method` ("sweep" or "march")."""
+    (early termination far below 8 bits) with shadow grids by `method` ("sweep" or "march") on the volume
+    refined `upsample` times."""
     if method not in ("sweep", "march"):
         raise ValueError(f"finetune.targets: expected 'sweep' or 'march', got {method!r}")
-    scene = RenderScene(volume, tf, device=device, gt_method=method)
+    scene = RenderScene(volume, tf, device=device, gt_method=method, gt_upsample=upsample)
     out = torch.zeros(len(lights), len(cameras), cameras[0].height, cameras[0].width, 3)
     t0 = time.perf_counter()
     for i, w in enumerate(lights):

@@ -118,7 +118,9 @@ rule render_targets:
         directory("results/{scene}/targets.zarr"),
     params:  # only what the images depend on: a new learning rate must not re-render them
         cfg=lambda wc: json.dumps({"finetune": {k: scene_config(wc.scene)["finetune"][k]
-                                                for k in ("views", "image_size", "fov", "step", "targets")}}, sort_keys=True),
+                                                for k in ("views", "image_size", "fov", "step", "targets")},
+                                   "fit": {"grid_upsample": scene_config(wc.scene)["fit"]["grid_upsample"]}},
+                                  sort_keys=True),
     threads: 1  # a sweep and 64² images per light: small work (the march took a second thread at 1.0x)
     log:
         "results/{scene}/logs/render_targets.log",
