@@ -97,14 +97,12 @@ def climb(rungs: list[Rung], target: float, attempt: Callable[[Rung], tuple[T, f
         choice.rungs.append({"width": rung.width, "steps": rung.steps, "psnr": value if value == value else None})
         if value == value:
             log(f"{what}: width {rung.width}, {rung.steps} steps: {value:.2f} dB ({time.perf_counter() - t0:.0f} s)")
-        widened = i > 0 and rung.width > rungs[i - 1].width
         gain = value - best
-        if kept is None or value > best:
+        if kept is None or value > best:  # a rung that meets the target is always the best so far
             kept, best, choice.kept = result, value, i
         if target <= 0 or value >= target:
-            kept, choice.kept = result, i
             break
-        if widened and gain < MIN_WIDTH_GAIN_DB:
+        if i > 0 and rung.width > rungs[i - 1].width and gain < MIN_WIDTH_GAIN_DB:
             log(f"{what}: widening to {rung.width} gained {gain:+.2f} dB (< {MIN_WIDTH_GAIN_DB:g} dB); not widening "
                 f"further")
             choice.plateau = True

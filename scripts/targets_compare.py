@@ -15,9 +15,7 @@ from diffshadow import artifacts
 from diffshadow.diffusion.finetune import FinetuneConfig, fibonacci_views
 from diffshadow.lights import read_lights
 from diffshadow.metrics import psnr
-from diffshadow.render import GridShadow, RenderScene
-from diffshadow.shadow import shadow_grid
-from diffshadow.volume import refine
+from diffshadow.render import RenderScene
 
 
 def main() -> None:
@@ -32,27 +30,27 @@ def main() -> None:
     train = read_lights(a.results / "lights.json")["train"]
     lights = train[np.linspace(0, len(train) - 1, a.lights).astype(int)]
     cams = fibonacci_views(volume.extent, cfg.views, size=cfg.image_size, fov=cfg.fov)
-    scene = RenderScene(volume, tf)
 
+    def timed_images(scene: RenderScene, w) -> tuple[float, list[torch.Tensor]]:
+        t = time.perf_counter()
+        scene.gt_shadow(w)  # the grid, cached for the renders below
+        seconds = time.perf_counter() - t
+        return seconds, [torch.as_tensor(scene.render("gt", cam, light=w, step=cfg.step, min_transmittance=1e-6).rgb)
+                         for cam in cams]
+
+    march = RenderScene(volume, tf, gt_method="march")
+    timed = [timed_images(march, w) for w in lights]  # rendered once, compared with both refinements
+    t_march = sum(seconds for seconds, _ in timed)
     for up in (1, 2):
-        fine = refine(volume, up)
-        values, fg_values, t_march, t_sweep = [], [], 0.0, 0.0
-        for w in lights:
-            t = time.perf_counter()
-            march = shadow_grid(volume, tf, w, method="march")
-            t_march += time.perf_counter() - t
-            t = time.perf_counter()
-            sweep = shadow_grid(fine, tf, w, method="sweep")
-            t_sweep += time.perf_counter() - t
-            for cam in cams:
-                pair = []
-                for grid in (march, sweep):
-                    scene._cache[scene._gt_key(w)] = GridShadow(grid, volume.extent)  # the gt mode's shadow
-                    pair.append(torch.as_tensor(scene.render("gt", cam, light=w, step=cfg.step,
-                                                             min_transmittance=1e-6).rgb))
-                values.append(float(psnr(pair[1], pair[0])))
-                fg = (pair[0] - pair[0][0, 0]).abs().sum(-1) > 1e-6  # pixels the volume covers
-                fg_values.append(float(psnr(pair[1][fg], pair[0][fg])))
+        sweep = RenderScene(volume, tf, gt_method="sweep", gt_upsample=up)
+        values, fg_values, t_sweep = [], [], 0.0
+        for w, (_, exact) in zip(lights, timed, strict=True):
+            seconds, approx = timed_images(sweep, w)
+            t_sweep += seconds
+            for a_img, b_img in zip(approx, exact, strict=True):
+                values.append(float(psnr(a_img, b_img)))
+                fg = (b_img - b_img[0, 0]).abs().sum(-1) > 1e-6  # pixels the volume covers
+                fg_values.append(float(psnr(a_img[fg], b_img[fg])))
         n = len(lights)
         print(f"{a.results} sweep at {up}x: image PSNR against the march median {np.median(values):.2f} dB "
               f"(min {np.min(values):.2f}), foreground pixels {np.median(fg_values):.2f} "
