@@ -94,6 +94,14 @@ CFG = DiffusionConfig.from_config(dict(preset="tiny", epochs=6, batch_size=2, ge
                       lr_step_epochs=2, ema=0.9, pool_lights=0))
 
 
+def test_ema_decay_warms_up_to_its_target():
+    from diffshadow.diffusion.train import ema_decay
+    decays = [ema_decay(0.995, step) for step in range(5000)]
+    assert decays[0] == 0.1  # the first average is mostly the trained weights, not the initial ones
+    assert all(a <= b for a, b in zip(decays, decays[1:])) and max(decays) == 0.995
+    assert ema_decay(0.5, 0) == 0.1 and ema_decay(0.5, 100) == 0.5
+
+
 def test_resume_matches_uninterrupted(tmp_path):
     data = tiny_data()
     full = train_diffusion(data, CFG, tmp_path / "a.ckpt", log=lambda *a: None)
