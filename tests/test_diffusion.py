@@ -1,4 +1,5 @@
 import dataclasses
+import itertools
 
 import numpy as np
 import pytest
@@ -98,7 +99,7 @@ def test_ema_decay_warms_up_to_its_target():
     from diffshadow.diffusion.train import ema_decay
     decays = [ema_decay(0.995, step) for step in range(5000)]
     assert decays[0] == 0.1  # the first average is mostly the trained weights, not the initial ones
-    assert all(a <= b for a, b in zip(decays, decays[1:])) and max(decays) == 0.995
+    assert all(a <= b for a, b in itertools.pairwise(decays)) and max(decays) == 0.995
     assert ema_decay(0.5, 0) == 0.1 and ema_decay(0.5, 100) == 0.5
 
 
