@@ -233,6 +233,37 @@ def test_fine_tuning_stops_when_validation_stays_under_the_geometry_stage(volume
     assert next(scores) == 40.0  # not one more validation was asked for
 
 
+def test_fine_tuning_steps_from_the_raw_weights_and_keeps_the_ema_when_it_never_beats_it(volume, setup, tmp_path,
+                                                                                       monkeypatch):
+    from dataclasses import replace
+
+    import diffshadow.diffusion.finetune as ft
+    from diffshadow.evaluate import EvalTruth
+    from diffshadow.lights import validation_lights
+
+    _, _, _, data, state = setup
+    assert state["config"]["ema"] > 0
+    assert any(not torch.equal(state["ema"][k], state["model"][k]) for k in state["model"])
+    val = EvalTruth.compute(volume, TF, validation_lights(LIGHTS, LIGHTS[0], 2, seed=0), 64, seed=1)
+    scored = []
+    scores = iter([30.0, 29.0, 28.0])
+
+    def fake(model, *a):
+        scored.append({k: v.clone() for k, v in model.state_dict().items()})
+        return next(scores)
+
+    monkeypatch.setattr(ft, "validation_psnr", fake)
+    cfg = FinetuneConfig(**{**FT.__dict__, "epochs": 4, "patience": 2})
+    out = finetune(state, replace(data, val=val), cfg, tmp_path / "e.ckpt", log=lambda m: None)
+    assert all(torch.equal(scored[0][k], state["ema"][k]) for k in state["ema"])  # the floor: the sampler
+    assert out["selection"]["kept_epoch"] == 0
+    assert all(torch.equal(out["model"][k], state["ema"][k]) for k in state["ema"])
+    # epoch 1's model is one step from the raw weights, not from their average
+    moved = {k: float((scored[1][k] - state["model"][k]).abs().max()) for k in state["model"]}
+    from_avg = {k: float((scored[1][k] - state["ema"][k]).abs().max()) for k in state["ema"]}
+    assert max(moved.values()) < max(from_avg.values())
+
+
 def test_pool_lights_add_their_loss_to_a_fine_tuning_step(setup):
     """The pool's loss is added (so the lights between the training ones are held), the training lights'
     own parts stay what they are without it."""
