@@ -74,6 +74,30 @@ def test_transformer_shapes_and_light_sensitivity():
     assert a.shape == (3, LAYOUT.n_params) and not torch.allclose(a, b)
 
 
+def test_wide_tensors_split_into_tokens_that_cover_them_and_the_model_maps_them_back():
+    import dataclasses
+
+    from diffshadow.diffusion.model import PRESETS, token_sizes
+    from diffshadow.diffusion.train import build_model
+    assert token_sizes([96, 32, 1024, 1], 1, 192) == [96, 32, 1024, 1]
+    assert token_sizes([96, 32, 1024, 1], 4, 192) == [96, 32, 256, 256, 256, 256, 1]  # only tensors wider than 192
+    assert token_sizes([1025, 3], 3, 2) == [342, 342, 341, 1, 1, 1]  # near-equal chunks
+    cfg = dataclasses.replace(PRESETS["tiny"], n_embd=16, tensor_tokens=4)
+    model = WeightTransformer(LAYOUT, cfg)
+    assert sum(model.sizes) == LAYOUT.n_params and max(model.sizes) == 16 < max(LAYOUT.sizes)
+    assert model.pos.shape[1] == len(model.sizes) + 2
+    for p in model.token_out:
+        torch.nn.init.normal_(p.weight, std=0.02)
+    x = torch.randn(2, LAYOUT.n_params)
+    out = model(x, torch.tensor([0, 9]), torch.tensor([[0.0, 0, 1]] * 2))
+    assert out.shape == x.shape and torch.isfinite(out).all()
+    # the config's tensor_tokens reaches the model; a checkpoint from before it existed had one token per tensor
+    assert build_model(LAYOUT, dataclasses.replace(CFG, tensor_tokens=4)).cfg.tensor_tokens == 4
+    old = {k: v for k, v in dataclasses.asdict(CFG).items() if k != "tensor_tokens"}
+    assert DiffusionConfig.of_checkpoint({"config": old}).tensor_tokens == 1
+    assert DiffusionConfig.of_checkpoint({"config": {**old, "tensor_tokens": 4}}).tensor_tokens == 4
+
+
 def test_schedule_edges_and_ddim_steps():
     s = Schedule()
     assert s.steps == 500 and abs(float(s.betas[0]) - 1e-4) < 1e-12 and abs(float(s.betas[-1]) - 2e-2) < 1e-12

@@ -315,7 +315,7 @@ def finetune(geometry_state: dict, data: FinetuneData, cfg: FinetuneConfig, chec
     import torch.distributed as dist
 
     device = torch.device(device)
-    dcfg = DiffusionConfig.from_config(geometry_state["config"])
+    dcfg = DiffusionConfig.of_checkpoint(geometry_state)
     layout = WeightLayout.from_config(geometry_state["layout"])
     torch.manual_seed(cfg.seed)
     base = build_model(layout, dcfg)
@@ -470,7 +470,7 @@ def image_psnr_of_model(state: dict, data: FinetuneData, *,
                         device: torch.device | str = "cpu", chunk: int = 512) -> np.ndarray:
     """Per training light: foreground image PSNR (all target views) of the DDIM-generated shadow SIREN."""
     model, std, layout, siren_cfg = load_sampler(state, device)
-    dcfg = DiffusionConfig.from_config(state["config"])
+    dcfg = DiffusionConfig.of_checkpoint(state)
     lights = data.train.lights.numpy()
     weights = generate(model, std, lights, method="ddim", steps=dcfg.ddim_steps, seed=dcfg.seed,
                        temperature=dcfg.temperature, device=device)

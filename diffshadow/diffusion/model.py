@@ -1,8 +1,9 @@
 """The weight-space transformer (paper §3.3, HyperDiffusion / G.pt): a GPT without the causal mask.
 
-One token per SIREN parameter tensor (each weight matrix, each bias), each with its own linear map into
-the model width and back out; a timestep token and a light token appended in context; a learned
-positional embedding; pre-LayerNorm blocks. It predicts the clean (standardised) weights x0.
+One token per SIREN parameter tensor (each weight matrix, each bias) — or, for a tensor with more values than
+the model width, one per chunk of it (G.pt) — each with its own linear map into the model width and back
+out; a timestep token and a light token appended in context; a learned positional embedding; pre-LayerNorm
+blocks. It predicts the clean (standardised) weights x0.
 """
 
 from __future__ import annotations
@@ -23,6 +24,17 @@ class TransformerConfig:
     n_head: int = 4
     light_freqs: int = 6  # NeRF positional encoding of the direction: sin/cos(2^k π w), k < light_freqs
     dropout: float = 0.0
+    tensor_tokens: int = 1  # tokens (near-equal chunks) per tensor with more values than n_embd; 1: the paper
+
+
+def token_sizes(sizes: list[int], tensor_tokens: int, width: int) -> list[int]:
+    """The values per token: each tensor of `sizes` with more than `width` values split into `tensor_tokens`
+    near-equal chunks (at most one value per chunk); the others whole."""
+    out = []
+    for size in sizes:
+        n = min(tensor_tokens, size) if size > width else 1
+        out += [size // n + (i < size % n) for i in range(n)]
+    return out
 
 
 PRESETS = {
@@ -106,11 +118,12 @@ class WeightTransformer(nn.Module):
         self.layout = layout
         self.cfg = cfg
         d = cfg.n_embd
-        self.token_in = nn.ModuleList(nn.Linear(size, d) for size in layout.sizes)
-        self.token_out = nn.ModuleList(nn.Linear(d, size) for size in layout.sizes)
+        self.sizes = token_sizes(layout.sizes, cfg.tensor_tokens, d)
+        self.token_in = nn.ModuleList(nn.Linear(size, d) for size in self.sizes)
+        self.token_out = nn.ModuleList(nn.Linear(d, size) for size in self.sizes)
         self.time_mlp = nn.Sequential(nn.Linear(d, d), nn.SiLU(), nn.Linear(d, d))
         self.light_in = nn.Linear(3 + 6 * cfg.light_freqs, d)
-        self.pos = nn.Parameter(torch.zeros(1, len(layout.sizes) + 2, d))
+        self.pos = nn.Parameter(torch.zeros(1, len(self.sizes) + 2, d))
         self.blocks = nn.ModuleList(Block(cfg) for _ in range(cfg.n_layer))
         self.ln_f = nn.LayerNorm(d)
         self.initialize()
@@ -130,7 +143,7 @@ class WeightTransformer(nn.Module):
         return sum(p.numel() for p in self.parameters())
 
     def forward(self, x: torch.Tensor, t: torch.Tensor, light: torch.Tensor) -> torch.Tensor:
-        parts = x.split(self.layout.sizes, dim=1)
+        parts = x.split(self.sizes, dim=1)
         tokens = [proj(p) for proj, p in zip(self.token_in, parts, strict=True)]  # each (B, d)
         # the encodings are computed in float32 (sin of 2^k π w), then cast to the network's dtype
         tokens.append(self.time_mlp(timestep_embedding(t, self.cfg.n_embd).to(x.dtype)))

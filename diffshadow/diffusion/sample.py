@@ -19,7 +19,7 @@ from diffshadow.siren import SirenConfig, WeightLayout
 def load_sampler(state: dict, device: torch.device | str = "cpu"):
     """(model for sampling, standardizer, layout, siren) from a checkpoint state."""
     layout = WeightLayout.from_config(state["layout"])
-    cfg = DiffusionConfig.from_config(state["config"])
+    cfg = DiffusionConfig.of_checkpoint(state)
     model = build_model(layout, cfg)
     model.load_state_dict(state["ema"] if state.get("ema") else state["model"])
     model.to(device).eval()

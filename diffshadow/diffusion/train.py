@@ -57,6 +57,7 @@ class DiffusionConfig:
     pool_lights: int
     pool_points: int  # presampled points per pool light
     pool_x0_weight: float  # x0 loss towards the blend of the nearest training SIRENs (geometry: towards truth)
+    tensor_tokens: int  # tokens per weight tensor wider than the model (G.pt's chunks); 1: one per tensor (paper)
 
     @classmethod
     def from_config(cls, d: dict | None = None) -> DiffusionConfig:
@@ -65,6 +66,12 @@ class DiffusionConfig:
         if cfg.preset not in PRESETS:
             raise ValueError(f"diffusion.preset: expected one of {sorted(PRESETS)}, got {cfg.preset!r}")
         return cfg
+
+    @classmethod
+    def of_checkpoint(cls, state: dict) -> DiffusionConfig:
+        """The config a checkpoint was trained with; one written before `tensor_tokens` existed had one token
+        per tensor, whatever config.yaml says now."""
+        return cls.from_config({"tensor_tokens": 1, **state["config"]})
 
 
 def _pow2_std(s: torch.Tensor) -> torch.Tensor:
@@ -216,7 +223,8 @@ def make_optimizer(params, lr: float, weight_decay: float) -> torch.optim.AdamW:
 def build_model(layout: WeightLayout, cfg: DiffusionConfig) -> WeightTransformer:
     """The model, initialised on the CPU (the same seed gives the same weights on every device)."""
     with torch.device("cpu"):
-        return WeightTransformer(layout, dataclasses.replace(PRESETS[cfg.preset], light_freqs=cfg.light_freqs))
+        return WeightTransformer(layout, dataclasses.replace(PRESETS[cfg.preset], light_freqs=cfg.light_freqs,
+                                                                tensor_tokens=cfg.tensor_tokens))
 
 
 def train_diffusion(data: TrainingData, cfg: DiffusionConfig, checkpoint: Path, *,
@@ -230,7 +238,7 @@ def train_diffusion(data: TrainingData, cfg: DiffusionConfig, checkpoint: Path, 
     torch.manual_seed(cfg.seed)
     model = build_model(data.layout, cfg).to(device)
     log(f"weight-space transformer '{cfg.preset}': {model.n_params():,} parameters, "
-        f"{len(data.layout.sizes)} weight tokens, {len(data.weights)} training lights")
+        f"{len(model.sizes)} weight tokens, {len(data.weights)} training lights")
     std = Standardizer.fit(data.layout, data.weights, cfg.standardize)
     z_all = std.standardize(data.weights).float().to(device)
     on_device = data.to(device)  # the training set moved once, not per step
