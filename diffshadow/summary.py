@@ -36,7 +36,9 @@ def _kept(validation: dict | None) -> str:
             f"stage's {floor:.2f} dB (last epoch "
             f"{last[1]:.2f} dB); epoch 0 means the geometry-stage model is used."
             + (f" Stopped early at epoch {validation['stopped_epoch']}: the last checkpoints all scored under it."
-               if validation.get("stopped_epoch") else ""))
+               if validation.get("stopped_epoch") else "")
+            + (" The kept checkpoint rendered the training lights worse than the geometry stage (table), so the "
+               "geometry-stage model is used." if validation.get("images_worse") else ""))
 
 
 def _read_json(path: Path) -> dict | None:

@@ -280,3 +280,22 @@ def test_pool_lights_add_their_loss_to_a_fine_tuning_step(setup):
     without, parts0 = step_loss(model, std, data, z_all, [0, 2], 0, FT, replace(dcfg, pool_lights=0), Schedule(),
                                 scale=1.0)
     assert float(with_pool.detach()) > float(without.detach()) > 0 and torch.allclose(parts, parts0)
+
+
+def test_a_fine_tuned_model_that_renders_worse_gives_way_to_the_geometry_stage():
+    from diffshadow.diffusion.finetune import keep_if_images_improve
+    ema, raw, tuned = ({"w": torch.full((2,), v)} for v in (1.0, 2.0, 3.0))
+    geometry = {"model": raw, "ema": ema}
+    state = {"model": tuned, "ema": None, "selection": {"history": [[0, 30.0], [10, 30.1]], "kept_epoch": 10}}
+    same, kept = keep_if_images_improve(geometry, state, np.array([50.0, 52.0]), np.array([51.0, 51.0]))
+    assert kept == "fine-tuned" and same is state  # equal means: kept
+    out, kept = keep_if_images_improve(geometry, state, np.array([50.0, 52.0]), np.array([50.0, 51.9]))
+    assert kept == "geometry stage" and out["model"] is ema and out["ema"] is None
+    assert out["selection"] == {"history": [[0, 30.0], [10, 30.1]], "kept_epoch": 0, "images_worse": True}
+    assert state["selection"]["kept_epoch"] == 10  # the input is not changed
+    out, _ = keep_if_images_improve({"model": raw, "ema": None}, state, np.array([50.0]), np.array([49.0]))
+    assert out["model"] is raw  # a geometry stage without an EMA samples from its raw weights
+    none_kept = {**state, "selection": {"history": [[0, 30.0], [10, 29.0]], "kept_epoch": 0}}
+    assert keep_if_images_improve(geometry, none_kept, np.array([50.0]), np.array([50.0]))[1] == "geometry stage"
+    unvalidated = {**state, "selection": {"history": [], "kept_epoch": 0}}  # no validation lights: the last one
+    assert keep_if_images_improve(geometry, unvalidated, np.array([50.0]), np.array([50.0]))[1] == "fine-tuned"

@@ -12,14 +12,20 @@ import numpy as np
 import torch
 
 from diffshadow import artifacts
-from diffshadow.diffusion.finetune import FinetuneConfig, FinetuneData, finetune, image_psnr_of_model
+from diffshadow.diffusion.finetune import (
+    FinetuneConfig,
+    FinetuneData,
+    finetune,
+    image_psnr_of_model,
+    keep_if_images_improve,
+)
 from diffshadow.diffusion.geometry import POOL_STREAM
 from diffshadow.diffusion.geometry import presample as presample_points
 from diffshadow.diffusion.sample import generate, load_sampler
 from diffshadow.diffusion.train import DiffusionConfig, DiffusionError
 from diffshadow.diffusion.train import train_diffusion as train
 from diffshadow.evaluate import EvalTruth, psnr_per_light, voxel_metrics
-from diffshadow.io import atomic_write_text
+from diffshadow.io import atomic_torch_save, atomic_write_text
 from diffshadow.lights import read_lights, training_pool, validation_lights
 from diffshadow.runtime import distributed, set_threads
 from diffshadow.store import WeightStore, open_store, write_store
@@ -93,7 +99,13 @@ def finetune_render(checkpoint: Path, weights_path: Path, points_path: Path, tar
             return
         before = image_psnr_of_model(geometry, data)
         after = image_psnr_of_model(state, data)
-        metrics = {"image_psnr_geometry_only": _summary(before), "image_psnr_finetuned": _summary(after),
+        final, kept = keep_if_images_improve(geometry, state, before, after)
+        if final is not state:
+            state = final  # written without the per-rank timings, like finetune's own checkpoint (same bytes)
+            atomic_torch_save(part, {k: v for k, v in state.items() if k != "finetune_ranks"})
+            print(f"fine-tuning rendered the training lights worse ({after.mean():.2f} dB against the geometry "
+                  f"stage's {before.mean():.2f}): keeping the geometry stage's model")
+        metrics = {"kept": kept, "image_psnr_geometry_only": _summary(before), "image_psnr_finetuned": _summary(after),
                    "lights": len(before), "views": int(len(bundle.count)), "processes": world,
                    "ranks": state.get("finetune_ranks"), "seconds": seconds, "config": cfg.__dict__,
                    "validation": state.get("selection")}
