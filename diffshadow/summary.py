@@ -37,8 +37,9 @@ def _kept(validation: dict | None) -> str:
             f"{last[1]:.2f} dB); epoch 0 means the geometry-stage model is used."
             + (f" Stopped early at epoch {validation['stopped_epoch']}: the last checkpoints all scored under it."
                if validation.get("stopped_epoch") else "")
-            + (" The kept checkpoint rendered the training lights worse than the geometry stage (table), so the "
-               "geometry-stage model is used." if validation.get("images_worse") else ""))
+            + (f" Validation had picked epoch {validation.get('validated_epoch')}, which rendered the training "
+               "lights worse than the geometry stage (table), so the geometry-stage model is used."
+               if validation.get("images_worse") else ""))
 
 
 def _read_json(path: Path) -> dict | None:
@@ -75,7 +76,9 @@ class RunResults:
         if self.finetune:
             rows.append(("rendering-loss fine-tuning (image PSNR, training lights)",
                          f"{self.finetune['image_psnr_geometry_only']['mean']:.2f} → "
-                         f"{self.finetune['image_psnr_finetuned']['mean']:.2f} dB"))
+                         f"{self.finetune['image_psnr_finetuned']['mean']:.2f} dB"
+                         + ("; the geometry-stage model is used" if self.finetune.get("kept") == "geometry stage"
+                            else "")))
         fps = self._fps()
         if fps:
             rows.append(("rendering speed", fps))

@@ -291,7 +291,8 @@ def test_a_fine_tuned_model_that_renders_worse_gives_way_to_the_geometry_stage()
     assert kept == "fine-tuned" and same is state  # equal means: kept
     out, kept = keep_if_images_improve(geometry, state, np.array([50.0, 52.0]), np.array([50.0, 51.9]))
     assert kept == "geometry stage" and out["model"] is ema and out["ema"] is None
-    assert out["selection"] == {"history": [[0, 30.0], [10, 30.1]], "kept_epoch": 0, "images_worse": True}
+    assert out["selection"] == {"history": [[0, 30.0], [10, 30.1]], "kept_epoch": 0, "images_worse": True,
+                                "validated_epoch": 10}
     assert state["selection"]["kept_epoch"] == 10  # the input is not changed
     out, _ = keep_if_images_improve({"model": raw, "ema": None}, state, np.array([50.0]), np.array([49.0]))
     assert out["model"] is raw  # a geometry stage without an EMA samples from its raw weights
@@ -299,3 +300,12 @@ def test_a_fine_tuned_model_that_renders_worse_gives_way_to_the_geometry_stage()
     assert keep_if_images_improve(geometry, none_kept, np.array([50.0]), np.array([50.0]))[1] == "geometry stage"
     unvalidated = {**state, "selection": {"history": [], "kept_epoch": 0}}  # no validation lights: the last one
     assert keep_if_images_improve(geometry, unvalidated, np.array([50.0]), np.array([50.0]))[1] == "fine-tuned"
+
+
+def test_the_summary_says_when_fine_tuning_gave_way():
+    from diffshadow.summary import _kept
+    picked = {"history": [[0, 32.9], [10, 33.0], [20, 32.8]], "kept_epoch": 10}
+    assert "Kept: epoch 10 of 20" in _kept(picked) and "Validation had picked" not in _kept(picked)
+    gave_way = {**picked, "kept_epoch": 0, "images_worse": True, "validated_epoch": 10}
+    text = _kept(gave_way)
+    assert "Validation had picked epoch 10" in text and text.endswith("so the geometry-stage model is used.")

@@ -468,7 +468,9 @@ def keep_if_images_improve(geometry_state: dict, state: dict, before: np.ndarray
         validated_none = bool(selection.get("history")) and selection.get("kept_epoch") == 0
         return state, "geometry stage" if validated_none else "fine-tuned"
     sampler = geometry_state["ema"] if geometry_state.get("ema") else geometry_state["model"]
-    selection = {**(state.get("selection") or {}), "kept_epoch": 0, "images_worse": True}
+    validated = state.get("selection") or {}
+    selection = {**validated, "kept_epoch": 0, "images_worse": True,
+                 "validated_epoch": validated.get("kept_epoch", 0)}
     return {**state, "model": sampler, "ema": None, "kept_model": None, "selection": selection}, "geometry stage"
 
 
