@@ -37,7 +37,7 @@ def main() -> None:
     print(f"{a.lights} lights (seed {a.seed}), exact shadows at {a.points} points each: "
           f"{time.perf_counter() - t:.0f} s")
     for path in a.checkpoints:
-        model, std, layout, siren = load_sampler(torch.load(path, map_location="cpu", weights_only=False))
+        model, std, layout, siren = load_sampler(artifacts.load_checkpoint(path))
         for steps in a.steps:
             w = generate(model, std, lights, method="ddim", steps=steps, seed=0, temperature=0.0).numpy()
             psnr = psnr_per_light(truth.sirens(w, layout, siren), truth.of(lights))["box"]

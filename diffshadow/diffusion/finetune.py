@@ -28,7 +28,7 @@ import torch
 
 from diffshadow.config import section
 from diffshadow.diffusion.geometry import geometry_error
-from diffshadow.diffusion.sample import generate, load_sampler
+from diffshadow.diffusion.sample import generate, load_sampler, sampler_weights
 from diffshadow.diffusion.schedule import Schedule
 from diffshadow.diffusion.train import DiffusionConfig, Standardizer, TrainingData, build_model, make_optimizer
 from diffshadow.evaluate import EvalTruth, psnr_per_light
@@ -323,7 +323,7 @@ def finetune(geometry_state: dict, data: FinetuneData, cfg: FinetuneConfig, chec
     # and steps taken from the average lost validation PSNR at once (nucleon 33.38 -> 33.12 dB at epoch 20,
     # against 33.57 -> 33.88 from the raw weights): the average is the floor to beat and the model kept until
     # fine-tuning beats it.
-    sampler = geometry_state["ema"] if geometry_state.get("ema") else geometry_state["model"]
+    sampler = sampler_weights(geometry_state)
     base.load_state_dict(geometry_state["model"])
     base.to(device)
     std = Standardizer(layout, geometry_state["standardizer"]["mean"], geometry_state["standardizer"]["std"])
@@ -467,7 +467,7 @@ def keep_if_images_improve(geometry_state: dict, state: dict, before: np.ndarray
         selection = state.get("selection") or {}
         validated_none = bool(selection.get("history")) and selection.get("kept_epoch") == 0
         return state, "geometry stage" if validated_none else "fine-tuned"
-    sampler = geometry_state["ema"] if geometry_state.get("ema") else geometry_state["model"]
+    sampler = sampler_weights(geometry_state)
     validated = state.get("selection") or {}
     selection = {**validated, "kept_epoch": 0, "images_worse": True,
                  "validated_epoch": validated.get("kept_epoch", 0)}

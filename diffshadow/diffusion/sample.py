@@ -16,12 +16,17 @@ from diffshadow.sampling import seeded
 from diffshadow.siren import SirenConfig, WeightLayout
 
 
+def sampler_weights(state: dict) -> dict:
+    """The weights a checkpoint samples from: its EMA where it has one, else its trained weights."""
+    return state["ema"] if state.get("ema") else state["model"]
+
+
 def load_sampler(state: dict, device: torch.device | str = "cpu"):
     """(model for sampling, standardizer, layout, siren) from a checkpoint state."""
     layout = WeightLayout.from_config(state["layout"])
     cfg = DiffusionConfig.of_checkpoint(state)
     model = build_model(layout, cfg)
-    model.load_state_dict(state["ema"] if state.get("ema") else state["model"])
+    model.load_state_dict(sampler_weights(state))
     model.to(device).eval()
     std = Standardizer(layout, state["standardizer"]["mean"], state["standardizer"]["std"])
     return model, std, layout, SirenConfig.from_config(state["siren"])
