@@ -183,6 +183,9 @@ def voxel_metrics(state: dict, stage1, generated, truth: EvalTruth, light_sets: 
                           "ddim_psnr_median": _median(gen_seen["box"][sel]),
                           "ddpm_psnr_median": _median(ddpm_seen["box"]), "speedup": t_ddpm / t_ddim}
     result["seconds_per_inr"] = {"ddim": t_ddim, "ddpm": t_ddpm}
+    mc = model.cfg
+    result["diffusion_model"] = {"preset": cfg["preset"], "layers": mc.n_layer, "width": mc.n_embd,
+                                 "parameters": model.n_params(), "siren_width": siren.width}
     # the model's weights plus its standardiser (float64 mean and std, per token or per parameter)
     result["storage_bytes"] = {"model": int(sum(p.numel() * p.element_size() for p in model.parameters())
                                             + 2 * 8 * len(std.mean)),

@@ -90,6 +90,10 @@ class RunResults:
         sizes = self.sizes()
         if sizes:
             rows.append(("SIREN sizes chosen", ", ".join(f"{r[0]} width {r[1]} ({r[4]} steps)" for r in sizes)))
+        dm = v.get("diffusion_model")
+        if dm:
+            rows.append(("diffusion model", f"'{dm['preset']}': {dm['layers']} blocks of width {dm['width']}, "
+                         f"{dm['parameters']:,} parameters (for SIRENs of width {dm['siren_width']})"))
         return rows
 
     def _fps(self) -> str:

@@ -218,3 +218,15 @@ def test_pool_lights_are_trained_recorded_and_guarded(tmp_path):
     with pytest.raises(DiffusionError, match=r"diffusion.pool_lights is 3 but the geometry points hold 0 pool "
                                              r"lights; rerun presample"):
         train_diffusion(tiny_data(), POOLED, tmp_path / "e.ckpt", log=lambda *a: None)
+
+
+def test_auto_preset_widens_the_model_with_the_siren_and_checkpoints_the_concrete_name(tmp_path):
+    auto = dataclasses.replace(CFG, preset="auto")
+    assert [auto.for_siren(w).preset for w in (8, 32, 33, 64, 128)] == ["small", "small", "medium", "medium", "medium"]
+    assert CFG.for_siren(128).preset == "tiny"  # a named preset is what the user asked for
+    state = train_diffusion(tiny_data(), dataclasses.replace(auto, epochs=1), tmp_path / "e.ckpt", log=lambda *a: None)
+    assert state["config"]["preset"] == "small"  # SIREN width 8
+    model, *_ = load_sampler(state)  # rebuilt from the stored name
+    assert model.n_params() == sum(v.numel() for v in state["model"].values())
+    with pytest.raises(ValueError, match=r"diffusion.preset: expected auto or one of .*got 'huge'"):
+        DiffusionConfig.from_config({"preset": "huge"})

@@ -77,6 +77,8 @@ def test_stage2_outputs(finished):
         assert np.isfinite(metrics["unseen"][key])
     assert set(metrics["storage_bytes"]) == {"model", "sirens", "grids"}
     assert set(metrics["seconds_per_inr"]) == {"ddim", "ddpm"}
+    # the workflow tests' config names the tiny preset: a named preset is used as given, never 'auto'-resolved
+    assert metrics["diffusion_model"]["preset"] == "tiny" and metrics["diffusion_model"]["parameters"] > 0
     generated = open_store(finished / "results/nucleon/generated.zarr")
     assert generated.seen.tolist() == [True] * 4 + [False] * 2 and np.isfinite(generated.psnr).all()
 
@@ -341,6 +343,7 @@ def test_report_front_page_has_the_runs_numbers(finished):
         # the landing page (RST included into the report) and the summary tables both state the run's values
         assert f"{value:.2f} dB" in page and f"{value:.2f}" in tables
     assert "Scene nucleon" in page and "summary.html" in page
+    assert f"{voxel['diffusion_model']['parameters']:,} parameters" in page
     assert "before fine-tuning" in tables and voxel["unseen"]["finetune_change_median_db"] == pytest.approx(
         voxel["unseen"]["generated_psnr_median"] - voxel["unseen"]["geometry_only_psnr_median"], abs=5.0)
     for title in ("Shadow INRs", "Sampling", "Rendering-loss fine-tuning", "Images", "Renderer", "SIREN sizes chosen",

@@ -27,6 +27,11 @@ from diffshadow.io import atomic_torch_save, resume
 from diffshadow.sampling import seeded
 from diffshadow.siren import SirenConfig, WeightLayout
 
+# (largest SIREN width, preset) for `preset: auto`: the model widens with the SIREN, so a scene whose stage 1
+# chose width 64 spends more (tooth: seen / unseen +1.1 / +1.2 dB for 2x the time) and nucleon's width 32 keeps
+# its cost. Wider SIRENs also get "medium": the step beyond it is not measured (docs/tuning.md).
+AUTO_PRESETS = ((32, "small"), (64, "medium"))
+
 
 class DiffusionError(ValueError):
     """Training or sampling that cannot go on; the message says why and what was kept."""
@@ -34,7 +39,7 @@ class DiffusionError(ValueError):
 
 @dataclass(frozen=True)
 class DiffusionConfig:
-    preset: str
+    preset: str  # a PRESETS name, or "auto": the one AUTO_PRESETS gives the SIREN width (for_siren)
     epochs: int  # paper: 7000 (geometry stage)
     batch_size: int
     lr: float  # AdamW, paper §3.4
@@ -63,9 +68,17 @@ class DiffusionConfig:
     def from_config(cls, d: dict | None = None) -> DiffusionConfig:
         """config.yaml's `diffusion` section overridden by `d`."""
         cfg = section(cls, "diffusion", d)
-        if cfg.preset not in PRESETS:
-            raise ValueError(f"diffusion.preset: expected one of {sorted(PRESETS)}, got {cfg.preset!r}")
+        if cfg.preset not in PRESETS and cfg.preset != "auto":
+            raise ValueError(f"diffusion.preset: expected auto or one of {sorted(PRESETS)}, got {cfg.preset!r}")
         return cfg
+
+    def for_siren(self, width: int) -> DiffusionConfig:
+        """This config with `preset: auto` made concrete for SIRENs of `width` (the smallest AUTO_PRESETS entry
+        that covers it); a named preset is kept. Checkpoints store the concrete name."""
+        if self.preset != "auto":
+            return self
+        preset = next((name for top, name in AUTO_PRESETS if width <= top), AUTO_PRESETS[-1][1])
+        return dataclasses.replace(self, preset=preset)
 
     @classmethod
     def of_checkpoint(cls, state: dict) -> DiffusionConfig:
@@ -222,6 +235,8 @@ def make_optimizer(params, lr: float, weight_decay: float) -> torch.optim.AdamW:
 
 def build_model(layout: WeightLayout, cfg: DiffusionConfig) -> WeightTransformer:
     """The model, initialised on the CPU (the same seed gives the same weights on every device)."""
+    if cfg.preset not in PRESETS:
+        raise ValueError(f"diffusion.preset {cfg.preset!r}: no model of that name (resolve 'auto' with for_siren)")
     with torch.device("cpu"):
         return WeightTransformer(layout, dataclasses.replace(PRESETS[cfg.preset], light_freqs=cfg.light_freqs,
                                                                 tensor_tokens=cfg.tensor_tokens))
@@ -235,6 +250,7 @@ def train_diffusion(data: TrainingData, cfg: DiffusionConfig, checkpoint: Path, 
     `stop_after_epoch` ends the run early (as if killed after that epoch's checkpoint): tests use it.
     """
     device = torch.device(device)
+    cfg = cfg.for_siren(data.siren.width)
     torch.manual_seed(cfg.seed)
     model = build_model(data.layout, cfg).to(device)
     log(f"weight-space transformer '{cfg.preset}': {model.n_params():,} parameters, "
