@@ -48,3 +48,19 @@ def test_eval_truth_rows_follow_the_lights_asked_for_and_a_missing_light_is_name
 def test_pick_spreads_evenly_and_keeps_both_ends():
     assert pick(64, 8) == [0, 9, 18, 27, 36, 45, 54, 63]
     assert pick(3, 8) == [0, 1, 2] and pick(5, 0) == []
+
+
+def test_quality_warnings_name_the_goal_missed_and_what_to_change():
+    from diffshadow.stages.stage2 import quality_warnings
+
+    result = {"seen": {"generated_minus_stage1_median_db": -3.7},
+              "unseen": {"generated_psnr_median": 32.28, "blend_psnr_median": 32.74, "blend_k": 4,
+                         "finetune_change_median_db": 0.0},
+              "diffusion_model": {"preset": "small"}}
+    seen, unseen = quality_warnings(result)
+    assert seen.startswith("WARNING: generated SIRENs on seen lights are 3.70 dB under stage 1 (goal: within 1.5 dB)")
+    assert seen.endswith("set a wider diffusion.preset (medium, paper) than this run's small")
+    assert "(32.28 dB) are under the blend of the 4 nearest true shadows (32.74 dB)" in unseen
+    result["seen"]["generated_minus_stage1_median_db"] = -1.0
+    result["unseen"]["generated_psnr_median"] = 34.0
+    assert quality_warnings(result) == []

@@ -179,8 +179,10 @@ def quality_warnings(result: dict, *, max_gap_db: float = 1.5) -> list[str]:
     out = []
     gap = result["seen"]["generated_minus_stage1_median_db"]
     if gap < -max_gap_db:
+        ran = (result.get("diffusion_model") or {}).get("preset")
         out.append(f"WARNING: generated SIRENs on seen lights are {-gap:.2f} dB under stage 1 (goal: within "
-                   f"{max_gap_db:g} dB); raise diffusion.epochs or use a larger diffusion.preset")
+                   f"{max_gap_db:g} dB); set a wider diffusion.preset (medium, paper)"
+                   + (f" than this run's {ran}" if ran else ""))
     unseen = result.get("unseen")
     if unseen and unseen["generated_psnr_median"] < unseen["blend_psnr_median"]:
         out.append(f"WARNING: generated SIRENs on unseen lights ({unseen['generated_psnr_median']:.2f} dB) are under "
