@@ -19,6 +19,7 @@ import torch
 
 from diffshadow import artifacts
 from diffshadow.diffusion.sample import generate, load_sampler
+from diffshadow.metrics import psnr
 from diffshadow.siren import BatchedSiren, box_to_siren
 
 
@@ -41,15 +42,15 @@ def main() -> None:
     def median_psnr(weights: torch.Tensor, points: torch.Tensor, values: torch.Tensor) -> float:
         with torch.no_grad():
             pred = BatchedSiren(weights, layout, siren.blocks)(box_to_siren(points, data.extent))
-        return float(np.median((-10 * torch.log10(((pred - values) ** 2).mean(1))).numpy()))
+        return float(np.median(psnr(pred, values, dim=1).numpy()))
 
     generated = generate(model, std, data.lights.numpy(), steps=steps, temperature=temperature)
     print(f"training lights ({len(data.lights)}): stage 1 {median_psnr(data.weights, data.points, data.values):.2f} dB,"
           f" generated {median_psnr(generated, data.points, data.values):.2f} dB")
     pool = data.pool
     generated = generate(model, std, pool.lights.numpy(), steps=steps, temperature=temperature)
-    z = std.standardize(data.weights)[pool.neighbours]
-    blend = std.destandardize((z * pool.blend[..., None].double()).sum(1)).float()
+    # the pool lights' x0 prior in training: the blend of their nearest training SIRENs' weights
+    blend = std.destandardize(pool.x0(std.standardize(data.weights), torch.arange(len(pool.lights)))).float()
     print(f"pool lights ({len(pool.lights)}): generated {median_psnr(generated, pool.points, pool.values):.2f} dB,"
           f" weight blend of the 4 nearest {median_psnr(blend, pool.points, pool.values):.2f} dB")
 

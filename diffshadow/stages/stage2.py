@@ -21,6 +21,7 @@ from diffshadow.diffusion.finetune import (
 )
 from diffshadow.diffusion.geometry import POOL_STREAM
 from diffshadow.diffusion.geometry import presample as presample_points
+from diffshadow.diffusion.model import PRESETS
 from diffshadow.diffusion.sample import generate, load_sampler
 from diffshadow.diffusion.train import DiffusionConfig, DiffusionError
 from diffshadow.diffusion.train import train_diffusion as train
@@ -180,8 +181,10 @@ def quality_warnings(result: dict, *, max_gap_db: float = 1.5) -> list[str]:
     gap = result["seen"]["generated_minus_stage1_median_db"]
     if gap < -max_gap_db:
         ran = (result.get("diffusion_model") or {}).get("preset")
+        width = PRESETS.get(ran, PRESETS["small"]).n_embd  # metrics written before the key: the default then
+        wider = sorted((c.n_embd, name) for name, c in PRESETS.items() if c.n_embd > width)
         out.append(f"WARNING: generated SIRENs on seen lights are {-gap:.2f} dB under stage 1 (goal: within "
-                   f"{max_gap_db:g} dB); set a wider diffusion.preset (medium, paper)"
+                   f"{max_gap_db:g} dB); set a wider diffusion.preset ({', '.join(name for _, name in wider)})"
                    + (f" than this run's {ran}" if ran else ""))
     unseen = result.get("unseen")
     if unseen and unseen["generated_psnr_median"] < unseen["blend_psnr_median"]:
