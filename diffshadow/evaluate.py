@@ -186,6 +186,10 @@ def voxel_metrics(state: dict, stage1, generated, truth: EvalTruth, light_sets: 
     mc = model.cfg
     result["diffusion_model"] = {"preset": cfg["preset"], "layers": mc.n_layer, "width": mc.n_embd,
                                  "parameters": model.n_params(), "siren_width": siren.width}
+    growth = (geometry_state or state).get("growth")
+    if growth:  # how long the geometry stage trained and why it stopped (diffusion.target_gap)
+        result["diffusion_model"].update(epochs=growth.get("epochs"), stopped=growth.get("reason"),
+                                         gap_checks=growth.get("checks", []))
     # the model's weights plus its standardiser (float64 mean and std, per token or per parameter)
     result["storage_bytes"] = {"model": int(sum(p.numel() * p.element_size() for p in model.parameters())
                                             + 2 * 8 * len(std.mean)),

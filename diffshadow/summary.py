@@ -93,7 +93,8 @@ class RunResults:
         dm = v.get("diffusion_model")
         if dm:
             rows.append(("diffusion model", f"'{dm['preset']}': {dm['layers']} blocks of width {dm['width']}, "
-                         f"{dm['parameters']:,} parameters (for SIRENs of width {dm['siren_width']})"))
+                         f"{dm['parameters']:,} parameters (for SIRENs of width {dm['siren_width']})"
+                         + (f"; {dm['epochs']} epochs: {dm['stopped']}" if dm.get("epochs") else "")))
         return rows
 
     def _fps(self) -> str:

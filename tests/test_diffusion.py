@@ -116,7 +116,7 @@ def tiny_data(n=4):
 
 
 CFG = DiffusionConfig.from_config(dict(preset="tiny", epochs=6, batch_size=2, geometry_points=16, checkpoint_every=2,
-                      lr_step_epochs=2, ema=0.9, pool_lights=0))
+                      lr_step_epochs=2, ema=0.9, pool_lights=0, target_gap=0.0))
 
 
 def test_ema_decay_warms_up_to_its_target():
@@ -137,6 +137,82 @@ def test_resume_matches_uninterrupted(tmp_path):
     for key in ("model", "ema"):
         for name, value in full[key].items():
             assert torch.equal(value, resumed[key][name]), name
+
+
+GROWING = dataclasses.replace(CFG, epochs=2, target_gap=1.0, max_epochs=10)
+
+
+def test_seen_gap_is_zero_for_a_model_that_returns_the_stage1_weights():
+    from diffshadow.diffusion.train import Standardizer, seen_gap_db
+    from diffshadow.siren import box_to_siren
+    data = tiny_data()
+    # the true shadow: the stage-1 SIRENs' own values, off by a little (stage 1 at 40 dB)
+    exact = BatchedSiren(data.weights, LAYOUT, SIREN.blocks)(box_to_siren(data.points, data.extent)).detach()
+    data.values = exact + 0.01 * torch.randn(exact.shape, generator=torch.Generator().manual_seed(0))
+    std = Standardizer.fit(data.layout, data.weights, "param")
+    z = std.standardize(data.weights).float()
+
+    class Oracle(torch.nn.Module):  # x0 = the stage-1 weights of the light asked for (+ shift std units)
+        def __init__(self, shift=0.0):
+            super().__init__()
+            self.shift = shift
+
+        def forward(self, x, t, light):
+            rows = (light @ data.lights.T).argmax(1)
+            return z[rows] + self.shift
+
+    assert seen_gap_db(Oracle(), std, data, CFG) == pytest.approx(0.0, abs=1e-4)
+    assert seen_gap_db(Oracle(5.0), std, data, CFG) > 3.0  # worse generated SIRENs: a positive gap
+
+
+def test_training_goes_on_while_the_seen_gap_is_over_its_target_and_resumes_to_the_same_bytes(tmp_path, monkeypatch):
+    import diffshadow.diffusion.train as train
+    gaps = iter([3.0, 2.0, 0.5])
+    monkeypatch.setattr(train, "seen_gap_db", lambda *a: next(gaps))
+    msgs = []
+    state = train_diffusion(tiny_data(), GROWING, tmp_path / "a.ckpt", log=msgs.append)
+    g = state["growth"]
+    assert state["epoch"] == g["epochs"] == 6 and g["finished"]  # checks at 2, 4 (every 2 epochs), 6: met
+    assert [c["epoch"] for c in g["checks"]] == [2, 4, 6] and "within the target 1 dB" in g["reason"]
+    assert any("epoch 2: generated seen lights 3.00 dB under stage 1" in m and "training on" in m for m in msgs)
+    # interrupted after the check at epoch 4, resumed: the same checks, the same weights
+    gaps = iter([3.0, 2.0, 0.5])
+    train_diffusion(tiny_data(), GROWING, tmp_path / "b.ckpt", log=lambda *a: None, stop_after_epoch=4)
+    resumed = train_diffusion(tiny_data(), GROWING, tmp_path / "b.ckpt", log=lambda *a: None)
+    assert resumed["growth"] == g
+    assert all(torch.equal(state["ema"][k], resumed["ema"][k]) for k in state["ema"])
+
+
+@pytest.mark.parametrize("gaps, epochs, reason", [
+    ([0.9], 2, "within the target"),  # met at `epochs`: no extra cost
+    ([5.0, 4.5, 4.0, 3.5, 3.0], 10, "reached diffusion.max_epochs 10"),
+    ([5.0] * 4, 8, "stopped closing"),
+    ([2.0, 1.95, 1.93, 1.92], 8, "stopped closing"),  # the last 3 gained < 0.1 dB on the best before them
+    ([3.0, 2.0, 1.95, 1.93, 1.85], 10, "reached diffusion.max_epochs"),
+])
+def test_training_stops_growing_on_target_cap_or_plateau(tmp_path, monkeypatch, gaps, epochs, reason):
+    import diffshadow.diffusion.train as train
+    it = iter(gaps)
+    monkeypatch.setattr(train, "seen_gap_db", lambda *a: next(it))
+    msgs = []
+    state = train_diffusion(tiny_data(), GROWING, tmp_path / "a.ckpt", log=msgs.append)
+    assert state["growth"]["epochs"] == state["epoch"] == epochs and reason in state["growth"]["reason"]
+    assert any(m.startswith("WARNING: geometry stage done") for m in msgs) == (gaps[-1] > 1.0)
+
+
+def test_a_zero_target_gap_trains_exactly_epochs_without_measuring(tmp_path, monkeypatch):
+    import diffshadow.diffusion.train as train
+    monkeypatch.setattr(train, "seen_gap_db", lambda *a: pytest.fail("measured"))
+    state = train_diffusion(tiny_data(), CFG, tmp_path / "a.ckpt", log=lambda *a: None)
+    assert state["epoch"] == CFG.epochs and state["growth"]["checks"] == []
+
+
+def test_growth_makes_no_tensor_on_the_implicit_default_device(tmp_path):
+    data, cfg = tiny_data(), dataclasses.replace(GROWING, max_epochs=4)
+    plain = train_diffusion(data, cfg, tmp_path / "a.ckpt", log=lambda *a: None)
+    with default_device_meta():
+        guarded = train_diffusion(data, cfg, tmp_path / "b.ckpt", device="cpu", log=lambda *a: None)
+    assert guarded["growth"] == plain["growth"] and len(plain["growth"]["checks"]) >= 1
 
 
 def test_nan_loss_stops_and_keeps_the_checkpoint(tmp_path, monkeypatch):

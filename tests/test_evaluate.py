@@ -61,6 +61,8 @@ def test_quality_warnings_name_the_goal_missed_and_what_to_change():
     assert seen.startswith("WARNING: generated SIRENs on seen lights are 3.70 dB under stage 1 (goal: within 1.5 dB)")
     assert seen.endswith("set a wider diffusion.preset (medium, paper) than this run's small")
     assert "(32.28 dB) are under the blend of the 4 nearest true shadows (32.74 dB)" in unseen
+    result["diffusion_model"]["stopped"] = "reached diffusion.max_epochs 1800 with ..."
+    assert "1.5 dB); raise diffusion.max_epochs (this run stopped at it) or set a wider" in quality_warnings(result)[0]
     result["seen"]["generated_minus_stage1_median_db"] = -1.0
     result["unseen"]["generated_psnr_median"] = 34.0
     assert quality_warnings(result) == []

@@ -66,7 +66,7 @@ def make_setup(volume, workdir):
                          points=torch.rand(4, 64, 3, generator=gen), values=torch.rand(4, 64, generator=gen),
                          extent=torch.ones(3), layout=layout, siren=cfg, pool=pool)
     dcfg = DiffusionConfig.from_config(dict(preset="tiny", epochs=1, batch_size=4, geometry_points=16,
-                                              checkpoint_every=1, pool_lights=2))
+                                              checkpoint_every=1, pool_lights=2, target_gap=0.0))
     state = train_diffusion(train, dcfg, workdir / "geo.ckpt", log=lambda m: None)
     return cams, bundle, images, FinetuneData(train, bundle, images.reshape(4, FT.views, -1, 3)), state
 

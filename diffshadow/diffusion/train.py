@@ -63,6 +63,10 @@ class DiffusionConfig:
     pool_points: int  # presampled points per pool light
     pool_x0_weight: float  # x0 loss towards the blend of the nearest training SIRENs (geometry: towards truth)
     tensor_tokens: int  # tokens per weight tensor wider than the model (G.pt's chunks); 1: one per tensor (paper)
+    # after `epochs`, train on (checking every checkpoint_every epochs) while the generated seen lights lie more
+    # than target_gap dB under stage 1, up to max_epochs; 0 target_gap: exactly `epochs`
+    target_gap: float
+    max_epochs: int
 
     @classmethod
     def from_config(cls, d: dict | None = None) -> DiffusionConfig:
@@ -223,6 +227,34 @@ def ema_decay(target: float, step: int) -> float:
     return min(target, (1 + step) / (10 + step))
 
 
+PLATEAU_CHECKS = 3  # growth stops when these many checks in a row gain under 0.1 dB on the best before them
+GAP_LIGHTS = 32  # training lights (evenly spaced rows) that `seen_gap_db` generates and scores
+
+
+@torch.no_grad()
+def seen_gap_db(model: WeightTransformer, std: Standardizer, data: TrainingData, cfg: DiffusionConfig) -> float:
+    """How far the SIRENs `model` generates for training lights lie under their stage-1 SIRENs, in dB (median over
+    up to GAP_LIGHTS lights of stage-1 PSNR minus generated PSNR, both at the lights' presampled points against
+    the true shadow; positive: generated worse). Sampled as `sample_shadows` does (DDIM, cfg.ddim_steps,
+    cfg.temperature), so it tracks the deployed seen-light gap; the points are the geometry loss's own, so it
+    reads a little optimistic beside evaluate_voxels' held-out points."""
+    n = len(data.weights)
+    rows = torch.unique(torch.linspace(0, n - 1, min(n, GAP_LIGHTS), device="cpu").round().long())
+    device = data.points.device
+    lights = data.lights[rows].float().to(device)
+    was_training = model.training
+    model.eval()
+    z = Schedule().ddim_sample(lambda x, t: model(x, t, lights), (len(rows), data.layout.n_params),
+                               steps=cfg.ddim_steps, generator=seeded(cfg.seed, 2, 0),
+                               temperature=cfg.temperature, device=device)
+    model.train(was_training)
+    generated = std.destandardize(z.double()).float()
+    points, values, extent = data.points[rows.to(device)], data.values[rows.to(device)], data.extent
+    psnr = [-10 * torch.log10(geometry_error(w, data.layout, data.siren, points, values, extent).clamp_min(1e-30))
+            for w in (data.weights[rows.to(device)].float(), generated)]
+    return float((psnr[0] - psnr[1]).median())
+
+
 def make_optimizer(params, lr: float, weight_decay: float) -> torch.optim.AdamW:
     """AdamW, fused where this torch has the kernel for the device (CPU since torch 2.4): on the small
     preset's 3.5M parameters the per-tensor loop took 27 ms of a 270 ms CPU step, the fused one 5 ms."""
@@ -271,6 +303,9 @@ def train_diffusion(data: TrainingData, cfg: DiffusionConfig, checkpoint: Path, 
     fingerprint = _fingerprint(data, cfg)
     start = 0
     good: int | None = None  # epoch of the checkpoint this run resumed from or saved
+    # training past cfg.epochs while the generated seen lights lie more than cfg.target_gap dB under stage 1
+    growth = {"target_gap_db": cfg.target_gap, "max_epochs": max(cfg.epochs, cfg.max_epochs), "checks": [],
+              "finished": False, "reason": None}
     if state := resume(checkpoint, fingerprint, log=log, map_location=device):
         model.load_state_dict(state["model"])
         opt.load_state_dict(state["optimizer"])
@@ -278,6 +313,7 @@ def train_diffusion(data: TrainingData, cfg: DiffusionConfig, checkpoint: Path, 
         if ema is not None:
             ema.load_state_dict(state["ema"])
         start = good = int(state["epoch"])
+        growth = state["growth"]
         log(f"resuming from {checkpoint} at epoch {start}/{cfg.epochs}")
 
     def save(epoch: int) -> dict:
@@ -286,15 +322,44 @@ def train_diffusion(data: TrainingData, cfg: DiffusionConfig, checkpoint: Path, 
                  "ema": ema.state_dict() if ema is not None else None, "standardizer": std.state(),
                  "layout": data.layout.to_config(), "siren": data.siren.to_config(), "config": asdict(cfg),
                  "extent": data.extent.tolist(), "train_lights": data.lights.tolist(),
-                 "pool_lights": pool.lights.tolist() if pool is not None else []}
+                 "pool_lights": pool.lights.tolist() if pool is not None else [], "growth": growth}
         atomic_torch_save(checkpoint, state)
         return state
 
+    def grow(done: int) -> None:
+        """At epoch `done` (cfg.epochs, then every checkpoint_every epochs): measure the seen-light gap and
+        decide whether to train on; the decision is saved with the checkpoint, so a resumed run repeats it."""
+        if cfg.target_gap <= 0 or growth["max_epochs"] <= cfg.epochs:
+            growth.update(finished=True, epochs=done, reason="fixed length (diffusion.target_gap 0 or max_epochs "
+                                                             "<= epochs)")
+            return
+        gap = seen_gap_db(ema if ema is not None else model, std, on_device, cfg)
+        checks = growth["checks"]
+        checks.append({"epoch": done, "gap_db": gap})
+        best_before = min((c["gap_db"] for c in checks[:-PLATEAU_CHECKS]), default=math.inf)
+        if gap <= cfg.target_gap:
+            reason = f"generated seen lights {gap:.2f} dB under stage 1, within the target {cfg.target_gap:g} dB"
+        elif done >= growth["max_epochs"]:
+            reason = (f"reached diffusion.max_epochs {growth['max_epochs']} with the generated seen lights {gap:.2f} "
+                      f"dB under stage 1 (target {cfg.target_gap:g} dB)")
+        elif len(checks) > PLATEAU_CHECKS and min(c["gap_db"] for c in checks[-PLATEAU_CHECKS:]) > best_before - 0.1:
+            reason = (f"the gap stopped closing ({gap:.2f} dB under stage 1, target {cfg.target_gap:g} dB; under 0.1 "
+                      f"dB gained in the last {PLATEAU_CHECKS * cfg.checkpoint_every} epochs)")
+        else:
+            log(f"epoch {done}: generated seen lights {gap:.2f} dB under stage 1 (target {cfg.target_gap:g} dB at "
+                f"their presampled points): training on, up to epoch {growth['max_epochs']}")
+            return
+        growth.update(finished=True, epochs=done, reason=reason)
+        missed = gap > cfg.target_gap
+        log(("WARNING: " if missed else "") + f"geometry stage done at epoch {done}: {reason}"
+            + ("; a wider diffusion.preset or more lights.count may close it" if missed else ""))
+
     n = len(z_all)
     t0 = time.perf_counter()
-    state = None
     per_epoch = math.ceil(n / cfg.batch_size)  # optimizer steps, for the EMA's warm-up
-    for epoch in range(start, cfg.epochs):
+    epoch = start
+    state = None
+    while not growth["finished"]:
         gen = seeded(cfg.seed, 1, epoch)
         order = torch.randperm(n, generator=gen, device=gen.device)
         totals = torch.zeros(2, dtype=torch.float64, device=device)  # summed on the device: no sync per step
@@ -346,18 +411,21 @@ def train_diffusion(data: TrainingData, cfg: DiffusionConfig, checkpoint: Path, 
                         pe.lerp_(pm, 1 - ema_decay(cfg.ema, epoch * per_epoch + k))
             totals += torch.stack([loss_x0.detach(), loss_geo.detach()]).double() * b
         sched.step()
-        done = epoch + 1
-        if done % cfg.checkpoint_every == 0 or done == cfg.epochs:
+        done = epoch = epoch + 1
+        check = done >= cfg.epochs and (done - cfg.epochs) % cfg.checkpoint_every == 0
+        if done % max(1, cfg.epochs // 20) == 0 or check:
+            lx, lg = (totals / n).cpu().tolist()
+            log(f"epoch {done}/{cfg.epochs if done <= cfg.epochs else growth['max_epochs']}  loss x0 {lx:.4e}  "
+                f"geometry {lg:.4e} (≈{-10 * math.log10(max(lg, 1e-30)):.1f} dB)  lr {sched.get_last_lr()[0]:.2e}  "
+                f"{time.perf_counter() - t0:.0f} s")
+        if check:
+            grow(done)
+        if done % cfg.checkpoint_every == 0 or growth["finished"]:
             state = save(done)
             good = done
-        if done % max(1, cfg.epochs // 20) == 0 or done == cfg.epochs:
-            lx, lg = (totals / n).cpu().tolist()
-            log(f"epoch {done}/{cfg.epochs}  loss x0 {lx:.4e}  geometry {lg:.4e} "
-                f"(≈{-10 * math.log10(max(lg, 1e-30)):.1f} dB)  lr {sched.get_last_lr()[0]:.2e}  "
-                f"{time.perf_counter() - t0:.0f} s")
         if stop_after_epoch is not None and done >= stop_after_epoch:
             return state
-    if state is None:  # nothing left to train: the checkpoint is already final
+    if state is None:  # resumed from the final checkpoint: nothing left to train
         state = torch.load(checkpoint, map_location="cpu", weights_only=False)
     return state
 

@@ -183,9 +183,11 @@ def quality_warnings(result: dict, *, max_gap_db: float = 1.5) -> list[str]:
         ran = (result.get("diffusion_model") or {}).get("preset")
         width = PRESETS.get(ran, PRESETS["small"]).n_embd  # metrics written before the key: the default then
         wider = sorted((c.n_embd, name) for name, c in PRESETS.items() if c.n_embd > width)
+        stopped = (result.get("diffusion_model") or {}).get("stopped") or ""
+        longer = ("raise diffusion.max_epochs (this run stopped at it) or " if stopped.startswith("reached") else "")
         out.append(f"WARNING: generated SIRENs on seen lights are {-gap:.2f} dB under stage 1 (goal: within "
-                   f"{max_gap_db:g} dB); set a wider diffusion.preset ({', '.join(name for _, name in wider)})"
-                   + (f" than this run's {ran}" if ran else ""))
+                   f"{max_gap_db:g} dB); {longer}set a wider diffusion.preset "
+                   f"({', '.join(name for _, name in wider)})" + (f" than this run's {ran}" if ran else ""))
     unseen = result.get("unseen")
     if unseen and unseen["generated_psnr_median"] < unseen["blend_psnr_median"]:
         out.append(f"WARNING: generated SIRENs on unseen lights ({unseen['generated_psnr_median']:.2f} dB) are under "

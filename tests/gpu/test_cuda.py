@@ -67,7 +67,7 @@ def _training_data():
 
 
 DCFG = DiffusionConfig.from_config(dict(preset="tiny", epochs=4, batch_size=2, geometry_points=16, checkpoint_every=2,
-                                             pool_lights=0))
+                                             pool_lights=0, target_gap=0.0))
 
 
 def test_diffusion_training_and_sampling_agree_with_cpu(tmp_path):

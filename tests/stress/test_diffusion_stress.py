@@ -109,7 +109,7 @@ def sampler(tmp_path_factory):
                         points=torch.rand(n, 64, 3, generator=gen), values=torch.rand(n, 64, generator=gen),
                         extent=torch.ones(3), layout=LAYOUT, siren=SIREN)
     cfg = DiffusionConfig.from_config(dict(preset="tiny", epochs=20, batch_size=3, geometry_points=16,
-                                           checkpoint_every=20, pool_lights=0))
+                                           checkpoint_every=20, pool_lights=0, target_gap=0.0))
     state = train_diffusion(data, cfg, tmp_path_factory.mktemp("d") / "d.ckpt", log=lambda *a: None)
     return load_sampler(state)
 
