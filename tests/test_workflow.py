@@ -24,7 +24,7 @@ TINY = {
             "target_psnr": 0.0},
     "diffusion": {"preset": "tiny", "epochs": 3, "batch_size": 2, "geometry_points": 16, "presample_points": 64,
                   "checkpoint_every": 1, "ddim_steps": 5, "pool_lights": 4, "pool_points": 32,
-                  "max_epochs": 5},  # three epochs, then two more: six steps' SIRENs are far from the target gap
+                  "max_epochs": 5},
     "finetune": {"views": 1, "image_size": 16, "pixels": 4, "epochs": 2, "batch_size": 4, "nproc": 2,
                  "checkpoint_every": 1, "val_lights": 4, "val_points": 1024},
     "data_inr": {"width": 8, "blocks": 1, "steps": 20, "points": 512, "target_psnr": 0.0},
@@ -80,10 +80,10 @@ def test_stage2_outputs(finished):
     assert set(metrics["seconds_per_inr"]) == {"ddim", "ddpm"}
     # the workflow tests' config names the tiny preset: a named preset is used as given, never 'auto'-resolved
     assert metrics["diffusion_model"]["preset"] == "tiny" and metrics["diffusion_model"]["parameters"] > 0
-    # three epochs, then trained on to max_epochs 5: six-step SIRENs stay far from the seen-light target gap
+    # the seen-light gap measured after three epochs, and every epoch after it that was trained (up to 5)
     dm = metrics["diffusion_model"]
-    assert dm["epochs"] == 5 and [c["epoch"] for c in dm["gap_checks"]] == [3, 4, 5]
-    assert dm["stopped"].startswith("reached diffusion.max_epochs 5")
+    assert 3 <= dm["epochs"] <= 5 and [c["epoch"] for c in dm["gap_checks"]] == list(range(3, dm["epochs"] + 1))
+    assert "under stage 1" in dm["stopped"]
     generated = open_store(finished / "results/nucleon/generated.zarr")
     assert generated.seen.tolist() == [True] * 4 + [False] * 2 and np.isfinite(generated.psnr).all()
 
@@ -349,7 +349,7 @@ def test_report_front_page_has_the_runs_numbers(finished):
         assert f"{value:.2f} dB" in page and f"{value:.2f}" in tables
     assert "Scene nucleon" in page and "summary.html" in page
     assert f"{voxel['diffusion_model']['parameters']:,} parameters" in page
-    assert "5 epochs: reached diffusion.max_epochs 5" in page
+    assert f"{voxel['diffusion_model']['epochs']} epochs: {voxel['diffusion_model']['stopped']}" in page
     assert "before fine-tuning" in tables and voxel["unseen"]["finetune_change_median_db"] == pytest.approx(
         voxel["unseen"]["generated_psnr_median"] - voxel["unseen"]["geometry_only_psnr_median"], abs=5.0)
     for title in ("Shadow INRs", "Sampling", "Rendering-loss fine-tuning", "Images", "Renderer", "SIREN sizes chosen",
