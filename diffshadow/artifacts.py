@@ -117,9 +117,12 @@ def load_siren_init(path: str | Path, siren: SirenConfig, steps: int | None = No
 
 
 def write_geometry_points(path: str | Path, points: torch.Tensor, values: torch.Tensor, lights: np.ndarray,
-                          extent, pool: tuple[np.ndarray, torch.Tensor, torch.Tensor] | None = None) -> None:
-    """`presample`'s points (N, M, 3) and true shadow (N, M) per training light, one light per chunk; and
-    `pool` (lights, points, values) for the lights trained on exact shadows only, when there are any."""
+                          extent, pool: tuple[np.ndarray, torch.Tensor, torch.Tensor] | None = None,
+                          check: tuple[torch.Tensor, torch.Tensor] | None = None) -> None:
+    """`presample`'s points (N, M, 3) and true shadow (N, M) per training light, one light per chunk;
+    `pool` (lights, points, values) for the lights trained on exact shadows only, when there are any; and
+    `check` (points (C, 3), values (R, C) of the lights `geometry.check_rows` picks): held-out points that
+    measure the seen-light gap."""
 
     def fill(root) -> None:
         root.create_array("points", data=points.numpy(), chunks=(1, *points.shape[1:]))
@@ -129,6 +132,9 @@ def write_geometry_points(path: str | Path, points: torch.Tensor, values: torch.
             root.create_array("pool_lights", data=np.asarray(pool[0]))
             root.create_array("pool_points", data=pool[1].numpy(), chunks=(1, *pool[1].shape[1:]))
             root.create_array("pool_values", data=pool[2].numpy(), chunks=(1, pool[2].shape[1]))
+        if check is not None:
+            root.create_array("check_points", data=check[0].numpy())
+            root.create_array("check_values", data=check[1].numpy(), chunks=(1, check[1].shape[1]))
         root.attrs.update({"extent": np.asarray(extent).tolist()})
 
     write_zarr_group(path, fill)
@@ -152,6 +158,9 @@ def read_training_data(weights_path: str | Path, points_path: str | Path) -> tup
             pool = PoolLights(lights=torch.as_tensor(pool_lights), points=torch.as_tensor(geo["pool_points"][...]),
                               values=torch.as_tensor(geo["pool_values"][...]), neighbours=torch.as_tensor(idx),
                               blend=torch.as_tensor(blend, dtype=torch.float32))
+        check = None
+        if "check_points" in geo:
+            check = (torch.as_tensor(geo["check_points"][...]), torch.as_tensor(geo["check_values"][...]))
     except (FileNotFoundError, KeyError) as e:
         raise ArtifactError(f"{points_path}: not presample's geometry points (missing {e})") from None
     if geo_lights.shape != store.lights.shape or not np.allclose(geo_lights, store.lights):
@@ -159,7 +168,7 @@ def read_training_data(weights_path: str | Path, points_path: str | Path) -> tup
     data = TrainingData(weights=torch.as_tensor(store.weights), lights=torch.as_tensor(store.lights),
                         points=torch.as_tensor(points), values=torch.as_tensor(values),
                         extent=torch.as_tensor(extent, dtype=torch.float32), layout=store.layout, siren=store.siren,
-                        pool=pool)
+                        pool=pool, check=check)
     return data, store
 
 

@@ -112,7 +112,8 @@ def tiny_data(n=4):
     gen = torch.Generator().manual_seed(2)
     return TrainingData(weights=weights(n), lights=torch.nn.functional.normalize(torch.randn(n, 3, generator=gen)),
                         points=torch.rand(n, 64, 3, generator=gen), values=torch.rand(n, 64, generator=gen),
-                        extent=torch.ones(3), layout=LAYOUT, siren=SIREN)
+                        extent=torch.ones(3), layout=LAYOUT, siren=SIREN,
+                        check=(torch.rand(48, 3, generator=gen), torch.rand(n, 48, generator=gen)))
 
 
 CFG = DiffusionConfig.from_config(dict(preset="tiny", epochs=6, batch_size=2, geometry_points=16, checkpoint_every=2,
@@ -146,9 +147,10 @@ def test_seen_gap_is_zero_for_a_model_that_returns_the_stage1_weights():
     from diffshadow.diffusion.train import Standardizer, seen_gap_db
     from diffshadow.siren import box_to_siren
     data = tiny_data()
-    # the true shadow: the stage-1 SIRENs' own values, off by a little (stage 1 at 40 dB)
-    exact = BatchedSiren(data.weights, LAYOUT, SIREN.blocks)(box_to_siren(data.points, data.extent)).detach()
-    data.values = exact + 0.01 * torch.randn(exact.shape, generator=torch.Generator().manual_seed(0))
+    # the true shadow at the check points: the stage-1 SIRENs' own values, off by a little (stage 1 at 40 dB)
+    points = data.check[0].expand(len(data.weights), -1, -1)
+    exact = BatchedSiren(data.weights, LAYOUT, SIREN.blocks)(box_to_siren(points, data.extent)).detach()
+    data.check = (data.check[0], exact + 0.01 * torch.randn(exact.shape, generator=torch.Generator().manual_seed(0)))
     std = Standardizer.fit(data.layout, data.weights, "param")
     z = std.standardize(data.weights).float()
 
@@ -198,6 +200,14 @@ def test_training_stops_growing_on_target_cap_or_plateau(tmp_path, monkeypatch, 
     state = train_diffusion(tiny_data(), GROWING, tmp_path / "a.ckpt", log=msgs.append)
     assert state["growth"]["epochs"] == state["epoch"] == epochs and reason in state["growth"]["reason"]
     assert any(m.startswith("WARNING: geometry stage done") for m in msgs) == (gaps[-1] > 1.0)
+
+
+def test_the_gap_needs_held_out_check_points(tmp_path):
+    data = tiny_data()
+    data.check = None
+    with pytest.raises(DiffusionError, match="target_gap needs held-out check points .* rerun presample"):
+        train_diffusion(data, GROWING, tmp_path / "a.ckpt", log=lambda *a: None)
+    train_diffusion(data, CFG, tmp_path / "b.ckpt", log=lambda *a: None)  # target_gap 0: not needed
 
 
 def test_a_zero_target_gap_trains_exactly_epochs_without_measuring(tmp_path, monkeypatch):

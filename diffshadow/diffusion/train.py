@@ -20,7 +20,7 @@ from pathlib import Path
 import torch
 
 from diffshadow.config import section
-from diffshadow.diffusion.geometry import geometry_error
+from diffshadow.diffusion.geometry import check_rows, geometry_error
 from diffshadow.diffusion.model import PRESETS, WeightTransformer
 from diffshadow.diffusion.schedule import Schedule
 from diffshadow.io import atomic_torch_save, resume
@@ -200,12 +200,16 @@ class TrainingData:
     layout: WeightLayout
     siren: SirenConfig
     pool: PoolLights | None = None
+    # held-out points (C, 3) and the true shadow there (R, C) of the training lights geometry.check_rows picks:
+    # where the seen-light gap is measured (diffusion.target_gap); never trained on
+    check: tuple[torch.Tensor, torch.Tensor] | None = None
 
     def to(self, device) -> TrainingData:
         return dataclasses.replace(self, weights=self.weights.to(device), lights=self.lights.to(device),
                                    points=self.points.to(device), values=self.values.to(device),
                                    extent=self.extent.to(device),
-                                   pool=self.pool.to(device) if self.pool is not None else None)
+                                   pool=self.pool.to(device) if self.pool is not None else None,
+                                   check=tuple(t.to(device) for t in self.check) if self.check is not None else None)
 
 
 def _fingerprint(data: TrainingData, cfg: DiffusionConfig) -> str:
@@ -214,6 +218,8 @@ def _fingerprint(data: TrainingData, cfg: DiffusionConfig) -> str:
     if data.pool is not None and cfg.pool_lights > 0:
         p = data.pool
         tensors += [p.lights, p.points, p.values, p.neighbours, p.blend]
+    if data.check is not None and cfg.target_gap > 0:
+        tensors += list(data.check)
     for t in tensors:
         h.update(t.detach().cpu().numpy().tobytes())
     h.update(json.dumps(asdict(cfg), sort_keys=True).encode())
@@ -228,20 +234,24 @@ def ema_decay(target: float, step: int) -> float:
 
 
 PLATEAU_CHECKS = 3  # growth stops when these many checks in a row gain under 0.1 dB on the best before them
-GAP_LIGHTS = 32  # training lights (evenly spaced rows) that `seen_gap_db` generates and scores
 
 
 @torch.no_grad()
 def seen_gap_db(model: WeightTransformer, std: Standardizer, data: TrainingData, cfg: DiffusionConfig) -> float:
-    """How far the SIRENs `model` generates for training lights lie under their stage-1 SIRENs, in dB (median over
-    up to GAP_LIGHTS lights of stage-1 PSNR minus generated PSNR, both at the lights' presampled points against
-    the true shadow; positive: generated worse). Sampled as `sample_shadows` does (DDIM, cfg.ddim_steps,
-    cfg.temperature), so it tracks the deployed seen-light gap; the points are the geometry loss's own, so it
-    reads a little optimistic beside evaluate_voxels' held-out points."""
-    n = len(data.weights)
-    rows = torch.unique(torch.linspace(0, n - 1, min(n, GAP_LIGHTS), device="cpu").round().long())
-    device = data.points.device
-    lights = data.lights[rows].float().to(device)
+    """How far the SIRENs `model` generates for training lights lie under their stage-1 SIRENs, in dB: the median
+    over the lights `check_rows` picks of stage-1 PSNR minus generated PSNR at the held-out check points
+    (positive: generated worse). Sampled as `sample_shadows` does (DDIM, cfg.ddim_steps, cfg.temperature), scored
+    as `evaluate_voxels` scores the "box" set, so it estimates the seen-light gap the run will report."""
+    if data.check is None:
+        raise DiffusionError("diffusion.target_gap needs held-out check points in the geometry points; rerun "
+                             "presample (or set diffusion.target_gap: 0)")
+    points, values = data.check
+    device = points.device
+    rows = check_rows(len(data.weights)).to(device)
+    if len(values) != len(rows):
+        raise DiffusionError(f"the geometry points hold check values for {len(values)} lights, not the "
+                             f"{len(rows)} training lights checked; rerun presample")
+    lights = data.lights[rows].float()
     was_training = model.training
     model.eval()
     z = Schedule().ddim_sample(lambda x, t: model(x, t, lights), (len(rows), data.layout.n_params),
@@ -249,9 +259,9 @@ def seen_gap_db(model: WeightTransformer, std: Standardizer, data: TrainingData,
                                temperature=cfg.temperature, device=device)
     model.train(was_training)
     generated = std.destandardize(z.double()).float()
-    points, values, extent = data.points[rows.to(device)], data.values[rows.to(device)], data.extent
-    psnr = [-10 * torch.log10(geometry_error(w, data.layout, data.siren, points, values, extent).clamp_min(1e-30))
-            for w in (data.weights[rows.to(device)].float(), generated)]
+    pts = points.expand(len(rows), -1, -1)
+    psnr = [-10 * torch.log10(geometry_error(w, data.layout, data.siren, pts, values, data.extent).clamp_min(1e-30))
+            for w in (data.weights[rows].float(), generated)]
     return float((psnr[0] - psnr[1]).median())
 
 

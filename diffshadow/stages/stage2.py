@@ -19,7 +19,7 @@ from diffshadow.diffusion.finetune import (
     image_psnr_of_model,
     keep_if_images_improve,
 )
-from diffshadow.diffusion.geometry import POOL_STREAM
+from diffshadow.diffusion.geometry import POOL_STREAM, check_points
 from diffshadow.diffusion.geometry import presample as presample_points
 from diffshadow.diffusion.model import PRESETS
 from diffshadow.diffusion.sample import generate, load_sampler
@@ -48,7 +48,8 @@ def presample(volume_path: Path, lights_path: Path, out: Path, *, cfg: Diffusion
                                                 stream=POOL_STREAM, device=device))
         print(f"pool: {cfg.pool_points} points and exact shadows for each of {cfg.pool_lights} lights without a "
               f"fitted SIREN ({time.perf_counter() - t0:.1f} s)", flush=True)
-    artifacts.write_geometry_points(out, pts, values, train_lights, volume.extent, pool)
+    check = check_points(volume, tf, train_lights, seed=cfg.seed, device=device)
+    artifacts.write_geometry_points(out, pts, values, train_lights, volume.extent, pool, check)
     print(f"wrote {out}")
 
 
