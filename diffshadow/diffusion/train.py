@@ -357,7 +357,7 @@ def train_diffusion(data: TrainingData, cfg: DiffusionConfig, checkpoint: Path, 
                       f"dB gained in the last {PLATEAU_CHECKS * cfg.checkpoint_every} epochs)")
         else:
             log(f"epoch {done}: generated seen lights {gap:.2f} dB under stage 1 (target {cfg.target_gap:g} dB at "
-                f"their presampled points): training on, up to epoch {growth['max_epochs']}")
+                f"held-out points): training on, up to epoch {growth['max_epochs']}")
             return
         growth.update(finished=True, epochs=done, reason=reason)
         missed = gap > cfg.target_gap
