@@ -210,6 +210,13 @@ def test_the_gap_needs_held_out_check_points(tmp_path):
     train_diffusion(data, CFG, tmp_path / "b.ckpt", log=lambda *a: None)  # target_gap 0: not needed
 
 
+def test_a_non_finite_gap_stops_with_a_clear_error(tmp_path, monkeypatch):
+    import diffshadow.diffusion.train as train
+    monkeypatch.setattr(train, "seen_gap_db", lambda *a: float("nan"))
+    with pytest.raises(DiffusionError, match="PSNR is not finite at epoch 2 .* keeping the last good checkpoint"):
+        train_diffusion(tiny_data(), GROWING, tmp_path / "a.ckpt", log=lambda *a: None)
+
+
 def test_a_zero_target_gap_trains_exactly_epochs_without_measuring(tmp_path, monkeypatch):
     import diffshadow.diffusion.train as train
     monkeypatch.setattr(train, "seen_gap_db", lambda *a: pytest.fail("measured"))

@@ -344,6 +344,9 @@ def train_diffusion(data: TrainingData, cfg: DiffusionConfig, checkpoint: Path, 
                                                              "<= epochs)")
             return
         gap = seen_gap_db(ema if ema is not None else model, std, on_device, cfg)
+        if not math.isfinite(gap):
+            raise DiffusionError(f"train_diffusion: the generated seen lights' PSNR is not finite at epoch {done} "
+                                 f"(NaN SIREN weights?); keeping the last good checkpoint {checkpoint} (epoch {good})")
         checks = growth["checks"]
         checks.append({"epoch": done, "gap_db": gap})
         best_before = min((c["gap_db"] for c in checks[:-PLATEAU_CHECKS]), default=math.inf)
