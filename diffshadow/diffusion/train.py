@@ -24,8 +24,9 @@ from diffshadow.diffusion.geometry import check_rows, geometry_error
 from diffshadow.diffusion.model import PRESETS, WeightTransformer
 from diffshadow.diffusion.schedule import Schedule
 from diffshadow.io import atomic_torch_save, resume
+from diffshadow.metrics import psnr
 from diffshadow.sampling import seeded
-from diffshadow.siren import SirenConfig, WeightLayout
+from diffshadow.siren import BatchedSiren, SirenConfig, WeightLayout, box_to_siren
 
 # (largest SIREN width, preset) for `preset: auto`: the model widens with the SIREN, so a scene whose stage 1
 # chose width 64 spends more (tooth: seen / unseen +1.1 / +1.2 dB for 2x the time) and nucleon's width 32 keeps
@@ -242,6 +243,8 @@ def seen_gap_db(model: WeightTransformer, std: Standardizer, data: TrainingData,
     over the lights `check_rows` picks of stage-1 PSNR minus generated PSNR at the held-out check points
     (positive: generated worse). Sampled as `sample_shadows` does (DDIM, cfg.ddim_steps, cfg.temperature), scored
     as `evaluate_voxels` scores the "box" set, so it estimates the seen-light gap the run will report."""
+    from diffshadow.diffusion.sample import generate  # sample.py imports this module
+
     if data.check is None:
         raise DiffusionError("diffusion.target_gap needs held-out check points in the geometry points; rerun "
                              "presample (or set diffusion.target_gap: 0)")
@@ -251,18 +254,15 @@ def seen_gap_db(model: WeightTransformer, std: Standardizer, data: TrainingData,
     if len(values) != len(rows):
         raise DiffusionError(f"the geometry points hold check values for {len(values)} lights, not the "
                              f"{len(rows)} training lights checked; rerun presample")
-    lights = data.lights[rows].float()
     was_training = model.training
     model.eval()
-    z = Schedule().ddim_sample(lambda x, t: model(x, t, lights), (len(rows), data.layout.n_params),
-                               steps=cfg.ddim_steps, generator=seeded(cfg.seed, 2, 0),
-                               temperature=cfg.temperature, device=device)
+    generated = generate(model, std, data.lights[rows].cpu().numpy(), steps=cfg.ddim_steps, seed=cfg.seed,
+                         temperature=cfg.temperature, device=device)
     model.train(was_training)
-    generated = std.destandardize(z.double()).float()
-    pts = points.expand(len(rows), -1, -1)
-    psnr = [-10 * torch.log10(geometry_error(w, data.layout, data.siren, pts, values, data.extent).clamp_min(1e-30))
-            for w in (data.weights[rows].float(), generated)]
-    return float((psnr[0] - psnr[1]).median())
+    at_checks = box_to_siren(points.expand(len(rows), -1, -1), data.extent)
+    stage1, ours = (psnr(BatchedSiren(w.to(device).float(), data.layout, data.siren.blocks)(at_checks), values, dim=1)
+                    for w in (data.weights[rows], generated))
+    return float((stage1 - ours).median())
 
 
 def make_optimizer(params, lr: float, weight_decay: float) -> torch.optim.AdamW:
@@ -314,8 +314,8 @@ def train_diffusion(data: TrainingData, cfg: DiffusionConfig, checkpoint: Path, 
     start = 0
     good: int | None = None  # epoch of the checkpoint this run resumed from or saved
     # training past cfg.epochs while the generated seen lights lie more than cfg.target_gap dB under stage 1
-    growth = {"target_gap_db": cfg.target_gap, "max_epochs": max(cfg.epochs, cfg.max_epochs), "checks": [],
-              "finished": False, "reason": None}
+    max_epochs = max(cfg.epochs, cfg.max_epochs)
+    growth = {"checks": [], "finished": False, "reason": None}
     if state := resume(checkpoint, fingerprint, log=log, map_location=device):
         model.load_state_dict(state["model"])
         opt.load_state_dict(state["optimizer"])
@@ -339,7 +339,7 @@ def train_diffusion(data: TrainingData, cfg: DiffusionConfig, checkpoint: Path, 
     def grow(done: int) -> None:
         """At epoch `done` (cfg.epochs, then every checkpoint_every epochs): measure the seen-light gap and
         decide whether to train on; the decision is saved with the checkpoint, so a resumed run repeats it."""
-        if cfg.target_gap <= 0 or growth["max_epochs"] <= cfg.epochs:
+        if cfg.target_gap <= 0 or max_epochs <= cfg.epochs:
             growth.update(finished=True, epochs=done, reason="fixed length (diffusion.target_gap 0 or max_epochs "
                                                              "<= epochs)")
             return
@@ -352,15 +352,15 @@ def train_diffusion(data: TrainingData, cfg: DiffusionConfig, checkpoint: Path, 
         best_before = min((c["gap_db"] for c in checks[:-PLATEAU_CHECKS]), default=math.inf)
         if gap <= cfg.target_gap:
             reason = f"generated seen lights {gap:.2f} dB under stage 1, within the target {cfg.target_gap:g} dB"
-        elif done >= growth["max_epochs"]:
-            reason = (f"reached diffusion.max_epochs {growth['max_epochs']} with the generated seen lights {gap:.2f} "
+        elif done >= max_epochs:
+            reason = (f"reached diffusion.max_epochs {max_epochs} with the generated seen lights {gap:.2f} "
                       f"dB under stage 1 (target {cfg.target_gap:g} dB)")
         elif len(checks) > PLATEAU_CHECKS and min(c["gap_db"] for c in checks[-PLATEAU_CHECKS:]) > best_before - 0.1:
             reason = (f"the gap stopped closing ({gap:.2f} dB under stage 1, target {cfg.target_gap:g} dB; under 0.1 "
                       f"dB gained in the last {PLATEAU_CHECKS * cfg.checkpoint_every} epochs)")
         else:
             log(f"epoch {done}: generated seen lights {gap:.2f} dB under stage 1 (target {cfg.target_gap:g} dB at "
-                f"held-out points): training on, up to epoch {growth['max_epochs']}")
+                f"held-out points): training on, up to epoch {max_epochs}")
             return
         growth.update(finished=True, epochs=done, reason=reason)
         missed = gap > cfg.target_gap
@@ -428,7 +428,7 @@ def train_diffusion(data: TrainingData, cfg: DiffusionConfig, checkpoint: Path, 
         check = done >= cfg.epochs and (done - cfg.epochs) % cfg.checkpoint_every == 0
         if done % max(1, cfg.epochs // 20) == 0 or check:
             lx, lg = (totals / n).cpu().tolist()
-            log(f"epoch {done}/{cfg.epochs if done <= cfg.epochs else growth['max_epochs']}  loss x0 {lx:.4e}  "
+            log(f"epoch {done}/{cfg.epochs if done <= cfg.epochs else max_epochs}  loss x0 {lx:.4e}  "
                 f"geometry {lg:.4e} (≈{-10 * math.log10(max(lg, 1e-30)):.1f} dB)  lr {sched.get_last_lr()[0]:.2e}  "
                 f"{time.perf_counter() - t0:.0f} s")
         if check:

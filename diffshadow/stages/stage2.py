@@ -181,11 +181,12 @@ def quality_warnings(result: dict, *, max_gap_db: float = 1.5) -> list[str]:
     out = []
     gap = result["seen"]["generated_minus_stage1_median_db"]
     if gap < -max_gap_db:
-        ran = (result.get("diffusion_model") or {}).get("preset")
+        model = result.get("diffusion_model") or {}
+        ran = model.get("preset")
         width = PRESETS.get(ran, PRESETS["small"]).n_embd  # metrics written before the key: the default then
         wider = sorted((c.n_embd, name) for name, c in PRESETS.items() if c.n_embd > width)
-        stopped = (result.get("diffusion_model") or {}).get("stopped") or ""
-        longer = ("raise diffusion.max_epochs (this run stopped at it) or " if stopped.startswith("reached") else "")
+        longer = ("raise diffusion.max_epochs (this run stopped at it) or "
+                  if (model.get("stopped") or "").startswith("reached") else "")
         out.append(f"WARNING: generated SIRENs on seen lights are {-gap:.2f} dB under stage 1 (goal: within "
                    f"{max_gap_db:g} dB); {longer}set a wider diffusion.preset "
                    f"({', '.join(name for _, name in wider)})" + (f" than this run's {ran}" if ran else ""))
