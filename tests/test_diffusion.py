@@ -187,6 +187,7 @@ def test_training_goes_on_while_the_seen_gap_is_over_its_target_and_resumes_to_t
 
 @pytest.mark.parametrize("gaps, epochs, reason", [
     ([0.9], 2, "within the target"),  # met at `epochs`: no extra cost
+    ([-0.2], 2, "0.20 dB over stage 1, within the target"),  # generated better than stage 1: no "-0.20 under"
     ([5.0, 4.5, 4.0, 3.5, 3.0], 10, "reached diffusion.max_epochs 10"),
     ([5.0] * 4, 8, "stopped closing"),
     ([2.0, 1.95, 1.93, 1.92], 8, "stopped closing"),  # the last 3 gained < 0.1 dB on the best before them

@@ -351,7 +351,8 @@ def train_diffusion(data: TrainingData, cfg: DiffusionConfig, checkpoint: Path, 
         checks.append({"epoch": done, "gap_db": gap})
         best_before = min((c["gap_db"] for c in checks[:-PLATEAU_CHECKS]), default=math.inf)
         if gap <= cfg.target_gap:
-            reason = f"generated seen lights {gap:.2f} dB under stage 1, within the target {cfg.target_gap:g} dB"
+            side = "under" if gap >= 0 else "over"  # a gap can be negative: generated better than stage 1
+            reason = f"generated seen lights {abs(gap):.2f} dB {side} stage 1, within the target {cfg.target_gap:g} dB"
         elif done >= max_epochs:
             reason = (f"reached diffusion.max_epochs {max_epochs} with the generated seen lights {gap:.2f} "
                       f"dB under stage 1 (target {cfg.target_gap:g} dB)")
