@@ -189,6 +189,7 @@ def voxel_metrics(state: dict, stage1, generated, truth: EvalTruth, light_sets: 
     growth = (geometry_state or state).get("growth")
     if growth:  # how long the geometry stage trained and why it stopped (diffusion.target_gap)
         result["diffusion_model"].update(epochs=growth.get("epochs"), stopped=growth.get("reason"),
+                                         kept_epoch=growth.get("kept_epoch", growth.get("epochs")),
                                          gap_checks=growth.get("checks", []))
     # the model's weights plus its standardiser (float64 mean and std, per token or per parameter)
     result["storage_bytes"] = {"model": int(sum(p.numel() * p.element_size() for p in model.parameters())

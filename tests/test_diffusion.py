@@ -185,6 +185,42 @@ def test_training_goes_on_while_the_seen_gap_is_over_its_target_and_resumes_to_t
     assert all(torch.equal(state["ema"][k], resumed["ema"][k]) for k in state["ema"])
 
 
+def test_growth_trains_at_the_lr_reached_at_epochs(tmp_path, monkeypatch):
+    import diffshadow.diffusion.train as train
+    it = iter([5.0, 4.0, 3.0, 2.0, 0.5])
+    monkeypatch.setattr(train, "seen_gap_db", lambda *a: next(it))
+    state = train_diffusion(tiny_data(), GROWING, tmp_path / "a.ckpt", log=lambda *a: None)
+    assert state["epoch"] == 10
+    # StepLR every lr_step_epochs=2: decayed once by epoch 2, then held while the gap closes
+    held = GROWING.lr * GROWING.lr_gamma
+    assert state["scheduler"]["_last_lr"] == [pytest.approx(held)]
+    assert state["optimizer"]["param_groups"][0]["lr"] == pytest.approx(held)
+
+
+def test_a_run_that_stops_over_the_target_keeps_its_best_checked_weights(tmp_path, monkeypatch):
+    import diffshadow.diffusion.train as train
+    gaps, seen = [3.0, 2.0, 2.5, 2.4, 2.3], []  # best at epoch 4; plateau after three checks gaining < 0.1 dB
+
+    def scripted(model, *a):
+        seen.append({k: v.clone() for k, v in model.state_dict().items()})
+        return gaps[len(seen) - 1]
+    monkeypatch.setattr(train, "seen_gap_db", scripted)
+    msgs = []
+    state = train_diffusion(tiny_data(), GROWING, tmp_path / "a.ckpt", log=msgs.append)
+    g = state["growth"]
+    assert state["epoch"] == g["epochs"] == 10 and g["kept_epoch"] == 4 and state["best"] is None
+    assert "kept the model of epoch 4 (2.00 dB under stage 1)" in g["reason"]
+    assert all(torch.equal(state["ema"][k], seen[1][k]) for k in seen[1])  # the weights checked at epoch 4
+    assert not all(torch.equal(state["ema"][k], seen[-1][k]) for k in seen[-1])
+    assert any(m.startswith("WARNING: geometry stage done at epoch 10") for m in msgs)
+    # interrupted after the check at epoch 8 (best in the checkpoint), resumed: the same weights kept
+    seen.clear()
+    train_diffusion(tiny_data(), GROWING, tmp_path / "b.ckpt", log=lambda *a: None, stop_after_epoch=8)
+    assert torch.load(tmp_path / "b.ckpt", weights_only=False)["best"]["epoch"] == 4
+    resumed = train_diffusion(tiny_data(), GROWING, tmp_path / "b.ckpt", log=lambda *a: None)
+    assert resumed["growth"] == g and all(torch.equal(state["ema"][k], resumed["ema"][k]) for k in state["ema"])
+
+
 @pytest.mark.parametrize("gaps, epochs, reason", [
     ([0.9], 2, "within the target"),  # met at `epochs`: no extra cost
     ([-0.2], 2, "0.20 dB over stage 1, within the target"),  # generated better than stage 1: no "-0.20 under"
