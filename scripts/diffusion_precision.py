@@ -35,14 +35,18 @@ def main() -> None:
     data, _ = artifacts.read_training_data(a.results / "weights.zarr", a.results / "geometry_points.zarr")
     truth = artifacts.read_eval_truth(a.results / "eval_truth.zarr")
     light_sets = read_lights(a.results / "lights.json")
-    cfg = dataclasses.replace(DiffusionConfig.from_config(json.loads(a.spec)), checkpoint_every=10**9)
+    cfg = DiffusionConfig.from_config(json.loads(a.spec))
+    if cfg.target_gap <= 0:  # no growth checks: one checkpoint at the end is enough
+        cfg = dataclasses.replace(cfg, checkpoint_every=10**9)
     state_path = a.state or Path(f"/tmp/diffusion_precision_{abs(hash(a.spec))}.ckpt")
     t0 = time.perf_counter()
     if state_path.exists():
         state = torch.load(state_path, map_location="cpu", weights_only=False)
     else:
         state = train_diffusion(data, cfg, state_path, log=lambda m: None)
-    print(f"geometry stage {a.spec}: {time.perf_counter() - t0:.0f} s")
+    growth = state.get("growth") or {}
+    print(f"geometry stage {a.spec}: {time.perf_counter() - t0:.0f} s, {growth.get('epochs')} epochs "
+          f"({growth.get('reason')}); gap checks {[round(c['gap_db'], 2) for c in growth.get('checks', [])]}")
     model, std, layout, siren = load_sampler(state)
 
     def median(w: np.ndarray, name: str) -> float:

@@ -56,7 +56,9 @@ def row(scene: str, wall: float | None) -> dict:
             "SIREN": f"w{stage1.get('width')} x{init.get('fit_steps')}",
             "probe dB": (stage1.get("capacity") or {}).get("psnr"),
             "stage 1 dB": voxel["seen"]["stage1_psnr_median"],
-            "diffusion": f"{dm.get('preset')} x{dm.get('epochs')} ep",
+            "diffusion": f"{dm.get('preset')} x{dm.get('epochs')} ep"
+                         + (f" (kept {dm['kept_epoch']})" if dm.get("kept_epoch", dm.get("epochs")) != dm.get("epochs")
+                            else ""),
             "seen dB": voxel["seen"]["generated_psnr_median"],
             "unseen dB": unseen.get("generated_psnr_median"),
             "before FT": unseen.get("geometry_only_psnr_median"),
