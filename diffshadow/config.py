@@ -124,6 +124,16 @@ def as_json(cfg: dict, *keys: str) -> str:
     return json.dumps({k: cfg[k] for k in keys}, sort_keys=True)
 
 
+class _Sections(dict):
+    """A parsed --config-json whose missing section is a one-line ConfigError, not a KeyError traceback."""
+
+    what = "--config-json"
+
+    def __missing__(self, key: str):
+        raise ConfigError(f"{self.what}: no {key!r} section (it has {sorted(self) or 'none'}); the workflow passes "
+                          f"the config's sections by name, e.g. {{\"{key}\": {{...}}}}")
+
+
 def parse_json(text: str, what: str = "--config-json") -> dict[str, Any]:
     try:
         value = json.loads(text)
@@ -131,4 +141,6 @@ def parse_json(text: str, what: str = "--config-json") -> dict[str, Any]:
         raise ConfigError(f"{what}: not valid JSON ({e})") from None
     if not isinstance(value, dict):
         raise ConfigError(f"{what}: expected a JSON object")
-    return value
+    sections = _Sections(value)
+    sections.what = what
+    return sections

@@ -34,6 +34,16 @@ def test_bad_input_is_one_line_without_traceback(tmp_path, capsys):
     assert not (tmp_path / "v.zarr").exists()
 
 
+def test_a_config_json_without_the_stage_section_is_one_line(tmp_path, capsys):
+    # the diffusion section itself instead of {"diffusion": {...}}: named, not a KeyError from deep inside
+    with pytest.raises(SystemExit) as exit_info:
+        main(["train-diffusion", "--weights", str(tmp_path / "w.zarr"), "--points", str(tmp_path / "p.zarr"),
+              "--config-json", '{"epochs": 5}', "--out", str(tmp_path / "d.ckpt")])
+    assert exit_info.value.code == 2
+    err = capsys.readouterr().err
+    assert err.strip().count("\n") == 0 and "--config-json: no 'diffusion' section (it has ['epochs'])" in err
+
+
 def test_stage_costs_sums_a_fanned_out_rule_and_names_a_bad_file(tmp_path):
     from diffshadow.report import stage_costs
 
