@@ -127,7 +127,9 @@ def as_json(cfg: dict, *keys: str) -> str:
 class _Sections(dict):
     """A parsed --config-json whose missing section is a one-line ConfigError, not a KeyError traceback."""
 
-    what = "--config-json"
+    def __init__(self, value: dict, what: str) -> None:
+        super().__init__(value)
+        self.what = what
 
     def __missing__(self, key: str):
         raise ConfigError(f"{self.what}: no {key!r} section (it has {sorted(self) or 'none'}); the workflow passes "
@@ -141,6 +143,4 @@ def parse_json(text: str, what: str = "--config-json") -> dict[str, Any]:
         raise ConfigError(f"{what}: not valid JSON ({e})") from None
     if not isinstance(value, dict):
         raise ConfigError(f"{what}: expected a JSON object")
-    sections = _Sections(value)
-    sections.what = what
-    return sections
+    return _Sections(value, what)

@@ -49,6 +49,7 @@ def row(scene: str, wall: float | None) -> dict:
     costs = {r["stage"]: r["wall_s"] for r in rows if not r["stage"].startswith("total")}
     unseen = voxel.get("unseen", {})
     dm = voxel.get("diffusion_model") or {}
+    kept = dm.get("kept_epoch") if dm.get("kept_epoch") != dm.get("epochs") else None
     deployed = images["modes"].get("inr_generated_data_inr", {})
     return {"scene": scene, "lights": voxel["seen"]["count"],
             "data INR": f"w{inr.get('width')} x{(inr.get('capacity') or {}).get('steps')}",
@@ -56,9 +57,7 @@ def row(scene: str, wall: float | None) -> dict:
             "SIREN": f"w{stage1.get('width')} x{init.get('fit_steps')}",
             "probe dB": (stage1.get("capacity") or {}).get("psnr"),
             "stage 1 dB": voxel["seen"]["stage1_psnr_median"],
-            "diffusion": f"{dm.get('preset')} x{dm.get('epochs')} ep"
-                         + (f" (kept {dm['kept_epoch']})" if dm.get("kept_epoch", dm.get("epochs")) != dm.get("epochs")
-                            else ""),
+            "diffusion": f"{dm.get('preset')} x{dm.get('epochs')} ep" + (f" (kept {kept})" if kept else ""),
             "seen dB": voxel["seen"]["generated_psnr_median"],
             "unseen dB": unseen.get("generated_psnr_median"),
             "before FT": unseen.get("geometry_only_psnr_median"),

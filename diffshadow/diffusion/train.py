@@ -317,7 +317,7 @@ def train_diffusion(data: TrainingData, cfg: DiffusionConfig, checkpoint: Path, 
     max_epochs = max(cfg.epochs, cfg.max_epochs)
     growth = {"checks": [], "finished": False, "reason": None}
     sampled = ema if ema is not None else model  # the weights that sampling uses: checked, and the best kept
-    best: dict | None = None  # {"epoch", "weights"} at the smallest gap so far, while growing
+    best: dict | None = None  # {"epoch", "weights"} of the best check so far (its gap: in growth["checks"])
     if state := resume(checkpoint, fingerprint, log=log, map_location=device):
         model.load_state_dict(state["model"])
         opt.load_state_dict(state["optimizer"])
@@ -357,9 +357,9 @@ def train_diffusion(data: TrainingData, cfg: DiffusionConfig, checkpoint: Path, 
         checks = growth["checks"]
         checks.append({"epoch": done, "gap_db": gap})
         best_before = min((c["gap_db"] for c in checks[:-PLATEAU_CHECKS]), default=math.inf)
-        if best is None or gap < best["gap_db"]:
-            best = {"epoch": done, "gap_db": gap,
-                    "weights": {k: v.detach().clone() for k, v in sampled.state_dict().items()}}
+        top = min(checks, key=lambda c: c["gap_db"])  # the first of equal gaps
+        if top is checks[-1]:
+            best = {"epoch": done, "weights": {k: v.detach().clone() for k, v in sampled.state_dict().items()}}
         if gap <= cfg.target_gap:
             side = "under" if gap >= 0 else "over"  # a gap can be negative: generated better than stage 1
             reason = f"generated seen lights {abs(gap):.2f} dB {side} stage 1, within the target {cfg.target_gap:g} dB"
@@ -373,11 +373,11 @@ def train_diffusion(data: TrainingData, cfg: DiffusionConfig, checkpoint: Path, 
             log(f"epoch {done}: generated seen lights {gap:.2f} dB under stage 1 (target {cfg.target_gap:g} dB at "
                 f"held-out points): training on, up to epoch {max_epochs}")
             return
-        if best["epoch"] != done:
+        if top["epoch"] != done:
             sampled.load_state_dict(best["weights"])
-            reason += f"; kept the model of epoch {best['epoch']} ({best['gap_db']:.2f} dB under stage 1)"
-        growth.update(finished=True, epochs=done, reason=reason, kept_epoch=best["epoch"])
-        missed = best["gap_db"] > cfg.target_gap
+            reason += f"; kept the model of epoch {top['epoch']} ({top['gap_db']:.2f} dB under stage 1)"
+        growth.update(finished=True, epochs=done, reason=reason, kept_epoch=top["epoch"])
+        missed = top["gap_db"] > cfg.target_gap
         log(("WARNING: " if missed else "") + f"geometry stage done at epoch {done}: {reason}"
             + ("; a wider diffusion.preset or more lights.count may close it" if missed else ""))
 
