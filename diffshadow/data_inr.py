@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import hashlib
 import json
+import math
 import time
 from dataclasses import asdict, dataclass, replace
 from pathlib import Path
@@ -15,7 +16,7 @@ import numpy as np
 import torch
 
 from diffshadow.capacity import Rung, climb, ladder
-from diffshadow.config import section
+from diffshadow.config import ConfigError, section
 from diffshadow.grid import cell_ranges, lookup_grids, voxel_points
 from diffshadow.io import atomic_torch_save, resume
 from diffshadow.metrics import psnr
@@ -38,6 +39,13 @@ class DataInrConfig:
     seed: int
     target_psnr: float = 0.0  # voxel PSNR to reach by growing steps, then width (capacity.ladder); 0: fixed size
     max_width: int = 256
+    error_fraction: float = 0.0  # share of points near the voxels the INR gets most wrong (ErrorSampler)
+    error_every: int = 300  # steps between scorings of the voxels
+
+    def __post_init__(self):
+        if self.visible_fraction + self.error_fraction > 1:
+            raise ConfigError(f"data_inr: visible_fraction ({self.visible_fraction}) + error_fraction "
+                              f"({self.error_fraction}) must be at most 1 (the rest are uniform box points)")
 
     @classmethod
     def from_config(cls, d: dict | None = None) -> DataInrConfig:
@@ -76,6 +84,59 @@ def voxel_errors(model: Siren, volume: Volume, *, chunk: int = 1 << 16,
     return float(psnr(pred, truth)), float((pred - truth).abs().max())
 
 
+# voxels scored per refresh at most; larger volumes are scored every 2nd (3rd, ...) voxel along each axis, which
+# kept the gain on tooth and hydrogen_atom at a fraction of a full scoring's time
+ERROR_VOXELS = 1 << 18
+
+
+class ErrorSampler:
+    """Points where the INR errs most. Every `every` steps the INR is scored at the voxels of a lattice (every
+    voxel, or every `stride`-th along each axis on volumes larger than ERROR_VOXELS), and until the next
+    scoring points are drawn around lattice voxels in proportion to their squared error plus a tenth of its
+    mean (no region starves), uniformly over the voxel block each stands for.
+
+    Voxel PSNR is set by the few voxels at sharp features (neghip jumps from 0 to 1 between neighbours), which
+    uniform and visible-voxel points rarely visit: on neghip this sampling is worth four times the steps
+    (docs/tuning.md). Drawn on the CPU like PointSampler; the scoring runs on the model's device."""
+
+    def __init__(self, volume: Volume, every: int):
+        dims = volume.data.shape  # (Z, Y, X)
+        self.stride = 1
+        while math.prod(math.ceil(n / self.stride) for n in dims) > ERROR_VOXELS:
+            self.stride += 1
+        z, y, x = torch.meshgrid(*(torch.arange(0, n, self.stride) for n in dims), indexing="ij")
+        self.voxel = torch.as_tensor(volume.voxel_size, dtype=torch.float32)
+        self.extent = torch.as_tensor(volume.extent, dtype=torch.float32)
+        self.lattice = torch.stack([x, y, z], dim=-1).reshape(-1, 3).float() * self.voxel  # box coordinates
+        self.truth = torch.as_tensor(volume.data)[z, y, x].reshape(-1).float()
+        self.every = int(every)
+        self.weights: torch.Tensor | None = None  # (lattice,) squared error plus floor, from the last scoring
+        self._cdf: torch.Tensor | None = None
+
+    def due(self, step: int) -> bool:
+        return step % self.every == 0 or self.weights is None
+
+    def score(self, model: Siren, device: torch.device, chunk: int = 1 << 16) -> None:
+        pts = self.lattice.to(device)
+        extent = self.extent.to(device)
+        with torch.no_grad():
+            pred = torch.cat([model(box_to_siren(pts[i:i + chunk], extent)) for i in range(0, len(pts), chunk)])
+        e2 = (pred.float().cpu() - self.truth) ** 2
+        self.set_weights(e2 + 0.1 * e2.mean())
+
+    def set_weights(self, weights: torch.Tensor) -> None:
+        self.weights = weights
+        cdf = torch.cumsum(weights.double(), 0)
+        self._cdf = cdf / cdf[-1]
+
+    def sample(self, n: int, generator: torch.Generator) -> torch.Tensor:
+        """(n, 3) box points."""
+        u = torch.rand(n, generator=generator, dtype=torch.float64)
+        idx = torch.searchsorted(self._cdf, u).clamp(max=len(self.lattice) - 1)
+        jitter = (torch.rand(n, 3, generator=generator) * self.stride - 0.5) * self.voxel
+        return torch.minimum(torch.clamp(self.lattice[idx] + jitter, min=0), self.extent)
+
+
 def fit_data_inr(volume: Volume, tf: TransferFunction, cfg: DataInrConfig, *, checkpoint: Path | None = None,
                  device: torch.device | str = "cpu", log=print) -> DataInr:
     """The data INR of the configured size, grown (steps, then width) until its voxel PSNR reaches
@@ -104,19 +165,33 @@ def fit_data_inr_once(volume: Volume, tf: TransferFunction, cfg: DataInrConfig, 
     opt = torch.optim.Adam(model.parameters(), lr=cfg.lr)
     grid = torch.as_tensor(volume.data, device=device)[None]
     extent = torch.as_tensor(volume.extent, dtype=torch.float32, device=device)
-    sampler = PointSampler(volume, tf, cfg.visible_fraction)
+    n_error = int(round(cfg.points * cfg.error_fraction))
+    # the visible share is of all points; PointSampler draws the points left after the error-driven ones
+    share = cfg.visible_fraction
+    if n_error:
+        share = min(1.0, cfg.visible_fraction * cfg.points / max(1, cfg.points - n_error))
+    sampler = PointSampler(volume, tf, share)
+    hard = ErrorSampler(volume, cfg.error_every) if n_error else None
     fingerprint = _fingerprint(volume, cfg)
     start = 0
     if state := resume(checkpoint, fingerprint, log=log, map_location=device, weights_only=True):
         model.load_state_dict(state["model"])
         opt.load_state_dict(state["optimizer"])
         start = int(state["step"])
+        if hard is not None:
+            hard.set_weights(state["error_weights"])
         log(f"resuming from {checkpoint} at step {start}/{cfg.steps}")
     t0 = time.perf_counter()
     for step in range(start, cfg.steps):
         for group in opt.param_groups:
             group["lr"] = cosine_lr(step, cfg, cfg.width)  # same fields as FitConfig
-        pts = sampler.sample(1, cfg.points, seeded(cfg.seed, 8, step)).to(device)
+        gen = seeded(cfg.seed, 8, step)
+        pts = sampler.sample(1, cfg.points - n_error, gen)
+        if hard is not None:
+            if hard.due(step):
+                hard.score(model, device)
+            pts = torch.cat([pts, hard.sample(n_error, gen)[None]], dim=1)
+        pts = pts.to(device)
         with torch.no_grad():
             target = lookup_grids(grid, pts, extent)[0]
         loss = ((model(box_to_siren(pts[0], extent)) - target) ** 2).mean()
@@ -130,6 +205,8 @@ def fit_data_inr_once(volume: Volume, tf: TransferFunction, cfg: DataInrConfig, 
         if checkpoint is not None and done % cfg.checkpoint_every == 0 and done < cfg.steps:
             state = {"fingerprint": fingerprint, "step": done, "model": model.state_dict(),
                      "optimizer": opt.state_dict()}
+            if hard is not None:
+                state["error_weights"] = hard.weights
             atomic_torch_save(checkpoint, state)
         if done % max(1, cfg.steps // 10) == 0 or done == cfg.steps:
             rate = (done - start) * cfg.points / (time.perf_counter() - t0)

@@ -6,7 +6,8 @@ import torch
 
 from diffshadow.analytic import gaussian_blob
 from diffshadow.artifacts import load_data_inr, save_data_inr
-from diffshadow.data_inr import DataInrConfig, fit_data_inr, inr_cell_ranges
+from diffshadow.config import ConfigError
+from diffshadow.data_inr import ERROR_VOXELS, DataInrConfig, ErrorSampler, fit_data_inr, inr_cell_ranges
 from diffshadow.transfer import TransferFunction
 from diffshadow.volume import Volume
 
@@ -42,7 +43,9 @@ def test_file_round_trip(fitted, tmp_path, blob):
 
 def test_resume_gives_the_same_bytes(blob, tmp_path):
     ckpt = tmp_path / "inr.ckpt"
-    short = DataInrConfig(**{**CFG.__dict__, "steps": 60, "checkpoint_every": 20})
+    # a scoring of the voxels (every 30 steps) between the checkpoint resumed from and the stop: the
+    # error-driven points after it must come from the checkpoint's scores
+    short = DataInrConfig(**{**CFG.__dict__, "steps": 60, "checkpoint_every": 20, "error_every": 30})
     whole = fit_data_inr(blob, TF, short, log=lambda m: None)
 
     class Stop(Exception):
@@ -78,3 +81,50 @@ def test_bad_file_is_named(tmp_path):
         load_data_inr(bad)
     with pytest.raises(ValueError, match="no such data INR"):
         load_data_inr(tmp_path / "missing.pt")
+
+
+def test_error_sampler_lattice_stays_within_its_budget():
+    small = ErrorSampler(Volume(data=np.zeros((64, 64, 64), np.float32), extent=np.ones(3), name="s"), every=10)
+    assert small.stride == 1 and len(small.lattice) == 64 ** 3 == ERROR_VOXELS
+    big = ErrorSampler(Volume(data=np.zeros((103, 94, 161), np.float32), extent=np.ones(3), name="b"), every=10)
+    assert big.stride == 2 and len(big.lattice) == 52 * 47 * 81 <= ERROR_VOXELS
+
+
+def test_error_sampler_draws_where_the_inr_is_wrong():
+    """One voxel wrong by 1, every other exact: that voxel's block gets (1 + f)/(1 + N f) ≈ 1/1.1 of the
+    points, f = 0.1/N being the floor each voxel gets."""
+    data = np.zeros((9, 9, 9), np.float32)
+    data[4, 2, 6] = 1.0  # (z, y, x)
+    vol = Volume(data=data, extent=np.full(3, 8.0), name="spike")
+    sampler = ErrorSampler(vol, every=10)
+
+    class Zero(torch.nn.Module):
+        def forward(self, x):
+            return torch.zeros(len(x))
+
+    sampler.score(Zero(), torch.device("cpu"))
+    pts = sampler.sample(20000, torch.Generator().manual_seed(0))
+    near = (pts - torch.tensor([6.0, 2.0, 4.0])).abs().max(dim=1).values <= 0.5
+    n = data.size
+    expected = (1 + 0.1 / n) / 1.1
+    assert abs(float(near.float().mean()) - expected) < 0.01
+    assert float(pts.min()) >= 0 and float(pts.max()) <= 8.0
+
+
+def test_error_points_fit_a_sharp_edge_better():
+    """A cube with a hard edge (0 to 1 between neighbouring voxels), the same steps: points drawn where the INR
+    errs raise the voxel PSNR."""
+    data = np.zeros((17, 17, 17), np.float32)
+    data[5:12, 5:12, 5:12] = 1.0
+    cube = Volume(data=data, extent=np.ones(3), name="cube")
+    plain = DataInrConfig(**{**CFG.__dict__, "steps": 300, "points": 512, "visible_fraction": 0.5,
+                             "error_fraction": 0.0})
+    hard = DataInrConfig(**{**plain.__dict__, "visible_fraction": 0.25, "error_fraction": 0.5, "error_every": 50})
+    a = fit_data_inr(cube, TF, plain, log=lambda m: None)
+    b = fit_data_inr(cube, TF, hard, log=lambda m: None)
+    assert b.psnr > a.psnr + 1.0, (a.psnr, b.psnr)
+
+
+def test_visible_and_error_shares_over_one_is_one_line():
+    with pytest.raises(ConfigError, match=r"visible_fraction \(0.6\) \+ error_fraction \(0.5\) must be at most 1"):
+        DataInrConfig.from_config({"visible_fraction": 0.6, "error_fraction": 0.5})
