@@ -179,7 +179,7 @@ def fit_data_inr_once(volume: Volume, tf: TransferFunction, cfg: DataInrConfig, 
         opt.load_state_dict(state["optimizer"])
         start = int(state["step"])
         if hard is not None:
-            hard.set_weights(state["error_weights"])
+            hard.set_weights(state["error_weights"].cpu())  # loaded onto `device`; points are drawn on the CPU
         log(f"resuming from {checkpoint} at step {start}/{cfg.steps}")
     t0 = time.perf_counter()
     for step in range(start, cfg.steps):

@@ -18,6 +18,7 @@ import torch
 import torch.multiprocessing as mp
 
 from diffshadow.analytic import gaussian_blob
+from diffshadow.data_inr import DataInrConfig, fit_data_inr
 from diffshadow.diffusion.sample import generate, load_sampler
 from diffshadow.diffusion.train import DiffusionConfig, TrainingData, train_diffusion
 from diffshadow.fit import FitConfig, fit_sirens
@@ -55,6 +56,27 @@ def test_fit_agrees_with_cpu(volume):
     pts = torch.rand(len(LIGHTS), 1000, 3, generator=torch.Generator().manual_seed(1)) * 2 - 1
     a, b = BatchedSiren(cpu, LAYOUT, SIREN.blocks)(pts), BatchedSiren(gpu, LAYOUT, SIREN.blocks)(pts)
     assert float((a - b).abs().max()) <= 1e-3
+
+
+def test_data_inr_with_error_points_resumes_on_cuda(volume, tmp_path):
+    """The error-driven points' scores ride in the checkpoint, which loads onto the GPU; the points are drawn on
+    the CPU, so a resumed run must bring the scores back there."""
+    cfg = DataInrConfig.from_config(dict(width=16, blocks=1, steps=60, points=512, checkpoint_every=20,
+                                         error_every=30, target_psnr=0))
+
+    class Stop(Exception):
+        pass
+
+    def stop_at_42(msg):
+        if msg.startswith("step 42/"):
+            raise Stop
+
+    with pytest.raises(Stop):
+        fit_data_inr(volume, TF, cfg, checkpoint=tmp_path / "inr.ckpt", device=CUDA, log=stop_at_42)
+    messages = []
+    inr = fit_data_inr(volume, TF, cfg, checkpoint=tmp_path / "inr.ckpt", device=CUDA, log=messages.append)
+    assert any("resuming" in m for m in messages)
+    assert np.isfinite(inr.psnr) and inr.psnr > 15
 
 
 def _training_data():
