@@ -127,6 +127,8 @@ class ErrorSampler:
     def set_weights(self, weights: torch.Tensor) -> None:
         self.weights = weights
         cdf = torch.cumsum(weights.double(), 0)
+        if not cdf[-1] > 0:  # an INR exact at every scored voxel (a constant volume): draw uniformly
+            cdf = torch.arange(1, len(cdf) + 1, dtype=torch.float64)
         self._cdf = cdf / cdf[-1]
 
     def sample(self, n: int, generator: torch.Generator) -> torch.Tensor:

@@ -111,6 +111,20 @@ def test_error_sampler_draws_where_the_inr_is_wrong():
     assert float(pts.min()) >= 0 and float(pts.max()) <= 8.0
 
 
+def test_an_inr_exact_everywhere_still_gets_points_over_the_whole_box():
+    vol = Volume(data=np.zeros((5, 6, 7), np.float32), extent=np.array([1.0, 0.8, 0.6]), name="empty")
+    sampler = ErrorSampler(vol, every=10)
+
+    class Zero(torch.nn.Module):
+        def forward(self, x):
+            return torch.zeros(len(x))
+
+    sampler.score(Zero(), torch.device("cpu"))
+    pts = sampler.sample(5000, torch.Generator().manual_seed(0))
+    assert torch.isfinite(pts).all()
+    assert (pts.min(dim=0).values < 0.05).all() and (pts.max(dim=0).values > torch.tensor([0.95, 0.75, 0.55])).all()
+
+
 def test_error_points_fit_a_sharp_edge_better():
     """A cube with a hard edge (0 to 1 between neighbouring voxels), the same steps: points drawn where the INR
     errs raise the voxel PSNR."""
