@@ -79,9 +79,14 @@ def voxel_errors(model: Siren, volume: Volume, *, chunk: int = 1 << 16,
     pts = voxel_points(volume, device)
     extent = torch.as_tensor(volume.extent, dtype=torch.float32, device=device)
     truth = torch.as_tensor(volume.data, device=device).reshape(-1)
-    with torch.no_grad():
-        pred = torch.cat([model(box_to_siren(pts[i:i + chunk], extent)) for i in range(0, len(pts), chunk)])
+    pred = values_at(model, pts, extent, chunk)
     return float(psnr(pred, truth)), float((pred - truth).abs().max())
+
+
+def values_at(model: Siren, pts: torch.Tensor, extent: torch.Tensor, chunk: int = 1 << 16) -> torch.Tensor:
+    """The INR at (N, 3) box points, `chunk` points at a time, without a graph → (N,)."""
+    with torch.no_grad():
+        return torch.cat([model(box_to_siren(pts[i:i + chunk], extent)) for i in range(0, len(pts), chunk)])
 
 
 # voxels scored per refresh at most; larger volumes are scored every 2nd (3rd, ...) voxel along each axis, which
@@ -113,14 +118,8 @@ class ErrorSampler:
         self.weights: torch.Tensor | None = None  # (lattice,) squared error plus floor, from the last scoring
         self._cdf: torch.Tensor | None = None
 
-    def due(self, step: int) -> bool:
-        return step % self.every == 0 or self.weights is None
-
-    def score(self, model: Siren, device: torch.device, chunk: int = 1 << 16) -> None:
-        pts = self.lattice.to(device)
-        extent = self.extent.to(device)
-        with torch.no_grad():
-            pred = torch.cat([model(box_to_siren(pts[i:i + chunk], extent)) for i in range(0, len(pts), chunk)])
+    def score(self, model: Siren, device: torch.device) -> None:
+        pred = values_at(model, self.lattice.to(device), self.extent.to(device))
         e2 = (pred.float().cpu() - self.truth) ** 2
         self.set_weights(e2 + 0.1 * e2.mean())
 
@@ -190,7 +189,7 @@ def fit_data_inr_once(volume: Volume, tf: TransferFunction, cfg: DataInrConfig, 
         gen = seeded(cfg.seed, 8, step)
         pts = sampler.sample(1, cfg.points - n_error, gen)
         if hard is not None:
-            if hard.due(step):
+            if step % hard.every == 0:  # a resumed run starts with the scores its checkpoint kept
                 hard.score(model, device)
             pts = torch.cat([pts, hard.sample(n_error, gen)[None]], dim=1)
         pts = pts.to(device)
@@ -237,8 +236,7 @@ def inr_cell_ranges(model: Siren, volume: Volume, *, cell: int = 16, refine: int
     zz, yy, xx = torch.meshgrid(*axes, indexing="ij")
     pts = torch.stack([xx, yy, zz], -1).reshape(-1, 3)
     extent = torch.as_tensor(volume.extent, dtype=torch.float32, device=device)
-    with torch.no_grad():
-        values = torch.cat([model(box_to_siren(pts[i:i + chunk], extent)) for i in range(0, len(pts), chunk)])
+    values = values_at(model, pts, extent, chunk)
     lo, hi = cell_ranges(values.view(*zz.shape).cpu(), cell * refine)
     return (lo - margin).numpy(), (hi + margin).numpy()
 

@@ -83,6 +83,13 @@ def test_bad_file_is_named(tmp_path):
         load_data_inr(tmp_path / "missing.pt")
 
 
+class ZeroInr(torch.nn.Module):
+    """An INR that answers 0 everywhere: its error at each voxel is the voxel's value."""
+
+    def forward(self, x):
+        return torch.zeros(len(x))
+
+
 def test_error_sampler_lattice_stays_within_its_budget():
     small = ErrorSampler(Volume(data=np.zeros((64, 64, 64), np.float32), extent=np.ones(3), name="s"), every=10)
     assert small.stride == 1 and len(small.lattice) == 64 ** 3 == ERROR_VOXELS
@@ -98,11 +105,7 @@ def test_error_sampler_draws_where_the_inr_is_wrong():
     vol = Volume(data=data, extent=np.full(3, 8.0), name="spike")
     sampler = ErrorSampler(vol, every=10)
 
-    class Zero(torch.nn.Module):
-        def forward(self, x):
-            return torch.zeros(len(x))
-
-    sampler.score(Zero(), torch.device("cpu"))
+    sampler.score(ZeroInr(), torch.device("cpu"))
     pts = sampler.sample(20000, torch.Generator().manual_seed(0))
     near = (pts - torch.tensor([6.0, 2.0, 4.0])).abs().max(dim=1).values <= 0.5
     n = data.size
@@ -115,11 +118,7 @@ def test_an_inr_exact_everywhere_still_gets_points_over_the_whole_box():
     vol = Volume(data=np.zeros((5, 6, 7), np.float32), extent=np.array([1.0, 0.8, 0.6]), name="empty")
     sampler = ErrorSampler(vol, every=10)
 
-    class Zero(torch.nn.Module):
-        def forward(self, x):
-            return torch.zeros(len(x))
-
-    sampler.score(Zero(), torch.device("cpu"))
+    sampler.score(ZeroInr(), torch.device("cpu"))
     pts = sampler.sample(5000, torch.Generator().manual_seed(0))
     assert torch.isfinite(pts).all()
     assert (pts.min(dim=0).values < 0.05).all() and (pts.max(dim=0).values > torch.tensor([0.95, 0.75, 0.55])).all()
