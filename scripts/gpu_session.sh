@@ -1,0 +1,73 @@
+#!/usr/bin/env bash
+# The GPU figures that issues 15, 16 and 19 ask for, in four `device` calls of under 10 minutes each:
+#
+#   bash ../shared/gpu/prepare.sh                                   # here, once per session
+#   device run, carry [".devwheels"]:  bash .devwheels/on-device.sh bash scripts/gpu_session.sh checks
+#   ... then `render`, `workflow`, `tests`; each writes its figures and logs under $OUT/<part>/.
+#
+# checks:   pytest -m gpu; bench siren (K=16 and K=50 jointly vs one by one, default chunking); the cost of
+#           DIFFSHADOW_DETERMINISTIC=1 on the same K=16 run.
+# render:   bench render on hydrogen_atom at 128², 512², 1024² (fps, ops and host syncs per frame, skipping,
+#           peak memory up to 2048²).
+# workflow: the README's run (`snakemake --profile local -j2`, the profile from profiles/) on an empty
+#           results/, its wall time and Snakemake's per-rule benchmark table, and the run's metrics.
+# tests:    the whole suite, with its slowest tests.
+#
+# On a CPU it runs too (DIFFSHADOW_DEVICE=cpu, QUICK=1 for small sizes): that is how the script is tested.
+set -uo pipefail
+part=${1:?usage: scripts/gpu_session.sh checks|render|workflow|tests}
+out=${OUT:-gpu_session}/$part
+mkdir -p "$out"
+device=${DIFFSHADOW_DEVICE:-cuda}
+quick=${QUICK:-0}
+failed=0
+
+step() {  # step NAME CMD...: run, log to $out/NAME.log, time it, go on past a failure
+    local name=$1; shift
+    local t0=$SECONDS
+    echo "== $name: $*"
+    "$@" >"$out/$name.log" 2>&1
+    local rc=$?
+    echo "== $name: exit $rc, $((SECONDS - t0)) s" | tee -a "$out/times.txt"
+    tail -n 15 "$out/$name.log"
+    [ "$rc" -eq 0 ] || failed=1
+}
+
+{ python -c "import torch; print('torch', torch.__version__, 'cuda', torch.version.cuda, 'available', torch.cuda.is_available())"
+  nvidia-smi -L 2>/dev/null; nproc; git rev-parse HEAD 2>/dev/null; } >"$out/machine.txt" 2>&1
+cat "$out/machine.txt"
+
+case $part in
+checks)
+    if [ "$quick" = 1 ]; then points=(--points 512 --widths 32); k50=(--k 4); else points=(); k50=(--k 50); fi
+    w64=(--widths 64); [ "$quick" = 1 ] && w64=()
+    [ "$quick" = 1 ] || step pytest_gpu pytest -q -m gpu -rs --durations=10
+    step bench_siren_k16 diffshadow bench siren --device "$device" --k 16 "${points[@]}" --out "$out/siren_k16"
+    step bench_siren_k50 diffshadow bench siren --device "$device" "${k50[@]}" "${points[@]}" "${w64[@]}" \
+        --out "$out/siren_k50"
+    step bench_siren_k16_deterministic env DIFFSHADOW_DETERMINISTIC=1 diffshadow bench siren --device "$device" \
+        --k 16 "${points[@]}" --out "$out/siren_k16_deterministic"
+    ;;
+render)
+    sizes=(--sizes 128 512 1024 --memory-sizes 2048); [ "$quick" = 1 ] && sizes=(--sizes 32 64 --memory-sizes 96)
+    step bench_render diffshadow bench render --device "$device" --scene-config config/scenes/hydrogen_atom.yaml \
+        "${sizes[@]}" --out "$out/render"
+    ;;
+workflow)
+    rm -rf results/nucleon
+    t0=$SECONDS
+    step snakemake snakemake --profile profiles/local -j2
+    echo "README run: $((SECONDS - t0)) s wall" | tee "$out/wall.txt"
+    cp results/nucleon/*.json "$out/" 2>/dev/null
+    cp -r results/nucleon/benchmarks results/nucleon/logs "$out/" 2>/dev/null
+    step stage_costs diffshadow stage-costs --out "$out/stage_costs.tsv" --benchmarks results/nucleon/benchmarks/*.tsv
+    cat "$out/stage_costs.tsv" 2>/dev/null
+    ;;
+tests)
+    step pytest pytest -q -rs --durations=25
+    ;;
+*)
+    echo "unknown part $part (checks, render, workflow or tests)" >&2; exit 2
+    ;;
+esac
+exit $failed
