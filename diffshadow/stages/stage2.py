@@ -195,7 +195,7 @@ def quality_warnings(result: dict, *, max_gap_db: float = 1.5) -> list[str]:
         out.append(f"WARNING: generated SIRENs on unseen lights ({unseen['generated_psnr_median']:.2f} dB) are under "
                    f"the blend of the {unseen['blend_k']} nearest true shadows ({unseen['blend_psnr_median']:.2f} dB); "
                    f"the training lights are too sparse for this scene: raise lights.sphere (spacing ~200/sqrt(sphere) "
-                   f"degrees; raise lights.count in proportion to keep the region; tooth: 400 -> 1600 gave +3.1 dB)")
+                   f"degrees; raise lights.count in proportion to keep the region; docs/tuning.md)")
     if unseen and unseen.get("finetune_change_median_db", 0.0) < -0.1:
         out.append(f"WARNING: rendering-loss fine-tuning lowered unseen lights by "
                    f"{-unseen['finetune_change_median_db']:.2f} dB; lower finetune.lr or finetune.epochs")
