@@ -91,10 +91,11 @@ def psnr_per_light(pred: dict, truth: dict) -> dict[str, np.ndarray]:
     return {k: psnr(pred[k], truth[k], dim=1).numpy() for k in truth}
 
 
-def blend_baseline(truth_train: dict, idx: np.ndarray, weights: np.ndarray) -> dict[str, torch.Tensor]:
-    """The k nearest training lights' true shadows blended with `lights.inverse_angle_weights` (Q, k)."""
+def blend_baseline(train_values: dict, idx: np.ndarray, weights: np.ndarray) -> dict[str, torch.Tensor]:
+    """Per set, the rows (L, P) of the k nearest training lights `idx` (Q, k) blended with
+    `lights.inverse_angle_weights` (Q, k): their true shadows, or their stage-1 SIRENs' values."""
     w = torch.as_tensor(weights, dtype=torch.float32)
-    return {key: (vals[torch.as_tensor(idx)] * w[..., None]).sum(dim=1) for key, vals in truth_train.items()}
+    return {key: (vals[torch.as_tensor(idx)] * w[..., None]).sum(dim=1) for key, vals in train_values.items()}
 
 
 def seconds_per_inr(model, std, light, *, method: str, steps: int, repeats: int = 3,
@@ -129,7 +130,8 @@ def voxel_metrics(state: dict, stage1, generated, truth: EvalTruth, light_sets: 
     truth_train = truth.of(train)
     truth_unseen = truth.of(unseen) if len(unseen) else {}
     gen_seen = psnr_per_light(truth.sirens(generated.weights[seen], layout, siren), truth_train)
-    stage1_seen = psnr_per_light(truth.sirens(stage1.weights, layout, siren), truth_train)
+    stage1_values = truth.sirens(stage1.weights, layout, siren)
+    stage1_seen = psnr_per_light(stage1_values, truth_train)
     result = {"seen": {"count": int(seen.sum()),
                        "generated_psnr_median": _median(gen_seen["box"]),
                        "generated_psnr_min": float(gen_seen["box"].min()),
@@ -148,11 +150,15 @@ def voxel_metrics(state: dict, stage1, generated, truth: EvalTruth, light_sets: 
         # the same blend of the stage-1 SIRENs' weights: one SIREN per unseen light, as the model gives
         weight_blend = (np.asarray(stage1.weights, dtype=np.float64)[idx] * mix[..., None]).sum(1)
         wblend = psnr_per_light(truth.sirens(weight_blend, layout, siren), truth_unseen)
+        # the blend of their values: a cache of the fitted SIRENs read k times per sample. Unlike the true
+        # shadows' blend it carries stage 1's fit error, which caps what any generated SIREN can reach.
+        sblend = psnr_per_light(blend_baseline(stage1_values, idx, mix), truth_unseen)
         result["unseen"] = {"count": len(unseen),
                             "generated_psnr_median": _median(gen_unseen["box"]),
                             "nearest_psnr_median": _median(near["box"]),
                             "blend_psnr_median": _median(blend["box"]),
                             "weight_blend_psnr_median": _median(wblend["box"]),
+                            "siren_blend_psnr_median": _median(sblend["box"]),
                             "blend_k": blend_k,
                             "nearest_angle_median_deg": float(np.degrees(np.median(angles[:, 0])))}
         pool = np.asarray(state.get("pool_lights") or np.zeros((0, 3)), dtype=np.float64).reshape(-1, 3)

@@ -150,6 +150,10 @@ class RunResults:
             if "weight_blend_psnr_median" in unseen:
                 rows.append(["unseen", f"blend of {unseen['blend_k']} nearest training SIRENs' weights",
                              _num(unseen["weight_blend_psnr_median"]), "", "baseline (one SIREN per light)"])
+            if "siren_blend_psnr_median" in unseen:
+                rows.append(["unseen", f"blend of {unseen['blend_k']} nearest training SIRENs' values",
+                             _num(unseen["siren_blend_psnr_median"]), "",
+                             f"baseline ({unseen['blend_k']} SIRENs per sample; stage 1's fit error included)"])
             if unseen.get("pool_lights"):
                 rows.append(["unseen", "pool lights (exact shadows, no fitted SIREN) in training",
                              str(unseen["pool_lights"]), "",

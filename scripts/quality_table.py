@@ -63,6 +63,7 @@ def row(scene: str, wall: float | None) -> dict:
             "before FT": unseen.get("geometry_only_psnr_median"),
             "blend dB": unseen.get("blend_psnr_median"),
             "weight blend dB": unseen.get("weight_blend_psnr_median"),
+            "SIREN blend dB": unseen.get("siren_blend_psnr_median"),
             "image dB": deployed.get("psnr"),
             "wall min": None if wall is None else wall / 60,
             "stage s": ", ".join(f"{k} {v:.0f}" for k, v in sorted(costs.items(), key=lambda kv: -kv[1])[:6])}

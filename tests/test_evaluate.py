@@ -4,7 +4,7 @@ import torch
 from conftest import identity_tf
 
 from diffshadow.artifacts import read_eval_truth, write_eval_truth
-from diffshadow.evaluate import EvalTruth, TruthPoints, pick
+from diffshadow.evaluate import EvalTruth, TruthPoints, blend_baseline, pick
 from diffshadow.lights import fibonacci_sphere
 from diffshadow.shadow import transmittance
 from diffshadow.volume import Volume
@@ -45,6 +45,14 @@ def test_eval_truth_rows_follow_the_lights_asked_for_and_a_missing_light_is_name
         truth.of(np.array([[0.0, 0.0, 1.0]]), "t.zarr")
 
 
+def test_blend_baseline_is_the_convex_blend_of_the_chosen_rows():
+    rows = {"box": torch.arange(12.0).reshape(3, 4)}  # 3 training lights, 4 points
+    idx = np.array([[2, 0], [1, 1]])
+    out = blend_baseline(rows, idx, np.array([[0.25, 0.75], [0.4, 0.6]]))["box"]
+    assert torch.allclose(out[0], 0.25 * rows["box"][2] + 0.75 * rows["box"][0])
+    assert torch.allclose(out[1], rows["box"][1])  # one light twice: its own row
+
+
 def test_pick_spreads_evenly_and_keeps_both_ends():
     assert pick(64, 8) == [0, 9, 18, 27, 36, 45, 54, 63]
     assert pick(3, 8) == [0, 1, 2] and pick(5, 0) == []
@@ -61,8 +69,19 @@ def test_quality_warnings_name_the_goal_missed_and_what_to_change():
     assert seen.startswith("WARNING: generated SIRENs on seen lights are 3.70 dB under stage 1 (goal: within 1.5 dB)")
     assert seen.endswith("set a wider diffusion.preset (medium, paper) than this run's small")
     assert "(32.28 dB) are under the blend of the 4 nearest true shadows (32.74 dB)" in unseen
+    assert "raise lights.sphere" in unseen  # no angle recorded: both pieces of advice
+    assert unseen.endswith("set a wider diffusion.preset (medium, paper) (docs/tuning.md)")
+    # test lights already close to training lights: a denser sphere is not the advice (tooth, docs/tuning.md)
+    result["unseen"]["nearest_angle_median_deg"] = 0.94
+    unseen = quality_warnings(result)[1]
+    assert "lie a median 0.9 deg from the nearest training light: set a wider diffusion.preset" in unseen
+    assert "lights.sphere" not in unseen
     result["diffusion_model"]["stopped"] = "reached diffusion.max_epochs 1800 with ..."
     assert "1.5 dB); raise diffusion.max_epochs (this run stopped at it) or set a wider" in quality_warnings(result)[0]
+    result["diffusion_model"] = {"preset": "paper", "stopped": "the gap stopped closing"}
+    seen, unseen = quality_warnings(result)
+    assert seen.endswith("this run's paper is the widest preset, and the gap stopped closing") and "()" not in seen
+    assert unseen.endswith(": raise diffusion.max_epochs (docs/tuning.md)")
     result["seen"]["generated_minus_stage1_median_db"] = -1.0
     result["unseen"]["generated_psnr_median"] = 34.0
     assert quality_warnings(result) == []

@@ -74,7 +74,7 @@ def test_stage2_outputs(finished):
     metrics = json.loads((finished / "results/nucleon/voxel_metrics.json").read_text())
     for key in ("generated_psnr_median", "stage1_psnr_median"):
         assert np.isfinite(metrics["seen"][key])
-    for key in ("generated_psnr_median", "nearest_psnr_median", "blend_psnr_median"):
+    for key in ("generated_psnr_median", "nearest_psnr_median", "blend_psnr_median", "siren_blend_psnr_median"):
         assert np.isfinite(metrics["unseen"][key])
     assert set(metrics["storage_bytes"]) == {"model", "sirens", "grids"}
     assert set(metrics["seconds_per_inr"]) == {"ddim", "ddpm"}

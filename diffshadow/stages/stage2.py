@@ -31,6 +31,9 @@ from diffshadow.lights import read_lights, training_pool, validation_lights
 from diffshadow.runtime import distributed, set_threads
 from diffshadow.store import WeightStore, open_store, write_store
 
+# test lights further than this from a training light are helped by a denser sphere (tooth, docs/tuning.md)
+SPARSE_LIGHTS_DEG = 2.0
+
 
 def presample(volume_path: Path, lights_path: Path, out: Path, *, cfg: DiffusionConfig,
               device: torch.device) -> None:
@@ -175,27 +178,39 @@ def evaluate_voxels(checkpoint: Path, weights_path: Path, generated_path: Path, 
         print(line)
 
 
+def _wider_presets(model: dict) -> list[str]:
+    width = PRESETS.get(model.get("preset"), PRESETS["small"]).n_embd  # metrics written before the key: the default
+    return [name for name, c in sorted(PRESETS.items(), key=lambda kv: kv[1].n_embd) if c.n_embd > width]
+
+
 def quality_warnings(result: dict, *, max_gap_db: float = 1.5) -> list[str]:
     """One line per quality goal that `voxel_metrics.json` shows missed: generated seen lights more than
     `max_gap_db` under stage 1, unseen lights under the blend baseline, fine-tuning that lowered unseen lights."""
     out = []
+    model = result.get("diffusion_model") or {}
+    ran, wider = model.get("preset"), _wider_presets(model)
     gap = result["seen"]["generated_minus_stage1_median_db"]
     if gap < -max_gap_db:
-        model = result.get("diffusion_model") or {}
-        ran = model.get("preset")
-        width = PRESETS.get(ran, PRESETS["small"]).n_embd  # metrics written before the key: the default then
-        wider = sorted((c.n_embd, name) for name, c in PRESETS.items() if c.n_embd > width)
-        longer = ("raise diffusion.max_epochs (this run stopped at it) or "
-                  if (model.get("stopped") or "").startswith("reached") else "")
+        options = []
+        if (model.get("stopped") or "").startswith("reached"):
+            options.append("raise diffusion.max_epochs (this run stopped at it)")
+        if wider:
+            than = f" than this run's {ran}" if ran else ""
+            options.append(f"set a wider diffusion.preset ({', '.join(wider)}){than}")
+        advice = " or ".join(options) or f"this run's {ran} is the widest preset, and the gap stopped closing"
         out.append(f"WARNING: generated SIRENs on seen lights are {-gap:.2f} dB under stage 1 (goal: within "
-                   f"{max_gap_db:g} dB); {longer}set a wider diffusion.preset "
-                   f"({', '.join(name for _, name in wider)})" + (f" than this run's {ran}" if ran else ""))
+                   f"{max_gap_db:g} dB); {advice}")
     unseen = result.get("unseen")
     if unseen and unseen["generated_psnr_median"] < unseen["blend_psnr_median"]:
+        angle = unseen.get("nearest_angle_median_deg")
+        where = f"; the test lights lie a median {angle:.1f} deg from the nearest training light" if angle else ""
+        # tooth: 4.2 -> 2.1 deg raised unseen lights 3 dB, 2.1 -> 0.9 deg did not (docs/tuning.md)
+        closer = ("raise lights.sphere (spacing ~200/sqrt(sphere) deg; lights.count in proportion keeps the "
+                  "region) or " if angle is None or angle > SPARSE_LIGHTS_DEG else "")
+        bigger = f"set a wider diffusion.preset ({', '.join(wider)})" if wider else "raise diffusion.max_epochs"
         out.append(f"WARNING: generated SIRENs on unseen lights ({unseen['generated_psnr_median']:.2f} dB) are under "
-                   f"the blend of the {unseen['blend_k']} nearest true shadows ({unseen['blend_psnr_median']:.2f} dB); "
-                   f"the training lights are too sparse for this scene: raise lights.sphere (spacing ~200/sqrt(sphere) "
-                   f"degrees; raise lights.count in proportion to keep the region; docs/tuning.md)")
+                   f"the blend of the {unseen['blend_k']} nearest true shadows ({unseen['blend_psnr_median']:.2f} dB)"
+                   f"{where}: {closer}{bigger} (docs/tuning.md)")
     if unseen and unseen.get("finetune_change_median_db", 0.0) < -0.1:
         out.append(f"WARNING: rendering-loss fine-tuning lowered unseen lights by "
                    f"{-unseen['finetune_change_median_db']:.2f} dB; lower finetune.lr or finetune.epochs")
