@@ -79,7 +79,7 @@ class FitConfig:
     max_width: int = 128  # the SIREN width ladder's top (capacity.ladder)
     # every SIREN of every subset sees the same points at a step: the sampling noise in the weights is then
     # common to all lights, so neighbouring lights' SIRENs stay close in weight space (docs/tuning.md)
-    shared_points: bool = False
+    shared_points: bool = True
 
     @classmethod
     def from_config(cls, d: dict | None = None) -> FitConfig:
