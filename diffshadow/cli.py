@@ -172,7 +172,7 @@ def _render(a):
 def _report_figures(a):
     from diffshadow.stages import images
 
-    images.report_figures(Path(a.results), Path(a.checkpoint), _cfg(a), Path(a.out_dir))
+    images.report_figures(Path(a.results), _cfg(a), Path(a.out_dir))
 
 
 def _stage_costs(a):
@@ -286,7 +286,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--size", type=int, default=128)
     p.add_argument("--no-skip", action="store_true", help="turn macro-cell skipping off")
     p = _add(sub, "report-figures", _report_figures, "the report's figures for one finished scene", "results",
-             "checkpoint", "out-dir", out=False, device=False, config="the scene's merged configuration")
+             "out-dir", out=False, device=False, config="the scene's merged configuration")
 
     p = sub.add_parser("stage-costs", help="a table of every rule's cost from Snakemake's benchmark files")
     p.add_argument("--benchmarks", nargs="+", required=True, help="results/<scene>/benchmarks/*.tsv")
@@ -319,17 +319,23 @@ _ONE_GPU = {"preoptimize", "fit-siren", "train-data-inr", "presample", "train-di
             "evaluate-voxels", "render-targets", "evaluate-images", "render"}
 
 
-def main(argv: list[str] | None = None) -> None:
-    from diffshadow.runtime import claim_gpu_lock, set_threads
+# subcommands that never touch torch: importing it (~2 s) would be most of their run, and stage-costs and
+# summary sit on every run's last stretch, pbs-status in the scheduler's polling loop
+_NO_TORCH = {"stage-costs", "summary", "pbs-status", "install-profiles"}
 
+
+def main(argv: list[str] | None = None) -> None:
     args = build_parser().parse_args(argv)
     # a rule pipes the output through `tee`: without line buffering its progress would arrive at the end
     if hasattr(sys.stdout, "reconfigure"):
         sys.stdout.reconfigure(line_buffering=True)
-    if args.command in _ONE_GPU:
-        claim_gpu_lock(args.command)
-    if args.command not in ("finetune-render", "parsl-fit"):  # threads per rank and per worker: set there
-        set_threads(getattr(args, "threads", 0))
+    if args.command not in _NO_TORCH:
+        from diffshadow.runtime import claim_gpu_lock, set_threads
+
+        if args.command in _ONE_GPU:
+            claim_gpu_lock(args.command)
+        if args.command not in ("finetune-render", "parsl-fit"):  # threads per rank and per worker: set there
+            set_threads(getattr(args, "threads", 0))
     try:
         args.func(args)
     except ValueError as e:  # the library's input errors: one line, no traceback

@@ -20,6 +20,7 @@ from diffshadow.config import ConfigError, section
 from diffshadow.grid import cell_ranges, lookup_grids, voxel_points
 from diffshadow.io import atomic_torch_save, resume
 from diffshadow.metrics import psnr
+from diffshadow.progress import eta
 from diffshadow.sampling import PointSampler, seeded
 from diffshadow.siren import Siren, SirenConfig, box_to_siren, cosine_lr
 from diffshadow.transfer import TransferFunction
@@ -212,7 +213,8 @@ def fit_data_inr_once(volume: Volume, tf: TransferFunction, cfg: DataInrConfig, 
         if done % max(1, cfg.steps // 10) == 0 or done == cfg.steps:
             rate = (done - start) * cfg.points / (time.perf_counter() - t0)
             batch_psnr = float(-10 * torch.log10(loss.detach()))
-            log(f"step {done}/{cfg.steps}  PSNR(batch) {batch_psnr:.1f} dB  {rate:,.0f} points/s")
+            log(f"step {done}/{cfg.steps}  PSNR(batch) {batch_psnr:.1f} dB  {rate:,.0f} points/s  "
+                f"{eta(done, cfg.steps, t0, start=start)}")
     if checkpoint is not None and checkpoint.exists():
         checkpoint.unlink()
     value, worst = voxel_errors(model, volume, device=device)

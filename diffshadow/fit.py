@@ -22,6 +22,7 @@ from diffshadow.config import section
 from diffshadow.grid import lookup_grids
 from diffshadow.io import atomic_torch_save, resume
 from diffshadow.metrics import psnr
+from diffshadow.progress import eta
 from diffshadow.sampling import PointSampler, seeded
 from diffshadow.shadow import ShadowField, shadow_grid, transmittance
 from diffshadow.siren import BatchedSiren, SirenConfig, WeightLayout, box_to_siren, cosine_lr, init_siren
@@ -206,7 +207,8 @@ def fit_sirens(
                                f"its starting value ({rows}); lower fit.lr (now {cfg.lr})")
             rate = (done - start) * k * cfg.points / (time.perf_counter() - t0)
             log(f"step {done}/{cfg.steps}  lr {cosine_lr(step, cfg, siren.width):.2e}  median PSNR(train batch) "
-                f"{float(-10 * torch.log10(per_siren).median()):.1f} dB  {rate:,.0f} points/s")
+                f"{float(-10 * torch.log10(per_siren).median()):.1f} dB  {rate:,.0f} points/s  "
+                f"{eta(done, cfg.steps, t0, start=start)}")
             window, window_steps = torch.zeros(k, device=device), 0
     if checkpoint is not None and checkpoint.exists():
         checkpoint.unlink()

@@ -83,6 +83,10 @@ def generated_figure(stage1, generated, out_png: Path, out_csv: Path) -> None:
 DIFF_RANGE = 0.1  # the difference maps' colour scale: 0 to 10% of the colour range, the same in every row
 
 
+NAIVE_NOT_RENDERED = ("not rendered: the slow\nbaseline draws only\nrender.naive_lights ×\nnaive_views training\n"
+                      "views; it learns nothing\nfrom the lights")
+
+
 def image_grid_figure(images_dir: Path, lights: dict, out: Path,
                       modes=("gt", "inr_generated", "naive", "noshadow")) -> None:
     """Rows: (light, view) pairs with every mode rendered, labelled with the light's direction; columns:
@@ -93,9 +97,11 @@ def image_grid_figure(images_dir: Path, lights: dict, out: Path,
 
     plt = _plt()
     tags = sorted({p.name.rsplit("_gt.png", 1)[0] for p in images_dir.glob("*_gt.png")})
-    tags = [t for t in tags if all((images_dir / f"{t}_{m}.png").exists() for m in modes)]
+    # naive is rendered for the training lights only (it learns nothing from them): an unseen row shows the rest
+    needed = [m for m in modes if m != "naive"]
+    tags = [t for t in tags if all((images_dir / f"{t}_{m}.png").exists() for m in needed)]
     if not tags:
-        raise ValueError(f"{images_dir}: no light/view with all of {modes} rendered")
+        raise ValueError(f"{images_dir}: no light/view with all of {needed} rendered")
     titles = {"gt": "ground truth", "inr_generated": "ours (generated)", "naive": "naive secondary rays",
               "noshadow": "no shadow"}
     diffs = [("inr_generated", "|ours - gt|"), ("noshadow", "|no shadow - gt|")]
@@ -103,9 +109,14 @@ def image_grid_figure(images_dir: Path, lights: dict, out: Path,
     fig, axes = plt.subplots(len(tags), ncol, figsize=(2.3 * ncol, 2.4 * len(tags)), squeeze=False)
     for r, tag in enumerate(tags):
         img = {m: np.asarray(Image.open(images_dir / f"{tag}_{m}.png").convert("RGB"), dtype=np.float32) / 255
-               for m in modes}
+               for m in modes if (images_dir / f"{tag}_{m}.png").exists()}
         for c, mode in enumerate(modes):
-            axes[r, c].imshow(img[mode])
+            if mode in img:
+                axes[r, c].imshow(img[mode])
+            else:
+                axes[r, c].set_facecolor("0.92")
+                axes[r, c].text(0.5, 0.5, NAIVE_NOT_RENDERED, ha="center", va="center", fontsize=7,
+                                transform=axes[r, c].transAxes)
             if r == 0:
                 axes[r, c].set_title(titles.get(mode, mode), fontsize=9)
         for k, (mode, title) in enumerate(diffs):
@@ -130,30 +141,11 @@ def image_grid_figure(images_dir: Path, lights: dict, out: Path,
     _figure(out, fig)
 
 
-def ddim_curve_figure(state: dict, volume, tf, lights: np.ndarray, out: Path, *, steps=(5, 10, 20, 50),
-                      n_lights: int = 8, n_points: int = 8192) -> dict:
-    """Time per INR against median voxel PSNR for DDIM step counts, and 500-step DDPM.
-
-    Quality is over `n_lights` training lights generated in one batch; time is that of one INR alone
-    (batch of one, best of 3; DDPM once), as `voxel_metrics.json`'s `seconds_per_inr` measures it.
-    """
-    from diffshadow.diffusion.sample import generate, load_sampler
-    from diffshadow.evaluate import TruthPoints, pick, psnr_per_light, seconds_per_inr
-
-    model, std, layout, siren = load_sampler(state)
-    cfg = state["config"]
-    sel = lights[pick(len(lights), n_lights)]
-    points = TruthPoints(volume, tf, n_points, seed=int(cfg["seed"]) + 5)
-    truth = points.truth(sel)
-    rows = []
-    for method, k in [*(("ddim", s) for s in steps), ("ddpm", 500)]:
-        w = generate(model, std, sel, method=method, steps=k, seed=int(cfg["seed"]),
-                     temperature=float(cfg["temperature"]))
-        seconds = seconds_per_inr(model, std, sel[0], method=method, steps=k, repeats=3 if method == "ddim" else 1,
-                                  temperature=float(cfg["temperature"]))
-        rows.append({"method": method, "steps": k, "seconds_per_inr": seconds,
-                     "psnr_median": float(np.median(psnr_per_light(points.sirens(w.numpy(), layout, siren),
-                                                                   truth)["box"]))})
+def ddim_curve_figure(sampling: dict, out: Path) -> None:
+    """Time per INR against median voxel PSNR for DDIM step counts, and 500-step DDPM: the rows that
+    evaluate_voxels measured (`voxel_metrics.json` → sampling.curve; quality over `sampling.lights` training
+    lights generated in one batch, time that of one INR alone, best of 3; DDPM once)."""
+    rows = sampling["curve"]
     plt = _plt()
     fig, ax = plt.subplots(figsize=(6, 4))
     d = [r for r in rows if r["method"] == "ddim"]
@@ -164,8 +156,8 @@ def ddim_curve_figure(state: dict, volume, tf, lights: np.ndarray, out: Path, *,
     ax.plot([p["seconds_per_inr"]], [p["psnr_median"]], "s", label="DDPM 500")
     ax.set_xscale("log")
     decade_labels(ax.xaxis)
-    ax.set_xlabel("seconds per shadow INR (one INR alone, CPU)")
-    ax.set_ylabel(f"median voxel PSNR over {len(sel)} training lights (dB)")
+    ax.set_xlabel("seconds per shadow INR (one INR alone, on evaluate_voxels' device)")
+    ax.set_ylabel(f"median voxel PSNR over {sampling['lights']} training lights (dB)")
     # at least 2 dB of axis: a spread of a tenth of a dB is sampling noise, not a trend
     mid = float(np.median([r["psnr_median"] for r in rows]))
     lo, hi = min(r["psnr_median"] for r in rows), max(r["psnr_median"] for r in rows)
@@ -173,7 +165,6 @@ def ddim_curve_figure(state: dict, volume, tf, lights: np.ndarray, out: Path, *,
     ax.legend()
     fig.tight_layout()
     _figure(out, fig)
-    return {"lights": len(sel), "points": n_points, "rows": rows}
 
 
 def storage_figure(voxel_metrics: dict, n_lights: int, out: Path) -> None:
@@ -227,9 +218,13 @@ STAGE_COST_COLUMNS = ("stage", "jobs", "wall_s", "cpu_s", "max_rss_mib")
 
 def stage_costs(benchmarks: list[Path], out: Path) -> list[dict]:
     """One row per rule from Snakemake's `benchmark:` files (`<rule>.tsv`, or `<rule>_<n>.tsv` per job of a
-    fanned-out rule): jobs, summed wall and CPU seconds, the largest resident set; and a total row (the
-    sum of jobs' wall times, which exceeds the run's wall time where jobs overlapped). Written as TSV."""
+    fanned-out rule): jobs, summed wall and CPU seconds, the largest resident set; a total row (the sum of
+    jobs' wall times, which exceeds the run's wall time where jobs overlapped); and an elapsed row, the time
+    in which at least one job ran. Snakemake writes a benchmark file as its job ends, so a job ran from the
+    file's mtime minus its wall seconds to its mtime; the union of those spans is a whole run's elapsed time
+    and, after a partial rerun, still counts each job once rather than the days between. Written as TSV."""
     rows: dict[str, dict] = {}
+    spans = []
     for path in benchmarks:
         lines = Path(path).read_text().splitlines()
         if len(lines) < 2:
@@ -241,6 +236,8 @@ def stage_costs(benchmarks: list[Path], out: Path) -> list[dict]:
             cpu, rss = (float(rec.get(k, "0").replace("NA", "0")) for k in ("cpu_time", "max_rss"))
         except (KeyError, ValueError):
             raise ValueError(f"{path}: expected numeric columns s, cpu_time, max_rss; got {lines[:2]}") from None
+        end = Path(path).stat().st_mtime
+        spans.append((end - wall, end))
         stem = Path(path).stem
         stage = stem.rsplit("_", 1)[0] if stem.rsplit("_", 1)[-1].isdigit() else stem
         row = rows.setdefault(stage, {"stage": stage, "jobs": 0, "wall_s": 0.0, "cpu_s": 0.0, "max_rss_mib": 0.0})
@@ -252,8 +249,22 @@ def stage_costs(benchmarks: list[Path], out: Path) -> list[dict]:
     total = {"stage": "total (sum over jobs)", "jobs": sum(r["jobs"] for r in table),
              "wall_s": sum(r["wall_s"] for r in table), "cpu_s": sum(r["cpu_s"] for r in table),
              "max_rss_mib": max((r["max_rss_mib"] for r in table), default=0.0)}
+    elapsed = {**total, "stage": ELAPSED_ROW, "wall_s": _union_length(spans)}
     text = "\t".join(STAGE_COST_COLUMNS) + "\n" + "".join(
         f"{r['stage']}\t{r['jobs']}\t{r['wall_s']:.1f}\t{r['cpu_s']:.1f}\t{r['max_rss_mib']:.0f}\n"
-        for r in [*table, total])
+        for r in [*table, total, elapsed])
     atomic_write_text(out, text)
-    return [*table, total]
+    return [*table, total, elapsed]
+
+
+ELAPSED_ROW = "elapsed (a job running)"
+
+
+def _union_length(spans: list[tuple[float, float]]) -> float:
+    """Total length of the union of [start, end] intervals."""
+    length, reach = 0.0, float("-inf")
+    for start, end in sorted(spans):
+        if end > reach:
+            length += end - max(start, reach)
+            reach = end
+    return length

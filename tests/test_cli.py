@@ -1,3 +1,4 @@
+import os
 from pathlib import Path
 
 import numpy as np
@@ -45,19 +46,42 @@ def test_a_config_json_without_the_stage_section_is_one_line(tmp_path, capsys):
 
 
 def test_stage_costs_sums_a_fanned_out_rule_and_names_a_bad_file(tmp_path):
-    from diffshadow.report import stage_costs
+    from diffshadow.report import ELAPSED_ROW, stage_costs
 
     header = "s\th:m:s\tmax_rss\tmax_vms\tmax_uss\tmax_pss\tio_in\tio_out\tmean_load\tcpu_time\n"
-    for name, s, rss, cpu in (("fit_siren_0", 2.0, 100, 1.5), ("fit_siren_1", 3.0, 120, 2.5), ("lights", 0.5, 50, 0.4)):
-        (tmp_path / f"{name}.tsv").write_text(header + f"{s}\t0:00:0{int(s)}\t{rss}\t0\t0\t0\t0\t0\t0\t{cpu}\n")
+    # the two fits ran side by side from t=100 (ending at 102 and 103); `lights` was rerun a day later
+    for name, s, rss, cpu, end in (("fit_siren_0", 2.0, 100, 1.5, 102.0), ("fit_siren_1", 3.0, 120, 2.5, 103.0),
+                                   ("lights", 0.5, 50, 0.4, 86_500.0)):
+        path = tmp_path / f"{name}.tsv"
+        path.write_text(header + f"{s}\t0:00:0{int(s)}\t{rss}\t0\t0\t0\t0\t0\t0\t{cpu}\n")
+        os.utime(path, (end, end))
     rows = stage_costs(sorted(tmp_path.glob("*.tsv")), tmp_path / "costs.tsv")
     fit = next(r for r in rows if r["stage"] == "fit_siren")
     assert (fit["jobs"], fit["wall_s"], fit["cpu_s"], fit["max_rss_mib"]) == (2, 5.0, 4.0, 120)
-    assert rows[-1]["jobs"] == 3 and rows[-1]["wall_s"] == 5.5
+    total, elapsed = rows[-2:]
+    assert total["stage"].startswith("total") and total["jobs"] == 3 and total["wall_s"] == 5.5
+    # elapsed: the overlapping fits count once (100..103), the rerun its own half second, not the day between
+    assert elapsed["stage"] == ELAPSED_ROW and elapsed["wall_s"] == pytest.approx(3.5)
     bad = tmp_path / "broken.tsv"
     bad.write_text("s\n")
     with pytest.raises(ValueError, match="broken.tsv: expected a Snakemake benchmark file"):
         stage_costs([bad], tmp_path / "x.tsv")
+
+
+@pytest.mark.parametrize("argv", [["stage-costs", "--benchmarks", "{d}/lights.tsv", "--out", "{d}/costs.tsv"],
+                                  ["install-profiles", "--source", str(REPO / "profiles"), "--target", "{d}/p"]])
+def test_bookkeeping_subcommands_do_not_import_torch(tmp_path, argv):
+    # torch's import is ~2 s, most of these jobs' run: stage-costs and summary end every run
+    import subprocess
+    import sys
+
+    header = "s\th:m:s\tmax_rss\tmax_vms\tmax_uss\tmax_pss\tio_in\tio_out\tmean_load\tcpu_time\n"
+    (tmp_path / "lights.tsv").write_text(header + "0.5\t0:00:00\t50\t0\t0\t0\t0\t0\t0\t0.4\n")
+    code = ("import sys; from diffshadow.cli import main; main(sys.argv[1:]); "
+            "assert 'torch' not in sys.modules, 'torch was imported'")
+    run = subprocess.run([sys.executable, "-c", code, *(a.format(d=tmp_path) for a in argv)], capture_output=True,
+                         text=True)
+    assert run.returncode == 0, run.stderr
 
 
 def test_render_previews_a_scene_file_and_names_its_typo(tmp_path, capsys):

@@ -97,7 +97,9 @@ def test_render_outputs(finished):
     for mode in ("inr_stage1", "inr_generated", "inr_generated_data_inr", "naive", "noshadow"):
         assert np.isfinite(images["modes"][mode]["psnr"]) and 0 < images["modes"][mode]["ssim"] <= 1
     assert images["lpips"].startswith(("available", "unavailable"))
-    assert len(list((res / "images").glob("*.png"))) == 2 * 6 - 1
+    # training light: gt, stage 1, generated, generated + data INR, naive, noshadow; unseen: no stage 1, no naive
+    assert len(list((res / "images").glob("*.png"))) == 6 + 4
+    assert not list((res / "images").glob("unseen*_naive.png"))
     bench = json.loads((res / "bench.json").read_text())
     row = bench["sizes"]["8"]
     assert set(row["fps"]) == set(row["peak_mem_bytes"]) == {"noshadow", "inr", "naive"}
@@ -124,8 +126,7 @@ STAGE_OUTPUTS = {
     "train_data_inr": ["data_inr.pt"],
     "evaluate_images": ["image_metrics.json", "images"],
     "report_figures": ["report/config.yaml", "report/siren_psnr.png", "report/generated_psnr.png",
-                       "report/generated_psnr.csv", "report/image_grid.png", "report/storage.png",
-                       "report/ddim_curve.json"],
+                       "report/generated_psnr.csv", "report/image_grid.png", "report/storage.png"],
 }
 TIMED = {"bench.json", "bench.png", "report/bench_shadow.json", "report/bench_shadow.png", "report/ddim_curve.png",
          "report/shadow_curve.png", "benchmarks", "stage_costs.tsv",
@@ -161,7 +162,7 @@ def _first_difference(x, y, where: str = "") -> str:
 def second_run(finished, tmp_path_factory):
     workdir = tmp_path_factory.mktemp("workflow_again")
     # only what is compared: the benchmark (timings by design) is left out, which keeps `pytest -m stress` short
-    targets = [p for paths in STAGE_OUTPUTS.values() for p in paths if p != "report/ddim_curve.json"]  # a side file
+    targets = [p for paths in STAGE_OUTPUTS.values() for p in paths]
     snakemake(workdir, *(f"results/nucleon/{p}" for p in targets))
     return workdir
 
@@ -366,3 +367,6 @@ def test_stage_costs_come_from_snakemakes_benchmarks(finished):
     rows = {line.split("\t")[0]: line.split("\t") for line in lines[1:]}
     assert rows["fit_siren"][1] == "2" and "fit_siren_0" not in rows
     assert int(rows["total (sum over jobs)"][1]) == len(rules)
+    # the run's elapsed time: no shorter than its longest job, no longer than all jobs one after another
+    longest = max(float(r[2]) for r in rows.values() if r[1] == "1")
+    assert longest <= float(rows["elapsed (a job running)"][2]) <= float(rows["total (sum over jobs)"][2])

@@ -94,7 +94,7 @@ def _sync(device: torch.device) -> None:
         torch.cuda.synchronize(device)
 
 
-SLOW_FRAME_S = 2.0  # a mode this slow per frame is timed once: its run-to-run noise is small beside it
+SLOW_FRAME_S = 1.0  # a mode this slow per frame is timed once: its run-to-run noise is small beside it
 
 
 def bench_render(scene: RenderScene, siren, light, *, sizes=(64, 128), step: float = DEFAULT_STEP,

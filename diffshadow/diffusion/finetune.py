@@ -35,6 +35,7 @@ from diffshadow.evaluate import EvalTruth, psnr_per_light
 from diffshadow.grid import ray_span
 from diffshadow.io import atomic_torch_save, resume
 from diffshadow.lights import fibonacci_sphere
+from diffshadow.progress import eta
 from diffshadow.render import (
     BACKGROUND,
     Camera,
@@ -188,7 +189,7 @@ def render_targets(volume: Volume, tf: TransferFunction, lights: np.ndarray, cam
             out[i, v] = scene.render("gt", cam, light=w, step=step, min_transmittance=1e-6).rgb
         scene.forget_gt(w)
         if (i + 1) % max(1, len(lights) // 10) == 0 or i + 1 == len(lights):
-            log(f"target images: {i + 1}/{len(lights)} lights ({time.perf_counter() - t0:.0f} s)")
+            log(f"target images: {i + 1}/{len(lights)} lights ({eta(i + 1, len(lights), t0)})")
     return out
 
 
@@ -441,7 +442,7 @@ def finetune(geometry_state: dict, data: FinetuneData, cfg: FinetuneConfig, chec
         if rank == 0 and (done % max(1, cfg.epochs // 10) == 0 or done == cfg.epochs):
             lx, lg, lr_ = (totals / n).tolist()
             log(f"epoch {done}/{cfg.epochs}  x0 {lx:.3e}  geometry {lg:.3e}  render {lr_:.3e} "
-                f"(≈{-10 * math.log10(max(lr_, 1e-30)):.1f} dB)  {time.perf_counter() - t_start:.0f} s")
+                f"(≈{-10 * math.log10(max(lr_, 1e-30)):.1f} dB)  {eta(done, end, t_start, start=start)}")
         if stop_after_epoch is not None and done >= stop_after_epoch:
             return state
     if state is None:

@@ -25,6 +25,7 @@ from diffshadow.diffusion.model import PRESETS, WeightTransformer
 from diffshadow.diffusion.schedule import Schedule
 from diffshadow.io import atomic_torch_save, resume
 from diffshadow.metrics import psnr
+from diffshadow.progress import eta
 from diffshadow.sampling import seeded
 from diffshadow.siren import BatchedSiren, SirenConfig, WeightLayout, box_to_siren
 
@@ -443,9 +444,11 @@ def train_diffusion(data: TrainingData, cfg: DiffusionConfig, checkpoint: Path, 
         check = done >= cfg.epochs and (done - cfg.epochs) % cfg.checkpoint_every == 0
         if done % max(1, cfg.epochs // 20) == 0 or check:
             lx, lg = (totals / n).cpu().tolist()
-            log(f"epoch {done}/{cfg.epochs if done <= cfg.epochs else max_epochs}  loss x0 {lx:.4e}  "
+            # past `epochs` the stage grows towards max_epochs, which is then an upper bound, not a forecast
+            total = cfg.epochs if done <= cfg.epochs else max_epochs
+            log(f"epoch {done}/{total}  loss x0 {lx:.4e}  "
                 f"geometry {lg:.4e} (≈{-10 * math.log10(max(lg, 1e-30)):.1f} dB)  lr {sched.get_last_lr()[0]:.2e}  "
-                f"{time.perf_counter() - t0:.0f} s")
+                f"{eta(done, total, t0, start=start)}")
         if check:
             grow(done)
         if done % cfg.checkpoint_every == 0 or growth["finished"]:

@@ -100,7 +100,7 @@ def _data_inr_size(inr) -> dict | None:
             "psnr": inr.psnr, "capacity": inr.config.get("capacity")}
 
 
-def report_figures(results: Path, checkpoint: Path, cfg: dict, out: Path) -> None:
+def report_figures(results: Path, cfg: dict, out: Path) -> None:
     """The report's figures for one finished scene, from its results (nothing is re-trained)."""
     from diffshadow.bench.shadow import bench_shadow
 
@@ -111,12 +111,9 @@ def report_figures(results: Path, checkpoint: Path, cfg: dict, out: Path) -> Non
     report.generated_figure(stage1, generated, out / "generated_psnr.png", out / "generated_psnr.csv")
     lights = read_lights(results / "lights.json")
     report.image_grid_figure(results / "images", lights, out / "image_grid.png")
-    report.storage_figure(json.loads((results / "voxel_metrics.json").read_text()), len(lights["train"]),
-                          out / "storage.png")
-    volume, tf = artifacts.load_prepared(results / "volume.zarr")
-    state = artifacts.load_checkpoint(checkpoint)  # the model that sampled generated.zarr
-    ddim = report.ddim_curve_figure(state, volume, tf, lights["train"], out / "ddim_curve.png")
-    atomic_write_text(out / "ddim_curve.json", json.dumps(ddim, indent=2) + "\n")
+    metrics = json.loads((results / "voxel_metrics.json").read_text())
+    report.storage_figure(metrics, len(lights["train"]), out / "storage.png")
+    report.ddim_curve_figure(metrics["sampling"], out / "ddim_curve.png")
     shadow = bench_shadow([Path(cfg["volume"])], out, tf_config=cfg["transfer_function"])
     report.shadow_curve_figure(shadow, out / "shadow_curve.png")
     print(f"wrote the report figures in {out}")

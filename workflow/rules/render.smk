@@ -32,7 +32,7 @@ rule evaluate_images:
         images=directory("results/{scene}/images"),
     params:
         cfg=lambda wc: as_json(wc.scene, "render"),
-    threads: 2
+    threads: 1  # beside evaluate_voxels (see there)
     log:
         "results/{scene}/logs/evaluate_images.log",
     benchmark:

@@ -9,7 +9,6 @@ rule report_figures:
         images="results/{scene}/images",
         volume="results/{scene}/volume.zarr",
         lights="results/{scene}/lights.json",
-        checkpoint=sampler_checkpoint,
     output:
         config=report("results/{scene}/report/config.yaml", caption="../report/config.rst",
                       category="{scene}", subcategory="configuration"),
@@ -38,7 +37,7 @@ rule report_figures:
     conda:
         "../envs/diffshadow.yaml"
     shell:
-        "diffshadow report-figures --results results/{wildcards.scene} --checkpoint {input.checkpoint}"
+        "diffshadow report-figures --results results/{wildcards.scene}"
         " --config-json {params.cfg:q}"
         " --threads {threads} --out-dir results/{wildcards.scene}/report 2>&1 | tee {log}"
 
