@@ -22,7 +22,8 @@ import torch
 from diffshadow import artifacts
 from diffshadow.lights import read_lights
 
-FIT_LIGHTS = [5, 21, 38, 60]  # spread over the 64 training lights
+FIT_LIGHTS = [5, 21, 38, 60]  # spread over 64 training lights; scaled to a run with another count (none is light 0,
+# the pre-optimised one)
 
 
 def fit(results: Path, spec: dict) -> str:
@@ -30,7 +31,8 @@ def fit(results: Path, spec: dict) -> str:
     from diffshadow.siren import SirenConfig, WeightLayout
 
     volume, tf = artifacts.load_prepared(results / "volume.zarr")
-    lights = read_lights(results / "lights.json")["train"][FIT_LIGHTS]
+    train = read_lights(results / "lights.json")["train"]
+    lights = train[[i * len(train) // 64 for i in FIT_LIGHTS]]
     chosen = artifacts.load_siren_init(results / "siren_init.pt", SirenConfig(32, 2))
     siren, init = chosen.siren, chosen.init
     layout = WeightLayout.for_siren(siren)
