@@ -19,7 +19,7 @@ from pathlib import Path
 
 import torch
 
-from diffshadow.report import stage_costs
+from diffshadow.report import ELAPSED_ROW, stage_costs
 
 REPO = Path(__file__).resolve().parent.parent
 
@@ -46,7 +46,9 @@ def row(scene: str, wall: float | None) -> dict:
     inr = images.get("data_inr") or {}
     init = torch.load(res / "siren_init.pt", map_location="cpu", weights_only=True)
     rows = stage_costs(sorted((res / "benchmarks").glob("*.tsv")), REPO / "results" / f"quality_{scene}_costs.tsv")
-    costs = {r["stage"]: r["wall_s"] for r in rows if not r["stage"].startswith("total")}
+    costs = {r["stage"]: r["wall_s"] for r in rows if not r["stage"].startswith("total") and r["stage"] != ELAPSED_ROW}
+    if wall is None:  # --table-only: the run's elapsed time from its benchmark files
+        wall = next(r["wall_s"] for r in rows if r["stage"] == ELAPSED_ROW)
     unseen = voxel.get("unseen", {})
     dm = voxel.get("diffusion_model") or {}
     kept = dm.get("kept_epoch") if dm.get("kept_epoch") != dm.get("epochs") else None
