@@ -226,8 +226,9 @@ class RunResults:
                                 [[r["stage"], r["jobs"], r["wall_s"], r["cpu_s"], r["max_rss_mib"]]
                                  for r in self.costs],
                                 "Wall and CPU seconds summed over a stage's jobs; jobs that ran side by side "
-                                "overlap, so the total exceeds the run's wall time. CPU seconds of short jobs are "
-                                "undercounted (Snakemake polls)."))
+                                "overlap, so the total exceeds the run's wall time, which is the last row: the time "
+                                "in which at least one job ran. CPU seconds of short jobs are undercounted "
+                                "(Snakemake polls)."))
         return "".join(parts)
 
 

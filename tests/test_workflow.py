@@ -351,6 +351,8 @@ def test_report_front_page_has_the_runs_numbers(finished):
     assert "Scene nucleon" in page and "summary.html" in page
     assert f"{voxel['diffusion_model']['parameters']:,} parameters" in page
     assert f"{voxel['diffusion_model']['epochs']} epochs: {voxel['diffusion_model']['stopped']}" in page
+    costs = {line.split("\t")[0]: line.split("\t") for line in (res / "stage_costs.tsv").read_text().splitlines()}
+    assert f"{float(costs['elapsed (a job running)'][2]) / 60:.1f} min elapsed" in page  # the run's own wall time
     assert "before fine-tuning" in tables and voxel["unseen"]["finetune_change_median_db"] == pytest.approx(
         voxel["unseen"]["generated_psnr_median"] - voxel["unseen"]["geometry_only_psnr_median"], abs=5.0)
     for title in ("Shadow INRs", "Sampling", "Rendering-loss fine-tuning", "Images", "Renderer", "SIREN sizes chosen",
