@@ -110,11 +110,6 @@ def seconds_per_inr(model, std, light, *, method: str, steps: int, repeats: int 
     return best
 
 
-def curve_steps(ddim_steps: int) -> list[int]:
-    """DDIM step counts of the time-against-quality curve: 5, 10, 20, 50 and the run's own."""
-    return sorted({5, 10, 20, 50, ddim_steps})
-
-
 def _median(a) -> float:
     return float(np.median(a))
 
@@ -185,21 +180,25 @@ def voxel_metrics(state: dict, stage1, generated, truth: EvalTruth, light_sets: 
     sel = pick(len(train), ddpm_lights)
     truth_sel = {k: v[sel] for k, v in truth_train.items()}
     t0 = time.perf_counter()
-    log(f"[evaluate voxels] DDIM {', '.join(map(str, curve_steps(ddim_steps)))} steps and 500-step DDPM for "
+    steps = sorted({5, 10, 20, 50, ddim_steps})
+    log(f"[evaluate voxels] DDIM {', '.join(map(str, steps))} steps and 500-step DDPM for "
         f"{len(sel)} of the {len(train)} training lights, and one INR of each timed ...")
     curve = []
-    for method, k in [*(("ddim", s) for s in curve_steps(ddim_steps)), ("ddpm", 500)]:
-        w = generate(model, std, train[sel], method=method, steps=k, seed=int(cfg["seed"]),
-                     temperature=cfg["temperature"]).numpy()
-        scores = psnr_per_light(truth.sirens(w, layout, siren), truth_sel)
+    for method, k in [*(("ddim", s) for s in steps), ("ddpm", 500)]:
+        if method == "ddim" and k == ddim_steps:  # the run's own sampler: `generated` already holds these lights
+            box = gen_seen["box"][sel]
+        else:
+            w = generate(model, std, train[sel], method=method, steps=k, seed=int(cfg["seed"]),
+                         temperature=cfg["temperature"]).numpy()
+            box = psnr_per_light(truth.sirens(w, layout, siren), truth_sel)["box"]
         seconds = seconds_per_inr(model, std, train[0], method=method, steps=k, repeats=3 if method == "ddim" else 1,
                                   temperature=cfg["temperature"])
-        curve.append({"method": method, "steps": k, "seconds_per_inr": seconds, "psnr_median": _median(scores["box"])})
+        curve.append({"method": method, "steps": k, "seconds_per_inr": seconds, "psnr_median": _median(box)})
     log(f"[evaluate voxels] samplers done ({time.perf_counter() - t0:.0f} s)")
     ddim_row = next(r for r in curve if r["method"] == "ddim" and r["steps"] == ddim_steps)
     t_ddim, t_ddpm = ddim_row["seconds_per_inr"], curve[-1]["seconds_per_inr"]
     result["sampling"] = {"ddim_steps": ddim_steps, "lights": len(sel),
-                          "ddim_psnr_median": _median(gen_seen["box"][sel]),
+                          "ddim_psnr_median": ddim_row["psnr_median"],
                           "ddpm_psnr_median": curve[-1]["psnr_median"], "speedup": t_ddpm / t_ddim, "curve": curve}
     result["seconds_per_inr"] = {"ddim": t_ddim, "ddpm": t_ddpm}
     mc = model.cfg
