@@ -81,6 +81,12 @@ class FitConfig:
     # every SIREN of every subset sees the same points at a step: the sampling noise in the weights is then
     # common to all lights, so neighbouring lights' SIRENs stay close in weight space (docs/tuning.md)
     shared_points: bool = True
+    # The blend loss: lights between the training lights (exact shadows, no SIREN of their own) scored with the
+    # inverse-angle blend of their nearest training SIRENs' weights, so that the fits vary smoothly with the
+    # light and the diffusion model can interpolate them (docs/tuning.md, "Stage-1 fits whose blends fit")
+    blend_weight: float = 0.0  # 0: off
+    blend_lights: int = 2048  # pool lights drawn in the training lights' cap (each subset takes its own)
+    blend_points: int = 1024  # presampled points with exact shadows per pool light
 
     @classmethod
     def from_config(cls, d: dict | None = None) -> FitConfig:
@@ -88,6 +94,9 @@ class FitConfig:
         cfg = section(cls, "fit", d)
         if not (cfg.chunk == "auto" or (isinstance(cfg.chunk, int) and cfg.chunk >= 0)):
             raise ValueError(f"fit.chunk: expected 'auto' or an integer >= 0, got {cfg.chunk!r}")
+        if cfg.blend_weight < 0 or (cfg.blend_weight > 0 and (cfg.blend_lights < 1 or cfg.blend_points < 1)):
+            raise ValueError(f"fit.blend_weight, blend_lights, blend_points: expected a weight >= 0 and, when it is "
+                             f"above 0, counts >= 1; got {cfg.blend_weight}, {cfg.blend_lights}, {cfg.blend_points}")
         if cfg.precision not in ("float32", "bfloat16"):
             raise ValueError(f"fit.precision: expected 'float32' or 'bfloat16', got {cfg.precision!r}")
         return cfg
@@ -98,6 +107,44 @@ class FitConfig:
 # 32,768 on an H100: issue 15).
 CPU_CHUNK = 512
 SHARED_STREAM = -2  # the random stream of `shared_points` (subsets use 0.., preoptimize -1)
+BLEND_STREAM = -4  # the blend pool's lights and points; each step's pick of them is -5 - stream
+BLEND_K = 4  # training SIRENs blended per pool light: the evaluation's weight blend (evaluate_voxels) uses 4
+
+
+@dataclass
+class BlendPool:
+    """Pool lights of one subset for the blend loss: exact shadow `values` (M, P) at `points` (M, P, 3), and the
+    subset's SIRENs (rows `neighbours` (M, k) of the subset) whose weights, mixed by `mix` (M, k), should fit it."""
+
+    lights: np.ndarray
+    points: torch.Tensor
+    values: torch.Tensor
+    neighbours: torch.Tensor
+    mix: torch.Tensor
+
+
+def blend_pool(volume: Volume, tf: TransferFunction, train: np.ndarray, center, subset: list[int], cfg: FitConfig,
+               *, device: torch.device | str = "cpu") -> BlendPool | None:
+    """`cfg.blend_lights` directions drawn in the training lights' cap (the same for every subset), of which
+    this subset takes those whose nearest training light is its own, each blended from its `BLEND_K` nearest
+    lights of the subset; None when the blend loss is off or the subset has fewer than 2 lights. Coupling
+    stays inside a subset, so subsets are still fitted as independent jobs."""
+    from diffshadow.diffusion.geometry import presample
+    from diffshadow.lights import blend_weights, nearest, training_pool
+
+    if cfg.blend_weight <= 0 or len(subset) < 2:
+        return None
+    train = np.asarray(train, dtype=np.float64)
+    lights = training_pool(train, center, cfg.blend_lights, seed=cfg.seed + 7919)  # not presample's pool
+    mine = np.isin(nearest(train, lights, 1)[0][:, 0], subset)
+    rows = np.flatnonzero(mine)
+    if len(rows) == 0:
+        return None
+    points, values = presample(volume, tf, lights[rows], cfg.blend_points, seed=cfg.seed, stream=BLEND_STREAM,
+                               device=device)
+    idx, mix = blend_weights(train[subset], lights[rows], min(BLEND_K, len(subset)))
+    return BlendPool(lights[rows], points, values, torch.as_tensor(idx, device="cpu"),
+                     torch.as_tensor(mix, dtype=torch.float32, device="cpu"))
 
 
 def points_per_pass(chunk: int | str, points: int, device: torch.device) -> int:
@@ -119,6 +166,7 @@ def fit_sirens(
     stream: int = 0,
     light_index: list[int] | None = None,
     checkpoint: Path | None = None,
+    pool: BlendPool | None = None,
     device: torch.device | str = "cpu",
     log=print,
 ) -> torch.Tensor:
@@ -126,7 +174,9 @@ def fit_sirens(
 
     `stream` separates the random points of different subsets. With `checkpoint`, progress is saved
     every `cfg.checkpoint_every` steps and a rerun resumes from it (same result as an uninterrupted run:
-    the points of step s depend only on (seed, stream, s)).
+    the points of step s depend only on (seed, stream, s)). With `pool` (`blend_pool`), each step also
+    scores K of its lights, at half as many points as a SIREN gets, with their blends of these SIRENs'
+    weights, weighted by `cfg.blend_weight`.
     """
     device = torch.device(device)
     lights = np.asarray(lights, dtype=np.float64)
@@ -146,7 +196,7 @@ def fit_sirens(
     weights = init.to(device=device, dtype=torch.float32).expand(k, -1).clone().requires_grad_(True)
     opt = torch.optim.Adam([weights], lr=cfg.lr)
     start = 0
-    fingerprint = _fingerprint(init, lights, cfg, siren, stream)
+    fingerprint = _fingerprint(init, lights, cfg, siren, stream, pool)
     if state := resume(checkpoint, fingerprint, log=log, map_location=device, weights_only=True):
         with torch.no_grad():
             weights.copy_(state["weights"])
@@ -181,6 +231,8 @@ def fit_sirens(
             sq = ((pred - target[:, c0:c0 + chunk]) ** 2).sum(dim=1) / cfg.points
             sq.sum().backward()
             per_siren += sq.detach()
+        if pool is not None:
+            _blend_loss(weights, pool, layout, siren, extent, cfg, k, seeded(cfg.seed, -5 - stream, step), device)
         bad = ~torch.isfinite(per_siren)
         if bad.any():
             which = [light_index[i] for i in torch.nonzero(bad).flatten().tolist()]
@@ -215,10 +267,25 @@ def fit_sirens(
     return weights.detach().cpu()
 
 
-def _fingerprint(init, lights, cfg, siren, stream) -> str:
+def _blend_loss(weights: torch.Tensor, pool: BlendPool, layout: WeightLayout, siren: SirenConfig,
+                extent: torch.Tensor, cfg: FitConfig, k: int, gen: torch.Generator, device: torch.device) -> None:
+    """Backpropagate the blend loss of K random pool lights at cfg.points / 2 random points each."""
+    j = torch.randperm(len(pool.lights), generator=gen, device=gen.device)[:k]
+    pick = torch.randint(0, pool.points.shape[1], (len(j), max(1, cfg.points // 2)), generator=gen, device=gen.device)
+    pts = torch.gather(pool.points[j], 1, pick[..., None].expand(-1, -1, 3)).to(device)
+    truth = torch.gather(pool.values[j], 1, pick).to(device)
+    blended = (weights[pool.neighbours[j].to(device)] * pool.mix[j].to(device)[..., None]).sum(1)
+    pred = BatchedSiren(blended, layout, siren.blocks)(box_to_siren(pts, extent)).float()
+    # a mean per pool light, summed and scaled to K lights: weight 1 gives the pool the training lights' say
+    (cfg.blend_weight * ((pred - truth) ** 2).mean(dim=1).sum() * (k / len(j))).backward()
+
+
+def _fingerprint(init, lights, cfg, siren, stream, pool: BlendPool | None = None) -> str:
     h = hashlib.sha256()
     h.update(init.detach().cpu().numpy().astype(np.float32).tobytes())
     h.update(np.asarray(lights, np.float64).tobytes())
+    if pool is not None:
+        h.update(np.asarray(pool.lights, np.float64).tobytes())
     h.update(json.dumps([asdict(cfg), siren.to_config(), stream], sort_keys=True).encode())
     return h.hexdigest()
 

@@ -110,3 +110,72 @@ def test_shared_points_make_a_lights_siren_independent_of_its_subset(scene):
     own = FitConfig.from_config(dict(steps=8, points=64, shared_points=False))  # the control: per-light points
     apart = fit_sirens(init(), LAYOUT, CFG, vol, tf, lights[1:], own, stream=5, **quiet)
     assert (pair[1] - apart[0]).abs().max() > 1e-4
+
+
+def _cap_lights():
+    # four training lights around +z, about 15 degrees apart, and the cap's centre
+    d = np.array([[0.26, 0.0, 1.0], [-0.26, 0.0, 1.0], [0.0, 0.26, 1.0], [0.0, -0.26, 1.0]])
+    return d / np.linalg.norm(d, axis=1, keepdims=True), np.array([0.0, 0.0, 1.0])
+
+
+def test_blend_pool_holds_the_lights_nearest_to_the_subset_blended_from_it(scene):
+    from diffshadow.fit import blend_pool
+    from diffshadow.lights import nearest
+
+    vol, tf, _ = scene
+    train, center = _cap_lights()
+    cfg = FitConfig.from_config(dict(blend_weight=0.5, blend_lights=40, blend_points=8))
+    pool = blend_pool(vol, tf, train, center, [0, 1], cfg)
+    assert len(pool.lights) > 0 and pool.points.shape == (len(pool.lights), 8, 3)
+    assert set(nearest(train, pool.lights, 1)[0][:, 0]) <= {0, 1}  # this subset's share of the pool
+    assert pool.neighbours.max() < 2 and torch.allclose(pool.mix.sum(1), torch.ones(len(pool.lights)))
+    other = blend_pool(vol, tf, train, center, [2, 3], cfg)
+    assert len(pool.lights) + len(other.lights) == 40  # the subsets split one pool
+    assert blend_pool(vol, tf, train, center, [0, 1], FitConfig.from_config(dict(blend_weight=0.0))) is None
+    assert blend_pool(vol, tf, train, center, [2], cfg) is None  # nothing to blend
+
+
+def test_blend_loss_makes_weight_blends_fit_the_pool():
+    from diffshadow.fit import blend_pool
+    from diffshadow.metrics import psnr
+    from diffshadow.siren import BatchedSiren, box_to_siren
+
+    vol = Volume(data=gaussian_blob(17, 0.15), extent=np.ones(3), name="blob")
+    tf = identity_tf(5.0)
+    train, center = _cap_lights()
+    cfg = SirenConfig(16, 1)
+    layout = WeightLayout.for_siren(cfg)
+    start = layout.flatten(init_siren(cfg, torch.Generator().manual_seed(0)))
+    fit = FitConfig.from_config(dict(steps=150, points=256, lr=3e-3, blend_weight=1.0, blend_lights=64,
+                                     blend_points=256))
+    pool = blend_pool(vol, tf, train, center, [0, 1, 2, 3], fit)
+    quiet = {"log": lambda *a: None}
+    coupled = fit_sirens(start, layout, cfg, vol, tf, train, fit, pool=pool, **quiet)
+    alone = fit_sirens(start, layout, cfg, vol, tf, train, fit, **quiet)
+
+    def blend_psnr(w):
+        blended = (w[pool.neighbours] * pool.mix[..., None]).sum(1)
+        with torch.no_grad():
+            pred = BatchedSiren(blended, layout, cfg.blocks)(box_to_siren(pool.points, torch.ones(3)))
+        return float(psnr(pred, pool.values, dim=1).median())
+
+    assert blend_psnr(coupled) > blend_psnr(alone) + 1.0, (blend_psnr(coupled), blend_psnr(alone))
+
+
+def test_blend_loss_makes_no_tensor_on_the_implicit_default_device(scene):
+    from diffshadow.fit import blend_pool
+
+    vol, tf, _ = scene
+    train, center = _cap_lights()
+    cfg = FitConfig.from_config(dict(steps=4, points=32, chunk=16, blend_weight=1.0, blend_lights=16, blend_points=8))
+    pool = blend_pool(vol, tf, train, center, [0, 1, 2, 3], cfg)
+    a = fit_sirens(init(), LAYOUT, CFG, vol, tf, train, cfg, pool=pool, log=lambda *a: None)
+    with default_device_meta():
+        pool = blend_pool(vol, tf, train, center, [0, 1, 2, 3], cfg, device="cpu")
+        b = fit_sirens(init(), LAYOUT, CFG, vol, tf, train, cfg, pool=pool, device="cpu", log=lambda *a: None)
+    assert torch.equal(a, b)
+
+
+def test_a_negative_blend_weight_is_named():
+    with pytest.raises(ValueError, match="fit.blend_weight"):
+        FitConfig.from_config(dict(blend_weight=-1.0))

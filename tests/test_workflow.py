@@ -21,7 +21,7 @@ TINY = {
     # min_psnr 0: six steps fit nothing well; the floor itself is tested in tests/stress/test_siren_stress.py
     # target_psnr 0: the sizes as given (the ladder that grows them is tested in tests/test_capacity.py)
     "fit": {"steps": 6, "points": 128, "eval_points": 256, "grid_upsample": 1, "chunk": 0, "min_psnr": 0.0,
-            "target_psnr": 0.0},
+            "target_psnr": 0.0, "blend_lights": 8, "blend_points": 32},
     "diffusion": {"preset": "tiny", "epochs": 3, "batch_size": 2, "geometry_points": 16, "presample_points": 64,
                   "checkpoint_every": 1, "ddim_steps": 5, "pool_lights": 4, "pool_points": 32,
                   "max_epochs": 5},

@@ -10,7 +10,7 @@ import numpy as np
 import torch
 
 from diffshadow import artifacts
-from diffshadow.fit import FitConfig, FitError, check_psnr, choose_layout, evaluate_psnr, fit_sirens
+from diffshadow.fit import FitConfig, FitError, blend_pool, check_psnr, choose_layout, evaluate_psnr, fit_sirens
 from diffshadow.lights import make_light_sets, read_lights, subset_indices, write_lights
 from diffshadow.siren import SirenConfig
 from diffshadow.store import collect_subsets, write_store, write_subset
@@ -52,7 +52,8 @@ def fit_subset(volume_path: Path, lights_path: Path, init_path: Path, subset: in
                siren: SirenConfig, fit: FitConfig, subset_size: int, config: dict, device: torch.device) -> None:
     """The SIRENs of one light subset, fitted jointly and checked on held-out points (resumable)."""
     volume, tf = artifacts.load_prepared(volume_path)
-    train = read_lights(lights_path)["train"]
+    sets = read_lights(lights_path)
+    train = sets["train"]
     idx = subset_indices(len(train), subset_size, subset)
     chosen = artifacts.load_siren_init(init_path, siren, fit.steps)
     init, layout, siren = chosen.init, chosen.layout, chosen.siren
@@ -60,9 +61,13 @@ def fit_subset(volume_path: Path, lights_path: Path, init_path: Path, subset: in
     out = Path(out)
     where = f"fit_siren subset {subset} ({volume_path}"
     print(f"subset {subset}: fitting lights {idx[0]}..{idx[-1]} jointly", flush=True)
+    pool = blend_pool(volume, tf, train, sets["center"], idx, fit, device=device)
+    if pool is not None:
+        print(f"blend loss: {len(pool.lights)} pool lights with exact shadows at {fit.blend_points} points each, "
+              f"weight {fit.blend_weight:g}", flush=True)
     try:
         weights = fit_sirens(init, layout, siren, volume, tf, train[idx], fit, stream=subset, light_index=idx,
-                             checkpoint=out.with_name(out.name + ".ckpt"), device=device)
+                             checkpoint=out.with_name(out.name + ".ckpt"), pool=pool, device=device)
     except FitError as e:
         raise FitError(f"{where}, lights {lights_path}): {e}") from None
     box, vis = evaluate_psnr(weights, layout, siren, volume, tf, train[idx], n_points=fit.eval_points,
