@@ -4,6 +4,7 @@ light subset, the collected weight store."""
 from __future__ import annotations
 
 import dataclasses
+import time
 from pathlib import Path
 
 import numpy as np
@@ -61,10 +62,11 @@ def fit_subset(volume_path: Path, lights_path: Path, init_path: Path, subset: in
     out = Path(out)
     where = f"fit_siren subset {subset} ({volume_path}"
     print(f"subset {subset}: fitting lights {idx[0]}..{idx[-1]} jointly", flush=True)
+    t0 = time.perf_counter()
     pool = blend_pool(volume, tf, train, sets["center"], idx, fit, device=device)
     if pool is not None:
-        print(f"blend loss: {len(pool.lights)} pool lights with exact shadows at {fit.blend_points} points each, "
-              f"weight {fit.blend_weight:g}", flush=True)
+        print(f"blend loss: {len(pool.lights)} pool lights with exact shadows at {fit.blend_points} points each "
+              f"({time.perf_counter() - t0:.0f} s), weight {fit.blend_weight:g}", flush=True)
     try:
         weights = fit_sirens(init, layout, siren, volume, tf, train[idx], fit, stream=subset, light_index=idx,
                              checkpoint=out.with_name(out.name + ".ckpt"), pool=pool, device=device)
