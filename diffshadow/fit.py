@@ -13,6 +13,7 @@ import json
 import time
 from dataclasses import asdict, dataclass, replace
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 import torch
@@ -28,6 +29,9 @@ from diffshadow.shadow import ShadowField, shadow_grid, transmittance
 from diffshadow.siren import BatchedSiren, SirenConfig, WeightLayout, box_to_siren, cosine_lr, init_siren
 from diffshadow.transfer import TransferFunction
 from diffshadow.volume import Volume, refine
+
+if TYPE_CHECKING:
+    from diffshadow.diffusion.train import PoolLights
 
 
 class FitError(ValueError):
@@ -108,43 +112,32 @@ class FitConfig:
 CPU_CHUNK = 512
 SHARED_STREAM = -2  # the random stream of `shared_points` (subsets use 0.., preoptimize -1)
 BLEND_STREAM = -4  # the blend pool's lights and points; each step's pick of them is -5 - stream
-BLEND_K = 4  # training SIRENs blended per pool light: the evaluation's weight blend (evaluate_voxels) uses 4
-
-
-@dataclass
-class BlendPool:
-    """Pool lights of one subset for the blend loss: exact shadow `values` (M, P) at `points` (M, P, 3), and the
-    subset's SIRENs (rows `neighbours` (M, k) of the subset) whose weights, mixed by `mix` (M, k), should fit it."""
-
-    lights: np.ndarray
-    points: torch.Tensor
-    values: torch.Tensor
-    neighbours: torch.Tensor
-    mix: torch.Tensor
 
 
 def blend_pool(volume: Volume, tf: TransferFunction, train: np.ndarray, center, subset: list[int], cfg: FitConfig,
-               *, device: torch.device | str = "cpu") -> BlendPool | None:
-    """`cfg.blend_lights` directions drawn in the training lights' cap (the same for every subset), of which
-    this subset takes those whose nearest training light is its own, each blended from its `BLEND_K` nearest
-    lights of the subset; None when the blend loss is off or the subset has fewer than 2 lights. Coupling
-    stays inside a subset, so subsets are still fitted as independent jobs."""
+               *, device: torch.device | str = "cpu") -> PoolLights | None:
+    """Pool lights for the blend loss: `cfg.blend_lights` directions drawn in the training lights' cap (the same
+    for every subset), of which this subset takes those whose nearest training light is its own, with their
+    exact shadow at `cfg.blend_points` points, each blended from its `BLEND_K` nearest lights of the subset
+    (`neighbours` are rows of the subset); None when the blend loss is off or the subset has fewer than 2
+    lights. Coupling stays inside a subset, so subsets are still fitted as independent jobs."""
     from diffshadow.diffusion.geometry import presample
+    from diffshadow.diffusion.train import BLEND_K, PoolLights
     from diffshadow.lights import blend_weights, nearest, training_pool
 
     if cfg.blend_weight <= 0 or len(subset) < 2:
         return None
     train = np.asarray(train, dtype=np.float64)
     lights = training_pool(train, center, cfg.blend_lights, seed=cfg.seed + 7919)  # not presample's pool
-    mine = np.isin(nearest(train, lights, 1)[0][:, 0], subset)
-    rows = np.flatnonzero(mine)
+    rows = np.flatnonzero(np.isin(nearest(train, lights, 1)[0][:, 0], subset))
     if len(rows) == 0:
         return None
     points, values = presample(volume, tf, lights[rows], cfg.blend_points, seed=cfg.seed, stream=BLEND_STREAM,
                                device=device)
     idx, mix = blend_weights(train[subset], lights[rows], min(BLEND_K, len(subset)))
-    return BlendPool(lights[rows], points, values, torch.as_tensor(idx, device="cpu"),
-                     torch.as_tensor(mix, dtype=torch.float32, device="cpu"))
+    return PoolLights(lights=torch.as_tensor(lights[rows], device="cpu"), points=points, values=values,
+                      neighbours=torch.as_tensor(idx, device="cpu"),
+                      blend=torch.as_tensor(mix, dtype=torch.float32, device="cpu"))
 
 
 def points_per_pass(chunk: int | str, points: int, device: torch.device) -> int:
@@ -166,7 +159,7 @@ def fit_sirens(
     stream: int = 0,
     light_index: list[int] | None = None,
     checkpoint: Path | None = None,
-    pool: BlendPool | None = None,
+    pool: PoolLights | None = None,
     device: torch.device | str = "cpu",
     log=print,
 ) -> torch.Tensor:
@@ -197,6 +190,7 @@ def fit_sirens(
     opt = torch.optim.Adam([weights], lr=cfg.lr)
     start = 0
     fingerprint = _fingerprint(init, lights, cfg, siren, stream, pool)
+    pool = pool.to(device) if pool is not None else None
     if state := resume(checkpoint, fingerprint, log=log, map_location=device, weights_only=True):
         with torch.no_grad():
             weights.copy_(state["weights"])
@@ -232,7 +226,7 @@ def fit_sirens(
             sq.sum().backward()
             per_siren += sq.detach()
         if pool is not None:
-            _blend_loss(weights, pool, layout, siren, extent, cfg, k, seeded(cfg.seed, -5 - stream, step), device)
+            _blend_loss(weights, pool, layout, siren, extent, cfg, k, seeded(cfg.seed, -5 - stream, step))
         bad = ~torch.isfinite(per_siren)
         if bad.any():
             which = [light_index[i] for i in torch.nonzero(bad).flatten().tolist()]
@@ -267,25 +261,24 @@ def fit_sirens(
     return weights.detach().cpu()
 
 
-def _blend_loss(weights: torch.Tensor, pool: BlendPool, layout: WeightLayout, siren: SirenConfig,
-                extent: torch.Tensor, cfg: FitConfig, k: int, gen: torch.Generator, device: torch.device) -> None:
+def _blend_loss(weights: torch.Tensor, pool: PoolLights, layout: WeightLayout, siren: SirenConfig,
+                extent: torch.Tensor, cfg: FitConfig, k: int, gen: torch.Generator) -> None:
     """Backpropagate the blend loss of K random pool lights at cfg.points / 2 random points each."""
     j = torch.randperm(len(pool.lights), generator=gen, device=gen.device)[:k]
     pick = torch.randint(0, pool.points.shape[1], (len(j), max(1, cfg.points // 2)), generator=gen, device=gen.device)
-    pts = torch.gather(pool.points[j], 1, pick[..., None].expand(-1, -1, 3)).to(device)
-    truth = torch.gather(pool.values[j], 1, pick).to(device)
-    blended = (weights[pool.neighbours[j].to(device)] * pool.mix[j].to(device)[..., None]).sum(1)
-    pred = BatchedSiren(blended, layout, siren.blocks)(box_to_siren(pts, extent)).float()
+    j, pick = j.to(weights.device), pick.to(weights.device)
+    pts, truth = pool.samples(j, pick)
+    pred = BatchedSiren(pool.x0(weights, j), layout, siren.blocks)(box_to_siren(pts, extent)).float()
     # a mean per pool light, summed and scaled to K lights: weight 1 gives the pool the training lights' say
     (cfg.blend_weight * ((pred - truth) ** 2).mean(dim=1).sum() * (k / len(j))).backward()
 
 
-def _fingerprint(init, lights, cfg, siren, stream, pool: BlendPool | None = None) -> str:
+def _fingerprint(init, lights, cfg, siren, stream, pool: PoolLights | None = None) -> str:
     h = hashlib.sha256()
     h.update(init.detach().cpu().numpy().astype(np.float32).tobytes())
     h.update(np.asarray(lights, np.float64).tobytes())
     if pool is not None:
-        h.update(np.asarray(pool.lights, np.float64).tobytes())
+        h.update(pool.lights.cpu().numpy().astype(np.float64).tobytes())
     h.update(json.dumps([asdict(cfg), siren.to_config(), stream], sort_keys=True).encode())
     return h.hexdigest()
 

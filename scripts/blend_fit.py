@@ -25,6 +25,7 @@ from diffshadow.config import defaults
 from diffshadow.evaluate import psnr_per_light
 from diffshadow.fit import FitConfig, blend_pool, fit_sirens
 from diffshadow.lights import blend_weights, n_subsets, read_lights, subset_indices
+from diffshadow.siren import SirenConfig
 from diffshadow.store import open_store, write_store
 
 
@@ -42,9 +43,9 @@ def main() -> None:
     sets = read_lights(r / "lights.json")
     train = sets["train"]
     store = open_store(r / "weights.zarr")
-    siren, layout = store.siren, store.layout
-    init = torch.load(r / "siren_init.pt", map_location="cpu", weights_only=False)
-    cfg = dataclasses.replace(FitConfig.from_config(json.loads(a.spec)), steps=int(init["fit_steps"]))
+    chosen = artifacts.load_siren_init(r / "siren_init.pt", SirenConfig.from_config(defaults()["siren"]))
+    siren, layout = chosen.siren, chosen.layout
+    cfg = dataclasses.replace(FitConfig.from_config(json.loads(a.spec)), steps=chosen.steps)
     size = a.subset_size or int(defaults()["subset_size"])
     t0 = time.perf_counter()
     weights = []
@@ -52,7 +53,7 @@ def main() -> None:
         idx = subset_indices(len(train), size, s)
         pool = blend_pool(volume, tf, train, sets["center"], idx, cfg)
         print(f"subset {s}: {len(idx)} lights, {0 if pool is None else len(pool.lights)} pool lights", flush=True)
-        weights.append(fit_sirens(init["weights"], layout, siren, volume, tf, train[idx], cfg, stream=s,
+        weights.append(fit_sirens(chosen.init, layout, siren, volume, tf, train[idx], cfg, stream=s,
                                   light_index=idx, pool=pool, log=lambda m: None))
     w = torch.cat(weights).numpy()
 

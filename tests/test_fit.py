@@ -127,8 +127,8 @@ def test_blend_pool_holds_the_lights_nearest_to_the_subset_blended_from_it(scene
     cfg = FitConfig.from_config(dict(blend_weight=0.5, blend_lights=40, blend_points=8))
     pool = blend_pool(vol, tf, train, center, [0, 1], cfg)
     assert len(pool.lights) > 0 and pool.points.shape == (len(pool.lights), 8, 3)
-    assert set(nearest(train, pool.lights, 1)[0][:, 0]) <= {0, 1}  # this subset's share of the pool
-    assert pool.neighbours.max() < 2 and torch.allclose(pool.mix.sum(1), torch.ones(len(pool.lights)))
+    assert set(nearest(train, pool.lights.numpy(), 1)[0][:, 0]) <= {0, 1}  # this subset's share of the pool
+    assert pool.neighbours.max() < 2 and torch.allclose(pool.blend.sum(1), torch.ones(len(pool.lights)))
     other = blend_pool(vol, tf, train, center, [2, 3], cfg)
     assert len(pool.lights) + len(other.lights) == 40  # the subsets split one pool
     assert blend_pool(vol, tf, train, center, [0, 1], FitConfig.from_config(dict(blend_weight=0.0))) is None
@@ -154,7 +154,7 @@ def test_blend_loss_makes_weight_blends_fit_the_pool():
     alone = fit_sirens(start, layout, cfg, vol, tf, train, fit, **quiet)
 
     def blend_psnr(w):
-        blended = (w[pool.neighbours] * pool.mix[..., None]).sum(1)
+        blended = (w[pool.neighbours] * pool.blend[..., None]).sum(1)
         with torch.no_grad():
             pred = BatchedSiren(blended, layout, cfg.blocks)(box_to_siren(pool.points, torch.ones(3)))
         return float(psnr(pred, pool.values, dim=1).median())
