@@ -77,6 +77,11 @@ class EvalTruth:
     def sirens(self, weights: np.ndarray, layout: WeightLayout, siren: SirenConfig) -> dict[str, torch.Tensor]:
         return _siren_values(self.points, self.extent, weights, layout, siren)
 
+    def median_psnr(self, weights: np.ndarray, layout: WeightLayout, siren: SirenConfig, lights: np.ndarray,
+                    point_set: str = "box") -> float:
+        """Median over `lights` of the voxel PSNR of their SIRENs `weights` (L, n_params) at one point set."""
+        return _median(psnr_per_light(self.sirens(weights, layout, siren), self.of(lights))[point_set])
+
 
 def _siren_values(sets: dict, extent: torch.Tensor, weights, layout: WeightLayout,
                   siren: SirenConfig) -> dict[str, torch.Tensor]:

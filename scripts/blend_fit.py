@@ -22,7 +22,7 @@ import torch
 
 from diffshadow import artifacts
 from diffshadow.config import defaults
-from diffshadow.evaluate import psnr_per_light
+from diffshadow.diffusion.train import BLEND_K
 from diffshadow.fit import FitConfig, blend_pool, fit_sirens
 from diffshadow.lights import blend_weights, n_subsets, read_lights, subset_indices
 from diffshadow.siren import SirenConfig
@@ -58,11 +58,10 @@ def main() -> None:
     w = torch.cat(weights).numpy()
 
     def scores(w: np.ndarray) -> tuple[float, float]:
-        seen = psnr_per_light(truth.sirens(w, layout, siren), truth.of(train))["box"]
-        idx, mix = blend_weights(train, sets["unseen"], 4)
+        idx, mix = blend_weights(train, sets["unseen"], BLEND_K)
         blend = (w.astype(np.float64)[idx] * mix[..., None]).sum(1)
-        unseen = psnr_per_light(truth.sirens(blend, layout, siren), truth.of(sets["unseen"]))["box"]
-        return float(np.median(seen)), float(np.median(unseen))
+        return (truth.median_psnr(w, layout, siren, train),
+                truth.median_psnr(blend, layout, siren, sets["unseen"]))
 
     truth = artifacts.read_eval_truth(r / "eval_truth.zarr")
     print(f"fit {a.spec}: {time.perf_counter() - t0:.0f} s; stage 1 on the training lights / weight blend at the "

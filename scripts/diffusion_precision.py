@@ -24,7 +24,6 @@ from diffshadow import artifacts
 from diffshadow.diffusion.sample import generate, load_sampler
 from diffshadow.diffusion.schedule import Schedule
 from diffshadow.diffusion.train import DiffusionConfig, train_diffusion
-from diffshadow.evaluate import psnr_per_light
 from diffshadow.lights import read_lights
 
 
@@ -55,7 +54,7 @@ def main() -> None:
     model, std, layout, siren = load_sampler(state)
 
     def median(w: np.ndarray, name: str) -> float:
-        return float(np.median(psnr_per_light(truth.sirens(w, layout, siren), truth.of(light_sets[name]))["box"]))
+        return truth.median_psnr(w, layout, siren, light_sets[name])
 
     print(f"stage 1: seen {median(data.weights.numpy(), 'train'):.2f} dB")
     for steps in (50, 10, 1):

@@ -12,13 +12,11 @@ between training seeds independent error that averaging removes?
 import argparse
 from pathlib import Path
 
-import numpy as np
 import torch
 
 from diffshadow import artifacts
 from diffshadow.diffusion.sample import generate, load_sampler
 from diffshadow.diffusion.train import DiffusionConfig
-from diffshadow.evaluate import psnr_per_light
 from diffshadow.lights import read_lights
 
 
@@ -41,8 +39,7 @@ def main() -> None:
                                 temperature=cfg.temperature))
 
     def median(w: torch.Tensor, name: str) -> float:
-        scores = psnr_per_light(truth.sirens(w.numpy(), layout, siren), truth.of(light_sets[name]))["box"]
-        return float(np.median(scores))
+        return truth.median_psnr(w.numpy(), layout, siren, light_sets[name])
 
     for name, out in gens.items():
         alone = ", ".join(f"{median(w, name):.2f}" for w in out)

@@ -69,7 +69,6 @@ def _pool(results: Path, light_sets: dict, cfg):
 def diffusion(results: Path, spec: dict) -> str:
     from diffshadow.diffusion.sample import generate, load_sampler
     from diffshadow.diffusion.train import DiffusionConfig, train_diffusion
-    from diffshadow.evaluate import psnr_per_light
 
     data, _ = artifacts.read_training_data(results / "weights.zarr", results / "geometry_points.zarr")
     truth = artifacts.read_eval_truth(results / "eval_truth.zarr")
@@ -88,7 +87,7 @@ def diffusion(results: Path, spec: dict) -> str:
     for name in ("train", "unseen"):
         w = generate(model, std, light_sets[name], method="ddim", steps=cfg.ddim_steps, seed=cfg.seed,
                      temperature=cfg.temperature).numpy()
-        scores.append(np.median(psnr_per_light(truth.sirens(w, layout, siren), truth.of(light_sets[name]))["box"]))
+        scores.append(truth.median_psnr(w, layout, siren, light_sets[name]))
     return f"{seconds:6.1f} s  generated median seen {scores[0]:.2f} dB, unseen {scores[1]:.2f} dB (geometry stage)"
 
 

@@ -7,6 +7,7 @@ from diffshadow.artifacts import read_eval_truth, write_eval_truth
 from diffshadow.evaluate import EvalTruth, TruthPoints, blend_baseline, pick
 from diffshadow.lights import fibonacci_sphere
 from diffshadow.shadow import transmittance
+from diffshadow.siren import SirenConfig, WeightLayout, init_siren
 from diffshadow.volume import Volume
 
 
@@ -43,6 +44,20 @@ def test_eval_truth_rows_follow_the_lights_asked_for_and_a_missing_light_is_name
         assert torch.equal(v, truth.values[k][order])
     with pytest.raises(ValueError, match=r"t\.zarr: no ground truth for light \[0\.0, 0\.0, 1\.0\]"):
         truth.of(np.array([[0.0, 0.0, 1.0]]), "t.zarr")
+
+
+def test_median_psnr_scores_each_light_against_its_own_truth_row():
+    volume, tf = _blob(), identity_tf()
+    lights = fibonacci_sphere(3)
+    truth = EvalTruth.compute(volume, tf, lights, 32, seed=0)
+    cfg = SirenConfig(width=8, blocks=1)
+    layout = WeightLayout.for_siren(cfg)
+    w = np.stack([layout.flatten(init_siren(cfg, torch.Generator().manual_seed(i))).numpy() for i in range(3)])
+    values = truth.sirens(w, layout, cfg)
+    # truth rows = each light's own SIREN off by 0.1, 0.01 and 0.001: PSNR 20, 40 and 60 dB, median 40
+    truth.values = {k: v + torch.tensor([0.1, 0.01, 0.001])[:, None] for k, v in values.items()}
+    assert truth.median_psnr(w, layout, cfg, lights) == pytest.approx(40.0, abs=1e-3)
+    assert truth.median_psnr(w[[2, 1, 0]], layout, cfg, lights[[2, 1, 0]], "visible") == pytest.approx(40.0, abs=1e-3)
 
 
 def test_blend_baseline_is_the_convex_blend_of_the_chosen_rows():
