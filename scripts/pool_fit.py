@@ -6,7 +6,9 @@ The pool lights (`diffusion.pool_lights`) have exact shadows at `pool_points` po
 on them with the geometry loss, so their PSNR says whether unseen lights are limited by what the model can
 fit (pool lights about as poor as unseen ones) or by interpolation (pool lights near the seen ones). Prints the
 median voxel PSNR at those points of: the stage-1 SIRENs and the generated ones on the training lights, the
-generated SIRENs and the weight blend of the 4 nearest training SIRENs on the pool lights.
+generated SIRENs and the weight blend of the 4 nearest training SIRENs on the pool lights. `--timesteps`
+adds the model's x0 on the pool lights from their training input (the blend noised to t): equal to the
+generated figure when sampling is not what limits them.
 """
 
 from __future__ import annotations
@@ -19,6 +21,7 @@ import torch
 
 from diffshadow import artifacts
 from diffshadow.diffusion.sample import generate, load_sampler
+from diffshadow.diffusion.schedule import Schedule
 from diffshadow.metrics import psnr
 from diffshadow.siren import BatchedSiren, box_to_siren
 
@@ -28,6 +31,7 @@ def main() -> None:
     parser.add_argument("--results", type=Path, default=Path("results/nucleon"))
     parser.add_argument("--checkpoint", default="diffusion_geometry.ckpt", help="file under --results")
     parser.add_argument("--threads", type=int, default=2)
+    parser.add_argument("--timesteps", type=int, nargs="*", default=[], help="score the x0 from the blend noised to t")
     args = parser.parse_args()
     torch.set_num_threads(args.threads)
 
@@ -53,6 +57,14 @@ def main() -> None:
     blend = std.destandardize(pool.x0(std.standardize(data.weights), torch.arange(len(pool.lights)))).float()
     print(f"pool lights ({len(pool.lights)}): generated {median_psnr(generated, pool.points, pool.values):.2f} dB,"
           f" weight blend of the 4 nearest {median_psnr(blend, pool.points, pool.values):.2f} dB")
+    z_blend = std.standardize(blend).float()
+    noise = torch.randn(z_blend.shape, generator=torch.Generator().manual_seed(0))
+    for t in args.timesteps:
+        tt = torch.full((len(z_blend),), t, dtype=torch.long)
+        with torch.no_grad():
+            x0 = model(Schedule().q_sample(z_blend, tt, noise), tt, pool.lights.float())
+        print(f"x0 from the blend noised to t = {t}: "
+              f"{median_psnr(std.destandardize(x0.double()).float(), pool.points, pool.values):.2f} dB")
 
 
 if __name__ == "__main__":
