@@ -54,15 +54,16 @@ def main() -> None:
     pool = data.pool
     generated = generate(model, std, pool.lights.numpy(), steps=steps, temperature=temperature)
     # the pool lights' x0 prior in training: the blend of their nearest training SIRENs' weights
-    blend = std.destandardize(pool.x0(std.standardize(data.weights), torch.arange(len(pool.lights)))).float()
+    z_blend = pool.x0(std.standardize(data.weights).float(), torch.arange(len(pool.lights)))
+    blend = std.destandardize(z_blend.double()).float()
     print(f"pool lights ({len(pool.lights)}): generated {median_psnr(generated, pool.points, pool.values):.2f} dB,"
           f" weight blend of the 4 nearest {median_psnr(blend, pool.points, pool.values):.2f} dB")
-    z_blend = std.standardize(blend).float()
+    schedule = Schedule()
     noise = torch.randn(z_blend.shape, generator=torch.Generator().manual_seed(0))
     for t in args.timesteps:
         tt = torch.full((len(z_blend),), t, dtype=torch.long)
         with torch.no_grad():
-            x0 = model(Schedule().q_sample(z_blend, tt, noise), tt, pool.lights.float())
+            x0 = model(schedule.q_sample(z_blend, tt, noise), tt, pool.lights.float())
         print(f"x0 from the blend noised to t = {t}: "
               f"{median_psnr(std.destandardize(x0.double()).float(), pool.points, pool.values):.2f} dB")
 

@@ -50,9 +50,11 @@ def main() -> None:
 
     def score(st: dict) -> dict:
         model, std, layout, siren = load_sampler(st)
-        return {n: round(truth.median_psnr(generate(model, std, light_sets[n], steps=cfg.ddim_steps, seed=cfg.seed,
-                                                    temperature=cfg.temperature).numpy(), layout, siren,
-                                           light_sets[n]), 2) for n in ("train", "unseen")}
+        out = {}
+        for name in ("train", "unseen"):
+            w = generate(model, std, light_sets[name], steps=cfg.ddim_steps, seed=cfg.seed, temperature=cfg.temperature)
+            out[name] = round(truth.median_psnr(w.numpy(), layout, siren, light_sets[name]), 2)
+        return out
 
     print(json.dumps({"epoch": int(src["epoch"]), **score(src)}), flush=True)
     t0 = time.perf_counter()
