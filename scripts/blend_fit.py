@@ -34,6 +34,8 @@ def main() -> None:
     p.add_argument("spec", nargs="?", default="{}", help="JSON settings over config.yaml's fit section")
     p.add_argument("--results", type=Path, default=Path("results/tooth"))
     p.add_argument("--subset-size", type=int, default=0, help="0: config.yaml's subset_size")
+    p.add_argument("--contiguous", action="store_true",
+                   help="subsets as runs of consecutive light indices (rings around the centre; before light_subsets)")
     p.add_argument("--threads", type=int, default=2)
     p.add_argument("--out", type=Path, default=None)
     a = p.parse_args()
@@ -48,14 +50,14 @@ def main() -> None:
     cfg = dataclasses.replace(FitConfig.from_config(json.loads(a.spec)), steps=chosen.steps)
     size = a.subset_size or int(defaults()["subset_size"])
     t0 = time.perf_counter()
-    weights = []
+    w = np.zeros((len(train), layout.n_params), dtype=np.float32)
     for s in range(n_subsets(len(train), size)):
-        idx = subset_indices(len(train), size, s)
+        idx = (list(range(s * size, min(len(train), (s + 1) * size))) if a.contiguous
+               else subset_indices(train, size, s))
         pool = blend_pool(volume, tf, train, sets["center"], idx, cfg)
         print(f"subset {s}: {len(idx)} lights, {0 if pool is None else len(pool.lights)} pool lights", flush=True)
-        weights.append(fit_sirens(chosen.init, layout, siren, volume, tf, train[idx], cfg, stream=s,
-                                  light_index=idx, pool=pool, log=lambda m: None))
-    w = torch.cat(weights).numpy()
+        w[idx] = fit_sirens(chosen.init, layout, siren, volume, tf, train[idx], cfg, stream=s,
+                            light_index=idx, pool=pool, log=lambda m: None).numpy()  # a subset is a patch, not a run
 
     def scores(w: np.ndarray) -> tuple[float, float]:
         idx, mix = blend_weights(train, sets["unseen"], BLEND_K)

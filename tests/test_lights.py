@@ -113,3 +113,51 @@ def test_blend_weights_sum_to_one_and_favour_the_closest():
     assert idx[:, 0].tolist() == [2, 5] and (w[:, 0] == w.max(1)).all()
     idx, w = blend_weights(train, train[[7]], 3)  # on a training light: (almost) all its own weight
     assert idx[0, 0] == 7 and w[0, 0] > 1 - 1e-5
+
+
+@pytest.mark.parametrize("count,size", [(32, 50), (32, 16), (50, 50), (101, 10), (400, 50)])
+def test_light_subsets_partition_the_lights_into_full_subsets(count, size):
+    from diffshadow.lights import light_subsets, n_subsets, subset_indices
+
+    train = fibonacci_sphere(1600)[select_region(fibonacci_sphere(1600), [0, 0, 1], count)]
+    groups = light_subsets(train, size)
+    assert len(groups) == n_subsets(count, size)
+    assert sorted(i for g in groups for i in g) == list(range(count))
+    assert [len(g) for g in groups[:-1]] == [size] * (len(groups) - 1) and 1 <= len(groups[-1]) <= size
+    assert all(g == sorted(g) for g in groups)
+    assert [subset_indices(train, size, s) for s in range(len(groups))] == groups
+    if count <= size:  # one subset: every light in order (the tiny runs' single job is unchanged)
+        assert groups == [list(range(count))]
+
+
+def test_light_subsets_keep_a_pool_lights_neighbours_together():
+    """The blend loss couples a subset's lights: a pool light's 4 nearest training lights should lie in the
+    subset that takes it (its nearest light's). Runs of consecutive indices are rings around the centre and
+    manage that for about 1 pool light in 10 at 400 lights in subsets of 50; compact patches for most."""
+    from diffshadow.lights import blend_weights, light_subsets, training_pool
+
+    sphere = fibonacci_sphere(1600)
+    train = sphere[select_region(sphere, [0, 0, 1], 400)]
+    pool = training_pool(train, [0, 0, 1], 2048, seed=1)
+    nearest4 = blend_weights(train, pool, 4)[0]
+
+    def together(groups):
+        owner = np.empty(len(train), dtype=int)
+        for s, g in enumerate(groups):
+            owner[g] = s
+        return float((owner[nearest4] == owner[nearest4[:, :1]]).all(axis=1).mean())
+
+    rings = [list(range(s, s + 50)) for s in range(0, 400, 50)]
+    assert together(rings) < 0.2
+    assert together(light_subsets(train, 50)) > 0.6
+
+
+def test_subset_out_of_range_and_bad_size_are_named():
+    from diffshadow.lights import index_ranges, subset_indices
+
+    train = fibonacci_sphere(40)
+    with pytest.raises(ValueError, match=r"subset 4 does not exist: 40 lights in subsets of 10 give subsets 0\.\.3"):
+        subset_indices(train, 10, 4)
+    with pytest.raises(ValueError, match="subset_size must be >= 1, got 0"):
+        subset_indices(train, 0, 0)
+    assert index_ranges([0, 1, 2, 5, 7, 8]) == "0-2, 5, 7-8"

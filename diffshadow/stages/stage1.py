@@ -12,7 +12,7 @@ import torch
 
 from diffshadow import artifacts
 from diffshadow.fit import FitConfig, FitError, blend_pool, check_psnr, choose_layout, evaluate_psnr, fit_sirens
-from diffshadow.lights import make_light_sets, read_lights, subset_indices, write_lights
+from diffshadow.lights import index_ranges, make_light_sets, read_lights, subset_indices, write_lights
 from diffshadow.siren import SirenConfig
 from diffshadow.store import collect_subsets, write_store, write_subset
 
@@ -55,13 +55,13 @@ def fit_subset(volume_path: Path, lights_path: Path, init_path: Path, subset: in
     volume, tf = artifacts.load_prepared(volume_path)
     sets = read_lights(lights_path)
     train = sets["train"]
-    idx = subset_indices(len(train), subset_size, subset)
+    idx = subset_indices(train, subset_size, subset)
     chosen = artifacts.load_siren_init(init_path, siren, fit.steps)
     init, layout, siren = chosen.init, chosen.layout, chosen.siren
     fit = dataclasses.replace(fit, steps=chosen.steps)  # preoptimize's choice: one layout for every subset
     out = Path(out)
     where = f"fit_siren subset {subset} ({volume_path}"
-    print(f"subset {subset}: fitting lights {idx[0]}..{idx[-1]} jointly", flush=True)
+    print(f"subset {subset}: fitting {len(idx)} lights jointly ({index_ranges(idx)})", flush=True)
     t0 = time.perf_counter()
     pool = blend_pool(volume, tf, train, sets["center"], idx, fit, device=device)
     if pool is not None:
