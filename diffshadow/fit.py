@@ -89,7 +89,9 @@ class FitConfig:
     # inverse-angle blend of their nearest training SIRENs' weights, so that the fits vary smoothly with the
     # light and the diffusion model can interpolate them (docs/tuning.md, "Stage-1 fits whose blends fit")
     blend_weight: float = 0.0  # 0: off
-    blend_lights: int = 2048  # pool lights drawn in the training lights' cap (each subset takes its own)
+    # pool lights drawn in the training lights' cap per training light (each subset takes its own): a count
+    # over the cap thinned the pool as lights were added (200 lights: 1 per light -1.8 dB blend, docs/tuning.md)
+    blend_per_light: int = 64
     blend_points: int = 1024  # presampled points with exact shadows per pool light
 
     @classmethod
@@ -98,9 +100,10 @@ class FitConfig:
         cfg = section(cls, "fit", d)
         if not (cfg.chunk == "auto" or (isinstance(cfg.chunk, int) and cfg.chunk >= 0)):
             raise ValueError(f"fit.chunk: expected 'auto' or an integer >= 0, got {cfg.chunk!r}")
-        if cfg.blend_weight < 0 or (cfg.blend_weight > 0 and (cfg.blend_lights < 1 or cfg.blend_points < 1)):
-            raise ValueError(f"fit.blend_weight, blend_lights, blend_points: expected a weight >= 0 and, when it is "
-                             f"above 0, counts >= 1; got {cfg.blend_weight}, {cfg.blend_lights}, {cfg.blend_points}")
+        if cfg.blend_weight < 0 or (cfg.blend_weight > 0 and (cfg.blend_per_light < 1 or cfg.blend_points < 1)):
+            raise ValueError(f"fit.blend_weight, blend_per_light, blend_points: expected a weight >= 0 and, when it "
+                             f"is above 0, counts >= 1; got {cfg.blend_weight}, {cfg.blend_per_light}, "
+                             f"{cfg.blend_points}")
         if cfg.precision not in ("float32", "bfloat16"):
             raise ValueError(f"fit.precision: expected 'float32' or 'bfloat16', got {cfg.precision!r}")
         return cfg
@@ -116,11 +119,16 @@ BLEND_STREAM = -4  # the blend pool's lights and points; each step's pick of the
 
 def blend_pool(volume: Volume, tf: TransferFunction, train: np.ndarray, center, subset: list[int], cfg: FitConfig,
                *, device: torch.device | str = "cpu") -> PoolLights | None:
-    """Pool lights for the blend loss: `cfg.blend_lights` directions drawn in the training lights' cap (the same
-    for every subset), of which this subset takes those whose nearest training light is its own, with their
-    exact shadow at `cfg.blend_points` points, each blended from its `BLEND_K` nearest lights of the subset
-    (`neighbours` are rows of the subset); None when the blend loss is off or the subset has fewer than 2
-    lights. Coupling stays inside a subset, so subsets are still fitted as independent jobs."""
+    """Pool lights for the blend loss: `cfg.blend_per_light` directions per training light drawn in the training
+    lights' cap (the same for every subset), of which this subset takes those whose k = min(BLEND_K,
+    len(subset)) nearest training lights are all its own, with their exact shadow at `cfg.blend_points` points,
+    each blended from those k lights (`neighbours` are rows of the subset); None when the blend loss is off or
+    the subset has fewer than 2 lights. Coupling stays inside a subset, so subsets are still fitted as
+    independent jobs.
+
+    A pool light at a subset's border is left out, not blended from the subset's own nearest lights: that
+    blend is not the one the diffusion model's pool prior and the weight-blend baseline use, and fitting
+    towards it cost nucleon's weight blend 2.7 dB and tooth's 2.6 dB in two subsets of 16 (docs/tuning.md)."""
     from diffshadow.diffusion.geometry import presample
     from diffshadow.diffusion.train import BLEND_K, PoolLights
     from diffshadow.lights import blend_weights, nearest, training_pool
@@ -128,13 +136,14 @@ def blend_pool(volume: Volume, tf: TransferFunction, train: np.ndarray, center, 
     if cfg.blend_weight <= 0 or len(subset) < 2:
         return None
     train = np.asarray(train, dtype=np.float64)
-    lights = training_pool(train, center, cfg.blend_lights, seed=cfg.seed + 7919)  # not presample's pool
-    rows = np.flatnonzero(np.isin(nearest(train, lights, 1)[0][:, 0], subset))
+    k = min(BLEND_K, len(subset))
+    lights = training_pool(train, center, cfg.blend_per_light * len(train), seed=cfg.seed + 7919)  # not presample's
+    rows = np.flatnonzero(np.isin(nearest(train, lights, k)[0], subset).all(axis=1))
     if len(rows) == 0:
         return None
     points, values = presample(volume, tf, lights[rows], cfg.blend_points, seed=cfg.seed, stream=BLEND_STREAM,
                                device=device)
-    idx, mix = blend_weights(train[subset], lights[rows], min(BLEND_K, len(subset)))
+    idx, mix = blend_weights(train[subset], lights[rows], k)
     return PoolLights(lights=torch.as_tensor(lights[rows], device="cpu"), points=points, values=values,
                       neighbours=torch.as_tensor(idx, device="cpu"),
                       blend=torch.as_tensor(mix, dtype=torch.float32, device="cpu"))

@@ -87,7 +87,7 @@ def unseen_directions(train, center, count: int, *, seed: int | list[int] = 0, m
         sin_t = np.sqrt(np.clip(1.0 - cos_t**2, 0.0, None))
         cand = (sin_t * np.cos(phi))[:, None] * basis[0] + (sin_t * np.sin(phi))[:, None] * basis[1]
         cand += cos_t[:, None] * c
-        closest = np.max(cand @ train.T, axis=1)
+        closest = np.concatenate([np.max(block @ train.T, axis=1) for block in _blocks(cand, len(train))])
         keep = cand[closest < np.cos(min_angle)]
         out.extend(keep[:need])
     if len(out) < count:
@@ -106,9 +106,25 @@ def nearest(train: np.ndarray, query: np.ndarray, k: int) -> tuple[np.ndarray, n
     """Indices (Q, k) of the k training directions closest in angle, and their angles (Q, k)."""
     # elementwise products, not `@`: a BLAS product sums in an order the library picks at run time (threads,
     # code path), and a last-bit difference in an angle moved the blend baseline's PSNR between two runs
-    cos = np.clip((query[:, None, :] * train[None, :, :]).sum(axis=-1), -1, 1)
-    idx = np.argsort(-cos, axis=1, kind="stable")[:, :k]
-    return idx, np.arccos(np.take_along_axis(cos, idx, axis=1))
+    idx, angles = [], []
+    for q in _blocks(query, len(train)):  # rows are independent: blocks give the same bytes in bounded memory
+        cos = np.clip((q[:, None, :] * train[None, :, :]).sum(axis=-1), -1, 1)
+        i = np.argsort(-cos, axis=1, kind="stable")[:, :k]
+        idx.append(i)
+        angles.append(np.arccos(np.take_along_axis(cos, i, axis=1)))
+    if not idx:
+        return np.zeros((0, k), dtype=np.int64), np.zeros((0, k))
+    return np.concatenate(idx), np.concatenate(angles)
+
+
+BLOCK_PAIRS = 1 << 22  # (query, training light) pairs per block: ~100 MB of float64 products
+
+
+def _blocks(rows: np.ndarray, n_train: int) -> list[np.ndarray]:
+    """`rows` in blocks of at most BLOCK_PAIRS / n_train: the pool at 2000 lights x 64 (128k directions
+    against 2000 lights) would otherwise take 6 GB at once."""
+    step = max(1, BLOCK_PAIRS // max(1, n_train))
+    return [rows[i:i + step] for i in range(0, len(rows), step)]
 
 
 def inverse_angle_weights(angles: np.ndarray) -> np.ndarray:

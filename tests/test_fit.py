@@ -118,19 +118,28 @@ def _cap_lights():
     return d / np.linalg.norm(d, axis=1, keepdims=True), np.array([0.0, 0.0, 1.0])
 
 
-def test_blend_pool_holds_the_lights_nearest_to_the_subset_blended_from_it(scene):
+def test_blend_pool_holds_the_lights_whose_nearest_are_the_subsets_blended_as_the_model_blends(scene):
+    """A subset takes the pool lights whose 4 nearest training lights are all its own, so the blend it fits
+    them with is the blend of the whole light set (the diffusion model's pool prior, the baseline)."""
     from diffshadow.fit import blend_pool
-    from diffshadow.lights import nearest
+    from diffshadow.lights import blend_weights, fibonacci_sphere, light_subsets, select_region
 
     vol, tf, _ = scene
-    train, center = _cap_lights()
-    cfg = FitConfig.from_config(dict(blend_weight=0.5, blend_lights=40, blend_points=8))
-    pool = blend_pool(vol, tf, train, center, [0, 1], cfg)
-    assert len(pool.lights) > 0 and pool.points.shape == (len(pool.lights), 8, 3)
-    assert set(nearest(train, pool.lights.numpy(), 1)[0][:, 0]) <= {0, 1}  # this subset's share of the pool
-    assert pool.neighbours.max() < 2 and torch.allclose(pool.blend.sum(1), torch.ones(len(pool.lights)))
-    other = blend_pool(vol, tf, train, center, [2, 3], cfg)
-    assert len(pool.lights) + len(other.lights) == 40  # the subsets split one pool
+    sphere = fibonacci_sphere(400)
+    train, center = sphere[select_region(sphere, [0, 0, 1], 32)], np.array([0.0, 0.0, 1.0])
+    cfg = FitConfig.from_config(dict(blend_weight=0.5, blend_per_light=2, blend_points=8))
+    whole = blend_pool(vol, tf, train, center, list(range(32)), cfg)
+    assert len(whole.lights) == 64 and whole.points.shape == (64, 8, 3)  # one subset: the whole pool
+    taken = []
+    for subset in light_subsets(train, 16):
+        pool = blend_pool(vol, tf, train, center, subset, cfg)
+        idx, mix = blend_weights(train, pool.lights.numpy(), 4)
+        assert np.isin(idx, subset).all()
+        assert (np.asarray(subset)[pool.neighbours.numpy()] == idx).all()
+        assert torch.allclose(pool.blend, torch.as_tensor(mix, dtype=torch.float32))
+        taken.append(pool.lights)
+    taken = torch.cat(taken)
+    assert 0 < len(taken) < 64 and len(torch.unique(taken, dim=0)) == len(taken)  # border lights: no subset's
     assert blend_pool(vol, tf, train, center, [0, 1], FitConfig.from_config(dict(blend_weight=0.0))) is None
     assert blend_pool(vol, tf, train, center, [2], cfg) is None  # nothing to blend
 
@@ -146,7 +155,7 @@ def test_blend_loss_makes_weight_blends_fit_the_pool():
     cfg = SirenConfig(16, 1)
     layout = WeightLayout.for_siren(cfg)
     start = layout.flatten(init_siren(cfg, torch.Generator().manual_seed(0)))
-    fit = FitConfig.from_config(dict(steps=150, points=256, lr=3e-3, blend_weight=1.0, blend_lights=64,
+    fit = FitConfig.from_config(dict(steps=150, points=256, lr=3e-3, blend_weight=1.0, blend_per_light=16,
                                      blend_points=256))
     pool = blend_pool(vol, tf, train, center, [0, 1, 2, 3], fit)
     quiet = {"log": lambda *a: None}
@@ -167,7 +176,7 @@ def test_blend_loss_makes_no_tensor_on_the_implicit_default_device(scene):
 
     vol, tf, _ = scene
     train, center = _cap_lights()
-    cfg = FitConfig.from_config(dict(steps=4, points=32, chunk=16, blend_weight=1.0, blend_lights=16, blend_points=8))
+    cfg = FitConfig.from_config(dict(steps=4, points=32, chunk=16, blend_weight=1.0, blend_per_light=4, blend_points=8))
     pool = blend_pool(vol, tf, train, center, [0, 1, 2, 3], cfg)
     a = fit_sirens(init(), LAYOUT, CFG, vol, tf, train, cfg, pool=pool, log=lambda *a: None)
     with default_device_meta():

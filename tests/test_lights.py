@@ -161,3 +161,15 @@ def test_subset_out_of_range_and_bad_size_are_named():
     with pytest.raises(ValueError, match="subset_size must be >= 1, got 0"):
         subset_indices(train, 0, 0)
     assert index_ranges([0, 1, 2, 5, 7, 8]) == "0-2, 5, 7-8"
+
+
+def test_nearest_and_pool_draws_in_blocks_give_the_same_bytes(monkeypatch):
+    import diffshadow.lights as lights
+
+    sphere = fibonacci_sphere(400)
+    train = sphere[select_region(sphere, [0, 0, 1], 100)]
+    whole = lights.nearest(train, sphere, 4), lights.training_pool(train, [0, 0, 1], 300, seed=3)
+    monkeypatch.setattr(lights, "BLOCK_PAIRS", 700)  # blocks of 7 rows
+    blocked = lights.nearest(train, sphere, 4), lights.training_pool(train, [0, 0, 1], 300, seed=3)
+    assert all(np.array_equal(a, b) for a, b in zip(whole[0], blocked[0], strict=True))
+    assert np.array_equal(whole[1], blocked[1])

@@ -10,6 +10,7 @@ import numpy as np
 import pytest
 import yaml
 
+from diffshadow.lights import read_lights, subset_indices
 from diffshadow.store import open_store
 
 REPO = Path(__file__).resolve().parents[1]
@@ -21,7 +22,7 @@ TINY = {
     # min_psnr 0: six steps fit nothing well; the floor itself is tested in tests/stress/test_siren_stress.py
     # target_psnr 0: the sizes as given (the ladder that grows them is tested in tests/test_capacity.py)
     "fit": {"steps": 6, "points": 128, "eval_points": 256, "grid_upsample": 1, "chunk": 0, "min_psnr": 0.0,
-            "target_psnr": 0.0, "blend_lights": 8, "blend_points": 32},
+            "target_psnr": 0.0, "blend_per_light": 2, "blend_points": 32},
     "diffusion": {"preset": "tiny", "epochs": 3, "batch_size": 2, "geometry_points": 16, "presample_points": 64,
                   "checkpoint_every": 1, "ddim_steps": 5, "pool_lights": 4, "pool_points": 32,
                   "max_epochs": 5},
@@ -233,8 +234,11 @@ def test_a_fit_below_the_psnr_floor_is_refused_and_not_stored(finished, tmp_path
                            "--config-json", json.dumps(cfg), "--threads", "1", "--out", str(out)],
                           capture_output=True, text=True, timeout=300)
     assert proc.returncode == 2, proc.stderr[-2000:]
-    assert re.search(r"diffshadow fit-siren: error: fit_siren subset 0 \(.*volume.zarr\): held-out PSNR below "
-                     r"fit.min_psnr = 99.0 dB \(light 0: [\d.]+ dB, light 1: [\d.]+ dB\)", proc.stderr), proc.stderr
+    named = re.search(r"diffshadow fit-siren: error: fit_siren subset 0 \(.*volume.zarr\): held-out PSNR below "
+                      r"fit.min_psnr = 99.0 dB \(light (\d+): [\d.]+ dB, light (\d+): [\d.]+ dB\)", proc.stderr)
+    assert named, proc.stderr
+    train = read_lights(res / "lights.json")["train"]  # the lights of subset 0's patch, by index
+    assert [int(i) for i in named.groups()] == subset_indices(train, TINY["subset_size"], 0)
     assert "Traceback" not in proc.stderr and not out.exists() and not list(tmp_path.iterdir())
 
 
