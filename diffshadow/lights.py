@@ -109,7 +109,7 @@ def nearest(train: np.ndarray, query: np.ndarray, k: int) -> tuple[np.ndarray, n
     idx, angles = [], []
     for q in _blocks(query, len(train)):  # rows are independent: blocks give the same bytes in bounded memory
         cos = np.clip((q[:, None, :] * train[None, :, :]).sum(axis=-1), -1, 1)
-        i = np.argsort(-cos, axis=1, kind="stable")[:, :k]
+        i = np.argsort(-cos, axis=1, kind="stable")[:, :k].copy()  # not a view holding the whole argsort
         idx.append(i)
         angles.append(np.arccos(np.take_along_axis(cos, i, axis=1)))
     if not idx:
