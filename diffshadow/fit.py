@@ -131,22 +131,24 @@ def blend_pool(volume: Volume, tf: TransferFunction, train: np.ndarray, center, 
     towards it cost nucleon's weight blend 2.7 dB and tooth's 2.6 dB in two subsets of 16 (docs/tuning.md)."""
     from diffshadow.diffusion.geometry import presample
     from diffshadow.diffusion.train import BLEND_K, PoolLights
-    from diffshadow.lights import blend_weights, nearest, training_pool
+    from diffshadow.lights import inverse_angle_weights, nearest, training_pool
 
     if cfg.blend_weight <= 0 or len(subset) < 2:
         return None
     train = np.asarray(train, dtype=np.float64)
     k = min(BLEND_K, len(subset))
     lights = training_pool(train, center, cfg.blend_per_light * len(train), seed=cfg.seed + 7919)  # not presample's
-    rows = np.flatnonzero(np.isin(nearest(train, lights, k)[0], subset).all(axis=1))
+    idx, angles = nearest(train, lights, k)
+    rows = np.flatnonzero(np.isin(idx, subset).all(axis=1))
     if len(rows) == 0:
         return None
     points, values = presample(volume, tf, lights[rows], cfg.blend_points, seed=cfg.seed, stream=BLEND_STREAM,
                                device=device)
-    idx, mix = blend_weights(train[subset], lights[rows], k)
+    row_of = np.full(len(train), -1)
+    row_of[subset] = np.arange(len(subset))  # light index -> row of the subset
     return PoolLights(lights=torch.as_tensor(lights[rows], device="cpu"), points=points, values=values,
-                      neighbours=torch.as_tensor(idx, device="cpu"),
-                      blend=torch.as_tensor(mix, dtype=torch.float32, device="cpu"))
+                      neighbours=torch.as_tensor(row_of[idx[rows]], device="cpu"),
+                      blend=torch.as_tensor(inverse_angle_weights(angles[rows]), dtype=torch.float32, device="cpu"))
 
 
 def points_per_pass(chunk: int | str, points: int, device: torch.device) -> int:

@@ -112,8 +112,6 @@ def nearest(train: np.ndarray, query: np.ndarray, k: int) -> tuple[np.ndarray, n
         i = np.argsort(-cos, axis=1, kind="stable")[:, :k].copy()  # not a view holding the whole argsort
         idx.append(i)
         angles.append(np.arccos(np.take_along_axis(cos, i, axis=1)))
-    if not idx:
-        return np.zeros((0, k), dtype=np.int64), np.zeros((0, k))
     return np.concatenate(idx), np.concatenate(angles)
 
 
@@ -121,10 +119,10 @@ BLOCK_PAIRS = 1 << 22  # (query, training light) pairs per block: ~100 MB of flo
 
 
 def _blocks(rows: np.ndarray, n_train: int) -> list[np.ndarray]:
-    """`rows` in blocks of at most BLOCK_PAIRS / n_train: the pool at 2000 lights x 64 (128k directions
-    against 2000 lights) would otherwise take 6 GB at once."""
+    """`rows` in blocks of at most BLOCK_PAIRS / n_train (at least one block, maybe empty): the pool at 2000
+    lights x 64 (128k directions against 2000 lights) would otherwise take 6 GB at once."""
     step = max(1, BLOCK_PAIRS // max(1, n_train))
-    return [rows[i:i + step] for i in range(0, len(rows), step)]
+    return [rows[i:i + step] for i in range(0, max(1, len(rows)), step)]
 
 
 def inverse_angle_weights(angles: np.ndarray) -> np.ndarray:
@@ -222,10 +220,9 @@ def light_subsets(train, subset_size: int) -> list[list[int]]:
     One subset is every light in order, so a run with count <= subset_size is unchanged. Deterministic: it
     compares coordinates only (stable sorts), no sums in a library-chosen order."""
     dirs = np.asarray(train, dtype=np.float64).reshape(-1, 3)
-    _check_size(subset_size)
+    size = _check_size(subset_size)
     if len(dirs) == 0:
         raise LightError("light_subsets: no training lights")
-    size = int(subset_size)
 
     def split(idx: np.ndarray) -> list[list[int]]:
         if len(idx) <= size:

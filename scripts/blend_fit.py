@@ -24,7 +24,7 @@ from diffshadow import artifacts
 from diffshadow.config import defaults
 from diffshadow.diffusion.train import BLEND_K
 from diffshadow.fit import FitConfig, blend_pool, fit_sirens
-from diffshadow.lights import blend_weights, n_subsets, read_lights, subset_indices
+from diffshadow.lights import blend_weights, light_subsets, read_lights
 from diffshadow.siren import SirenConfig
 from diffshadow.store import open_store, write_store
 
@@ -51,9 +51,9 @@ def main() -> None:
     size = a.subset_size or int(defaults()["subset_size"])
     t0 = time.perf_counter()
     w = np.zeros((len(train), layout.n_params), dtype=np.float32)
-    for s in range(n_subsets(len(train), size)):
-        idx = (list(range(s * size, min(len(train), (s + 1) * size))) if a.contiguous
-               else subset_indices(train, size, s))
+    subsets = ([list(range(i, min(len(train), i + size))) for i in range(0, len(train), size)] if a.contiguous
+               else light_subsets(train, size))
+    for s, idx in enumerate(subsets):
         pool = blend_pool(volume, tf, train, sets["center"], idx, cfg)
         print(f"subset {s}: {len(idx)} lights, {0 if pool is None else len(pool.lights)} pool lights", flush=True)
         w[idx] = fit_sirens(chosen.init, layout, siren, volume, tf, train[idx], cfg, stream=s,
