@@ -76,7 +76,10 @@ def test_data_inr_with_error_points_resumes_on_cuda(volume, tmp_path):
     messages = []
     inr = fit_data_inr(volume, TF, cfg, checkpoint=tmp_path / "inr.ckpt", device=CUDA, log=messages.append)
     assert any("resuming" in m for m in messages)
-    assert np.isfinite(inr.psnr) and inr.psnr > 15
+    # 60 steps of a width-16 SIREN reach only ~11 dB (on the CPU too), so no absolute bar: the resumed CUDA run
+    # must end where one uninterrupted CPU run ends. Measured on an H200: 3.6e-7 dB apart.
+    whole = fit_data_inr(volume, TF, cfg, checkpoint=tmp_path / "cpu.ckpt", device="cpu", log=lambda m: None)
+    assert np.isfinite(inr.psnr) and abs(inr.psnr - whole.psnr) < 0.01, (inr.psnr, whole.psnr)
 
 
 def _training_data():
