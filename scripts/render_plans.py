@@ -1,0 +1,112 @@
+"""Side by side: the wavefront marcher's work plans on one device (`MarchPlan` variants), for `inr` and `naive`.
+
+    python scripts/render_plans.py --device cuda --sizes 512 1024
+
+Each variant renders the same frames (hydrogen_atom, the bench's camera, light and fits); the table gives the
+median seconds per frame, the samples sent to the networks, host syncs per frame and the image's PSNR against
+the first variant's (the plan must not change the image; TF32 may). Variants are interleaved per repeat so
+drift on a shared machine hits all alike.
+"""
+
+from __future__ import annotations
+
+import argparse
+import contextlib
+import dataclasses
+import statistics
+
+import numpy as np
+import torch
+
+from diffshadow import render as R
+from diffshadow.artifacts import load_scene_file
+from diffshadow.bench import BENCH_LIGHT
+from diffshadow.bench.profile import op_counts
+from diffshadow.data_inr import DataInrConfig, fit_data_inr
+from diffshadow.fit import FitConfig, fit_sirens
+from diffshadow.metrics import psnr
+from diffshadow.sampling import seeded
+from diffshadow.siren import SirenConfig, WeightLayout, init_siren
+
+DEFAULT_FOR = R.MarchPlan.for_device.__func__
+
+
+def variants(device: torch.device, batch: int) -> dict[str, tuple[R.MarchPlan, bool]]:
+    """name → (plan, TF32 matmuls)."""
+    today = DEFAULT_FOR(R.MarchPlan, device)
+    return {
+        "default": (today, False),
+        "fixed shape (compact_samples off, rows every 4)": (R.MarchPlan(batch=batch, compact_every=4,
+                                                                        compact_samples=False), False),
+        "compact samples, rows every 4": (R.MarchPlan(batch=batch, compact_every=4, compact_samples=True), False),
+        "compact samples, rows every 1": (R.MarchPlan(batch=batch, compact_every=1, compact_samples=True), False),
+        "compact samples, rows every 1, tf32": (R.MarchPlan(batch=batch, compact_every=1, compact_samples=True),
+                                                True),
+    }
+
+
+@contextlib.contextmanager
+def planned(plan: R.MarchPlan, tf32: bool):
+    old = R.MarchPlan.for_device, torch.backends.cuda.matmul.allow_tf32
+    # render() asks MarchPlan.for_device for its plan; the script swaps that one choice and nothing else
+    R.MarchPlan.for_device = classmethod(lambda cls, device, batch=None, min_samples=None: plan)
+    torch.backends.cuda.matmul.allow_tf32 = tf32
+    try:
+        yield
+    finally:
+        R.MarchPlan.for_device, torch.backends.cuda.matmul.allow_tf32 = old[0], old[1]
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--device", default="cpu")
+    ap.add_argument("--sizes", type=int, nargs="+", default=[128, 256])
+    ap.add_argument("--modes", nargs="+", default=["inr", "naive"])
+    ap.add_argument("--inr-steps", type=int, default=3000)
+    ap.add_argument("--repeats", type=int, default=3)
+    ap.add_argument("--batch", type=int, default=R.CUDA_BATCH)
+    a = ap.parse_args()
+    device = torch.device(a.device)
+    scene = load_scene_file("config/scenes/hydrogen_atom.yaml", device)
+    scene.data_inr = fit_data_inr(scene.volume, scene.tf, DataInrConfig.from_config({"steps": a.inr_steps}),
+                                  device=device, log=lambda m: None)
+    cfg = SirenConfig(32, 2)
+    layout = WeightLayout.for_siren(cfg)
+    light = np.asarray(BENCH_LIGHT, float) / np.linalg.norm(BENCH_LIGHT)
+    fit = dataclasses.replace(FitConfig.from_config(), steps=300, grid_upsample=1, chunk=4096)
+    w = fit_sirens(layout.flatten(init_siren(cfg, seeded(0))), layout, cfg, scene.volume, scene.tf, light[None],
+                   fit, device=device, log=lambda m: None)[0]
+    kw = {"light": light, "siren": (w, layout, cfg.blocks)}
+    plans = variants(device, a.batch)
+    sync = torch.cuda.synchronize if device.type == "cuda" else (lambda: None)
+    print(f"device {device}, data INR PSNR {scene.data_inr.psnr:.2f} dB")
+    for n in a.sizes:
+        cam = R.Camera.orbit(scene.volume.extent, azimuth=30.0, elevation=25.0, size=n)
+        for mode in a.modes:
+            secs = {k: [] for k in plans}
+            imgs, counts = {}, {}
+            for _rep in range(a.repeats if mode != "naive" or n <= 256 else 1):
+                for name, (plan, tf32) in plans.items():
+                    with planned(plan, tf32):
+                        sync()
+                        img = scene.render(mode, cam, **kw)
+                        sync()
+                    secs[name].append(img.seconds)
+                    imgs[name] = img
+            for name, (plan, tf32) in plans.items():  # naive's count takes minutes past 256²
+                with planned(plan, tf32):
+                    counted = mode != "naive" or n <= 256
+                    counts[name] = (op_counts(lambda m=mode, c=cam: scene.render(m, c, **kw)) if counted
+                                    else {"ops": -1, "syncs": -1})
+            ref = imgs["default"].rgb
+            for name in plans:
+                c, img = counts[name], imgs[name]
+                p = float(psnr(img.rgb, ref))
+                print(f"{n}x{n} {mode:5s} {name:45s} {statistics.median(secs[name]):8.4f} s "
+                      f"({1 / statistics.median(secs[name]):7.2f} fps)  samples {img.counters.primary_samples:>11,} "
+                      f"+ {img.counters.secondary_samples:>13,}  ops {c['ops']:>6,} syncs {c['syncs']:>4}  "
+                      f"PSNR vs default {p:6.1f} dB", flush=True)
+
+
+if __name__ == "__main__":
+    main()
