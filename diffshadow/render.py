@@ -12,8 +12,8 @@ is not 0 under the transfer function (one vectorised pass, fixed shape). Then ea
    for the step, consistent with the shadow's optical depth);
 4. rays out of samples or whose transmittance fell below `min_transmittance` leave.
 
-`MarchPlan` sizes the work per device: a CPU drops finished rays and absent samples every iteration; a
-GPU keeps shapes fixed between host syncs. Memory is bounded by the plan's batch, never by pixels ×
+`MarchPlan` sizes the work per device: every iteration drops finished rays and absent samples; a GPU takes
+larger batches (fewer iterations, so fewer kernel launches). Memory is bounded by the plan's batch, never by pixels ×
 samples. The naive baseline (`MarchedShadow`) pauses after step 2 and marches a secondary ray toward
 the light from every sample through the same scalar field, with the same marcher.
 
@@ -23,7 +23,6 @@ colour is first lit by Blinn-Phong from the field's gradient. `noshadow` has g =
 
 from __future__ import annotations
 
-import dataclasses
 import math
 import time
 from dataclasses import dataclass, field
@@ -44,7 +43,10 @@ MIN_TRANSMITTANCE = 1e-3  # early ray termination
 SHADOW_TAU_MAX = 10.0  # secondary rays stop here: g < 5e-5, below an 8-bit pixel's resolution
 SAMPLES_PER_ITER = 8  # the fewest samples a live ray takes per iteration (more when fewer rays are live)
 BATCH = 1 << 16  # samples per network inference on a CPU (2 cores, hydrogen_atom: 2^17 0.8x, 2^18 0.5x)
-CUDA_BATCH = 1 << 20  # on a GPU: enough work to fill it between host syncs
+# On a GPU the frame's cost is mostly kernel launches (~250 per iteration, ~23 µs each on an H200): fewer, larger
+# iterations win. Peak memory grows by ~1.1 KiB per sample of the batch (bench render: +1.13 GiB at 2^20).
+CUDA_SAMPLE_BYTES = 1280
+CUDA_BATCH_MIN, CUDA_BATCH_MAX = 1 << 18, 1 << 22
 BACKGROUND = 1.0
 AMBIENT, DIFFUSE, SPECULAR, SHININESS = 0.3, 0.7, 0.2, 32.0
 MODES = ("noshadow", "gt", "inr", "naive")
@@ -269,24 +271,22 @@ class MarchPlan:
     """How the marcher sizes its work on one device (the images do not depend on it).
 
     Each iteration sends about `batch` samples to the network: every live ray takes the same number of
-    samples, `batch` / live rays, at least `min_samples`. On a CPU the live rays are compacted every
-    iteration and only samples inside occupied cells are evaluated (two host syncs per iteration, both
-    cheap there). On a GPU a host sync stalls the queue, so the shapes stay fixed for `compact_every`
-    iterations: finished rays ride along masked, and padding samples are evaluated and thrown away.
-    Rays are marched in tiles of `batch // min_samples`, so memory is bounded by the batch whatever the
-    image size.
+    samples, `batch` / live rays, at least `min_samples`. Every iteration drops finished rays and evaluates
+    only the samples inside occupied cells (two host syncs per iteration). On an H200 that beat keeping
+    shapes fixed between syncs (finished rays masked, absent samples evaluated and thrown away), which sent
+    2.5x the samples to the networks: 1.44x faster at 512², 1.2x at 1024² (scripts/render_plans.py,
+    docs/tuning.md). Rays are marched in tiles of `batch // min_samples`, so memory is bounded by the batch
+    whatever the image size.
     """
 
     batch: int = BATCH
     min_samples: int = SAMPLES_PER_ITER
     max_samples: int = 256
-    compact_every: int = 1
-    compact_samples: bool = True
 
     @classmethod
     def for_device(cls, device: torch.device, batch: int | None = None, min_samples: int | None = None) -> MarchPlan:
-        plan = cls(batch=CUDA_BATCH, compact_every=4, compact_samples=False) if device.type == "cuda" else cls()
-        return dataclasses.replace(plan, batch=batch or plan.batch, min_samples=min_samples or plan.min_samples)
+        default = cuda_batch(device) if device.type == "cuda" else BATCH
+        return cls(batch=batch or default, min_samples=min_samples or SAMPLES_PER_ITER)
 
     @property
     def tile(self) -> int:
@@ -295,10 +295,13 @@ class MarchPlan:
     def samples_per_ray(self, live: int) -> int:
         return int(min(self.max_samples, max(self.min_samples, self.batch // max(live, 1))))
 
-    def evaluated(self, valid: torch.Tensor) -> torch.Tensor | None:
-        """Flat indices of the samples to evaluate: the existing ones when this plan compacts samples, else
-        None (all of them; absent ones are masked afterwards)."""
-        return torch.nonzero(valid.view(-1)).flatten() if self.compact_samples else None
+
+def cuda_batch(device: torch.device) -> int:
+    """Samples per iteration on a GPU: the largest power of two whose batch takes at most 1/12 of the device's
+    memory, within [2^18, 2^22] (80 GiB: 2^22, 40 GiB: 2^21, 8 GiB: 2^19)."""
+    total = torch.cuda.get_device_properties(device).total_memory
+    fits = max(1, total // 12 // CUDA_SAMPLE_BYTES)
+    return min(CUDA_BATCH_MAX, max(CUDA_BATCH_MIN, 1 << (fits.bit_length() - 1)))
 
 
 @dataclass
@@ -372,8 +375,7 @@ def _march(o, d, t0, t1, dt: float, macro: MacroGrid | None, plan: MarchPlan, st
             m[rows] += n
             left -= n
             i += 1
-            if i % plan.compact_every == 0 or left <= 0:
-                rows = rows[(m[rows] < runs.total[rows]) & ~done(rr)]
+            rows = rows[(m[rows] < runs.total[rows]) & ~done(rr)]
         iterations += i
     return iterations
 
@@ -428,14 +430,10 @@ class MarchedShadow:
 
         def step(rows, t, valid):
             pts = (p[rows, None] + t[..., None] * d[rows, None]).view(-1, 3)
-            idx = plan.evaluated(valid)
-            if idx is None:
-                s, n = self.scalar.value(pts), valid.numel()
-            else:
-                s = torch.zeros(valid.numel(), device=device).index_copy_(0, idx, self.scalar.value(pts[idx]))
-                n = len(idx)
+            idx = torch.nonzero(valid.view(-1)).flatten()
+            s = torch.zeros(valid.numel(), device=device).index_copy_(0, idx, self.scalar.value(pts[idx]))
             if self.counters is not None:
-                self.counters.secondary_samples += n
+                self.counters.secondary_samples += len(idx)
             tau[rows] += (self.tf.extinction(s.view(valid.shape)) * valid).sum(1) * self.dt
 
         _march(p, d, t0, t1, self.dt, self.macro, plan, step, lambda rows: tau[rows] >= self.tau_max)
@@ -501,8 +499,8 @@ def render(
 
     def composite(rows, t, valid):
         pts = (o[rows, None] + t[..., None] * d[rows, None]).view(-1, 3)
-        idx = plan.evaluated(valid)
-        flat = pts if idx is None else pts[idx]
+        idx = torch.nonzero(valid.view(-1)).flatten()
+        flat = pts[idx]
         counters.primary_samples += len(flat)
         if len(flat) == 0:
             return
@@ -510,15 +508,11 @@ def render(
         g = shadow(flat) if shadow is not None else None
         view = None
         if shading.phong:
-            view = d[rows, None].expand(*valid.shape, 3).reshape(-1, 3)
-            view = view if idx is None else view[idx]
+            view = d[rows, None].expand(*valid.shape, 3).reshape(-1, 3)[idx]
         a = 1 - torch.exp(-tf.extinction(s) * dt)
         c = _shade(tf, s, grad, g, view, w, shading)
-        if idx is None:
-            alpha, rgb = a * valid.view(-1), c
-        else:
-            alpha = torch.zeros(valid.numel(), device=device).index_copy_(0, idx, a)
-            rgb = torch.zeros(valid.numel(), 3, device=device).index_copy_(0, idx, c)
+        alpha = torch.zeros(valid.numel(), device=device).index_copy_(0, idx, a)
+        rgb = torch.zeros(valid.numel(), 3, device=device).index_copy_(0, idx, c)
         weight, through = front_to_back(alpha.view(valid.shape))
         color[rows] += ((trans[rows, None] * weight)[..., None] * rgb.view(*valid.shape, 3)).sum(1)
         trans[rows] *= through

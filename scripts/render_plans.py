@@ -31,18 +31,15 @@ from diffshadow.siren import SirenConfig, WeightLayout, init_siren
 DEFAULT_FOR = R.MarchPlan.for_device.__func__
 
 
-def variants(device: torch.device, batch: int) -> dict[str, tuple[R.MarchPlan, bool]]:
-    """name → (plan, TF32 matmuls)."""
-    today = DEFAULT_FOR(R.MarchPlan, device)
-    return {
-        "default": (today, False),
-        "fixed shape (compact_samples off, rows every 4)": (R.MarchPlan(batch=batch, compact_every=4,
-                                                                        compact_samples=False), False),
-        "compact samples, rows every 4": (R.MarchPlan(batch=batch, compact_every=4, compact_samples=True), False),
-        "compact samples, rows every 1": (R.MarchPlan(batch=batch, compact_every=1, compact_samples=True), False),
-        "compact samples, rows every 1, tf32": (R.MarchPlan(batch=batch, compact_every=1, compact_samples=True),
-                                                True),
-    }
+def variants(device: torch.device) -> dict[str, tuple[R.MarchPlan, bool]]:
+    """name → (plan, TF32 matmuls). On an H200 (2026-11-25), before the plan compacted on every device, a
+    fixed-shape plan (finished rays masked for 4 iterations, absent samples evaluated) sent 2.5x the samples
+    and was 1.45x slower at 512², 1.2x at 1024² (docs/tuning.md)."""
+    out = {"default": (DEFAULT_FOR(R.MarchPlan, device), False)}
+    for lb in (16, 20, 21, 22):
+        out[f"batch 2^{lb}"] = (R.MarchPlan(batch=1 << lb), False)
+    out["default, tf32"] = (out["default"][0], True)
+    return out
 
 
 @contextlib.contextmanager
@@ -64,7 +61,6 @@ def main() -> None:
     ap.add_argument("--modes", nargs="+", default=["inr", "naive"])
     ap.add_argument("--inr-steps", type=int, default=3000)
     ap.add_argument("--repeats", type=int, default=3)
-    ap.add_argument("--batch", type=int, default=R.CUDA_BATCH)
     a = ap.parse_args()
     device = torch.device(a.device)
     scene = load_scene_file("config/scenes/hydrogen_atom.yaml", device)
@@ -77,7 +73,7 @@ def main() -> None:
     w = fit_sirens(layout.flatten(init_siren(cfg, seeded(0))), layout, cfg, scene.volume, scene.tf, light[None],
                    fit, device=device, log=lambda m: None)[0]
     kw = {"light": light, "siren": (w, layout, cfg.blocks)}
-    plans = variants(device, a.batch)
+    plans = variants(device)
     sync = torch.cuda.synchronize if device.type == "cuda" else (lambda: None)
     print(f"device {device}, data INR PSNR {scene.data_inr.psnr:.2f} dB")
     for n in a.sizes:
@@ -102,7 +98,8 @@ def main() -> None:
             for name in plans:
                 c, img = counts[name], imgs[name]
                 p = float(psnr(img.rgb, ref))
-                print(f"{n}x{n} {mode:5s} {name:45s} {statistics.median(secs[name]):8.4f} s "
+                print(f"{n}x{n} {mode:5s} {name:14s} batch {plans[name][0].batch:>9,} "
+                      f"{statistics.median(secs[name]):8.4f} s "
                       f"({1 / statistics.median(secs[name]):7.2f} fps)  samples {img.counters.primary_samples:>11,} "
                       f"+ {img.counters.secondary_samples:>13,}  ops {c['ops']:>6,} syncs {c['syncs']:>4}  "
                       f"PSNR vs default {p:6.1f} dB", flush=True)

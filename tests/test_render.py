@@ -15,6 +15,7 @@ from diffshadow.render import (
     GridShadow,
     MacroGrid,
     MarchedShadow,
+    MarchPlan,
     RenderError,
     RenderScene,
     Shading,
@@ -115,6 +116,19 @@ def test_inference_batches_never_exceed_batch(blob):
     shadow = MarchedShadow(Spy(), TF, blob.extent, vox, batch=128)
     render(cam, Spy(), TF, blob.extent, vox, light=LIGHT, shadow=shadow, batch=128)
     assert max(sizes) <= 128 and len(sizes) > 10
+
+
+@pytest.mark.parametrize("gib, batch", [(80, 1 << 22), (40, 1 << 21), (8, 1 << 19), (1, 1 << 18), (640, 1 << 22)])
+def test_cuda_batch_follows_the_device_memory(monkeypatch, gib, batch):
+    """A GPU's batch is the largest power of two within 1/12 of its memory, clamped to [2^18, 2^22]; an
+    explicit batch wins; the CPU keeps its cache-sized default."""
+    class Props:
+        total_memory = gib * 2**30
+
+    monkeypatch.setattr(torch.cuda, "get_device_properties", lambda device: Props)
+    assert MarchPlan.for_device(torch.device("cuda")).batch == batch
+    assert MarchPlan.for_device(torch.device("cuda"), batch=4096).batch == 4096
+    assert MarchPlan.for_device(torch.device("cpu")).batch == 1 << 16
 
 
 def test_constant_shadow_inr_scales_colour_by_the_authors_formula(blob):
