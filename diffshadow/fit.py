@@ -25,7 +25,7 @@ from diffshadow.io import atomic_torch_save, resume
 from diffshadow.metrics import psnr
 from diffshadow.progress import eta
 from diffshadow.sampling import PointSampler, seeded
-from diffshadow.shadow import ShadowField, shadow_grid, transmittance
+from diffshadow.shadow import ShadowField, shadow_grid, transmittance_per_light
 from diffshadow.siren import BatchedSiren, SirenConfig, WeightLayout, box_to_siren, cosine_lr, init_siren
 from diffshadow.transfer import TransferFunction
 from diffshadow.volume import Volume, refine
@@ -225,7 +225,7 @@ def fit_sirens(
             if grids is not None:
                 target = lookup_grids(grids, pts, extent)
             else:
-                target = torch.stack([transmittance(field, tf, w, p) for w, p in zip(lights, pts, strict=True)])
+                target = transmittance_per_light(field, tf, lights, pts)
         opt.zero_grad(set_to_none=True)
         per_siren = torch.zeros(k, device=device)
         for c0 in range(0, cfg.points, chunk):
@@ -319,7 +319,7 @@ def evaluate_psnr(
         model = BatchedSiren(weights.to(device), layout, siren.blocks)
         for pts in (box, vis):
             pred = model(box_to_siren(pts.to(device), extent.to(device)))
-            truth = torch.stack([transmittance(field, tf, w, p.to(device)) for w, p in zip(lights, pts, strict=True)])
+            truth = transmittance_per_light(field, tf, lights, pts)
             out.append(psnr(pred, truth, dim=1).cpu().numpy())
     return out[0], out[1]
 

@@ -5,13 +5,14 @@ import warnings
 import numpy as np
 import pytest
 import torch
-from conftest import identity_tf
+from conftest import default_device_meta, identity_tf
 
+from diffshadow import shadow as shadow_module
 from diffshadow.analytic import BLOB_DENSITY as K
 from diffshadow.analytic import BLOB_SIGMA as SIGMA
 from diffshadow.analytic import blob_cases, blob_transmittance, gaussian_blob
 from diffshadow.lights import LightError
-from diffshadow.shadow import ShadowField, shadow_grid, transmittance
+from diffshadow.shadow import ShadowField, shadow_grid, transmittance, transmittance_per_light
 from diffshadow.transfer import TransferFunction
 from diffshadow.volume import load_volume
 
@@ -165,6 +166,37 @@ def test_bad_step_method_and_points(blob):
         shadow_grid(blob, tf, (0, 0, 1), method="raytrace")
     with pytest.raises(ValueError, match=r"points: expected shape \(P, 3\)"):
         transmittance(blob, tf, (0, 0, 1), [0.5, 0.5, 0.5])
+
+
+LIGHTS = np.array([[0.2, 0.3, 0.9], [0.0, 0.0, -1.0], [1.0, 0.0, 0.0], [-0.5, 0.7, 0.1], [0.3, -0.2, -0.9]])
+
+
+@pytest.mark.parametrize("rays_per_march", [1 << 21, 96])
+def test_lights_marched_together_equal_light_by_light(blob, monkeypatch, rays_per_march):
+    """Same bytes as one `transmittance` per light, at each light's own points and at shared points, in one
+    group or split into groups (96 rays: two lights per group), with points outside the box too."""
+    monkeypatch.setattr(shadow_module, "RAYS_PER_MARCH", rays_per_march)
+    field = ShadowField.build(blob, identity_tf(K))
+    pts = torch.rand(len(LIGHTS), 40, 3, generator=torch.Generator().manual_seed(0)) * 1.4 - 0.2
+    one_by_one = torch.stack([transmittance(field, field.tf, w, p) for w, p in zip(LIGHTS, pts, strict=True)])
+    assert torch.equal(transmittance_per_light(field, field.tf, LIGHTS, pts), one_by_one)
+    shared = torch.stack([transmittance(field, field.tf, w, pts[0]) for w in LIGHTS])
+    assert torch.equal(transmittance_per_light(field, field.tf, LIGHTS, pts[0].numpy()), shared)
+    assert transmittance_per_light(field, field.tf, np.zeros((0, 3)), pts[0]).shape == (0, 40)
+    with default_device_meta():  # tensors made where they are used (the CUDA path's guard)
+        assert torch.equal(transmittance_per_light(field, field.tf, LIGHTS, pts), one_by_one)
+
+
+def test_lights_marched_together_reject_bad_input(blob):
+    tf = identity_tf()
+    with pytest.raises(LightError, match=r"lights\[1\]: .*non-zero"):
+        transmittance_per_light(blob, tf, [[0, 0, 1], [0, 0, 0]], [[0.5, 0.5, 0.5]])
+    with pytest.raises(LightError, match=r"lights: expected \(L, 3\) directions"):
+        transmittance_per_light(blob, tf, [[0, 0, 1, 0, 1]], [[0.5, 0.5, 0.5]])
+    with pytest.raises(ValueError, match=r"points: expected one set per light \(2\), got 3"):
+        transmittance_per_light(blob, tf, [[0, 0, 1], [0, 1, 0]], np.full((3, 4, 3), 0.5))
+    with pytest.raises(ValueError, match="step: expected a positive number"):
+        transmittance_per_light(blob, tf, [[0, 0, 1]], [[0.5, 0.5, 0.5]], step=-1)
 
 
 def test_same_input_same_bytes(blob):

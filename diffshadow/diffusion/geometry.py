@@ -7,7 +7,7 @@ import numpy as np
 import torch
 
 from diffshadow.sampling import PointSampler, seeded
-from diffshadow.shadow import ShadowField, transmittance
+from diffshadow.shadow import ShadowField, transmittance_per_light
 from diffshadow.siren import BatchedSiren, SirenConfig, WeightLayout, box_to_siren
 from diffshadow.volume import Volume
 
@@ -34,7 +34,7 @@ def presample(volume: Volume, tf, lights: np.ndarray, n_points: int, *, seed: in
     CPU, whatever device marched them (the points are drawn on the CPU: the same on every device)."""
     field = ShadowField.build(volume, tf, device=device)
     pts = PointSampler(volume, tf, visible_fraction).sample(len(lights), n_points, seeded(seed, stream))
-    values = torch.stack([transmittance(field, tf, w, p.to(device)).cpu() for w, p in zip(lights, pts, strict=True)])
+    values = transmittance_per_light(field, tf, lights, pts).cpu()
     return pts, values
 
 
@@ -58,5 +58,5 @@ def check_points(volume: Volume, tf, lights: np.ndarray, n_points: int = CHECK_P
     gen = seeded(seed, CHECK_STREAM)
     pts = torch.rand(n_points, 3, generator=gen, device=gen.device) * extent
     checked = np.asarray(lights)[check_rows(len(lights)).numpy()]
-    values = torch.stack([transmittance(field, tf, w, pts.to(device)).cpu() for w in checked])
+    values = transmittance_per_light(field, tf, checked, pts).cpu()
     return pts, values
