@@ -31,6 +31,8 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
+from diffshadow.fused import FusedSiren, fused_setting
+from diffshadow.fused import available as fused_available
 from diffshadow.grid import cell_ranges, ray_span, trilinear
 from diffshadow.lights import as_direction
 from diffshadow.siren import BatchedSiren, Siren, WeightLayout, box_to_siren
@@ -213,16 +215,18 @@ class GridScalar:
 
 
 class InrScalar:
-    """The data INR (a SIREN of the scalar field); gradients by autograd through the network."""
+    """The data INR (a SIREN of the scalar field); gradients by autograd through the network. `fused`: the
+    fused kernel's precision for values (`diffshadow.fused`), None for the eager SIREN."""
 
-    def __init__(self, model: Siren, extent, device: torch.device | str = "cpu"):
+    def __init__(self, model: Siren, extent, device: torch.device | str = "cpu", fused: str | None = None):
         self.model = model.to(device).eval()
         for q in self.model.parameters():
             q.requires_grad_(False)
         self.extent = torch.as_tensor(np.asarray(extent), dtype=torch.float32, device=device)
+        self.fast = FusedSiren(self.model.named_tensors(), self.model.cfg.blocks, fused) if fused else self.model
 
     def value(self, p: torch.Tensor) -> torch.Tensor:
-        return self.model(box_to_siren(p, self.extent))
+        return self.fast(box_to_siren(p, self.extent))
 
     def value_and_grad(self, p: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         with torch.enable_grad():
@@ -247,13 +251,16 @@ class GridShadow:
 class SirenShadow:
     """A shadow INR (one flat weight vector in `layout`), evaluated in the same pass as the data INR."""
 
-    def __init__(self, weights, layout: WeightLayout, blocks: int, extent, device: torch.device | str = "cpu"):
+    def __init__(self, weights, layout: WeightLayout, blocks: int, extent, device: torch.device | str = "cpu",
+                 fused: str | None = None):
         w = torch.as_tensor(np.asarray(weights), dtype=torch.float32, device=device).reshape(1, -1)
         self.model = BatchedSiren(w, layout, blocks)
+        self.fused = FusedSiren({k: v[0] for k, v in self.model.params.items()}, blocks, fused) if fused else None
         self.extent = torch.as_tensor(np.asarray(extent), dtype=torch.float32, device=device)
 
     def __call__(self, p: torch.Tensor) -> torch.Tensor:
-        return self.model(box_to_siren(p, self.extent)[None])[0].clamp(0.0, 1.0)
+        x = box_to_siren(p, self.extent)
+        return (self.fused(x) if self.fused else self.model(x[None])[0]).clamp(0.0, 1.0)
 
 
 # -------------------------------------------------------------------------------------- the wavefront loop
@@ -573,6 +580,8 @@ class RenderScene:
                  gt_method: str = "march", gt_upsample: int = 1, cell: int = RENDER_CELL):
         self.volume, self.tf, self.data_inr = volume, tf, data_inr
         self.device = torch.device(device)
+        # the SIRENs' kernel for values: DIFFSHADOW_FUSED_SIREN where Triton runs on this device, else eager
+        self.fused = fused_setting() if fused_available(self.device) else None
         self.gt_method, self.gt_upsample, self.cell = gt_method, gt_upsample, cell
         self.voxel = float(np.min(volume.voxel_size))
         self._cache: dict = {}
@@ -588,7 +597,8 @@ class RenderScene:
         if source == "inr":
             if self.data_inr is None:
                 raise RenderError("scalar 'inr' needs a data INR (train_data_inr's data_inr.pt)")
-            return self._cached("inr", lambda: InrScalar(self.data_inr.model, self.volume.extent, self.device))
+            return self._cached(("inr", self.fused), lambda: InrScalar(self.data_inr.model, self.volume.extent,
+                                                                       self.device, self.fused))
         raise RenderError(f"scalar: expected 'grid' or 'inr', got {source!r}")
 
     def macro(self, source: str, skip: bool) -> MacroGrid | None:
@@ -644,7 +654,7 @@ class RenderScene:
             if siren is None:
                 raise RenderError("mode 'inr': needs the shadow INR's weights")
             weights, layout, blocks = siren
-            shadow = SirenShadow(weights, layout, blocks, self.volume.extent, self.device)
+            shadow = SirenShadow(weights, layout, blocks, self.volume.extent, self.device, self.fused)
         elif mode == "naive":
             shadow = MarchedShadow(field_, self.tf, self.volume.extent, self.voxel, step=step, macro=macro,
                                    samples_per_iter=samples_per_iter, batch=batch)

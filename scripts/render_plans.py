@@ -4,8 +4,9 @@
 
 Each variant renders the same frames (hydrogen_atom, the bench's camera, light and fits); the table gives the
 median seconds per frame, the samples sent to the networks, host syncs per frame and the image's PSNR against
-the first variant's (the plan must not change the image; TF32 may). Variants are interleaved per repeat so
-drift on a shared machine hits all alike.
+the first variant's (the plan must not change the image; TF32 and the fused SIREN may, a little). Variants are
+interleaved per repeat so drift on a shared machine hits all alike. The fused SIREN's variants appear where
+its kernel runs (CUDA with Triton; on the CPU only under TRITON_INTERPRET=1, slowly).
 """
 
 from __future__ import annotations
@@ -24,6 +25,7 @@ from diffshadow.bench import BENCH_LIGHT
 from diffshadow.bench.profile import op_counts
 from diffshadow.data_inr import DataInrConfig, fit_data_inr
 from diffshadow.fit import FitConfig, fit_sirens
+from diffshadow.fused import available as fused_available
 from diffshadow.metrics import psnr
 from diffshadow.sampling import seeded
 from diffshadow.siren import SirenConfig, WeightLayout, init_siren
@@ -31,20 +33,25 @@ from diffshadow.siren import SirenConfig, WeightLayout, init_siren
 DEFAULT_FOR = R.MarchPlan.for_device.__func__
 
 
-def variants(device: torch.device) -> dict[str, tuple[R.MarchPlan, bool]]:
-    """name → (plan, TF32 matmuls). On an H200 (2026-11-25), before the plan compacted on every device, a
-    fixed-shape plan (finished rays masked for 4 iterations, absent samples evaluated) sent 2.5x the samples
-    and was 1.45x slower at 512², 1.2x at 1024² (docs/tuning.md)."""
-    out = {"default": (DEFAULT_FOR(R.MarchPlan, device), False)}
+def variants(device: torch.device) -> dict[str, tuple[R.MarchPlan, bool, str | None]]:
+    """name → (plan, TF32 matmuls, fused SIREN precision or None). On an H200 (2026-11-25), before the plan
+    compacted on every device, a fixed-shape plan (finished rays masked for 4 iterations, absent samples
+    evaluated) sent 2.5x the samples and was 1.45x slower at 512², 1.2x at 1024² (docs/tuning.md)."""
+    default = DEFAULT_FOR(R.MarchPlan, device)
+    out = {"default": (default, False, None)}
     for lb in (16, 20, 21, 22):
-        out[f"batch 2^{lb}"] = (R.MarchPlan(batch=1 << lb), False)
-    out["default, tf32"] = (out["default"][0], True)
+        out[f"batch 2^{lb}"] = (R.MarchPlan(batch=1 << lb), False, None)
+    out["tf32 matmuls"] = (default, True, None)
+    if fused_available(device):
+        out["fused fp32"] = (default, False, "ieee")
+        out["fused tf32"] = (default, False, "tf32")
     return out
 
 
 @contextlib.contextmanager
-def planned(plan: R.MarchPlan, tf32: bool):
+def planned(scene: R.RenderScene, plan: R.MarchPlan, tf32: bool, fused: str | None):
     old = R.MarchPlan.for_device, torch.backends.cuda.matmul.allow_tf32
+    scene.fused = fused
     # render() asks MarchPlan.for_device for its plan; the script swaps that one choice and nothing else
     R.MarchPlan.for_device = classmethod(lambda cls, device, batch=None, min_samples=None: plan)
     torch.backends.cuda.matmul.allow_tf32 = tf32
@@ -82,15 +89,15 @@ def main() -> None:
             secs = {k: [] for k in plans}
             imgs, counts = {}, {}
             for _rep in range(a.repeats if mode != "naive" or n <= 256 else 1):
-                for name, (plan, tf32) in plans.items():
-                    with planned(plan, tf32):
+                for name, variant in plans.items():
+                    with planned(scene, *variant):
                         sync()
                         img = scene.render(mode, cam, **kw)
                         sync()
                     secs[name].append(img.seconds)
                     imgs[name] = img
-            for name, (plan, tf32) in plans.items():  # naive's count takes minutes past 256²
-                with planned(plan, tf32):
+            for name, variant in plans.items():  # naive's count takes minutes past 256²
+                with planned(scene, *variant):
                     counted = mode != "naive" or n <= 256
                     counts[name] = (op_counts(lambda m=mode, c=cam: scene.render(m, c, **kw)) if counted
                                     else {"ops": -1, "syncs": -1})

@@ -120,6 +120,24 @@ def test_render_agrees_with_cpu(volume, mode):
     assert float((a.rgb - b.rgb.cpu()).abs().max()) <= 1e-4
 
 
+@pytest.mark.parametrize("precision, tolerance", [("ieee", 1e-5), ("tf32", 2e-2)])
+def test_fused_siren_agrees_with_eager_on_cuda(precision, tolerance):
+    """The Triton kernel compiled for the GPU (the CPU tests run its interpreter): the data INR's size and the
+    shadow SIREN's, against the eager SIREN on the same device. TF32 rounds the hidden layers' inputs to 10
+    mantissa bits; its image PSNR is what scripts/render_plans.py reports."""
+    pytest.importorskip("triton")
+    from diffshadow.fused import FusedSiren
+    from diffshadow.siren import Siren
+
+    for width in (32, 64):
+        model = Siren(SirenConfig(width, 2), torch.Generator().manual_seed(width)).to(CUDA)
+        x = torch.rand(100_003, 3, generator=torch.Generator().manual_seed(1)).to(CUDA) * 2 - 1
+        with torch.no_grad():
+            ref = model(x)
+        got = FusedSiren(model.named_tensors(), 2, precision)(x)
+        assert float((got - ref).abs().max()) <= tolerance, (width, precision)
+
+
 def test_deterministic_mode_repeats_bytes(tmp_path):
     """DIFFSHADOW_DETERMINISTIC=1 in a fresh process: two trainings on CUDA give the same bytes."""
     script = tmp_path / "twice.py"

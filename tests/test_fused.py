@@ -1,0 +1,81 @@
+"""The fused SIREN kernel against the eager SIREN (the reference), run on the CPU by Triton's interpreter:
+widths and depths, ragged tails, empty input, the renderer's images, the setting and bad input."""
+
+import importlib.util
+
+import numpy as np
+import pytest
+import torch
+
+from diffshadow import fused
+from diffshadow.analytic import gaussian_blob
+from diffshadow.fused import FusedSiren, FusedSirenError, fused_setting
+from diffshadow.render import Camera, RenderScene
+from diffshadow.siren import Siren, SirenConfig, WeightLayout, init_siren
+from diffshadow.transfer import TransferFunction
+from diffshadow.volume import Volume
+
+# not imported here: Triton reads TRITON_INTERPRET when it is first imported, by the kernel's first use
+pytestmark = pytest.mark.skipif(importlib.util.find_spec("triton") is None,
+                                reason="Triton not installed (`pip install -e .[dev]` brings it; CUDA PyTorch has it)")
+
+
+@pytest.fixture(autouse=True)
+def interpreter(monkeypatch):
+    monkeypatch.setenv("TRITON_INTERPRET", "1")
+
+
+@pytest.mark.parametrize("width, blocks", [(16, 0), (32, 2), (64, 2), (64, 1)])
+@pytest.mark.parametrize("precision", ["ieee", "tf32"])
+def test_kernel_equals_the_eager_siren(width, blocks, precision):
+    model = Siren(SirenConfig(width, blocks), torch.Generator().manual_seed(width + blocks))
+    # trained-looking weights, not only the init: larger hidden weights make the sines' arguments larger
+    with torch.no_grad():
+        for p in model.parameters():
+            p.mul_(1.5)
+    x = torch.rand(1000, 3, generator=torch.Generator().manual_seed(1)) * 2 - 1  # 1000: a ragged last tile
+    with torch.no_grad():
+        ref = model(x)
+    got = FusedSiren(model.named_tensors(), blocks, precision)(x)
+    assert got.shape == ref.shape and float((got - ref).abs().max()) <= 1e-5
+    assert FusedSiren(model.named_tensors(), blocks, precision)(x[:0]).shape == (0,)
+
+
+def test_renderer_images_equal_with_the_fused_kernel(monkeypatch):
+    a = gaussian_blob(33, 0.15)
+    volume = Volume(data=a, extent=np.ones(3), name="blob")
+    tf = TransferFunction.from_config({"opacity": [[0, 0], [0.2, 0], [1, 0.8]],
+                                       "color": [[0, 0.2, 0.4, 0.9], [1, 1, 0.3, 0.2]], "density_scale": 20})
+
+    class DataInr:  # what RenderScene reads of a data INR
+        model = Siren(SirenConfig(32, 1), torch.Generator().manual_seed(3))
+        cell_lo = cell_hi = None
+
+    siren = SirenConfig(16, 2)
+    layout = WeightLayout.for_siren(siren)
+    weights = layout.flatten(init_siren(siren, torch.Generator().manual_seed(4))).numpy()
+    cam = Camera.orbit(volume.extent, azimuth=30.0, elevation=25.0, size=24)
+    images = {}
+    for setting in ("0", "1"):
+        monkeypatch.setenv("DIFFSHADOW_FUSED_SIREN", setting)
+        scene = RenderScene(volume, tf, DataInr(), device="cpu")
+        assert scene.fused == (None if setting == "0" else "ieee")
+        images[setting] = scene.render("inr", cam, light=(0.3, -0.5, 0.8), siren=(weights, layout, siren.blocks),
+                                       skip=False).rgb
+    assert float((images["0"] - images["1"]).abs().max()) <= 1e-5
+
+
+def test_setting_and_bad_input(monkeypatch):
+    for value, expected in (("", None), ("0", None), ("1", "ieee"), ("IEEE", "ieee"), ("tf32", "tf32")):
+        monkeypatch.setenv("DIFFSHADOW_FUSED_SIREN", value)
+        assert fused_setting() == expected
+    monkeypatch.setenv("DIFFSHADOW_FUSED_SIREN", "bf16")
+    with pytest.raises(FusedSirenError, match="DIFFSHADOW_FUSED_SIREN: expected 0, 1, ieee or tf32, got 'bf16'"):
+        fused_setting()
+    named = Siren(SirenConfig(24, 1)).named_tensors()
+    with pytest.raises(FusedSirenError, match=r"power-of-two width >= 16 and 3 inputs, got weights \(24, 3\)"):
+        FusedSiren(named, 1)
+    with pytest.raises(FusedSirenError, match="precision: expected 'ieee' or 'tf32', got 'fp16'"):
+        FusedSiren(Siren(SirenConfig(16, 1)).named_tensors(), 1, "fp16")
+    monkeypatch.delenv("TRITON_INTERPRET")
+    assert not fused.available(torch.device("cpu")) and fused.available(torch.device("cuda"))
