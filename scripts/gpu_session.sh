@@ -1,21 +1,25 @@
 #!/usr/bin/env bash
-# The GPU figures that issues 15, 16 and 19 ask for, in four `device` calls of under 10 minutes each:
+# The GPU figures that issues 15, 16 and 19 ask for. One device call (15 minutes of device time a session):
 #
 #   bash ../shared/gpu/prepare.sh                                   # here, once per session
-#   device run, carry [".devwheels"]:  bash .devwheels/on-device.sh bash scripts/gpu_session.sh checks
-#   ... then `render`, `workflow`, `tests`; each writes its figures and logs under $OUT/<part>/.
+#   device run, carry [".devwheels"], timeout_s 600:
+#       END=540 bash .devwheels/on-device.sh bash scripts/gpu_session.sh all
 #
-# checks:   pytest -m gpu; bench siren (K=16 and K=50 jointly vs one by one, default chunking); the cost of
-#           DIFFSHADOW_DETERMINISTIC=1 on the same K=16 run.
-# render:   bench render on hydrogen_atom at 128², 512², 1024² (fps, ops and host syncs per frame, skipping,
-#           peak memory up to 2048²).
+# `all` runs the parts below in order, each cut short so the whole ends by END seconds, and packs everything
+# into $OUT/gpu.tgz (a call brings back at most 8 files). A part alone: `... gpu_session.sh render`.
+#
 # workflow: the README's run (`snakemake --profile local -j2`, the profile from profiles/) on an empty
 #           results/, its wall time and Snakemake's per-rule benchmark table, and the run's metrics.
+# render:   bench render on hydrogen_atom at 128², 512², 1024² (fps, ops and host syncs per frame, skipping,
+#           peak memory up to 2048²), then the same with the fused SIREN in TF32.
+# plans:    scripts/render_plans.py: batch sizes, TF32 matmuls and the fused SIREN side by side.
+# checks:   pytest -m gpu; bench siren (K=16 and K=50 jointly vs one by one, default chunking); the cost of
+#           DIFFSHADOW_DETERMINISTIC=1 on the same K=16 run.
 # tests:    the whole suite, with its slowest tests.
 #
 # On a CPU it runs too (DIFFSHADOW_DEVICE=cpu, QUICK=1 for small sizes): that is how the script is tested.
 set -uo pipefail
-part=${1:?usage: scripts/gpu_session.sh checks|render|workflow|tests}
+part=${1:?usage: scripts/gpu_session.sh all|workflow|render|plans|checks|tests}
 out=${OUT:-gpu_session}/$part
 mkdir -p "$out"
 device=${DIFFSHADOW_DEVICE:-cuda}
@@ -52,6 +56,21 @@ render)
     sizes=(--sizes 128 512 1024 --memory-sizes 2048); [ "$quick" = 1 ] && sizes=(--sizes 32 64 --memory-sizes 96)
     step bench_render diffshadow bench render --device "$device" --scene-config config/scenes/hydrogen_atom.yaml \
         "${sizes[@]}" --out "$out/render"
+    [ "$device" = cuda ] && step bench_render_fused env DIFFSHADOW_FUSED_SIREN=tf32 diffshadow bench render \
+        --device cuda --scene-config config/scenes/hydrogen_atom.yaml "${sizes[@]}" --out "$out/render_fused"
+    ;;
+plans)
+    sizes=(--sizes 128 512 1024); [ "$quick" = 1 ] && sizes=(--sizes 24 --inr-steps 200 --repeats 1)
+    step render_plans python scripts/render_plans.py --device "$device" "${sizes[@]}"
+    ;;
+all)
+    end=${END:-540}
+    for p in workflow:330 render:120 plans:150 checks:240 tests:300; do
+        left=$((end - SECONDS)); cap=${p#*:}; [ "$left" -lt "$cap" ] && cap=$left
+        if [ "$cap" -lt 30 ]; then echo "== ${p%%:*}: skipped, ${left} s left" | tee -a "$out/times.txt"; continue; fi
+        OUT=$out timeout -k 5 "$cap" bash "$0" "${p%%:*}" || failed=1
+        tar czf "${OUT:-gpu_session}/gpu.tgz" -C "$out" .
+    done
     ;;
 workflow)
     rm -rf results/nucleon
@@ -67,7 +86,7 @@ tests)
     step pytest pytest -q -rs --durations=25
     ;;
 *)
-    echo "unknown part $part (checks, render, workflow or tests)" >&2; exit 2
+    echo "unknown part $part (all, workflow, render, plans, checks or tests)" >&2; exit 2
     ;;
 esac
 exit $failed

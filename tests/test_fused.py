@@ -2,6 +2,7 @@
 widths and depths, ragged tails, empty input, the renderer's images, the setting and bad input."""
 
 import importlib.util
+import os
 
 import numpy as np
 import pytest
@@ -15,14 +16,13 @@ from diffshadow.siren import Siren, SirenConfig, WeightLayout, init_siren
 from diffshadow.transfer import TransferFunction
 from diffshadow.volume import Volume
 
-# not imported here: Triton reads TRITON_INTERPRET when it is first imported, by the kernel's first use
-pytestmark = pytest.mark.skipif(importlib.util.find_spec("triton") is None,
-                                reason="Triton not installed (`pip install -e .[dev]` brings it; CUDA PyTorch has it)")
-
-
-@pytest.fixture(autouse=True)
-def interpreter(monkeypatch):
-    monkeypatch.setenv("TRITON_INTERPRET", "1")
+# Triton reads TRITON_INTERPRET when it is first imported; conftest sets it on a machine without CUDA. With
+# CUDA, tests/gpu/test_cuda.py runs the compiled kernel instead.
+pytestmark = [
+    pytest.mark.skipif(importlib.util.find_spec("triton") is None,
+                       reason="Triton not installed (`pip install -e .[dev]` brings it; CUDA PyTorch has it)"),
+    pytest.mark.skipif(os.environ.get("TRITON_INTERPRET") != "1", reason="a CUDA machine: tests/gpu runs the kernel"),
+]
 
 
 @pytest.mark.parametrize("width, blocks", [(16, 0), (32, 2), (64, 2), (64, 1)])
