@@ -29,9 +29,16 @@ def _plt():
 
 
 def decade_labels(axis) -> None:
-    """Label a log axis at its decades only: the minor labels overlap."""
-    from matplotlib.ticker import NullFormatter
+    """Label a log axis at its decades only (the minor labels overlap); an axis that spans less than two
+    decades (one that would show one label or none) at 1, 2 and 5 of each decade, and at every digit below a
+    factor of 3. Call it once the data are plotted."""
+    from matplotlib.ticker import FuncFormatter, LogLocator, NullFormatter
 
+    ax = axis.axes  # get_xlim / get_ylim bring a lazily autoscaled view up to date first
+    lo, hi = sorted(ax.get_xlim() if axis is ax.xaxis else ax.get_ylim())
+    if lo > 0 and hi / lo < 100:
+        axis.set_major_locator(LogLocator(subs=(1.0, 2.0, 5.0) if hi / lo >= 3 else tuple(range(1, 10))))
+        axis.set_major_formatter(FuncFormatter(lambda v, _: f"{v:g}"))
     axis.set_minor_formatter(NullFormatter())
 
 
