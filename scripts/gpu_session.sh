@@ -4,9 +4,12 @@
 #   bash ../shared/gpu/prepare.sh                                   # here, once per session
 #   device run, carry [".devwheels"], timeout_s 600:
 #       END=540 bash .devwheels/on-device.sh bash scripts/gpu_session.sh all
+#   then, on the still-warm machine if device time is left:
+#       bash .devwheels/on-device.sh bash scripts/gpu_session.sh workflow
 #
-# `all` runs the parts below in order, each cut short so the whole ends by END seconds, and packs everything
-# into $OUT/gpu.tgz (a call brings back at most 8 files). A part alone: `... gpu_session.sh render`.
+# `all` runs render, plans and tests (what issues 15 and 16 still miss, measured 2026-11-26), each cut short so
+# the whole ends by END seconds, and packs everything into $OUT/all.tgz (a call brings back at most 8 files).
+# A part alone: `... gpu_session.sh render`.
 #
 # workflow: the README's run (`snakemake --profile local -j2`, the profile from profiles/) on an empty
 #           results/, its wall time and Snakemake's per-rule benchmark table, and the run's metrics.
@@ -20,8 +23,13 @@
 # On a CPU it runs too (DIFFSHADOW_DEVICE=cpu, QUICK=1 for small sizes): that is how the script is tested.
 set -uo pipefail
 part=${1:?usage: scripts/gpu_session.sh all|workflow|render|plans|checks|tests}
-out=${OUT:-gpu_session}/$part
-mkdir -p "$out"
+# Parts write under $root and are packed into $OUT/<part>.tgz at the end: a device call brings back at most 8
+# files, and one run writes dozens. `all` hands its root to the parts it runs (PART_ROOT) and packs once each.
+dest=${OUT:-gpu_session}
+root=${PART_ROOT:-$(mktemp -d)}
+out=$root/$part
+mkdir -p "$out" "$dest"
+pack() { [ -n "${PART_ROOT:-}" ] || tar czf "$dest/$part.tgz" -C "$root" . ; }
 device=${DIFFSHADOW_DEVICE:-cuda}
 quick=${QUICK:-0}
 failed=0
@@ -65,11 +73,11 @@ plans)
     ;;
 all)
     end=${END:-540}
-    for p in workflow:330 render:120 plans:150 checks:240 tests:300; do
+    for p in ${PARTS:-render:120 plans:150 tests:360}; do
         left=$((end - SECONDS)); cap=${p#*:}; [ "$left" -lt "$cap" ] && cap=$left
         if [ "$cap" -lt 30 ]; then echo "== ${p%%:*}: skipped, ${left} s left" | tee -a "$out/times.txt"; continue; fi
-        OUT=$out timeout -k 5 "$cap" bash "$0" "${p%%:*}" || failed=1
-        tar czf "${OUT:-gpu_session}/gpu.tgz" -C "$out" .
+        PART_ROOT=$root timeout -k 5 "$cap" bash "$0" "${p%%:*}" || failed=1
+        pack
     done
     ;;
 workflow)
@@ -89,4 +97,5 @@ tests)
     echo "unknown part $part (all, workflow, render, plans, checks or tests)" >&2; exit 2
     ;;
 esac
+pack
 exit $failed
