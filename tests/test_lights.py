@@ -173,3 +173,23 @@ def test_nearest_and_pool_draws_in_blocks_give_the_same_bytes(monkeypatch):
     blocked = lights.nearest(train, sphere, 4), lights.training_pool(train, [0, 0, 1], 300, seed=3)
     assert all(np.array_equal(a, b) for a, b in zip(whole[0], blocked[0], strict=True))
     assert np.array_equal(whole[1], blocked[1])
+
+
+@pytest.mark.parametrize("n, k", [(40, 4), (5, 5), (9, 1)])
+def test_nearest_is_a_stable_sort_of_the_angles(n, k):
+    """`nearest` partitions instead of sorting whole rows: its k columns are those of a stable argsort of the
+    angle (ties by training index), with exact ties on purpose (repeated training directions, queries on them)."""
+    from diffshadow.lights import nearest
+
+    rng = np.random.default_rng(n)
+    train = rng.normal(size=(n, 3))
+    train[1::2] = train[0::2][: n // 2]
+    train /= np.linalg.norm(train, axis=1, keepdims=True)
+    query = np.concatenate([train[:3], rng.normal(size=(200, 3))])
+    query /= np.linalg.norm(query, axis=1, keepdims=True)
+    cos = np.clip((query[:, None, :] * train[None, :, :]).sum(axis=-1), -1, 1)
+    expected = np.argsort(-cos, axis=1, kind="stable")[:, :k]
+    idx, angles = nearest(train, query, k)
+    assert np.array_equal(idx, expected)
+    assert np.array_equal(angles, np.arccos(np.take_along_axis(cos, expected, axis=1)))
+    assert idx[0, 0] == 0 and idx[1, 0] == 0  # query 1 = train 1 = train 0: the tie goes to the lower index
