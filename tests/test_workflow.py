@@ -104,7 +104,10 @@ def test_render_outputs(finished):
     bench = json.loads((res / "bench.json").read_text())
     row = bench["sizes"]["8"]
     assert set(row["fps"]) == set(row["peak_mem_bytes"]) == {"noshadow", "inr", "naive"}
-    assert row["speedup"] > 1 and row["overhead"] > 0
+    # no timing bar here (a busy machine made naive faster than inr at 8x8 once): the work, which does not drift
+    assert row["speedup"] > 0 and row["overhead"] > 0
+    assert row["samples"]["naive"]["secondary"] > 10 * row["samples"]["inr"]["primary"] > 0
+    assert row["counts"]["naive"]["ops"] > row["counts"]["inr"]["ops"] > row["counts"]["noshadow"]["ops"]
     assert (res / "bench.png").stat().st_size > 1000
 
 
