@@ -213,6 +213,10 @@ def fit_sirens(
     autocast = torch.autocast(device.type, dtype=torch.bfloat16, enabled=cfg.precision == "bfloat16")
     initial = state["initial_loss"].to(device) if start and "initial_loss" in state else None
     window, window_steps = torch.zeros(k, device=device), 0
+    # the step at which each SIREN's loss first stopped being finite (-1: never), read only where the host reads
+    # anyway (log lines, checkpoints, the end): on a GPU a read per step would keep the host from queueing the
+    # next step while this one runs
+    first_bad = torch.full((k,), -1, dtype=torch.long, device=device)
     t0 = time.perf_counter()
     for step in range(start, cfg.steps):
         for group in opt.param_groups:
@@ -238,22 +242,22 @@ def fit_sirens(
             per_siren += sq.detach()
         if pool is not None:
             _blend_loss(weights, pool, layout, siren, extent, cfg, k, seeded(cfg.seed, -5 - stream, step))
-        bad = ~torch.isfinite(per_siren)
-        if bad.any():
-            which = [light_index[i] for i in torch.nonzero(bad).flatten().tolist()]
-            raise FitError(f"fit diverged at step {step}: loss is not finite for light(s) {which}; "
-                           f"lower fit.lr (now {cfg.lr}) or check the targets")
+        first_bad = torch.where(~torch.isfinite(per_siren) & (first_bad < 0), step, first_bad)
         if initial is None:
             initial = per_siren.clone()  # the loss of the init, before any update
         window += per_siren
         window_steps += 1
         opt.step()
         done = step + 1
-        if checkpoint is not None and (done % cfg.checkpoint_every == 0) and done < cfg.steps:
+        saving = checkpoint is not None and (done % cfg.checkpoint_every == 0) and done < cfg.steps
+        logging = done % max(1, cfg.steps // 10) == 0 or done == cfg.steps
+        if saving or logging:
+            _raise_if_not_finite(first_bad, light_index, cfg)
+        if saving:
             state = {"fingerprint": fingerprint, "step": done, "weights": weights.detach().cpu(),
                      "optimizer": opt.state_dict(), "initial_loss": initial.cpu()}
             atomic_torch_save(checkpoint, state)
-        if done % max(1, cfg.steps // 10) == 0 or done == cfg.steps:
+        if logging:
             # Judged at the end only: from a pre-optimised init, Adam's first steps lift the init light's
             # loss 100x before it recovers (nucleon: 41 -> 21 -> 35 dB), a rise that is no divergence.
             recent = window / window_steps
@@ -270,6 +274,14 @@ def fit_sirens(
     if checkpoint is not None and checkpoint.exists():
         checkpoint.unlink()
     return weights.detach().cpu()
+
+
+def _raise_if_not_finite(first_bad: torch.Tensor, light_index: list[int], cfg: FitConfig) -> None:
+    if bool((first_bad >= 0).any()):
+        step = int(first_bad[first_bad >= 0].min())
+        which = [light_index[i] for i in torch.nonzero(first_bad == step).flatten().tolist()]
+        raise FitError(f"fit diverged at step {step}: loss is not finite for light(s) {which}; "
+                       f"lower fit.lr (now {cfg.lr}) or check the targets")
 
 
 def _blend_loss(weights: torch.Tensor, pool: PoolLights, layout: WeightLayout, siren: SirenConfig,

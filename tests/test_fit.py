@@ -65,6 +65,28 @@ def test_divergence_names_the_light(scene):
                    log=lambda *a: None)
 
 
+def test_non_finite_loss_is_read_where_the_host_reads_anyway(scene, tmp_path):
+    """The check is deferred to log lines and checkpoints (one device read per step on a GPU stalls its queue),
+    names the step where the loss first went bad, and comes before a checkpoint is written."""
+    from diffshadow.bench.profile import op_counts
+
+    vol, tf, lights = scene
+    bad = init()
+    bad[0] = float("inf")
+    ckpt = tmp_path / "fit.ckpt"
+    cfg = FitConfig.from_config(dict(steps=40, points=16, checkpoint_every=2))
+    with pytest.raises(FitError, match=r"fit diverged at step 0: loss is not finite for light\(s\) \[0, 1\]"):
+        fit_sirens(bad, LAYOUT, CFG, vol, tf, lights, cfg, checkpoint=ckpt, log=lambda *a: None)
+    assert not ckpt.exists()
+
+    def syncs(steps):
+        c = FitConfig.from_config(dict(steps=steps, points=16))
+        return op_counts(lambda: fit_sirens(init(), LAYOUT, CFG, vol, tf, lights, c, log=lambda *a: None))["syncs"]
+
+    # per step at most Adam's step counter, a CPU scalar (no device read on a GPU)
+    assert syncs(30) - syncs(20) <= 10
+
+
 def test_divergence_is_a_rise_to_a_poor_loss_not_a_short_fit():
     # losses measured in the stress suite: 10x fit.lr on nucleon ends at 6 dB from 17 dB; an exact init
     # thrown off by lr = 1 ends at 22 dB from 1e-15 (both diverged). 40 steps from the pre-optimised init
