@@ -387,6 +387,18 @@ def train_diffusion(data: TrainingData, cfg: DiffusionConfig, checkpoint: Path, 
     per_epoch = math.ceil(n / cfg.batch_size)  # optimizer steps, for the EMA's warm-up
     epoch = start
     state = None
+    # the epoch and value of the first non-finite loss (-1: none), read only where the host reads anyway (log
+    # lines, checks, checkpoints): on a GPU a read per step keeps the host from queueing the next step
+    bad_epoch = torch.full((), -1, dtype=torch.long, device=device)
+    bad_loss = torch.zeros((), device=device)
+
+    def raise_if_not_finite() -> None:
+        if int(bad_epoch) >= 0:
+            kept = f"the last good checkpoint {checkpoint} (epoch {good})" if good is not None else \
+                "no checkpoint (none was written yet)"
+            raise DiffusionError(f"train_diffusion: loss became {float(bad_loss)} at epoch {int(bad_epoch)}; "
+                                 f"keeping {kept}; lower diffusion.lr (now {cfg.lr}) or check the weight store")
+
     while not growth["finished"]:
         gen = seeded(cfg.seed, 1, epoch)
         order = torch.randperm(n, generator=gen, device=gen.device)
@@ -424,11 +436,8 @@ def train_diffusion(data: TrainingData, cfg: DiffusionConfig, checkpoint: Path, 
                 err = _geometry_error(std.destandardize(pred_all), data.layout, data.siren, pts, vals, extent)
                 loss_geo = err[:b].mean()
                 loss = loss + cfg.geometry_weight * err.sum() / b  # training and pool lights, each a mean over b
-            if not torch.isfinite(loss):
-                kept = f"the last good checkpoint {checkpoint} (epoch {good})" if good is not None else \
-                    "no checkpoint (none was written yet)"
-                raise DiffusionError(f"train_diffusion: loss became {float(loss.detach())} at epoch {epoch}; "
-                                     f"keeping {kept}; lower diffusion.lr (now {cfg.lr}) or check the weight store")
+            first = ~torch.isfinite(loss.detach()) & (bad_epoch < 0)
+            bad_epoch, bad_loss = torch.where(first, epoch, bad_epoch), torch.where(first, loss.detach(), bad_loss)
             opt.zero_grad(set_to_none=True)
             loss.backward()
             torch.nn.utils.clip_grad_norm_(model.parameters(), cfg.grad_clip)
@@ -442,7 +451,11 @@ def train_diffusion(data: TrainingData, cfg: DiffusionConfig, checkpoint: Path, 
             sched.step()
         done = epoch = epoch + 1
         check = done >= cfg.epochs and (done - cfg.epochs) % cfg.checkpoint_every == 0
-        if done % max(1, cfg.epochs // 20) == 0 or check:
+        logging = done % max(1, cfg.epochs // 20) == 0 or check
+        saving = done % cfg.checkpoint_every == 0
+        if logging or saving or check or (stop_after_epoch is not None and done >= stop_after_epoch):
+            raise_if_not_finite()
+        if logging:
             lx, lg = (totals / n).cpu().tolist()
             # past `epochs` the stage grows towards max_epochs, which is then an upper bound, not a forecast
             total = cfg.epochs if done <= cfg.epochs else max_epochs
@@ -451,7 +464,7 @@ def train_diffusion(data: TrainingData, cfg: DiffusionConfig, checkpoint: Path, 
                 f"{eta(done, total, t0, start=start)}")
         if check:
             grow(done)
-        if done % cfg.checkpoint_every == 0 or growth["finished"]:
+        if saving or growth["finished"]:
             state = save(done)
             good = done
         if stop_after_epoch is not None and done >= stop_after_epoch:
