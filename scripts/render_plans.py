@@ -2,7 +2,7 @@
 
     python scripts/render_plans.py --device cuda --sizes 512 1024
 
-Each variant renders the same frames (hydrogen_atom, the bench's camera, light and fits); the table gives the
+Each variant (a batch, TF32 matmuls, the fused SIREN) renders the same frames (hydrogen_atom, the bench's camera, light and fits); the table gives the
 median seconds per frame, the samples sent to the networks, host syncs per frame and the image's PSNR against
 the first variant's (the plan must not change the image; TF32 and the fused SIREN may, a little). Variants are
 interleaved per repeat so drift on a shared machine hits all alike. The fused SIREN's variants appear where
@@ -30,35 +30,30 @@ from diffshadow.metrics import psnr
 from diffshadow.sampling import seeded
 from diffshadow.siren import SirenConfig, WeightLayout, init_siren
 
-DEFAULT_FOR = R.MarchPlan.for_device.__func__
 
-
-def variants(device: torch.device) -> dict[str, tuple[R.MarchPlan, bool, str | None]]:
-    """name → (plan, TF32 matmuls, fused SIREN precision or None). On an H200 (2026-11-25), before the plan
-    compacted on every device, a fixed-shape plan (finished rays masked for 4 iterations, absent samples
-    evaluated) sent 2.5x the samples and was 1.45x slower at 512², 1.2x at 1024² (docs/tuning.md)."""
-    default = DEFAULT_FOR(R.MarchPlan, device)
-    out = {"default": (default, False, None)}
+def variants(device: torch.device) -> dict[str, tuple[int | None, bool, str | None]]:
+    """name → (batch, None for the device's default; TF32 matmuls; fused SIREN precision or None). On an H200
+    (2026-11-25), before the plan compacted on every device, a fixed-shape plan (finished rays masked for 4
+    iterations, absent samples evaluated) sent 2.5x the samples and was 1.45x slower at 512², 1.2x at 1024²
+    (docs/tuning.md)."""
+    out = {"default": (None, False, None)}
     for lb in (16, 20, 21, 22):
-        out[f"batch 2^{lb}"] = (R.MarchPlan(batch=1 << lb), False, None)
-    out["tf32 matmuls"] = (default, True, None)
+        out[f"batch 2^{lb}"] = (1 << lb, False, None)
+    out["tf32 matmuls"] = (None, True, None)
     if fused_available(device):
-        out["fused fp32"] = (default, False, "ieee")
-        out["fused tf32"] = (default, False, "tf32")
+        out["fused fp32"] = (None, False, "ieee")
+        out["fused tf32"] = (None, False, "tf32")
     return out
 
 
 @contextlib.contextmanager
-def planned(scene: R.RenderScene, plan: R.MarchPlan, tf32: bool, fused: str | None):
-    old = R.MarchPlan.for_device, torch.backends.cuda.matmul.allow_tf32
-    scene.fused = fused
-    # render() asks MarchPlan.for_device for its plan; the script swaps that one choice and nothing else
-    R.MarchPlan.for_device = classmethod(lambda cls, device, batch=None, min_samples=None: plan)
-    torch.backends.cuda.matmul.allow_tf32 = tf32
+def variant(scene: R.RenderScene, tf32: bool, fused: str | None):
+    old = torch.backends.cuda.matmul.allow_tf32, scene.fused
+    torch.backends.cuda.matmul.allow_tf32, scene.fused = tf32, fused
     try:
         yield
     finally:
-        R.MarchPlan.for_device, torch.backends.cuda.matmul.allow_tf32 = old[0], old[1]
+        torch.backends.cuda.matmul.allow_tf32, scene.fused = old
 
 
 def main() -> None:
@@ -89,23 +84,24 @@ def main() -> None:
             secs = {k: [] for k in plans}
             imgs, counts = {}, {}
             for _rep in range(a.repeats if mode != "naive" or n <= 256 else 1):
-                for name, variant in plans.items():
-                    with planned(scene, *variant):
+                for name, (batch, tf32, fused) in plans.items():
+                    with variant(scene, tf32, fused):
                         sync()
-                        img = scene.render(mode, cam, **kw)
+                        img = scene.render(mode, cam, batch=batch, **kw)
                         sync()
                     secs[name].append(img.seconds)
                     imgs[name] = img
-            for name, variant in plans.items():  # naive's count takes minutes past 256²
-                with planned(scene, *variant):
+            for name, (batch, tf32, fused) in plans.items():  # naive's count takes minutes past 256²
+                with variant(scene, tf32, fused):
                     counted = mode != "naive" or n <= 256
-                    counts[name] = (op_counts(lambda m=mode, c=cam: scene.render(m, c, **kw)) if counted
-                                    else {"ops": -1, "syncs": -1})
+                    counts[name] = (op_counts(lambda m=mode, c=cam, b=batch: scene.render(m, c, batch=b, **kw))
+                                    if counted else {"ops": -1, "syncs": -1})
             ref = imgs["default"].rgb
             for name in plans:
                 c, img = counts[name], imgs[name]
                 p = float(psnr(img.rgb, ref))
-                print(f"{n}x{n} {mode:5s} {name:14s} batch {plans[name][0].batch:>9,} "
+                batch = plans[name][0] or R.MarchPlan.for_device(device).batch
+                print(f"{n}x{n} {mode:5s} {name:14s} batch {batch:>9,} "
                       f"{statistics.median(secs[name]):8.4f} s "
                       f"({1 / statistics.median(secs[name]):7.2f} fps)  samples {img.counters.primary_samples:>11,} "
                       f"+ {img.counters.secondary_samples:>13,}  ops {c['ops']:>6,} syncs {c['syncs']:>4}  "
