@@ -1,12 +1,13 @@
-"""Side by side: the wavefront marcher's work plans on one device (`MarchPlan` variants), for `inr` and `naive`.
+"""Side by side: the wavefront marcher's variants on one device (batch sizes, TF32 matmuls, the fused SIREN), for
+`inr` and `naive`.
 
     python scripts/render_plans.py --device cuda --sizes 512 1024
 
-Each variant (a batch, TF32 matmuls, the fused SIREN) renders the same frames (hydrogen_atom, the bench's camera, light and fits); the table gives the
+Each variant renders the same frames (hydrogen_atom, the bench's camera, light and fits); the table gives the
 median seconds per frame, the samples sent to the networks, host syncs per frame and the image's PSNR against
-the first variant's (the plan must not change the image; TF32 and the fused SIREN may, a little). Variants are
-interleaved per repeat so drift on a shared machine hits all alike. The fused SIREN's variants appear where
-its kernel runs (CUDA with Triton; on the CPU only under TRITON_INTERPRET=1, slowly).
+the first variant's (the batch must not change the image; TF32 and the fused SIREN may, a little). Variants
+are interleaved per repeat so drift on a shared machine hits all alike. The fused SIREN's variants appear
+where its kernel runs (CUDA with Triton; on the CPU only under TRITON_INTERPRET=1, slowly).
 """
 
 from __future__ import annotations
