@@ -119,7 +119,7 @@ def transmittance(
         device = points.device if isinstance(points, torch.Tensor) else "cpu"
     field = volume if isinstance(volume, ShadowField) else ShadowField.build(volume, tf, device=device)
     pts = _as_points(points, field.scalar.device)
-    w = torch.as_tensor(w64, dtype=torch.float32, device=pts.device).expand(len(pts), 3)
+    w = torch.as_tensor(w64, dtype=torch.float32, device=pts.device)  # one direction, broadcast: no (P, 3) copy
     return _transmittance_rays(field, w, pts, step, skip_empty, tau_max, samples_per_iter, chunk)
 
 
@@ -177,7 +177,7 @@ def _check_step(step) -> None:
 
 def _transmittance_rays(field: ShadowField, w: torch.Tensor, pts: torch.Tensor, step: float, skip_empty,
                         tau_max: float, samples_per_iter: int, chunk: int) -> torch.Tensor:
-    """exp(-optical depth) from each point (R, 3) toward its light w (R, 3)."""
+    """exp(-optical depth) from each point (R, 3) toward its light, w (R, 3) or one for all (3,)."""
     t0, t1 = ray_box(pts, w, field.extent)
     t0 = t0.clamp_min(0.0)
     length = (t1 - t0).clamp_min(0.0)
@@ -189,7 +189,7 @@ def _transmittance_rays(field: ShadowField, w: torch.Tensor, pts: torch.Tensor, 
     last = length - (n - 1).clamp_min(0) * dt  # width of the last (partial) cell, in (0, dt]
     exit_vox = torch.where((n > 0)[:, None], (pts + t1.clamp(max=1e30)[:, None] * w) / field.voxel_size,
                            torch.zeros_like(pts))
-    dq = -w / field.voxel_size * dt  # voxel displacement per sample
+    dq = (-w / field.voxel_size * dt).expand(len(pts), 3)  # voxel displacement per sample
 
     if skip_empty is None:
         skip_empty = float(field.empty.float().mean()) >= AUTO_SKIP_FRACTION
