@@ -23,7 +23,7 @@ from diffshadow.config import section
 from diffshadow.grid import lookup_grids
 from diffshadow.io import atomic_torch_save, resume
 from diffshadow.metrics import psnr
-from diffshadow.progress import eta
+from diffshadow.progress import FirstNonFinite, eta
 from diffshadow.sampling import PointSampler, seeded
 from diffshadow.shadow import ShadowField, shadow_grid, transmittance_per_light
 from diffshadow.siren import BatchedSiren, SirenConfig, WeightLayout, box_to_siren, cosine_lr, init_siren
@@ -213,10 +213,7 @@ def fit_sirens(
     autocast = torch.autocast(device.type, dtype=torch.bfloat16, enabled=cfg.precision == "bfloat16")
     initial = state["initial_loss"].to(device) if start and "initial_loss" in state else None
     window, window_steps = torch.zeros(k, device=device), 0
-    # the step at which each SIREN's loss first stopped being finite (-1: never), read only where the host reads
-    # anyway (log lines, checkpoints, the end): on a GPU a read per step would keep the host from queueing the
-    # next step while this one runs
-    first_bad = torch.full((k,), -1, dtype=torch.long, device=device)
+    nonfinite = FirstNonFinite((k,), device)  # read at log lines and checkpoints, not every step
     t0 = time.perf_counter()
     for step in range(start, cfg.steps):
         for group in opt.param_groups:
@@ -242,7 +239,7 @@ def fit_sirens(
             per_siren += sq.detach()
         if pool is not None:
             _blend_loss(weights, pool, layout, siren, extent, cfg, k, seeded(cfg.seed, -5 - stream, step))
-        first_bad = torch.where(~torch.isfinite(per_siren) & (first_bad < 0), step, first_bad)
+        nonfinite.record(per_siren, step)
         if initial is None:
             initial = per_siren.clone()  # the loss of the init, before any update
         window += per_siren
@@ -252,7 +249,7 @@ def fit_sirens(
         saving = checkpoint is not None and (done % cfg.checkpoint_every == 0) and done < cfg.steps
         logging = done % max(1, cfg.steps // 10) == 0 or done == cfg.steps
         if saving or logging:
-            _raise_if_not_finite(first_bad, light_index, cfg)
+            _raise_if_not_finite(nonfinite, light_index, cfg)
         if saving:
             state = {"fingerprint": fingerprint, "step": done, "weights": weights.detach().cpu(),
                      "optimizer": opt.state_dict(), "initial_loss": initial.cpu()}
@@ -276,10 +273,10 @@ def fit_sirens(
     return weights.detach().cpu()
 
 
-def _raise_if_not_finite(first_bad: torch.Tensor, light_index: list[int], cfg: FitConfig) -> None:
-    if bool((first_bad >= 0).any()):
-        step = int(first_bad[first_bad >= 0].min())
-        which = [light_index[i] for i in torch.nonzero(first_bad == step).flatten().tolist()]
+def _raise_if_not_finite(nonfinite: FirstNonFinite, light_index: list[int], cfg: FitConfig) -> None:
+    if (found := nonfinite.first()) is not None:
+        step, at_step, _ = found
+        which = [light_index[i] for i in torch.nonzero(at_step).flatten().tolist()]
         raise FitError(f"fit diverged at step {step}: loss is not finite for light(s) {which}; "
                        f"lower fit.lr (now {cfg.lr}) or check the targets")
 
@@ -330,7 +327,8 @@ def evaluate_psnr(
     with torch.no_grad():
         model = BatchedSiren(weights.to(device), layout, siren.blocks)
         for pts in (box, vis):
-            pred = model(box_to_siren(pts.to(device), extent.to(device)))
+            pts = pts.to(device)  # once, for the SIRENs and the march
+            pred = model(box_to_siren(pts, extent.to(device)))
             truth = transmittance_per_light(field, tf, lights, pts)
             out.append(psnr(pred, truth, dim=1).cpu().numpy())
     return out[0], out[1]

@@ -1,4 +1,5 @@
-"""Progress of a stage's loop as one short phrase for its periodic log line: time spent and time left.
+"""Progress of a stage's loop as one short phrase for its periodic log line: time spent and time left; and
+where its loss first stopped being finite, kept on the device until the host reads anyway.
 
 Long stages write a line every ~10% of their work (into the job's log through `tee`); the phrase says how
 long the stage has run and, from the rate since it (re)started, how long it still needs, so a user reading
@@ -9,6 +10,8 @@ from __future__ import annotations
 
 import time
 
+import torch
+
 
 def eta(done: int, total: int, t0: float, *, start: int = 0) -> str:
     """`'12 s, ~40 s left'` after `done` of `total` units, `start` of them done before `t0` (a resume)."""
@@ -17,3 +20,27 @@ def eta(done: int, total: int, t0: float, *, start: int = 0) -> str:
     if ran <= 0 or done >= total:
         return f"{spent:.0f} s"
     return f"{spent:.0f} s, ~{spent / ran * (total - done):.0f} s left"
+
+
+class FirstNonFinite:
+    """Where a training loss (one value, or one per model) first stopped being finite, kept on the device:
+    `record` every step costs no host read (on a GPU one per step keeps the host from queueing the next step
+    while this one runs); `first` is read where the host reads anyway (log lines, checks, checkpoints)."""
+
+    def __init__(self, shape: tuple[int, ...], device: torch.device | str):
+        self.step = torch.full(shape, -1, dtype=torch.long, device=device)
+        self.value = torch.zeros(shape, device=device)
+
+    def record(self, loss: torch.Tensor, step: int) -> None:
+        new = ~torch.isfinite(loss) & (self.step < 0)
+        self.step = torch.where(new, step, self.step)
+        self.value = torch.where(new, loss, self.value)
+
+    def first(self) -> tuple[int, torch.Tensor, torch.Tensor] | None:
+        """None while every loss was finite; else the earliest bad step, which entries went bad at it, and
+        their values."""
+        bad = self.step >= 0
+        if not bool(bad.any()):
+            return None
+        step = int(self.step[bad].min())
+        return step, self.step == step, self.value

@@ -157,11 +157,13 @@ def transmittance_per_light(
         raise ValueError(f"points: expected one set per light ({len(dirs)}), got {len(points)}")
     n_points = len(points) if shared else points.shape[1]
     group = max(1, RAYS_PER_MARCH // max(n_points, 1))
+    if shared:  # checked and moved once, not once per group
+        points = _as_points(points, field.scalar.device)
     out = []
     for a in range(0, len(dirs), group):
         w_np = dirs[a:a + group]
         if shared:
-            p = _as_points(points, field.scalar.device).repeat(len(w_np), 1)
+            p = points.repeat(len(w_np), 1)
         else:
             p = _as_points(points[a:a + group].reshape(-1, 3), field.scalar.device)
         w = torch.as_tensor(w_np, dtype=torch.float32, device=p.device).repeat_interleave(n_points, 0)

@@ -25,7 +25,7 @@ from diffshadow.diffusion.model import PRESETS, WeightTransformer
 from diffshadow.diffusion.schedule import Schedule
 from diffshadow.io import atomic_torch_save, resume
 from diffshadow.metrics import psnr
-from diffshadow.progress import eta
+from diffshadow.progress import FirstNonFinite, eta
 from diffshadow.sampling import seeded
 from diffshadow.siren import BatchedSiren, SirenConfig, WeightLayout, box_to_siren
 
@@ -387,16 +387,14 @@ def train_diffusion(data: TrainingData, cfg: DiffusionConfig, checkpoint: Path, 
     per_epoch = math.ceil(n / cfg.batch_size)  # optimizer steps, for the EMA's warm-up
     epoch = start
     state = None
-    # the epoch and value of the first non-finite loss (-1: none), read only where the host reads anyway (log
-    # lines, checks, checkpoints): on a GPU a read per step keeps the host from queueing the next step
-    bad_epoch = torch.full((), -1, dtype=torch.long, device=device)
-    bad_loss = torch.zeros((), device=device)
+    nonfinite = FirstNonFinite((), device)  # read at log lines, checks and checkpoints, not every step
 
     def raise_if_not_finite() -> None:
-        if int(bad_epoch) >= 0:
+        if (found := nonfinite.first()) is not None:
+            bad_epoch, _, value = found
             kept = f"the last good checkpoint {checkpoint} (epoch {good})" if good is not None else \
                 "no checkpoint (none was written yet)"
-            raise DiffusionError(f"train_diffusion: loss became {float(bad_loss)} at epoch {int(bad_epoch)}; "
+            raise DiffusionError(f"train_diffusion: loss became {float(value)} at epoch {bad_epoch}; "
                                  f"keeping {kept}; lower diffusion.lr (now {cfg.lr}) or check the weight store")
 
     while not growth["finished"]:
@@ -436,8 +434,7 @@ def train_diffusion(data: TrainingData, cfg: DiffusionConfig, checkpoint: Path, 
                 err = _geometry_error(std.destandardize(pred_all), data.layout, data.siren, pts, vals, extent)
                 loss_geo = err[:b].mean()
                 loss = loss + cfg.geometry_weight * err.sum() / b  # training and pool lights, each a mean over b
-            first = ~torch.isfinite(loss.detach()) & (bad_epoch < 0)
-            bad_epoch, bad_loss = torch.where(first, epoch, bad_epoch), torch.where(first, loss.detach(), bad_loss)
+            nonfinite.record(loss.detach(), epoch)
             opt.zero_grad(set_to_none=True)
             loss.backward()
             torch.nn.utils.clip_grad_norm_(model.parameters(), cfg.grad_clip)
@@ -453,7 +450,7 @@ def train_diffusion(data: TrainingData, cfg: DiffusionConfig, checkpoint: Path, 
         check = done >= cfg.epochs and (done - cfg.epochs) % cfg.checkpoint_every == 0
         logging = done % max(1, cfg.epochs // 20) == 0 or check
         saving = done % cfg.checkpoint_every == 0
-        if logging or saving or check or (stop_after_epoch is not None and done >= stop_after_epoch):
+        if logging or saving or (stop_after_epoch is not None and done >= stop_after_epoch):
             raise_if_not_finite()
         if logging:
             lx, lg = (totals / n).cpu().tolist()
