@@ -2,7 +2,7 @@
 activations kept on chip, so a layer costs its matrix product and its sines and no trip through GPU memory.
 
 The eager SIREN (`siren._forward`) is the CPU path and the reference: the kernel applies the same
-pre-scaled weights (ω0 and the residual weight folded in as `_forward` folds them) in the same order,
+pre-scaled weights (`siren.fold`) in the same order,
 the first layer as three fp32 multiply-adds (ω0 = 30 amplifies its rounding) and the hidden layers as
 `tl.dot` in `precision` ("ieee": fp32, "tf32": tensor cores). Tests run the kernel on the CPU through
 Triton's interpreter (`TRITON_INTERPRET=1`) when Triton is installed.
@@ -19,7 +19,7 @@ import os
 
 import torch
 
-from diffshadow.siren import OMEGA, RES_WEIGHT
+from diffshadow.siren import RES_WEIGHT, fold
 
 
 def block_points(width: int) -> int:
@@ -99,19 +99,15 @@ class FusedSiren:
             raise FusedSirenError(f"the fused SIREN needs a power-of-two width >= 16 and 3 inputs, got weights "
                                   f"{tuple(first.shape)}")
         with torch.no_grad():
-            # the products `_forward` forms, in the same float32 operations
-            self.w0 = (first * OMEGA).t().contiguous()
-            self.b0 = (named["first.bias"].detach().float() * OMEGA).contiguous()
-            hidden, biases = [], []
-            for i in range(blocks):
-                for name, scale in ((f"blocks.{i}.l1", OMEGA * RES_WEIGHT), (f"blocks.{i}.l2", OMEGA)):
-                    hidden.append((named[f"{name}.weight"].detach().float() * scale).t())
-                    biases.append(named[f"{name}.bias"].detach().float() * OMEGA)
+            layers = [(w.detach().float(), b.detach().float()) for w, b in fold(named, blocks)]
+            (w0, b0), hidden, (wl, bl) = layers[0], layers[1:-1], layers[-1]
+            self.w0, self.b0 = w0.t().contiguous(), b0.contiguous()
             device = first.device
-            self.wh = (torch.stack(hidden) if hidden else torch.zeros(1, width, width, device=device)).contiguous()
-            self.bh = (torch.stack(biases) if biases else torch.zeros(1, width, device=device)).contiguous()
-            self.wl = named["last.weight"].detach().float().reshape(-1).contiguous()
-            self.bl = named["last.bias"].detach().float().reshape(1).contiguous()
+            self.wh = (torch.stack([w.t() for w, _ in hidden]) if hidden
+                       else torch.zeros(1, width, width, device=device)).contiguous()
+            self.bh = (torch.stack([b for _, b in hidden]) if hidden
+                       else torch.zeros(1, width, device=device)).contiguous()
+            self.wl, self.bl = wl.reshape(-1).contiguous(), bl.reshape(1).contiguous()
         self.width, self.blocks, self.precision = width, blocks, precision
         self.block = block_points(width)
 

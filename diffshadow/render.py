@@ -35,7 +35,7 @@ from diffshadow.fused import FusedSiren, fused_setting
 from diffshadow.fused import available as fused_available
 from diffshadow.grid import cell_ranges, ray_span, trilinear
 from diffshadow.lights import as_direction
-from diffshadow.siren import BatchedSiren, Siren, WeightLayout, box_to_siren
+from diffshadow.siren import FoldedSiren, Siren, WeightLayout, box_to_siren, fold, fold_flat
 from diffshadow.transfer import TransferFunction
 from diffshadow.volume import Volume, refine
 
@@ -143,10 +143,19 @@ class MacroGrid:
     dims: torch.Tensor  # (3,) voxels (x, y, z)
     ncell: torch.Tensor = field(init=False)
     any_empty: bool = field(init=False)  # read once here, so marching needs no host read for it
+    planes: torch.Tensor = field(init=False)  # (P,) every interior cell boundary, box units, axis by axis
+    plane_axis: torch.Tensor = field(init=False)  # (P,) its axis
 
     def __post_init__(self):
-        self.ncell = torch.tensor(self.empty.shape[::-1], device=self.empty.device)
+        device = self.empty.device
+        self.ncell = torch.tensor(self.empty.shape[::-1], device=device)
         self.any_empty = bool(self.empty.any())
+        planes, axes = [], []
+        for axis in range(3):
+            n = self.empty.shape[2 - axis]
+            planes.append(torch.arange(1, n, device=device, dtype=torch.float32) * (self.cell * self.voxel_size[axis]))
+            axes.append(torch.full((n - 1,), axis, device=device, dtype=torch.long))
+        self.planes, self.plane_axis = torch.cat(planes), torch.cat(axes)
 
     @classmethod
     def build(cls, volume: Volume, tf: TransferFunction, *, cell: int = RENDER_CELL, ranges=None,
@@ -223,7 +232,9 @@ class InrScalar:
         for q in self.model.parameters():
             q.requires_grad_(False)
         self.extent = torch.as_tensor(np.asarray(extent), dtype=torch.float32, device=device)
-        self.fast = FusedSiren(self.model.named_tensors(), self.model.cfg.blocks, fused) if fused else self.model
+        named, blocks = self.model.named_tensors(), self.model.cfg.blocks
+        with torch.no_grad():
+            self.fast = FusedSiren(named, blocks, fused) if fused else FoldedSiren(fold(named, blocks))
 
     def value(self, p: torch.Tensor) -> torch.Tensor:
         return self.fast(box_to_siren(p, self.extent))
@@ -254,13 +265,15 @@ class SirenShadow:
     def __init__(self, weights, layout: WeightLayout, blocks: int, extent, device: torch.device | str = "cpu",
                  fused: str | None = None):
         w = torch.as_tensor(np.asarray(weights), dtype=torch.float32, device=device).reshape(1, -1)
-        self.model = BatchedSiren(w, layout, blocks)
-        self.fused = FusedSiren({k: v[0] for k, v in self.model.params.items()}, blocks, fused) if fused else None
+        # eager: one SIREN with a leading K = 1, the batched matmuls of fitting, so the same values
+        self.fast = (FusedSiren({k: v[0] for k, v in layout.unflatten(w).items()}, blocks, fused) if fused
+                     else FoldedSiren(fold_flat(w, layout, blocks)))
+        self.batched = not fused
         self.extent = torch.as_tensor(np.asarray(extent), dtype=torch.float32, device=device)
 
     def __call__(self, p: torch.Tensor) -> torch.Tensor:
         x = box_to_siren(p, self.extent)
-        return (self.fused(x) if self.fused else self.model(x[None])[0]).clamp(0.0, 1.0)
+        return (self.fast(x[None])[0] if self.batched else self.fast(x)).clamp(0.0, 1.0)
 
 
 # -------------------------------------------------------------------------------------- the wavefront loop
@@ -333,15 +346,11 @@ class Runs:
         if macro is None or not macro.any_empty:
             count = lattice(t1[:, None])[:, 0] * (t1 > t0)
             return cls(count[:, None], torch.zeros_like(count)[:, None], count)
-        planes = []
-        for axis in range(3):
-            n = macro.empty.shape[2 - axis]
-            if n > 1:
-                x = torch.arange(1, n, device=o.device, dtype=o.dtype) * (macro.cell * macro.voxel_size[axis])
-                safe = torch.where(d[:, axis] != 0, d[:, axis], torch.ones_like(d[:, axis]))
-                t = (x[None] - o[:, axis, None]) / safe[:, None]
-                planes.append(torch.where(d[:, axis, None] != 0, t, t1[:, None]))
-        t = torch.cat([t0[:, None], *planes, t1[:, None]], 1)
+        # where the ray crosses each interior cell boundary (parallel rays: at t1), all planes in one pass
+        da, oa = d[:, macro.plane_axis], o[:, macro.plane_axis]
+        crosses = da != 0
+        planes = torch.where(crosses, (macro.planes - oa) / torch.where(crosses, da, 1.0), t1[:, None])
+        t = torch.cat([t0[:, None], planes, t1[:, None]], 1)
         t = torch.minimum(torch.maximum(t, t0[:, None]), t1[:, None]).sort(1).values
         ta, tb = t[:, :-1], t[:, 1:]
         mid = 0.5 * (ta + tb)
@@ -398,9 +407,9 @@ class Shading:
     background: float = BACKGROUND
 
 
-def _shade(tf: TransferFunction, s, grad, g, view_dir, light: torch.Tensor, shading: Shading) -> torch.Tensor:
-    """Sample colour: TF colour, Blinn-Phong lit when asked, times (0.1 + 0.9·g) when there is a shadow."""
-    rgb = tf.color(s)
+def _shade(rgb: torch.Tensor, grad, g, view_dir, light: torch.Tensor, shading: Shading) -> torch.Tensor:
+    """Sample colour: the TF's colour `rgb`, Blinn-Phong lit when asked, times (0.1 + 0.9·g) when there is a
+    shadow."""
     if shading.phong:
         n = grad / grad.norm(dim=1, keepdim=True).clamp_min(1e-6)
         h = light[None] - view_dir
@@ -516,8 +525,9 @@ def render(
         view = None
         if shading.phong:
             view = d[rows, None].expand(*valid.shape, 3).reshape(-1, 3)[idx]
-        a = 1 - torch.exp(-tf.extinction(s) * dt)
-        c = _shade(tf, s, grad, g, view, w, shading)
+        mu, rgb = tf.optics(s)
+        a = 1 - torch.exp(-mu * dt)
+        c = _shade(rgb, grad, g, view, w, shading)
         alpha = torch.zeros(valid.numel(), device=device).index_copy_(0, idx, a)
         rgb = torch.zeros(valid.numel(), 3, device=device).index_copy_(0, idx, c)
         weight, through = front_to_back(alpha.view(valid.shape))
@@ -556,7 +566,7 @@ def render_all_at_once(camera: Camera, scalar, tf: TransferFunction, extent, vox
     alpha = torch.zeros(valid.shape, device=device)
     rgb = torch.zeros(*valid.shape, 3, device=device)
     alpha[valid] = 1 - torch.exp(-tf.extinction(s) * dt)
-    rgb[valid] = _shade(tf, s, grad, g, d[:, None].expand_as(pts)[valid], w, shading)
+    rgb[valid] = _shade(tf.color(s), grad, g, d[:, None].expand_as(pts)[valid], w, shading)
     weight, trans = front_to_back(alpha)
     color = (weight[..., None] * rgb).sum(1)
     out = color + trans[:, None] * shading.background

@@ -12,6 +12,7 @@ diffusion geometry loss and the renderer.
 
 from __future__ import annotations
 
+import functools
 import math
 from dataclasses import dataclass
 
@@ -80,6 +81,10 @@ class WeightLayout:
             parts.append(t.reshape(*t.shape[: t.ndim - len(shape)], -1))
         return torch.cat(parts, dim=-1)
 
+    def scales(self, device: torch.device | str = "cpu", dtype: torch.dtype = torch.float32) -> torch.Tensor:
+        """(n_params,) what `fold` multiplies each parameter by, on `device` (cached)."""
+        return _layout_scales(self, str(device), dtype)
+
     def unflatten(self, flat: torch.Tensor) -> dict[str, torch.Tensor]:
         """(..., n_params) → named tensors of shape (..., *shape); views, so gradients flow."""
         if flat.shape[-1] != self.n_params:
@@ -88,6 +93,12 @@ class WeightLayout:
         for (name, shape), part in zip(self.entries, flat.split(self.sizes, dim=-1), strict=True):
             out[name] = part.reshape(*flat.shape[:-1], *shape)
         return out
+
+
+@functools.cache
+def _layout_scales(layout: WeightLayout, device: str, dtype: torch.dtype) -> torch.Tensor:
+    values = [torch.full((size,), _scale(name)) for (name, _), size in zip(layout.entries, layout.sizes, strict=True)]
+    return torch.cat(values).to(device=device, dtype=dtype)
 
 
 def init_siren(cfg: SirenConfig, generator: torch.Generator | None = None) -> dict[str, torch.Tensor]:
@@ -103,25 +114,66 @@ def init_siren(cfg: SirenConfig, generator: torch.Generator | None = None) -> di
     return out
 
 
+def _scale(name: str) -> float:
+    """What `fold` multiplies a parameter by: ω0 on every sine layer, and the residual weight ½ on the input of
+    a block's first layer (applied to its weights); the last, linear layer as stored."""
+    if name.startswith("last."):
+        return 1.0
+    return OMEGA * (RES_WEIGHT if name.endswith("l1.weight") else 1.0)
+
+
+def _layer_names(blocks: int) -> list[str]:
+    return ["first"] + [f"blocks.{i}.l{j}" for i in range(blocks) for j in (1, 2)] + ["last"]
+
+
+def _layers(p: dict[str, torch.Tensor], blocks: int) -> list[tuple[torch.Tensor, torch.Tensor]]:
+    return [(p[f"{n}.weight"], p[f"{n}.bias"]) for n in _layer_names(blocks)]
+
+
+def fold(p: dict[str, torch.Tensor], blocks: int) -> list[tuple[torch.Tensor, torch.Tensor]]:
+    """(weight, bias) of every layer with ω0 and the residual weight folded in, last layer as stored: the
+    scales applied to the (out, in) weights rather than to the (N, out) activations, two fewer passes over the
+    activations forward and two backward (docs/tuning.md). Inference folds once per network, not per call."""
+    return [(w, b) if n == "last" else (w * _scale(f"{n}.weight"), b * _scale(f"{n}.bias"))
+            for n, (w, b) in zip(_layer_names(blocks), _layers(p, blocks), strict=True)]
+
+
+def fold_flat(weights: torch.Tensor, layout: WeightLayout, blocks: int) -> list[tuple[torch.Tensor, torch.Tensor]]:
+    """`fold` of flat weight vectors (..., n_params) in one product with the layout's scales: the same values,
+    one kernel instead of two per layer (forward and backward)."""
+    return _layers(layout.unflatten(weights * layout.scales(weights.device, weights.dtype)), blocks)
+
+
+def _linear(h: torch.Tensor, w: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
+    if w.ndim == 2:
+        return torch.addmm(b, h, w.t()) if h.ndim == 2 else h @ w.t() + b
+    return torch.baddbmm(b.unsqueeze(1), h, w.transpose(1, 2))  # (K, N, out)
+
+
+def forward_folded(layers: list[tuple[torch.Tensor, torch.Tensor]], x: torch.Tensor) -> torch.Tensor:
+    """One SIREN (weights (out, in)) or K of them (weights (K, out, in), x (K, N, 3)) from `fold`'s layers."""
+    h = torch.sin(_linear(x, *layers[0]))
+    for i in range(1, len(layers) - 1, 2):
+        inner = torch.sin(_linear(h, *layers[i]))
+        h = RES_WEIGHT * (h + torch.sin(_linear(inner, *layers[i + 1])))
+    return (0.5 * _linear(h, *layers[-1]) + 0.5).squeeze(-1)
+
+
 def _forward(p: dict[str, torch.Tensor], x: torch.Tensor, blocks: int) -> torch.Tensor:
     """Shared maths for one SIREN (weights (out, in)) or K of them (weights (K, out, in), x (K, N, 3))."""
+    return forward_folded(fold(p, blocks), x)
 
-    def linear(h: torch.Tensor, w: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
-        if w.ndim == 2:
-            return torch.addmm(b, h, w.t()) if h.ndim == 2 else h @ w.t() + b
-        return torch.baddbmm(b.unsqueeze(1), h, w.transpose(1, 2))  # (K, N, out)
 
-    def sine(name: str, h: torch.Tensor, in_scale: float = 1.0) -> torch.Tensor:
-        # sin(ω0 · linear(in_scale · h)), the scales applied to the (out, in) weights rather than to the (N, out)
-        # activations: two fewer passes over the activations forward and two backward (docs/tuning.md)
-        w, b = p[f"{name}.weight"], p[f"{name}.bias"]
-        return torch.sin(linear(h, w * (OMEGA * in_scale), b * OMEGA))
+class FoldedSiren:
+    """A SIREN for inference from `fold`'s or `fold_flat`'s layers, folded once: the same float32 operations as
+    `_forward`, so the same values, and two fewer kernels per layer and call. (N, 3) → (N,), or (K, N, 3) →
+    (K, N) for K weight sets."""
 
-    h = sine("first", x)
-    for i in range(blocks):
-        inner = sine(f"blocks.{i}.l1", h, RES_WEIGHT)
-        h = RES_WEIGHT * (h + sine(f"blocks.{i}.l2", inner))
-    return (0.5 * linear(h, p["last.weight"], p["last.bias"]) + 0.5).squeeze(-1)
+    def __init__(self, layers: list[tuple[torch.Tensor, torch.Tensor]]):
+        self.layers = [(w.detach(), b.detach()) for w, b in layers]
+
+    def __call__(self, x: torch.Tensor) -> torch.Tensor:
+        return forward_folded(self.layers, x)
 
 
 class Siren(nn.Module):
@@ -171,12 +223,11 @@ class BatchedSiren:
         self.weights = weights
         self.layout = layout
         self.blocks = blocks
-        self.params = layout.unflatten(weights)
 
     def __call__(self, x: torch.Tensor) -> torch.Tensor:
         if x.ndim != 3 or x.shape[0] != self.weights.shape[0]:
             raise ValueError(f"BatchedSiren: points must be (K={self.weights.shape[0]}, N, 3), got {tuple(x.shape)}")
-        return _forward(self.params, x, self.blocks)
+        return forward_folded(fold_flat(self.weights, self.layout, self.blocks), x)
 
 
 def box_to_siren(points: torch.Tensor, extent: torch.Tensor) -> torch.Tensor:

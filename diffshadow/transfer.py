@@ -80,10 +80,24 @@ class TransferFunction:
     def _control(self, kind: str, device) -> tuple[torch.Tensor, torch.Tensor]:
         key = (kind, str(device))
         if key not in self._tensors:
-            pts = torch.as_tensor(self.opacity_points if kind == "opacity" else self.color_points,
-                                  dtype=torch.float32, device=device)
+            points = {"opacity": self.opacity_points, "color": self.color_points}.get(kind)
+            pts = torch.as_tensor(self._optics_points() if points is None else points, dtype=torch.float32,
+                                  device=device)
             self._tensors[key] = (pts[:, 0].contiguous(), pts[:, 1:].contiguous())
         return self._tensors[key]
+
+    def _optics_points(self) -> np.ndarray:
+        """(M, 5) rows s, opacity, r, g, b: both polylines on the union of their knots, so one search finds a
+        sample's opacity and colour. Each function is piecewise linear between the union's knots, so this is
+        exact up to float32 rounding; a step in either gives two knots at its s (left and right values)."""
+        tables = [(self.opacity_points[:, 0], self.opacity_points[:, 1:]),
+                  (self.color_points[:, 0], self.color_points[:, 1:])]
+        rows = []
+        for x in np.unique(np.concatenate([xs for xs, _ in tables])):
+            left = np.concatenate([_one_side(xs, ys, x, "left") for xs, ys in tables])
+            right = np.concatenate([_one_side(xs, ys, x, "right") for xs, ys in tables])
+            rows += [[x, *left]] if np.array_equal(left, right) else [[x, *left], [x, *right]]
+        return np.asarray(rows)
 
     def opacity(self, s) -> torch.Tensor:
         """Opacity in [0, 1] at scalar values `s` (any shape)."""
@@ -98,6 +112,13 @@ class TransferFunction:
         """RGB in [0, 1]; returns s.shape + (3,)."""
         s = _as_tensor(s)
         return _piecewise_linear(s, *self._control("color", s.device))
+
+    def optics(self, s) -> tuple[torch.Tensor, torch.Tensor]:
+        """(extinction, colour) at `s` from one search of both polylines' knots: what a renderer needs per
+        sample, equal to (`extinction`, `color`) up to float32 rounding."""
+        s = _as_tensor(s)
+        both = _piecewise_linear(s, *self._control("optics", s.device))
+        return self.density_scale * both[..., 0], both[..., 1:]
 
     def max_opacity(self, lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
         """Largest opacity over each scalar interval [lo, hi] (macro-cell bounds).
@@ -117,6 +138,22 @@ class TransferFunction:
                 inside = (lo <= xs[i]) & (xs[i] <= hi)
                 best = np.where(inside, np.maximum(best, ys[i + 1]), best)
         return best
+
+
+def _one_side(xs: np.ndarray, ys: np.ndarray, x: float, side: str) -> np.ndarray:
+    """The polyline (xs, ys) at x approached from `side` ("left" or "right"), clamped outside its knots."""
+    if side == "right":
+        i = int(np.searchsorted(xs, x, side="right")) - 1  # the last knot at or before x
+        if i < 0 or i == len(xs) - 1:
+            return ys[max(i, 0)]
+        j = i + 1
+    else:
+        j = int(np.searchsorted(xs, x, side="left"))  # the first knot at or after x
+        if j == 0 or j == len(xs):
+            return ys[min(j, len(xs) - 1)]
+        i = j - 1
+    w = (x - xs[i]) / (xs[j] - xs[i])
+    return ys[i] + w * (ys[j] - ys[i])
 
 
 def _points(key: str, value, width: int) -> np.ndarray:

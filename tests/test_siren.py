@@ -87,3 +87,25 @@ def test_cosine_lr_decays_and_scales_down_above_lr_width():
     assert cosine_lr(50, cfg, 16) == cosine_lr(50, cfg, LR_WIDTH) == pytest.approx(0.5 * (1e-3 + 1e-5))
     for step in (0, 37, 100):  # a SIREN twice as wide: half the step size all along the schedule
         assert cosine_lr(step, cfg, 2 * LR_WIDTH) == pytest.approx(0.5 * cosine_lr(step, cfg, LR_WIDTH))
+
+
+def test_folding_once_gives_the_same_values_and_gradients():
+    """Fitting folds ω0 into the flat weight vectors in one product, inference folds once per network; both
+    must give exactly what folding each tensor at each call gives (the module's path)."""
+    from diffshadow.siren import FoldedSiren, fold, forward_folded
+
+    cfg = SirenConfig(16, 2)
+    layout = WeightLayout.for_siren(cfg)
+    gen = torch.Generator().manual_seed(5)
+    w = torch.stack([layout.flatten(init_siren(cfg, gen)) for _ in range(3)]).requires_grad_(True)
+    ref_w = w.detach().clone().requires_grad_(True)
+    x = torch.rand(3, 200, 3, generator=gen) * 2 - 1
+    got = BatchedSiren(w, layout, cfg.blocks)(x)
+    ref = forward_folded(fold(layout.unflatten(ref_w), cfg.blocks), x)
+    assert torch.equal(got, ref)
+    got.square().sum().backward()
+    ref.square().sum().backward()
+    assert torch.equal(w.grad, ref_w.grad)
+    model = Siren.from_flat(w[1].detach(), layout)
+    with torch.no_grad():
+        assert torch.equal(FoldedSiren(fold(model.named_tensors(), cfg.blocks))(x[1]), model(x[1]))

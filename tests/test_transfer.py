@@ -55,3 +55,23 @@ def test_malformed_transfer_functions(change, message):
 def test_missing_key():
     with pytest.raises(TransferFunctionError, match="missing key 'color'"):
         TransferFunction.from_config({"opacity": CONFIG["opacity"], "density_scale": 1})
+
+
+@pytest.mark.parametrize("config", [
+    CONFIG,
+    {"opacity": [[0.0, 0.0], [0.3, 0.0], [0.3, 1.0], [0.6, 0.5], [0.9, 0.0]],
+     "color": [[0.1, 1.0, 0.0, 0.0], [0.5, 0.0, 1.0, 0.0], [0.5, 0.0, 0.0, 1.0], [0.7, 1.0, 1.0, 1.0]],
+     "density_scale": 40.0},
+])
+def test_optics_is_opacity_and_colour_from_one_search(config):
+    """One search of the union of both polylines' knots gives the extinction and colour that two searches give,
+    steps included (at a step's s, the upper value), and outside the knots the clamped ends."""
+    tf = TransferFunction.from_config(config)
+    knots = np.concatenate([tf.opacity_points[:, 0], tf.color_points[:, 0]])
+    s = torch.cat([torch.rand(20000, generator=torch.Generator().manual_seed(0)) * 1.4 - 0.2,
+                   torch.as_tensor(knots, dtype=torch.float32)])
+    mu, rgb = tf.optics(s)
+    torch.testing.assert_close(mu, tf.extinction(s), rtol=1e-6, atol=1e-6 * tf.density_scale)
+    torch.testing.assert_close(rgb, tf.color(s), rtol=1e-6, atol=1e-6)
+    mu2, rgb2 = tf.optics(s[:20000].view(100, 200))
+    assert mu2.shape == (100, 200) and rgb2.shape == (100, 200, 3)
