@@ -1,14 +1,20 @@
-"""A fused SIREN for inference (issue 16): one Triton kernel evaluates a whole SIREN per tile of points,
+"""Fused SIRENs for inference (issue 16): Triton kernels that evaluate whole SIRENs per tile of points,
 activations kept on chip, so a layer costs its matrix product and its sines and no trip through GPU memory.
 
-The eager SIREN (`siren._forward`) is the CPU path and the reference: the kernel applies the same
-pre-scaled weights (`siren.fold`) in the same order,
-the first layer as three fp32 multiply-adds (ω0 = 30 amplifies its rounding) and the hidden layers as
-`tl.dot` in `precision` ("ieee": fp32, "tf32": tensor cores). Tests run the kernel on the CPU through
-Triton's interpreter (`TRITON_INTERPRET=1`) when Triton is installed.
+- `FusedSiren`: one SIREN, (N, 3) → (N,) (the data INR's values for the naive baseline's secondary rays).
+- `FusedSamples`: what the renderer needs of a primary sample in one kernel: the data INR's value, the shadow
+  INR's coefficient, the transfer function (one search of `TransferFunction.optics`' knots), the sample's
+  opacity for the step and its shaded colour; box points in, (α, rgb) out.
 
-Opt-in while its speed is unmeasured on a GPU: `DIFFSHADOW_FUSED_SIREN=1` (fp32) or `=tf32`;
-`scripts/render_plans.py` compares it with the eager SIREN side by side.
+The eager SIREN (`siren.forward_folded`) and the renderer's eager sample step are the CPU path and the
+reference: the kernels apply the same pre-scaled weights (`siren.fold`) in the same order, the first layer as
+three fp32 multiply-adds (ω0 = 30 amplifies its rounding) and the hidden layers as `tl.dot` in `precision`
+("ieee": fp32, "tf32": tensor cores with 10-bit mantissa inputs, fp32 sums). Sines and their arguments stay
+fp32. Tests run the kernels on the CPU through Triton's interpreter
+(`TRITON_INTERPRET=1`) when Triton is installed.
+
+Opt-in while their speed is unmeasured on a GPU: `DIFFSHADOW_FUSED_SIREN=1` (fp32) or `=tf32`;
+`scripts/render_plans.py` compares them with the eager SIREN side by side.
 """
 
 from __future__ import annotations
@@ -27,6 +33,22 @@ def block_points(width: int) -> int:
     return max(16, min(128, 4096 // width))
 
 
+# bfloat16 inputs to the hidden layers (8 mantissa bits) were tried: hydrogen_atom's inr image at 64² came out at
+# 16.7 dB PSNR against fp32 (Triton's interpreter, scripts/render_plans.py), so it is not offered
+PRECISIONS = ("ieee", "tf32")
+_launches = 0  # kernels launched by this process: profilers of aten ops do not see them (bench.profile adds them)
+
+
+def launches() -> int:
+    """Fused kernels launched so far by this process."""
+    return _launches
+
+
+def _launched() -> None:
+    global _launches
+    _launches += 1
+
+
 class FusedSirenError(RuntimeError):
     pass
 
@@ -38,8 +60,8 @@ def fused_setting() -> str | None:
         return None
     if value in ("1", "ieee"):
         return "ieee"
-    if value == "tf32":
-        return "tf32"
+    if value in PRECISIONS:
+        return value
     raise FusedSirenError(f"DIFFSHADOW_FUSED_SIREN: expected 0, 1, ieee or tf32, got {value!r}")
 
 
@@ -51,48 +73,26 @@ def available(device: torch.device) -> bool:
 
 
 @functools.cache
-def _kernel():
-    """The kernel, compiled on first use (importing Triton costs every process that renders a second)."""
+def _kernels():
+    """The kernels (`_kernels.py`), imported on first use: importing Triton costs every process that renders a
+    second."""
     import triton
-    import triton.language as tl
 
-    @triton.jit
-    def siren_kernel(x_ptr, w0_ptr, b0_ptr, wh_ptr, bh_ptr, wl_ptr, bl_ptr, out_ptr, n,
-                     W: tl.constexpr, BLOCKS: tl.constexpr, BLOCK: tl.constexpr, PRECISION: tl.constexpr,
-                     RES: tl.constexpr):
-        rows = tl.program_id(0) * BLOCK + tl.arange(0, BLOCK)
-        live = rows < n
-        c = tl.arange(0, W)
-        x0 = tl.load(x_ptr + rows * 3, mask=live, other=0.0)
-        x1 = tl.load(x_ptr + rows * 3 + 1, mask=live, other=0.0)
-        x2 = tl.load(x_ptr + rows * 3 + 2, mask=live, other=0.0)
-        h = (x0[:, None] * tl.load(w0_ptr + c)[None, :] + x1[:, None] * tl.load(w0_ptr + W + c)[None, :]
-             + x2[:, None] * tl.load(w0_ptr + 2 * W + c)[None, :] + tl.load(b0_ptr + c)[None, :])
-        h = tl.sin(h)
-        square = c[:, None] * W + c[None, :]  # (in, out) layout: h @ w
-        for i in tl.static_range(BLOCKS):
-            wa = tl.load(wh_ptr + (2 * i) * W * W + square)
-            ba = tl.load(bh_ptr + (2 * i) * W + c)
-            inner = tl.sin(tl.dot(h, wa, input_precision=PRECISION) + ba[None, :])
-            wb = tl.load(wh_ptr + (2 * i + 1) * W * W + square)
-            bb = tl.load(bh_ptr + (2 * i + 1) * W + c)
-            outer = tl.sin(tl.dot(inner, wb, input_precision=PRECISION) + bb[None, :])
-            h = RES * (h + outer)
-        y = tl.sum(h * tl.load(wl_ptr + c)[None, :], axis=1) + tl.load(bl_ptr)
-        tl.store(out_ptr + rows, 0.5 * y + 0.5, mask=live)
+    from diffshadow import _kernels as k
 
-    return triton.cdiv, siren_kernel
+    return triton.cdiv, k.siren_kernel, k.samples_kernel
 
 
 class FusedSiren:
     """One SIREN (`named` tensors as `Siren.named_tensors()` or `WeightLayout.unflatten` give them, for one
-    SIREN) as a callable (N, 3) → (N,), the same as `siren._forward` up to float32 summation order."""
+    SIREN) as a callable (N, 3) → (N,), the same as `siren._forward` up to float32 summation order (and the
+    inputs' rounding under tf32)."""
 
     def __init__(self, named: dict[str, torch.Tensor], blocks: int, precision: str = "ieee"):
         if importlib.util.find_spec("triton") is None:
             raise FusedSirenError("the fused SIREN needs Triton (it ships with CUDA builds of PyTorch)")
-        if precision not in ("ieee", "tf32"):
-            raise FusedSirenError(f"precision: expected 'ieee' or 'tf32', got {precision!r}")
+        if precision not in PRECISIONS:
+            raise FusedSirenError(f"precision: expected one of {', '.join(PRECISIONS)}, got {precision!r}")
         first = named["first.weight"].detach().float()
         width = first.shape[0]
         if width < 16 or width & (width - 1) or first.shape[1] != 3:
@@ -111,12 +111,52 @@ class FusedSiren:
         self.width, self.blocks, self.precision = width, blocks, precision
         self.block = block_points(width)
 
+    @property
+    def tensors(self) -> tuple[torch.Tensor, ...]:
+        return self.w0, self.b0, self.wh, self.bh, self.wl, self.bl
+
     def __call__(self, x: torch.Tensor) -> torch.Tensor:
         x = x.float().contiguous()
         out = torch.empty(len(x), dtype=torch.float32, device=x.device)
         if len(x):
-            cdiv, kernel = _kernel()
+            cdiv, kernel, _ = _kernels()
+            _launched()
             kernel[(cdiv(len(x), self.block),)](
-                x, self.w0, self.b0, self.wh, self.bh, self.wl, self.bl, out, len(x),
+                x, *self.tensors, out, len(x),
                 W=self.width, BLOCKS=self.blocks, BLOCK=self.block, PRECISION=self.precision, RES=RES_WEIGHT)
         return out
+
+
+class FusedSamples:
+    """A primary sample's opacity and colour from its box point in one kernel: data INR `scalar`, shadow INR
+    `shadow` (None: no shadow), the transfer function's `knots` ((M,), (M, 4) of opacity and RGB,
+    `TransferFunction.optics`' table) and `density_scale`, step `dt` in box units. The same arithmetic as the
+    renderer's eager step (unlit shading: colour × (0.1 + 0.9·g), clamped to [0, 1])."""
+
+    def __init__(self, scalar: FusedSiren, shadow: FusedSiren | None, extent: torch.Tensor,
+                 knots: tuple[torch.Tensor, torch.Tensor], density_scale: float, dt: float):
+        if shadow is not None and shadow.precision != scalar.precision:
+            raise FusedSirenError(f"the data and shadow SIRENs need one precision, got {scalar.precision!r} and "
+                                  f"{shadow.precision!r}")
+        self.scalar, self.shadow = scalar, shadow
+        self.extent = extent.float().contiguous()
+        xs, ys = knots
+        self.xs, self.ys = xs.float().contiguous(), ys.float().contiguous()
+        self.density, self.dt = float(density_scale), float(dt)
+        # the wider network sets the tile, so both fit on chip
+        self.block = min(scalar.block, shadow.block) if shadow is not None else scalar.block
+
+    def __call__(self, p: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        p = p.float().contiguous()
+        alpha = torch.empty(len(p), dtype=torch.float32, device=p.device)
+        rgb = torch.empty(len(p), 3, dtype=torch.float32, device=p.device)
+        if len(p):
+            cdiv, _, kernel = _kernels()
+            _launched()
+            shadow = self.shadow or self.scalar  # unused weights when there is no shadow
+            kernel[(cdiv(len(p), self.block),)](
+                p, self.extent, *self.scalar.tensors, *shadow.tensors, self.xs, self.ys, self.density, self.dt,
+                alpha, rgb, len(p), W=self.scalar.width, BLOCKS=self.scalar.blocks, SW=shadow.width,
+                SBLOCKS=shadow.blocks, SHADOW=self.shadow is not None, KNOTS=len(self.xs), BLOCK=self.block,
+                PRECISION=self.scalar.precision, RES=RES_WEIGHT)
+        return alpha, rgb

@@ -31,7 +31,7 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-from diffshadow.fused import FusedSiren, fused_setting
+from diffshadow.fused import FusedSamples, FusedSiren, fused_setting
 from diffshadow.fused import available as fused_available
 from diffshadow.grid import cell_ranges, ray_span, trilinear
 from diffshadow.lights import as_direction
@@ -232,6 +232,7 @@ class InrScalar:
         for q in self.model.parameters():
             q.requires_grad_(False)
         self.extent = torch.as_tensor(np.asarray(extent), dtype=torch.float32, device=device)
+        self.box = tuple(np.asarray(extent, dtype=float).tolist())  # on the host, to compare without a sync
         named, blocks = self.model.named_tensors(), self.model.cfg.blocks
         with torch.no_grad():
             self.fast = FusedSiren(named, blocks, fused) if fused else FoldedSiren(fold(named, blocks))
@@ -270,6 +271,7 @@ class SirenShadow:
                      else FoldedSiren(fold_flat(w, layout, blocks)))
         self.batched = not fused
         self.extent = torch.as_tensor(np.asarray(extent), dtype=torch.float32, device=device)
+        self.box = tuple(np.asarray(extent, dtype=float).tolist())
 
     def __call__(self, p: torch.Tensor) -> torch.Tensor:
         x = box_to_siren(p, self.extent)
@@ -513,6 +515,8 @@ def render(
     trans = torch.ones(len(o), device=device)
     color = torch.zeros(len(o), 3, device=device)
 
+    fused = _fused_samples(scalar, shadow, tf, dt, shading)
+
     def composite(rows, t, valid):
         pts = (o[rows, None] + t[..., None] * d[rows, None]).view(-1, 3)
         idx = torch.nonzero(valid.view(-1)).flatten()
@@ -520,14 +524,17 @@ def render(
         counters.primary_samples += len(flat)
         if len(flat) == 0:
             return
-        s, grad = scalar.value_and_grad(flat) if shading.phong else (scalar.value(flat), None)
-        g = shadow(flat) if shadow is not None else None
-        view = None
-        if shading.phong:
-            view = d[rows, None].expand(*valid.shape, 3).reshape(-1, 3)[idx]
-        mu, rgb = tf.optics(s)
-        a = 1 - torch.exp(-mu * dt)
-        c = _shade(rgb, grad, g, view, w, shading)
+        if fused is not None:
+            a, c = fused(flat)
+        else:
+            s, grad = scalar.value_and_grad(flat) if shading.phong else (scalar.value(flat), None)
+            g = shadow(flat) if shadow is not None else None
+            view = None
+            if shading.phong:
+                view = d[rows, None].expand(*valid.shape, 3).reshape(-1, 3)[idx]
+            mu, rgb = tf.optics(s)
+            a = 1 - torch.exp(-mu * dt)
+            c = _shade(rgb, grad, g, view, w, shading)
         alpha = torch.zeros(valid.numel(), device=device).index_copy_(0, idx, a)
         rgb = torch.zeros(valid.numel(), 3, device=device).index_copy_(0, idx, c)
         weight, through = front_to_back(alpha.view(valid.shape))
@@ -540,6 +547,18 @@ def render(
     h, wdt = camera.height, camera.width
     seconds = time.perf_counter() - start
     return Image(out.view(h, wdt, 3), (1 - trans).view(h, wdt), seconds, counters)
+
+
+def _fused_samples(scalar, shadow, tf: TransferFunction, dt: float, shading: Shading) -> FusedSamples | None:
+    """The primary samples' step as one kernel where both fields are fused SIRENs on one box and shading is
+    unlit (Phong needs the field's gradient, by autograd); None: the eager step."""
+    if shading.phong or not (isinstance(scalar, InrScalar) and isinstance(scalar.fast, FusedSiren)):
+        return None
+    if shadow is not None and not (isinstance(shadow, SirenShadow) and isinstance(shadow.fast, FusedSiren)
+                                   and shadow.box == scalar.box):
+        return None
+    return FusedSamples(scalar.fast, shadow.fast if shadow is not None else None, scalar.extent,
+                        tf.optics_knots(scalar.extent.device), tf.density_scale, dt)
 
 
 def render_all_at_once(camera: Camera, scalar, tf: TransferFunction, extent, voxel: float, *, light=None,

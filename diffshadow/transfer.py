@@ -113,11 +113,15 @@ class TransferFunction:
         s = _as_tensor(s)
         return _piecewise_linear(s, *self._control("color", s.device))
 
+    def optics_knots(self, device: torch.device | str = "cpu") -> tuple[torch.Tensor, torch.Tensor]:
+        """`optics`' table on `device`: knots s (M,) and opacity, r, g, b at each (M, 4) (cached)."""
+        return self._control("optics", device)
+
     def optics(self, s) -> tuple[torch.Tensor, torch.Tensor]:
         """(extinction, colour) at `s` from one search of both polylines' knots: what a renderer needs per
         sample, equal to (`extinction`, `color`) up to float32 rounding."""
         s = _as_tensor(s)
-        both = _piecewise_linear(s, *self._control("optics", s.device))
+        both = _piecewise_linear(s, *self.optics_knots(s.device))
         return self.density_scale * both[..., 0], both[..., 1:]
 
     def max_opacity(self, lo: np.ndarray, hi: np.ndarray) -> np.ndarray:

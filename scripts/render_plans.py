@@ -1,4 +1,4 @@
-"""Side by side: the wavefront marcher's variants on one device (batch sizes, TF32 matmuls, the fused SIREN), for
+"""Side by side: the wavefront marcher's variants on one device (batch sizes, TF32 matmuls, the fused kernels), for
 `inr` and `naive`.
 
     python scripts/render_plans.py --device cuda --sizes 512 1024

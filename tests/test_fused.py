@@ -28,6 +28,7 @@ pytestmark = [
 @pytest.mark.parametrize("width, blocks", [(16, 0), (32, 2), (64, 2), (64, 1)])
 @pytest.mark.parametrize("precision", ["ieee", "tf32"])
 def test_kernel_equals_the_eager_siren(width, blocks, precision):
+    """The interpreter computes TF32 products in fp32; tests/gpu bounds their rounding on a GPU."""
     model = Siren(SirenConfig(width, blocks), torch.Generator().manual_seed(width + blocks))
     # trained-looking weights, not only the init: larger hidden weights make the sines' arguments larger
     with torch.no_grad():
@@ -41,27 +42,44 @@ def test_kernel_equals_the_eager_siren(width, blocks, precision):
     assert FusedSiren(model.named_tensors(), blocks, precision)(x[:0]).shape == (0,)
 
 
-def test_renderer_images_equal_with_the_fused_kernel(monkeypatch):
+@pytest.mark.parametrize("mode, kernel_steps", [("noshadow", True), ("inr", True), ("naive", False)])
+def test_renderer_images_equal_with_the_fused_kernels(monkeypatch, mode, kernel_steps):
+    """With DIFFSHADOW_FUSED_SIREN, `inr` and `noshadow` take each primary sample's value, shadow, transfer
+    function and shading from one kernel (FusedSamples), `naive` its secondary rays' values from FusedSiren;
+    the images equal the eager renderer's. A box that is not a cube and a TF with a step and colour knots of its
+    own check the kernel's box mapping and its knot search."""
+    from diffshadow import render
+
     a = gaussian_blob(33, 0.15)
-    volume = Volume(data=a, extent=np.ones(3), name="blob")
-    tf = TransferFunction.from_config({"opacity": [[0, 0], [0.2, 0], [1, 0.8]],
-                                       "color": [[0, 0.2, 0.4, 0.9], [1, 1, 0.3, 0.2]], "density_scale": 20})
+    volume = Volume(data=a, extent=np.array([1.0, 0.8, 1.25]), name="blob")
+    tf = TransferFunction.from_config({"opacity": [[0, 0], [0.2, 0], [0.5, 0.3], [0.5, 0.6], [1, 0.8]],
+                                       "color": [[0, 0.2, 0.4, 0.9], [0.35, 0.9, 0.9, 0.1], [1, 1, 0.3, 0.2]],
+                                       "density_scale": 20})
 
     class DataInr:  # what RenderScene reads of a data INR
         model = Siren(SirenConfig(32, 1), torch.Generator().manual_seed(3))
         cell_lo = cell_hi = None
 
+    calls = []
+
+    class Spy(render.FusedSamples):
+        def __call__(self, p):
+            calls.append(len(p))
+            return super().__call__(p)
+
+    monkeypatch.setattr(render, "FusedSamples", Spy)
     siren = SirenConfig(16, 2)
     layout = WeightLayout.for_siren(siren)
     weights = layout.flatten(init_siren(siren, torch.Generator().manual_seed(4))).numpy()
-    cam = Camera.orbit(volume.extent, azimuth=30.0, elevation=25.0, size=24)
+    cam = Camera.orbit(volume.extent, azimuth=30.0, elevation=25.0, size=20 if mode == "naive" else 24)
     images = {}
     for setting in ("0", "1"):
         monkeypatch.setenv("DIFFSHADOW_FUSED_SIREN", setting)
         scene = RenderScene(volume, tf, DataInr(), device="cpu")
         assert scene.fused == (None if setting == "0" else "ieee")
-        images[setting] = scene.render("inr", cam, light=(0.3, -0.5, 0.8), siren=(weights, layout, siren.blocks),
+        images[setting] = scene.render(mode, cam, light=(0.3, -0.5, 0.8), siren=(weights, layout, siren.blocks),
                                        skip=False).rgb
+        assert bool(calls) == (kernel_steps and setting == "1")
     assert float((images["0"] - images["1"]).abs().max()) <= 1e-5
 
 
@@ -75,7 +93,36 @@ def test_setting_and_bad_input(monkeypatch):
     named = Siren(SirenConfig(24, 1)).named_tensors()
     with pytest.raises(FusedSirenError, match=r"power-of-two width >= 16 and 3 inputs, got weights \(24, 3\)"):
         FusedSiren(named, 1)
-    with pytest.raises(FusedSirenError, match="precision: expected 'ieee' or 'tf32', got 'fp16'"):
+    with pytest.raises(FusedSirenError, match="precision: expected one of ieee, tf32, got 'fp16'"):
         FusedSiren(Siren(SirenConfig(16, 1)).named_tensors(), 1, "fp16")
     monkeypatch.delenv("TRITON_INTERPRET")
     assert not fused.available(torch.device("cpu")) and fused.available(torch.device("cuda"))
+
+
+@pytest.mark.parametrize("value", [0.25, 0.5, 0.75, 0.6])
+@pytest.mark.parametrize("shadow", [None, 0.25])
+def test_samples_kernel_transfer_function_at_its_knots(value, shadow):
+    """SIRENs with zero weights give the constant 0.5 · last bias + 0.5, so the kernel's transfer function is
+    read exactly at a knot: at a step the upper value, as `TransferFunction.optics` (and the eager step) has it."""
+    from diffshadow.fused import FusedSamples
+
+    tf = TransferFunction.from_config({"opacity": [[0, 0], [0.25, 0.1], [0.25, 0.4], [0.5, 0.4], [0.5, 0.9], [1, 1]],
+                                       "color": [[0, 0, 0, 1], [0.75, 1, 0, 0], [0.75, 0, 1, 0], [1, 1, 1, 1]],
+                                       "density_scale": 30})
+
+    def constant(v, width):
+        model = Siren(SirenConfig(width, 1))
+        named = {k: torch.zeros_like(t) for k, t in model.named_tensors().items()}
+        named["last.bias"] = torch.tensor([2 * v - 1])
+        return FusedSiren(named, 1)
+
+    extent = torch.tensor([1.0, 0.5, 2.0])
+    p = torch.rand(300, 3, generator=torch.Generator().manual_seed(0)) * extent
+    fused = FusedSamples(constant(value, 32), constant(shadow, 16) if shadow is not None else None, extent,
+                         tf.optics_knots(), tf.density_scale, dt=0.01)
+    alpha, rgb = fused(p)
+    mu, colour = tf.optics(torch.full((300,), value))
+    g = 1.0 if shadow is None else 0.1 + 0.9 * shadow
+    torch.testing.assert_close(alpha, 1 - torch.exp(-mu * 0.01), rtol=0, atol=1e-6)
+    torch.testing.assert_close(rgb, (colour * g).clamp(0, 1), rtol=0, atol=1e-6)
+    assert fused(p[:0])[0].shape == (0,) and fused(p[:0])[1].shape == (0, 3)

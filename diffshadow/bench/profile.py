@@ -2,9 +2,9 @@
 
 Counted with torch.profiler on any device. An *op* is a leaf aten op that does work (a kernel launch on
 a GPU): views, reshapes, allocations and scalar reads are left out, and a composite op counts through
-its leaves. A *host sync* is an op whose result the host must wait for: a scalar read
-(`_local_scalar_dense`, behind `.item()`, `bool()`, `int()`), `nonzero` (behind boolean indexing) and
-the other ops whose output shape depends on data.
+its leaves; a fused Triton kernel (`diffshadow.fused`) counts one op per launch. A *host sync* is an op
+whose result the host must wait for: a scalar read (`_local_scalar_dense`, behind `.item()`, `bool()`,
+`int()`), `nonzero` (behind boolean indexing) and the other ops whose output shape depends on data.
 """
 
 from __future__ import annotations
@@ -12,6 +12,8 @@ from __future__ import annotations
 from collections.abc import Callable
 
 from torch.profiler import ProfilerActivity, profile
+
+from diffshadow.fused import launches
 
 NO_WORK = frozenset({
     "aten::view", "aten::reshape", "aten::_reshape_alias", "aten::expand", "aten::expand_as", "aten::as_strided",
@@ -29,9 +31,10 @@ SYNCS = frozenset({"aten::_local_scalar_dense", "aten::nonzero", "aten::masked_s
 
 def op_counts(fn: Callable[[], object]) -> dict[str, int]:
     """{"ops": kernel-launching ops, "syncs": host syncs} of one call of `fn`."""
+    fused = launches()
     with profile(activities=[ProfilerActivity.CPU]) as prof:
         fn()
-    ops = syncs = 0
+    ops, syncs = launches() - fused, 0
     for e in prof.events():
         if not e.name.startswith("aten::"):
             continue
