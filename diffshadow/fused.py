@@ -24,6 +24,7 @@ import importlib.util
 import os
 
 import torch
+from torch.profiler import record_function
 
 from diffshadow.siren import RES_WEIGHT, fold
 
@@ -36,17 +37,7 @@ def block_points(width: int) -> int:
 # bfloat16 inputs to the hidden layers (8 mantissa bits) were tried: hydrogen_atom's inr image at 64² came out at
 # 16.7 dB PSNR against fp32 (Triton's interpreter, scripts/render_plans.py), so it is not offered
 PRECISIONS = ("ieee", "tf32")
-_launches = 0  # kernels launched by this process: profilers of aten ops do not see them (bench.profile adds them)
-
-
-def launches() -> int:
-    """Fused kernels launched so far by this process."""
-    return _launches
-
-
-def _launched() -> None:
-    global _launches
-    _launches += 1
+LAUNCH = "diffshadow::fused"  # the profiler range around each launch: bench.profile counts it as one op
 
 
 class FusedSirenError(RuntimeError):
@@ -120,10 +111,10 @@ class FusedSiren:
         out = torch.empty(len(x), dtype=torch.float32, device=x.device)
         if len(x):
             cdiv, kernel, _ = _kernels()
-            _launched()
-            kernel[(cdiv(len(x), self.block),)](
-                x, *self.tensors, out, len(x),
-                W=self.width, BLOCKS=self.blocks, BLOCK=self.block, PRECISION=self.precision, RES=RES_WEIGHT)
+            with record_function(LAUNCH):
+                kernel[(cdiv(len(x), self.block),)](
+                    x, *self.tensors, out, len(x),
+                    W=self.width, BLOCKS=self.blocks, BLOCK=self.block, PRECISION=self.precision, RES=RES_WEIGHT)
         return out
 
 
@@ -152,11 +143,11 @@ class FusedSamples:
         rgb = torch.empty(len(p), 3, dtype=torch.float32, device=p.device)
         if len(p):
             cdiv, _, kernel = _kernels()
-            _launched()
             shadow = self.shadow or self.scalar  # unused weights when there is no shadow
-            kernel[(cdiv(len(p), self.block),)](
-                p, self.extent, *self.scalar.tensors, *shadow.tensors, self.xs, self.ys, self.density, self.dt,
-                alpha, rgb, len(p), W=self.scalar.width, BLOCKS=self.scalar.blocks, SW=shadow.width,
-                SBLOCKS=shadow.blocks, SHADOW=self.shadow is not None, KNOTS=len(self.xs), BLOCK=self.block,
-                PRECISION=self.scalar.precision, RES=RES_WEIGHT)
+            with record_function(LAUNCH):
+                kernel[(cdiv(len(p), self.block),)](
+                    p, self.extent, *self.scalar.tensors, *shadow.tensors, self.xs, self.ys, self.density, self.dt,
+                    alpha, rgb, len(p), W=self.scalar.width, BLOCKS=self.scalar.blocks, SW=shadow.width,
+                    SBLOCKS=shadow.blocks, SHADOW=self.shadow is not None, KNOTS=len(self.xs), BLOCK=self.block,
+                    PRECISION=self.scalar.precision, RES=RES_WEIGHT)
         return alpha, rgb

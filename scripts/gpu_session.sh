@@ -14,8 +14,9 @@
 # workflow: the README's run (`snakemake --profile local -j2`, the profile from profiles/) on an empty
 #           results/, its wall time and Snakemake's per-rule benchmark table, and the run's metrics.
 # render:   bench render on hydrogen_atom at 128², 512², 1024² (fps, ops and host syncs per frame, skipping,
-#           peak memory up to 2048²), then the same with the fused SIREN in TF32.
-# plans:    scripts/render_plans.py: batch sizes, TF32 matmuls and the fused SIREN side by side.
+#           peak memory up to 2048²), then the same with the fused kernels in TF32.
+# plans:    scripts/render_plans.py: batch sizes, TF32 matmuls and the fused kernels side by side, then
+#           torch.profiler's top kernels and the device's busy fraction of one 1024² inr frame per variant.
 # checks:   pytest -m gpu; bench siren (K=16 and K=50 jointly vs one by one, default chunking); the cost of
 #           DIFFSHADOW_DETERMINISTIC=1 on the same K=16 run.
 # tests:    the whole suite, with its slowest tests.
@@ -69,11 +70,11 @@ render)
     ;;
 plans)
     sizes=(--sizes 128 512 1024); [ "$quick" = 1 ] && sizes=(--sizes 24 --inr-steps 200 --repeats 1)
-    step render_plans python scripts/render_plans.py --device "$device" "${sizes[@]}"
+    step render_plans python scripts/render_plans.py --device "$device" "${sizes[@]}" --profile
     ;;
 all)
     end=${END:-540}
-    for p in ${PARTS:-render:120 plans:150 tests:360}; do
+    for p in ${PARTS:-render:100 plans:160 tests:280}; do
         left=$((end - SECONDS)); cap=${p#*:}; [ "$left" -lt "$cap" ] && cap=$left
         if [ "$cap" -lt 30 ]; then echo "== ${p%%:*}: skipped, ${left} s left" | tee -a "$out/times.txt"; continue; fi
         PART_ROOT=$root timeout -k 5 "$cap" bash "$0" "${p%%:*}" || failed=1

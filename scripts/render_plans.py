@@ -38,7 +38,7 @@ def variants(device: torch.device) -> dict[str, tuple[int | None, bool, str | No
     iterations, absent samples evaluated) sent 2.5x the samples and was 1.45x slower at 512², 1.2x at 1024²
     (docs/tuning.md)."""
     out = {"default": (None, False, None)}
-    for lb in (16, 20, 21, 22):
+    for lb in (20, 21, 22) if device.type == "cuda" else (16, 20, 22):
         out[f"batch 2^{lb}"] = (1 << lb, False, None)
     out["tf32 matmuls"] = (None, True, None)
     if fused_available(device):
@@ -64,6 +64,9 @@ def main() -> None:
     ap.add_argument("--modes", nargs="+", default=["inr", "naive"])
     ap.add_argument("--inr-steps", type=int, default=3000)
     ap.add_argument("--repeats", type=int, default=3)
+    ap.add_argument("--profile", action="store_true",
+                    help="after the table, torch.profiler's top kernels of one inr frame at the largest size, "
+                         "per variant (default and the fused ones)")
     a = ap.parse_args()
     device = torch.device(a.device)
     scene = load_scene_file("config/scenes/hydrogen_atom.yaml", device)
@@ -107,6 +110,35 @@ def main() -> None:
                       f"({1 / statistics.median(secs[name]):7.2f} fps)  samples {img.counters.primary_samples:>11,} "
                       f"+ {img.counters.secondary_samples:>13,}  ops {c['ops']:>6,} syncs {c['syncs']:>4}  "
                       f"PSNR vs default {p:6.1f} dB", flush=True)
+
+    if a.profile:
+        cam = R.Camera.orbit(scene.volume.extent, azimuth=30.0, elevation=25.0, size=max(a.sizes))
+        for name, (batch, tf32, fused) in plans.items():
+            if name == "default" or fused:
+                with variant(scene, tf32, fused):
+                    profile_frame(scene, cam, device, name, batch=batch, **kw)
+
+
+def profile_frame(scene: R.RenderScene, cam: R.Camera, device: torch.device, name: str, **kw) -> None:
+    """Where one inr frame's time goes: the top kernels by device time (self CPU time on a CPU), and on a GPU
+    how busy the device was over the frame's wall time."""
+    from torch.profiler import ProfilerActivity, profile
+
+    cuda = device.type == "cuda"
+    scene.render("inr", cam, **kw)  # warm: compiled kernels, caches
+    acts = [ProfilerActivity.CPU] + ([ProfilerActivity.CUDA] if cuda else [])
+    with profile(activities=acts) as prof:
+        img = scene.render("inr", cam, **kw)
+        if cuda:
+            torch.cuda.synchronize()
+    key = "self_device_time_total" if cuda else "self_cpu_time_total"
+    events = prof.key_averages()
+    # the kernels' own rows (device_type CUDA) hold the device time; summing the aten rows too would count it twice
+    kernels = [e for e in events if str(getattr(e, "device_type", "")).endswith("CUDA")]
+    busy = sum(getattr(e, key, 0.0) for e in kernels) / 1e6
+    print(f"\n== profile: {name}, inr {cam.width}x{cam.height}, frame {img.seconds:.4f} s"
+          + (f", device busy {busy:.4f} s ({busy / img.seconds:.0%})" if cuda else ""))
+    print(events.table(sort_by=key, row_limit=15, max_name_column_width=60), flush=True)
 
 
 if __name__ == "__main__":

@@ -126,3 +126,13 @@ def test_samples_kernel_transfer_function_at_its_knots(value, shadow):
     torch.testing.assert_close(alpha, 1 - torch.exp(-mu * 0.01), rtol=0, atol=1e-6)
     torch.testing.assert_close(rgb, (colour * g).clamp(0, 1), rtol=0, atol=1e-6)
     assert fused(p[:0])[0].shape == (0,) and fused(p[:0])[1].shape == (0, 3)
+
+
+def test_a_launch_counts_as_one_op():
+    """bench's op counts see a fused kernel as one launch, not as the aten ops Triton's interpreter runs."""
+    from diffshadow.bench.profile import op_counts
+
+    fast = FusedSiren(Siren(SirenConfig(16, 1)).named_tensors(), 1)
+    x = torch.rand(300, 3)
+    assert op_counts(lambda: fast(x)) == {"ops": 1, "syncs": 0}
+    assert op_counts(lambda: [fast(x), fast(x)])["ops"] == 2

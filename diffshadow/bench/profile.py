@@ -13,7 +13,7 @@ from collections.abc import Callable
 
 from torch.profiler import ProfilerActivity, profile
 
-from diffshadow.fused import launches
+from diffshadow.fused import LAUNCH
 
 NO_WORK = frozenset({
     "aten::view", "aten::reshape", "aten::_reshape_alias", "aten::expand", "aten::expand_as", "aten::as_strided",
@@ -31,15 +31,27 @@ SYNCS = frozenset({"aten::_local_scalar_dense", "aten::nonzero", "aten::masked_s
 
 def op_counts(fn: Callable[[], object]) -> dict[str, int]:
     """{"ops": kernel-launching ops, "syncs": host syncs} of one call of `fn`."""
-    fused = launches()
-    with profile(activities=[ProfilerActivity.CPU]) as prof:
+    with profile(activities=[ProfilerActivity.CPU], record_shapes=True) as prof:
         fn()
-    ops, syncs = launches() - fused, 0
+    ops = syncs = 0
     for e in prof.events():
-        if not e.name.startswith("aten::"):
+        if e.name == LAUNCH:
+            ops += 1
+        if not e.name.startswith("aten::") or _inside(e, LAUNCH):  # Triton's interpreter runs aten ops there
             continue
         syncs += e.name in SYNCS
         if e.name in NO_WORK or any(c.name.startswith("aten::") and c.name not in NO_WORK for c in e.cpu_children):
             continue
+        if e.name == "aten::copy_" and e.input_shapes and e.input_shapes[0] == []:
+            continue  # a Python number wrapped and converted on the host (`x * 0.5`): no kernel on a GPU
         ops += 1
     return {"ops": ops, "syncs": syncs}
+
+
+def _inside(event, name: str) -> bool:
+    parent = event.cpu_parent
+    while parent is not None:
+        if parent.name == name:
+            return True
+        parent = parent.cpu_parent
+    return False
