@@ -39,22 +39,19 @@ def siren_kernel(x_ptr, w0_ptr, b0_ptr, wh_ptr, bh_ptr, wl_ptr, bl_ptr, out_ptr,
 
 
 @triton.jit
-def samples_kernel(p_ptr, extent_ptr,
-                   w0_ptr, b0_ptr, wh_ptr, bh_ptr, wl_ptr, bl_ptr,
-                   sw0_ptr, sb0_ptr, swh_ptr, sbh_ptr, swl_ptr, sbl_ptr,
-                   xs_ptr, ys_ptr, density, dt, alpha_ptr, rgb_ptr, n,
-                   W: tl.constexpr, BLOCKS: tl.constexpr, SW: tl.constexpr, SBLOCKS: tl.constexpr,
-                   SHADOW: tl.constexpr, KNOTS: tl.constexpr, BLOCK: tl.constexpr, PRECISION: tl.constexpr,
-                   RES: tl.constexpr):
-    rows = tl.program_id(0) * BLOCK + tl.arange(0, BLOCK)
-    live = rows < n
-    # box_to_siren: points / extent * 2 - 1
+def box_inputs(p_ptr, extent_ptr, rows, live):
+    """A tile's box points as SIREN inputs, as `siren.box_to_siren`: points / extent * 2 - 1."""
     x0 = tl.load(p_ptr + rows * 3, mask=live, other=0.0) / tl.load(extent_ptr) * 2 - 1
     x1 = tl.load(p_ptr + rows * 3 + 1, mask=live, other=0.0) / tl.load(extent_ptr + 1) * 2 - 1
     x2 = tl.load(p_ptr + rows * 3 + 2, mask=live, other=0.0) / tl.load(extent_ptr + 2) * 2 - 1
-    s = siren(x0, x1, x2, w0_ptr, b0_ptr, wh_ptr, bh_ptr, wl_ptr, bl_ptr, W, BLOCKS, PRECISION, RES)
-    # the transfer function as `transfer._piecewise_linear` on the optics knots: the segment after the last
-    # knot at or below s (bucketize, right=True), clamped to the ends
+    return x0, x1, x2
+
+
+@triton.jit
+def segment(s, xs_ptr, KNOTS: tl.constexpr, BLOCK: tl.constexpr):
+    """The transfer function's segment (lo, hi) and weight w at s, as `transfer._piecewise_linear` finds them on
+    the optics knots: s clamped to the ends, the segment after the last knot at or below s (bucketize with
+    right=True)."""
     s = tl.minimum(tl.maximum(s, tl.load(xs_ptr)), tl.load(xs_ptr + KNOTS - 1))
     hi = tl.zeros([BLOCK], dtype=tl.int32)
     for k in tl.static_range(KNOTS):
@@ -64,13 +61,48 @@ def samples_kernel(p_ptr, extent_ptr,
     xa = tl.load(xs_ptr + lo)
     xb = tl.load(xs_ptr + hi)
     w = tl.minimum(tl.maximum((s - xa) / tl.maximum(xb - xa, 1e-12), 0.0), 1.0)
-    opacity = tl.load(ys_ptr + lo * 4) + w * (tl.load(ys_ptr + hi * 4) - tl.load(ys_ptr + lo * 4))
+    return lo, hi, w
+
+
+@triton.jit
+def channel(ys_ptr, lo, hi, w, CH: tl.constexpr):
+    """Channel CH of the optics table (0 opacity, 1-3 RGB) on the segment."""
+    ya = tl.load(ys_ptr + lo * 4 + CH)
+    return ya + w * (tl.load(ys_ptr + hi * 4 + CH) - ya)
+
+
+@triton.jit
+def samples_kernel(p_ptr, extent_ptr,
+                   w0_ptr, b0_ptr, wh_ptr, bh_ptr, wl_ptr, bl_ptr,
+                   sw0_ptr, sb0_ptr, swh_ptr, sbh_ptr, swl_ptr, sbl_ptr,
+                   xs_ptr, ys_ptr, density, dt, alpha_ptr, rgb_ptr, n,
+                   W: tl.constexpr, BLOCKS: tl.constexpr, SW: tl.constexpr, SBLOCKS: tl.constexpr,
+                   SHADOW: tl.constexpr, KNOTS: tl.constexpr, BLOCK: tl.constexpr, PRECISION: tl.constexpr,
+                   RES: tl.constexpr):
+    rows = tl.program_id(0) * BLOCK + tl.arange(0, BLOCK)
+    live = rows < n
+    x0, x1, x2 = box_inputs(p_ptr, extent_ptr, rows, live)
+    s = siren(x0, x1, x2, w0_ptr, b0_ptr, wh_ptr, bh_ptr, wl_ptr, bl_ptr, W, BLOCKS, PRECISION, RES)
+    lo, hi, w = segment(s, xs_ptr, KNOTS, BLOCK)
+    opacity = channel(ys_ptr, lo, hi, w, 0)
     tl.store(alpha_ptr + rows, 1 - tl.exp(-(density * opacity) * dt), mask=live)
     shade = 1.0
     if SHADOW:
         g = siren(x0, x1, x2, sw0_ptr, sb0_ptr, swh_ptr, sbh_ptr, swl_ptr, sbl_ptr, SW, SBLOCKS, PRECISION, RES)
         shade = 0.1 + 0.9 * tl.minimum(tl.maximum(g, 0.0), 1.0)
     for ch in tl.static_range(1, 4):
-        ya = tl.load(ys_ptr + lo * 4 + ch)
-        c = (ya + w * (tl.load(ys_ptr + hi * 4 + ch) - ya)) * shade
+        c = channel(ys_ptr, lo, hi, w, ch) * shade
         tl.store(rgb_ptr + rows * 3 + (ch - 1), tl.minimum(tl.maximum(c, 0.0), 1.0), mask=live)
+
+
+@triton.jit
+def extinction_kernel(p_ptr, extent_ptr, w0_ptr, b0_ptr, wh_ptr, bh_ptr, wl_ptr, bl_ptr, xs_ptr, ys_ptr, density,
+                      out_ptr, n, W: tl.constexpr, BLOCKS: tl.constexpr, KNOTS: tl.constexpr, BLOCK: tl.constexpr,
+                      PRECISION: tl.constexpr, RES: tl.constexpr):
+    """μ = density · opacity(data INR) at box points: a secondary ray's samples (the naive baseline)."""
+    rows = tl.program_id(0) * BLOCK + tl.arange(0, BLOCK)
+    live = rows < n
+    x0, x1, x2 = box_inputs(p_ptr, extent_ptr, rows, live)
+    s = siren(x0, x1, x2, w0_ptr, b0_ptr, wh_ptr, bh_ptr, wl_ptr, bl_ptr, W, BLOCKS, PRECISION, RES)
+    lo, hi, w = segment(s, xs_ptr, KNOTS, BLOCK)
+    tl.store(out_ptr + rows, density * channel(ys_ptr, lo, hi, w, 0), mask=live)

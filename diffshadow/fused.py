@@ -1,7 +1,8 @@
 """Fused SIRENs for inference (issue 16): Triton kernels that evaluate whole SIRENs per tile of points,
 activations kept on chip, so a layer costs its matrix product and its sines and no trip through GPU memory.
 
-- `FusedSiren`: one SIREN, (N, 3) → (N,) (the data INR's values for the naive baseline's secondary rays).
+- `FusedSiren`: one SIREN, (N, 3) → (N,).
+- `FusedExtinction`: a secondary sample's extinction (data INR, then the transfer function's opacity).
 - `FusedSamples`: what the renderer needs of a primary sample in one kernel: the data INR's value, the shadow
   INR's coefficient, the transfer function (one search of `TransferFunction.optics`' knots), the sample's
   opacity for the step and its shaded colour; box points in, (α, rgb) out.
@@ -71,7 +72,7 @@ def _kernels():
 
     from diffshadow import _kernels as k
 
-    return triton.cdiv, k.siren_kernel, k.samples_kernel
+    return triton.cdiv, k.siren_kernel, k.samples_kernel, k.extinction_kernel
 
 
 class FusedSiren:
@@ -110,7 +111,7 @@ class FusedSiren:
         x = x.float().contiguous()
         out = torch.empty(len(x), dtype=torch.float32, device=x.device)
         if len(x):
-            cdiv, kernel, _ = _kernels()
+            cdiv, kernel, _, _ = _kernels()
             with record_function(LAUNCH):
                 kernel[(cdiv(len(x), self.block),)](
                     x, *self.tensors, out, len(x),
@@ -142,7 +143,7 @@ class FusedSamples:
         alpha = torch.empty(len(p), dtype=torch.float32, device=p.device)
         rgb = torch.empty(len(p), 3, dtype=torch.float32, device=p.device)
         if len(p):
-            cdiv, _, kernel = _kernels()
+            cdiv, _, kernel, _ = _kernels()
             shadow = self.shadow or self.scalar  # unused weights when there is no shadow
             with record_function(LAUNCH):
                 kernel[(cdiv(len(p), self.block),)](
@@ -151,3 +152,29 @@ class FusedSamples:
                     SBLOCKS=shadow.blocks, SHADOW=self.shadow is not None, KNOTS=len(self.xs), BLOCK=self.block,
                     PRECISION=self.scalar.precision, RES=RES_WEIGHT)
         return alpha, rgb
+
+
+class FusedExtinction:
+    """The naive baseline's secondary samples in one kernel: extinction μ = density_scale · opacity of the data
+    INR `scalar` at box points, from `TransferFunction.optics`' table (`knots`), the same arithmetic as
+    `TransferFunction.extinction` up to float32 rounding. (N, 3) → (N,)."""
+
+    def __init__(self, scalar: FusedSiren, extent: torch.Tensor, knots: tuple[torch.Tensor, torch.Tensor],
+                 density_scale: float):
+        self.scalar = scalar
+        self.extent = extent.float().contiguous()
+        xs, ys = knots
+        self.xs, self.ys = xs.float().contiguous(), ys.float().contiguous()
+        self.density = float(density_scale)
+
+    def __call__(self, p: torch.Tensor) -> torch.Tensor:
+        p = p.float().contiguous()
+        out = torch.empty(len(p), dtype=torch.float32, device=p.device)
+        if len(p):
+            cdiv, _, _, kernel = _kernels()
+            with record_function(LAUNCH):
+                kernel[(cdiv(len(p), self.scalar.block),)](
+                    p, self.extent, *self.scalar.tensors, self.xs, self.ys, self.density, out, len(p),
+                    W=self.scalar.width, BLOCKS=self.scalar.blocks, KNOTS=len(self.xs), BLOCK=self.scalar.block,
+                    PRECISION=self.scalar.precision, RES=RES_WEIGHT)
+        return out

@@ -42,12 +42,13 @@ def test_kernel_equals_the_eager_siren(width, blocks, precision):
     assert FusedSiren(model.named_tensors(), blocks, precision)(x[:0]).shape == (0,)
 
 
-@pytest.mark.parametrize("mode, kernel_steps", [("noshadow", True), ("inr", True), ("naive", False)])
-def test_renderer_images_equal_with_the_fused_kernels(monkeypatch, mode, kernel_steps):
+@pytest.mark.parametrize("mode, kernel", [("noshadow", "FusedSamples"), ("inr", "FusedSamples"),
+                                          ("naive", "FusedExtinction")])
+def test_renderer_images_equal_with_the_fused_kernels(monkeypatch, mode, kernel):
     """With DIFFSHADOW_FUSED_SIREN, `inr` and `noshadow` take each primary sample's value, shadow, transfer
-    function and shading from one kernel (FusedSamples), `naive` its secondary rays' values from FusedSiren;
-    the images equal the eager renderer's. A box that is not a cube and a TF with a step and colour knots of its
-    own check the kernel's box mapping and its knot search."""
+    function and shading from one kernel (FusedSamples), `naive` its secondary samples' extinction
+    (FusedExtinction); the images equal the eager renderer's. A box that is not a cube and a TF with a step and
+    colour knots of its own check the kernels' box mapping and knot search."""
     from diffshadow import render
 
     a = gaussian_blob(33, 0.15)
@@ -61,13 +62,14 @@ def test_renderer_images_equal_with_the_fused_kernels(monkeypatch, mode, kernel_
         cell_lo = cell_hi = None
 
     calls = []
+    real = getattr(render, kernel)
 
-    class Spy(render.FusedSamples):
+    class Spy(real):
         def __call__(self, p):
             calls.append(len(p))
             return super().__call__(p)
 
-    monkeypatch.setattr(render, "FusedSamples", Spy)
+    monkeypatch.setattr(render, kernel, Spy)
     siren = SirenConfig(16, 2)
     layout = WeightLayout.for_siren(siren)
     weights = layout.flatten(init_siren(siren, torch.Generator().manual_seed(4))).numpy()
@@ -79,7 +81,7 @@ def test_renderer_images_equal_with_the_fused_kernels(monkeypatch, mode, kernel_
         assert scene.fused == (None if setting == "0" else "ieee")
         images[setting] = scene.render(mode, cam, light=(0.3, -0.5, 0.8), siren=(weights, layout, siren.blocks),
                                        skip=False).rgb
-        assert bool(calls) == (kernel_steps and setting == "1")
+        assert bool(calls) == (setting == "1")
     assert float((images["0"] - images["1"]).abs().max()) <= 1e-5
 
 
@@ -102,9 +104,9 @@ def test_setting_and_bad_input(monkeypatch):
 @pytest.mark.parametrize("value", [0.25, 0.5, 0.75, 0.6])
 @pytest.mark.parametrize("shadow", [None, 0.25])
 def test_samples_kernel_transfer_function_at_its_knots(value, shadow):
-    """SIRENs with zero weights give the constant 0.5 · last bias + 0.5, so the kernel's transfer function is
+    """SIRENs with zero weights give the constant 0.5 · last bias + 0.5, so the kernels' transfer function is
     read exactly at a knot: at a step the upper value, as `TransferFunction.optics` (and the eager step) has it."""
-    from diffshadow.fused import FusedSamples
+    from diffshadow.fused import FusedExtinction, FusedSamples
 
     tf = TransferFunction.from_config({"opacity": [[0, 0], [0.25, 0.1], [0.25, 0.4], [0.5, 0.4], [0.5, 0.9], [1, 1]],
                                        "color": [[0, 0, 0, 1], [0.75, 1, 0, 0], [0.75, 0, 1, 0], [1, 1, 1, 1]],
@@ -126,6 +128,9 @@ def test_samples_kernel_transfer_function_at_its_knots(value, shadow):
     torch.testing.assert_close(alpha, 1 - torch.exp(-mu * 0.01), rtol=0, atol=1e-6)
     torch.testing.assert_close(rgb, (colour * g).clamp(0, 1), rtol=0, atol=1e-6)
     assert fused(p[:0])[0].shape == (0,) and fused(p[:0])[1].shape == (0, 3)
+    extinction = FusedExtinction(constant(value, 32), extent, tf.optics_knots(), tf.density_scale)
+    torch.testing.assert_close(extinction(p), mu, rtol=0, atol=1e-5)
+    assert extinction(p[:0]).shape == (0,)
 
 
 def test_a_launch_counts_as_one_op():
