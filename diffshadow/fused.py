@@ -45,20 +45,27 @@ class FusedSirenError(RuntimeError):
     pass
 
 
+COMPILE = "compile"  # the eager SIREN through torch.compile (siren.FoldedSiren), not these kernels
+
+
 def fused_setting() -> str | None:
-    """DIFFSHADOW_FUSED_SIREN: unset or "0" → None (eager), "1" or "ieee" → "ieee", "tf32" → "tf32"."""
+    """DIFFSHADOW_FUSED_SIREN: unset or "0" → None (eager), "1" or "ieee" → "ieee", "tf32" → "tf32",
+    "compile" → "compile"."""
     value = os.environ.get("DIFFSHADOW_FUSED_SIREN", "0").strip().lower()
     if value in ("", "0"):
         return None
     if value in ("1", "ieee"):
         return "ieee"
-    if value in PRECISIONS:
+    if value in (*PRECISIONS, COMPILE):
         return value
-    raise FusedSirenError(f"DIFFSHADOW_FUSED_SIREN: expected 0, 1, ieee or tf32, got {value!r}")
+    raise FusedSirenError(f"DIFFSHADOW_FUSED_SIREN: expected 0, 1, ieee, tf32 or compile, got {value!r}")
 
 
-def available(device: torch.device) -> bool:
-    """Whether the kernel can run on `device`: CUDA with Triton, or Triton's interpreter on the CPU."""
+def available(device: torch.device, setting: str = "ieee") -> bool:
+    """Whether `setting` runs on `device`: torch.compile anywhere; the kernels on CUDA with Triton, or in
+    Triton's interpreter on the CPU."""
+    if setting == COMPILE:
+        return True
     if importlib.util.find_spec("triton") is None:  # Triton ships with CUDA builds of PyTorch, not CPU ones
         return False
     return device.type == "cuda" or (device.type == "cpu" and os.environ.get("TRITON_INTERPRET") == "1")

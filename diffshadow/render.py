@@ -31,7 +31,7 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-from diffshadow.fused import FusedExtinction, FusedSamples, FusedSiren, fused_setting
+from diffshadow.fused import COMPILE, PRECISIONS, FusedExtinction, FusedSamples, FusedSiren, fused_setting
 from diffshadow.fused import available as fused_available
 from diffshadow.grid import cell_ranges, ray_span, trilinear
 from diffshadow.lights import as_direction
@@ -225,7 +225,8 @@ class GridScalar:
 
 class InrScalar:
     """The data INR (a SIREN of the scalar field); gradients by autograd through the network. `fused`: the
-    fused kernel's precision for values (`diffshadow.fused`), None for the eager SIREN."""
+    fused kernel's precision for values (`diffshadow.fused`), "compile" for the eager SIREN through torch.compile,
+    None for the eager SIREN."""
 
     def __init__(self, model: Siren, extent, device: torch.device | str = "cpu", fused: str | None = None):
         self.model = model.to(device).eval()
@@ -235,7 +236,8 @@ class InrScalar:
         self.box = tuple(np.asarray(extent, dtype=float).tolist())  # on the host, to compare without a sync
         named, blocks = self.model.named_tensors(), self.model.cfg.blocks
         with torch.no_grad():
-            self.fast = FusedSiren(named, blocks, fused) if fused else FoldedSiren(fold(named, blocks))
+            self.fast = (FusedSiren(named, blocks, fused) if fused in PRECISIONS
+                         else FoldedSiren(fold(named, blocks), compiled=fused == COMPILE))
 
     def value(self, p: torch.Tensor) -> torch.Tensor:
         return self.fast(box_to_siren(p, self.extent))
@@ -267,9 +269,9 @@ class SirenShadow:
                  fused: str | None = None):
         w = torch.as_tensor(np.asarray(weights), dtype=torch.float32, device=device).reshape(1, -1)
         # eager: one SIREN with a leading K = 1, the batched matmuls of fitting, so the same values
-        self.fast = (FusedSiren({k: v[0] for k, v in layout.unflatten(w).items()}, blocks, fused) if fused
-                     else FoldedSiren(fold_flat(w, layout, blocks)))
-        self.batched = not fused
+        self.fast = (FusedSiren({k: v[0] for k, v in layout.unflatten(w).items()}, blocks, fused)
+                     if fused in PRECISIONS else FoldedSiren(fold_flat(w, layout, blocks), compiled=fused == COMPILE))
+        self.batched = not isinstance(self.fast, FusedSiren)
         self.extent = torch.as_tensor(np.asarray(extent), dtype=torch.float32, device=device)
         self.box = tuple(np.asarray(extent, dtype=float).tolist())
 
@@ -618,8 +620,9 @@ class RenderScene:
                  gt_method: str = "march", gt_upsample: int = 1, cell: int = RENDER_CELL):
         self.volume, self.tf, self.data_inr = volume, tf, data_inr
         self.device = torch.device(device)
-        # the SIRENs' kernel for values: DIFFSHADOW_FUSED_SIREN where Triton runs on this device, else eager
-        self.fused = fused_setting() if fused_available(self.device) else None
+        # the SIRENs' kernel for values: DIFFSHADOW_FUSED_SIREN where it runs on this device, else eager
+        setting = fused_setting()
+        self.fused = setting if setting and fused_available(self.device, setting) else None
         self.gt_method, self.gt_upsample, self.cell = gt_method, gt_upsample, cell
         self.voxel = float(np.min(volume.voxel_size))
         self._cache: dict = {}

@@ -167,13 +167,21 @@ def _forward(p: dict[str, torch.Tensor], x: torch.Tensor, blocks: int) -> torch.
 class FoldedSiren:
     """A SIREN for inference from `fold`'s or `fold_flat`'s layers, folded once: the same float32 operations as
     `_forward`, so the same values, and two fewer kernels per layer and call. (N, 3) → (N,), or (K, N, 3) →
-    (K, N) for K weight sets."""
+    (K, N) for K weight sets. `compiled`: through torch.compile, which fuses each layer's bias, sine and
+    residual into one pass (one compile per process and network shape, ~7 s on 2 CPU cores; the weights are
+    arguments, so a new SIREN of the same shape does not compile again)."""
 
-    def __init__(self, layers: list[tuple[torch.Tensor, torch.Tensor]]):
+    def __init__(self, layers: list[tuple[torch.Tensor, torch.Tensor]], compiled: bool = False):
         self.layers = [(w.detach(), b.detach()) for w, b in layers]
+        self.forward = _compiled_forward() if compiled else forward_folded
 
     def __call__(self, x: torch.Tensor) -> torch.Tensor:
-        return forward_folded(self.layers, x)
+        return self.forward(self.layers, x)
+
+
+@functools.cache
+def _compiled_forward():
+    return torch.compile(forward_folded, dynamic=True)
 
 
 class Siren(nn.Module):

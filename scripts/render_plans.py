@@ -33,7 +33,7 @@ from diffshadow.siren import SirenConfig, WeightLayout, init_siren
 
 
 def variants(device: torch.device) -> dict[str, tuple[int | None, bool, str | None]]:
-    """name → (batch, None for the device's default; TF32 matmuls; fused SIREN precision or None). On an H200
+    """name → (batch, None for the device's default; TF32 matmuls; DIFFSHADOW_FUSED_SIREN's setting or None). On an H200
     (2026-11-25), before the plan compacted on every device, a fixed-shape plan (finished rays masked for 4
     iterations, absent samples evaluated) sent 2.5x the samples and was 1.45x slower at 512², 1.2x at 1024²
     (docs/tuning.md)."""
@@ -41,6 +41,7 @@ def variants(device: torch.device) -> dict[str, tuple[int | None, bool, str | No
     for lb in (20, 21, 22) if device.type == "cuda" else (16, 20, 22):
         out[f"batch 2^{lb}"] = (1 << lb, False, None)
     out["tf32 matmuls"] = (None, True, None)
+    out["compiled SIREN"] = (None, False, "compile")
     if fused_available(device):
         out["fused fp32"] = (None, False, "ieee")
         out["fused tf32"] = (None, False, "tf32")
@@ -114,7 +115,7 @@ def main() -> None:
     if a.profile:
         cam = R.Camera.orbit(scene.volume.extent, azimuth=30.0, elevation=25.0, size=max(a.sizes))
         for name, (batch, tf32, fused) in plans.items():
-            if name == "default" or fused:
+            if name == "default" or fused:  # the fused kernels and torch.compile
                 with variant(scene, tf32, fused):
                     profile_frame(scene, cam, device, name, batch=batch, **kw)
 

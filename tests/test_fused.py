@@ -86,11 +86,12 @@ def test_renderer_images_equal_with_the_fused_kernels(monkeypatch, mode, kernel)
 
 
 def test_setting_and_bad_input(monkeypatch):
-    for value, expected in (("", None), ("0", None), ("1", "ieee"), ("IEEE", "ieee"), ("tf32", "tf32")):
+    for value, expected in (("", None), ("0", None), ("1", "ieee"), ("IEEE", "ieee"), ("tf32", "tf32"),
+                            ("compile", "compile")):
         monkeypatch.setenv("DIFFSHADOW_FUSED_SIREN", value)
         assert fused_setting() == expected
     monkeypatch.setenv("DIFFSHADOW_FUSED_SIREN", "bf16")
-    with pytest.raises(FusedSirenError, match="DIFFSHADOW_FUSED_SIREN: expected 0, 1, ieee or tf32, got 'bf16'"):
+    with pytest.raises(FusedSirenError, match="expected 0, 1, ieee, tf32 or compile, got 'bf16'"):
         fused_setting()
     named = Siren(SirenConfig(24, 1)).named_tensors()
     with pytest.raises(FusedSirenError, match=r"power-of-two width >= 16 and 3 inputs, got weights \(24, 3\)"):

@@ -212,3 +212,29 @@ def test_rendering_makes_no_tensor_on_the_implicit_default_device(blob, mode):
         b = RenderScene(blob, TF, cell=8, device="cpu").render(mode, cam, light=light, siren=siren,
                                                                 phong=mode == "gt")
     assert torch.equal(a.rgb, b.rgb)
+
+
+def test_compiled_sirens_render_the_same_images(blob, monkeypatch):
+    """DIFFSHADOW_FUSED_SIREN=compile: the data and shadow SIRENs through torch.compile (the CPU's fast path,
+    docs/tuning.md) give the eager images, for ours and for the naive baseline's secondary rays."""
+    from diffshadow.render import RenderScene
+    from diffshadow.siren import Siren
+
+    class DataInr:  # what RenderScene reads of a data INR
+        model = Siren(SirenConfig(16, 1), torch.Generator().manual_seed(3))
+        cell_lo = cell_hi = None
+
+    siren = SirenConfig(16, 1)
+    layout = WeightLayout.for_siren(siren)
+    weights = layout.flatten(init_siren(siren, torch.Generator().manual_seed(4))).numpy()
+    images = {}
+    for setting in ("0", "compile"):
+        monkeypatch.setenv("DIFFSHADOW_FUSED_SIREN", setting)
+        scene = RenderScene(blob, TF, DataInr())
+        assert scene.fused == (None if setting == "0" else "compile")
+        for mode, size in (("inr", 24), ("naive", 12)):
+            cam = Camera.orbit(blob.extent, azimuth=30.0, elevation=25.0, size=size)
+            images[setting, mode] = scene.render(mode, cam, light=(0.3, -0.5, 0.8),
+                                                 siren=(weights, layout, siren.blocks)).rgb
+    for mode in ("inr", "naive"):
+        assert float((images["0", mode] - images["compile", mode]).abs().max()) <= 1e-5, mode
