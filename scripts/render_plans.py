@@ -83,6 +83,17 @@ def main() -> None:
     plans = variants(device)
     sync = torch.cuda.synchronize if device.type == "cuda" else (lambda: None)
     print(f"device {device}, data INR PSNR {scene.data_inr.psnr:.2f} dB")
+    # warm each variant (Triton and torch.compile compile on first use) and drop one that fails, saying why,
+    # so that one broken variant leaves the others' table
+    small = R.Camera.orbit(scene.volume.extent, azimuth=30.0, elevation=25.0, size=min(a.sizes))
+    for name, (batch, tf32, fused) in list(plans.items()):
+        try:
+            with variant(scene, tf32, fused):
+                for mode in a.modes:
+                    scene.render(mode, small, batch=batch, **kw)
+        except Exception as e:  # any failure of one variant: report it and go on
+            print(f"variant {name!r} dropped: {type(e).__name__}: {str(e).splitlines()[0] if str(e) else ''}")
+            del plans[name]
     for n in a.sizes:
         cam = R.Camera.orbit(scene.volume.extent, azimuth=30.0, elevation=25.0, size=n)
         for mode in a.modes:
