@@ -202,7 +202,9 @@ class RunResults:
                 fps, mem = r.get("fps", {}), r.get("peak_mem_bytes", {})
                 rows.append([f"{s}²", *(_num(fps.get(m)) for m in modes),
                              *(_num(mem[m] / MIB if m in mem else None, ".0f") for m in modes)])
-            parts.append(_table(f"Renderer ({self.bench.get('device', 'device n/a')})",
+            kernels = self.bench.get("siren_kernels", "eager")
+            where = self.bench.get("device", "device n/a") + ("" if kernels == "eager" else f", SIRENs: {kernels}")
+            parts.append(_table(f"Renderer ({where})",
                                 ["image", *(f"{m} fps" for m in modes), *(f"{m} peak MiB" for m in modes)], rows,
                                 "Measured side by side in one process (diffshadow bench render); full figures "
                                 "in bench.json."))
