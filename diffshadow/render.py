@@ -25,13 +25,22 @@ from __future__ import annotations
 
 import math
 import time
+import warnings
 from dataclasses import dataclass, field
 
 import numpy as np
 import torch
 import torch.nn.functional as F
 
-from diffshadow.fused import COMPILE, PRECISIONS, FusedExtinction, FusedSamples, FusedSiren, fused_setting
+from diffshadow.fused import (
+    COMPILE,
+    PRECISIONS,
+    FusedExtinction,
+    FusedSamples,
+    FusedSiren,
+    FusedSirenError,
+    fused_setting,
+)
 from diffshadow.fused import available as fused_available
 from diffshadow.grid import cell_ranges, ray_span, trilinear
 from diffshadow.lights import as_direction
@@ -236,8 +245,7 @@ class InrScalar:
         self.box = tuple(np.asarray(extent, dtype=float).tolist())  # on the host, to compare without a sync
         named, blocks = self.model.named_tensors(), self.model.cfg.blocks
         with torch.no_grad():
-            self.fast = (FusedSiren(named, blocks, fused) if fused in PRECISIONS
-                         else FoldedSiren(fold(named, blocks), compiled=fused == COMPILE))
+            self.fast = _fast_siren(named, blocks, fused, lambda: fold(named, blocks))
 
     def value(self, p: torch.Tensor) -> torch.Tensor:
         return self.fast(box_to_siren(p, self.extent))
@@ -248,6 +256,18 @@ class InrScalar:
             s = self.model(box_to_siren(p, self.extent))
             (g,) = torch.autograd.grad(s.sum(), p)
         return s.detach(), g
+
+
+def _fast_siren(named: dict, blocks: int, fused: str | None, layers) -> FusedSiren | FoldedSiren:
+    """A SIREN for inference: the fused kernel in precision `fused`, else the folded eager SIREN (`layers()`:
+    its folded layers), through torch.compile for "compile". A SIREN the kernel cannot take (a width that is not
+    a power of two >= 16) falls back to the eager one, with a warning: the setting is a speed-up, not a result."""
+    if fused in PRECISIONS:
+        try:
+            return FusedSiren(named, blocks, fused)
+        except FusedSirenError as e:
+            warnings.warn(f"DIFFSHADOW_FUSED_SIREN={fused}: {e}; using the eager SIREN", stacklevel=3)
+    return FoldedSiren(layers(), compiled=fused == COMPILE)
 
 
 class GridShadow:
@@ -269,8 +289,8 @@ class SirenShadow:
                  fused: str | None = None):
         w = torch.as_tensor(np.asarray(weights), dtype=torch.float32, device=device).reshape(1, -1)
         # eager: one SIREN with a leading K = 1, the batched matmuls of fitting, so the same values
-        self.fast = (FusedSiren({k: v[0] for k, v in layout.unflatten(w).items()}, blocks, fused)
-                     if fused in PRECISIONS else FoldedSiren(fold_flat(w, layout, blocks), compiled=fused == COMPILE))
+        self.fast = _fast_siren({k: v[0] for k, v in layout.unflatten(w).items()}, blocks, fused,
+                                lambda: fold_flat(w, layout, blocks))
         self.batched = not isinstance(self.fast, FusedSiren)
         self.extent = torch.as_tensor(np.asarray(extent), dtype=torch.float32, device=device)
         self.box = tuple(np.asarray(extent, dtype=float).tolist())

@@ -142,3 +142,24 @@ def test_a_launch_counts_as_one_op():
     x = torch.rand(300, 3)
     assert op_counts(lambda: fast(x)) == {"ops": 1, "syncs": 0}
     assert op_counts(lambda: [fast(x), fast(x)])["ops"] == 2
+
+
+def test_a_siren_the_kernel_cannot_take_falls_back_to_eager_with_a_warning(monkeypatch):
+    """DIFFSHADOW_FUSED_SIREN is a speed-up: a data INR of width 8 (the tiny workflow's) renders eagerly, and
+    says so, instead of failing the stage."""
+    from diffshadow.render import RenderScene
+
+    class DataInr:
+        model = Siren(SirenConfig(8, 1), torch.Generator().manual_seed(3))
+        cell_lo = cell_hi = None
+
+    volume = Volume(data=gaussian_blob(17, 0.15), extent=np.ones(3), name="blob")
+    tf = TransferFunction.from_config({"opacity": [[0, 0], [1, 0.8]], "color": [[0, 1, 1, 1], [1, 1, 1, 1]],
+                                       "density_scale": 20})
+    cam = Camera.orbit(volume.extent, azimuth=30.0, elevation=25.0, size=8)
+    monkeypatch.setenv("DIFFSHADOW_FUSED_SIREN", "0")
+    eager = RenderScene(volume, tf, DataInr()).render("noshadow", cam).rgb
+    monkeypatch.setenv("DIFFSHADOW_FUSED_SIREN", "1")
+    with pytest.warns(UserWarning, match=r"DIFFSHADOW_FUSED_SIREN=ieee: .*power-of-two width >= 16.*eager SIREN"):
+        image = RenderScene(volume, tf, DataInr()).render("noshadow", cam).rgb
+    assert torch.equal(image, eager)
