@@ -7,8 +7,9 @@
 #   then, on the still-warm machine if device time is left:
 #       bash .devwheels/on-device.sh bash scripts/gpu_session.sh workflow
 #
-# `all` runs render, plans and tests (what issues 15 and 16 still miss, measured 2026-11-26), each cut short so
-# the whole ends by END seconds, and packs everything into $OUT/all.tgz (a call brings back at most 8 files).
+# `all` runs tests, render and plans (what issues 15 and 16 still miss), each cut short so the whole ends by END
+# seconds (PARTS="part:cap ..." overrides; cap 0 = the time left), and packs everything into $OUT/all.tgz (a call
+# brings back at most 8 files).
 # A part alone: `... gpu_session.sh render`.
 #
 # workflow: the README's run (`snakemake --profile local -j2`, the profile from profiles/) on an empty
@@ -74,8 +75,10 @@ plans)
     ;;
 all)
     end=${END:-540}
-    for p in ${PARTS:-render:100 plans:160 tests:280}; do
-        left=$((end - SECONDS)); cap=${p#*:}; [ "$left" -lt "$cap" ] && cap=$left
+    # the whole suite first (issue 15's last item; its workflow tests start ~40 CUDA processes), then the
+    # renderer; a cap of 0 means whatever time is left
+    for p in ${PARTS:-tests:330 render:90 plans:0}; do
+        left=$((end - SECONDS)); cap=${p#*:}; { [ "$cap" -eq 0 ] || [ "$left" -lt "$cap" ]; } && cap=$left
         if [ "$cap" -lt 30 ]; then echo "== ${p%%:*}: skipped, ${left} s left" | tee -a "$out/times.txt"; continue; fi
         PART_ROOT=$root timeout -k 5 "$cap" bash "$0" "${p%%:*}" || failed=1
         pack
