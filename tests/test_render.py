@@ -2,6 +2,7 @@
 bounded batches, analytic shadow values, extremes and bad input."""
 
 import math
+import shutil
 
 import numpy as np
 import pytest
@@ -214,6 +215,8 @@ def test_rendering_makes_no_tensor_on_the_implicit_default_device(blob, mode):
     assert torch.equal(a.rgb, b.rgb)
 
 
+@pytest.mark.skipif(not (shutil.which("g++") or shutil.which("c++") or shutil.which("clang++")),
+                    reason="torch.compile's CPU code needs a C++ compiler")
 def test_compiled_sirens_render_the_same_images(blob, monkeypatch):
     """DIFFSHADOW_FUSED_SIREN=compile: the data and shadow SIRENs through torch.compile (the CPU's fast path,
     docs/tuning.md) give the eager images, for ours and for the naive baseline's secondary rays."""
