@@ -38,14 +38,12 @@ def block_points(width: int) -> int:
 # bfloat16 inputs to the hidden layers (8 mantissa bits) were tried: hydrogen_atom's inr image at 64² came out at
 # 16.7 dB PSNR against fp32 (Triton's interpreter, scripts/render_plans.py), so it is not offered
 PRECISIONS = ("ieee", "tf32")
+COMPILE = "compile"  # the eager SIREN through torch.compile (siren.FoldedSiren), not these kernels
 LAUNCH = "diffshadow::fused"  # the profiler range around each launch: bench.profile counts it as one op
 
 
 class FusedSirenError(RuntimeError):
     pass
-
-
-COMPILE = "compile"  # the eager SIREN through torch.compile (siren.FoldedSiren), not these kernels
 
 
 def fused_setting() -> str | None:

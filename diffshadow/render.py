@@ -243,9 +243,8 @@ class InrScalar:
             q.requires_grad_(False)
         self.extent = torch.as_tensor(np.asarray(extent), dtype=torch.float32, device=device)
         self.box = tuple(np.asarray(extent, dtype=float).tolist())  # on the host, to compare without a sync
-        named, blocks = self.model.named_tensors(), self.model.cfg.blocks
-        with torch.no_grad():
-            self.fast = _fast_siren(named, blocks, fused, lambda: fold(named, blocks))
+        named, blocks = self.model.named_tensors(), self.model.cfg.blocks  # parameters without gradients
+        self.fast = _fast_siren(named, blocks, fused, lambda: fold(named, blocks))
 
     def value(self, p: torch.Tensor) -> torch.Tensor:
         return self.fast(box_to_siren(p, self.extent))

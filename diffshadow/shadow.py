@@ -92,8 +92,6 @@ def _as_points(points, device) -> torch.Tensor:
     return pts.to(device)
 
 
-
-
 def transmittance(
     volume: Volume | ShadowField,
     tf: TransferFunction,

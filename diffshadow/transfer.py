@@ -80,9 +80,9 @@ class TransferFunction:
     def _control(self, kind: str, device) -> tuple[torch.Tensor, torch.Tensor]:
         key = (kind, str(device))
         if key not in self._tensors:
-            points = {"opacity": self.opacity_points, "color": self.color_points}.get(kind)
-            pts = torch.as_tensor(self._optics_points() if points is None else points, dtype=torch.float32,
-                                  device=device)
+            points = {"opacity": self.opacity_points, "color": self.color_points}[kind] if kind != "optics" \
+                else self._optics_points()
+            pts = torch.as_tensor(points, dtype=torch.float32, device=device)
             self._tensors[key] = (pts[:, 0].contiguous(), pts[:, 1:].contiguous())
         return self._tensors[key]
 
