@@ -29,6 +29,8 @@ from torch.profiler import record_function
 
 from diffshadow.siren import RES_WEIGHT, fold
 
+WARPS = 4  # Triton's default
+
 
 def block_points(width: int) -> int:
     """Points per program: tiles of 64 x 64 activations (a 64-point tile at width 64), to keep them on chip."""
@@ -78,13 +80,13 @@ def _kernels():
     return k
 
 
-def _launch(name: str, n: int, block: int, *args, **constants) -> None:
-    """Kernel `name` over n points in tiles of `block` (its arguments, then n, then its constants), inside the
-    profiler range that bench counts as one op."""
+def _launch(name: str, n: int, block: int, warps: int, *args, **constants) -> None:
+    """Kernel `name` over n points in tiles of `block`, `warps` warps each (its arguments, then n, then its
+    constants), inside the profiler range that bench counts as one op."""
     import triton
 
     with record_function(LAUNCH):
-        getattr(_kernels(), name)[(triton.cdiv(n, block),)](*args, n, **constants)
+        getattr(_kernels(), name)[(triton.cdiv(n, block),)](*args, n, num_warps=warps, **constants)
 
 
 class FusedSiren:
@@ -113,7 +115,8 @@ class FusedSiren:
                        else torch.zeros(1, width, device=device)).contiguous()
             self.wl, self.bl = wl.reshape(-1).contiguous(), bl.reshape(1).contiguous()
         self.width, self.blocks, self.precision = width, blocks, precision
-        self.block = block_points(width)
+        # points and warps per program: attributes, so scripts/fused_sweep.py can try others on a GPU
+        self.block, self.warps = block_points(width), WARPS
 
     @property
     def tensors(self) -> tuple[torch.Tensor, ...]:
@@ -123,7 +126,7 @@ class FusedSiren:
         x = x.float().contiguous()
         out = torch.empty(len(x), dtype=torch.float32, device=x.device)
         if len(x):
-            _launch("siren_kernel", len(x), self.block, x, *self.tensors, out,
+            _launch("siren_kernel", len(x), self.block, self.warps, x, *self.tensors, out,
                     W=self.width, BLOCKS=self.blocks, BLOCK=self.block, PRECISION=self.precision, RES=RES_WEIGHT)
         return out
 
@@ -146,6 +149,7 @@ class FusedSamples:
         self.density, self.dt = float(density_scale), float(dt)
         # the wider network sets the tile, so both fit on chip
         self.block = min(scalar.block, shadow.block) if shadow is not None else scalar.block
+        self.warps = scalar.warps
 
     def __call__(self, p: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         p = p.float().contiguous()
@@ -153,8 +157,8 @@ class FusedSamples:
         rgb = torch.empty(len(p), 3, dtype=torch.float32, device=p.device)
         if len(p):
             shadow = self.shadow or self.scalar  # unused weights when there is no shadow
-            _launch("samples_kernel", len(p), self.block, p, self.extent, *self.scalar.tensors, *shadow.tensors,
-                    self.xs, self.ys, self.density, self.dt, alpha, rgb, W=self.scalar.width,
+            _launch("samples_kernel", len(p), self.block, self.warps, p, self.extent, *self.scalar.tensors,
+                    *shadow.tensors, self.xs, self.ys, self.density, self.dt, alpha, rgb, W=self.scalar.width,
                     BLOCKS=self.scalar.blocks, SW=shadow.width, SBLOCKS=shadow.blocks, SHADOW=self.shadow is not None,
                     KNOTS=len(self.xs), BLOCK=self.block, PRECISION=self.scalar.precision, RES=RES_WEIGHT)
         return alpha, rgb
@@ -177,7 +181,8 @@ class FusedExtinction:
         p = p.float().contiguous()
         out = torch.empty(len(p), dtype=torch.float32, device=p.device)
         if len(p):
-            _launch("extinction_kernel", len(p), self.scalar.block, p, self.extent, *self.scalar.tensors, self.xs,
-                    self.ys, self.density, out, W=self.scalar.width, BLOCKS=self.scalar.blocks, KNOTS=len(self.xs),
+            _launch("extinction_kernel", len(p), self.scalar.block, self.scalar.warps, p, self.extent,
+                    *self.scalar.tensors, self.xs, self.ys, self.density, out, W=self.scalar.width,
+                    BLOCKS=self.scalar.blocks, KNOTS=len(self.xs),
                     BLOCK=self.scalar.block, PRECISION=self.scalar.precision, RES=RES_WEIGHT)
         return out

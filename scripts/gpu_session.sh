@@ -7,7 +7,7 @@
 #   then, on the still-warm machine if device time is left:
 #       bash .devwheels/on-device.sh bash scripts/gpu_session.sh workflow
 #
-# `all` runs tests, render and plans (what issues 15 and 16 still miss), each cut short so the whole ends by END
+# `all` runs tests and sweep (what issues 15 and 16 still miss), each cut short so the whole ends by END
 # seconds (PARTS="part:cap ..." overrides; cap 0 = the time left), and packs everything into $OUT/all.tgz (a call
 # brings back at most 8 files).
 # A part alone: `... gpu_session.sh render`.
@@ -18,13 +18,15 @@
 #           peak memory up to 2048²), then the same with the fused kernels in TF32.
 # plans:    scripts/render_plans.py: batch sizes, TF32 matmuls and the fused kernels side by side, then
 #           torch.profiler's top kernels and the device's busy fraction of one 1024² inr frame per variant.
+# sweep:    scripts/fused_sweep.py: the primary sample alone, eager vs the fused kernel per precision, points per
+#           program and warps, and its share of a 1024² frame; then the profile of one 1024² fused frame.
 # checks:   pytest -m gpu; bench siren (K=16 and K=50 jointly vs one by one, default chunking); the cost of
 #           DIFFSHADOW_DETERMINISTIC=1 on the same K=16 run.
 # tests:    the whole suite, with its slowest tests.
 #
 # On a CPU it runs too (DIFFSHADOW_DEVICE=cpu, QUICK=1 for small sizes): that is how the script is tested.
 set -uo pipefail
-part=${1:?usage: scripts/gpu_session.sh all|workflow|render|plans|checks|tests}
+part=${1:?usage: scripts/gpu_session.sh all|workflow|render|plans|sweep|checks|tests}
 # Parts write under $root and are packed into $OUT/<part>.tgz at the end: a device call brings back at most 8
 # files, and one run writes dozens. `all` hands its root to the parts it runs (PART_ROOT) and packs once each.
 dest=${OUT:-gpu_session}
@@ -73,14 +75,28 @@ plans)
     sizes=(--sizes 128 512 1024); [ "$quick" = 1 ] && sizes=(--sizes 24 --inr-steps 200 --repeats 1)
     step render_plans python scripts/render_plans.py --device "$device" "${sizes[@]}" --profile
     ;;
+sweep)
+    # the primary sample alone (eager vs the fused kernel's tile sizes and warps), then where a 1024² fused
+    # frame's device time goes
+    if [ "$quick" = 1 ]; then
+        sw=(--n 2048 --blocks 16 --warps 4 --repeats 1 --inr-steps 20 --frame 24)
+        pf=(--sizes 24 --inr-steps 200 --repeats 1)
+    else
+        sw=(); pf=(--sizes 1024 --repeats 1)
+    fi
+    step fused_sweep python scripts/fused_sweep.py --device "$device" "${sw[@]}"
+    variants=("compiled SIREN"); [ "$device" = cuda ] && variants+=("fused tf32")
+    step frame_profile python scripts/render_plans.py --device "$device" --modes inr "${pf[@]}" \
+        --variants "${variants[@]}" --profile
+    ;;
 all)
     end=${END:-540}
-    # the whole suite first (issue 15's last item; its workflow tests start ~40 CUDA processes), then the
-    # renderer; a cap of 0 means whatever time is left
-    for p in ${PARTS:-tests:330 render:90 plans:0}; do
+    # the whole suite first (issue 15's last item; its workflow tests start ~40 CUDA processes; on an H200 it
+    # had not finished in 330 s), then where the renderer's time goes; a cap of 0 means whatever time is left
+    for p in ${PARTS:-tests:480 sweep:0}; do
         left=$((end - SECONDS)); cap=${p#*:}; { [ "$cap" -eq 0 ] || [ "$left" -lt "$cap" ]; } && cap=$left
         if [ "$cap" -lt 30 ]; then echo "== ${p%%:*}: skipped, ${left} s left" | tee -a "$out/times.txt"; continue; fi
-        PART_ROOT=$root timeout -k 5 "$cap" bash "$0" "${p%%:*}" || failed=1
+        PART_ROOT=$root PART_CAP=$cap timeout -k 5 "$cap" bash "$0" "${p%%:*}" || failed=1
         pack
     done
     ;;
@@ -95,10 +111,13 @@ workflow)
     cat "$out/stage_costs.tsv" 2>/dev/null
     ;;
 tests)
-    step pytest pytest -q -rs --durations=25
+    # -v names each test as it ends, and SIGINT before the part's cap makes pytest print its summary (failures
+    # with short tracebacks, slowest tests): a suite cut short still says what failed and where the time went
+    cap=${PART_CAP:-3600}
+    step pytest timeout -s INT -k 10 $((cap - 15)) pytest -v -rfEs --tb=short --durations=25
     ;;
 *)
-    echo "unknown part $part (all, workflow, render, plans, checks or tests)" >&2; exit 2
+    echo "unknown part $part (all, workflow, render, plans, sweep, checks or tests)" >&2; exit 2
     ;;
 esac
 pack

@@ -68,6 +68,8 @@ def main() -> None:
     ap.add_argument("--profile", action="store_true",
                     help="after the table, torch.profiler's top kernels of one inr frame at the largest size, "
                          "per variant (default and the fused ones)")
+    ap.add_argument("--variants", nargs="+", default=None,
+                    help="only these variants (names as in the table; 'default' always runs, as the reference)")
     a = ap.parse_args()
     device = torch.device(a.device)
     scene = load_scene_file("config/scenes/hydrogen_atom.yaml", device)
@@ -81,6 +83,11 @@ def main() -> None:
                    fit, device=device, log=lambda m: None)[0]
     kw = {"light": light, "siren": (w, layout, cfg.blocks)}
     plans = variants(device)
+    if a.variants:
+        unknown = sorted(set(a.variants) - set(plans))
+        if unknown:
+            raise SystemExit(f"--variants: unknown {unknown}; on {device.type} there are {sorted(plans)}")
+        plans = {k: v for k, v in plans.items() if k == "default" or k in a.variants}
     sync = torch.cuda.synchronize if device.type == "cuda" else (lambda: None)
     print(f"device {device}, data INR PSNR {scene.data_inr.psnr:.2f} dB")
     # warm each variant (Triton and torch.compile compile on first use) and drop one that fails, saying why,

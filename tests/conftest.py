@@ -1,5 +1,7 @@
 import contextlib
 import os
+import shutil
+import sys
 from pathlib import Path
 
 import pytest
@@ -23,6 +25,15 @@ def identity_tf(density_scale: float = 10.0) -> TransferFunction:
     })
 
 
+def installed(name: str) -> Path:
+    """This environment's console script `name`: beside the interpreter in a virtual environment, else on PATH
+    (the lent GPU machine puts the checkout on PYTHONPATH and its commands in a folder of their own)."""
+    found = shutil.which(name, path=str(Path(sys.executable).parent)) or shutil.which(name)
+    if found is None:
+        pytest.fail(f"no {name!r} beside {sys.executable} or on PATH: run `pip install -e .` first")
+    return Path(found)
+
+
 @pytest.fixture
 def shared_data() -> Path:
     if not SHARED_DATA.is_dir():
@@ -33,9 +44,19 @@ def shared_data() -> Path:
 @contextlib.contextmanager
 def default_device_meta():
     """Guard for the CUDA path on a machine without CUDA: a tensor made without naming its device lands
-    on "meta" and fails as soon as it meets real data, as a CPU tensor fails next to CUDA tensors."""
+    on "meta" and fails as soon as it meets real data, as a CPU tensor fails next to CUDA tensors.
+
+    An optimizer's step runs with the real default: torch before 2.13 makes Adam's step count with a bare
+    `torch.tensor(0.0)`, on the host by design, and under "meta" that failed here though nothing of ours was
+    at fault (seen with torch 2.11 on a GPU machine)."""
+    from torch.optim.optimizer import register_optimizer_step_post_hook, register_optimizer_step_pre_hook
+
+    hooks = [register_optimizer_step_pre_hook(lambda *_: torch.set_default_device(None)),
+             register_optimizer_step_post_hook(lambda *_: torch.set_default_device("meta"))]
     torch.set_default_device("meta")
     try:
         yield
     finally:
         torch.set_default_device(None)
+        for hook in hooks:
+            hook.remove()

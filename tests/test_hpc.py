@@ -11,13 +11,15 @@ from pathlib import Path
 
 import pytest
 import yaml
+from conftest import installed
 from test_workflow import TINY
 
 from diffshadow.hpc import claim_gpu, pbs_state, pbs_status
 
 REPO = Path(__file__).resolve().parents[1]
 PBS = Path(__file__).resolve().parent / "pbs"
-VENV_BIN = Path(sys.executable).parent
+DIFFSHADOW = installed("diffshadow")
+BIN = DIFFSHADOW.parent
 
 
 def test_pbs_state_mapping():
@@ -108,15 +110,15 @@ def run_profile(workdir: Path, profile: str, *args: str, fail_subset: int | None
         if [[ " $* " == *" --subset {fail_subset if fail_subset is not None else 3} "* && -e {marker} ]]; then
             echo "injected failure" >&2; exit 1
         fi
-        exec {VENV_BIN / 'diffshadow'} "$@"
+        exec {DIFFSHADOW} "$@"
         """))
     (shim / "diffshadow").chmod(0o755)
     env_script = workdir / "env.sh"  # the documented DIFFSHADOW_ENV: what a job sources to find diffshadow
-    env_script.write_text(f"export PATH={shim}:{VENV_BIN}:$PATH\nexport DIFFSHADOW_DEVICE=cpu\n"
+    env_script.write_text(f"export PATH={shim}:{BIN}:$PATH\nexport DIFFSHADOW_DEVICE=cpu\n"
                           f"export DIFFSHADOW_LOCK_DIR={workdir / 'locks'}\nexport OMP_NUM_THREADS=1\n")
     cfg = {**TINY, "lights": {**TINY["lights"], "count": 8}, "pbs_system": profile}
     (workdir / "tiny.yaml").write_text(yaml.safe_dump(cfg))
-    env = {**os.environ, "PATH": f"{PBS}{os.pathsep}{VENV_BIN}{os.pathsep}{os.environ['PATH']}",
+    env = {**os.environ, "PATH": f"{PBS}{os.pathsep}{BIN}{os.pathsep}{os.environ['PATH']}",
            "PBS_ACCOUNT": "testproj", "DIFFSHADOW_ENV": str(env_script),
            "STANDIN_PBS_SPOOL": str(workdir / "spool"), "STANDIN_PBS_SYSTEM": profile, "TMPDIR": str(workdir),
            "STANDIN_PBS_QSTAT_FAILS": str(qstat_fails)}
@@ -187,11 +189,11 @@ def test_parsl_fit_writes_what_the_rule_would(tmp_path):
     (tmp_path / "config" / "scenes").mkdir(parents=True)
     (tmp_path / "config" / "config.yaml").write_text(yaml.safe_dump(base))
     (tmp_path / "config" / "scenes" / "nucleon.yaml").write_text((REPO / "config/scenes/nucleon.yaml").read_text())
-    env = {**os.environ, "PATH": f"{VENV_BIN}{os.pathsep}{os.environ['PATH']}"}
+    env = {**os.environ, "PATH": f"{BIN}{os.pathsep}{os.environ['PATH']}"}
     smk = [sys.executable, "-m", "snakemake", "-s", str(REPO / "Snakefile"), "--directory", str(tmp_path),
            "--configfile", str(tmp_path / "config/config.yaml"), "--cores", "2"]
     subprocess.run([*smk, "--until", "preoptimize"], env=env, check=True, capture_output=True, timeout=600)
-    proc = subprocess.run([str(VENV_BIN / "diffshadow"), "parsl-fit", "--config", str(REPO / "config/parsl/local.py"),
+    proc = subprocess.run([str(DIFFSHADOW), "parsl-fit", "--config", str(REPO / "config/parsl/local.py"),
                            "--configfile", str(tmp_path / "config/config.yaml"), "--results", "results"],
                           cwd=tmp_path, env=env, capture_output=True, text=True, timeout=600)
     assert proc.returncode == 0, proc.stdout[-2000:] + proc.stderr[-2000:]

@@ -1,0 +1,122 @@
+"""The primary sample's cost alone, outside the marcher: eager against the fused kernel over tile sizes and warps.
+
+    python scripts/fused_sweep.py --device cuda            # on a GPU (Triton compiles each setting once)
+    TRITON_INTERPRET=1 python scripts/fused_sweep.py --n 4096 --blocks 16 --warps 4   # the script itself, on a CPU
+
+A renderer frame is the marcher plus its primary samples. This times the samples alone, on `--n` box points of
+hydrogen_atom (the bench's data INR size, a width-32 shadow SIREN): the eager step the renderer runs (data SIREN,
+shadow SIREN, TF, opacity, shading) against `FusedSamples` for each precision × points per program × warps,
+and prints nanoseconds per sample and the largest difference from the eager opacity and colour. Then one
+`--frame`² inr frame, eager and with the fastest fused setting, gives the share of the frame the samples take:
+what is left is the marcher's. The data INR has config.yaml's size (width 64, 2 blocks, as the bench's) and is
+fitted briefly (`--inr-steps`, without growing) so that the TF sees realistic values; the shadow SIREN is
+untrained (its cost does not depend on its weights).
+"""
+
+from __future__ import annotations
+
+import argparse
+import itertools
+import time
+
+import numpy as np
+import torch
+
+from diffshadow import render as R
+from diffshadow.artifacts import load_scene_file
+from diffshadow.bench import BENCH_LIGHT
+from diffshadow.data_inr import DataInrConfig, fit_data_inr
+from diffshadow.fused import FusedSamples, FusedSiren
+from diffshadow.sampling import seeded
+from diffshadow.siren import SirenConfig, WeightLayout, init_siren
+
+
+def timed(fn, device: torch.device, repeats: int) -> float:
+    """Median seconds of `fn()` (after one warm call: compiles, caches)."""
+    sync = torch.cuda.synchronize if device.type == "cuda" else (lambda: None)
+    fn()
+    out = []
+    for _ in range(repeats):
+        sync()
+        t = time.perf_counter()
+        fn()
+        sync()
+        out.append(time.perf_counter() - t)
+    return float(np.median(out))
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--device", default="cpu")
+    ap.add_argument("--n", type=int, default=1 << 22, help="box points per call (the GPU plan's batch)")
+    ap.add_argument("--precisions", nargs="+", default=["tf32", "ieee"])
+    ap.add_argument("--blocks", type=int, nargs="+", default=[32, 64, 128], help="points per program")
+    ap.add_argument("--warps", type=int, nargs="+", default=[2, 4, 8])
+    ap.add_argument("--repeats", type=int, default=5)
+    ap.add_argument("--inr-steps", type=int, default=300)
+    ap.add_argument("--frame", type=int, default=1024, help="inr frame size for the share (0: no frame)")
+    a = ap.parse_args()
+    device = torch.device(a.device)
+
+    scene = load_scene_file("config/scenes/hydrogen_atom.yaml", device)
+    inr_cfg = DataInrConfig.from_config({"steps": a.inr_steps, "target_psnr": 0.0})
+    scene.data_inr = fit_data_inr(scene.volume, scene.tf, inr_cfg, device=device, log=lambda m: None)
+    cfg = SirenConfig(32, 2)
+    layout = WeightLayout.for_siren(cfg)
+    w = layout.flatten(init_siren(cfg, seeded(0)))
+    light = np.asarray(BENCH_LIGHT, float) / np.linalg.norm(BENCH_LIGHT)
+    extent = scene.volume.extent
+    scalar = R.InrScalar(scene.data_inr.model, extent, device)
+    shadow = R.SirenShadow(w, layout, cfg.blocks, extent, device)
+    dt = R.DEFAULT_STEP * float(np.min(np.asarray(extent) / np.asarray(scene.volume.dims)))
+    g = torch.Generator(device="cpu").manual_seed(0)
+    p = (torch.rand(a.n, 3, generator=g) * torch.as_tensor(np.asarray(extent), dtype=torch.float32)).to(device)
+    tf = scene.tf
+
+    def eager():
+        mu, rgb = tf.optics(scalar.value(p))
+        return 1 - torch.exp(-mu * dt), R._shade(rgb, None, shadow(p), None, None, R.Shading())
+
+    with torch.no_grad():
+        ref_alpha, ref_rgb = eager()
+        t_eager = timed(eager, device, a.repeats)
+    print(f"device {device}, {a.n:,} samples, data SIREN width {scene.data_inr.model.cfg.width} "
+          f"blocks {scene.data_inr.model.cfg.blocks}, shadow SIREN width {cfg.width} blocks {cfg.blocks}")
+    print(f"eager                         {t_eager * 1e9 / a.n:8.2f} ns/sample  {t_eager * 1e3:9.3f} ms")
+
+    named = scene.data_inr.model.named_tensors()
+    shadow_named = {k: v[0] for k, v in layout.unflatten(torch.as_tensor(w, device=device).reshape(1, -1)).items()}
+    best = None
+    for precision, block, warps in itertools.product(a.precisions, a.blocks, a.warps):
+        try:
+            fs, fsh = FusedSiren(named, scene.data_inr.model.cfg.blocks, precision), FusedSiren(shadow_named,
+                                                                                                  cfg.blocks, precision)
+            for f in (fs, fsh):
+                f.block, f.warps = block, warps
+            fused = FusedSamples(fs, fsh, scalar.extent, tf.optics_knots(device), tf.density_scale, dt)
+            alpha, rgb = fused(p)
+            t = timed(lambda f=fused: f(p), device, a.repeats)
+        except Exception as e:  # a setting Triton cannot compile (shared memory, registers): say so, go on
+            print(f"{precision:5s} block {block:4d} warps {warps}  failed: {type(e).__name__}: "
+                  f"{str(e).splitlines()[0] if str(e) else ''}")
+            continue
+        err = max(float((alpha - ref_alpha).abs().max()), float((rgb - ref_rgb).abs().max()))
+        print(f"{precision:5s} block {block:4d} warps {warps}  {t * 1e9 / a.n:8.2f} ns/sample  {t * 1e3:9.3f} ms  "
+              f"{t_eager / t:6.2f}x eager  max diff {err:.2e}", flush=True)
+        if precision == "tf32" and (best is None or t < best[0]):
+            best = (t, block, warps)
+
+    if a.frame and best is not None:
+        cam = R.Camera.orbit(extent, azimuth=30.0, elevation=25.0, size=a.frame)
+        kw = {"light": light, "siren": (w.numpy(), layout, cfg.blocks)}
+        scene.render("inr", cam, **kw)
+        t_frame = timed(lambda: scene.render("inr", cam, **kw), device, 3)
+        n = scene.render("inr", cam, **kw).counters.primary_samples
+        print(f"\ninr {a.frame}² eager: {t_frame * 1e3:.1f} ms, {n:,} samples; the samples alone at the eager rate "
+              f"{n * t_eager / a.n * 1e3:.1f} ms ({n * t_eager / a.n / t_frame:.0%}), at the best fused rate "
+              f"(tf32, block {best[1]}, warps {best[2]}) {n * best[0] / a.n * 1e3:.1f} ms: the marcher's share is "
+              f"about {(t_frame - n * t_eager / a.n) * 1e3:.1f} ms")
+
+
+if __name__ == "__main__":
+    main()
