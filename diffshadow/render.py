@@ -119,11 +119,15 @@ class Camera:
         up = np.cross(right, fwd)
         half_h = math.tan(math.radians(self.fov) / 2)
         half_w = half_h * self.width / self.height
-        u = ((np.arange(self.width) + 0.5) / self.width * 2 - 1) * half_w
-        v = (1 - (np.arange(self.height) + 0.5) / self.height * 2) * half_h
-        d = fwd[None, None] + u[None, :, None] * right[None, None] + v[:, None, None] * up[None, None]
-        d /= np.linalg.norm(d, axis=-1, keepdims=True)
-        dirs = torch.as_tensor(d.reshape(-1, 3), dtype=torch.float32, device=device)
+        # per pixel on the device, in float64 like the camera frame: made on the host, the directions of a 1024²
+        # image took 42 ms here (numpy) and a copy, a third of a GPU frame
+        f64 = {"dtype": torch.float64, "device": device}
+        u = ((torch.arange(self.width, **f64) + 0.5) / self.width * 2 - 1) * half_w
+        v = (1 - (torch.arange(self.height, **f64) + 0.5) / self.height * 2) * half_h
+        fwd_t, right_t, up_t = (torch.as_tensor(x, **f64) for x in (fwd, right, up))
+        d = fwd_t + u[None, :, None] * right_t + v[:, None, None] * up_t
+        d = d / (d * d).sum(-1, keepdim=True).sqrt()
+        dirs = d.reshape(-1, 3).to(torch.float32)
         origins = torch.as_tensor(eye, dtype=torch.float32, device=device).expand_as(dirs).contiguous()
         return origins, dirs
 

@@ -172,6 +172,10 @@ def test_camera_geometry():
     assert math.isclose(float(np.linalg.norm(np.subtract(cam.eye, cam.target))), 2.0 * math.hypot(0.5, 0.25, 0.125))
     # row 0 is the top of the image: its rays point further up (z) than the last row's
     assert d[0, 2] > d[-1, 2]
+    # on the device asked for, in float32
+    with default_device_meta():
+        om, dm = cam.rays(torch.device("meta"))
+    assert om.device.type == dm.device.type == "meta" and dm.shape == (15, 3) and dm.dtype == torch.float32
 
 
 @pytest.mark.parametrize("kwargs, match", [
