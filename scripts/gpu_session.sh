@@ -3,9 +3,9 @@
 #
 #   bash ../shared/gpu/prepare.sh                                   # here, once per session
 #   device run, carry [".devwheels"], timeout_s 600:
-#       END=540 bash .devwheels/on-device.sh bash scripts/gpu_session.sh all
-#   then, on the still-warm machine if device time is left:
-#       bash .devwheels/on-device.sh bash scripts/gpu_session.sh workflow
+#       END=560 bash .devwheels/on-device.sh bash scripts/gpu_session.sh all
+#   then at once, on the still-warm machine (it goes back after 30 s idle), with the ~250 s left, timeout_s 150:
+#       bash .devwheels/on-device.sh bash scripts/gpu_session.sh render
 #
 # `all` runs tests and sweep (what issues 15 and 16 still miss), each cut short so the whole ends by END
 # seconds (PARTS="part:cap ..." overrides; cap 0 = the time left), and packs everything into $OUT/all.tgz (a call
@@ -93,7 +93,7 @@ all)
     end=${END:-540}
     # the whole suite first (issue 15's last item; its workflow tests start ~40 CUDA processes; on an H200 it
     # had not finished in 330 s), then where the renderer's time goes; a cap of 0 means whatever time is left
-    for p in ${PARTS:-tests:480 sweep:0}; do
+    for p in ${PARTS:-tests:540 sweep:0}; do
         left=$((end - SECONDS)); cap=${p#*:}; { [ "$cap" -eq 0 ] || [ "$left" -lt "$cap" ]; } && cap=$left
         if [ "$cap" -lt 30 ]; then echo "== ${p%%:*}: skipped, ${left} s left" | tee -a "$out/times.txt"; continue; fi
         PART_ROOT=$root PART_CAP=$cap timeout -k 5 "$cap" bash "$0" "${p%%:*}" || failed=1
