@@ -367,8 +367,9 @@ class Runs:
 
     @classmethod
     def build(cls, o, d, t0, t1, dt: float, macro: MacroGrid | None) -> Runs:
-        def lattice(t):  # first lattice index whose sample lies at or after t
-            return torch.ceil((t - t0[:, None]) / dt - 0.5).clamp_min(0)
+        def lattice(t):  # first lattice index whose sample lies at or after t; integers, so that the running
+            # counts below are an integer cumsum (CUDA has no deterministic floating-point one)
+            return torch.ceil((t - t0[:, None]) / dt - 0.5).clamp_min(0).to(torch.int32)
 
         if macro is None or not macro.any_empty:
             count = lattice(t1[:, None])[:, 0] * (t1 > t0)
@@ -385,7 +386,7 @@ class Runs:
         occupied = ~macro.is_empty(cells).view(mid.shape)
         ka, kb = lattice(ta), lattice(tb)
         length = (kb - ka) * occupied
-        cum = length.cumsum(1)
+        cum = length.cumsum(1, dtype=torch.int32)
         return cls(cum, ka - (cum - length), cum[:, -1])
 
     def samples(self, rows: torch.Tensor, m: torch.Tensor, n: int) -> tuple[torch.Tensor, torch.Tensor]:

@@ -328,6 +328,24 @@ def _sweep(volume: Volume, tf: TransferFunction, w: np.ndarray, step: float, dev
     return out
 
 
+def _cumsum_slices(x: torch.Tensor) -> torch.Tensor:
+    """torch.cumsum(x, 0). Under DIFFSHADOW_DETERMINISTIC=1 on CUDA torch refuses a floating-point cumsum (it has
+    no deterministic kernel), so there the slices are summed one after another as the CPU sums them (in float64,
+    rounded per slice): the CPU's bits."""
+    if not (x.is_cuda and torch.are_deterministic_algorithms_enabled()):
+        return torch.cumsum(x, 0)
+    return _sequential_cumsum(x)
+
+
+def _sequential_cumsum(x: torch.Tensor) -> torch.Tensor:
+    out = torch.empty_like(x)
+    acc = torch.zeros_like(x[0], dtype=torch.float64)
+    for i in range(len(x)):
+        acc = acc + x[i]
+        out[i] = acc
+    return out
+
+
 def _sweep_region(s, tf, delta, du, dv, jr, ur, vr, factor, block) -> torch.Tensor:
     device = s.device
     n_j, n_u, n_v = s.shape
@@ -362,7 +380,7 @@ def _sweep_region(s, tf, delta, du, dv, jr, ur, vr, factor, block) -> torch.Tens
         mus = torch.cat([mu_prev[None], mu_on_lines(sub)])  # (1 + G·factor, Cu, Cv)
         trap = (0.5 * delta * h) * (mus[:-1] + mus[1:])  # trapezoid between sub-samples
         gaps = trap.view(j1 - j0, factor, *trap.shape[1:]).sum(1)  # (G, Cu, Cv)
-        depth.append(depth[-1][-1:] + torch.cumsum(gaps, dim=0))
+        depth.append(depth[-1][-1:] + _cumsum_slices(gaps))
         mu_prev = mus[-1]
     depth = torch.cat(depth)  # (jhi - jlo + 1, Cu, Cv)
 

@@ -206,6 +206,17 @@ def test_same_input_same_bytes(blob):
     assert a == b
 
 
+@pytest.mark.parametrize("shape", [(1, 3, 4), (7, 5, 6), (40, 2, 3)])
+def test_sequential_cumsum_is_the_cpus_cumsum_bit_for_bit(shape):
+    """The sweep's cumsum under the determinism switch on CUDA (where torch refuses a floating-point cumsum):
+    slices summed one after another give the CPU cumsum's bits, so the switch changes no result there."""
+    from diffshadow.shadow import _cumsum_slices, _sequential_cumsum
+
+    x = torch.randn(*shape, generator=torch.Generator().manual_seed(0)) * 1e3
+    assert torch.equal(_sequential_cumsum(x), torch.cumsum(x, 0))
+    assert torch.equal(_cumsum_slices(x), torch.cumsum(x, 0))
+
+
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="no CUDA device")
 def test_cuda_matches_cpu(blob):
     tf = identity_tf()

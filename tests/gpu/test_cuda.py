@@ -177,6 +177,31 @@ def test_deterministic_mode_repeats_bytes(tmp_path):
     assert proc.returncode == 0, proc.stderr[-2000:]
 
 
+def test_deterministic_mode_renders_and_sweeps(tmp_path):
+    """DIFFSHADOW_DETERMINISTIC=1: every renderer mode and the exact shadows' sweep run on CUDA (torch raises
+    for an op without a deterministic kernel, e.g. a floating-point cumsum) and repeat their bytes."""
+    script = tmp_path / "render_twice.py"
+    script.write_text(
+        "import sys\nimport torch\n"
+        "from diffshadow.runtime import set_deterministic_from_env\n"
+        "assert set_deterministic_from_env()\n"
+        "sys.path.insert(0, sys.argv[1])\nimport test_cuda as T\n"
+        "from diffshadow.shadow import shadow_grid\n"
+        "vol = T.Volume(data=T.gaussian_blob(33, 0.15), extent=T.np.ones(3), name='blob')\n"
+        "cam = T.Camera.orbit(vol.extent, azimuth=40, elevation=20, size=32)\n"
+        "siren = (T.LAYOUT.flatten(T.init_siren(T.SIREN, torch.Generator().manual_seed(0))), T.LAYOUT, 1)\n"
+        "for mode in ('noshadow', 'gt', 'naive', 'inr'):\n"
+        "    a, b = (T.RenderScene(vol, T.TF, device=T.CUDA).render(mode, cam, light=T.LIGHTS[1], siren=siren)\n"
+        "            for _ in range(2))\n"
+        "    assert torch.equal(a.rgb, b.rgb), mode\n"
+        "g = [shadow_grid(vol, T.TF, T.LIGHTS[1], method='sweep', device=T.CUDA) for _ in range(2)]\n"
+        "assert torch.equal(torch.as_tensor(g[0]), torch.as_tensor(g[1]))\n")
+    env = {**os.environ, "DIFFSHADOW_DETERMINISTIC": "1"}
+    proc = subprocess.run([sys.executable, str(script), str(Path(__file__).parent)], env=env,
+                          capture_output=True, text=True, timeout=300)
+    assert proc.returncode == 0, proc.stderr[-2000:]
+
+
 def _nccl_worker(rank, port, data, state, ft, out_dir):
     from diffshadow.diffusion.finetune import finetune
     from diffshadow.runtime import distributed
