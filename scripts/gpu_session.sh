@@ -2,6 +2,8 @@
 # The GPU figures that issues 15, 16 and 19 ask for. One device call (15 minutes of device time a session):
 #
 #   bash ../shared/gpu/prepare.sh                                   # here, once per session
+#   python3 -m pip download --no-deps --only-binary=:all: --python-version 3.12 --implementation cp \
+#       -d .devwheels/whl pytest-xdist==3.8.0 execnet==2.1.2        # the `tests` part runs the suite in parallel
 #   device run, carry [".devwheels"], timeout_s 600:
 #       END=560 bash .devwheels/on-device.sh bash scripts/gpu_session.sh all
 #   then at once, on the still-warm machine (it goes back after 30 s idle), with the ~250 s left, timeout_s 150:
@@ -113,8 +115,12 @@ workflow)
 tests)
     # -v names each test as it ends, and SIGINT before the part's cap makes pytest print its summary (failures
     # with short tracebacks, slowest tests): a suite cut short still says what failed and where the time went
+    # The suite takes ~14 min in one process (the workflow and PBS-profile tests alone ~11), more than a device
+    # call: with pytest-xdist it runs in 4 processes, a test file to each (module fixtures run once; the suite
+    # passes that way, `pytest -n 2 --dist loadfile` here), else serially
     cap=${PART_CAP:-3600}
-    step pytest timeout -s INT -k 10 $((cap - 15)) pytest -v -rfEs --tb=short --durations=25
+    xdist=(); python -c "import xdist" 2>/dev/null && xdist=(-n 4 --dist loadfile)
+    step pytest timeout -s INT -k 10 $((cap - 15)) pytest -v -rfEs --tb=short --durations=25 "${xdist[@]}"
     ;;
 *)
     echo "unknown part $part (all, workflow, render, plans, sweep, checks or tests)" >&2; exit 2
