@@ -131,6 +131,11 @@ class FusedSiren:
         return out
 
 
+def _optics_inputs(extent: torch.Tensor, knots: tuple[torch.Tensor, torch.Tensor]) -> tuple[torch.Tensor, ...]:
+    """The box extent and the optics table as the kernels read them: contiguous float32."""
+    return tuple(t.float().contiguous() for t in (extent, *knots))
+
+
 class FusedSamples:
     """A primary sample's opacity and colour from its box point in one kernel: data INR `scalar`, shadow INR
     `shadow` (None: no shadow), the transfer function's `knots` ((M,), (M, 4) of opacity and RGB,
@@ -143,9 +148,7 @@ class FusedSamples:
             raise FusedSirenError(f"the data and shadow SIRENs need one precision, got {scalar.precision!r} and "
                                   f"{shadow.precision!r}")
         self.scalar, self.shadow = scalar, shadow
-        self.extent = extent.float().contiguous()
-        xs, ys = knots
-        self.xs, self.ys = xs.float().contiguous(), ys.float().contiguous()
+        self.extent, self.xs, self.ys = _optics_inputs(extent, knots)
         self.density, self.dt = float(density_scale), float(dt)
         # the wider network sets the tile, so both fit on chip
         self.block = min(scalar.block, shadow.block) if shadow is not None else scalar.block
@@ -172,9 +175,7 @@ class FusedExtinction:
     def __init__(self, scalar: FusedSiren, extent: torch.Tensor, knots: tuple[torch.Tensor, torch.Tensor],
                  density_scale: float):
         self.scalar = scalar
-        self.extent = extent.float().contiguous()
-        xs, ys = knots
-        self.xs, self.ys = xs.float().contiguous(), ys.float().contiguous()
+        self.extent, self.xs, self.ys = _optics_inputs(extent, knots)
         self.density = float(density_scale)
 
     def __call__(self, p: torch.Tensor) -> torch.Tensor:

@@ -80,8 +80,10 @@ class TransferFunction:
     def _control(self, kind: str, device) -> tuple[torch.Tensor, torch.Tensor]:
         key = (kind, str(device))
         if key not in self._tensors:
-            points = {"opacity": self.opacity_points, "color": self.color_points}[kind] if kind != "optics" \
-                else self._optics_points()
+            if kind == "optics":
+                points = self._optics_points()
+            else:
+                points = self.opacity_points if kind == "opacity" else self.color_points
             pts = torch.as_tensor(points, dtype=torch.float32, device=device)
             self._tensors[key] = (pts[:, 0].contiguous(), pts[:, 1:].contiguous())
         return self._tensors[key]

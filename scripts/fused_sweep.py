@@ -26,7 +26,7 @@ from diffshadow import render as R
 from diffshadow.artifacts import load_scene_file
 from diffshadow.bench import BENCH_LIGHT
 from diffshadow.data_inr import DataInrConfig, fit_data_inr
-from diffshadow.fused import FusedSamples, FusedSiren
+from diffshadow.fused import FusedSamples
 from diffshadow.sampling import seeded
 from diffshadow.siren import SirenConfig, WeightLayout, init_siren
 
@@ -68,7 +68,7 @@ def main() -> None:
     extent = scene.volume.extent
     scalar = R.InrScalar(scene.data_inr.model, extent, device)
     shadow = R.SirenShadow(w, layout, cfg.blocks, extent, device)
-    dt = R.DEFAULT_STEP * float(np.min(np.asarray(extent) / np.asarray(scene.volume.dims)))
+    dt = R.DEFAULT_STEP * scene.voxel  # the renderer's step
     g = torch.Generator(device="cpu").manual_seed(0)
     p = (torch.rand(a.n, 3, generator=g) * torch.as_tensor(np.asarray(extent), dtype=torch.float32)).to(device)
     tf = scene.tf
@@ -84,13 +84,12 @@ def main() -> None:
           f"blocks {scene.data_inr.model.cfg.blocks}, shadow SIREN width {cfg.width} blocks {cfg.blocks}")
     print(f"eager                         {t_eager * 1e9 / a.n:8.2f} ns/sample  {t_eager * 1e3:9.3f} ms")
 
-    named = scene.data_inr.model.named_tensors()
-    shadow_named = {k: v[0] for k, v in layout.unflatten(torch.as_tensor(w, device=device).reshape(1, -1)).items()}
     best = None
     for precision, block, warps in itertools.product(a.precisions, a.blocks, a.warps):
         try:
-            fs, fsh = FusedSiren(named, scene.data_inr.model.cfg.blocks, precision), FusedSiren(shadow_named,
-                                                                                                  cfg.blocks, precision)
+            # the renderer's own fused SIRENs for this precision, with this tile and these warps
+            fs = R.InrScalar(scene.data_inr.model, extent, device, precision).fast
+            fsh = R.SirenShadow(w, layout, cfg.blocks, extent, device, precision).fast
             for f in (fs, fsh):
                 f.block, f.warps = block, warps
             fused = FusedSamples(fs, fsh, scalar.extent, tf.optics_knots(device), tf.density_scale, dt)

@@ -3,6 +3,7 @@ import os
 import shutil
 import sys
 from pathlib import Path
+from types import SimpleNamespace
 
 import pytest
 import torch
@@ -12,6 +13,7 @@ if not torch.cuda.is_available():
     # the fused SIREN's kernel runs through Triton's interpreter in tests/test_fused.py
     os.environ.setdefault("TRITON_INTERPRET", "1")
 
+from diffshadow.siren import Siren, SirenConfig
 from diffshadow.transfer import TransferFunction
 
 SHARED_DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
@@ -23,6 +25,12 @@ def identity_tf(density_scale: float = 10.0) -> TransferFunction:
         "color": [[0.0, 1.0, 1.0, 1.0], [1.0, 1.0, 1.0, 1.0]],
         "density_scale": density_scale,
     })
+
+
+def data_inr_stub(width: int, blocks: int, seed: int = 3) -> SimpleNamespace:
+    """What RenderScene reads of a data INR: its SIREN, and no cell ranges (the renderer finds its own)."""
+    return SimpleNamespace(model=Siren(SirenConfig(width, blocks), torch.Generator().manual_seed(seed)),
+                           cell_lo=None, cell_hi=None)
 
 
 def installed(name: str) -> Path:

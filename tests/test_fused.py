@@ -7,6 +7,7 @@ import os
 import numpy as np
 import pytest
 import torch
+from conftest import data_inr_stub
 
 from diffshadow import fused
 from diffshadow.analytic import gaussian_blob
@@ -57,9 +58,7 @@ def test_renderer_images_equal_with_the_fused_kernels(monkeypatch, mode, kernel)
                                        "color": [[0, 0.2, 0.4, 0.9], [0.35, 0.9, 0.9, 0.1], [1, 1, 0.3, 0.2]],
                                        "density_scale": 20})
 
-    class DataInr:  # what RenderScene reads of a data INR
-        model = Siren(SirenConfig(32, 1), torch.Generator().manual_seed(3))
-        cell_lo = cell_hi = None
+    data_inr = data_inr_stub(32, 1)
 
     calls = []
     real = getattr(render, kernel)
@@ -77,7 +76,7 @@ def test_renderer_images_equal_with_the_fused_kernels(monkeypatch, mode, kernel)
     images = {}
     for setting in ("0", "1"):
         monkeypatch.setenv("DIFFSHADOW_FUSED_SIREN", setting)
-        scene = RenderScene(volume, tf, DataInr(), device="cpu")
+        scene = RenderScene(volume, tf, data_inr, device="cpu")
         assert scene.fused == (None if setting == "0" else "ieee")
         images[setting] = scene.render(mode, cam, light=(0.3, -0.5, 0.8), siren=(weights, layout, siren.blocks),
                                        skip=False).rgb
@@ -149,17 +148,15 @@ def test_a_siren_the_kernel_cannot_take_falls_back_to_eager_with_a_warning(monke
     says so, instead of failing the stage."""
     from diffshadow.render import RenderScene
 
-    class DataInr:
-        model = Siren(SirenConfig(8, 1), torch.Generator().manual_seed(3))
-        cell_lo = cell_hi = None
+    data_inr = data_inr_stub(8, 1)
 
     volume = Volume(data=gaussian_blob(17, 0.15), extent=np.ones(3), name="blob")
     tf = TransferFunction.from_config({"opacity": [[0, 0], [1, 0.8]], "color": [[0, 1, 1, 1], [1, 1, 1, 1]],
                                        "density_scale": 20})
     cam = Camera.orbit(volume.extent, azimuth=30.0, elevation=25.0, size=8)
     monkeypatch.setenv("DIFFSHADOW_FUSED_SIREN", "0")
-    eager = RenderScene(volume, tf, DataInr()).render("noshadow", cam).rgb
+    eager = RenderScene(volume, tf, data_inr).render("noshadow", cam).rgb
     monkeypatch.setenv("DIFFSHADOW_FUSED_SIREN", "1")
     with pytest.warns(UserWarning, match=r"DIFFSHADOW_FUSED_SIREN=ieee: .*power-of-two width >= 16.*eager SIREN"):
-        image = RenderScene(volume, tf, DataInr()).render("noshadow", cam).rgb
+        image = RenderScene(volume, tf, data_inr).render("noshadow", cam).rgb
     assert torch.equal(image, eager)

@@ -7,7 +7,7 @@ import shutil
 import numpy as np
 import pytest
 import torch
-from conftest import default_device_meta
+from conftest import data_inr_stub, default_device_meta
 
 from diffshadow.analytic import gaussian_blob
 from diffshadow.render import (
@@ -225,11 +225,8 @@ def test_compiled_sirens_render_the_same_images(blob, monkeypatch):
     """DIFFSHADOW_FUSED_SIREN=compile: the data and shadow SIRENs through torch.compile (the CPU's fast path,
     docs/tuning.md) give the eager images, for ours and for the naive baseline's secondary rays."""
     from diffshadow.render import RenderScene
-    from diffshadow.siren import Siren
 
-    class DataInr:  # what RenderScene reads of a data INR
-        model = Siren(SirenConfig(16, 1), torch.Generator().manual_seed(3))
-        cell_lo = cell_hi = None
+    data_inr = data_inr_stub(16, 1)
 
     siren = SirenConfig(16, 1)
     layout = WeightLayout.for_siren(siren)
@@ -237,7 +234,7 @@ def test_compiled_sirens_render_the_same_images(blob, monkeypatch):
     images = {}
     for setting in ("0", "compile"):
         monkeypatch.setenv("DIFFSHADOW_FUSED_SIREN", setting)
-        scene = RenderScene(blob, TF, DataInr())
+        scene = RenderScene(blob, TF, data_inr)
         assert scene.fused == (None if setting == "0" else "compile")
         for mode, size in (("inr", 24), ("naive", 12)):
             cam = Camera.orbit(blob.extent, azimuth=30.0, elevation=25.0, size=size)
