@@ -110,3 +110,88 @@ def extinction_kernel(p_ptr, extent_ptr, w0_ptr, b0_ptr, wh_ptr, bh_ptr, wl_ptr,
     s = siren(x0, x1, x2, w0_ptr, b0_ptr, wh_ptr, bh_ptr, wl_ptr, bl_ptr, W, BLOCKS, PRECISION, RES)
     lo, hi, w = segment(s, xs_ptr, KNOTS, BLOCK)
     tl.store(out_ptr + rows, density * channel(ys_ptr, lo, hi, w, 0), mask=live)
+
+
+@triton.jit
+def lattice_t(m, rows, live, t0, dt, cum_ptr, off_ptr, J: tl.constexpr, BLOCK: tl.constexpr):
+    """Each ray's occupied sample number m as its parameter t, as `render.Runs.samples` finds it: run j is the
+    number of runs that end at or before m (searchsorted, right=True), lattice index k = m + offset[j]."""
+    j = tl.zeros([BLOCK], dtype=tl.int32)
+    for i in range(J):
+        j += (tl.load(cum_ptr + rows * J + i, mask=live, other=0) <= m).to(tl.int32)
+    k = m + tl.load(off_ptr + rows * J + tl.minimum(j, J - 1), mask=live, other=0)
+    return t0 + (k.to(tl.float32) + 0.5) * dt
+
+
+@triton.jit(do_not_specialize=["n"])
+def march_kernel(order_ptr, o_ptr, d_ptr, t0_ptr, t1_ptr, cum_ptr, off_ptr, total_ptr, extent_ptr,
+                 w0_ptr, b0_ptr, wh_ptr, bh_ptr, wl_ptr, bl_ptr,
+                 sw0_ptr, sb0_ptr, swh_ptr, sbh_ptr, swl_ptr, sbl_ptr,
+                 xs_ptr, ys_ptr, density, dt, stop, acc_ptr, rgb_ptr, count_ptr, trips_ptr, n,
+                 J: tl.constexpr, W: tl.constexpr, BLOCKS: tl.constexpr, SW: tl.constexpr, SBLOCKS: tl.constexpr,
+                 SHADOW: tl.constexpr, ABSORB: tl.constexpr, KNOTS: tl.constexpr, BLOCK: tl.constexpr,
+                 PRECISION: tl.constexpr, RES: tl.constexpr):
+    """Whole rays, one sample of every ray of the tile per trip, until none is left: a ray stops after its
+    last occupied sample, at its exit, or when `stop` is crossed. ABSORB=False: primary rays composited front
+    to back (`acc` transmittance, `rgb` colour; stop: transmittance below it), as the renderer's eager step
+    shades each sample. ABSORB=True: a secondary ray's optical depth (`acc`; stop: depth at or above it), as
+    `MarchedShadow` sums it. `count`: samples each ray took; `trips`: the tile's trips (lanes are busy
+    trips x BLOCK). `order`: the rays in the order programs take them, BLOCK to a program."""
+    at = tl.program_id(0) * BLOCK + tl.arange(0, BLOCK)
+    live = at < n
+    rows = tl.load(order_ptr + at, mask=live, other=0)
+    ox = tl.load(o_ptr + rows * 3, mask=live, other=0.0)
+    oy = tl.load(o_ptr + rows * 3 + 1, mask=live, other=0.0)
+    oz = tl.load(o_ptr + rows * 3 + 2, mask=live, other=0.0)
+    dx = tl.load(d_ptr + rows * 3, mask=live, other=0.0)
+    dy = tl.load(d_ptr + rows * 3 + 1, mask=live, other=0.0)
+    dz = tl.load(d_ptr + rows * 3 + 2, mask=live, other=0.0)
+    t0 = tl.load(t0_ptr + rows, mask=live, other=0.0)
+    t1 = tl.load(t1_ptr + rows, mask=live, other=0.0)
+    total = tl.load(total_ptr + rows, mask=live, other=0)
+    ex = tl.load(extent_ptr)
+    ey = tl.load(extent_ptr + 1)
+    ez = tl.load(extent_ptr + 2)
+    acc = tl.zeros([BLOCK], dtype=tl.float32) + (0.0 if ABSORB else 1.0)
+    r = tl.zeros([BLOCK], dtype=tl.float32)
+    g = tl.zeros([BLOCK], dtype=tl.float32)
+    b = tl.zeros([BLOCK], dtype=tl.float32)
+    count = tl.zeros([BLOCK], dtype=tl.int32)
+    active = live & (total > 0)
+    m = 0
+    while tl.max(active.to(tl.int32), axis=0) > 0:
+        t = lattice_t(m, rows, live, t0, dt, cum_ptr, off_ptr, J, BLOCK)
+        valid = active & (t < t1)
+        # the box point o + t d, as SIREN input (`siren.box_to_siren`)
+        x0 = (ox + t * dx) / ex * 2 - 1
+        x1 = (oy + t * dy) / ey * 2 - 1
+        x2 = (oz + t * dz) / ez * 2 - 1
+        s = siren(x0, x1, x2, w0_ptr, b0_ptr, wh_ptr, bh_ptr, wl_ptr, bl_ptr, W, BLOCKS, PRECISION, RES)
+        lo, hi, w = segment(s, xs_ptr, KNOTS, BLOCK)
+        mu = density * channel(ys_ptr, lo, hi, w, 0)
+        if ABSORB:
+            acc += tl.where(valid, mu * dt, 0.0)
+            keep = acc < stop
+        else:
+            alpha = tl.where(valid, 1 - tl.exp(-mu * dt), 0.0)
+            shade = 1.0
+            if SHADOW:
+                gs = siren(x0, x1, x2, sw0_ptr, sb0_ptr, swh_ptr, sbh_ptr, swl_ptr, sbl_ptr, SW, SBLOCKS,
+                           PRECISION, RES)
+                shade = 0.1 + 0.9 * tl.minimum(tl.maximum(gs, 0.0), 1.0)
+            weight = acc * alpha
+            r += weight * tl.minimum(tl.maximum(channel(ys_ptr, lo, hi, w, 1) * shade, 0.0), 1.0)
+            g += weight * tl.minimum(tl.maximum(channel(ys_ptr, lo, hi, w, 2) * shade, 0.0), 1.0)
+            b += weight * tl.minimum(tl.maximum(channel(ys_ptr, lo, hi, w, 3) * shade, 0.0), 1.0)
+            acc = acc * (1 - alpha)
+            keep = acc >= stop
+        count += valid.to(tl.int32)
+        m += 1
+        active = valid & (m < total) & keep
+    tl.store(acc_ptr + rows, acc, mask=live)
+    tl.store(count_ptr + rows, count, mask=live)
+    if not ABSORB:
+        tl.store(rgb_ptr + rows * 3, r, mask=live)
+        tl.store(rgb_ptr + rows * 3 + 1, g, mask=live)
+        tl.store(rgb_ptr + rows * 3 + 2, b, mask=live)
+    tl.store(trips_ptr + tl.program_id(0), m)

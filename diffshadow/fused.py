@@ -166,6 +166,41 @@ class FusedSamples:
                     KNOTS=len(self.xs), BLOCK=self.block, PRECISION=self.scalar.precision, RES=RES_WEIGHT)
         return alpha, rgb
 
+    def march(self, o: torch.Tensor, d: torch.Tensor, t0: torch.Tensor, t1: torch.Tensor, runs,
+              min_transmittance: float) -> tuple[torch.Tensor, ...]:
+        """Whole primary rays o + t d, t in [t0, t1), through their occupied samples `runs` (`render.Runs`), in
+        one kernel: each ray's transmittance (R,) and composited colour (R, 3), the samples it took (R,) and the
+        trips of each program of `block` rays. A ray stops once its transmittance is below `min_transmittance`."""
+        shadow = self.shadow or self.scalar
+        return _march(self, o, d, t0, t1, runs, min_transmittance, absorb=False, dt=self.dt, shadow=shadow,
+                      SW=shadow.width, SBLOCKS=shadow.blocks, SHADOW=self.shadow is not None)
+
+
+def _march(kernel, o, d, t0, t1, runs, stop: float, *, absorb: bool, dt: float, shadow, **constants):
+    """Launch `march_kernel` for `kernel` (FusedSamples or FusedExtinction) over rays (R,): (acc, rgb or None,
+    count, trips)."""
+    import triton
+
+    o, d, t0, t1 = (x.float().contiguous() for x in (o, d, t0, t1))
+    cum, offset, total = (x.to(torch.int32).contiguous() for x in (runs.cum, runs.offset, runs.total))
+    # a program runs until its last ray stops, so it takes rays of about as many samples: most first. On
+    # hydrogen_atom (no ray stops early there) lanes then do 99.9% useful samples at 1024², against 75% in image
+    # order (rows of pixels) and 92% in 8x8 pixel tiles
+    order = torch.argsort(total, descending=True, stable=True).to(torch.int32)
+    n, device = len(o), o.device
+    acc = torch.empty(n, dtype=torch.float32, device=device)
+    rgb = torch.empty(n if not absorb else 0, 3, dtype=torch.float32, device=device)
+    count = torch.empty(n, dtype=torch.int32, device=device)
+    trips = torch.empty(triton.cdiv(n, kernel.block), dtype=torch.int32, device=device)
+    if n:
+        scalar = kernel.scalar
+        _launch("march_kernel", n, kernel.block, kernel.warps, order, o, d, t0, t1, cum, offset, total,
+                kernel.extent, *scalar.tensors, *shadow.tensors, kernel.xs, kernel.ys, kernel.density, float(dt),
+                float(stop), acc, rgb, count, trips, J=cum.shape[1], W=scalar.width, BLOCKS=scalar.blocks,
+                ABSORB=absorb, KNOTS=len(kernel.xs), BLOCK=kernel.block, PRECISION=scalar.precision,
+                RES=RES_WEIGHT, **constants)
+    return acc, (None if absorb else rgb), count, trips
+
 
 class FusedExtinction:
     """The naive baseline's secondary samples in one kernel: extinction μ = density_scale · opacity of the data
@@ -177,6 +212,7 @@ class FusedExtinction:
         self.scalar = scalar
         self.extent, self.xs, self.ys = _optics_inputs(extent, knots)
         self.density = float(density_scale)
+        self.block, self.warps = scalar.block, scalar.warps
 
     def __call__(self, p: torch.Tensor) -> torch.Tensor:
         p = p.float().contiguous()
@@ -187,3 +223,11 @@ class FusedExtinction:
                     BLOCKS=self.scalar.blocks, KNOTS=len(self.xs),
                     BLOCK=self.scalar.block, PRECISION=self.scalar.precision, RES=RES_WEIGHT)
         return out
+
+    def march(self, o: torch.Tensor, d: torch.Tensor, t0: torch.Tensor, t1: torch.Tensor, runs, dt: float,
+              tau_max: float) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """Whole secondary rays through their occupied samples `runs` in one kernel, step `dt`: each ray's
+        optical depth (R,), stopped once it reaches `tau_max`, the samples it took (R,) and the programs' trips."""
+        tau, _, count, trips = _march(self, o, d, t0, t1, runs, tau_max, absorb=True, dt=dt, shadow=self.scalar,
+                                      SW=self.scalar.width, SBLOCKS=self.scalar.blocks, SHADOW=False)
+        return tau, count, trips

@@ -310,7 +310,8 @@ class SirenShadow:
 class Counters:
     primary_samples: int = 0  # samples sent to the network (after skipping)
     secondary_samples: int = 0
-    iterations: int = 0
+    iterations: int = 0  # the marcher's loop; with whole-ray kernels, the tiles of primary rays
+    slots: int = 0  # whole-ray kernels: lanes' sample trips, primary rays (a tile runs until its last ray stops)
 
 
 @dataclass(frozen=True)
@@ -424,6 +425,22 @@ def _march(o, d, t0, t1, dt: float, macro: MacroGrid | None, plan: MarchPlan, st
     return iterations
 
 
+def _whole_rays(o, d, t0, t1, dt: float, macro: MacroGrid | None, plan: MarchPlan, march) -> tuple[int, int, int]:
+    """March rays (R,) in tiles with a kernel that takes each ray from entry to stop: per tile, the runs of
+    occupied samples (`Runs.build`), then `march(sl, runs)`, which returns the samples each ray took, the trips
+    of each of its programs and their rays per program. Returns (tiles, samples, lane slots)."""
+    samples = torch.zeros((), dtype=torch.int64, device=o.device)
+    slots = torch.zeros((), dtype=torch.int64, device=o.device)
+    tiles = 0
+    for a in range(0, len(o), plan.tile):
+        sl = slice(a, a + plan.tile)
+        count, trips, block = march(sl, Runs.build(o[sl], d[sl], t0[sl], t1[sl], dt, macro))
+        samples += count.sum()
+        slots += trips.sum() * block
+        tiles += 1
+    return tiles, int(samples), int(slots)  # the frame's only host reads, at its end
+
+
 def shading_name(phong: bool) -> str:
     """How the image modes shade a sample (what a report states beside image metrics)."""
     return "Blinn-Phong" if phong else "unlit (colour x (0.1 + 0.9 g))"
@@ -456,8 +473,8 @@ class MarchedShadow:
 
     def __init__(self, scalar, tf: TransferFunction, extent, voxel: float, *, step: float = DEFAULT_STEP,
                  macro: MacroGrid | None = None, tau_max: float = SHADOW_TAU_MAX,
-                 samples_per_iter: int | None = None, batch: int | None = None):
-        self.scalar, self.tf, self.macro = scalar, tf, macro
+                 samples_per_iter: int | None = None, batch: int | None = None, whole_rays: bool = True):
+        self.scalar, self.tf, self.macro, self.whole_rays = scalar, tf, macro, whole_rays
         self.extent = torch.as_tensor(np.asarray(extent), dtype=torch.float32, device="cpu")
         self.dt = step * voxel
         self.tau_max, self.min_samples, self.batch = tau_max, samples_per_iter, batch
@@ -476,6 +493,15 @@ class MarchedShadow:
         _, t1 = ray_span(p, d, self.extent.to(device))
         t0 = torch.zeros_like(t1)
         tau = torch.zeros_like(t1)
+        if self.fused is not None and self.whole_rays:
+            def march(sl, runs):
+                tau[sl], count, trips = self.fused.march(p[sl], d[sl], t0[sl], t1[sl], runs, self.dt, self.tau_max)
+                return count, trips, self.fused.block
+
+            samples = _whole_rays(p, d, t0, t1, self.dt, self.macro, plan, march)[1]
+            if self.counters is not None:
+                self.counters.secondary_samples += samples
+            return torch.exp(-tau)
 
         def step(rows, t, valid):
             pts = (p[rows, None] + t[..., None] * d[rows, None]).view(-1, 3)
@@ -519,13 +545,17 @@ def render(
     min_transmittance: float = MIN_TRANSMITTANCE,
     samples_per_iter: int | None = None,
     batch: int | None = None,
+    whole_rays: bool = True,
     device: torch.device | str = "cpu",
 ) -> Image:
     """Render one image with the wavefront marcher.
 
     `scalar`: `GridScalar` or `InrScalar`. `shadow`: None (no shadow), `GridShadow`, `SirenShadow` or
     `MarchedShadow`; `light` (toward the light) is needed for a shadow or Phong. `voxel` is the
-    finest voxel size in box units; `step` is in voxels.
+    finest voxel size in box units; `step` is in voxels. `whole_rays`: where both fields are fused SIRENs and
+    shading is unlit, march each ray from entry to stop in one kernel (`FusedSamples.march`) instead of the
+    wavefront loop. A ray then stops at the first sample that takes its transmittance below
+    `min_transmittance`, not at the end of a wavefront iteration: the images differ by less than that.
     """
     shading = shading or Shading()
     if step <= 0 or not math.isfinite(step):
@@ -551,6 +581,14 @@ def render(
     color = torch.zeros(len(o), 3, device=device)
 
     fused = _fused_samples(scalar, shadow, tf, dt, shading)
+    if fused is not None and whole_rays:
+        def march(sl, runs):
+            trans[sl], color[sl], count, trips = fused.march(o[sl], d[sl], t0[sl], t1[sl], runs, min_transmittance)
+            return count, trips, fused.block
+
+        counters.iterations, counters.primary_samples, counters.slots = _whole_rays(o, d, t0, t1, dt, macro, plan,
+                                                                                    march)
+        return _image(camera, color, trans, shading, start, counters)
 
     def composite(rows, t, valid):
         pts = (o[rows, None] + t[..., None] * d[rows, None]).view(-1, 3)
@@ -578,10 +616,13 @@ def render(
 
     counters.iterations = _march(o, d, t0, t1, dt, macro, plan, composite,
                                  lambda rows: trans[rows] < min_transmittance)
+    return _image(camera, color, trans, shading, start, counters)
+
+
+def _image(camera: Camera, color, trans, shading: Shading, start: float, counters: Counters) -> Image:
     out = color + trans[:, None] * shading.background
-    h, wdt = camera.height, camera.width
-    seconds = time.perf_counter() - start
-    return Image(out.view(h, wdt, 3), (1 - trans).view(h, wdt), seconds, counters)
+    h, w = camera.height, camera.width
+    return Image(out.view(h, w, 3), (1 - trans).view(h, w), time.perf_counter() - start, counters)
 
 
 def _fused_samples(scalar, shadow, tf: TransferFunction, dt: float, shading: Shading) -> FusedSamples | None:
@@ -700,8 +741,9 @@ class RenderScene:
     def render(self, mode: str, camera: Camera, *, light=None, siren=None, scalar: str | None = None,
                phong: bool = False, step: float = DEFAULT_STEP, skip: bool = True, batch: int | None = None,
                samples_per_iter: int | None = None, min_transmittance: float = MIN_TRANSMITTANCE,
-               background: float = BACKGROUND) -> Image:
-        """`siren`: (weights, layout, blocks) of the shadow INR, for mode `inr`."""
+               background: float = BACKGROUND, whole_rays: bool = True) -> Image:
+        """`siren`: (weights, layout, blocks) of the shadow INR, for mode `inr`. `whole_rays`: see `render`
+        (with fused SIRENs only; for `naive`, its secondary rays)."""
         if mode not in MODES:
             raise RenderError(f"mode: expected one of {MODES}, got {mode!r}")
         if scalar is None:
@@ -722,12 +764,12 @@ class RenderScene:
             shadow = SirenShadow(weights, layout, blocks, self.volume.extent, self.device, self.fused)
         elif mode == "naive":
             shadow = MarchedShadow(field_, self.tf, self.volume.extent, self.voxel, step=step, macro=macro,
-                                   samples_per_iter=samples_per_iter, batch=batch)
+                                   samples_per_iter=samples_per_iter, batch=batch, whole_rays=whole_rays)
         with torch.no_grad():
             return render(camera, field_, self.tf, self.volume.extent, self.voxel, light=light, shadow=shadow,
                           shading=Shading(phong=phong, background=background), step=step, macro=macro,
                           min_transmittance=min_transmittance, samples_per_iter=samples_per_iter, batch=batch,
-                          device=self.device)
+                          whole_rays=whole_rays, device=self.device)
 
 
 def write_png(path, image: Image) -> None:

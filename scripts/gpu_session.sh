@@ -7,9 +7,9 @@
 #   device run, carry [".devwheels"], timeout_s 600:
 #       END=560 bash .devwheels/on-device.sh bash scripts/gpu_session.sh all
 #   then at once, on the still-warm machine (it goes back after 30 s idle), with the ~250 s left, timeout_s 150:
-#       bash .devwheels/on-device.sh bash scripts/gpu_session.sh render
+#       bash .devwheels/on-device.sh bash scripts/gpu_session.sh sweep
 #
-# `all` runs tests and sweep (what issues 15 and 16 still miss), each cut short so the whole ends by END
+# `all` runs render and tests (what issues 16 and 15 still miss), each cut short so the whole ends by END
 # seconds (PARTS="part:cap ..." overrides; cap 0 = the time left), and packs everything into $OUT/all.tgz (a call
 # brings back at most 8 files).
 # A part alone: `... gpu_session.sh render`.
@@ -20,8 +20,9 @@
 #           peak memory up to 2048²), then the same with the fused kernels in TF32.
 # plans:    scripts/render_plans.py: batch sizes, TF32 matmuls and the fused kernels side by side, then
 #           torch.profiler's top kernels and the device's busy fraction of one 1024² inr frame per variant.
-# sweep:    scripts/fused_sweep.py: the primary sample alone, eager vs the fused kernel per precision, points per
-#           program and warps, and its share of a 1024² frame; then the profile of one 1024² fused frame.
+# sweep:    render_plans.py at 512² and 1024², inr: eager against the fused kernels per wavefront step and whole
+#           rays (fp32, TF32), with lane use and the profile of one 1024² frame each; then scripts/fused_sweep.py
+#           (the primary sample alone per precision, points per program and warps).
 # checks:   pytest -m gpu; bench siren (K=16 and K=50 jointly vs one by one, default chunking); the cost of
 #           DIFFSHADOW_DETERMINISTIC=1 on the same K=16 run.
 # tests:    the whole suite, with its slowest tests.
@@ -78,24 +79,24 @@ plans)
     step render_plans python scripts/render_plans.py --device "$device" "${sizes[@]}" --profile
     ;;
 sweep)
-    # the primary sample alone (eager vs the fused kernel's tile sizes and warps), then where a 1024² fused
-    # frame's device time goes
+    # whole rays against wavefront steps, then the primary sample alone (tile sizes and warps)
     if [ "$quick" = 1 ]; then
         sw=(--n 2048 --blocks 16 --warps 4 --repeats 1 --inr-steps 20 --frame 24)
         pf=(--sizes 24 --inr-steps 200 --repeats 1)
     else
-        sw=(); pf=(--sizes 1024 --repeats 1)
+        sw=(); pf=(--sizes 512 1024 --repeats 3)
     fi
-    step fused_sweep python scripts/fused_sweep.py --device "$device" "${sw[@]}"
-    variants=("compiled SIREN"); [ "$device" = cuda ] && variants+=("fused tf32")
+    variants=("compiled SIREN"); [ "$device" = cuda ] && variants=("fused tf32" "fused tf32 steps" "fused fp32")
     step frame_profile python scripts/render_plans.py --device "$device" --modes inr "${pf[@]}" \
         --variants "${variants[@]}" --profile
+    step fused_sweep python scripts/fused_sweep.py --device "$device" "${sw[@]}"
     ;;
 all)
     end=${END:-540}
-    # the whole suite first (issue 15's last item; its workflow tests start ~40 CUDA processes; on an H200 it
-    # had not finished in 330 s), then where the renderer's time goes; a cap of 0 means whatever time is left
-    for p in ${PARTS:-tests:540 sweep:0}; do
+    # the renderer with the whole-ray kernel first (issue 16's figures), then the whole suite (issue 15's last
+    # item; its workflow tests start ~40 CUDA processes; on an H200 it had not finished in 330 s in one process);
+    # a cap of 0 means whatever time is left
+    for p in ${PARTS:-render:210 tests:0}; do
         left=$((end - SECONDS)); cap=${p#*:}; { [ "$cap" -eq 0 ] || [ "$left" -lt "$cap" ]; } && cap=$left
         if [ "$cap" -lt 30 ]; then echo "== ${p%%:*}: skipped, ${left} s left" | tee -a "$out/times.txt"; continue; fi
         PART_ROOT=$root PART_CAP=$cap timeout -k 5 "$cap" bash "$0" "${p%%:*}" || failed=1

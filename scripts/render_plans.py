@@ -1,5 +1,5 @@
-"""Side by side: the wavefront marcher's variants on one device (batch sizes, TF32 matmuls, the fused kernels), for
-`inr` and `naive`.
+"""Side by side: the marcher's variants on one device (batch sizes, TF32 matmuls, the fused kernels per wavefront step
+or whole rays), for `inr` and `naive`.
 
     python scripts/render_plans.py --device cuda --sizes 512 1024
 
@@ -32,26 +32,34 @@ from diffshadow.sampling import seeded
 from diffshadow.siren import SirenConfig, WeightLayout, init_siren
 
 
-def variants(device: torch.device) -> dict[str, tuple[int | None, bool, str | None]]:
-    """name → (batch, None for the device's default; TF32 matmuls; DIFFSHADOW_FUSED_SIREN's setting or None). On an H200
-    (2026-11-25), before the plan compacted on every device, a fixed-shape plan (finished rays masked for 4
-    iterations, absent samples evaluated) sent 2.5x the samples and was 1.45x slower at 512², 1.2x at 1024²
-    (docs/tuning.md)."""
-    out = {"default": (None, False, None)}
+@dataclasses.dataclass(frozen=True)
+class Variant:
+    batch: int | None = None  # None: the device's default
+    tf32: bool = False  # TF32 matmuls (the eager SIREN)
+    fused: str | None = None  # DIFFSHADOW_FUSED_SIREN's setting
+    whole_rays: bool = True  # with fused kernels: whole rays in one kernel, else one kernel per wavefront step
+
+
+def variants(device: torch.device) -> dict[str, Variant]:
+    """The variants by name. On an H200 (2026-11-25), before the plan compacted on every device, a fixed-shape
+    plan (finished rays masked for 4 iterations, absent samples evaluated) sent 2.5x the samples and was 1.45x
+    slower at 512², 1.2x at 1024² (docs/tuning.md)."""
+    out = {"default": Variant()}
     for lb in (20, 21, 22) if device.type == "cuda" else (16, 20, 22):
-        out[f"batch 2^{lb}"] = (1 << lb, False, None)
-    out["tf32 matmuls"] = (None, True, None)
-    out["compiled SIREN"] = (None, False, "compile")
+        out[f"batch 2^{lb}"] = Variant(batch=1 << lb)
+    out["tf32 matmuls"] = Variant(tf32=True)
+    out["compiled SIREN"] = Variant(fused="compile")
     if fused_available(device):
-        out["fused fp32"] = (None, False, "ieee")
-        out["fused tf32"] = (None, False, "tf32")
+        out["fused fp32"] = Variant(fused="ieee")
+        out["fused tf32"] = Variant(fused="tf32")
+        out["fused tf32 steps"] = Variant(fused="tf32", whole_rays=False)
     return out
 
 
 @contextlib.contextmanager
-def variant(scene: R.RenderScene, tf32: bool, fused: str | None):
+def variant(scene: R.RenderScene, v: Variant):
     old = torch.backends.cuda.matmul.allow_tf32, scene.fused
-    torch.backends.cuda.matmul.allow_tf32, scene.fused = tf32, fused
+    torch.backends.cuda.matmul.allow_tf32, scene.fused = v.tf32, v.fused
     try:
         yield
     finally:
@@ -93,11 +101,11 @@ def main() -> None:
     # warm each variant (Triton and torch.compile compile on first use) and drop one that fails, saying why,
     # so that one broken variant leaves the others' table
     small = R.Camera.orbit(scene.volume.extent, azimuth=30.0, elevation=25.0, size=min(a.sizes))
-    for name, (batch, tf32, fused) in list(plans.items()):
+    for name, v in list(plans.items()):
         try:
-            with variant(scene, tf32, fused):
+            with variant(scene, v):
                 for mode in a.modes:
-                    scene.render(mode, small, batch=batch, **kw)
+                    scene.render(mode, small, batch=v.batch, whole_rays=v.whole_rays, **kw)
         except Exception as e:  # any failure of one variant: report it and go on
             print(f"variant {name!r} dropped: {type(e).__name__}: {str(e).splitlines()[0] if str(e) else ''}")
             del plans[name]
@@ -107,35 +115,37 @@ def main() -> None:
             secs = {k: [] for k in plans}
             imgs, counts = {}, {}
             for _rep in range(a.repeats if mode != "naive" or n <= 256 else 1):
-                for name, (batch, tf32, fused) in plans.items():
-                    with variant(scene, tf32, fused):
+                for name, v in plans.items():
+                    with variant(scene, v):
                         sync()
-                        img = scene.render(mode, cam, batch=batch, **kw)
+                        img = scene.render(mode, cam, batch=v.batch, whole_rays=v.whole_rays, **kw)
                         sync()
                     secs[name].append(img.seconds)
                     imgs[name] = img
-            for name, (batch, tf32, fused) in plans.items():  # naive's count takes minutes past 256²
-                with variant(scene, tf32, fused):
+            for name, v in plans.items():  # naive's count takes minutes past 256²
+                with variant(scene, v):
                     counted = mode != "naive" or n <= 256
-                    counts[name] = (op_counts(lambda m=mode, c=cam, b=batch: scene.render(m, c, batch=b, **kw))
-                                    if counted else {"ops": -1, "syncs": -1})
+                    counts[name] = (op_counts(lambda m=mode, c=cam, v=v: scene.render(
+                        m, c, batch=v.batch, whole_rays=v.whole_rays, **kw)) if counted else {"ops": -1, "syncs": -1})
             ref = imgs["default"].rgb
             for name in plans:
                 c, img = counts[name], imgs[name]
                 p = float(psnr(img.rgb, ref))
-                batch = plans[name][0] or R.MarchPlan.for_device(device).batch
-                print(f"{n}x{n} {mode:5s} {name:14s} batch {batch:>9,} "
+                batch = plans[name].batch or R.MarchPlan.for_device(device).batch
+                lanes = (f"  lanes {img.counters.primary_samples / img.counters.slots:.1%} useful"
+                         if img.counters.slots else "")
+                print(f"{n}x{n} {mode:5s} {name:16s} batch {batch:>9,} "
                       f"{statistics.median(secs[name]):8.4f} s "
                       f"({1 / statistics.median(secs[name]):7.2f} fps)  samples {img.counters.primary_samples:>11,} "
                       f"+ {img.counters.secondary_samples:>13,}  ops {c['ops']:>6,} syncs {c['syncs']:>4}  "
-                      f"PSNR vs default {p:6.1f} dB", flush=True)
+                      f"PSNR vs default {p:6.1f} dB{lanes}", flush=True)
 
     if a.profile:
         cam = R.Camera.orbit(scene.volume.extent, azimuth=30.0, elevation=25.0, size=max(a.sizes))
-        for name, (batch, tf32, fused) in plans.items():
-            if name == "default" or fused:  # the fused kernels and torch.compile
-                with variant(scene, tf32, fused):
-                    profile_frame(scene, cam, device, name, batch=batch, **kw)
+        for name, v in plans.items():
+            if name == "default" or v.fused:  # the fused kernels and torch.compile
+                with variant(scene, v):
+                    profile_frame(scene, cam, device, name, batch=v.batch, whole_rays=v.whole_rays, **kw)
 
 
 def profile_frame(scene: R.RenderScene, cam: R.Camera, device: torch.device, name: str, **kw) -> None:

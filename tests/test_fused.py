@@ -43,45 +43,102 @@ def test_kernel_equals_the_eager_siren(width, blocks, precision):
     assert FusedSiren(model.named_tensors(), blocks, precision)(x[:0]).shape == (0,)
 
 
-@pytest.mark.parametrize("mode, kernel", [("noshadow", "FusedSamples"), ("inr", "FusedSamples"),
-                                          ("naive", "FusedExtinction")])
-def test_renderer_images_equal_with_the_fused_kernels(monkeypatch, mode, kernel):
-    """With DIFFSHADOW_FUSED_SIREN, `inr` and `noshadow` take each primary sample's value, shadow, transfer
-    function and shading from one kernel (FusedSamples), `naive` its secondary samples' extinction
-    (FusedExtinction); the images equal the eager renderer's. A box that is not a cube and a TF with a step and
-    colour knots of its own check the kernels' box mapping and knot search."""
-    from diffshadow import render
+BLOB_TF = {"opacity": [[0, 0], [0.2, 0], [0.5, 0.3], [0.5, 0.6], [1, 0.8]],
+           "color": [[0, 0.2, 0.4, 0.9], [0.35, 0.9, 0.9, 0.1], [1, 1, 0.3, 0.2]], "density_scale": 20}
 
+
+def _blob_scene(density_scale: float = 20):
+    """A box that is not a cube and a TF with a step and colour knots of its own: they check the kernels' box
+    mapping and knot search. A shadow SIREN of width 16, a data INR of width 32."""
     a = gaussian_blob(33, 0.15)
     volume = Volume(data=a, extent=np.array([1.0, 0.8, 1.25]), name="blob")
-    tf = TransferFunction.from_config({"opacity": [[0, 0], [0.2, 0], [0.5, 0.3], [0.5, 0.6], [1, 0.8]],
-                                       "color": [[0, 0.2, 0.4, 0.9], [0.35, 0.9, 0.9, 0.1], [1, 1, 0.3, 0.2]],
-                                       "density_scale": 20})
-
-    data_inr = data_inr_stub(32, 1)
-
-    calls = []
-    real = getattr(render, kernel)
-
-    class Spy(real):
-        def __call__(self, p):
-            calls.append(len(p))
-            return super().__call__(p)
-
-    monkeypatch.setattr(render, kernel, Spy)
+    tf = TransferFunction.from_config({**BLOB_TF, "density_scale": density_scale})
     siren = SirenConfig(16, 2)
     layout = WeightLayout.for_siren(siren)
     weights = layout.flatten(init_siren(siren, torch.Generator().manual_seed(4))).numpy()
+    return volume, tf, data_inr_stub(32, 1), (weights, layout, siren.blocks)
+
+
+@pytest.mark.parametrize("mode, kernel", [("noshadow", "samples"), ("inr", "samples"), ("noshadow", "march"),
+                                          ("inr", "march"), ("naive", "extinction"), ("naive", "march")])
+def test_renderer_images_equal_with_the_fused_kernels(monkeypatch, mode, kernel):
+    """With DIFFSHADOW_FUSED_SIREN, `inr` and `noshadow` take each primary sample's value, shadow, transfer
+    function and shading from one kernel: per sample in the wavefront loop (FusedSamples, `whole_rays=False`) or
+    each ray from entry to exit (`FusedSamples.march`); `naive` its secondary samples' extinction likewise
+    (FusedExtinction, per sample or whole secondary rays). With nothing stopped early (min_transmittance 0, an
+    optical depth bound no ray reaches) the images equal the eager renderer's, and so do the samples taken."""
+    from diffshadow import fused, render
+
+    volume, tf, data_inr, siren = _blob_scene()
+    cls = fused.FusedExtinction if mode == "naive" else fused.FusedSamples
+    method = "march" if kernel == "march" else "__call__"
+    calls = []
+    real = getattr(cls, method)
+
+    def spy(self, *args):
+        calls.append(len(args[0]))
+        return real(self, *args)
+
+    monkeypatch.setattr(cls, method, spy)
+    monkeypatch.setattr(render.MarchedShadow.__init__, "__kwdefaults__",
+                        {**render.MarchedShadow.__init__.__kwdefaults__, "tau_max": 1e9})
     cam = Camera.orbit(volume.extent, azimuth=30.0, elevation=25.0, size=20 if mode == "naive" else 24)
     images = {}
     for setting in ("0", "1"):
         monkeypatch.setenv("DIFFSHADOW_FUSED_SIREN", setting)
         scene = RenderScene(volume, tf, data_inr, device="cpu")
         assert scene.fused == (None if setting == "0" else "ieee")
-        images[setting] = scene.render(mode, cam, light=(0.3, -0.5, 0.8), siren=(weights, layout, siren.blocks),
-                                       skip=False).rgb
+        images[setting] = scene.render(mode, cam, light=(0.3, -0.5, 0.8), siren=siren, skip=False,
+                                       min_transmittance=0.0, whole_rays=kernel == "march")
         assert bool(calls) == (setting == "1")
-    assert float((images["0"] - images["1"]).abs().max()) <= 1e-5
+    a, b = images["0"], images["1"]
+    assert float((a.rgb - b.rgb).abs().max()) <= 1e-5
+    assert (a.counters.primary_samples, a.counters.secondary_samples) == (b.counters.primary_samples,
+                                                                          b.counters.secondary_samples)
+
+
+@pytest.mark.parametrize("skip", [False, True])
+def test_whole_rays_stop_at_the_first_sample_below_the_threshold(monkeypatch, skip):
+    """A whole-ray kernel stops a ray at the sample that takes its transmittance T below min_transmittance; the
+    wavefront loop stops it at the end of an iteration, later. What either leaves out is seen through T, and
+    colours and background lie in [0, 1], so the images differ by less than the threshold. A dense TF makes most
+    rays stop early here."""
+    volume, tf, data_inr, siren = _blob_scene(density_scale=200)
+    monkeypatch.setenv("DIFFSHADOW_FUSED_SIREN", "1")
+    scene = RenderScene(volume, tf, data_inr, device="cpu")
+    cam = Camera.orbit(volume.extent, azimuth=30.0, elevation=25.0, size=24)
+    kw = {"light": (0.3, -0.5, 0.8), "siren": siren, "skip": skip, "min_transmittance": 1e-3}
+    whole = scene.render("inr", cam, **kw)
+    wave = scene.render("inr", cam, whole_rays=False, **kw)
+    complete = scene.render("inr", cam, whole_rays=False, **{**kw, "min_transmittance": 0.0})
+    assert whole.counters.primary_samples < 0.7 * complete.counters.primary_samples  # rays did stop early
+    assert whole.counters.primary_samples <= wave.counters.primary_samples
+    assert float((whole.rgb - complete.rgb).abs().max()) < 1e-3
+    assert float((whole.rgb - wave.rgb).abs().max()) < 1e-3
+    assert float((whole.alpha - complete.alpha).max()) <= 0 and float(whole.alpha.max()) > 0.99
+
+
+def test_whole_ray_programs_take_rays_most_samples_first(monkeypatch):
+    """A program of the whole-ray kernel runs until its last ray stops, so `slots` (its trips x rays per
+    program, summed) is what the lanes did, and `primary_samples` what was useful. Rays go to programs most
+    occupied samples first: with nothing stopped early, the slots are the sum over programs of their first ray's
+    samples, x rays per program."""
+    from diffshadow import render
+    from diffshadow.grid import ray_span
+
+    volume, tf, data_inr, siren = _blob_scene()
+    monkeypatch.setenv("DIFFSHADOW_FUSED_SIREN", "1")
+    scene = RenderScene(volume, tf, data_inr, device="cpu")
+    cam = Camera.orbit(volume.extent, azimuth=30.0, elevation=25.0, size=24)
+    img = scene.render("noshadow", cam, min_transmittance=0.0, skip=True)
+    o, d = cam.rays()
+    t0, t1 = ray_span(o, d, torch.as_tensor(volume.extent, dtype=torch.float32))
+    total = render.Runs.build(o, d, t0, t1, 0.5 * scene.voxel, scene.macro("inr", True)).total
+    block = fused.block_points(32)
+    first = total.sort(descending=True).values[::block]
+    assert img.counters.primary_samples == int(total.sum())
+    assert img.counters.slots == int(first.sum()) * block
+    assert img.counters.slots < 2 * img.counters.primary_samples  # in image order: 4.2x here
 
 
 def test_setting_and_bad_input(monkeypatch):

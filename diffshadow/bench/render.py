@@ -126,8 +126,9 @@ def bench_render(scene: RenderScene, siren, light, *, sizes=(64, 128), step: flo
                 img = scene.render(mode, cams[n], **kwargs)
                 _sync(device)
                 row["seconds"][mode].append(img.seconds)
+                # slots: a whole-ray kernel's lane trips (0 for the wavefront loop); primary / slots is its lanes' use
                 row["samples"][mode] = {"primary": img.counters.primary_samples,
-                                        "secondary": img.counters.secondary_samples}
+                                        "secondary": img.counters.secondary_samples, "slots": img.counters.slots}
                 log(f"[bench render] {n}x{n} {mode:8s} run {rep + 1}/{repeats}: {img.seconds:.3f} s")
         # naive's count takes minutes past the smallest size: its secondary rays are the point anyway
         counted = BENCH_MODES if n == min(sizes) else ("noshadow", "inr")
