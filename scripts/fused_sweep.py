@@ -8,9 +8,12 @@ hydrogen_atom (the bench's data INR size, a width-32 shadow SIREN): the eager st
 shadow SIREN, TF, opacity, shading) against `FusedSamples` for each precision × points per program × warps,
 and prints nanoseconds per sample and the largest difference from the eager opacity and colour. Then one
 `--frame`² inr frame, eager and with the fastest fused setting, gives the share of the frame the samples take:
-what is left is the marcher's. The data INR has config.yaml's size (width 64, 2 blocks, as the bench's) and is
-fitted briefly (`--inr-steps`, without growing) so that the TF sees realistic values; the shadow SIREN is
-untrained (its cost does not depend on its weights).
+what is left is the marcher's. Last, whole `--frame`² inr frames with the whole-ray kernel (`FusedSamples.march`,
+TF32) per points per program × warps: ms per frame and the share of lane trips that were samples.
+
+The data INR has config.yaml's size (width 64, 2 blocks, as the bench's) and is fitted briefly (`--inr-steps`,
+without growing) so that the TF sees realistic values; the shadow SIREN is untrained (its cost does not depend on
+its weights).
 """
 
 from __future__ import annotations
@@ -115,6 +118,31 @@ def main() -> None:
               f"{n * t_eager / a.n * 1e3:.1f} ms ({n * t_eager / a.n / t_frame:.0%}), at the best fused rate "
               f"(tf32, block {best[1]}, warps {best[2]}) {n * best[0] / a.n * 1e3:.1f} ms: the marcher's share is "
               f"about {(t_frame - n * t_eager / a.n) * 1e3:.1f} ms")
+
+    if a.frame:
+        cam = R.Camera.orbit(extent, azimuth=30.0, elevation=25.0, size=a.frame)
+        macro = scene.macro("inr", True)
+        print(f"\nwhole rays, inr {a.frame}², tf32:")
+        for block, warps in itertools.product(a.blocks, a.warps):
+            try:
+                fs = R.InrScalar(scene.data_inr.model, extent, device, "tf32")
+                fsh = R.SirenShadow(w, layout, cfg.blocks, extent, device, "tf32")
+                for f in (fs.fast, fsh.fast):
+                    f.block, f.warps = block, warps
+
+                def frame(fs=fs, fsh=fsh):
+                    return R.render(cam, fs, tf, extent, scene.voxel, light=light, shadow=fsh, macro=macro,
+                                    device=device)
+
+                t = timed(frame, device, a.repeats)
+                img = frame()
+            except Exception as e:  # a setting Triton cannot compile: say so, go on
+                print(f"  block {block:4d} warps {warps}  failed: {type(e).__name__}: "
+                      f"{str(e).splitlines()[0] if str(e) else ''}")
+                continue
+            c = img.counters
+            print(f"  block {block:4d} warps {warps}  {t * 1e3:8.2f} ms ({1 / t:7.1f} fps)  {c.primary_samples:,} "
+                  f"samples, lanes {c.primary_samples / max(c.slots, 1):.1%} useful", flush=True)
 
 
 if __name__ == "__main__":

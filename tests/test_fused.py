@@ -2,7 +2,10 @@
 widths and depths, ragged tails, empty input, the renderer's images, the setting and bad input."""
 
 import importlib.util
+import json
 import os
+import subprocess
+import sys
 
 import numpy as np
 import pytest
@@ -217,3 +220,33 @@ def test_a_siren_the_kernel_cannot_take_falls_back_to_eager_with_a_warning(monke
     with pytest.warns(UserWarning, match=r"DIFFSHADOW_FUSED_SIREN=ieee: .*power-of-two width >= 16.*eager SIREN"):
         image = RenderScene(volume, tf, data_inr).render("noshadow", cam).rgb
     assert torch.equal(image, eager)
+
+
+def _compile_in_a_fresh_process(code: str) -> subprocess.CompletedProcess:
+    env = {k: v for k, v in os.environ.items() if k != "TRITON_INTERPRET"}  # compiling, not interpreting
+    return subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env, timeout=600)
+
+
+@pytest.mark.skipif(not (importlib.util.find_spec("triton") and importlib.util.find_spec("triton.backends.nvidia")),
+                    reason="Triton without its CUDA backend")
+def test_the_whole_ray_kernel_compiles_for_a100_and_h100():
+    """The interpreter runs a kernel as Python and misses what only the compiler checks (a loop-carried value
+    that changes type, a constexpr used as a tensor). `bench kernels` compiles for a GPU without one: the
+    whole-ray kernel compiles for sm_80 (A100) and sm_90 (H100/H200) at TF32 and fits at least one program per
+    SM in registers."""
+    code = ("import json; from diffshadow.bench.kernels import kernel_shapes, compile_kernel; "
+            "name, c = kernel_shapes('tf32')['march (inr, whole rays)']; "
+            "print(json.dumps([compile_kernel(name, c, arch) for arch in (80, 90)]))")
+    res = _compile_in_a_fresh_process(code)
+    assert res.returncode == 0, res.stderr[-2000:]
+    for r in json.loads(res.stdout.strip().splitlines()[-1]):
+        assert 0 < r["registers"] <= 255 and r["programs_per_sm"] >= 1
+
+
+def test_bench_kernels_under_the_interpreter_says_so(monkeypatch):
+    from diffshadow.bench.kernels import KernelCompileError, compile_kernel, kernel_shapes
+
+    monkeypatch.setenv("TRITON_INTERPRET", "1")
+    name, constants = kernel_shapes("tf32")["siren (data INR)"]
+    with pytest.raises(KernelCompileError, match="without TRITON_INTERPRET=1"):
+        compile_kernel(name, constants, 90)

@@ -7,6 +7,7 @@ A leaf: the stage layer and the CLI import it, no concept module does.
 - `bench.siren`: K SIRENs fitted jointly against one after another; the weight spread of the shared init;
   stored against recomputed PSNR.
 - `bench.render`: fps, peak memory and the step curve of the renderer's modes.
+- `bench.kernels`: registers, spills and programs per SM of the fused kernels, compiled for a GPU without one.
 """
 
 from __future__ import annotations

@@ -1,0 +1,122 @@
+"""What the fused kernels ask of a GPU, measured without one: each kernel compiled ahead of time for a CUDA
+architecture by Triton's compiler and ptxas (both ship with Triton; no device or driver is needed), and ptxas'
+resource use read back from the binary (cuobjdump): registers per thread, stack per thread (registers spilled to
+local memory) and shared memory per program. From the registers follows how many programs an SM holds at once.
+
+These are counts, not timings: the same on any machine with the same Triton. A kernel that spills (a large
+stack) or holds one program per SM is slow whatever the device; the fp32 ("ieee") SIREN's spills explain why the
+fused fp32 frame was slower than the eager one on an H200 (docs/tuning.md).
+
+The shapes are those of `bench render`'s hydrogen_atom: a data INR of width 64 and 2 blocks, a shadow SIREN of
+width 32 and 2 blocks, 5 optics knots, 22 runs per ray (7 interior macro-cell planes per axis).
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import re
+import subprocess
+import tempfile
+from pathlib import Path
+
+from diffshadow.fused import WARPS, block_points
+from diffshadow.io import atomic_write_text
+from diffshadow.siren import RES_WEIGHT
+
+ARCHS = (80, 90)  # A100 (Polaris, Sophia); H100/H200
+REGISTERS_PER_SM, MAX_WARPS_PER_SM = 65536, 64  # both architectures
+INT_POINTERS = {"order_ptr", "cum_ptr", "off_ptr", "total_ptr", "count_ptr", "trips_ptr"}
+FLOAT_SCALARS = {"density", "dt", "stop"}
+DATA, SHADOW = (64, 2), (32, 2)  # (width, blocks)
+KNOTS, RUNS = 5, 22
+
+
+class KernelCompileError(RuntimeError):
+    pass
+
+
+def kernel_shapes(precision: str) -> dict[str, tuple[str, dict]]:
+    """name → (kernel, its compile-time constants) for the hydrogen_atom shapes."""
+    (w, b), (sw, sb) = DATA, SHADOW
+    both = min(block_points(w), block_points(sw))
+    common = {"KNOTS": KNOTS, "PRECISION": precision, "RES": RES_WEIGHT}
+    return {
+        "siren (data INR)": ("siren_kernel", {"W": w, "BLOCKS": b, "BLOCK": block_points(w),
+                                              "PRECISION": precision, "RES": RES_WEIGHT}),
+        "samples (inr, a wavefront step)": ("samples_kernel", {"W": w, "BLOCKS": b, "SW": sw, "SBLOCKS": sb,
+                                                               "SHADOW": True, "BLOCK": both, **common}),
+        "march (inr, whole rays)": ("march_kernel", {"J": RUNS, "W": w, "BLOCKS": b, "SW": sw, "SBLOCKS": sb,
+                                                     "SHADOW": True, "ABSORB": False, "BLOCK": both, **common}),
+        "march (noshadow, whole rays)": ("march_kernel", {"J": RUNS, "W": w, "BLOCKS": b, "SW": w, "SBLOCKS": b,
+                                                          "SHADOW": False, "ABSORB": False, "BLOCK": block_points(w),
+                                                          **common}),
+        "march (naive's secondary rays)": ("march_kernel", {"J": RUNS, "W": w, "BLOCKS": b, "SW": w, "SBLOCKS": b,
+                                                            "SHADOW": False, "ABSORB": True,
+                                                            "BLOCK": block_points(w), **common}),
+    }
+
+
+def _tools() -> Path:
+    import triton
+
+    return Path(triton.__file__).parent / "backends" / "nvidia" / "bin"
+
+
+def compile_kernel(name: str, constants: dict, arch: int, warps: int = WARPS) -> dict:
+    """Compile `_kernels.<name>` for sm_<arch> with `constants`; its resources as ptxas assigned them."""
+    import triton
+    from triton.backends.compiler import GPUTarget
+    from triton.compiler import ASTSource
+
+    if os.environ.get("TRITON_INTERPRET") == "1":
+        raise KernelCompileError("bench kernels compiles for a GPU: run it without TRITON_INTERPRET=1")
+    from diffshadow import _kernels
+
+    fn = getattr(_kernels, name)
+    signature = {}
+    for p in fn.params:
+        if p.name in constants:
+            signature[p.name] = "constexpr"
+        elif p.name in INT_POINTERS:
+            signature[p.name] = "*i32"
+        elif p.name.endswith("_ptr"):
+            signature[p.name] = "*fp32"
+        else:
+            signature[p.name] = "fp32" if p.name in FLOAT_SCALARS else "i32"
+    try:
+        compiled = triton.compile(ASTSource(fn=fn, signature=signature, constexprs=dict(constants)),
+                                  target=GPUTarget("cuda", arch, 32), options={"num_warps": warps})
+    except Exception as e:  # Triton's and ptxas' errors come in many types; say which kernel and target
+        raise KernelCompileError(f"{name} for sm_{arch}: {type(e).__name__}: {str(e).splitlines()[0]}") from e
+    with tempfile.TemporaryDirectory() as tmp:
+        cubin = Path(tmp) / "kernel.cubin"
+        cubin.write_bytes(compiled.asm["cubin"])
+        res = subprocess.run([str(_tools() / "cuobjdump"), "-res-usage", str(cubin)], capture_output=True,
+                             text=True, check=False)
+    usage = dict(re.findall(r"(REG|STACK|SHARED|LOCAL):(\d+)", res.stdout))
+    if "REG" not in usage:
+        raise KernelCompileError(f"{name} for sm_{arch}: cuobjdump gave no resource usage ({res.stderr.strip()!r})")
+    regs = int(usage["REG"])
+    per_program = -(-regs // 8) * 8 * 32 * warps  # registers are allocated in units of 8 per thread
+    return {"registers": regs, "stack_bytes": int(usage.get("STACK", 0)), "shared_bytes": int(usage.get("SHARED", 0)),
+            "warps": warps, "programs_per_sm": min(REGISTERS_PER_SM // per_program, MAX_WARPS_PER_SM // warps)}
+
+
+def bench_kernels(out: Path, *, archs=ARCHS, precisions=("tf32", "ieee"), log=print) -> dict:
+    """Every fused kernel at the hydrogen_atom shapes, per architecture and precision; printed and saved."""
+    rows = []
+    for arch in archs:
+        for precision in precisions:
+            for label, (name, constants) in kernel_shapes(precision).items():
+                r = {"kernel": label, "arch": arch, "precision": precision, "block": constants["BLOCK"],
+                     **compile_kernel(name, constants, arch)}
+                rows.append(r)
+                log(f"[bench kernels] sm_{arch} {precision:4s} {label:32s} {r['block']:3d} points/program: "
+                    f"{r['registers']:3d} registers, {r['stack_bytes']:5d} B stack, {r['shared_bytes']:5d} B shared, "
+                    f"{r['programs_per_sm']} programs/SM")
+    result = {"shapes": {"data": DATA, "shadow": SHADOW, "knots": KNOTS, "runs": RUNS}, "kernels": rows}
+    out.parent.mkdir(parents=True, exist_ok=True)
+    atomic_write_text(out, json.dumps(result, indent=1))
+    log(f"[bench kernels] wrote {out}")
+    return result
