@@ -84,7 +84,7 @@ sweep)
         sw=(--n 2048 --blocks 16 --warps 4 --repeats 1 --inr-steps 20 --frame 24)
         pf=(--sizes 24 --inr-steps 200 --repeats 1)
     else
-        sw=(); pf=(--sizes 512 1024 --repeats 3)
+        sw=(--precisions tf32 --blocks 32 64 --warps 4 8 --repeats 3); pf=(--sizes 512 1024 --repeats 3)
     fi
     variants=("compiled SIREN"); [ "$device" = cuda ] && variants=("fused tf32" "fused tf32 steps")
     step frame_profile python scripts/render_plans.py --device "$device" --modes inr "${pf[@]}" \
