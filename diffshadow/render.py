@@ -17,6 +17,11 @@ larger batches (fewer iterations, so fewer kernel launches). Memory is bounded b
 samples. The naive baseline (`MarchedShadow`) pauses after step 2 and marches a secondary ray toward
 the light from every sample through the same scalar field, with the same marcher.
 
+With the fused SIRENs (`DIFFSHADOW_FUSED_SIREN`, unlit shading) there is no loop: per tile, after `Runs.build`,
+one kernel marches every ray whole, steps 1-4 per sample in registers (`FusedSamples.march`; `naive`'s secondary
+rays: `FusedExtinction.march`). A ray then stops at the first sample below `min_transmittance`, not at the end of
+an iteration, which changes the image by less than that threshold.
+
 Shading: colour × (0.1 + 0.9·g) with shadow coefficient g (the authors' code); with `phong=True` the
 colour is first lit by Blinn-Phong from the field's gradient. `noshadow` has g = 1.
 """
