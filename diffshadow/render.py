@@ -477,12 +477,13 @@ class MarchedShadow:
     by the same marcher as the primary rays (empty cells skipped, stopped at optical depth `tau_max`)."""
 
     def __init__(self, scalar, tf: TransferFunction, extent, voxel: float, *, step: float = DEFAULT_STEP,
-                 macro: MacroGrid | None = None, tau_max: float = SHADOW_TAU_MAX,
+                 macro: MacroGrid | None = None, tau_max: float | None = None,
                  samples_per_iter: int | None = None, batch: int | None = None, whole_rays: bool = True):
         self.scalar, self.tf, self.macro, self.whole_rays = scalar, tf, macro, whole_rays
         self.extent = torch.as_tensor(np.asarray(extent), dtype=torch.float32, device="cpu")
         self.dt = step * voxel
-        self.tau_max, self.min_samples, self.batch = tau_max, samples_per_iter, batch
+        self.tau_max = SHADOW_TAU_MAX if tau_max is None else tau_max
+        self.min_samples, self.batch = samples_per_iter, batch
         self.light: torch.Tensor | None = None
         self.counters: Counters | None = None
         # with a fused data INR, each secondary sample's extinction in one kernel: the same treatment as `inr`'s
