@@ -4,10 +4,11 @@ or whole rays), for `inr` and `naive`.
     python scripts/render_plans.py --device cuda --sizes 512 1024
 
 Each variant renders the same frames (hydrogen_atom, the bench's camera, light and fits); the table gives the
-median seconds per frame, the samples sent to the networks, host syncs per frame and the image's PSNR against
-the first variant's (the batch must not change the image; TF32 and the fused SIREN may, a little). Variants
-are interleaved per repeat so drift on a shared machine hits all alike. The fused SIREN's variants appear
-where its kernel runs (CUDA with Triton; on the CPU only under TRITON_INTERPRET=1, slowly).
+median seconds per frame, the samples sent to the networks, host syncs per frame, the image's PSNR against the
+first variant's (the batch must not change the image; TF32 and the fused SIREN may, a little) and, for whole
+rays, the share of the kernel's lane trips that were samples. Variants are interleaved per repeat so drift on a
+shared machine hits all alike. The fused SIREN's variants appear where its kernel runs (CUDA with Triton; on the
+CPU only under TRITON_INTERPRET=1, slowly).
 """
 
 from __future__ import annotations

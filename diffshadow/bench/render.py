@@ -139,8 +139,10 @@ def bench_render(scene: RenderScene, siren, light, *, sizes=(64, 128), step: flo
         row["fps"] = {m: 1.0 / t for m, t in med.items()}
         row["speedup"] = med["naive"] / med["inr"]
         row["overhead"] = med["inr"] / med["noshadow"]
+        lanes = {m: c["primary"] / c["slots"] for m, c in row["samples"].items() if c["slots"]}
         log(f"[bench render] {n}x{n}: fps " + ", ".join(f"{m} {row['fps'][m]:.2f}" for m in BENCH_MODES)
-            + f"; naive/inr {row['speedup']:.1f}x, inr/noshadow {row['overhead']:.2f}x")
+            + f"; naive/inr {row['speedup']:.1f}x, inr/noshadow {row['overhead']:.2f}x"
+            + "".join(f"; {m} lanes {u:.1%} useful" for m, u in lanes.items()))
         out["sizes"][str(n)] = row
 
     # macro-cell skipping, noshadow at the largest size
