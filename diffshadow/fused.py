@@ -136,6 +136,13 @@ def _optics_inputs(extent: torch.Tensor, knots: tuple[torch.Tensor, torch.Tensor
     return tuple(t.float().contiguous() for t in (extent, *knots))
 
 
+def _shadow_inputs(scalar: FusedSiren, shadow: FusedSiren | None) -> tuple[tuple[torch.Tensor, ...], dict]:
+    """The shadow SIREN's weights and constants for a kernel that may evaluate one: without a shadow, the data
+    INR's weights stand in (SHADOW=False: never read)."""
+    net = shadow or scalar
+    return net.tensors, {"SW": net.width, "SBLOCKS": net.blocks, "SHADOW": shadow is not None}
+
+
 class FusedSamples:
     """A primary sample's opacity and colour from its box point in one kernel: data INR `scalar`, shadow INR
     `shadow` (None: no shadow), the transfer function's `knots` ((M,), (M, 4) of opacity and RGB,
@@ -159,11 +166,11 @@ class FusedSamples:
         alpha = torch.empty(len(p), dtype=torch.float32, device=p.device)
         rgb = torch.empty(len(p), 3, dtype=torch.float32, device=p.device)
         if len(p):
-            shadow = self.shadow or self.scalar  # unused weights when there is no shadow
+            shadow, constants = _shadow_inputs(self.scalar, self.shadow)
             _launch("samples_kernel", len(p), self.block, self.warps, p, self.extent, *self.scalar.tensors,
-                    *shadow.tensors, self.xs, self.ys, self.density, self.dt, alpha, rgb, W=self.scalar.width,
-                    BLOCKS=self.scalar.blocks, SW=shadow.width, SBLOCKS=shadow.blocks, SHADOW=self.shadow is not None,
-                    KNOTS=len(self.xs), BLOCK=self.block, PRECISION=self.scalar.precision, RES=RES_WEIGHT)
+                    *shadow, self.xs, self.ys, self.density, self.dt, alpha, rgb, W=self.scalar.width,
+                    BLOCKS=self.scalar.blocks, KNOTS=len(self.xs), BLOCK=self.block, PRECISION=self.scalar.precision,
+                    RES=RES_WEIGHT, **constants)
         return alpha, rgb
 
     def march(self, o: torch.Tensor, d: torch.Tensor, t0: torch.Tensor, t1: torch.Tensor, runs,
@@ -171,14 +178,12 @@ class FusedSamples:
         """Whole primary rays o + t d, t in [t0, t1), through their occupied samples `runs` (`render.Runs`), in
         one kernel: each ray's transmittance (R,) and composited colour (R, 3), the samples it took (R,) and the
         trips of each program of `block` rays. A ray stops once its transmittance is below `min_transmittance`."""
-        shadow = self.shadow or self.scalar
-        return _march(self, o, d, t0, t1, runs, min_transmittance, absorb=False, dt=self.dt, shadow=shadow,
-                      SW=shadow.width, SBLOCKS=shadow.blocks, SHADOW=self.shadow is not None)
+        return _march(self, o, d, t0, t1, runs, min_transmittance, absorb=False, dt=self.dt, shadow=self.shadow)
 
 
-def _march(kernel, o, d, t0, t1, runs, stop: float, *, absorb: bool, dt: float, shadow, **constants):
-    """Launch `march_kernel` for `kernel` (FusedSamples or FusedExtinction) over rays (R,): (acc, rgb or None,
-    count, trips)."""
+def _march(kernel, o, d, t0, t1, runs, stop: float, *, absorb: bool, dt: float, shadow: FusedSiren | None):
+    """Launch `march_kernel` for `kernel` (FusedSamples or FusedExtinction) with shadow SIREN `shadow` over rays
+    (R,): (acc, rgb or None, count, trips)."""
     import triton
 
     o, d, t0, t1 = (x.float().contiguous() for x in (o, d, t0, t1))
@@ -194,8 +199,9 @@ def _march(kernel, o, d, t0, t1, runs, stop: float, *, absorb: bool, dt: float, 
     trips = torch.empty(triton.cdiv(n, kernel.block), dtype=torch.int32, device=device)
     if n:
         scalar = kernel.scalar
+        shadow_tensors, constants = _shadow_inputs(scalar, shadow)
         _launch("march_kernel", n, kernel.block, kernel.warps, order, o, d, t0, t1, cum, offset, total,
-                kernel.extent, *scalar.tensors, *shadow.tensors, kernel.xs, kernel.ys, kernel.density, float(dt),
+                kernel.extent, *scalar.tensors, *shadow_tensors, kernel.xs, kernel.ys, kernel.density, float(dt),
                 float(stop), acc, rgb, count, trips, J=cum.shape[1], W=scalar.width, BLOCKS=scalar.blocks,
                 ABSORB=absorb, KNOTS=len(kernel.xs), BLOCK=kernel.block, PRECISION=scalar.precision,
                 RES=RES_WEIGHT, **constants)
@@ -218,16 +224,15 @@ class FusedExtinction:
         p = p.float().contiguous()
         out = torch.empty(len(p), dtype=torch.float32, device=p.device)
         if len(p):
-            _launch("extinction_kernel", len(p), self.scalar.block, self.scalar.warps, p, self.extent,
+            _launch("extinction_kernel", len(p), self.block, self.warps, p, self.extent,
                     *self.scalar.tensors, self.xs, self.ys, self.density, out, W=self.scalar.width,
                     BLOCKS=self.scalar.blocks, KNOTS=len(self.xs),
-                    BLOCK=self.scalar.block, PRECISION=self.scalar.precision, RES=RES_WEIGHT)
+                    BLOCK=self.block, PRECISION=self.scalar.precision, RES=RES_WEIGHT)
         return out
 
     def march(self, o: torch.Tensor, d: torch.Tensor, t0: torch.Tensor, t1: torch.Tensor, runs, dt: float,
               tau_max: float) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         """Whole secondary rays through their occupied samples `runs` in one kernel, step `dt`: each ray's
         optical depth (R,), stopped once it reaches `tau_max`, the samples it took (R,) and the programs' trips."""
-        tau, _, count, trips = _march(self, o, d, t0, t1, runs, tau_max, absorb=True, dt=dt, shadow=self.scalar,
-                                      SW=self.scalar.width, SBLOCKS=self.scalar.blocks, SHADOW=False)
+        tau, _, count, trips = _march(self, o, d, t0, t1, runs, tau_max, absorb=True, dt=dt, shadow=None)
         return tau, count, trips
