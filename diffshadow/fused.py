@@ -11,8 +11,9 @@ The eager SIREN (`siren.forward_folded`) and the renderer's eager sample step ar
 reference: the kernels apply the same pre-scaled weights (`siren.fold`) in the same order, the first layer as
 three fp32 multiply-adds (ω0 = 30 amplifies its rounding) and the hidden layers as `tl.dot` in `precision`
 ("ieee": fp32, "tf32": tensor cores with 10-bit mantissa inputs, fp32 sums). Sines and their arguments stay
-fp32. Tests run the kernels on the CPU through Triton's interpreter
-(`TRITON_INTERPRET=1`) when Triton is installed.
+fp32; the sine itself is `sine` (`_kernels.sine`, DIFFSHADOW_FUSED_SINE): "poly" by default (one branch-free
+polynomial, within 1.3e-7 of sin), "libdevice" (CUDA's sinf) or "approx" (the GPU's special-function unit).
+Tests run the kernels on the CPU through Triton's interpreter (`TRITON_INTERPRET=1`) when Triton is installed.
 
 Opt-in while their speed is unmeasured on a GPU: `DIFFSHADOW_FUSED_SIREN=1` (fp32) or `=tf32`;
 `scripts/render_plans.py` compares them with the eager SIREN side by side.
@@ -40,6 +41,9 @@ def block_points(width: int) -> int:
 # bfloat16 inputs to the hidden layers (8 mantissa bits) were tried: hydrogen_atom's inr image at 64² came out at
 # 16.7 dB PSNR against fp32 (Triton's interpreter, scripts/render_plans.py), so it is not offered
 PRECISIONS = ("ieee", "tf32")
+# the sine: "poly" unless DIFFSHADOW_FUSED_SINE says otherwise. Compiled for sm_90, "poly" takes fewer
+# instructions than "libdevice" and holds its accuracy (bench kernels, docs/tuning.md); "approx" runs only on CUDA
+SINES = ("poly", "libdevice", "approx")
 COMPILE = "compile"  # the eager SIREN through torch.compile (siren.FoldedSiren), not these kernels
 LAUNCH = "diffshadow::fused"  # the profiler range around each launch: bench.profile counts it as one op
 
@@ -59,6 +63,14 @@ def fused_setting() -> str | None:
     if value in (*PRECISIONS, COMPILE):
         return value
     raise FusedSirenError(f"DIFFSHADOW_FUSED_SIREN: expected 0, 1, ieee, tf32 or compile, got {value!r}")
+
+
+def sine_setting() -> str:
+    """DIFFSHADOW_FUSED_SINE: unset → "poly", else one of `SINES`."""
+    value = os.environ.get("DIFFSHADOW_FUSED_SINE", "").strip().lower() or SINES[0]
+    if value not in SINES:
+        raise FusedSirenError(f"DIFFSHADOW_FUSED_SINE: expected one of {', '.join(SINES)}, got {value!r}")
+    return value
 
 
 def available(device: torch.device, setting: str = "ieee") -> bool:
@@ -92,13 +104,19 @@ def _launch(name: str, n: int, block: int, warps: int, *args, **constants) -> No
 class FusedSiren:
     """One SIREN (`named` tensors as `Siren.named_tensors()` or `WeightLayout.unflatten` give them, for one
     SIREN) as a callable (N, 3) → (N,), the same as `siren._forward` up to float32 summation order (and the
-    inputs' rounding under tf32)."""
+    inputs' rounding under tf32). `sine`: one of `SINES`, None → `sine_setting()`."""
 
-    def __init__(self, named: dict[str, torch.Tensor], blocks: int, precision: str = "ieee"):
+    def __init__(self, named: dict[str, torch.Tensor], blocks: int, precision: str = "ieee", sine: str | None = None):
         if importlib.util.find_spec("triton") is None:
             raise FusedSirenError("the fused SIREN needs Triton (it ships with CUDA builds of PyTorch)")
         if precision not in PRECISIONS:
             raise FusedSirenError(f"precision: expected one of {', '.join(PRECISIONS)}, got {precision!r}")
+        sine = sine or sine_setting()
+        if sine not in SINES:
+            raise FusedSirenError(f"sine: expected one of {', '.join(SINES)}, got {sine!r}")
+        if sine == "approx" and os.environ.get("TRITON_INTERPRET") == "1":
+            raise FusedSirenError("the sine 'approx' is a GPU instruction (PTX sin.approx) that Triton's interpreter "
+                                  "cannot run")
         first = named["first.weight"].detach().float()
         width = first.shape[0]
         if width < 16 or width & (width - 1) or first.shape[1] != 3:
@@ -114,7 +132,7 @@ class FusedSiren:
             self.bh = (torch.stack([b for _, b in hidden]) if hidden
                        else torch.zeros(1, width, device=device)).contiguous()
             self.wl, self.bl = wl.reshape(-1).contiguous(), bl.reshape(1).contiguous()
-        self.width, self.blocks, self.precision = width, blocks, precision
+        self.width, self.blocks, self.precision, self.sine = width, blocks, precision, sine
         # points and warps per program: attributes, so scripts/fused_sweep.py can try others on a GPU
         self.block, self.warps = block_points(width), WARPS
 
@@ -127,7 +145,8 @@ class FusedSiren:
         out = torch.empty(len(x), dtype=torch.float32, device=x.device)
         if len(x):
             _launch("siren_kernel", len(x), self.block, self.warps, x, *self.tensors, out,
-                    W=self.width, BLOCKS=self.blocks, BLOCK=self.block, PRECISION=self.precision, RES=RES_WEIGHT)
+                    W=self.width, BLOCKS=self.blocks, BLOCK=self.block, PRECISION=self.precision, RES=RES_WEIGHT,
+                    SINE=self.sine)
         return out
 
 
@@ -151,9 +170,9 @@ class FusedSamples:
 
     def __init__(self, scalar: FusedSiren, shadow: FusedSiren | None, extent: torch.Tensor,
                  knots: tuple[torch.Tensor, torch.Tensor], density_scale: float, dt: float):
-        if shadow is not None and shadow.precision != scalar.precision:
-            raise FusedSirenError(f"the data and shadow SIRENs need one precision, got {scalar.precision!r} and "
-                                  f"{shadow.precision!r}")
+        if shadow is not None and (shadow.precision, shadow.sine) != (scalar.precision, scalar.sine):
+            raise FusedSirenError(f"the data and shadow SIRENs need one precision and sine, got "
+                                  f"{scalar.precision!r}/{scalar.sine!r} and {shadow.precision!r}/{shadow.sine!r}")
         self.scalar, self.shadow = scalar, shadow
         self.extent, self.xs, self.ys = _optics_inputs(extent, knots)
         self.density, self.dt = float(density_scale), float(dt)
@@ -170,7 +189,7 @@ class FusedSamples:
             _launch("samples_kernel", len(p), self.block, self.warps, p, self.extent, *self.scalar.tensors,
                     *shadow, self.xs, self.ys, self.density, self.dt, alpha, rgb, W=self.scalar.width,
                     BLOCKS=self.scalar.blocks, KNOTS=len(self.xs), BLOCK=self.block, PRECISION=self.scalar.precision,
-                    RES=RES_WEIGHT, **constants)
+                    RES=RES_WEIGHT, SINE=self.scalar.sine, **constants)
         return alpha, rgb
 
     def march(self, o: torch.Tensor, d: torch.Tensor, t0: torch.Tensor, t1: torch.Tensor, runs,
@@ -204,7 +223,7 @@ def _march(kernel, o, d, t0, t1, runs, stop: float, *, absorb: bool, dt: float, 
                 kernel.extent, *scalar.tensors, *shadow_tensors, kernel.xs, kernel.ys, kernel.density, float(dt),
                 float(stop), acc, rgb, count, trips, J=cum.shape[1], W=scalar.width, BLOCKS=scalar.blocks,
                 ABSORB=absorb, KNOTS=len(kernel.xs), BLOCK=kernel.block, PRECISION=scalar.precision,
-                RES=RES_WEIGHT, **constants)
+                RES=RES_WEIGHT, SINE=scalar.sine, **constants)
     return acc, (None if absorb else rgb), count, trips
 
 
@@ -227,7 +246,7 @@ class FusedExtinction:
             _launch("extinction_kernel", len(p), self.block, self.warps, p, self.extent,
                     *self.scalar.tensors, self.xs, self.ys, self.density, out, W=self.scalar.width,
                     BLOCKS=self.scalar.blocks, KNOTS=len(self.xs),
-                    BLOCK=self.block, PRECISION=self.scalar.precision, RES=RES_WEIGHT)
+                    BLOCK=self.block, PRECISION=self.scalar.precision, RES=RES_WEIGHT, SINE=self.scalar.sine)
         return out
 
     def march(self, o: torch.Tensor, d: torch.Tensor, t0: torch.Tensor, t1: torch.Tensor, runs, dt: float,

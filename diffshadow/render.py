@@ -45,6 +45,7 @@ from diffshadow.fused import (
     FusedSiren,
     FusedSirenError,
     fused_setting,
+    sine_setting,
 )
 from diffshadow.fused import available as fused_available
 from diffshadow.grid import cell_ranges, ray_span, trilinear
@@ -694,6 +695,8 @@ class RenderScene:
         # the SIRENs' kernel for values: DIFFSHADOW_FUSED_SIREN where it runs on this device, else eager
         setting = fused_setting()
         self.fused = setting if setting and fused_available(self.device, setting) else None
+        # and its sine: read here so a bad DIFFSHADOW_FUSED_SINE stops the run instead of falling back
+        self.sine = sine_setting() if self.fused in PRECISIONS else None
         self.gt_method, self.gt_upsample, self.cell = gt_method, gt_upsample, cell
         self.voxel = float(np.min(volume.voxel_size))
         self._cache: dict = {}

@@ -203,7 +203,9 @@ class RunResults:
                 rows.append([f"{s}²", *(_num(fps.get(m)) for m in modes),
                              *(_num(mem[m] / MIB if m in mem else None, ".0f") for m in modes)])
             kernels = self.bench.get("siren_kernels", "eager")
-            where = self.bench.get("device", "device n/a") + ("" if kernels == "eager" else f", SIRENs: {kernels}")
+            sine = f", sine {self.bench['sine']}" if self.bench.get("sine") else ""
+            where = self.bench.get("device", "device n/a")
+            where += "" if kernels == "eager" else f", SIRENs: {kernels}{sine}"
             parts.append(_table(f"Renderer ({where})",
                                 ["image", *(f"{m} fps" for m in modes), *(f"{m} peak MiB" for m in modes)], rows,
                                 "Measured side by side in one process (diffshadow bench render); full figures "

@@ -2,6 +2,8 @@
 architecture by Triton's compiler and ptxas (both ship with Triton; no device or driver is needed), and ptxas'
 resource use read back from the binary (cuobjdump): registers per thread, stack per thread (registers spilled to
 local memory) and shared memory per program. From the registers follows how many programs an SM holds at once.
+The machine code (SASS) is counted too: instructions in all, local-memory loads and stores, branches, and the
+FP32 and special-function (MUFU) instructions, which is where the SIRENs' sines go (`_kernels.sine`).
 
 These are counts, not timings: the same on any machine with the same Triton. A kernel that spills (a large
 stack) or holds one program per SM is slow whatever the device; the fp32 ("ieee") SIREN's spills explain why the
@@ -20,7 +22,7 @@ import subprocess
 import tempfile
 from pathlib import Path
 
-from diffshadow.fused import WARPS, block_points
+from diffshadow.fused import SINES, WARPS, block_points
 from diffshadow.io import atomic_write_text
 from diffshadow.siren import RES_WEIGHT
 
@@ -36,14 +38,14 @@ class KernelCompileError(RuntimeError):
     pass
 
 
-def kernel_shapes(precision: str) -> dict[str, tuple[str, dict]]:
+def kernel_shapes(precision: str, sine: str = SINES[0]) -> dict[str, tuple[str, dict]]:
     """name → (kernel, its compile-time constants) for the hydrogen_atom shapes."""
     (w, b), (sw, sb) = DATA, SHADOW
     both = min(block_points(w), block_points(sw))
-    common = {"KNOTS": KNOTS, "PRECISION": precision, "RES": RES_WEIGHT}
+    common = {"KNOTS": KNOTS, "PRECISION": precision, "RES": RES_WEIGHT, "SINE": sine}
     return {
         "siren (data INR)": ("siren_kernel", {"W": w, "BLOCKS": b, "BLOCK": block_points(w),
-                                              "PRECISION": precision, "RES": RES_WEIGHT}),
+                                              "PRECISION": precision, "RES": RES_WEIGHT, "SINE": sine}),
         "samples (inr, a wavefront step)": ("samples_kernel", {"W": w, "BLOCKS": b, "SW": sw, "SBLOCKS": sb,
                                                                "SHADOW": True, "BLOCK": both, **common}),
         "march (inr, whole rays)": ("march_kernel", {"J": RUNS, "W": w, "BLOCKS": b, "SW": sw, "SBLOCKS": sb,
@@ -92,29 +94,47 @@ def compile_kernel(name: str, constants: dict, arch: int, warps: int = WARPS) ->
     with tempfile.TemporaryDirectory() as tmp:
         cubin = Path(tmp) / "kernel.cubin"
         cubin.write_bytes(compiled.asm["cubin"])
-        res = subprocess.run([str(_tools() / "cuobjdump"), "-res-usage", str(cubin)], capture_output=True,
-                             text=True, check=False)
+        res, sass = (subprocess.run([str(_tools() / "cuobjdump"), flag, str(cubin)], capture_output=True, text=True,
+                                    check=False) for flag in ("-res-usage", "-sass"))
     usage = dict(re.findall(r"(REG|STACK|SHARED|LOCAL):(\d+)", res.stdout))
     if "REG" not in usage:
         raise KernelCompileError(f"{name} for sm_{arch}: cuobjdump gave no resource usage ({res.stderr.strip()!r})")
     regs = int(usage["REG"])
     per_program = -(-regs // 8) * 8 * 32 * warps  # registers are allocated in units of 8 per thread
     return {"registers": regs, "stack_bytes": int(usage.get("STACK", 0)), "shared_bytes": int(usage.get("SHARED", 0)),
-            "warps": warps, "programs_per_sm": min(REGISTERS_PER_SM // per_program, MAX_WARPS_PER_SM // warps)}
+            "warps": warps, "programs_per_sm": min(REGISTERS_PER_SM // per_program, MAX_WARPS_PER_SM // warps),
+            **sass_counts(sass.stdout)}
 
 
-def bench_kernels(out: Path, *, archs=ARCHS, precisions=("tf32", "ieee"), log=print) -> dict:
-    """Every fused kernel at the hydrogen_atom shapes, per architecture and precision; printed and saved."""
+# SASS lines: "/*0a70*/   @!P0 FFMA.FTZ R6, R7, ..., R0 ;" → the opcode without its modifiers
+_SASS = re.compile(r"^\s+/\*[0-9a-f]{4,}\*/\s+(?:@!?U?P[T0-9]\s+)?([A-Z][A-Z0-9_]*)", re.MULTILINE)
+FP32 = {"FFMA", "FMUL", "FADD", "FMNMX", "FSEL", "FSETP", "FRND"}
+
+
+def sass_counts(sass: str) -> dict:
+    """Instructions in a kernel's machine code (static, so straight-line code counts what a trip executes;
+    code behind a branch counts too): in all, FP32 pipe, special-function unit, local memory (spills and
+    local arrays), branches."""
+    ops = _SASS.findall(sass)
+    ops = [op for op in ops if op != "NOP"]
+    return {"instructions": len(ops), "fp32": sum(op in FP32 for op in ops), "mufu": ops.count("MUFU"),
+            "local": ops.count("LDL") + ops.count("STL"), "branches": ops.count("BRA")}
+
+
+def bench_kernels(out: Path, *, archs=ARCHS, precisions=("tf32", "ieee"), sines=SINES, log=print) -> dict:
+    """Every fused kernel at the hydrogen_atom shapes, per architecture, precision and sine; printed and saved."""
     rows = []
     for arch in archs:
         for precision in precisions:
-            for label, (name, constants) in kernel_shapes(precision).items():
-                r = {"kernel": label, "arch": arch, "precision": precision, "block": constants["BLOCK"],
-                     **compile_kernel(name, constants, arch)}
-                rows.append(r)
-                log(f"[bench kernels] sm_{arch} {precision:4s} {label:32s} {r['block']:3d} points/program: "
-                    f"{r['registers']:3d} registers, {r['stack_bytes']:5d} B stack, {r['shared_bytes']:5d} B shared, "
-                    f"{r['programs_per_sm']} programs/SM")
+            for sine in sines:
+                for label, (name, constants) in kernel_shapes(precision, sine).items():
+                    r = {"kernel": label, "arch": arch, "precision": precision, "sine": sine,
+                         "block": constants["BLOCK"], **compile_kernel(name, constants, arch)}
+                    rows.append(r)
+                    log(f"[bench kernels] sm_{arch} {precision:4s} {sine:9s} {label:32s} {r['block']:3d} "
+                        f"points/program: {r['registers']:3d} registers, {r['stack_bytes']:5d} B stack, "
+                        f"{r['programs_per_sm']} programs/SM; SASS {r['instructions']:6d} instructions, "
+                        f"{r['fp32']:5d} FP32, {r['mufu']:4d} MUFU, {r['local']:5d} local, {r['branches']:4d} branches")
     result = {"shapes": {"data": DATA, "shadow": SHADOW, "knots": KNOTS, "runs": RUNS}, "kernels": rows}
     out.parent.mkdir(parents=True, exist_ok=True)
     atomic_write_text(out, json.dumps(result, indent=1))

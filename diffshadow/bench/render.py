@@ -108,7 +108,8 @@ def bench_render(scene: RenderScene, siren, light, *, sizes=(64, 128), step: flo
     device = scene.device
     out: dict = {"device": str(device), "torch_threads": torch.get_num_threads(), "step": step,
                  "repeats": repeats, "light": [float(v) for v in light], "sizes": {},
-                 "siren_kernels": scene.fused or "eager"}  # DIFFSHADOW_FUSED_SIREN as this scene resolved it
+                 # DIFFSHADOW_FUSED_SIREN and _SINE as this scene resolved them
+                 "siren_kernels": scene.fused or "eager", "sine": scene.sine}
     cams = {n: Camera.orbit(scene.volume.extent, azimuth=azimuth, elevation=elevation, size=n) for n in sizes}
     kwargs = {"light": light, "siren": siren, "step": step}
     # every mode once before timing: Triton kernels and torch.compile compile on first use, and a slow mode
