@@ -245,16 +245,17 @@ class GridScalar:
 class InrScalar:
     """The data INR (a SIREN of the scalar field); gradients by autograd through the network. `fused`: the
     fused kernel's precision for values (`diffshadow.fused`), "compile" for the eager SIREN through torch.compile,
-    None for the eager SIREN."""
+    None for the eager SIREN; `sine`: the fused kernel's sine (None: DIFFSHADOW_FUSED_SINE)."""
 
-    def __init__(self, model: Siren, extent, device: torch.device | str = "cpu", fused: str | None = None):
+    def __init__(self, model: Siren, extent, device: torch.device | str = "cpu", fused: str | None = None,
+                 sine: str | None = None):
         self.model = model.to(device).eval()
         for q in self.model.parameters():
             q.requires_grad_(False)
         self.extent = torch.as_tensor(np.asarray(extent), dtype=torch.float32, device=device)
         self.box = tuple(np.asarray(extent, dtype=float).tolist())  # on the host, to compare without a sync
         named, blocks = self.model.named_tensors(), self.model.cfg.blocks  # parameters without gradients
-        self.fast = _fast_siren(named, blocks, fused, lambda: fold(named, blocks))
+        self.fast = _fast_siren(named, blocks, fused, lambda: fold(named, blocks), sine)
 
     def value(self, p: torch.Tensor) -> torch.Tensor:
         return self.fast(box_to_siren(p, self.extent))
@@ -267,13 +268,15 @@ class InrScalar:
         return s.detach(), g
 
 
-def _fast_siren(named: dict, blocks: int, fused: str | None, layers) -> FusedSiren | FoldedSiren:
-    """A SIREN for inference: the fused kernel in precision `fused`, else the folded eager SIREN (`layers()`:
-    its folded layers), through torch.compile for "compile". A SIREN the kernel cannot take (a width that is not
-    a power of two >= 16) falls back to the eager one, with a warning: the setting is a speed-up, not a result."""
+def _fast_siren(named: dict, blocks: int, fused: str | None, layers, sine: str | None = None
+                ) -> FusedSiren | FoldedSiren:
+    """A SIREN for inference: the fused kernel in precision `fused` with `sine`, else the folded eager SIREN
+    (`layers()`: its folded layers), through torch.compile for "compile". A SIREN the kernel cannot take (a width
+    that is not a power of two >= 16) falls back to the eager one, with a warning: the setting is a speed-up, not
+    a result."""
     if fused in PRECISIONS:
         try:
-            return FusedSiren(named, blocks, fused)
+            return FusedSiren(named, blocks, fused, sine)
         except FusedSirenError as e:
             warnings.warn(f"DIFFSHADOW_FUSED_SIREN={fused}: {e}; using the eager SIREN", stacklevel=3)
     return FoldedSiren(layers(), compiled=fused == COMPILE)
@@ -295,11 +298,11 @@ class SirenShadow:
     """A shadow INR (one flat weight vector in `layout`), evaluated in the same pass as the data INR."""
 
     def __init__(self, weights, layout: WeightLayout, blocks: int, extent, device: torch.device | str = "cpu",
-                 fused: str | None = None):
+                 fused: str | None = None, sine: str | None = None):
         w = torch.as_tensor(np.asarray(weights), dtype=torch.float32, device=device).reshape(1, -1)
         # eager: one SIREN with a leading K = 1, the batched matmuls of fitting, so the same values
         self.fast = _fast_siren({k: v[0] for k, v in layout.unflatten(w).items()}, blocks, fused,
-                                lambda: fold_flat(w, layout, blocks))
+                                lambda: fold_flat(w, layout, blocks), sine)
         self.batched = not isinstance(self.fast, FusedSiren)
         self.extent = torch.as_tensor(np.asarray(extent), dtype=torch.float32, device=device)
         self.box = tuple(np.asarray(extent, dtype=float).tolist())
@@ -712,8 +715,8 @@ class RenderScene:
         if source == "inr":
             if self.data_inr is None:
                 raise RenderError("scalar 'inr' needs a data INR (train_data_inr's data_inr.pt)")
-            return self._cached(("inr", self.fused), lambda: InrScalar(self.data_inr.model, self.volume.extent,
-                                                                       self.device, self.fused))
+            return self._cached(("inr", self.fused, self.sine), lambda: InrScalar(
+                self.data_inr.model, self.volume.extent, self.device, self.fused, self.sine))
         raise RenderError(f"scalar: expected 'grid' or 'inr', got {source!r}")
 
     def macro(self, source: str, skip: bool) -> MacroGrid | None:
@@ -770,7 +773,7 @@ class RenderScene:
             if siren is None:
                 raise RenderError("mode 'inr': needs the shadow INR's weights")
             weights, layout, blocks = siren
-            shadow = SirenShadow(weights, layout, blocks, self.volume.extent, self.device, self.fused)
+            shadow = SirenShadow(weights, layout, blocks, self.volume.extent, self.device, self.fused, self.sine)
         elif mode == "naive":
             shadow = MarchedShadow(field_, self.tf, self.volume.extent, self.voxel, step=step, macro=macro,
                                    samples_per_iter=samples_per_iter, batch=batch, whole_rays=whole_rays)

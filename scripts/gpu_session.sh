@@ -21,7 +21,8 @@
 # plans:    scripts/render_plans.py: batch sizes, TF32 matmuls and the fused kernels side by side, then
 #           torch.profiler's top kernels and the device's busy fraction of one 1024² inr frame per variant.
 # sweep:    render_plans.py at 512² and 1024², inr: eager against the fused kernels per wavefront step and whole
-#           rays (TF32), with lane use and the profile of one 1024² frame each; then scripts/fused_sweep.py
+#           rays (TF32; whole rays with each sine: poly, approx, libdevice), with lane use and the profile of one
+#           1024² frame each; then scripts/fused_sweep.py
 #           (the primary sample alone per precision, points per program and warps).
 # checks:   pytest -m gpu; bench siren (K=16 and K=50 jointly vs one by one, default chunking); the cost of
 #           DIFFSHADOW_DETERMINISTIC=1 on the same K=16 run.
@@ -86,7 +87,8 @@ sweep)
     else
         sw=(--precisions tf32 --blocks 32 64 --warps 4 8 --repeats 3); pf=(--sizes 512 1024 --repeats 3)
     fi
-    variants=("compiled SIREN"); [ "$device" = cuda ] && variants=("fused tf32" "fused tf32 steps")
+    variants=("compiled SIREN")
+    [ "$device" = cuda ] && variants=("fused tf32" "fused tf32 approx" "fused tf32 libdevice" "fused tf32 steps")
     step frame_profile python scripts/render_plans.py --device "$device" --modes inr "${pf[@]}" \
         --variants "${variants[@]}" --profile
     step fused_sweep python scripts/fused_sweep.py --device "$device" "${sw[@]}"

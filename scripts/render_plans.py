@@ -27,6 +27,7 @@ from diffshadow.bench import BENCH_LIGHT
 from diffshadow.bench.profile import op_counts
 from diffshadow.data_inr import DataInrConfig, fit_data_inr
 from diffshadow.fit import FitConfig, fit_sirens
+from diffshadow.fused import PRECISIONS, sine_setting
 from diffshadow.fused import available as fused_available
 from diffshadow.metrics import psnr
 from diffshadow.sampling import seeded
@@ -39,6 +40,7 @@ class Variant:
     tf32: bool = False  # TF32 matmuls (the eager SIREN)
     fused: str | None = None  # DIFFSHADOW_FUSED_SIREN's setting
     whole_rays: bool = True  # with fused kernels: whole rays in one kernel, else one kernel per wavefront step
+    sine: str | None = None  # with fused kernels: their sine (None: DIFFSHADOW_FUSED_SINE, "poly" by default)
 
 
 def variants(device: torch.device) -> dict[str, Variant]:
@@ -54,17 +56,20 @@ def variants(device: torch.device) -> dict[str, Variant]:
         out["fused fp32"] = Variant(fused="ieee")
         out["fused tf32"] = Variant(fused="tf32")
         out["fused tf32 steps"] = Variant(fused="tf32", whole_rays=False)
+        for sine in ("libdevice", "approx"):  # the default sine is "poly"
+            out[f"fused tf32 {sine}"] = Variant(fused="tf32", sine=sine)
     return out
 
 
 @contextlib.contextmanager
 def variant(scene: R.RenderScene, v: Variant):
-    old = torch.backends.cuda.matmul.allow_tf32, scene.fused
-    torch.backends.cuda.matmul.allow_tf32, scene.fused = v.tf32, v.fused
+    old = torch.backends.cuda.matmul.allow_tf32, scene.fused, scene.sine
+    sine = (v.sine or sine_setting()) if v.fused in PRECISIONS else None
+    torch.backends.cuda.matmul.allow_tf32, scene.fused, scene.sine = v.tf32, v.fused, sine
     try:
         yield
     finally:
-        torch.backends.cuda.matmul.allow_tf32, scene.fused = old
+        torch.backends.cuda.matmul.allow_tf32, scene.fused, scene.sine = old
 
 
 def main() -> None:
@@ -135,7 +140,7 @@ def main() -> None:
                 batch = plans[name].batch or R.MarchPlan.for_device(device).batch
                 lanes = (f"  lanes {img.counters.primary_samples / img.counters.slots:.1%} useful"
                          if img.counters.slots else "")
-                print(f"{n}x{n} {mode:5s} {name:16s} batch {batch:>9,} "
+                print(f"{n}x{n} {mode:5s} {name:20s} batch {batch:>9,} "
                       f"{statistics.median(secs[name]):8.4f} s "
                       f"({1 / statistics.median(secs[name]):7.2f} fps)  samples {img.counters.primary_samples:>11,} "
                       f"+ {img.counters.secondary_samples:>13,}  ops {c['ops']:>6,} syncs {c['syncs']:>4}  "
