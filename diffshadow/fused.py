@@ -16,7 +16,9 @@ polynomial, within 1.3e-7 of sin), "libdevice" (CUDA's sinf) or "approx" (the GP
 Tests run the kernels on the CPU through Triton's interpreter (`TRITON_INTERPRET=1`) when Triton is installed.
 
 Opt-in while their speed is unmeasured on a GPU: `DIFFSHADOW_FUSED_SIREN=1` (fp32) or `=tf32`;
-`scripts/render_plans.py` compares them with the eager SIREN side by side.
+`scripts/render_plans.py` compares them with the eager SIREN side by side. A kernel compiles on its first launch;
+if that fails (`FusedKernelError`: an older Triton, a GPU it cannot target), `RenderScene` warns and renders with
+the eager SIREN from then on.
 """
 
 from __future__ import annotations
@@ -50,6 +52,16 @@ LAUNCH = "diffshadow::fused"  # the profiler range around each launch: bench.pro
 
 class FusedSirenError(RuntimeError):
     pass
+
+
+class FusedKernelError(FusedSirenError):
+    """A fused kernel failed on its first launch, which is when Triton compiles it: a Triton too old for the
+    kernels (PyTorch 2.3 brings Triton 2.3), a GPU it cannot target, too few registers or too little shared
+    memory. The renderer then goes on with the eager SIREN (`FusedKernelWarning`)."""
+
+
+class FusedKernelWarning(UserWarning):
+    """The renderer fell back to the eager SIREN after a `FusedKernelError` (the tests make it an error)."""
 
 
 def fused_setting() -> str | None:
@@ -92,13 +104,27 @@ def _kernels():
     return k
 
 
+_LAUNCHED: set[tuple] = set()  # kernels that launched once, with their constants: compiled
+
+
 def _launch(name: str, n: int, block: int, warps: int, *args, **constants) -> None:
     """Kernel `name` over n points in tiles of `block`, `warps` warps each (its arguments, then n, then its
-    constants), inside the profiler range that bench counts as one op."""
+    constants), inside the profiler range that bench counts as one op. A failure on a kernel's first launch,
+    which compiles it, is a `FusedKernelError`; later failures are the launch's own and pass unchanged."""
     import triton
 
+    key = (name, block, warps, tuple(sorted(constants.items())))
     with record_function(LAUNCH):
-        getattr(_kernels(), name)[(triton.cdiv(n, block),)](*args, n, num_warps=warps, **constants)
+        if key in _LAUNCHED:
+            getattr(_kernels(), name)[(triton.cdiv(n, block),)](*args, n, num_warps=warps, **constants)
+            return
+        try:
+            getattr(_kernels(), name)[(triton.cdiv(n, block),)](*args, n, num_warps=warps, **constants)
+        except Exception as e:  # Triton's compile errors come in many types, and differ between versions
+            first = str(e).strip().splitlines()[0] if str(e).strip() else ""
+            raise FusedKernelError(f"{name} failed on its first launch, compiling (Triton "
+                                   f"{getattr(triton, '__version__', '?')}): {type(e).__name__}: {first}") from e
+        _LAUNCHED.add(key)
 
 
 class FusedSiren:

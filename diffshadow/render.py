@@ -41,6 +41,8 @@ from diffshadow.fused import (
     COMPILE,
     PRECISIONS,
     FusedExtinction,
+    FusedKernelError,
+    FusedKernelWarning,
     FusedSamples,
     FusedSiren,
     FusedSirenError,
@@ -755,7 +757,21 @@ class RenderScene:
                samples_per_iter: int | None = None, min_transmittance: float = MIN_TRANSMITTANCE,
                background: float = BACKGROUND, whole_rays: bool = True) -> Image:
         """`siren`: (weights, layout, blocks) of the shadow INR, for mode `inr`. `whole_rays`: see `render`
-        (with fused SIRENs only; for `naive`, its secondary rays)."""
+        (with fused SIRENs only; for `naive`, its secondary rays). A fused kernel that fails to compile leaves
+        this scene on the eager SIREN, with a warning: the setting is a speed-up, not a result."""
+        kw = {"light": light, "siren": siren, "scalar": scalar, "phong": phong, "step": step, "skip": skip,
+              "batch": batch, "samples_per_iter": samples_per_iter, "min_transmittance": min_transmittance,
+              "background": background, "whole_rays": whole_rays}
+        try:
+            return self._render(mode, camera, **kw)
+        except FusedKernelError as e:
+            warnings.warn(f"DIFFSHADOW_FUSED_SIREN={self.fused}: {e}; rendering with the eager SIREN from now on",
+                          FusedKernelWarning, stacklevel=2)
+            self.fused = self.sine = None
+            return self._render(mode, camera, **kw)
+
+    def _render(self, mode: str, camera: Camera, *, light, siren, scalar, phong, step, skip, batch,
+                samples_per_iter, min_transmittance, background, whole_rays) -> Image:
         if mode not in MODES:
             raise RenderError(f"mode: expected one of {MODES}, got {mode!r}")
         if scalar is None:

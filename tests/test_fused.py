@@ -269,6 +269,60 @@ def test_a_siren_the_kernel_cannot_take_falls_back_to_eager_with_a_warning(monke
     assert torch.equal(image, eager)
 
 
+def test_a_kernel_that_fails_to_compile_leaves_the_scene_eager(monkeypatch):
+    """A fused kernel's first launch compiles it; when that fails (here as Triton fails for a PTX version the
+    driver lacks), the renderer says why and renders this and later frames with the eager SIREN, the same
+    image as without the setting. A failure after a kernel has launched once is not a compile failure and is
+    not hidden."""
+    import types
+
+    from diffshadow.fused import FusedKernelError, FusedKernelWarning
+
+    volume, tf, data_inr, siren = _blob_scene()
+    cam = Camera.orbit(volume.extent, azimuth=30.0, elevation=25.0, size=12)
+    kw = {"light": np.array([0.0, 0.6, 0.8]), "siren": siren}
+    monkeypatch.setenv("DIFFSHADOW_FUSED_SIREN", "0")
+    eager = RenderScene(volume, tf, data_inr).render("inr", cam, **kw).rgb
+
+    def broken(grid):
+        def launch(*args, **kwargs):
+            raise RuntimeError("ptxas fatal: Unsupported .version 8.7; current version is '8.4'")
+        return launch
+
+    monkeypatch.setattr(fused, "_kernels", lambda: types.SimpleNamespace(march_kernel=_Indexable(broken),
+                                                                         samples_kernel=_Indexable(broken)))
+    monkeypatch.setattr(fused, "_LAUNCHED", set())
+    monkeypatch.setenv("DIFFSHADOW_FUSED_SIREN", "tf32")
+    scene = RenderScene(volume, tf, data_inr)
+    with pytest.warns(FusedKernelWarning, match=r"DIFFSHADOW_FUSED_SIREN=tf32: march_kernel failed on its first "
+                                                r"launch, compiling \(Triton .*\): RuntimeError: ptxas fatal: "
+                                                r"Unsupported .version 8.7.*eager SIREN from now on"):
+        image = scene.render("inr", cam, **kw).rgb
+    assert torch.equal(image, eager) and scene.fused is None
+    assert torch.equal(scene.render("inr", cam, **kw).rgb, eager)  # no second warning: the filter makes it an error
+
+    # a kernel that compiled and launched: its later failures are not compile failures
+    monkeypatch.undo()
+    monkeypatch.setattr(fused, "_LAUNCHED", set())
+    fast = FusedSiren(Siren(SirenConfig(16, 1)).named_tensors(), 1)
+    x = torch.rand(40, 3)
+    fast(x)
+    monkeypatch.setattr(fused, "_kernels", lambda: types.SimpleNamespace(siren_kernel=_Indexable(broken)))
+    with pytest.raises(RuntimeError, match="ptxas fatal") as caught:
+        fast(x)
+    assert not isinstance(caught.value, FusedKernelError)
+
+
+class _Indexable:
+    """A stand-in for a Triton kernel: kernel[grid](...)."""
+
+    def __init__(self, at):
+        self.at = at
+
+    def __getitem__(self, grid):
+        return self.at(grid)
+
+
 def _compile_in_a_fresh_process(code: str) -> subprocess.CompletedProcess:
     env = {k: v for k, v in os.environ.items() if k != "TRITON_INTERPRET"}  # compiling, not interpreting
     return subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env, timeout=600)

@@ -117,6 +117,7 @@ def bench_render(scene: RenderScene, siren, light, *, sizes=(64, 128), step: flo
     tiny = Camera.orbit(scene.volume.extent, azimuth=azimuth, elevation=elevation, size=8)
     for mode in BENCH_MODES:
         scene.render(mode, tiny, **kwargs)
+    out["siren_kernels"], out["sine"] = scene.fused or "eager", scene.sine  # after a compile failure: eager
     for n in sizes:
         row: dict = {"seconds": {m: [] for m in BENCH_MODES}, "samples": {}}
         for rep in range(repeats):  # modes interleaved, so drift on a shared machine hits all alike
