@@ -55,8 +55,8 @@ class FusedSirenError(RuntimeError):
 
 
 class FusedKernelError(FusedSirenError):
-    """A fused kernel failed on its first launch, which is when Triton compiles it: a Triton too old for the
-    kernels (PyTorch 2.3 brings Triton 2.3), a GPU it cannot target, too few registers or too little shared
+    """A fused kernel failed on its first launch, which is when Triton compiles it: a Triton older than the
+    kernels were written for (3.6-3.9), a GPU it cannot target, too few registers or too little shared
     memory. The renderer then goes on with the eager SIREN (`FusedKernelWarning`)."""
 
 
