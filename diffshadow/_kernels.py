@@ -53,6 +53,19 @@ def sine(x, SINE: tl.constexpr):
     return y
 
 
+@triton.jit(do_not_specialize=["n"])
+def sine_kernel(x_ptr, y_ptr, n, SINE: tl.constexpr, BLOCK: tl.constexpr):
+    """y = sine(x), elementwise; SINE="none" copies x (bench kernels subtracts it to count one sine's cost)."""
+    i = tl.program_id(0) * BLOCK + tl.arange(0, BLOCK)
+    live = i < n
+    x = tl.load(x_ptr + i, mask=live, other=0.0)
+    if SINE == "none":
+        y = x
+    else:
+        y = sine(x, SINE)
+    tl.store(y_ptr + i, y, mask=live)
+
+
 @triton.jit
 def siren(x0, x1, x2, w0_ptr, b0_ptr, wh_ptr, bh_ptr, wl_ptr, bl_ptr, W: tl.constexpr, BLOCKS: tl.constexpr,
           PRECISION: tl.constexpr, RES: tl.constexpr, SINE: tl.constexpr):

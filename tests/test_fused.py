@@ -46,31 +46,20 @@ def test_kernel_equals_the_eager_siren(width, blocks, precision):
     assert FusedSiren(model.named_tensors(), blocks, precision)(x[:0]).shape == (0,)
 
 
-if importlib.util.find_spec("triton") is not None:
-    import triton
-    import triton.language as tl
-
-    from diffshadow._kernels import sine as _sine
-
-    @triton.jit
-    def _apply_sine(x_ptr, y_ptr, n, SINE: tl.constexpr, BLOCK: tl.constexpr):
-        i = tl.program_id(0) * BLOCK + tl.arange(0, BLOCK)
-        live = i < n
-        tl.store(y_ptr + i, _sine(tl.load(x_ptr + i, mask=live, other=0.0), SINE), mask=live)
-
-
 @pytest.mark.parametrize("sine", ["poly", "libdevice"])
 def test_the_kernels_sine_is_sin(sine):
     """`_kernels.sine` against float64 sin over the range trained SIRENs' arguments take and well beyond, with
     the reduction's hard points: multiples of π/2 (the sign flips, the polynomial's end) and halfway points."""
     import triton
 
+    from diffshadow._kernels import sine_kernel
+
     k = torch.arange(-3000, 3001, dtype=torch.float64)
     x = torch.cat([(torch.rand(100_000, generator=torch.Generator().manual_seed(2)) * 2 - 1) * 1e4,
                    (torch.rand(100_000, generator=torch.Generator().manual_seed(3)) * 2 - 1) * 4,
                    (k * torch.pi / 2).float(), ((k + 0.5) * torch.pi).float(), torch.tensor([0.0, 1e-30, -1e-30])])
     y = torch.empty_like(x)
-    _apply_sine[(triton.cdiv(len(x), 4096),)](x, y, len(x), SINE=sine, BLOCK=4096)
+    sine_kernel[(triton.cdiv(len(x), 4096),)](x, y, len(x), SINE=sine, BLOCK=4096)
     assert float((y.double() - torch.sin(x.double())).abs().max()) <= 2e-7
 
 
@@ -348,6 +337,22 @@ def test_the_whole_ray_kernel_compiles_for_a100_and_h100():
         assert r["local"] <= 32 and r["branches"] <= 3, (sine, r)
         # each thread's share of a trip's sines: 64 rays x (64 + 32) activations x 5 layers / 128 threads = 240
         assert (r["mufu"] >= 240) == (sine == "approx"), (sine, r)
+
+
+@pytest.mark.skipif(not (importlib.util.find_spec("triton") and importlib.util.find_spec("triton.backends.nvidia")),
+                    reason="Triton without its CUDA backend")
+def test_one_sine_costs_what_bench_kernels_says():
+    """`bench kernels`' per-sine rows: compiled for sm_90, "approx" is one MUFU and a few FP32 instructions,
+    "poly" is branch-free FP32 work, and libdevice's path for a SIREN's arguments is the longest (its exact
+    reduction, behind a branch, is not on that path but is in the code)."""
+    code = ("import json; from diffshadow.bench.kernels import sine_costs; print(json.dumps(sine_costs(90)))")
+    res = _compile_in_a_fresh_process(code)
+    assert res.returncode == 0, res.stderr[-2000:]
+    c = json.loads(res.stdout.strip().splitlines()[-1])
+    assert c["approx"]["mufu"] == 1 and c["approx"]["executed"] <= 10
+    assert c["poly"]["mufu"] == 0 and c["poly"]["executed"] <= 20 and c["poly"]["fp32"] >= 10
+    assert c["libdevice"]["executed"] > c["poly"]["executed"] > c["approx"]["executed"]
+    assert c["libdevice"]["instructions"] > 3 * c["libdevice"]["executed"]  # the slow path's code
 
 
 def test_bench_kernels_under_the_interpreter_says_so(monkeypatch):

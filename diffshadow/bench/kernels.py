@@ -29,6 +29,7 @@ from diffshadow.siren import RES_WEIGHT
 ARCHS = (80, 90)  # A100 (Polaris, Sophia); H100/H200
 REGISTERS_PER_SM, MAX_WARPS_PER_SM = 65536, 64  # both architectures
 INT_POINTERS = {"order_ptr", "cum_ptr", "off_ptr", "total_ptr", "count_ptr", "trips_ptr"}
+SINE_BLOCK = 128  # one sine per thread at 4 warps
 FLOAT_SCALARS = {"density", "dt", "stop"}
 DATA, SHADOW = (64, 2), (32, 2)  # (width, blocks)
 KNOTS, RUNS = 5, 22
@@ -65,7 +66,7 @@ def _tools() -> Path:
     return Path(triton.__file__).parent / "backends" / "nvidia" / "bin"
 
 
-def compile_kernel(name: str, constants: dict, arch: int, warps: int = WARPS) -> dict:
+def compile_kernel(name: str, constants: dict, arch: int, warps: int = WARPS, sass: bool = False) -> dict:
     """Compile `_kernels.<name>` for sm_<arch> with `constants`; its resources as ptxas assigned them."""
     import triton
     from triton.backends.compiler import GPUTarget
@@ -103,7 +104,7 @@ def compile_kernel(name: str, constants: dict, arch: int, warps: int = WARPS) ->
     per_program = -(-regs // 8) * 8 * 32 * warps  # registers are allocated in units of 8 per thread
     return {"registers": regs, "stack_bytes": int(usage.get("STACK", 0)), "shared_bytes": int(usage.get("SHARED", 0)),
             "warps": warps, "programs_per_sm": min(REGISTERS_PER_SM // per_program, MAX_WARPS_PER_SM // warps),
-            **sass_counts(sass.stdout)}
+            **sass_counts(sass.stdout), **({"sass": sass.stdout} if sass else {})}
 
 
 # SASS lines: "/*0a70*/   @!P0 FFMA.FTZ R6, R7, ..., R0 ;" → the opcode without its modifiers
@@ -121,6 +122,54 @@ def sass_counts(sass: str) -> dict:
             "local": ops.count("LDL") + ops.count("STL"), "branches": ops.count("BRA")}
 
 
+def sine_costs(arch: int, sines=SINES) -> dict[str, dict]:
+    """One sine's machine code per `sines`: `_kernels.sine_kernel` (one sine per thread) less the same kernel
+    copying its input. `executed`: instructions on the path a SIREN's arguments take (`_fast_path`): all of a
+    branch-free sine's, libdevice's fast path. The other counts are the code's, so they can differ by an
+    instruction or two of layout (a negative branch count: the copy kernel's bounds check compiled otherwise)."""
+    def compiled(sine):
+        return compile_kernel("sine_kernel", {"SINE": sine, "BLOCK": SINE_BLOCK}, arch, sass=True)
+
+    base = compiled("none")
+    out = {}
+    for sine in sines:
+        r = compiled(sine)
+        counts = {k: r[k] - base[k] for k in ("instructions", "fp32", "mufu", "local", "branches")}
+        executed = _fast_path(r["sass"]) - _fast_path(base["sass"])
+        out[sine] = {**counts, "executed": executed}
+    return out
+
+
+def _fast_path(sass: str) -> int:
+    """Instructions on the shortest path from a kernel's start to its (unpredicated) EXIT, a conditional branch
+    taken or not as suits: for a sine, the path a SIREN's arguments take (libdevice's exact reduction is behind
+    a branch taken for |x| < 105615). The load's bounds check takes its short way in both kernels
+    `sine_costs` subtracts, so the difference is the sine's."""
+    import collections
+
+    lines = [(int(a, 16), op, rest) for a, op, rest in re.findall(
+        r"^\s+/\*([0-9a-f]{4,})\*/\s+((?:@!?U?P[T0-9]\s+)?[A-Z][A-Z0-9_.]*)(.*)$", sass, re.MULTILINE)]
+    at = {a: i for i, (a, _, _) in enumerate(lines)}
+    steps = {0: 1}
+    queue = collections.deque([0])
+    while queue:  # breadth first: every instruction costs one
+        i = queue.popleft()
+        _, op, rest = lines[i]
+        if op == "EXIT":
+            return steps[i]
+        target = re.match(r"\s*(0x[0-9a-f]+)", rest)
+        nexts = []
+        if op.split()[-1] == "BRA" and target:
+            nexts.append(at[int(target.group(1), 16)])
+        if not (op == "BRA") and i + 1 < len(lines):  # fall through unless the branch always goes
+            nexts.append(i + 1)
+        for k in nexts:
+            if k not in steps:
+                steps[k] = steps[i] + 1
+                queue.append(k)
+    raise KernelCompileError("no path to EXIT in the kernel's SASS")
+
+
 def bench_kernels(out: Path, *, archs=ARCHS, precisions=("tf32", "ieee"), sines=SINES, log=print) -> dict:
     """Every fused kernel at the hydrogen_atom shapes, per architecture, precision and sine; printed and saved."""
     rows = []
@@ -135,6 +184,11 @@ def bench_kernels(out: Path, *, archs=ARCHS, precisions=("tf32", "ieee"), sines=
                         f"points/program: {r['registers']:3d} registers, {r['stack_bytes']:5d} B stack, "
                         f"{r['programs_per_sm']} programs/SM; SASS {r['instructions']:6d} instructions, "
                         f"{r['fp32']:5d} FP32, {r['mufu']:4d} MUFU, {r['local']:5d} local, {r['branches']:4d} branches")
+        per_sine = sine_costs(arch, sines)
+        for sine, r in per_sine.items():
+            log(f"[bench kernels] sm_{arch} one sine, {sine:9s}: {r['executed']:3d} instructions executed "
+                f"(|x| < 105615), {r['fp32']:2d} FP32 and {r['mufu']} MUFU of them; {r['instructions']:3d} in the code")
+        rows.extend({"kernel": "one sine", "arch": arch, "sine": sine, **r} for sine, r in per_sine.items())
     result = {"shapes": {"data": DATA, "shadow": SHADOW, "knots": KNOTS, "runs": RUNS}, "kernels": rows}
     out.parent.mkdir(parents=True, exist_ok=True)
     atomic_write_text(out, json.dumps(result, indent=1))

@@ -7,7 +7,6 @@ summation order: ~1e-6 relative per op. A few optimiser steps of a SIREN (ω0 = 
 1e-3 on fitted SIREN outputs; renders and shadow grids, which have no training, are held to 1e-4.
 """
 
-import importlib.util
 import os
 import subprocess
 import sys
@@ -121,27 +120,16 @@ def test_render_agrees_with_cpu(volume, mode):
     assert float((a.rgb - b.rgb.cpu()).abs().max()) <= 1e-4
 
 
-if importlib.util.find_spec("triton") is not None:  # a Triton kernel's names must be module globals
-    import triton
-    import triton.language as tl
-
-    from diffshadow._kernels import sine as _sine
-
-    @triton.jit
-    def _apply_sine(x_ptr, y_ptr, n, SINE: tl.constexpr, BLOCK: tl.constexpr):
-        i = tl.program_id(0) * BLOCK + tl.arange(0, BLOCK)
-        live = i < n
-        tl.store(y_ptr + i, _sine(tl.load(x_ptr + i, mask=live, other=0.0), SINE), mask=live)
-
-
 @pytest.mark.parametrize("sine, tolerance", [("poly", 2e-7), ("libdevice", 2e-7), ("approx", 2e-6)])
 def test_the_kernels_sines_on_cuda(sine, tolerance):
     """`_kernels.sine` compiled, against float64 sin, |x| <= 1e4 (tests/test_fused.py checks "poly" and
     "libdevice" in the interpreter; "approx", the special-function unit, only runs here)."""
     triton = pytest.importorskip("triton")
+    from diffshadow._kernels import sine_kernel
+
     x = ((torch.rand(1_000_000, generator=torch.Generator().manual_seed(2)) * 2 - 1) * 1e4).to(CUDA)
     y = torch.empty_like(x)
-    _apply_sine[(triton.cdiv(len(x), 1024),)](x, y, len(x), SINE=sine, BLOCK=1024)
+    sine_kernel[(triton.cdiv(len(x), 1024),)](x, y, len(x), SINE=sine, BLOCK=1024)
     assert float((y.double() - torch.sin(x.double())).abs().max()) <= tolerance
 
 
