@@ -187,7 +187,8 @@ def bench_kernels(out: Path, *, archs=ARCHS, precisions=("tf32", "ieee"), sines=
         per_sine = sine_costs(arch, sines)
         for sine, r in per_sine.items():
             log(f"[bench kernels] sm_{arch} one sine, {sine:9s}: {r['executed']:3d} instructions executed "
-                f"(|x| < 105615), {r['fp32']:2d} FP32 and {r['mufu']} MUFU of them; {r['instructions']:3d} in the code")
+                f"(|x| < 105615); in the code {r['instructions']:3d} instructions, {r['fp32']:2d} FP32, "
+                f"{r['mufu']} MUFU")
         rows.extend({"kernel": "one sine", "arch": arch, "sine": sine, **r} for sine, r in per_sine.items())
     result = {"shapes": {"data": DATA, "shadow": SHADOW, "knots": KNOTS, "runs": RUNS}, "kernels": rows}
     out.parent.mkdir(parents=True, exist_ok=True)
