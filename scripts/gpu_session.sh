@@ -7,7 +7,9 @@
 #   device run, carry [".devwheels"], timeout_s 600:
 #       END=560 bash .devwheels/on-device.sh bash scripts/gpu_session.sh all
 #   then at once, on the still-warm machine (it goes back after 30 s idle), with the ~250 s left, timeout_s 150:
-#       bash .devwheels/on-device.sh bash scripts/gpu_session.sh sweep
+#       END=140 PARTS=sweep:0 bash .devwheels/on-device.sh bash scripts/gpu_session.sh all
+#   (through `all`, so the sweep is cut at END and still packed into $OUT/all.tgz; a part called alone packs only
+#   when it ends, and a call's time limit would lose its logs)
 #
 # `all` runs render and tests (what issues 16 and 15 still miss), each cut short so the whole ends by END
 # seconds (PARTS="part:cap ..." overrides; cap 0 = the time left), and packs everything into $OUT/all.tgz (a call
