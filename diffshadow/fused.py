@@ -113,13 +113,15 @@ def _launch(name: str, n: int, block: int, warps: int, *args, **constants) -> No
     which compiles it, is a `FusedKernelError`; later failures are the launch's own and pass unchanged."""
     import triton
 
+    def launch():
+        getattr(_kernels(), name)[(triton.cdiv(n, block),)](*args, n, num_warps=warps, **constants)
+
     key = (name, block, warps, tuple(sorted(constants.items())))
     with record_function(LAUNCH):
         if key in _LAUNCHED:
-            getattr(_kernels(), name)[(triton.cdiv(n, block),)](*args, n, num_warps=warps, **constants)
-            return
+            return launch()
         try:
-            getattr(_kernels(), name)[(triton.cdiv(n, block),)](*args, n, num_warps=warps, **constants)
+            launch()
         except Exception as e:  # Triton's compile errors come in many types, and differ between versions
             first = str(e).strip().splitlines()[0] if str(e).strip() else ""
             raise FusedKernelError(f"{name} failed on its first launch, compiling (Triton "
