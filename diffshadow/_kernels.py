@@ -24,8 +24,8 @@ def sine(x, SINE: tl.constexpr):
     exact reduction for |x| >= 105615, kept in the code at every sine, and two polynomials, one per quadrant).
     "poly": x = kπ + r, |r| <= π/2, sin(x) = (-1)^k · sin(r) with one odd polynomial: within 1.3e-7 of sin for
     |x| <= 1e4, no branch. "approx": x = 2kπ + r, then the GPU's special-function unit (PTX sin.approx; CUDA
-    only, not the interpreter): 6 FP32 instructions and one MUFU per sine, against 17 for "poly" (bench kernels).
-    """
+    only, not the interpreter). Instructions a sine executes on sm_90 (bench kernels' one-sine rows): "approx"
+    8 (one MUFU), "poly" 16, "libdevice" 33 of its 124 in the code."""
     if SINE == "poly":
         t = x * 0.3183098861837907 + ROUND
         k = t - ROUND
