@@ -66,14 +66,50 @@ def sine_kernel(x_ptr, y_ptr, n, SINE: tl.constexpr, BLOCK: tl.constexpr):
     tl.store(y_ptr + i, y, mask=live)
 
 
+# TF32 keeps the sign, the exponent and the top 10 of fp32's 23 mantissa bits: x & TF32_MASK is x as a tensor core
+# reads it, x - (x & TF32_MASK) the rest
+TF32_MASK = tl.constexpr(-8192)  # 0xFFFFE000
+
+
+@triton.jit
+def tf32_split(x):
+    hi = (x.to(tl.int32, bitcast=True) & TF32_MASK).to(tl.float32, bitcast=True)
+    return hi, x - hi
+
+
+@triton.jit
+def first_layer(x0, x1, x2, w0_ptr, b0_ptr, W: tl.constexpr, PRECISION: tl.constexpr):
+    """The first layer's pre-activations (BLOCK, W) from the inputs x0, x1, x2 (BLOCK,). "ieee": three fp32
+    multiply-adds per activation. "tf32": the same product on tensor cores, as three TF32 products of the
+    operands split in high and low parts (hi·hi + hi·lo + lo·hi; K padded to 16, the least `tl.dot` takes).
+    Why: the activations feed both the first hidden layer's `tl.dot` and the residual sum, in two register
+    layouts, and Triton recomputes the multiply-adds and their sines in each layout instead of converting
+    one, while a dot's result is converted: 48 of a whole-ray trip's 288 sines were repeats. With ω0 = 30 in
+    the weights, one TF32 product would put 3e-2 into the sine's argument; the split, 1.7e-5 against fp32's
+    3.9e-6 (`python scripts/tf32_first_layer.py`), well below the TF32 hidden layers' own rounding."""
+    c = tl.arange(0, W)
+    if PRECISION == "tf32":
+        k = tl.arange(0, 16)
+        x = tl.where(k[None, :] == 0, x0[:, None],
+                     tl.where(k[None, :] == 1, x1[:, None], tl.where(k[None, :] == 2, x2[:, None], 0.0)))
+        w = tl.load(w0_ptr + k[:, None] * W + c[None, :], mask=k[:, None] < 3, other=0.0)
+        x_hi, x_lo = tf32_split(x)
+        w_hi, w_lo = tf32_split(w)
+        z = tl.dot(x_hi, w_hi, input_precision="tf32")
+        z = tl.dot(x_hi, w_lo, z, input_precision="tf32")
+        z = tl.dot(x_lo, w_hi, z, input_precision="tf32")
+    else:
+        z = (x0[:, None] * tl.load(w0_ptr + c)[None, :] + x1[:, None] * tl.load(w0_ptr + W + c)[None, :]
+             + x2[:, None] * tl.load(w0_ptr + 2 * W + c)[None, :])
+    return z + tl.load(b0_ptr + c)[None, :]
+
+
 @triton.jit
 def siren(x0, x1, x2, w0_ptr, b0_ptr, wh_ptr, bh_ptr, wl_ptr, bl_ptr, W: tl.constexpr, BLOCKS: tl.constexpr,
           PRECISION: tl.constexpr, RES: tl.constexpr, SINE: tl.constexpr):
     """A tile's SIREN outputs from its inputs x0, x1, x2 (BLOCK,), each in [-1, 1]."""
     c = tl.arange(0, W)
-    h = (x0[:, None] * tl.load(w0_ptr + c)[None, :] + x1[:, None] * tl.load(w0_ptr + W + c)[None, :]
-         + x2[:, None] * tl.load(w0_ptr + 2 * W + c)[None, :] + tl.load(b0_ptr + c)[None, :])
-    h = sine(h, SINE)
+    h = sine(first_layer(x0, x1, x2, w0_ptr, b0_ptr, W, PRECISION), SINE)
     square = c[:, None] * W + c[None, :]  # (in, out) layout: h @ w
     for i in tl.static_range(BLOCKS):
         wa = tl.load(wh_ptr + (2 * i) * W * W + square)
