@@ -8,9 +8,10 @@ activations kept on chip, so a layer costs its matrix product and its sines and 
   opacity for the step and its shaded colour; box points in, (α, rgb) out.
 
 The eager SIREN (`siren.forward_folded`) and the renderer's eager sample step are the CPU path and the
-reference: the kernels apply the same pre-scaled weights (`siren.fold`) in the same order, the first layer as
-three fp32 multiply-adds (ω0 = 30 amplifies its rounding) and the hidden layers as `tl.dot` in `precision`
-("ieee": fp32, "tf32": tensor cores with 10-bit mantissa inputs, fp32 sums). Sines and their arguments stay
+reference: the kernels apply the same pre-scaled weights (`siren.fold`) in the same order, the hidden layers as
+`tl.dot` in `precision` ("ieee": fp32, "tf32": tensor cores with 10-bit mantissa inputs, fp32 sums), the first
+layer close to fp32 either way (ω0 = 30 amplifies its rounding): three fp32 multiply-adds, or under "tf32" three
+TF32 products of split operands (`_kernels.first_layer`). Sines and their arguments stay
 fp32; the sine itself is `sine` (`_kernels.sine`, DIFFSHADOW_FUSED_SINE): "poly" by default (one branch-free
 polynomial, within 1.3e-7 of sin), "libdevice" (CUDA's sinf) or "approx" (the GPU's special-function unit).
 Tests run the kernels on the CPU through Triton's interpreter (`TRITON_INTERPRET=1`) when Triton is installed.
