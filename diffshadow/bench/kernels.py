@@ -29,10 +29,10 @@ from diffshadow.siren import RES_WEIGHT
 ARCHS = (80, 90)  # A100 (Polaris, Sophia); H100/H200
 REGISTERS_PER_SM, MAX_WARPS_PER_SM = 65536, 64  # both architectures
 INT_POINTERS = {"order_ptr", "cum_ptr", "off_ptr", "total_ptr", "count_ptr", "trips_ptr"}
-SINE_BLOCK = 128  # one sine per thread at 4 warps
 FLOAT_SCALARS = {"density", "dt", "stop"}
 DATA, SHADOW = (64, 2), (32, 2)  # (width, blocks)
 KNOTS, RUNS = 5, 22
+SINE_BLOCK = 128  # sine_kernel: one sine per thread at 4 warps
 
 
 class KernelCompileError(RuntimeError):
@@ -107,17 +107,21 @@ def compile_kernel(name: str, constants: dict, arch: int, warps: int = WARPS, sa
             **sass_counts(sass.stdout), **({"sass": sass.stdout} if sass else {})}
 
 
-# SASS lines: "/*0a70*/   @!P0 FFMA.FTZ R6, R7, ..., R0 ;" → the opcode without its modifiers
-_SASS = re.compile(r"^\s+/\*[0-9a-f]{4,}\*/\s+(?:@!?U?P[T0-9]\s+)?([A-Z][A-Z0-9_]*)", re.MULTILINE)
+# SASS lines: "/*0a70*/   @!P0 FFMA.FTZ R6, R7, ..., R0 ;" → address, predicate, opcode, modifiers and operands
+_SASS = re.compile(r"^\s+/\*([0-9a-f]{4,})\*/\s+(@!?U?P[T0-9]\s+)?([A-Z][A-Z0-9_]*)(\S*)(.*)$", re.MULTILINE)
 FP32 = {"FFMA", "FMUL", "FADD", "FMNMX", "FSEL", "FSETP", "FRND"}
+
+
+def _sass_lines(sass: str) -> list[tuple[int, bool, str, str]]:
+    """A kernel's instructions as (address, predicated, opcode without modifiers, operands)."""
+    return [(int(a, 16), bool(pred), op, rest) for a, pred, op, _, rest in _SASS.findall(sass)]
 
 
 def sass_counts(sass: str) -> dict:
     """Instructions in a kernel's machine code (static, so straight-line code counts what a trip executes;
     code behind a branch counts too): in all, FP32 pipe, special-function unit, local memory (spills and
     local arrays), branches."""
-    ops = _SASS.findall(sass)
-    ops = [op for op in ops if op != "NOP"]
+    ops = [op for _, _, op, _ in _sass_lines(sass) if op != "NOP"]
     return {"instructions": len(ops), "fp32": sum(op in FP32 for op in ops), "mufu": ops.count("MUFU"),
             "local": ops.count("LDL") + ops.count("STL"), "branches": ops.count("BRA")}
 
@@ -147,21 +151,20 @@ def _fast_path(sass: str) -> int:
     `sine_costs` subtracts, so the difference is the sine's."""
     import collections
 
-    lines = [(int(a, 16), op, rest) for a, op, rest in re.findall(
-        r"^\s+/\*([0-9a-f]{4,})\*/\s+((?:@!?U?P[T0-9]\s+)?[A-Z][A-Z0-9_.]*)(.*)$", sass, re.MULTILINE)]
-    at = {a: i for i, (a, _, _) in enumerate(lines)}
+    lines = _sass_lines(sass)
+    at = {a: i for i, (a, _, _, _) in enumerate(lines)}
     steps = {0: 1}
     queue = collections.deque([0])
     while queue:  # breadth first: every instruction costs one
         i = queue.popleft()
-        _, op, rest = lines[i]
-        if op == "EXIT":
+        _, predicated, op, rest = lines[i]
+        if op == "EXIT" and not predicated:
             return steps[i]
         target = re.match(r"\s*(0x[0-9a-f]+)", rest)
         nexts = []
-        if op.split()[-1] == "BRA" and target:
+        if op == "BRA" and target:
             nexts.append(at[int(target.group(1), 16)])
-        if not (op == "BRA") and i + 1 < len(lines):  # fall through unless the branch always goes
+        if not (op == "BRA" and not predicated) and i + 1 < len(lines):  # fall through unless the branch always goes
             nexts.append(i + 1)
         for k in nexts:
             if k not in steps:

@@ -107,9 +107,7 @@ def bench_render(scene: RenderScene, siren, light, *, sizes=(64, 128), step: flo
     """
     device = scene.device
     out: dict = {"device": str(device), "torch_threads": torch.get_num_threads(), "step": step,
-                 "repeats": repeats, "light": [float(v) for v in light], "sizes": {},
-                 # DIFFSHADOW_FUSED_SIREN and _SINE as this scene resolved them
-                 "siren_kernels": scene.fused or "eager", "sine": scene.sine}
+                 "repeats": repeats, "light": [float(v) for v in light], "sizes": {}}
     cams = {n: Camera.orbit(scene.volume.extent, azimuth=azimuth, elevation=elevation, size=n) for n in sizes}
     kwargs = {"light": light, "siren": siren, "step": step}
     # every mode once before timing: Triton kernels and torch.compile compile on first use, and a slow mode
@@ -117,7 +115,9 @@ def bench_render(scene: RenderScene, siren, light, *, sizes=(64, 128), step: flo
     tiny = Camera.orbit(scene.volume.extent, azimuth=azimuth, elevation=elevation, size=8)
     for mode in BENCH_MODES:
         scene.render(mode, tiny, **kwargs)
-    out["siren_kernels"], out["sine"] = scene.fused or "eager", scene.sine  # after a compile failure: eager
+    # DIFFSHADOW_FUSED_SIREN and _SINE as this scene resolved them, after warming: a kernel that failed to compile
+    # left it eager
+    out["siren_kernels"], out["sine"] = scene.fused or "eager", scene.sine
     for n in sizes:
         row: dict = {"seconds": {m: [] for m in BENCH_MODES}, "samples": {}}
         for rep in range(repeats):  # modes interleaved, so drift on a shared machine hits all alike
