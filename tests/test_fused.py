@@ -239,6 +239,24 @@ def test_a_launch_counts_as_one_op():
     assert op_counts(lambda: [fast(x), fast(x)])["ops"] == 2
 
 
+def test_every_launch_asks_for_fma_contraction(monkeypatch):
+    """Triton 3.10 stops contracting multiply-adds to FMAs unless a launch asks; the kernels' sine and layers are
+    written for FMAs, so each launch asks (`fused.FP_FUSION`) and the machine code does not change with Triton."""
+    import types
+
+    from diffshadow import fused
+
+    seen = []
+
+    class Kernel:
+        def __getitem__(self, grid):
+            return lambda *args, **options: seen.append((grid, options))
+
+    monkeypatch.setattr(fused, "_kernels", lambda: types.SimpleNamespace(siren_kernel=Kernel()))
+    fused._launch("siren_kernel", 300, 64, 4, "x", W=16)
+    assert seen == [((5,), {"num_warps": 4, "enable_fp_fusion": True, "W": 16})]
+
+
 def test_a_siren_the_kernel_cannot_take_falls_back_to_eager_with_a_warning(monkeypatch):
     """DIFFSHADOW_FUSED_SIREN is a speed-up: a data INR of width 8 (the tiny workflow's) renders eagerly, and
     says so, instead of failing the stage."""
@@ -332,6 +350,7 @@ def test_the_whole_ray_kernel_compiles_for_a100_and_h100():
             "for sine in ('poly', 'approx') for arch in (80, 90)]))")
     res = _compile_in_a_fresh_process(code)
     assert res.returncode == 0, res.stderr[-2000:]
+    assert "FP_FUSION" not in res.stderr  # Triton >= 3.9 warns when a compile leaves FMA contraction unasked
     for sine, r in json.loads(res.stdout.strip().splitlines()[-1]):
         assert 0 < r["registers"] <= 255 and r["programs_per_sm"] >= 1
         assert r["local"] <= 32 and r["branches"] <= 3, (sine, r)
@@ -345,10 +364,16 @@ def test_one_sine_costs_what_bench_kernels_says():
     """`bench kernels`' per-sine rows: compiled for sm_90, "approx" is one MUFU and a few FP32 instructions,
     "poly" is branch-free FP32 work, and libdevice's path for a SIREN's arguments is the longest (its exact
     reduction, behind a branch, is not on that path but is in the code)."""
-    code = ("import json; from diffshadow.bench.kernels import sine_costs; print(json.dumps(sine_costs(90)))")
+    code = ("import json; from diffshadow.bench import kernels as k; "
+            "unfused = [k._fast_path(k.compile_kernel('sine_kernel', {'SINE': s, 'BLOCK': k.SINE_BLOCK}, 90, "
+            "sass=True, fp_fusion=False)['sass']) for s in ('poly', 'none')]; "
+            "print(json.dumps({**k.sine_costs(90), 'poly unfused': {'executed': unfused[0] - unfused[1]}}))")
     res = _compile_in_a_fresh_process(code)
     assert res.returncode == 0, res.stderr[-2000:]
+    assert "FP_FUSION" not in res.stderr  # Triton >= 3.9 warns when a compile leaves FMA contraction unasked
     c = json.loads(res.stdout.strip().splitlines()[-1])
+    # why the kernels ask for FMA contraction (fused.FP_FUSION): its reduction and polynomial are multiply-adds
+    assert c["poly unfused"]["executed"] > c["poly"]["executed"]
     assert c["approx"]["mufu"] == 1 and c["approx"]["executed"] <= 10
     assert c["poly"]["mufu"] == 0 and c["poly"]["executed"] <= 20 and c["poly"]["fp32"] >= 10
     assert c["libdevice"]["executed"] > c["poly"]["executed"] > c["approx"]["executed"]

@@ -22,7 +22,7 @@ import subprocess
 import tempfile
 from pathlib import Path
 
-from diffshadow.fused import SINES, WARPS, block_points
+from diffshadow.fused import FP_FUSION, SINES, WARPS, block_points
 from diffshadow.io import atomic_write_text
 from diffshadow.siren import RES_WEIGHT
 
@@ -66,8 +66,11 @@ def _tools() -> Path:
     return Path(triton.__file__).parent / "backends" / "nvidia" / "bin"
 
 
-def compile_kernel(name: str, constants: dict, arch: int, warps: int = WARPS, sass: bool = False) -> dict:
-    """Compile `_kernels.<name>` for sm_<arch> with `constants`; its resources as ptxas assigned them."""
+def compile_kernel(name: str, constants: dict, arch: int, warps: int = WARPS, sass: bool = False,
+                   fp_fusion: bool = FP_FUSION) -> dict:
+    """Compile `_kernels.<name>` for sm_<arch> with `constants`; its resources as ptxas assigned them.
+    `fp_fusion`: multiply-adds as FMAs, as the renderer launches the kernels (False: what Triton 3.10's default
+    would compile)."""
     import triton
     from triton.backends.compiler import GPUTarget
     from triton.compiler import ASTSource
@@ -89,7 +92,8 @@ def compile_kernel(name: str, constants: dict, arch: int, warps: int = WARPS, sa
             signature[p.name] = "fp32" if p.name in FLOAT_SCALARS else "i32"
     try:
         compiled = triton.compile(ASTSource(fn=fn, signature=signature, constexprs=dict(constants)),
-                                  target=GPUTarget("cuda", arch, 32), options={"num_warps": warps})
+                                  target=GPUTarget("cuda", arch, 32),
+                                  options={"num_warps": warps, "enable_fp_fusion": fp_fusion})
     except Exception as e:  # Triton's and ptxas' errors come in many types; say which kernel and target
         raise KernelCompileError(f"{name} for sm_{arch}: {type(e).__name__}: {str(e).splitlines()[0]}") from e
     with tempfile.TemporaryDirectory() as tmp:
@@ -193,7 +197,11 @@ def bench_kernels(out: Path, *, archs=ARCHS, precisions=("tf32", "ieee"), sines=
                 f"(|x| < 105615); in the code {r['instructions']:3d} instructions, {r['fp32']:2d} FP32, "
                 f"{r['mufu']} MUFU")
         rows.extend({"kernel": "one sine", "arch": arch, "sine": sine, **r} for sine, r in per_sine.items())
-    result = {"shapes": {"data": DATA, "shadow": SHADOW, "knots": KNOTS, "runs": RUNS}, "kernels": rows}
+    import triton
+
+    # the counts depend on the compiler: say which, and how it was asked to compile
+    result = {"triton": triton.__version__, "fp_fusion": FP_FUSION,
+              "shapes": {"data": DATA, "shadow": SHADOW, "knots": KNOTS, "runs": RUNS}, "kernels": rows}
     out.parent.mkdir(parents=True, exist_ok=True)
     atomic_write_text(out, json.dumps(result, indent=1))
     log(f"[bench kernels] wrote {out}")

@@ -126,10 +126,12 @@ def test_the_kernels_sines_on_cuda(sine, tolerance):
     "libdevice" in the interpreter; "approx", the special-function unit, only runs here)."""
     triton = pytest.importorskip("triton")
     from diffshadow._kernels import sine_kernel
+    from diffshadow.fused import FP_FUSION
 
     x = ((torch.rand(1_000_000, generator=torch.Generator().manual_seed(2)) * 2 - 1) * 1e4).to(CUDA)
     y = torch.empty_like(x)
-    sine_kernel[(triton.cdiv(len(x), 1024),)](x, y, len(x), SINE=sine, BLOCK=1024)
+    # as the renderer launches it (`fused._launch`)
+    sine_kernel[(triton.cdiv(len(x), 1024),)](x, y, len(x), SINE=sine, BLOCK=1024, enable_fp_fusion=FP_FUSION)
     assert float((y.double() - torch.sin(x.double())).abs().max()) <= tolerance
 
 
