@@ -113,17 +113,18 @@ def _kernels():
 _LAUNCHED: set[tuple] = set()  # kernels that launched once, with their constants: compiled
 
 
-def _launch(name: str, n: int, block: int, warps: int, *args, **constants) -> None:
+def _launch(name: str, n: int, block: int, warps: int, *args, registers: int | None = None, **constants) -> None:
     """Kernel `name` over n points in tiles of `block`, `warps` warps each (its arguments, then n, then its
-    constants), inside the profiler range that bench counts as one op. A failure on a kernel's first launch,
-    which compiles it, is a `FusedKernelError`; later failures are the launch's own and pass unchanged."""
+    constants), at most `registers` per thread (None: what the compiler takes), inside the profiler range that
+    bench counts as one op. A failure on a kernel's first launch, which compiles it, is a `FusedKernelError`;
+    later failures are the launch's own and pass unchanged."""
     import triton
 
     def launch():
         getattr(_kernels(), name)[(triton.cdiv(n, block),)](*args, n, num_warps=warps, enable_fp_fusion=FP_FUSION,
-                                                             **constants)
+                                                             maxnreg=registers, **constants)
 
-    key = (name, block, warps, tuple(sorted(constants.items())))
+    key = (name, block, warps, registers, tuple(sorted(constants.items())))
     with record_function(LAUNCH):
         if key in _LAUNCHED:
             return launch()
@@ -168,8 +169,10 @@ class FusedSiren:
                        else torch.zeros(1, width, device=device)).contiguous()
             self.wl, self.bl = wl.reshape(-1).contiguous(), bl.reshape(1).contiguous()
         self.width, self.blocks, self.precision, self.sine = width, blocks, precision, sine
-        # points and warps per program: attributes, so scripts/fused_sweep.py can try others on a GPU
-        self.block, self.warps = block_points(width), WARPS
+        # points and warps per program, and a cap on registers per thread: attributes, so scripts/fused_sweep.py
+        # can try others on a GPU. The whole-ray kernel takes 220-250 registers, 2 programs of 4 warps per SM;
+        # capped at 168, 3 fit, for 31-39 spilled loads and stores (sm_90, `scripts/kernel_tiles.py --registers`)
+        self.block, self.warps, self.registers = block_points(width), WARPS, None
 
     @property
     def tensors(self) -> tuple[torch.Tensor, ...]:
@@ -180,8 +183,8 @@ class FusedSiren:
         out = torch.empty(len(x), dtype=torch.float32, device=x.device)
         if len(x):
             _launch("siren_kernel", len(x), self.block, self.warps, x, *self.tensors, out,
-                    W=self.width, BLOCKS=self.blocks, BLOCK=self.block, PRECISION=self.precision, RES=RES_WEIGHT,
-                    SINE=self.sine)
+                    registers=self.registers, W=self.width, BLOCKS=self.blocks, BLOCK=self.block,
+                    PRECISION=self.precision, RES=RES_WEIGHT, SINE=self.sine)
         return out
 
 
@@ -213,7 +216,7 @@ class FusedSamples:
         self.density, self.dt = float(density_scale), float(dt)
         # the wider network sets the tile, so both fit on chip
         self.block = min(scalar.block, shadow.block) if shadow is not None else scalar.block
-        self.warps = scalar.warps
+        self.warps, self.registers = scalar.warps, scalar.registers
 
     def __call__(self, p: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         p = p.float().contiguous()
@@ -222,7 +225,8 @@ class FusedSamples:
         if len(p):
             shadow, constants = _shadow_inputs(self.scalar, self.shadow)
             _launch("samples_kernel", len(p), self.block, self.warps, p, self.extent, *self.scalar.tensors,
-                    *shadow, self.xs, self.ys, self.density, self.dt, alpha, rgb, W=self.scalar.width,
+                    *shadow, self.xs, self.ys, self.density, self.dt, alpha, rgb, registers=self.registers,
+                    W=self.scalar.width,
                     BLOCKS=self.scalar.blocks, KNOTS=len(self.xs), BLOCK=self.block, PRECISION=self.scalar.precision,
                     RES=RES_WEIGHT, SINE=self.scalar.sine, **constants)
         return alpha, rgb
@@ -256,9 +260,9 @@ def _march(kernel, o, d, t0, t1, runs, stop: float, *, absorb: bool, dt: float, 
         shadow_tensors, constants = _shadow_inputs(scalar, shadow)
         _launch("march_kernel", n, kernel.block, kernel.warps, order, o, d, t0, t1, cum, offset, total,
                 kernel.extent, *scalar.tensors, *shadow_tensors, kernel.xs, kernel.ys, kernel.density, float(dt),
-                float(stop), acc, rgb, count, trips, J=cum.shape[1], W=scalar.width, BLOCKS=scalar.blocks,
-                ABSORB=absorb, KNOTS=len(kernel.xs), BLOCK=kernel.block, PRECISION=scalar.precision,
-                RES=RES_WEIGHT, SINE=scalar.sine, **constants)
+                float(stop), acc, rgb, count, trips, registers=kernel.registers, J=cum.shape[1], W=scalar.width,
+                BLOCKS=scalar.blocks, ABSORB=absorb, KNOTS=len(kernel.xs), BLOCK=kernel.block,
+                PRECISION=scalar.precision, RES=RES_WEIGHT, SINE=scalar.sine, **constants)
     return acc, (None if absorb else rgb), count, trips
 
 
@@ -272,14 +276,15 @@ class FusedExtinction:
         self.scalar = scalar
         self.extent, self.xs, self.ys = _optics_inputs(extent, knots)
         self.density = float(density_scale)
-        self.block, self.warps = scalar.block, scalar.warps
+        self.block, self.warps, self.registers = scalar.block, scalar.warps, scalar.registers
 
     def __call__(self, p: torch.Tensor) -> torch.Tensor:
         p = p.float().contiguous()
         out = torch.empty(len(p), dtype=torch.float32, device=p.device)
         if len(p):
             _launch("extinction_kernel", len(p), self.block, self.warps, p, self.extent,
-                    *self.scalar.tensors, self.xs, self.ys, self.density, out, W=self.scalar.width,
+                    *self.scalar.tensors, self.xs, self.ys, self.density, out, registers=self.registers,
+                    W=self.scalar.width,
                     BLOCKS=self.scalar.blocks, KNOTS=len(self.xs),
                     BLOCK=self.block, PRECISION=self.scalar.precision, RES=RES_WEIGHT, SINE=self.scalar.sine)
         return out

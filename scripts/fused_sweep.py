@@ -9,7 +9,8 @@ shadow SIREN, TF, opacity, shading) against `FusedSamples` for each precision ×
 and prints nanoseconds per sample and the largest difference from the eager opacity and colour. Then one
 `--frame`² inr frame, eager and with the fastest fused setting, gives the share of the frame the samples take:
 what is left is the marcher's. Last, whole `--frame`² inr frames with the whole-ray kernel (`FusedSamples.march`,
-TF32) per points per program × warps: ms per frame and the share of lane trips that were samples.
+TF32) per points per program × warps × cap on registers per thread (`--registers`; 0: none): ms per frame and
+the share of lane trips that were samples.
 
 The data INR has config.yaml's size (width 64, 2 blocks, as the bench's) and is fitted briefly (`--inr-steps`,
 without growing) so that the TF sees realistic values; the shadow SIREN is untrained (its cost does not depend on
@@ -55,6 +56,9 @@ def main() -> None:
     ap.add_argument("--precisions", nargs="+", default=["tf32", "ieee"])
     ap.add_argument("--blocks", type=int, nargs="+", default=[32, 64, 128], help="points per program")
     ap.add_argument("--warps", type=int, nargs="+", default=[2, 4, 8])
+    ap.add_argument("--registers", type=int, nargs="+", default=[0],
+                    help="whole rays: at most this many registers per thread (0: the compiler's choice; 168 fits 3 "
+                         "programs of 4 warps per SM)")
     ap.add_argument("--repeats", type=int, default=5)
     ap.add_argument("--inr-steps", type=int, default=300)
     ap.add_argument("--frame", type=int, default=1024, help="inr frame size for the share (0: no frame)")
@@ -123,12 +127,12 @@ def main() -> None:
         cam = R.Camera.orbit(extent, azimuth=30.0, elevation=25.0, size=a.frame)
         macro = scene.macro("inr", True)
         print(f"\nwhole rays, inr {a.frame}², tf32:")
-        for block, warps in itertools.product(a.blocks, a.warps):
+        for block, warps, registers in itertools.product(a.blocks, a.warps, a.registers):
             try:
                 fs = R.InrScalar(scene.data_inr.model, extent, device, "tf32")
                 fsh = R.SirenShadow(w, layout, cfg.blocks, extent, device, "tf32")
                 for f in (fs.fast, fsh.fast):
-                    f.block, f.warps = block, warps
+                    f.block, f.warps, f.registers = block, warps, registers or None
 
                 def frame(fs=fs, fsh=fsh):
                     return R.render(cam, fs, tf, extent, scene.voxel, light=light, shadow=fsh, macro=macro,
@@ -137,12 +141,13 @@ def main() -> None:
                 t = timed(frame, device, a.repeats)
                 img = frame()
             except Exception as e:  # a setting Triton cannot compile: say so, go on
-                print(f"  block {block:4d} warps {warps}  failed: {type(e).__name__}: "
+                print(f"  block {block:4d} warps {warps} registers {registers or '-':>3}  failed: {type(e).__name__}: "
                       f"{str(e).splitlines()[0] if str(e) else ''}")
                 continue
             c = img.counters
-            print(f"  block {block:4d} warps {warps}  {t * 1e3:8.2f} ms ({1 / t:7.1f} fps)  {c.primary_samples:,} "
-                  f"samples, lanes {c.primary_samples / max(c.slots, 1):.1%} useful", flush=True)
+            print(f"  block {block:4d} warps {warps} registers {registers or '-':>3}  {t * 1e3:8.2f} ms "
+                  f"({1 / t:7.1f} fps)  {c.primary_samples:,} samples, lanes "
+                  f"{c.primary_samples / max(c.slots, 1):.1%} useful", flush=True)
 
 
 if __name__ == "__main__":

@@ -24,8 +24,8 @@
 #           torch.profiler's top kernels and the device's busy fraction of one 1024² inr frame per variant.
 # sweep:    render_plans.py at 512² and 1024², inr: eager against the fused kernels per wavefront step and whole
 #           rays (TF32; whole rays with each sine: poly, approx, libdevice), with lane use and the profile of one
-#           1024² frame each; then scripts/fused_sweep.py
-#           (the primary sample alone per precision, points per program and warps).
+#           1024² frame each; then scripts/fused_sweep.py (the primary sample alone per points per program and
+#           warps, then whole-ray frames per points, warps and cap on registers per thread).
 # checks:   pytest -m gpu; bench siren (K=16 and K=50 jointly vs one by one, default chunking); the cost of
 #           DIFFSHADOW_DETERMINISTIC=1 on the same K=16 run.
 # tests:    the whole suite, with its slowest tests.
@@ -84,10 +84,12 @@ plans)
 sweep)
     # whole rays against wavefront steps, then the primary sample alone (tile sizes and warps)
     if [ "$quick" = 1 ]; then
-        sw=(--n 2048 --blocks 16 --warps 4 --repeats 1 --inr-steps 20 --frame 24)
+        sw=(--n 2048 --blocks 16 --warps 4 --registers 0 168 --repeats 1 --inr-steps 20 --frame 24)
         pf=(--sizes 24 --inr-steps 200 --repeats 1)
     else
-        sw=(--precisions tf32 --blocks 32 64 --warps 4 8 --repeats 3); pf=(--sizes 512 1024 --repeats 3)
+        # whole rays also with registers capped at 168 a thread: 3 programs of 4 warps per SM instead of 2, for
+        # 31 spilled loads and stores (sm_90; scripts/kernel_tiles.py)
+        sw=(--precisions tf32 --blocks 64 --warps 4 8 --registers 0 168 --repeats 3); pf=(--sizes 512 1024 --repeats 3)
     fi
     variants=("compiled SIREN")
     [ "$device" = cuda ] && variants=("fused tf32" "fused tf32 approx" "fused tf32 libdevice" "fused tf32 steps")

@@ -254,7 +254,9 @@ def test_every_launch_asks_for_fma_contraction(monkeypatch):
 
     monkeypatch.setattr(fused, "_kernels", lambda: types.SimpleNamespace(siren_kernel=Kernel()))
     fused._launch("siren_kernel", 300, 64, 4, "x", W=16)
-    assert seen == [((5,), {"num_warps": 4, "enable_fp_fusion": True, "W": 16})]
+    assert seen == [((5,), {"num_warps": 4, "enable_fp_fusion": True, "maxnreg": None, "W": 16})]
+    fused._launch("siren_kernel", 300, 64, 4, "x", registers=168, W=16)  # a cap: the compiler's maxnreg
+    assert seen[-1] == ((5,), {"num_warps": 4, "enable_fp_fusion": True, "maxnreg": 168, "W": 16})
 
 
 def test_a_siren_the_kernel_cannot_take_falls_back_to_eager_with_a_warning(monkeypatch):

@@ -67,10 +67,10 @@ def _tools() -> Path:
 
 
 def compile_kernel(name: str, constants: dict, arch: int, warps: int = WARPS, sass: bool = False,
-                   fp_fusion: bool = FP_FUSION) -> dict:
+                   fp_fusion: bool = FP_FUSION, registers: int | None = None) -> dict:
     """Compile `_kernels.<name>` for sm_<arch> with `constants`; its resources as ptxas assigned them.
     `fp_fusion`: multiply-adds as FMAs, as the renderer launches the kernels (False: what Triton 3.10's default
-    would compile)."""
+    would compile). `registers`: at most this many per thread (`FusedSiren.registers`; None: no cap)."""
     import triton
     from triton.backends.compiler import GPUTarget
     from triton.compiler import ASTSource
@@ -93,7 +93,7 @@ def compile_kernel(name: str, constants: dict, arch: int, warps: int = WARPS, sa
     try:
         compiled = triton.compile(ASTSource(fn=fn, signature=signature, constexprs=dict(constants)),
                                   target=GPUTarget("cuda", arch, 32),
-                                  options={"num_warps": warps, "enable_fp_fusion": fp_fusion})
+                                  options={"num_warps": warps, "enable_fp_fusion": fp_fusion, "maxnreg": registers})
     except Exception as e:  # Triton's and ptxas' errors come in many types; say which kernel and target
         raise KernelCompileError(f"{name} for sm_{arch}: {type(e).__name__}: {str(e).splitlines()[0]}") from e
     with tempfile.TemporaryDirectory() as tmp:
