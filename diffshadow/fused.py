@@ -226,9 +226,8 @@ class FusedSamples:
             shadow, constants = _shadow_inputs(self.scalar, self.shadow)
             _launch("samples_kernel", len(p), self.block, self.warps, p, self.extent, *self.scalar.tensors,
                     *shadow, self.xs, self.ys, self.density, self.dt, alpha, rgb, registers=self.registers,
-                    W=self.scalar.width,
-                    BLOCKS=self.scalar.blocks, KNOTS=len(self.xs), BLOCK=self.block, PRECISION=self.scalar.precision,
-                    RES=RES_WEIGHT, SINE=self.scalar.sine, **constants)
+                    W=self.scalar.width, BLOCKS=self.scalar.blocks, KNOTS=len(self.xs), BLOCK=self.block,
+                    PRECISION=self.scalar.precision, RES=RES_WEIGHT, SINE=self.scalar.sine, **constants)
         return alpha, rgb
 
     def march(self, o: torch.Tensor, d: torch.Tensor, t0: torch.Tensor, t1: torch.Tensor, runs,
@@ -284,9 +283,8 @@ class FusedExtinction:
         if len(p):
             _launch("extinction_kernel", len(p), self.block, self.warps, p, self.extent,
                     *self.scalar.tensors, self.xs, self.ys, self.density, out, registers=self.registers,
-                    W=self.scalar.width,
-                    BLOCKS=self.scalar.blocks, KNOTS=len(self.xs),
-                    BLOCK=self.block, PRECISION=self.scalar.precision, RES=RES_WEIGHT, SINE=self.scalar.sine)
+                    W=self.scalar.width, BLOCKS=self.scalar.blocks, KNOTS=len(self.xs), BLOCK=self.block,
+                    PRECISION=self.scalar.precision, RES=RES_WEIGHT, SINE=self.scalar.sine)
         return out
 
     def march(self, o: torch.Tensor, d: torch.Tensor, t0: torch.Tensor, t1: torch.Tensor, runs, dt: float,
