@@ -101,7 +101,7 @@ def test_renderer_images_equal_with_the_fused_kernels(monkeypatch, mode, kernel)
 
     monkeypatch.setattr(cls, method, spy)
     monkeypatch.setattr(render, "SHADOW_TAU_MAX", 1e9)  # no secondary ray stops early
-    cam = Camera.orbit(volume.extent, azimuth=30.0, elevation=25.0, size=20 if mode == "naive" else 24)
+    cam = Camera.orbit(volume.extent, azimuth=30.0, elevation=25.0, size=12 if mode == "naive" else 24)
     images = {}
     for setting in ("0", "1"):
         monkeypatch.setenv("DIFFSHADOW_FUSED_SIREN", setting)
