@@ -247,12 +247,8 @@ def test_every_launch_asks_for_fma_contraction(monkeypatch):
     from diffshadow import fused
 
     seen = []
-
-    class Kernel:
-        def __getitem__(self, grid):
-            return lambda *args, **options: seen.append((grid, options))
-
-    monkeypatch.setattr(fused, "_kernels", lambda: types.SimpleNamespace(siren_kernel=Kernel()))
+    kernel = _Indexable(lambda grid: lambda *args, **options: seen.append((grid, options)))
+    monkeypatch.setattr(fused, "_kernels", lambda: types.SimpleNamespace(siren_kernel=kernel))
     fused._launch("siren_kernel", 300, 64, 4, "x", W=16)
     assert seen == [((5,), {"num_warps": 4, "enable_fp_fusion": True, "maxnreg": None, "W": 16})]
     fused._launch("siren_kernel", 300, 64, 4, "x", registers=168, W=16)  # a cap: the compiler's maxnreg
@@ -366,10 +362,8 @@ def test_one_sine_costs_what_bench_kernels_says():
     """`bench kernels`' per-sine rows: compiled for sm_90, "approx" is one MUFU and a few FP32 instructions,
     "poly" is branch-free FP32 work, and libdevice's path for a SIREN's arguments is the longest (its exact
     reduction, behind a branch, is not on that path but is in the code)."""
-    code = ("import json; from diffshadow.bench import kernels as k; "
-            "unfused = [k._fast_path(k.compile_kernel('sine_kernel', {'SINE': s, 'BLOCK': k.SINE_BLOCK}, 90, "
-            "sass=True, fp_fusion=False)['sass']) for s in ('poly', 'none')]; "
-            "print(json.dumps({**k.sine_costs(90), 'poly unfused': {'executed': unfused[0] - unfused[1]}}))")
+    code = ("import json; from diffshadow.bench.kernels import sine_costs; "
+            "print(json.dumps({**sine_costs(90), 'poly unfused': sine_costs(90, ['poly'], fp_fusion=False)['poly']}))")
     res = _compile_in_a_fresh_process(code)
     assert res.returncode == 0, res.stderr[-2000:]
     assert "FP_FUSION" not in res.stderr  # Triton >= 3.9 warns when a compile leaves FMA contraction unasked

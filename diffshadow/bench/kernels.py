@@ -15,6 +15,7 @@ width 32 and 2 blocks, 5 optics knots, 22 runs per ray (7 interior macro-cell pl
 
 from __future__ import annotations
 
+import collections
 import json
 import os
 import re
@@ -130,13 +131,14 @@ def sass_counts(sass: str) -> dict:
             "local": ops.count("LDL") + ops.count("STL"), "branches": ops.count("BRA")}
 
 
-def sine_costs(arch: int, sines=SINES) -> dict[str, dict]:
+def sine_costs(arch: int, sines=SINES, fp_fusion: bool = FP_FUSION) -> dict[str, dict]:
     """One sine's machine code per `sines`: `_kernels.sine_kernel` (one sine per thread) less the same kernel
     copying its input. `executed`: instructions on the path a SIREN's arguments take (`_fast_path`): all of a
     branch-free sine's, libdevice's fast path. The other counts are the code's, so they can differ by an
-    instruction or two of layout (a negative branch count: the copy kernel's bounds check compiled otherwise)."""
+    instruction or two of layout (a negative branch count: the copy kernel's bounds check compiled otherwise).
+    `fp_fusion`: as `compile_kernel`."""
     def compiled(sine):
-        return compile_kernel("sine_kernel", {"SINE": sine, "BLOCK": SINE_BLOCK}, arch, sass=True)
+        return compile_kernel("sine_kernel", {"SINE": sine, "BLOCK": SINE_BLOCK}, arch, sass=True, fp_fusion=fp_fusion)
 
     base = compiled("none")
     out = {}
@@ -153,8 +155,6 @@ def _fast_path(sass: str) -> int:
     taken or not as suits: for a sine, the path a SIREN's arguments take (libdevice's exact reduction is behind
     a branch taken for |x| < 105615). The load's bounds check takes its short way in both kernels
     `sine_costs` subtracts, so the difference is the sine's."""
-    import collections
-
     lines = _sass_lines(sass)
     at = {a: i for i, (a, _, _, _) in enumerate(lines)}
     steps = {0: 1}
@@ -179,6 +179,8 @@ def _fast_path(sass: str) -> int:
 
 def bench_kernels(out: Path, *, archs=ARCHS, precisions=("tf32", "ieee"), sines=SINES, log=print) -> dict:
     """Every fused kernel at the hydrogen_atom shapes, per architecture, precision and sine; printed and saved."""
+    import triton
+
     rows = []
     for arch in archs:
         for precision in precisions:
@@ -197,8 +199,6 @@ def bench_kernels(out: Path, *, archs=ARCHS, precisions=("tf32", "ieee"), sines=
                 f"(|x| < 105615); in the code {r['instructions']:3d} instructions, {r['fp32']:2d} FP32, "
                 f"{r['mufu']} MUFU")
         rows.extend({"kernel": "one sine", "arch": arch, "sine": sine, **r} for sine, r in per_sine.items())
-    import triton
-
     # the counts depend on the compiler: say which, and how it was asked to compile
     result = {"triton": triton.__version__, "fp_fusion": FP_FUSION,
               "shapes": {"data": DATA, "shadow": SHADOW, "knots": KNOTS, "runs": RUNS}, "kernels": rows}
