@@ -247,7 +247,3 @@ def _fingerprint(volume: Volume, cfg: DataInrConfig) -> str:
     h = hashlib.sha256(volume.data.tobytes())
     h.update(json.dumps([asdict(cfg), np.asarray(volume.extent).tolist()]).encode())
     return h.hexdigest()
-
-
-
-

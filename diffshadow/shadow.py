@@ -76,12 +76,6 @@ class ShadowField:
         return self.tf.extinction(trilinear(self.scalar[0], pos_vox)[0])
 
 
-
-
-
-
-
-
 def _as_points(points, device) -> torch.Tensor:
     host = points.device if isinstance(points, torch.Tensor) else "cpu"
     pts = torch.as_tensor(points, dtype=torch.float32, device=host)
@@ -246,8 +240,6 @@ def _march_chunk(field: ShadowField, q0, dq, dt: float, last, n, skip: bool, tau
         still = (k_next < n[live]) & (tau[live] < tau_max)
         live = live[still]
     return tau
-
-
 
 
 def shadow_grid(

@@ -61,8 +61,6 @@ def read_subset(path) -> dict:
     return out
 
 
-
-
 def write_store(path, store: WeightStore) -> None:
     """Write a weight store (Zarr v3) atomically."""
 

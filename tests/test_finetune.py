@@ -154,7 +154,6 @@ def test_bad_config_is_named():
         FinetuneConfig.from_config({"epoch": 3})
 
 
-
 # Two guards for the CUDA path, which CI cannot run. The stages' rule: a tensor is made on the device that
 # uses it, or on the CPU by name (random draws, module initialisation) and then moved.
 

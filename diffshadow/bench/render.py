@@ -236,8 +236,6 @@ def _memory_pass(scene: RenderScene, siren, light, sizes: list[int], memory_size
     return out
 
 
-
-
 def write_bench(path: Path, results: dict) -> None:
     atomic_write_text(path, json.dumps(finite_json(results), indent=2) + "\n")
     _plot(results, path.with_suffix(".png"))
@@ -289,7 +287,6 @@ def _plot(results: dict, path: Path) -> None:
     with atomic_path(path, suffix=".png") as tmp:
         fig.savefig(tmp, format="png", dpi=100)
     plt.close(fig)
-
 
 
 def run(out: Path, *, scene_config: Path | None = None, volume: Path | None = None, tf_config: dict | None = None,

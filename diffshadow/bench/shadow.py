@@ -126,5 +126,3 @@ def _plot(results: dict, path: Path) -> None:
     fig.tight_layout(rect=(0, 0, 1, 0.9))  # room for the suptitle
     atomic_save(path, lambda tmp: fig.savefig(tmp, dpi=110, format="png"), suffix=".png")
     plt.close(fig)
-
-

@@ -307,8 +307,6 @@ def fingerprint(state: dict, cfg: FinetuneConfig, data: FinetuneData) -> str:
     return h.hexdigest()
 
 
-
-
 def finetune(geometry_state: dict, data: FinetuneData, cfg: FinetuneConfig, checkpoint: Path, *,
              rank: int = 0, world: int = 1, device: torch.device | str = "cpu",
              log=print, stop_after_epoch: int | None = None) -> dict:

@@ -151,8 +151,6 @@ class Standardizer:
         return {"mean": self.mean, "std": self.std}
 
 
-
-
 _geometry_error = geometry_error  # indirection so tests can inject a failure mid-run
 
 
@@ -469,7 +467,3 @@ def train_diffusion(data: TrainingData, cfg: DiffusionConfig, checkpoint: Path, 
     if state is None:  # resumed from the final checkpoint: nothing left to train
         state = torch.load(checkpoint, map_location="cpu", weights_only=False)
     return state
-
-
-
-

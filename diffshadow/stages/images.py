@@ -44,8 +44,6 @@ def render_targets(volume_path: Path, lights_path: Path, out: Path, *, cfg: Fine
     print(f"wrote {out}: {len(train)} lights x {cfg.views} views")
 
 
-
-
 def render_image(scene: RenderScene, out: Path, *, mode: str, camera: Camera, light=None,
                  weights_path: Path | None = None, light_index: int = 0, scalar: str | None = None,
                  phong: bool = False, step: float, skip: bool = True) -> None:
