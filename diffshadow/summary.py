@@ -47,6 +47,27 @@ def _read_json(path: Path) -> dict | None:
     return json.loads(path.read_text()) if path.exists() else None
 
 
+def renderer_rows(bench: dict) -> tuple[list[str], list[list]]:
+    """The renderer table of `bench.json`: per image size, fps, peak memory and ops / host syncs per mode.
+
+    Sizes measured for memory only (`memory_scaling`) get rows of their own, without fps or counts."""
+    timed = bench["sizes"]
+    scaling = bench.get("memory_scaling", {})
+    modes = [m for m in ("noshadow", "inr", "naive") if any(m in r.get("fps", {}) for r in timed.values())]
+    counted = [m for m in modes if any(m in r.get("counts", {}) for r in timed.values())]
+    rows = []
+    for s in sorted({*timed, *(s for row in scaling.values() for s in row)}, key=int):
+        r = timed.get(s, {})
+        fps, mem, counts = r.get("fps", {}), r.get("peak_mem_bytes", {}), r.get("counts", {})
+        peak = [mem.get(m, scaling.get(m, {}).get(s)) for m in modes]
+        rows.append([f"{s}²", *(_num(fps.get(m)) for m in modes),
+                     *(_num(None if b is None else b / MIB, ".0f") for b in peak),
+                     *(f"{counts[m]['ops']:,} / {counts[m]['syncs']}" if m in counts else "n/a" for m in counted)])
+    header = ["image", *(f"{m} fps" for m in modes), *(f"{m} peak MiB" for m in modes),
+              *(f"{m} ops / syncs" for m in counted)]
+    return header, rows
+
+
 class RunResults:
     """The files of one finished scene, read once."""
 
@@ -193,23 +214,17 @@ class RunResults:
             "inr_generated use the raw scalar field (only the shadow's error shows); inr_generated_data_inr is "
             "the deployed path; naive marches secondary rays through the data INR; noshadow drops the shadow."))
         if self.bench and self.bench.get("sizes"):
-            sizes = sorted(self.bench["sizes"], key=int)
-            modes = [m for m in ("noshadow", "inr", "naive") if any(m in self.bench["sizes"][s].get("fps", {})
-                                                                    for s in sizes)]
-            rows = []
-            for s in sizes:
-                r = self.bench["sizes"][s]
-                fps, mem = r.get("fps", {}), r.get("peak_mem_bytes", {})
-                rows.append([f"{s}²", *(_num(fps.get(m)) for m in modes),
-                             *(_num(mem[m] / MIB if m in mem else None, ".0f") for m in modes)])
+            header, rows = renderer_rows(self.bench)
             kernels = self.bench.get("siren_kernels", "eager")
             sine = f", sine {self.bench['sine']}" if self.bench.get("sine") else ""
             where = self.bench.get("device", "device n/a")
             where += "" if kernels == "eager" else f", SIRENs: {kernels}{sine}"
-            parts.append(_table(f"Renderer ({where})",
-                                ["image", *(f"{m} fps" for m in modes), *(f"{m} peak MiB" for m in modes)], rows,
+            parts.append(_table(f"Renderer ({where})", header, rows,
                                 "Measured side by side in one process (diffshadow bench render); full figures "
-                                "in bench.json."))
+                                "in bench.json. Peak memory is what a frame adds; a size without fps was rendered "
+                                "for its memory only (does memory stay bounded as the image grows?). ops / syncs: "
+                                "kernel-launching ops and host syncs per frame, counted with torch.profiler, so "
+                                "they do not drift with the machine's load."))
         sizes = self.sizes()
         if sizes:
             parts.append(_table("SIREN sizes chosen for this scene", ["network", "width", "blocks", "parameters",

@@ -242,6 +242,16 @@ def write_bench(path: Path, results: dict) -> None:
 
 
 def _plot(results: dict, path: Path) -> None:
+    fig = figure(results)  # first: it picks matplotlib's Agg backend before pyplot is imported
+    import matplotlib.pyplot as plt
+
+    with atomic_path(path, suffix=".png") as tmp:
+        fig.savefig(tmp, format="png", dpi=100)
+    plt.close(fig)
+
+
+def figure(results: dict):
+    """bench.png's figure: fps, peak memory (every size rendered), the step curve, ops and syncs per frame."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -250,13 +260,16 @@ def _plot(results: dict, path: Path) -> None:
     fig, ax = plt.subplots(1, 4, figsize=(18, 4))
     sizes = list(results["sizes"])
     x = np.arange(len(sizes))
+    # memory at every size rendered, the memory-only ones too: the panel answers "does it stay bounded?"
+    scaling = results.get("memory_scaling", {})
+    every = sorted({*sizes, *(s for row in scaling.values() for s in row)}, key=int)
     for i, mode in enumerate(BENCH_MODES):
         ax[0].bar(x + (i - 1) * 0.25, [results["sizes"][s]["fps"][mode] for s in sizes], 0.25, label=mode)
-        ax[1].bar(x + (i - 1) * 0.25, [results["sizes"][s]["peak_mem_bytes"].get(mode, np.nan) / 2**20
-                                                for s in sizes], 0.25,
-                  label=mode)
-    for a, label in ((ax[0], "frames per second"), (ax[1], "peak memory added (MiB)")):
-        a.set_xticks(x, [f"{s}²" for s in sizes])
+        peak = [results["sizes"].get(s, {}).get("peak_mem_bytes", {}).get(mode, scaling.get(mode, {}).get(s, np.nan))
+                for s in every]
+        ax[1].bar(np.arange(len(every)) + (i - 1) * 0.25, np.array(peak, dtype=float) / 2**20, 0.25, label=mode)
+    for a, label, ticks in ((ax[0], "frames per second", sizes), (ax[1], "peak memory added (MiB)", every)):
+        a.set_xticks(np.arange(len(ticks)), [f"{s}²" for s in ticks])
         a.set_ylabel(label)
     ax[0].set_yscale("log")
     for i, mode in enumerate(BENCH_MODES):  # per-frame counts: device-independent, so they do not drift
@@ -284,9 +297,7 @@ def _plot(results: dict, path: Path) -> None:
     fig.legend(handles, labels, loc="upper right", ncol=len(labels))  # one legend, clear of the bars
     fig.suptitle(f"{results.get('scene', '')} on {results['device']}")
     fig.tight_layout()
-    with atomic_path(path, suffix=".png") as tmp:
-        fig.savefig(tmp, format="png", dpi=100)
-    plt.close(fig)
+    return fig
 
 
 def run(out: Path, *, scene_config: Path | None = None, volume: Path | None = None, tf_config: dict | None = None,

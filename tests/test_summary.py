@@ -1,0 +1,73 @@
+"""The report's renderer table and bench.png: what `diffshadow bench render` measured, every size shown."""
+
+import pytest
+
+from diffshadow.summary import renderer_rows
+
+MIB = 2**20
+
+
+def bench(memory_scaling: bool = True) -> dict:
+    """A bench.json as `bench render --sizes 64 256 --memory-sizes 1024` writes it (naive's memory and counts at
+    the smallest size only)."""
+    out = {
+        "device": "cpu", "step": 0.5,
+        "sizes": {
+            "64": {"fps": {"noshadow": 20.0, "inr": 16.0, "naive": 0.5},
+                   "peak_mem_bytes": {"noshadow": 10 * MIB, "inr": 11 * MIB, "naive": 30 * MIB},
+                   "counts": {"noshadow": {"ops": 600, "syncs": 12}, "inr": {"ops": 700, "syncs": 12},
+                              "naive": {"ops": 15000, "syncs": 390}}},
+            "256": {"fps": {"noshadow": 2.0, "inr": 1.5, "naive": 0.02},
+                    "peak_mem_bytes": {"noshadow": 40 * MIB, "inr": 41 * MIB},
+                    "counts": {"noshadow": {"ops": 1200, "syncs": 20}, "inr": {"ops": 1400, "syncs": 20}}},
+        },
+        "step_curve": {"reference_step": 0.125, "points": [{"step": 1.0, "seconds": 0.1, "psnr": 80.0},
+                                                           {"step": 0.5, "seconds": 0.2, "psnr": 90.0}]},
+    }
+    if memory_scaling:
+        out["memory_scaling"] = {"noshadow": {"64": 10 * MIB, "256": 40 * MIB, "1024": 90 * MIB},
+                                 "inr": {"64": 11 * MIB, "256": 41 * MIB, "1024": 95 * MIB}}
+    return out
+
+
+def test_memory_only_sizes_get_a_row_of_their_own_in_numeric_order():
+    header, rows = renderer_rows(bench())
+    assert header == ["image", "noshadow fps", "inr fps", "naive fps", "noshadow peak MiB", "inr peak MiB",
+                      "naive peak MiB", "noshadow ops / syncs", "inr ops / syncs", "naive ops / syncs"]
+    assert [r[0] for r in rows] == ["64²", "256²", "1024²"]  # "1024" sorts before "256" as a string
+    last = dict(zip(header, rows[2], strict=True))
+    assert last["inr peak MiB"] == "95" and last["noshadow peak MiB"] == "90"
+    assert last["inr fps"] == last["naive peak MiB"] == last["inr ops / syncs"] == "n/a"  # memory only
+
+
+def test_counts_and_peaks_come_from_their_own_size():
+    header, rows = renderer_rows(bench())
+    first, second = (dict(zip(header, r, strict=True)) for r in rows[:2])
+    assert first["naive ops / syncs"] == "15,000 / 390" and first["inr ops / syncs"] == "700 / 12"
+    assert first["naive peak MiB"] == "30" and second["naive peak MiB"] == "n/a"
+    assert second["inr fps"] == "1.50" and second["inr ops / syncs"] == "1,400 / 20"
+
+
+def test_a_bench_from_before_memory_scaling_and_counts_still_reads():
+    old = bench(memory_scaling=False)
+    for row in old["sizes"].values():
+        del row["counts"]
+    header, rows = renderer_rows(old)
+    assert [r[0] for r in rows] == ["64²", "256²"]
+    assert not any("ops" in h for h in header)
+
+
+@pytest.mark.parametrize("scaling", [True, False])
+def test_bench_png_shows_memory_at_every_size_rendered(scaling):
+    import matplotlib.pyplot as plt
+
+    from diffshadow.bench.render import figure
+
+    fig = figure(bench(scaling))
+    memory = fig.axes[1]
+    assert memory.get_ylabel() == "peak memory added (MiB)"
+    labels = [t.get_text() for t in memory.get_xticklabels()]
+    assert labels == (["64²", "256²", "1024²"] if scaling else ["64²", "256²"])
+    heights = sorted(p.get_height() for p in memory.patches if p.get_height() == p.get_height())  # not NaN
+    assert heights[-1] == (95 if scaling else 41)
+    plt.close(fig)
