@@ -16,6 +16,7 @@ import os
 import statistics
 import threading
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 import torch
@@ -24,6 +25,9 @@ from diffshadow.bench.profile import op_counts
 from diffshadow.io import atomic_path, atomic_write_text, finite_json
 from diffshadow.metrics import foreground, image_psnr
 from diffshadow.render import DEFAULT_STEP, Camera, RenderScene
+
+if TYPE_CHECKING:
+    from matplotlib.figure import Figure
 
 BENCH_MODES = ("noshadow", "inr", "naive")
 REFERENCE_STEP = 0.125
@@ -250,7 +254,7 @@ def _plot(results: dict, path: Path) -> None:
     plt.close(fig)
 
 
-def figure(results: dict):
+def figure(results: dict) -> Figure:
     """bench.png's figure: fps, peak memory (every size rendered), the step curve, ops and syncs per frame."""
     import matplotlib
 
