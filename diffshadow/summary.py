@@ -47,19 +47,32 @@ def _read_json(path: Path) -> dict | None:
     return json.loads(path.read_text()) if path.exists() else None
 
 
+def peak_memory(bench: dict) -> tuple[list[str], dict[str, dict[str, int]]]:
+    """Every image size `bench.json` rendered (timed, then memory-only: `memory_scaling`), in numeric order, and
+    the peak memory added per mode and size where it was measured."""
+    peaks: dict[str, dict[str, int]] = {}
+    for mode, row in bench.get("memory_scaling", {}).items():
+        peaks.setdefault(mode, {}).update(row)
+    for size, row in bench["sizes"].items():
+        for mode, b in row.get("peak_mem_bytes", {}).items():
+            peaks.setdefault(mode, {})[size] = b
+    sizes = sorted({*bench["sizes"], *(s for row in peaks.values() for s in row)}, key=int)
+    return sizes, peaks
+
+
 def renderer_rows(bench: dict) -> tuple[list[str], list[list]]:
     """The renderer table of `bench.json`: per image size, fps, peak memory and ops / host syncs per mode.
 
     Sizes measured for memory only (`memory_scaling`) get rows of their own, without fps or counts."""
     timed = bench["sizes"]
-    scaling = bench.get("memory_scaling", {})
+    sizes, peaks = peak_memory(bench)
     modes = [m for m in ("noshadow", "inr", "naive") if any(m in r.get("fps", {}) for r in timed.values())]
     counted = [m for m in modes if any(m in r.get("counts", {}) for r in timed.values())]
     rows = []
-    for s in sorted({*timed, *(s for row in scaling.values() for s in row)}, key=int):
+    for s in sizes:
         r = timed.get(s, {})
-        fps, mem, counts = r.get("fps", {}), r.get("peak_mem_bytes", {}), r.get("counts", {})
-        peak = [mem.get(m, scaling.get(m, {}).get(s)) for m in modes]
+        fps, counts = r.get("fps", {}), r.get("counts", {})
+        peak = [peaks.get(m, {}).get(s) for m in modes]
         rows.append([f"{s}²", *(_num(fps.get(m)) for m in modes),
                      *(_num(None if b is None else b / MIB, ".0f") for b in peak),
                      *(f"{counts[m]['ops']:,} / {counts[m]['syncs']}" if m in counts else "n/a" for m in counted)])

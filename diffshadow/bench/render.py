@@ -261,17 +261,17 @@ def figure(results: dict) -> Figure:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
+    from diffshadow.summary import peak_memory
+
     fig, ax = plt.subplots(1, 4, figsize=(18, 4))
     sizes = list(results["sizes"])
     x = np.arange(len(sizes))
     # memory at every size rendered, the memory-only ones too: the panel answers "does it stay bounded?"
-    scaling = results.get("memory_scaling", {})
-    every = sorted({*sizes, *(s for row in scaling.values() for s in row)}, key=int)
+    every, peaks = peak_memory(results)
     for i, mode in enumerate(BENCH_MODES):
         ax[0].bar(x + (i - 1) * 0.25, [results["sizes"][s]["fps"][mode] for s in sizes], 0.25, label=mode)
-        peak = [results["sizes"].get(s, {}).get("peak_mem_bytes", {}).get(mode, scaling.get(mode, {}).get(s, np.nan))
-                for s in every]
-        ax[1].bar(np.arange(len(every)) + (i - 1) * 0.25, np.array(peak, dtype=float) / 2**20, 0.25, label=mode)
+        peak = [peaks.get(mode, {}).get(s, np.nan) / 2**20 for s in every]
+        ax[1].bar(np.arange(len(every)) + (i - 1) * 0.25, peak, 0.25, label=mode)
     for a, label, ticks in ((ax[0], "frames per second", sizes), (ax[1], "peak memory added (MiB)", every)):
         a.set_xticks(np.arange(len(ticks)), [f"{s}²" for s in ticks])
         a.set_ylabel(label)
