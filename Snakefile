@@ -3,13 +3,20 @@
 import os
 
 from snakemake.exceptions import WorkflowError
-from snakemake.utils import validate
+
+from diffshadow.config import ConfigError, run_config
 
 
 configfile: os.path.join(workflow.basedir, "config", "config.yaml")
 
 
-validate(config, os.path.join(workflow.basedir, "workflow", "schemas", "config.schema.yaml"))
+# the run's own choices (config/config.yaml, --configfile, --config) over the package's defaults, validated
+try:
+    _run = run_config(config, "config/config.yaml with --configfile/--config")
+except ConfigError as e:
+    raise WorkflowError(str(e)) from None
+config.clear()
+config.update(_run)
 
 if config.get("pbs_system"):  # set by the polaris and sophia profiles
     if not os.environ.get("PBS_ACCOUNT"):

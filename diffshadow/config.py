@@ -1,9 +1,11 @@
-"""The one configuration: `config/config.yaml` is the only source of run defaults, a scene file
-(`config/scenes/<scene>.yaml`) overrides its sections, and the merge is validated once against
-`workflow/schemas/` — for Snakemake (`workflow/rules/common.smk`), Parsl and the CLI alike.
+"""The one configuration: the package's `defaults.yaml` is the only source of run defaults, a run's own
+file (`config/config.yaml`) overrides its keys, a scene file (`config/scenes/<scene>.yaml`) its sections, and
+the merge is validated once against the package's `schemas/` — for Snakemake (the Snakefile and
+`workflow/rules/common.smk`), Parsl and the CLI alike. Both ship inside the package, so an installed
+`diffshadow` needs no checkout.
 
 Config dataclasses (`FitConfig`, `DiffusionConfig`, ...) declare fields without defaults; `section`
-fills them from `config.yaml` and rejects unknown keys, naming the section.
+fills them from `defaults.yaml` and rejects unknown keys, naming the section.
 """
 
 from __future__ import annotations
@@ -15,10 +17,10 @@ from typing import Any, TypeVar
 
 import yaml
 
-ROOT = Path(__file__).resolve().parents[1]
-DEFAULTS_FILE = ROOT / "config" / "config.yaml"
-SCHEMAS = ROOT / "workflow" / "schemas"
-# the sections a scene file may override (everything in config.yaml but the run-wide keys)
+PACKAGE = Path(__file__).resolve().parent
+DEFAULTS_FILE = PACKAGE / "defaults.yaml"
+SCHEMAS = PACKAGE / "schemas"
+# the sections a scene file may override (everything in defaults.yaml but the run-wide keys)
 SECTIONS = ("lights", "siren", "subset_size", "preoptimize", "fit", "diffusion", "finetune", "data_inr", "render")
 
 T = TypeVar("T")
@@ -43,10 +45,7 @@ def read_yaml(path: str | Path) -> dict:
 
 @functools.cache
 def defaults() -> dict:
-    """config/config.yaml of this checkout: every run default."""
-    if not DEFAULTS_FILE.is_file():
-        raise ConfigError(f"{DEFAULTS_FILE}: missing; diffshadow reads its defaults from the repository's "
-                          f"config/config.yaml (install with `pip install -e .` from a clone)")
+    """The package's defaults.yaml: every run default."""
     return read_yaml(DEFAULTS_FILE)
 
 
@@ -60,7 +59,7 @@ def check_keys(cls: type, name: str, values: dict) -> set[str]:
 
 
 def section(cls: type[T], name: str, values: dict | None = None) -> T:
-    """`cls` built from config.yaml's section `name`, overridden by `values`; unknown keys are an error."""
+    """`cls` built from defaults.yaml's section `name`, overridden by `values`; unknown keys are an error."""
     values = dict(values or {})
     known = check_keys(cls, name, values)
     base = {k: v for k, v in defaults().get(name, {}).items() if k in known}
@@ -96,9 +95,10 @@ def read_scene_file(path: str | Path) -> dict:
     return own
 
 
-def scene_config(run: dict, scene: str, *, scenes_dir: str | Path | None = None) -> dict:
-    """The scene file over the run's sections, validated: what every stage of `scene` runs with."""
-    path = Path(scenes_dir or ROOT / "config" / "scenes") / f"{scene}.yaml"
+def scene_config(run: dict, scene: str, *, scenes_dir: str | Path) -> dict:
+    """The scene file `scenes_dir/<scene>.yaml` over the run's sections, validated: what every stage of `scene`
+    runs with."""
+    path = Path(scenes_dir) / f"{scene}.yaml"
     if not path.is_file():
         raise ConfigError(f"scene {scene!r}: no file {path}")
     own = read_scene_file(path)
@@ -111,12 +111,18 @@ def scene_config(run: dict, scene: str, *, scenes_dir: str | Path | None = None)
     return merged
 
 
-def load_run(configfile: str | Path | None = None) -> dict:
-    """A run configuration file (default: config/config.yaml), validated."""
-    path = Path(configfile) if configfile else DEFAULTS_FILE
-    run = read_yaml(path)
-    _validate(run, "config.schema.yaml", str(path))
+def run_config(own: dict, where: str) -> dict:
+    """A run's own choices (`where`: the file they came from, for errors) over the defaults, validated."""
+    run = merge(defaults(), dict(own))
+    _validate(run, "config.schema.yaml", where)
     return run
+
+
+def load_run(configfile: str | Path | None = None) -> dict:
+    """A run configuration file over the defaults (None: the defaults alone), validated."""
+    if configfile is None:
+        return run_config({}, str(DEFAULTS_FILE))
+    return run_config(read_yaml(configfile), str(configfile))
 
 
 def as_json(cfg: dict, *keys: str) -> str:

@@ -50,7 +50,7 @@ class DataInrConfig:
 
     @classmethod
     def from_config(cls, d: dict | None = None) -> DataInrConfig:
-        """config.yaml's `data_inr` section overridden by `d`."""
+        """defaults.yaml's `data_inr` section overridden by `d`."""
         return section(cls, "data_inr", d)
 
     @property

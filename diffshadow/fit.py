@@ -96,7 +96,7 @@ class FitConfig:
 
     @classmethod
     def from_config(cls, d: dict | None = None) -> FitConfig:
-        """config.yaml's `fit` section overridden by `d`."""
+        """defaults.yaml's `fit` section overridden by `d`."""
         cfg = section(cls, "fit", d)
         if not (cfg.chunk == "auto" or (isinstance(cfg.chunk, int) and cfg.chunk >= 0)):
             raise ValueError(f"fit.chunk: expected 'auto' or an integer >= 0, got {cfg.chunk!r}")

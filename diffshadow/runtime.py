@@ -41,6 +41,15 @@ def resolve_device(flag: str | None = None, config: str | None = None) -> torch.
     return device
 
 
+def reproducible_blas() -> None:
+    """MKL (PyTorch's CPU BLAS on x86) splits a long matrix product's inner sum across threads, so by default its
+    last bits depend on the thread count: sample-shadows rerun with other threads wrote other bytes. Strict
+    conditional numerical reproducibility fixes the split and keeps the fastest code path (docs/numerics.md).
+    MKL reads MKL_CBWR at its first call, so every entry point (the CLI, a Parsl worker) calls this before any
+    matrix product; a user's own MKL_CBWR wins. A process setting, not an import side effect."""
+    os.environ.setdefault("MKL_CBWR", "AUTO,STRICT")
+
+
 def set_deterministic_from_env() -> bool:
     """DIFFSHADOW_DETERMINISTIC=1: the same bytes from the same seed on one GPU too, at some speed cost.
 

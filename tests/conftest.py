@@ -13,7 +13,11 @@ if not torch.cuda.is_available():
     # the fused SIREN's kernel runs through Triton's interpreter in tests/test_fused.py
     os.environ.setdefault("TRITON_INTERPRET", "1")
 
-from diffshadow.siren import Siren, SirenConfig
+from diffshadow.runtime import reproducible_blas
+
+reproducible_blas()  # what the CLI does first: in-process tests see the same matrix products as the stages
+
+from diffshadow.siren import Siren, SirenConfig  # noqa: E402
 from diffshadow.transfer import TransferFunction
 
 SHARED_DATA = Path(__file__).resolve().parents[2] / "shared" / "data"

@@ -78,7 +78,7 @@ class FinetuneConfig:
 
     @classmethod
     def from_config(cls, d: dict | None = None) -> FinetuneConfig:
-        """config.yaml's `finetune` section overridden by `d`."""
+        """defaults.yaml's `finetune` section overridden by `d`."""
         return section(cls, "finetune", d)
 
 

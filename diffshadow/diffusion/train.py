@@ -72,7 +72,7 @@ class DiffusionConfig:
 
     @classmethod
     def from_config(cls, d: dict | None = None) -> DiffusionConfig:
-        """config.yaml's `diffusion` section overridden by `d`."""
+        """defaults.yaml's `diffusion` section overridden by `d`."""
         cfg = section(cls, "diffusion", d)
         if cfg.preset not in PRESETS and cfg.preset != "auto":
             raise ValueError(f"diffusion.preset: expected auto or one of {sorted(PRESETS)}, got {cfg.preset!r}")
