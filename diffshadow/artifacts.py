@@ -20,17 +20,18 @@ import numpy as np
 import torch
 
 from diffshadow.capacity import Choice
+from diffshadow.config import defaults, read_scene_file
 from diffshadow.data_inr import DataInr
-from diffshadow.diffusion.finetune import RayBundle
-from diffshadow.diffusion.train import BLEND_K, PoolLights, TrainingData
-from diffshadow.evaluate import EvalTruth
+from diffshadow.diffusion.train import TrainingData
 from diffshadow.fit import Stage1Layout
 from diffshadow.io import atomic_torch_save, write_zarr_group
-from diffshadow.lights import blend_weights
-from diffshadow.render import Camera, RenderScene
+from diffshadow.lights import BLEND_K, PoolLights, blend_weights
+from diffshadow.render import Camera, Networks, RenderScene
+from diffshadow.render.bundle import RayBundle
 from diffshadow.siren import Siren, SirenConfig, WeightLayout
 from diffshadow.store import WeightStore, open_store
 from diffshadow.transfer import TransferFunction
+from diffshadow.truth import EvalTruth
 from diffshadow.volume import Volume, VolumeError, load_volume
 
 
@@ -280,16 +281,16 @@ def scene_volume(scene: dict) -> tuple[Volume, TransferFunction]:
         scene["transfer_function"])
 
 
-def load_scene_file(scene_file: Path, device: torch.device) -> RenderScene:
+def load_scene_file(scene_file: Path, device: torch.device, render: dict | None = None) -> RenderScene:
     """A RenderScene straight from a scene file: what prepare_volume would make of it, for previews and
-    benchmarks."""
-    from diffshadow.config import read_scene_file
-
-    return RenderScene(*scene_volume(read_scene_file(scene_file)), device=device)
+    benchmarks. Its networks: `render` over the file's `render` section over the defaults'."""
+    own = read_scene_file(scene_file)
+    networks = Networks.from_config({**defaults()["render"], **own.get("render", {}), **(render or {})})
+    return RenderScene(*scene_volume(own), device=device, networks=networks)
 
 
 def load_render_scene(volume_path: Path, data_inr: Path | None, device: torch.device,
-                 tf_config: dict | None = None) -> RenderScene:
+                      tf_config: dict | None = None, render: dict | None = None) -> RenderScene:
     """A RenderScene from a prepared volume.zarr, or from a raw volume file with its transfer function."""
     if is_prepared(volume_path) and tf_config is None:
         volume, tf = load_prepared(volume_path)
@@ -304,4 +305,5 @@ def load_render_scene(volume_path: Path, data_inr: Path | None, device: torch.de
     if inr is not None and not np.allclose(inr.extent, volume.extent):
         raise ValueError(f"{data_inr}: fitted to a box of {inr.extent.tolist()}, the volume's is "
                          f"{volume.extent.tolist()}")
-    return RenderScene(volume, tf, inr, device=device)
+    networks = Networks.from_config({**defaults()["render"], **(render or {})})
+    return RenderScene(volume, tf, inr, device=device, networks=networks)

@@ -11,6 +11,7 @@ import sys
 from pathlib import Path
 
 from diffshadow import __version__
+from diffshadow.argparsing import add_networks, network_flags
 from diffshadow.argparsing import add_subcommand as _add
 from diffshadow.argparsing import config_of as _cfg
 from diffshadow.argparsing import device_of as _device
@@ -63,7 +64,7 @@ def _collect_weights(a):
 
 
 def _diffusion(a):
-    from diffshadow.diffusion.train import DiffusionConfig
+    from diffshadow.diffusion.config import DiffusionConfig
 
     return DiffusionConfig.from_config(_cfg(a)["diffusion"])
 
@@ -158,10 +159,11 @@ def _render(a):
     if a.scene_config and a.data_inr:
         raise ValueError("render: --data-inr needs --volume results/<scene>/volume.zarr, not --scene-config")
     if a.scene_config:
-        scene = load_scene_file(Path(a.scene_config), _device(a))
+        scene = load_scene_file(Path(a.scene_config), _device(a), network_flags(a))
     else:
         tf = parse_json(a.tf_json, "--tf-json") if a.tf_json else None
-        scene = load_render_scene(Path(a.volume), Path(a.data_inr) if a.data_inr else None, _device(a), tf)
+        scene = load_render_scene(Path(a.volume), Path(a.data_inr) if a.data_inr else None, _device(a), tf,
+                                  network_flags(a))
     cam = Camera.orbit(scene.volume.extent, azimuth=a.azimuth, elevation=a.elevation, distance=a.distance,
                        fov=a.fov, size=a.size)
     images.render_image(scene, Path(a.out), mode=a.mode, camera=cam, light=a.light,
@@ -285,6 +287,7 @@ def build_parser() -> argparse.ArgumentParser:
         p.add_argument(f"--{name}", type=float, default=value)
     p.add_argument("--size", type=int, default=128)
     p.add_argument("--no-skip", action="store_true", help="turn macro-cell skipping off")
+    add_networks(p)
     p = _add(sub, "report-figures", _report_figures, "the report's figures for one finished scene", "results",
              "out-dir", out=False, device=False, config="the scene's merged configuration")
 

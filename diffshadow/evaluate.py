@@ -4,95 +4,13 @@ baselines for unseen lights, plus storage and time per shadow INR."""
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass
 
 import numpy as np
 import torch
 
+from diffshadow.diffusion.sample import generate, load_sampler
 from diffshadow.lights import inverse_angle_weights, nearest, pick
-from diffshadow.metrics import psnr
-from diffshadow.progress import eta
-from diffshadow.sampling import PointSampler, seeded
-from diffshadow.shadow import ShadowField, transmittance_per_light
-from diffshadow.siren import BatchedSiren, SirenConfig, WeightLayout, box_to_siren
-from diffshadow.volume import Volume
-
-
-class TruthPoints:
-    """Fixed evaluation points (box and visible) with the true shadow of every light that is asked for."""
-
-    def __init__(self, volume: Volume, tf, n_points: int, seed: int):
-        self.volume, self.tf = volume, tf
-        self.field = ShadowField.build(volume, tf)
-        self.extent = torch.as_tensor(volume.extent, dtype=torch.float32)
-        gen = seeded(seed, 4)
-        self.sets = {"box": torch.rand(n_points, 3, generator=gen, device=gen.device) * self.extent}
-        vis = PointSampler(volume, tf, 1.0)
-        if vis.visible_fraction:
-            self.sets["visible"] = vis.sample(1, n_points, gen)[0]
-
-    def truth(self, lights: np.ndarray, log=None, what: str = "lights") -> dict[str, torch.Tensor]:
-        """True shadow (L, P) per point set, by the exact march; progress every ~10% when `log` is given."""
-        out = {k: [] for k in self.sets}
-        start, every, n = time.perf_counter(), max(1, len(lights) // 10), len(lights)
-        for a in range(0, n, every):  # ~10 groups of lights, each marched together
-            for k, p in self.sets.items():
-                out[k].append(transmittance_per_light(self.field, self.tf, lights[a:a + every], p))
-            if log:
-                log(f"ground truth, {what}: {min(a + every, n)}/{n} ({eta(min(a + every, n), n, start)})")
-        return {k: torch.cat(v) if v else torch.zeros(0, len(self.sets[k])) for k, v in out.items()}
-
-    def sirens(self, weights: np.ndarray, layout: WeightLayout, siren: SirenConfig) -> dict[str, torch.Tensor]:
-        return _siren_values(self.sets, self.extent, weights, layout, siren)
-
-
-@dataclass
-class EvalTruth:
-    """`eval_truth`'s fixed evaluation points (per set: box, visible) and the exact shadow of every light
-    at them, computed once and read by `sample_shadows` and `evaluate_voxels` (the march is their cost)."""
-
-    points: dict[str, torch.Tensor]  # set -> (P, 3)
-    lights: np.ndarray  # (L, 3)
-    values: dict[str, torch.Tensor]  # set -> (L, P)
-    extent: torch.Tensor
-
-    @classmethod
-    def compute(cls, volume: Volume, tf, lights: np.ndarray, n_points: int, seed: int, log=None) -> EvalTruth:
-        points = TruthPoints(volume, tf, n_points, seed)
-        return cls(points=points.sets, lights=np.asarray(lights, dtype=np.float64),
-                   values=points.truth(lights, log, "all lights"), extent=points.extent)
-
-    def of(self, lights: np.ndarray, where: str = "eval_truth") -> dict[str, torch.Tensor]:
-        """The truth rows (L', P) per set for `lights`, each of which must be one this truth was made for."""
-        lights = np.asarray(lights, dtype=np.float64).reshape(-1, 3)
-        dist = np.abs(lights[:, None, :] - self.lights[None, :, :]).max(axis=-1)
-        rows = dist.argmin(axis=1) if len(self.lights) else np.zeros(len(lights), dtype=np.int64)
-        missing = [i for i, r in enumerate(rows) if not len(self.lights) or dist[i, r] > 1e-9]
-        if missing:
-            raise ValueError(f"{where}: no ground truth for light {lights[missing[0]].tolist()} "
-                             f"({len(missing)} of {len(lights)} missing); rerun eval_truth for these lights")
-        idx = torch.as_tensor(rows)
-        return {k: v[idx] for k, v in self.values.items()}
-
-    def sirens(self, weights: np.ndarray, layout: WeightLayout, siren: SirenConfig) -> dict[str, torch.Tensor]:
-        return _siren_values(self.points, self.extent, weights, layout, siren)
-
-    def median_psnr(self, weights: np.ndarray, layout: WeightLayout, siren: SirenConfig, lights: np.ndarray,
-                    point_set: str = "box") -> float:
-        """Median over `lights` of the voxel PSNR of their SIRENs `weights` (L, n_params) at one point set."""
-        return _median(psnr_per_light(self.sirens(weights, layout, siren), self.of(lights))[point_set])
-
-
-def _siren_values(sets: dict, extent: torch.Tensor, weights, layout: WeightLayout,
-                  siren: SirenConfig) -> dict[str, torch.Tensor]:
-    w = torch.as_tensor(np.asarray(weights), dtype=torch.float32)
-    with torch.no_grad():
-        model = BatchedSiren(w, layout, siren.blocks)
-        return {k: model(box_to_siren(p.expand(len(w), -1, -1), extent)) for k, p in sets.items()}
-
-
-def psnr_per_light(pred: dict, truth: dict) -> dict[str, np.ndarray]:
-    return {k: psnr(pred[k], truth[k], dim=1).numpy() for k in truth}
+from diffshadow.truth import EvalTruth, median, psnr_per_light
 
 
 def blend_baseline(train_values: dict, idx: np.ndarray, weights: np.ndarray) -> dict[str, torch.Tensor]:
@@ -105,7 +23,6 @@ def blend_baseline(train_values: dict, idx: np.ndarray, weights: np.ndarray) -> 
 def seconds_per_inr(model, std, light, *, method: str, steps: int, repeats: int = 3,
                     temperature: float = 1.0) -> float:
     """Wall time to generate one shadow INR (batch of one), best of `repeats`."""
-    from diffshadow.diffusion.sample import generate
 
     best = float("inf")
     for r in range(repeats):
@@ -115,17 +32,12 @@ def seconds_per_inr(model, std, light, *, method: str, steps: int, repeats: int 
     return best
 
 
-def _median(a) -> float:
-    return float(np.median(a))
-
-
 def voxel_metrics(state: dict, stage1, generated, truth: EvalTruth, light_sets: dict, *, blend_k: int,
                   grid_voxels: int, ddpm_lights: int = 8, geometry_state: dict | None = None, log=print) -> dict:
     """`voxel_metrics.json`: generated SIRENs (seen and unseen) against the ground truth, beside the stage-1
     SIRENs, the nearest and blend baselines, DDIM vs DDPM on `ddpm_lights` training lights, and storage.
     With `geometry_state` (the model before rendering-loss fine-tuning), the unseen lights are also sampled
     from it: what fine-tuning did to lights it never saw."""
-    from diffshadow.diffusion.sample import generate, load_sampler
 
     train, unseen = light_sets["train"], light_sets["unseen"]
     seen = generated.seen
@@ -137,14 +49,14 @@ def voxel_metrics(state: dict, stage1, generated, truth: EvalTruth, light_sets: 
     stage1_values = truth.sirens(stage1.weights, layout, siren)
     stage1_seen = psnr_per_light(stage1_values, truth_train)
     result = {"seen": {"count": int(seen.sum()),
-                       "generated_psnr_median": _median(gen_seen["box"]),
+                       "generated_psnr_median": median(gen_seen["box"]),
                        "generated_psnr_min": float(gen_seen["box"].min()),
-                       "stage1_psnr_median": _median(stage1_seen["box"]),
-                       "generated_minus_stage1_median_db": _median(gen_seen["box"] - stage1_seen["box"])},
+                       "stage1_psnr_median": median(stage1_seen["box"]),
+                       "generated_minus_stage1_median_db": median(gen_seen["box"] - stage1_seen["box"])},
               "eval_points": int(len(truth.points["box"]))}
     if "visible" in gen_seen:
-        result["seen"]["generated_psnr_visible_median"] = _median(gen_seen["visible"])
-        result["seen"]["stage1_psnr_visible_median"] = _median(stage1_seen["visible"])
+        result["seen"]["generated_psnr_visible_median"] = median(gen_seen["visible"])
+        result["seen"]["stage1_psnr_visible_median"] = median(stage1_seen["visible"])
     if len(unseen):
         idx, angles = nearest(train, unseen, blend_k)
         mix = inverse_angle_weights(angles)
@@ -158,11 +70,11 @@ def voxel_metrics(state: dict, stage1, generated, truth: EvalTruth, light_sets: 
         # shadows' blend it carries stage 1's fit error, which caps what any generated SIREN can reach.
         sblend = psnr_per_light(blend_baseline(stage1_values, idx, mix), truth_unseen)
         result["unseen"] = {"count": len(unseen),
-                            "generated_psnr_median": _median(gen_unseen["box"]),
-                            "nearest_psnr_median": _median(near["box"]),
-                            "blend_psnr_median": _median(blend["box"]),
-                            "weight_blend_psnr_median": _median(wblend["box"]),
-                            "siren_blend_psnr_median": _median(sblend["box"]),
+                            "generated_psnr_median": median(gen_unseen["box"]),
+                            "nearest_psnr_median": median(near["box"]),
+                            "blend_psnr_median": median(blend["box"]),
+                            "weight_blend_psnr_median": median(wblend["box"]),
+                            "siren_blend_psnr_median": median(sblend["box"]),
                             "blend_k": blend_k,
                             "nearest_angle_median_deg": float(np.degrees(np.median(angles[:, 0])))}
         pool = np.asarray(state.get("pool_lights") or np.zeros((0, 3)), dtype=np.float64).reshape(-1, 3)
@@ -175,8 +87,8 @@ def voxel_metrics(state: dict, stage1, generated, truth: EvalTruth, light_sets: 
             before = generate(g_model, g_std, unseen, method="ddim", steps=int(cfg["ddim_steps"]),
                               seed=int(cfg["seed"]), temperature=cfg["temperature"]).numpy()
             before_psnr = psnr_per_light(truth.sirens(before, layout, siren), truth_unseen)["box"]
-            result["unseen"]["geometry_only_psnr_median"] = _median(before_psnr)
-            result["unseen"]["finetune_change_median_db"] = _median(gen_unseen["box"] - before_psnr)
+            result["unseen"]["geometry_only_psnr_median"] = median(before_psnr)
+            result["unseen"]["finetune_change_median_db"] = median(gen_unseen["box"] - before_psnr)
     result["stage1"] = {"width": siren.width, "blocks": siren.blocks, "parameters": layout.n_params,
                         "capacity": (stage1.config or {}).get("capacity")}
     # DDIM at several step counts and 500-step DDPM on a spread of training lights: quality on the same lights,
@@ -198,7 +110,7 @@ def voxel_metrics(state: dict, stage1, generated, truth: EvalTruth, light_sets: 
             box = psnr_per_light(truth.sirens(w, layout, siren), truth_sel)["box"]
         seconds = seconds_per_inr(model, std, train[0], method=method, steps=k, repeats=3 if method == "ddim" else 1,
                                   temperature=cfg["temperature"])
-        curve.append({"method": method, "steps": k, "seconds_per_inr": seconds, "psnr_median": _median(box)})
+        curve.append({"method": method, "steps": k, "seconds_per_inr": seconds, "psnr_median": median(box)})
     log(f"[evaluate voxels] samplers done ({time.perf_counter() - t0:.0f} s)")
     ddim_row = next(r for r in curve if r["method"] == "ddim" and r["steps"] == ddim_steps)
     t_ddim, t_ddpm = ddim_row["seconds_per_inr"], curve[-1]["seconds_per_inr"]

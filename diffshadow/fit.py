@@ -13,7 +13,6 @@ import json
 import time
 from dataclasses import asdict, dataclass, replace
 from pathlib import Path
-from typing import TYPE_CHECKING
 
 import numpy as np
 import torch
@@ -22,16 +21,15 @@ from diffshadow.capacity import Choice, Rung, climb, ladder
 from diffshadow.config import section
 from diffshadow.grid import lookup_grids
 from diffshadow.io import atomic_torch_save, resume
+from diffshadow.lights import BLEND_K, PoolLights, inverse_angle_weights, nearest, training_pool
 from diffshadow.metrics import psnr
 from diffshadow.progress import FirstNonFinite, eta
 from diffshadow.sampling import PointSampler, seeded
 from diffshadow.shadow import ShadowField, shadow_grid, transmittance_per_light
 from diffshadow.siren import BatchedSiren, SirenConfig, WeightLayout, box_to_siren, cosine_lr, init_siren
 from diffshadow.transfer import TransferFunction
+from diffshadow.truth import presample
 from diffshadow.volume import Volume, refine
-
-if TYPE_CHECKING:
-    from diffshadow.diffusion.train import PoolLights
 
 
 class FitError(ValueError):
@@ -129,10 +127,6 @@ def blend_pool(volume: Volume, tf: TransferFunction, train: np.ndarray, center, 
     A pool light at a subset's border is left out, not blended from the subset's own nearest lights: that
     blend is not the one the diffusion model's pool prior and the weight-blend baseline use, and fitting
     towards it cost nucleon's weight blend 2.7 dB and tooth's 2.6 dB in two subsets of 16 (docs/tuning.md)."""
-    from diffshadow.diffusion.geometry import presample
-    from diffshadow.diffusion.train import BLEND_K, PoolLights
-    from diffshadow.lights import inverse_angle_weights, nearest, training_pool
-
     if cfg.blend_weight <= 0 or len(subset) < 2:
         return None
     train = np.asarray(train, dtype=np.float64)

@@ -12,14 +12,14 @@ reference: the kernels apply the same pre-scaled weights (`siren.fold`) in the s
 `tl.dot` in `precision` ("ieee": fp32, "tf32": tensor cores with 10-bit mantissa inputs, fp32 sums), the first
 layer close to fp32 either way (ω0 = 30 amplifies its rounding): three fp32 multiply-adds, or under "tf32" three
 TF32 products of split operands (`_kernels.first_layer`). Sines and their arguments stay
-fp32; the sine itself is `sine` (`_kernels.sine`, DIFFSHADOW_FUSED_SINE): "poly" by default (one branch-free
+fp32; the sine itself is `sine` (`_kernels.sine`, config `render.sine`): "poly" by default (one branch-free
 polynomial, within 1.3e-7 of sin), "libdevice" (CUDA's sinf) or "approx" (the GPU's special-function unit).
 Tests run the kernels on the CPU through Triton's interpreter (`TRITON_INTERPRET=1`) when Triton is installed.
 
-Opt-in while their speed is unmeasured on a GPU: `DIFFSHADOW_FUSED_SIREN=1` (fp32) or `=tf32`;
-`scripts/render_plans.py` compares them with the eager SIREN side by side. A kernel compiles on its first launch;
-if that fails (`FusedKernelError`: an older Triton, a GPU it cannot target), `RenderScene` warns and renders with
-the eager SIREN from then on.
+Opt-in while their speed is unmeasured on a GPU: config `render.kernel: fused` with `render.precision` fp32 or tf32
+(`render.Networks`); `scripts/render_plans.py` compares them with the eager SIREN side by side. A kernel compiles
+on its first launch; if that fails (`FusedKernelError`: an older Triton, a GPU it cannot target), `RenderScene`
+warns and renders with the eager SIREN from then on.
 """
 
 from __future__ import annotations
@@ -49,7 +49,7 @@ def block_points(width: int) -> int:
 # bfloat16 inputs to the hidden layers (8 mantissa bits) were tried: hydrogen_atom's inr image at 64² came out at
 # 16.7 dB PSNR against fp32 (Triton's interpreter, scripts/render_plans.py), so it is not offered
 PRECISIONS = ("ieee", "tf32")
-# the sine: "poly" unless DIFFSHADOW_FUSED_SINE says otherwise. Compiled for sm_90, "poly" takes fewer
+# the sine: "poly" unless `render.sine` says otherwise. Compiled for sm_90, "poly" takes fewer
 # instructions than "libdevice" and holds its accuracy (bench kernels, docs/tuning.md); "approx" runs only on CUDA
 SINES = ("poly", "libdevice", "approx")
 COMPILE = "compile"  # the eager SIREN through torch.compile (siren.FoldedSiren), not these kernels
@@ -68,27 +68,6 @@ class FusedKernelError(FusedSirenError):
 
 class FusedKernelWarning(UserWarning):
     """The renderer fell back to the eager SIREN after a `FusedKernelError` (the tests make it an error)."""
-
-
-def fused_setting() -> str | None:
-    """DIFFSHADOW_FUSED_SIREN: unset or "0" → None (eager), "1" or "ieee" → "ieee", "tf32" → "tf32",
-    "compile" → "compile"."""
-    value = os.environ.get("DIFFSHADOW_FUSED_SIREN", "0").strip().lower()
-    if value in ("", "0"):
-        return None
-    if value in ("1", "ieee"):
-        return "ieee"
-    if value in (*PRECISIONS, COMPILE):
-        return value
-    raise FusedSirenError(f"DIFFSHADOW_FUSED_SIREN: expected 0, 1, ieee, tf32 or compile, got {value!r}")
-
-
-def sine_setting() -> str:
-    """DIFFSHADOW_FUSED_SINE: unset → "poly", else one of `SINES`."""
-    value = os.environ.get("DIFFSHADOW_FUSED_SINE", "").strip().lower() or SINES[0]
-    if value not in SINES:
-        raise FusedSirenError(f"DIFFSHADOW_FUSED_SINE: expected one of {', '.join(SINES)}, got {value!r}")
-    return value
 
 
 def available(device: torch.device, setting: str = "ieee") -> bool:
@@ -140,14 +119,14 @@ def _launch(name: str, n: int, block: int, warps: int, *args, registers: int | N
 class FusedSiren:
     """One SIREN (`named` tensors as `Siren.named_tensors()` or `WeightLayout.unflatten` give them, for one
     SIREN) as a callable (N, 3) → (N,), the same as `siren._forward` up to float32 summation order (and the
-    inputs' rounding under tf32). `sine`: one of `SINES`, None → `sine_setting()`."""
+    inputs' rounding under tf32). `sine`: one of `SINES`, None → "poly"."""
 
     def __init__(self, named: dict[str, torch.Tensor], blocks: int, precision: str = "ieee", sine: str | None = None):
         if importlib.util.find_spec("triton") is None:
             raise FusedSirenError("the fused SIREN needs Triton (it ships with CUDA builds of PyTorch)")
         if precision not in PRECISIONS:
             raise FusedSirenError(f"precision: expected one of {', '.join(PRECISIONS)}, got {precision!r}")
-        sine = sine or sine_setting()
+        sine = sine or SINES[0]
         if sine not in SINES:
             raise FusedSirenError(f"sine: expected one of {', '.join(SINES)}, got {sine!r}")
         if sine == "approx" and os.environ.get("TRITON_INTERPRET") == "1":

@@ -7,9 +7,11 @@ JSON are (theta, phi): theta the polar angle from +z, phi the azimuth from +x to
 from __future__ import annotations
 
 import json
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
+import torch
 
 from diffshadow.io import atomic_write_text
 
@@ -276,3 +278,33 @@ def index_ranges(idx: list[int]) -> str:
         else:
             runs.append([i, i])
     return ", ".join(f"{a}" if a == b else f"{a}-{b}" for a, b in runs)
+
+
+BLEND_K = 4  # training SIRENs blended into a pool light's x0 target (the evaluation's blend baseline: 4 too)
+
+
+@dataclass
+class PoolLights:
+    """Pool lights: directions in the training lights' cap with no fitted SIREN. Each has an x0 target, the
+    inverse-angle blend of its `BLEND_K` nearest training SIRENs' weights (`neighbours`, `blend`), and its
+    exact shadow at presampled points for the geometry loss. The blend alone is a usable SIREN because every
+    training SIREN starts from one pre-optimised init (nucleon: 30.0 dB at unseen lights against 27.9 for
+    blending the shadows themselves); the geometry loss corrects it towards the truth."""
+
+    lights: torch.Tensor  # (M, 3)
+    points: torch.Tensor  # (M, P, 3)
+    values: torch.Tensor  # (M, P)
+    neighbours: torch.Tensor  # (M, k) rows of the training set
+    blend: torch.Tensor  # (M, k), rows sum to 1
+
+    def to(self, device) -> PoolLights:
+        return PoolLights(*(t.to(device) for t in (self.lights, self.points, self.values, self.neighbours,
+                                                    self.blend)))
+
+    def x0(self, z_all: torch.Tensor, j: torch.Tensor) -> torch.Tensor:
+        """The x0 targets (B, n_params) of pool lights `j`: their blends of the standardised training weights."""
+        return (z_all[self.neighbours[j]] * self.blend[j][..., None]).sum(1)
+
+    def samples(self, j: torch.Tensor, pick: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """Points (B, G, 3) and exact shadow (B, G) of pool lights `j` at their presampled points `pick` (B, G)."""
+        return torch.gather(self.points[j], 1, pick[..., None].expand(-1, -1, 3)), torch.gather(self.values[j], 1, pick)

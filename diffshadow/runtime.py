@@ -50,14 +50,22 @@ def reproducible_blas() -> None:
     os.environ.setdefault("MKL_CBWR", "AUTO,STRICT")
 
 
+DETERMINISTIC_VALUES = {"": False, "0": False, "false": False, "no": False, "off": False,
+                        "1": True, "true": True, "yes": True, "on": True}
+
+
 def set_deterministic_from_env() -> bool:
-    """DIFFSHADOW_DETERMINISTIC=1: the same bytes from the same seed on one GPU too, at some speed cost.
+    """DIFFSHADOW_DETERMINISTIC=1 (the workflow sets it from config `deterministic`): the same bytes from the same
+    seed on one GPU too, at some speed cost.
 
     CPU runs are deterministic anyway. On CUDA this asks PyTorch for deterministic kernels (an op
     without one raises instead of varying) and cuBLAS for a fixed workspace; it must happen before the
     first CUDA call, so the CLI calls it when it resolves the device.
     """
-    if os.environ.get("DIFFSHADOW_DETERMINISTIC", "0") in ("", "0"):
+    value = os.environ.get("DIFFSHADOW_DETERMINISTIC", "").strip().lower()
+    if value not in DETERMINISTIC_VALUES:
+        raise ValueError(f"DIFFSHADOW_DETERMINISTIC: expected 0 or 1 (or true/false), got {value!r}")
+    if not DETERMINISTIC_VALUES[value]:
         return False
     os.environ.setdefault("CUBLAS_WORKSPACE_CONFIG", ":4096:8")
     torch.use_deterministic_algorithms(True)

@@ -27,7 +27,7 @@ from diffshadow.bench import BENCH_LIGHT
 from diffshadow.bench.profile import op_counts
 from diffshadow.data_inr import DataInrConfig, fit_data_inr
 from diffshadow.fit import FitConfig, fit_sirens
-from diffshadow.fused import PRECISIONS, sine_setting
+from diffshadow.fused import PRECISIONS
 from diffshadow.fused import available as fused_available
 from diffshadow.metrics import psnr
 from diffshadow.sampling import seeded
@@ -38,9 +38,9 @@ from diffshadow.siren import SirenConfig, WeightLayout, init_siren
 class Variant:
     batch: int | None = None  # None: the device's default
     tf32: bool = False  # TF32 matmuls (the eager SIREN)
-    fused: str | None = None  # DIFFSHADOW_FUSED_SIREN's setting
+    fused: str | None = None  # the scene's fused setting (render.Networks.setting())
     whole_rays: bool = True  # with fused kernels: whole rays in one kernel, else one kernel per wavefront step
-    sine: str | None = None  # with fused kernels: their sine (None: DIFFSHADOW_FUSED_SINE, "poly" by default)
+    sine: str | None = None  # with fused kernels: their sine (None: "poly")
 
     @property
     def render_kw(self) -> dict:
@@ -69,7 +69,7 @@ def variants(device: torch.device) -> dict[str, Variant]:
 @contextlib.contextmanager
 def variant(scene: R.RenderScene, v: Variant):
     old = torch.backends.cuda.matmul.allow_tf32, scene.fused, scene.sine
-    sine = (v.sine or sine_setting()) if v.fused in PRECISIONS else None
+    sine = (v.sine or "poly") if v.fused in PRECISIONS else None
     torch.backends.cuda.matmul.allow_tf32, scene.fused, scene.sine = v.tf32, v.fused, sine
     try:
         yield

@@ -54,9 +54,8 @@ def data_inr(results: Path, spec: dict) -> str:
 
 
 def _pool(results: Path, light_sets: dict, cfg):
-    from diffshadow.diffusion.geometry import POOL_STREAM, presample
-    from diffshadow.diffusion.train import BLEND_K, PoolLights
-    from diffshadow.lights import blend_weights, training_pool
+    from diffshadow.lights import BLEND_K, PoolLights, blend_weights, training_pool
+    from diffshadow.truth import POOL_STREAM, presample
 
     volume, tf = artifacts.load_prepared(results / "volume.zarr")
     lights = training_pool(light_sets["train"], light_sets["center"], cfg.pool_lights, seed=cfg.seed)

@@ -14,11 +14,10 @@ if not torch.cuda.is_available():
     os.environ.setdefault("TRITON_INTERPRET", "1")
 
 from diffshadow.runtime import reproducible_blas
+from diffshadow.siren import Siren, SirenConfig
+from diffshadow.transfer import TransferFunction
 
 reproducible_blas()  # what the CLI does first: in-process tests see the same matrix products as the stages
-
-from diffshadow.siren import Siren, SirenConfig  # noqa: E402
-from diffshadow.transfer import TransferFunction
 
 SHARED_DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
 

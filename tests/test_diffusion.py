@@ -6,19 +6,14 @@ import pytest
 import torch
 from conftest import default_device_meta
 
+from diffshadow.diffusion.config import DiffusionConfig, DiffusionError
 from diffshadow.diffusion.geometry import geometry_error, geometry_loss
 from diffshadow.diffusion.model import WeightTransformer
 from diffshadow.diffusion.sample import generate, load_sampler
 from diffshadow.diffusion.schedule import Schedule
-from diffshadow.diffusion.train import (
-    DiffusionConfig,
-    DiffusionError,
-    PoolLights,
-    Standardizer,
-    TrainingData,
-    train_diffusion,
-)
-from diffshadow.lights import LightError
+from diffshadow.diffusion.standardize import Standardizer
+from diffshadow.diffusion.train import TrainingData, train_diffusion
+from diffshadow.lights import LightError, PoolLights
 from diffshadow.siren import BatchedSiren, Siren, SirenConfig, WeightLayout, box_to_siren, init_siren
 
 SIREN = SirenConfig(8, 1)
@@ -77,8 +72,8 @@ def test_transformer_shapes_and_light_sensitivity():
 def test_wide_tensors_split_into_tokens_that_cover_them_and_the_model_maps_them_back():
     import dataclasses
 
+    from diffshadow.diffusion.config import build_model
     from diffshadow.diffusion.model import PRESETS, token_sizes
-    from diffshadow.diffusion.train import build_model
     assert token_sizes([96, 32, 1024, 1], 1, 192) == [96, 32, 1024, 1]
     assert token_sizes([96, 32, 1024, 1], 4, 192) == [96, 32, 256, 256, 256, 256, 1]  # only tensors wider than 192
     assert token_sizes([1025, 3], 3, 2) == [342, 342, 341, 1, 1, 1]  # near-equal chunks
@@ -144,7 +139,8 @@ GROWING = dataclasses.replace(CFG, epochs=2, target_gap=1.0, max_epochs=10)
 
 
 def test_seen_gap_is_zero_for_a_model_that_returns_the_stage1_weights():
-    from diffshadow.diffusion.train import Standardizer, seen_gap_db
+    from diffshadow.diffusion.standardize import Standardizer
+    from diffshadow.diffusion.train import seen_gap_db
     from diffshadow.siren import box_to_siren
     data = tiny_data()
     # the true shadow at the check points: the stage-1 SIRENs' own values, off by a little (stage 1 at 40 dB)

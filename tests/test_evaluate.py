@@ -4,10 +4,11 @@ import torch
 from conftest import identity_tf
 
 from diffshadow.artifacts import read_eval_truth, write_eval_truth
-from diffshadow.evaluate import EvalTruth, TruthPoints, blend_baseline, pick
+from diffshadow.evaluate import blend_baseline, pick
 from diffshadow.lights import fibonacci_sphere
 from diffshadow.shadow import transmittance
 from diffshadow.siren import SirenConfig, WeightLayout, init_siren
+from diffshadow.truth import EvalTruth, TruthPoints
 from diffshadow.volume import Volume
 
 

@@ -10,22 +10,21 @@ import torch.multiprocessing as mp
 from conftest import default_device_meta
 
 from diffshadow.analytic import gaussian_blob
+from diffshadow.diffusion.config import DiffusionConfig
 from diffshadow.diffusion.finetune import (
     FinetuneConfig,
     FinetuneData,
     Schedule,
     Standardizer,
-    build_bundle,
     build_model,
-    bundle_colors,
-    fibonacci_views,
     finetune,
-    render_targets,
     step_loss,
 )
-from diffshadow.diffusion.train import DiffusionConfig, PoolLights, TrainingData, train_diffusion
+from diffshadow.diffusion.train import TrainingData, train_diffusion
+from diffshadow.lights import PoolLights
 from diffshadow.metrics import psnr
-from diffshadow.render import GridShadow
+from diffshadow.render import GridShadow, fibonacci_views
+from diffshadow.render.bundle import build_bundle, bundle_colors, render_targets
 from diffshadow.shadow import shadow_grid
 from diffshadow.siren import SirenConfig, WeightLayout, init_siren
 from diffshadow.transfer import TransferFunction
@@ -187,8 +186,8 @@ def test_the_model_kept_is_the_last_one_not_below_the_geometry_stage_on_validati
 
     from diffshadow.diffusion.finetune import validation_psnr
     from diffshadow.diffusion.sample import load_sampler
-    from diffshadow.evaluate import EvalTruth
     from diffshadow.lights import validation_lights
+    from diffshadow.truth import EvalTruth
 
     _, _, _, data, state = setup
     val = EvalTruth.compute(volume, TF, validation_lights(LIGHTS, LIGHTS[0], 3, seed=0), 128, seed=1)
@@ -211,8 +210,8 @@ def test_fine_tuning_stops_when_validation_stays_under_the_geometry_stage(volume
     from dataclasses import replace
 
     import diffshadow.diffusion.finetune as ft
-    from diffshadow.evaluate import EvalTruth
     from diffshadow.lights import validation_lights
+    from diffshadow.truth import EvalTruth
 
     _, _, _, data, state = setup
     val = EvalTruth.compute(volume, TF, validation_lights(LIGHTS, LIGHTS[0], 2, seed=0), 64, seed=1)
@@ -237,8 +236,8 @@ def test_fine_tuning_steps_from_the_raw_weights_and_keeps_the_ema_when_it_never_
     from dataclasses import replace
 
     import diffshadow.diffusion.finetune as ft
-    from diffshadow.evaluate import EvalTruth
     from diffshadow.lights import validation_lights
+    from diffshadow.truth import EvalTruth
 
     _, _, _, data, state = setup
     assert state["config"]["ema"] > 0

@@ -14,14 +14,15 @@ from conftest import data_inr_stub
 
 from diffshadow import fused
 from diffshadow.analytic import gaussian_blob
-from diffshadow.fused import FusedSiren, FusedSirenError, fused_setting
-from diffshadow.render import Camera, RenderScene
+from diffshadow.fused import FusedSiren, FusedSirenError
+from diffshadow.render import Camera, Networks, RenderError, RenderScene
 from diffshadow.siren import Siren, SirenConfig, WeightLayout, init_siren
 from diffshadow.transfer import TransferFunction
 from diffshadow.volume import Volume
 
 # Triton reads TRITON_INTERPRET when it is first imported; conftest sets it on a machine without CUDA. With
 # CUDA, tests/gpu/test_cuda.py runs the compiled kernel instead.
+FP32 = Networks("fused", "fp32")  # the kernels in fp32: equal to the eager SIREN within float rounding
 pytestmark = [
     pytest.mark.skipif(importlib.util.find_spec("triton") is None,
                        reason="Triton not installed (`pip install -e .[dev]` brings it; CUDA PyTorch has it)"),
@@ -82,7 +83,7 @@ def _blob_scene(density_scale: float = 20):
 @pytest.mark.parametrize("mode, kernel", [("noshadow", "samples"), ("inr", "samples"), ("noshadow", "march"),
                                           ("inr", "march"), ("naive", "extinction"), ("naive", "march")])
 def test_renderer_images_equal_with_the_fused_kernels(monkeypatch, mode, kernel):
-    """With DIFFSHADOW_FUSED_SIREN, `inr` and `noshadow` take each primary sample's value, shadow, transfer
+    """With `render.kernel: fused`, `inr` and `noshadow` take each primary sample's value, shadow, transfer
     function and shading from one kernel: per sample in the wavefront loop (FusedSamples, `whole_rays=False`) or
     each ray from entry to exit (`FusedSamples.march`); `naive` its secondary samples' extinction likewise
     (FusedExtinction, per sample or whole secondary rays). With nothing stopped early (min_transmittance 0, an
@@ -100,12 +101,11 @@ def test_renderer_images_equal_with_the_fused_kernels(monkeypatch, mode, kernel)
         return real(self, *args)
 
     monkeypatch.setattr(cls, method, spy)
-    monkeypatch.setattr(render, "SHADOW_TAU_MAX", 1e9)  # no secondary ray stops early
+    monkeypatch.setattr(render.marcher, "SHADOW_TAU_MAX", 1e9)  # no secondary ray stops early
     cam = Camera.orbit(volume.extent, azimuth=30.0, elevation=25.0, size=12 if mode == "naive" else 24)
     images = {}
     for setting in ("0", "1"):
-        monkeypatch.setenv("DIFFSHADOW_FUSED_SIREN", setting)
-        scene = RenderScene(volume, tf, data_inr, device="cpu")
+        scene = RenderScene(volume, tf, data_inr, device="cpu", networks=FP32 if setting == "1" else None)
         assert scene.fused == (None if setting == "0" else "ieee")
         images[setting] = scene.render(mode, cam, light=(0.3, -0.5, 0.8), siren=siren, skip=False,
                                        min_transmittance=0.0, whole_rays=kernel == "march")
@@ -123,8 +123,7 @@ def test_whole_rays_stop_at_the_first_sample_below_the_threshold(monkeypatch, sk
     colours and background lie in [0, 1], so the images differ by less than the threshold. A dense TF makes most
     rays stop early here."""
     volume, tf, data_inr, siren = _blob_scene(density_scale=200)
-    monkeypatch.setenv("DIFFSHADOW_FUSED_SIREN", "1")
-    scene = RenderScene(volume, tf, data_inr, device="cpu")
+    scene = RenderScene(volume, tf, data_inr, device="cpu", networks=FP32)
     cam = Camera.orbit(volume.extent, azimuth=30.0, elevation=25.0, size=24)
     kw = {"light": (0.3, -0.5, 0.8), "siren": siren, "skip": skip, "min_transmittance": 1e-3}
     whole = scene.render("inr", cam, **kw)
@@ -146,8 +145,7 @@ def test_whole_ray_programs_take_rays_most_samples_first(monkeypatch):
     from diffshadow.grid import ray_span
 
     volume, tf, data_inr, siren = _blob_scene()
-    monkeypatch.setenv("DIFFSHADOW_FUSED_SIREN", "1")
-    scene = RenderScene(volume, tf, data_inr, device="cpu")
+    scene = RenderScene(volume, tf, data_inr, device="cpu", networks=FP32)
     cam = Camera.orbit(volume.extent, azimuth=30.0, elevation=25.0, size=24)
     img = scene.render("noshadow", cam, min_transmittance=0.0, skip=True)
     o, d = cam.rays()
@@ -161,13 +159,13 @@ def test_whole_ray_programs_take_rays_most_samples_first(monkeypatch):
 
 
 def test_setting_and_bad_input(monkeypatch):
-    for value, expected in (("", None), ("0", None), ("1", "ieee"), ("IEEE", "ieee"), ("tf32", "tf32"),
-                            ("compile", "compile")):
-        monkeypatch.setenv("DIFFSHADOW_FUSED_SIREN", value)
-        assert fused_setting() == expected
-    monkeypatch.setenv("DIFFSHADOW_FUSED_SIREN", "bf16")
-    with pytest.raises(FusedSirenError, match="expected 0, 1, ieee, tf32 or compile, got 'bf16'"):
-        fused_setting()
+    for kernel, precision, expected in (("eager", "tf32", None), ("fused", "fp32", "ieee"),
+                                        ("fused", "tf32", "tf32"), ("compile", "fp32", "compile")):
+        assert Networks(kernel, precision).setting() == expected
+    assert Networks.from_config({"kernel": "fused", "step": 0.5}) == Networks("fused", "tf32", "poly")
+    for key, bad in (("kernel", "triton"), ("precision", "bf16"), ("sine", "cos")):
+        with pytest.raises(RenderError, match=f"render.{key}: expected one of .*, got '{bad}'"):
+            Networks(**{key: bad})
     named = Siren(SirenConfig(24, 1)).named_tensors()
     with pytest.raises(FusedSirenError, match=r"power-of-two width >= 16 and 3 inputs, got weights \(24, 3\)"):
         FusedSiren(named, 1)
@@ -177,17 +175,11 @@ def test_setting_and_bad_input(monkeypatch):
         FusedSiren(Siren(SirenConfig(16, 1)).named_tensors(), 1, sine="fast")
     with pytest.raises(FusedSirenError, match="'approx' is a GPU instruction .* interpreter cannot run"):
         FusedSiren(Siren(SirenConfig(16, 1)).named_tensors(), 1, sine="approx")
-    for value, expected in (("", "poly"), ("LIBDEVICE", "libdevice"), ("approx", "approx")):
-        monkeypatch.setenv("DIFFSHADOW_FUSED_SINE", value)
-        assert fused.sine_setting() == expected
-    # a bad sine stops the renderer's set-up: it is not a kernel that cannot take a SIREN, to fall back from
-    monkeypatch.setenv("DIFFSHADOW_FUSED_SINE", "cos")
-    monkeypatch.setenv("DIFFSHADOW_FUSED_SIREN", "tf32")
     volume = Volume(data=gaussian_blob(9, 0.15), extent=np.ones(3), name="blob")
-    with pytest.raises(FusedSirenError, match="DIFFSHADOW_FUSED_SINE: expected one of poly, libdevice, approx, "
-                                              "got 'cos'"):
-        RenderScene(volume, TransferFunction.from_config(BLOB_TF), data_inr_stub(16, 1))
-    monkeypatch.setenv("DIFFSHADOW_FUSED_SINE", "poly")
+    scene = RenderScene(volume, TransferFunction.from_config(BLOB_TF), data_inr_stub(16, 1),
+                        networks=Networks("fused", "tf32", "libdevice"))
+    assert scene.networks_used() == {"kernel": "fused", "precision": "tf32", "sine": "libdevice",
+                                     "used": "fused tf32 libdevice"}
     poly, libdevice = (FusedSiren(Siren(SirenConfig(16, 1)).named_tensors(), 1, "ieee", sine)
                        for sine in ("poly", "libdevice"))
     with pytest.raises(FusedSirenError, match="one precision and sine, got 'ieee'/'poly' and 'ieee'/'libdevice'"):
@@ -256,7 +248,7 @@ def test_every_launch_asks_for_fma_contraction(monkeypatch):
 
 
 def test_a_siren_the_kernel_cannot_take_falls_back_to_eager_with_a_warning(monkeypatch):
-    """DIFFSHADOW_FUSED_SIREN is a speed-up: a data INR of width 8 (the tiny workflow's) renders eagerly, and
+    """`render.kernel: fused` is a speed-up: a data INR of width 8 (the tiny workflow's) renders eagerly, and
     says so, instead of failing the stage."""
     from diffshadow.render import RenderScene
 
@@ -266,11 +258,9 @@ def test_a_siren_the_kernel_cannot_take_falls_back_to_eager_with_a_warning(monke
     tf = TransferFunction.from_config({"opacity": [[0, 0], [1, 0.8]], "color": [[0, 1, 1, 1], [1, 1, 1, 1]],
                                        "density_scale": 20})
     cam = Camera.orbit(volume.extent, azimuth=30.0, elevation=25.0, size=8)
-    monkeypatch.setenv("DIFFSHADOW_FUSED_SIREN", "0")
     eager = RenderScene(volume, tf, data_inr).render("noshadow", cam).rgb
-    monkeypatch.setenv("DIFFSHADOW_FUSED_SIREN", "1")
-    with pytest.warns(UserWarning, match=r"DIFFSHADOW_FUSED_SIREN=ieee: .*power-of-two width >= 16.*eager SIREN"):
-        image = RenderScene(volume, tf, data_inr).render("noshadow", cam).rgb
+    with pytest.warns(UserWarning, match=r"render.kernel=fused \(ieee\): .*power-of-two width >= 16.*eager SIREN"):
+        image = RenderScene(volume, tf, data_inr, networks=FP32).render("noshadow", cam).rgb
     assert torch.equal(image, eager)
 
 
@@ -286,7 +276,6 @@ def test_a_kernel_that_fails_to_compile_leaves_the_scene_eager(monkeypatch):
     volume, tf, data_inr, siren = _blob_scene()
     cam = Camera.orbit(volume.extent, azimuth=30.0, elevation=25.0, size=12)
     kw = {"light": np.array([0.0, 0.6, 0.8]), "siren": siren}
-    monkeypatch.setenv("DIFFSHADOW_FUSED_SIREN", "0")
     eager = RenderScene(volume, tf, data_inr).render("inr", cam, **kw).rgb
 
     def broken(grid):
@@ -297,9 +286,8 @@ def test_a_kernel_that_fails_to_compile_leaves_the_scene_eager(monkeypatch):
     monkeypatch.setattr(fused, "_kernels", lambda: types.SimpleNamespace(march_kernel=_Indexable(broken),
                                                                          samples_kernel=_Indexable(broken)))
     monkeypatch.setattr(fused, "_LAUNCHED", set())
-    monkeypatch.setenv("DIFFSHADOW_FUSED_SIREN", "tf32")
-    scene = RenderScene(volume, tf, data_inr)
-    with pytest.warns(FusedKernelWarning, match=r"DIFFSHADOW_FUSED_SIREN=tf32: march_kernel failed on its first "
+    scene = RenderScene(volume, tf, data_inr, networks=Networks("fused", "tf32"))
+    with pytest.warns(FusedKernelWarning, match=r"render.kernel=fused \(tf32\): march_kernel failed on its first "
                                                 r"launch, compiling \(Triton .*\): RuntimeError: ptxas fatal: "
                                                 r"Unsupported .version 8.7.*eager SIREN from now on"):
         image = scene.render("inr", cam, **kw).rgb

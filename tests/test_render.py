@@ -222,9 +222,9 @@ def test_rendering_makes_no_tensor_on_the_implicit_default_device(blob, mode):
 @pytest.mark.skipif(not (shutil.which("g++") or shutil.which("c++") or shutil.which("clang++")),
                     reason="torch.compile's CPU code needs a C++ compiler")
 def test_compiled_sirens_render_the_same_images(blob, monkeypatch):
-    """DIFFSHADOW_FUSED_SIREN=compile: the data and shadow SIRENs through torch.compile (the CPU's fast path,
+    """`render.kernel: compile`: the data and shadow SIRENs through torch.compile (the CPU's fast path,
     docs/tuning.md) give the eager images, for ours and for the naive baseline's secondary rays."""
-    from diffshadow.render import RenderScene
+    from diffshadow.render import Networks, RenderScene
 
     data_inr = data_inr_stub(16, 1)
 
@@ -233,8 +233,7 @@ def test_compiled_sirens_render_the_same_images(blob, monkeypatch):
     weights = layout.flatten(init_siren(siren, torch.Generator().manual_seed(4))).numpy()
     images = {}
     for setting in ("0", "compile"):
-        monkeypatch.setenv("DIFFSHADOW_FUSED_SIREN", setting)
-        scene = RenderScene(blob, TF, data_inr)
+        scene = RenderScene(blob, TF, data_inr, networks=Networks("compile") if setting == "compile" else None)
         assert scene.fused == (None if setting == "0" else "compile")
         for mode, size in (("inr", 24), ("naive", 12)):
             cam = Camera.orbit(blob.extent, azimuth=30.0, elevation=25.0, size=size)

@@ -229,7 +229,7 @@ def test_cuda_matches_cpu(blob):
 def test_check_points_hold_the_exact_shadow_of_the_checked_lights(blob):
     """The held-out points that measure the geometry stage's seen-light gap: uniform in the box, the same draw
     every time, and the analytic shadow of exactly the lights check_rows picks."""
-    from diffshadow.diffusion.geometry import check_points, check_rows
+    from diffshadow.truth import check_points, check_rows
     rng = np.random.default_rng(3)
     lights = rng.normal(size=(70, 3))
     lights /= np.linalg.norm(lights, axis=1, keepdims=True)

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
+from diffshadow.argparsing import add_networks, network_flags
 from diffshadow.argparsing import add_subcommand as _add
 from diffshadow.argparsing import device_of as _device
 
@@ -34,7 +35,7 @@ def _bench_render(a):
     run(a.out, scene_config=a.scene_config, volume=a.volume, data_inr=a.data_inr, inr_steps=a.inr_steps,
         tf_config=parse_json(a.tf_json, "--tf-json") if a.tf_json else None, weights=a.weights,
         light_index=a.light_index, siren_width=a.siren_width, siren_steps=a.siren_steps, sizes=a.sizes,
-        step=a.step, repeats=a.repeats, memory_sizes=a.memory_sizes, device=_device(a))
+        step=a.step, repeats=a.repeats, memory_sizes=a.memory_sizes, render=network_flags(a), device=_device(a))
 
 
 def _bench_kernels(a):
@@ -86,12 +87,13 @@ def add_bench_parsers(sub) -> None:
     p.add_argument("--sizes", type=int, nargs="+", default=[64, 128])
     p.add_argument("--memory-sizes", type=int, nargs="*", default=None,
                    help="larger sides measured for peak memory only (default: 2x and 4x the largest size)")
+    add_networks(p)
     p = _add(bench, "kernels", _bench_kernels, "registers, spills, programs per SM and machine-code counts of the "
              "fused kernels, compiled for a GPU without one", out=False, device=False)
     p.add_argument("--arch", type=int, nargs="+", default=[80, 90], help="CUDA compute capabilities (80: A100)")
     p.add_argument("--precisions", nargs="+", default=["tf32", "ieee"], choices=["tf32", "ieee"])
     p.add_argument("--sines", nargs="+", default=["poly", "libdevice", "approx"],
-                   choices=["poly", "libdevice", "approx"], help="the SIRENs' sine (DIFFSHADOW_FUSED_SINE)")
+                   choices=["poly", "libdevice", "approx"], help="the SIRENs' sine (render.sine)")
     p.add_argument("--out", default="bench/bench_kernels.json")
 
     p = _add(sub, "check-store", _check_store, "re-evaluate every stored SIREN against the store's PSNR",

@@ -119,8 +119,9 @@ def bench_render(scene: RenderScene, siren, light, *, sizes=(64, 128), step: flo
     tiny = Camera.orbit(scene.volume.extent, azimuth=azimuth, elevation=elevation, size=8)
     for mode in BENCH_MODES:
         scene.render(mode, tiny, **kwargs)
-    # DIFFSHADOW_FUSED_SIREN and _SINE as this scene resolved them, after warming: a kernel that failed to compile
+    # the networks as configured and as this scene resolved them, after warming: a kernel that failed to compile
     # left it eager
+    out["networks"] = scene.networks_used()
     out["siren_kernels"], out["sine"] = scene.fused or "eager", scene.sine
     for n in sizes:
         row: dict = {"seconds": {m: [] for m in BENCH_MODES}, "samples": {}}
@@ -307,7 +308,7 @@ def figure(results: dict) -> Figure:
 def run(out: Path, *, scene_config: Path | None = None, volume: Path | None = None, tf_config: dict | None = None,
         data_inr: Path | None = None, inr_steps: int | None = None, weights: Path | None = None, light_index: int = 0,
         siren_width: int = 32, siren_steps: int = 300, sizes=(64, 128), step: float = 0.5, repeats: int = 3,
-        memory_sizes=None, device: torch.device | str = "cpu") -> dict:
+        memory_sizes=None, render: dict | None = None, device: torch.device | str = "cpu") -> dict:
     """`diffshadow bench render`: a scene (scene file, prepared volume, or raw file with the bench TF), its data
     INR and one shadow INR (given, or fitted here), then `bench_render`; writes JSON and a plot."""
     import dataclasses
@@ -321,11 +322,11 @@ def run(out: Path, *, scene_config: Path | None = None, volume: Path | None = No
     from diffshadow.store import open_store
 
     if scene_config:
-        scene = load_scene_file(Path(scene_config), device)
+        scene = load_scene_file(Path(scene_config), device, render)
         name = Path(scene_config).stem
     elif volume:
         tf = tf_config if tf_config is not None or is_prepared(volume) else BENCH_TF
-        scene = load_render_scene(volume, None, device, tf)
+        scene = load_render_scene(volume, None, device, tf, render)
         name = scene.volume.name
     else:
         raise ValueError("bench render: give --scene-config FILE or --volume PATH")

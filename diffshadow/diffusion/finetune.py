@@ -27,26 +27,18 @@ import numpy as np
 import torch
 
 from diffshadow.config import section
+from diffshadow.diffusion.config import DiffusionConfig, build_model, make_optimizer
 from diffshadow.diffusion.geometry import geometry_error
 from diffshadow.diffusion.sample import generate, load_sampler, sampler_weights
 from diffshadow.diffusion.schedule import Schedule
-from diffshadow.diffusion.train import DiffusionConfig, Standardizer, TrainingData, build_model, make_optimizer
-from diffshadow.evaluate import EvalTruth, psnr_per_light
-from diffshadow.grid import ray_span
+from diffshadow.diffusion.standardize import Standardizer
+from diffshadow.diffusion.train import TrainingData, pool_noised
 from diffshadow.io import atomic_torch_save, resume
-from diffshadow.lights import fibonacci_sphere
 from diffshadow.progress import eta
-from diffshadow.render import (
-    BACKGROUND,
-    Camera,
-    GridScalar,
-    RenderScene,
-    front_to_back,
-)
+from diffshadow.render.bundle import RayBundle, bundle_colors
 from diffshadow.sampling import seeded
 from diffshadow.siren import BatchedSiren, SirenConfig, WeightLayout, box_to_siren
-from diffshadow.transfer import TransferFunction
-from diffshadow.volume import Volume
+from diffshadow.truth import EvalTruth, psnr_per_light
 
 
 @dataclass(frozen=True)
@@ -80,117 +72,6 @@ class FinetuneConfig:
     def from_config(cls, d: dict | None = None) -> FinetuneConfig:
         """defaults.yaml's `finetune` section overridden by `d`."""
         return section(cls, "finetune", d)
-
-
-def fibonacci_views(extent, n: int, *, size: int, fov: float = 60.0, distance: float = 2.2) -> list[Camera]:
-    """`n` cameras on a Fibonacci sphere around the box, looking at its centre (the authors' views)."""
-    extent = np.asarray(extent, dtype=float)
-    center = extent / 2
-    out = []
-    for d in fibonacci_sphere(n) if n > 1 else np.array([[0.6, 0.6, 0.52915026]]):
-        up = (0.0, 0.0, 1.0) if abs(d[2]) < 0.999 else (0.0, 1.0, 0.0)
-        out.append(Camera.look_at(center + distance * np.linalg.norm(center) * d, center, up=up, fov=fov, size=size))
-    return out
-
-
-# ------------------------------------------------------------------------------------------ ray bundles
-
-
-@dataclass
-class RayBundle:
-    """Per view: foreground pixel ids (V, F), their samples (V, F, N, 3) with weights w·c (V, F, N, 3)
-    (zero-padded), the background term T·bg (V, F, 3) and the number of foreground pixels (V,)."""
-
-    pix: torch.Tensor
-    pts: torch.Tensor
-    wc: torch.Tensor
-    base: torch.Tensor
-    count: torch.Tensor
-
-    def to(self, device) -> RayBundle:
-        return RayBundle(*(t.to(device) for t in (self.pix, self.pts, self.wc, self.base, self.count)))
-
-
-def view_samples(volume: Volume, tf: TransferFunction, camera: Camera, *, step: float,
-                 background: float = BACKGROUND, min_weight: float = 1e-6, chunk: int = 4096):
-    """One view's foreground pixels and their light-independent samples (see the module docstring)."""
-    scalar = GridScalar(volume)
-    extent = torch.as_tensor(volume.extent, dtype=torch.float32)
-    dt = step * float(np.min(volume.voxel_size))
-    o, d = camera.rays()
-    pix_all, pts_all, wc_all, base_all = [], [], [], []
-    for r0 in range(0, len(o), chunk):
-        oc, dc = o[r0:r0 + chunk], d[r0:r0 + chunk]
-        t0, t1 = ray_span(oc, dc, extent)
-        n = int(torch.ceil(((t1 - t0).clamp_min(0) / dt).max()).item()) + 1 if bool((t0 < t1).any()) else 1
-        t = t0[:, None] + (torch.arange(n) + 0.5) * dt
-        valid = t < t1[:, None]
-        pts = oc[:, None] + t[..., None] * dc[:, None]
-        alpha = torch.zeros(valid.shape)
-        color = torch.zeros(*valid.shape, 3)
-        s = scalar.value(pts[valid])
-        alpha[valid] = 1 - torch.exp(-tf.extinction(s) * dt)
-        color[valid] = tf.color(s)
-        w, trans = front_to_back(alpha)
-        fg = (1 - trans) >= 1.0 / 255.0
-        for i in torch.nonzero(fg).flatten().tolist():
-            keep = w[i] > min_weight
-            pix_all.append(r0 + i)
-            pts_all.append(pts[i][keep])
-            wc_all.append(w[i][keep, None] * color[i][keep])
-            base_all.append(trans[i] * background * torch.ones(3))
-    return pix_all, pts_all, wc_all, base_all
-
-
-def build_bundle(volume: Volume, tf: TransferFunction, cameras: list[Camera], *, step: float,
-                 background: float = BACKGROUND) -> RayBundle:
-    views = [view_samples(volume, tf, cam, step=step, background=background) for cam in cameras]
-    for v, (pix_v, *_rest) in enumerate(views):
-        if not pix_v:
-            raise ValueError(f"finetune view {v} (eye {np.round(cameras[v].eye, 3).tolist()}) shows no foreground "
-                             f"pixel: the volume is invisible under this TF, or the camera misses it")
-    f = max(1, max(len(v[0]) for v in views))
-    n = max(1, max((len(p) for v in views for p in v[1]), default=1))
-    nv = len(cameras)
-    pix = torch.zeros(nv, f, dtype=torch.long)
-    pts = torch.zeros(nv, f, n, 3)
-    wc = torch.zeros(nv, f, n, 3)
-    base = torch.zeros(nv, f, 3)
-    count = torch.zeros(nv, dtype=torch.long)
-    for v, (pv, ptv, wcv, bv) in enumerate(views):
-        count[v] = len(pv)
-        for j, (p, q, c, b) in enumerate(zip(pv, ptv, wcv, bv, strict=True)):
-            pix[v, j] = p
-            pts[v, j, :len(q)] = q
-            wc[v, j, :len(c)] = c
-            base[v, j] = b
-    return RayBundle(pix, pts, wc, base, count)
-
-
-def bundle_colors(bundle: RayBundle, g: torch.Tensor, view_idx: torch.Tensor, pix_idx: torch.Tensor) -> torch.Tensor:
-    """Pixel colours (..., 3) from shadow values g (..., N) at the samples of the chosen pixels."""
-    wc = bundle.wc[view_idx, pix_idx]
-    return bundle.base[view_idx, pix_idx] + (wc * (0.1 + 0.9 * g)[..., None]).sum(-2)
-
-
-def render_targets(volume: Volume, tf: TransferFunction, lights: np.ndarray, cameras: list[Camera], *,
-                   step: float, method: str = "sweep", upsample: int = 1, device: torch.device | str = "cpu",
-                   log=print) -> torch.Tensor:
-    """Ground-truth images (L, V, H, W, 3) on the CPU, rendered on `device` by the renderer's `gt` mode
-    (early termination far below 8 bits) with shadow grids by `method` ("sweep" or "march") on the volume
-    refined `upsample` times."""
-    if method not in ("sweep", "march"):
-        raise ValueError(f"finetune.targets: expected 'sweep' or 'march', got {method!r}")
-    scene = RenderScene(volume, tf, device=device, gt_method=method, gt_upsample=upsample)
-    out = torch.zeros(len(lights), len(cameras), cameras[0].height, cameras[0].width, 3)
-    t0 = time.perf_counter()
-    for i, w in enumerate(lights):
-        for v, cam in enumerate(cameras):
-            out[i, v] = scene.render("gt", cam, light=w, step=step, min_transmittance=1e-6).rgb
-        scene.forget_gt(w)
-        if (i + 1) % max(1, len(lights) // 10) == 0 or i + 1 == len(lights):
-            log(f"target images: {i + 1}/{len(lights)} lights ({eta(i + 1, len(lights), t0)})")
-    return out
 
 
 # -------------------------------------------------------------------------------------------- training
@@ -266,7 +147,7 @@ def step_loss(model, std: Standardizer, data: FinetuneData, z_all: torch.Tensor,
     if pool is not None:  # one forward for both (DDP expects one forward per backward)
         j = torch.cat([d[4][0] for d in draws]).to(device)
         tp = torch.cat([d[4][1] for d in draws]).to(device)
-        x0p, x_tp, light_p = pool.noised(z_all, j, tp, torch.cat([d[4][2] for d in draws]).to(device), schedule)
+        x0p, x_tp, light_p = pool_noised(pool, z_all, j, tp, torch.cat([d[4][2] for d in draws]).to(device), schedule)
         x_t, t, light_in = torch.cat([x_t, x_tp]), torch.cat([t, tp]), torch.cat([light_in, light_p])
     pred_all = model(x_t, t, light_in)
     pred = pred_all[:len(local)]

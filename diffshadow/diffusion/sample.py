@@ -8,9 +8,10 @@ import copy
 import numpy as np
 import torch
 
+from diffshadow.diffusion.config import DiffusionConfig, DiffusionError, build_model
 from diffshadow.diffusion.model import WeightTransformer
 from diffshadow.diffusion.schedule import Schedule
-from diffshadow.diffusion.train import DiffusionConfig, DiffusionError, Standardizer, build_model
+from diffshadow.diffusion.standardize import Standardizer
 from diffshadow.lights import as_direction
 from diffshadow.sampling import seeded
 from diffshadow.siren import SirenConfig, WeightLayout

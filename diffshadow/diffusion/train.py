@@ -19,175 +19,33 @@ from pathlib import Path
 
 import torch
 
-from diffshadow.config import section
-from diffshadow.diffusion.geometry import check_rows, geometry_error
-from diffshadow.diffusion.model import PRESETS, WeightTransformer
+from diffshadow.diffusion.config import DiffusionConfig, DiffusionError, build_model, make_optimizer
+from diffshadow.diffusion.geometry import geometry_error
+from diffshadow.diffusion.model import WeightTransformer
+from diffshadow.diffusion.sample import generate
 from diffshadow.diffusion.schedule import Schedule
+from diffshadow.diffusion.standardize import Standardizer
 from diffshadow.io import atomic_torch_save, resume
+from diffshadow.lights import PoolLights
 from diffshadow.metrics import psnr
 from diffshadow.progress import FirstNonFinite, eta
 from diffshadow.sampling import seeded
 from diffshadow.siren import BatchedSiren, SirenConfig, WeightLayout, box_to_siren
+from diffshadow.truth import check_rows
 
 # (largest SIREN width, preset) for `preset: auto`: the model widens with the SIREN, so a scene whose stage 1
 # chose width 64 spends more (tooth: seen / unseen +1.1 / +1.2 dB for 2x the time) and nucleon's width 32 keeps
 # its cost. Wider SIRENs also get "medium": the step beyond it is not measured (docs/tuning.md).
-AUTO_PRESETS = ((32, "small"), (64, "medium"))
-
-
-class DiffusionError(ValueError):
-    """Training or sampling that cannot go on; the message says why and what was kept."""
-
-
-@dataclass(frozen=True)
-class DiffusionConfig:
-    preset: str  # a PRESETS name, or "auto": the one AUTO_PRESETS gives the SIREN width (for_siren)
-    epochs: int  # paper: 7000 (geometry stage)
-    batch_size: int
-    lr: float  # AdamW, paper §3.4
-    weight_decay: float
-    lr_step_epochs: int  # StepLR, paper §3.4
-    lr_gamma: float
-    grad_clip: float
-    ema: float  # EMA decay of the weights used for sampling (warmed up, see ema_decay); 0: off
-    geometry_weight: float
-    geometry_points: int  # per light per step, drawn from the presampled set (authors: 4096)
-    presample_points: int  # per light in geometry_points.zarr (paper: 500,000)
-    checkpoint_every: int  # epochs
-    ddim_steps: int
-    standardize: str  # "token": paper; "param": per weight across lights (see README)
-    light_freqs: int  # NeRF encoding of the light direction; 3 interpolates best between lights (README)
-    temperature: float  # DDIM start noise scale; 0: one deterministic path per light (see README)
-    seed: int
-    # lights with no fitted SIREN, drawn by presample in the training lights' cap and trained alongside
-    # them on exact shadows (PoolLights); 0: off
-    pool_lights: int
-    pool_points: int  # presampled points per pool light
-    pool_x0_weight: float  # x0 loss towards the blend of the nearest training SIRENs (geometry: towards truth)
-    tensor_tokens: int  # tokens per weight tensor wider than the model (G.pt's chunks); 1: one per tensor (paper)
-    # after `epochs`, train on (checking every checkpoint_every epochs) while the generated seen lights lie more
-    # than target_gap dB under stage 1, up to max_epochs; 0 target_gap: exactly `epochs`
-    target_gap: float
-    max_epochs: int
-
-    @classmethod
-    def from_config(cls, d: dict | None = None) -> DiffusionConfig:
-        """defaults.yaml's `diffusion` section overridden by `d`."""
-        cfg = section(cls, "diffusion", d)
-        if cfg.preset not in PRESETS and cfg.preset != "auto":
-            raise ValueError(f"diffusion.preset: expected auto or one of {sorted(PRESETS)}, got {cfg.preset!r}")
-        return cfg
-
-    def for_siren(self, width: int) -> DiffusionConfig:
-        """This config with `preset: auto` made concrete for SIRENs of `width` (the smallest AUTO_PRESETS entry
-        that covers it); a named preset is kept. Checkpoints store the concrete name."""
-        if self.preset != "auto":
-            return self
-        preset = next((name for top, name in AUTO_PRESETS if width <= top), AUTO_PRESETS[-1][1])
-        return dataclasses.replace(self, preset=preset)
-
-    @classmethod
-    def of_checkpoint(cls, state: dict) -> DiffusionConfig:
-        """The config a checkpoint was trained with; one written before `tensor_tokens` existed had one token
-        per tensor, whatever config.yaml says now."""
-        return cls.from_config({"tensor_tokens": 1, **state["config"]})
-
-
-def _pow2_std(s: torch.Tensor) -> torch.Tensor:
-    """Round a spread to a power of two (exact scaling), kept inside float32's normal range; 0 where it is 0.
-
-    Found by the stress suite: spreads up to 1e-12 used to get std 1, so the model's ordinary x0 error
-    (~1e-2 in standardised units) landed unscaled on tensors whose weights differ by 1e-13 across lights.
-    """
-    if not torch.isfinite(s).all():
-        raise DiffusionError("standardizer: a weight tensor's spread is not finite (NaN/Inf weights in the store?)")
-    exp = torch.round(torch.log2(torch.where(s > 0, s, torch.ones_like(s)))).clamp(-126, 127)
-    return torch.where(s > 0, 2.0**exp, torch.zeros_like(s))
-
-
-class Standardizer:
-    """Mean and power-of-two std, per token (paper: one scalar per parameter tensor) or per parameter."""
-
-    def __init__(self, layout: WeightLayout, mean: torch.Tensor, std: torch.Tensor):
-        self.layout = layout
-        self.mean = mean.double()  # (n_tokens,) or (n_params,)
-        self.std = std.double()
-
-    @classmethod
-    def fit(cls, layout: WeightLayout, weights: torch.Tensor, mode: str = "token") -> Standardizer:
-        bad = ~torch.isfinite(weights).all(dim=1)
-        if bad.any():
-            rows = torch.nonzero(bad).flatten().tolist()
-            raise DiffusionError(f"standardizer: the weights of light row(s) {rows[:10]}"
-                                 f"{'...' if len(rows) > 10 else ''} are not finite; refit those lights")
-        w = weights.double()
-        if mode == "param":
-            # across lights, per weight: what is left is the light-dependent part, at unit scale
-            mean = w.mean(dim=0).float().double()  # representable in float32: keeps the round trip exact
-            std = w.std(dim=0) if len(w) > 1 else torch.zeros_like(mean)
-            return cls(layout, mean, _pow2_std(std))
-        if mode != "token":
-            raise ValueError(f"diffusion.standardize: expected 'token' or 'param', got {mode!r}")
-        parts = w.split(layout.sizes, dim=1)
-        mean = torch.tensor([float(p.mean().float()) for p in parts], dtype=torch.float64)
-        std = torch.tensor([float(p.std()) if p.numel() > 1 else 0.0 for p in parts], dtype=torch.float64)
-        return cls(layout, mean, _pow2_std(std))
-
-    def _expand(self, v: torch.Tensor, like: torch.Tensor) -> torch.Tensor:
-        if len(v) == self.layout.n_params:
-            return v.to(like.device)
-        return torch.repeat_interleave(v.to(like.device), torch.tensor(self.layout.sizes, device=like.device))
-
-    def standardize(self, w: torch.Tensor) -> torch.Tensor:
-        """(..., n_params) weights → standardised, in float64 (0 where the std is 0)."""
-        std = self._expand(self.std, w)
-        return (w.double() - self._expand(self.mean, w)) / torch.where(std > 0, std, 1.0) * (std > 0)
-
-    def destandardize(self, z: torch.Tensor) -> torch.Tensor:
-        """Inverse of `standardize`; keeps the autograd graph (the geometry loss differentiates through it)."""
-        return z * self._expand(self.std, z).to(z.dtype) + self._expand(self.mean, z).to(z.dtype)
-
-    def state(self) -> dict:
-        return {"mean": self.mean, "std": self.std}
 
 
 _geometry_error = geometry_error  # indirection so tests can inject a failure mid-run
 
 
-BLEND_K = 4  # training SIRENs blended into a pool light's x0 target (the evaluation's blend baseline: 4 too)
-
-
-@dataclass
-class PoolLights:
-    """Pool lights: directions in the training lights' cap with no fitted SIREN. Each has an x0 target, the
-    inverse-angle blend of its `BLEND_K` nearest training SIRENs' weights (`neighbours`, `blend`), and its
-    exact shadow at presampled points for the geometry loss. The blend alone is a usable SIREN because every
-    training SIREN starts from one pre-optimised init (nucleon: 30.0 dB at unseen lights against 27.9 for
-    blending the shadows themselves); the geometry loss corrects it towards the truth."""
-
-    lights: torch.Tensor  # (M, 3)
-    points: torch.Tensor  # (M, P, 3)
-    values: torch.Tensor  # (M, P)
-    neighbours: torch.Tensor  # (M, k) rows of the training set
-    blend: torch.Tensor  # (M, k), rows sum to 1
-
-    def to(self, device) -> PoolLights:
-        return PoolLights(*(t.to(device) for t in (self.lights, self.points, self.values, self.neighbours,
-                                                    self.blend)))
-
-    def x0(self, z_all: torch.Tensor, j: torch.Tensor) -> torch.Tensor:
-        """The x0 targets (B, n_params) of pool lights `j`: their blends of the standardised training weights."""
-        return (z_all[self.neighbours[j]] * self.blend[j][..., None]).sum(1)
-
-    def noised(self, z_all: torch.Tensor, j: torch.Tensor, t: torch.Tensor, noise: torch.Tensor,
-               schedule: Schedule) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-        """Pool lights `j` as model input beside the training lights: their x0 targets, noised x_t, directions."""
-        x0 = self.x0(z_all, j)
-        return x0, schedule.q_sample(x0, t, noise), self.lights[j].float()
-
-    def samples(self, j: torch.Tensor, pick: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        """Points (B, G, 3) and exact shadow (B, G) of pool lights `j` at their presampled points `pick` (B, G)."""
-        return torch.gather(self.points[j], 1, pick[..., None].expand(-1, -1, 3)), torch.gather(self.values[j], 1, pick)
+def pool_noised(pool: PoolLights, z_all: torch.Tensor, j: torch.Tensor, t: torch.Tensor, noise: torch.Tensor,
+                schedule: Schedule) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Pool lights `j` as model input beside the training lights: their x0 targets, noised x_t, directions."""
+    x0 = pool.x0(z_all, j)
+    return x0, schedule.q_sample(x0, t, noise), pool.lights[j].float()
 
 
 @dataclass
@@ -242,7 +100,6 @@ def seen_gap_db(model: WeightTransformer, std: Standardizer, data: TrainingData,
     over the lights `check_rows` picks of stage-1 PSNR minus generated PSNR at the held-out check points
     (positive: generated worse). Sampled as `sample_shadows` does (DDIM, cfg.ddim_steps, cfg.temperature), scored
     as `evaluate_voxels` scores the "box" set, so it estimates the seen-light gap the run will report."""
-    from diffshadow.diffusion.sample import generate  # sample.py imports this module
 
     if data.check is None:
         raise DiffusionError("diffusion.target_gap needs held-out check points in the geometry points; rerun "
@@ -262,25 +119,6 @@ def seen_gap_db(model: WeightTransformer, std: Standardizer, data: TrainingData,
     stage1, ours = (psnr(BatchedSiren(w.to(device).float(), data.layout, data.siren.blocks)(at_checks), values, dim=1)
                     for w in (data.weights[rows], generated))
     return float((stage1 - ours).median())
-
-
-def make_optimizer(params, lr: float, weight_decay: float) -> torch.optim.AdamW:
-    """AdamW, fused where this torch has the kernel for the device (CPU since torch 2.4): on the small
-    preset's 3.5M parameters the per-tensor loop took 27 ms of a 270 ms CPU step, the fused one 5 ms."""
-    params = list(params)
-    try:
-        return torch.optim.AdamW(params, lr=lr, weight_decay=weight_decay, fused=True)
-    except RuntimeError:  # torch 2.3 on CPU: no fused kernel
-        return torch.optim.AdamW(params, lr=lr, weight_decay=weight_decay)
-
-
-def build_model(layout: WeightLayout, cfg: DiffusionConfig) -> WeightTransformer:
-    """The model, initialised on the CPU (the same seed gives the same weights on every device)."""
-    if cfg.preset not in PRESETS:
-        raise ValueError(f"diffusion.preset {cfg.preset!r}: no model of that name (resolve 'auto' with for_siren)")
-    with torch.device("cpu"):
-        return WeightTransformer(layout, dataclasses.replace(PRESETS[cfg.preset], light_freqs=cfg.light_freqs,
-                                                                tensor_tokens=cfg.tensor_tokens))
 
 
 def train_diffusion(data: TrainingData, cfg: DiffusionConfig, checkpoint: Path, *,
@@ -412,7 +250,7 @@ def train_diffusion(data: TrainingData, cfg: DiffusionConfig, checkpoint: Path, 
                 j = torch.randint(0, len(pool.lights), (b,), generator=gen, device=gen.device).to(device)
                 tp = torch.randint(0, schedule.steps, (b,), generator=gen, device=gen.device).to(device)
                 noise_p = torch.randn(b, z_all.shape[1], generator=gen, device=gen.device).to(device)
-                x0p, x_tp, light_p = pool.noised(z_all, j, tp, noise_p, schedule)
+                x0p, x_tp, light_p = pool_noised(pool, z_all, j, tp, noise_p, schedule)
                 x_t, t_in, light_in = torch.cat([x_t, x_tp]), torch.cat([t, tp]), torch.cat([light_in, light_p])
             pred_all = model(x_t, t_in, light_in)
             pred = pred_all[:b]

@@ -10,13 +10,14 @@ import torch
 
 from diffshadow import artifacts, report
 from diffshadow.data_inr import DataInrConfig, fit_data_inr
-from diffshadow.diffusion.finetune import FinetuneConfig, build_bundle, fibonacci_views
-from diffshadow.diffusion.finetune import render_targets as targets
+from diffshadow.diffusion.finetune import FinetuneConfig
 from diffshadow.evaluate import image_evaluation
 from diffshadow.io import atomic_write_text, finite_json
 from diffshadow.lights import read_lights
 from diffshadow.metrics import lpips_model, ms_ssim_status
-from diffshadow.render import Camera, RenderScene, default_views, shading_name, write_png
+from diffshadow.render import Camera, RenderScene, default_views, fibonacci_views, shading_name, write_png
+from diffshadow.render.bundle import build_bundle
+from diffshadow.render.bundle import render_targets as targets
 from diffshadow.store import open_store
 
 
@@ -69,7 +70,7 @@ def evaluate_images(volume_path: Path, lights_path: Path, data_inr: Path, weight
                     generated_path: Path | None, images_dir: Path, out: Path, *, cfg: dict,
                     device: torch.device) -> None:
     """`image_metrics.json` and the PNGs: every shading mode against `gt`."""
-    scene = artifacts.load_render_scene(volume_path, data_inr, device)
+    scene = artifacts.load_render_scene(volume_path, data_inr, device, render=cfg)
     light_sets = read_lights(lights_path)
     stage1 = open_store(weights_path)
     generated = open_store(generated_path) if generated_path else None
@@ -84,7 +85,7 @@ def evaluate_images(volume_path: Path, lights_path: Path, data_inr: Path, weight
                    "shading": shading_name(bool(cfg.get("phong"))), "ms_ssim": ms_ssim_status(cfg["image_size"]),
                    "reference": "gt: raw scalar field and shadow_grid (march), same step",
                    "data_inr_psnr": scene.data_inr.psnr if scene.data_inr is not None else None,
-                   "data_inr": _data_inr_size(scene.data_inr)})
+                   "data_inr": _data_inr_size(scene.data_inr), "networks": scene.networks_used()})
     atomic_write_text(out, json.dumps(finite_json(result), indent=2) + "\n")
     for name, m in sorted(result["modes"].items()):
         print(f"{name:24s} PSNR {m['psnr']:.2f} dB  SSIM {m['ssim']:.4f}  over {m['count']} images")

@@ -12,6 +12,7 @@ import numpy as np
 import torch
 
 from diffshadow import artifacts
+from diffshadow.diffusion.config import DiffusionConfig, DiffusionError
 from diffshadow.diffusion.finetune import (
     FinetuneConfig,
     FinetuneData,
@@ -19,17 +20,16 @@ from diffshadow.diffusion.finetune import (
     image_psnr_of_model,
     keep_if_images_improve,
 )
-from diffshadow.diffusion.geometry import POOL_STREAM, check_points
-from diffshadow.diffusion.geometry import presample as presample_points
 from diffshadow.diffusion.model import PRESETS
 from diffshadow.diffusion.sample import generate, load_sampler
-from diffshadow.diffusion.train import DiffusionConfig, DiffusionError
 from diffshadow.diffusion.train import train_diffusion as train
-from diffshadow.evaluate import EvalTruth, psnr_per_light, voxel_metrics
+from diffshadow.evaluate import voxel_metrics
 from diffshadow.io import atomic_torch_save, atomic_write_text
 from diffshadow.lights import read_lights, training_pool, validation_lights
 from diffshadow.runtime import distributed, set_threads
 from diffshadow.store import WeightStore, open_store, write_store
+from diffshadow.truth import POOL_STREAM, EvalTruth, check_points, psnr_per_light
+from diffshadow.truth import presample as presample_points
 
 # test lights further than this from a training light are helped by a denser sphere (tooth, docs/tuning.md)
 SPARSE_LIGHTS_DEG = 2.0

@@ -19,8 +19,9 @@ import torch.multiprocessing as mp
 
 from diffshadow.analytic import gaussian_blob
 from diffshadow.data_inr import DataInrConfig, fit_data_inr
+from diffshadow.diffusion.config import DiffusionConfig
 from diffshadow.diffusion.sample import generate, load_sampler
-from diffshadow.diffusion.train import DiffusionConfig, TrainingData, train_diffusion
+from diffshadow.diffusion.train import TrainingData, train_diffusion
 from diffshadow.fit import FitConfig, fit_sirens
 from diffshadow.render import Camera, RenderScene
 from diffshadow.siren import BatchedSiren, SirenConfig, WeightLayout, init_siren

@@ -8,15 +8,11 @@ from hypothesis import given
 from hypothesis import strategies as st
 from test_ground_truth_stress import SETTINGS
 
+from diffshadow.diffusion.config import DiffusionConfig, DiffusionError
 from diffshadow.diffusion.sample import generate, load_sampler
 from diffshadow.diffusion.schedule import Schedule
-from diffshadow.diffusion.train import (
-    DiffusionConfig,
-    DiffusionError,
-    Standardizer,
-    TrainingData,
-    train_diffusion,
-)
+from diffshadow.diffusion.standardize import Standardizer
+from diffshadow.diffusion.train import TrainingData, train_diffusion
 from diffshadow.siren import BatchedSiren, SirenConfig, WeightLayout
 
 pytestmark = pytest.mark.stress

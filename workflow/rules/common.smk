@@ -15,6 +15,8 @@ _SCENES = {}
 # finetune_render's DDP processes. A PBS job parses this file again, so it gets them too.
 os.environ.update(DIFFSHADOW_CONFIG_DEVICE=config.get("device", "auto"),
                   DIFFSHADOW_TORCHRUN=config.get("torchrun", "torchrun --standalone"))
+# and `deterministic`, which changes no byte on a CPU and only float summation order on a GPU; a user's own wins
+os.environ.setdefault("DIFFSHADOW_DETERMINISTIC", "1" if config.get("deterministic") else "0")
 
 
 def scene_config(scene):

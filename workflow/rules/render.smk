@@ -63,6 +63,7 @@ rule benchmark:
         step=lambda wc: scene_config(wc.scene)["render"]["step"],
         repeats=lambda wc: scene_config(wc.scene)["render"]["bench_repeats"],
         memory=lambda wc: " ".join(str(n) for n in scene_config(wc.scene)["render"].get("bench_memory_sizes", [])),
+        networks=lambda wc: " ".join(f"--{k} {scene_config(wc.scene)['render'][k]}" for k in ("kernel", "precision", "sine")),
     threads: 2
     log:
         "results/{scene}/logs/benchmark.log",
@@ -73,5 +74,5 @@ rule benchmark:
     shell:
         "diffshadow bench render --volume {input.volume} --data-inr {input.data_inr} --weights {input.weights}"
         " --sizes {params.sizes} --memory-sizes {params.memory} --step {params.step} --repeats {params.repeats}"
-        " --threads {threads}"
+        " {params.networks} --threads {threads}"
         " --out {output.bench} 2>&1 | tee {log}"

@@ -1,0 +1,108 @@
+"""What the marcher samples: the scalar field (raw grid or data INR) and the shadow source (a shadow grid or a
+shadow INR), each evaluated by the network path `Networks` chose (eager, compiled or a fused kernel)."""
+
+from __future__ import annotations
+
+import warnings
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+
+from diffshadow.fused import COMPILE, PRECISIONS, FusedSiren, FusedSirenError
+from diffshadow.grid import trilinear
+from diffshadow.siren import FoldedSiren, Siren, WeightLayout, box_to_siren, fold, fold_flat
+from diffshadow.volume import Volume
+
+
+class GridScalar:
+    """The raw volume: trilinear value and (central-difference) gradient from one 4-channel lookup."""
+
+    def __init__(self, volume: Volume, device: torch.device | str = "cpu"):
+        self.extent = torch.as_tensor(volume.extent, dtype=torch.float32, device=device)
+        self.voxel = torch.as_tensor(volume.voxel_size, dtype=torch.float32, device=device)
+        data = volume.data.astype(np.float64)
+        spacing = volume.voxel_size  # (x, y, z)
+        gz, gy, gx = np.gradient(data, spacing[2], spacing[1], spacing[0])
+        stack = np.stack([data, gx, gy, gz]).astype(np.float32)
+        self.channels = torch.as_tensor(stack, device=device)[None]  # (1, 4, Z, Y, X)
+
+    def _lookup(self, p: torch.Tensor, channels: slice) -> torch.Tensor:
+        return trilinear(self.channels[0, channels], p / self.voxel)
+
+    def value(self, p: torch.Tensor) -> torch.Tensor:
+        return self._lookup(p, slice(0, 1))[0]
+
+    def value_and_grad(self, p: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        out = self._lookup(p, slice(0, 4))
+        return out[0], out[1:].t()
+
+
+class InrScalar:
+    """The data INR (a SIREN of the scalar field); gradients by autograd through the network. `fused`: the
+    fused kernel's precision for values (`diffshadow.fused`), "compile" for the eager SIREN through torch.compile,
+    None for the eager SIREN; `sine`: the fused kernel's sine (None: "poly")."""
+
+    def __init__(self, model: Siren, extent, device: torch.device | str = "cpu", fused: str | None = None,
+                 sine: str | None = None):
+        self.model = model.to(device).eval()
+        for q in self.model.parameters():
+            q.requires_grad_(False)
+        self.extent = torch.as_tensor(np.asarray(extent), dtype=torch.float32, device=device)
+        self.box = tuple(np.asarray(extent, dtype=float).tolist())  # on the host, to compare without a sync
+        named, blocks = self.model.named_tensors(), self.model.cfg.blocks  # parameters without gradients
+        self.fast = _fast_siren(named, blocks, fused, lambda: fold(named, blocks), sine)
+
+    def value(self, p: torch.Tensor) -> torch.Tensor:
+        return self.fast(box_to_siren(p, self.extent))
+
+    def value_and_grad(self, p: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        with torch.enable_grad():
+            p = p.detach().requires_grad_(True)
+            s = self.model(box_to_siren(p, self.extent))
+            (g,) = torch.autograd.grad(s.sum(), p)
+        return s.detach(), g
+
+
+def _fast_siren(named: dict, blocks: int, fused: str | None, layers, sine: str | None = None
+                ) -> FusedSiren | FoldedSiren:
+    """A SIREN for inference: the fused kernel in precision `fused` with `sine`, else the folded eager SIREN
+    (`layers()`: its folded layers), through torch.compile for "compile". A SIREN the kernel cannot take (a width
+    that is not a power of two >= 16) falls back to the eager one, with a warning: the setting is a speed-up, not
+    a result."""
+    if fused in PRECISIONS:
+        try:
+            return FusedSiren(named, blocks, fused, sine)
+        except FusedSirenError as e:
+            warnings.warn(f"render.kernel=fused ({fused}): {e}; using the eager SIREN", stacklevel=3)
+    return FoldedSiren(layers(), compiled=fused == COMPILE)
+
+
+class GridShadow:
+    """Shadow coefficients looked up trilinearly in a (Z, Y, X) grid (`shadow_grid`'s output)."""
+
+    def __init__(self, grid, extent, device: torch.device | str = "cpu"):
+        self.grid = torch.as_tensor(grid, dtype=torch.float32, device=device)[None, None]
+        self.extent = torch.as_tensor(np.asarray(extent), dtype=torch.float32, device=device)
+
+    def __call__(self, p: torch.Tensor) -> torch.Tensor:
+        g = box_to_siren(p, self.extent).view(1, 1, 1, -1, 3)
+        return F.grid_sample(self.grid, g, mode="bilinear", padding_mode="border", align_corners=True).view(-1)
+
+
+class SirenShadow:
+    """A shadow INR (one flat weight vector in `layout`), evaluated in the same pass as the data INR."""
+
+    def __init__(self, weights, layout: WeightLayout, blocks: int, extent, device: torch.device | str = "cpu",
+                 fused: str | None = None, sine: str | None = None):
+        w = torch.as_tensor(np.asarray(weights), dtype=torch.float32, device=device).reshape(1, -1)
+        # eager: one SIREN with a leading K = 1, the batched matmuls of fitting, so the same values
+        self.fast = _fast_siren({k: v[0] for k, v in layout.unflatten(w).items()}, blocks, fused,
+                                lambda: fold_flat(w, layout, blocks), sine)
+        self.batched = not isinstance(self.fast, FusedSiren)
+        self.extent = torch.as_tensor(np.asarray(extent), dtype=torch.float32, device=device)
+        self.box = tuple(np.asarray(extent, dtype=float).tolist())
+
+    def __call__(self, p: torch.Tensor) -> torch.Tensor:
+        x = box_to_siren(p, self.extent)
+        return (self.fast(x[None])[0] if self.batched else self.fast(x)).clamp(0.0, 1.0)

@@ -1,0 +1,187 @@
+"""A renderable scene: one volume, its TF and data INR on one device, the per-mode pieces cached, and the one
+choice of how its networks are evaluated (`Networks`: config `render.kernel`, `render.precision`, `render.sine`)."""
+
+from __future__ import annotations
+
+import warnings
+from dataclasses import asdict, dataclass
+
+import numpy as np
+import torch
+
+from diffshadow.data_inr import inr_cell_ranges
+from diffshadow.fused import COMPILE, PRECISIONS, SINES, FusedKernelError, FusedKernelWarning
+from diffshadow.fused import available as fused_available
+from diffshadow.io import atomic_save
+from diffshadow.lights import as_direction
+from diffshadow.render.camera import Camera, RenderError
+from diffshadow.render.cells import RENDER_CELL, MacroGrid
+from diffshadow.render.fields import GridScalar, GridShadow, InrScalar, SirenShadow
+from diffshadow.render.marcher import BACKGROUND, DEFAULT_STEP, MIN_TRANSMITTANCE, Image, MarchedShadow, Shading, render
+from diffshadow.shadow import shadow_grid
+from diffshadow.transfer import TransferFunction
+from diffshadow.volume import Volume, refine
+
+MODES = ("noshadow", "gt", "inr", "naive")
+KERNELS = ("eager", COMPILE, "fused")
+PRECISION_NAMES = {"fp32": "ieee", "tf32": "tf32"}  # config name -> the fused kernels' (Triton's input_precision)
+
+
+@dataclass(frozen=True)
+class Networks:
+    """How the renderer evaluates its SIRENs: the one place that chooses (config `render.kernel`,
+    `render.precision`, `render.sine`; recorded in bench.json and image_metrics.json).
+
+    `kernel`: "eager" (folded PyTorch SIRENs: every device, the reference), "compile" (the same through
+    torch.compile) or "fused" (Triton kernels: CUDA, or Triton's interpreter on a CPU; elsewhere the scene
+    renders eagerly and records so). `precision` ("fp32" | "tf32") and `sine` ("poly" | "libdevice" | "approx")
+    apply to "fused" only. The choice changes the image by float rounding at most (docs/performance.md).
+    """
+
+    kernel: str = "eager"
+    precision: str = "tf32"
+    sine: str = "poly"
+
+    def __post_init__(self):
+        for key, value, allowed in (("kernel", self.kernel, KERNELS), ("precision", self.precision, PRECISION_NAMES),
+                                    ("sine", self.sine, SINES)):
+            if value not in allowed:
+                raise RenderError(f"render.{key}: expected one of {', '.join(allowed)}, got {value!r}")
+
+    @classmethod
+    def from_config(cls, render_cfg: dict) -> Networks:
+        """From a config's `render` section (missing keys: the defaults above)."""
+        return cls(**{k: render_cfg[k] for k in ("kernel", "precision", "sine") if k in render_cfg})
+
+    def setting(self) -> str | None:
+        """What the fields take: None (eager), "compile", or the fused kernels' precision."""
+        if self.kernel == "fused":
+            return PRECISION_NAMES[self.precision]
+        return COMPILE if self.kernel == COMPILE else None
+
+
+class RenderScene:
+    """One volume, its TF and (optionally) its data INR on one device, with the per-mode pieces cached.
+
+    Modes: `noshadow`; `gt` (scalar and shadow from the raw volume; shadow by `shadow_grid`, on the volume
+    refined `gt_upsample` times); `inr`
+    (shadow INR co-rendered with the scalar field: ours); `naive` (secondary rays through the scalar
+    field). `scalar="inr"` renders the data INR, `"grid"` the raw volume (to isolate the shadow's error).
+    """
+
+    def __init__(self, volume: Volume, tf: TransferFunction, data_inr=None, *, device: torch.device | str = "cpu",
+                 gt_method: str = "march", gt_upsample: int = 1, cell: int = RENDER_CELL,
+                 networks: Networks | None = None):
+        self.volume, self.tf, self.data_inr = volume, tf, data_inr
+        self.device = torch.device(device)
+        self.networks = networks or Networks()
+        # the SIRENs' path for values where it runs on this device, else eager (`networks_used` records which)
+        setting = self.networks.setting()
+        self.fused = setting if setting and fused_available(self.device, setting) else None
+        self.sine = self.networks.sine if self.fused in PRECISIONS else None
+        self.gt_method, self.gt_upsample, self.cell = gt_method, gt_upsample, cell
+        self.voxel = float(np.min(volume.voxel_size))
+        self._cache: dict = {}
+
+    def networks_used(self) -> dict:
+        """The choice as configured and what this scene renders with now (after any fallback), for the
+        metrics files and the report."""
+        used = ("eager" if self.fused is None else self.fused if self.fused == COMPILE
+                else f"fused {self.fused} {self.sine}")
+        return {**asdict(self.networks), "used": used}
+
+    def _cached(self, key, make):
+        if key not in self._cache:
+            self._cache[key] = make()
+        return self._cache[key]
+
+    def scalar(self, source: str):
+        if source == "grid":
+            return self._cached("grid", lambda: GridScalar(self.volume, self.device))
+        if source == "inr":
+            if self.data_inr is None:
+                raise RenderError("scalar 'inr' needs a data INR (train_data_inr's data_inr.pt)")
+            return self._cached(("inr", self.fused, self.sine), lambda: InrScalar(
+                self.data_inr.model, self.volume.extent, self.device, self.fused, self.sine))
+        raise RenderError(f"scalar: expected 'grid' or 'inr', got {source!r}")
+
+    def macro(self, source: str, skip: bool) -> MacroGrid | None:
+        if not skip:
+            return None
+        ranges = None
+        if source == "inr":
+            ranges = (self.data_inr.cell_lo, self.data_inr.cell_hi)
+            if ranges[0] is None or self.cell != RENDER_CELL:
+                ranges = self._cached(("ranges", self.cell), lambda: inr_cell_ranges(
+                    self.data_inr.model, self.volume, cell=self.cell, device=self.device))
+        return self._cached(("macro", source), lambda: MacroGrid.build(self.volume, self.tf, cell=self.cell,
+                                                                     ranges=ranges, device=self.device))
+
+    @staticmethod
+    def _gt_key(light) -> tuple:
+        return ("gt", tuple(np.round(as_direction(light), 12).tolist()))
+
+    def forget_gt(self, light) -> None:
+        """Drop the cached shadow grid of `light` (a loop over many lights need not keep them all)."""
+        self._cache.pop(self._gt_key(light), None)
+
+    def gt_shadow(self, light) -> GridShadow:
+        key = self._gt_key(light)
+        w = key[1]
+        fine = self._cached("gt_volume", lambda: refine(self.volume, self.gt_upsample))
+        return self._cached(key, lambda: GridShadow(
+            shadow_grid(fine, self.tf, w, method=self.gt_method, device=self.device), self.volume.extent, self.device))
+
+    def render(self, mode: str, camera: Camera, *, light=None, siren=None, scalar: str | None = None,
+               phong: bool = False, step: float = DEFAULT_STEP, skip: bool = True, batch: int | None = None,
+               samples_per_iter: int | None = None, min_transmittance: float = MIN_TRANSMITTANCE,
+               background: float = BACKGROUND, whole_rays: bool = True) -> Image:
+        """`siren`: (weights, layout, blocks) of the shadow INR, for mode `inr`. `whole_rays`: see `render`
+        (with fused SIRENs only; for `naive`, its secondary rays). A fused kernel that fails to compile leaves
+        this scene on the eager SIREN, with a warning: the setting is a speed-up, not a result."""
+        kw = {"light": light, "siren": siren, "scalar": scalar, "phong": phong, "step": step, "skip": skip,
+              "batch": batch, "samples_per_iter": samples_per_iter, "min_transmittance": min_transmittance,
+              "background": background, "whole_rays": whole_rays}
+        try:
+            return self._render(mode, camera, **kw)
+        except FusedKernelError as e:
+            warnings.warn(f"render.kernel=fused ({self.fused}): {e}; rendering with the eager SIREN from now on",
+                          FusedKernelWarning, stacklevel=2)
+            self.fused = self.sine = None
+            return self._render(mode, camera, **kw)
+
+    def _render(self, mode: str, camera: Camera, *, light, siren, scalar, phong, step, skip, batch,
+                samples_per_iter, min_transmittance, background, whole_rays) -> Image:
+        if mode not in MODES:
+            raise RenderError(f"mode: expected one of {MODES}, got {mode!r}")
+        if scalar is None:
+            scalar = "grid" if mode == "gt" or self.data_inr is None else "inr"
+        if mode == "gt":
+            scalar = "grid"
+        field_ = self.scalar(scalar)
+        macro = self.macro(scalar, skip)
+        shadow = None
+        if mode != "noshadow" and light is None:
+            raise RenderError(f"mode {mode!r}: needs a light direction")
+        if mode == "gt":
+            shadow = self.gt_shadow(light)
+        elif mode == "inr":
+            if siren is None:
+                raise RenderError("mode 'inr': needs the shadow INR's weights")
+            weights, layout, blocks = siren
+            shadow = SirenShadow(weights, layout, blocks, self.volume.extent, self.device, self.fused, self.sine)
+        elif mode == "naive":
+            shadow = MarchedShadow(field_, self.tf, self.volume.extent, self.voxel, step=step, macro=macro,
+                                   samples_per_iter=samples_per_iter, batch=batch, whole_rays=whole_rays)
+        with torch.no_grad():
+            return render(camera, field_, self.tf, self.volume.extent, self.voxel, light=light, shadow=shadow,
+                          shading=Shading(phong=phong, background=background), step=step, macro=macro,
+                          min_transmittance=min_transmittance, samples_per_iter=samples_per_iter, batch=batch,
+                          whole_rays=whole_rays, device=self.device)
+
+
+def write_png(path, image: Image) -> None:
+    """An 8-bit RGB PNG, written atomically."""
+    from PIL import Image as PILImage  # only where a PNG is written
+
+    atomic_save(path, lambda tmp: PILImage.fromarray(image.to_uint8()).save(tmp, format="PNG"), suffix=".png")

@@ -1,0 +1,135 @@
+"""Ground truth at sampled points, computed once and read by later stages: the presampled points and exact
+shadows of the geometry loss, the held-out check points of the seen-light gap, and `eval_truth`'s fixed
+evaluation points with every light's exact shadow (the march is their cost)."""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+
+from diffshadow.metrics import psnr
+from diffshadow.progress import eta
+from diffshadow.sampling import PointSampler, seeded
+from diffshadow.shadow import ShadowField, transmittance_per_light
+from diffshadow.siren import BatchedSiren, SirenConfig, WeightLayout, box_to_siren
+from diffshadow.volume import Volume
+
+TRAIN_STREAM, POOL_STREAM, CHECK_STREAM = 3, 13, 23  # random streams: training lights' points, pool lights', checks'
+
+
+def presample(volume: Volume, tf, lights: np.ndarray, n_points: int, *, seed: int, stream: int = TRAIN_STREAM,
+              visible_fraction: float = 0.5, device: torch.device | str = "cpu") -> tuple[torch.Tensor, torch.Tensor]:
+    """Points (N, M, 3) and their true shadow (N, M) per light, for the geometry loss (paper §3.3); on the
+    CPU, whatever device marched them (the points are drawn on the CPU: the same on every device)."""
+    field = ShadowField.build(volume, tf, device=device)
+    pts = PointSampler(volume, tf, visible_fraction).sample(len(lights), n_points, seeded(seed, stream))
+    values = transmittance_per_light(field, tf, lights, pts).cpu()
+    return pts, values
+
+
+CHECK_POINTS = 4096  # held-out points per scene at which the seen-light gap is measured (diffusion.target_gap)
+CHECK_LIGHTS = 64  # training lights (evenly spaced rows) whose gap is measured: all of the default run's
+
+
+def check_rows(n: int) -> torch.Tensor:
+    """The rows of `n` training lights whose seen-light gap is measured: up to CHECK_LIGHTS, evenly spaced."""
+    return torch.unique(torch.linspace(0, n - 1, min(n, CHECK_LIGHTS), device="cpu").round().long())
+
+
+def check_points(volume: Volume, tf, lights: np.ndarray, n_points: int = CHECK_POINTS, *, seed: int,
+                 device: torch.device | str = "cpu") -> tuple[torch.Tensor, torch.Tensor]:
+    """Points (C, 3) uniform in the box — how evaluate_voxels' "box" set is drawn, but other draws — and the
+    true shadow (R, C) there of the lights `check_rows` picks. The geometry stage never trains on them, so the
+    seen-light gap it measures there is the evaluation's: on tooth the presampled (training) points read 1.0 dB
+    where the evaluation found 3.1 (docs/tuning.md). On the CPU, whatever device marched them."""
+    field = ShadowField.build(volume, tf, device=device)
+    extent = torch.as_tensor(volume.extent, dtype=torch.float32)
+    gen = seeded(seed, CHECK_STREAM)
+    pts = torch.rand(n_points, 3, generator=gen, device=gen.device) * extent
+    checked = np.asarray(lights)[check_rows(len(lights)).numpy()]
+    values = transmittance_per_light(field, tf, checked, pts).cpu()
+    return pts, values
+
+
+class TruthPoints:
+    """Fixed evaluation points (box and visible) with the true shadow of every light that is asked for."""
+
+    def __init__(self, volume: Volume, tf, n_points: int, seed: int):
+        self.volume, self.tf = volume, tf
+        self.field = ShadowField.build(volume, tf)
+        self.extent = torch.as_tensor(volume.extent, dtype=torch.float32)
+        gen = seeded(seed, 4)
+        self.sets = {"box": torch.rand(n_points, 3, generator=gen, device=gen.device) * self.extent}
+        vis = PointSampler(volume, tf, 1.0)
+        if vis.visible_fraction:
+            self.sets["visible"] = vis.sample(1, n_points, gen)[0]
+
+    def truth(self, lights: np.ndarray, log=None, what: str = "lights") -> dict[str, torch.Tensor]:
+        """True shadow (L, P) per point set, by the exact march; progress every ~10% when `log` is given."""
+        out = {k: [] for k in self.sets}
+        start, every, n = time.perf_counter(), max(1, len(lights) // 10), len(lights)
+        for a in range(0, n, every):  # ~10 groups of lights, each marched together
+            for k, p in self.sets.items():
+                out[k].append(transmittance_per_light(self.field, self.tf, lights[a:a + every], p))
+            if log:
+                log(f"ground truth, {what}: {min(a + every, n)}/{n} ({eta(min(a + every, n), n, start)})")
+        return {k: torch.cat(v) if v else torch.zeros(0, len(self.sets[k])) for k, v in out.items()}
+
+    def sirens(self, weights: np.ndarray, layout: WeightLayout, siren: SirenConfig) -> dict[str, torch.Tensor]:
+        return _siren_values(self.sets, self.extent, weights, layout, siren)
+
+
+@dataclass
+class EvalTruth:
+    """`eval_truth`'s fixed evaluation points (per set: box, visible) and the exact shadow of every light
+    at them, computed once and read by `sample_shadows` and `evaluate_voxels` (the march is their cost)."""
+
+    points: dict[str, torch.Tensor]  # set -> (P, 3)
+    lights: np.ndarray  # (L, 3)
+    values: dict[str, torch.Tensor]  # set -> (L, P)
+    extent: torch.Tensor
+
+    @classmethod
+    def compute(cls, volume: Volume, tf, lights: np.ndarray, n_points: int, seed: int, log=None) -> EvalTruth:
+        points = TruthPoints(volume, tf, n_points, seed)
+        return cls(points=points.sets, lights=np.asarray(lights, dtype=np.float64),
+                   values=points.truth(lights, log, "all lights"), extent=points.extent)
+
+    def of(self, lights: np.ndarray, where: str = "eval_truth") -> dict[str, torch.Tensor]:
+        """The truth rows (L', P) per set for `lights`, each of which must be one this truth was made for."""
+        lights = np.asarray(lights, dtype=np.float64).reshape(-1, 3)
+        dist = np.abs(lights[:, None, :] - self.lights[None, :, :]).max(axis=-1)
+        rows = dist.argmin(axis=1) if len(self.lights) else np.zeros(len(lights), dtype=np.int64)
+        missing = [i for i, r in enumerate(rows) if not len(self.lights) or dist[i, r] > 1e-9]
+        if missing:
+            raise ValueError(f"{where}: no ground truth for light {lights[missing[0]].tolist()} "
+                             f"({len(missing)} of {len(lights)} missing); rerun eval_truth for these lights")
+        idx = torch.as_tensor(rows)
+        return {k: v[idx] for k, v in self.values.items()}
+
+    def sirens(self, weights: np.ndarray, layout: WeightLayout, siren: SirenConfig) -> dict[str, torch.Tensor]:
+        return _siren_values(self.points, self.extent, weights, layout, siren)
+
+    def median_psnr(self, weights: np.ndarray, layout: WeightLayout, siren: SirenConfig, lights: np.ndarray,
+                    point_set: str = "box") -> float:
+        """Median over `lights` of the voxel PSNR of their SIRENs `weights` (L, n_params) at one point set."""
+        return median(psnr_per_light(self.sirens(weights, layout, siren), self.of(lights))[point_set])
+
+
+def _siren_values(sets: dict, extent: torch.Tensor, weights, layout: WeightLayout,
+                  siren: SirenConfig) -> dict[str, torch.Tensor]:
+    w = torch.as_tensor(np.asarray(weights), dtype=torch.float32)
+    with torch.no_grad():
+        model = BatchedSiren(w, layout, siren.blocks)
+        return {k: model(box_to_siren(p.expand(len(w), -1, -1), extent)) for k, p in sets.items()}
+
+
+def psnr_per_light(pred: dict, truth: dict) -> dict[str, np.ndarray]:
+    return {k: psnr(pred[k], truth[k], dim=1).numpy() for k in truth}
+
+
+def median(a) -> float:
+    return float(np.median(a))
