@@ -103,7 +103,7 @@ class ErrorSampler:
 
     Voxel PSNR is set by the few voxels at sharp features (neghip jumps from 0 to 1 between neighbours), which
     uniform and visible-voxel points rarely visit: on neghip this sampling is worth four times the steps
-    (docs/tuning.md). Drawn on the CPU like PointSampler; the scoring runs on the model's device."""
+    (docs/performance.md). Drawn on the CPU like PointSampler; the scoring runs on the model's device."""
 
     def __init__(self, volume: Volume, every: int):
         dims = volume.data.shape  # (Z, Y, X)

@@ -81,14 +81,14 @@ class FitConfig:
     target_psnr: float = 0.0  # held-out PSNR of preoptimize's probe light to reach by growing steps, then width
     max_width: int = 128  # the SIREN width ladder's top (capacity.ladder)
     # every SIREN of every subset sees the same points at a step: the sampling noise in the weights is then
-    # common to all lights, so neighbouring lights' SIRENs stay close in weight space (docs/tuning.md)
+    # common to all lights, so neighbouring lights' SIRENs stay close in weight space (docs/performance.md)
     shared_points: bool = True
     # The blend loss: lights between the training lights (exact shadows, no SIREN of their own) scored with the
     # inverse-angle blend of their nearest training SIRENs' weights, so that the fits vary smoothly with the
-    # light and the diffusion model can interpolate them (docs/tuning.md, "Stage-1 fits whose blends fit")
+    # light and the diffusion model can interpolate them (docs/performance.md)
     blend_weight: float = 0.0  # 0: off
     # pool lights drawn in the training lights' cap per training light (each subset takes its own): a count
-    # over the cap thinned the pool as lights were added (200 lights: 1 per light -1.8 dB blend, docs/tuning.md)
+    # over the cap thinned the pool as lights were added (200 lights: 1 per light -1.8 dB blend, docs/performance.md)
     blend_per_light: int = 64
     blend_points: int = 1024  # presampled points with exact shadows per pool light
 
@@ -126,7 +126,7 @@ def blend_pool(volume: Volume, tf: TransferFunction, train: np.ndarray, center, 
 
     A pool light at a subset's border is left out, not blended from the subset's own nearest lights: that
     blend is not the one the diffusion model's pool prior and the weight-blend baseline use, and fitting
-    towards it cost nucleon's weight blend 2.7 dB and tooth's 2.6 dB in two subsets of 16 (docs/tuning.md)."""
+    towards it cost nucleon's weight blend 2.7 dB and tooth's 2.6 dB in two subsets of 16 (docs/performance.md)."""
     if cfg.blend_weight <= 0 or len(subset) < 2:
         return None
     train = np.asarray(train, dtype=np.float64)

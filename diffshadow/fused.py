@@ -50,7 +50,7 @@ def block_points(width: int) -> int:
 # 16.7 dB PSNR against fp32 (Triton's interpreter, scripts/render_plans.py), so it is not offered
 PRECISIONS = ("ieee", "tf32")
 # the sine: "poly" unless `render.sine` says otherwise. Compiled for sm_90, "poly" takes fewer
-# instructions than "libdevice" and holds its accuracy (bench kernels, docs/tuning.md); "approx" runs only on CUDA
+# instructions than "libdevice" and holds its accuracy (bench kernels, docs/performance.md); "approx" runs only on CUDA
 SINES = ("poly", "libdevice", "approx")
 COMPILE = "compile"  # the eager SIREN through torch.compile (siren.FoldedSiren), not these kernels
 LAUNCH = "diffshadow::fused"  # the profiler range around each launch: bench.profile counts it as one op

@@ -233,7 +233,7 @@ def light_subsets(train, subset_size: int) -> list[list[int]]:
     first floor(g / 2) subsets' lights and the rest. Compact patches keep a pool light's nearest training
     lights in its own subset, which is what the blend loss couples: runs of consecutive indices are rings
     around the centre (the lights are ordered by angle from it), and at the paper's 2000 lights in subsets of
-    50 only 2 % of pool lights had all 4 nearest in their subset, against 65 % here (docs/tuning.md).
+    50 only 2 % of pool lights had all 4 nearest in their subset, against 65 % here (docs/performance.md).
     One subset is every light in order, so a run with count <= subset_size is unchanged. Deterministic: it
     compares coordinates only (stable sorts), no sums in a library-chosen order."""
     dirs = np.asarray(train, dtype=np.float64).reshape(-1, 3)

@@ -133,7 +133,7 @@ def _layers(p: dict[str, torch.Tensor], blocks: int) -> list[tuple[torch.Tensor,
 def fold(p: dict[str, torch.Tensor], blocks: int) -> list[tuple[torch.Tensor, torch.Tensor]]:
     """(weight, bias) of every layer with ω0 and the residual weight folded in, last layer as stored: the
     scales applied to the (out, in) weights rather than to the (N, out) activations, two fewer passes over the
-    activations forward and two backward (docs/tuning.md). Inference folds once per network, not per call."""
+    activations forward and two backward (docs/performance.md). Inference folds once per network, not per call."""
     return [(w, b) if n == "last" else (w * _scale(f"{n}.weight"), b * _scale(f"{n}.bias"))
             for n, (w, b) in zip(_layer_names(blocks), _layers(p, blocks), strict=True)]
 
@@ -251,7 +251,7 @@ def cosine_lr(step: int, cfg, width: int) -> float:
     scaled by LR_WIDTH / width above LR_WIDTH: Adam's step is the same size for every weight, while the
     initial weights shrink as 1/√fan-in, so a wider SIREN takes relatively larger steps. At lr 1e-3 the
     tooth's data INR collapsed at width 128 (32 → 18 dB batch PSNR at step 1800) and never trained at 256;
-    width 128 at 5e-4 reached 40.4 dB (docs/tuning.md)."""
+    width 128 at 5e-4 reached 40.4 dB (docs/performance.md)."""
     lr = cfg.lr * min(1.0, LR_WIDTH / width)
     final = lr * cfg.lr_final
     return final + 0.5 * (lr - final) * (1 + math.cos(math.pi * step / max(1, cfg.steps)))

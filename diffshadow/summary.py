@@ -60,6 +60,16 @@ def peak_memory(bench: dict) -> tuple[list[str], dict[str, dict[str, int]]]:
     return sizes, peaks
 
 
+def networks_text(bench: dict) -> str:
+    """How the renderer evaluated its SIRENs (render.kernel and what ran), for the report's renderer table."""
+    net = bench.get("networks")
+    if net is None:  # a bench.json from before render.kernel
+        kernels = bench.get("siren_kernels", "eager")
+        return kernels + (f", sine {bench['sine']}" if bench.get("sine") else "")
+    asked = net["kernel"] + (f" {net['precision']} {net['sine']}" if net["kernel"] == "fused" else "")
+    return net["used"] if net["used"] == asked else f"{net['used']} (render.kernel: {asked}, not available here)"
+
+
 def renderer_rows(bench: dict) -> tuple[list[str], list[list]]:
     """The renderer table of `bench.json`: per image size, fps, peak memory and ops / host syncs per mode.
 
@@ -228,10 +238,8 @@ class RunResults:
             "the deployed path; naive marches secondary rays through the data INR; noshadow drops the shadow."))
         if self.bench and self.bench.get("sizes"):
             header, rows = renderer_rows(self.bench)
-            kernels = self.bench.get("siren_kernels", "eager")
-            sine = f", sine {self.bench['sine']}" if self.bench.get("sine") else ""
             where = self.bench.get("device", "device n/a")
-            where += "" if kernels == "eager" else f", SIRENs: {kernels}{sine}"
+            where += f", SIRENs: {networks_text(self.bench)}"
             parts.append(_table(f"Renderer ({where})", header, rows,
                                 "Measured side by side in one process (diffshadow bench render); full figures "
                                 "in bench.json. Peak memory is what a frame adds; a size without fps was rendered "

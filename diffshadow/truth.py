@@ -44,7 +44,7 @@ def check_points(volume: Volume, tf, lights: np.ndarray, n_points: int = CHECK_P
     """Points (C, 3) uniform in the box — how evaluate_voxels' "box" set is drawn, but other draws — and the
     true shadow (R, C) there of the lights `check_rows` picks. The geometry stage never trains on them, so the
     seen-light gap it measures there is the evaluation's: on tooth the presampled (training) points read 1.0 dB
-    where the evaluation found 3.1 (docs/tuning.md). On the CPU, whatever device marched them."""
+    where the evaluation found 3.1 (docs/performance.md). On the CPU, whatever device marched them."""
     field = ShadowField.build(volume, tf, device=device)
     extent = torch.as_tensor(volume.extent, dtype=torch.float32)
     gen = seeded(seed, CHECK_STREAM)

@@ -51,7 +51,7 @@ class Variant:
 def variants(device: torch.device) -> dict[str, Variant]:
     """The variants by name. On an H200 (2026-11-25), before the plan compacted on every device, a fixed-shape
     plan (finished rays masked for 4 iterations, absent samples evaluated) sent 2.5x the samples and was 1.45x
-    slower at 512², 1.2x at 1024² (docs/tuning.md)."""
+    slower at 512², 1.2x at 1024² (docs/performance.md)."""
     out = {"default": Variant()}
     for lb in (20, 21, 22) if device.type == "cuda" else (16, 20, 22):
         out[f"batch 2^{lb}"] = Variant(batch=1 << lb)

@@ -1,4 +1,4 @@
-"""The runs behind the tiny scene's defaults (docs/tuning.md): one stage refitted with settings given as JSON
+"""The runs behind the tiny scene's defaults (docs/performance.md): one stage refitted with settings given as JSON
 over config.yaml's, on a finished run's inputs, timed on one thread, scored on held-out points.
 
     python scripts/tuning.py fit '{}' '{"points": 4096}' '{"points": 1024, "lr": 2e-3}'   # 4 lights, like a subset

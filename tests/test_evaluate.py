@@ -86,8 +86,8 @@ def test_quality_warnings_name_the_goal_missed_and_what_to_change():
     assert seen.endswith("set a wider diffusion.preset (medium, paper) than this run's small")
     assert "(32.28 dB) are under the blend of the 4 nearest true shadows (32.74 dB)" in unseen
     assert "raise lights.sphere" in unseen  # no angle recorded: both pieces of advice
-    assert unseen.endswith("set a wider diffusion.preset (medium, paper) (docs/tuning.md)")
-    # test lights already close to training lights: a denser sphere is not the advice (tooth, docs/tuning.md)
+    assert unseen.endswith("set a wider diffusion.preset (medium, paper) (docs/performance.md)")
+    # test lights already close to training lights: a denser sphere is not the advice (tooth, docs/performance.md)
     result["unseen"]["nearest_angle_median_deg"] = 0.94
     unseen = quality_warnings(result)[1]
     assert "lie a median 0.9 deg from the nearest training light: set a wider diffusion.preset" in unseen
@@ -97,7 +97,7 @@ def test_quality_warnings_name_the_goal_missed_and_what_to_change():
     result["diffusion_model"] = {"preset": "paper", "stopped": "the gap stopped closing"}
     seen, unseen = quality_warnings(result)
     assert seen.endswith("this run's paper is the widest preset, and the gap stopped closing") and "()" not in seen
-    assert unseen.endswith(": raise diffusion.max_epochs (docs/tuning.md)")
+    assert unseen.endswith(": raise diffusion.max_epochs (docs/performance.md)")
     result["seen"]["generated_minus_stage1_median_db"] = -1.0
     result["unseen"]["generated_psnr_median"] = 34.0
     assert quality_warnings(result) == []

@@ -223,7 +223,7 @@ def test_rendering_makes_no_tensor_on_the_implicit_default_device(blob, mode):
                     reason="torch.compile's CPU code needs a C++ compiler")
 def test_compiled_sirens_render_the_same_images(blob, monkeypatch):
     """`render.kernel: compile`: the data and shadow SIRENs through torch.compile (the CPU's fast path,
-    docs/tuning.md) give the eager images, for ours and for the naive baseline's secondary rays."""
+    docs/performance.md) give the eager images, for ours and for the naive baseline's secondary rays."""
     from diffshadow.render import Networks, RenderScene
 
     data_inr = data_inr_stub(16, 1)

@@ -7,7 +7,7 @@ FP32 and special-function (MUFU) instructions, which is where the SIRENs' sines 
 
 These are counts, not timings: the same on any machine with the same Triton. A kernel that spills (a large
 stack) or holds one program per SM is slow whatever the device; the fp32 ("ieee") SIREN's spills explain why the
-fused fp32 frame was slower than the eager one on an H200 (docs/tuning.md).
+fused fp32 frame was slower than the eager one on an H200 (docs/performance.md).
 
 The shapes are those of `bench render`'s hydrogen_atom: a data INR of width 64 and 2 blocks, a shadow SIREN of
 width 32 and 2 blocks, 5 optics knots, 22 runs per ray (7 interior macro-cell planes per axis).

@@ -59,13 +59,13 @@ class FinetuneConfig:
     seed: int
     # random lights in the training cap (lights.validation_lights), scored at every checkpoint: the model
     # kept is the last one whose median voxel PSNR there is not below the geometry stage's (0: no check)
-    val_lights: int = 64  # medians over 16 lights drew 0.5-1.2 dB apart between draws (docs/tuning.md)
+    val_lights: int = 64  # medians over 16 lights drew 0.5-1.2 dB apart between draws (docs/performance.md)
     val_points: int = 4096
     # validated checkpoints in a row under the geometry stage's before fine-tuning stops (0: never stops early)
     patience: int = 2
     # shadow grid of the target images: "sweep" (on the volume refined fit.grid_upsample times: the grid stage 1
     # fits to) or "march" (the renderer's gt). Foreground pixels agree to 50-53 dB (nucleon, tooth); the
-    # sweep is 3-5x faster (docs/tuning.md)
+    # sweep is 3-5x faster (docs/performance.md)
     targets: str = "sweep"
 
     @classmethod
@@ -342,7 +342,7 @@ def keep_if_images_improve(geometry_state: dict, state: dict, before: np.ndarray
     "geometry stage" (also when validation kept none of the fine-tuning checkpoints): fine-tuning is for the
     images, so a model that renders the training lights worse on average (`after` against `before`, image
     PSNR per light and view) gives way to the geometry stage's sampler. Validation alone had kept one that a
-    0.1 dB voxel gain on validation lights carried over a 1.3 dB image loss (nucleon, docs/tuning.md)."""
+    0.1 dB voxel gain on validation lights carried over a 1.3 dB image loss (nucleon, docs/performance.md)."""
     if float(np.mean(after)) >= float(np.mean(before)):
         selection = state.get("selection") or {}
         validated_none = bool(selection.get("history")) and selection.get("kept_epoch") == 0

@@ -35,7 +35,7 @@ from diffshadow.truth import check_rows
 
 # (largest SIREN width, preset) for `preset: auto`: the model widens with the SIREN, so a scene whose stage 1
 # chose width 64 spends more (tooth: seen / unseen +1.1 / +1.2 dB for 2x the time) and nucleon's width 32 keeps
-# its cost. Wider SIRENs also get "medium": the step beyond it is not measured (docs/tuning.md).
+# its cost. Wider SIRENs also get "medium": the step beyond it is not measured (docs/performance.md).
 
 
 _geometry_error = geometry_error  # indirection so tests can inject a failure mid-run
@@ -87,7 +87,7 @@ def _fingerprint(data: TrainingData, cfg: DiffusionConfig) -> str:
 def ema_decay(target: float, step: int) -> float:
     """The EMA decay at optimizer step `step` (0-based): (1 + step) / (10 + step) until that reaches `target`.
     Without the warm-up the average keeps the untrained initial weights for ~1/(1 - target) steps: at 0.999
-    over tooth's 1200 steps, seen lights came out at 18.6 dB against 34.1 without an EMA (docs/tuning.md)."""
+    over tooth's 1200 steps, seen lights came out at 18.6 dB against 34.1 without an EMA (docs/performance.md)."""
     return min(target, (1 + step) / (10 + step))
 
 

@@ -78,7 +78,7 @@ class MarchPlan:
     only the samples inside occupied cells (two host syncs per iteration). On an H200 that beat keeping
     shapes fixed between syncs (finished rays masked, absent samples evaluated and thrown away), which sent
     2.5x the samples to the networks: 1.45x faster at 512², 1.2x at 1024² (scripts/render_plans.py,
-    docs/tuning.md). Rays are marched in tiles of `batch // min_samples`, so memory is bounded by the batch
+    docs/performance.md). Rays are marched in tiles of `batch // min_samples`, so memory is bounded by the batch
     whatever the image size.
     """
 

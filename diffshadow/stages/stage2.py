@@ -31,7 +31,7 @@ from diffshadow.store import WeightStore, open_store, write_store
 from diffshadow.truth import POOL_STREAM, EvalTruth, check_points, psnr_per_light
 from diffshadow.truth import presample as presample_points
 
-# test lights further than this from a training light are helped by a denser sphere (tooth, docs/tuning.md)
+# test lights further than this from a training light are helped by a denser sphere (tooth, docs/performance.md)
 SPARSE_LIGHTS_DEG = 2.0
 
 
@@ -204,13 +204,13 @@ def quality_warnings(result: dict, *, max_gap_db: float = 1.5) -> list[str]:
     if unseen and unseen["generated_psnr_median"] < unseen["blend_psnr_median"]:
         angle = unseen.get("nearest_angle_median_deg")
         where = f"; the test lights lie a median {angle:.1f} deg from the nearest training light" if angle else ""
-        # tooth: 4.2 -> 2.1 deg raised unseen lights 3 dB, 2.1 -> 0.9 deg did not (docs/tuning.md)
+        # tooth: 4.2 -> 2.1 deg raised unseen lights 3 dB, 2.1 -> 0.9 deg did not (docs/performance.md)
         closer = ("raise lights.sphere (spacing ~200/sqrt(sphere) deg; lights.count in proportion keeps the "
                   "region) or " if angle is None or angle > SPARSE_LIGHTS_DEG else "")
         bigger = f"set a wider diffusion.preset ({', '.join(wider)})" if wider else "raise diffusion.max_epochs"
         out.append(f"WARNING: generated SIRENs on unseen lights ({unseen['generated_psnr_median']:.2f} dB) are under "
                    f"the blend of the {unseen['blend_k']} nearest true shadows ({unseen['blend_psnr_median']:.2f} dB)"
-                   f"{where}: {closer}{bigger} (docs/tuning.md)")
+                   f"{where}: {closer}{bigger} (docs/performance.md)")
     if unseen and unseen.get("finetune_change_median_db", 0.0) < -0.1:
         out.append(f"WARNING: rendering-loss fine-tuning lowered unseen lights by "
                    f"{-unseen['finetune_change_median_db']:.2f} dB; lower finetune.lr or finetune.epochs")

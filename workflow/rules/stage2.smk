@@ -97,7 +97,7 @@ rule evaluate_voxels:
     params:
         geometry=lambda wc, input: f"--geometry-checkpoint {input.geometry}" if "geometry" in input.keys() else "",
     # one thread, beside evaluate_images (both wait only for sample_shadows): a second thread sped each up
-    # 1.5-1.6x, so on 2 cores the pair ends sooner side by side than one after the other (docs/tuning.md)
+    # 1.5-1.6x, so on 2 cores the pair ends sooner side by side than one after the other (docs/performance.md)
     threads: 1
     log:
         "results/{scene}/logs/evaluate_voxels.log",
