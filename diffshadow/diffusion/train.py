@@ -121,6 +121,142 @@ def seen_gap_db(model: WeightTransformer, std: Standardizer, data: TrainingData,
     return float((stage1 - ours).median())
 
 
+class Ema:
+    """An exponential moving average of the model's weights, warmed up by `ema_decay`: what sampling uses."""
+
+    def __init__(self, model: WeightTransformer, target: float):
+        self.target = target
+        self.model = copy.deepcopy(model).requires_grad_(False)
+
+    @torch.no_grad()
+    def update(self, model: WeightTransformer, step: int) -> None:
+        for pe, pm in zip(self.model.parameters(), model.parameters(), strict=True):
+            pe.lerp_(pm, 1 - ema_decay(self.target, step))
+
+
+class Growth:
+    """How long the geometry stage trains: past `cfg.epochs`, on while the generated seen lights lie more than
+    `cfg.target_gap` dB under stage 1, checked every `checkpoint_every` epochs, up to `max_epochs` or until the gap
+    stops closing. Its state (`state`, `best`) is saved with each checkpoint, so a resumed run decides the same.
+    A run that stops over the target keeps the weights of its best check: at a held lr the gap wanders (tooth:
+    2.15 dB at epoch 1100, 2.45 at 1200)."""
+
+    def __init__(self, cfg: DiffusionConfig, state: dict | None = None, best: dict | None = None):
+        self.cfg = cfg
+        self.max_epochs = max(cfg.epochs, cfg.max_epochs)
+        self.state = state if state is not None else {"checks": [], "finished": False, "reason": None}
+        self.best = best  # {"epoch", "weights"} of the best check so far (its gap: in state["checks"])
+
+    @property
+    def finished(self) -> bool:
+        return self.state["finished"]
+
+    def due(self, done: int) -> bool:
+        return done >= self.cfg.epochs and (done - self.cfg.epochs) % self.cfg.checkpoint_every == 0
+
+    def check(self, done: int, sampled: WeightTransformer, gap_db, log, last_good: str) -> None:
+        """At epoch `done`: measure the gap (`gap_db()`) and decide whether to train on."""
+        cfg, growth = self.cfg, self.state
+        if cfg.target_gap <= 0 or self.max_epochs <= cfg.epochs:
+            growth.update(finished=True, epochs=done, reason="fixed length (diffusion.target_gap 0 or max_epochs "
+                                                             "<= epochs)")
+            return
+        gap = gap_db()
+        if not math.isfinite(gap):
+            raise DiffusionError(f"train_diffusion: the generated seen lights' PSNR is not finite at epoch {done} "
+                                 f"(NaN SIREN weights?); keeping {last_good}")
+        checks = growth["checks"]
+        checks.append({"epoch": done, "gap_db": gap})
+        best_before = min((c["gap_db"] for c in checks[:-PLATEAU_CHECKS]), default=math.inf)
+        top = min(checks, key=lambda c: c["gap_db"])  # the first of equal gaps
+        if top is checks[-1]:
+            self.best = {"epoch": done, "weights": {k: v.detach().clone() for k, v in sampled.state_dict().items()}}
+        if gap <= cfg.target_gap:
+            side = "under" if gap >= 0 else "over"  # a gap can be negative: generated better than stage 1
+            reason = f"generated seen lights {abs(gap):.2f} dB {side} stage 1, within the target {cfg.target_gap:g} dB"
+        elif done >= self.max_epochs:
+            reason = (f"reached diffusion.max_epochs {self.max_epochs} with the generated seen lights {gap:.2f} "
+                      f"dB under stage 1 (target {cfg.target_gap:g} dB)")
+        elif len(checks) > PLATEAU_CHECKS and min(c["gap_db"] for c in checks[-PLATEAU_CHECKS:]) > best_before - 0.1:
+            reason = (f"the gap stopped closing ({gap:.2f} dB under stage 1, target {cfg.target_gap:g} dB; under 0.1 "
+                      f"dB gained in the last {PLATEAU_CHECKS * cfg.checkpoint_every} epochs)")
+        else:
+            log(f"epoch {done}: generated seen lights {gap:.2f} dB under stage 1 (target {cfg.target_gap:g} dB at "
+                f"held-out points): training on, up to epoch {self.max_epochs}")
+            return
+        if top["epoch"] != done:
+            sampled.load_state_dict(self.best["weights"])
+            reason += f"; kept the model of epoch {top['epoch']} ({top['gap_db']:.2f} dB under stage 1)"
+        growth.update(finished=True, epochs=done, reason=reason, kept_epoch=top["epoch"])
+        missed = top["gap_db"] > cfg.target_gap
+        log(("WARNING: " if missed else "") + f"geometry stage done at epoch {done}: {reason}"
+            + ("; a wider diffusion.preset or more lights.count may close it" if missed else ""))
+
+
+@dataclass
+class Batch:
+    """One step's random draws, in a fixed order from the epoch's generator (the seed decides every one): rows
+    `idx` of the training lights, their timesteps and noise and geometry points; with pool lights, as many pool
+    lights `j` with theirs."""
+
+    idx: torch.Tensor
+    t: torch.Tensor
+    noise: torch.Tensor
+    pick: torch.Tensor | None
+    j: torch.Tensor | None = None
+    tp: torch.Tensor | None = None
+    noise_p: torch.Tensor | None = None
+    pick_p: torch.Tensor | None = None
+
+
+def draw_batch(gen: torch.Generator, idx: torch.Tensor, data: TrainingData, pool: PoolLights | None,
+               cfg: DiffusionConfig, steps: int, device: torch.device) -> Batch:
+    b, n_params = len(idx), data.weights.shape[1]
+
+    def randint(high: int, shape: tuple) -> torch.Tensor:
+        return torch.randint(0, high, shape, generator=gen, device=gen.device).to(device)
+
+    def randn(shape: tuple) -> torch.Tensor:
+        return torch.randn(shape, generator=gen, device=gen.device).to(device)
+
+    geometry = cfg.geometry_weight > 0
+    batch = Batch(idx, randint(steps, (b,)), randn((b, n_params)),
+                  randint(data.points.shape[1], (b, cfg.geometry_points)) if geometry else None)
+    if pool is not None:
+        batch.j, batch.tp, batch.noise_p = randint(len(pool.lights), (b,)), randint(steps, (b,)), randn((b, n_params))
+        if geometry:
+            batch.pick_p = randint(pool.points.shape[1], (b, cfg.geometry_points))
+    return batch
+
+
+def batch_loss(model: WeightTransformer, std: Standardizer, data: TrainingData, z_all: torch.Tensor,
+               pool: PoolLights | None, batch: Batch, cfg: DiffusionConfig,
+               schedule: Schedule) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """The training loss of one batch (x0 MSE, the pool lights' x0 prior, the geometry loss of both) and its x0
+    and geometry parts for the log. `data` is on the model's device."""
+    b, x0 = len(batch.idx), z_all[batch.idx]
+    x_t, t_in, light_in = schedule.q_sample(x0, batch.t, batch.noise), batch.t, data.lights[batch.idx].float()
+    if pool is not None:  # one forward for both: a batch of 2b costs 0.75 of two batches of b
+        x0p, x_tp, light_p = pool_noised(pool, z_all, batch.j, batch.tp, batch.noise_p, schedule)
+        x_t, t_in, light_in = torch.cat([x_t, x_tp]), torch.cat([t_in, batch.tp]), torch.cat([light_in, light_p])
+    pred_all = model(x_t, t_in, light_in)
+    loss_x0 = ((pred_all[:b] - x0) ** 2).mean()
+    loss = loss_x0
+    loss_geo = torch.zeros((), device=z_all.device)
+    if pool is not None:
+        loss = loss + cfg.pool_x0_weight * ((pred_all[b:] - x0p) ** 2).mean()
+    if cfg.geometry_weight > 0:
+        pts = torch.gather(data.points[batch.idx], 1, batch.pick[..., None].expand(-1, -1, 3))
+        vals = torch.gather(data.values[batch.idx], 1, batch.pick)
+        if pool is not None:
+            pts_p, vals_p = pool.samples(batch.j, batch.pick_p)
+            pts, vals = torch.cat([pts, pts_p]), torch.cat([vals, vals_p])
+        err = _geometry_error(std.destandardize(pred_all), data.layout, data.siren, pts, vals, data.extent)
+        loss_geo = err[:b].mean()
+        loss = loss + cfg.geometry_weight * err.sum() / b  # training and pool lights, each a mean over b
+    return loss, loss_x0, loss_geo
+
+
 def train_diffusion(data: TrainingData, cfg: DiffusionConfig, checkpoint: Path, *,
                     device: torch.device | str = "cpu", log=print,
                     stop_after_epoch: int | None = None) -> dict:
@@ -137,7 +273,6 @@ def train_diffusion(data: TrainingData, cfg: DiffusionConfig, checkpoint: Path, 
     std = Standardizer.fit(data.layout, data.weights, cfg.standardize)
     z_all = std.standardize(data.weights).float().to(device)
     on_device = data.to(device)  # the training set moved once, not per step
-    lights, points, values, extent = on_device.lights.float(), on_device.points, on_device.values, on_device.extent
     pool = on_device.pool if cfg.pool_lights > 0 else None
     have = 0 if data.pool is None else len(data.pool.lights)
     if cfg.pool_lights > 0 and have != cfg.pool_lights:
@@ -146,162 +281,84 @@ def train_diffusion(data: TrainingData, cfg: DiffusionConfig, checkpoint: Path, 
     schedule = Schedule()
     opt = make_optimizer(model.parameters(), cfg.lr, cfg.weight_decay)
     sched = torch.optim.lr_scheduler.StepLR(opt, step_size=cfg.lr_step_epochs, gamma=cfg.lr_gamma)
-    ema = copy.deepcopy(model).requires_grad_(False) if cfg.ema > 0 else None
+    ema = Ema(model, cfg.ema) if cfg.ema > 0 else None
+    sampled = ema.model if ema is not None else model  # the weights that sampling uses: checked, and the best kept
     fingerprint = _fingerprint(data, cfg)
-    start = 0
-    good: int | None = None  # epoch of the checkpoint this run resumed from or saved
-    # training past cfg.epochs while the generated seen lights lie more than cfg.target_gap dB under stage 1
-    max_epochs = max(cfg.epochs, cfg.max_epochs)
-    growth = {"checks": [], "finished": False, "reason": None}
-    sampled = ema if ema is not None else model  # the weights that sampling uses: checked, and the best kept
-    best: dict | None = None  # {"epoch", "weights"} of the best check so far (its gap: in growth["checks"])
+    start, good, growth = 0, None, Growth(cfg)  # good: the epoch of the checkpoint resumed from or last saved
     if state := resume(checkpoint, fingerprint, log=log, map_location=device):
         model.load_state_dict(state["model"])
         opt.load_state_dict(state["optimizer"])
         sched.load_state_dict(state["scheduler"])
         if ema is not None:
-            ema.load_state_dict(state["ema"])
+            ema.model.load_state_dict(state["ema"])
         start = good = int(state["epoch"])
-        growth = state["growth"]
-        best = state.get("best")
+        growth = Growth(cfg, state["growth"], state.get("best"))
         log(f"resuming from {checkpoint} at epoch {start}/{cfg.epochs}")
 
     def save(epoch: int) -> dict:
         state = {"fingerprint": fingerprint, "epoch": epoch, "model": model.state_dict(),
                  "optimizer": opt.state_dict(), "scheduler": sched.state_dict(),
-                 "ema": ema.state_dict() if ema is not None else None, "standardizer": std.state(),
+                 "ema": ema.model.state_dict() if ema is not None else None, "standardizer": std.state(),
                  "layout": data.layout.to_config(), "siren": data.siren.to_config(), "config": asdict(cfg),
                  "extent": data.extent.tolist(), "train_lights": data.lights.tolist(),
-                 "pool_lights": pool.lights.tolist() if pool is not None else [], "growth": growth,
-                 "best": None if growth["finished"] else best}
+                 "pool_lights": pool.lights.tolist() if pool is not None else [], "growth": growth.state,
+                 "best": None if growth.finished else growth.best}
         atomic_torch_save(checkpoint, state)
         return state
 
-    def grow(done: int) -> None:
-        """At epoch `done` (cfg.epochs, then every checkpoint_every epochs): measure the seen-light gap and
-        decide whether to train on; the decision is saved with the checkpoint, so a resumed run repeats it.
-        A run that stops over the target keeps the weights of its best check: at a held lr the gap wanders
-        (tooth: 2.15 dB at epoch 1100, 2.45 at 1200)."""
-        nonlocal best
-        if cfg.target_gap <= 0 or max_epochs <= cfg.epochs:
-            growth.update(finished=True, epochs=done, reason="fixed length (diffusion.target_gap 0 or max_epochs "
-                                                             "<= epochs)")
-            return
-        gap = seen_gap_db(sampled, std, on_device, cfg)
-        if not math.isfinite(gap):
-            raise DiffusionError(f"train_diffusion: the generated seen lights' PSNR is not finite at epoch {done} "
-                                 f"(NaN SIREN weights?); keeping the last good checkpoint {checkpoint} (epoch {good})")
-        checks = growth["checks"]
-        checks.append({"epoch": done, "gap_db": gap})
-        best_before = min((c["gap_db"] for c in checks[:-PLATEAU_CHECKS]), default=math.inf)
-        top = min(checks, key=lambda c: c["gap_db"])  # the first of equal gaps
-        if top is checks[-1]:
-            best = {"epoch": done, "weights": {k: v.detach().clone() for k, v in sampled.state_dict().items()}}
-        if gap <= cfg.target_gap:
-            side = "under" if gap >= 0 else "over"  # a gap can be negative: generated better than stage 1
-            reason = f"generated seen lights {abs(gap):.2f} dB {side} stage 1, within the target {cfg.target_gap:g} dB"
-        elif done >= max_epochs:
-            reason = (f"reached diffusion.max_epochs {max_epochs} with the generated seen lights {gap:.2f} "
-                      f"dB under stage 1 (target {cfg.target_gap:g} dB)")
-        elif len(checks) > PLATEAU_CHECKS and min(c["gap_db"] for c in checks[-PLATEAU_CHECKS:]) > best_before - 0.1:
-            reason = (f"the gap stopped closing ({gap:.2f} dB under stage 1, target {cfg.target_gap:g} dB; under 0.1 "
-                      f"dB gained in the last {PLATEAU_CHECKS * cfg.checkpoint_every} epochs)")
-        else:
-            log(f"epoch {done}: generated seen lights {gap:.2f} dB under stage 1 (target {cfg.target_gap:g} dB at "
-                f"held-out points): training on, up to epoch {max_epochs}")
-            return
-        if top["epoch"] != done:
-            sampled.load_state_dict(best["weights"])
-            reason += f"; kept the model of epoch {top['epoch']} ({top['gap_db']:.2f} dB under stage 1)"
-        growth.update(finished=True, epochs=done, reason=reason, kept_epoch=top["epoch"])
-        missed = top["gap_db"] > cfg.target_gap
-        log(("WARNING: " if missed else "") + f"geometry stage done at epoch {done}: {reason}"
-            + ("; a wider diffusion.preset or more lights.count may close it" if missed else ""))
-
-    n = len(z_all)
-    t0 = time.perf_counter()
-    per_epoch = math.ceil(n / cfg.batch_size)  # optimizer steps, for the EMA's warm-up
-    epoch = start
-    state = None
-    nonfinite = FirstNonFinite((), device)  # read at log lines, checks and checkpoints, not every step
+    def last_good() -> str:
+        return (f"the last good checkpoint {checkpoint} (epoch {good})" if good is not None
+                else "no checkpoint (none was written yet)")
 
     def raise_if_not_finite() -> None:
         if (found := nonfinite.first()) is not None:
-            bad_epoch, _, value = found
-            kept = f"the last good checkpoint {checkpoint} (epoch {good})" if good is not None else \
-                "no checkpoint (none was written yet)"
-            raise DiffusionError(f"train_diffusion: loss became {float(value)} at epoch {bad_epoch}; "
-                                 f"keeping {kept}; lower diffusion.lr (now {cfg.lr}) or check the weight store")
+            raise DiffusionError(f"train_diffusion: loss became {float(found[2])} at epoch {found[0]}; keeping "
+                                 f"{last_good()}; lower diffusion.lr (now {cfg.lr}) or check the weight store")
 
-    while not growth["finished"]:
+    n, t0, epoch, state = len(z_all), time.perf_counter(), start, None
+    per_epoch = math.ceil(n / cfg.batch_size)  # optimizer steps, for the EMA's warm-up
+    nonfinite = FirstNonFinite((), device)  # read at log lines, checks and checkpoints, not every step
+    while not growth.finished:
         gen = seeded(cfg.seed, 1, epoch)
         order = torch.randperm(n, generator=gen, device=gen.device)
         totals = torch.zeros(2, dtype=torch.float64, device=device)  # summed on the device: no sync per step
         for k, b0 in enumerate(range(0, n, cfg.batch_size)):
-            idx = order[b0:b0 + cfg.batch_size].to(device)
-            b = len(idx)
-            t = torch.randint(0, schedule.steps, (b,), generator=gen, device=gen.device).to(device)
-            noise = torch.randn(b, z_all.shape[1], generator=gen, device=gen.device).to(device)
-            x0 = z_all[idx]
-            pick = torch.randint(0, points.shape[1], (b, cfg.geometry_points), generator=gen,
-                                 device=gen.device).to(device) if cfg.geometry_weight > 0 else None
-            x_t, t_in, light_in = schedule.q_sample(x0, t, noise), t, lights[idx]
-            if pool is not None:  # one forward for both: a batch of 2b costs 0.75 of two batches of b
-                j = torch.randint(0, len(pool.lights), (b,), generator=gen, device=gen.device).to(device)
-                tp = torch.randint(0, schedule.steps, (b,), generator=gen, device=gen.device).to(device)
-                noise_p = torch.randn(b, z_all.shape[1], generator=gen, device=gen.device).to(device)
-                x0p, x_tp, light_p = pool_noised(pool, z_all, j, tp, noise_p, schedule)
-                x_t, t_in, light_in = torch.cat([x_t, x_tp]), torch.cat([t, tp]), torch.cat([light_in, light_p])
-            pred_all = model(x_t, t_in, light_in)
-            pred = pred_all[:b]
-            loss_x0 = ((pred - x0) ** 2).mean()
-            loss = loss_x0
-            loss_geo = torch.zeros((), device=device)
-            if pool is not None:
-                loss = loss + cfg.pool_x0_weight * ((pred_all[b:] - x0p) ** 2).mean()
-            if cfg.geometry_weight > 0:
-                pts = torch.gather(points[idx], 1, pick[..., None].expand(-1, -1, 3))
-                vals = torch.gather(values[idx], 1, pick)
-                if pool is not None:
-                    pick_p = torch.randint(0, pool.points.shape[1], (b, cfg.geometry_points), generator=gen,
-                                           device=gen.device).to(device)
-                    pts_p, vals_p = pool.samples(j, pick_p)
-                    pts, vals = torch.cat([pts, pts_p]), torch.cat([vals, vals_p])
-                err = _geometry_error(std.destandardize(pred_all), data.layout, data.siren, pts, vals, extent)
-                loss_geo = err[:b].mean()
-                loss = loss + cfg.geometry_weight * err.sum() / b  # training and pool lights, each a mean over b
+            batch = draw_batch(gen, order[b0:b0 + cfg.batch_size].to(device), on_device, pool, cfg, schedule.steps,
+                               device)
+            loss, loss_x0, loss_geo = batch_loss(model, std, on_device, z_all, pool, batch, cfg, schedule)
             nonfinite.record(loss.detach(), epoch)
             opt.zero_grad(set_to_none=True)
             loss.backward()
             torch.nn.utils.clip_grad_norm_(model.parameters(), cfg.grad_clip)
             opt.step()
             if ema is not None:
-                with torch.no_grad():
-                    for pe, pm in zip(ema.parameters(), model.parameters(), strict=True):
-                        pe.lerp_(pm, 1 - ema_decay(cfg.ema, epoch * per_epoch + k))
-            totals += torch.stack([loss_x0.detach(), loss_geo.detach()]).double() * b
+                ema.update(model, epoch * per_epoch + k)
+            totals += torch.stack([loss_x0.detach(), loss_geo.detach()]).double() * len(batch.idx)
         if epoch < cfg.epochs:  # growth past `epochs` keeps the lr reached there (decayed on, tooth plateaued)
             sched.step()
         done = epoch = epoch + 1
-        check = done >= cfg.epochs and (done - cfg.epochs) % cfg.checkpoint_every == 0
-        logging = done % max(1, cfg.epochs // 20) == 0 or check
+        stopping = stop_after_epoch is not None and done >= stop_after_epoch
+        logging = done % max(1, cfg.epochs // 20) == 0 or growth.due(done)
         saving = done % cfg.checkpoint_every == 0
-        if logging or saving or (stop_after_epoch is not None and done >= stop_after_epoch):
+        if logging or saving or stopping:
             raise_if_not_finite()
         if logging:
-            lx, lg = (totals / n).cpu().tolist()
-            # past `epochs` the stage grows towards max_epochs, which is then an upper bound, not a forecast
-            total = cfg.epochs if done <= cfg.epochs else max_epochs
-            log(f"epoch {done}/{total}  loss x0 {lx:.4e}  "
-                f"geometry {lg:.4e} (≈{-10 * math.log10(max(lg, 1e-30)):.1f} dB)  lr {sched.get_last_lr()[0]:.2e}  "
-                f"{eta(done, total, t0, start=start)}")
-        if check:
-            grow(done)
-        if saving or growth["finished"]:
-            state = save(done)
-            good = done
-        if stop_after_epoch is not None and done >= stop_after_epoch:
+            _log_epoch(log, done, (totals / n).cpu().tolist(), cfg, growth, sched.get_last_lr()[0], t0, start)
+        if growth.due(done):
+            growth.check(done, sampled, lambda: seen_gap_db(sampled, std, on_device, cfg), log, last_good())
+        if saving or growth.finished:
+            state, good = save(done), done
+        if stopping:
             return state
     if state is None:  # resumed from the final checkpoint: nothing left to train
         state = torch.load(checkpoint, map_location="cpu", weights_only=False)
     return state
+
+
+def _log_epoch(log, done: int, losses: list[float], cfg: DiffusionConfig, growth: Growth, lr: float, t0: float,
+               start: int) -> None:
+    lx, lg = losses
+    # past `epochs` the stage grows towards max_epochs, which is then an upper bound, not a forecast
+    total = cfg.epochs if done <= cfg.epochs else growth.max_epochs
+    log(f"epoch {done}/{total}  loss x0 {lx:.4e}  geometry {lg:.4e} (≈{-10 * math.log10(max(lg, 1e-30)):.1f} dB)  "
+        f"lr {lr:.2e}  {eta(done, total, t0, start=start)}")
