@@ -333,9 +333,8 @@ def main(argv: list[str] | None = None) -> None:
     if hasattr(sys.stdout, "reconfigure"):
         sys.stdout.reconfigure(line_buffering=True)
     if args.command not in _NO_TORCH:
-        from diffshadow.runtime import claim_gpu_lock, reproducible_blas, set_threads
+        from diffshadow.runtime import claim_gpu_lock, set_threads
 
-        reproducible_blas()
         if args.command in _ONE_GPU:
             claim_gpu_lock(args.command)
         if args.command not in ("finetune-render", "parsl-fit"):  # threads per rank and per worker: set there

@@ -19,11 +19,10 @@ def fit_task(paths: dict[str, str], subset: int, cfg: dict, device: str | None, 
     import time
 
     from diffshadow.fit import FitConfig
-    from diffshadow.runtime import reproducible_blas, resolve_device, set_threads
+    from diffshadow.runtime import resolve_device, set_threads
     from diffshadow.siren import SirenConfig
     from diffshadow.stages.stage1 import fit_subset
 
-    reproducible_blas()
     Path(log_path).parent.mkdir(parents=True, exist_ok=True)
     start, usage = time.perf_counter(), resource.getrusage(resource.RUSAGE_SELF)
     with open(log_path, "w") as log, contextlib.redirect_stdout(log), contextlib.redirect_stderr(log):

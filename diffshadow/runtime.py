@@ -41,13 +41,12 @@ def resolve_device(flag: str | None = None, config: str | None = None) -> torch.
     return device
 
 
-def reproducible_blas() -> None:
-    """MKL (PyTorch's CPU BLAS on x86) splits a long matrix product's inner sum across threads, so by default its
-    last bits depend on the thread count: sample-shadows rerun with other threads wrote other bytes. Strict
-    conditional numerical reproducibility fixes the split and keeps the fastest code path (docs/numerics.md).
-    MKL reads MKL_CBWR at its first call, so every entry point (the CLI, a Parsl worker) calls this before any
-    matrix product; a user's own MKL_CBWR wins. A process setting, not an import side effect."""
-    os.environ.setdefault("MKL_CBWR", "AUTO,STRICT")
+# The environment every job runs in, set by the workflow (workflow/rules/common.smk) and the Parsl configs, not
+# by the library. MKL (PyTorch's CPU BLAS on x86) splits a long matrix product's inner sum across threads, so by
+# default its last bits depend on the thread count: sample-shadows rerun with other threads wrote other bytes.
+# Strict conditional numerical reproducibility fixes the split and keeps the fastest code path (docs/numerics.md);
+# MKL reads it at its first call. A user's own MKL_CBWR wins.
+JOB_ENVIRONMENT = {"MKL_CBWR": "AUTO,STRICT"}
 
 
 DETERMINISTIC_VALUES = {"": False, "0": False, "false": False, "no": False, "off": False,

@@ -62,10 +62,7 @@ def peak_memory(bench: dict) -> tuple[list[str], dict[str, dict[str, int]]]:
 
 def networks_text(bench: dict) -> str:
     """How the renderer evaluated its SIRENs (render.kernel and what ran), for the report's renderer table."""
-    net = bench.get("networks")
-    if net is None:  # a bench.json from before render.kernel
-        kernels = bench.get("siren_kernels", "eager")
-        return kernels + (f", sine {bench['sine']}" if bench.get("sine") else "")
+    net = bench["networks"]
     asked = net["kernel"] + (f" {net['precision']} {net['sine']}" if net["kernel"] == "fused" else "")
     return net["used"] if net["used"] == asked else f"{net['used']} (render.kernel: {asked}, not available here)"
 

@@ -13,11 +13,12 @@ if not torch.cuda.is_available():
     # the fused SIREN's kernel runs through Triton's interpreter in tests/test_fused.py
     os.environ.setdefault("TRITON_INTERPRET", "1")
 
-from diffshadow.runtime import reproducible_blas
+from diffshadow.runtime import JOB_ENVIRONMENT
 from diffshadow.siren import Siren, SirenConfig
 from diffshadow.transfer import TransferFunction
 
-reproducible_blas()  # what the CLI does first: in-process tests see the same matrix products as the stages
+for _key, _value in JOB_ENVIRONMENT.items():  # the workflow's job environment: the stages' matrix products
+    os.environ.setdefault(_key, _value)
 
 SHARED_DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
 

@@ -10,6 +10,8 @@ from parsl.executors import HighThroughputExecutor
 from parsl.launchers import MpiExecLauncher
 from parsl.providers import PBSProProvider
 
+from diffshadow.runtime import JOB_ENVIRONMENT
+
 config = Config(
     executors=[HighThroughputExecutor(
         label="polaris",
@@ -22,7 +24,8 @@ config = Config(
             select_options="ngpus=4",
             scheduler_options="#PBS -l filesystems=home:eagle\n#PBS -l place=scatter",
             worker_init=(f"source {os.environ['DIFFSHADOW_ENV']}; export TMPDIR=/tmp; "
-                         "export DIFFSHADOW_DEVICE=cuda; cd $PBS_O_WORKDIR"),
+                         "export DIFFSHADOW_DEVICE=cuda; cd $PBS_O_WORKDIR; "
+                         + "; ".join(f"export {k}=${{{k}:-{v}}}" for k, v in JOB_ENVIRONMENT.items())),
             nodes_per_block=int(os.environ.get("PARSL_NODES", "10")),
             init_blocks=1, max_blocks=1,
             walltime=os.environ.get("PARSL_WALLTIME", "01:00:00"),

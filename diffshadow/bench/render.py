@@ -122,7 +122,6 @@ def bench_render(scene: RenderScene, siren, light, *, sizes=(64, 128), step: flo
     # the networks as configured and as this scene resolved them, after warming: a kernel that failed to compile
     # left it eager
     out["networks"] = scene.networks_used()
-    out["siren_kernels"], out["sine"] = scene.fused or "eager", scene.sine
     for n in sizes:
         row: dict = {"seconds": {m: [] for m in BENCH_MODES}, "samples": {}}
         for rep in range(repeats):  # modes interleaved, so drift on a shared machine hits all alike

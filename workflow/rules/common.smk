@@ -7,6 +7,7 @@ from diffshadow.config import as_json as _as_json
 from diffshadow.config import scene_config as _scene_config
 from diffshadow.lights import n_subsets as _n_subsets
 from diffshadow.render import shading_name as _shading_name
+from diffshadow.runtime import JOB_ENVIRONMENT as _JOB_ENVIRONMENT
 from diffshadow.volume import resolve_path as _resolve_path
 
 _SCENES = {}
@@ -15,6 +16,9 @@ _SCENES = {}
 # finetune_render's DDP processes. A PBS job parses this file again, so it gets them too.
 os.environ.update(DIFFSHADOW_CONFIG_DEVICE=config.get("device", "auto"),
                   DIFFSHADOW_TORCHRUN=config.get("torchrun", "torchrun --standalone"))
+# MKL in strict reproducible mode, so a job's bytes do not depend on its thread count (a user's own setting wins)
+for _key, _value in _JOB_ENVIRONMENT.items():
+    os.environ.setdefault(_key, _value)
 # and `deterministic`, which changes no byte on a CPU and only float summation order on a GPU; a user's own wins
 os.environ.setdefault("DIFFSHADOW_DETERMINISTIC", "1" if config.get("deterministic") else "0")
 
