@@ -77,7 +77,7 @@ render)
     sizes=(--sizes 128 512 1024 --memory-sizes 2048); [ "$quick" = 1 ] && sizes=(--sizes 32 64 --memory-sizes 96)
     step bench_render diffshadow bench render --device "$device" --scene-config config/scenes/hydrogen_atom.yaml \
         "${sizes[@]}" --out "$out/render"
-    [ "$device" = cuda ] && step bench_render_fused env DIFFSHADOW_FUSED_SIREN=tf32 diffshadow bench render \
+    [ "$device" = cuda ] && step bench_render_fused diffshadow bench render --kernel fused --precision tf32 \
         --device cuda --scene-config config/scenes/hydrogen_atom.yaml "${sizes[@]}" --out "$out/render_fused"
     ;;
 plans)
