@@ -174,7 +174,8 @@ def _render(a):
 def _report_figures(a):
     from diffshadow.stages import images
 
-    images.report_figures(Path(a.results), _cfg(a), Path(a.out_dir))
+    images.report_figures(Path(a.weights), Path(a.generated), Path(a.lights), Path(a.images), Path(a.voxel_metrics),
+                          Path(a.shadow_bench), _cfg(a), Path(a.out_dir))
 
 
 def _stage_costs(a):
@@ -288,8 +289,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--size", type=int, default=128)
     p.add_argument("--no-skip", action="store_true", help="turn macro-cell skipping off")
     add_networks(p)
-    p = _add(sub, "report-figures", _report_figures, "the report's figures for one finished scene", "results",
-             "out-dir", out=False, device=False, config="the scene's merged configuration")
+    p = _add(sub, "report-figures", _report_figures, "the report's figures for one finished scene", "weights",
+             "generated", "lights", "images", "voxel-metrics", "shadow-bench", "out-dir",
+             out=False, device=False, config="the scene's merged configuration")
 
     p = sub.add_parser("stage-costs", help="a table of every rule's cost from Snakemake's benchmark files")
     p.add_argument("--benchmarks", nargs="+", required=True, help="results/<scene>/benchmarks/*.tsv")

@@ -152,6 +152,94 @@ def points_per_pass(chunk: int | str, points: int, device: torch.device) -> int:
     return int(chunk) or points
 
 
+class Targets:
+    """The shadow each SIREN is fitted to at any points: one `shadow_grid` per light looked up trilinearly
+    (`fit.target` "sweep" or "march"), or marched exactly per point ("transmittance")."""
+
+    def __init__(self, volume: Volume, tf: TransferFunction, lights: np.ndarray, cfg: FitConfig,
+                 device: torch.device):
+        self.extent = torch.as_tensor(volume.extent, dtype=torch.float32, device=device)
+        self.tf, self.lights, self.grids, self.field = tf, lights, None, None
+        if cfg.target == "transmittance":
+            self.field = ShadowField.build(volume, tf, device=device)
+        elif cfg.target in ("sweep", "march"):
+            fine = refine(volume, cfg.grid_upsample)
+            self.grids = torch.stack([shadow_grid(fine, tf, w, method=cfg.target, device=device) for w in lights])
+        else:
+            raise ValueError(f"fit.target: expected 'sweep', 'march' or 'transmittance', got {cfg.target!r}")
+
+    @torch.no_grad()
+    def __call__(self, pts: torch.Tensor) -> torch.Tensor:
+        """(K, N, 3) points in volume coordinates → (K, N) shadow of light k at its points."""
+        if self.grids is not None:
+            return lookup_grids(self.grids, pts, self.extent)
+        return transmittance_per_light(self.field, self.tf, self.lights, pts)
+
+
+def fit_step(weights: torch.Tensor, opt: torch.optim.Optimizer, pts: torch.Tensor, target: torch.Tensor,
+             layout: WeightLayout, siren: SirenConfig, extent: torch.Tensor, cfg: FitConfig, *, chunk: int,
+             autocast, pool: PoolLights | None = None, pool_gen: torch.Generator | None = None) -> torch.Tensor:
+    """One Adam step of all K SIRENs on their points; returns each SIREN's mean squared error (K,) before it."""
+    k = len(weights)
+    opt.zero_grad(set_to_none=True)
+    per_siren = torch.zeros(k, device=weights.device)
+    for c0 in range(0, cfg.points, chunk):
+        model = BatchedSiren(weights, layout, siren.blocks)
+        with autocast:
+            pred = model(box_to_siren(pts[:, c0:c0 + chunk], extent)).float()
+        # sum over SIRENs of each one's mean: every SIREN gets exactly its own gradient
+        sq = ((pred - target[:, c0:c0 + chunk]) ** 2).sum(dim=1) / cfg.points
+        sq.sum().backward()
+        per_siren += sq.detach()
+    if pool is not None:
+        _blend_loss(weights, pool, layout, siren, extent, cfg, k, pool_gen)
+    opt.step()
+    return per_siren
+
+
+class Watch:
+    """The fit's health and progress: non-finite losses (kept on the device, read at log lines and
+    checkpoints), divergence judged once at the end against the init's loss, and the log line every tenth."""
+
+    def __init__(self, k: int, cfg: FitConfig, siren: SirenConfig, light_index: list[int], start: int,
+                 initial: torch.Tensor | None, device: torch.device, log):
+        self.k, self.cfg, self.width, self.light_index = k, cfg, siren.width, light_index
+        self.start, self.log = start, log
+        self.initial = initial  # each SIREN's loss at the init, before any update
+        self.nonfinite = FirstNonFinite((k,), device)
+        self.window, self.window_steps = torch.zeros(k, device=device), 0
+        self.t0 = time.perf_counter()
+
+    def record(self, per_siren: torch.Tensor, step: int) -> None:
+        self.nonfinite.record(per_siren, step)
+        if self.initial is None:
+            self.initial = per_siren.clone()
+        self.window += per_siren
+        self.window_steps += 1
+
+    def check(self) -> None:
+        if (found := self.nonfinite.first()) is not None:
+            step, at_step, _ = found
+            which = [self.light_index[i] for i in torch.nonzero(at_step).flatten().tolist()]
+            raise FitError(f"fit diverged at step {step}: loss is not finite for light(s) {which}; "
+                           f"lower fit.lr (now {self.cfg.lr}) or check the targets")
+
+    def report(self, done: int) -> None:
+        cfg, recent = self.cfg, self.window / self.window_steps
+        # Judged at the end only: from a pre-optimised init, Adam's first steps lift the init light's
+        # loss 100x before it recovers (nucleon: 41 -> 21 -> 35 dB), a rise that is no divergence.
+        if done == cfg.steps and (bad := diverged(self.initial, recent)).any():
+            rows = ", ".join(f"light {self.light_index[i]}: {float(self.initial[i]):.2e} -> {float(recent[i]):.2e}"
+                             for i in torch.nonzero(bad).flatten().tolist())
+            raise FitError(f"fit diverged: over the last {self.window_steps} steps the training loss rose far above "
+                           f"its starting value ({rows}); lower fit.lr (now {cfg.lr})")
+        rate = (done - self.start) * self.k * cfg.points / (time.perf_counter() - self.t0)
+        self.log(f"step {done}/{cfg.steps}  lr {cosine_lr(done - 1, cfg, self.width):.2e}  median PSNR(train batch) "
+                 f"{float(-10 * torch.log10(recent).median()):.1f} dB  {rate:,.0f} points/s  "
+                 f"{eta(done, cfg.steps, self.t0, start=self.start)}")
+        self.window, self.window_steps = torch.zeros_like(self.window), 0
+
+
 def fit_sirens(
     init: torch.Tensor,
     layout: WeightLayout,
@@ -180,35 +268,23 @@ def fit_sirens(
     lights = np.asarray(lights, dtype=np.float64)
     k = len(lights)
     light_index = list(range(k)) if light_index is None else list(light_index)
-    extent = torch.as_tensor(volume.extent, dtype=torch.float32, device=device)
     sampler = PointSampler(volume, tf, cfg.visible_fraction)
-    grids = field = None
-    if cfg.target == "transmittance":
-        field = ShadowField.build(volume, tf, device=device)
-    elif cfg.target in ("sweep", "march"):
-        fine = refine(volume, cfg.grid_upsample)
-        grids = torch.stack([shadow_grid(fine, tf, w, method=cfg.target, device=device) for w in lights])
-    else:
-        raise ValueError(f"fit.target: expected 'sweep', 'march' or 'transmittance', got {cfg.target!r}")
-
+    targets = Targets(volume, tf, lights, cfg, device)
     weights = init.to(device=device, dtype=torch.float32).expand(k, -1).clone().requires_grad_(True)
     opt = torch.optim.Adam([weights], lr=cfg.lr)
-    start = 0
     fingerprint = _fingerprint(init, lights, cfg, siren, stream, pool)
     pool = pool.to(device) if pool is not None else None
+    start, initial = 0, None
     if state := resume(checkpoint, fingerprint, log=log, map_location=device, weights_only=True):
         with torch.no_grad():
             weights.copy_(state["weights"])
         opt.load_state_dict(state["optimizer"])
         start = int(state["step"])
+        initial = state["initial_loss"].to(device) if start and "initial_loss" in state else None
         log(f"resuming from {checkpoint} at step {start}/{cfg.steps}")
-
     chunk = points_per_pass(cfg.chunk, cfg.points, device)
     autocast = torch.autocast(device.type, dtype=torch.bfloat16, enabled=cfg.precision == "bfloat16")
-    initial = state["initial_loss"].to(device) if start and "initial_loss" in state else None
-    window, window_steps = torch.zeros(k, device=device), 0
-    nonfinite = FirstNonFinite((k,), device)  # read at log lines and checkpoints, not every step
-    t0 = time.perf_counter()
+    watch = Watch(k, cfg, siren, light_index, start, initial, device, log)
     for step in range(start, cfg.steps):
         for group in opt.param_groups:
             group["lr"] = cosine_lr(step, cfg, siren.width)
@@ -216,63 +292,23 @@ def fit_sirens(
             pts = sampler.sample(1, cfg.points, seeded(cfg.seed, SHARED_STREAM, step)).expand(k, -1, -1).to(device)
         else:
             pts = sampler.sample(k, cfg.points, seeded(cfg.seed, stream, step)).to(device)
-        with torch.no_grad():
-            if grids is not None:
-                target = lookup_grids(grids, pts, extent)
-            else:
-                target = transmittance_per_light(field, tf, lights, pts)
-        opt.zero_grad(set_to_none=True)
-        per_siren = torch.zeros(k, device=device)
-        for c0 in range(0, cfg.points, chunk):
-            model = BatchedSiren(weights, layout, siren.blocks)
-            with autocast:
-                pred = model(box_to_siren(pts[:, c0:c0 + chunk], extent)).float()
-            # sum over SIRENs of each one's mean: every SIREN gets exactly its own gradient
-            sq = ((pred - target[:, c0:c0 + chunk]) ** 2).sum(dim=1) / cfg.points
-            sq.sum().backward()
-            per_siren += sq.detach()
-        if pool is not None:
-            _blend_loss(weights, pool, layout, siren, extent, cfg, k, seeded(cfg.seed, -5 - stream, step))
-        nonfinite.record(per_siren, step)
-        if initial is None:
-            initial = per_siren.clone()  # the loss of the init, before any update
-        window += per_siren
-        window_steps += 1
-        opt.step()
+        pool_gen = seeded(cfg.seed, -5 - stream, step) if pool is not None else None
+        per_siren = fit_step(weights, opt, pts, targets(pts), layout, siren, targets.extent, cfg, chunk=chunk,
+                             autocast=autocast, pool=pool, pool_gen=pool_gen)
+        watch.record(per_siren, step)
         done = step + 1
-        saving = checkpoint is not None and (done % cfg.checkpoint_every == 0) and done < cfg.steps
+        saving = checkpoint is not None and done % cfg.checkpoint_every == 0 and done < cfg.steps
         logging = done % max(1, cfg.steps // 10) == 0 or done == cfg.steps
         if saving or logging:
-            _raise_if_not_finite(nonfinite, light_index, cfg)
+            watch.check()
         if saving:
-            state = {"fingerprint": fingerprint, "step": done, "weights": weights.detach().cpu(),
-                     "optimizer": opt.state_dict(), "initial_loss": initial.cpu()}
-            atomic_torch_save(checkpoint, state)
+            atomic_torch_save(checkpoint, {"fingerprint": fingerprint, "step": done, "weights": weights.detach().cpu(),
+                                           "optimizer": opt.state_dict(), "initial_loss": watch.initial.cpu()})
         if logging:
-            # Judged at the end only: from a pre-optimised init, Adam's first steps lift the init light's
-            # loss 100x before it recovers (nucleon: 41 -> 21 -> 35 dB), a rise that is no divergence.
-            recent = window / window_steps
-            if done == cfg.steps and (bad := diverged(initial, recent)).any():
-                rows = ", ".join(f"light {light_index[i]}: {float(initial[i]):.2e} -> {float(recent[i]):.2e}"
-                                 for i in torch.nonzero(bad).flatten().tolist())
-                raise FitError(f"fit diverged: over the last {window_steps} steps the training loss rose far above "
-                               f"its starting value ({rows}); lower fit.lr (now {cfg.lr})")
-            rate = (done - start) * k * cfg.points / (time.perf_counter() - t0)
-            log(f"step {done}/{cfg.steps}  lr {cosine_lr(step, cfg, siren.width):.2e}  median PSNR(train batch) "
-                f"{float(-10 * torch.log10(per_siren).median()):.1f} dB  {rate:,.0f} points/s  "
-                f"{eta(done, cfg.steps, t0, start=start)}")
-            window, window_steps = torch.zeros(k, device=device), 0
+            watch.report(done)
     if checkpoint is not None and checkpoint.exists():
         checkpoint.unlink()
     return weights.detach().cpu()
-
-
-def _raise_if_not_finite(nonfinite: FirstNonFinite, light_index: list[int], cfg: FitConfig) -> None:
-    if (found := nonfinite.first()) is not None:
-        step, at_step, _ = found
-        which = [light_index[i] for i in torch.nonzero(at_step).flatten().tolist()]
-        raise FitError(f"fit diverged at step {step}: loss is not finite for light(s) {which}; "
-                       f"lower fit.lr (now {cfg.lr}) or check the targets")
 
 
 def _blend_loss(weights: torch.Tensor, pool: PoolLights, layout: WeightLayout, siren: SirenConfig,

@@ -12,7 +12,7 @@ from diffshadow.bench import BENCH_LIGHT, BENCH_TF, REFERENCE_STEP, timed
 from diffshadow.io import atomic_save, atomic_write_text
 from diffshadow.shadow import DEFAULT_STEP, DEFAULT_SWEEP_STEP, shadow_grid
 from diffshadow.transfer import TransferFunction
-from diffshadow.volume import load_volume
+from diffshadow.volume import Volume, load_volume
 
 
 def bench_analytic(steps=(2.0, 1.0, 0.5, 0.25)) -> dict:
@@ -48,14 +48,16 @@ def bench_shadow(
     sweep_steps=(1.0, 0.5, 0.25),
     device: torch.device | str = "cpu",
 ) -> dict:
-    """Time and error of every method and step on each volume; writes JSON and a log-log plot."""
-    tf = TransferFunction.from_config(tf_config or BENCH_TF)
+    """Time and error of every method and step on each volume; writes JSON and a log-log plot. A scene's
+    prepared volume (`results/<scene>/volume.zarr`) is timed with its own transfer function."""
+    default_tf = TransferFunction.from_config(tf_config or BENCH_TF)
+    tf = default_tf
     results: dict = {"light": list(light), "tf": tf.to_config(), "reference_step": REFERENCE_STEP,
                      "torch_threads": torch.get_num_threads(), "analytic_blob": bench_analytic(), "volumes": {}}
     for path in volumes:
-        vol = load_volume(path)
+        vol, tf = _load(Path(path), default_tf)
         print(f"[bench shadow] {vol.name} {vol.dims}: reference march at {REFERENCE_STEP} voxel ...", flush=True)
-        ref, t_ref = timed(lambda v=vol: shadow_grid(v, tf, light, method="march", step=REFERENCE_STEP,
+        ref, t_ref = timed(lambda v=vol, f=tf: shadow_grid(v, f, light, method="march", step=REFERENCE_STEP,
                                                       device=device))
         rows = [{"method": "march", "step": REFERENCE_STEP, "seconds": t_ref, "max_err": 0.0, "mean_err": 0.0}]
         cases = [("march", s, True) for s in march_steps] + [("march_noskip", DEFAULT_STEP, False)]
@@ -65,10 +67,10 @@ def bench_shadow(
         grids = {}
         for method, step, skip in cases:
             if method == "sweep":
-                g, t = timed(lambda v=vol, s=step: shadow_grid(v, tf, light, method="sweep", step=s,
+                g, t = timed(lambda v=vol, s=step, f=tf: shadow_grid(v, f, light, method="sweep", step=s,
                                                                 device=device))
             else:
-                g, t = timed(lambda v=vol, s=step, k=skip: shadow_grid(v, tf, light, method="march", step=s,
+                g, t = timed(lambda v=vol, s=step, k=skip, f=tf: shadow_grid(v, f, light, method="march", step=s,
                                                                         skip_empty=k, device=device))
             err = (g - ref).abs()
             row = {"method": method, "step": step, "seconds": t, "max_err": float(err.max()),
@@ -87,12 +89,22 @@ def bench_shadow(
         }
         print(f"  sweep {summary['sweep_speedup']:.1f}x faster than march at default steps; "
               f"skipping {summary['skip_speedup']:.2f}x (max diff {summary['skip_max_diff']:.1e})", flush=True)
-        results["volumes"][vol.name] = {"dims": list(vol.dims), "rows": rows, "summary": summary}
+        results["volumes"][vol.name] = {"dims": list(vol.dims), "tf": tf.to_config(), "rows": rows,
+                                        "summary": summary}
     out_dir.mkdir(parents=True, exist_ok=True)
     atomic_write_text(out_dir / "bench_shadow.json", json.dumps(results, indent=1) + "\n")
     _plot(results, out_dir / "bench_shadow.png")
     print(f"[bench shadow] wrote {out_dir / 'bench_shadow.json'} and {out_dir / 'bench_shadow.png'}")
     return results
+
+
+def _load(path: Path, tf: TransferFunction) -> tuple[Volume, TransferFunction]:
+    """A prepared volume with its transfer function; any other volume file with `tf`."""
+    if path.suffix == ".zarr" and (path / "scalar").exists():
+        from diffshadow.artifacts import load_prepared
+
+        return load_prepared(path)
+    return load_volume(path), tf
 
 
 def _plot(results: dict, path: Path) -> None:

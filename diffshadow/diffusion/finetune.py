@@ -188,6 +188,64 @@ def fingerprint(state: dict, cfg: FinetuneConfig, data: FinetuneData) -> str:
     return h.hexdigest()
 
 
+class Selection:
+    """Which fine-tuned model is kept, and when fine-tuning gives up (rank 0 scores; the verdict is shared).
+
+    Every checkpoint is scored by the median voxel PSNR of DDIM-generated SIRENs at the validation lights; the
+    geometry stage's sampler, scored first, is the floor. The model kept is the last one not below the floor,
+    and `patience` checkpoints in a row under it end fine-tuning. Without validation lights the last model is
+    kept and nothing stops early. `record` ({history: [[epoch, PSNR]], kept_epoch, stopped_epoch}) is saved
+    with each checkpoint and in the final one."""
+
+    def __init__(self, val: EvalTruth | None, sampler: dict, patience: int, log):
+        self.val, self.patience, self.log = val, patience, log
+        self.record: dict = {"history": [], "kept_epoch": 0}
+        self.kept = {k: v.detach().cpu().clone() for k, v in sampler.items()}
+
+    def resume(self, state: dict) -> None:
+        self.record = state.get("selection") or self.record
+        self.kept = state.get("kept_model") or self.kept
+
+    def score(self, epoch: int, model, psnr_of) -> None:
+        """`psnr_of(model)`: the validation PSNR; epoch 0 is the floor."""
+        if self.val is None:
+            return
+        value = psnr_of(model)
+        self.record["history"].append([epoch, value])
+        floor = self.record["history"][0][1]
+        if value >= floor and epoch > 0:
+            self.record["kept_epoch"] = epoch
+            self.kept = {k: v.detach().cpu().clone() for k, v in model.state_dict().items()}
+        self.log(f"validation: epoch {epoch}, median voxel PSNR {value:.2f} dB at {len(self.val.lights)} validation "
+                 f"lights (geometry stage {floor:.2f} dB); keeping epoch {self.record['kept_epoch']}")
+
+    def give_up(self) -> bool:
+        """The last `patience` checkpoints all scored under the floor (rank 0's own verdict)."""
+        scores = [v for _, v in self.record["history"]]
+        return (self.val is not None and self.patience > 0 and len(scores) > self.patience
+                and max(scores[-self.patience:]) < scores[0])
+
+    @property
+    def stopped(self) -> bool:
+        return bool(self.record.get("stopped_epoch"))
+
+
+def train_step(model, base, opt: torch.optim.Optimizer, std: Standardizer, data: FinetuneData, z_all: torch.Tensor,
+               batch: list[int], rank: int, world: int, epoch: int, cfg: FinetuneConfig, dcfg: DiffusionConfig,
+               schedule: Schedule) -> torch.Tensor:
+    """One optimiser step on this rank's share of the global `batch`; returns the loss parts (summed)."""
+    loss, parts = step_loss(model, std, data, z_all, batch[rank::world], epoch, cfg, dcfg, schedule,
+                            scale=world / len(batch))
+    if not torch.isfinite(loss):
+        raise ValueError(f"finetune: loss became {float(loss.detach())} at epoch {epoch} on rank {rank}; "
+                         f"lower finetune.lr (now {cfg.lr})")
+    opt.zero_grad(set_to_none=True)
+    loss.backward()
+    torch.nn.utils.clip_grad_norm_(base.parameters(), dcfg.grad_clip)
+    opt.step()
+    return parts
+
+
 def finetune(geometry_state: dict, data: FinetuneData, cfg: FinetuneConfig, checkpoint: Path, *,
              rank: int = 0, world: int = 1, device: torch.device | str = "cpu",
              log=print, stop_after_epoch: int | None = None) -> dict:
@@ -197,6 +255,7 @@ def finetune(geometry_state: dict, data: FinetuneData, cfg: FinetuneConfig, chec
     device = torch.device(device)
     dcfg = DiffusionConfig.of_checkpoint(geometry_state)
     layout = WeightLayout.from_config(geometry_state["layout"])
+    siren_cfg = SirenConfig.from_config(geometry_state["siren"])
     torch.manual_seed(cfg.seed)
     base = build_model(layout, dcfg)
     # Fine-tuning steps from the raw weights. With diffusion.ema the geometry stage's sampler is their average,
@@ -209,47 +268,45 @@ def finetune(geometry_state: dict, data: FinetuneData, cfg: FinetuneConfig, chec
     std = Standardizer(layout, geometry_state["standardizer"]["mean"], geometry_state["standardizer"]["std"])
     opt = make_optimizer(base.parameters(), cfg.lr, dcfg.weight_decay)
     fp = fingerprint(geometry_state, cfg, data)
+    selection = Selection(data.val if rank == 0 else None, sampler, cfg.patience, log)
     start = 0
-    siren_cfg = SirenConfig.from_config(geometry_state["siren"])
-    # validation (rank 0): [epoch, median PSNR] per checkpoint, and the last model not below the geometry stage's
-    selection: dict = {"history": [], "kept_epoch": 0}
-    kept: dict = {"model": {k: v.detach().cpu().clone() for k, v in sampler.items()}}
     if state := resume(checkpoint, fp, log=lambda m: log(f"rank {rank}: {m}"), map_location=device,
                        key="finetune_fingerprint"):
         base.load_state_dict(state["model"])
         opt.load_state_dict(state["optimizer"])
         start = int(state["finetune_epoch"])
-        selection = state.get("selection") or selection
-        kept["model"] = state.get("kept_model") or kept["model"]
+        selection.resume(state)
         log(f"rank {rank}: resuming from {checkpoint} at epoch {start}/{cfg.epochs}")
 
-    def score(epoch: int) -> None:
-        if data.val is None or rank != 0:
-            return
-        scored = base
-        if epoch == 0:  # the floor: the geometry stage's sampler
-            scored = build_model(layout, dcfg)
-            scored.load_state_dict(sampler)
-            scored.to(device)
-        value = validation_psnr(scored, std, data.val, layout, dcfg, siren_cfg, device)
-        selection["history"].append([epoch, value])
-        floor = selection["history"][0][1]
-        if value >= floor and epoch > 0:
-            selection["kept_epoch"] = epoch
-            kept["model"] = {k: v.detach().cpu().clone() for k, v in base.state_dict().items()}
-        log(f"validation: epoch {epoch}, median voxel PSNR {value:.2f} dB at {len(data.val.lights)} validation lights "
-            f"(geometry stage {floor:.2f} dB); keeping epoch {selection['kept_epoch']}")
+    def psnr_of(model) -> float:
+        return validation_psnr(model, std, data.val, layout, dcfg, siren_cfg, device)
+
+    def floor_model():  # the geometry stage's sampler
+        model = build_model(layout, dcfg)
+        model.load_state_dict(sampler)
+        return model.to(device)
 
     def give_up() -> bool:
-        """Rank 0's verdict, shared: the last `patience` checkpoints all scored under the geometry stage."""
-        scores = [v for _, v in selection["history"]]
-        verdict = (data.val is not None and cfg.patience > 0 and len(scores) > cfg.patience
-                   and max(scores[-cfg.patience:]) < scores[0])
+        verdict = selection.give_up()
         if world > 1:
             flag = torch.tensor([int(verdict)], device=device)
             dist.broadcast(flag, 0)
             verdict = bool(flag.item())
         return verdict
+
+    def save(epoch: int, last: bool) -> dict:
+        # at the end the model written is the one validation kept; before it, the running one and the kept one
+        validated = data.val is not None
+        final = validated and last
+        state = {**geometry_state, "model": selection.kept if final else base.state_dict(), "ema": None,
+                 "optimizer": opt.state_dict(), "finetune_fingerprint": fp, "finetune_epoch": epoch,
+                 "finetune": asdict(cfg), "selection": selection.record,
+                 "kept_model": selection.kept if validated and not final else None}
+        if rank == 0:
+            atomic_torch_save(checkpoint, state)
+        if world > 1:
+            dist.barrier()
+        return state
 
     model = base
     if world > 1:
@@ -264,62 +321,37 @@ def finetune(geometry_state: dict, data: FinetuneData, cfg: FinetuneConfig, chec
         log(f"fine-tuning with the rendering loss: {world} process(es) on {device.type}, global batch "
             f"{cfg.batch_size} ({cfg.batch_size // world}+ per rank), lr {cfg.lr:g}, {cfg.pixels} pixels x "
             f"{len(data.bundle.count)} views per light, {cfg.epochs} epochs")
-
-    def save(epoch: int, last: bool) -> dict:
-        # at the end the model written is the one validation kept; before it, the running one and the kept one
-        final = data.val is not None and last
-        state = {**geometry_state, "model": kept["model"] if final else base.state_dict(), "ema": None,
-                 "optimizer": opt.state_dict(), "finetune_fingerprint": fp, "finetune_epoch": epoch,
-                 "finetune": asdict(cfg), "selection": selection,
-                 "kept_model": kept["model"] if data.val is not None and not final else None}
-        if rank == 0:
-            atomic_torch_save(checkpoint, state)
-        if world > 1:
-            dist.barrier()
-        return state
-
     if start == 0:
-        score(0)  # the geometry stage's model: the floor
+        selection.score(0, floor_model() if selection.val is not None else None, psnr_of)
     state = None
     t_start = t_step = time.perf_counter()
     step_times: list[float] = []
-    end = start if selection.get("stopped_epoch") else cfg.epochs  # a run that stopped early has finished
+    end = start if selection.stopped else cfg.epochs  # a run that stopped early has finished
     for epoch in range(start, end):
         gen = seeded(cfg.seed, 11, epoch)
         order = torch.randperm(n, generator=gen, device=gen.device).tolist()
         totals = torch.zeros(3, dtype=torch.float64, device=device)  # summed on the device: no sync per step
         for b0 in range(0, n, cfg.batch_size):
-            batch = order[b0:b0 + cfg.batch_size]
-            local = batch[rank::world]
-            loss, parts = step_loss(model, std, data, z_all, local, epoch, cfg, dcfg, schedule,
-                                    scale=world / len(batch))
-            if not torch.isfinite(loss):
-                raise ValueError(f"finetune: loss became {float(loss.detach())} at epoch {epoch} on rank {rank}; "
-                                 f"lower finetune.lr (now {cfg.lr})")
-            opt.zero_grad(set_to_none=True)
-            loss.backward()
-            torch.nn.utils.clip_grad_norm_(base.parameters(), dcfg.grad_clip)
-            opt.step()
-            totals += parts
+            totals += train_step(model, base, opt, std, data, z_all, order[b0:b0 + cfg.batch_size], rank, world,
+                                 epoch, cfg, dcfg, schedule)
             step_times.append(time.perf_counter() - t_step)
             t_step = time.perf_counter()
         if world > 1:
             dist.all_reduce(totals)
-        totals = totals.cpu()
         done = epoch + 1
         if done % cfg.checkpoint_every == 0 or done == cfg.epochs:
-            score(done)
+            selection.score(done, base, psnr_of)
             stop = done < cfg.epochs and give_up()
             if stop:
                 if rank == 0:
                     log(f"validation: the last {cfg.patience} checkpoints scored under the geometry stage; "
-                        f"stopping at epoch {done}/{cfg.epochs} and keeping epoch {selection['kept_epoch']}")
-                selection["stopped_epoch"] = done
+                        f"stopping at epoch {done}/{cfg.epochs} and keeping epoch {selection.record['kept_epoch']}")
+                selection.record["stopped_epoch"] = done
             state = save(done, last=stop or done == cfg.epochs)
             if stop:
                 break
         if rank == 0 and (done % max(1, cfg.epochs // 10) == 0 or done == cfg.epochs):
-            lx, lg, lr_ = (totals / n).tolist()
+            lx, lg, lr_ = (totals.cpu() / n).tolist()
             log(f"epoch {done}/{cfg.epochs}  x0 {lx:.3e}  geometry {lg:.3e}  render {lr_:.3e} "
                 f"(≈{-10 * math.log10(max(lr_, 1e-30)):.1f} dB)  {eta(done, end, t_start, start=start)}")
         if stop_after_epoch is not None and done >= stop_after_epoch:

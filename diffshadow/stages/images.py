@@ -99,20 +99,18 @@ def _data_inr_size(inr) -> dict | None:
             "psnr": inr.psnr, "capacity": inr.config.get("capacity")}
 
 
-def report_figures(results: Path, cfg: dict, out: Path) -> None:
-    """The report's figures for one finished scene, from its results (nothing is re-trained)."""
-    from diffshadow.bench.shadow import bench_shadow
-
+def report_figures(weights: Path, generated: Path, lights_path: Path, images_dir: Path, voxel_metrics: Path,
+                   shadow_bench: Path, cfg: dict, out: Path) -> None:
+    """The report's figures for one finished scene, from its results (nothing is re-trained or re-timed)."""
     out.mkdir(parents=True, exist_ok=True)
     report.write_config(out / "config.yaml", cfg)
-    stage1, generated = open_store(results / "weights.zarr"), open_store(results / "generated.zarr")
+    stage1, generated_store = open_store(weights), open_store(generated)
     report.siren_psnr_figure(stage1, out / "siren_psnr.png")
-    report.generated_figure(stage1, generated, out / "generated_psnr.png", out / "generated_psnr.csv")
-    lights = read_lights(results / "lights.json")
-    report.image_grid_figure(results / "images", lights, out / "image_grid.png")
-    metrics = json.loads((results / "voxel_metrics.json").read_text())
+    report.generated_figure(stage1, generated_store, out / "generated_psnr.png", out / "generated_psnr.csv")
+    lights = read_lights(lights_path)
+    report.image_grid_figure(images_dir, lights, out / "image_grid.png")
+    metrics = json.loads(voxel_metrics.read_text())
     report.storage_figure(metrics, len(lights["train"]), out / "storage.png")
     report.ddim_curve_figure(metrics["sampling"], out / "ddim_curve.png")
-    shadow = bench_shadow([Path(cfg["volume"])], out, tf_config=cfg["transfer_function"])
-    report.shadow_curve_figure(shadow, out / "shadow_curve.png")
+    report.shadow_curve_figure(json.loads(shadow_bench.read_text()), out / "shadow_curve.png")
     print(f"wrote the report figures in {out}")

@@ -69,7 +69,7 @@ def stage_benchmarks(wildcards):
     """Snakemake's benchmark file of every job that this scene runs."""
     rules = ["lights", "prepare_volume", "preoptimize", "collect_weights", "presample", "eval_truth",
              "train_diffusion", "sample_shadows", "evaluate_voxels", "train_data_inr", "evaluate_images",
-             "report_figures", "benchmark"]
+             "shadow_bench", "report_figures", "benchmark"]
     if scene_config(wildcards.scene)["finetune"]["enabled"]:
         rules += ["render_targets", "finetune_render"]
     fits = [f"fit_siren_{i}" for i in range(n_subsets(wildcards.scene))]

@@ -1,14 +1,32 @@
 # Figures for `snakemake --report report.html` (captions in workflow/report/).
 
 
+rule shadow_bench:
+    input:
+        "results/{scene}/volume.zarr",
+    output:
+        json="results/{scene}/bench_shadow.json",
+        png="results/{scene}/bench_shadow.png",
+    threads: 2
+    log:
+        "results/{scene}/logs/shadow_bench.log",
+    benchmark:
+        "results/{scene}/benchmarks/shadow_bench.tsv"
+    conda:
+        "../envs/diffshadow.yaml"
+    shell:
+        "diffshadow bench shadow --volumes {input} --out results/{wildcards.scene} --threads {threads}"
+        " --device cpu 2>&1 | tee {log}"
+
+
 rule report_figures:
     input:
         weights="results/{scene}/weights.zarr",
         generated="results/{scene}/generated.zarr",
         voxel_metrics="results/{scene}/voxel_metrics.json",
         images="results/{scene}/images",
-        volume="results/{scene}/volume.zarr",
         lights="results/{scene}/lights.json",
+        shadow_bench="results/{scene}/bench_shadow.json",
     output:
         config=report("results/{scene}/report/config.yaml", caption="../report/config.rst",
                       category="{scene}", subcategory="configuration"),
@@ -37,7 +55,8 @@ rule report_figures:
     conda:
         "../envs/diffshadow.yaml"
     shell:
-        "diffshadow report-figures --results results/{wildcards.scene}"
+        "diffshadow report-figures --weights {input.weights} --generated {input.generated} --lights {input.lights}"
+        " --images {input.images} --voxel-metrics {input.voxel_metrics} --shadow-bench {input.shadow_bench}"
         " --config-json {params.cfg:q}"
         " --threads {threads} --out-dir results/{wildcards.scene}/report 2>&1 | tee {log}"
 
