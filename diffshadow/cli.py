@@ -164,11 +164,30 @@ def _render(a):
         tf = parse_json(a.tf_json, "--tf-json") if a.tf_json else None
         scene = load_render_scene(Path(a.volume), Path(a.data_inr) if a.data_inr else None, _device(a), tf,
                                   network_flags(a))
-    cam = Camera.orbit(scene.volume.extent, azimuth=a.azimuth, elevation=a.elevation, distance=a.distance,
-                       fov=a.fov, size=a.size)
+    if len(a.size) > 2:
+        raise ValueError(f"--size: expected one number (square) or two (width height), got {len(a.size)}")
+    size = a.size[0] if len(a.size) == 1 else tuple(a.size)
+    if (a.eye is None) != (a.target is None):
+        raise ValueError("render: give --eye and --target together (or neither, for the orbit camera)")
+    if a.eye is not None:
+        cam = Camera.look_at(a.eye, a.target, up=a.up, fov=a.fov, size=size)
+    else:
+        cam = Camera.orbit(scene.volume.extent, azimuth=a.azimuth, elevation=a.elevation, distance=a.distance,
+                           fov=a.fov, size=size)
     images.render_image(scene, Path(a.out), mode=a.mode, camera=cam, light=a.light,
                         weights_path=Path(a.weights) if a.weights else None, light_index=a.light_index,
+                        diffusion=Path(a.diffusion) if a.diffusion else None,
                         scalar=a.scalar, phong=a.phong, step=a.step, skip=not a.no_skip)
+
+
+def _view(a):
+    from diffshadow.viewer import serve
+
+    if (a.results is None) == (a.scene_config is None):
+        raise ValueError("view: give a results folder (results/<scene>) or --scene-config, not both")
+    serve(results=Path(a.results) if a.results else None,
+          scene_config=Path(a.scene_config) if a.scene_config else None, device=_device(a), host=a.host,
+          port=a.port, size=a.size, step=a.step, render=network_flags(a), record=Path(a.record) if a.record else None)
 
 
 def _report_figures(a):
@@ -282,12 +301,29 @@ def build_parser() -> argparse.ArgumentParser:
                            ("weights", "weight store for mode inr (weights.zarr or generated.zarr)")):
         p.add_argument(f"--{name}", help=helptext)
     p.add_argument("--light-index", type=int, default=0, help="row of --weights (its light is used)")
+    p.add_argument("--diffusion", help="mode inr: a diffusion checkpoint (results/<scene>/diffusion.ckpt) that "
+                   "generates the shadow SIREN of --light now, as the viewer does for a new direction")
     p.add_argument("--light", type=float, nargs=3, metavar=("X", "Y", "Z"), help="toward the light")
     p.add_argument("--phong", action="store_true", help="Blinn-Phong lighting from the field's gradient")
     for name, value in (("azimuth", 30.0), ("elevation", 25.0), ("distance", 2.2), ("fov", 60.0), ("step", 0.5)):
         p.add_argument(f"--{name}", type=float, default=value)
-    p.add_argument("--size", type=int, default=128)
+    for name in ("eye", "target"):
+        p.add_argument(f"--{name}", type=float, nargs=3, metavar=("X", "Y", "Z"),
+                       help="a free camera in box coordinates (instead of --azimuth/--elevation/--distance)")
+    p.add_argument("--up", type=float, nargs=3, metavar=("X", "Y", "Z"), default=(0.0, 0.0, 1.0))
+    p.add_argument("--size", type=int, nargs="+", default=[128], help="image size: N (square) or W H")
     p.add_argument("--no-skip", action="store_true", help="turn macro-cell skipping off")
+    add_networks(p)
+    p = _add(sub, "view", _view, "an interactive viewer in the browser: move the light, see the cached shadow",
+             out=False)
+    p.add_argument("results", nargs="?", help="a finished scene's results folder (results/<scene>)")
+    p.add_argument("--scene-config", help="a scene file, before any run: modes noshadow and gt only")
+    p.add_argument("--host", default="127.0.0.1", help="address to serve on (default 127.0.0.1: this machine "
+                   "only; on ALCF forward it with ssh -L, see the README)")
+    p.add_argument("--port", type=int, default=8080)
+    p.add_argument("--size", type=int, default=128, help="image height in pixels when still (a panel control)")
+    p.add_argument("--step", type=float, default=0.5, help="marching step in voxels (a panel control)")
+    p.add_argument("--record", help="a folder where every still frame is written as PNG with its render command")
     add_networks(p)
     p = _add(sub, "report-figures", _report_figures, "the report's figures for one finished scene", "weights",
              "generated", "lights", "images", "voxel-metrics", "shadow-bench", "out-dir",

@@ -17,7 +17,7 @@ LAYERS = [
     ["fit"],  # stage 1
     ["diffusion"],  # stage 2
     ["evaluate", "report", "summary"],
-    ["artifacts", "runtime", "argparsing", "stages", "bench", "parsl_fit"],  # files, processes, stage functions
+    ["artifacts", "runtime", "argparsing", "stages", "bench", "parsl_fit", "viewer"],  # files, processes, stages
     ["cli"],
 ]
 

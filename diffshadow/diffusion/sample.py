@@ -67,3 +67,18 @@ def generate(model: WeightTransformer, std: Standardizer, lights, *, method: str
             raise ValueError(f"method: expected 'ddim' or 'ddpm', got {method!r}")
         out.append(std.destandardize(z.double()).float().cpu())
     return torch.cat(out)
+
+
+class ShadowSampler:
+    """A checkpoint ready to generate shadow SIRENs for any light, the way `sample_shadows` does (DDIM at the
+    checkpoint's `ddim_steps`, `seed` and `temperature`). One light at a time gives the same SIREN every time
+    for that light; a row of `generated.zarr` came from a batch, so its noise differs."""
+
+    def __init__(self, state: dict, device: torch.device | str = "cpu"):
+        self.model, self.std, self.layout, self.siren = load_sampler(state, device)
+        self.config, self.device = state["config"], torch.device(device)
+
+    def __call__(self, light) -> torch.Tensor:
+        """(n_params,) float32 weights of the shadow SIREN of one light direction."""
+        return generate(self.model, self.std, [as_direction(light)], method="ddim", steps=self.config["ddim_steps"],
+                        seed=self.config["seed"], temperature=self.config["temperature"], device=self.device)[0]

@@ -121,6 +121,10 @@ class RenderScene:
     def _gt_key(light) -> tuple:
         return ("gt", tuple(np.round(as_direction(light), 12).tolist()))
 
+    def has_gt(self, light) -> bool:
+        """Whether the exact shadow of `light` is cached (else the next `gt` frame computes it)."""
+        return self._gt_key(light) in self._cache
+
     def forget_gt(self, light) -> None:
         """Drop the cached shadow grid of `light` (a loop over many lights need not keep them all)."""
         self._cache.pop(self._gt_key(light), None)

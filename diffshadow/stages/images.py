@@ -46,10 +46,20 @@ def render_targets(volume_path: Path, lights_path: Path, out: Path, *, cfg: Fine
 
 
 def render_image(scene: RenderScene, out: Path, *, mode: str, camera: Camera, light=None,
-                 weights_path: Path | None = None, light_index: int = 0, scalar: str | None = None,
-                 phong: bool = False, step: float, skip: bool = True) -> None:
-    """One image (PNG) in a shading mode; the shadow INR of mode `inr` is row `light_index` of a store."""
+                 weights_path: Path | None = None, light_index: int = 0, diffusion: Path | None = None,
+                 scalar: str | None = None, phong: bool = False, step: float, skip: bool = True) -> None:
+    """One image (PNG) in a shading mode; the shadow INR of mode `inr` is row `light_index` of a store, or
+    generated for `light` by the diffusion checkpoint `diffusion`."""
     siren = None
+    if weights_path and diffusion:
+        raise ValueError("render: --weights and --diffusion both give the shadow INR; give one")
+    if diffusion:
+        from diffshadow.diffusion.sample import ShadowSampler
+
+        if light is None:
+            raise ValueError("--diffusion: needs --light, the direction to generate the shadow SIREN for")
+        sampler = ShadowSampler(artifacts.load_checkpoint(diffusion), scene.device)
+        siren = (sampler(light), sampler.layout, sampler.siren.blocks)
     if weights_path:
         store = open_store(weights_path)
         if not 0 <= light_index < len(store.weights):
@@ -58,7 +68,7 @@ def render_image(scene: RenderScene, out: Path, *, mode: str, camera: Camera, li
         siren = (store.weights[light_index], store.layout, store.siren.blocks)
         light = light or store.lights[light_index].tolist()
     if mode == "inr" and siren is None:
-        raise ValueError("--mode inr needs --weights (a weight store) and --light-index")
+        raise ValueError("--mode inr needs --weights (a weight store) and --light-index, or --diffusion and --light")
     img = scene.render(mode, camera, light=light, siren=siren, scalar=scalar, phong=phong, step=step, skip=skip)
     write_png(out, img)
     c = img.counters

@@ -1,0 +1,249 @@
+"""The browser viewer (`diffshadow view`), built on viser: each browser tab gets its own panel and a render
+thread that draws the scene from the tab's camera as the page's background image, at half the image height
+while the camera or the light is moving and at full size once they have been still for `STILL_S`."""
+
+from __future__ import annotations
+
+import contextlib
+import io
+import json
+import logging
+import math
+import socket
+import threading
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from diffshadow.io import atomic_save, atomic_write_text
+from diffshadow.render import Camera, RenderError
+from diffshadow.viewer.scene import ViewerError, ViewerScene, azimuth_elevation, direction
+
+STILL_S = 0.3  # no change for this long: draw at full size
+PREVIEW = 2  # while moving, the image height is divided by this
+FREE = "(azimuth / elevation)"
+FPS_SMOOTHING = 0.3  # weight of the newest frame in the fps readout
+
+
+def port_free(host: str, port: int) -> bool:
+    with socket.socket(socket.AF_INET6 if ":" in host else socket.AF_INET, socket.SOCK_STREAM) as s:
+        try:
+            s.bind((host, port))
+        except OSError:
+            return False
+    return True
+
+
+def camera_of(cam, height: int) -> Camera:
+    """The renderer's camera for a viser client camera (box coordinates are the viewer's world), `height`
+    pixels high at the browser canvas' aspect."""
+    width = max(1, round(height * cam.aspect))
+    return Camera.look_at(tuple(cam.position), tuple(cam.look_at), up=tuple(cam.up_direction),
+                          fov=math.degrees(cam.fov), size=(width, height))
+
+
+class Session:
+    """One browser tab: its panel, its light, and the thread that renders for it."""
+
+    def __init__(self, viewer: ViewerScene, client, *, size: int, step: float, record: Path | None):
+        self.viewer, self.client, self.record = viewer, client, record
+        self.lock, self.wake = threading.Lock(), threading.Event()
+        self.version, self.changed_at = 0, time.monotonic()
+        self.drawn = {"full": -1, "preview": -1}
+        self.fps = {"full": None, "preview": None}
+        self.frames = 0
+        listed = viewer.listed()
+        self.light = listed[0][1] if listed else direction(60.0, 40.0)
+        self.gt_light = None
+        self._syncing = False
+        gui = client.gui
+        self.mode = gui.add_dropdown("mode", viewer.modes, initial_value=viewer.modes[0])
+        with gui.add_folder("light"):
+            self.pick = gui.add_dropdown("pick", [FREE] + [label for label, _ in listed],
+                                         initial_value=listed[0][0] if listed else FREE)
+            az, el = azimuth_elevation(self.light)
+            self.azimuth = gui.add_slider("azimuth", -180.0, 180.0, 0.5, round(az * 2) / 2)
+            self.elevation = gui.add_slider("elevation", -90.0, 90.0, 0.5, round(el * 2) / 2)
+            self.light_note = gui.add_markdown("")
+        with gui.add_folder("image"):
+            self.size = gui.add_slider("height (px)", 32, 1024, 16, int(size))
+            self.step = gui.add_slider("step (voxels)", 0.125, 2.0, 0.125, float(step))
+        self.status = gui.add_markdown("starting")
+        self.command = gui.add_markdown("")
+        self.labels = dict(listed)
+        self.pick.on_update(lambda _: self._picked())
+        for slider in (self.azimuth, self.elevation):
+            slider.on_update(lambda _: self._dragged())
+        for control in (self.mode, self.size, self.step):
+            control.on_update(lambda _: self.changed())
+        client.camera.on_update(lambda _: self.changed())
+        self.closed = False
+        self.thread = threading.Thread(target=self._loop, name=f"render-{client.client_id}", daemon=True)
+        self.thread.start()
+
+    # ------------------------------------------------------------------------------------ panel events
+
+    def changed(self) -> None:
+        with self.lock:
+            self.version += 1
+            self.changed_at = time.monotonic()
+        self.wake.set()
+
+    def _picked(self) -> None:
+        if self._syncing or self.pick.value == FREE:
+            return
+        self.light = np.asarray(self.labels[self.pick.value])
+        az, el = azimuth_elevation(self.light)
+        self._syncing = True
+        try:  # the sliders follow the picked light without moving it
+            self.azimuth.value, self.elevation.value = round(az * 2) / 2, round(el * 2) / 2
+        finally:
+            self._syncing = False
+        self.changed()
+
+    def _dragged(self) -> None:
+        if self._syncing:
+            return
+        self.light = direction(self.azimuth.value, self.elevation.value)
+        self._syncing = True
+        try:
+            self.pick.value = FREE
+        finally:
+            self._syncing = False
+        self.changed()
+
+    def close(self) -> None:
+        self.closed = True
+        self.wake.set()
+
+    # ------------------------------------------------------------------------------------ drawing
+
+    def _loop(self) -> None:
+        while not self.closed:
+            self.wake.wait(0.05)
+            self.wake.clear()
+            with self.lock:
+                version, changed_at = self.version, self.changed_at
+            if version == self.drawn["full"]:
+                continue
+            kind = "preview" if time.monotonic() - changed_at < STILL_S else "full"
+            if kind == "preview" and version == self.drawn["preview"]:
+                continue  # drawn small already; wait until it is still
+            try:
+                if getattr(self.client.camera, "_state", None) is None:
+                    continue
+                self.client.camera.update_timestamp  # noqa: B018 - raises until the browser sent its camera
+            except AssertionError:
+                continue
+            try:
+                self._draw(kind)
+            except (ViewerError, RenderError, ValueError) as e:
+                self.status.content = f"**cannot draw:** {e}"
+            self.drawn[kind] = version
+
+    def _draw(self, kind: str) -> None:
+        mode, step = self.mode.value, float(self.step.value)
+        height = int(self.size.value) // (PREVIEW if kind == "preview" else 1)
+        camera = camera_of(self.client.camera, max(16, height))
+        light = self.light
+        if mode in ("gt", "inr | gt", "|inr - gt| x4"):
+            if self.gt_light is not None and not np.array_equal(self.gt_light, light):
+                self.viewer.scene.forget_gt(self.gt_light)  # one light's exact shadow kept, not every light's
+            self.gt_light = light
+            if not self.viewer.scene.has_gt(light):
+                self.status.content = "computing the exact shadow for this light (once per light) ..."
+        t0 = time.perf_counter()
+        image, notes = self.viewer.frame(mode, camera, light, step=step)
+        self.client.scene.set_background_image(image, format="png")
+        seconds = time.perf_counter() - t0
+        self.frames += 1
+        old = self.fps[kind]
+        self.fps[kind] = 1 / seconds if old is None else (1 - FPS_SMOOTHING) * old + FPS_SMOOTHING / seconds
+        self._notes(kind, mode, camera, light, step, notes, seconds)
+        if self.record is not None:
+            with open(self.record / "frames.jsonl", "a") as f:  # every frame's cost, for measuring the viewer
+                made = notes["light"].generate_s if notes.get("light") else None
+                f.write(json.dumps({"kind": kind, "mode": mode, "width": camera.width, "height": camera.height,
+                                    "seconds": seconds, "generate_s": made, "time": time.time()}) + "\n")
+            if kind == "full":
+                self._record(image, mode, camera, light, step, notes)
+
+    def _notes(self, kind, mode, camera, light, step, notes, seconds) -> None:
+        info = notes.get("light") or self.viewer.light_info(light)
+        line = info.describe()
+        if info.generate_s is not None:
+            line += f"; its shadow SIREN generated now in {info.generate_s:.2f} s (DDIM)"
+        self.light_note.content = line
+        fps = " · ".join(f"{k} {v:.1f} fps" for k, v in self.fps.items() if v is not None)
+        status = (f"{camera.width}×{camera.height} {'(moving)' if kind == 'preview' else ''} "
+                  f"in {seconds * 1000:.0f} ms · {fps} · {self.viewer.scene.device.type}")
+        if "psnr_vs_gt" in notes:
+            status += f"  \ninr against gt: {notes['psnr_vs_gt']:.2f} dB"
+        self.status.content = status
+        if kind == "full" and mode in ("inr", "noshadow", "gt", "naive"):
+            self.command.content = ("same frame from the command line:\n\n```\n"
+                                    + self.viewer.render_command(mode, camera, light, step=step) + "\n```")
+
+    def _record(self, image, mode, camera, light, step, notes) -> None:
+        from PIL import Image as PILImage
+
+        stem = self.record / f"frame_{self.frames:05d}"
+        atomic_save(stem.with_suffix(".png"), lambda tmp: PILImage.fromarray(image).save(tmp, format="PNG"),
+                    suffix=".png")
+        command = self.viewer.render_command(mode, camera, light, step=step) if mode in (
+            "inr", "noshadow", "gt", "naive") else None
+        info = notes.get("light")
+        atomic_write_text(stem.with_suffix(".json"), json.dumps({
+            "mode": mode, "light": list(map(float, light)), "command": command, "width": camera.width,
+            "height": camera.height, "light_kind": info.describe() if info else None,
+            "generate_s": info.generate_s if info else None, "render_s": notes.get("render_s")}, indent=1) + "\n")
+
+
+def serve(*, results: Path | None, scene_config: Path | None, device: torch.device, host: str = "127.0.0.1",
+          port: int = 8080, size: int = 128, step: float = 0.5, render: dict | None = None,
+          record: Path | None = None, stop: threading.Event | None = None) -> None:
+    """Serve the viewer until Ctrl-C (or `stop` is set)."""
+    import viser
+
+    if not port_free(host, port):
+        raise ViewerError(f"port {port} on {host} is in use (another viewer?); choose another with --port")
+    viewer = (ViewerScene.from_results(results, device, render) if results is not None
+              else ViewerScene.from_scene_config(scene_config, device, render))
+    if record is not None:
+        record.mkdir(parents=True, exist_ok=True)
+    logging.getLogger("websockets").setLevel(logging.CRITICAL)  # a browser's aborted probe is no error of ours
+    with contextlib.redirect_stdout(io.StringIO()):  # viser's banner: the line below says where to look
+        server = viser.ViserServer(host=host, port=port, verbose=False)
+    if server.get_port() != port:
+        server.stop()
+        raise ViewerError(f"port {port} on {host} was taken while the viewer started; choose another with --port")
+    server.gui.configure_theme(control_layout="fixed", show_share_button=False, show_logo=False)
+    server.scene.set_up_direction("+z")
+    start = Camera.orbit(viewer.scene.volume.extent, azimuth=30.0, elevation=25.0, fov=60.0)
+    server.initial_camera.position, server.initial_camera.look_at = start.eye, start.target
+    server.initial_camera.up_direction, server.initial_camera.fov = start.up, math.radians(start.fov)
+    sessions: dict[int, Session] = {}
+
+    @server.on_client_connect
+    def _(client) -> None:
+        sessions[client.client_id] = Session(viewer, client, size=size, step=step, record=record)
+
+    @server.on_client_disconnect
+    def _(client) -> None:
+        if (s := sessions.pop(client.client_id, None)) is not None:
+            s.close()
+
+    shown = "localhost" if host in ("127.0.0.1", "::1") else host
+    print(f"diffshadow view: {viewer.name} ({', '.join(viewer.modes)}) on {viewer.scene.device.type} at "
+          f"http://{shown}:{port}  (Ctrl-C stops it)", flush=True)
+    try:
+        while not (stop is not None and stop.is_set()):
+            time.sleep(0.2)
+    except KeyboardInterrupt:
+        pass
+    finally:
+        for s in sessions.values():
+            s.close()
+        server.stop()

@@ -1,0 +1,534 @@
+"""Headless Chromium driven over the DevTools protocol (no browser-automation package: the websocket client is
+viser's, a dependency already): the viewer's browser test (tests/test_workflow.py) and what a person looks at.
+
+    python scripts/browser.py viewer results/nucleon --screenshot docs/images/viewer.png   # the test's checks
+    python scripts/browser.py viewer-fps results/nucleon --sizes 128 256 --out viewer_fps.json
+    python scripts/browser.py report report.html --item summary --out shots
+
+Needs Chromium on PATH (Debian: apt-get install chromium); WebGL runs on SwiftShader, no GPU needed.
+"""
+
+from __future__ import annotations
+
+import base64
+import io
+import itertools
+import json
+import re
+import shlex
+import shutil
+import subprocess
+import tempfile
+import time
+import urllib.request
+
+import numpy as np
+
+BROWSERS = ("chromium", "chromium-browser", "google-chrome")
+
+
+def find_browser() -> str | None:
+    return next((path for name in BROWSERS if (path := shutil.which(name))), None)
+
+
+class Browser:
+    """One headless page. WebGL runs on SwiftShader (no GPU needed); one CSS pixel is one screen pixel."""
+
+    def __init__(self, url: str, *, width: int, height: int, timeout: float = 60.0):
+        from websockets.sync.client import connect
+
+        exe = find_browser()
+        if exe is None:
+            raise RuntimeError(f"no Chromium on PATH (looked for {', '.join(BROWSERS)})")
+        self.profile = tempfile.TemporaryDirectory(prefix="diffshadow-chromium-")
+        self.proc = subprocess.Popen(
+            [exe, "--headless=new", "--no-sandbox", "--no-first-run", "--no-default-browser-check",
+             "--disable-background-networking", "--disable-extensions", "--disable-dev-shm-usage",
+             "--use-gl=angle", "--use-angle=swiftshader", "--enable-unsafe-swiftshader",
+             "--force-device-scale-factor=1", f"--window-size={width},{height}", "--remote-debugging-port=0",
+             f"--user-data-dir={self.profile.name}", url],
+            stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+        port = None
+        deadline = time.monotonic() + timeout
+        while port is None and time.monotonic() < deadline:
+            line = self.proc.stderr.readline()
+            if not line and self.proc.poll() is not None:
+                raise RuntimeError(f"{exe} exited with {self.proc.returncode} before its DevTools port opened")
+            if m := re.search(r"DevTools listening on ws://[^:]+:(\d+)/", line):
+                port = int(m.group(1))
+        if port is None:
+            raise RuntimeError(f"{exe}: no DevTools port after {timeout:.0f} s")
+        threading_drain(self.proc.stderr)
+        pages = []
+        while not pages and time.monotonic() < deadline:
+            with urllib.request.urlopen(f"http://127.0.0.1:{port}/json/list") as r:
+                pages = [t for t in json.load(r) if t["type"] == "page"]
+            time.sleep(0.1)
+        self.ws = connect(pages[0]["webSocketDebuggerUrl"], max_size=2 ** 28)
+        self.ids = itertools.count(1)
+
+    def send(self, method: str, **params):
+        i = next(self.ids)
+        self.ws.send(json.dumps({"id": i, "method": method, "params": params}))
+        while True:
+            msg = json.loads(self.ws.recv())
+            if msg.get("id") == i:
+                if "error" in msg:
+                    raise RuntimeError(f"{method}: {msg['error']}")
+                return msg.get("result", {})
+
+    def js(self, expression: str):
+        r = self.send("Runtime.evaluate", expression=expression, returnByValue=True, awaitPromise=True)
+        if "exceptionDetails" in r:
+            raise RuntimeError(f"page script failed: {r['exceptionDetails']}")
+        return r["result"].get("value")
+
+    def wait_for(self, expression: str, timeout: float = 60.0, what: str = ""):
+        deadline = time.monotonic() + timeout
+        while time.monotonic() < deadline:
+            if value := self.js(expression):
+                return value
+            time.sleep(0.1)
+        raise TimeoutError(f"waited {timeout:.0f} s for {what or expression}")
+
+    def click(self, x: float, y: float) -> None:
+        for kind in ("mousePressed", "mouseReleased"):
+            self.send("Input.dispatchMouseEvent", type=kind, x=x, y=y, button="left", clickCount=1)
+
+    def click_text(self, text: str, selector: str = "*") -> None:
+        """Click the centre of the last visible element matching `selector` whose own text is `text` (scrolled
+        into view)."""
+        find = f"""(() => {{
+            const all = [...document.querySelectorAll({json.dumps(selector)})].filter(e =>
+                [...e.childNodes].some(n => n.nodeType === 3 && n.textContent.trim() === {json.dumps(text)}));
+            const vis = all.filter(e => e.getBoundingClientRect().width > 0);
+            const e = vis[vis.length - 1];
+            if (!e) return null;
+            let r = e.getBoundingClientRect();
+            if (r.bottom > innerHeight || r.top < 0) {{
+                e.scrollIntoView({{block: 'nearest'}});
+                r = e.getBoundingClientRect();
+            }}
+            return r ? [r.x + r.width / 2, r.y + r.height / 2] : null; }})()"""
+        rect, settled = None, False
+        while not settled:  # a menu that opens moves its items into place
+            time.sleep(0.2)
+            last, rect = rect, self.wait_for(find, what=f"an element '{text}'")
+            settled = rect == last
+        self.click(*rect)
+
+    def choose(self, x: float, y: float, option: str) -> None:
+        """Pick `option` in the searchable list whose input is at (x, y): type it, then click it."""
+        self.click(x, y)
+        self.select_all()
+        self.send("Input.insertText", text=option)
+        self.click_text(option)
+        self.wait_for("""![...document.querySelectorAll('[role="listbox"]')].some(e =>
+            e.getBoundingClientRect().height > 0)""", timeout=10, what="the list to close")
+
+    def select_all(self) -> None:
+        for kind in ("keyDown", "keyUp"):
+            self.send("Input.dispatchKeyEvent", type=kind, key="a", code="KeyA", modifiers=2, windowsVirtualKeyCode=65)
+
+    def type_into(self, x: float, y: float, text: str) -> None:
+        """Click an input, replace its text and press Enter."""
+        self.click(x, y)
+        self.select_all()
+        self.send("Input.insertText", text=text)
+        for kind in ("keyDown", "keyUp"):
+            self.send("Input.dispatchKeyEvent", type=kind, key="Enter", code="Enter", windowsVirtualKeyCode=13)
+
+    def input_beside(self, label: str) -> tuple[float, float]:
+        """The centre of the text input on the same row as the label `label` (scrolled into view)."""
+        return self.wait_for(f"""(() => {{
+            const lab = [...document.querySelectorAll('*')].find(e => [...e.childNodes].some(n =>
+                n.nodeType === 3 && n.textContent.trim() === {json.dumps(label)}));
+            if (!lab) return null;
+            lab.scrollIntoView({{block: 'center'}});
+            const l = lab.getBoundingClientRect(), y = l.y + l.height / 2;
+            const rows = [...document.querySelectorAll('input')].map(e => e.getBoundingClientRect())
+                .filter(r => r.width > 0 && r.x > l.x && Math.abs(r.y + r.height / 2 - y) < l.height);
+            const r = rows[rows.length - 1];
+            return r ? [r.x + r.width / 2, r.y + r.height / 2] : null; }})()""", what=f"an input beside '{label}'")
+
+    def dismiss_notifications(self) -> int:
+        """Close the page's notifications (viser tells a software-WebGL browser so, over the canvas); how many."""
+        return self.js("""(() => { const b = [...document.querySelectorAll('[role="alert"] button')];
+            b.forEach(e => e.click()); return b.length; })()""")
+
+    def canvas_rect(self) -> dict:
+        return self.wait_for("""(() => { const c = [...document.querySelectorAll('canvas')]
+            .map(e => e.getBoundingClientRect()).sort((a, b) => b.width * b.height - a.width * a.height)[0];
+            return c && c.width > 0 ? {x: c.x, y: c.y, width: c.width, height: c.height} : null; })()""",
+                             what="the viewer's canvas")
+
+    def screenshot(self, clip: dict | None = None) -> np.ndarray:
+        """(H, W, 3) uint8 of the page, or of `clip` ({x, y, width, height} in CSS pixels)."""
+        from PIL import Image
+
+        params = {"format": "png"}
+        if clip is not None:
+            params["clip"] = {**clip, "scale": 1}
+        data = base64.b64decode(self.send("Page.captureScreenshot", **params)["data"])
+        return np.asarray(Image.open(io.BytesIO(data)).convert("RGB"))
+
+    def close(self) -> None:
+        try:
+            self.ws.close()
+        finally:
+            self.proc.terminate()
+            try:
+                self.proc.wait(10)
+            except subprocess.TimeoutExpired:
+                self.proc.kill()
+            self.profile.cleanup()
+
+
+def threading_drain(stream) -> None:
+    """Read a pipe to its end in the background, so that a chatty browser never blocks on a full pipe."""
+    import threading
+
+    threading.Thread(target=lambda: [None for _ in stream], daemon=True).start()
+
+
+# ------------------------------------------------------------------------------------------------ the viewer
+
+
+def psnr(a: np.ndarray, b: np.ndarray) -> float:
+    err = np.mean((a.astype(np.float64) - b.astype(np.float64)) ** 2)
+    return float(10 * np.log10(255.0 ** 2 / max(err, 1e-12)))
+
+
+def free_port() -> int:
+    import socket
+
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def next_frame(record, seen: int, accept, timeout: float = 120.0) -> dict:
+    """The first recorded still frame after the `seen` first ones that `accept`s, with its image."""
+    from PIL import Image
+
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        for path in sorted(record.glob("frame_*.json"))[seen:]:
+            meta = json.loads(path.read_text())
+            if accept(meta):
+                return {**meta, "path": path, "image": np.asarray(Image.open(path.with_suffix(".png")))}
+        time.sleep(0.1)
+    last = [{k: m[k] for k in ("mode", "width", "height", "light_kind")}
+            for m in (json.loads(p.read_text()) for p in sorted(record.glob("frame_*.json"))[-3:])]
+    raise TimeoutError(f"no frame in {record} in {timeout:.0f} s that passes the test; the last ones: {last}")
+
+
+def shown(browser: Browser, frame: dict, timeout: float = 60.0) -> np.ndarray:
+    """The canvas once it shows `frame` (the same size; its background image has arrived)."""
+    deadline = time.monotonic() + timeout
+    best = -1.0
+    while time.monotonic() < deadline:
+        if browser.dismiss_notifications():
+            time.sleep(0.5)  # they fade out
+        rect = browser.canvas_rect()
+        shot = browser.screenshot(rect)
+        if shot.shape == frame["image"].shape:
+            best = max(best, psnr(shot, frame["image"]))
+            if best >= 40:
+                return shot
+        time.sleep(0.2)
+    raise AssertionError(f"the browser never showed {frame['path'].name} ({frame['width']}x{frame['height']}): "
+                         f"best PSNR {best:.1f} dB, canvas {browser.canvas_rect()}")
+
+
+def drive_viewer(results, workdir, *, screenshot=None) -> dict:
+    """Open `diffshadow view results` in headless Chromium as a user would and measure what it shows: the first
+    frame; an unseen test light picked from the list; a new direction typed in (generated by the diffusion
+    model on demand); mode `gt` at two lights. Each frame on the canvas is compared with `diffshadow render`
+    for the same camera and light (the command the panel shows): `<name>_psnr_vs_render`; `*_changed_psnr`
+    compare the canvas before and after a light change."""
+    import sys
+    from pathlib import Path
+
+    from PIL import Image
+
+    results, workdir = Path(results), Path(workdir)  # as given: the panel shows the command with this path
+    record = workdir / "frames"
+    exe = Path(sys.executable).parent / "diffshadow"
+    port = free_port()
+    log = workdir / "view.log"
+    with open(log, "w") as f:
+        view = subprocess.Popen([str(exe), "view", str(results), "--port", str(port), "--size", "192", "--record",
+                                 str(record)], stdout=f, stderr=subprocess.STDOUT, text=True)
+    try:
+        while "http://" not in log.read_text():
+            if view.poll() is not None:
+                raise AssertionError("diffshadow view exited: " + log.read_text())
+            time.sleep(0.1)
+        browser = Browser(f"http://127.0.0.1:{port}", width=800, height=335)
+        try:
+            out = {}
+            first = next_frame(record, 0, lambda m: m["height"] == 192)
+            before = shown(browser, first)
+
+            from diffshadow.lights import read_lights
+            from diffshadow.store import open_store
+
+            n_train = len(read_lights(results / "lights.json")["train"])
+            ckpt = Path(str(open_store(results / "generated.zarr").config["checkpoint"])).name
+
+            def render(args: list[str], name: str) -> np.ndarray:
+                ref = workdir / f"{name}.png"
+                subprocess.run([str(exe), "render", *args, "--out", str(ref)], check=True, capture_output=True)
+                return np.asarray(Image.open(ref))
+
+            def check(frame: dict, name: str) -> np.ndarray:
+                """The canvas against `diffshadow render` from the camera the viewer starts with (set by the
+                server, orbited by nobody since), independently of how the viewer reads the browser's camera;
+                and the frame the viewer sent against the command its panel shows."""
+                on_canvas = shown(browser, frame)
+                args = ["--volume", str(results / "volume.zarr"), "--data-inr", str(results / "data_inr.pt"),
+                        "--mode", frame["mode"], "--azimuth", "30", "--elevation", "25", "--distance", "2.2",
+                        "--fov", "60", "--size", str(frame["width"]), str(frame["height"]), "--step", "0.5",
+                        "--light", *map(repr, frame["light"])]
+                if frame["mode"] == "inr":
+                    kind = frame["light_kind"]
+                    if kind.startswith("new direction"):
+                        args += ["--diffusion", str(results / ckpt)]
+                    else:
+                        row = int(kind.split(",")[0].split()[-1]) + (n_train if kind.startswith("unseen") else 0)
+                        args += ["--weights", str(results / "generated.zarr"), "--light-index", str(row)]
+                out[f"{name}_psnr_vs_render"] = psnr(on_canvas, render(args, name))
+                panel = render(shlex.split(frame["command"])[2:], f"{name}_panel")
+                out[f"{name}_frame_vs_panel_max_diff"] = int(np.abs(frame["image"].astype(int) - panel).max())
+                return on_canvas
+
+            n = len(list(record.glob("frame_*.json")))
+            browser.choose(*browser.input_beside("pick"), "unseen 1")
+            unseen = next_frame(record, n, lambda m: (m["light_kind"] or "").startswith("unseen test light 1"))
+            out["inr_changed_psnr"] = psnr(before, check(unseen, "unseen"))
+            n = len(list(record.glob("frame_*.json")))
+            browser.type_into(*browser.input_beside("azimuth"), "75")
+            new = next_frame(record, n, lambda m: (m["light_kind"] or "").startswith("new direction")
+                             and "--diffusion" in m["command"])
+            check(new, "new")
+            out["new_light"] = new["light_kind"]
+            # the exact shadow, which changes with the light whatever the model learnt
+            n = len(list(record.glob("frame_*.json")))
+            browser.choose(*browser.input_beside("mode"), "gt")
+            gt_before = check(next_frame(record, n, lambda m: m["mode"] == "gt"), "gt_before")
+            n = len(list(record.glob("frame_*.json")))
+            browser.type_into(*browser.input_beside("azimuth"), "-105")
+            gt_after = check(next_frame(record, n, lambda m: m["mode"] == "gt" and m["light"] != new["light"]),
+                             "gt_after")
+            out["gt_changed_psnr"] = psnr(gt_before, gt_after)
+            if screenshot is not None:
+                _portrait(browser, record, screenshot)
+            return out
+        except Exception as e:
+            raise AssertionError(f"{e}\n--- the viewer's output:\n{log.read_text()[-3000:]}") from e
+        finally:
+            browser.close()
+    finally:
+        view.terminate()
+        view.wait(20)
+
+
+def _portrait(browser: Browser, record, path) -> None:
+    """The page at a reading size: the cached shadow beside the exact one for an unseen test light, the camera
+    zoomed in, a full-size frame."""
+    from PIL import Image
+
+    def after(action, accept):
+        n = len(list(record.glob("frame_*.json")))
+        action()
+        return next_frame(record, n, accept, timeout=300)
+
+    browser.send("Emulation.setDeviceMetricsOverride", width=1000, height=560, deviceScaleFactor=1, mobile=False)
+    after(lambda: browser.choose(*browser.input_beside("mode"), "inr | gt"), lambda m: m["mode"] == "inr | gt")
+    after(lambda: browser.choose(*browser.input_beside("pick"), "unseen 1"),
+          lambda m: (m["light_kind"] or "").startswith("unseen test light 1"))
+    after(lambda: browser.type_into(*browser.input_beside("height (px)"), "560"), lambda m: m["height"] == 560)
+    rect = browser.canvas_rect()
+    cx, cy = rect["x"] + rect["width"] / 2, rect["y"] + rect["height"] / 2
+
+    def zoom():
+        for _ in range(4):
+            browser.send("Input.dispatchMouseEvent", type="mouseWheel", x=cx, y=cy, deltaX=0, deltaY=-120)
+            time.sleep(0.1)
+
+    frame = after(zoom, lambda m: m["height"] == 560)
+    shown(browser, frame)
+    browser.js("document.activeElement && document.activeElement.blur()")
+    Image.fromarray(browser.screenshot()).save(path)
+
+
+def slider_thumb(browser: Browser, label: str) -> tuple[float, float, float, float]:
+    """(x, y) of the thumb of the slider on the row of `label`, and the x range of its track."""
+    return browser.wait_for(f"""(() => {{
+        const lab = [...document.querySelectorAll('*')].find(e => [...e.childNodes].some(n =>
+            n.nodeType === 3 && n.textContent.trim() === {json.dumps(label)}));
+        if (!lab) return null;
+        lab.scrollIntoView({{block: 'center'}});
+        const l = lab.getBoundingClientRect(), y = l.y + l.height / 2;
+        const t = [...document.querySelectorAll('[role="slider"]')].map(e => e.getBoundingClientRect())
+            .find(r => r.width > 0 && Math.abs(r.y + r.height / 2 - y) < l.height);
+        const track = t && [...document.querySelectorAll('[class*="Slider-track"]')].map(e => e.getBoundingClientRect())
+            .find(r => r.width > 0 && Math.abs(r.y + r.height / 2 - y) < l.height);
+        return t && track ? [t.x + t.width / 2, t.y + t.height / 2, track.x, track.x + track.width] : null; }})()""",
+                            what=f"the slider beside '{label}'")
+
+
+def drag(browser: Browser, start: tuple[float, float], span: tuple[float, float], seconds: float) -> float:
+    """Hold the mouse down at `start` and sweep it back and forth over x in `span` for `seconds`; returns the
+    time the drag began (time.time())."""
+    x, y = start
+    browser.send("Input.dispatchMouseEvent", type="mouseMoved", x=x, y=y)
+    browser.send("Input.dispatchMouseEvent", type="mousePressed", x=x, y=y, button="left", buttons=1, clickCount=1)
+    began, t0 = time.time(), time.monotonic()
+    while (elapsed := time.monotonic() - t0) < seconds:
+        phase = (elapsed / 2.0) % 2  # a sweep every 2 s
+        u = phase if phase < 1 else 2 - phase
+        browser.send("Input.dispatchMouseEvent", type="mouseMoved", x=span[0] + u * (span[1] - span[0]), y=y,
+                     button="left", buttons=1)
+        time.sleep(0.02)
+    browser.send("Input.dispatchMouseEvent", type="mouseReleased", x=x, y=y, button="left", buttons=0, clickCount=1)
+    return began
+
+
+CANVAS = 480  # the square canvas' side when measuring, in CSS pixels
+
+
+def measure_viewer(results, workdir, *, sizes=(128, 256), seconds: float = 8.0) -> dict:
+    """The viewer's frame rate as a user gets it in Chromium on this machine: the light's azimuth slider dragged
+    for `seconds`, then the camera orbited with the mouse, at each image height (a square canvas); full-size
+    frame times once still; a new direction's generation time; the viewer's peak resident memory."""
+    from pathlib import Path
+
+    results, out = Path(results).resolve(), {}
+    exe = Path(sys_executable()).parent / "diffshadow"
+    for size in sizes:
+        record = Path(workdir) / f"frames_{size}"
+        port = free_port()
+        view = subprocess.Popen([str(exe), "view", str(results), "--port", str(port), "--size", str(size),
+                                 "--record", str(record)], stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+        try:
+            while "http://" not in (line := view.stdout.readline()):
+                if not line:
+                    raise RuntimeError("diffshadow view exited")
+            threading_drain(view.stdout)
+            browser = Browser(f"http://127.0.0.1:{port}", width=1100, height=size + 400)
+            try:
+                rect = browser.canvas_rect()
+                time.sleep(1)
+                rect = browser.canvas_rect()
+                panel = browser.js("innerWidth") - rect["width"]
+                # a square canvas, the panel beside it (a narrower page puts the panel over the canvas)
+                browser.send("Emulation.setDeviceMetricsOverride", width=int(panel + CANVAS), height=CANVAS,
+                             deviceScaleFactor=1, mobile=False)
+                next_frame(record, 0, lambda m, s=size: m["height"] == s)
+                browser.dismiss_notifications()
+                time.sleep(2)
+                x, y, lo, hi = slider_thumb(browser, "azimuth")
+                began = drag(browser, (x, y), (lo + 2, hi - 2), seconds)
+                light = _rate(record, began, seconds)
+                time.sleep(2)
+                rect = browser.canvas_rect()
+                cx, cy = rect["x"] + rect["width"] / 2, rect["y"] + rect["height"] / 2
+                began = drag(browser, (cx, cy), (cx - rect["width"] / 4, cx + rect["width"] / 4), seconds)
+                orbit = _rate(record, began, seconds)
+                time.sleep(2)
+            finally:
+                browser.close()
+            frames = [json.loads(line) for line in (record / "frames.jsonl").read_text().splitlines()]
+            full = [f["seconds"] for f in frames if f["kind"] == "full" and f["height"] == size]
+            made = [f["generate_s"] for f in frames if f.get("generate_s") is not None]
+            status = Path(f"/proc/{view.pid}/status").read_text()
+            peak = int(re.search(r"VmHWM:\s+(\d+) kB", status).group(1)) * 1024
+            out[size] = {"dragging_light": light, "orbiting_camera": orbit,
+                         "still_fps": 1 / float(np.median(full)) if full else None, "still_frames": len(full),
+                         "generate_s_median": float(np.median(made)) if made else None, "generated": len(made),
+                         "peak_rss_mib": peak / 2 ** 20}
+            print(f"[viewer {size}] {out[size]}", flush=True)
+        finally:
+            view.terminate()
+            view.wait(20)
+    return out
+
+
+def _rate(record, began: float, seconds: float) -> dict:
+    frames = [json.loads(line) for line in (record / "frames.jsonl").read_text().splitlines()]
+    during = [f for f in frames if began <= f["time"] <= began + seconds]
+    sizes = sorted({f"{f['width']}x{f['height']}" for f in during})
+    return {"fps": len(during) / seconds, "frames": len(during), "sizes": sizes}
+
+
+def sys_executable() -> str:
+    import sys
+
+    return sys.executable
+
+
+def report_screenshots(report, out, *, item: str = "summary", height: int = 2900) -> None:
+    """The report's landing page, and the first item of subcategory `item` opened in the report's own viewer
+    (Results → subcategory → eye button), as a reader would click through it: <out>/landing.png, <out>/<item>.png."""
+    from pathlib import Path
+
+    from PIL import Image
+
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    browser = Browser(Path(report).resolve().as_uri(), width=1400, height=1100)
+    try:
+        browser.send("Emulation.setDeviceMetricsOverride", width=1400, height=1100, deviceScaleFactor=1, mobile=False)
+        time.sleep(3)
+        Image.fromarray(browser.screenshot()).save(out / "landing.png")
+        browser.send("Emulation.setDeviceMetricsOverride", width=1400, height=height, deviceScaleFactor=1,
+                     mobile=False)
+        for text in ("Results", item):
+            if not browser.js(f"""(() => {{ const a = [...document.querySelectorAll('a')].find(a =>
+                    a.textContent.trim() == {json.dumps(text)}); if (a) a.click(); return !!a; }})()"""):
+                raise SystemExit(f"{report}: the report has no link {text!r}")
+            time.sleep(1)
+        browser.js("document.querySelector('td a').click()")  # the first item's eye button
+        time.sleep(2)
+        Image.fromarray(browser.screenshot()).save(out / f"{item}.png")
+        print(f"wrote {out / 'landing.png'} and {out / (item + '.png')}")
+    finally:
+        browser.close()
+
+
+def main() -> None:
+    import argparse
+
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    sub = p.add_subparsers(dest="what", required=True)
+    v = sub.add_parser("viewer", help="the viewer's browser test on a finished scene, and a screenshot of the page")
+    v.add_argument("results", help="a finished scene's results folder")
+    v.add_argument("--screenshot", help="PNG of the page to write (docs/images/viewer.png)")
+    f = sub.add_parser("viewer-fps", help="the viewer's frame rates as a user gets them in Chromium")
+    f.add_argument("results", help="a finished scene's results folder")
+    f.add_argument("--sizes", type=int, nargs="+", default=[128, 256], help="image heights (square images)")
+    f.add_argument("--out", help="JSON for the figures")
+    r = sub.add_parser("report", help="screenshots of a Snakemake report")
+    r.add_argument("report", help="report.html")
+    r.add_argument("--item", default="summary", help="the report subcategory whose first item to open")
+    r.add_argument("--out", default="shots")
+    r.add_argument("--height", type=int, default=2900, help="viewport height for the item (tall tables)")
+    a = p.parse_args()
+    if a.what == "report":
+        report_screenshots(a.report, a.out, item=a.item, height=a.height)
+        return
+    with tempfile.TemporaryDirectory() as tmp:
+        if a.what == "viewer-fps":
+            figures = measure_viewer(a.results, tmp, sizes=a.sizes)
+        else:
+            figures = drive_viewer(a.results, tmp, screenshot=a.screenshot)
+        print(json.dumps(figures, indent=1))
+        if getattr(a, "out", None):
+            with open(a.out, "w") as fh:
+                fh.write(json.dumps(figures, indent=1) + "\n")
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,167 @@
+"""The viewer without a browser: which SIREN a light gets (stored row, generated once, cached), how a light is
+described, the frame modes, the camera taken from the browser, the command that reproduces a frame, and the
+one-line errors. The browser itself is driven in tests/test_workflow.py (test_viewer_in_a_browser)."""
+
+import math
+import socket
+import subprocess
+import sys
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+import torch
+
+from diffshadow.analytic import gaussian_blob
+from diffshadow.cli import build_parser
+from diffshadow.lights import as_direction
+from diffshadow.render import Camera, RenderScene
+from diffshadow.siren import SirenConfig, WeightLayout, init_siren
+from diffshadow.store import WeightStore
+from diffshadow.transfer import TransferFunction
+from diffshadow.viewer import ViewerError, ViewerScene, azimuth_elevation, direction
+from diffshadow.viewer.app import camera_of, port_free
+from diffshadow.viewer.scene import GENERATED_KEEP
+from diffshadow.volume import Volume
+
+TF = TransferFunction.from_config({"opacity": [[0.0, 0.0], [0.2, 0.0], [1.0, 0.8]],
+                                   "color": [[0.0, 0.1, 0.3, 0.9], [1.0, 1.0, 0.2, 0.1]], "density_scale": 25.0})
+SIREN = SirenConfig(16, 1)
+LAYOUT = WeightLayout.for_siren(SIREN)
+
+
+class CountingSampler:
+    """A stand-in for the diffusion model: a SIREN per light, counted."""
+
+    def __init__(self):
+        self.calls = 0
+
+    def __call__(self, light):
+        self.calls += 1
+        seed = int(abs(as_direction(light)[0]) * 1e6)
+        return LAYOUT.flatten(init_siren(SIREN, torch.Generator().manual_seed(seed)))
+
+
+@pytest.fixture(scope="module")
+def viewer():
+    vol = Volume(data=gaussian_blob(25, 0.15), extent=np.ones(3), name="blob")
+    train = np.stack([direction(0, 60), direction(90, 60), direction(180, 60)])
+    unseen = np.stack([direction(45, 50)])
+    lights = np.concatenate([train, unseen])
+    weights = torch.stack([LAYOUT.flatten(init_siren(SIREN, torch.Generator().manual_seed(i)))
+                           for i in range(len(lights))]).numpy()
+    store = WeightStore(weights=weights, lights=lights, psnr=np.zeros(4), psnr_visible=np.zeros(4), layout=LAYOUT,
+                        siren=SIREN, config={"checkpoint": "results/blob/diffusion.ckpt"},
+                        seen=np.array([True, True, True, False]))
+    return ViewerScene(RenderScene(vol, TF), name="blob", lights={"train": train, "unseen": unseen},
+                       generated=store, sampler=CountingSampler(),
+                       command=["--volume", "results/blob/volume.zarr", "--data-inr", "results/blob/data_inr.pt"])
+
+
+CAM = Camera.orbit(np.ones(3), azimuth=30, elevation=25, size=(20, 16))
+
+
+def test_azimuth_elevation_round_trip():
+    for az, el in ((0, 0), (30, 25), (-120, -60), (179, 89)):
+        assert np.allclose(azimuth_elevation(direction(az, el)), (az, el))
+    assert np.allclose(direction(0, 90), (0, 0, 1), atol=1e-12)
+
+
+def test_lights_are_described_by_kind_and_angle(viewer):
+    assert viewer.light_info(viewer.train[1]).describe() == "training light 1, 0.0° from the nearest training light"
+    info = viewer.light_info(viewer.unseen[0])
+    assert (info.kind, info.index) == ("unseen", 0)
+    # 45° azimuth at 50° elevation against the training lights at 0° and 90° azimuth, 60° elevation
+    expected = math.degrees(math.acos(float(np.clip(direction(45, 50) @ direction(0, 60), -1, 1))))
+    assert info.nearest_deg == pytest.approx(expected, abs=1e-9)
+    assert viewer.light_info(direction(10, -30)).kind == "new"
+
+
+def test_listed_lights_use_their_stored_row_and_new_ones_are_generated_once(viewer):
+    sampler = viewer.sampler
+    before = sampler.calls
+    w, info = viewer.shadow_weights(viewer.unseen[0])
+    assert torch.equal(w, torch.as_tensor(viewer.generated.weights[3])) and info.generate_s is None
+    assert sampler.calls == before
+    new = direction(12, 34)
+    w1, info1 = viewer.shadow_weights(new)
+    w2, info2 = viewer.shadow_weights(new)
+    assert sampler.calls == before + 1 and torch.equal(w1, w2)
+    assert info1.kind == "new" and info1.generate_s is not None and info2.generate_s is None
+
+
+def test_generated_sirens_kept_are_bounded(viewer):
+    for i in range(GENERATED_KEEP + 5):
+        viewer.shadow_weights(direction(0.5 * i, -10))
+    assert len(viewer._made) == GENERATED_KEEP
+
+
+def test_frames_of_every_mode(viewer):
+    light = viewer.unseen[0]
+    images = {m: viewer.frame(m, CAM, light, step=1.0) for m in viewer.modes if m != "naive"}
+    for mode, (img, _) in images.items():
+        assert img.dtype == np.uint8 and img.shape == (16, 20, 3), mode
+    assert not np.array_equal(images["inr"][0], images["noshadow"][0])  # the shadow darkens the blob
+    side, notes = images["inr | gt"]
+    left, _ = viewer.frame("inr", Camera(CAM.eye, CAM.target, CAM.up, CAM.fov, 10, 16), light, step=1.0)
+    assert np.array_equal(side[:, :10], left) and math.isfinite(notes["psnr_vs_gt"])
+    with pytest.raises(ViewerError, match="mode: expected one of"):
+        viewer.frame("shadows", CAM, light, step=1.0)
+
+
+def test_a_scene_without_a_cache_offers_noshadow_and_gt():
+    vol = Volume(data=gaussian_blob(17, 0.2), extent=np.ones(3), name="blob")
+    bare = ViewerScene(RenderScene(vol, TF), name="blob")
+    assert bare.modes == ("noshadow", "gt")
+    with pytest.raises(ViewerError, match="mode: expected one of noshadow, gt, got 'inr'"):
+        bare.frame("inr", CAM, direction(0, 45), step=1.0)
+
+
+def test_the_render_command_reproduces_the_camera_and_the_light(viewer):
+    light = direction(12, 34)
+    cmd = viewer.render_command("inr", CAM, light, step=0.75)
+    a = build_parser().parse_args(cmd.split()[1:])
+    assert (a.mode, a.step, a.size, a.diffusion) == ("inr", 0.75, [20, 16], "results/blob/diffusion.ckpt")
+    assert np.allclose(a.eye, CAM.eye) and np.allclose(a.target, CAM.target) and np.allclose(a.light, light)
+    stored = build_parser().parse_args(viewer.render_command("inr", CAM, viewer.unseen[0], step=0.5).split()[1:])
+    assert (stored.weights, stored.light_index) == ("results/blob/generated.zarr", 3)
+
+
+def test_camera_of_a_browser_camera():
+    eye, target = np.array([2.0, 1.0, 1.5]), np.array([0.5, 0.5, 0.5])
+    browser = SimpleNamespace(position=eye, look_at=target, up_direction=np.array([0.0, 0.0, 1.0]),
+                              fov=math.radians(50.0), aspect=1.5)
+    cam = camera_of(browser, 64)
+    assert (cam.width, cam.height) == (96, 64) and cam.fov == pytest.approx(50.0)
+    origins, dirs = cam.rays()
+    centre = dirs.view(64, 96, 3)[31:33, 47:49].mean((0, 1)).double()
+    view = torch.as_tensor((target - eye) / np.linalg.norm(target - eye))
+    assert torch.allclose(centre / centre.norm(), view, atol=1e-3)
+
+
+def test_missing_results_name_the_file_and_the_rule(tmp_path):
+    with pytest.raises(ViewerError, match="no such results folder"):
+        ViewerScene.from_results(tmp_path / "nope", torch.device("cpu"))
+    (tmp_path / "volume.zarr").mkdir()
+    (tmp_path / "lights.json").write_text("{}")
+    with pytest.raises(ViewerError, match=r"data_inr.pt is missing \(made by the rule `train_data_inr`"):
+        ViewerScene.from_results(tmp_path, torch.device("cpu"))
+
+
+def test_port_in_use_is_one_line(tmp_path):
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        s.listen()
+        port = s.getsockname()[1]
+        assert not port_free("127.0.0.1", port)
+        proc = subprocess.run([sys.executable, "-m", "diffshadow.cli", "view", "--scene-config", "no.yaml",
+                               "--port", str(port)], capture_output=True, text=True, timeout=120)
+    assert proc.returncode != 0
+    lines = proc.stderr.strip().splitlines()
+    assert len(lines) == 1 and f"port {port} on 127.0.0.1 is in use" in lines[0], proc.stderr
+
+
+def test_view_needs_one_scene(tmp_path):
+    proc = subprocess.run([sys.executable, "-m", "diffshadow.cli", "view"], capture_output=True, text=True,
+                          timeout=120)
+    assert proc.returncode != 0 and "give a results folder" in proc.stderr.strip().splitlines()[-1]
