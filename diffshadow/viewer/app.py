@@ -47,8 +47,10 @@ def camera_of(cam, height: int) -> Camera:
 class Session:
     """One browser tab: its panel, its light, and the thread that renders for it."""
 
-    def __init__(self, viewer: ViewerScene, client, *, size: int, step: float, record: Path | None):
-        self.viewer, self.client, self.record = viewer, client, record
+    def __init__(self, viewer: ViewerScene, client, *, size: int, step: float, record: Path | None,
+                 start: Camera):
+        self.viewer, self.client, self.record, self.start = viewer, client, record, start
+        self.placed = False  # the browser's camera moved to `start` (its first camera is its own default)
         self.lock, self.wake = threading.Lock(), threading.Event()
         self.version, self.changed_at = 0, time.monotonic()
         self.drawn = {"full": -1, "preview": -1}
@@ -132,16 +134,28 @@ class Session:
             if kind == "preview" and version == self.drawn["preview"]:
                 continue  # drawn small already; wait until it is still
             try:
-                if getattr(self.client.camera, "_state", None) is None:
-                    continue
                 self.client.camera.update_timestamp  # noqa: B018 - raises until the browser sent its camera
             except AssertionError:
+                continue
+            if not self.placed:
+                self._place_camera()
                 continue
             try:
                 self._draw(kind)
             except (ViewerError, RenderError, ValueError) as e:
                 self.status.content = f"**cannot draw:** {e}"
             self.drawn[kind] = version
+
+    def _place_camera(self) -> None:
+        """Every tab starts from the same orbit view (also what `diffshadow render`'s defaults show): a browser
+        may report its own default camera before it has applied the server's initial one."""
+        cam = self.client.camera
+        cam.up_direction = self.start.up
+        cam.position = self.start.eye  # moves the look-at point with it
+        cam.look_at = self.start.target
+        cam.fov = math.radians(self.start.fov)
+        self.placed = True
+        self.changed()
 
     def _draw(self, kind: str) -> None:
         mode, step = self.mode.value, float(self.step.value)
@@ -228,7 +242,7 @@ def serve(*, results: Path | None, scene_config: Path | None, device: torch.devi
 
     @server.on_client_connect
     def _(client) -> None:
-        sessions[client.client_id] = Session(viewer, client, size=size, step=step, record=record)
+        sessions[client.client_id] = Session(viewer, client, size=size, step=step, record=record, start=start)
 
     @server.on_client_disconnect
     def _(client) -> None:
