@@ -24,7 +24,7 @@ from diffshadow.config import defaults, read_scene_file
 from diffshadow.data_inr import DataInr
 from diffshadow.diffusion.train import TrainingData
 from diffshadow.fit import Stage1Layout
-from diffshadow.io import atomic_torch_save, write_zarr_group
+from diffshadow.io import VerifiedGroup, atomic_torch_save, write_zarr_group
 from diffshadow.lights import BLEND_K, PoolLights, blend_weights
 from diffshadow.render import Camera, Networks, RenderScene
 from diffshadow.render.bundle import RayBundle
@@ -50,21 +50,19 @@ def save_prepared(path: str | Path, volume: Volume, tf: TransferFunction) -> Non
         root.attrs.update({"extent": volume.extent.tolist(), "name": volume.name,
                            "transfer_function": tf.to_config()})
 
-    write_zarr_group(path, fill)
+    write_zarr_group(path, fill, made_by="prepare_volume")
 
 
 def load_prepared(path: str | Path) -> tuple[Volume, TransferFunction]:
     """(Volume, TransferFunction) from `prepare_volume`'s Zarr store."""
-    import zarr
-
     path = Path(path)
     try:
-        root = zarr.open_group(str(path), mode="r")
-        attrs = dict(root.attrs)
-        volume = Volume(data=np.asarray(root["scalar"][...], dtype=np.float32),
+        group = VerifiedGroup(path, "a prepared volume")
+        attrs = group.attrs
+        volume = Volume(data=np.asarray(group.read("scalar"), dtype=np.float32),
                         extent=np.asarray(attrs["extent"], dtype=np.float64), name=attrs["name"])
         return volume, TransferFunction.from_config(attrs["transfer_function"])
-    except (FileNotFoundError, KeyError) as e:
+    except KeyError as e:
         raise VolumeError(f"{path}: not a prepared volume (missing {e})") from None
 
 
@@ -138,31 +136,29 @@ def write_geometry_points(path: str | Path, points: torch.Tensor, values: torch.
             root.create_array("check_values", data=check[1].numpy(), chunks=(1, check[1].shape[1]))
         root.attrs.update({"extent": np.asarray(extent).tolist()})
 
-    write_zarr_group(path, fill)
+    write_zarr_group(path, fill, made_by="presample")
 
 
 def read_training_data(weights_path: str | Path, points_path: str | Path) -> tuple[TrainingData, WeightStore]:
     """The diffusion model's training set: the weight store with the presampled geometry points, and the
     pool lights (exact shadows, x0 from the blend of their `BLEND_K` nearest training SIRENs) if presampled."""
-    import zarr
-
     store = open_store(weights_path)
     try:
-        geo = zarr.open_group(str(points_path), mode="r")
-        geo_lights = np.asarray(geo["lights"][...])
-        points, values = np.asarray(geo["points"][...]), np.asarray(geo["values"][...])
+        geo = VerifiedGroup(points_path, "presample's geometry points")
+        geo_lights = geo.read("lights")
+        points, values = geo.read("points"), geo.read("values")
         extent = geo.attrs["extent"]
         pool = None
         if "pool_lights" in geo:
-            pool_lights = np.asarray(geo["pool_lights"][...])
+            pool_lights = geo.read("pool_lights")
             idx, blend = blend_weights(np.asarray(store.lights, dtype=np.float64), pool_lights, BLEND_K)
-            pool = PoolLights(lights=torch.as_tensor(pool_lights), points=torch.as_tensor(geo["pool_points"][...]),
-                              values=torch.as_tensor(geo["pool_values"][...]), neighbours=torch.as_tensor(idx),
+            pool = PoolLights(lights=torch.as_tensor(pool_lights), points=torch.as_tensor(geo.read("pool_points")),
+                              values=torch.as_tensor(geo.read("pool_values")), neighbours=torch.as_tensor(idx),
                               blend=torch.as_tensor(blend, dtype=torch.float32))
         check = None
         if "check_points" in geo:
-            check = (torch.as_tensor(geo["check_points"][...]), torch.as_tensor(geo["check_values"][...]))
-    except (FileNotFoundError, KeyError) as e:
+            check = (torch.as_tensor(geo.read("check_points")), torch.as_tensor(geo.read("check_values")))
+    except KeyError as e:
         raise ArtifactError(f"{points_path}: not presample's geometry points (missing {e})") from None
     if geo_lights.shape != store.lights.shape or not np.allclose(geo_lights, store.lights):
         raise ArtifactError(f"{points_path}: its lights differ from {weights_path}'s; rerun presample")
@@ -184,19 +180,17 @@ def write_eval_truth(path: str | Path, truth: EvalTruth) -> None:
         root.create_array("lights", data=truth.lights)
         root.attrs.update({"sets": list(truth.points), "extent": truth.extent.tolist()})
 
-    write_zarr_group(path, fill)
+    write_zarr_group(path, fill, made_by="eval_truth")
 
 
 def read_eval_truth(path: str | Path) -> EvalTruth:
-    import zarr
-
     try:
-        root = zarr.open_group(str(path), mode="r")
+        root = VerifiedGroup(path, "eval_truth's evaluation points")
         sets = list(root.attrs["sets"])
-        points = {k: torch.from_numpy(np.asarray(root[f"points_{k}"][...])) for k in sets}
-        values = {k: torch.from_numpy(np.asarray(root[f"values_{k}"][...])) for k in sets}
-        lights, extent = np.asarray(root["lights"][...]), root.attrs["extent"]
-    except (FileNotFoundError, KeyError) as e:
+        points = {k: torch.from_numpy(root.read(f"points_{k}")) for k in sets}
+        values = {k: torch.from_numpy(root.read(f"values_{k}")) for k in sets}
+        lights, extent = root.read("lights"), root.attrs["extent"]
+    except KeyError as e:
         raise ArtifactError(f"{path}: not eval_truth's evaluation points (missing {e})") from None
     return EvalTruth(points=points, lights=lights, values=values,
                      extent=torch.as_tensor(extent, dtype=torch.float32))
@@ -232,20 +226,17 @@ def write_targets(path, images: torch.Tensor, bundle: RayBundle, cameras: list[C
                            "cameras": [{"eye": c.eye, "target": c.target, "up": c.up, "fov": c.fov,
                                         "width": c.width, "height": c.height} for c in cameras]})
 
-    write_zarr_group(path, fill)
+    write_zarr_group(path, fill, made_by="render_targets")
 
 
 def read_targets(path) -> tuple[torch.Tensor, RayBundle, np.ndarray]:
     """(images (L, V, H·W, 3), bundle, lights) from `render_targets`' targets.zarr."""
-    import zarr
-
     try:
-        root = zarr.open_group(str(path), mode="r")
-        images = torch.as_tensor(np.asarray(root["images"][...]))
-        bundle = RayBundle(*(torch.as_tensor(np.asarray(root[f"bundle_{k}"][...]))
-                             for k in ("pix", "pts", "wc", "base", "count")))
-        lights = np.asarray(root["lights"][...])
-    except (FileNotFoundError, KeyError) as e:
+        root = VerifiedGroup(path, "a targets store from render_targets")
+        images = torch.as_tensor(root.read("images"))
+        bundle = RayBundle(*(torch.as_tensor(root.read(f"bundle_{k}")) for k in ("pix", "pts", "wc", "base", "count")))
+        lights = root.read("lights")
+    except KeyError as e:
         raise ArtifactError(f"{path}: not a targets store from render_targets (missing {e})") from None
     return images.reshape(images.shape[0], images.shape[1], -1, 3), bundle, lights
 

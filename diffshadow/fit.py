@@ -272,7 +272,7 @@ def fit_sirens(
     targets = Targets(volume, tf, lights, cfg, device)
     weights = init.to(device=device, dtype=torch.float32).expand(k, -1).clone().requires_grad_(True)
     opt = torch.optim.Adam([weights], lr=cfg.lr)
-    fingerprint = _fingerprint(init, lights, cfg, siren, stream, pool)
+    fingerprint = _fingerprint(init, lights, cfg, siren, stream, pool, volume, tf)
     pool = pool.to(device) if pool is not None else None
     start, initial = 0, None
     if state := resume(checkpoint, fingerprint, log=log, map_location=device, weights_only=True):
@@ -323,9 +323,14 @@ def _blend_loss(weights: torch.Tensor, pool: PoolLights, layout: WeightLayout, s
     (cfg.blend_weight * ((pred - truth) ** 2).mean(dim=1).sum() * (k / len(j))).backward()
 
 
-def _fingerprint(init, lights, cfg, siren, stream, pool: PoolLights | None = None) -> str:
+def _fingerprint(init, lights, cfg, siren, stream, pool: PoolLights | None, volume: Volume,
+                 tf: TransferFunction) -> str:
+    """What a checkpoint must have been written for to be resumed: the targets (volume, TF) as well as the
+    init, lights and settings (a fit resumed onto a changed volume would mix two scenes' shadows)."""
     h = hashlib.sha256()
     h.update(init.detach().cpu().numpy().astype(np.float32).tobytes())
+    h.update(np.ascontiguousarray(volume.data, dtype=np.float32).tobytes())
+    h.update(json.dumps([np.asarray(volume.extent, np.float64).tolist(), tf.to_config()]).encode())
     h.update(np.asarray(lights, np.float64).tobytes())
     if pool is not None:
         h.update(pool.lights.cpu().numpy().astype(np.float64).tobytes())

@@ -1,13 +1,18 @@
-"""Atomic output: write to a temporary name in the same folder, then rename.
+"""Safe output and input: write to a temporary name in the same folder, flush it to disk, give it the mode the
+user's umask gives any new file, then rename; Zarr stores carry a checksum of every array, verified on reading.
 
-A killed job therefore never leaves a file that looks finished (DESIGN.md §3).
+A killed job or a crashed node therefore never leaves a file that looks finished (DESIGN.md §3), group members
+of a shared project folder can read what the umask lets them, and a damaged store is named, never read as
+zeros.
 """
 
 from __future__ import annotations
 
+import hashlib
 import os
 import shutil
 import tempfile
+import time
 from collections.abc import Callable
 from contextlib import contextmanager
 from pathlib import Path
@@ -15,9 +20,48 @@ from pathlib import Path
 import numpy as np
 
 
+def umask() -> int:
+    """The process's umask, read without changing it (Linux reports it in /proc; elsewhere a brief set and reset)."""
+    try:
+        for line in Path("/proc/self/status").read_text().splitlines():
+            if line.startswith("Umask:"):
+                return int(line.split()[1], 8)
+    except OSError:
+        pass
+    mask = os.umask(0o022)
+    os.umask(mask)
+    return mask
+
+
+def _fsync(path: Path) -> None:
+    fd = os.open(path, os.O_RDONLY)
+    try:
+        os.fsync(fd)
+    finally:
+        os.close(fd)
+
+
+def _finish(tmp: Path, *, directory: bool = False) -> None:
+    """Flush `tmp` (every file under it, for a folder) and give it the mode a new file or folder gets under the
+    umask: `mkstemp` and `mkdtemp` create theirs private (0600, 0700) and a rename keeps the mode."""
+    mask = umask()
+    if directory:
+        for root, dirs, files in os.walk(tmp):
+            for d in dirs:
+                os.chmod(Path(root) / d, 0o777 & ~mask)
+            for f in files:
+                _fsync(Path(root) / f)
+            _fsync(Path(root))
+        os.chmod(tmp, 0o777 & ~mask)
+    else:
+        _fsync(tmp)
+        os.chmod(tmp, 0o666 & ~mask)
+
+
 @contextmanager
 def atomic_path(path: str | Path, *, suffix: str | None = None):
-    """Yield a temporary path beside `path`; on success rename it to `path`, on error remove it."""
+    """Yield a temporary path beside `path`; on success flush it, give it the umask's mode and rename it to
+    `path`; on error remove it."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=suffix or ".tmp", dir=path.parent)
@@ -25,7 +69,9 @@ def atomic_path(path: str | Path, *, suffix: str | None = None):
     tmp_path = Path(tmp)
     try:
         yield tmp_path
+        _finish(tmp_path)
         os.replace(tmp_path, path)
+        _fsync(path.parent)  # the rename itself, on a file system that keeps it in memory
     finally:
         if tmp_path.exists():
             tmp_path.unlink()
@@ -56,20 +102,31 @@ def atomic_torch_save(path: str | Path, obj) -> None:
         torch.save(obj, f)
 
 
-def write_zarr_group(path, fill) -> None:
-    """Build a Zarr v3 group with `fill(root)` beside `path`, then swap it in (atomic for readers)."""
+class StoreError(ValueError):
+    """A store that is missing, not what a reader expects, or damaged; the message names it and what remakes it."""
+
+
+def write_zarr_group(path, fill, *, made_by: str) -> None:
+    """Build a Zarr v3 group with `fill(root)` beside `path`, record a checksum of every array and `made_by`
+    (the step that writes it, named when a reader finds it damaged), flush it, then swap it in (atomic for
+    readers)."""
     import zarr
 
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     tmp = Path(tempfile.mkdtemp(prefix=f".{path.name}.", dir=path.parent))
     try:
-        fill(zarr.open_group(str(tmp), mode="w", zarr_format=3))
+        root = zarr.open_group(str(tmp), mode="w", zarr_format=3)
+        fill(root)
+        root.attrs.update({"checksums": {name: array_checksum(arr[...]) for name, arr in root.arrays()},
+                           "made_by": made_by})
+        _finish(tmp, directory=True)
         old = None
         if path.exists():
             old = path.with_name(f".{path.name}.old-{os.getpid()}")
             os.replace(path, old)
         os.replace(tmp, path)
+        _fsync(path.parent)
         if old is not None:
             shutil.rmtree(old)
     finally:
@@ -77,15 +134,75 @@ def write_zarr_group(path, fill) -> None:
             shutil.rmtree(tmp)
 
 
+def array_checksum(values) -> str:
+    """sha256 of an array's values, shape and dtype (what a reader gets, whatever the chunks and codecs)."""
+    values = np.ascontiguousarray(values)
+    h = hashlib.sha256(f"{values.dtype.str} {values.shape}".encode())
+    h.update(values.tobytes())
+    return h.hexdigest()
+
+
+class VerifiedGroup:
+    """A Zarr group whose arrays are checked against the checksums written with them, as they are read."""
+
+    def __init__(self, path: str | Path, what: str):
+        import zarr
+
+        self.path, self.what = Path(path), what
+        try:
+            self.root = zarr.open_group(str(self.path), mode="r")
+            self.attrs = dict(self.root.attrs)
+        except (FileNotFoundError, KeyError, ValueError) as e:
+            raise StoreError(f"{self.path}: not {what} ({type(e).__name__}: {e})") from None
+        self.checksums = self.attrs.get("checksums")  # None: written before checksums (not verifiable)
+
+    def __contains__(self, name: str) -> bool:
+        return name in self.root
+
+    def remake(self) -> str:
+        step = self.attrs.get("made_by")
+        return f"rerun `{step}` to rewrite it" if step else "rerun the step that writes it"
+
+    def read(self, name: str) -> np.ndarray:
+        try:
+            values = np.asarray(self.root[name][...])
+        except KeyError:
+            raise StoreError(f"{self.path}: not {self.what} (no array {name!r})") from None
+        except Exception as e:  # a truncated or garbled chunk fails in the codec, deep inside zarr
+            raise StoreError(f"{self.path}: array {name!r} cannot be read ({type(e).__name__}: {e}); it is "
+                             f"damaged, {self.remake()}") from None
+        if self.checksums is not None and name in self.checksums and array_checksum(values) != self.checksums[name]:
+            raise StoreError(f"{self.path}: array {name!r} does not match its checksum (a chunk is missing or was "
+                             f"changed); it is damaged, {self.remake()}")
+        return values
+
+    def verify(self) -> list[str]:
+        """Read every array; the names checked (raises on the first damaged one)."""
+        names = sorted(name for name, _ in self.root.arrays())
+        for name in names:
+            self.read(name)
+        return names
+
+
 def resume(checkpoint: str | Path | None, fingerprint: str, *, log=print, map_location="cpu",
            weights_only: bool = False, key: str = "fingerprint") -> dict | None:
     """The state saved in `checkpoint` when it was written for this `fingerprint` (same inputs and
-    settings), else None; a checkpoint of other inputs is left alone and said so."""
+    settings), else None; a checkpoint of other inputs is left alone and said so, and one that cannot be read
+    is set aside (renamed `<name>.corrupt-<time>`, kept for a post-mortem) so that the step starts afresh."""
     import torch
 
     if checkpoint is None or not Path(checkpoint).exists():
         return None
-    state = torch.load(checkpoint, map_location=map_location, weights_only=weights_only)
+    try:
+        state = torch.load(checkpoint, map_location=map_location, weights_only=weights_only)
+        if not isinstance(state, dict):
+            raise TypeError(f"holds a {type(state).__name__}, not a checkpoint's dict")
+    except Exception as e:  # truncated zip, garbage, a pickle of something else: torch raises many kinds
+        aside = Path(checkpoint).with_name(f"{Path(checkpoint).name}.corrupt-{time.strftime('%Y%m%dT%H%M%S')}")
+        os.replace(checkpoint, aside)
+        log(f"{checkpoint}: unreadable ({type(e).__name__}: {str(e).splitlines()[0][:200] if str(e) else ''}); "
+            f"set aside as {aside.name}, starting afresh")
+        return None
     if state.get(key) == fingerprint:
         return state
     log(f"ignoring {checkpoint}: it belongs to other inputs or settings")

@@ -13,12 +13,8 @@ from pathlib import Path
 
 import numpy as np
 
-from diffshadow.io import atomic_save, write_zarr_group
+from diffshadow.io import StoreError, VerifiedGroup, atomic_save, write_zarr_group
 from diffshadow.siren import SirenConfig, WeightLayout
-
-
-class StoreError(ValueError):
-    """A subset file or store that is missing, incomplete or inconsistent."""
 
 
 @dataclass
@@ -61,8 +57,8 @@ def read_subset(path) -> dict:
     return out
 
 
-def write_store(path, store: WeightStore) -> None:
-    """Write a weight store (Zarr v3) atomically."""
+def write_store(path, store: WeightStore, *, made_by: str) -> None:
+    """Write a weight store (Zarr v3) atomically; `made_by`: the step that writes it (named if it is damaged)."""
 
     def fill(root) -> None:
         n, p = store.weights.shape
@@ -75,28 +71,26 @@ def write_store(path, store: WeightStore) -> None:
         root.attrs.update({"layout": store.layout.to_config(), "siren": store.siren.to_config(),
                            "config": store.config, "n_lights": n, "n_params": p})
 
-    write_zarr_group(path, fill)
+    write_zarr_group(path, fill, made_by=made_by)
 
 
 def open_store(path) -> WeightStore:
-    """Read a weight store (stage 1's `weights.zarr` or a generated one)."""
-    import zarr
-
-    path = Path(path)
+    """Read a weight store (stage 1's `weights.zarr` or a generated one), its arrays checked against their
+    checksums."""
+    group = VerifiedGroup(path, "a weight store")
     try:
-        root = zarr.open_group(str(path), mode="r")
-        attrs = dict(root.attrs)
+        attrs = group.attrs
         return WeightStore(
-            weights=np.asarray(root["weights"][...]),
-            lights=np.asarray(root["lights"][...]),
-            psnr=np.asarray(root["psnr"][...]),
-            psnr_visible=np.asarray(root["psnr_visible"][...]),
+            weights=group.read("weights"),
+            lights=group.read("lights"),
+            psnr=group.read("psnr"),
+            psnr_visible=group.read("psnr_visible"),
             layout=WeightLayout.from_config(attrs["layout"]),
             siren=SirenConfig.from_config(attrs["siren"]),
             config=attrs.get("config", {}),
-            seen=np.asarray(root["seen"][...]) if "seen" in root else None,
+            seen=group.read("seen") if "seen" in group else None,
         )
-    except (FileNotFoundError, KeyError) as e:
+    except KeyError as e:
         raise StoreError(f"{path}: not a weight store (missing {e})") from None
 
 

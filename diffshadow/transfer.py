@@ -58,6 +58,9 @@ class TransferFunction:
             if key not in d:
                 raise TransferFunctionError(f"transfer function: missing key {key!r}")
         opacity = _points("opacity", d["opacity"], 2)
+        if not np.any(opacity[:, 1] > 0):
+            raise TransferFunctionError("transfer function: opacity is 0 at every point, so nothing is visible and "
+                                        "there is no shadow to cache; give some scalar range an opacity above 0")
         color = _points("color", d["color"], 4)
         try:
             k = float(d["density_scale"])

@@ -46,6 +46,33 @@ def test_resume_gives_the_same_weights(scene, tmp_path):
     assert not ckpt.exists()
 
 
+@pytest.mark.parametrize("change", ["transfer function", "volume"])
+def test_a_checkpoint_of_other_targets_is_not_resumed(scene, tmp_path, change):
+    """A fit killed, then rerun after the TF or the volume changed, starts afresh (preoptimize.steps: 0 leaves
+    the init unchanged, so only the targets tell the checkpoints apart)."""
+    vol, tf, lights = scene
+    cfg = FitConfig.from_config(dict(steps=8, points=64, checkpoint_every=4, eval_points=16))
+    ckpt = tmp_path / "subset.ckpt"
+    calls = []
+
+    def interrupt(msg):
+        calls.append(msg)
+        if len(calls) == 6:
+            raise KeyboardInterrupt
+
+    with pytest.raises(KeyboardInterrupt):
+        fit_sirens(init(), LAYOUT, CFG, vol, tf, lights, cfg, checkpoint=ckpt, log=interrupt)
+    assert ckpt.exists()
+    if change == "volume":
+        vol = Volume(data=vol.data[::-1].copy(), extent=vol.extent, name=vol.name)
+    else:
+        tf = identity_tf(3.0)
+    messages = []
+    fresh = fit_sirens(init(), LAYOUT, CFG, vol, tf, lights, cfg, checkpoint=ckpt, log=messages.append)
+    assert messages[0] == f"ignoring {ckpt}: it belongs to other inputs or settings"
+    assert torch.equal(fresh, fit_sirens(init(), LAYOUT, CFG, vol, tf, lights, cfg, log=lambda *a: None))
+
+
 def test_chunked_gradients_match_one_pass(scene):
     vol, tf, lights = scene
     a = fit_sirens(init(), LAYOUT, CFG, vol, tf, lights, FitConfig.from_config(dict(steps=5, points=64)),

@@ -20,14 +20,14 @@ def test_collect_round_trip(tmp_path):
     subset(tmp_path / "subset_0.npz", [0, 1])
     subset(tmp_path / "subset_1.npz", [2, 3])
     store = collect_subsets([tmp_path / "subset_0.npz", tmp_path / "subset_1.npz"], 4, LIGHTS)
-    write_store(tmp_path / "weights.zarr", store)
+    write_store(tmp_path / "weights.zarr", store, made_by="collect_weights")
     back = open_store(tmp_path / "weights.zarr")
     np.testing.assert_array_equal(back.weights[:, 0], [0, 0, 2, 2])
     assert back.layout == LAYOUT and back.siren == CFG and back.config == {"fit": {"steps": 3}}
     np.testing.assert_array_equal(back.lights, LIGHTS)
     import zarr
     assert zarr.open_group(str(tmp_path / "weights.zarr"), mode="r")["weights"].chunks == (1, LAYOUT.n_params)
-    write_store(tmp_path / "weights.zarr", store)  # replacing an existing store works
+    write_store(tmp_path / "weights.zarr", store, made_by="collect_weights")  # replacing an existing store works
     assert open_store(tmp_path / "weights.zarr").weights.shape == (4, LAYOUT.n_params)
 
 
@@ -68,7 +68,8 @@ def test_geometry_points_round_trip_with_pool_lights(tmp_path):
     from diffshadow.lights import blend_weights
 
     subset(tmp_path / "subset_0.npz", [0, 1, 2, 3])
-    write_store(tmp_path / "weights.zarr", collect_subsets([tmp_path / "subset_0.npz"], 4, LIGHTS))
+    write_store(tmp_path / "weights.zarr", collect_subsets([tmp_path / "subset_0.npz"], 4, LIGHTS),
+                made_by="collect_weights")
     pts, vals = torch.rand(4, 8, 3), torch.rand(4, 8)
     pool = np.array([[0.6, 0.8, 0.0], [0.0, 0.6, 0.8]])
     pool_pts, pool_vals = torch.rand(2, 5, 3), torch.rand(2, 5)
@@ -85,3 +86,82 @@ def test_geometry_points_round_trip_with_pool_lights(tmp_path):
     idx, w = blend_weights(LIGHTS, pool, 4)
     np.testing.assert_array_equal(data.pool.neighbours.numpy(), idx)
     assert np.allclose(data.pool.blend.numpy(), w) and np.allclose(data.pool.blend.sum(1).numpy(), 1)
+
+
+def stored(tmp_path):
+    subset(tmp_path / "subset_0.npz", [0, 1])
+    subset(tmp_path / "subset_1.npz", [2, 3])
+    path = tmp_path / "weights.zarr"
+    write_store(path, collect_subsets([tmp_path / "subset_0.npz", tmp_path / "subset_1.npz"], 4, LIGHTS),
+                made_by="collect_weights")
+    return path
+
+
+def test_a_deleted_chunk_is_named_not_read_as_zeros(tmp_path):
+    path = stored(tmp_path)
+    chunk = path / "weights" / "c" / "2" / "0"  # light 2's row (one light per chunk)
+    assert chunk.is_file()
+    chunk.unlink()
+    with pytest.raises(StoreError, match=r"weights.zarr: array 'weights' does not match its checksum \(a chunk is "
+                       r"missing or was changed\); it is damaged, rerun `collect_weights` to rewrite it"):
+        open_store(path)
+
+
+def test_a_truncated_chunk_is_one_line_naming_the_store(tmp_path):
+    path = stored(tmp_path)
+    chunk = path / "weights" / "c" / "3" / "0"
+    chunk.write_bytes(chunk.read_bytes()[:5])
+    with pytest.raises(StoreError, match=r"weights.zarr: array 'weights' cannot be read .*rerun `collect_weights`"):
+        open_store(path)
+
+
+def test_a_changed_value_is_found(tmp_path):
+    import zarr
+
+    path = stored(tmp_path)
+    zarr.open_group(str(path), mode="r+")["psnr"][1] = 99.0  # written through zarr: only the checksum can tell
+    with pytest.raises(StoreError, match="'psnr' does not match its checksum"):
+        open_store(path)
+
+
+def test_check_store_verifies_every_array(tmp_path):
+    import subprocess
+    import sys
+
+    path = stored(tmp_path)
+    ok = subprocess.run([sys.executable, "-m", "diffshadow.cli", "check-store", str(path)], capture_output=True,
+                        text=True)
+    assert ok.returncode == 0 and "lights, psnr, psnr_visible, weights: checksums match" in ok.stdout, ok.stderr
+    (path / "psnr" / "c" / "0").unlink()
+    bad = subprocess.run([sys.executable, "-m", "diffshadow.cli", "check-store", str(path)], capture_output=True,
+                         text=True)
+    assert bad.returncode != 0 and bad.stderr.count("\n") == 1 and "'psnr' does not match" in bad.stderr
+
+
+def test_results_honour_the_umask(tmp_path):
+    import os
+
+    from diffshadow.io import atomic_write_text
+
+    old = os.umask(0o027)
+    try:
+        atomic_write_text(tmp_path / "a.json", "{}")
+        path = stored(tmp_path)
+    finally:
+        os.umask(old)
+    assert (tmp_path / "a.json").stat().st_mode & 0o777 == 0o640  # mkstemp alone: 0600
+    assert path.stat().st_mode & 0o777 == 0o750  # mkdtemp alone: 0700
+    assert (path / "weights").stat().st_mode & 0o777 == 0o750
+    assert (path / "zarr.json").stat().st_mode & 0o777 == 0o640
+
+
+def test_a_corrupt_checkpoint_is_set_aside(tmp_path):
+    from diffshadow.io import resume
+
+    ckpt = tmp_path / "subset_0.npz.ckpt"
+    ckpt.write_bytes(b"PK\x03\x04 truncated")
+    said = []
+    assert resume(ckpt, "abc", log=said.append) is None
+    aside = list(tmp_path.glob("subset_0.npz.ckpt.corrupt-*"))
+    assert not ckpt.exists() and len(aside) == 1 and aside[0].read_bytes().startswith(b"PK")
+    assert said and "unreadable" in said[0] and "set aside as subset_0.npz.ckpt.corrupt-" in said[0]

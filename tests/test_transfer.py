@@ -46,6 +46,7 @@ def test_round_trip_config():
     ({"density_scale": "lots"}, "density_scale must be a number"),
     ({"opacity": [[0.0, float("nan")], [1.0, 1.0]]}, "opacity has non-finite values"),
     ({"gamma": 2}, r"unknown key\(s\) \['gamma'\]"),
+    ({"opacity": [[0.0, 0.0], [1.0, 0.0]]}, "opacity is 0 at every point, so nothing is visible"),
 ])
 def test_malformed_transfer_functions(change, message):
     with pytest.raises(TransferFunctionError, match=message):

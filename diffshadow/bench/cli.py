@@ -1,4 +1,4 @@
-"""The `diffshadow bench ...` and `check-store` subcommands: parse and dispatch to the benchmarks."""
+"""The `diffshadow bench ...` and `check-store` subcommands: parse and dispatch."""
 
 from __future__ import annotations
 
@@ -48,12 +48,34 @@ def _bench_kernels(a):
 
 
 def _check_store(a):
-    from diffshadow.bench.siren import check_store
+    import time
 
-    result = check_store(Path(a.results))
-    if result["max_abs_diff_db"] > a.tolerance:
-        raise SystemExit(f"check-store: stored and recomputed PSNR differ by {result['max_abs_diff_db']:.2f} dB "
-                         f"(> {a.tolerance} dB)")
+    from diffshadow.io import VerifiedGroup
+
+    stores = []
+    for path in map(Path, a.paths):
+        if not path.exists():
+            raise ValueError(f"check-store: {path}: no such store or results folder")
+        stores += sorted(path.glob("*.zarr")) if path.suffix != ".zarr" else [path]
+    if not stores:
+        raise ValueError(f"check-store: no .zarr store in {', '.join(a.paths)}")
+    for store in stores:
+        t0 = time.perf_counter()
+        group = VerifiedGroup(store, "a Zarr store")
+        names = group.verify()
+        state = "checksums match" if group.checksums is not None else "readable (written before checksums: rerun " \
+            "the step that writes it to make it verifiable)"
+        size = sum(f.stat().st_size for f in store.rglob("*") if f.is_file())
+        print(f"{store}: {', '.join(names)}: {state} ({size / 2 ** 20:.1f} MiB in {time.perf_counter() - t0:.2f} s)")
+    if a.psnr:
+        from diffshadow.bench.siren import check_store
+
+        for path in map(Path, a.paths):
+            if path.suffix != ".zarr":
+                result = check_store(path)
+                if result["max_abs_diff_db"] > a.tolerance:
+                    raise SystemExit(f"check-store: {path}: stored and recomputed PSNR differ by "
+                                     f"{result['max_abs_diff_db']:.2f} dB (> {a.tolerance} dB)")
 
 
 def add_bench_parsers(sub) -> None:
@@ -96,7 +118,9 @@ def add_bench_parsers(sub) -> None:
                    choices=["poly", "libdevice", "approx"], help="the SIRENs' sine (render.sine)")
     p.add_argument("--out", default="bench/bench_kernels.json")
 
-    p = _add(sub, "check-store", _check_store, "re-evaluate every stored SIREN against the store's PSNR",
-             out=False, device=False)
-    p.add_argument("--results", default="results/nucleon")
+    p = _add(sub, "check-store", _check_store, "verify Zarr stores against their checksums (a store, or every "
+             "store of a results folder); --psnr also re-evaluates every stored SIREN", out=False, device=False)
+    p.add_argument("paths", nargs="+", help="a .zarr store or a results folder (results/<scene>)")
+    p.add_argument("--psnr", action="store_true", help="results folders: re-evaluate weights.zarr's SIRENs against "
+                   "their stored PSNR")
     p.add_argument("--tolerance", type=float, default=0.5, help="dB")

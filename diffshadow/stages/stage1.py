@@ -85,7 +85,7 @@ def fit_subset(volume_path: Path, lights_path: Path, init_path: Path, subset: in
 def collect_weights(lights_path: Path, subset_paths: list[Path], out: Path) -> None:
     train = read_lights(lights_path)["train"]
     store = collect_subsets(subset_paths, len(train), train)
-    write_store(out, store)
+    write_store(out, store, made_by="collect_weights")
     print(f"wrote {out}: {len(train)} SIRENs of {store.layout.n_params} parameters; voxel PSNR median "
           f"{float(np.median(store.psnr)):.2f} dB, min {store.psnr.min():.2f} dB "
           f"(visible: median {float(np.median(store.psnr_visible)):.2f} dB)")

@@ -156,7 +156,7 @@ def sample_shadows(checkpoint: Path, truth_path: Path, lights_path: Path, out: P
     store = WeightStore(weights=weights, lights=all_lights, psnr=scores["box"],
                         psnr_visible=scores.get("visible", scores["box"]), layout=layout, siren=siren,
                         config={"diffusion": cfg, "checkpoint": str(checkpoint)}, seen=seen)
-    write_store(out, store)
+    write_store(out, store, made_by="sample_shadows")
     print(f"wrote {out}: PSNR median seen {np.median(store.psnr[seen]):.2f} dB, "
           f"unseen {np.median(store.psnr[~seen]) if (~seen).any() else float('nan'):.2f} dB")
 
