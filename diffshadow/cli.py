@@ -370,14 +370,14 @@ def main(argv: list[str] | None = None) -> None:
     # a rule pipes the output through `tee`: without line buffering its progress would arrive at the end
     if hasattr(sys.stdout, "reconfigure"):
         sys.stdout.reconfigure(line_buffering=True)
-    if args.command not in _NO_TORCH:
-        from diffshadow.runtime import claim_gpu_lock, set_threads
-
-        if args.command in _ONE_GPU:
-            claim_gpu_lock(args.command)
-        if args.command not in ("finetune-render", "parsl-fit"):  # threads per rank and per worker: set there
-            set_threads(getattr(args, "threads", 0))
     try:
+        if args.command not in _NO_TORCH:
+            from diffshadow.runtime import claim_gpu_lock, set_threads
+
+            if args.command in _ONE_GPU:
+                claim_gpu_lock(args.command)
+            if args.command not in ("finetune-render", "parsl-fit"):  # threads per rank and per worker: set there
+                set_threads(getattr(args, "threads", 0))
         args.func(args)
     except ValueError as e:  # the library's input errors: one line, no traceback
         print(f"diffshadow {args.command}: error: {e}", file=sys.stderr)

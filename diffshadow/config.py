@@ -58,10 +58,31 @@ def check_keys(cls: type, name: str, values: dict) -> set[str]:
     return known
 
 
+# the annotations a setting's value is checked against (a field annotated otherwise is not checked)
+_TYPES = {"int": (int,), "float": (int, float), "str": (str,), "bool": (bool,), "None": (type(None),),
+          "list": (list, tuple), "dict": (dict,)}
+
+
+def check_types(cls: type, name: str, values: dict) -> None:
+    """Each value of `values` has its field's annotated type (a bool is no number): one line naming the key."""
+    for key, value in values.items():
+        annotation = str(cls.__dataclass_fields__[key].type).replace("typing.", "")
+        names = [a.strip().split("[")[0] for a in annotation.split("|")]
+        if not all(n in _TYPES for n in names):
+            continue
+        allowed = tuple(t for n in names for t in _TYPES[n])
+        if not isinstance(value, allowed) or (isinstance(value, bool) and bool not in allowed):
+            raise ConfigError(f"{name}.{key}: expected {annotation}, got {value!r} ({type(value).__name__})")
+
+
 def section(cls: type[T], name: str, values: dict | None = None) -> T:
-    """`cls` built from defaults.yaml's section `name`, overridden by `values`; unknown keys are an error."""
+    """`cls` built from defaults.yaml's section `name`, overridden by `values`; unknown keys and values of the
+    wrong type are errors."""
+    if values is not None and not isinstance(values, dict):
+        raise ConfigError(f"{name}: expected a mapping of settings, got {values!r}")
     values = dict(values or {})
     known = check_keys(cls, name, values)
+    check_types(cls, name, values)
     base = {k: v for k, v in defaults().get(name, {}).items() if k in known}
     missing = known - set(base) - set(values)
     if missing:

@@ -83,6 +83,8 @@ def claim_gpu_lock(command: str) -> None:
     gpus = os.environ.get("DIFFSHADOW_GPU_LOCK")
     if not gpus:
         return
+    if not gpus.strip().isdigit() or int(gpus) < 1:
+        raise ValueError(f"DIFFSHADOW_GPU_LOCK: expected the number of GPUs per node (e.g. 4), got {gpus!r}")
     from diffshadow.hpc import claim_gpu
 
     gpu = claim_gpu(int(gpus))

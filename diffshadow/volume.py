@@ -104,7 +104,10 @@ def load_volume(
     if suffix == ".raw":
         raw = _read_raw(path, dims, dtype)
     elif suffix == ".npy":
-        raw = np.load(path, mmap_mode="r", allow_pickle=False)
+        try:
+            raw = np.load(path, mmap_mode="r", allow_pickle=False)
+        except (OSError, ValueError) as e:  # a truncated file: "mmap length is greater than file size"
+            raise VolumeError(f"{path}: not a readable .npy file ({e})") from None
     elif suffix in (".h5", ".hdf5"):
         raw = _read_hdf5(path, key)
     elif suffix == ".zarr":
@@ -145,7 +148,11 @@ def _read_raw(path: Path, dims, dtype) -> np.ndarray:
 def _read_hdf5(path: Path, key: str | None) -> np.ndarray:
     import h5py
 
-    with h5py.File(path, "r") as f:
+    try:
+        f = h5py.File(path, "r")
+    except OSError as e:  # h5py's "file signature not found" names no file
+        raise VolumeError(f"{path}: not an HDF5 file ({e})") from None
+    with f:
         names: list[str] = []
         f.visititems(lambda name, obj: names.append(name) if isinstance(obj, h5py.Dataset) else None)
         if key is None:

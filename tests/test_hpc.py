@@ -15,6 +15,7 @@ from conftest import installed
 from test_workflow import TINY
 
 from diffshadow.hpc import claim_gpu, pbs_state, pbs_status
+from diffshadow.store import open_store
 
 REPO = Path(__file__).resolve().parents[1]
 PBS = Path(__file__).resolve().parent / "pbs"
@@ -47,19 +48,21 @@ def test_pbs_status_retries_a_transient_qstat_failure(tmp_path, monkeypatch):
     assert pbs_status("8.pbs", wait_s=0.01) == "failed"
 
 
-def test_gpu_lock_gives_each_process_its_own_gpu(tmp_path):
-    code = ("import sys, time; from diffshadow.hpc import claim_gpu; "
+def test_gpu_lock_gives_each_process_its_own_gpu(tmp_path, monkeypatch):
+    # holders keep their GPU until told to exit (a line on stdin), so no timing decides the outcome
+    code = ("import sys; from diffshadow.hpc import claim_gpu; "
             f"print(claim_gpu(2, lock_dir={str(tmp_path)!r}, wait_s=float(sys.argv[1])), flush=True); "
-            "time.sleep(float(sys.argv[2]))")
-    holders = [subprocess.Popen([sys.executable, "-c", code, "5", "6"], stdout=subprocess.PIPE, text=True)
-               for _ in range(2)]
+            "sys.stdin.readline()")
+    holders = [subprocess.Popen([sys.executable, "-c", code, "30"], stdin=subprocess.PIPE, stdout=subprocess.PIPE,
+                                text=True) for _ in range(2)]
     got = sorted(int(p.stdout.readline()) for p in holders)
     assert got == [0, 1]
-    late = subprocess.run([sys.executable, "-c", code, "0.5", "0"], capture_output=True, text=True)
+    late = subprocess.run([sys.executable, "-c", code, "0.5"], capture_output=True, text=True, input="\n")
     assert late.returncode != 0 and "no free GPU among 2" in late.stderr
     for p in holders:
-        p.wait()
-    assert claim_gpu(2, lock_dir=tmp_path) in (0, 1)  # freed when the holders exited
+        p.communicate("\n")
+    monkeypatch.delenv("CUDA_VISIBLE_DEVICES", raising=False)  # claim_gpu sets it: restored after this test
+    assert claim_gpu(2, lock_dir=tmp_path, wait_s=0.5) in (0, 1)  # freed when the holders exited
     assert os.environ["CUDA_VISIBLE_DEVICES"] in ("0", "1")
 
 
@@ -95,8 +98,71 @@ def test_standin_qsub_rejects_what_alcf_rejects(tmp_path, drop, change, message)
     assert qsub(tmp_path, *GOOD).stdout.strip().endswith(".standin")
 
 
-def run_profile(workdir: Path, profile: str, *args: str, fail_subset: int | None = None, qstat_fails: int = 0):
-    """snakemake --profile PROFILE in `workdir` against the stand-in PBS (tiny scene, 4 fit_siren jobs)."""
+def _job(tmp_path, body: str, *extra, **env):
+    """Submit a job script with `body` to the stand-in; its id and a qstat that returns its fields."""
+    script = tmp_path / "job.sh"
+    script.write_text(f"#!/bin/bash\ncd $PBS_O_WORKDIR\n{body}\n")
+    environ = {**os.environ, "STANDIN_PBS_SPOOL": str(tmp_path / "spool"), **env}
+    job = subprocess.run([str(PBS / "qsub"), *GOOD, *extra, str(script)], capture_output=True, text=True,
+                         env=environ, cwd=tmp_path, check=True).stdout.strip()
+
+    def state() -> dict:
+        out = subprocess.run([str(PBS / "qstat"), "-fx", "-F", "json", job], capture_output=True, text=True,
+                             env=environ, check=True).stdout
+        return json.loads(out)["Jobs"][job]
+
+    return job, state
+
+
+def _until(state, accept, timeout: float = 60.0) -> list[str]:
+    """The job states seen (each once) until `accept(fields)`."""
+    import time
+
+    seen, deadline = [], time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        fields = state()
+        if not seen or seen[-1] != fields["job_state"]:
+            seen.append(fields["job_state"])
+        if accept(fields):
+            return seen
+        time.sleep(0.05)
+    raise AssertionError(f"job states {seen}, never accepted")
+
+
+def test_standin_jobs_are_held_queued_run_and_finish(tmp_path):
+    job, state = _job(tmp_path, "sleep 0.5; echo done > out.txt", STANDIN_PBS_HELD_S="1", STANDIN_PBS_QUEUED_S="1")
+    _until(state, lambda f: f["job_state"] == "F")
+    assert (tmp_path / "spool" / f"{job}.history").read_text() == "H Q R F"
+    assert state()["Exit_status"] == 0 and pbs_state(state()) == "success"
+    assert (tmp_path / "out.txt").read_text() == "done\n"
+
+
+def test_standin_kills_a_job_at_its_walltime(tmp_path):
+    job, state = _job(tmp_path, "trap 'echo got TERM > term.txt; exit 143' TERM; sleep 30 & wait",
+                      STANDIN_PBS_WALLTIME_S="1")
+    _until(state, lambda f: f["job_state"] == "F")
+    assert state()["Exit_status"] == 271 and pbs_state(state()) == "failed"
+    assert (tmp_path / "term.txt").read_text() == "got TERM\n"  # SIGTERM first, as PBS sends it
+
+
+@pytest.mark.parametrize("rerunnable", [True, False])
+def test_standin_preempts_and_requeues_a_rerunnable_job(tmp_path, rerunnable):
+    body = "echo run >> runs.txt; touch half; sleep 2; echo finished >> runs.txt"
+    job, state = _job(tmp_path, body, "-r", "y" if rerunnable else "n", STANDIN_PBS_PREEMPT="touch half=half")
+    _until(state, lambda f: f["job_state"] == "F")
+    runs = (tmp_path / "runs.txt").read_text().split()
+    history = (tmp_path / "spool" / f"{job}.history").read_text()
+    if rerunnable:  # killed once when it wrote `half`, queued again under the same id, run from the start
+        assert history == "Q R Q R F" and state()["Exit_status"] == 0 and runs == ["run", "run", "finished"]
+        assert (tmp_path / "spool" / f"{job}.runs").read_text() == "2"
+    else:
+        assert history == "Q R F" and state()["Exit_status"] == 271 and runs == ["run"]
+
+
+def run_profile(workdir: Path, profile: str, *args: str, fail_subset: int | None = None, qstat_fails: int = 0,
+                fit: dict | None = None, env: dict | None = None):
+    """snakemake --profile PROFILE in `workdir` against the stand-in PBS (tiny scene, 4 fit_siren jobs); `fit`
+    overrides the tiny scene's fit settings, `env` sets the stand-in's (STANDIN_PBS_*)."""
     shim = workdir / "shim"
     shim.mkdir(exist_ok=True)
     marker = workdir / "fail_marker"
@@ -116,12 +182,13 @@ def run_profile(workdir: Path, profile: str, *args: str, fail_subset: int | None
     env_script = workdir / "env.sh"  # the documented DIFFSHADOW_ENV: what a job sources to find diffshadow
     env_script.write_text(f"export PATH={shim}:{BIN}:$PATH\nexport DIFFSHADOW_DEVICE=cpu\n"
                           f"export DIFFSHADOW_LOCK_DIR={workdir / 'locks'}\nexport OMP_NUM_THREADS=1\n")
-    cfg = {**TINY, "lights": {**TINY["lights"], "count": 8}, "pbs_system": profile}
+    cfg = {**TINY, "lights": {**TINY["lights"], "count": 8}, "pbs_system": profile,
+           "fit": {**TINY["fit"], **(fit or {})}}
     (workdir / "tiny.yaml").write_text(yaml.safe_dump(cfg))
     env = {**os.environ, "PATH": f"{PBS}{os.pathsep}{BIN}{os.pathsep}{os.environ['PATH']}",
            "PBS_ACCOUNT": "testproj", "DIFFSHADOW_ENV": str(env_script),
            "STANDIN_PBS_SPOOL": str(workdir / "spool"), "STANDIN_PBS_SYSTEM": profile, "TMPDIR": str(workdir),
-           "STANDIN_PBS_QSTAT_FAILS": str(qstat_fails)}
+           "STANDIN_PBS_QSTAT_FAILS": str(qstat_fails), **(env or {})}
     cmd = [sys.executable, "-m", "snakemake", "-s", str(REPO / "Snakefile"), "--directory", str(workdir),
            "--profile", str(REPO / "profiles" / profile), "--configfile", str(workdir / "tiny.yaml"),
            "--max-status-checks-per-second", "20", "--latency-wait", "5", "--seconds-between-status-checks", "1",
@@ -155,6 +222,7 @@ def test_polaris_profile_end_to_end_with_packing_and_a_failed_subset(tmp_path):
     # subset 3 fails on its node; it is rerun alone with -f, and a plain run completes the workflow
     sirens = tmp_path / "results/nucleon/sirens"
     before = {p.name: p.stat().st_mtime_ns for p in sirens.glob("*.npz") if p.name != "subset_3.npz"}
+    subset_3 = (sirens / "subset_3.npz").read_bytes()
     failed = run_profile(tmp_path, "polaris", *one, "-f", "results/nucleon/sirens/subset_3.npz", fail_subset=3)
     assert failed.returncode != 0 and "subset_3" in failed.stderr
     rerun = run_profile(tmp_path, "polaris", *one, "-f", "results/nucleon/sirens/subset_3.npz")
@@ -164,7 +232,33 @@ def test_polaris_profile_end_to_end_with_packing_and_a_failed_subset(tmp_path):
     done = run_profile(tmp_path, "polaris", *one)
     assert done.returncode == 0, done.stderr[-3000:]
     # same seed, same bytes: the refitted subset equals the old one, so nothing downstream is stale
+    assert (sirens / "subset_3.npz").read_bytes() == subset_3
     assert (tmp_path / "results/nucleon/report/image_grid.png").exists()
+
+
+def test_a_preempted_node_is_requeued_and_its_fits_resume_to_the_same_bytes(tmp_path):
+    """Polaris' preemptable queue: the node job running the four packed fit_siren jobs is killed as soon as a
+    fit has checkpointed, PBS requeues it (-r y), the rerun resumes from the checkpoints, and stage 1's store is
+    byte-identical to one from fits that ran uninterrupted."""
+    fit = {"steps": 120, "checkpoint_every": 10}
+    preempt = {"STANDIN_PBS_PREEMPT": "fit_siren=results/nucleon/sirens/subset_*.npz.ckpt"}
+    proc = run_profile(tmp_path, "polaris", "results/nucleon/weights.zarr", fit=fit, env=preempt)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    packed = [s for s in submissions(tmp_path) if "fit_siren:" in s["script"]]
+    assert len(packed) == 1
+    job = next(p.stem for p in (tmp_path / "spool").glob("*.runs")
+               if (tmp_path / "spool" / f"{p.stem}.json").read_text() == json.dumps(packed[0]))
+    assert (tmp_path / "spool" / f"{job}.runs").read_text() == "2"  # preempted once, requeued, run again
+    logs = "".join((tmp_path / f"results/nucleon/logs/fit_siren_{i}.log").read_text() for i in range(4))
+    assert "resuming from" in logs and "at step " in logs, logs[-2000:]
+    sirens = tmp_path / "results/nucleon/sirens"
+    resumed = {p.name: p.read_bytes() for p in sirens.glob("subset_*.npz")}
+    store = open_store(tmp_path / "results/nucleon/weights.zarr")
+    # the same fits, uninterrupted
+    again = run_profile(tmp_path, "polaris", "results/nucleon/weights.zarr", "--forcerun", "fit_siren", fit=fit)
+    assert again.returncode == 0, again.stderr[-3000:]
+    assert {p.name: p.read_bytes() for p in sirens.glob("subset_*.npz")} == resumed
+    assert open_store(tmp_path / "results/nucleon/weights.zarr").weights.tobytes() == store.weights.tobytes()
 
 
 def test_sophia_profile_through_stage_1(tmp_path):

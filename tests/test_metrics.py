@@ -53,6 +53,22 @@ def test_bad_input_is_named():
         image_psnr(torch.zeros(4, 4, 3), torch.zeros(4, 4, 3), torch.zeros(4, 4, dtype=torch.bool))
 
 
-def test_lpips_is_reported_unavailable_not_faked():
+def test_lpips_is_reported_unavailable_not_faked(monkeypatch, tmp_path):
+    """Without the package or its weights: no model and a reason naming what is missing, never a made-up score;
+    with them: 0 for an image against itself and more for a different one."""
+    import sys
+
+    monkeypatch.setitem(sys.modules, "lpips", None)  # as if not installed
+    assert lpips_model() == (None, "the lpips package is not installed")
+    monkeypatch.undo()
+    monkeypatch.setattr(torch.hub, "get_dir", lambda: str(tmp_path))  # no weights there
     model, reason = lpips_model()
-    assert (model is None) == (reason is not None)
+    if reason != "the lpips package is not installed":
+        assert model is None and reason.startswith(f"no VGG16 weights in {tmp_path / 'checkpoints'}")
+    monkeypatch.undo()
+    model, reason = lpips_model()
+    if model is not None:
+        a, b = torch.rand(32, 32, 3, generator=torch.Generator().manual_seed(0)), torch.zeros(32, 32, 3)
+        alpha = torch.ones(32, 32)
+        assert image_metrics(a, a, alpha, model)["lpips"] == pytest.approx(0.0, abs=1e-6)
+        assert image_metrics(a, b, alpha, model)["lpips"] > 0.1

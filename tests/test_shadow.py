@@ -199,11 +199,31 @@ def test_lights_marched_together_reject_bad_input(blob):
         transmittance_per_light(blob, tf, [[0, 0, 1]], [[0.5, 0.5, 0.5]], step=-1)
 
 
-def test_same_input_same_bytes(blob):
-    tf = identity_tf()
-    a = shadow_grid(blob, tf, (0.2, 0.3, 0.9), method="sweep").numpy().tobytes()
-    b = shadow_grid(blob, tf, (0.2, 0.3, 0.9), method="sweep").numpy().tobytes()
-    assert a == b
+SAME_BYTES = """
+import hashlib, sys
+import numpy as np
+from diffshadow.analytic import gaussian_blob
+from diffshadow.shadow import shadow_grid
+from diffshadow.transfer import TransferFunction
+from diffshadow.volume import Volume
+vol = Volume(data=gaussian_blob(33, 0.15), extent=np.ones(3), name="blob")
+tf = TransferFunction.from_config({"opacity": [[0, 0], [1, 1]], "color": [[0, 1, 1, 1], [1, 1, 1, 1]],
+                                   "density_scale": 10.0})
+print(hashlib.sha256(shadow_grid(vol, tf, (0.2, 0.3, 0.9), method=sys.argv[1]).numpy().tobytes()).hexdigest())
+"""
+
+
+@pytest.mark.parametrize("method", ["sweep", "march"])
+def test_same_input_same_bytes_in_separate_processes(method):
+    """Two fresh processes (a new allocator, new thread pools each), one with a single thread: the same bytes."""
+    import os
+    import subprocess
+    import sys
+
+    runs = [subprocess.run([sys.executable, "-c", SAME_BYTES, method], capture_output=True, text=True, check=True,
+                           env={**os.environ, **env}).stdout.strip()
+            for env in ({}, {"OMP_NUM_THREADS": "1", "MKL_NUM_THREADS": "1"})]
+    assert len(runs[0]) == 64 and runs[0] == runs[1]
 
 
 @pytest.mark.parametrize("shape", [(1, 3, 4), (7, 5, 6), (40, 2, 3)])
@@ -217,6 +237,7 @@ def test_sequential_cumsum_is_the_cpus_cumsum_bit_for_bit(shape):
     assert torch.equal(_cumsum_slices(x), torch.cumsum(x, 0))
 
 
+@pytest.mark.gpu
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="no CUDA device")
 def test_cuda_matches_cpu(blob):
     tf = identity_tf()

@@ -1,6 +1,16 @@
 """A stand-in PBS Pro for tests: `qsub`, `qstat -fx`, `qdel` that check what ALCF would reject and run the
 job script in the background on this machine. State lives in $STANDIN_PBS_SPOOL; $STANDIN_PBS_SYSTEM is
-`polaris` (default) or `sophia`."""
+`polaris` (default) or `sophia`.
+
+What ALCF does to a job, on request:
+- STANDIN_PBS_HELD_S, STANDIN_PBS_QUEUED_S: seconds a job sits held (H), then queued (Q), before it runs (R);
+- STANDIN_PBS_WALLTIME_S: the walltime every job gets, in seconds (else its -l walltime): past it the job is
+  killed (SIGTERM, then SIGKILL) and finishes with Exit_status 271 (256 + SIGTERM, as PBS reports it);
+- STANDIN_PBS_PREEMPT="TEXT=GLOB": a job whose script contains TEXT is preempted once, when a file matching
+  GLOB (relative to its working directory) appears: killed like the walltime kill, then, if it was submitted
+  rerunnable (-r y), queued again under the same job id and run from the start of its script; if not, it
+  finishes with Exit_status 271. `<job>.runs` counts its runs.
+"""
 
 from __future__ import annotations
 
@@ -90,13 +100,95 @@ def qsub(argv: list[str]) -> None:
     env = {k: os.environ[k] for k in PASS_ENV if k in os.environ}
     env.update({"PATH": "/usr/local/bin:/usr/bin:/bin", "PBS_JOBID": job, "PBS_O_WORKDIR": workdir,
                 "PBS_QUEUE": queue, "PBS_ACCOUNT": account})
-    out = SPOOL / f"{job}.out"
-    exit_file = SPOOL / f"{job}.exit"
-    runner = f"bash {shlex.quote(script)} > {shlex.quote(str(out))} 2>&1; echo $? > {shlex.quote(str(exit_file))}"
-    proc = subprocess.Popen(["bash", "-c", runner], env=env, cwd="/", start_new_session=True,
-                            stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    h, m, sec = (int(x) for x in res["walltime"].split(":"))
+    (SPOOL / f"{job}.sh").write_text(text)  # PBS runs its own copy: a requeued job reruns it
+    plan = {"script": str(SPOOL / f"{job}.sh"), "env": env, "rerunnable": opts.get("r", "n") == "y",
+            "walltime_s": float(os.environ.get("STANDIN_PBS_WALLTIME_S") or 3600 * h + 60 * m + sec),
+            "held_s": float(os.environ.get("STANDIN_PBS_HELD_S", "0")),
+            "queued_s": float(os.environ.get("STANDIN_PBS_QUEUED_S", "0")),
+            "preempt": os.environ.get("STANDIN_PBS_PREEMPT", "")}
+    (SPOOL / f"{job}.plan").write_text(json.dumps(plan))
+    (SPOOL / f"{job}.state").write_text("H" if plan["held_s"] else "Q")
+    proc = subprocess.Popen([sys.executable, __file__, "supervise", job], cwd="/", start_new_session=True,
+                            env={**os.environ}, stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL,
+                            stderr=subprocess.DEVNULL)
     (SPOOL / f"{job}.pid").write_text(str(proc.pid))
     print(job)
+
+
+def _kill(proc: subprocess.Popen, grace_s: float = 5.0) -> None:
+    """What PBS does to a job it ends: SIGTERM to the whole session, SIGKILL after a grace period."""
+    for sig in (signal.SIGTERM, signal.SIGKILL):
+        try:
+            os.killpg(proc.pid, sig)
+        except ProcessLookupError:
+            return
+        try:
+            proc.wait(grace_s)
+            return
+        except subprocess.TimeoutExpired:
+            continue
+
+
+class _State:
+    """The job's state for qstat, and its history (every state it went through, for tests to read)."""
+
+    def __init__(self, path: Path, history: Path):
+        self.path, self.history = path, history
+        self.history.write_text(path.read_text())
+
+    def write_text(self, state: str) -> None:
+        self.path.write_text(state)
+        with open(self.history, "a") as f:
+            f.write(f" {state}")
+
+
+def supervise(argv: list[str]) -> None:
+    """One job's life: held, queued, running (killed at its walltime, preempted and requeued), finished."""
+    import time
+
+    job = argv[0]
+    plan = json.loads((SPOOL / f"{job}.plan").read_text())
+    meta = json.loads((SPOOL / f"{job}.json").read_text())
+    runs, exit_file = SPOOL / f"{job}.runs", SPOOL / f"{job}.exit"
+    state = _State(SPOOL / f"{job}.state", SPOOL / f"{job}.history")
+    text, _, pattern = plan["preempt"].partition("=")
+    preempt = bool(text) and text in meta["script"]
+    if plan["held_s"]:
+        time.sleep(plan["held_s"])
+        state.write_text("Q")
+    time.sleep(plan["queued_s"])
+    n = 0
+    while True:
+        n += 1
+        runs.write_text(str(n))
+        state.write_text("R")
+        with open(SPOOL / f"{job}.out", "a") as out:
+            proc = subprocess.Popen(["bash", plan["script"]], env=plan["env"], cwd="/", start_new_session=True,
+                                    stdin=subprocess.DEVNULL, stdout=out, stderr=subprocess.STDOUT)
+        (SPOOL / f"{job}.jobpid").write_text(str(proc.pid))
+        start, code = time.monotonic(), None
+        while code is None:
+            code = proc.poll()
+            if code is not None:
+                break
+            if time.monotonic() - start > plan["walltime_s"]:
+                _kill(proc)
+                code = 271
+            elif preempt and n == 1 and list(Path(meta["workdir"]).glob(pattern)):
+                _kill(proc)
+                if plan["rerunnable"]:
+                    state.write_text("Q")  # requeued under the same id
+                    time.sleep(1.0)
+                    code = "requeued"
+                else:
+                    code = 271
+            else:
+                time.sleep(0.02)
+        if code != "requeued":
+            break
+    state.write_text("F")
+    exit_file.write_text(f"{code}\n")
 
 
 def qstat(argv: list[str]) -> None:
@@ -115,9 +207,10 @@ def qstat(argv: list[str]) -> None:
         if not (SPOOL / f"{job}.json").exists():
             print(f"qstat: Unknown Job Id {job}", file=sys.stderr)
             sys.exit(153)
-        exit_file = SPOOL / f"{job}.exit"
+        exit_file, state = SPOOL / f"{job}.exit", SPOOL / f"{job}.state"
         code = exit_file.read_text().strip() if exit_file.exists() else ""
-        found[job] = {"job_state": "F", "Exit_status": int(code)} if code else {"job_state": "R"}
+        found[job] = ({"job_state": "F", "Exit_status": int(code)} if code
+                      else {"job_state": state.read_text().strip() if state.exists() else "Q"})
     if as_json:
         print(json.dumps({"pbs_version": "2022.1.5", "Jobs": found}, indent=4))
         return
@@ -131,14 +224,15 @@ def qdel(argv: list[str]) -> None:
     for job in (a for a in argv if not a.startswith("-")):
         pid_file = SPOOL / f"{job}.pid"
         if pid_file.exists():
-            try:
-                os.killpg(int(pid_file.read_text()), signal.SIGTERM)
-            except ProcessLookupError:
-                pass
+            for pids in (pid_file, SPOOL / f"{job}.jobpid"):  # the supervisor, then the job's own session
+                try:
+                    os.killpg(int(pids.read_text()), signal.SIGTERM)
+                except (ProcessLookupError, FileNotFoundError):
+                    pass
             exit_file = SPOOL / f"{job}.exit"
             if not exit_file.exists():
                 exit_file.write_text("271\n")
 
 
 if __name__ == "__main__":
-    {"qsub": qsub, "qstat": qstat, "qdel": qdel}[sys.argv[1]](sys.argv[2:])
+    {"qsub": qsub, "qstat": qstat, "qdel": qdel, "supervise": supervise}[sys.argv[1]](sys.argv[2:])

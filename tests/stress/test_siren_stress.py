@@ -4,7 +4,6 @@ The property: a fit either ends with finite weights whose held-out PSNR clears `
 `FitError` naming the lights; it never hands back NaN or a silently diverged SIREN."""
 
 import dataclasses
-import re
 from pathlib import Path
 
 import numpy as np
@@ -58,6 +57,12 @@ def fit_and_check(vol, t, cfg):
     return w, box
 
 
+# Sharp shadows from a random init in 60 steps at 128 points end at 10-14.5 dB, at every lr and precision here
+# (measured); constant shadows reach 19-36 dB. Each case's outcome is fixed, so a check that stops firing, or a
+# fit that goes non-finite, fails the test.
+HARD = {"step", "blob"}
+
+
 @pytest.mark.parametrize("precision", ["float32", "bfloat16"])
 @pytest.mark.parametrize("lr_scale", [1.0, 10.0, 100.0])
 @pytest.mark.parametrize("kind", ["constant_one", "constant_zero", "step", "blob"])
@@ -65,13 +70,13 @@ def test_a_fit_is_finite_and_good_or_fails_naming_its_lights(kind, lr_scale, pre
     # every combination (24), enumerated rather than sampled
     vol, t = target_volume(kind)
     cfg = FitConfig.from_config(dict(steps=60, points=128, lr=1e-2 * lr_scale, target="transmittance",
-                                     precision=precision,
-                    min_psnr=15.0))
-    try:
-        w, box = fit_and_check(vol, t, cfg)
-    except FitError as e:
-        assert re.search(r"light(\(s\) \[| )1[12]", str(e)), str(e)
+                                     precision=precision, min_psnr=15.0))
+    if kind in HARD:
+        with pytest.raises(FitError, match=r"held-out PSNR below fit.min_psnr = 15.0 dB "
+                           r"\((light 11: 1[0-4]\.\d\d dB, )?light 1[12]: 1[0-4]\.\d\d dB\)"):
+            fit_and_check(vol, t, cfg)
         return
+    w, box = fit_and_check(vol, t, cfg)
     assert torch.isfinite(w).all()
     assert np.isfinite(box).all() and box.min() >= cfg.min_psnr
 

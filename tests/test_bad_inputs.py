@@ -1,0 +1,94 @@
+"""The table of bad inputs a user can give: each gets one line on stderr that names the file, key or value, and
+a non-zero exit; never a traceback. (argparse's own usage lines, printed before its one error line, are not
+counted.)"""
+
+import json
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+TF = {"opacity": [[0, 0], [1, 1]], "color": [[0, 1, 1, 1], [1, 1, 1, 1]], "density_scale": 5}
+
+
+def scene_file(tmp_path, name: str, **tf):
+    path = tmp_path / f"{name}.yaml"
+    volume = tf.pop("volume", "bundled:nucleon")
+    path.write_text(json.dumps({"volume": volume, "transfer_function": {**TF, **tf}}))  # JSON is YAML
+    return str(path)
+
+
+def npy(tmp_path, name: str, truncate: bool = False) -> str:
+    path = tmp_path / name
+    np.save(path, np.random.default_rng(0).random((6, 6, 6), dtype=np.float32))
+    if truncate:
+        path.write_bytes(path.read_bytes()[:120])
+    return str(path)
+
+
+def _render(volume_args, *extra):
+    return ["render", *volume_args, "--mode", "noshadow", "--size", "8", "--out", "x.png", *extra]
+
+
+def _config_json(tmp_path, settings: str):
+    return ["train-data-inr", "--volume", npy(tmp_path, "v.npy"), "--out", "d.pt", "--config-json", settings]
+
+
+# (name, arguments from tmp_path, environment, what the line must say)
+CASES = [
+    ("opacity above 1", lambda t: _render(["--scene-config", scene_file(t, "a", opacity=[[0, 0], [1, 1.5]])]), {},
+     r"transfer function: opacity values must lie in \[0, 1\]"),
+    ("colour below 0", lambda t: _render(["--scene-config", scene_file(t, "b", color=[[0, -1, 1, 1], [1, 1, 1, 1]])]),
+     {}, r"transfer function: color values must lie in \[0, 1\]"),
+    ("unsorted TF points", lambda t: _render(["--scene-config", scene_file(t, "c", opacity=[[0.5, 0], [0.1, 1]])]),
+     {}, "opacity points must be sorted by s"),
+    ("opacity 0 everywhere", lambda t: _render(["--scene-config", scene_file(t, "d", opacity=[[0, 0], [1, 0]])]), {},
+     "opacity is 0 at every point"),
+    ("an unknown bundled volume", lambda t: _render(["--scene-config", scene_file(t, "e", volume="bundled:nucleus")]),
+     {}, "no bundled volume 'nucleus'"),
+    ("more lights than the sphere", lambda t: ["lights", "--sphere", "40", "--count", "100", "--center", "0", "0",
+                                               "1", "--unseen", "2", "--out", "l.json"], {}, "count must be in 1..40"),
+    ("an .h5 that is not HDF5", lambda t: _render(["--volume", str(_write(t / "v.h5", b"not hdf5")), "--tf-json",
+                                                  json.dumps(TF)]), {}, r"v.h5: not an HDF5 file"),
+    ("a truncated .npy", lambda t: _render(["--volume", npy(t, "cut.npy", truncate=True), "--tf-json",
+                                            json.dumps(TF)]), {}, r"cut.npy: not a readable .npy file"),
+    ("DIFFSHADOW_GPU_LOCK=four", lambda t: _render(["--volume", npy(t, "v.npy"), "--tf-json", json.dumps(TF)]),
+     {"DIFFSHADOW_GPU_LOCK": "four"}, "DIFFSHADOW_GPU_LOCK: expected the number of GPUs per node"),
+    ("DIFFSHADOW_DETERMINISTIC=maybe", lambda t: _render(["--volume", npy(t, "v.npy"), "--tf-json", json.dumps(TF)]),
+     {"DIFFSHADOW_DETERMINISTIC": "maybe"}, "DIFFSHADOW_DETERMINISTIC: expected 0 or 1"),
+    ("an unknown kernel", lambda t: _render(["--volume", npy(t, "v.npy"), "--tf-json", json.dumps(TF)], "--kernel",
+                                            "bogus"), {}, "argument --kernel: invalid choice: 'bogus'"),
+    ("--config-json: a string for a number", lambda t: _config_json(t, '{"data_inr": {"steps": "many"}}'), {},
+     r"data_inr.steps: expected int, got 'many'"),
+    ("--config-json: true for a number", lambda t: _config_json(t, '{"data_inr": {"steps": true}}'), {},
+     r"data_inr.steps: expected int, got True"),
+    ("--config-json: a list for a section", lambda t: _config_json(t, '{"data_inr": [1]}'), {},
+     r"data_inr: expected a mapping of settings"),
+    ("--config-json: an unknown key", lambda t: _config_json(t, '{"data_inr": {"stepz": 3}}'), {},
+     r"data_inr: unknown key\(s\) \['stepz'\]"),
+    ("--config-json: not JSON", lambda t: _config_json(t, "{bad"), {}, "--config-json: not valid JSON"),
+]
+
+
+def _write(path, data: bytes):
+    path.write_bytes(data)
+    return path
+
+
+@pytest.mark.parametrize("name, args, env, message", CASES, ids=[c[0] for c in CASES])
+def test_bad_input_gets_one_line(tmp_path, monkeypatch, name, args, env, message):
+    import os
+    import re
+
+    for key in ("DIFFSHADOW_GPU_LOCK", "DIFFSHADOW_DETERMINISTIC"):
+        monkeypatch.delenv(key, raising=False)
+    proc = subprocess.run([sys.executable, "-m", "diffshadow.cli", *args(tmp_path)], cwd=tmp_path,
+                          capture_output=True, text=True, timeout=300, env={**os.environ, **env})
+    assert proc.returncode not in (0, 1), (name, proc.returncode, proc.stderr[-2000:])  # 1: an uncaught exception
+    assert "Traceback" not in proc.stderr, proc.stderr[-2000:]
+    lines = [line for line in proc.stderr.splitlines() if line.strip()]
+    if lines and lines[0].startswith("usage:"):  # argparse: its usage (indented continuation lines), then one line
+        lines = [line for line in lines[1:] if not line.startswith(" ")]
+    assert len(lines) == 1, (name, proc.stderr)
+    assert re.search(message, lines[0]), (name, lines[0])
