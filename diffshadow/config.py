@@ -129,6 +129,10 @@ def scene_config(run: dict, scene: str, *, scenes_dir: str | Path) -> dict:
                   f"{path} over the run's config")
     except KeyError as e:
         raise ConfigError(f"scene {scene!r}: section {e} is in neither {path} nor the run's config") from None
+    lights = merged["lights"]
+    if lights["count"] > lights["sphere"]:  # found at plan time, not when the `lights` job runs
+        raise ConfigError(f"{path} over the run's config: lights.count {lights['count']} is more than the "
+                          f"{lights['sphere']} directions of lights.sphere; raise lights.sphere or lower lights.count")
     return merged
 
 

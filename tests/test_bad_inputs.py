@@ -92,3 +92,13 @@ def test_bad_input_gets_one_line(tmp_path, monkeypatch, name, args, env, message
         lines = [line for line in lines[1:] if not line.startswith(" ")]
     assert len(lines) == 1, (name, proc.stderr)
     assert re.search(message, lines[0]), (name, lines[0])
+
+
+def test_more_lights_than_the_sphere_is_refused_at_plan_time(tmp_path):
+    """Before any job runs: the workflow's scene configuration is refused, naming both keys."""
+    from diffshadow.config import ConfigError, load_run, merge, scene_config
+
+    (tmp_path / "nucleon.yaml").write_text(json.dumps({"volume": "bundled:nucleon", "transfer_function": TF}))
+    run = merge(load_run(), {"lights": {**load_run()["lights"], "count": 500, "sphere": 400}})
+    with pytest.raises(ConfigError, match="lights.count 500 is more than the 400 directions of lights.sphere"):
+        scene_config(run, "nucleon", scenes_dir=tmp_path)

@@ -104,3 +104,20 @@ def test_render_previews_a_scene_file_and_names_its_typo(tmp_path, capsys):
     with pytest.raises(SystemExit):  # neither a volume nor a scene file
         main(["render", "--mode", "noshadow", "--out", str(tmp_path / "y.png")])
     assert "give --volume" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("value, on", [("false", False), ("no", False), ("0", False), ("", False), ("1", True),
+                                       ("True", True)])
+def test_deterministic_switch_reads_its_words(monkeypatch, value, on):
+    """DIFFSHADOW_DETERMINISTIC=false or no turned deterministic mode on (any non-empty string did)."""
+    import torch
+
+    from diffshadow.runtime import set_deterministic_from_env
+
+    monkeypatch.setenv("DIFFSHADOW_DETERMINISTIC", value)
+    before = torch.are_deterministic_algorithms_enabled()
+    try:
+        assert set_deterministic_from_env() is on
+        assert torch.are_deterministic_algorithms_enabled() is (on or before)
+    finally:
+        torch.use_deterministic_algorithms(before)

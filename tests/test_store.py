@@ -165,3 +165,20 @@ def test_a_corrupt_checkpoint_is_set_aside(tmp_path):
     aside = list(tmp_path.glob("subset_0.npz.ckpt.corrupt-*"))
     assert not ckpt.exists() and len(aside) == 1 and aside[0].read_bytes().startswith(b"PK")
     assert said and "unreadable" in said[0] and "set aside as subset_0.npz.ckpt.corrupt-" in said[0]
+
+
+def test_results_are_flushed_before_the_rename(tmp_path, monkeypatch):
+    """A node crash after the rename must not leave a renamed but empty file: the data is fsynced first, then
+    the folder that records the rename."""
+    import os
+
+    from diffshadow import io
+
+    order = []
+    real_fsync, real_replace = os.fsync, os.replace
+    monkeypatch.setattr(io.os, "fsync", lambda fd: (order.append(("fsync", os.readlink(f"/proc/self/fd/{fd}"))),
+                                                   real_fsync(fd))[1])
+    monkeypatch.setattr(io.os, "replace", lambda a, b: (order.append(("replace", str(b))), real_replace(a, b))[1])
+    io.atomic_write_text(tmp_path / "a.json", "{}")
+    assert [kind for kind, _ in order] == ["fsync", "replace", "fsync"]
+    assert order[0][1].startswith(str(tmp_path / ".a.json.")) and order[2][1] == str(tmp_path)
