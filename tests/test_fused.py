@@ -358,10 +358,11 @@ def test_one_sine_costs_what_bench_kernels_says():
     c = json.loads(res.stdout.strip().splitlines()[-1])
     # why the kernels ask for FMA contraction (fused.FP_FUSION): its reduction and polynomial are multiply-adds
     assert c["poly unfused"]["executed"] > c["poly"]["executed"]
-    assert c["approx"]["mufu"] == 1 and c["approx"]["executed"] <= 10
-    assert c["poly"]["mufu"] == 0 and c["poly"]["executed"] <= 20 and c["poly"]["fp32"] >= 10
+    # what each sine is, whatever Triton version compiles it: one hardware sine, or FP32 work and no MUFU; and
+    # their order of cost (absolute counts moved between Triton versions: issue 55)
+    assert c["approx"]["mufu"] == 1 and c["poly"]["mufu"] == 0 and c["poly"]["fp32"] > 0
     assert c["libdevice"]["executed"] > c["poly"]["executed"] > c["approx"]["executed"]
-    assert c["libdevice"]["instructions"] > 2 * c["libdevice"]["executed"]  # the slow path's code (2.6x, Triton 3.6)
+    assert c["libdevice"]["instructions"] > c["libdevice"]["executed"]  # the slow path's code is in the kernel
 
 
 def test_bench_kernels_under_the_interpreter_says_so(monkeypatch):
