@@ -268,8 +268,8 @@ def load_data_inr(path) -> DataInr:
 
 def scene_volume(scene: dict) -> tuple[Volume, TransferFunction]:
     """A scene's volume (its file and `load:` keys) and transfer function."""
-    return load_volume(scene["volume"], **scene.get("load", {})), TransferFunction.from_config(
-        scene["transfer_function"])
+    tf = TransferFunction.from_config(scene["transfer_function"]).require_visible(f"scene {scene['volume']}")
+    return load_volume(scene["volume"], **scene.get("load", {})), tf
 
 
 def load_scene_file(scene_file: Path, device: torch.device, render: dict | None = None) -> RenderScene:

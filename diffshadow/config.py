@@ -129,6 +129,9 @@ def scene_config(run: dict, scene: str, *, scenes_dir: str | Path) -> dict:
                   f"{path} over the run's config")
     except KeyError as e:
         raise ConfigError(f"scene {scene!r}: section {e} is in neither {path} nor the run's config") from None
+    if not any(float(row[1]) > 0 for row in own["transfer_function"]["opacity"]):
+        raise ConfigError(f"{path}: transfer_function: opacity is 0 at every point, so nothing is visible and there "
+                          f"is no shadow to cache")
     lights = merged["lights"]
     if lights["count"] > lights["sphere"]:  # found at plan time, not when the `lights` job runs
         raise ConfigError(f"{path} over the run's config: lights.count {lights['count']} is more than the "

@@ -58,9 +58,6 @@ class TransferFunction:
             if key not in d:
                 raise TransferFunctionError(f"transfer function: missing key {key!r}")
         opacity = _points("opacity", d["opacity"], 2)
-        if not np.any(opacity[:, 1] > 0):
-            raise TransferFunctionError("transfer function: opacity is 0 at every point, so nothing is visible and "
-                                        "there is no shadow to cache; give some scalar range an opacity above 0")
         color = _points("color", d["color"], 4)
         try:
             k = float(d["density_scale"])
@@ -71,6 +68,15 @@ class TransferFunction:
         if not np.isfinite(k) or k < 0:
             raise TransferFunctionError(f"transfer function: density_scale must be finite and >= 0, got {k}")
         return cls(opacity, color, k)
+
+    def require_visible(self, where: str) -> TransferFunction:
+        """This TF, for a scene: refused when its opacity is 0 at every point (the renderer and the shadow math take
+        such a TF, but a scene made of it has no visible point and every stage would succeed on nothing)."""
+        if not np.any(self.opacity_points[:, 1] > 0):
+            raise TransferFunctionError(f"{where}: transfer function: opacity is 0 at every point, so nothing is "
+                                        f"visible and there is no shadow to cache; give some scalar range an opacity "
+                                        f"above 0")
+        return self
 
     def to_config(self) -> dict:
         """The inverse of `from_config` (plain lists, for JSON/YAML/Zarr attrs)."""

@@ -102,3 +102,12 @@ def test_more_lights_than_the_sphere_is_refused_at_plan_time(tmp_path):
     run = merge(load_run(), {"lights": {**load_run()["lights"], "count": 500, "sphere": 400}})
     with pytest.raises(ConfigError, match="lights.count 500 is more than the 400 directions of lights.sphere"):
         scene_config(run, "nucleon", scenes_dir=tmp_path)
+
+
+def test_an_invisible_scene_is_refused_at_plan_time(tmp_path):
+    from diffshadow.config import ConfigError, load_run, scene_config
+
+    clear = {**TF, "opacity": [[0, 0], [1, 0]]}
+    (tmp_path / "clear.yaml").write_text(json.dumps({"volume": "bundled:nucleon", "transfer_function": clear}))
+    with pytest.raises(ConfigError, match=r"clear.yaml: transfer_function: opacity is 0 at every point"):
+        scene_config(load_run(), "clear", scenes_dir=tmp_path)

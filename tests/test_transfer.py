@@ -46,11 +46,18 @@ def test_round_trip_config():
     ({"density_scale": "lots"}, "density_scale must be a number"),
     ({"opacity": [[0.0, float("nan")], [1.0, 1.0]]}, "opacity has non-finite values"),
     ({"gamma": 2}, r"unknown key\(s\) \['gamma'\]"),
-    ({"opacity": [[0.0, 0.0], [1.0, 0.0]]}, "opacity is 0 at every point, so nothing is visible"),
 ])
 def test_malformed_transfer_functions(change, message):
     with pytest.raises(TransferFunctionError, match=message):
         TransferFunction.from_config({**CONFIG, **change})
+
+
+def test_a_scene_needs_something_visible():
+    """An all-transparent TF is valid for the renderer (the stress suites draw them) but refused for a scene."""
+    clear = TransferFunction.from_config({**CONFIG, "opacity": [[0.0, 0.0], [1.0, 0.0]]})
+    with pytest.raises(TransferFunctionError, match="scene x: transfer function: opacity is 0 at every point"):
+        clear.require_visible("scene x")
+    assert TransferFunction.from_config(CONFIG).require_visible("scene x") is not None
 
 
 def test_missing_key():
