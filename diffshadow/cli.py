@@ -323,7 +323,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--port", type=int, default=8080)
     p.add_argument("--size", type=int, default=128, help="image height in pixels when still (a panel control)")
     p.add_argument("--step", type=float, default=0.5, help="marching step in voxels (a panel control)")
-    p.add_argument("--record", help="a folder where every still frame is written as PNG with its render command")
+    p.add_argument("--record", help="a folder where every still frame is written (PNG, and JSON with its render "
+                   "command) and every frame's cost is logged (frames.jsonl)")
     add_networks(p)
     p = _add(sub, "report-figures", _report_figures, "the report's figures for one finished scene", "weights",
              "generated", "lights", "images", "voxel-metrics", "shadow-bench", "out-dir",
