@@ -4,6 +4,7 @@ subset rerun alone)."""
 
 import json
 import os
+import re
 import subprocess
 import sys
 import textwrap
@@ -318,3 +319,16 @@ rule job{i}:
     assert proc.returncode == 0, proc.stderr[-2000:]
     (s0, e0), (s1, e1) = ([float(t) for t in (tmp_path / f"{i}.txt").read_text().split()] for i in range(2))
     assert e0 <= s1 or e1 <= s0, "two 2-thread jobs ran at once on -j2"
+
+
+def test_paper_scale_config_plans_forty_subsets_four_to_a_node(tmp_path):
+    """config/paper.yaml on the Polaris profile: the whole DAG planned, 2,000 lights in 40 fit_siren jobs packed
+    into 10 node jobs (a dry run: nothing is submitted)."""
+    env = {**os.environ, "PBS_ACCOUNT": "testproj"}
+    proc = subprocess.run([sys.executable, "-m", "snakemake", "-s", str(REPO / "Snakefile"), "--directory",
+                           str(tmp_path), "--profile", str(REPO / "profiles" / "polaris"), "--configfile",
+                           str(REPO / "config" / "paper.yaml"), "-n"], env=env, capture_output=True, text=True,
+                          timeout=300)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    out = proc.stdout + proc.stderr
+    assert re.search(r"^fit_siren\s+40$", out, re.M) and out.count("Group job siren") == 10, out[-3000:]
