@@ -77,7 +77,8 @@ def prepared_voxels(path: str | Path) -> int:
 
 
 def is_prepared(path: str | Path) -> bool:
-    return Path(path).suffix == ".zarr" and (Path(path) / "zarr.json").exists()
+    """Whether `path` is prepare_volume's store (a group with its `scalar` array), not a user's own .zarr volume."""
+    return Path(path).suffix == ".zarr" and (Path(path) / "scalar" / "zarr.json").exists()
 
 
 # ------------------------------------------------------------------------------------- shared initial SIREN

@@ -188,6 +188,26 @@ class VerifiedGroup:
         return names
 
 
+def check_stores(paths: list[Path]):
+    """Verify each store in `paths` (a .zarr store, or every store of a folder); yields one line per store:
+    its arrays, whether their checksums match (or that it predates checksums), its size and the time taken."""
+    stores = []
+    for path in paths:
+        if not path.exists():
+            raise StoreError(f"check-store: {path}: no such store or results folder")
+        stores += sorted(path.glob("*.zarr")) if path.suffix != ".zarr" else [path]
+    if not stores:
+        raise StoreError(f"check-store: no .zarr store in {', '.join(map(str, paths))}")
+    for store in stores:
+        t0 = time.perf_counter()
+        group = VerifiedGroup(store, "a Zarr store")
+        names = group.verify()
+        state = ("checksums match" if group.checksums is not None
+                 else "readable (written before checksums: rerun the step that writes it to make it verifiable)")
+        size = sum(f.stat().st_size for f in store.rglob("*") if f.is_file())
+        yield f"{store}: {', '.join(names)}: {state} ({size / 2 ** 20:.1f} MiB in {time.perf_counter() - t0:.2f} s)"
+
+
 def resume(checkpoint: str | Path | None, fingerprint: str, *, log=print, map_location="cpu",
            weights_only: bool = False, key: str = "fingerprint") -> dict | None:
     """The state saved in `checkpoint` when it was written for this `fingerprint` (same inputs and

@@ -18,13 +18,17 @@ import re
 import shlex
 import shutil
 import subprocess
+import sys
 import tempfile
 import time
 import urllib.request
+from contextlib import contextmanager
+from pathlib import Path
 
 import numpy as np
 
 BROWSERS = ("chromium", "chromium-browser", "google-chrome")
+DIFFSHADOW = Path(sys.executable).parent / "diffshadow"  # this environment's command
 
 
 def find_browser() -> str | None:
@@ -140,16 +144,9 @@ class Browser:
 
     def input_beside(self, label: str) -> tuple[float, float]:
         """The centre of the text input on the same row as the label `label` (scrolled into view)."""
-        return self.wait_for(f"""(() => {{
-            const lab = [...document.querySelectorAll('*')].find(e => [...e.childNodes].some(n =>
-                n.nodeType === 3 && n.textContent.trim() === {json.dumps(label)}));
-            if (!lab) return null;
-            lab.scrollIntoView({{block: 'center'}});
-            const l = lab.getBoundingClientRect(), y = l.y + l.height / 2;
-            const rows = [...document.querySelectorAll('input')].map(e => e.getBoundingClientRect())
-                .filter(r => r.width > 0 && r.x > l.x && Math.abs(r.y + r.height / 2 - y) < l.height);
-            const r = rows[rows.length - 1];
-            return r ? [r.x + r.width / 2, r.y + r.height / 2] : null; }})()""", what=f"an input beside '{label}'")
+        return self.wait_for(_on_row_of(label, """const r = [...document.querySelectorAll('input')]
+            .map(e => e.getBoundingClientRect()).filter(r => r.width > 0 && r.x > l.x && onRow(r)).pop();
+            return r ? [r.x + r.width / 2, r.y + r.height / 2] : null;"""), what=f"an input beside '{label}'")
 
     def dismiss_notifications(self) -> int:
         """Close the page's notifications (viser tells a software-WebGL browser so, over the canvas); how many."""
@@ -247,25 +244,13 @@ def drive_viewer(results, workdir, *, screenshot=None) -> dict:
     model on demand); mode `gt` at two lights. Each frame on the canvas is compared with `diffshadow render`
     for the same camera and light (the command the panel shows): `<name>_psnr_vs_render`; `*_changed_psnr`
     compare the canvas before and after a light change."""
-    import sys
-    from pathlib import Path
-
     from PIL import Image
 
     results, workdir = Path(results), Path(workdir)  # as given: the panel shows the command with this path
     record = workdir / "frames"
-    exe = Path(sys.executable).parent / "diffshadow"
-    port = free_port()
     log = workdir / "view.log"
-    with open(log, "w") as f:
-        view = subprocess.Popen([str(exe), "view", str(results), "--port", str(port), "--size", "192", "--record",
-                                 str(record)], stdout=f, stderr=subprocess.STDOUT, text=True)
-    try:
-        while "http://" not in log.read_text():
-            if view.poll() is not None:
-                raise AssertionError("diffshadow view exited: " + log.read_text())
-            time.sleep(0.1)
-        browser = Browser(f"http://127.0.0.1:{port}", width=800, height=335)
+    with viewer(results, record, size=192, log=log) as (url, _):
+        browser = Browser(url, width=800, height=335)
         try:
             out = {}
             first = next_frame(record, 0, lambda m: m["height"] == 192)
@@ -279,7 +264,7 @@ def drive_viewer(results, workdir, *, screenshot=None) -> dict:
 
             def render(args: list[str], name: str) -> np.ndarray:
                 ref = workdir / f"{name}.png"
-                subprocess.run([str(exe), "render", *args, "--out", str(ref)], check=True, capture_output=True)
+                subprocess.run([str(DIFFSHADOW), "render", *args, "--out", str(ref)], check=True, capture_output=True)
                 return np.asarray(Image.open(ref))
 
             def check(frame: dict, name: str) -> np.ndarray:
@@ -329,9 +314,31 @@ def drive_viewer(results, workdir, *, screenshot=None) -> dict:
             raise AssertionError(f"{e}\n--- the viewer's output:\n{log.read_text()[-3000:]}") from e
         finally:
             browser.close()
+
+
+@contextmanager
+def viewer(results: Path, record: Path, *, size: int, log: Path):
+    """`diffshadow view results` on a free port, recording into `record`, its output in `log`; yields (its URL,
+    its process) once it serves, and stops it after."""
+    port = free_port()
+    with open(log, "w") as f:
+        proc = subprocess.Popen([str(DIFFSHADOW), "view", str(results), "--port",
+                                 str(port), "--size", str(size), "--record", str(record)], stdout=f,
+                                stderr=subprocess.STDOUT, text=True)
+    try:
+        while "http://" not in log.read_text():
+            if proc.poll() is not None:
+                raise RuntimeError("diffshadow view exited: " + log.read_text())
+            time.sleep(0.1)
+        yield f"http://127.0.0.1:{port}", proc
     finally:
-        view.terminate()
-        view.wait(20)
+        proc.terminate()
+        proc.wait(20)
+
+
+def _frames(record: Path) -> list[dict]:
+    """Every frame the viewer drew (its frames.jsonl)."""
+    return [json.loads(line) for line in (record / "frames.jsonl").read_text().splitlines()]
 
 
 def _portrait(browser: Browser, record, path) -> None:
@@ -365,18 +372,24 @@ def _portrait(browser: Browser, record, path) -> None:
 
 def slider_thumb(browser: Browser, label: str) -> tuple[float, float, float, float]:
     """(x, y) of the thumb of the slider on the row of `label`, and the x range of its track."""
-    return browser.wait_for(f"""(() => {{
+    return browser.wait_for(_on_row_of(label, """const rects = sel => [...document.querySelectorAll(sel)]
+            .map(e => e.getBoundingClientRect()).find(r => r.width > 0 && onRow(r));
+        const t = rects('[role="slider"]'), track = rects('[class*="Slider-track"]');
+        return t && track ? [t.x + t.width / 2, t.y + t.height / 2, track.x, track.x + track.width] : null;"""),
+                            what=f"the slider beside '{label}'")
+
+
+def _on_row_of(label: str, body: str) -> str:
+    """Page script: find the element whose own text is `label`, scroll it into view, then run `body`, which
+    sees its rectangle `l` and `onRow(r)`: whether rectangle `r` lies on the label's row."""
+    return f"""(() => {{
         const lab = [...document.querySelectorAll('*')].find(e => [...e.childNodes].some(n =>
             n.nodeType === 3 && n.textContent.trim() === {json.dumps(label)}));
         if (!lab) return null;
         lab.scrollIntoView({{block: 'center'}});
         const l = lab.getBoundingClientRect(), y = l.y + l.height / 2;
-        const t = [...document.querySelectorAll('[role="slider"]')].map(e => e.getBoundingClientRect())
-            .find(r => r.width > 0 && Math.abs(r.y + r.height / 2 - y) < l.height);
-        const track = t && [...document.querySelectorAll('[class*="Slider-track"]')].map(e => e.getBoundingClientRect())
-            .find(r => r.width > 0 && Math.abs(r.y + r.height / 2 - y) < l.height);
-        return t && track ? [t.x + t.width / 2, t.y + t.height / 2, track.x, track.x + track.width] : null; }})()""",
-                            what=f"the slider beside '{label}'")
+        const onRow = r => Math.abs(r.y + r.height / 2 - y) < l.height;
+        {body} }})()"""
 
 
 def drag(browser: Browser, start: tuple[float, float], span: tuple[float, float], seconds: float) -> float:
@@ -403,21 +416,11 @@ def measure_viewer(results, workdir, *, sizes=(128, 256), seconds: float = 8.0) 
     """The viewer's frame rate as a user gets it in Chromium on this machine: the light's azimuth slider dragged
     for `seconds`, then the camera orbited with the mouse, at each image height (a square canvas); full-size
     frame times once still; a new direction's generation time; the viewer's peak resident memory."""
-    from pathlib import Path
-
     results, out = Path(results).resolve(), {}
-    exe = Path(sys_executable()).parent / "diffshadow"
     for size in sizes:
         record = Path(workdir) / f"frames_{size}"
-        port = free_port()
-        view = subprocess.Popen([str(exe), "view", str(results), "--port", str(port), "--size", str(size),
-                                 "--record", str(record)], stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
-        try:
-            while "http://" not in (line := view.stdout.readline()):
-                if not line:
-                    raise RuntimeError("diffshadow view exited")
-            threading_drain(view.stdout)
-            browser = Browser(f"http://127.0.0.1:{port}", width=1100, height=size + 400)
+        with viewer(results, record, size=size, log=Path(workdir) / f"view_{size}.log") as (url, proc):
+            browser = Browser(url, width=1100, height=size + 400)
             try:
                 rect = browser.canvas_rect()
                 time.sleep(1)
@@ -440,33 +443,23 @@ def measure_viewer(results, workdir, *, sizes=(128, 256), seconds: float = 8.0) 
                 time.sleep(2)
             finally:
                 browser.close()
-            frames = [json.loads(line) for line in (record / "frames.jsonl").read_text().splitlines()]
+            frames = _frames(record)
             full = [f["seconds"] for f in frames if f["kind"] == "full" and f["height"] == size]
             made = [f["generate_s"] for f in frames if f.get("generate_s") is not None]
-            status = Path(f"/proc/{view.pid}/status").read_text()
+            status = Path(f"/proc/{proc.pid}/status").read_text()
             peak = int(re.search(r"VmHWM:\s+(\d+) kB", status).group(1)) * 1024
             out[size] = {"dragging_light": light, "orbiting_camera": orbit,
                          "still_fps": 1 / float(np.median(full)) if full else None, "still_frames": len(full),
                          "generate_s_median": float(np.median(made)) if made else None, "generated": len(made),
                          "peak_rss_mib": peak / 2 ** 20}
             print(f"[viewer {size}] {out[size]}", flush=True)
-        finally:
-            view.terminate()
-            view.wait(20)
     return out
 
 
 def _rate(record, began: float, seconds: float) -> dict:
-    frames = [json.loads(line) for line in (record / "frames.jsonl").read_text().splitlines()]
-    during = [f for f in frames if began <= f["time"] <= began + seconds]
+    during = [f for f in _frames(record) if began <= f["time"] <= began + seconds]
     sizes = sorted({f"{f['width']}x{f['height']}" for f in during})
     return {"fps": len(during) / seconds, "frames": len(during), "sizes": sizes}
-
-
-def sys_executable() -> str:
-    import sys
-
-    return sys.executable
 
 
 def report_screenshots(report, out, *, item: str = "summary", height: int = 2900) -> None:

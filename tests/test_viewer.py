@@ -6,6 +6,7 @@ import math
 import socket
 import subprocess
 import sys
+from pathlib import Path
 from types import SimpleNamespace
 
 import numpy as np
@@ -54,8 +55,8 @@ def viewer():
                         siren=SIREN, config={"checkpoint": "results/blob/diffusion.ckpt"},
                         seen=np.array([True, True, True, False]))
     return ViewerScene(RenderScene(vol, TF), name="blob", lights={"train": train, "unseen": unseen},
-                       generated=store, sampler=CountingSampler(),
-                       command=["--volume", "results/blob/volume.zarr", "--data-inr", "results/blob/data_inr.pt"])
+                       generated=store, sampler=CountingSampler(), results=Path("results/blob"),
+                       checkpoint=Path("results/blob/diffusion.ckpt"))
 
 
 CAM = Camera.orbit(np.ones(3), azimuth=30, elevation=25, size=(20, 16))

@@ -48,25 +48,10 @@ def _bench_kernels(a):
 
 
 def _check_store(a):
-    import time
+    from diffshadow.io import check_stores
 
-    from diffshadow.io import VerifiedGroup
-
-    stores = []
-    for path in map(Path, a.paths):
-        if not path.exists():
-            raise ValueError(f"check-store: {path}: no such store or results folder")
-        stores += sorted(path.glob("*.zarr")) if path.suffix != ".zarr" else [path]
-    if not stores:
-        raise ValueError(f"check-store: no .zarr store in {', '.join(a.paths)}")
-    for store in stores:
-        t0 = time.perf_counter()
-        group = VerifiedGroup(store, "a Zarr store")
-        names = group.verify()
-        state = "checksums match" if group.checksums is not None else "readable (written before checksums: rerun " \
-            "the step that writes it to make it verifiable)"
-        size = sum(f.stat().st_size for f in store.rglob("*") if f.is_file())
-        print(f"{store}: {', '.join(names)}: {state} ({size / 2 ** 20:.1f} MiB in {time.perf_counter() - t0:.2f} s)")
+    for store in check_stores([Path(p) for p in a.paths]):
+        print(store)
     if a.psnr:
         from diffshadow.bench.siren import check_store
 

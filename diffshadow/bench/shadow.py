@@ -100,9 +100,9 @@ def bench_shadow(
 
 def _load(path: Path, tf: TransferFunction) -> tuple[Volume, TransferFunction]:
     """A prepared volume with its transfer function; any other volume file with `tf`."""
-    if path.suffix == ".zarr" and (path / "scalar").exists():
-        from diffshadow.artifacts import load_prepared
+    from diffshadow.artifacts import is_prepared, load_prepared
 
+    if is_prepared(path):
         return load_prepared(path)
     return load_volume(path), tf
 

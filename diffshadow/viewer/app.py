@@ -18,7 +18,7 @@ import numpy as np
 import torch
 
 from diffshadow.io import atomic_save, atomic_write_text
-from diffshadow.render import Camera, RenderError
+from diffshadow.render import MODES, Camera, RenderError
 from diffshadow.viewer.scene import ViewerError, ViewerScene, azimuth_elevation, direction
 
 STILL_S = 0.3  # no change for this long: draw at full size
@@ -175,16 +175,19 @@ class Session:
         self.frames += 1
         old = self.fps[kind]
         self.fps[kind] = 1 / seconds if old is None else (1 - FPS_SMOOTHING) * old + FPS_SMOOTHING / seconds
-        self._notes(kind, mode, camera, light, step, notes, seconds)
+        # the command that redraws a full frame of a single mode (the panel shows it, the record keeps it)
+        command = self.viewer.render_command(mode, camera, light, step=step) if (
+            kind == "full" and mode in MODES) else None
+        self._notes(kind, camera, light, notes, seconds, command)
         if self.record is not None:
             with open(self.record / "frames.jsonl", "a") as f:  # every frame's cost, for measuring the viewer
                 made = notes["light"].generate_s if notes.get("light") else None
                 f.write(json.dumps({"kind": kind, "mode": mode, "width": camera.width, "height": camera.height,
                                     "seconds": seconds, "generate_s": made, "time": time.time()}) + "\n")
             if kind == "full":
-                self._record(image, mode, camera, light, step, notes)
+                self._record(image, mode, camera, light, notes, command)
 
-    def _notes(self, kind, mode, camera, light, step, notes, seconds) -> None:
+    def _notes(self, kind, camera, light, notes, seconds, command) -> None:
         info = notes.get("light") or self.viewer.light_info(light)
         line = info.describe()
         if info.generate_s is not None:
@@ -196,18 +199,15 @@ class Session:
         if "psnr_vs_gt" in notes:
             status += f"  \ninr against gt: {notes['psnr_vs_gt']:.2f} dB"
         self.status.content = status
-        if kind == "full" and mode in ("inr", "noshadow", "gt", "naive"):
-            self.command.content = ("same frame from the command line:\n\n```\n"
-                                    + self.viewer.render_command(mode, camera, light, step=step) + "\n```")
+        if command is not None:
+            self.command.content = f"same frame from the command line:\n\n```\n{command}\n```"
 
-    def _record(self, image, mode, camera, light, step, notes) -> None:
+    def _record(self, image, mode, camera, light, notes, command) -> None:
         from PIL import Image as PILImage
 
         stem = self.record / f"frame_{self.frames:05d}"
         atomic_save(stem.with_suffix(".png"), lambda tmp: PILImage.fromarray(image).save(tmp, format="PNG"),
                     suffix=".png")
-        command = self.viewer.render_command(mode, camera, light, step=step) if mode in (
-            "inr", "noshadow", "gt", "naive") else None
         info = notes.get("light")
         atomic_write_text(stem.with_suffix(".json"), json.dumps({
             "mode": mode, "light": list(map(float, light)), "command": command, "width": camera.width,

@@ -66,11 +66,13 @@ class ViewerScene:
     checkpoint's `ShadowSampler`) supply the `inr` mode's shadow; without them only `noshadow` and `gt`."""
 
     def __init__(self, scene: RenderScene, *, name: str, lights: dict | None = None,
-                 generated: WeightStore | None = None, sampler=None, command: list[str] | None = None):
+                 generated: WeightStore | None = None, sampler=None, results: Path | None = None,
+                 checkpoint: Path | None = None, scene_file: Path | None = None):
         self.scene, self.name, self.generated, self.sampler = scene, name, generated, sampler
         self.train = lights["train"] if lights else np.zeros((0, 3))
         self.unseen = lights["unseen"] if lights else np.zeros((0, 3))
-        self.command = command or []  # `diffshadow render` arguments that load this scene
+        # where the scene came from, for the `diffshadow render` command of a frame
+        self.results, self.checkpoint, self.scene_file = results, checkpoint, scene_file
         self._made: OrderedDict[tuple, torch.Tensor] = OrderedDict()
 
     @property
@@ -95,15 +97,14 @@ class ViewerScene:
         from diffshadow.diffusion.sample import ShadowSampler
 
         scene = load_render_scene(results / "volume.zarr", results / "data_inr.pt", device, render=render)
-        command = ["--volume", str(results / "volume.zarr"), "--data-inr", str(results / "data_inr.pt")]
         return cls(scene, name=results.name, lights=read_lights(results / "lights.json"), generated=generated,
-                   sampler=ShadowSampler(load_checkpoint(ckpt), device), command=command)
+                   sampler=ShadowSampler(load_checkpoint(ckpt), device), results=results, checkpoint=ckpt)
 
     @classmethod
     def from_scene_config(cls, path: Path, device: torch.device, render: dict | None = None) -> ViewerScene:
         """A scene file before any run: `noshadow` and `gt` only."""
         scene = load_scene_file(Path(path), device, render)
-        return cls(scene, name=Path(path).stem, command=["--scene-config", str(path)])
+        return cls(scene, name=Path(path).stem, scene_file=Path(path))
 
     # ------------------------------------------------------------------------------------------ lights
 
@@ -113,11 +114,7 @@ class ViewerScene:
                 + [(f"unseen {i}", w) for i, w in enumerate(self.unseen)])
 
     def _stored_row(self, light: np.ndarray) -> int | None:
-        if self.generated is None:
-            return None
-        d = np.abs(self.generated.lights - light[None]).max(axis=1)
-        i = int(np.argmin(d))
-        return i if d[i] <= SAME_LIGHT else None
+        return None if self.generated is None else _index(self.generated.lights, light)
 
     def light_info(self, light) -> LightInfo:
         w = as_direction(light)
@@ -125,8 +122,8 @@ class ViewerScene:
         if len(self.train):
             nearest_deg = float(np.degrees(nearest(self.train, w[None], 1)[1][0, 0]))
         for kind, lights in (("training", self.train), ("unseen", self.unseen)):
-            if len(lights) and (d := np.abs(lights - w[None]).max(axis=1)).min() <= SAME_LIGHT:
-                return LightInfo(kind, int(np.argmin(d)), nearest_deg)
+            if (i := _index(lights, w)) is not None:
+                return LightInfo(kind, i, nearest_deg)
         return LightInfo("new", None, nearest_deg)
 
     def shadow_weights(self, light) -> tuple[torch.Tensor, LightInfo]:
@@ -183,7 +180,9 @@ class ViewerScene:
 
     def render_command(self, mode: str, camera: Camera, light, *, step: float, out: str = "view.png") -> str:
         """The `diffshadow render` command that writes this frame (modes inr, noshadow, gt, naive)."""
-        args = ["diffshadow", "render", *self.command, "--mode", mode, "--out", out,
+        source = (["--scene-config", str(self.scene_file)] if self.results is None else
+                  ["--volume", str(self.results / "volume.zarr"), "--data-inr", str(self.results / "data_inr.pt")])
+        args = ["diffshadow", "render", *source, "--mode", mode, "--out", out,
                 "--eye", *(f"{x:.9g}" for x in camera.eye), "--target", *(f"{x:.9g}" for x in camera.target),
                 "--up", *(f"{x:.9g}" for x in camera.up), "--fov", f"{camera.fov:.9g}",
                 "--size", str(camera.width), str(camera.height), "--step", f"{step:g}"]
@@ -193,10 +192,16 @@ class ViewerScene:
             if mode == "inr":
                 row = self._stored_row(w)
                 if row is not None:
-                    args += ["--weights", self.command_path("generated.zarr"), "--light-index", str(row)]
+                    args += ["--weights", str(self.results / "generated.zarr"), "--light-index", str(row)]
                 else:
-                    args += ["--diffusion", self.command_path(Path(str(self.generated.config["checkpoint"])).name)]
+                    args += ["--diffusion", str(self.checkpoint)]
         return shlex.join(args)
 
-    def command_path(self, name: str) -> str:
-        return str(Path(self.command[1]).parent / name)
+
+def _index(lights: np.ndarray, light: np.ndarray) -> int | None:
+    """The row of `lights` that is `light` (within SAME_LIGHT), if any."""
+    if not len(lights):
+        return None
+    d = np.abs(lights - light[None]).max(axis=1)
+    i = int(np.argmin(d))
+    return i if d[i] <= SAME_LIGHT else None
