@@ -1,68 +1,54 @@
 """The Triton kernels of `diffshadow.fused` (imported on first use: importing Triton takes a second)."""
 
+import os
+
 import triton
 import triton.language as tl
 
 # The launch kernels take n (points this launch) unspecialised: Triton otherwise compiles a kernel per property
 # of n (n % 16 == 0 or not), and the renderer's n changes every iteration. On an H200 the first 512² frame after
-# a 128² warm-up took 3.6 s instead of 0.03 s, compiling (bench render, DIFFSHADOW_FUSED_SIREN=tf32).
+# a 128² warm-up took 3.6 s instead of 0.03 s, compiling (bench render --kernel fused).
 
 
-# sin(r)/r - 1 on [-π/2, π/2] as a polynomial in r² (minimax in relative error, fitted in float64: 1.9e-11)
-S1, S2, S3 = tl.constexpr(-1.66666666e-01), tl.constexpr(8.33333133e-03), tl.constexpr(-1.98408945e-04)
-S4, S5 = tl.constexpr(2.75266394e-06), tl.constexpr(-2.39095984e-08)
 # π in three parts (Cody-Waite): k·PI_A is exact for |k| < 2^16, so the reduced argument keeps its bits
 PI_A, PI_B, PI_C = tl.constexpr(3.140625), tl.constexpr(9.67502593994140625e-4), tl.constexpr(1.509957990978376432e-7)
 # 1.5·2^23: adding it rounds a float below 2^22 to an integer in the last mantissa bits, in one full-rate add (a
 # floor is a quarter-rate conversion on A100/H100), and leaves the integer's parity in the lowest bit
 ROUND = tl.constexpr(12582912.0)
+# Triton's interpreter (the CPU tests) runs no PTX: there the sine's last step is numpy's sin of the same reduced
+# argument, so the tests check everything of the kernels but the special-function unit (tests/gpu checks that)
+INTERPRETED = tl.constexpr(os.environ.get("TRITON_INTERPRET") == "1")
 
 
 @triton.jit
-def sine(x, SINE: tl.constexpr):
-    """sin(x) as the SIRENs' activations need it. SINE="libdevice": `tl.sin`, CUDA's sinf (a branch to an
-    exact reduction for |x| >= 105615, kept in the code at every sine, and two polynomials, one per quadrant).
-    "poly": x = kπ + r, |r| <= π/2, sin(x) = (-1)^k · sin(r) with one odd polynomial: within 1.3e-7 of sin for
-    |x| <= 1e4, no branch. "approx": x = 2kπ + r, then the GPU's special-function unit (PTX sin.approx; CUDA
-    only, not the interpreter). Instructions a sine executes on sm_90 (bench kernels' one-sine rows): "approx"
-    8 (one MUFU), "poly" 16, "libdevice" 33 of its 124 in the code."""
-    if SINE == "poly":
-        t = x * 0.3183098861837907 + ROUND
-        k = t - ROUND
-        r = x - k * PI_A
-        r = r - k * PI_B
-        r = r - k * PI_C
-        r2 = r * r
-        p = S4 + r2 * S5
-        p = S3 + r2 * p
-        p = S2 + r2 * p
-        p = S1 + r2 * p
-        y = r + r * r2 * p
-        odd = t.to(tl.int32, bitcast=True) << 31  # (-1)^k: k's parity into the sign bit
-        y = (y.to(tl.int32, bitcast=True) ^ odd).to(tl.float32, bitcast=True)
-    elif SINE == "approx":
-        t = x * 0.15915494309189535 + ROUND
-        k = t - ROUND
-        r = x - k * (2 * PI_A)
-        r = r - k * (2 * PI_B)
-        r = r - k * (2 * PI_C)
-        y = tl.inline_asm_elementwise("sin.approx.f32 $0, $1;", "=f,f", [r], dtype=tl.float32, is_pure=True,
-                                      pack=1)
+def sine(x):
+    """sin(x) as the SIRENs' activations need it: x = 2kπ + r (Cody-Waite, exact for the arguments SIRENs give),
+    then the GPU's special-function unit (PTX sin.approx, within ~1e-6 on [-π, π]): 8 instructions on sm_90,
+    one MUFU (bench kernels' one-sine row). On an H200 it gave the fastest frames of the three sines measured
+    (a branch-free polynomial: 0.92-0.96x the fps at 512²-1024²; CUDA's sinf: 0.45x) with the same image
+    (docs/performance.md)."""
+    t = x * 0.15915494309189535 + ROUND
+    k = t - ROUND
+    r = x - k * (2 * PI_A)
+    r = r - k * (2 * PI_B)
+    r = r - k * (2 * PI_C)
+    if INTERPRETED:
+        y = tl.sin(r)
     else:
-        y = tl.sin(x)
+        y = tl.inline_asm_elementwise("sin.approx.f32 $0, $1;", "=f,f", [r], dtype=tl.float32, is_pure=True, pack=1)
     return y
 
 
 @triton.jit(do_not_specialize=["n"])
-def sine_kernel(x_ptr, y_ptr, n, SINE: tl.constexpr, BLOCK: tl.constexpr):
-    """y = sine(x), elementwise; SINE="none" copies x (bench kernels subtracts it to count one sine's cost)."""
+def sine_kernel(x_ptr, y_ptr, n, COPY: tl.constexpr, BLOCK: tl.constexpr):
+    """y = sine(x), elementwise; COPY copies x instead (bench kernels subtracts it to count one sine's cost)."""
     i = tl.program_id(0) * BLOCK + tl.arange(0, BLOCK)
     live = i < n
     x = tl.load(x_ptr + i, mask=live, other=0.0)
-    if SINE == "none":
+    if COPY:
         y = x
     else:
-        y = sine(x, SINE)
+        y = sine(x)
     tl.store(y_ptr + i, y, mask=live)
 
 
@@ -78,46 +64,42 @@ def tf32_split(x):
 
 
 @triton.jit
-def first_layer(x0, x1, x2, w0_ptr, b0_ptr, W: tl.constexpr, PRECISION: tl.constexpr):
-    """The first layer's pre-activations (BLOCK, W) from the inputs x0, x1, x2 (BLOCK,). "ieee": three fp32
-    multiply-adds per activation. "tf32": the same product on tensor cores, as three TF32 products of the
-    operands split in high and low parts (hi·hi + hi·lo + lo·hi; K padded to 16, the least `tl.dot` takes).
-    Why: the activations feed both the first hidden layer's `tl.dot` and the residual sum, in two register
-    layouts, and Triton recomputes the multiply-adds and their sines in each layout instead of converting
-    one, while a dot's result is converted: 48 of a whole-ray trip's 288 sines were repeats. With ω0 = 30 in
-    the weights, one TF32 product would put 3e-2 into the sine's argument; the split, 1.7e-5 against fp32's
-    3.9e-6 (`git show 716ff5a:scripts/tf32_first_layer.py`), well below the TF32 hidden layers' own rounding."""
+def first_layer(x0, x1, x2, w0_ptr, b0_ptr, W: tl.constexpr):
+    """The first layer's pre-activations (BLOCK, W) from the inputs x0, x1, x2 (BLOCK,), on tensor cores as three
+    TF32 products of the operands split in high and low parts (hi·hi + hi·lo + lo·hi; K padded to 16, the least
+    `tl.dot` takes). Why not three fp32 multiply-adds: the activations feed both the first hidden layer's `tl.dot`
+    and the residual sum, in two register layouts, and Triton recomputes the multiply-adds and their sines in each
+    layout instead of converting one, while a dot's result is converted: 48 of a whole-ray trip's 288 sines were
+    repeats. With ω0 = 30 in the weights, one TF32 product would put 3e-2 into the sine's argument; the split,
+    1.7e-5 against fp32's 3.9e-6 (`git show 716ff5a:scripts/tf32_first_layer.py`), well below the TF32 hidden
+    layers' own rounding."""
     c = tl.arange(0, W)
-    if PRECISION == "tf32":
-        k = tl.arange(0, 16)
-        x = tl.where(k[None, :] == 0, x0[:, None],
-                     tl.where(k[None, :] == 1, x1[:, None], tl.where(k[None, :] == 2, x2[:, None], 0.0)))
-        w = tl.load(w0_ptr + k[:, None] * W + c[None, :], mask=k[:, None] < 3, other=0.0)
-        x_hi, x_lo = tf32_split(x)
-        w_hi, w_lo = tf32_split(w)
-        z = tl.dot(x_hi, w_hi, input_precision="tf32")
-        z = tl.dot(x_hi, w_lo, z, input_precision="tf32")
-        z = tl.dot(x_lo, w_hi, z, input_precision="tf32")
-    else:
-        z = (x0[:, None] * tl.load(w0_ptr + c)[None, :] + x1[:, None] * tl.load(w0_ptr + W + c)[None, :]
-             + x2[:, None] * tl.load(w0_ptr + 2 * W + c)[None, :])
+    k = tl.arange(0, 16)
+    x = tl.where(k[None, :] == 0, x0[:, None],
+                 tl.where(k[None, :] == 1, x1[:, None], tl.where(k[None, :] == 2, x2[:, None], 0.0)))
+    w = tl.load(w0_ptr + k[:, None] * W + c[None, :], mask=k[:, None] < 3, other=0.0)
+    x_hi, x_lo = tf32_split(x)
+    w_hi, w_lo = tf32_split(w)
+    z = tl.dot(x_hi, w_hi, input_precision="tf32")
+    z = tl.dot(x_hi, w_lo, z, input_precision="tf32")
+    z = tl.dot(x_lo, w_hi, z, input_precision="tf32")
     return z + tl.load(b0_ptr + c)[None, :]
 
 
 @triton.jit
 def siren(x0, x1, x2, w0_ptr, b0_ptr, wh_ptr, bh_ptr, wl_ptr, bl_ptr, W: tl.constexpr, BLOCKS: tl.constexpr,
-          PRECISION: tl.constexpr, RES: tl.constexpr, SINE: tl.constexpr):
+          RES: tl.constexpr):
     """A tile's SIREN outputs from its inputs x0, x1, x2 (BLOCK,), each in [-1, 1]."""
     c = tl.arange(0, W)
-    h = sine(first_layer(x0, x1, x2, w0_ptr, b0_ptr, W, PRECISION), SINE)
+    h = sine(first_layer(x0, x1, x2, w0_ptr, b0_ptr, W))
     square = c[:, None] * W + c[None, :]  # (in, out) layout: h @ w
     for i in tl.static_range(BLOCKS):
         wa = tl.load(wh_ptr + (2 * i) * W * W + square)
         ba = tl.load(bh_ptr + (2 * i) * W + c)
-        inner = sine(tl.dot(h, wa, input_precision=PRECISION) + ba[None, :], SINE)
+        inner = sine(tl.dot(h, wa, input_precision="tf32") + ba[None, :])
         wb = tl.load(wh_ptr + (2 * i + 1) * W * W + square)
         bb = tl.load(bh_ptr + (2 * i + 1) * W + c)
-        outer = sine(tl.dot(inner, wb, input_precision=PRECISION) + bb[None, :], SINE)
+        outer = sine(tl.dot(inner, wb, input_precision="tf32") + bb[None, :])
         h = RES * (h + outer)
     y = tl.sum(h * tl.load(wl_ptr + c)[None, :], axis=1) + tl.load(bl_ptr)
     return 0.5 * y + 0.5
@@ -125,24 +107,14 @@ def siren(x0, x1, x2, w0_ptr, b0_ptr, wh_ptr, bh_ptr, wl_ptr, bl_ptr, W: tl.cons
 
 @triton.jit(do_not_specialize=["n"])
 def siren_kernel(x_ptr, w0_ptr, b0_ptr, wh_ptr, bh_ptr, wl_ptr, bl_ptr, out_ptr, n,
-                 W: tl.constexpr, BLOCKS: tl.constexpr, BLOCK: tl.constexpr, PRECISION: tl.constexpr,
-                 RES: tl.constexpr, SINE: tl.constexpr):
+                 W: tl.constexpr, BLOCKS: tl.constexpr, BLOCK: tl.constexpr, RES: tl.constexpr):
     rows = tl.program_id(0) * BLOCK + tl.arange(0, BLOCK)
     live = rows < n
     x0 = tl.load(x_ptr + rows * 3, mask=live, other=0.0)
     x1 = tl.load(x_ptr + rows * 3 + 1, mask=live, other=0.0)
     x2 = tl.load(x_ptr + rows * 3 + 2, mask=live, other=0.0)
-    y = siren(x0, x1, x2, w0_ptr, b0_ptr, wh_ptr, bh_ptr, wl_ptr, bl_ptr, W, BLOCKS, PRECISION, RES, SINE)
+    y = siren(x0, x1, x2, w0_ptr, b0_ptr, wh_ptr, bh_ptr, wl_ptr, bl_ptr, W, BLOCKS, RES)
     tl.store(out_ptr + rows, y, mask=live)
-
-
-@triton.jit
-def box_inputs(p_ptr, extent_ptr, rows, live):
-    """A tile's box points as SIREN inputs, as `siren.box_to_siren`: points / extent * 2 - 1."""
-    x0 = tl.load(p_ptr + rows * 3, mask=live, other=0.0) / tl.load(extent_ptr) * 2 - 1
-    x1 = tl.load(p_ptr + rows * 3 + 1, mask=live, other=0.0) / tl.load(extent_ptr + 1) * 2 - 1
-    x2 = tl.load(p_ptr + rows * 3 + 2, mask=live, other=0.0) / tl.load(extent_ptr + 2) * 2 - 1
-    return x0, x1, x2
 
 
 @triton.jit
@@ -169,43 +141,6 @@ def channel(ys_ptr, lo, hi, w, CH: tl.constexpr):
     return ya + w * (tl.load(ys_ptr + hi * 4 + CH) - ya)
 
 
-@triton.jit(do_not_specialize=["n"])
-def samples_kernel(p_ptr, extent_ptr,
-                   w0_ptr, b0_ptr, wh_ptr, bh_ptr, wl_ptr, bl_ptr,
-                   sw0_ptr, sb0_ptr, swh_ptr, sbh_ptr, swl_ptr, sbl_ptr,
-                   xs_ptr, ys_ptr, density, dt, alpha_ptr, rgb_ptr, n,
-                   W: tl.constexpr, BLOCKS: tl.constexpr, SW: tl.constexpr, SBLOCKS: tl.constexpr,
-                   SHADOW: tl.constexpr, KNOTS: tl.constexpr, BLOCK: tl.constexpr, PRECISION: tl.constexpr,
-                   RES: tl.constexpr, SINE: tl.constexpr):
-    rows = tl.program_id(0) * BLOCK + tl.arange(0, BLOCK)
-    live = rows < n
-    x0, x1, x2 = box_inputs(p_ptr, extent_ptr, rows, live)
-    s = siren(x0, x1, x2, w0_ptr, b0_ptr, wh_ptr, bh_ptr, wl_ptr, bl_ptr, W, BLOCKS, PRECISION, RES, SINE)
-    lo, hi, w = segment(s, xs_ptr, KNOTS, BLOCK)
-    opacity = channel(ys_ptr, lo, hi, w, 0)
-    tl.store(alpha_ptr + rows, 1 - tl.exp(-(density * opacity) * dt), mask=live)
-    shade = 1.0
-    if SHADOW:
-        g = siren(x0, x1, x2, sw0_ptr, sb0_ptr, swh_ptr, sbh_ptr, swl_ptr, sbl_ptr, SW, SBLOCKS, PRECISION, RES, SINE)
-        shade = 0.1 + 0.9 * tl.minimum(tl.maximum(g, 0.0), 1.0)
-    for ch in tl.static_range(1, 4):
-        c = channel(ys_ptr, lo, hi, w, ch) * shade
-        tl.store(rgb_ptr + rows * 3 + (ch - 1), tl.minimum(tl.maximum(c, 0.0), 1.0), mask=live)
-
-
-@triton.jit(do_not_specialize=["n"])
-def extinction_kernel(p_ptr, extent_ptr, w0_ptr, b0_ptr, wh_ptr, bh_ptr, wl_ptr, bl_ptr, xs_ptr, ys_ptr, density,
-                      out_ptr, n, W: tl.constexpr, BLOCKS: tl.constexpr, KNOTS: tl.constexpr, BLOCK: tl.constexpr,
-                      PRECISION: tl.constexpr, RES: tl.constexpr, SINE: tl.constexpr):
-    """μ = density · opacity(data INR) at box points: a secondary ray's samples (the naive baseline)."""
-    rows = tl.program_id(0) * BLOCK + tl.arange(0, BLOCK)
-    live = rows < n
-    x0, x1, x2 = box_inputs(p_ptr, extent_ptr, rows, live)
-    s = siren(x0, x1, x2, w0_ptr, b0_ptr, wh_ptr, bh_ptr, wl_ptr, bl_ptr, W, BLOCKS, PRECISION, RES, SINE)
-    lo, hi, w = segment(s, xs_ptr, KNOTS, BLOCK)
-    tl.store(out_ptr + rows, density * channel(ys_ptr, lo, hi, w, 0), mask=live)
-
-
 @triton.jit
 def lattice_t(m, rows, live, t0, dt, cum_ptr, off_ptr, J: tl.constexpr, BLOCK: tl.constexpr):
     """Each ray's occupied sample number m as its parameter t, as `render.Runs.samples` finds it: run j is the
@@ -224,7 +159,7 @@ def march_kernel(order_ptr, o_ptr, d_ptr, t0_ptr, t1_ptr, cum_ptr, off_ptr, tota
                  xs_ptr, ys_ptr, density, dt, stop, acc_ptr, rgb_ptr, count_ptr, trips_ptr, n,
                  J: tl.constexpr, W: tl.constexpr, BLOCKS: tl.constexpr, SW: tl.constexpr, SBLOCKS: tl.constexpr,
                  SHADOW: tl.constexpr, ABSORB: tl.constexpr, KNOTS: tl.constexpr, BLOCK: tl.constexpr,
-                 PRECISION: tl.constexpr, RES: tl.constexpr, SINE: tl.constexpr):
+                 RES: tl.constexpr):
     """Whole rays, one sample of every ray of the tile per trip, until none is left: a ray stops after its
     last occupied sample, at its exit, or when `stop` is crossed. ABSORB=False: primary rays composited front
     to back (`acc` transmittance, `rgb` colour; stop: transmittance below it), as the renderer's eager step
@@ -260,7 +195,7 @@ def march_kernel(order_ptr, o_ptr, d_ptr, t0_ptr, t1_ptr, cum_ptr, off_ptr, tota
         x0 = (ox + t * dx) / ex * 2 - 1
         x1 = (oy + t * dy) / ey * 2 - 1
         x2 = (oz + t * dz) / ez * 2 - 1
-        s = siren(x0, x1, x2, w0_ptr, b0_ptr, wh_ptr, bh_ptr, wl_ptr, bl_ptr, W, BLOCKS, PRECISION, RES, SINE)
+        s = siren(x0, x1, x2, w0_ptr, b0_ptr, wh_ptr, bh_ptr, wl_ptr, bl_ptr, W, BLOCKS, RES)
         lo, hi, w = segment(s, xs_ptr, KNOTS, BLOCK)
         mu = density * channel(ys_ptr, lo, hi, w, 0)
         if ABSORB:
@@ -270,8 +205,7 @@ def march_kernel(order_ptr, o_ptr, d_ptr, t0_ptr, t1_ptr, cum_ptr, off_ptr, tota
             alpha = tl.where(valid, 1 - tl.exp(-mu * dt), 0.0)
             shade = 1.0
             if SHADOW:
-                gs = siren(x0, x1, x2, sw0_ptr, sb0_ptr, swh_ptr, sbh_ptr, swl_ptr, sbl_ptr, SW, SBLOCKS,
-                           PRECISION, RES, SINE)
+                gs = siren(x0, x1, x2, sw0_ptr, sb0_ptr, swh_ptr, sbh_ptr, swl_ptr, sbl_ptr, SW, SBLOCKS, RES)
                 shade = 0.1 + 0.9 * tl.minimum(tl.maximum(gs, 0.0), 1.0)
             weight = acc * alpha
             r += weight * tl.minimum(tl.maximum(channel(ys_ptr, lo, hi, w, 1) * shade, 0.0), 1.0)

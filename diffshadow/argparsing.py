@@ -21,15 +21,14 @@ def device_of(args: argparse.Namespace):
 
 
 def add_networks(p: argparse.ArgumentParser) -> None:
-    """--kernel, --precision, --sine: how the renderer evaluates its SIRENs (default: the config's `render`)."""
-    p.add_argument("--kernel", choices=["eager", "compile", "fused"], help="default: render.kernel")
-    p.add_argument("--precision", choices=["tf32", "fp32"], help="fused kernels (default: render.precision)")
-    p.add_argument("--sine", choices=["poly", "libdevice", "approx"], help="fused kernels (default: render.sine)")
+    """--kernel: how the renderer evaluates its SIRENs (default: the config's `render.kernel`)."""
+    p.add_argument("--kernel", choices=["auto", "eager", "compile", "fused"],
+                   help="default: render.kernel (auto: fused on CUDA, else eager)")
 
 
 def network_flags(args: argparse.Namespace) -> dict:
-    """The --kernel/--precision/--sine given, as `render` config keys (to lay over a config's section)."""
-    return {k: getattr(args, k) for k in ("kernel", "precision", "sine") if getattr(args, k, None) is not None}
+    """The --kernel given, as a `render` config key (to lay over a config's section)."""
+    return {"kernel": args.kernel} if getattr(args, "kernel", None) is not None else {}
 
 
 def add_subcommand(sub, name: str, func, helptext: str, *paths: str, out: bool = True, device: bool = True,

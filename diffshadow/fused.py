@@ -1,25 +1,22 @@
-"""Fused SIRENs for inference (issue 16): Triton kernels that evaluate whole SIRENs per tile of points,
-activations kept on chip, so a layer costs its matrix product and its sines and no trip through GPU memory.
+"""Fused SIRENs for inference: Triton kernels that evaluate SIRENs per tile of points, activations kept on chip,
+so a layer costs its matrix product and its sines and no trip through GPU memory.
 
 - `FusedSiren`: one SIREN, (N, 3) → (N,).
-- `FusedExtinction`: a secondary sample's extinction (data INR, then the transfer function's opacity).
-- `FusedSamples`: what the renderer needs of a primary sample in one kernel: the data INR's value, the shadow
-  INR's coefficient, the transfer function (one search of `TransferFunction.optics`' knots), the sample's
-  opacity for the step and its shaded colour; box points in, (α, rgb) out.
+- `FusedSamples.march`: whole primary rays in one kernel: per sample the data INR's value, the shadow INR's
+  coefficient, the transfer function (one search of `TransferFunction.optics`' knots), the sample's opacity and
+  shaded colour, composited front to back in registers.
+- `FusedExtinction.march`: whole secondary rays (the naive baseline) likewise: optical depth through the data INR.
 
-The eager SIREN (`siren.forward_folded`) and the renderer's eager sample step are the CPU path and the
-reference: the kernels apply the same pre-scaled weights (`siren.fold`) in the same order, the hidden layers as
-`tl.dot` in `precision` ("ieee": fp32, "tf32": tensor cores with 10-bit mantissa inputs, fp32 sums), the first
-layer close to fp32 either way (ω0 = 30 amplifies its rounding): three fp32 multiply-adds, or under "tf32" three
-TF32 products of split operands (`_kernels.first_layer`). Sines and their arguments stay
-fp32; the sine itself is `sine` (`_kernels.sine`, config `render.sine`): "poly" by default (one branch-free
-polynomial, within 1.3e-7 of sin), "libdevice" (CUDA's sinf) or "approx" (the GPU's special-function unit).
-Tests run the kernels on the CPU through Triton's interpreter (`TRITON_INTERPRET=1`) when Triton is installed.
+The eager SIREN (`siren.forward_folded`) and the renderer's eager sample step are the reference: the kernels apply
+the same pre-scaled weights (`siren.fold`) in the same order, the hidden layers as TF32 `tl.dot` (tensor cores,
+10-bit mantissa inputs, fp32 sums), the first layer as three TF32 products of split operands, close to fp32
+(`_kernels.first_layer`), the sines on the special-function unit after an exact reduction (`_kernels.sine`). Tests
+run the kernels on the CPU through Triton's interpreter (`TRITON_INTERPRET=1`) when Triton is installed.
 
-Opt-in while their speed is unmeasured on a GPU: config `render.kernel: fused` with `render.precision` fp32 or tf32
-(`render.Networks`); `scripts/render_plans.py` compares them with the eager SIREN side by side. A kernel compiles
-on its first launch; if that fails (`FusedKernelError`: an older Triton, a GPU it cannot target), `RenderScene`
-warns and renders with the eager SIREN from then on.
+The CUDA default (`render.kernel: auto`): on an H200 these were the fastest of the variants measured side by side,
+and their images are within 78 dB of the eager fp32 ones (docs/performance.md). A kernel compiles on its first
+launch; if that fails (`FusedKernelError`: an older Triton, a GPU it cannot target), `RenderScene` warns and
+renders with the eager SIREN from then on.
 """
 
 from __future__ import annotations
@@ -35,9 +32,8 @@ from diffshadow.siren import RES_WEIGHT, fold
 
 WARPS = 4  # Triton's default
 # Multiply-adds contract to FMAs (Triton's default up to 3.9; 3.10 turns it off unless asked). The kernels are
-# written for it: without it a "poly" sine executes 23 instructions instead of 16 and the whole-ray kernel has
-# 37% more (8,042 against 5,852 on sm_90, `diffshadow bench kernels`). Asked for explicitly, on every launch
-# and every ahead-of-time compile, so a Triton upgrade does not change the machine code underneath.
+# written for it (the sine's reduction, the transfer function's interpolation): asked for explicitly, on every
+# launch and every ahead-of-time compile, so a Triton upgrade does not change the machine code underneath.
 FP_FUSION = True
 
 
@@ -46,12 +42,7 @@ def block_points(width: int) -> int:
     return max(16, min(128, 4096 // width))
 
 
-# bfloat16 inputs to the hidden layers (8 mantissa bits) were tried: hydrogen_atom's inr image at 64² came out at
-# 16.7 dB PSNR against fp32 (Triton's interpreter, scripts/render_plans.py), so it is not offered
-PRECISIONS = ("ieee", "tf32")
-# the sine: "poly" unless `render.sine` says otherwise. Compiled for sm_90, "poly" takes fewer
-# instructions than "libdevice" and holds its accuracy (bench kernels, docs/performance.md); "approx" runs only on CUDA
-SINES = ("poly", "libdevice", "approx")
+FUSED = "fused"  # the scene's setting for these kernels (`render.Networks`)
 COMPILE = "compile"  # the eager SIREN through torch.compile (siren.FoldedSiren), not these kernels
 LAUNCH = "diffshadow::fused"  # the profiler range around each launch: bench.profile counts it as one op
 
@@ -70,7 +61,7 @@ class FusedKernelWarning(UserWarning):
     """The renderer fell back to the eager SIREN after a `FusedKernelError` (the tests make it an error)."""
 
 
-def available(device: torch.device, setting: str = "ieee") -> bool:
+def available(device: torch.device, setting: str = FUSED) -> bool:
     """Whether `setting` runs on `device`: torch.compile anywhere; the kernels on CUDA with Triton, or in
     Triton's interpreter on the CPU."""
     if setting == COMPILE:
@@ -118,20 +109,12 @@ def _launch(name: str, n: int, block: int, warps: int, *args, registers: int | N
 
 class FusedSiren:
     """One SIREN (`named` tensors as `Siren.named_tensors()` or `WeightLayout.unflatten` give them, for one
-    SIREN) as a callable (N, 3) → (N,), the same as `siren._forward` up to float32 summation order (and the
-    inputs' rounding under tf32). `sine`: one of `SINES`, None → "poly"."""
+    SIREN) as a callable (N, 3) → (N,), the same as `siren._forward` up to the inputs' TF32 rounding and float32
+    summation order."""
 
-    def __init__(self, named: dict[str, torch.Tensor], blocks: int, precision: str = "ieee", sine: str | None = None):
+    def __init__(self, named: dict[str, torch.Tensor], blocks: int):
         if importlib.util.find_spec("triton") is None:
             raise FusedSirenError("the fused SIREN needs Triton (it ships with CUDA builds of PyTorch)")
-        if precision not in PRECISIONS:
-            raise FusedSirenError(f"precision: expected one of {', '.join(PRECISIONS)}, got {precision!r}")
-        sine = sine or SINES[0]
-        if sine not in SINES:
-            raise FusedSirenError(f"sine: expected one of {', '.join(SINES)}, got {sine!r}")
-        if sine == "approx" and os.environ.get("TRITON_INTERPRET") == "1":
-            raise FusedSirenError("the sine 'approx' is a GPU instruction (PTX sin.approx) that Triton's interpreter "
-                                  "cannot run")
         first = named["first.weight"].detach().float()
         width = first.shape[0]
         if width < 16 or width & (width - 1) or first.shape[1] != 3:
@@ -147,9 +130,9 @@ class FusedSiren:
             self.bh = (torch.stack([b for _, b in hidden]) if hidden
                        else torch.zeros(1, width, device=device)).contiguous()
             self.wl, self.bl = wl.reshape(-1).contiguous(), bl.reshape(1).contiguous()
-        self.width, self.blocks, self.precision, self.sine = width, blocks, precision, sine
-        # points and warps per program, and a cap on registers per thread: attributes, so scripts/fused_sweep.py
-        # can try others on a GPU. The whole-ray kernel takes 220-250 registers, 2 programs of 4 warps per SM;
+        self.width, self.blocks = width, blocks
+        # points and warps per program, and a cap on registers per thread: attributes, so a script can try others
+        # on a GPU. The whole-ray kernel takes 220-250 registers, 2 programs of 4 warps per SM;
         # capped at 168, 3 fit, for 31-39 spilled loads and stores (sm_90, `scripts/kernel_tiles.py --registers`)
         self.block, self.warps, self.registers = block_points(width), WARPS, None
 
@@ -162,8 +145,7 @@ class FusedSiren:
         out = torch.empty(len(x), dtype=torch.float32, device=x.device)
         if len(x):
             _launch("siren_kernel", len(x), self.block, self.warps, x, *self.tensors, out,
-                    registers=self.registers, W=self.width, BLOCKS=self.blocks, BLOCK=self.block,
-                    PRECISION=self.precision, RES=RES_WEIGHT, SINE=self.sine)
+                    registers=self.registers, W=self.width, BLOCKS=self.blocks, BLOCK=self.block, RES=RES_WEIGHT)
         return out
 
 
@@ -180,34 +162,19 @@ def _shadow_inputs(scalar: FusedSiren, shadow: FusedSiren | None) -> tuple[tuple
 
 
 class FusedSamples:
-    """A primary sample's opacity and colour from its box point in one kernel: data INR `scalar`, shadow INR
-    `shadow` (None: no shadow), the transfer function's `knots` ((M,), (M, 4) of opacity and RGB,
-    `TransferFunction.optics`' table) and `density_scale`, step `dt` in box units. The same arithmetic as the
-    renderer's eager step (unlit shading: colour × (0.1 + 0.9·g), clamped to [0, 1])."""
+    """Primary samples' opacity and colour, from data INR `scalar`, shadow INR `shadow` (None: no shadow), the
+    transfer function's `knots` ((M,), (M, 4) of opacity and RGB, `TransferFunction.optics`' table) and
+    `density_scale`, step `dt` in box units: the same arithmetic as the renderer's eager step (unlit shading:
+    colour × (0.1 + 0.9·g), clamped to [0, 1])."""
 
     def __init__(self, scalar: FusedSiren, shadow: FusedSiren | None, extent: torch.Tensor,
                  knots: tuple[torch.Tensor, torch.Tensor], density_scale: float, dt: float):
-        if shadow is not None and (shadow.precision, shadow.sine) != (scalar.precision, scalar.sine):
-            raise FusedSirenError(f"the data and shadow SIRENs need one precision and sine, got "
-                                  f"{scalar.precision!r}/{scalar.sine!r} and {shadow.precision!r}/{shadow.sine!r}")
         self.scalar, self.shadow = scalar, shadow
         self.extent, self.xs, self.ys = _optics_inputs(extent, knots)
         self.density, self.dt = float(density_scale), float(dt)
         # the wider network sets the tile, so both fit on chip
         self.block = min(scalar.block, shadow.block) if shadow is not None else scalar.block
         self.warps, self.registers = scalar.warps, scalar.registers
-
-    def __call__(self, p: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        p = p.float().contiguous()
-        alpha = torch.empty(len(p), dtype=torch.float32, device=p.device)
-        rgb = torch.empty(len(p), 3, dtype=torch.float32, device=p.device)
-        if len(p):
-            shadow, constants = _shadow_inputs(self.scalar, self.shadow)
-            _launch("samples_kernel", len(p), self.block, self.warps, p, self.extent, *self.scalar.tensors,
-                    *shadow, self.xs, self.ys, self.density, self.dt, alpha, rgb, registers=self.registers,
-                    W=self.scalar.width, BLOCKS=self.scalar.blocks, KNOTS=len(self.xs), BLOCK=self.block,
-                    PRECISION=self.scalar.precision, RES=RES_WEIGHT, SINE=self.scalar.sine, **constants)
-        return alpha, rgb
 
     def march(self, o: torch.Tensor, d: torch.Tensor, t0: torch.Tensor, t1: torch.Tensor, runs,
               min_transmittance: float) -> tuple[torch.Tensor, ...]:
@@ -239,15 +206,15 @@ def _march(kernel, o, d, t0, t1, runs, stop: float, *, absorb: bool, dt: float, 
         _launch("march_kernel", n, kernel.block, kernel.warps, order, o, d, t0, t1, cum, offset, total,
                 kernel.extent, *scalar.tensors, *shadow_tensors, kernel.xs, kernel.ys, kernel.density, float(dt),
                 float(stop), acc, rgb, count, trips, registers=kernel.registers, J=cum.shape[1], W=scalar.width,
-                BLOCKS=scalar.blocks, ABSORB=absorb, KNOTS=len(kernel.xs), BLOCK=kernel.block,
-                PRECISION=scalar.precision, RES=RES_WEIGHT, SINE=scalar.sine, **constants)
+                BLOCKS=scalar.blocks, ABSORB=absorb, KNOTS=len(kernel.xs), BLOCK=kernel.block, RES=RES_WEIGHT,
+                **constants)
     return acc, (None if absorb else rgb), count, trips
 
 
 class FusedExtinction:
-    """The naive baseline's secondary samples in one kernel: extinction μ = density_scale · opacity of the data
-    INR `scalar` at box points, from `TransferFunction.optics`' table (`knots`), the same arithmetic as
-    `TransferFunction.extinction` up to float32 rounding. (N, 3) → (N,)."""
+    """The naive baseline's secondary rays: extinction μ = density_scale · opacity of the data INR `scalar`, from
+    `TransferFunction.optics`' table (`knots`), the same arithmetic as `TransferFunction.extinction` up to float32
+    rounding, summed along each ray."""
 
     def __init__(self, scalar: FusedSiren, extent: torch.Tensor, knots: tuple[torch.Tensor, torch.Tensor],
                  density_scale: float):
@@ -255,16 +222,6 @@ class FusedExtinction:
         self.extent, self.xs, self.ys = _optics_inputs(extent, knots)
         self.density = float(density_scale)
         self.block, self.warps, self.registers = scalar.block, scalar.warps, scalar.registers
-
-    def __call__(self, p: torch.Tensor) -> torch.Tensor:
-        p = p.float().contiguous()
-        out = torch.empty(len(p), dtype=torch.float32, device=p.device)
-        if len(p):
-            _launch("extinction_kernel", len(p), self.block, self.warps, p, self.extent,
-                    *self.scalar.tensors, self.xs, self.ys, self.density, out, registers=self.registers,
-                    W=self.scalar.width, BLOCKS=self.scalar.blocks, KNOTS=len(self.xs), BLOCK=self.block,
-                    PRECISION=self.scalar.precision, RES=RES_WEIGHT, SINE=self.scalar.sine)
-        return out
 
     def march(self, o: torch.Tensor, d: torch.Tensor, t0: torch.Tensor, t1: torch.Tensor, runs, dt: float,
               tau_max: float) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:

@@ -63,7 +63,9 @@ def peak_memory(bench: dict) -> tuple[list[str], dict[str, dict[str, int]]]:
 def networks_text(bench: dict) -> str:
     """How the renderer evaluated its SIRENs (render.kernel and what ran), for the report's renderer table."""
     net = bench["networks"]
-    asked = net["kernel"] + (f" {net['precision']} {net['sine']}" if net["kernel"] == "fused" else "")
+    asked = net["kernel"]
+    if asked == "auto":
+        return f"{net['used']} (render.kernel: auto)"
     return net["used"] if net["used"] == asked else f"{net['used']} (render.kernel: {asked}, not available here)"
 
 
@@ -242,7 +244,9 @@ class RunResults:
                                 "in bench.json. Peak memory is what a frame adds; a size without fps was rendered "
                                 "for its memory only (does memory stay bounded as the image grows?). ops / syncs: "
                                 "kernel-launching ops and host syncs per frame, counted with torch.profiler, so "
-                                "they do not drift with the machine's load."))
+                                "they do not drift with the machine's load. naive and inr evaluate their SIRENs "
+                                "the same way (both eager, or both fused: naive's secondary rays are whole-ray "
+                                "kernels as inr's primary rays are), so naive/inr compares methods, not code."))
         sizes = self.sizes()
         if sizes:
             parts.append(_table("SIREN sizes chosen for this scene", ["network", "width", "blocks", "parameters",

@@ -12,11 +12,11 @@
 # A part alone: `... gpu_session.sh render`.
 #
 # plans:    scripts/render_plans.py at 128², 512², 1024², inr and naive: every way the code can evaluate the
-#           SIRENs (eager fp32, TF32 matmuls, torch.compile, the fused kernels per wavefront step and whole rays
-#           in fp32 and TF32, each sine) side by side, with the PSNR against the eager fp32 image, then
+#           SIRENs (eager fp32, TF32 matmuls, torch.compile, the fused kernels) side by side, with the PSNR
+#           against the eager fp32 image, then
 #           torch.profiler's top kernels and the device's busy fraction of one 1024² inr frame per variant.
 # render:   bench render on hydrogen_atom at 128², 512², 1024² (fps, ops and host syncs per frame, skipping,
-#           peak memory up to 2048²), the fused kernels in TF32 first, then eager.
+#           peak memory up to 2048²), the fused kernels (the CUDA default) first, then eager.
 # workflow: the README's run (`snakemake --profile local -j2`, the profile from profiles/) on an empty
 #           results/, its wall time and Snakemake's per-rule benchmark table, and the run's metrics.
 # checks:   pytest -m gpu.
@@ -61,16 +61,15 @@ checks)
     ;;
 render)
     sizes=(--sizes 128 512 1024 --memory-sizes 2048); [ "$quick" = 1 ] && sizes=(--sizes 32 64 --memory-sizes 96)
-    [ "$device" = cuda ] && step bench_render_fused diffshadow bench render --kernel fused --precision tf32 \
-        --device cuda --scene-config config/scenes/hydrogen_atom.yaml "${sizes[@]}" --out "$out/render_fused.json"
-    step bench_render diffshadow bench render --device "$device" --scene-config config/scenes/hydrogen_atom.yaml \
-        "${sizes[@]}" --out "$out/render.json"
+    [ "$device" = cuda ] && step bench_render_fused diffshadow bench render --kernel fused --device cuda \
+        --scene-config config/scenes/hydrogen_atom.yaml "${sizes[@]}" --out "$out/render_fused.json"
+    step bench_render diffshadow bench render --kernel eager --device "$device" \
+        --scene-config config/scenes/hydrogen_atom.yaml "${sizes[@]}" --out "$out/render.json"
     ;;
 plans)
     sizes=(--sizes 128 512 1024); [ "$quick" = 1 ] && sizes=(--sizes 24 --inr-steps 200 --repeats 1)
     variants=("tf32 matmuls" "compiled SIREN")  # the fused kernels run on CUDA (on a CPU only interpreted, slowly)
-    [ "$device" = cuda ] && variants+=("fused fp32" "fused tf32" "fused tf32 steps" "fused tf32 approx" \
-        "fused tf32 libdevice")
+    [ "$device" = cuda ] && variants+=("fused")
     step render_plans python scripts/render_plans.py --device "$device" "${sizes[@]}" --profile \
         --variants "${variants[@]}"
     ;;

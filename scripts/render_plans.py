@@ -1,14 +1,14 @@
-"""Side by side: the marcher's variants on one device (batch sizes, TF32 matmuls, the fused kernels per wavefront step
-or whole rays), for `inr` and `naive`.
+"""Side by side: the marcher's variants on one device (batch sizes, TF32 matmuls, torch.compile, the fused kernels),
+for `inr` and `naive`.
 
     python scripts/render_plans.py --device cuda --sizes 512 1024
 
 Each variant renders the same frames (hydrogen_atom, the bench's camera, light and fits); the table gives the
 median seconds per frame, the samples sent to the networks, host syncs per frame, the image's PSNR against the
-first variant's (the batch must not change the image; TF32 and the fused SIREN may, a little) and, for whole
-rays, the share of the kernel's lane trips that were samples. Variants are interleaved per repeat so drift on a
-shared machine hits all alike. The fused SIREN's variants appear where its kernel runs (CUDA with Triton; on the
-CPU only under TRITON_INTERPRET=1, slowly).
+first variant's, the eager fp32 renderer (the batch must not change the image; TF32 and the fused kernels may, a
+little) and, for the fused kernels' whole rays, the share of the kernel's lane trips that were samples. Variants
+are interleaved per repeat so drift on a shared machine hits all alike. The fused variant appears where its
+kernels run (CUDA with Triton; on the CPU only under TRITON_INTERPRET=1, slowly).
 """
 
 from __future__ import annotations
@@ -27,7 +27,6 @@ from diffshadow.bench import BENCH_LIGHT
 from diffshadow.bench.profile import op_counts
 from diffshadow.data_inr import DataInrConfig, fit_data_inr
 from diffshadow.fit import FitConfig, fit_sirens
-from diffshadow.fused import PRECISIONS
 from diffshadow.fused import available as fused_available
 from diffshadow.metrics import psnr
 from diffshadow.sampling import seeded
@@ -38,14 +37,12 @@ from diffshadow.siren import SirenConfig, WeightLayout, init_siren
 class Variant:
     batch: int | None = None  # None: the device's default
     tf32: bool = False  # TF32 matmuls (the eager SIREN)
-    fused: str | None = None  # the scene's fused setting (render.Networks.setting())
-    whole_rays: bool = True  # with fused kernels: whole rays in one kernel, else one kernel per wavefront step
-    sine: str | None = None  # with fused kernels: their sine (None: "poly")
+    fused: str | None = None  # the scene's network setting (render.Networks.setting(): "compile" or "fused")
 
     @property
     def render_kw(self) -> dict:
         """What `RenderScene.render` takes of the variant (the rest is set on the scene by `variant`)."""
-        return {"batch": self.batch, "whole_rays": self.whole_rays}
+        return {"batch": self.batch}
 
 
 def variants(device: torch.device) -> dict[str, Variant]:
@@ -58,23 +55,18 @@ def variants(device: torch.device) -> dict[str, Variant]:
     out["tf32 matmuls"] = Variant(tf32=True)
     out["compiled SIREN"] = Variant(fused="compile")
     if fused_available(device):
-        out["fused fp32"] = Variant(fused="ieee")
-        out["fused tf32"] = Variant(fused="tf32")
-        out["fused tf32 steps"] = Variant(fused="tf32", whole_rays=False)
-        for sine in ("libdevice", "approx"):  # the default sine is "poly"
-            out[f"fused tf32 {sine}"] = Variant(fused="tf32", sine=sine)
+        out["fused"] = Variant(fused="fused")
     return out
 
 
 @contextlib.contextmanager
 def variant(scene: R.RenderScene, v: Variant):
-    old = torch.backends.cuda.matmul.allow_tf32, scene.fused, scene.sine
-    sine = (v.sine or "poly") if v.fused in PRECISIONS else None
-    torch.backends.cuda.matmul.allow_tf32, scene.fused, scene.sine = v.tf32, v.fused, sine
+    old = torch.backends.cuda.matmul.allow_tf32, scene.fused
+    torch.backends.cuda.matmul.allow_tf32, scene.fused = v.tf32, v.fused
     try:
         yield
     finally:
-        torch.backends.cuda.matmul.allow_tf32, scene.fused, scene.sine = old
+        torch.backends.cuda.matmul.allow_tf32, scene.fused = old
 
 
 def main() -> None:

@@ -16,7 +16,7 @@ LAYERS = [
     ["render"],  # the renderer
     ["fit"],  # stage 1
     ["diffusion"],  # stage 2
-    ["evaluate", "report", "summary"],
+    ["evaluate", "report", "summary", "scaling"],
     ["artifacts", "runtime", "argparsing", "stages", "bench", "parsl_fit", "viewer"],  # files, processes, stages
     ["cli"],
 ]

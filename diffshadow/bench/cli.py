@@ -42,7 +42,7 @@ def _bench_kernels(a):
     from diffshadow.bench.kernels import KernelCompileError, bench_kernels
 
     try:
-        bench_kernels(Path(a.out), archs=a.arch, precisions=a.precisions, sines=a.sines)
+        bench_kernels(Path(a.out), archs=a.arch)
     except KernelCompileError as e:
         raise SystemExit(f"bench kernels: {e}") from None
 
@@ -98,9 +98,6 @@ def add_bench_parsers(sub) -> None:
     p = _add(bench, "kernels", _bench_kernels, "registers, spills, programs per SM and machine-code counts of the "
              "fused kernels, compiled for a GPU without one", out=False, device=False)
     p.add_argument("--arch", type=int, nargs="+", default=[80, 90], help="CUDA compute capabilities (80: A100)")
-    p.add_argument("--precisions", nargs="+", default=["tf32", "ieee"], choices=["tf32", "ieee"])
-    p.add_argument("--sines", nargs="+", default=["poly", "libdevice", "approx"],
-                   choices=["poly", "libdevice", "approx"], help="the SIRENs' sine (render.sine)")
     p.add_argument("--out", default="bench/bench_kernels.json")
 
     p = _add(sub, "check-store", _check_store, "verify Zarr stores against their checksums (a store, or every "

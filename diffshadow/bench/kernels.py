@@ -6,8 +6,7 @@ The machine code (SASS) is counted too: instructions in all, local-memory loads 
 FP32 and special-function (MUFU) instructions, which is where the SIRENs' sines go (`_kernels.sine`).
 
 These are counts, not timings: the same on any machine with the same Triton. A kernel that spills (a large
-stack) or holds one program per SM is slow whatever the device; the fp32 ("ieee") SIREN's spills explain why the
-fused fp32 frame was slower than the eager one on an H200 (docs/performance.md).
+stack) or holds one program per SM is slow whatever the device.
 
 The shapes are those of `bench render`'s hydrogen_atom: a data INR of width 64 and 2 blocks, a shadow SIREN of
 width 32 and 2 blocks, 5 optics knots, 22 runs per ray (7 interior macro-cell planes per axis).
@@ -23,7 +22,7 @@ import subprocess
 import tempfile
 from pathlib import Path
 
-from diffshadow.fused import FP_FUSION, SINES, WARPS, block_points
+from diffshadow.fused import FP_FUSION, WARPS, block_points
 from diffshadow.io import atomic_write_text
 from diffshadow.siren import RES_WEIGHT
 
@@ -40,16 +39,13 @@ class KernelCompileError(RuntimeError):
     pass
 
 
-def kernel_shapes(precision: str, sine: str = SINES[0]) -> dict[str, tuple[str, dict]]:
+def kernel_shapes() -> dict[str, tuple[str, dict]]:
     """name → (kernel, its compile-time constants) for the hydrogen_atom shapes."""
     (w, b), (sw, sb) = DATA, SHADOW
     both = min(block_points(w), block_points(sw))
-    common = {"KNOTS": KNOTS, "PRECISION": precision, "RES": RES_WEIGHT, "SINE": sine}
+    common = {"KNOTS": KNOTS, "RES": RES_WEIGHT}
     return {
-        "siren (data INR)": ("siren_kernel", {"W": w, "BLOCKS": b, "BLOCK": block_points(w),
-                                              "PRECISION": precision, "RES": RES_WEIGHT, "SINE": sine}),
-        "samples (inr, a wavefront step)": ("samples_kernel", {"W": w, "BLOCKS": b, "SW": sw, "SBLOCKS": sb,
-                                                               "SHADOW": True, "BLOCK": both, **common}),
+        "siren (data INR)": ("siren_kernel", {"W": w, "BLOCKS": b, "BLOCK": block_points(w), "RES": RES_WEIGHT}),
         "march (inr, whole rays)": ("march_kernel", {"J": RUNS, "W": w, "BLOCKS": b, "SW": sw, "SBLOCKS": sb,
                                                      "SHADOW": True, "ABSORB": False, "BLOCK": both, **common}),
         "march (noshadow, whole rays)": ("march_kernel", {"J": RUNS, "W": w, "BLOCKS": b, "SW": w, "SBLOCKS": b,
@@ -131,30 +127,22 @@ def sass_counts(sass: str) -> dict:
             "local": ops.count("LDL") + ops.count("STL"), "branches": ops.count("BRA")}
 
 
-def sine_costs(arch: int, sines=SINES, fp_fusion: bool = FP_FUSION) -> dict[str, dict]:
-    """One sine's machine code per `sines`: `_kernels.sine_kernel` (one sine per thread) less the same kernel
-    copying its input. `executed`: instructions on the path a SIREN's arguments take (`_fast_path`): all of a
-    branch-free sine's, libdevice's fast path. The other counts are the code's, so they can differ by an
-    instruction or two of layout (a negative branch count: the copy kernel's bounds check compiled otherwise).
-    `fp_fusion`: as `compile_kernel`."""
-    def compiled(sine):
-        return compile_kernel("sine_kernel", {"SINE": sine, "BLOCK": SINE_BLOCK}, arch, sass=True, fp_fusion=fp_fusion)
+def sine_cost(arch: int, fp_fusion: bool = FP_FUSION) -> dict:
+    """One sine's machine code: `_kernels.sine_kernel` (one sine per thread) less the same kernel copying its
+    input. `executed`: instructions on the path from start to exit (the sine is branch-free, so all of them; a
+    count can differ from the code's by an instruction of layout). `fp_fusion`: as `compile_kernel`."""
+    def compiled(copy):
+        return compile_kernel("sine_kernel", {"COPY": copy, "BLOCK": SINE_BLOCK}, arch, sass=True, fp_fusion=fp_fusion)
 
-    base = compiled("none")
-    out = {}
-    for sine in sines:
-        r = compiled(sine)
-        counts = {k: r[k] - base[k] for k in ("instructions", "fp32", "mufu", "local", "branches")}
-        executed = _fast_path(r["sass"]) - _fast_path(base["sass"])
-        out[sine] = {**counts, "executed": executed}
-    return out
+    base, r = compiled(True), compiled(False)
+    counts = {k: r[k] - base[k] for k in ("instructions", "fp32", "mufu", "local", "branches")}
+    return {**counts, "executed": _fast_path(r["sass"]) - _fast_path(base["sass"])}
 
 
 def _fast_path(sass: str) -> int:
     """Instructions on the shortest path from a kernel's start to its (unpredicated) EXIT, a conditional branch
-    taken or not as suits: for a sine, the path a SIREN's arguments take (libdevice's exact reduction is behind
-    a branch taken for |x| < 105615). The load's bounds check takes its short way in both kernels
-    `sine_costs` subtracts, so the difference is the sine's."""
+    taken or not as suits. The load's bounds check takes its short way in both kernels `sine_cost` subtracts, so
+    the difference is the sine's."""
     lines = _sass_lines(sass)
     at = {a: i for i, (a, _, _, _) in enumerate(lines)}
     steps = {0: 1}
@@ -177,28 +165,23 @@ def _fast_path(sass: str) -> int:
     raise KernelCompileError("no path to EXIT in the kernel's SASS")
 
 
-def bench_kernels(out: Path, *, archs=ARCHS, precisions=("tf32", "ieee"), sines=SINES, log=print) -> dict:
-    """Every fused kernel at the hydrogen_atom shapes, per architecture, precision and sine; printed and saved."""
+def bench_kernels(out: Path, *, archs=ARCHS, log=print) -> dict:
+    """Every fused kernel at the hydrogen_atom shapes, per architecture; printed and saved."""
     import triton
 
     rows = []
     for arch in archs:
-        for precision in precisions:
-            for sine in sines:
-                for label, (name, constants) in kernel_shapes(precision, sine).items():
-                    r = {"kernel": label, "arch": arch, "precision": precision, "sine": sine,
-                         "block": constants["BLOCK"], **compile_kernel(name, constants, arch)}
-                    rows.append(r)
-                    log(f"[bench kernels] sm_{arch} {precision:4s} {sine:9s} {label:32s} {r['block']:3d} "
-                        f"points/program: {r['registers']:3d} registers, {r['stack_bytes']:5d} B stack, "
-                        f"{r['programs_per_sm']} programs/SM; SASS {r['instructions']:6d} instructions, "
-                        f"{r['fp32']:5d} FP32, {r['mufu']:4d} MUFU, {r['local']:5d} local, {r['branches']:4d} branches")
-        per_sine = sine_costs(arch, sines)
-        for sine, r in per_sine.items():
-            log(f"[bench kernels] sm_{arch} one sine, {sine:9s}: {r['executed']:3d} instructions executed "
-                f"(|x| < 105615); in the code {r['instructions']:3d} instructions, {r['fp32']:2d} FP32, "
-                f"{r['mufu']} MUFU")
-        rows.extend({"kernel": "one sine", "arch": arch, "sine": sine, **r} for sine, r in per_sine.items())
+        for label, (name, constants) in kernel_shapes().items():
+            r = {"kernel": label, "arch": arch, "block": constants["BLOCK"], **compile_kernel(name, constants, arch)}
+            rows.append(r)
+            log(f"[bench kernels] sm_{arch} {label:32s} {r['block']:3d} points/program: {r['registers']:3d} "
+                f"registers, {r['stack_bytes']:5d} B stack, {r['programs_per_sm']} programs/SM; SASS "
+                f"{r['instructions']:6d} instructions, {r['fp32']:5d} FP32, {r['mufu']:4d} MUFU, {r['local']:5d} "
+                f"local, {r['branches']:4d} branches")
+        sine = sine_cost(arch)
+        log(f"[bench kernels] sm_{arch} one sine: {sine['executed']:3d} instructions executed; in the code "
+            f"{sine['instructions']:3d} instructions, {sine['fp32']:2d} FP32, {sine['mufu']} MUFU")
+        rows.append({"kernel": "one sine", "arch": arch, **sine})
     # the counts depend on the compiler: say which, and how it was asked to compile
     result = {"triton": triton.__version__, "fp_fusion": FP_FUSION,
               "shapes": {"data": DATA, "shadow": SHADOW, "knots": KNOTS, "runs": RUNS}, "kernels": rows}

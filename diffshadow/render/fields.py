@@ -9,7 +9,7 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-from diffshadow.fused import COMPILE, PRECISIONS, FusedSiren, FusedSirenError
+from diffshadow.fused import COMPILE, FUSED, FusedSiren, FusedSirenError
 from diffshadow.grid import trilinear
 from diffshadow.siren import FoldedSiren, Siren, WeightLayout, box_to_siren, fold, fold_flat
 from diffshadow.volume import Volume
@@ -39,19 +39,18 @@ class GridScalar:
 
 
 class InrScalar:
-    """The data INR (a SIREN of the scalar field); gradients by autograd through the network. `fused`: the
-    fused kernel's precision for values (`diffshadow.fused`), "compile" for the eager SIREN through torch.compile,
-    None for the eager SIREN; `sine`: the fused kernel's sine (None: "poly")."""
+    """The data INR (a SIREN of the scalar field); gradients by autograd through the network. `fused`: "fused" for
+    the fused kernel for values (`diffshadow.fused`), "compile" for the eager SIREN through torch.compile, None
+    for the eager SIREN."""
 
-    def __init__(self, model: Siren, extent, device: torch.device | str = "cpu", fused: str | None = None,
-                 sine: str | None = None):
+    def __init__(self, model: Siren, extent, device: torch.device | str = "cpu", fused: str | None = None):
         self.model = model.to(device).eval()
         for q in self.model.parameters():
             q.requires_grad_(False)
         self.extent = torch.as_tensor(np.asarray(extent), dtype=torch.float32, device=device)
         self.box = tuple(np.asarray(extent, dtype=float).tolist())  # on the host, to compare without a sync
         named, blocks = self.model.named_tensors(), self.model.cfg.blocks  # parameters without gradients
-        self.fast = _fast_siren(named, blocks, fused, lambda: fold(named, blocks), sine)
+        self.fast = _fast_siren(named, blocks, fused, lambda: fold(named, blocks))
 
     def value(self, p: torch.Tensor) -> torch.Tensor:
         return self.fast(box_to_siren(p, self.extent))
@@ -64,17 +63,16 @@ class InrScalar:
         return s.detach(), g
 
 
-def _fast_siren(named: dict, blocks: int, fused: str | None, layers, sine: str | None = None
-                ) -> FusedSiren | FoldedSiren:
-    """A SIREN for inference: the fused kernel in precision `fused` with `sine`, else the folded eager SIREN
+def _fast_siren(named: dict, blocks: int, fused: str | None, layers) -> FusedSiren | FoldedSiren:
+    """A SIREN for inference: the fused kernel for `fused` = "fused", else the folded eager SIREN
     (`layers()`: its folded layers), through torch.compile for "compile". A SIREN the kernel cannot take (a width
     that is not a power of two >= 16) falls back to the eager one, with a warning: the setting is a speed-up, not
     a result."""
-    if fused in PRECISIONS:
+    if fused == FUSED:
         try:
-            return FusedSiren(named, blocks, fused, sine)
+            return FusedSiren(named, blocks)
         except FusedSirenError as e:
-            warnings.warn(f"render.kernel=fused ({fused}): {e}; using the eager SIREN", stacklevel=3)
+            warnings.warn(f"render.kernel=fused: {e}; using the eager SIREN", stacklevel=3)
     return FoldedSiren(layers(), compiled=fused == COMPILE)
 
 
@@ -94,11 +92,11 @@ class SirenShadow:
     """A shadow INR (one flat weight vector in `layout`), evaluated in the same pass as the data INR."""
 
     def __init__(self, weights, layout: WeightLayout, blocks: int, extent, device: torch.device | str = "cpu",
-                 fused: str | None = None, sine: str | None = None):
+                 fused: str | None = None):
         w = torch.as_tensor(np.asarray(weights), dtype=torch.float32, device=device).reshape(1, -1)
         # eager: one SIREN with a leading K = 1, the batched matmuls of fitting, so the same values
         self.fast = _fast_siren({k: v[0] for k, v in layout.unflatten(w).items()}, blocks, fused,
-                                lambda: fold_flat(w, layout, blocks), sine)
+                                lambda: fold_flat(w, layout, blocks))
         self.batched = not isinstance(self.fast, FusedSiren)
         self.extent = torch.as_tensor(np.asarray(extent), dtype=torch.float32, device=device)
         self.box = tuple(np.asarray(extent, dtype=float).tolist())

@@ -182,16 +182,16 @@ class MarchedShadow:
 
     def __init__(self, scalar, tf: TransferFunction, extent, voxel: float, *, step: float = DEFAULT_STEP,
                  macro: MacroGrid | None = None, tau_max: float | None = None,
-                 samples_per_iter: int | None = None, batch: int | None = None, whole_rays: bool = True):
-        self.scalar, self.tf, self.macro, self.whole_rays = scalar, tf, macro, whole_rays
+                 samples_per_iter: int | None = None, batch: int | None = None):
+        self.scalar, self.tf, self.macro = scalar, tf, macro
         self.extent = torch.as_tensor(np.asarray(extent), dtype=torch.float32, device="cpu")
         self.dt = step * voxel
         self.tau_max = SHADOW_TAU_MAX if tau_max is None else tau_max
         self.min_samples, self.batch = samples_per_iter, batch
         self.light: torch.Tensor | None = None
         self.counters: Counters | None = None
-        # with a fused data INR, each secondary sample's extinction in one kernel: the same treatment as `inr`'s
-        # primary samples (FusedSamples), so the baseline is as optimised as ours
+        # with a fused data INR, whole secondary rays in one kernel: the same treatment as `inr`'s primary rays
+        # (FusedSamples.march), so the baseline is as optimised as ours
         self.fused = (FusedExtinction(scalar.fast, scalar.extent, tf.optics_knots(scalar.extent.device),
                                       tf.density_scale)
                       if isinstance(scalar, InrScalar) and isinstance(scalar.fast, FusedSiren) else None)
@@ -203,7 +203,7 @@ class MarchedShadow:
         _, t1 = ray_span(p, d, self.extent.to(device))
         t0 = torch.zeros_like(t1)
         tau = torch.zeros_like(t1)
-        if self.fused is not None and self.whole_rays:
+        if self.fused is not None:
             def march(sl, runs):
                 tau[sl], count, trips = self.fused.march(p[sl], d[sl], t0[sl], t1[sl], runs, self.dt, self.tau_max)
                 return count, trips, self.fused.block
@@ -218,10 +218,6 @@ class MarchedShadow:
             idx = torch.nonzero(valid.view(-1)).flatten()
             if self.counters is not None:
                 self.counters.secondary_samples += len(idx)
-            if self.fused is not None:
-                mu = torch.zeros(valid.numel(), device=device).index_copy_(0, idx, self.fused(pts[idx]))
-                tau[rows] += mu.view(valid.shape).sum(1) * self.dt  # absent samples are 0 already
-                return
             s = torch.zeros(valid.numel(), device=device).index_copy_(0, idx, self.scalar.value(pts[idx]))
             tau[rows] += (self.tf.extinction(s.view(valid.shape)) * valid).sum(1) * self.dt
 
@@ -255,17 +251,16 @@ def render(
     min_transmittance: float = MIN_TRANSMITTANCE,
     samples_per_iter: int | None = None,
     batch: int | None = None,
-    whole_rays: bool = True,
     device: torch.device | str = "cpu",
 ) -> Image:
     """Render one image with the wavefront marcher.
 
     `scalar`: `GridScalar` or `InrScalar`. `shadow`: None (no shadow), `GridShadow`, `SirenShadow` or
     `MarchedShadow`; `light` (toward the light) is needed for a shadow or Phong. `voxel` is the
-    finest voxel size in box units; `step` is in voxels. `whole_rays`: where both fields are fused SIRENs and
-    shading is unlit, march each ray from entry to stop in one kernel (`FusedSamples.march`) instead of the
-    wavefront loop. A ray then stops at the first sample that takes its transmittance below
-    `min_transmittance`, not at the end of a wavefront iteration: the images differ by less than that.
+    finest voxel size in box units; `step` is in voxels. Where both fields are fused SIRENs and shading is unlit,
+    each ray is marched from entry to stop in one kernel (`FusedSamples.march`) instead of the wavefront loop. A
+    ray then stops at the first sample that takes its transmittance below `min_transmittance`, not at the end of
+    a wavefront iteration: the images differ by less than that.
     """
     shading = shading or Shading()
     if step <= 0 or not math.isfinite(step):
@@ -291,7 +286,7 @@ def render(
     color = torch.zeros(len(o), 3, device=device)
 
     fused = _fused_samples(scalar, shadow, tf, dt, shading)
-    if fused is not None and whole_rays:
+    if fused is not None:
         def march(sl, runs):
             trans[sl], color[sl], count, trips = fused.march(o[sl], d[sl], t0[sl], t1[sl], runs, min_transmittance)
             return count, trips, fused.block
@@ -307,17 +302,14 @@ def render(
         counters.primary_samples += len(flat)
         if len(flat) == 0:
             return
-        if fused is not None:
-            a, c = fused(flat)
-        else:
-            s, grad = scalar.value_and_grad(flat) if shading.phong else (scalar.value(flat), None)
-            g = shadow(flat) if shadow is not None else None
-            view = None
-            if shading.phong:
-                view = d[rows, None].expand(*valid.shape, 3).reshape(-1, 3)[idx]
-            mu, rgb = tf.optics(s)
-            a = 1 - torch.exp(-mu * dt)
-            c = _shade(rgb, grad, g, view, w, shading)
+        s, grad = scalar.value_and_grad(flat) if shading.phong else (scalar.value(flat), None)
+        g = shadow(flat) if shadow is not None else None
+        view = None
+        if shading.phong:
+            view = d[rows, None].expand(*valid.shape, 3).reshape(-1, 3)[idx]
+        mu, rgb = tf.optics(s)
+        a = 1 - torch.exp(-mu * dt)
+        c = _shade(rgb, grad, g, view, w, shading)
         alpha = torch.zeros(valid.numel(), device=device).index_copy_(0, idx, a)
         rgb = torch.zeros(valid.numel(), 3, device=device).index_copy_(0, idx, c)
         weight, through = front_to_back(alpha.view(valid.shape))
@@ -336,8 +328,8 @@ def _image(camera: Camera, color, trans, shading: Shading, start: float, counter
 
 
 def _fused_samples(scalar, shadow, tf: TransferFunction, dt: float, shading: Shading) -> FusedSamples | None:
-    """The primary samples' step as one kernel where both fields are fused SIRENs on one box and shading is
-    unlit (Phong needs the field's gradient, by autograd); None: the eager step."""
+    """Whole primary rays in one kernel where both fields are fused SIRENs on one box and shading is unlit (Phong
+    needs the field's gradient, by autograd); None: the wavefront loop's eager step."""
     if shading.phong or not (isinstance(scalar, InrScalar) and isinstance(scalar.fast, FusedSiren)):
         return None
     if shadow is not None and not (isinstance(shadow, SirenShadow) and isinstance(shadow.fast, FusedSiren)

@@ -63,7 +63,7 @@ rule benchmark:
         step=lambda wc: scene_config(wc.scene)["render"]["step"],
         repeats=lambda wc: scene_config(wc.scene)["render"]["bench_repeats"],
         memory=lambda wc: " ".join(str(n) for n in scene_config(wc.scene)["render"].get("bench_memory_sizes", [])),
-        networks=lambda wc: " ".join(f"--{k} {scene_config(wc.scene)['render'][k]}" for k in ("kernel", "precision", "sine")),
+        networks=lambda wc: f"--kernel {scene_config(wc.scene)['render']['kernel']}",
     threads: 2
     log:
         "results/{scene}/logs/benchmark.log",
