@@ -190,6 +190,29 @@ def storage_figure(data: dict):
     return fig
 
 
+def projection_html(proj: dict | None) -> str:
+    """The projection's table (stages by node-hours) and the storage at the paper's light counts."""
+    if not proj:
+        return ""
+    rows = "".join(
+        f"<tr><td>{html.escape(s)}</td><td>{r['exponent']:.2f}</td><td>{r['h200_over_cpu']:.1f}</td>"
+        f"<td>{r['work_factor']:,.0f}</td><td>{r['wall_s'] / 3600:,.2f}</td><td>{r['node_hours']:,.1f}</td></tr>"
+        for s, r in sorted(proj["stages"].items(), key=lambda kv: -kv[1]["node_hours"]))
+    total = sum(r["node_hours"] for r in proj["stages"].values())
+    store = "".join(f"<tr><td>{n}</td>" + "".join(f"<td>{v / 2**20:,.0f}</td>" for v in b.values()) + "</tr>"
+                    for n, b in proj["storage_bytes"].items())
+    return f"""<h2>Projection: the paper's scale on Polaris</h2>
+<p>{proj['lights']:,} training lights at config/paper.yaml, each stage from this sweep's exponent, the H200's
+measured speed over this machine's per stage, the paper config's work per light over this run's, and an A100 taking
+{proj['a100_per_h200']}x an H200's time (an assumption). Stage 1: subsets of 50, four to a node, 10 nodes. Upper
+bounds where a small run leaves a GPU idle.</p>
+<table><tr><th>stage</th><th>exponent</th><th>H200 / this CPU</th><th>work factor</th><th>wall (h)</th>
+<th>node-hours</th></tr>{rows}<tr><td>total</td><td></td><td></td><td></td><td></td><td>{total:,.1f}</td></tr></table>
+<table><tr><th>lights</th><th>SIRENs fp32 (MiB)</th><th>SIRENs fp16 (MiB)</th><th>model fp32 (MiB)</th></tr>
+{store}</table>
+"""
+
+
 def page(data: dict) -> str:
     """scaling.html: the three figures, the fitted exponents with their points, the storage crossover."""
     pts = data["points"]
@@ -220,5 +243,144 @@ and model sizes.</p>
 <h2>Quality</h2><img src="scaling_quality.png" width="1000">
 <table><tr><th>lights</th>{qhead}<th>seen: generated</th><th>seen: stage 1</th></tr>{q}</table>
 <h2>Storage</h2><img src="scaling_storage.png" width="800">
+{projection_html(data.get("projection"))}
 </body></html>
 """
+
+
+# --------------------------------------------------------------------------------------------- the projection
+
+# An assumption, not a measurement: an A100 takes this many times an H200's time for this project's work. The
+# HBM bandwidth ratio (4.8 / 2.0 TB/s); fp32 peaks differ by 3.4x, launch-bound small kernels by ~1x.
+A100_PER_H200 = 2.4
+GPUS_PER_NODE = 4  # Polaris
+
+
+def _model(cfg: dict):
+    from diffshadow.diffusion.config import DiffusionConfig, build_model
+    from diffshadow.siren import SirenConfig, WeightLayout
+
+    siren = SirenConfig.from_config(cfg["siren"])
+    diffusion = DiffusionConfig.from_config(cfg["diffusion"]).for_siren(siren.width)
+    return build_model(WeightLayout.for_siren(siren), diffusion)
+
+
+def model_cost(cfg: dict) -> float:
+    """Parameters x tokens of the diffusion model a run config builds: its forward cost up to a constant."""
+    model = _model(cfg)
+    return float(model.n_params() * (len(model.sizes) + 2))
+
+
+def work_factors(run: dict, paper: dict) -> dict[str, float]:
+    """Per stage, the paper config's work per light (or per job) over the run config's, from what each stage
+    computes (the light count is the sweep's exponent's business): fitting costs steps x points x width² per
+    light; the diffusion stages cost their model's parameters x tokens per sample, times epochs (and views and
+    sampled pixels, over GPUs, for fine-tuning); evaluating and rendering SIRENs costs width². Other stages: 1.
+    Upper bounds on a GPU: small networks leave it idle, large ones use it better."""
+    fit = {k: paper["fit"][k] / run["fit"][k] for k in ("steps", "points")}
+    width2 = (paper["siren"]["width"] / run["siren"]["width"]) ** 2
+    model = model_cost(paper) / model_cost(run)
+    epochs = paper["diffusion"]["epochs"] / run["diffusion"]["epochs"]
+    ft = paper["finetune"]
+    # a step samples `pixels` per view per light (the target images' size changes only render_targets)
+    finetune = (ft["epochs"] / run["finetune"]["epochs"]) * (ft["views"] / run["finetune"]["views"]) * (
+        ft["pixels"] / run["finetune"]["pixels"]) * model / (ft["nproc"] / run["finetune"]["nproc"])
+    fitting = fit["steps"] * fit["points"] * width2
+    return {"fit_siren": fitting, "preoptimize": fitting, "train_diffusion": epochs * model,
+            "finetune_render": finetune, "sample_shadows": model, "evaluate_voxels": width2,
+            "evaluate_images": width2, "render_targets": width2, "benchmark": width2}
+
+
+def read_costs(path: Path) -> dict[str, dict]:
+    """A `stage_costs.tsv` (diffshadow stage-costs) as stage -> {jobs, wall_s, cpu_s, max_rss_mib}."""
+    out = {}
+    with open(path, newline="") as f:
+        for row in csv.DictReader(f, delimiter="\t"):
+            if not row["stage"].startswith(("total", "elapsed")):
+                out[row["stage"]] = {"jobs": int(row["jobs"]), "wall_s": float(row["wall_s"]),
+                                     "max_rss_mib": float(row["max_rss_mib"])}
+    return out
+
+
+QUEUE_MAX_H = 72.0  # Polaris' preemptable queue's longest walltime (ALCF's documentation; check `qstat -Qf`)
+MARGIN = 1.5  # requests are the projection times this
+
+
+def project(data: dict, run: dict, paper: dict, gpu_costs: dict[str, dict], *, lights: int = 2000,
+            subset: int = 50, stage1_nodes: int = 10) -> dict:
+    """Each stage's wall time, node-hours and peak memory for `paper` at `lights` on Polaris: the sweep's CPU
+    power law carried to `lights` at the run's config, divided by the H200's speed over this CPU measured on
+    the same run config at the sweep's smallest point (`gpu_costs`: stage_costs of a GPU run), times the
+    paper's work per light (`work_factors`), times A100_PER_H200.
+
+    Upper bounds: the small run's GPU jobs are mostly start-up, so where the H200 measured slower than the CPU
+    it is taken as fast as the CPU (1x); preoptimize, one fit, takes fit_siren's speed-up. Stage 1 runs
+    lights / subset jobs four to a node on `stage1_nodes` nodes; fine-tuning on one node of four GPUs; every
+    other stage on one node. Requests: MARGIN x the projection, at most QUEUE_MAX_H; a stage that needs more
+    resumes from its checkpoint in further jobs (`resubmits`)."""
+    n0 = data["points"][0]["lights"]
+    factors = work_factors(run, paper)
+
+    def measured_ratio(stage):
+        cpu_n0 = dict((int(n), y) for n, y in data["fits"][stage]["wall_s"]["points"]).get(n0)
+        gpu = gpu_costs.get(stage)
+        return cpu_n0 / gpu["wall_s"] if cpu_n0 and gpu else None
+
+    rows = {}
+    for stage, fit in data["fits"].items():
+        cpu_total = predict(fit["wall_s"], lights)
+        ratio = measured_ratio("fit_siren" if stage == "preoptimize" else stage)
+        if cpu_total is None or ratio is None:
+            continue
+        used = max(ratio, 1.0)
+        a100_total = cpu_total / used * factors.get(stage, 1.0) * A100_PER_H200  # all jobs of the stage
+        if stage == "fit_siren":
+            jobs = -(-lights // subset)
+            wall = a100_total / jobs * -(-jobs // (stage1_nodes * GPUS_PER_NODE))
+            node_hours = a100_total / GPUS_PER_NODE / 3600
+            per_job = a100_total / jobs
+        else:
+            wall = per_job = a100_total
+            node_hours = a100_total / 3600
+        request_h = per_job * MARGIN / 3600
+        rss = predict(fit["max_rss_mib"], lights) or fit["max_rss_mib"]["points"][-1][1]
+        rows[stage] = {"exponent": fit["wall_s"]["exponent"], "cpu_s_run_config": cpu_total,
+                       "h200_over_cpu": ratio, "speedup_used": used, "work_factor": factors.get(stage, 1.0),
+                       "a100_s_total": a100_total, "wall_s": wall, "node_hours": node_hours,
+                       "walltime_request_h": min(request_h, QUEUE_MAX_H),
+                       "resubmits": max(0, math.ceil(request_h / QUEUE_MAX_H) - 1),
+                       "rss_mib_run_config": rss}
+    return {"lights": lights, "a100_per_h200": A100_PER_H200, "margin": MARGIN, "queue_max_h": QUEUE_MAX_H,
+            "stages": rows, "storage_bytes": storage_at(paper, [lights, paper["lights"]["sphere"]])}
+
+
+def walltime(hours: float) -> str:
+    """PBS's HH:MM:SS, rounded up to whole minutes."""
+    minutes = max(1, math.ceil(hours * 60))
+    return f"{minutes // 60:02d}:{minutes % 60:02d}:00"
+
+
+def polaris_profile(proj: dict) -> str:
+    """A Snakemake workflow profile (`--workflow-profile`) whose per-rule walltimes are the projection's
+    requests; laid over `--profile polaris`, it replaces the profile's guesses. `mem_mb`: the peak RSS carried to
+    the light count at the sweep's network sizes, x margin (Polaris nodes are whole: 512 GB; Snakemake checks it,
+    qsub is not sent it)."""
+    lines = ["# Made by scripts/scaling_sweep.py from the light-count sweep (diffshadow.scaling.project): each",
+             f"# rule's projected A100 time at {proj['lights']:,} lights x {proj['margin']}, at most "
+             f"{proj['queue_max_h']:.0f} h (a longer stage resumes from its checkpoint in a further job). Use:",
+             "#   snakemake --profile polaris --workflow-profile profiles/paper --configfile config/paper.yaml",
+             "set-resources:"]
+    for stage, r in sorted(proj["stages"].items()):
+        lines.append(f"  {stage}:")
+        lines.append(f"    walltime: \"{walltime(r['walltime_request_h'])}\"")
+        lines.append(f"    mem_mb: {math.ceil(r['rss_mib_run_config'] * proj['margin'] * 1.048576 / 100) * 100}")
+    return "\n".join(lines) + "\n"
+
+
+def storage_at(cfg: dict, counts: list[int]) -> dict:
+    """Stored SIRENs (fp32, fp16) and the model (fp32) for a config, at each light count."""
+    from diffshadow.siren import SirenConfig, WeightLayout
+
+    per = WeightLayout.for_siren(SirenConfig.from_config(cfg["siren"])).n_params * 4
+    model = _model(cfg).n_params() * 4
+    return {str(n): {"sirens_fp32": per * n, "sirens_fp16": per * n // 2, "model": model} for n in counts}

@@ -8,7 +8,8 @@ Each point is `snakemake --directory OUT/lights_N` with `lights: {count: N, sphe
 run config: the paper's cap fraction (2,000 training lights of 8,000), so the training lights grow denser with N,
 and the same number of unseen test lights everywhere. A point that is already finished is not rerun (Snakemake
 sees its outputs); one cut short resumes. Writes OUT/scaling.json, OUT/scaling_{costs,quality,storage}.png and
-OUT/scaling.html.
+OUT/scaling.html, with the projection of every stage to the paper's scale on Polaris (`scaling.project`: this
+sweep's exponents, the H200's speed over this machine's from `--gpu-costs`, the paper config's work per light).
 """
 
 from __future__ import annotations
@@ -19,7 +20,7 @@ import sys
 import time
 from pathlib import Path
 
-from diffshadow import scaling
+from diffshadow import config, scaling
 
 ROOT = Path(__file__).resolve().parent.parent
 
@@ -34,6 +35,13 @@ def main() -> None:
     ap.add_argument("-j", "--jobs", type=int, default=2)
     ap.add_argument("--configfile", type=Path, help="a further overlay for every point (e.g. config/paper.yaml)")
     ap.add_argument("--collect", action="store_true", help="run nothing: read the finished points under --out")
+    ap.add_argument("--paper", type=Path, default=ROOT / "config" / "paper.yaml",
+                    help="the config overlay to project to (over config/config.yaml)")
+    ap.add_argument("--gpu-costs", type=Path,
+                    default=ROOT / "docs" / "measurements" / "h200_readme_run_stage_costs.tsv",
+                    help="stage_costs.tsv of the default run on a GPU: each stage's speed there over this machine's")
+    ap.add_argument("--profile-out", type=Path,
+                    help="also write the per-rule walltimes as a workflow profile (profiles/paper/config.yaml)")
     a = ap.parse_args()
     out = a.out.resolve()
     runs = []
@@ -56,6 +64,18 @@ def main() -> None:
         if rc:
             sys.exit(f"[sweep] the run at {n} lights failed; see {point / 'snakemake.log'}")
     data = scaling.sweep(runs)
+    run_cfg = config.run_config(config.read_yaml(ROOT / "config" / "config.yaml"), "config/config.yaml")
+    paper = config.run_config(config.merge(config.read_yaml(ROOT / "config" / "config.yaml"),
+                                           config.read_yaml(a.paper)), str(a.paper))
+    data["projection"] = scaling.project(data, run_cfg, paper, scaling.read_costs(a.gpu_costs),
+                                         lights=paper["lights"]["count"], subset=paper["subset_size"])
+    data["projection"]["gpu_costs"] = str(a.gpu_costs)
+    if a.profile_out:
+        from diffshadow.io import atomic_write_text
+
+        a.profile_out.parent.mkdir(parents=True, exist_ok=True)
+        atomic_write_text(a.profile_out, scaling.polaris_profile(data["projection"]))
+        print(f"[sweep] wrote {a.profile_out} (per-rule walltimes for the paper config on Polaris)")
     scaling.write_sweep(data, out / "scaling.json")
     print(f"[sweep] wrote {out / 'scaling.json'}, {out / 'scaling.html'} and its three figures")
 

@@ -1,0 +1,99 @@
+"""The light-count sweep's machinery (diffshadow.scaling, scripts/scaling_sweep.py) on two tiny points: power laws
+recovered exactly from costs that follow one, the storage crossover from bytes per light, the JSON, figures, page
+and workflow profile written, and a point that is not a finished run named."""
+
+import json
+import math
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from diffshadow import config, scaling
+
+REPO = Path(__file__).resolve().parent.parent
+STAGES = {"fit_siren": (2.0, 1.0), "train_diffusion": (10.0, 0.5), "preoptimize": (6.0, 0.0)}  # wall = a n^b
+
+
+def _point(root: Path, n: int) -> Path:
+    """A finished run's files as the sweep reads them, at `n` training lights."""
+    res = root / f"lights_{n}" / "results" / "nucleon"
+    res.mkdir(parents=True)
+    rows = ["stage\tjobs\twall_s\tcpu_s\tmax_rss_mib"]
+    for stage, (a, b) in STAGES.items():
+        rows.append(f"{stage}\t1\t{a * n ** b}\t{a * n ** b}\t{100 + n}")
+    rows.append("total (sum over jobs)\t3\t0\t0\t0")
+    (res / "stage_costs.tsv").write_text("\n".join(rows) + "\n")
+    metrics = {"seen": {"count": n, "generated_psnr_median": 40.0, "stage1_psnr_median": 41.0},
+               "unseen": {"count": 8, "generated_psnr_median": 33.0, "weight_blend_psnr_median": 32.0 + n / 100,
+                          "siren_blend_psnr_median": 27.0, "nearest_psnr_median": 23.0},
+               "storage_bytes": {"model": 1000 * 4, "sirens": 40 * n, "grids": 400 * n},
+               "stage1": {"parameters": 10}, "diffusion_model": {"parameters": 1000}}
+    (res / "voxel_metrics.json").write_text(json.dumps(metrics))
+    (res / "lights.json").write_text(json.dumps({"sphere": 4 * n}))
+    return res
+
+
+def test_power_laws_crossover_and_files(tmp_path):
+    runs = [_point(tmp_path, n) for n in (8, 32)]
+    data = scaling.sweep(runs[::-1])  # any order
+    assert [p["lights"] for p in data["points"]] == [8, 32]
+    for stage, (a, b) in STAGES.items():
+        fit = data["fits"][stage]["wall_s"]
+        assert fit["exponent"] == pytest.approx(b, abs=1e-9) and fit["factor"] == pytest.approx(a, rel=1e-9)
+        assert scaling.predict(fit, 2000) == pytest.approx(a * 2000 ** b, rel=1e-9)
+    # 40 bytes per light in fp32 against a 4,000-byte model: smaller past 100 lights (200 in fp16)
+    assert data["crossover_lights"] == {"sirens_fp32": pytest.approx(100), "sirens_fp16": pytest.approx(200)}
+    assert data["points"][1]["quality"]["unseen"]["weight_blend"] == pytest.approx(32.32)
+    scaling.write_sweep(data, tmp_path / "scaling.json")
+    assert json.loads((tmp_path / "scaling.json").read_text())["fits"].keys() == data["fits"].keys()
+    for name in ("scaling_costs.png", "scaling_quality.png", "scaling_storage.png"):
+        assert (tmp_path / name).read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    page = (tmp_path / "scaling.html").read_text()
+    assert "scaling_costs.png" in page and "past 100 lights (fp32)" in page
+
+
+def test_projection_and_its_workflow_profile(tmp_path):
+    """The projection scales each stage by its exponent, the H200's measured speed-up (at least 1) and the
+    paper's work per light; the profile's walltimes are its requests, capped at the queue's longest."""
+    data = scaling.sweep([_point(tmp_path, n) for n in (8, 32)])
+    run = config.load_run(REPO / "config" / "config.yaml")
+    gpu = {"fit_siren": {"wall_s": 2.0 * 8 / 4}, "train_diffusion": {"wall_s": 10.0 * 8 ** 0.5 * 2},
+           "preoptimize": {"wall_s": 1.0}}  # fit 4x faster on the GPU; diffusion 2x slower (start-up)
+    proj = scaling.project(data, run, run, gpu, lights=200, subset=50, stage1_nodes=1)
+    fit, diff, pre = (proj["stages"][s] for s in ("fit_siren", "train_diffusion", "preoptimize"))
+    assert fit["speedup_used"] == pytest.approx(4.0) and diff["speedup_used"] == 1.0
+    assert pre["speedup_used"] == pytest.approx(4.0)  # one fit: fit_siren's speed-up, not its own start-up
+    # the same config: work factor 1 for every stage
+    assert fit["work_factor"] == diff["work_factor"] == 1.0
+    assert fit["a100_s_total"] == pytest.approx(2.0 * 200 / 4 * scaling.A100_PER_H200)
+    # 4 jobs of 50 lights on one node of four GPUs: one round
+    assert fit["wall_s"] == pytest.approx(fit["a100_s_total"] / 4) and fit["node_hours"] == pytest.approx(
+        fit["a100_s_total"] / 4 / 3600)
+    assert diff["a100_s_total"] == pytest.approx(10.0 * math.sqrt(200) * scaling.A100_PER_H200)
+    text = scaling.polaris_profile(proj)
+    assert f'walltime: "{scaling.walltime(diff["walltime_request_h"])}"' in text
+    assert scaling.walltime(1.0) == "01:00:00" and scaling.walltime(0.001) == "00:01:00"
+    assert scaling.walltime(72.0) == "72:00:00"
+
+
+def test_a_point_that_did_not_finish_is_named(tmp_path):
+    res = _point(tmp_path, 8)
+    (res / "voxel_metrics.json").unlink()
+    with pytest.raises(scaling.SweepError, match=r"voxel_metrics.json: missing; the sweep reads finished runs"):
+        scaling.sweep([res, _point(tmp_path, 16)])
+    with pytest.raises(scaling.SweepError, match=r"two light counts at least, got \[16\]"):
+        scaling.sweep([tmp_path / "lights_16" / "results" / "nucleon"])
+
+
+def test_the_sweep_script_collects_finished_points(tmp_path):
+    for n in (8, 32):
+        _point(tmp_path, n)
+    out = subprocess.run([sys.executable, str(REPO / "scripts" / "scaling_sweep.py"), "--lights", "8", "32",
+                          "--out", str(tmp_path), "--collect", "--profile-out", str(tmp_path / "p" / "config.yaml")],
+                         capture_output=True, text=True, timeout=300)
+    assert out.returncode == 0, out.stderr[-2000:]
+    data = json.loads((tmp_path / "scaling.json").read_text())
+    assert data["projection"]["lights"] == 2000 and "fit_siren" in data["projection"]["stages"]
+    assert "set-resources:" in (tmp_path / "p" / "config.yaml").read_text()
