@@ -111,10 +111,17 @@ def _sample_shadows(a):
     stage2.sample_shadows(Path(a.checkpoint), Path(a.truth), Path(a.lights), Path(a.out), device=_device(a))
 
 
+def _blend_shadows(a):
+    from diffshadow.stages import stage2
+
+    stage2.blend_shadows(Path(a.weights), Path(a.truth), Path(a.lights), Path(a.out), blend_k=a.blend_k)
+
+
 def _evaluate_voxels(a):
     from diffshadow.stages import stage2
 
-    stage2.evaluate_voxels(Path(a.checkpoint), Path(a.weights), Path(a.generated), Path(a.truth), Path(a.volume),
+    checkpoint = Path(a.checkpoint) if a.checkpoint else None
+    stage2.evaluate_voxels(checkpoint, Path(a.weights), Path(a.generated), Path(a.truth), Path(a.volume),
                            Path(a.lights), Path(a.out), blend_k=a.blend_k, ddpm_lights=a.ddpm_lights,
                            geometry_checkpoint=Path(a.geometry_checkpoint) if a.geometry_checkpoint else None)
 
@@ -177,6 +184,7 @@ def _render(a):
     images.render_image(scene, Path(a.out), mode=a.mode, camera=cam, light=a.light,
                         weights_path=Path(a.weights) if a.weights else None, light_index=a.light_index,
                         diffusion=Path(a.diffusion) if a.diffusion else None,
+                        blend=Path(a.blend) if a.blend else None,
                         scalar=a.scalar, phong=a.phong, step=a.step, skip=not a.no_skip)
 
 
@@ -278,9 +286,14 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--seed", type=int, default=2)
     _add(sub, "sample-shadows", _sample_shadows, "generate SIRENs for every training and unseen light",
          "checkpoint", "truth", "lights")
+    p = _add(sub, "blend-shadows", _blend_shadows, "cache: blend: every training light's stored SIREN and every "
+             "unseen light's weight blend of the nearest, as sample-shadows' store", "weights", "truth", "lights",
+             device=False)
+    p.add_argument("--blend-k", type=int, default=4, help="stored SIRENs blended per light (store.BLEND_K)")
     p = _add(sub, "evaluate-voxels", _evaluate_voxels, "voxel PSNR of generated SIRENs, baselines, storage, timing",
-             "checkpoint", "weights", "generated", "truth", "volume", "lights", device=False)
-    p.add_argument("--blend-k", type=int, default=4)
+             "weights", "generated", "truth", "volume", "lights", device=False)
+    p.add_argument("--checkpoint", help="the diffusion checkpoint that sampled --generated (none: cache: blend)")
+    p.add_argument("--blend-k", type=int, default=4, help="stored SIRENs blended per light (store.BLEND_K)")
     p.add_argument("--ddpm-lights", type=int, default=8, help="training lights sampled with 500-step DDPM too")
     p.add_argument("--geometry-checkpoint", help="the model before fine-tuning: unseen lights before and after")
     _add(sub, "train-data-inr", _train_data_inr, "fit the data INR (a SIREN of the scalar field)", "volume",
@@ -303,6 +316,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--light-index", type=int, default=0, help="row of --weights (its light is used)")
     p.add_argument("--diffusion", help="mode inr: a diffusion checkpoint (results/<scene>/diffusion.ckpt) that "
                    "generates the shadow SIREN of --light now, as the viewer does for a new direction")
+    p.add_argument("--blend", help="mode inr, cache: blend: a weight store (results/<scene>/weights.zarr) whose "
+                   "nearest SIRENs to --light are blended, as the viewer does for a new direction")
     p.add_argument("--light", type=float, nargs=3, metavar=("X", "Y", "Z"), help="toward the light")
     p.add_argument("--phong", action="store_true", help="Blinn-Phong lighting from the field's gradient")
     for name, value in (("azimuth", 30.0), ("elevation", 25.0), ("distance", 2.2), ("fov", 60.0), ("step", 0.5)):

@@ -32,17 +32,21 @@ def seconds_per_inr(model, std, light, *, method: str, steps: int, repeats: int 
     return best
 
 
-def voxel_metrics(state: dict, stage1, generated, truth: EvalTruth, light_sets: dict, *, blend_k: int,
+def voxel_metrics(state: dict | None, stage1, generated, truth: EvalTruth, light_sets: dict, *, blend_k: int,
                   grid_voxels: int, ddpm_lights: int = 8, geometry_state: dict | None = None, log=print) -> dict:
     """`voxel_metrics.json`: generated SIRENs (seen and unseen) against the ground truth, beside the stage-1
     SIRENs, the nearest and blend baselines, DDIM vs DDPM on `ddpm_lights` training lights, and storage.
     With `geometry_state` (the model before rendering-loss fine-tuning), the unseen lights are also sampled
-    from it: what fine-tuning did to lights it never saw."""
+    from it: what fine-tuning did to lights it never saw. `state` None (`cache: blend`): `generated` holds the
+    stored and blended SIRENs; no sampler to time, no model to store."""
 
     train, unseen = light_sets["train"], light_sets["unseen"]
     seen = generated.seen
-    cfg = state["config"]
-    model, std, layout, siren = load_sampler(state)
+    if state is None:
+        model, layout, siren = None, stage1.layout, stage1.siren
+    else:
+        cfg = state["config"]
+        model, std, layout, siren = load_sampler(state)
     truth_train = truth.of(train)
     truth_unseen = truth.of(unseen) if len(unseen) else {}
     gen_seen = psnr_per_light(truth.sirens(generated.weights[seen], layout, siren), truth_train)
@@ -77,7 +81,7 @@ def voxel_metrics(state: dict, stage1, generated, truth: EvalTruth, light_sets: 
                             "siren_blend_psnr_median": median(sblend["box"]),
                             "blend_k": blend_k,
                             "nearest_angle_median_deg": float(np.degrees(np.median(angles[:, 0])))}
-        pool = np.asarray(state.get("pool_lights") or np.zeros((0, 3)), dtype=np.float64).reshape(-1, 3)
+        pool = np.asarray((state or {}).get("pool_lights") or np.zeros((0, 3)), dtype=np.float64).reshape(-1, 3)
         if len(pool):  # lights trained on exact shadows only: how close the test lights came to any of them
             _, a_any = nearest(np.concatenate([train, pool]), unseen, 1)
             result["unseen"]["pool_lights"] = len(pool)
@@ -91,6 +95,11 @@ def voxel_metrics(state: dict, stage1, generated, truth: EvalTruth, light_sets: 
             result["unseen"]["finetune_change_median_db"] = median(gen_unseen["box"] - before_psnr)
     result["stage1"] = {"width": siren.width, "blocks": siren.blocks, "parameters": layout.n_params,
                         "capacity": (stage1.config or {}).get("capacity")}
+    result["cache"] = "diffusion" if model is not None else "blend"
+    stored = {"sirens": int(len(train) * layout.n_params * 4), "grids": int(len(train) * grid_voxels * 2)}
+    if model is None:
+        result["storage_bytes"] = {"model": 0, **stored}
+        return result
     # DDIM at several step counts and 500-step DDPM on a spread of training lights: quality on the same lights,
     # time per INR alone; the report's DDIM curve plots these rows (one measurement, not two)
     ddim_steps = int(cfg["ddim_steps"])
@@ -128,9 +137,7 @@ def voxel_metrics(state: dict, stage1, generated, truth: EvalTruth, light_sets: 
                                          gap_checks=growth.get("checks", []))
     # the model's weights plus its standardiser (float64 mean and std, per token or per parameter)
     result["storage_bytes"] = {"model": int(sum(p.numel() * p.element_size() for p in model.parameters())
-                                            + 2 * 8 * len(std.mean)),
-                               "sirens": int(len(train) * layout.n_params * 4),
-                               "grids": int(len(train) * grid_voxels * 2)}
+                                            + 2 * 8 * len(std.mean)), **stored}
     return result
 
 

@@ -148,13 +148,20 @@ def image_grid_figure(images_dir: Path, lights: dict, out: Path,
     _figure(out, fig)
 
 
-def ddim_curve_figure(sampling: dict, out: Path) -> None:
+def ddim_curve_figure(sampling: dict | None, out: Path) -> None:
     """Time per INR against median voxel PSNR for DDIM step counts, and 500-step DDPM: the rows that
     evaluate_voxels measured (`voxel_metrics.json` → sampling.curve; quality over `sampling.lights` training
-    lights generated in one batch, time that of one INR alone, best of 3; DDPM once)."""
-    rows = sampling["curve"]
+    lights generated in one batch, time that of one INR alone, best of 3; DDPM once). None (`cache: blend`):
+    a figure that says there is no sampler."""
     plt = _plt()
     fig, ax = plt.subplots(figsize=(6, 4))
+    if sampling is None:
+        ax.text(0.5, 0.5, "cache: blend\nno diffusion model: a light's SIREN is the weight blend\n"
+                "of the stored SIRENs nearest to it (no sampler to time)", ha="center", va="center")
+        ax.set_axis_off()
+        _figure(out, fig)
+        return
+    rows = sampling["curve"]
     d = [r for r in rows if r["method"] == "ddim"]
     ax.plot([r["seconds_per_inr"] for r in d], [r["psnr_median"] for r in d], "o-", label="DDIM")
     for r in d:
@@ -179,7 +186,8 @@ def storage_figure(voxel_metrics: dict, n_lights: int, out: Path) -> None:
     plt = _plt()
     sb = voxel_metrics["storage_bytes"]
     fig, ax = plt.subplots(figsize=(6.5, 3.8))
-    names = ["diffusion model", f"{n_lights} SIRENs (fp32)", f"{n_lights} dense grids (fp16)"]
+    names = ["diffusion model" if sb["model"] else "no model (cache: blend)", f"{n_lights} SIRENs (fp32)",
+             f"{n_lights} dense grids (fp16)"]
     values = np.asarray([sb["model"], sb["sirens"], sb["grids"]]) / 2**20
     ax.bar(names, values, color=["C0", "C1", "C2"])
     for i, v in enumerate(values):
@@ -188,7 +196,8 @@ def storage_figure(voxel_metrics: dict, n_lights: int, out: Path) -> None:
     ax.set_ylim(0, values.max() * 1.2)
     ratio = values[0] / values[2]
     # the model's size does not grow with the light count; the grids grow with lights x voxels
-    verdict = (f"the model is {ratio:.1f}x the grids it replaces at this scale" if ratio > 1
+    verdict = ("the stored SIRENs are the cache (cache: blend)" if not sb["model"] else
+               f"the model is {ratio:.1f}x the grids it replaces at this scale" if ratio > 1
                else f"the model is {1 / ratio:.1f}x smaller than the grids it replaces")
     ax.set_title(f"{verdict}\n(the model's size is fixed; grids grow with lights x voxels)", fontsize=9)
     fig.tight_layout()

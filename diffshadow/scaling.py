@@ -53,7 +53,7 @@ def read_point(results: Path) -> dict:
                              "stage1": m["seen"]["stage1_psnr_median"]},
                     "unseen": {key.removesuffix("_psnr_median"): m["unseen"].get(key) for key, _ in UNSEEN}},
         "storage_bytes": {"model": storage["model"], "sirens_fp32": storage["sirens"],
-                          "sirens_fp16": storage["sirens"] // 2, "grids_fp32": storage["grids"]},
+                          "sirens_fp16": storage["sirens"] // 2, "grids_fp16": storage["grids"]},
         "siren_parameters": m["stage1"]["parameters"], "model_parameters": m["diffusion_model"]["parameters"],
     }
 
@@ -169,7 +169,7 @@ def storage_figure(data: dict):
     ns = np.array([p["lights"] for p in pts], float)
     far = np.geomspace(ns.min(), max(8000.0, ns.max()), 50)
     for key, label in (("sirens_fp32", "stored SIRENs, fp32"), ("sirens_fp16", "stored SIRENs, fp16"),
-                       ("grids_fp32", "dense shadow grids, fp32"), ("model", "diffusion model, fp32")):
+                       ("grids_fp16", "dense shadow grids, fp16"), ("model", "diffusion model, fp32")):
         ys = np.array([p["storage_bytes"][key] for p in pts], float)
         line = ax.plot(ns, ys / 2**20, "o", label=label)[0]
         per = float(np.median(ys / ns)) if key != "model" else None

@@ -14,7 +14,10 @@ from pathlib import Path
 import numpy as np
 
 from diffshadow.io import StoreError, VerifiedGroup, atomic_save, write_zarr_group
+from diffshadow.lights import as_direction, blend_weights
 from diffshadow.siren import SirenConfig, WeightLayout
+
+BLEND_K = 4  # stored SIRENs blended per light (`cache: blend`, and evaluate_voxels' baseline)
 
 
 @dataclass
@@ -27,6 +30,21 @@ class WeightStore:
     siren: SirenConfig
     config: dict
     seen: np.ndarray | None = None  # generated stores: True for training lights, False for unseen ones
+
+
+class BlendSampler:
+    """`cache: blend`: the shadow SIREN of any light as the weight blend of the `k` stored SIRENs nearest to it
+    (inverse-angle weights), the way `blend-shadows` makes generated.zarr's unseen rows. The same interface as
+    the diffusion model's `ShadowSampler`: call it with a direction."""
+
+    def __init__(self, store: WeightStore, k: int = BLEND_K):
+        self.store, self.k = store, k
+        self.layout, self.siren = store.layout, store.siren
+
+    def __call__(self, light) -> np.ndarray:
+        idx, mix = blend_weights(self.store.lights, as_direction(light)[None], self.k)
+        w = np.asarray(self.store.weights, dtype=np.float64)[idx[0]]
+        return (w * mix[0, :, None]).sum(0).astype(np.float32)
 
 
 def write_subset(path, *, weights, light_index, lights, psnr, psnr_visible, layout: WeightLayout,

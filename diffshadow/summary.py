@@ -131,7 +131,10 @@ class RunResults:
         if total:
             rows.append(("run cost", (f"{float(elapsed['wall_s']) / 60:.1f} min elapsed, " if elapsed else "")
                          + f"{float(total['wall_s']) / 60:.1f} min summed over {int(total['jobs'])} jobs"))
-        rows.append(("time per shadow INR (DDIM)", f"{v['seconds_per_inr']['ddim']:.3f} s"))
+        if "seconds_per_inr" in v:
+            rows.append(("time per shadow INR (DDIM)", f"{v['seconds_per_inr']['ddim']:.3f} s"))
+        else:
+            rows.append(("shadow cache", "cache: blend (the stored SIRENs' weight blend; no diffusion model)"))
         sizes = self.sizes()
         if sizes:
             rows.append(("SIREN sizes chosen", ", ".join(f"{r[0]} width {r[1]} ({r[4]} steps)" for r in sizes)))
@@ -177,9 +180,10 @@ class RunResults:
     def tables(self) -> str:
         v, seen, unseen = self.voxel, self.voxel["seen"], self.voxel.get("unseen")
         parts = [_table("Headline", ["", "value"], [list(r) for r in self.headline()])]
+        made = "blended (cache: blend)" if v.get("cache") == "blend" else "generated (DDIM)"
         rows = [["seen", "stage-1 SIREN (fitted)", _num(seen["stage1_psnr_median"]),
                  _num(seen.get("stage1_psnr_visible_median")), ""],
-                ["seen", "generated (DDIM)", _num(seen["generated_psnr_median"]),
+                ["seen", made, _num(seen["generated_psnr_median"]),
                  _num(seen.get("generated_psnr_visible_median")),
                  f"min {seen['generated_psnr_min']:.2f}; {seen['generated_minus_stage1_median_db']:+.2f} vs stage 1"]]
         if unseen:
@@ -187,7 +191,7 @@ class RunResults:
                 rows.append(["unseen", "generated before fine-tuning (geometry loss only)",
                              _num(unseen["geometry_only_psnr_median"]), "",
                              f"fine-tuning changed it by {unseen['finetune_change_median_db']:+.2f} dB"])
-            rows += [["unseen", "generated (DDIM)", _num(unseen["generated_psnr_median"]), "", ""],
+            rows += [["unseen", made, _num(unseen["generated_psnr_median"]), "", ""],
                      ["unseen", f"blend of {unseen['blend_k']} nearest true shadows",
                       _num(unseen["blend_psnr_median"]), "", "baseline"],
                      ["unseen", "nearest training SIREN", _num(unseen["nearest_psnr_median"]), "",
@@ -207,13 +211,15 @@ class RunResults:
         parts.append(_table("Shadow INRs: voxel PSNR against the marched ground truth (median over lights, dB)",
                             ["lights", "shadow INR", "box", "visible region", ""], rows,
                             f"{v['eval_points']:,} fresh points per light and region that no fit used."))
-        s = v["sampling"]
-        t = v["seconds_per_inr"]
-        parts.append(_table(f"Sampling: DDIM against 500-step DDPM ({s['lights']} training lights)",
-                            ["sampler", "median voxel PSNR (dB)", "seconds per INR"],
-                            [[f"DDIM {s['ddim_steps']} steps", _num(s["ddim_psnr_median"]), _num(t["ddim"], ".3f")],
-                             ["DDPM 500 steps", _num(s["ddpm_psnr_median"]), _num(t["ddpm"], ".3f")]],
-                            f"DDIM is {s['speedup']:.0f}x faster; one INR alone, on evaluate_voxels' device."))
+        if "sampling" in v:  # not with cache: blend
+            s = v["sampling"]
+            t = v["seconds_per_inr"]
+            parts.append(_table(f"Sampling: DDIM against 500-step DDPM ({s['lights']} training lights)",
+                                ["sampler", "median voxel PSNR (dB)", "seconds per INR"],
+                                [[f"DDIM {s['ddim_steps']} steps", _num(s["ddim_psnr_median"]),
+                                  _num(t["ddim"], ".3f")],
+                                 ["DDPM 500 steps", _num(s["ddpm_psnr_median"]), _num(t["ddpm"], ".3f")]],
+                                f"DDIM is {s['speedup']:.0f}x faster; one INR alone, on evaluate_voxels' device."))
         if self.finetune:
             f = self.finetune
             parts.append(_table(

@@ -409,3 +409,44 @@ def test_stage_costs_come_from_snakemakes_benchmarks(finished):
     # the run's elapsed time: no shorter than its longest job, no longer than all jobs one after another
     longest = max(float(r[2]) for r in rows.values() if r[1] == "1")
     assert longest <= float(rows["elapsed (a job running)"][2]) <= float(rows["total (sum over jobs)"][2])
+
+
+def test_cache_blend_skips_stage_two(tmp_path):
+    """`cache: blend`: no diffusion model; the generated store holds every training light's stored SIREN and every
+    unseen light's weight blend of its nearest, the same SIRENs evaluate_voxels scores as its weight-blend
+    baseline, so their PSNRs agree; the viewer and `render --blend` make a new direction's SIREN the same way."""
+    import json
+
+    from diffshadow.store import BlendSampler
+
+    snakemake(tmp_path, config={**TINY, "cache": "blend"})
+    res = tmp_path / "results/nucleon"
+    assert not list(res.glob("diffusion*.ckpt")) and not (res / "finetune_metrics.json").exists()
+    stage1, generated = open_store(res / "weights.zarr"), open_store(res / "generated.zarr")
+    seen = generated.seen
+    assert np.array_equal(generated.weights[seen], stage1.weights)
+    blend = BlendSampler(stage1)
+    for light, w in zip(generated.lights[~seen], generated.weights[~seen], strict=True):
+        assert np.array_equal(w, blend(light))
+    metrics = json.loads((res / "voxel_metrics.json").read_text())
+    assert metrics["cache"] == "blend" and metrics["storage_bytes"]["model"] == 0 and "sampling" not in metrics
+    unseen = metrics["unseen"]
+    assert unseen["generated_psnr_median"] == pytest.approx(unseen["weight_blend_psnr_median"], abs=1e-3)
+    assert metrics["seen"]["generated_psnr_median"] == pytest.approx(metrics["seen"]["stage1_psnr_median"], abs=1e-3)
+    assert "cache: blend" in (res / "report/summary.html").read_text()
+    costs = (res / "stage_costs.tsv").read_text()
+    assert "sample_shadows" in costs and "train_diffusion" not in costs
+
+    from diffshadow.render import Camera
+    from diffshadow.viewer.scene import ViewerScene
+
+    view = ViewerScene.from_results(res, torch.device("cpu"))
+    new = np.array([0.3, 0.2, 0.93])
+    weights, info = view.shadow_weights(new)
+    assert info.kind == "new" and np.array_equal(weights.numpy(), blend(new))
+    cam = Camera.orbit(view.scene.volume.extent, azimuth=30.0, elevation=25.0, size=16)
+    command = view.render_command("inr", cam, new, step=0.5, out=str(tmp_path / "x.png"))
+    assert f"--blend {res / 'weights.zarr'}" in command
+    out = subprocess.run([str(installed("diffshadow")), *command.split()[1:]], capture_output=True, text=True,
+                         timeout=300)
+    assert out.returncode == 0 and (tmp_path / "x.png").is_file(), out.stderr[-2000:]

@@ -18,7 +18,7 @@ from diffshadow.metrics import lpips_model, ms_ssim_status
 from diffshadow.render import Camera, RenderScene, default_views, fibonacci_views, shading_name, write_png
 from diffshadow.render.bundle import build_bundle
 from diffshadow.render.bundle import render_targets as targets
-from diffshadow.store import open_store
+from diffshadow.store import BlendSampler, open_store
 
 
 def train_data_inr(volume_path: Path, out: Path, *, cfg: DataInrConfig, device: torch.device) -> None:
@@ -47,18 +47,24 @@ def render_targets(volume_path: Path, lights_path: Path, out: Path, *, cfg: Fine
 
 def render_image(scene: RenderScene, out: Path, *, mode: str, camera: Camera, light=None,
                  weights_path: Path | None = None, light_index: int = 0, diffusion: Path | None = None,
-                 scalar: str | None = None, phong: bool = False, step: float, skip: bool = True) -> None:
+                 blend: Path | None = None, scalar: str | None = None, phong: bool = False, step: float,
+                 skip: bool = True) -> None:
     """One image (PNG) in a shading mode; the shadow INR of mode `inr` is row `light_index` of a store, or
-    generated for `light` by the diffusion checkpoint `diffusion`."""
+    made for `light` by the diffusion checkpoint `diffusion` or (`cache: blend`) as the weight blend of the
+    nearest SIRENs of the store `blend`."""
     siren = None
-    if weights_path and diffusion:
-        raise ValueError("render: --weights and --diffusion both give the shadow INR; give one")
-    if diffusion:
-        from diffshadow.diffusion.sample import ShadowSampler
-
+    if sum(x is not None for x in (weights_path, diffusion, blend)) > 1:
+        raise ValueError("render: --weights, --diffusion and --blend each give the shadow INR; give one")
+    if diffusion or blend:
         if light is None:
-            raise ValueError("--diffusion: needs --light, the direction to generate the shadow SIREN for")
-        sampler = ShadowSampler(artifacts.load_checkpoint(diffusion), scene.device)
+            raise ValueError(f"--{'diffusion' if diffusion else 'blend'}: needs --light, the direction to make the "
+                             "shadow SIREN for")
+        if diffusion:
+            from diffshadow.diffusion.sample import ShadowSampler
+
+            sampler = ShadowSampler(artifacts.load_checkpoint(diffusion), scene.device)
+        else:
+            sampler = BlendSampler(open_store(blend))
         siren = (sampler(light), sampler.layout, sampler.siren.blocks)
     if weights_path:
         store = open_store(weights_path)
@@ -68,7 +74,8 @@ def render_image(scene: RenderScene, out: Path, *, mode: str, camera: Camera, li
         siren = (store.weights[light_index], store.layout, store.siren.blocks)
         light = light or store.lights[light_index].tolist()
     if mode == "inr" and siren is None:
-        raise ValueError("--mode inr needs --weights (a weight store) and --light-index, or --diffusion and --light")
+        raise ValueError("--mode inr needs --weights (a weight store) and --light-index, or --diffusion or --blend "
+                         "and --light")
     img = scene.render(mode, camera, light=light, siren=siren, scalar=scalar, phong=phong, step=step, skip=skip)
     write_png(out, img)
     c = img.counters
@@ -121,6 +128,6 @@ def report_figures(weights: Path, generated: Path, lights_path: Path, images_dir
     report.image_grid_figure(images_dir, lights, out / "image_grid.png")
     metrics = json.loads(voxel_metrics.read_text())
     report.storage_figure(metrics, len(lights["train"]), out / "storage.png")
-    report.ddim_curve_figure(metrics["sampling"], out / "ddim_curve.png")
+    report.ddim_curve_figure(metrics.get("sampling"), out / "ddim_curve.png")
     report.shadow_curve_figure(json.loads(shadow_bench.read_text()), out / "shadow_curve.png")
     print(f"wrote the report figures in {out}")

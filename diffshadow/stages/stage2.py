@@ -27,7 +27,7 @@ from diffshadow.evaluate import voxel_metrics
 from diffshadow.io import atomic_torch_save, atomic_write_text
 from diffshadow.lights import read_lights, training_pool, validation_lights
 from diffshadow.runtime import distributed, set_threads
-from diffshadow.store import WeightStore, open_store, write_store
+from diffshadow.store import BlendSampler, WeightStore, open_store, write_store
 from diffshadow.truth import POOL_STREAM, EvalTruth, check_points, psnr_per_light
 from diffshadow.truth import presample as presample_points
 
@@ -161,13 +161,38 @@ def sample_shadows(checkpoint: Path, truth_path: Path, lights_path: Path, out: P
           f"unseen {np.median(store.psnr[~seen]) if (~seen).any() else float('nan'):.2f} dB")
 
 
-def evaluate_voxels(checkpoint: Path, weights_path: Path, generated_path: Path, truth_path: Path,
+def blend_shadows(weights_path: Path, truth_path: Path, lights_path: Path, out: Path, *, blend_k: int) -> None:
+    """`cache: blend`: the SIRENs of every training and unseen light without a model: a training light's own
+    stored SIREN, an unseen light's weight blend of its `blend_k` nearest (inverse-angle weights, the baseline
+    evaluate_voxels scores), with their voxel PSNR; the same store as `sample_shadows` writes."""
+    stage1 = open_store(weights_path)
+    light_sets = read_lights(lights_path)
+    train, unseen = light_sets["train"], light_sets["unseen"]
+    blend = BlendSampler(stage1, blend_k)  # what the viewer and `render --blend` make of a new direction
+    weights = np.concatenate([np.asarray(stage1.weights, dtype=np.float32), *(blend(u)[None] for u in unseen)])
+    all_lights = np.concatenate([train, unseen])
+    seen = np.arange(len(all_lights)) < len(train)
+    print(f"blending {(~seen).sum()} unseen shadow SIRENs from the {blend_k} nearest of {len(train)} stored "
+          "(cache: blend)", flush=True)
+    truth = artifacts.read_eval_truth(truth_path)
+    scores = psnr_per_light(truth.sirens(weights, stage1.layout, stage1.siren), truth.of(all_lights, str(truth_path)))
+    store = WeightStore(weights=weights, lights=all_lights, psnr=scores["box"],
+                        psnr_visible=scores.get("visible", scores["box"]), layout=stage1.layout, siren=stage1.siren,
+                        config={"cache": "blend", "blend_k": blend_k, "weights": str(weights_path)}, seen=seen)
+    write_store(out, store, made_by="sample_shadows")
+    print(f"wrote {out}: PSNR median seen {np.median(store.psnr[seen]):.2f} dB, "
+          f"unseen {np.median(store.psnr[~seen]) if (~seen).any() else float('nan'):.2f} dB")
+
+
+def evaluate_voxels(checkpoint: Path | None, weights_path: Path, generated_path: Path, truth_path: Path,
                     volume_path: Path, lights_path: Path, out: Path, *, blend_k: int, ddpm_lights: int,
                     geometry_checkpoint: Path | None = None) -> None:
     """`voxel_metrics.json`: generated against stage 1 and the baselines, storage, time per INR; with the
-    geometry-stage checkpoint, unseen lights before and after fine-tuning."""
+    geometry-stage checkpoint, unseen lights before and after fine-tuning. Without `checkpoint` (`cache: blend`)
+    the generated SIRENs are the blended ones and there is no model to time."""
     geometry = artifacts.load_checkpoint(geometry_checkpoint) if geometry_checkpoint else None
-    result = voxel_metrics(artifacts.load_checkpoint(checkpoint), open_store(weights_path),
+    state = artifacts.load_checkpoint(checkpoint) if checkpoint else None
+    result = voxel_metrics(state, open_store(weights_path),
                            open_store(generated_path), artifacts.read_eval_truth(truth_path),
                            read_lights(lights_path), blend_k=blend_k,
                            grid_voxels=artifacts.prepared_voxels(volume_path), ddpm_lights=ddpm_lights,

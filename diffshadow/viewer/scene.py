@@ -17,7 +17,7 @@ import torch
 from diffshadow.artifacts import load_checkpoint, load_render_scene, load_scene_file
 from diffshadow.lights import as_direction, nearest, read_lights
 from diffshadow.render import Camera, RenderScene
-from diffshadow.store import WeightStore, open_store
+from diffshadow.store import BlendSampler, WeightStore, open_store
 
 # the files a finished scene needs, and the rule that makes each
 SCENE_FILES = {"volume.zarr": "prepare_volume", "lights.json": "lights", "data_inr.pt": "train_data_inr",
@@ -63,7 +63,8 @@ class LightInfo:
 
 class ViewerScene:
     """One scene to view: `scene` renders; `generated` (a generated store) and `sampler` (a diffusion
-    checkpoint's `ShadowSampler`) supply the `inr` mode's shadow; without them only `noshadow` and `gt`."""
+    checkpoint's `ShadowSampler`, or with `cache: blend` the stored SIRENs' `BlendSampler`) supply the `inr`
+    mode's shadow; without them only `noshadow` and `gt`. `checkpoint`: the file the sampler reads."""
 
     def __init__(self, scene: RenderScene, *, name: str, lights: dict | None = None,
                  generated: WeightStore | None = None, sampler=None, results: Path | None = None,
@@ -90,14 +91,19 @@ class ViewerScene:
                 raise ViewerError(f"{results}: not a finished scene, {name} is missing (made by the rule `{rule}`; "
                                   f"run snakemake to finish the scene)")
         generated = open_store(results / "generated.zarr")
+        scene = load_render_scene(results / "volume.zarr", results / "data_inr.pt", device, render=render)
+        lights = read_lights(results / "lights.json")
+        if generated.config.get("cache") == "blend":  # no model: new directions blend the stored SIRENs
+            weights = results / "weights.zarr"
+            return cls(scene, name=results.name, lights=lights, generated=generated,
+                       sampler=BlendSampler(open_store(weights)), results=results, checkpoint=weights)
         ckpt = results / Path(str(generated.config.get("checkpoint", "diffusion.ckpt"))).name
         if not ckpt.exists():
             raise ViewerError(f"{ckpt}: missing, the diffusion checkpoint that generated.zarr was sampled from "
                               f"(made by the rule `finetune_render` or `train_diffusion`)")
         from diffshadow.diffusion.sample import ShadowSampler
 
-        scene = load_render_scene(results / "volume.zarr", results / "data_inr.pt", device, render=render)
-        return cls(scene, name=results.name, lights=read_lights(results / "lights.json"), generated=generated,
+        return cls(scene, name=results.name, lights=lights, generated=generated,
                    sampler=ShadowSampler(load_checkpoint(ckpt), device), results=results, checkpoint=ckpt)
 
     @classmethod
@@ -140,7 +146,7 @@ class ViewerScene:
             self._made.move_to_end(key)
             return self._made[key], info
         t0 = time.perf_counter()
-        weights = self.sampler(w)
+        weights = torch.as_tensor(self.sampler(w))
         self._made[key] = weights
         while len(self._made) > GENERATED_KEEP:
             self._made.popitem(last=False)
@@ -193,6 +199,8 @@ class ViewerScene:
                 row = self._stored_row(w)
                 if row is not None:
                     args += ["--weights", str(self.results / "generated.zarr"), "--light-index", str(row)]
+                elif isinstance(self.sampler, BlendSampler):
+                    args += ["--blend", str(self.checkpoint)]
                 else:
                     args += ["--diffusion", str(self.checkpoint)]
         return shlex.join(args)

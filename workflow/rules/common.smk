@@ -52,8 +52,17 @@ def sampler_checkpoint(wildcards):
     return f"results/{wildcards.scene}/diffusion_geometry.ckpt"
 
 
+def shadow_source(wildcards):
+    """What answers a light (config `cache`): the diffusion model's checkpoint, or (blend) the stored SIRENs."""
+    if scene_config(wildcards.scene)["cache"] == "blend":
+        return {"weights": f"results/{wildcards.scene}/weights.zarr"}
+    return {"checkpoint": sampler_checkpoint(wildcards)}
+
+
 def geometry_checkpoint(wildcards):
     """The model before fine-tuning, for evaluate_voxels' unseen before/after (only when fine-tuning runs)."""
+    if scene_config(wildcards.scene)["cache"] == "blend":
+        return {}
     if scene_config(wildcards.scene)["finetune"]["enabled"]:
         return {"geometry": f"results/{wildcards.scene}/diffusion_geometry.ckpt"}
     return {}
@@ -67,11 +76,13 @@ def finetune_json(scene):
 
 def stage_benchmarks(wildcards):
     """Snakemake's benchmark file of every job that this scene runs."""
-    rules = ["lights", "prepare_volume", "preoptimize", "collect_weights", "presample", "eval_truth",
-             "train_diffusion", "sample_shadows", "evaluate_voxels", "train_data_inr", "evaluate_images",
-             "shadow_bench", "report_figures", "benchmark"]
-    if scene_config(wildcards.scene)["finetune"]["enabled"]:
-        rules += ["render_targets", "finetune_render"]
+    cfg = scene_config(wildcards.scene)
+    rules = ["lights", "prepare_volume", "preoptimize", "collect_weights", "eval_truth", "sample_shadows",
+             "evaluate_voxels", "train_data_inr", "evaluate_images", "shadow_bench", "report_figures", "benchmark"]
+    if cfg["cache"] == "diffusion":  # stage 2
+        rules += ["presample", "train_diffusion"]
+        if cfg["finetune"]["enabled"]:
+            rules += ["render_targets", "finetune_render"]
     fits = [f"fit_siren_{i}" for i in range(n_subsets(wildcards.scene))]
     return [f"results/{wildcards.scene}/benchmarks/{r}.tsv" for r in rules + fits]
 
@@ -95,7 +106,8 @@ def summary_inputs(wildcards):
     """What the scene's summary tables read: the metrics, the bench, the stage costs (and fine-tuning's)."""
     files = {name: f"results/{wildcards.scene}/{name}" for name in
              ("voxel_metrics.json", "image_metrics.json", "bench.json", "stage_costs.tsv")}
-    if scene_config(wildcards.scene)["finetune"]["enabled"]:
+    cfg = scene_config(wildcards.scene)
+    if cfg["finetune"]["enabled"] and cfg["cache"] == "diffusion":
         files["finetune_metrics.json"] = f"results/{wildcards.scene}/finetune_metrics.json"
     return {k.replace(".", "_"): v for k, v in files.items()}
 

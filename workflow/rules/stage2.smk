@@ -64,13 +64,18 @@ rule eval_truth:
         " --threads {threads} --out {output} 2>&1 | tee {log}"
 
 
+# the generated SIRENs of every evaluation light: sampled by the diffusion model, or (cache: blend) the stored
+# SIRENs and their weight blends, which leaves train_diffusion and finetune_render out of the run
 rule sample_shadows:
     input:
-        checkpoint=sampler_checkpoint,
+        unpack(shadow_source),
         truth="results/{scene}/eval_truth.zarr",
         lights="results/{scene}/lights.json",
     output:
         directory("results/{scene}/generated.zarr"),
+    params:
+        command=lambda wc, input: (f"blend-shadows --weights {input.weights}" if "weights" in input.keys()
+                                   else f"sample-shadows --checkpoint {input.checkpoint}"),
     threads: 2
     log:
         "results/{scene}/logs/sample_shadows.log",
@@ -79,14 +84,14 @@ rule sample_shadows:
     conda:
         "../envs/diffshadow.yaml"
     shell:
-        "diffshadow sample-shadows --checkpoint {input.checkpoint} --truth {input.truth}"
-        " --lights {input.lights} --threads {threads} --out {output} 2>&1 | tee {log}"
+        "diffshadow {params.command} --truth {input.truth} --lights {input.lights} --threads {threads}"
+        " --out {output} 2>&1 | tee {log}"
 
 
 rule evaluate_voxels:
     input:
         unpack(geometry_checkpoint),
-        checkpoint=sampler_checkpoint,
+        unpack(lambda wc: {k: v for k, v in shadow_source(wc).items() if k == "checkpoint"}),
         weights="results/{scene}/weights.zarr",
         generated="results/{scene}/generated.zarr",
         truth="results/{scene}/eval_truth.zarr",
@@ -96,6 +101,7 @@ rule evaluate_voxels:
         "results/{scene}/voxel_metrics.json",
     params:
         geometry=lambda wc, input: f"--geometry-checkpoint {input.geometry}" if "geometry" in input.keys() else "",
+        checkpoint=lambda wc, input: f"--checkpoint {input.checkpoint}" if "checkpoint" in input.keys() else "",
     # one thread, beside evaluate_images (both wait only for sample_shadows): a second thread sped each up
     # 1.5-1.6x, so on 2 cores the pair ends sooner side by side than one after the other (docs/performance.md)
     threads: 1
@@ -106,7 +112,7 @@ rule evaluate_voxels:
     conda:
         "../envs/diffshadow.yaml"
     shell:
-        "diffshadow evaluate-voxels --checkpoint {input.checkpoint} --weights {input.weights}"
+        "diffshadow evaluate-voxels {params.checkpoint} --weights {input.weights}"
         " --generated {input.generated} --truth {input.truth} --volume {input.volume} --lights {input.lights}"
         " {params.geometry} --threads {threads}"
         " --out {output} 2>&1 | tee {log}"
