@@ -46,7 +46,9 @@ def read_point(results: Path) -> dict:
                                     "cpu_s": float(row["cpu_s"]), "max_rss_mib": float(row["max_rss_mib"])}
     storage = m["storage_bytes"]
     n = int(m["seen"]["count"])
+    note = results.parent.parent / "note.txt"  # lights_N/note.txt: what was unusual about the point, if anything
     return {
+        "note": note.read_text().strip() if note.is_file() else "",
         "lights": n, "sphere": lights.get("sphere"), "unseen_count": int(m["unseen"]["count"]),
         "stages": stages,
         "quality": {"seen": {"generated": m["seen"]["generated_psnr_median"],
@@ -54,7 +56,8 @@ def read_point(results: Path) -> dict:
                     "unseen": {key.removesuffix("_psnr_median"): m["unseen"].get(key) for key, _ in UNSEEN}},
         "storage_bytes": {"model": storage["model"], "sirens_fp32": storage["sirens"],
                           "sirens_fp16": storage["sirens"] // 2, "grids_fp16": storage["grids"]},
-        "siren_parameters": m["stage1"]["parameters"], "model_parameters": m["diffusion_model"]["parameters"],
+        "siren_parameters": m["stage1"]["parameters"],
+        "model_parameters": (m.get("diffusion_model") or {}).get("parameters", 0),
     }
 
 
@@ -120,22 +123,30 @@ def _axes(ncols: int = 1, width: float = 7.0):
     return plt.subplots(1, ncols, figsize=(width * ncols, 4.5))
 
 
+def _no_ticks():
+    from matplotlib.ticker import NullLocator
+
+    return NullLocator()
+
+
 def cost_figure(data: dict):
     """Wall time per stage against lights, log-log, each stage's fitted exponent in its legend."""
-    fig, ax = _axes(width=9.0)
+    fig, ax = _axes(width=10.0)
     ns = [p["lights"] for p in data["points"]]
     order = sorted(data["fits"], key=lambda s: -max(y for _, y in data["fits"][s]["wall_s"]["points"]))
-    for s in order:
+    colours = __import__("matplotlib").colormaps["tab20"]
+    for i, s in enumerate(order):
         fit = data["fits"][s]["wall_s"]
         x, y = zip(*fit["points"], strict=True)
         b = fit["exponent"]
-        ax.plot(x, y, "o-", label=f"{s} (n^{b:.2f})" if b is not None else s)
+        ax.plot(x, y, "o-", color=colours(i % 20), label=f"{s} (n^{b:.2f})" if b is not None else s)
     ax.set_xscale("log")
     ax.set_yscale("log")
     ax.set_xticks(ns, [str(n) for n in ns])
+    ax.xaxis.set_minor_locator(_no_ticks())
     ax.set_xlabel("training lights")
     ax.set_ylabel("wall seconds (Snakemake benchmark)")
-    ax.legend(fontsize=7, ncol=2, loc="upper left")
+    ax.legend(fontsize=7, loc="upper left", bbox_to_anchor=(1.01, 1.0))
     ax.set_title("cost per stage against lights (fitted exponent in the legend)")
     fig.tight_layout()
     return fig
@@ -153,6 +164,7 @@ def quality_figure(data: dict):
     for a, title in ((ax[0], "unseen lights"), (ax[1], "training lights")):
         a.set_xscale("log")
         a.set_xticks(ns, [str(n) for n in ns])
+        a.xaxis.set_minor_locator(_no_ticks())
         a.set_xlabel("training lights")
         a.set_ylabel("median voxel PSNR (dB)")
         a.set_title(title)
@@ -225,6 +237,8 @@ def page(data: dict) -> str:
         cells = "".join(f"<td>{y:.1f}</td>" for _, y in w["points"])
         rows.append(f"<tr><td>{html.escape(s)}</td>{cells}<td>{b}</td><td>{rss['points'][-1][1]:.0f}</td></tr>")
     head = "".join(f"<th>{n} lights (s)</th>" for n in ns)
+    notes = "".join(f"<li>{n} lights: {html.escape(p['note'])}</li>" for n, p in zip(ns, pts, strict=True)
+                    if p.get("note"))
     q = "".join(f"<tr><td>{n}</td>" + "".join(
         f"<td>{(p['quality']['unseen'][k.removesuffix('_psnr_median')] or float('nan')):.2f}</td>" for k, _ in UNSEEN)
         + f"<td>{p['quality']['seen']['generated']:.2f}</td><td>{p['quality']['seen']['stage1']:.2f}</td></tr>"
@@ -238,6 +252,7 @@ td:first-child{{text-align:left}}table{{border-collapse:collapse}}tr:nth-child(e
 <p>Runs at {", ".join(map(str, ns))} training lights (scripts/scaling_sweep.py). The model is smaller than the
 stored SIRENs past {c['sirens_fp32']:,.0f} lights (fp32) or {c['sirens_fp16']:,.0f} (fp16), at these runs' SIREN
 and model sizes.</p>
+{f"<ul>{notes}</ul>" if notes else ""}
 <h2>Cost per stage</h2><img src="scaling_costs.png" width="900">
 <table><tr><th>stage</th>{head}<th>exponent</th><th>peak RSS at {ns[-1]} (MiB)</th></tr>{"".join(rows)}</table>
 <h2>Quality</h2><img src="scaling_quality.png" width="1000">
@@ -367,7 +382,10 @@ def polaris_profile(proj: dict) -> str:
     qsub is not sent it)."""
     lines = ["# Made by scripts/scaling_sweep.py from the light-count sweep (diffshadow.scaling.project): each",
              f"# rule's projected A100 time at {proj['lights']:,} lights x {proj['margin']}, at most "
-             f"{proj['queue_max_h']:.0f} h (a longer stage resumes from its checkpoint in a further job). Use:",
+             f"{proj['queue_max_h']:.0f} h",
+             "# (a longer stage resumes from its checkpoint in a further job); mem_mb: the peak RSS carried to that",
+             "# light count at the sweep's network sizes x the margin (the paper's larger networks need more; a",
+             "# Polaris node has 512 GB). Use:",
              "#   snakemake --profile polaris --workflow-profile profiles/paper --configfile config/paper.yaml",
              "set-resources:"]
     for stage, r in sorted(proj["stages"].items()):

@@ -322,13 +322,18 @@ rule job{i}:
 
 
 def test_paper_scale_config_plans_forty_subsets_four_to_a_node(tmp_path):
-    """config/paper.yaml on the Polaris profile: the whole DAG planned, 2,000 lights in 40 fit_siren jobs packed
-    into 10 node jobs (a dry run: nothing is submitted)."""
+    """config/paper.yaml on the Polaris profile with the sweep's workflow profile (profiles/paper): the whole DAG
+    planned, 2,000 lights in 40 fit_siren jobs packed into 10 node jobs, each rule asking for the walltime the
+    sweep projected instead of the Polaris profile's guess (a dry run: nothing is submitted)."""
     env = {**os.environ, "PBS_ACCOUNT": "testproj"}
     proc = subprocess.run([sys.executable, "-m", "snakemake", "-s", str(REPO / "Snakefile"), "--directory",
-                           str(tmp_path), "--profile", str(REPO / "profiles" / "polaris"), "--configfile",
-                           str(REPO / "config" / "paper.yaml"), "-n"], env=env, capture_output=True, text=True,
-                          timeout=300)
+                           str(tmp_path), "--profile", str(REPO / "profiles" / "polaris"), "--workflow-profile",
+                           str(REPO / "profiles" / "paper"), "--configfile", str(REPO / "config" / "paper.yaml"),
+                           "-n"], env=env, capture_output=True, text=True, timeout=300)
     assert proc.returncode == 0, proc.stderr[-3000:]
     out = proc.stdout + proc.stderr
     assert re.search(r"^fit_siren\s+40$", out, re.M) and out.count("Group job siren") == 10, out[-3000:]
+    projected = yaml.safe_load((REPO / "profiles" / "paper" / "config.yaml").read_text())["set-resources"]
+    for rule in ("train_diffusion", "eval_truth"):
+        job = out.split(f"rule {rule}:")[1].split("\n\n")[0]
+        assert f"walltime={projected[rule]['walltime']}" in job, job
