@@ -118,7 +118,7 @@ def write_zarr_group(path, fill, *, made_by: str) -> None:
     try:
         root = zarr.open_group(str(tmp), mode="w", zarr_format=3)
         fill(root)
-        root.attrs.update({"checksums": {name: array_checksum(arr[...]) for name, arr in root.arrays()},
+        root.attrs.update({"checksums": {name: array_checksum(arr[...]) for name, arr in sorted(root.arrays())},
                            "made_by": made_by})
         _finish(tmp, directory=True)
         old = None

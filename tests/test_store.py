@@ -182,3 +182,25 @@ def test_results_are_flushed_before_the_rename(tmp_path, monkeypatch):
     io.atomic_write_text(tmp_path / "a.json", "{}")
     assert [kind for kind, _ in order] == ["fsync", "replace", "fsync"]
     assert order[0][1].startswith(str(tmp_path / ".a.json.")) and order[2][1] == str(tmp_path)
+
+
+def test_checksums_are_written_in_name_order(tmp_path):
+    """The same arrays give the same zarr.json bytes whatever order the store lists them in (it followed the
+    file system's listing, which changed between two runs of the README's workflow)."""
+    import json
+
+    import numpy as np
+
+    from diffshadow.io import write_zarr_group
+
+    def fill(order):
+        def f(root):
+            for name in order:
+                root.create_array(name, data=np.arange(3.0) * len(name))
+        return f
+
+    for i, order in enumerate((["zeta", "alpha", "mid"], ["mid", "zeta", "alpha"])):
+        write_zarr_group(tmp_path / f"{i}.zarr", fill(order), made_by="test")
+    texts = [(tmp_path / f"{i}.zarr" / "zarr.json").read_text() for i in range(2)]
+    assert list(json.loads(texts[0])["attributes"]["checksums"]) == ["alpha", "mid", "zeta"]
+    assert texts[0] == texts[1]
