@@ -207,7 +207,8 @@ def projection_html(proj: dict | None) -> str:
     if not proj:
         return ""
     rows = "".join(
-        f"<tr><td>{html.escape(s)}</td><td>{r['exponent']:.2f}</td><td>{r['h200_over_cpu']:.1f}</td>"
+        f"<tr><td>{html.escape(s)}</td><td>{r['exponent']:.2f}</td><td>{r['h200_over_cpu']:.1f} "
+        f"({r['speedup_used']:.1f})</td>"
         f"<td>{r['work_factor']:,.0f}</td><td>{r['wall_s'] / 3600:,.2f}</td><td>{r['node_hours']:,.1f}</td></tr>"
         for s, r in sorted(proj["stages"].items(), key=lambda kv: -kv[1]["node_hours"]))
     total = sum(r["node_hours"] for r in proj["stages"].values())
@@ -218,7 +219,7 @@ def projection_html(proj: dict | None) -> str:
 measured speed over this machine's per stage, the paper config's work per light over this run's, and an A100 taking
 {proj['a100_per_h200']}x an H200's time (an assumption). Stage 1: subsets of 50, four to a node, 10 nodes. Upper
 bounds where a small run leaves a GPU idle.</p>
-<table><tr><th>stage</th><th>exponent</th><th>H200 / this CPU</th><th>work factor</th><th>wall (h)</th>
+<table><tr><th>stage</th><th>exponent</th><th>H200 / this CPU (used)</th><th>work factor</th><th>wall (h)</th>
 <th>node-hours</th></tr>{rows}<tr><td>total</td><td></td><td></td><td></td><td></td><td>{total:,.1f}</td></tr></table>
 <table><tr><th>lights</th><th>SIRENs fp32 (MiB)</th><th>SIRENs fp16 (MiB)</th><th>model fp32 (MiB)</th></tr>
 {store}</table>
@@ -233,9 +234,10 @@ def page(data: dict) -> str:
     for s, fit in sorted(data["fits"].items(), key=lambda kv: -kv[1]["wall_s"]["points"][-1][1]):
         w = fit["wall_s"]
         b = "" if w["exponent"] is None else f"{w['exponent']:.2f}"
-        rss = fit["max_rss_mib"]
-        cells = "".join(f"<td>{y:.1f}</td>" for _, y in w["points"])
-        rows.append(f"<tr><td>{html.escape(s)}</td>{cells}<td>{b}</td><td>{rss['points'][-1][1]:.0f}</td></tr>")
+        at = {int(n): y for n, y in w["points"]}
+        rss = {int(n): y for n, y in fit["max_rss_mib"]["points"]}
+        cells = "".join(f"<td>{at[n]:.1f}</td>" if n in at else "<td></td>" for n in ns)
+        rows.append(f"<tr><td>{html.escape(s)}</td>{cells}<td>{b}</td><td>{max(rss.values()):.0f}</td></tr>")
     head = "".join(f"<th>{n} lights (s)</th>" for n in ns)
     notes = "".join(f"<li>{n} lights: {html.escape(p['note'])}</li>" for n, p in zip(ns, pts, strict=True)
                     if p.get("note"))
@@ -254,7 +256,7 @@ stored SIRENs past {c['sirens_fp32']:,.0f} lights (fp32) or {c['sirens_fp16']:,.
 and model sizes.</p>
 {f"<ul>{notes}</ul>" if notes else ""}
 <h2>Cost per stage</h2><img src="scaling_costs.png" width="900">
-<table><tr><th>stage</th>{head}<th>exponent</th><th>peak RSS at {ns[-1]} (MiB)</th></tr>{"".join(rows)}</table>
+<table><tr><th>stage</th>{head}<th>exponent</th><th>peak RSS (MiB)</th></tr>{"".join(rows)}</table>
 <h2>Quality</h2><img src="scaling_quality.png" width="1000">
 <table><tr><th>lights</th>{qhead}<th>seen: generated</th><th>seen: stage 1</th></tr>{q}</table>
 <h2>Storage</h2><img src="scaling_storage.png" width="800">
