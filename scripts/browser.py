@@ -260,7 +260,10 @@ def drive_viewer(results, workdir, *, screenshot=None) -> dict:
             from diffshadow.store import open_store
 
             n_train = len(read_lights(results / "lights.json")["train"])
-            ckpt = Path(str(open_store(results / "generated.zarr").config["checkpoint"])).name
+            # what makes a new direction's SIREN: the diffusion checkpoint, or with cache: blend the stored SIRENs
+            made = open_store(results / "generated.zarr").config
+            new_source = (["--blend", str(results / "weights.zarr")] if made.get("cache") == "blend"
+                          else ["--diffusion", str(results / Path(str(made["checkpoint"])).name)])
 
             def render(args: list[str], name: str) -> np.ndarray:
                 ref = workdir / f"{name}.png"
@@ -279,7 +282,7 @@ def drive_viewer(results, workdir, *, screenshot=None) -> dict:
                 if frame["mode"] == "inr":
                     kind = frame["light_kind"]
                     if kind.startswith("new direction"):
-                        args += ["--diffusion", str(results / ckpt)]
+                        args += new_source
                     else:
                         row = int(kind.split(",")[0].split()[-1]) + (n_train if kind.startswith("unseen") else 0)
                         args += ["--weights", str(results / "generated.zarr"), "--light-index", str(row)]
@@ -295,7 +298,7 @@ def drive_viewer(results, workdir, *, screenshot=None) -> dict:
             n = len(list(record.glob("frame_*.json")))
             browser.type_into(*browser.input_beside("azimuth"), "75")
             new = next_frame(record, n, lambda m: (m["light_kind"] or "").startswith("new direction")
-                             and "--diffusion" in m["command"])
+                             and new_source[0] in m["command"])
             check(new, "new")
             out["new_light"] = new["light_kind"]
             # the exact shadow, which changes with the light whatever the model learnt
