@@ -11,7 +11,8 @@ import numpy as np
 from diffshadow.io import atomic_path, atomic_write_text
 
 
-def _figure(path: Path, fig) -> None:
+def save_figure(path: Path, fig) -> None:
+    """A figure as a PNG, written atomically, then closed."""
     with atomic_path(path, suffix=".png") as tmp:
         fig.savefig(tmp, format="png", dpi=100)
     import matplotlib.pyplot as plt
@@ -19,7 +20,8 @@ def _figure(path: Path, fig) -> None:
     plt.close(fig)
 
 
-def _plt():
+def pyplot():
+    """matplotlib.pyplot on the file-only Agg backend (no display on compute nodes)."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -44,7 +46,7 @@ def decade_labels(axis) -> None:
 
 def siren_psnr_figure(stage1, out: Path) -> None:
     """Stage-1 voxel PSNR of every light's SIREN (over the box and in the visible region)."""
-    plt = _plt()
+    plt = pyplot()
     fig, ax = plt.subplots(figsize=(8, 3.5))
     idx = np.arange(len(stage1.psnr))
     ax.plot(idx, stage1.psnr, ".", label="box")
@@ -54,12 +56,12 @@ def siren_psnr_figure(stage1, out: Path) -> None:
     ax.set_title(f"stage 1: median {np.median(stage1.psnr):.2f} dB, min {np.min(stage1.psnr):.2f} dB")
     ax.legend()
     fig.tight_layout()
-    _figure(out, fig)
+    save_figure(out, fig)
 
 
 def generated_figure(stage1, generated, out_png: Path, out_csv: Path) -> None:
     """Generated vs stage-1 PSNR on seen lights; generated PSNR on unseen lights (plot and table)."""
-    plt = _plt()
+    plt = pyplot()
     seen = generated.seen
     fig, ax = plt.subplots(1, 2, figsize=(10, 4))
     ax[0].plot(stage1.psnr, generated.psnr[seen], ".")
@@ -77,7 +79,7 @@ def generated_figure(stage1, generated, out_png: Path, out_csv: Path) -> None:
     unseen = np.median(generated.psnr[~seen]) if (~seen).any() else float("nan")
     ax[1].set_title(f"unseen lights (median {unseen:.2f} dB)")
     fig.tight_layout()
-    _figure(out_png, fig)
+    save_figure(out_png, fig)
     rows = ["set,light,x,y,z,stage1_psnr,generated_psnr"]
     for i in range(len(generated.psnr)):
         s = "seen" if seen[i] else "unseen"
@@ -102,7 +104,7 @@ def image_grid_figure(images_dir: Path, lights: dict, out: Path,
 
     from PIL import Image
 
-    plt = _plt()
+    plt = pyplot()
     tags = sorted({p.name.rsplit("_gt.png", 1)[0] for p in images_dir.glob("*_gt.png")})
     # naive is rendered for the training lights only (it learns nothing from them): an unseen row shows the rest
     needed = [m for m in modes if m != "naive"]
@@ -145,7 +147,7 @@ def image_grid_figure(images_dir: Path, lights: dict, out: Path,
     fig.tight_layout(rect=(0, 0, 0.93, 1))
     bar = fig.colorbar(shown, ax=axes[:, -2:].ravel().tolist(), fraction=0.04, pad=0.02)
     bar.set_label("max over RGB of the difference", fontsize=8)
-    _figure(out, fig)
+    save_figure(out, fig)
 
 
 def ddim_curve_figure(sampling: dict | None, out: Path) -> None:
@@ -153,13 +155,13 @@ def ddim_curve_figure(sampling: dict | None, out: Path) -> None:
     evaluate_voxels measured (`voxel_metrics.json` → sampling.curve; quality over `sampling.lights` training
     lights generated in one batch, time that of one INR alone, best of 3; DDPM once). None (`cache: blend`):
     a figure that says there is no sampler."""
-    plt = _plt()
+    plt = pyplot()
     fig, ax = plt.subplots(figsize=(6, 4))
     if sampling is None:
         ax.text(0.5, 0.5, "cache: blend\nno diffusion model: a light's SIREN is the weight blend\n"
                 "of the stored SIRENs nearest to it (no sampler to time)", ha="center", va="center")
         ax.set_axis_off()
-        _figure(out, fig)
+        save_figure(out, fig)
         return
     rows = sampling["curve"]
     d = [r for r in rows if r["method"] == "ddim"]
@@ -178,12 +180,12 @@ def ddim_curve_figure(sampling: dict | None, out: Path) -> None:
     ax.set_ylim(min(lo - 0.3, mid - 1.0), max(hi + 0.3, mid + 1.0))
     ax.legend()
     fig.tight_layout()
-    _figure(out, fig)
+    save_figure(out, fig)
 
 
 def storage_figure(voxel_metrics: dict, n_lights: int, out: Path) -> None:
     """Bytes of the diffusion cache against the N SIRENs and N dense float16 grids it replaces."""
-    plt = _plt()
+    plt = pyplot()
     sb = voxel_metrics["storage_bytes"]
     fig, ax = plt.subplots(figsize=(6.5, 3.8))
     names = ["diffusion model" if sb["model"] else "no model (cache: blend)", f"{n_lights} SIRENs (fp32)",
@@ -201,12 +203,12 @@ def storage_figure(voxel_metrics: dict, n_lights: int, out: Path) -> None:
                else f"the model is {1 / ratio:.1f}x smaller than the grids it replaces")
     ax.set_title(f"{verdict}\n(the model's size is fixed; grids grow with lights x voxels)", fontsize=9)
     fig.tight_layout()
-    _figure(out, fig)
+    save_figure(out, fig)
 
 
 def shadow_curve_figure(bench_json: dict, out: Path) -> None:
     """The ground-truth shadow methods' time against error on this scene's volume (from bench shadow)."""
-    plt = _plt()
+    plt = pyplot()
     fig, ax = plt.subplots(figsize=(6, 4))
     for name, vol in bench_json["volumes"].items():
         for method in ("march", "sweep"):
@@ -220,7 +222,7 @@ def shadow_curve_figure(bench_json: dict, out: Path) -> None:
     ax.set_ylabel(f"mean |error| vs march at {bench_json['reference_step']} voxel")
     ax.legend()
     fig.tight_layout()
-    _figure(out, fig)
+    save_figure(out, fig)
 
 
 def write_config(path: Path, cfg: dict) -> None:

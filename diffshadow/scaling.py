@@ -11,6 +11,7 @@ do in proportion, so the model is smaller than the SIRENs it replaces past `cros
 from __future__ import annotations
 
 import csv
+import functools
 import html
 import json
 import math
@@ -18,7 +19,8 @@ from pathlib import Path
 
 import numpy as np
 
-from diffshadow.io import atomic_path, atomic_write_text, finite_json
+from diffshadow.io import atomic_write_text, finite_json
+from diffshadow.report import pyplot, save_figure
 
 # the quality rows of the figure and the JSON: (key in voxel_metrics.json's "unseen" section, label)
 UNSEEN = (("generated_psnr_median", "generated (diffusion)"), ("weight_blend_psnr_median", "weight blend, 4 nearest"),
@@ -37,13 +39,7 @@ def read_point(results: Path) -> dict:
             raise SweepError(f"{path}: missing; the sweep reads finished runs (run the workflow for this point first)")
     m = json.loads(metrics_path.read_text())
     lights = json.loads((results / "lights.json").read_text())
-    stages = {}
-    with open(costs_path, newline="") as f:
-        for row in csv.DictReader(f, delimiter="\t"):
-            if row["stage"].startswith(("total", "elapsed")):
-                continue
-            stages[row["stage"]] = {"jobs": int(row["jobs"]), "wall_s": float(row["wall_s"]),
-                                    "cpu_s": float(row["cpu_s"]), "max_rss_mib": float(row["max_rss_mib"])}
+    stages = read_costs(costs_path)
     storage = m["storage_bytes"]
     n = int(m["seen"]["count"])
     note = results.parent.parent / "note.txt"  # lights_N/note.txt: what was unusual about the point, if anything
@@ -104,23 +100,14 @@ def write_sweep(data: dict, out: Path) -> None:
     """`out` (JSON), and beside it scaling_costs.png, scaling_quality.png, scaling_storage.png, scaling.html."""
     out = Path(out)
     atomic_write_text(out, json.dumps(finite_json(data), indent=2) + "\n")
-    figures = {"costs": cost_figure(data), "quality": quality_figure(data), "storage": storage_figure(data)}
-    import matplotlib.pyplot as plt
-
-    for name, fig in figures.items():
-        with atomic_path(out.parent / f"scaling_{name}.png", suffix=".png") as tmp:
-            fig.savefig(tmp, format="png", dpi=100)
-        plt.close(fig)
+    for name, fig in (("costs", cost_figure(data)), ("quality", quality_figure(data)),
+                      ("storage", storage_figure(data))):
+        save_figure(out.parent / f"scaling_{name}.png", fig)
     atomic_write_text(out.parent / "scaling.html", page(data))
 
 
 def _axes(ncols: int = 1, width: float = 7.0):
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    return plt.subplots(1, ncols, figsize=(width * ncols, 4.5))
+    return pyplot().subplots(1, ncols, figsize=(width * ncols, 4.5))
 
 
 def _no_ticks():
@@ -134,7 +121,9 @@ def cost_figure(data: dict):
     fig, ax = _axes(width=10.0)
     ns = [p["lights"] for p in data["points"]]
     order = sorted(data["fits"], key=lambda s: -max(y for _, y in data["fits"][s]["wall_s"]["points"]))
-    colours = __import__("matplotlib").colormaps["tab20"]
+    import matplotlib
+
+    colours = matplotlib.colormaps["tab20"]
     for i, s in enumerate(order):
         fit = data["fits"][s]["wall_s"]
         x, y = zip(*fit["points"], strict=True)
@@ -273,19 +262,27 @@ A100_PER_H200 = 2.4
 GPUS_PER_NODE = 4  # Polaris
 
 
-def _model(cfg: dict):
+def model_size(cfg: dict) -> tuple[int, int]:
+    """(parameters, tokens) of the diffusion model a run config builds."""
+    return _model_size(json.dumps(cfg["siren"], sort_keys=True), json.dumps(cfg["diffusion"], sort_keys=True))
+
+
+@functools.lru_cache(maxsize=8)
+def _model_size(siren_json: str, diffusion_json: str) -> tuple[int, int]:
+    # built once per config: the paper's model has 172 million parameters
     from diffshadow.diffusion.config import DiffusionConfig, build_model
     from diffshadow.siren import SirenConfig, WeightLayout
 
-    siren = SirenConfig.from_config(cfg["siren"])
-    diffusion = DiffusionConfig.from_config(cfg["diffusion"]).for_siren(siren.width)
-    return build_model(WeightLayout.for_siren(siren), diffusion)
+    siren = SirenConfig.from_config(json.loads(siren_json))
+    diffusion = DiffusionConfig.from_config(json.loads(diffusion_json)).for_siren(siren.width)
+    model = build_model(WeightLayout.for_siren(siren), diffusion)
+    return model.n_params(), len(model.sizes) + 2
 
 
 def model_cost(cfg: dict) -> float:
     """Parameters x tokens of the diffusion model a run config builds: its forward cost up to a constant."""
-    model = _model(cfg)
-    return float(model.n_params() * (len(model.sizes) + 2))
+    params, tokens = model_size(cfg)
+    return float(params * tokens)
 
 
 def work_factors(run: dict, paper: dict) -> dict[str, float]:
@@ -309,13 +306,14 @@ def work_factors(run: dict, paper: dict) -> dict[str, float]:
 
 
 def read_costs(path: Path) -> dict[str, dict]:
-    """A `stage_costs.tsv` (diffshadow stage-costs) as stage -> {jobs, wall_s, cpu_s, max_rss_mib}."""
+    """A `stage_costs.tsv` (`report.stage_costs`) as stage -> {jobs, wall_s, cpu_s, max_rss_mib}, without its
+    total and elapsed rows."""
     out = {}
     with open(path, newline="") as f:
         for row in csv.DictReader(f, delimiter="\t"):
             if not row["stage"].startswith(("total", "elapsed")):
                 out[row["stage"]] = {"jobs": int(row["jobs"]), "wall_s": float(row["wall_s"]),
-                                     "max_rss_mib": float(row["max_rss_mib"])}
+                                     "cpu_s": float(row["cpu_s"]), "max_rss_mib": float(row["max_rss_mib"])}
     return out
 
 
@@ -323,9 +321,10 @@ QUEUE_MAX_H = 72.0  # Polaris' preemptable queue's longest walltime (ALCF's docu
 MARGIN = 1.5  # requests are the projection times this
 
 
-def project(data: dict, run: dict, paper: dict, gpu_costs: dict[str, dict], *, lights: int = 2000,
-            subset: int = 50, stage1_nodes: int = 10) -> dict:
-    """Each stage's wall time, node-hours and peak memory for `paper` at `lights` on Polaris: the sweep's CPU
+def project(data: dict, run: dict, paper: dict, gpu_costs: dict[str, dict], *, lights: int | None = None,
+            subset: int | None = None, stage1_nodes: int = 10) -> dict:
+    """Each stage's wall time, node-hours and peak memory for `paper` at `lights` (default: the paper config's
+    count, in subsets of its subset_size) on Polaris: the sweep's CPU
     power law carried to `lights` at the run's config, divided by the H200's speed over this CPU measured on
     the same run config at the sweep's smallest point (`gpu_costs`: stage_costs of a GPU run), times the
     paper's work per light (`work_factors`), times A100_PER_H200.
@@ -335,6 +334,8 @@ def project(data: dict, run: dict, paper: dict, gpu_costs: dict[str, dict], *, l
     lights / subset jobs four to a node on `stage1_nodes` nodes; fine-tuning on one node of four GPUs; every
     other stage on one node. Requests: MARGIN x the projection, at most QUEUE_MAX_H; a stage that needs more
     resumes from its checkpoint in further jobs (`resubmits`)."""
+    lights = lights or paper["lights"]["count"]
+    subset = subset or paper["subset_size"]
     n0 = data["points"][0]["lights"]
     factors = work_factors(run, paper)
 
@@ -402,5 +403,5 @@ def storage_at(cfg: dict, counts: list[int]) -> dict:
     from diffshadow.siren import SirenConfig, WeightLayout
 
     per = WeightLayout.for_siren(SirenConfig.from_config(cfg["siren"])).n_params * 4
-    model = _model(cfg).n_params() * 4
+    model = model_size(cfg)[0] * 4
     return {str(n): {"sirens_fp32": per * n, "sirens_fp16": per * n // 2, "model": model} for n in counts}

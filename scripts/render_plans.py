@@ -39,11 +39,6 @@ class Variant:
     tf32: bool = False  # TF32 matmuls (the eager SIREN)
     fused: str | None = None  # the scene's network setting (render.Networks.setting(): "compile" or "fused")
 
-    @property
-    def render_kw(self) -> dict:
-        """What `RenderScene.render` takes of the variant (the rest is set on the scene by `variant`)."""
-        return {"batch": self.batch}
-
 
 def variants(device: torch.device) -> dict[str, Variant]:
     """The variants by name. On an H200 (2026-11-25), before the plan compacted on every device, a fixed-shape
@@ -108,7 +103,7 @@ def main() -> None:
         try:
             with variant(scene, v):
                 for mode in a.modes:
-                    scene.render(mode, small, **v.render_kw, **kw)
+                    scene.render(mode, small, batch=v.batch, **kw)
         except Exception as e:  # any failure of one variant: report it and go on
             print(f"variant {name!r} dropped: {type(e).__name__}: {str(e).splitlines()[0] if str(e) else ''}")
             del plans[name]
@@ -121,14 +116,14 @@ def main() -> None:
                 for name, v in plans.items():
                     with variant(scene, v):
                         sync()
-                        img = scene.render(mode, cam, **v.render_kw, **kw)
+                        img = scene.render(mode, cam, batch=v.batch, **kw)
                         sync()
                     secs[name].append(img.seconds)
                     imgs[name] = img
             for name, v in plans.items():  # naive's count takes minutes past 256²
                 with variant(scene, v):
                     counted = mode != "naive" or n <= 256
-                    counts[name] = (op_counts(lambda m=mode, c=cam, v=v: scene.render(m, c, **v.render_kw, **kw))
+                    counts[name] = (op_counts(lambda m=mode, c=cam, v=v: scene.render(m, c, batch=v.batch, **kw))
                                     if counted else {"ops": -1, "syncs": -1})
             ref = imgs["default"].rgb
             for name in plans:
@@ -148,7 +143,7 @@ def main() -> None:
         for name, v in plans.items():
             if name == "default" or v.fused:  # the fused kernels and torch.compile
                 with variant(scene, v):
-                    profile_frame(scene, cam, device, name, **v.render_kw, **kw)
+                    profile_frame(scene, cam, device, name, batch=v.batch, **kw)
 
 
 def profile_frame(scene: R.RenderScene, cam: R.Camera, device: torch.device, name: str, **kw) -> None:

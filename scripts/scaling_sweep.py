@@ -67,8 +67,7 @@ def main() -> None:
     run_cfg = config.run_config(config.read_yaml(ROOT / "config" / "config.yaml"), "config/config.yaml")
     paper = config.run_config(config.merge(config.read_yaml(ROOT / "config" / "config.yaml"),
                                            config.read_yaml(a.paper)), str(a.paper))
-    data["projection"] = scaling.project(data, run_cfg, paper, scaling.read_costs(a.gpu_costs),
-                                         lights=paper["lights"]["count"], subset=paper["subset_size"])
+    data["projection"] = scaling.project(data, run_cfg, paper, scaling.read_costs(a.gpu_costs))
     data["projection"]["gpu_costs"] = str(a.gpu_costs)
     if a.profile_out:
         from diffshadow.io import atomic_write_text

@@ -52,11 +52,16 @@ def sampler_checkpoint(wildcards):
     return f"results/{wildcards.scene}/diffusion_geometry.ckpt"
 
 
+def model_checkpoint(wildcards):
+    """The diffusion checkpoint that samples, as an input; none with `cache: blend` (no model)."""
+    if scene_config(wildcards.scene)["cache"] == "blend":
+        return {}
+    return {"checkpoint": sampler_checkpoint(wildcards)}
+
+
 def shadow_source(wildcards):
     """What answers a light (config `cache`): the diffusion model's checkpoint, or (blend) the stored SIRENs."""
-    if scene_config(wildcards.scene)["cache"] == "blend":
-        return {"weights": f"results/{wildcards.scene}/weights.zarr"}
-    return {"checkpoint": sampler_checkpoint(wildcards)}
+    return model_checkpoint(wildcards) or {"weights": f"results/{wildcards.scene}/weights.zarr"}
 
 
 def geometry_checkpoint(wildcards):

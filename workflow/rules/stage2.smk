@@ -91,7 +91,7 @@ rule sample_shadows:
 rule evaluate_voxels:
     input:
         unpack(geometry_checkpoint),
-        unpack(lambda wc: {k: v for k, v in shadow_source(wc).items() if k == "checkpoint"}),
+        unpack(model_checkpoint),
         weights="results/{scene}/weights.zarr",
         generated="results/{scene}/generated.zarr",
         truth="results/{scene}/eval_truth.zarr",
