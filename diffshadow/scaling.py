@@ -198,7 +198,8 @@ def projection_html(proj: dict | None) -> str:
     rows = "".join(
         f"<tr><td>{html.escape(s)}</td><td>{r['exponent']:.2f}</td><td>{r['h200_over_cpu']:.1f} "
         f"({r['speedup_used']:.1f})</td>"
-        f"<td>{r['work_factor']:,.0f}</td><td>{r['wall_s'] / 3600:,.2f}</td><td>{r['node_hours']:,.1f}</td></tr>"
+        f"<td>{r['work_factor']:,.0f}</td><td>{r['wall_s'] / 3600:,.2f}</td><td>{r['node_hours']:,.1f}</td>"
+        f"<td>{r['rss_mib'] / 1024:,.1f}</td></tr>"
         for s, r in sorted(proj["stages"].items(), key=lambda kv: -kv[1]["node_hours"]))
     total = sum(r["node_hours"] for r in proj["stages"].values())
     store = "".join(f"<tr><td>{n}</td>" + "".join(f"<td>{v / 2**20:,.0f}</td>" for v in b.values()) + "</tr>"
@@ -207,9 +208,11 @@ def projection_html(proj: dict | None) -> str:
 <p>{proj['lights']:,} training lights at config/paper.yaml, each stage from this sweep's exponent, the H200's
 measured speed over this machine's per stage, the paper config's work per light over this run's, and an A100 taking
 {proj['a100_per_h200']}x an H200's time (an assumption). Stage 1: subsets of 50, four to a node, 10 nodes. Upper
-bounds where a small run leaves a GPU idle.</p>
+bounds where a small run leaves a GPU idle. Host memory: the peak RSS carried to this light count plus the paper
+model's parameters in host memory (weights, gradients, Adam's moments, EMA: scaling.MODEL_COPIES).</p>
 <table><tr><th>stage</th><th>exponent</th><th>H200 / this CPU (used)</th><th>work factor</th><th>wall (h)</th>
-<th>node-hours</th></tr>{rows}<tr><td>total</td><td></td><td></td><td></td><td></td><td>{total:,.1f}</td></tr></table>
+<th>node-hours</th><th>host memory per job (GiB)</th></tr>{rows}<tr><td>total</td><td></td><td></td><td></td><td></td>
+<td>{total:,.1f}</td><td></td></tr></table>
 <table><tr><th>lights</th><th>SIRENs fp32 (MiB)</th><th>SIRENs fp16 (MiB)</th><th>model fp32 (MiB)</th></tr>
 {store}</table>
 """
@@ -317,6 +320,23 @@ def read_costs(path: Path) -> dict[str, dict]:
     return out
 
 
+# Copies of the diffusion model's parameters a stage's process holds in host memory: training holds weights,
+# gradients, Adam's two moments and the EMA (5); a loaded checkpoint holds weights, Adam's two and the EMA (4)
+# and the model built from it one more. Fine-tuning loads the geometry checkpoint and trains, per rank;
+# evaluate_voxels loads both checkpoints. The sweep's small model makes this term invisible in its RSS.
+MODEL_COPIES = {"train_diffusion": 5, "finetune_render": 4 + 5, "sample_shadows": 5, "evaluate_voxels": 2 * 5}
+
+
+def model_state_mib(stage: str, run: dict, paper: dict) -> float:
+    """Host memory (MiB) the paper's diffusion model adds over the run config's to one job of `stage`."""
+    copies = MODEL_COPIES.get(stage, 0)
+    if stage == "finetune_render":
+        copies *= paper["finetune"]["nproc"]  # one process per GPU on the node
+    if not copies:
+        return 0.0
+    return (model_size(paper)[0] - model_size(run)[0]) * 4 * copies / 2**20
+
+
 QUEUE_MAX_H = 72.0  # Polaris' preemptable queue's longest walltime (ALCF's documentation; check `qstat -Qf`)
 MARGIN = 1.5  # requests are the projection times this
 
@@ -362,12 +382,13 @@ def project(data: dict, run: dict, paper: dict, gpu_costs: dict[str, dict], *, l
             node_hours = a100_total / 3600
         request_h = per_job * MARGIN / 3600
         rss = predict(fit["max_rss_mib"], lights) or fit["max_rss_mib"]["points"][-1][1]
+        model_mib = model_state_mib(stage, run, paper)
         rows[stage] = {"exponent": fit["wall_s"]["exponent"], "cpu_s_run_config": cpu_total,
                        "h200_over_cpu": ratio, "speedup_used": used, "work_factor": factors.get(stage, 1.0),
                        "a100_s_total": a100_total, "wall_s": wall, "node_hours": node_hours,
                        "walltime_request_h": min(request_h, QUEUE_MAX_H),
                        "resubmits": max(0, math.ceil(request_h / QUEUE_MAX_H) - 1),
-                       "rss_mib_run_config": rss}
+                       "rss_mib_run_config": rss, "model_state_mib": model_mib, "rss_mib": rss + max(model_mib, 0.0)}
     return {"lights": lights, "a100_per_h200": A100_PER_H200, "margin": MARGIN, "queue_max_h": QUEUE_MAX_H,
             "stages": rows, "storage_bytes": storage_at(paper, [lights, paper["lights"]["sphere"]])}
 
@@ -381,20 +402,20 @@ def walltime(hours: float) -> str:
 def polaris_profile(proj: dict) -> str:
     """A Snakemake workflow profile (`--workflow-profile`) whose per-rule walltimes are the projection's
     requests; laid over `--profile polaris`, it replaces the profile's guesses. `mem_mb`: the peak RSS carried to
-    the light count at the sweep's network sizes, x margin (Polaris nodes are whole: 512 GB; Snakemake checks it,
-    qsub is not sent it)."""
+    the light count plus the paper model's state in host memory (`model_state_mib`), x margin (Polaris nodes
+    are whole: 512 GB; Snakemake checks it, qsub is not sent it)."""
     lines = ["# Made by scripts/scaling_sweep.py from the light-count sweep (diffshadow.scaling.project): each",
              f"# rule's projected A100 time at {proj['lights']:,} lights x {proj['margin']}, at most "
              f"{proj['queue_max_h']:.0f} h",
              "# (a longer stage resumes from its checkpoint in a further job); mem_mb: the peak RSS carried to that",
-             "# light count at the sweep's network sizes x the margin (the paper's larger networks need more; a",
-             "# Polaris node has 512 GB). Use:",
+             "# light count, plus the paper model's parameters held in host memory (scaling.MODEL_COPIES), x the",
+             "# margin (a Polaris node has 512 GB). Use:",
              "#   snakemake --profile polaris --workflow-profile profiles/paper --configfile config/paper.yaml",
              "set-resources:"]
     for stage, r in sorted(proj["stages"].items()):
         lines.append(f"  {stage}:")
         lines.append(f"    walltime: \"{walltime(r['walltime_request_h'])}\"")
-        lines.append(f"    mem_mb: {math.ceil(r['rss_mib_run_config'] * proj['margin'] * 1.048576 / 100) * 100}")
+        lines.append(f"    mem_mb: {math.ceil(r['rss_mib'] * proj['margin'] * 1.048576 / 100) * 100}")
     return "\n".join(lines) + "\n"
 
 

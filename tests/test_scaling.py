@@ -76,6 +76,23 @@ def test_projection_and_its_workflow_profile(tmp_path):
     assert f'walltime: "{scaling.walltime(diff["walltime_request_h"])}"' in text
     assert scaling.walltime(1.0) == "01:00:00" and scaling.walltime(0.001) == "00:01:00"
     assert scaling.walltime(72.0) == "72:00:00"
+    assert all(r["model_state_mib"] == 0.0 for r in proj["stages"].values())  # the same model: nothing added
+
+
+def test_memory_requests_add_the_larger_models_state():
+    """A larger model adds its parameters' host copies to the stages that hold it (5 while training, per
+    fine-tuning process), and nothing to stage 1."""
+    import copy
+
+    run = config.load_run(REPO / "config" / "config.yaml")
+    big = copy.deepcopy(run)
+    big["diffusion"]["preset"] = "medium"
+    big["finetune"]["nproc"] = 4
+    extra = (scaling.model_size(big)[0] - scaling.model_size(run)[0]) * 4 / 2**20
+    assert extra > 1.0
+    assert scaling.model_state_mib("train_diffusion", run, big) == pytest.approx(5 * extra)
+    assert scaling.model_state_mib("finetune_render", run, big) == pytest.approx(4 * 9 * extra)
+    assert scaling.model_state_mib("fit_siren", run, big) == 0.0
 
 
 def test_a_point_that_did_not_finish_is_named(tmp_path):
