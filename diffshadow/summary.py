@@ -114,6 +114,9 @@ class RunResults:
                          f"{unseen['generated_psnr_median']:.2f} dB (blend of {unseen['blend_k']} nearest true "
                          f"shadows {unseen['blend_psnr_median']:.2f} dB, nearest training SIREN "
                          f"{unseen['nearest_psnr_median']:.2f} dB)"))
+        verdict = cache_verdict(self.voxel)
+        if verdict:
+            rows.append(("model or stored SIRENs?", verdict))
         deployed = self.images["modes"].get("inr_generated_data_inr")
         if deployed:
             rows.append(("image PSNR, deployed path (data INR + generated shadow)", f"{deployed['psnr']:.2f} dB"))
@@ -277,6 +280,23 @@ class RunResults:
                                 "in which at least one job ran. CPU seconds of short jobs are undercounted "
                                 "(Snakemake polls)."))
         return "".join(parts)
+
+
+def cache_verdict(voxel: dict) -> str:
+    """What a run says about the method (voxel_metrics.json): is the model smaller than the stored SIRENs it
+    regenerates, and better than their weight blend (the same render cost, no model) on unseen lights? Empty
+    without a model (`cache: blend`) or without the weight-blend baseline."""
+    unseen = voxel.get("unseen") or {}
+    sb, n = voxel["storage_bytes"], voxel["seen"]["count"]
+    if not sb["model"] or "weight_blend_psnr_median" not in unseen:
+        return ""
+    size = (f"the model is {sb['model'] / sb['sirens']:.1f}x the {n} stored SIRENs (smaller past "
+            f"{sb['model'] / (sb['sirens'] / n):,.0f} lights at these sizes)" if sb["model"] > sb["sirens"]
+            else f"the model is {sb['sirens'] / sb['model']:.1f}x smaller than the {n} stored SIRENs")
+    gap = unseen["generated_psnr_median"] - unseen["weight_blend_psnr_median"]
+    better = (f"it beats their weight blend on unseen lights by {gap:.2f} dB" if gap > 0 else
+              f"their weight blend beats it on unseen lights by {-gap:.2f} dB: `cache: blend` would skip stage 2")
+    return f"{size}; {better} (against the light count: docs/performance.md, \"Scaling with the light count\")"
 
 
 STYLE = """body{font-family:sans-serif;margin:1.5em;color:#222}table{border-collapse:collapse;margin:.4em 0}

@@ -2,7 +2,7 @@
 
 import pytest
 
-from diffshadow.summary import renderer_rows
+from diffshadow.summary import cache_verdict, renderer_rows
 
 MIB = 2**20
 
@@ -71,3 +71,18 @@ def test_bench_png_shows_memory_at_every_size_rendered(scaling):
     heights = sorted(p.get_height() for p in memory.patches if p.get_height() == p.get_height())  # not NaN
     assert heights[-1] == (95 if scaling else 41)
     plt.close(fig)
+
+
+def voxel(model: int, generated: float, weight_blend: float) -> dict:
+    return {"storage_bytes": {"model": model, "sirens": 100 * 1000, "grids": 1}, "seen": {"count": 100},
+            "unseen": {"generated_psnr_median": generated, "weight_blend_psnr_median": weight_blend}}
+
+
+def test_the_cache_verdict_says_which_is_smaller_and_which_is_better():
+    big = cache_verdict(voxel(model=250_000, generated=35.0, weight_blend=34.0))
+    assert big.startswith("the model is 2.5x the 100 stored SIRENs (smaller past 250 lights")
+    assert "beats their weight blend on unseen lights by 1.00 dB" in big
+    small = cache_verdict(voxel(model=50_000, generated=38.0, weight_blend=39.5))
+    assert small.startswith("the model is 2.0x smaller than the 100 stored SIRENs")
+    assert "their weight blend beats it on unseen lights by 1.50 dB: `cache: blend`" in small
+    assert cache_verdict(voxel(model=0, generated=38.0, weight_blend=39.5)) == ""  # cache: blend, no model
