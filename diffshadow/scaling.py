@@ -54,6 +54,7 @@ def read_point(results: Path) -> dict:
                           "sirens_fp16": storage["sirens"] // 2, "grids_fp16": storage["grids"]},
         "siren_parameters": m["stage1"]["parameters"],
         "model_parameters": (m.get("diffusion_model") or {}).get("parameters", 0),
+        "diffusion_epochs": (m.get("diffusion_model") or {}).get("epochs"),  # past `epochs` by the gap check
     }
 
 
@@ -91,6 +92,13 @@ def sweep(runs: list[Path]) -> dict:
         have = [p for p in points if s in p["stages"]]
         fits[s] = {metric: power_law([p["lights"] for p in have], [p["stages"][s][metric] for p in have])
                    for metric in ("wall_s", "cpu_s", "max_rss_mib")}
+    # train_diffusion trains past `epochs` as long as its gap check asks (750, 500 and 800 epochs in the
+    # sweep): its cost per epoch is what grows with the lights, and what the projection carries
+    have = [p for p in points if "train_diffusion" in p["stages"] and p.get("diffusion_epochs")]
+    if len(have) == len(points) and "train_diffusion" in fits:
+        fits["train_diffusion"]["wall_s_per_epoch"] = power_law(
+            [p["lights"] for p in have], [p["stages"]["train_diffusion"]["wall_s"] / p["diffusion_epochs"]
+                                          for p in have])
     return {"points": points, "fits": fits,
             "crossover_lights": {"sirens_fp32": crossover(points, "sirens_fp32"),
                                  "sirens_fp16": crossover(points, "sirens_fp16")}}
@@ -191,7 +199,7 @@ def storage_figure(data: dict):
     return fig
 
 
-def projection_html(proj: dict | None) -> str:
+def projection_html(proj: dict | None, points: list[dict]) -> str:
     """The projection's table (stages by node-hours) and the storage at the paper's light counts."""
     if not proj:
         return ""
@@ -208,7 +216,9 @@ def projection_html(proj: dict | None) -> str:
 <p>{proj['lights']:,} training lights at config/paper.yaml, each stage from this sweep's exponent, the H200's
 measured speed over this machine's per stage, the paper config's work per light over this run's, and an A100 taking
 {proj['a100_per_h200']}x an H200's time (an assumption). Stage 1: subsets of 50, four to a node, 10 nodes. Upper
-bounds where a small run leaves a GPU idle. Host memory: the peak RSS carried to this light count plus the paper
+bounds where a small run leaves a GPU idle. train_diffusion's exponent is its cost per epoch (its gap check trained
+each point past the configured epochs: {", ".join(str(p.get("diffusion_epochs")) for p in points)}), carried at
+the configured epochs. Host memory: the peak RSS carried to this light count plus the paper
 model's parameters in host memory (weights, gradients, Adam's moments, EMA: scaling.MODEL_COPIES).</p>
 <table><tr><th>stage</th><th>exponent</th><th>H200 / this CPU (used)</th><th>work factor</th><th>wall (h)</th>
 <th>node-hours</th><th>host memory per job (GiB)</th></tr>{rows}<tr><td>total</td><td></td><td></td><td></td><td></td>
@@ -252,7 +262,7 @@ and model sizes.</p>
 <h2>Quality</h2><img src="scaling_quality.png" width="1000">
 <table><tr><th>lights</th>{qhead}<th>seen: generated</th><th>seen: stage 1</th></tr>{q}</table>
 <h2>Storage</h2><img src="scaling_storage.png" width="800">
-{projection_html(data.get("projection"))}
+{projection_html(data.get("projection"), pts)}
 </body></html>
 """
 
@@ -367,6 +377,10 @@ def project(data: dict, run: dict, paper: dict, gpu_costs: dict[str, dict], *, l
     rows = {}
     for stage, fit in data["fits"].items():
         cpu_total = predict(fit["wall_s"], lights)
+        exponent = fit["wall_s"]["exponent"]
+        if "wall_s_per_epoch" in fit and cpu_total is not None:  # at the run config's epochs, as work_factors counts
+            cpu_total = predict(fit["wall_s_per_epoch"], lights) * run["diffusion"]["epochs"]
+            exponent = fit["wall_s_per_epoch"]["exponent"]
         ratio = measured_ratio("fit_siren" if stage == "preoptimize" else stage)
         if cpu_total is None or ratio is None:
             continue
@@ -383,7 +397,7 @@ def project(data: dict, run: dict, paper: dict, gpu_costs: dict[str, dict], *, l
         request_h = per_job * MARGIN / 3600
         rss = predict(fit["max_rss_mib"], lights) or fit["max_rss_mib"]["points"][-1][1]
         model_mib = model_state_mib(stage, run, paper)
-        rows[stage] = {"exponent": fit["wall_s"]["exponent"], "cpu_s_run_config": cpu_total,
+        rows[stage] = {"exponent": exponent, "cpu_s_run_config": cpu_total,
                        "h200_over_cpu": ratio, "speedup_used": used, "work_factor": factors.get(stage, 1.0),
                        "a100_s_total": a100_total, "wall_s": wall, "node_hours": node_hours,
                        "walltime_request_h": min(request_h, QUEUE_MAX_H),

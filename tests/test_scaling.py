@@ -16,7 +16,7 @@ REPO = Path(__file__).resolve().parent.parent
 STAGES = {"fit_siren": (2.0, 1.0), "train_diffusion": (10.0, 0.5), "preoptimize": (6.0, 0.0)}  # wall = a n^b
 
 
-def _point(root: Path, n: int) -> Path:
+def _point(root: Path, n: int, epochs: int | None = None) -> Path:
     """A finished run's files as the sweep reads them, at `n` training lights."""
     res = root / f"lights_{n}" / "results" / "nucleon"
     res.mkdir(parents=True)
@@ -29,7 +29,7 @@ def _point(root: Path, n: int) -> Path:
                "unseen": {"count": 8, "generated_psnr_median": 33.0, "weight_blend_psnr_median": 32.0 + n / 100,
                           "siren_blend_psnr_median": 27.0, "nearest_psnr_median": 23.0},
                "storage_bytes": {"model": 1000 * 4, "sirens": 40 * n, "grids": 400 * n},
-               "stage1": {"parameters": 10}, "diffusion_model": {"parameters": 1000}}
+               "stage1": {"parameters": 10}, "diffusion_model": {"parameters": 1000, "epochs": epochs}}
     (res / "voxel_metrics.json").write_text(json.dumps(metrics))
     (res / "lights.json").write_text(json.dumps({"sphere": 4 * n}))
     return res
@@ -77,6 +77,22 @@ def test_projection_and_its_workflow_profile(tmp_path):
     assert scaling.walltime(1.0) == "01:00:00" and scaling.walltime(0.001) == "00:01:00"
     assert scaling.walltime(72.0) == "72:00:00"
     assert all(r["model_state_mib"] == 0.0 for r in proj["stages"].values())  # the same model: nothing added
+
+
+def test_train_diffusion_projects_its_cost_per_epoch(tmp_path):
+    """The gap check trains past `epochs` on its own judgement: the projection carries the cost per epoch (here
+    flat: twice the time for twice the epochs at 4x the lights, with wall = 10 n^0.5) at the config's epochs."""
+    data = scaling.sweep([_point(tmp_path, 8, epochs=500), _point(tmp_path, 32, epochs=1000)])
+    per_epoch = data["fits"]["train_diffusion"]["wall_s_per_epoch"]
+    assert per_epoch["exponent"] == pytest.approx(0.0, abs=1e-9)
+    assert data["fits"]["train_diffusion"]["wall_s"]["exponent"] == pytest.approx(0.5)  # the raw walls, as measured
+    run = config.load_run(REPO / "config" / "config.yaml")
+    gpu = {"train_diffusion": {"wall_s": 10.0 * 8 ** 0.5}}  # as fast as the CPU
+    proj = scaling.project(data, run, run, gpu, lights=200, subset=50, stage1_nodes=1)
+    diff = proj["stages"]["train_diffusion"]
+    assert diff["exponent"] == pytest.approx(0.0, abs=1e-9)
+    epoch_s = 10.0 * 8 ** 0.5 / 500
+    assert diff["a100_s_total"] == pytest.approx(epoch_s * run["diffusion"]["epochs"] * scaling.A100_PER_H200)
 
 
 def test_memory_requests_add_the_larger_models_state():
