@@ -92,8 +92,8 @@ def sweep(runs: list[Path]) -> dict:
         have = [p for p in points if s in p["stages"]]
         fits[s] = {metric: power_law([p["lights"] for p in have], [p["stages"][s][metric] for p in have])
                    for metric in ("wall_s", "cpu_s", "max_rss_mib")}
-    # train_diffusion trains past `epochs` as long as its gap check asks (750, 500 and 800 epochs in the
-    # sweep): its cost per epoch is what grows with the lights, and what the projection carries
+    # train_diffusion trains past `epochs` as long as its gap check asks, so points differ in epochs: its cost
+    # per epoch is what grows with the lights, and what the projection carries
     have = [p for p in points if "train_diffusion" in p["stages"] and p.get("diffusion_epochs")]
     if len(have) == len(points) and "train_diffusion" in fits:
         fits["train_diffusion"]["wall_s_per_epoch"] = power_law(
@@ -203,6 +203,7 @@ def projection_html(proj: dict | None, points: list[dict]) -> str:
     """The projection's table (stages by node-hours) and the storage at the paper's light counts."""
     if not proj:
         return ""
+    epochs = ", ".join(str(p.get("diffusion_epochs")) for p in points)
     rows = "".join(
         f"<tr><td>{html.escape(s)}</td><td>{r['exponent']:.2f}</td><td>{r['h200_over_cpu']:.1f} "
         f"({r['speedup_used']:.1f})</td>"
@@ -216,10 +217,10 @@ def projection_html(proj: dict | None, points: list[dict]) -> str:
 <p>{proj['lights']:,} training lights at config/paper.yaml, each stage from this sweep's exponent, the H200's
 measured speed over this machine's per stage, the paper config's work per light over this run's, and an A100 taking
 {proj['a100_per_h200']}x an H200's time (an assumption). Stage 1: subsets of 50, four to a node, 10 nodes. Upper
-bounds where a small run leaves a GPU idle. train_diffusion's exponent is its cost per epoch (its gap check trained
-each point past the configured epochs: {", ".join(str(p.get("diffusion_epochs")) for p in points)}), carried at
-the configured epochs. Host memory: the peak RSS carried to this light count plus the paper
-model's parameters in host memory (weights, gradients, Adam's moments, EMA: scaling.MODEL_COPIES).</p>
+bounds where a small run leaves a GPU idle. train_diffusion's exponent is its cost per epoch, carried at the configured
+epochs (its gap check chose the epochs each point trained: {epochs}). Host memory: the peak RSS carried to this
+light count plus the paper model's parameters in host memory (weights, gradients, Adam's moments, EMA:
+scaling.MODEL_COPIES).</p>
 <table><tr><th>stage</th><th>exponent</th><th>H200 / this CPU (used)</th><th>work factor</th><th>wall (h)</th>
 <th>node-hours</th><th>host memory per job (GiB)</th></tr>{rows}<tr><td>total</td><td></td><td></td><td></td><td></td>
 <td>{total:,.1f}</td><td></td></tr></table>
