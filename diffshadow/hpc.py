@@ -17,6 +17,8 @@ import sys
 import time
 from pathlib import Path
 
+import yaml
+
 _held: list[int] = []  # open lock file descriptors, kept for the life of the process
 
 
@@ -70,19 +72,30 @@ def _same_profile(a: Path, b: Path) -> bool:
     return not (cmp.left_only or cmp.right_only or cmp.diff_files or cmp.funny_files)
 
 
-def install_profiles(source: Path, target_root: Path, *, force: bool = False) -> list[Path]:
-    """Link each profile folder of `source` into `target_root` (Snakemake's search path).
+def is_workflow_profile(profile: Path) -> bool:
+    """A profile that only sets per-rule resources (profiles/paper): given by path to `--workflow-profile`, laid
+    over a named one, so it is not installed by name."""
+    cfg = profile / "config.yaml"
+    keys = set(yaml.safe_load(cfg.read_text()) or {}) if cfg.is_file() else set()
+    return bool(keys) and keys <= {"set-resources", "set-threads"}
 
-    An existing profile of the same name is left alone when it is this one (or identical) and
-    refused otherwise, unless `force`.
+
+def install_profiles(source: Path, target_root: Path, *, force: bool = False) -> list[Path]:
+    """Link each profile folder of `source` into `target_root` (Snakemake's search path), workflow profiles
+    (`is_workflow_profile`) aside.
+
+    An existing profile of the same name is left alone when it is this one (or identical), replaced when it is
+    a link to a folder that is gone (a deleted clone: nothing to lose), and refused otherwise, unless `force`.
     """
     if not source.is_dir():
         raise SystemExit(f"install-profiles: no profiles folder at {source} (run from the repository root "
                          f"or pass --source)")
     target_root.mkdir(parents=True, exist_ok=True)
     installed = []
-    for profile in sorted(p for p in source.iterdir() if p.is_dir()):
+    for profile in sorted(p for p in source.iterdir() if p.is_dir() and not is_workflow_profile(p)):
         target = target_root / profile.name
+        if target.is_symlink() and not target.exists():
+            target.unlink()
         if target.exists() or target.is_symlink():
             if _same_profile(profile, target):
                 installed.append(target)

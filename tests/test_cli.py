@@ -24,6 +24,18 @@ def test_install_profiles_honours_xdg_and_refuses_a_different_profile(tmp_path, 
     assert (other / "config.yaml").read_text() == "cores: 64\n"
 
 
+def test_install_profiles_replaces_a_link_to_a_deleted_clone_and_skips_workflow_profiles(tmp_path, monkeypatch):
+    monkeypatch.setenv("XDG_CONFIG_HOME", str(tmp_path / "cfg"))
+    root = tmp_path / "cfg" / "snakemake"
+    root.mkdir(parents=True)
+    (root / "local").symlink_to(tmp_path / "deleted_clone" / "profiles" / "local", target_is_directory=True)
+    main(["install-profiles", "--source", str(REPO / "profiles")])
+    assert (root / "local").resolve() == (REPO / "profiles" / "local").resolve()
+    assert (root / "polaris").is_symlink()
+    # profiles/paper only sets per-rule resources: used by path with --workflow-profile, not installed by name
+    assert not (root / "paper").exists() and (REPO / "profiles" / "paper" / "config.yaml").is_file()
+
+
 def test_bad_input_is_one_line_without_traceback(tmp_path, capsys):
     with pytest.raises(SystemExit) as exit_info:
         main(["prepare-volume", "--config-json", '{"volume": "missing.raw", "transfer_function": '
