@@ -6,7 +6,8 @@ three figures and a page (`diffshadow.scaling`).
 
 Each point is `snakemake --directory OUT/lights_N` with `lights: {count: N, sphere: 4N, unseen: U}` laid over the
 run config: the paper's cap fraction (2,000 training lights of 8,000), so the training lights grow denser with N,
-and the same number of unseen test lights everywhere. A point that is already finished is not rerun (Snakemake
+and the same number of unseen test lights everywhere; `--sphere 8000` instead fixes the spacing at the paper's, so
+the training region grows with N. A point that is already finished is not rerun (Snakemake
 sees its outputs); one cut short resumes. Writes OUT/scaling.json, OUT/scaling_{costs,quality,storage}.png and
 OUT/scaling.html, with the projection of every stage to the paper's scale on Polaris (`scaling.project`: this
 sweep's exponents, the H200's speed over this machine's from `--gpu-costs`, the paper config's work per light).
@@ -31,6 +32,8 @@ def main() -> None:
     ap.add_argument("--out", type=Path, default=Path("sweep"))
     ap.add_argument("--scene", default="nucleon")
     ap.add_argument("--unseen", type=int, default=32)
+    ap.add_argument("--sphere", type=int, help="a fixed sphere (a fixed light spacing: 8000 is the paper's) "
+                    "instead of 4N, the paper's cap fraction")
     ap.add_argument("--profile", default=str(ROOT / "profiles" / "local"))
     ap.add_argument("-j", "--jobs", type=int, default=2)
     ap.add_argument("--configfile", type=Path, help="a further overlay for every point (e.g. config/paper.yaml)")
@@ -52,7 +55,8 @@ def main() -> None:
             continue
         point.mkdir(parents=True, exist_ok=True)
         overlay = point / "lights.yaml"
-        overlay.write_text(f"scenes: [{a.scene}]\nlights: {{count: {n}, sphere: {4 * n}, unseen: {a.unseen}}}\n")
+        sphere = a.sphere or 4 * n
+        overlay.write_text(f"scenes: [{a.scene}]\nlights: {{count: {n}, sphere: {sphere}, unseen: {a.unseen}}}\n")
         cmd = ["snakemake", "-s", str(ROOT / "Snakefile"), "--directory", str(point), "--profile", a.profile,
                "-j", str(a.jobs), "--configfile", *([str(a.configfile)] if a.configfile else []), str(overlay)]
         print(f"[sweep] {n} lights: {' '.join(cmd)}", flush=True)
