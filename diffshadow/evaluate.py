@@ -10,6 +10,7 @@ import torch
 
 from diffshadow.diffusion.sample import generate, load_sampler
 from diffshadow.lights import inverse_angle_weights, nearest, pick
+from diffshadow.store import blend_rows
 from diffshadow.truth import EvalTruth, median, psnr_per_light
 
 
@@ -68,7 +69,7 @@ def voxel_metrics(state: dict | None, stage1, generated, truth: EvalTruth, light
         near = psnr_per_light(truth.sirens(stage1.weights[idx[:, 0]], layout, siren), truth_unseen)
         blend = psnr_per_light(blend_baseline(truth_train, idx, mix), truth_unseen)
         # the same blend of the stage-1 SIRENs' weights: one SIREN per unseen light, as the model gives
-        weight_blend = (np.asarray(stage1.weights, dtype=np.float64)[idx] * mix[..., None]).sum(1)
+        weight_blend = blend_rows(stage1.weights, idx, mix)
         wblend = psnr_per_light(truth.sirens(weight_blend, layout, siren), truth_unseen)
         # the blend of their values: a cache of the fitted SIRENs read k times per sample. Unlike the true
         # shadows' blend it carries stage 1's fit error, which caps what any generated SIREN can reach.

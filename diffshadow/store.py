@@ -32,6 +32,12 @@ class WeightStore:
     seen: np.ndarray | None = None  # generated stores: True for training lights, False for unseen ones
 
 
+def blend_rows(weights: np.ndarray, idx: np.ndarray, mix: np.ndarray) -> np.ndarray:
+    """Weight blends (Q, P) in float64 of the stored SIRENs `weights[idx]` (Q, k) with weights `mix` (Q, k);
+    only the rows blended are converted, not the store."""
+    return (np.asarray(weights[idx], dtype=np.float64) * mix[..., None]).sum(1)
+
+
 class BlendSampler:
     """`cache: blend`: the shadow SIREN of any light as the weight blend of the `k` stored SIRENs nearest to it
     (inverse-angle weights), the way `blend-shadows` makes generated.zarr's unseen rows. The same interface as
@@ -43,8 +49,7 @@ class BlendSampler:
 
     def __call__(self, light) -> np.ndarray:
         idx, mix = blend_weights(self.store.lights, as_direction(light)[None], self.k)
-        w = np.asarray(self.store.weights, dtype=np.float64)[idx[0]]
-        return (w * mix[0, :, None]).sum(0).astype(np.float32)
+        return blend_rows(self.store.weights, idx, mix)[0].astype(np.float32)
 
 
 def write_subset(path, *, weights, light_index, lights, psnr, psnr_visible, layout: WeightLayout,

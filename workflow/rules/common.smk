@@ -66,9 +66,7 @@ def shadow_source(wildcards):
 
 def geometry_checkpoint(wildcards):
     """The model before fine-tuning, for evaluate_voxels' unseen before/after (only when fine-tuning runs)."""
-    if scene_config(wildcards.scene)["cache"] == "blend":
-        return {}
-    if scene_config(wildcards.scene)["finetune"]["enabled"]:
+    if model_checkpoint(wildcards) and scene_config(wildcards.scene)["finetune"]["enabled"]:
         return {"geometry": f"results/{wildcards.scene}/diffusion_geometry.ckpt"}
     return {}
 
