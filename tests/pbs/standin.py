@@ -138,7 +138,9 @@ class _State:
         self.history.write_text(path.read_text())
 
     def write_text(self, state: str) -> None:
-        self.path.write_text(state)
+        tmp = self.path.with_name(self.path.name + ".tmp")  # in one rename: qstat never reads an empty state
+        tmp.write_text(state)
+        os.replace(tmp, self.path)
         with open(self.history, "a") as f:
             f.write(f" {state}")
 
@@ -187,8 +189,12 @@ def supervise(argv: list[str]) -> None:
                 time.sleep(0.02)
         if code != "requeued":
             break
+    # the exit status first, in one rename, then the state: qstat must never see F without Exit_status (a
+    # finished job read between the two writes was reported failed, and its Snakemake run with it)
+    tmp = exit_file.with_name(exit_file.name + ".tmp")
+    tmp.write_text(f"{code}\n")
+    os.replace(tmp, exit_file)
     state.write_text("F")
-    exit_file.write_text(f"{code}\n")
 
 
 def qstat(argv: list[str]) -> None:
