@@ -39,6 +39,20 @@ class ArtifactError(ValueError):
     """A stage's input file that is missing or is not what that stage writes; the message names it."""
 
 
+def _torch_file(path: str | Path, what: str, *, weights_only: bool) -> object:
+    """torch.load of `path`, or an ArtifactError naming it and `what` it should be: torch raises many kinds for
+    a folder, a truncated or foreign file (a miniz RuntimeError, EOFError, UnpicklingError, IsADirectoryError)."""
+    if not Path(path).exists():
+        raise ArtifactError(f"{path}: no such file; expected {what}")
+    if Path(path).is_dir():
+        raise ArtifactError(f"{path}: a folder; expected {what}")
+    try:
+        return torch.load(path, map_location="cpu", weights_only=weights_only)
+    except Exception as e:
+        first = str(e).splitlines()[0].split(". ")[0][:160] if str(e) else ""  # miniz appends a paragraph
+        raise ArtifactError(f"{path}: unreadable ({type(e).__name__}: {first}); expected {what}") from None
+
+
 # --------------------------------------------------------------------------------------- prepared volume
 
 
@@ -93,10 +107,7 @@ def save_siren_init(path: str | Path, chosen: Stage1Layout) -> None:
 def load_siren_init(path: str | Path, siren: SirenConfig, steps: int | None = None) -> Stage1Layout:
     """preoptimize's init, SIREN size and fit steps; refused when made from other settings than `siren` and
     `steps` (the configured start of the ladder): the size it chose answers those settings, not others."""
-    try:
-        state = torch.load(path, map_location="cpu", weights_only=True)
-    except FileNotFoundError:
-        raise ArtifactError(f"{path}: no such file (preoptimize's siren_init.pt)") from None
+    state = _torch_file(path, "preoptimize's siren_init.pt", weights_only=True)
     try:
         chosen = SirenConfig.from_config(state["siren"])
         capacity = state["capacity"]
@@ -202,10 +213,7 @@ def read_eval_truth(path: str | Path) -> EvalTruth:
 
 def load_checkpoint(path: str | Path) -> dict:
     """A diffusion checkpoint (train_diffusion's or finetune_render's), on the CPU."""
-    try:
-        state = torch.load(path, map_location="cpu", weights_only=False)
-    except FileNotFoundError:
-        raise ArtifactError(f"{path}: no such checkpoint") from None
+    state = _torch_file(path, "a diffusion checkpoint (train_diffusion's or finetune_render's)", weights_only=False)
     if not isinstance(state, dict) or not {"model", "standardizer", "layout", "config"} <= set(state):
         raise ArtifactError(f"{path}: not a diffusion checkpoint (train_diffusion or finetune_render)")
     return state
@@ -252,16 +260,16 @@ def save_data_inr(path, inr: DataInr) -> None:
 
 def load_data_inr(path) -> DataInr:
     path = Path(path)
+    state = _torch_file(path, "a data INR file (train_data_inr's data_inr.pt)", weights_only=True)
     try:
-        state = torch.load(path, map_location="cpu", weights_only=True)
         layout = WeightLayout.from_config(state["layout"])
         model = Siren.from_flat(state["weights"], layout, SirenConfig.from_config(state["siren"]))
         return DataInr(model, np.asarray(state["extent"]), float(state["psnr"]), float(state["max_error"]),
                        dict(state["config"]), state["cell_lo"].numpy(), state["cell_hi"].numpy())
-    except FileNotFoundError:
-        raise ValueError(f"{path}: no such data INR file (train_data_inr's data_inr.pt)") from None
-    except (KeyError, RuntimeError, TypeError) as e:
-        raise ValueError(f"{path}: not a data INR file ({e})") from None
+    except KeyError as e:
+        raise ArtifactError(f"{path}: not a data INR file (train_data_inr's data_inr.pt): no key {e}") from None
+    except (AttributeError, RuntimeError, TypeError, ValueError) as e:
+        raise ArtifactError(f"{path}: not a data INR file (train_data_inr's data_inr.pt): {e}") from None
 
 
 # ------------------------------------------------------------------------------------------ render scene

@@ -68,7 +68,28 @@ CASES = [
     ("--config-json: an unknown key", lambda t: _config_json(t, '{"data_inr": {"stepz": 3}}'), {},
      r"data_inr: unknown key\(s\) \['stepz'\]"),
     ("--config-json: not JSON", lambda t: _config_json(t, "{bad"), {}, "--config-json: not valid JSON"),
+    ("a truncated diffusion checkpoint", lambda t: _render_inr(t, str(_write(t / "cut.ckpt", _torch_bytes()[:200]))),
+     {}, r"cut.ckpt: unreadable \(RuntimeError: .*\); expected a diffusion checkpoint"),
+    ("a folder for a diffusion checkpoint", lambda t: _render_inr(t, str(t)), {}, r": a folder; expected a diffusion"),
+    ("a data INR that is not one", lambda t: _render_inr(t, str(_write(t / "d.ckpt", _torch_bytes())), "--scalar",
+                                                         "inr", "--data-inr", str(t / "d.ckpt")), {},
+     r"d.ckpt: not a data INR file \(train_data_inr's data_inr.pt\): no key 'layout'"),
 ]
+
+
+def _render_inr(tmp_path, checkpoint: str, *extra):
+    return _render(["--volume", npy(tmp_path, "v.npy"), "--tf-json", json.dumps(TF)], "--mode", "inr", "--diffusion",
+                   checkpoint, "--light", "1", "0", "0", *extra)
+
+
+def _torch_bytes() -> bytes:
+    import io
+
+    import torch
+
+    buf = io.BytesIO()
+    torch.save({"weights": torch.zeros(64)}, buf)
+    return buf.getvalue()
 
 
 def _write(path, data: bytes):

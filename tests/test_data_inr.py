@@ -79,7 +79,7 @@ def test_bad_file_is_named(tmp_path):
     torch.save({"weights": torch.zeros(3)}, bad)
     with pytest.raises(ValueError, match="x.pt: not a data INR"):
         load_data_inr(bad)
-    with pytest.raises(ValueError, match="no such data INR"):
+    with pytest.raises(ValueError, match="missing.pt: no such file; expected a data INR file"):
         load_data_inr(tmp_path / "missing.pt")
 
 
