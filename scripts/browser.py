@@ -159,6 +159,10 @@ class Browser:
             return c && c.width > 0 ? {x: c.x, y: c.y, width: c.width, height: c.height} : null; })()""",
                              what="the viewer's canvas")
 
+    def canvas_size(self) -> list[int]:
+        rect = self.canvas_rect()
+        return [round(rect["width"]), round(rect["height"])]
+
     def screenshot(self, clip: dict | None = None) -> np.ndarray:
         """(H, W, 3) uint8 of the page, or of `clip` ({x, y, width, height} in CSS pixels)."""
         from PIL import Image
@@ -253,7 +257,9 @@ def drive_viewer(results, workdir, *, screenshot=None) -> dict:
         browser = Browser(url, width=800, height=335)
         try:
             out = {}
-            first = next_frame(record, 0, lambda m: m["height"] == 192)
+            # the first frame drawn for the canvas as laid out: under load the client may report the whole
+            # window's aspect before the panel takes its side, and the frame for that is replaced at once
+            first = next_frame(record, 0, lambda m: [m["width"], m["height"]] == browser.canvas_size())
             before = shown(browser, first)
 
             from diffshadow.lights import read_lights
