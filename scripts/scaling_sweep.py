@@ -67,7 +67,10 @@ def main() -> None:
               flush=True)
         if rc:
             sys.exit(f"[sweep] the run at {n} lights failed; see {point / 'snakemake.log'}")
-    data = scaling.sweep(runs)
+    try:
+        data = scaling.sweep(runs)
+    except scaling.SweepError as e:  # e.g. one new point run alone: its results stand; collect with the others
+        sys.exit(f"[sweep] {e}; collect finished points together (--collect --lights N1 N2 ...)")
     run_cfg = config.run_config(config.read_yaml(ROOT / "config" / "config.yaml"), "config/config.yaml")
     paper = config.run_config(config.merge(config.read_yaml(ROOT / "config" / "config.yaml"),
                                            config.read_yaml(a.paper)), str(a.paper))
