@@ -24,7 +24,7 @@ from diffshadow.config import defaults, read_scene_file
 from diffshadow.data_inr import DataInr
 from diffshadow.diffusion.train import TrainingData
 from diffshadow.fit import Stage1Layout
-from diffshadow.io import VerifiedGroup, atomic_torch_save, write_zarr_group
+from diffshadow.io import VerifiedGroup, atomic_torch_save, error_line, write_zarr_group
 from diffshadow.lights import BLEND_K, PoolLights, blend_weights
 from diffshadow.render import Camera, Networks, RenderScene
 from diffshadow.render.bundle import RayBundle
@@ -49,8 +49,7 @@ def _torch_file(path: str | Path, what: str, *, weights_only: bool) -> object:
     try:
         return torch.load(path, map_location="cpu", weights_only=weights_only)
     except Exception as e:
-        first = str(e).splitlines()[0].split(". ")[0][:160] if str(e) else ""  # miniz appends a paragraph
-        raise ArtifactError(f"{path}: unreadable ({type(e).__name__}: {first}); expected {what}") from None
+        raise ArtifactError(f"{path}: unreadable ({error_line(e)}); expected {what}") from None
 
 
 # --------------------------------------------------------------------------------------- prepared volume
@@ -213,9 +212,10 @@ def read_eval_truth(path: str | Path) -> EvalTruth:
 
 def load_checkpoint(path: str | Path) -> dict:
     """A diffusion checkpoint (train_diffusion's or finetune_render's), on the CPU."""
-    state = _torch_file(path, "a diffusion checkpoint (train_diffusion's or finetune_render's)", weights_only=False)
+    what = "a diffusion checkpoint (train_diffusion's or finetune_render's)"
+    state = _torch_file(path, what, weights_only=False)
     if not isinstance(state, dict) or not {"model", "standardizer", "layout", "config"} <= set(state):
-        raise ArtifactError(f"{path}: not a diffusion checkpoint (train_diffusion or finetune_render)")
+        raise ArtifactError(f"{path}: not {what}")
     return state
 
 
@@ -259,17 +259,17 @@ def save_data_inr(path, inr: DataInr) -> None:
 
 
 def load_data_inr(path) -> DataInr:
-    path = Path(path)
-    state = _torch_file(path, "a data INR file (train_data_inr's data_inr.pt)", weights_only=True)
+    path, what = Path(path), "a data INR file (train_data_inr's data_inr.pt)"
+    state = _torch_file(path, what, weights_only=True)
     try:
         layout = WeightLayout.from_config(state["layout"])
         model = Siren.from_flat(state["weights"], layout, SirenConfig.from_config(state["siren"]))
         return DataInr(model, np.asarray(state["extent"]), float(state["psnr"]), float(state["max_error"]),
                        dict(state["config"]), state["cell_lo"].numpy(), state["cell_hi"].numpy())
     except KeyError as e:
-        raise ArtifactError(f"{path}: not a data INR file (train_data_inr's data_inr.pt): no key {e}") from None
+        raise ArtifactError(f"{path}: not {what}: no key {e}") from None
     except (AttributeError, RuntimeError, TypeError, ValueError) as e:
-        raise ArtifactError(f"{path}: not a data INR file (train_data_inr's data_inr.pt): {e}") from None
+        raise ArtifactError(f"{path}: not {what}: {e}") from None
 
 
 # ------------------------------------------------------------------------------------------ render scene

@@ -208,6 +208,12 @@ def check_stores(paths: list[Path]):
         yield f"{store}: {', '.join(names)}: {state} ({size / 2 ** 20:.1f} MiB in {time.perf_counter() - t0:.2f} s)"
 
 
+def error_line(e: BaseException) -> str:
+    """An exception as one short line: its type and first sentence (torch's miniz error appends a paragraph)."""
+    text = str(e).splitlines()[0].split(". ")[0][:160] if str(e) else ""
+    return f"{type(e).__name__}: {text}"
+
+
 def resume(checkpoint: str | Path | None, fingerprint: str, *, log=print, map_location="cpu",
            weights_only: bool = False, key: str = "fingerprint") -> dict | None:
     """The state saved in `checkpoint` when it was written for this `fingerprint` (same inputs and
@@ -224,8 +230,7 @@ def resume(checkpoint: str | Path | None, fingerprint: str, *, log=print, map_lo
     except Exception as e:  # truncated zip, garbage, a pickle of something else: torch raises many kinds
         aside = Path(checkpoint).with_name(f"{Path(checkpoint).name}.corrupt-{time.strftime('%Y%m%dT%H%M%S')}")
         os.replace(checkpoint, aside)
-        log(f"{checkpoint}: unreadable ({type(e).__name__}: {str(e).splitlines()[0][:200] if str(e) else ''}); "
-            f"set aside as {aside.name}, starting afresh")
+        log(f"{checkpoint}: unreadable ({error_line(e)}); set aside as {aside.name}, starting afresh")
         return None
     if state.get(key) == fingerprint:
         return state

@@ -130,6 +130,13 @@ def _kill(proc: subprocess.Popen, grace_s: float = 5.0) -> None:
             continue
 
 
+def _replace_text(path: Path, text: str) -> None:
+    """Write in one rename: qstat, reading at any moment, sees the old text or the new, never half of it."""
+    tmp = path.with_name(path.name + ".tmp")
+    tmp.write_text(text)
+    os.replace(tmp, path)
+
+
 class _State:
     """The job's state for qstat, and its history (every state it went through, for tests to read)."""
 
@@ -138,9 +145,7 @@ class _State:
         self.history.write_text(path.read_text())
 
     def write_text(self, state: str) -> None:
-        tmp = self.path.with_name(self.path.name + ".tmp")  # in one rename: qstat never reads an empty state
-        tmp.write_text(state)
-        os.replace(tmp, self.path)
+        _replace_text(self.path, state)
         with open(self.history, "a") as f:
             f.write(f" {state}")
 
@@ -189,11 +194,9 @@ def supervise(argv: list[str]) -> None:
                 time.sleep(0.02)
         if code != "requeued":
             break
-    # the exit status first, in one rename, then the state: qstat must never see F without Exit_status (a
-    # finished job read between the two writes was reported failed, and its Snakemake run with it)
-    tmp = exit_file.with_name(exit_file.name + ".tmp")
-    tmp.write_text(f"{code}\n")
-    os.replace(tmp, exit_file)
+    # the exit status first, then the state: qstat must never see F without Exit_status (a finished job read
+    # between the two writes was reported failed, and its Snakemake run with it)
+    _replace_text(exit_file, f"{code}\n")
     state.write_text("F")
 
 
