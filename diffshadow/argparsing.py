@@ -14,10 +14,15 @@ def config_of(args: argparse.Namespace) -> dict:
 
 
 def device_of(args: argparse.Namespace):
-    from diffshadow.runtime import resolve_device, set_deterministic_from_env
+    """The job's device, resolved and started once (later calls return the same device; its start is timed)."""
+    if getattr(args, "_device", None) is None:
+        from diffshadow.phases import phase
+        from diffshadow.runtime import resolve_device, set_deterministic_from_env, start_device
 
-    set_deterministic_from_env()
-    return resolve_device(args.device, args.config_device)
+        with phase("device"):
+            set_deterministic_from_env()
+            args._device = start_device(resolve_device(args.device, args.config_device))
+    return args._device
 
 
 def add_networks(p: argparse.ArgumentParser) -> None:

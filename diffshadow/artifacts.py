@@ -26,6 +26,7 @@ from diffshadow.diffusion.train import TrainingData
 from diffshadow.fit import Stage1Layout
 from diffshadow.io import VerifiedGroup, atomic_torch_save, error_line, write_zarr_group
 from diffshadow.lights import BLEND_K, PoolLights, blend_weights
+from diffshadow.phases import timed
 from diffshadow.render import Camera, Networks, RenderScene
 from diffshadow.render.bundle import RayBundle
 from diffshadow.siren import Siren, SirenConfig, WeightLayout
@@ -39,6 +40,7 @@ class ArtifactError(ValueError):
     """A stage's input file that is missing or is not what that stage writes; the message names it."""
 
 
+@timed("io")
 def _torch_file(path: str | Path, what: str, *, weights_only: bool) -> object:
     """torch.load of `path`, or an ArtifactError naming it and `what` it should be: torch raises many kinds for
     a folder, a truncated or foreign file (a miniz RuntimeError, EOFError, UnpicklingError, IsADirectoryError)."""

@@ -7,6 +7,7 @@ device is resolved once by `diffshadow.runtime`, configuration comes from `diffs
 from __future__ import annotations
 
 import argparse
+import os
 import sys
 from pathlib import Path
 
@@ -250,6 +251,9 @@ def build_parser() -> argparse.ArgumentParser:
 
     parser = argparse.ArgumentParser(prog="diffshadow", description=__doc__.splitlines()[0])
     parser.add_argument("--version", action="version", version=f"diffshadow {__version__}")
+    parser.add_argument("--phases", metavar="FILE", help="write where this process's time went (import, device, "
+                        "compile, io, compute seconds) as JSON to FILE; the workflow puts it beside each job's "
+                        "benchmark file")
     sub = parser.add_subparsers(dest="command", required=True)
 
     p = _add(sub, "lights", _lights, "training and unseen light directions as JSON", device=False)
@@ -376,28 +380,36 @@ _ONE_GPU = {"preoptimize", "fit-siren", "train-data-inr", "presample", "train-di
             "evaluate-voxels", "render-targets", "evaluate-images", "render"}
 
 
-# subcommands that never touch torch: importing it (~2 s) would be most of their run, and stage-costs and
-# summary sit on every run's last stretch, pbs-status in the scheduler's polling loop
-_NO_TORCH = {"stage-costs", "summary", "pbs-status", "install-profiles"}
+# subcommands that never touch torch: importing it (~1 s on a CPU, seconds with a CUDA build) would be most of
+# their run; lights and collect-weights are workflow jobs, stage-costs and summary sit on every run's last
+# stretch, pbs-status in the scheduler's polling loop (tests/test_cli.py checks they start without torch)
+_NO_TORCH = {"lights", "collect-weights", "stage-costs", "summary", "pbs-status", "install-profiles"}
 
 
 def main(argv: list[str] | None = None) -> None:
+    from diffshadow import phases
+
     args = build_parser().parse_args(argv)
     # a rule pipes the output through `tee`: without line buffering its progress would arrive at the end
     if hasattr(sys.stdout, "reconfigure"):
         sys.stdout.reconfigure(line_buffering=True)
     try:
         if args.command not in _NO_TORCH:
+            import torch  # noqa: F401  (here, so that its import is timed as such, not as the stage's compute)
+
             from diffshadow.runtime import claim_gpu_lock, set_threads
 
             if args.command in _ONE_GPU:
                 claim_gpu_lock(args.command)
             if args.command not in ("finetune-render", "parsl-fit"):  # threads per rank and per worker: set there
                 set_threads(getattr(args, "threads", 0))
+        phases.mark_imports_done()
         args.func(args)
     except ValueError as e:  # the library's input errors: one line, no traceback
         print(f"diffshadow {args.command}: error: {e}", file=sys.stderr)
         raise SystemExit(2) from None
+    if args.phases and os.environ.get("RANK", "0") == "0":  # under torchrun: rank 0's clock
+        phases.write(args.phases, args.command)
 
 
 if __name__ == "__main__":

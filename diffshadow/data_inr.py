@@ -20,7 +20,7 @@ from diffshadow.config import ConfigError, section
 from diffshadow.grid import cell_ranges, lookup_grids, voxel_points
 from diffshadow.io import atomic_torch_save, resume
 from diffshadow.metrics import psnr
-from diffshadow.progress import eta
+from diffshadow.progress import FirstNonFinite, eta
 from diffshadow.sampling import PointSampler, seeded
 from diffshadow.siren import Siren, SirenConfig, box_to_siren, cosine_lr
 from diffshadow.transfer import TransferFunction
@@ -158,22 +158,54 @@ def fit_data_inr(volume: Volume, tf: TransferFunction, cfg: DataInrConfig, *, ch
     return inr
 
 
+class DataInrFit:
+    """A data INR being fitted, and one optimiser step of it (`step`): the loop body of `fit_data_inr_once`, which
+    `bench stages` times as it is. The step reads nothing back to the host (tests/test_syncs.py) except at the
+    steps where the error-driven sampler rescores the voxels (every `error_every`)."""
+
+    def __init__(self, volume: Volume, tf: TransferFunction, cfg: DataInrConfig, *, device: torch.device):
+        self.cfg, self.device = cfg, device
+        self.model = Siren(cfg.siren, seeded(cfg.seed, 7)).to(device)
+        self.opt = torch.optim.Adam(self.model.parameters(), lr=cfg.lr)
+        self.grid = torch.as_tensor(volume.data, device=device)[None]
+        self.extent = torch.as_tensor(volume.extent, dtype=torch.float32, device=device)
+        self.n_error = int(round(cfg.points * cfg.error_fraction))
+        # the visible share is of all points; PointSampler draws the points left after the error-driven ones
+        share = cfg.visible_fraction
+        if self.n_error:
+            share = min(1.0, cfg.visible_fraction * cfg.points / max(1, cfg.points - self.n_error))
+        self.sampler = PointSampler(volume, tf, share)
+        self.hard = ErrorSampler(volume, cfg.error_every) if self.n_error else None
+
+    def step(self, step: int) -> torch.Tensor:
+        """Optimiser step `step` (its points depend only on the seed and `step`); the loss before it, on the
+        device."""
+        cfg, hard = self.cfg, self.hard
+        for group in self.opt.param_groups:
+            group["lr"] = cosine_lr(step, cfg, cfg.width)  # same fields as FitConfig
+        gen = seeded(cfg.seed, 8, step)
+        pts = self.sampler.sample(1, cfg.points - self.n_error, gen)
+        if hard is not None:
+            if step % hard.every == 0:  # a resumed run starts with the scores its checkpoint kept
+                hard.score(self.model, self.device)
+            pts = torch.cat([pts, hard.sample(self.n_error, gen)[None]], dim=1)
+        pts = pts.to(self.device)
+        with torch.no_grad():
+            target = lookup_grids(self.grid, pts, self.extent)[0]
+        loss = ((self.model(box_to_siren(pts[0], self.extent)) - target) ** 2).mean()
+        self.opt.zero_grad(set_to_none=True)
+        loss.backward()
+        self.opt.step()
+        return loss.detach()
+
+
 def fit_data_inr_once(volume: Volume, tf: TransferFunction, cfg: DataInrConfig, *, checkpoint: Path | None = None,
                       device: torch.device | str = "cpu", log=print) -> DataInr:
     """Fit a data INR of exactly cfg's size to trilinear samples of the volume (Adam, cosine decay,
     resumable)."""
     device = torch.device(device)
-    model = Siren(cfg.siren, seeded(cfg.seed, 7)).to(device)
-    opt = torch.optim.Adam(model.parameters(), lr=cfg.lr)
-    grid = torch.as_tensor(volume.data, device=device)[None]
-    extent = torch.as_tensor(volume.extent, dtype=torch.float32, device=device)
-    n_error = int(round(cfg.points * cfg.error_fraction))
-    # the visible share is of all points; PointSampler draws the points left after the error-driven ones
-    share = cfg.visible_fraction
-    if n_error:
-        share = min(1.0, cfg.visible_fraction * cfg.points / max(1, cfg.points - n_error))
-    sampler = PointSampler(volume, tf, share)
-    hard = ErrorSampler(volume, cfg.error_every) if n_error else None
+    run = DataInrFit(volume, tf, cfg, device=device)
+    model, opt, hard = run.model, run.opt, run.hard
     fingerprint = _fingerprint(volume, cfg)
     start = 0
     if state := resume(checkpoint, fingerprint, log=log, map_location=device, weights_only=True):
@@ -183,37 +215,26 @@ def fit_data_inr_once(volume: Volume, tf: TransferFunction, cfg: DataInrConfig, 
         if hard is not None:
             hard.set_weights(state["error_weights"].cpu())  # loaded onto `device`; points are drawn on the CPU
         log(f"resuming from {checkpoint} at step {start}/{cfg.steps}")
+    nonfinite = FirstNonFinite((), device)  # read where the host reads anyway: checkpoints and log lines
     t0 = time.perf_counter()
     for step in range(start, cfg.steps):
-        for group in opt.param_groups:
-            group["lr"] = cosine_lr(step, cfg, cfg.width)  # same fields as FitConfig
-        gen = seeded(cfg.seed, 8, step)
-        pts = sampler.sample(1, cfg.points - n_error, gen)
-        if hard is not None:
-            if step % hard.every == 0:  # a resumed run starts with the scores its checkpoint kept
-                hard.score(model, device)
-            pts = torch.cat([pts, hard.sample(n_error, gen)[None]], dim=1)
-        pts = pts.to(device)
-        with torch.no_grad():
-            target = lookup_grids(grid, pts, extent)[0]
-        loss = ((model(box_to_siren(pts[0], extent)) - target) ** 2).mean()
-        if not torch.isfinite(loss):
-            raise ValueError(f"data INR fit diverged at step {step} (loss {float(loss)}); lower data_inr.lr "
-                             f"(now {cfg.lr})")
-        opt.zero_grad(set_to_none=True)
-        loss.backward()
-        opt.step()
+        loss = run.step(step)
+        nonfinite.record(loss, step)
         done = step + 1
-        if checkpoint is not None and done % cfg.checkpoint_every == 0 and done < cfg.steps:
+        saving = checkpoint is not None and done % cfg.checkpoint_every == 0 and done < cfg.steps
+        logging = done % max(1, cfg.steps // 10) == 0 or done == cfg.steps
+        if (saving or logging) and (found := nonfinite.first()) is not None:
+            raise ValueError(f"data INR fit diverged at step {found[0]} (loss {float(found[2])}); lower "
+                             f"data_inr.lr (now {cfg.lr})")
+        if saving:
             state = {"fingerprint": fingerprint, "step": done, "model": model.state_dict(),
                      "optimizer": opt.state_dict()}
             if hard is not None:
                 state["error_weights"] = hard.weights
             atomic_torch_save(checkpoint, state)
-        if done % max(1, cfg.steps // 10) == 0 or done == cfg.steps:
+        if logging:
             rate = (done - start) * cfg.points / (time.perf_counter() - t0)
-            batch_psnr = float(-10 * torch.log10(loss.detach()))
-            log(f"step {done}/{cfg.steps}  PSNR(batch) {batch_psnr:.1f} dB  {rate:,.0f} points/s  "
+            log(f"step {done}/{cfg.steps}  PSNR(batch) {float(-10 * torch.log10(loss)):.1f} dB  {rate:,.0f} points/s  "
                 f"{eta(done, cfg.steps, t0, start=start)}")
     if checkpoint is not None and checkpoint.exists():
         checkpoint.unlink()

@@ -240,6 +240,40 @@ class Watch:
         self.window, self.window_steps = torch.zeros_like(self.window), 0
 
 
+class SubsetFit:
+    """The K SIRENs of one light subset being fitted, and one optimiser step of them (`step`): the loop body of
+    `fit_sirens`, which `bench stages` times as it is. The step reads nothing back to the host (tests/test_syncs.py):
+    its points are drawn on the CPU and moved, its loss stays on the device for `Watch`."""
+
+    def __init__(self, init: torch.Tensor, layout: WeightLayout, siren: SirenConfig, volume: Volume,
+                 tf: TransferFunction, lights: np.ndarray, cfg: FitConfig, *, stream: int = 0,
+                 pool: PoolLights | None = None, device: torch.device):
+        self.layout, self.siren, self.cfg, self.stream, self.k = layout, siren, cfg, stream, len(lights)
+        self.sampler = PointSampler(volume, tf, cfg.visible_fraction)
+        self.targets = Targets(volume, tf, lights, cfg, device)
+        self.weights = init.to(device=device, dtype=torch.float32).expand(self.k, -1).clone().requires_grad_(True)
+        self.opt = torch.optim.Adam([self.weights], lr=cfg.lr)
+        self.pool = pool.to(device) if pool is not None else None
+        self.chunk = points_per_pass(cfg.chunk, cfg.points, device)
+        self.autocast = torch.autocast(device.type, dtype=torch.bfloat16, enabled=cfg.precision == "bfloat16")
+        self.device = device
+
+    def step(self, step: int) -> torch.Tensor:
+        """Optimiser step `step` (its points depend only on the seed, the subset's stream and `step`); each SIREN's
+        mean squared error before it (K,), on the device."""
+        cfg, k = self.cfg, self.k
+        for group in self.opt.param_groups:
+            group["lr"] = cosine_lr(step, cfg, self.siren.width)
+        if cfg.shared_points:
+            pts = self.sampler.sample(1, cfg.points, seeded(cfg.seed, SHARED_STREAM, step)).expand(k, -1, -1)
+        else:
+            pts = self.sampler.sample(k, cfg.points, seeded(cfg.seed, self.stream, step))
+        pts = pts.to(self.device)
+        pool_gen = seeded(cfg.seed, -5 - self.stream, step) if self.pool is not None else None
+        return fit_step(self.weights, self.opt, pts, self.targets(pts), self.layout, self.siren, self.targets.extent,
+                        cfg, chunk=self.chunk, autocast=self.autocast, pool=self.pool, pool_gen=pool_gen)
+
+
 def fit_sirens(
     init: torch.Tensor,
     layout: WeightLayout,
@@ -268,12 +302,9 @@ def fit_sirens(
     lights = np.asarray(lights, dtype=np.float64)
     k = len(lights)
     light_index = list(range(k)) if light_index is None else list(light_index)
-    sampler = PointSampler(volume, tf, cfg.visible_fraction)
-    targets = Targets(volume, tf, lights, cfg, device)
-    weights = init.to(device=device, dtype=torch.float32).expand(k, -1).clone().requires_grad_(True)
-    opt = torch.optim.Adam([weights], lr=cfg.lr)
+    run = SubsetFit(init, layout, siren, volume, tf, lights, cfg, stream=stream, pool=pool, device=device)
+    weights, opt = run.weights, run.opt
     fingerprint = _fingerprint(init, lights, cfg, siren, stream, pool, volume, tf)
-    pool = pool.to(device) if pool is not None else None
     start, initial = 0, None
     if state := resume(checkpoint, fingerprint, log=log, map_location=device, weights_only=True):
         with torch.no_grad():
@@ -282,20 +313,9 @@ def fit_sirens(
         start = int(state["step"])
         initial = state["initial_loss"].to(device) if start and "initial_loss" in state else None
         log(f"resuming from {checkpoint} at step {start}/{cfg.steps}")
-    chunk = points_per_pass(cfg.chunk, cfg.points, device)
-    autocast = torch.autocast(device.type, dtype=torch.bfloat16, enabled=cfg.precision == "bfloat16")
     watch = Watch(k, cfg, siren, light_index, start, initial, device, log)
     for step in range(start, cfg.steps):
-        for group in opt.param_groups:
-            group["lr"] = cosine_lr(step, cfg, siren.width)
-        if cfg.shared_points:
-            pts = sampler.sample(1, cfg.points, seeded(cfg.seed, SHARED_STREAM, step)).expand(k, -1, -1).to(device)
-        else:
-            pts = sampler.sample(k, cfg.points, seeded(cfg.seed, stream, step)).to(device)
-        pool_gen = seeded(cfg.seed, -5 - stream, step) if pool is not None else None
-        per_siren = fit_step(weights, opt, pts, targets(pts), layout, siren, targets.extent, cfg, chunk=chunk,
-                             autocast=autocast, pool=pool, pool_gen=pool_gen)
-        watch.record(per_siren, step)
+        watch.record(run.step(step), step)
         done = step + 1
         saving = checkpoint is not None and done % cfg.checkpoint_every == 0 and done < cfg.steps
         logging = done % max(1, cfg.steps // 10) == 0 or done == cfg.steps

@@ -19,6 +19,8 @@ from pathlib import Path
 
 import numpy as np
 
+from diffshadow.phases import phase, timed
+
 
 def umask() -> int:
     """The process's umask, read without changing it (Linux reports it in /proc; elsewhere a brief set and reset)."""
@@ -68,10 +70,11 @@ def atomic_path(path: str | Path, *, suffix: str | None = None):
     os.close(fd)
     tmp_path = Path(tmp)
     try:
-        yield tmp_path
-        _finish(tmp_path)
-        os.replace(tmp_path, path)
-        _fsync(path.parent)  # the rename itself, on a file system that keeps it in memory
+        with phase("io"):  # the caller's writing and the flush
+            yield tmp_path
+            _finish(tmp_path)
+            os.replace(tmp_path, path)
+            _fsync(path.parent)  # the rename itself, on a file system that keeps it in memory
     finally:
         if tmp_path.exists():
             tmp_path.unlink()
@@ -106,6 +109,7 @@ class StoreError(ValueError):
     """A store that is missing, not what a reader expects, or damaged; the message names it and what remakes it."""
 
 
+@timed("io")
 def write_zarr_group(path, fill, *, made_by: str) -> None:
     """Build a Zarr v3 group with `fill(root)` beside `path`, record a checksum of every array and `made_by`
     (the step that writes it, named when a reader finds it damaged), flush it, then swap it in (atomic for
@@ -145,6 +149,7 @@ def array_checksum(values) -> str:
 class VerifiedGroup:
     """A Zarr group whose arrays are checked against the checksums written with them, as they are read."""
 
+    @timed("io")
     def __init__(self, path: str | Path, what: str):
         import zarr
 
@@ -163,6 +168,7 @@ class VerifiedGroup:
         step = self.attrs.get("made_by")
         return f"rerun `{step}` to rewrite it" if step else "rerun the step that writes it"
 
+    @timed("io")
     def read(self, name: str) -> np.ndarray:
         try:
             values = np.asarray(self.root[name][...])
@@ -214,6 +220,7 @@ def error_line(e: BaseException) -> str:
     return f"{type(e).__name__}: {text}"
 
 
+@timed("io")
 def resume(checkpoint: str | Path | None, fingerprint: str, *, log=print, map_location="cpu",
            weights_only: bool = False, key: str = "fingerprint") -> dict | None:
     """The state saved in `checkpoint` when it was written for this `fingerprint` (same inputs and

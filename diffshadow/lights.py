@@ -9,11 +9,14 @@ from __future__ import annotations
 import json
 from dataclasses import dataclass
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
-import torch
 
 from diffshadow.io import atomic_write_text
+
+if TYPE_CHECKING:  # light sets are read and written without torch (the lights and collect_weights jobs)
+    import torch
 
 GOLDEN_ANGLE = np.pi * (3.0 - np.sqrt(5.0))
 
@@ -307,4 +310,4 @@ class PoolLights:
 
     def samples(self, j: torch.Tensor, pick: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """Points (B, G, 3) and exact shadow (B, G) of pool lights `j` at their presampled points `pick` (B, G)."""
-        return torch.gather(self.points[j], 1, pick[..., None].expand(-1, -1, 3)), torch.gather(self.values[j], 1, pick)
+        return self.points[j].gather(1, pick[..., None].expand(-1, -1, 3)), self.values[j].gather(1, pick)

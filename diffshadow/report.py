@@ -231,12 +231,31 @@ def write_config(path: Path, cfg: dict) -> None:
     atomic_write_text(path, yaml.safe_dump(json.loads(json.dumps(cfg)), sort_keys=False))
 
 
-STAGE_COST_COLUMNS = ("stage", "jobs", "wall_s", "cpu_s", "max_rss_mib")
+PHASE_COLUMNS = ("import_s", "device_s", "compile_s", "io_s", "compute_s", "launch_s")
+STAGE_COST_COLUMNS = ("stage", "jobs", "wall_s", "cpu_s", "max_rss_mib", *PHASE_COLUMNS)
+
+
+def job_phases(benchmark: Path, wall: float) -> dict[str, float] | None:
+    """The phases of one job (`<benchmark stem>.phases.json`, which `diffshadow --phases` writes beside its
+    benchmark file), with `launch_s`: the job's wall time outside its `diffshadow` process (the shell, `tee`,
+    torchrun and its helper processes). None where the job wrote none (a job of an older run)."""
+    path = Path(benchmark).with_suffix(".phases.json")
+    if not path.exists():
+        return None
+    try:
+        rec = json.loads(path.read_text())
+        out = {k: float(rec[k]) for k in PHASE_COLUMNS[:-1]}
+    except (ValueError, KeyError, TypeError):
+        raise ValueError(f"{path}: expected a phases file ({', '.join(PHASE_COLUMNS[:-1])}), as written by "
+                         f"diffshadow --phases") from None
+    out["launch_s"] = max(0.0, wall - sum(out.values()))
+    return out
 
 
 def stage_costs(benchmarks: list[Path], out: Path) -> list[dict]:
     """One row per rule from Snakemake's `benchmark:` files (`<rule>.tsv`, or `<rule>_<n>.tsv` per job of a
-    fanned-out rule): jobs, summed wall and CPU seconds, the largest resident set; a total row (the sum of
+    fanned-out rule): jobs, summed wall and CPU seconds, the largest resident set, and where the wall time went
+    (`job_phases`, summed over the rule's jobs; NA where a job recorded none); a total row (the sum of
     jobs' wall times, which exceeds the run's wall time where jobs overlapped); and an elapsed row, the time
     in which at least one job ran. Snakemake writes a benchmark file as its job ends, so a job ran from the
     file's mtime minus its wall seconds to its mtime; the union of those spans is a whole run's elapsed time
@@ -258,20 +277,27 @@ def stage_costs(benchmarks: list[Path], out: Path) -> list[dict]:
         spans.append((end - wall, end))
         stem = Path(path).stem
         stage = stem.rsplit("_", 1)[0] if stem.rsplit("_", 1)[-1].isdigit() else stem
-        row = rows.setdefault(stage, {"stage": stage, "jobs": 0, "wall_s": 0.0, "cpu_s": 0.0, "max_rss_mib": 0.0})
+        row = rows.setdefault(stage, {"stage": stage, "jobs": 0, "wall_s": 0.0, "cpu_s": 0.0, "max_rss_mib": 0.0,
+                                      **dict.fromkeys(PHASE_COLUMNS, 0.0)})
         row["jobs"] += 1
         row["wall_s"] += wall
         row["cpu_s"] += cpu
         row["max_rss_mib"] = max(row["max_rss_mib"], rss)
+        phases = job_phases(Path(path), wall)
+        for key in PHASE_COLUMNS:
+            row[key] = None if phases is None or row[key] is None else row[key] + phases[key]
     table = sorted(rows.values(), key=lambda r: -r["wall_s"])
     total = {"stage": "total (sum over jobs)", "jobs": sum(r["jobs"] for r in table),
              "wall_s": sum(r["wall_s"] for r in table), "cpu_s": sum(r["cpu_s"] for r in table),
-             "max_rss_mib": max((r["max_rss_mib"] for r in table), default=0.0)}
-    elapsed = {**total, "stage": ELAPSED_ROW, "wall_s": _union_length(spans)}
-    text = "\t".join(STAGE_COST_COLUMNS) + "\n" + "".join(
-        f"{r['stage']}\t{r['jobs']}\t{r['wall_s']:.1f}\t{r['cpu_s']:.1f}\t{r['max_rss_mib']:.0f}\n"
-        for r in [*table, total, elapsed])
-    atomic_write_text(out, text)
+             "max_rss_mib": max((r["max_rss_mib"] for r in table), default=0.0),
+             **{k: None if any(r[k] is None for r in table) else sum(r[k] for r in table) for k in PHASE_COLUMNS}}
+    elapsed = {**total, "stage": ELAPSED_ROW, "wall_s": _union_length(spans), **dict.fromkeys(PHASE_COLUMNS)}
+
+    def cells(r: dict) -> str:
+        phases = "\t".join("NA" if r[k] is None else f"{r[k]:.1f}" for k in PHASE_COLUMNS)
+        return f"{r['stage']}\t{r['jobs']}\t{r['wall_s']:.1f}\t{r['cpu_s']:.1f}\t{r['max_rss_mib']:.0f}\t{phases}\n"
+
+    atomic_write_text(out, "\t".join(STAGE_COST_COLUMNS) + "\n" + "".join(cells(r) for r in [*table, total, elapsed]))
     return [*table, total, elapsed]
 
 

@@ -4,7 +4,7 @@
                  → x ← ½ (x + sin(ω0 L2(sin(ω0 L1(½ x)))))   residual blocks (NeurComp's averaging)
                  → ½ (W x + b) + ½                            linear H → 1, output around [0, 1]
 
-Every parameter tensor is a named entry of a `WeightLayout`; a SIREN's weights travel as one flat
+Every parameter tensor is a named entry of a `WeightLayout` (`diffshadow.layout`); a SIREN's weights travel as one flat
 float32 vector in that order (the Zarr store, the diffusion model's tokens). `BatchedSiren` evaluates K
 weight vectors on K point sets with batched matmuls: the one implementation used by fitting, the
 diffusion geometry loss and the renderer.
@@ -14,85 +14,20 @@ from __future__ import annotations
 
 import functools
 import math
-from dataclasses import dataclass
 
 import torch
 from torch import nn
 
-from diffshadow.config import check_keys
+from diffshadow.layout import SirenConfig, WeightLayout
 
 OMEGA = 30.0  # sine frequency ω0 (SIREN)
 RES_WEIGHT = 0.5  # NeurComp's averaging weight on residual blocks
 
 
-@dataclass(frozen=True)
-class SirenConfig:
-    """SIREN size: `width` H (paper 128, 64 for small data) and residual `blocks`."""
-
-    width: int
-    blocks: int
-
-    @classmethod
-    def from_config(cls, d: dict) -> SirenConfig:
-        """A SIREN size as stored (no defaults: a layout is what was fitted)."""
-        check_keys(cls, "siren", d)
-        return cls(width=int(d["width"]), blocks=int(d["blocks"]))
-
-    def to_config(self) -> dict:
-        return {"width": self.width, "blocks": self.blocks}
-
-
-@dataclass(frozen=True)
-class WeightLayout:
-    """Ordered (name, shape) of every parameter tensor; flat vector ↔ named tensors."""
-
-    entries: tuple[tuple[str, tuple[int, ...]], ...]
-
-    @classmethod
-    def for_siren(cls, cfg: SirenConfig) -> WeightLayout:
-        h = cfg.width
-        entries = [("first.weight", (h, 3)), ("first.bias", (h,))]
-        for i in range(cfg.blocks):
-            for j in (1, 2):
-                entries += [(f"blocks.{i}.l{j}.weight", (h, h)), (f"blocks.{i}.l{j}.bias", (h,))]
-        entries += [("last.weight", (1, h)), ("last.bias", (1,))]
-        return cls(tuple(entries))
-
-    @classmethod
-    def from_config(cls, rows) -> WeightLayout:
-        return cls(tuple((str(name), tuple(int(s) for s in shape)) for name, shape in rows))
-
-    def to_config(self) -> list:
-        return [[name, list(shape)] for name, shape in self.entries]
-
-    @property
-    def sizes(self) -> list[int]:
-        return [math.prod(shape) for _, shape in self.entries]
-
-    @property
-    def n_params(self) -> int:
-        return sum(self.sizes)
-
-    def flatten(self, tensors: dict[str, torch.Tensor]) -> torch.Tensor:
-        """Named tensors (each with optional leading batch dims) → (..., n_params)."""
-        parts = []
-        for name, shape in self.entries:
-            t = tensors[name]
-            parts.append(t.reshape(*t.shape[: t.ndim - len(shape)], -1))
-        return torch.cat(parts, dim=-1)
-
-    def scales(self, device: torch.device | str = "cpu", dtype: torch.dtype = torch.float32) -> torch.Tensor:
-        """(n_params,) what `fold` multiplies each parameter by, on `device` (cached)."""
-        return _layout_scales(self, str(device), dtype)
-
-    def unflatten(self, flat: torch.Tensor) -> dict[str, torch.Tensor]:
-        """(..., n_params) → named tensors of shape (..., *shape); views, so gradients flow."""
-        if flat.shape[-1] != self.n_params:
-            raise ValueError(f"weight vector has {flat.shape[-1]} values, layout needs {self.n_params}")
-        out = {}
-        for (name, shape), part in zip(self.entries, flat.split(self.sizes, dim=-1), strict=True):
-            out[name] = part.reshape(*flat.shape[:-1], *shape)
-        return out
+def layout_scales(layout: WeightLayout, device: torch.device | str = "cpu",
+                  dtype: torch.dtype = torch.float32) -> torch.Tensor:
+    """(n_params,) what `fold` multiplies each parameter of `layout` by, on `device` (cached)."""
+    return _layout_scales(layout, str(device), dtype)
 
 
 @functools.cache
@@ -141,7 +76,7 @@ def fold(p: dict[str, torch.Tensor], blocks: int) -> list[tuple[torch.Tensor, to
 def fold_flat(weights: torch.Tensor, layout: WeightLayout, blocks: int) -> list[tuple[torch.Tensor, torch.Tensor]]:
     """`fold` of flat weight vectors (..., n_params) in one product with the layout's scales: the same values,
     one kernel instead of two per layer (forward and backward)."""
-    return _layers(layout.unflatten(weights * layout.scales(weights.device, weights.dtype)), blocks)
+    return _layers(layout.unflatten(weights * layout_scales(layout, weights.device, weights.dtype)), blocks)
 
 
 def _linear(h: torch.Tensor, w: torch.Tensor, b: torch.Tensor) -> torch.Tensor:

@@ -14,8 +14,9 @@ from pathlib import Path
 import numpy as np
 
 from diffshadow.io import StoreError, VerifiedGroup, atomic_save, write_zarr_group
+from diffshadow.layout import SirenConfig, WeightLayout
 from diffshadow.lights import as_direction, blend_weights
-from diffshadow.siren import SirenConfig, WeightLayout
+from diffshadow.phases import timed
 
 BLEND_K = 4  # stored SIRENs blended per light (`cache: blend`, and evaluate_voxels' baseline)
 
@@ -66,6 +67,7 @@ def write_subset(path, *, weights, light_index, lights, psnr, psnr_visible, layo
     atomic_save(path, save, suffix=".npz")
 
 
+@timed("io")
 def read_subset(path) -> dict:
     path = Path(path)
     try:

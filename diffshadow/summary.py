@@ -9,7 +9,7 @@ import json
 from pathlib import Path
 
 from diffshadow.io import atomic_write_text
-from diffshadow.report import ELAPSED_ROW
+from diffshadow.report import ELAPSED_ROW, PHASE_COLUMNS
 
 MIB = 2**20
 
@@ -272,13 +272,18 @@ class RunResults:
                             "The model's size is fixed; SIRENs and grids grow with the light count."))
         if self.costs:
             parts.append(_table("Stage costs (Snakemake benchmark files)",
-                                ["stage", "jobs", "wall s", "CPU s", "max RSS MiB"],
-                                [[r["stage"], r["jobs"], r["wall_s"], r["cpu_s"], r["max_rss_mib"]]
-                                 for r in self.costs],
+                                ["stage", "jobs", "wall s", "CPU s", "max RSS MiB", "import s", "device s",
+                                 "compile s", "io s", "compute s", "launch s"],
+                                [[r["stage"], r["jobs"], r["wall_s"], r["cpu_s"], r["max_rss_mib"],
+                                  *(r.get(k, "NA") for k in PHASE_COLUMNS)] for r in self.costs],
                                 "Wall and CPU seconds summed over a stage's jobs; jobs that ran side by side "
                                 "overlap, so the total exceeds the run's wall time, which is the last row: the time "
                                 "in which at least one job ran. CPU seconds of short jobs are undercounted "
-                                "(Snakemake polls)."))
+                                "(Snakemake polls). Where the wall time went, per job's process: interpreter "
+                                "start and imports, device start (CUDA's context), compilation (Triton, "
+                                "torch.compile), reading and writing files (checksums included), compute (the "
+                                "rest), and launch: the job's time outside its diffshadow process (shell, "
+                                "torchrun and its helper)."))
         return "".join(parts)
 
 

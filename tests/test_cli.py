@@ -133,3 +133,40 @@ def test_deterministic_switch_reads_its_words(monkeypatch, value, on):
         assert torch.are_deterministic_algorithms_enabled() is (on or before)
     finally:
         torch.use_deterministic_algorithms(before)
+
+
+def test_lights_and_collect_weights_start_without_torch_and_record_their_phases(tmp_path):
+    """The two workflow jobs that compute nothing with torch import none (`python -X importtime` lists every module
+    a process imports), and `--phases` writes where their time went."""
+    import json
+    import subprocess
+    import sys
+
+    from diffshadow.layout import SirenConfig, WeightLayout
+    from diffshadow.lights import read_lights
+    from diffshadow.store import write_subset
+
+    def run(*argv: str) -> dict:
+        phases = tmp_path / f"{argv[0]}.phases.json"
+        done = subprocess.run([sys.executable, "-X", "importtime", "-m", "diffshadow.cli", "--phases", str(phases),
+                               *argv], capture_output=True, text=True, cwd=tmp_path)
+        assert done.returncode == 0, done.stderr
+        imported = [line.rsplit("|", 1)[-1].strip() for line in done.stderr.splitlines() if "import time:" in line]
+        assert "diffshadow.lights" in imported and not [m for m in imported if m.split(".")[0] == "torch"]
+        return json.loads(phases.read_text())
+
+    rec = run("lights", "--sphere", "100", "--count", "4", "--center", "0", "0", "1", "--unseen", "2", "--out",
+              "lights.json")
+    assert rec["command"] == "lights" and rec["device_s"] == 0 and rec["import_s"] > 0
+    assert sum(rec[f"{k}_s"] for k in ("import", "device", "compile", "io", "compute")) == pytest.approx(
+        rec["process_s"], abs=0.01)
+    siren = SirenConfig(width=4, blocks=1)
+    layout = WeightLayout.for_siren(siren)
+    lights = read_lights(tmp_path / "lights.json")
+    for i, rows in enumerate(([0, 1], [2, 3])):
+        write_subset(tmp_path / f"subset_{i}.npz", weights=np.full((2, layout.n_params), float(i), np.float32),
+                     light_index=rows, lights=lights["train"][rows], psnr=np.full(2, 40.0),
+                     psnr_visible=np.full(2, 40.0), layout=layout, siren=siren, config={})
+    rec = run("collect-weights", "--lights", "lights.json", "--subsets", "subset_0.npz", "subset_1.npz",
+              "--out", "weights.zarr")
+    assert rec["io_s"] > 0 and (tmp_path / "weights.zarr").is_dir()

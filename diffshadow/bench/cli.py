@@ -47,6 +47,20 @@ def _bench_kernels(a):
         raise SystemExit(f"bench kernels: {e}") from None
 
 
+def _bench_stages(a):
+    from diffshadow.bench.stages import bench_stages
+    from diffshadow.config import ConfigError, load_run, scene_config
+
+    try:
+        run = load_run(a.configfile)
+        scene = a.scene or run["scenes"][0]
+        cfg = scene_config(run, scene, scenes_dir=Path(a.scenes_dir))
+    except ConfigError as e:
+        raise ValueError(str(e)) from None
+    bench_stages(cfg, Path(a.out), device=_device(a), stages=a.stages, budget_s=a.budget, max_steps=a.max_steps,
+                 config_name=f"{a.configfile or 'defaults'} (scene {scene})")
+
+
 def _check_store(a):
     from diffshadow.io import check_stores
 
@@ -95,6 +109,17 @@ def add_bench_parsers(sub) -> None:
     p.add_argument("--memory-sizes", type=int, nargs="*", default=None,
                    help="larger sides measured for peak memory only (default: 2x and 4x the largest size)")
     add_networks(p)
+    p = _add(bench, "stages", _bench_stages, "per-step cost (time, ops, host syncs, memory) of every heavy stage at "
+             "a config's sizes on synthetic inputs, projected to the config's steps, epochs and lights", out=False)
+    p.add_argument("--configfile", default="config/config.yaml",
+                   help="a run config over the defaults (e.g. config/paper.yaml; default: config/config.yaml)")
+    p.add_argument("--scene", help="the scene whose file and volume to use (default: the config's first)")
+    p.add_argument("--scenes-dir", default="config/scenes")
+    p.add_argument("--stages", nargs="+", help="default: all (fit_siren preoptimize train_data_inr train_diffusion "
+                   "finetune_render sample_shadows eval_truth)")
+    p.add_argument("--budget", type=float, default=2.0, help="seconds of timed steps per stage (at least 2 steps)")
+    p.add_argument("--max-steps", type=int, default=50, help="timed steps per stage at most")
+    p.add_argument("--out", default="bench/bench_stages.json")
     p = _add(bench, "kernels", _bench_kernels, "registers, spills, programs per SM and machine-code counts of the "
              "fused kernels, compiled for a GPU without one", out=False, device=False)
     p.add_argument("--arch", type=int, nargs="+", default=[80, 90], help="CUDA compute capabilities (80: A100)")

@@ -5,6 +5,12 @@ a GPU): views, reshapes, allocations and scalar reads are left out, and a compos
 its leaves; a fused Triton kernel (`diffshadow.fused`) counts one op per launch. A *host sync* is an op
 whose result the host must wait for: a scalar read (`_local_scalar_dense`, behind `.item()`, `bool()`,
 `int()`), `nonzero` (behind boolean indexing) and the other ops whose output shape depends on data.
+
+On a CPU every tensor is on the host, so a count taken there cannot tell a scalar that a GPU run keeps on the
+host from one it would have to fetch. One such case is known and named: PyTorch's Adam and AdamW without
+`fused` or `capturable` keep their step counter as a CPU tensor on every device and read it in `step`
+(torch/optim/adam.py), a host read and no device sync. `host_scopes` lists the profiler scopes whose scalar
+reads are such host reads: counted as `host_reads`, not `syncs`.
 """
 
 from __future__ import annotations
@@ -29,23 +35,40 @@ SYNCS = frozenset({"aten::_local_scalar_dense", "aten::nonzero", "aten::masked_s
                    "aten::unique_consecutive", "aten::unique_dim"})
 
 
-def op_counts(fn: Callable[[], object]) -> dict[str, int]:
-    """{"ops": kernel-launching ops, "syncs": host syncs} of one call of `fn`."""
+OPTIMIZER_STEP = "Optimizer.step#"  # the profiler's scope of torch.optim's `step` (Optimizer.step#Adam.step)
+
+
+def op_counts(fn: Callable[[], object], host_scopes: tuple[str, ...] = ()) -> dict[str, int]:
+    """{"ops": kernel-launching ops, "syncs": host syncs} of one call of `fn`; given `host_scopes` (scope-name
+    prefixes, see the module docstring), also "host_reads": the scalar reads inside them, not counted as syncs."""
     with profile(activities=[ProfilerActivity.CPU], record_shapes=True) as prof:
         fn()
-    ops = syncs = 0
+    ops = syncs = host_reads = 0
     for e in prof.events():
         if e.name == LAUNCH:
             ops += 1
         if not e.name.startswith("aten::") or _inside(e, LAUNCH):  # Triton's interpreter runs aten ops there
             continue
-        syncs += e.name in SYNCS
+        if e.name in SYNCS:
+            if e.name == "aten::_local_scalar_dense" and any(_inside_prefix(e, s) for s in host_scopes):
+                host_reads += 1
+            else:
+                syncs += 1
         if e.name in NO_WORK or any(c.name.startswith("aten::") and c.name not in NO_WORK for c in e.cpu_children):
             continue
         if e.name == "aten::copy_" and e.input_shapes and e.input_shapes[0] == []:
             continue  # a Python number wrapped and converted on the host (`x * 0.5`): no kernel on a GPU
         ops += 1
-    return {"ops": ops, "syncs": syncs}
+    return {"ops": ops, "syncs": syncs, **({"host_reads": host_reads} if host_scopes else {})}
+
+
+def _inside_prefix(event, prefix: str) -> bool:
+    parent = event.cpu_parent
+    while parent is not None:
+        if parent.name.startswith(prefix):
+            return True
+        parent = parent.cpu_parent
+    return False
 
 
 def _inside(event, name: str) -> bool:

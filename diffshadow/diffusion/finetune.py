@@ -34,7 +34,7 @@ from diffshadow.diffusion.schedule import Schedule
 from diffshadow.diffusion.standardize import Standardizer
 from diffshadow.diffusion.train import TrainingData, pool_noised
 from diffshadow.io import atomic_torch_save, resume
-from diffshadow.progress import eta
+from diffshadow.progress import FirstNonFinite, eta
 from diffshadow.render.bundle import RayBundle, bundle_colors
 from diffshadow.sampling import seeded
 from diffshadow.siren import BatchedSiren, SirenConfig, WeightLayout, box_to_siren
@@ -232,13 +232,13 @@ class Selection:
 
 def train_step(model, base, opt: torch.optim.Optimizer, std: Standardizer, data: FinetuneData, z_all: torch.Tensor,
                batch: list[int], rank: int, world: int, epoch: int, cfg: FinetuneConfig, dcfg: DiffusionConfig,
-               schedule: Schedule) -> torch.Tensor:
-    """One optimiser step on this rank's share of the global `batch`; returns the loss parts (summed)."""
+               schedule: Schedule, nonfinite: FirstNonFinite) -> torch.Tensor:
+    """One optimiser step on this rank's share of the global `batch`; returns the loss parts (summed). The loss's
+    finiteness is recorded in `nonfinite` on the device, read once an epoch: the step reads nothing back to the
+    host (tests/test_syncs.py)."""
     loss, parts = step_loss(model, std, data, z_all, batch[rank::world], epoch, cfg, dcfg, schedule,
                             scale=world / len(batch))
-    if not torch.isfinite(loss):
-        raise ValueError(f"finetune: loss became {float(loss.detach())} at epoch {epoch} on rank {rank}; "
-                         f"lower finetune.lr (now {cfg.lr})")
+    nonfinite.record(loss.detach(), epoch)
     opt.zero_grad(set_to_none=True)
     loss.backward()
     torch.nn.utils.clip_grad_norm_(base.parameters(), dcfg.grad_clip)
@@ -324,6 +324,7 @@ def finetune(geometry_state: dict, data: FinetuneData, cfg: FinetuneConfig, chec
     if start == 0:
         selection.score(0, floor_model() if selection.val is not None else None, psnr_of)
     state = None
+    nonfinite = FirstNonFinite((), device)
     t_start = t_step = time.perf_counter()
     step_times: list[float] = []
     end = start if selection.stopped else cfg.epochs  # a run that stopped early has finished
@@ -333,9 +334,12 @@ def finetune(geometry_state: dict, data: FinetuneData, cfg: FinetuneConfig, chec
         totals = torch.zeros(3, dtype=torch.float64, device=device)  # summed on the device: no sync per step
         for b0 in range(0, n, cfg.batch_size):
             totals += train_step(model, base, opt, std, data, z_all, order[b0:b0 + cfg.batch_size], rank, world,
-                                 epoch, cfg, dcfg, schedule)
+                                 epoch, cfg, dcfg, schedule, nonfinite)
             step_times.append(time.perf_counter() - t_step)
             t_step = time.perf_counter()
+        if (found := nonfinite.first()) is not None:
+            raise ValueError(f"finetune: loss became {float(found[2])} at epoch {found[0]} on rank {rank}; "
+                             f"lower finetune.lr (now {cfg.lr})")
         if world > 1:
             dist.all_reduce(totals)
         done = epoch + 1

@@ -257,6 +257,23 @@ def batch_loss(model: WeightTransformer, std: Standardizer, data: TrainingData, 
     return loss, loss_x0, loss_geo
 
 
+def train_batch(model: WeightTransformer, opt: torch.optim.Optimizer, ema: Ema | None, std: Standardizer,
+                data: TrainingData, z_all: torch.Tensor, pool: PoolLights | None, batch: Batch, cfg: DiffusionConfig,
+                schedule: Schedule, nonfinite: FirstNonFinite, epoch: int, step: int) -> torch.Tensor:
+    """One optimiser step of the geometry stage (the loop body of `train_diffusion`, which `bench stages` times
+    as it is); the batch's summed (x0, geometry) losses, on the device. It reads nothing back to the host
+    (tests/test_syncs.py): the loss's finiteness goes to `nonfinite`, read at log lines and checkpoints."""
+    loss, loss_x0, loss_geo = batch_loss(model, std, data, z_all, pool, batch, cfg, schedule)
+    nonfinite.record(loss.detach(), epoch)
+    opt.zero_grad(set_to_none=True)
+    loss.backward()
+    torch.nn.utils.clip_grad_norm_(model.parameters(), cfg.grad_clip)
+    opt.step()
+    if ema is not None:
+        ema.update(model, step)
+    return torch.stack([loss_x0.detach(), loss_geo.detach()]).double() * len(batch.idx)
+
+
 def train_diffusion(data: TrainingData, cfg: DiffusionConfig, checkpoint: Path, *,
                     device: torch.device | str = "cpu", log=print,
                     stop_after_epoch: int | None = None) -> dict:
@@ -325,15 +342,8 @@ def train_diffusion(data: TrainingData, cfg: DiffusionConfig, checkpoint: Path, 
         for k, b0 in enumerate(range(0, n, cfg.batch_size)):
             batch = draw_batch(gen, order[b0:b0 + cfg.batch_size].to(device), on_device, pool, cfg, schedule.steps,
                                device)
-            loss, loss_x0, loss_geo = batch_loss(model, std, on_device, z_all, pool, batch, cfg, schedule)
-            nonfinite.record(loss.detach(), epoch)
-            opt.zero_grad(set_to_none=True)
-            loss.backward()
-            torch.nn.utils.clip_grad_norm_(model.parameters(), cfg.grad_clip)
-            opt.step()
-            if ema is not None:
-                ema.update(model, epoch * per_epoch + k)
-            totals += torch.stack([loss_x0.detach(), loss_geo.detach()]).double() * len(batch.idx)
+            totals += train_batch(model, opt, ema, std, on_device, z_all, pool, batch, cfg, schedule,
+                                  nonfinite, epoch, epoch * per_epoch + k)
         if epoch < cfg.epochs:  # growth past `epochs` keeps the lr reached there (decayed on, tooth plateaued)
             sched.step()
         done = epoch = epoch + 1

@@ -1,20 +1,27 @@
 """Stage 1 (paper §3.2): light directions, the prepared volume, the shared initial SIREN, one fit per
-light subset, the collected weight store."""
+light subset, the collected weight store.
+
+`lights` and `collect_weights` compute nothing with torch and start without it (a CUDA build's import is seconds
+on a GPU node): the modules that need torch are imported by the stages that use them.
+"""
 
 from __future__ import annotations
 
 import dataclasses
 import time
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
-import torch
 
-from diffshadow import artifacts
-from diffshadow.fit import FitConfig, FitError, blend_pool, check_psnr, choose_layout, evaluate_psnr, fit_sirens
+from diffshadow.layout import SirenConfig
 from diffshadow.lights import index_ranges, make_light_sets, read_lights, subset_indices, write_lights
-from diffshadow.siren import SirenConfig
 from diffshadow.store import collect_subsets, write_store, write_subset
+
+if TYPE_CHECKING:
+    import torch
+
+    from diffshadow.fit import FitConfig
 
 
 def heldout_seed(fit: FitConfig, subset: int) -> int:
@@ -31,6 +38,8 @@ def lights(out: Path, *, sphere: int, count: int, center, unseen: int, seed: int
 
 def prepare_volume(out: Path, scene: dict) -> None:
     """The scene's volume normalised to [0, 1] in its box, with its transfer function."""
+    from diffshadow import artifacts
+
     volume, tf = artifacts.scene_volume(scene)
     artifacts.save_prepared(out, volume, tf)
     print(f"wrote {out}: {volume.name} {volume.dims}, extent {volume.extent.round(4).tolist()}")
@@ -40,6 +49,9 @@ def preoptimize(volume_path: Path, lights_path: Path, out: Path, *, siren: Siren
                 steps: int, lr: float, device: torch.device) -> None:
     """One SIREN fitted to light 0 (the initial weights of every other SIREN), and the SIREN size and fit
     steps of every subset: grown until a probe light reaches `fit.target_psnr`."""
+    from diffshadow import artifacts
+    from diffshadow.fit import choose_layout
+
     volume, tf = artifacts.load_prepared(volume_path)
     train = read_lights(lights_path)["train"]
     chosen = choose_layout(volume, tf, train, siren, fit, preoptimize_steps=steps, preoptimize_lr=lr, device=device,
@@ -52,6 +64,9 @@ def preoptimize(volume_path: Path, lights_path: Path, out: Path, *, siren: Siren
 def fit_subset(volume_path: Path, lights_path: Path, init_path: Path, subset: int, out: Path, *,
                siren: SirenConfig, fit: FitConfig, subset_size: int, config: dict, device: torch.device) -> None:
     """The SIRENs of one light subset, fitted jointly and checked on held-out points (resumable)."""
+    from diffshadow import artifacts
+    from diffshadow.fit import FitError, blend_pool, check_psnr, evaluate_psnr, fit_sirens
+
     volume, tf = artifacts.load_prepared(volume_path)
     sets = read_lights(lights_path)
     train = sets["train"]

@@ -8,6 +8,7 @@ from diffshadow.config import scene_config as _scene_config
 from diffshadow.lights import n_subsets as _n_subsets
 from diffshadow.render import shading_name as _shading_name
 from diffshadow.runtime import JOB_ENVIRONMENT as _JOB_ENVIRONMENT
+from diffshadow.runtime import kernel_cache_environment as _kernel_cache_environment
 from diffshadow.volume import resolve_path as _resolve_path
 
 _SCENES = {}
@@ -18,6 +19,9 @@ os.environ.update(DIFFSHADOW_CONFIG_DEVICE=config.get("device", "auto"),
                   DIFFSHADOW_TORCHRUN=config.get("torchrun", "torchrun --standalone"))
 # MKL in strict reproducible mode, so a job's bytes do not depend on its thread count (a user's own setting wins)
 for _key, _value in _JOB_ENVIRONMENT.items():
+    os.environ.setdefault(_key, _value)
+# one compiled-kernel cache for the run's jobs (Triton's, inductor's): results/.kernel-cache/ (a user's own wins)
+for _key, _value in _kernel_cache_environment("results/.kernel-cache").items():
     os.environ.setdefault(_key, _value)
 # and `deterministic`, which changes no byte on a CPU and only float summation order on a GPU; a user's own wins
 os.environ.setdefault("DIFFSHADOW_DETERMINISTIC", "1" if config.get("deterministic") else "0")

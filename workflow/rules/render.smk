@@ -16,7 +16,7 @@ rule train_data_inr:
     conda:
         "../envs/diffshadow.yaml"
     shell:
-        "diffshadow train-data-inr --volume {input.volume} --config-json {params.cfg:q} --threads {threads}"
+        "diffshadow --phases results/{wildcards.scene}/benchmarks/train_data_inr.phases.json train-data-inr --volume {input.volume} --config-json {params.cfg:q} --threads {threads}"
         " --out {output} 2>&1 | tee {log}"
 
 
@@ -40,7 +40,7 @@ rule evaluate_images:
     conda:
         "../envs/diffshadow.yaml"
     shell:
-        "diffshadow evaluate-images --volume {input.volume} --lights {input.lights} --data-inr {input.data_inr}"
+        "diffshadow --phases results/{wildcards.scene}/benchmarks/evaluate_images.phases.json evaluate-images --volume {input.volume} --lights {input.lights} --data-inr {input.data_inr}"
         " --weights {input.weights} --generated {input.generated} --config-json {params.cfg:q}"
         " --images {output.images} --threads {threads} --out {output.metrics} 2>&1 | tee {log}"
 
@@ -72,7 +72,7 @@ rule benchmark:
     conda:
         "../envs/diffshadow.yaml"
     shell:
-        "diffshadow bench render --volume {input.volume} --data-inr {input.data_inr} --weights {input.weights}"
+        "diffshadow --phases results/{wildcards.scene}/benchmarks/benchmark.phases.json bench render --volume {input.volume} --data-inr {input.data_inr} --weights {input.weights}"
         " --sizes {params.sizes} --memory-sizes {params.memory} --step {params.step} --repeats {params.repeats}"
         " {params.networks} --threads {threads}"
         " --out {output.bench} 2>&1 | tee {log}"

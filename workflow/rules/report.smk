@@ -15,7 +15,7 @@ rule shadow_bench:
     conda:
         "../envs/diffshadow.yaml"
     shell:
-        "diffshadow bench shadow --volumes {input} --out results/{wildcards.scene} --threads {threads}"
+        "diffshadow --phases results/{wildcards.scene}/benchmarks/shadow_bench.phases.json bench shadow --volumes {input} --out results/{wildcards.scene} --threads {threads}"
         " --device cpu 2>&1 | tee {log}"
 
 
@@ -55,7 +55,7 @@ rule report_figures:
     conda:
         "../envs/diffshadow.yaml"
     shell:
-        "diffshadow report-figures --weights {input.weights} --generated {input.generated} --lights {input.lights}"
+        "diffshadow --phases results/{wildcards.scene}/benchmarks/report_figures.phases.json report-figures --weights {input.weights} --generated {input.generated} --lights {input.lights}"
         " --images {input.images} --voxel-metrics {input.voxel_metrics} --shadow-bench {input.shadow_bench}"
         " --config-json {params.cfg:q}"
         " --threads {threads} --out-dir results/{wildcards.scene}/report 2>&1 | tee {log}"

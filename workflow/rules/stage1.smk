@@ -16,7 +16,7 @@ rule prepare_volume:
     conda:
         "../envs/diffshadow.yaml"
     shell:
-        "diffshadow prepare-volume --config-json {params.cfg:q} --out {output}"
+        "diffshadow --phases results/{wildcards.scene}/benchmarks/prepare_volume.phases.json prepare-volume --config-json {params.cfg:q} --out {output}"
         " 2>&1 | tee {log}"
 
 
@@ -37,7 +37,7 @@ rule preoptimize:
     conda:
         "../envs/diffshadow.yaml"
     shell:
-        "diffshadow preoptimize --volume {input.volume} --lights {input.lights} --config-json {params.cfg:q}"
+        "diffshadow --phases results/{wildcards.scene}/benchmarks/preoptimize.phases.json preoptimize --volume {input.volume} --lights {input.lights} --config-json {params.cfg:q}"
         " --threads {threads} --out {output} 2>&1 | tee {log}"
 
 
@@ -61,7 +61,7 @@ rule fit_siren:
     conda:
         "../envs/diffshadow.yaml"
     shell:
-        "diffshadow fit-siren --volume {input.volume} --lights {input.lights} --init {input.init}"
+        "diffshadow --phases results/{wildcards.scene}/benchmarks/fit_siren_{wildcards.subset}.phases.json fit-siren --volume {input.volume} --lights {input.lights} --init {input.init}"
         " --subset {wildcards.subset} --config-json {params.cfg:q} --threads {threads} --out {output}"
         " 2>&1 | tee {log}"
 
@@ -79,5 +79,5 @@ rule collect_weights:
     conda:
         "../envs/diffshadow.yaml"
     shell:
-        "diffshadow collect-weights --lights {input.lights} --subsets {input.subsets} --out {output}"
+        "diffshadow --phases results/{wildcards.scene}/benchmarks/collect_weights.phases.json collect-weights --lights {input.lights} --subsets {input.subsets} --out {output}"
         " 2>&1 | tee {log}"

@@ -18,7 +18,7 @@ rule presample:
     conda:
         "../envs/diffshadow.yaml"
     shell:
-        "diffshadow presample --volume {input.volume} --lights {input.lights} --config-json {params.cfg:q}"
+        "diffshadow --phases results/{wildcards.scene}/benchmarks/presample.phases.json presample --volume {input.volume} --lights {input.lights} --config-json {params.cfg:q}"
         " --threads {threads} --out {output}"
         " 2>&1 | tee {log}"
 
@@ -40,7 +40,7 @@ rule train_diffusion:
     conda:
         "../envs/diffshadow.yaml"
     shell:
-        "diffshadow train-diffusion --weights {input.weights} --points {input.points}"
+        "diffshadow --phases results/{wildcards.scene}/benchmarks/train_diffusion.phases.json train-diffusion --weights {input.weights} --points {input.points}"
         " --config-json {params.cfg:q} --threads {threads} --out {output} 2>&1 | tee {log}"
 
 
@@ -60,7 +60,7 @@ rule eval_truth:
     conda:
         "../envs/diffshadow.yaml"
     shell:
-        "diffshadow eval-truth --volume {input.volume} --lights {input.lights} --seed {params.seed}"
+        "diffshadow --phases results/{wildcards.scene}/benchmarks/eval_truth.phases.json eval-truth --volume {input.volume} --lights {input.lights} --seed {params.seed}"
         " --threads {threads} --out {output} 2>&1 | tee {log}"
 
 
@@ -84,7 +84,7 @@ rule sample_shadows:
     conda:
         "../envs/diffshadow.yaml"
     shell:
-        "diffshadow {params.command} --truth {input.truth} --lights {input.lights} --threads {threads}"
+        "diffshadow --phases results/{wildcards.scene}/benchmarks/sample_shadows.phases.json {params.command} --truth {input.truth} --lights {input.lights} --threads {threads}"
         " --out {output} 2>&1 | tee {log}"
 
 
@@ -112,7 +112,7 @@ rule evaluate_voxels:
     conda:
         "../envs/diffshadow.yaml"
     shell:
-        "diffshadow evaluate-voxels {params.checkpoint} --weights {input.weights}"
+        "diffshadow --phases results/{wildcards.scene}/benchmarks/evaluate_voxels.phases.json evaluate-voxels {params.checkpoint} --weights {input.weights}"
         " --generated {input.generated} --truth {input.truth} --volume {input.volume} --lights {input.lights}"
         " {params.geometry} --threads {threads}"
         " --out {output} 2>&1 | tee {log}"
@@ -137,7 +137,7 @@ rule render_targets:
     conda:
         "../envs/diffshadow.yaml"
     shell:
-        "diffshadow render-targets --volume {input.volume} --lights {input.lights} --config-json {params.cfg:q}"
+        "diffshadow --phases results/{wildcards.scene}/benchmarks/render_targets.phases.json render-targets --volume {input.volume} --lights {input.lights} --config-json {params.cfg:q}"
         " --threads {threads} --out {output} 2>&1 | tee {log}"
 
 
@@ -169,7 +169,7 @@ rule finetune_render:
         # finetune.nproc processes as `threads` (so -j caps them on a laptop), no more than the device takes
         # (one per GPU on CUDA), said in one line
         "n=$(diffshadow ddp-processes --nproc {threads}) &&"
-        " $DIFFSHADOW_TORCHRUN --nproc_per_node=$n -m diffshadow.cli finetune-render"
+        " $DIFFSHADOW_TORCHRUN --nproc_per_node=$n -m diffshadow.cli --phases results/{wildcards.scene}/benchmarks/finetune_render.phases.json finetune-render"
         " --checkpoint {input.checkpoint} --weights {input.weights} --points {input.points}"
         " --targets {input.targets} --volume {input.volume} --lights {input.lights} --config-json {params.cfg:q} --threads 1"
         " --metrics {output.metrics} --out {output.checkpoint} 2>&1 | tee {log}"

@@ -1,0 +1,311 @@
+"""`diffshadow bench stages`: the per-step cost of every heavy stage at a config's sizes, on this device, and
+each stage's time projected to that config's steps, epochs and lights.
+
+Every stage is timed through the loop body it runs (`fit.SubsetFit.step`, `data_inr.DataInrFit.step`,
+`diffusion.train.train_batch`, `diffusion.finetune.train_step`, `diffusion.sample.generate`,
+`truth.transmittance_per_light`) on synthetic inputs of the config's shapes: random weights, points and
+shadows, so that no earlier stage is needed. Only the volume is the scene's own (the shadow march and the
+point sampler read it). Per stage: seconds per step (the median of timed steps after a warm-up, a device
+sync around each), kernel-launching ops and host syncs per step (`bench.profile.op_counts`, counts that do
+not drift with load), peak memory (CUDA's allocator, or the process's sampled resident set added while the
+stage was built and run on a CPU), and the projection. The projection multiplies the step by the config's
+count of such steps; it leaves out start-up, checkpoints, logging and the periodic checks (validation, the
+seen-light gap), which the workflow's phase timings (stage_costs.tsv) show.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import platform
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, replace
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from diffshadow.bench.profile import OPTIMIZER_STEP, op_counts
+from diffshadow.bench.render import PeakMemory, _sync
+from diffshadow.io import atomic_write_text
+
+STAGES = ("fit_siren", "preoptimize", "train_data_inr", "train_diffusion", "finetune_render", "sample_shadows",
+          "eval_truth")
+
+
+@dataclass
+class Timed:
+    """One stage's step, ready to run: `step(i)` runs step i; `per` says what one step is, `count` how many the
+    config runs, `note` how that count was reached."""
+
+    step: Callable[[int], object]
+    per: str
+    count: float
+    note: str
+    units: float = 1.0  # work units (SIRENs, lights) one step covers, for "seconds per SIREN/light"
+
+
+def _lights(n: int, center, gen: np.random.Generator) -> np.ndarray:
+    """`n` unit directions scattered in a 30-degree cap around `center`."""
+    c = np.asarray(center, dtype=np.float64)
+    c = c / np.linalg.norm(c)
+    v = c[None] + 0.3 * gen.standard_normal((n, 3))
+    return v / np.linalg.norm(v, axis=1, keepdims=True)
+
+
+def _scene(cfg: dict):
+    from diffshadow.artifacts import scene_volume
+
+    return scene_volume(cfg)
+
+
+def fit_siren(cfg: dict, device: torch.device, volume, tf, *, subset: bool = True) -> Timed:
+    """A fit step of one subset (K SIRENs jointly), or (`subset` False) preoptimize's single-light step."""
+    from diffshadow.fit import FitConfig, SubsetFit
+    from diffshadow.lights import PoolLights
+    from diffshadow.siren import SirenConfig, WeightLayout, init_siren
+
+    fit = FitConfig.from_config(cfg["fit"])
+    siren = SirenConfig.from_config(cfg["siren"])
+    layout = WeightLayout.for_siren(siren)
+    n_lights = int(cfg["lights"]["count"])
+    k = min(int(cfg["subset_size"]), n_lights) if subset else 1
+    gen = np.random.default_rng(0)
+    lights = _lights(k, cfg["lights"]["center"], gen)
+    init = layout.flatten(init_siren(siren, torch.Generator().manual_seed(0)))
+    pool = None
+    if subset and fit.blend_weight > 0 and k >= 2:
+        # a pool of the size one subset takes (blend_per_light pool lights per training light, ~all of them its
+        # own), with random shadows: the step's cost depends on their count and points, not their values
+        m, bk = fit.blend_per_light * k, min(4, k)
+        g = torch.Generator().manual_seed(1)
+        pool = PoolLights(lights=torch.as_tensor(_lights(m, cfg["lights"]["center"], gen)),
+                          points=torch.rand(m, fit.blend_points, 3, generator=g) * torch.as_tensor(
+                              volume.extent, dtype=torch.float32),
+                          values=torch.rand(m, fit.blend_points, generator=g),
+                          neighbours=torch.randint(0, k, (m, bk), generator=g), blend=torch.full((m, bk), 1.0 / bk))
+    if not subset:
+        fit = replace(fit, lr=float(cfg["preoptimize"]["lr"]))
+    run = SubsetFit(init, layout, siren, volume, tf, lights, fit, pool=pool, device=device)
+    if subset:
+        jobs = math.ceil(n_lights / int(cfg["subset_size"]))
+        return Timed(run.step, f"step of {k} SIRENs", fit.steps,
+                     f"{fit.steps} steps per job ({jobs} jobs of up to {cfg['subset_size']} lights, one GPU each)", k)
+    steps = int(cfg["preoptimize"]["steps"])
+    return Timed(run.step, "step of 1 SIREN", steps, f"{steps} steps at siren.width (capacity growth not counted)")
+
+
+def train_data_inr(cfg: dict, device: torch.device, volume, tf) -> Timed:
+    from diffshadow.data_inr import DataInrConfig, DataInrFit
+
+    dcfg = DataInrConfig.from_config(cfg["data_inr"])
+    run = DataInrFit(volume, tf, dcfg, device=device)
+    # the error-driven sampler rescores every voxel every error_every steps (periodic, like a checkpoint): scored
+    # once here, then only the steps between rescorings are timed
+    if run.hard is not None:
+        run.hard.score(run.model, device)
+    return Timed(lambda i: run.step(i + 1 + (i // max(1, dcfg.error_every - 1))), f"step of {dcfg.points} points",
+                 dcfg.steps, f"{dcfg.steps} steps at data_inr.width (capacity growth and voxel rescoring not counted)")
+
+
+def _training_data(cfg: dict, volume, device: torch.device):
+    """Synthetic geometry-stage inputs of the config's shapes: weights near a common init (as stage 1's are),
+    presampled points and shadows, pool lights."""
+    from diffshadow.diffusion.config import DiffusionConfig
+    from diffshadow.diffusion.train import TrainingData
+    from diffshadow.lights import PoolLights
+    from diffshadow.siren import SirenConfig, WeightLayout, init_siren
+
+    dcfg = DiffusionConfig.from_config(cfg["diffusion"])
+    siren = SirenConfig.from_config(cfg["siren"])
+    dcfg = dcfg.for_siren(siren.width)
+    layout = WeightLayout.for_siren(siren)
+    n, g = int(cfg["lights"]["count"]), torch.Generator().manual_seed(2)
+    extent = torch.as_tensor(volume.extent, dtype=torch.float32)
+    init = layout.flatten(init_siren(siren, g))
+    weights = init + 0.01 * torch.randn(n, layout.n_params, generator=g)
+    lights = torch.as_tensor(_lights(n, cfg["lights"]["center"], np.random.default_rng(2)))
+    pool = None
+    if dcfg.pool_lights > 0:
+        m = dcfg.pool_lights
+        pool = PoolLights(lights=torch.as_tensor(_lights(m, cfg["lights"]["center"], np.random.default_rng(3))),
+                          points=torch.rand(m, dcfg.pool_points, 3, generator=g) * extent,
+                          values=torch.rand(m, dcfg.pool_points, generator=g),
+                          neighbours=torch.randint(0, n, (m, 4), generator=g), blend=torch.full((m, 4), 0.25))
+    data = TrainingData(weights=weights, lights=lights,
+                        points=torch.rand(n, dcfg.presample_points, 3, generator=g) * extent,
+                        values=torch.rand(n, dcfg.presample_points, generator=g), extent=extent, layout=layout,
+                        siren=siren, pool=pool)
+    return dcfg, data
+
+
+def train_diffusion(cfg: dict, device: torch.device, volume, tf) -> Timed:
+    from diffshadow.diffusion.config import build_model, make_optimizer
+    from diffshadow.diffusion.schedule import Schedule
+    from diffshadow.diffusion.standardize import Standardizer
+    from diffshadow.diffusion.train import Ema, draw_batch, train_batch
+    from diffshadow.progress import FirstNonFinite
+    from diffshadow.sampling import seeded
+
+    dcfg, data = _training_data(cfg, volume, device)
+    model = build_model(data.layout, dcfg).to(device)
+    std = Standardizer.fit(data.layout, data.weights, dcfg.standardize)
+    z_all = std.standardize(data.weights).float().to(device)
+    on_device = data.to(device)
+    pool = on_device.pool if dcfg.pool_lights > 0 else None
+    opt = make_optimizer(model.parameters(), dcfg.lr, dcfg.weight_decay)
+    ema = Ema(model, dcfg.ema) if dcfg.ema > 0 else None
+    schedule, nonfinite = Schedule(), FirstNonFinite((), device)
+    n = len(z_all)
+    per_epoch = math.ceil(n / dcfg.batch_size)
+
+    def step(i: int):
+        gen = seeded(dcfg.seed, 1, i)
+        idx = torch.randperm(n, generator=gen, device=gen.device)[:dcfg.batch_size].to(device)
+        batch = draw_batch(gen, idx, on_device, pool, dcfg, schedule.steps, device)
+        return train_batch(model, opt, ema, std, on_device, z_all, pool, batch, dcfg, schedule, nonfinite, 0, i)
+
+    epochs = max(dcfg.epochs, dcfg.max_epochs) if dcfg.target_gap > 0 else dcfg.epochs
+    return Timed(step, f"step of {dcfg.batch_size} lights ({model.n_params():,}-parameter '{dcfg.preset}' model)",
+                 per_epoch * epochs, f"{per_epoch} steps per epoch x {epochs} epochs (max_epochs: the gap check may "
+                 f"stop sooner)")
+
+
+def finetune_render(cfg: dict, device: torch.device, volume, tf) -> Timed:
+    from diffshadow.diffusion.config import build_model, make_optimizer
+    from diffshadow.diffusion.finetune import FinetuneConfig, FinetuneData, train_step
+    from diffshadow.diffusion.schedule import Schedule
+    from diffshadow.diffusion.standardize import Standardizer
+    from diffshadow.progress import FirstNonFinite
+    from diffshadow.render.bundle import build_bundle
+    from diffshadow.render.camera import fibonacci_views
+
+    fcfg = FinetuneConfig.from_config(cfg["finetune"])
+    dcfg, data = _training_data(cfg, volume, device)
+    cameras = fibonacci_views(volume.extent, fcfg.views, size=fcfg.image_size, fov=fcfg.fov)
+    bundle = build_bundle(volume, tf, cameras, step=fcfg.step)  # the real views' samples: their count sets the cost
+    n = len(data.weights)
+    g = torch.Generator().manual_seed(4)
+    targets = torch.rand(n, fcfg.views, fcfg.image_size ** 2, 3, generator=g)
+    fdata = FinetuneData(data, bundle, targets).to(device)
+    model = build_model(data.layout, dcfg).to(device)
+    std = Standardizer.fit(data.layout, data.weights, dcfg.standardize)
+    z_all = std.standardize(data.weights).float().to(device)
+    opt = make_optimizer(model.parameters(), fcfg.lr, dcfg.weight_decay)
+    schedule, nonfinite = Schedule(), FirstNonFinite((), device)
+    per_rank = math.ceil(fcfg.batch_size / fcfg.nproc)
+
+    def step(i: int):
+        batch = [(i * fcfg.batch_size + j) % n for j in range(fcfg.batch_size)]
+        return train_step(model, model, opt, std, fdata, z_all, batch, 0, fcfg.nproc, i, fcfg, dcfg, schedule,
+                          nonfinite)
+
+    per_epoch = math.ceil(n / fcfg.batch_size)
+    return Timed(step, f"step of one process ({per_rank} of {fcfg.batch_size} lights; {fcfg.nproc} processes)",
+                 per_epoch * fcfg.epochs, f"{per_epoch} steps per epoch x {fcfg.epochs} epochs, each process in "
+                 f"parallel (DDP's all-reduce not counted)")
+
+
+def sample_shadows(cfg: dict, device: torch.device, volume, tf) -> Timed:
+    from diffshadow.diffusion.config import build_model
+    from diffshadow.diffusion.sample import generate
+    from diffshadow.diffusion.standardize import Standardizer
+
+    dcfg, data = _training_data(cfg, volume, device)
+    model = build_model(data.layout, dcfg).to(device).eval()
+    std = Standardizer.fit(data.layout, data.weights, dcfg.standardize)
+    batch = min(64, len(data.weights))  # generate's batch of lights
+    lights = data.lights[:batch].numpy()
+
+    def step(i: int):
+        with torch.no_grad():
+            return generate(model, std, lights, steps=dcfg.ddim_steps, seed=i, temperature=dcfg.temperature,
+                            device=device)
+
+    total = int(cfg["lights"]["count"]) + int(cfg["lights"]["unseen"])
+    return Timed(step, f"DDIM ({dcfg.ddim_steps} steps) of {batch} SIRENs", total / batch,
+                 f"{total} lights (training and unseen) in batches of {batch}", batch)
+
+
+def eval_truth(cfg: dict, device: torch.device, volume, tf) -> Timed:
+    from diffshadow.shadow import ShadowField, transmittance_per_light
+
+    points = int(cfg.get("evaluate", {}).get("points", 16384))
+    field = ShadowField.build(volume, tf, device=device)
+    g = torch.Generator().manual_seed(5)
+    pts = torch.rand(2 * points, 3, generator=g) * torch.as_tensor(volume.extent, dtype=torch.float32)
+    total = int(cfg["lights"]["count"]) + int(cfg["lights"]["unseen"])
+    group = max(1, min(total // 10, 32))  # TruthPoints marches ~10 groups of lights together
+    lights = _lights(group, cfg["lights"]["center"], np.random.default_rng(5))
+    return Timed(lambda i: transmittance_per_light(field, tf, lights, pts), f"exact shadows of {group} lights at "
+                 f"{2 * points} points", total / group, f"{total} lights in groups of {group}", group)
+
+
+BUILDERS = {"fit_siren": fit_siren, "preoptimize": lambda c, d, v, t: fit_siren(c, d, v, t, subset=False),
+            "train_data_inr": train_data_inr, "train_diffusion": train_diffusion, "finetune_render": finetune_render,
+            "sample_shadows": sample_shadows, "eval_truth": eval_truth}
+
+
+def measure(timed: Timed, device: torch.device, *, warmup: int, budget_s: float, max_steps: int) -> dict:
+    """Seconds per step (median of timed steps, synced), and ops and syncs of one step."""
+    for i in range(warmup):
+        timed.step(i)
+    _sync(device)
+    times: list[float] = []
+    start = time.perf_counter()
+    i = warmup
+    while len(times) < max_steps and (len(times) < 2 or time.perf_counter() - start < budget_s):
+        t0 = time.perf_counter()
+        timed.step(i)
+        _sync(device)
+        times.append(time.perf_counter() - t0)
+        i += 1
+    counts = op_counts(lambda: timed.step(i), host_scopes=(OPTIMIZER_STEP,))
+    step_s = float(np.median(times))
+    return {"step_s": step_s, "steps_timed": len(times), **counts}
+
+
+def bench_stages(cfg: dict, out: Path, *, device: torch.device, stages: list[str] | None = None,
+                 budget_s: float = 2.0, warmup: int = 2, max_steps: int = 50, config_name: str = "",
+                 log=print) -> dict:
+    """Measure each stage of `stages` (default all) at `cfg`'s sizes; write `out` (JSON) and print a table."""
+    stages = list(stages or STAGES)
+    unknown = [s for s in stages if s not in BUILDERS]
+    if unknown:
+        raise ValueError(f"bench stages: unknown stage {unknown[0]!r}; expected some of {', '.join(STAGES)}")
+    volume, tf = _scene(cfg)
+    rows = {}
+    for name in stages:
+        t0 = time.perf_counter()
+        with PeakMemory(device) as mem:
+            timed = BUILDERS[name](cfg, device, volume, tf)
+            row = measure(timed, device, warmup=warmup, budget_s=budget_s, max_steps=max_steps)
+        row.update(per=timed.per, steps=timed.count, count_note=timed.note, peak_memory_mib=mem.peak / 2 ** 20,
+                   projected_s=row["step_s"] * timed.count, seconds_per_unit=row["step_s"] / timed.units,
+                   bench_s=time.perf_counter() - t0)
+        rows[name] = row
+        log(f"{name:16s} {row['step_s'] * 1e3:9.2f} ms/{timed.per}: {row['ops']} ops, {row['syncs']} host syncs "
+            f"({row['host_reads']} host reads), peak {row['peak_memory_mib']:.0f} MiB; projected "
+            f"{_duration(row['projected_s'])} ({timed.note})")
+    result = {"config": config_name, "device": _device_name(device), "torch": torch.__version__,
+              "cuda": torch.version.cuda, "threads": torch.get_num_threads(), "host": platform.node(),
+              "peak_memory": "CUDA allocator peak" if device.type == "cuda" else "resident set added (sampled)",
+              "stages": rows}
+    atomic_write_text(out, json.dumps(result, indent=1) + "\n")
+    log(f"wrote {out}")
+    return result
+
+
+def _device_name(device: torch.device) -> str:
+    if device.type == "cuda":
+        return torch.cuda.get_device_name(device)
+    return f"cpu ({platform.processor() or platform.machine()})"
+
+
+def _duration(seconds: float) -> str:
+    if seconds < 120:
+        return f"{seconds:.1f} s"
+    if seconds < 7200:
+        return f"{seconds / 60:.1f} min"
+    return f"{seconds / 3600:.1f} h"

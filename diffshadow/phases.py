@@ -1,0 +1,94 @@
+"""Where a job's time goes: interpreter and imports, device start, compilation, reading and writing, compute.
+
+Each `diffshadow` process keeps one clock (`phase`); the CLI writes it beside the job's Snakemake benchmark
+file when given `--phases FILE`, and `report.stage_costs` adds the phases to each rule's row. Phases do not
+nest: time inside an inner phase counts to the outer one (a checkpoint written inside a compiled region is
+compile time), so the phases of a process add up to its life. `compute` is the remainder: the process's life
+less every named phase. The process's life is read from the kernel (Linux: /proc/self/stat, 10 ms ticks), so
+interpreter start-up and module imports before `main` count as `import`.
+
+This module imports nothing heavy: jobs that need no torch must stay without it (docs/performance.md).
+"""
+
+from __future__ import annotations
+
+import functools
+import json
+import os
+import time
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
+from pathlib import Path
+
+PHASES = ("import", "device", "compile", "io", "compute")  # the order of the report's columns
+
+_totals: dict[str, float] = dict.fromkeys(PHASES, 0.0)
+_active: list[str] = []
+_MODULE_LOADED = time.monotonic()
+
+
+@contextmanager
+def phase(name: str) -> Iterator[None]:
+    """Count the time inside the block to `name` (one of PHASES except compute), unless a phase is already open."""
+    if name not in PHASES or name == "compute":
+        raise ValueError(f"phase: expected one of {', '.join(PHASES[:-1])}, got {name!r}")
+    if _active:
+        yield
+        return
+    _active.append(name)
+    start = time.perf_counter()
+    try:
+        yield
+    finally:
+        _totals[name] += time.perf_counter() - start
+        _active.pop()
+
+
+def timed(name: str) -> Callable:
+    """A decorator: every call of the function counts to phase `name`."""
+    def wrap(fn: Callable) -> Callable:
+        @functools.wraps(fn)
+        def inner(*args, **kwargs):
+            with phase(name):
+                return fn(*args, **kwargs)
+        return inner
+    return wrap
+
+
+def process_age() -> float:
+    """Seconds since this process started: from the kernel where it says (Linux), else since this module loaded."""
+    try:
+        # field 22 (starttime) counts clock ticks since boot; the command name (field 2) may hold spaces
+        ticks = int(Path("/proc/self/stat").read_text().rsplit(")", 1)[1].split()[19])
+        return max(0.0, time.clock_gettime(time.CLOCK_BOOTTIME) - ticks / os.sysconf("SC_CLK_TCK"))
+    except (OSError, ValueError, IndexError, AttributeError):
+        return time.monotonic() - _MODULE_LOADED
+
+
+def mark_imports_done() -> None:
+    """Count everything so far that no phase claimed (interpreter start-up, module imports) as `import`."""
+    _totals["import"] = max(0.0, process_age() - sum(v for k, v in _totals.items() if k != "import"))
+
+
+def totals() -> dict[str, float]:
+    """Seconds per phase so far, `compute` the remainder of the process's life."""
+    life = process_age()
+    named = {k: v for k, v in _totals.items() if k != "compute"}
+    return {**named, "compute": max(0.0, life - sum(named.values()))}
+
+
+def reset() -> None:
+    """Zero the clock (for tests, and a process that times several jobs)."""
+    for key in _totals:
+        _totals[key] = 0.0
+
+
+def write(path: str | Path, command: str) -> dict:
+    """The clock as JSON (`<phase>_s`, and `process_s`, the process's life), written atomically to `path`."""
+    from diffshadow.io import atomic_write_text
+
+    record = {f"{k}_s": round(v, 3) for k, v in totals().items()}
+    record["process_s"] = round(sum(v for k, v in record.items()), 3)
+    record["command"] = command
+    atomic_write_text(path, json.dumps(record, indent=1) + "\n")
+    return record

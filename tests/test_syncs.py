@@ -1,0 +1,73 @@
+"""No host sync inside the inner step of a training loop: a GPU runs ahead of the host only while the host never
+waits for a value. Each loop's step is counted as `bench stages` counts it (the loop body itself, through
+`diffshadow.bench.stages`), on tiny synthetic inputs; a scalar read, a boolean mask or a `nonzero` added to any of
+them fails here."""
+
+from pathlib import Path
+
+import pytest
+import torch
+
+from diffshadow.bench.profile import OPTIMIZER_STEP, op_counts
+from diffshadow.bench.stages import BUILDERS, bench_stages
+from diffshadow.config import merge, run_config, scene_config
+
+REPO = Path(__file__).resolve().parents[1]
+TRAINING = ("fit_siren", "preoptimize", "train_data_inr", "train_diffusion", "finetune_render")
+TINY = {"lights": {"count": 6, "unseen": 2}, "subset_size": 6,
+        "fit": {"points": 64, "blend_per_light": 2, "blend_points": 32},
+        "diffusion": {"presample_points": 64, "pool_lights": 4, "pool_points": 32, "geometry_points": 16,
+                      "batch_size": 4, "epochs": 3, "max_epochs": 3},
+        "finetune": {"views": 1, "image_size": 16, "pixels": 4, "batch_size": 4, "epochs": 2},
+        "data_inr": {"points": 64, "width": 16}}
+
+
+@pytest.fixture(scope="module")
+def tiny():
+    return scene_config(run_config(merge({}, TINY), "test"), "nucleon", scenes_dir=REPO / "config/scenes")
+
+
+@pytest.fixture(scope="module")
+def scene(tiny):
+    from diffshadow.artifacts import scene_volume
+
+    return scene_volume(tiny)
+
+
+@pytest.mark.parametrize("stage", TRAINING)
+def test_no_host_sync_inside_a_training_step(tiny, scene, stage):
+    timed = BUILDERS[stage](tiny, torch.device("cpu"), *scene)
+    timed.step(0)
+    counts = op_counts(lambda: timed.step(1), host_scopes=(OPTIMIZER_STEP,))
+    assert counts["ops"] > 20 and counts["syncs"] == 0, counts
+
+
+def test_a_scalar_read_in_a_step_is_counted(tiny, scene):
+    """The check can fail: the same step followed by the read the loops used to make (`if not isfinite(loss)`)."""
+    timed = BUILDERS["train_data_inr"](tiny, torch.device("cpu"), *scene)
+
+    def step_with_read():
+        loss = timed.step(1)
+        if not torch.isfinite(loss):
+            raise AssertionError
+    assert op_counts(step_with_read, host_scopes=(OPTIMIZER_STEP,))["syncs"] == 1
+
+
+def test_bench_stages_measures_and_projects_every_stage(tiny, tmp_path):
+    import json
+
+    out = tmp_path / "stages.json"
+    result = bench_stages(tiny, out, device=torch.device("cpu"), budget_s=0.0, warmup=1, max_steps=2,
+                          log=lambda *a: None)
+    assert json.loads(out.read_text()) == json.loads(json.dumps(result))
+    assert set(result["stages"]) == set(BUILDERS)
+    for name, row in result["stages"].items():
+        assert row["step_s"] > 0 and row["ops"] > 0 and row["steps_timed"] == 2, name
+        assert row["projected_s"] == pytest.approx(row["step_s"] * row["steps"]), name
+    stages = result["stages"]
+    assert stages["fit_siren"]["steps"] == tiny["fit"]["steps"]
+    assert stages["train_diffusion"]["steps"] == 2 * 3  # 6 lights in batches of 4, 3 epochs
+    for name in ("eval_truth", "sample_shadows"):  # per light, over the 8 training and unseen lights
+        assert stages[name]["seconds_per_unit"] * 8 == pytest.approx(stages[name]["projected_s"]), name
+    with pytest.raises(ValueError, match="bench stages: unknown stage 'fit'"):
+        bench_stages(tiny, out, device=torch.device("cpu"), stages=["fit"])
