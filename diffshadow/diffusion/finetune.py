@@ -28,11 +28,10 @@ import torch
 
 from diffshadow.config import section
 from diffshadow.diffusion.config import DiffusionConfig, build_model, make_optimizer
-from diffshadow.diffusion.geometry import geometry_error
 from diffshadow.diffusion.sample import generate, load_sampler, sampler_weights
 from diffshadow.diffusion.schedule import Schedule
 from diffshadow.diffusion.standardize import Standardizer
-from diffshadow.diffusion.train import TrainingData, pool_noised
+from diffshadow.diffusion.train import Batch, TrainingData, batch_loss
 from diffshadow.io import atomic_torch_save, resume
 from diffshadow.progress import FirstNonFinite, eta
 from diffshadow.render.bundle import RayBundle, bundle_colors
@@ -125,59 +124,49 @@ def _draws(cfg: FinetuneConfig, dcfg: DiffusionConfig, epoch: int, light: int, n
 
 def step_loss(model, std: Standardizer, data: FinetuneData, z_all: torch.Tensor, local: list[int], epoch: int,
               cfg: FinetuneConfig, dcfg: DiffusionConfig, schedule: Schedule, scale: float):
-    """Sum over the `local` lights of (x0 + geometry + rendering) loss, times `scale`; and the parts."""
+    """The geometry stage's loss of the `local` lights (`train.batch_loss`: x0, pool prior, geometry) plus the
+    rendering loss, summed over the lights and times `scale`; and the parts (x0, geometry, rendering) summed."""
     device = z_all.device
     if not local:  # a rank with no light this step still joins the gradient all-reduce
         zero = sum(p.sum() for p in model.parameters()) * 0.0
         return zero, torch.zeros(3, dtype=torch.float64, device=device)
     tr = data.train
     b = data.bundle
-    nv, p = len(b.count), cfg.pixels
+    nv, p, n_light = len(b.count), cfg.pixels, len(local)
     # pool lights (no fitted SIREN, exact shadows) keep their geometry loss here too: the rendering loss sees
     # training lights only and, alone, lowered the lights between them (nucleon: 32.46 -> 31.87 dB)
     pool = tr.pool if dcfg.pool_lights > 0 and tr.pool is not None else None
     sizes = (len(pool.lights), pool.points.shape[1]) if pool is not None else (0, 0)
     draws = [_draws(cfg, dcfg, epoch, i, z_all.shape[1], tr.points.shape[1], nv, schedule.steps, sizes)
              for i in local]
-    idx = torch.tensor(local, device=device)
-    t = torch.cat([d[0] for d in draws]).to(device)
-    noise = torch.cat([d[1] for d in draws]).to(device)
-    x0 = z_all[idx]
-    x_t, light_in = schedule.q_sample(x0, t, noise), tr.lights[idx].float()
-    if pool is not None:  # one forward for both (DDP expects one forward per backward)
-        j = torch.cat([d[4][0] for d in draws]).to(device)
-        tp = torch.cat([d[4][1] for d in draws]).to(device)
-        x0p, x_tp, light_p = pool_noised(pool, z_all, j, tp, torch.cat([d[4][2] for d in draws]).to(device), schedule)
-        x_t, t, light_in = torch.cat([x_t, x_tp]), torch.cat([t, tp]), torch.cat([light_in, light_p])
-    pred_all = model(x_t, t, light_in)
-    pred = pred_all[:len(local)]
-    l_x0 = ((pred - x0) ** 2).mean(1)
-    weights = std.destandardize(pred)
-    siren = BatchedSiren(weights, tr.layout, tr.siren.blocks)
+
+    def stacked(i: int, cat=torch.cat) -> torch.Tensor:
+        return cat([d[i] for d in draws]).to(device)
+
+    def pooled(i: int, cat=torch.cat) -> torch.Tensor:
+        return cat([d[4][i] for d in draws]).to(device)
+
+    batch = Batch(torch.tensor(local, device=device), stacked(0), stacked(1), stacked(2, torch.stack))
+    if pool is not None:
+        batch.j, batch.tp, batch.noise_p, batch.pick_p = pooled(0), pooled(1), pooled(2), pooled(3, torch.stack)
+    loss, l_x0, l_geo, pred_all = batch_loss(model, std, tr, z_all, pool, batch, dcfg, schedule)
+    siren = BatchedSiren(std.destandardize(pred_all[:n_light]), tr.layout, tr.siren.blocks)
     extent = tr.extent.to(device)
-    pick = torch.stack([d[2] for d in draws]).to(device)
-    pts = torch.gather(tr.points[idx], 1, pick[..., None].expand(-1, -1, 3))
-    vals = torch.gather(tr.values[idx], 1, pick)
-    l_geo = ((siren(box_to_siren(pts, extent)) - vals) ** 2).mean(1)
-    u = torch.stack([d[3] for d in draws]).to(device)
+    u = stacked(3, torch.stack)
     count = b.count[None, :, None]
     pix = (u * count.float()).long().clamp(max=(count - 1).clamp_min(0))  # (B, V, P) rows of the bundle
     views = torch.arange(nv, device=device)[None, :, None].expand_as(pix)
     spts = b.pts[views, pix]  # (B, V, P, N, 3)
     n = spts.shape[-2]
-    g = siren(box_to_siren(spts.reshape(len(local), -1, 3), extent)).view(len(local), nv, p, n)
+    g = siren(box_to_siren(spts.reshape(n_light, -1, 3), extent)).view(n_light, nv, p, n)
     color = bundle_colors(b, g, views, pix)
     flat_pix = b.pix[views, pix]  # image pixel ids (B, V, P)
-    target = data.targets[idx[:, None, None], views, flat_pix]
+    target = data.targets[batch.idx[:, None, None], views, flat_pix]
     l_render = ((color - target) ** 2).mean((1, 2, 3))
-    per_light = l_x0 + dcfg.geometry_weight * l_geo + cfg.render_weight * l_render
-    if pool is not None:
-        pred_p = pred_all[len(local):]
-        pts_p, vals_p = pool.samples(j, torch.stack([d[4][3] for d in draws]).to(device))
-        l_pool = geometry_error(std.destandardize(pred_p), tr.layout, tr.siren, pts_p, vals_p, extent)
-        per_light = per_light + dcfg.pool_x0_weight * ((pred_p - x0p) ** 2).mean(1) + dcfg.geometry_weight * l_pool
-    parts = torch.stack([l_x0.detach().sum(), l_geo.detach().sum(), l_render.detach().sum()]).double()
-    return per_light.sum() * scale, parts
+    # batch_loss is a mean over the lights: times their count, the per-light sum DDP's scale expects
+    total = (loss + cfg.render_weight * l_render.mean()) * (n_light * scale)
+    parts = torch.stack([l_x0.detach() * n_light, l_geo.detach() * n_light, l_render.detach().sum()]).double()
+    return total, parts
 
 
 def fingerprint(state: dict, cfg: FinetuneConfig, data: FinetuneData) -> str:

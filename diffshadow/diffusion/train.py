@@ -231,9 +231,11 @@ def draw_batch(gen: torch.Generator, idx: torch.Tensor, data: TrainingData, pool
 
 def batch_loss(model: WeightTransformer, std: Standardizer, data: TrainingData, z_all: torch.Tensor,
                pool: PoolLights | None, batch: Batch, cfg: DiffusionConfig,
-               schedule: Schedule) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-    """The training loss of one batch (x0 MSE, the pool lights' x0 prior, the geometry loss of both) and its x0
-    and geometry parts for the log. `data` is on the model's device."""
+               schedule: Schedule) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+    """The training loss of one batch (x0 MSE, the pool lights' x0 prior, the geometry loss of both), its x0
+    and geometry parts for the log, and the model's standardised prediction (training lights first, then the
+    pool's). `data` is on the model's device. The geometry stage's loss, and fine-tuning's before its rendering
+    term (`finetune.step_loss`)."""
     b, x0 = len(batch.idx), z_all[batch.idx]
     x_t, t_in, light_in = schedule.q_sample(x0, batch.t, batch.noise), batch.t, data.lights[batch.idx].float()
     if pool is not None:  # one forward for both: a batch of 2b costs 0.75 of two batches of b
@@ -254,7 +256,7 @@ def batch_loss(model: WeightTransformer, std: Standardizer, data: TrainingData, 
         err = _geometry_error(std.destandardize(pred_all), data.layout, data.siren, pts, vals, data.extent)
         loss_geo = err[:b].mean()
         loss = loss + cfg.geometry_weight * err.sum() / b  # training and pool lights, each a mean over b
-    return loss, loss_x0, loss_geo
+    return loss, loss_x0, loss_geo, pred_all
 
 
 def train_batch(model: WeightTransformer, opt: torch.optim.Optimizer, ema: Ema | None, std: Standardizer,
@@ -263,7 +265,7 @@ def train_batch(model: WeightTransformer, opt: torch.optim.Optimizer, ema: Ema |
     """One optimiser step of the geometry stage (the loop body of `train_diffusion`, which `bench stages` times
     as it is); the batch's summed (x0, geometry) losses, on the device. It reads nothing back to the host
     (tests/test_syncs.py): the loss's finiteness goes to `nonfinite`, read at log lines and checkpoints."""
-    loss, loss_x0, loss_geo = batch_loss(model, std, data, z_all, pool, batch, cfg, schedule)
+    loss, loss_x0, loss_geo, _ = batch_loss(model, std, data, z_all, pool, batch, cfg, schedule)
     nonfinite.record(loss.detach(), epoch)
     opt.zero_grad(set_to_none=True)
     loss.backward()
