@@ -408,6 +408,38 @@ def project(data: dict, run: dict, paper: dict, gpu_costs: dict[str, dict], *, l
             "stages": rows, "storage_bytes": storage_at(paper, [lights, paper["lights"]["sphere"]])}
 
 
+CPU_SOURCE = "CPU sweep x the tiny run's H200 speed-up (upper bound)"
+
+
+def measured_projection(proj: dict, bench: dict, *, stage1_nodes: int = 10) -> dict:
+    """`proj` (`project`) with each stage that `bench stages` measured at the paper config on a GPU (`bench`, its
+    JSON) timed from that measurement instead: its seconds per step times the paper's steps, times A100_PER_H200
+    (the same stated assumption) for Polaris' A100s. Host memory stays the sweep's (the bench measures the GPU's).
+    Every row names its `source`; stages the bench did not time keep the CPU-based upper bound."""
+    if bench.get("device_type") != "cuda":
+        raise ValueError(f"bench stages JSON measured on {bench.get('device')!r}: the paper-scale plan needs one "
+                         f"measured on a GPU (docs/measurements/<card>_bench_stages_paper.json)")
+    out = {**proj, "stages": {k: {**v, "source": CPU_SOURCE} for k, v in proj["stages"].items()},
+           "bench": {k: bench.get(k) for k in ("device", "torch", "cuda", "config")}}
+    lights = proj["lights"]
+    for stage, row in bench["stages"].items():
+        total = row["projected_s"] * A100_PER_H200
+        r = out["stages"].setdefault(stage, {"rss_mib": None, "model_state_mib": 0.0})
+        if stage == "fit_siren":  # the bench projects one job; jobs run four to a node on stage1_nodes nodes
+            jobs = -(-lights // int(row["units"]))  # units: the SIRENs one job fits
+            per_job, wall = total, total * -(-jobs // (stage1_nodes * GPUS_PER_NODE))
+            node_hours = total * jobs / GPUS_PER_NODE / 3600
+        else:
+            per_job = wall = total
+            node_hours = total / 3600
+        request_h = per_job * proj["margin"] / 3600
+        r.update(a100_s_total=total if stage != "fit_siren" else total * jobs, wall_s=wall, node_hours=node_hours,
+                 walltime_request_h=min(request_h, proj["queue_max_h"]),
+                 resubmits=max(0, math.ceil(request_h / proj["queue_max_h"]) - 1),
+                 source=f"bench stages on {bench.get('device')} x {A100_PER_H200}")
+    return out
+
+
 def walltime(hours: float) -> str:
     """PBS's HH:MM:SS, rounded up to whole minutes."""
     minutes = max(1, math.ceil(hours * 60))
@@ -428,9 +460,10 @@ def polaris_profile(proj: dict) -> str:
              "#   snakemake --profile polaris --workflow-profile profiles/paper --configfile config/paper.yaml",
              "set-resources:"]
     for stage, r in sorted(proj["stages"].items()):
-        lines.append(f"  {stage}:")
+        lines.append(f"  {stage}:  # {r.get('source', CPU_SOURCE)}")
         lines.append(f"    walltime: \"{walltime(r['walltime_request_h'])}\"")
-        lines.append(f"    mem_mb: {math.ceil(r['rss_mib'] * proj['margin'] * 1.048576 / 100) * 100}")
+        if r.get("rss_mib"):
+            lines.append(f"    mem_mb: {math.ceil(r['rss_mib'] * proj['margin'] * 1.048576 / 100) * 100}")
     return "\n".join(lines) + "\n"
 
 

@@ -16,6 +16,7 @@ sweep's exponents, the H200's speed over this machine's from `--gpu-costs`, the 
 from __future__ import annotations
 
 import argparse
+import json
 import subprocess
 import sys
 import time
@@ -43,6 +44,9 @@ def main() -> None:
     ap.add_argument("--gpu-costs", type=Path,
                     default=ROOT / "docs" / "measurements" / "h200_readme_run_stage_costs.tsv",
                     help="stage_costs.tsv of the default run on a GPU: each stage's speed there over this machine's")
+    ap.add_argument("--bench-stages", type=Path, help="`diffshadow bench stages --configfile config/paper.yaml` "
+                    "run on a GPU (docs/measurements/<card>_bench_stages_paper.json): the stages it timed are "
+                    "projected from it instead of the CPU sweep")
     ap.add_argument("--profile-out", type=Path,
                     help="also write the per-rule walltimes as a workflow profile (profiles/paper/config.yaml)")
     a = ap.parse_args()
@@ -76,6 +80,9 @@ def main() -> None:
                                            config.read_yaml(a.paper)), str(a.paper))
     data["projection"] = scaling.project(data, run_cfg, paper, scaling.read_costs(a.gpu_costs))
     data["projection"]["gpu_costs"] = str(a.gpu_costs)
+    if a.bench_stages:  # stages timed at the paper's sizes on a GPU replace their CPU-based upper bounds
+        data["projection"] = scaling.measured_projection(data["projection"], json.loads(a.bench_stages.read_text()))
+        data["projection"]["bench_stages"] = str(a.bench_stages)
     if a.profile_out:
         from diffshadow.io import atomic_write_text
 

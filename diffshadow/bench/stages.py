@@ -282,13 +282,15 @@ def bench_stages(cfg: dict, out: Path, *, device: torch.device, stages: list[str
             timed = BUILDERS[name](cfg, device, volume, tf)
             row = measure(timed, device, warmup=warmup, budget_s=budget_s, max_steps=max_steps)
         row.update(per=timed.per, steps=timed.count, count_note=timed.note, peak_memory_mib=mem.peak / 2 ** 20,
-                   projected_s=row["step_s"] * timed.count, seconds_per_unit=row["step_s"] / timed.units,
+                   projected_s=row["step_s"] * timed.count, units=timed.units,
+                   seconds_per_unit=row["step_s"] / timed.units,
                    bench_s=time.perf_counter() - t0)
         rows[name] = row
         log(f"{name:16s} {row['step_s'] * 1e3:9.2f} ms/{timed.per}: {row['ops']} ops, {row['syncs']} host syncs "
             f"({row['host_reads']} host reads), peak {row['peak_memory_mib']:.0f} MiB; projected "
             f"{_duration(row['projected_s'])} ({timed.note})")
-    result = {"config": config_name, "device": _device_name(device), "torch": torch.__version__,
+    result = {"config": config_name, "device": _device_name(device), "device_type": device.type,
+              "torch": torch.__version__,
               "cuda": torch.version.cuda, "threads": torch.get_num_threads(), "host": platform.node(),
               "peak_memory": "CUDA allocator peak" if device.type == "cuda" else "resident set added (sampled)",
               "stages": rows}
