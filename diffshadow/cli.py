@@ -409,7 +409,11 @@ def main(argv: list[str] | None = None) -> None:
         print(f"diffshadow {args.command}: error: {e}", file=sys.stderr)
         raise SystemExit(2) from None
     if args.phases and os.environ.get("RANK", "0") == "0":  # under torchrun: rank 0's clock
-        phases.write(args.phases, args.command)
+        import json
+
+        from diffshadow.io import atomic_write_text
+
+        atomic_write_text(args.phases, json.dumps(phases.record(args.command), indent=1) + "\n")
 
 
 if __name__ == "__main__":

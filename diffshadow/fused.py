@@ -28,6 +28,7 @@ import os
 import torch
 from torch.profiler import record_function
 
+from diffshadow.phases import phase
 from diffshadow.siren import RES_WEIGHT, fold
 
 WARPS = 4  # Triton's default
@@ -99,7 +100,8 @@ def _launch(name: str, n: int, block: int, warps: int, *args, registers: int | N
         if key in _LAUNCHED:
             return launch()
         try:
-            launch()
+            with phase("compile"):  # the first launch compiles (or loads the run's kernel cache): the job's phases
+                launch()
         except Exception as e:  # Triton's compile errors come in many types, and differ between versions
             first = str(e).strip().splitlines()[0] if str(e).strip() else ""
             raise FusedKernelError(f"{name} failed on its first launch, compiling (Triton "

@@ -13,7 +13,6 @@ This module imports nothing heavy: jobs that need no torch must stay without it 
 from __future__ import annotations
 
 import functools
-import json
 import os
 import time
 from collections.abc import Callable, Iterator
@@ -83,12 +82,9 @@ def reset() -> None:
         _totals[key] = 0.0
 
 
-def write(path: str | Path, command: str) -> dict:
-    """The clock as JSON (`<phase>_s`, and `process_s`, the process's life), written atomically to `path`."""
-    from diffshadow.io import atomic_write_text
-
-    record = {f"{k}_s": round(v, 3) for k, v in totals().items()}
-    record["process_s"] = round(sum(v for k, v in record.items()), 3)
-    record["command"] = command
-    atomic_write_text(path, json.dumps(record, indent=1) + "\n")
-    return record
+def record(command: str) -> dict:
+    """The clock as a JSON-able record (`<phase>_s`, and `process_s`, the process's life) of `command`."""
+    out: dict = {f"{k}_s": round(v, 3) for k, v in totals().items()}
+    out["process_s"] = round(sum(out.values()), 3)
+    out["command"] = command
+    return out

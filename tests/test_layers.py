@@ -9,8 +9,8 @@ PACKAGE = Path(__file__).resolve().parents[1] / "diffshadow"
 
 # lowest first; a module's layer is that of its longest listed prefix
 LAYERS = [
-    ["diffshadow", "config", "io", "progress", "metrics", "capacity", "analytic", "hpc", "_kernels"],  # foundations
-    ["volume", "transfer", "siren", "lights", "sampling", "grid", "store"],  # data: volumes, lights, SIRENs, stores
+    ["diffshadow", "phases", "config", "io", "progress", "metrics", "capacity", "analytic", "hpc", "_kernels"],  # foundations
+    ["volume", "transfer", "layout", "siren", "lights", "sampling", "grid", "store"],  # data: volumes, lights, SIRENs, stores
     ["shadow", "truth", "fused"],  # ground truth and the fused kernels
     ["data_inr"],
     ["render"],  # the renderer
