@@ -178,7 +178,7 @@ def read_training_data(weights_path: str | Path, points_path: str | Path) -> tup
     data = TrainingData(weights=torch.as_tensor(store.weights), lights=torch.as_tensor(store.lights),
                         points=torch.as_tensor(points), values=torch.as_tensor(values),
                         extent=torch.as_tensor(extent, dtype=torch.float32), layout=store.layout, siren=store.siren,
-                        pool=pool, check=check)
+                        pool=pool, check=check, region=store.light_region().to_dict())
     return data, store
 
 

@@ -179,13 +179,15 @@ def _render(a):
         raise ValueError("render: give --eye and --target together (or neither, for the orbit camera)")
     if a.eye is not None:
         cam = Camera.look_at(a.eye, a.target, up=a.up, fov=a.fov, size=size)
-    else:
+    elif a.distance is not None:
         cam = Camera.orbit(scene.volume.extent, azimuth=a.azimuth, elevation=a.elevation, distance=a.distance,
                            fov=a.fov, size=size)
+    else:  # the default view frames what the TF shows
+        cam = scene.framed(azimuth=a.azimuth, elevation=a.elevation, fov=a.fov, size=size)
     images.render_image(scene, Path(a.out), mode=a.mode, camera=cam, light=a.light,
                         weights_path=Path(a.weights) if a.weights else None, light_index=a.light_index,
                         diffusion=Path(a.diffusion) if a.diffusion else None,
-                        blend=Path(a.blend) if a.blend else None,
+                        blend=Path(a.blend) if a.blend else None, outside_region=a.outside_region,
                         scalar=a.scalar, phong=a.phong, step=a.step, skip=not a.no_skip)
 
 
@@ -323,9 +325,13 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--blend", help="mode inr, cache: blend: a weight store (results/<scene>/weights.zarr) whose "
                    "nearest SIRENs to --light are blended, as the viewer does for a new direction")
     p.add_argument("--light", type=float, nargs=3, metavar=("X", "Y", "Z"), help="toward the light")
+    p.add_argument("--outside-region", action="store_true", help="with --diffusion or --blend: draw the cache's "
+                   "answer for a light outside the region it was trained for (refused otherwise, exit code 2)")
     p.add_argument("--phong", action="store_true", help="Blinn-Phong lighting from the field's gradient")
-    for name, value in (("azimuth", 30.0), ("elevation", 25.0), ("distance", 2.2), ("fov", 60.0), ("step", 0.5)):
+    for name, value in (("azimuth", 30.0), ("elevation", 25.0), ("fov", 60.0), ("step", 0.5)):
         p.add_argument(f"--{name}", type=float, default=value)
+    p.add_argument("--distance", type=float, help="the orbit camera's distance from the box centre in box "
+                   "half-diagonals (default: the view that frames the visible part of the volume)")
     for name in ("eye", "target"):
         p.add_argument(f"--{name}", type=float, nargs=3, metavar=("X", "Y", "Z"),
                        help="a free camera in box coordinates (instead of --azimuth/--elevation/--distance)")
@@ -340,7 +346,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--host", default="127.0.0.1", help="address to serve on (default 127.0.0.1: this machine "
                    "only; on ALCF forward it with ssh -L, see the README)")
     p.add_argument("--port", type=int, default=8080)
-    p.add_argument("--size", type=int, default=128, help="image height in pixels when still (a panel control)")
+    p.add_argument("--size", type=int, default=0, help="image height in pixels when still (default 0: the "
+                   "canvas's own, sharp at any window size; a panel control)")
     p.add_argument("--step", type=float, default=0.5, help="marching step in voxels (a panel control)")
     p.add_argument("--record", help="a folder where every still frame is written (PNG, and JSON with its render "
                    "command) and every frame's cost is logged (frames.jsonl)")

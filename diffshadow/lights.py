@@ -157,6 +157,86 @@ def blend_weights(train: np.ndarray, query: np.ndarray, k: int) -> tuple[np.ndar
     return idx, inverse_angle_weights(angles)
 
 
+@dataclass(frozen=True)
+class LightRegion:
+    """The light directions a shadow cache was trained for: the cap around `center` that holds every training
+    light (`radius_deg`, the cap `unseen_directions` and the pool lights are drawn in), the training lights'
+    spacing (median angle to the nearest other one) and `far_deg`, the farthest any unseen test light sat from
+    its nearest training light: the evaluation vouches for lights up to that far, no farther. It travels with
+    the weight stores (attrs `region`) and the diffusion checkpoints (key `region`)."""
+
+    center: tuple[float, float, float]
+    radius_deg: float
+    spacing_deg: float
+    far_deg: float
+    train: np.ndarray  # (N, 3) the training lights, to measure a light's distance to the nearest
+
+    @classmethod
+    def of(cls, train: np.ndarray, unseen: np.ndarray | None = None, center=None) -> LightRegion:
+        """The region of training lights `train` (N, 3) (centre: `center`, else their mean direction)."""
+        train = np.asarray(train, dtype=np.float64).reshape(-1, 3)
+        if not len(train):
+            raise LightError("a light region needs at least one training light")
+        c = as_direction(center if center is not None else train.mean(axis=0), name="region center")
+        radius = float(np.degrees(np.arccos(np.clip(np.min(train @ c), -1.0, 1.0))))
+        spacing = float(np.degrees(np.median(nearest(train, train, 2)[1][:, 1]))) if len(train) > 1 else 0.0
+        far = spacing
+        if unseen is not None and len(unseen):
+            far = float(np.degrees(np.max(nearest(train, np.asarray(unseen, dtype=np.float64), 1)[1])))
+        return cls(tuple(float(x) for x in c), radius, spacing, far, train)
+
+    @classmethod
+    def from_dict(cls, d: dict, train: np.ndarray) -> LightRegion:
+        return cls(tuple(float(x) for x in d["center"]), float(d["radius_deg"]), float(d["spacing_deg"]),
+                   float(d["far_deg"]), np.asarray(train, dtype=np.float64).reshape(-1, 3))
+
+    def to_dict(self) -> dict:
+        return {"center": list(self.center), "radius_deg": self.radius_deg, "spacing_deg": self.spacing_deg,
+                "far_deg": self.far_deg}
+
+    def where(self, light) -> RegionCheck:
+        """Where `light` stands: its angle to the centre and to the nearest training light, inside or not."""
+        w = as_direction(light)
+        to_center = float(np.degrees(np.arccos(np.clip(float(w @ np.asarray(self.center)), -1.0, 1.0))))
+        to_nearest = float(np.degrees(nearest(self.train, w[None], 1)[1][0, 0]))
+        return RegionCheck(self, to_center, to_nearest)
+
+    def describe(self) -> str:
+        c = ", ".join(f"{x:.3g}" for x in self.center)
+        return (f"a {self.radius_deg:.1f}° cap around ({c}) of {len(self.train)} training lights "
+                f"{self.spacing_deg:.1f}° apart")
+
+
+@dataclass(frozen=True)
+class RegionCheck:
+    region: LightRegion
+    to_center_deg: float
+    to_nearest_deg: float
+
+    @property
+    def inside(self) -> bool:
+        return self.to_center_deg <= self.region.radius_deg + 1e-6
+
+    @property
+    def far(self) -> bool:
+        """Inside, but farther from every training light than any unseen test light was (not evaluated there)."""
+        return self.inside and self.to_nearest_deg > self.region.far_deg + 1e-6
+
+    def message(self) -> str:
+        """One line: what a cached answer for this light is worth."""
+        r = self.region
+        if not self.inside:
+            return (f"the light is outside the cache's region ({r.describe()}): {self.to_center_deg:.1f}° from its "
+                    f"centre, {self.to_center_deg - r.radius_deg:.1f}° past its edge, {self.to_nearest_deg:.1f}° from "
+                    f"the nearest training light; the cache holds nothing there")
+        if self.far:
+            return (f"the light is inside the cache's region but {self.to_nearest_deg:.1f}° from the nearest training "
+                    f"light, farther than any unseen test light was ({r.far_deg:.1f}°): the cache was not evaluated "
+                    f"that far out")
+        return (f"inside the cache's region, {self.to_nearest_deg:.1f}° from the nearest training light "
+                f"(unseen test lights: up to {r.far_deg:.1f}°)")
+
+
 def training_pool(train, center, n: int, *, seed: int) -> np.ndarray:
     """`n` random directions in the training lights' cap for diffusion training on exact shadows only (no
     fitted SIREN): drawn like the unseen test set but from another random stream, so never the same lights."""

@@ -15,7 +15,7 @@ import numpy as np
 
 from diffshadow.io import StoreError, VerifiedGroup, atomic_save, write_zarr_group
 from diffshadow.layout import SirenConfig, WeightLayout
-from diffshadow.lights import as_direction, blend_weights
+from diffshadow.lights import LightRegion, as_direction, blend_weights
 from diffshadow.phases import timed
 
 BLEND_K = 4  # stored SIRENs blended per light (`cache: blend`, and evaluate_voxels' baseline)
@@ -31,6 +31,15 @@ class WeightStore:
     siren: SirenConfig
     config: dict
     seen: np.ndarray | None = None  # generated stores: True for training lights, False for unseen ones
+    region: dict | None = None  # the light region of the cache (lights.LightRegion.to_dict)
+
+    def light_region(self) -> LightRegion:
+        """The light region these SIRENs answer for: as written with the store, else (a store written before
+        regions travelled with it) the cap around its training lights' mean direction."""
+        train = self.lights if self.seen is None else self.lights[self.seen]
+        if self.region is not None:
+            return LightRegion.from_dict(self.region, train)
+        return LightRegion.of(train)
 
 
 def blend_rows(weights: np.ndarray, idx: np.ndarray, mix: np.ndarray) -> np.ndarray:
@@ -47,6 +56,7 @@ class BlendSampler:
     def __init__(self, store: WeightStore, k: int = BLEND_K):
         self.store, self.k = store, k
         self.layout, self.siren = store.layout, store.siren
+        self.region = store.light_region()
 
     def __call__(self, light) -> np.ndarray:
         idx, mix = blend_weights(self.store.lights, as_direction(light)[None], self.k)
@@ -95,6 +105,8 @@ def write_store(path, store: WeightStore, *, made_by: str) -> None:
             root.create_array("seen", data=np.asarray(store.seen, bool))
         root.attrs.update({"layout": store.layout.to_config(), "siren": store.siren.to_config(),
                            "config": store.config, "n_lights": n, "n_params": p})
+        if store.region is not None:
+            root.attrs["region"] = store.region
 
     write_zarr_group(path, fill, made_by=made_by)
 
@@ -114,6 +126,7 @@ def open_store(path) -> WeightStore:
             siren=SirenConfig.from_config(attrs["siren"]),
             config=attrs.get("config", {}),
             seen=group.read("seen") if "seen" in group else None,
+            region=attrs.get("region"),
         )
     except KeyError as e:
         raise StoreError(f"{path}: not a weight store (missing {e})") from None

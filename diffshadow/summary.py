@@ -8,8 +8,10 @@ import html
 import json
 from pathlib import Path
 
+import numpy as np
+
 from diffshadow.io import atomic_write_text
-from diffshadow.report import ELAPSED_ROW, PHASE_COLUMNS
+from diffshadow.report import ELAPSED_ROW, PHASE_COLUMNS, label_image
 
 MIB = 2**20
 
@@ -99,6 +101,7 @@ class RunResults:
         self.images = json.loads((results / "image_metrics.json").read_text())
         self.bench = _read_json(results / "bench.json")
         self.finetune = _read_json(results / "finetune_metrics.json")
+        self.results = results
         costs = results / "stage_costs.tsv"
         lines = costs.read_text().splitlines() if costs.exists() else []
         self.costs = [dict(zip(lines[0].split("\t"), line.split("\t"), strict=True)) for line in lines[1:]]
@@ -172,10 +175,45 @@ class RunResults:
                          _num(target, "g"), reached, tried or "n/a"])
         return rows
 
+    def front_picture(self) -> tuple[bytes, str] | None:
+        """The landing page's picture: the scene under an unseen light, ours (the deployed path: data INR and the
+        cache's shadow SIREN) beside the exact image, labelled, and a caption naming its image PSNR
+        (image_metrics.json); None where evaluate_images rendered no unseen light."""
+        import io
+
+        from PIL import Image
+
+        images = self.results / "images"
+        for row in self.images.get("images", []):
+            if row["set"] != "unseen" or row["mode"] not in ("inr_generated_data_inr", "inr_generated"):
+                continue
+            tag = f"unseen{row['light']}_view{row['view']}"
+            ours, gt = images / f"{tag}_{row['mode']}.png", images / f"{tag}_gt.png"
+            if not (ours.exists() and gt.exists()):
+                continue
+            a, b = (np.asarray(Image.open(p).convert("RGB")) for p in (ours, gt))
+            side = np.concatenate([label_image(a, "ours", 0), label_image(b, "exact (gt)", 0)], axis=1)
+            big = Image.fromarray(side).resize((side.shape[1] * 2, side.shape[0] * 2), Image.Resampling.NEAREST)
+            buf = io.BytesIO()
+            big.save(buf, format="PNG")
+            what = "data INR and the cached shadow SIREN" if row["mode"] == "inr_generated_data_inr" else (
+                "the cached shadow SIREN on the raw volume")
+            return buf.getvalue(), (f"Unseen test light {row['light']}, view {row['view']}: ours ({what}) beside the "
+                                    f"exact shadow; image PSNR {row['psnr']:.2f} dB.")
+        return None
+
     def rst(self) -> str:
-        """The scene's block of the landing page: a title and a two-column table of the headline numbers."""
+        """The scene's block of the landing page: a title, its picture (`front_picture`) and a two-column table of
+        the headline numbers."""
+        import base64
+
         title = f"Scene {self.scene}"
-        lines = [title, "-" * len(title), "", ".. list-table::", "   :widths: 45 55", ""]
+        lines = [title, "-" * len(title), ""]
+        if (picture := self.front_picture()) is not None:
+            png, caption = picture
+            lines += [f".. figure:: data:image/png;base64,{base64.b64encode(png).decode()}", "   :alt: " + caption,
+                      "", "   " + caption, ""]
+        lines += [".. list-table::", "   :widths: 45 55", ""]
         for name, value in self.headline():
             lines += [f"   * - {name}", f"     - {value}"]
         return "\n".join(lines) + "\n"

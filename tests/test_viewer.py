@@ -103,9 +103,6 @@ def test_frames_of_every_mode(viewer):
     for mode, (img, _) in images.items():
         assert img.dtype == np.uint8 and img.shape == (16, 20, 3), mode
     assert not np.array_equal(images["inr"][0], images["noshadow"][0])  # the shadow darkens the blob
-    side, notes = images["inr | gt"]
-    left, _ = viewer.frame("inr", Camera(CAM.eye, CAM.target, CAM.up, CAM.fov, 10, 16), light, step=1.0)
-    assert np.array_equal(side[:, :10], left) and math.isfinite(notes["psnr_vs_gt"])
     with pytest.raises(ViewerError, match="mode: expected one of"):
         viewer.frame("shadows", CAM, light, step=1.0)
 
@@ -166,3 +163,88 @@ def test_view_needs_one_scene(tmp_path):
     proc = subprocess.run([sys.executable, "-m", "diffshadow.cli", "view"], capture_output=True, text=True,
                           timeout=120)
     assert proc.returncode != 0 and "give a results folder" in proc.stderr.strip().splitlines()[-1]
+
+
+BIG = Camera.orbit(np.ones(3), azimuth=30, elevation=25, size=(80, 64))  # tall enough for the labels
+
+
+def test_side_by_side_and_difference_show_one_psnr_and_say_what_they_show(viewer):
+    """`inr | gt`: the central halves of the inr and gt frames, each labelled; the difference: |inr - gt| times a
+    power of two that brings its 99.5th percentile to full scale, labelled with it; both report the PSNR of the
+    whole frames, so one light reads one PSNR."""
+    from diffshadow.viewer.scene import DIFF, diff_scale, image_psnr
+
+    light = viewer.unseen[0]
+    inr, _ = viewer.frame("inr", BIG, light, step=1.0)
+    gt, _ = viewer.frame("gt", BIG, light, step=1.0)
+    side, n1 = viewer.frame("inr | gt", BIG, light, step=1.0)
+    diff, n2 = viewer.frame(DIFF, BIG, light, step=1.0)
+    band = 24  # rows under the labels
+    assert np.array_equal(side[band:, :40], inr[band:, 20:60]) and np.array_equal(side[band:, 40:], gt[band:, 20:60])
+    assert n1["labels"] == ["cache (diffusion)", "exact (gt)"] and not np.array_equal(side[:band], np.concatenate(
+        [inr[:band, 20:60], gt[:band, 20:60]], axis=1))
+    assert n1["psnr_vs_gt"] == n2["psnr_vs_gt"] == image_psnr(inr, gt)
+    k = n2["diff_scale"]
+    expect = np.clip(np.abs(inr.astype(int) - gt.astype(int)) * k, 0, 255)
+    assert k == diff_scale(np.abs(inr.astype(int) - gt.astype(int))) and np.array_equal(diff[band:], expect[band:])
+    assert n2["labels"] == [f"|inr - gt| x {k}"]
+    assert diff_scale(np.full((4, 4), 3)) == 64 and diff_scale(np.full((4, 4), 200)) == 1
+    assert diff_scale(np.full((4, 4), 20)) == 8  # 20 x 8 = 160 <= 255 < 320
+    commands = viewer.render_commands("inr | gt", BIG, light, step=1.0)
+    assert [build_parser().parse_args(c.split()[1:]).mode for c in commands] == ["inr", "gt"]
+
+
+@pytest.fixture(scope="module")
+def regional(viewer):
+    """The same scene with a cache that knows its light region: a cap around +z holding the training lights."""
+    from diffshadow.lights import LightRegion
+
+    sampler = CountingSampler()
+    sampler.region = LightRegion.of(viewer.train, viewer.unseen, center=(0, 0, 1))
+    return ViewerScene(viewer.scene, name="blob", lights={"train": viewer.train, "unseen": viewer.unseen},
+                       generated=viewer.generated, sampler=sampler, results=Path("results/blob"),
+                       checkpoint=Path("results/blob/diffusion.ckpt"))
+
+
+def test_outside_the_region_the_cache_modes_draw_the_exact_shadow_and_say_so(regional):
+    from diffshadow.viewer.scene import DIFF
+
+    region = regional.region
+    assert region.radius_deg == pytest.approx(30.0) and region.where(direction(0, 60)).inside
+    outside = direction(0, 10)  # 80 degrees from +z
+    calls = regional.sampler.calls
+    gt, _ = regional.frame("gt", CAM, outside, step=1.0)
+    for mode in ("inr", "inr | gt", DIFF):
+        image, notes = regional.frame(mode, CAM, outside, step=1.0)
+        assert notes["shown"] == "gt" and np.array_equal(image, gt), mode
+        (command,) = regional.render_commands(mode, CAM, outside, step=1.0)
+        assert build_parser().parse_args(command.split()[1:]).mode == "gt"
+    assert regional.sampler.calls == calls  # the cache was not asked
+    info = regional.light_info(outside)
+    assert info.outside and "outside the cache's region" in info.describe() and "50.0° past its edge" in info.describe()
+    inside, notes = regional.frame("inr", CAM, direction(45, 70), step=1.0)
+    assert "shown" not in notes and not notes["light"].outside
+
+
+def test_a_light_far_from_every_training_light_is_flagged(regional):
+    far = direction(-90, 61)  # inside the 30-degree cap, but ~30 degrees from the training lights
+    check = regional.region.where(far)
+    assert check.inside and check.far and check.to_nearest_deg > regional.region.far_deg
+    assert "farther than any unseen test light was" in regional.light_info(far).describe()
+    assert not regional.region.where(regional.unseen[0]).far
+
+
+def test_the_light_gizmo_marks_the_region_and_the_light(regional):
+    from diffshadow.viewer.scene import region_chart
+
+    def marks(light):
+        img = region_chart(regional.region, regional.train, regional.unseen, light, size=160).astype(int)
+        red = ((img[..., 0] > 200) & (img[..., 1] < 60) & (img[..., 2] < 60)).sum()
+        green = ((img[..., 1] > 230) & (img[..., 0] < 220) & (img[..., 2] < 220)).sum()  # the cap's fill
+        blue = ((img[..., 2] > 150) & (img[..., 0] < 80)).sum()
+        return img.shape, red, green, blue
+
+    shape, red, green, blue = marks(direction(30, 80))
+    assert shape == (160, 160, 3) and red > 20 and green > 500 and blue > 10
+    _, red_out, green_out, _ = marks(direction(0, -20))  # outside: a black cross, no red dot; the cap shrinks
+    assert red_out == 0 and green_out < green

@@ -12,7 +12,7 @@ from diffshadow.diffusion.config import DiffusionConfig, DiffusionError, build_m
 from diffshadow.diffusion.model import WeightTransformer
 from diffshadow.diffusion.schedule import Schedule
 from diffshadow.diffusion.standardize import Standardizer
-from diffshadow.lights import as_direction
+from diffshadow.lights import LightRegion, as_direction
 from diffshadow.sampling import seeded
 from diffshadow.siren import SirenConfig, WeightLayout
 
@@ -69,6 +69,14 @@ def generate(model: WeightTransformer, std: Standardizer, lights, *, method: str
     return torch.cat(out)
 
 
+def checkpoint_region(state: dict) -> LightRegion:
+    """The light region a checkpoint was trained for: as saved with it, else (a checkpoint from before regions
+    were saved) the cap around its training lights' mean direction."""
+    if state.get("region"):
+        return LightRegion.from_dict(state["region"], state["train_lights"])
+    return LightRegion.of(np.asarray(state["train_lights"]))
+
+
 class ShadowSampler:
     """A checkpoint ready to generate shadow SIRENs for any light, the way `sample_shadows` does (DDIM at the
     checkpoint's `ddim_steps`, `seed` and `temperature`). One light at a time gives the same SIREN every time
@@ -77,6 +85,7 @@ class ShadowSampler:
     def __init__(self, state: dict, device: torch.device | str = "cpu"):
         self.model, self.std, self.layout, self.siren = load_sampler(state, device)
         self.config, self.device = state["config"], torch.device(device)
+        self.region = checkpoint_region(state)
 
     def __call__(self, light) -> torch.Tensor:
         """(n_params,) float32 weights of the shadow SIREN of one light direction."""

@@ -14,7 +14,7 @@ from diffshadow.fused import COMPILE, FUSED, FusedKernelError, FusedKernelWarnin
 from diffshadow.fused import available as fused_available
 from diffshadow.io import atomic_save
 from diffshadow.lights import as_direction
-from diffshadow.render.camera import Camera, RenderError
+from diffshadow.render.camera import Camera, RenderError, visible_sphere
 from diffshadow.render.cells import RENDER_CELL, MacroGrid
 from diffshadow.render.fields import GridScalar, GridShadow, InrScalar, SirenShadow
 from diffshadow.render.marcher import BACKGROUND, DEFAULT_STEP, MIN_TRANSMITTANCE, Image, MarchedShadow, Shading, render
@@ -88,6 +88,15 @@ class RenderScene:
         if key not in self._cache:
             self._cache[key] = make()
         return self._cache[key]
+
+    def visible_sphere(self) -> tuple[np.ndarray, float]:
+        """The sphere around what the TF shows (`camera.visible_sphere`): what the default views frame."""
+        return self._cached("visible_sphere", lambda: visible_sphere(self.volume, self.tf))
+
+    def framed(self, *, azimuth: float = 30.0, elevation: float = 25.0, fov: float = 60.0,
+               size: int | tuple[int, int] = 128) -> Camera:
+        """The default view of this scene: `Camera.framed` on its visible part."""
+        return Camera.framed(self.visible_sphere(), azimuth=azimuth, elevation=elevation, fov=fov, size=size)
 
     def scalar(self, source: str):
         if source == "grid":

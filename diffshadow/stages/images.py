@@ -48,10 +48,13 @@ def render_targets(volume_path: Path, lights_path: Path, out: Path, *, cfg: Fine
 def render_image(scene: RenderScene, out: Path, *, mode: str, camera: Camera, light=None,
                  weights_path: Path | None = None, light_index: int = 0, diffusion: Path | None = None,
                  blend: Path | None = None, scalar: str | None = None, phong: bool = False, step: float,
-                 skip: bool = True) -> None:
+                 skip: bool = True, outside_region: bool = False) -> None:
     """One image (PNG) in a shading mode; the shadow INR of mode `inr` is row `light_index` of a store, or
     made for `light` by the diffusion checkpoint `diffusion` or (`cache: blend`) as the weight blend of the
-    nearest SIRENs of the store `blend`."""
+    nearest SIRENs of the store `blend`. A light outside the cache's region (`lights.LightRegion`) is refused
+    in one line naming the region and the light's angle to it, unless `outside_region` asks for the cache's
+    answer anyway (then the line is a warning); one inside it but farther from the training lights than any
+    unseen test light was gets a one-line note."""
     siren = None
     if sum(x is not None for x in (weights_path, diffusion, blend)) > 1:
         raise ValueError("render: --weights, --diffusion and --blend each give the shadow INR; give one")
@@ -65,6 +68,12 @@ def render_image(scene: RenderScene, out: Path, *, mode: str, camera: Camera, li
             sampler = ShadowSampler(artifacts.load_checkpoint(diffusion), scene.device)
         else:
             sampler = BlendSampler(open_store(blend))
+        check = sampler.region.where(light)
+        if not check.inside and not outside_region:
+            raise ValueError(f"{check.message()} (--mode gt draws the exact shadow; --outside-region draws the "
+                             f"cache's answer anyway)")
+        if not check.inside or check.far:
+            print(f"warning: {check.message()}", flush=True)
         siren = (sampler(light), sampler.layout, sampler.siren.blocks)
     if weights_path:
         store = open_store(weights_path)
@@ -91,7 +100,7 @@ def evaluate_images(volume_path: Path, lights_path: Path, data_inr: Path, weight
     light_sets = read_lights(lights_path)
     stage1 = open_store(weights_path)
     generated = open_store(generated_path) if generated_path else None
-    views = default_views(scene.volume.extent, cfg["views"], size=cfg["image_size"], fov=cfg["fov"])
+    views = default_views(scene.visible_sphere(), cfg["views"], size=cfg["image_size"], fov=cfg["fov"])
     lpips, reason = lpips_model()
     result = image_evaluation(scene, light_sets, stage1, generated, views, step=cfg["step"], out_dir=images_dir,
                               lights_per_set=cfg["lights_per_set"], naive_views=cfg.get("naive_views"),

@@ -15,7 +15,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from diffshadow.layout import SirenConfig
-from diffshadow.lights import index_ranges, make_light_sets, read_lights, subset_indices, write_lights
+from diffshadow.lights import LightRegion, index_ranges, make_light_sets, read_lights, subset_indices, write_lights
 from diffshadow.store import collect_subsets, write_store, write_subset
 
 if TYPE_CHECKING:
@@ -98,8 +98,11 @@ def fit_subset(volume_path: Path, lights_path: Path, init_path: Path, subset: in
 
 
 def collect_weights(lights_path: Path, subset_paths: list[Path], out: Path) -> None:
-    train = read_lights(lights_path)["train"]
+    sets = read_lights(lights_path)
+    train = sets["train"]
     store = collect_subsets(subset_paths, len(train), train)
+    # the cache's light region travels with its SIRENs (and on, with the model trained on them)
+    store.region = LightRegion.of(train, sets["unseen"], sets["center"]).to_dict()
     write_store(out, store, made_by="collect_weights")
     print(f"wrote {out}: {len(train)} SIRENs of {store.layout.n_params} parameters; voxel PSNR median "
           f"{float(np.median(store.psnr)):.2f} dB, min {store.psnr.min():.2f} dB "

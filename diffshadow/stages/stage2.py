@@ -21,7 +21,7 @@ from diffshadow.diffusion.finetune import (
     keep_if_images_improve,
 )
 from diffshadow.diffusion.model import PRESETS
-from diffshadow.diffusion.sample import generate, load_sampler
+from diffshadow.diffusion.sample import checkpoint_region, generate, load_sampler
 from diffshadow.diffusion.train import train_diffusion as train
 from diffshadow.evaluate import voxel_metrics
 from diffshadow.io import atomic_torch_save, atomic_write_text
@@ -147,6 +147,8 @@ def sample_shadows(checkpoint: Path, truth_path: Path, lights_path: Path, out: P
     light_sets = read_lights(lights_path)
     all_lights = np.concatenate([light_sets["train"], light_sets["unseen"]])
     seen = np.arange(len(all_lights)) < len(light_sets["train"])
+    region = checkpoint_region(state)
+    _check_region(region, light_sets["unseen"], checkpoint)
     print(f"sampling {len(all_lights)} shadow SIRENs ({seen.sum()} seen, {(~seen).sum()} unseen) with "
           f"DDIM {cfg['ddim_steps']} steps", flush=True)
     weights = generate(model, std, all_lights, method="ddim", steps=cfg["ddim_steps"], seed=cfg["seed"],
@@ -155,10 +157,20 @@ def sample_shadows(checkpoint: Path, truth_path: Path, lights_path: Path, out: P
     scores = psnr_per_light(truth.sirens(weights, layout, siren), truth.of(all_lights, str(truth_path)))
     store = WeightStore(weights=weights, lights=all_lights, psnr=scores["box"],
                         psnr_visible=scores.get("visible", scores["box"]), layout=layout, siren=siren,
-                        config={"diffusion": cfg, "checkpoint": str(checkpoint)}, seen=seen)
+                        config={"diffusion": cfg, "checkpoint": str(checkpoint)}, seen=seen, region=region.to_dict())
     write_store(out, store, made_by="sample_shadows")
     print(f"wrote {out}: PSNR median seen {np.median(store.psnr[seen]):.2f} dB, "
           f"unseen {np.median(store.psnr[~seen]) if (~seen).any() else float('nan'):.2f} dB")
+
+
+def _check_region(region, unseen: np.ndarray, source: Path) -> None:
+    """The cache is asked for its unseen test lights: each must lie in its region (they are drawn in its cap)."""
+    outside = [i for i, w in enumerate(unseen) if not region.where(w).inside]
+    if outside:
+        raise ValueError(f"{source}: unseen light {outside[0]} ({len(outside)} in all) lies outside the cache's region "
+                         f"({region.describe()}); rerun the lights rule and everything after it")
+    print(f"light region of the cache: {region.describe()}; the unseen test lights lie up to {region.far_deg:.1f}° "
+          f"from the nearest training light", flush=True)
 
 
 def blend_shadows(weights_path: Path, truth_path: Path, lights_path: Path, out: Path, *, blend_k: int) -> None:
@@ -172,13 +184,15 @@ def blend_shadows(weights_path: Path, truth_path: Path, lights_path: Path, out: 
     weights = np.concatenate([np.asarray(stage1.weights, dtype=np.float32), *(blend(u)[None] for u in unseen)])
     all_lights = np.concatenate([train, unseen])
     seen = np.arange(len(all_lights)) < len(train)
+    _check_region(blend.region, unseen, weights_path)
     print(f"blending {(~seen).sum()} unseen shadow SIRENs from the {blend_k} nearest of {len(train)} stored "
           "(cache: blend)", flush=True)
     truth = artifacts.read_eval_truth(truth_path)
     scores = psnr_per_light(truth.sirens(weights, stage1.layout, stage1.siren), truth.of(all_lights, str(truth_path)))
     store = WeightStore(weights=weights, lights=all_lights, psnr=scores["box"],
                         psnr_visible=scores.get("visible", scores["box"]), layout=stage1.layout, siren=stage1.siren,
-                        config={"cache": "blend", "blend_k": blend_k, "weights": str(weights_path)}, seen=seen)
+                        config={"cache": "blend", "blend_k": blend_k, "weights": str(weights_path)}, seen=seen,
+                        region=blend.region.to_dict())
     write_store(out, store, made_by="sample_shadows")
     print(f"wrote {out}: PSNR median seen {np.median(store.psnr[seen]):.2f} dB, "
           f"unseen {np.median(store.psnr[~seen]) if (~seen).any() else float('nan'):.2f} dB")

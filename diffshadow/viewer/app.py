@@ -1,6 +1,7 @@
 """The browser viewer (`diffshadow view`), built on viser: each browser tab gets its own panel and a render
-thread that draws the scene from the tab's camera as the page's background image, at half the image height
-while the camera or the light is moving and at full size once they have been still for `STILL_S`."""
+thread that draws the scene from the tab's camera as the page's background image: at the canvas's own pixel size
+once the camera and the light have been still for `STILL_S` (or at the height the panel asks), at half that height
+while they move. Outside the cache's light region the cache's modes draw the exact shadow, and say so."""
 
 from __future__ import annotations
 
@@ -18,13 +19,12 @@ import numpy as np
 import torch
 
 from diffshadow.io import atomic_save, atomic_write_text
-from diffshadow.render import MODES, Camera, RenderError
-from diffshadow.viewer.scene import ViewerError, ViewerScene, azimuth_elevation, direction
+from diffshadow.render import Camera, RenderError
+from diffshadow.viewer.scene import DIFF, ViewerError, ViewerScene, azimuth_elevation, direction, region_chart
 
 STILL_S = 0.3  # no change for this long: draw at full size
 PREVIEW = 2  # while moving, the image height is divided by this
 FREE = "(azimuth / elevation)"
-FPS_SMOOTHING = 0.3  # weight of the newest frame in the fps readout
 
 
 def port_free(host: str, port: int) -> bool:
@@ -49,16 +49,20 @@ class Session:
 
     def __init__(self, viewer: ViewerScene, client, *, size: int, step: float, record: Path | None,
                  start: Camera):
-        self.viewer, self.client, self.record, self.start = viewer, client, record, start
+        self.viewer, self.client, self.start = viewer, client, start
+        # each tab records into its own folder: a second tab numbers its frames from 1 without overwriting
+        self.record = None if record is None else record / f"client_{client.client_id}"
+        if self.record is not None:
+            self.record.mkdir(parents=True, exist_ok=True)
         self.placed = False  # the browser's camera moved to `start` (its first camera is its own default)
         self.lock, self.wake = threading.Lock(), threading.Event()
         self.version, self.changed_at = 0, time.monotonic()
         self.drawn = {"full": -1, "preview": -1}
-        self.fps = {"full": None, "preview": None}
         self.frames = 0
         listed = viewer.listed()
         self.light = listed[0][1] if listed else direction(60.0, 40.0)
         self.gt_light = None
+        self.charted = self.light
         self._syncing = False
         gui = client.gui
         self.mode = gui.add_dropdown("mode", viewer.modes, initial_value=viewer.modes[0])
@@ -69,8 +73,11 @@ class Session:
             self.azimuth = gui.add_slider("azimuth", -180.0, 180.0, 0.5, round(az * 2) / 2)
             self.elevation = gui.add_slider("elevation", -90.0, 90.0, 0.5, round(el * 2) / 2)
             self.light_note = gui.add_markdown("")
+            self.gizmo = (gui.add_image(self._chart(), label="light region", format="png")
+                          if viewer.region is not None else None)
         with gui.add_folder("image"):
-            self.size = gui.add_slider("height (px)", 32, 1024, 16, int(size))
+            # 0: the canvas's own height (sharp at any window size); else a fixed height at the canvas's aspect
+            self.size = gui.add_slider("height (px, 0: canvas)", 0, 2048, 16, int(size))
             self.step = gui.add_slider("step (voxels)", 0.125, 2.0, 0.125, float(step))
         self.status = gui.add_markdown("starting")
         self.command = gui.add_markdown("")
@@ -120,6 +127,10 @@ class Session:
         self.closed = True
         self.wake.set()
 
+    def _chart(self) -> np.ndarray:
+        v = self.viewer
+        return region_chart(v.region, v.train, v.unseen, self.light)
+
     # ------------------------------------------------------------------------------------ drawing
 
     def _loop(self) -> None:
@@ -159,10 +170,11 @@ class Session:
 
     def _draw(self, kind: str) -> None:
         mode, step = self.mode.value, float(self.step.value)
-        height = int(self.size.value) // (PREVIEW if kind == "preview" else 1)
+        full = int(self.size.value) or int(self.client.camera.image_height) or 128
+        height = full // (PREVIEW if kind == "preview" else 1)
         camera = camera_of(self.client.camera, max(16, height))
         light = self.light
-        if mode in ("gt", "inr | gt", "|inr - gt| x4"):
+        if self.viewer.shown_mode(mode, light) in ("gt", "inr | gt", DIFF):
             if self.gt_light is not None and not np.array_equal(self.gt_light, light):
                 self.viewer.scene.forget_gt(self.gt_light)  # one light's exact shadow kept, not every light's
             self.gt_light = light
@@ -173,36 +185,44 @@ class Session:
         self.client.scene.set_background_image(image, format="png")
         seconds = time.perf_counter() - t0
         self.frames += 1
-        old = self.fps[kind]
-        self.fps[kind] = 1 / seconds if old is None else (1 - FPS_SMOOTHING) * old + FPS_SMOOTHING / seconds
-        # the command that redraws a full frame of a single mode (the panel shows it, the record keeps it)
-        command = self.viewer.render_command(mode, camera, light, step=step) if (
-            kind == "full" and mode in MODES) else None
-        self._notes(kind, camera, light, notes, seconds, command)
+        # the commands that redraw this frame (the panel shows them, the record keeps them)
+        commands = self.viewer.render_commands(mode, camera, light, step=step)
+        if self.gizmo is not None and not np.array_equal(self.charted, light):
+            self.gizmo.image, self.charted = self._chart(), light
+        self._notes(kind, mode, camera, light, notes, seconds, commands)
         if self.record is not None:
             with open(self.record / "frames.jsonl", "a") as f:  # every frame's cost, for measuring the viewer
                 made = notes["light"].generate_s if notes.get("light") else None
-                f.write(json.dumps({"kind": kind, "mode": mode, "width": camera.width, "height": camera.height,
-                                    "seconds": seconds, "generate_s": made, "time": time.time()}) + "\n")
+                f.write(json.dumps({"kind": kind, "mode": mode, "shown": notes.get("shown", mode),
+                                    "width": camera.width, "height": camera.height, "seconds": seconds,
+                                    "generate_s": made, "time": time.time()}) + "\n")
             if kind == "full":
-                self._record(image, mode, camera, light, notes, command)
+                self._record(image, mode, camera, light, notes, commands)
 
-    def _notes(self, kind, camera, light, notes, seconds, command) -> None:
+    def _notes(self, kind, mode, camera, light, notes, seconds, commands) -> None:
         info = notes.get("light") or self.viewer.light_info(light)
         line = info.describe()
         if info.generate_s is not None:
-            line += f"; its shadow SIREN generated now in {info.generate_s:.2f} s (DDIM)"
+            line += f"; its shadow SIREN made now in {info.generate_s:.2f} s ({self.viewer.cache_name})"
         self.light_note.content = line
-        fps = " · ".join(f"{k} {v:.1f} fps" for k, v in self.fps.items() if v is not None)
-        status = (f"{camera.width}×{camera.height} {'(moving)' if kind == 'preview' else ''} "
-                  f"in {seconds * 1000:.0f} ms · {fps} · {self.viewer.scene.device.type}")
+        # this frame's time and rate, not an average: a 5 s frame reads 0.2 fps
+        status = (f"{camera.width}×{camera.height}{' (moving: half size)' if kind == 'preview' else ''} in "
+                  f"{seconds * 1000:.0f} ms ({1 / max(seconds, 1e-9):.1f} fps) on {self.viewer.scene.device.type}")
+        if notes.get("shown") == "gt":
+            status = (f"**outside the cache: exact shadow, {notes['render_s'] * 1000:.0f} ms** (the cache was not "
+                      f"trained for this light)  \n" + status)
         if "psnr_vs_gt" in notes:
-            status += f"  \ninr against gt: {notes['psnr_vs_gt']:.2f} dB"
+            status += f"  \ninr against gt: {notes['psnr_vs_gt']:.2f} dB (whole frame)"
+        if "diff_scale" in notes:
+            k = notes["diff_scale"]
+            status += f"  \n|inr − gt| × {k}: white is a difference of {255 / k:.0f} of 255 levels"
         self.status.content = status
-        if command is not None:
-            self.command.content = f"same frame from the command line:\n\n```\n{command}\n```"
+        what = ("the inr and gt frames whose central halves are shown" if mode == "inr | gt" and len(commands) == 2
+                else "the inr and gt frames whose difference is shown" if len(commands) == 2 else "this frame")
+        self.command.content = f"{what} from the command line:\n\n" + "\n\n".join(
+            f"```\n{c}\n```" for c in commands)
 
-    def _record(self, image, mode, camera, light, notes, command) -> None:
+    def _record(self, image, mode, camera, light, notes, commands) -> None:
         from PIL import Image as PILImage
 
         stem = self.record / f"frame_{self.frames:05d}"
@@ -210,9 +230,14 @@ class Session:
                     suffix=".png")
         info = notes.get("light")
         atomic_write_text(stem.with_suffix(".json"), json.dumps({
-            "mode": mode, "light": list(map(float, light)), "command": command, "width": camera.width,
-            "height": camera.height, "light_kind": info.describe() if info else None,
-            "generate_s": info.generate_s if info else None, "render_s": notes.get("render_s")}, indent=1) + "\n")
+            "mode": mode, "shown": notes.get("shown", mode), "light": list(map(float, light)),
+            "command": commands[0], "commands": commands, "width": camera.width, "height": camera.height,
+            "canvas": [int(self.client.camera.image_width), int(self.client.camera.image_height)],
+            "light_kind": info.describe() if info else None, "outside": bool(info and info.outside),
+            "far": bool(info and info.region is not None and info.region.far), "labels": notes.get("labels", []),
+            "psnr_vs_gt": notes.get("psnr_vs_gt"), "diff_scale": notes.get("diff_scale"),
+            "status": self.status.content, "generate_s": info.generate_s if info else None,
+            "render_s": notes.get("render_s")}, indent=1) + "\n")
 
 
 def serve(*, results: Path | None, scene_config: Path | None, device: torch.device, host: str = "127.0.0.1",
@@ -235,7 +260,7 @@ def serve(*, results: Path | None, scene_config: Path | None, device: torch.devi
         raise ViewerError(f"port {port} on {host} was taken while the viewer started; choose another with --port")
     server.gui.configure_theme(control_layout="fixed", show_share_button=False, show_logo=False)
     server.scene.set_up_direction("+z")
-    start = Camera.orbit(viewer.scene.volume.extent, azimuth=30.0, elevation=25.0, fov=60.0)
+    start = viewer.scene.framed(azimuth=30.0, elevation=25.0, fov=60.0)  # what `diffshadow render` shows
     server.initial_camera.position, server.initial_camera.look_at = start.eye, start.target
     server.initial_camera.up_direction, server.initial_camera.fov = start.up, math.radians(start.fov)
     sessions: dict[int, Session] = {}

@@ -15,14 +15,17 @@ import numpy as np
 import torch
 
 from diffshadow.artifacts import load_checkpoint, load_render_scene, load_scene_file
-from diffshadow.lights import as_direction, nearest, read_lights
+from diffshadow.lights import RegionCheck, as_direction, nearest, read_lights
 from diffshadow.render import Camera, RenderScene
+from diffshadow.report import label_image as label
 from diffshadow.store import BlendSampler, WeightStore, open_store
 
 # the files a finished scene needs, and the rule that makes each
 SCENE_FILES = {"volume.zarr": "prepare_volume", "lights.json": "lights", "data_inr.pt": "train_data_inr",
                "generated.zarr": "sample_shadows"}
-VIEW_MODES = ("inr", "noshadow", "gt", "naive", "inr | gt", "|inr - gt| x4")
+DIFF = "|inr - gt|"
+VIEW_MODES = ("inr", "noshadow", "gt", "naive", "inr | gt", DIFF)
+CACHE_MODES = ("inr", "inr | gt", DIFF)  # what the shadow cache answers (outside its region: the exact shadow)
 GENERATED_KEEP = 64  # SIRENs generated on demand kept per viewer (a few KiB each)
 SAME_LIGHT = 1e-9  # a direction this close to a listed light is that light
 
@@ -46,18 +49,26 @@ def azimuth_elevation(light) -> tuple[float, float]:
 @dataclass(frozen=True)
 class LightInfo:
     """Where a light direction stands: a training light, an unseen test light or a new direction, its angle to
-    the nearest training light, and how long its shadow SIREN took to generate (None: stored or cached)."""
+    the nearest training light, where it stands to the cache's light region (None: no cache), and how long its
+    shadow SIREN took to generate (None: stored or cached)."""
 
     kind: str
     index: int | None
     nearest_deg: float | None
     generate_s: float | None = None
+    region: RegionCheck | None = None
+
+    @property
+    def outside(self) -> bool:
+        return self.region is not None and not self.region.inside
 
     def describe(self) -> str:
         name = {"training": f"training light {self.index}", "unseen": f"unseen test light {self.index}",
                 "new": "new direction"}[self.kind]
         if self.nearest_deg is not None:
             name += f", {self.nearest_deg:.1f}° from the nearest training light"
+        if self.region is not None and (self.outside or self.region.far):
+            name += f" — {self.region.message()}"
         return name
 
 
@@ -70,6 +81,7 @@ class ViewerScene:
                  generated: WeightStore | None = None, sampler=None, results: Path | None = None,
                  checkpoint: Path | None = None, scene_file: Path | None = None):
         self.scene, self.name, self.generated, self.sampler = scene, name, generated, sampler
+        self.region = getattr(sampler, "region", None)  # lights.LightRegion of the cache (None: no region known)
         self.train = lights["train"] if lights else np.zeros((0, 3))
         self.unseen = lights["unseen"] if lights else np.zeros((0, 3))
         # where the scene came from, for the `diffshadow render` command of a frame
@@ -127,10 +139,11 @@ class ViewerScene:
         nearest_deg = None
         if len(self.train):
             nearest_deg = float(np.degrees(nearest(self.train, w[None], 1)[1][0, 0]))
+        region = self.region.where(w) if self.region is not None else None
         for kind, lights in (("training", self.train), ("unseen", self.unseen)):
             if (i := _index(lights, w)) is not None:
-                return LightInfo(kind, i, nearest_deg)
-        return LightInfo("new", None, nearest_deg)
+                return LightInfo(kind, i, nearest_deg, region=region)
+        return LightInfo("new", None, nearest_deg, region=region)
 
     def shadow_weights(self, light) -> tuple[torch.Tensor, LightInfo]:
         """The cached shadow SIREN's weights for `light`: its row of generated.zarr, else generated now by the
@@ -150,39 +163,65 @@ class ViewerScene:
         self._made[key] = weights
         while len(self._made) > GENERATED_KEEP:
             self._made.popitem(last=False)
-        return weights, LightInfo(info.kind, info.index, info.nearest_deg, time.perf_counter() - t0)
+        return weights, LightInfo(info.kind, info.index, info.nearest_deg, time.perf_counter() - t0, info.region)
 
     # ------------------------------------------------------------------------------------------ frames
+
+    def shown_mode(self, mode: str, light) -> str:
+        """The mode drawn for `mode` at `light`: a mode of the cache at a light outside the cache's region draws
+        the exact shadow instead (the cache holds nothing there; the panel says so)."""
+        if mode in CACHE_MODES and self.region is not None and not self.region.where(light).inside:
+            return "gt"
+        return mode
 
     def frame(self, mode: str, camera: Camera, light, *, step: float) -> tuple[np.ndarray, dict]:
         """(H, W, 3) uint8 image of `mode` and what the panel says about it (light, timings, PSNR)."""
         if mode not in self.modes:
             raise ViewerError(f"mode: expected one of {', '.join(self.modes)}, got {mode!r}")
-        notes: dict = {}
-        if mode in ("inr | gt", "|inr - gt| x4"):
-            cam = camera
-            if mode == "inr | gt":  # two halves, each the central half of the view
-                cam = Camera(camera.eye, camera.target, camera.up, camera.fov, max(1, camera.width // 2), camera.height)
-            inr, n1 = self.frame("inr", cam, light, step=step)
-            gt, n2 = self.frame("gt", cam, light, step=step)
-            err = np.mean((inr.astype(np.float64) - gt.astype(np.float64)) ** 2) / 255.0 ** 2
-            notes = {**n1, "psnr_vs_gt": 10 * math.log10(1 / max(err, 1e-30)), "gt_s": n2["render_s"]}
-            if mode == "inr | gt":
-                return np.concatenate([inr, gt], axis=1), notes
-            diff = np.abs(inr.astype(np.int32) - gt.astype(np.int32)) * 4
-            return np.clip(diff, 0, 255).astype(np.uint8), notes
+        if (shown := self.shown_mode(mode, light)) != mode:
+            image, notes = self.frame(shown, camera, light, step=step)
+            return image, {**notes, "shown": shown}
+        if mode in ("inr | gt", DIFF):
+            # both from full frames of the same camera, so the PSNR is one number whichever of the two is shown
+            inr, n1 = self.frame("inr", camera, light, step=step)
+            gt, n2 = self.frame("gt", camera, light, step=step)
+            notes = {**n1, "psnr_vs_gt": image_psnr(inr, gt), "gt_s": n2["render_s"],
+                     "render_s": n1["render_s"] + n2["render_s"]}
+            if mode == "inr | gt":  # the central half of each frame, side by side
+                w = camera.width
+                half, q = w // 2, w // 4
+                image = np.concatenate([inr[:, q:q + half], gt[:, q:q + w - half]], axis=1)
+                notes["labels"] = [f"cache ({self.cache_name})", "exact (gt)"]
+                return label(label(image, notes["labels"][0], 0), notes["labels"][1], half), notes
+            diff = np.abs(inr.astype(np.int32) - gt.astype(np.int32))
+            notes["diff_scale"] = scale = diff_scale(diff)
+            notes["labels"] = [f"|inr - gt| x {scale}"]
+            return label(np.clip(diff * scale, 0, 255).astype(np.uint8), notes["labels"][0], 0), notes
         siren = None
         if mode == "inr":
             weights, info = self.shadow_weights(light)
             siren = (weights, self.generated.layout, self.generated.siren.blocks)
-            notes["light"] = info
-        elif mode != "noshadow":
-            notes["light"] = self.light_info(light)
+            notes = {"light": info}
+        else:
+            notes = {} if mode == "noshadow" else {"light": self.light_info(light)}
         t0 = time.perf_counter()
         img = self.scene.render(mode, camera, light=None if mode == "noshadow" else as_direction(light),
                                 siren=siren, step=step)
         notes["render_s"] = time.perf_counter() - t0
         return img.to_uint8(), notes
+
+    @property
+    def cache_name(self) -> str:
+        return "weight blend" if isinstance(self.sampler, BlendSampler) else "diffusion"
+
+    def render_commands(self, mode: str, camera: Camera, light, *, step: float) -> list[str]:
+        """The `diffshadow render` commands that write this frame: one for a single mode (the exact shadow's where
+        a cache mode falls outside the region), the inr and gt frames whose central halves or difference the
+        composite modes show."""
+        mode = self.shown_mode(mode, light)
+        if mode in ("inr | gt", DIFF):
+            return [self.render_command(m, camera, light, step=step, out=f"{m}.png") for m in ("inr", "gt")]
+        return [self.render_command(mode, camera, light, step=step)]
 
     def render_command(self, mode: str, camera: Camera, light, *, step: float, out: str = "view.png") -> str:
         """The `diffshadow render` command that writes this frame (modes inr, noshadow, gt, naive)."""
@@ -213,3 +252,64 @@ def _index(lights: np.ndarray, light: np.ndarray) -> int | None:
     d = np.abs(lights - light[None]).max(axis=1)
     i = int(np.argmin(d))
     return i if d[i] <= SAME_LIGHT else None
+
+
+def image_psnr(a: np.ndarray, b: np.ndarray) -> float:
+    """PSNR in dB between two uint8 images of the same size (every pixel and channel)."""
+    err = np.mean((a.astype(np.float64) - b.astype(np.float64)) ** 2) / 255.0 ** 2
+    return 10 * math.log10(1 / max(err, 1e-30))
+
+
+def diff_scale(diff: np.ndarray) -> int:
+    """The power of two (1 to 64) that brings the 99.5th percentile of an absolute difference image to at most
+    full scale: the difference view shows the error instead of near-black (a fixed x4 left nucleon's at a few
+    levels of 255)."""
+    top = float(np.percentile(diff, 99.5)) if diff.size else 0.0
+    return int(min(64, max(1, 2 ** math.floor(math.log2(255.0 / max(top, 1.0))))))
+
+
+def region_chart(region, train: np.ndarray, unseen: np.ndarray, light, *, size: int = 220) -> np.ndarray:
+    """(size, size, 3) uint8: the light gizmo. Directions drawn by their angle from the region's centre (the
+    chart's centre) and their bearing around it (an azimuthal equidistant map): the cache's region (green cap),
+    its training lights (blue), the unseen test lights (orange), and the current light (red dot inside the
+    region, black cross outside). The chart reaches 1.5x the cap, or past the light where that is farther."""
+    from PIL import Image, ImageDraw
+
+    c = np.asarray(region.center, dtype=float)
+    # +x projected onto the plane at the centre points right, the centre crossed with it up: seen from above,
+    # a region around +z shows +x right and +y up (+y where the centre is near +x)
+    axis = np.array([1.0, 0.0, 0.0]) if abs(c[0]) < 0.9 else np.array([0.0, 1.0, 0.0])
+    u = axis - (axis @ c) * c
+    u /= np.linalg.norm(u)
+    v = np.cross(c, u)
+    w = as_direction(light)
+    light_deg = float(np.degrees(np.arccos(np.clip(w @ c, -1, 1))))
+    reach = min(180.0, max(1.5 * region.radius_deg, light_deg * 1.1 + 2.0, 10.0))
+    mid, scale = size / 2, (size / 2 - 14) / reach
+
+    def xy(d) -> tuple[float, float]:
+        d = np.asarray(d, dtype=float)
+        ang = math.degrees(math.acos(float(np.clip(d @ c, -1, 1))))
+        bearing = math.atan2(float(d @ v), float(d @ u))
+        return mid + ang * scale * math.cos(bearing), mid - ang * scale * math.sin(bearing)
+
+    img = Image.new("RGB", (size, size), (250, 250, 250))
+    draw = ImageDraw.Draw(img)
+    for ring in range(30, int(reach) + 1, 30):  # every 30 degrees from the centre
+        r = ring * scale
+        draw.ellipse((mid - r, mid - r, mid + r, mid + r), outline=(215, 215, 215))
+    r = region.radius_deg * scale
+    draw.ellipse((mid - r, mid - r, mid + r, mid + r), fill=(214, 240, 214), outline=(60, 150, 60), width=2)
+    for points, color in ((train, (40, 90, 200)), (unseen, (235, 140, 20))):
+        for d in points:
+            x, y = xy(d)
+            draw.ellipse((x - 2.5, y - 2.5, x + 2.5, y + 2.5), fill=color)
+    x, y = xy(w)
+    if region.where(w).inside:
+        draw.ellipse((x - 5, y - 5, x + 5, y + 5), fill=(220, 30, 30), outline=(0, 0, 0))
+    else:
+        draw.line((x - 6, y - 6, x + 6, y + 6), fill=(0, 0, 0), width=3)
+        draw.line((x - 6, y + 6, x + 6, y - 6), fill=(0, 0, 0), width=3)
+    draw.text((4, 2), f"cache region: {region.radius_deg:.0f} deg cap", fill=(40, 110, 40))
+    draw.text((4, size - 12), f"edge of chart: {reach:.0f} deg from its centre", fill=(110, 110, 110))
+    return np.asarray(img)

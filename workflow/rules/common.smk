@@ -110,9 +110,10 @@ def check_scenes():
 
 
 def summary_inputs(wildcards):
-    """What the scene's summary tables read: the metrics, the bench, the stage costs (and fine-tuning's)."""
+    """What the scene's summary tables read: the metrics, the bench, the stage costs (and fine-tuning's), and the
+    images (the landing page's picture)."""
     files = {name: f"results/{wildcards.scene}/{name}" for name in
-             ("voxel_metrics.json", "image_metrics.json", "bench.json", "stage_costs.tsv")}
+             ("voxel_metrics.json", "image_metrics.json", "bench.json", "stage_costs.tsv", "images")}
     cfg = scene_config(wildcards.scene)
     if cfg["finetune"]["enabled"] and cfg["cache"] == "diffusion":
         files["finetune_metrics.json"] = f"results/{wildcards.scene}/finetune_metrics.json"
