@@ -9,8 +9,9 @@ PACKAGE = Path(__file__).resolve().parents[1] / "diffshadow"
 
 # lowest first; a module's layer is that of its longest listed prefix
 LAYERS = [
-    ["diffshadow", "phases", "config", "io", "progress", "metrics", "capacity", "analytic", "hpc", "_kernels"],  # foundations
-    ["volume", "transfer", "layout", "siren", "lights", "sampling", "grid", "store"],  # data: volumes, lights, SIRENs, stores
+    # foundations
+    ["diffshadow", "phases", "config", "io", "progress", "metrics", "capacity", "analytic", "hpc", "_kernels"],
+    ["volume", "transfer", "layout", "siren", "lights", "sampling", "grid", "store"],  # data: volumes, lights, SIRENs
     ["shadow", "truth", "fused"],  # ground truth and the fused kernels
     ["data_inr"],
     ["render"],  # the renderer

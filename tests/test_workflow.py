@@ -440,9 +440,18 @@ def test_stage_costs_come_from_snakemakes_benchmarks(finished):
     rules = {p.stem for p in (res / "benchmarks").glob("*.tsv")}
     assert {"fit_siren_0", "fit_siren_1", "finetune_render", "benchmark", "report_figures"} <= rules
     lines = (res / "stage_costs.tsv").read_text().splitlines()
-    assert lines[0].split("\t") == ["stage", "jobs", "wall_s", "cpu_s", "max_rss_mib"]
+    assert lines[0].split("\t") == ["stage", "jobs", "wall_s", "cpu_s", "max_rss_mib", "import_s", "device_s",
+                                    "compile_s", "io_s", "compute_s", "launch_s"]
     rows = {line.split("\t")[0]: line.split("\t") for line in lines[1:]}
     assert rows["fit_siren"][1] == "2" and "fit_siren_0" not in rows
+    # every job recorded its phases; they add up to its wall time (launch_s: the rest, outside its process)
+    for stage, row in rows.items():
+        if stage.startswith("elapsed"):
+            continue
+        phases = [float(x) for x in row[5:]]
+        assert sum(phases) == pytest.approx(float(row[2]), abs=0.2 * int(row[1])), stage
+    assert float(rows["train_diffusion"][5]) > 0 and float(rows["train_diffusion"][9]) > 0  # imports, compute
+    assert float(rows["presample"][8]) > 0  # its store written
     assert int(rows["total (sum over jobs)"][1]) == len(rules)
     # the run's elapsed time: no shorter than its longest job, no longer than all jobs one after another
     longest = max(float(r[2]) for r in rows.values() if r[1] == "1")
