@@ -355,13 +355,13 @@ def drive_viewer(results, workdir, *, screenshot=None) -> dict:
                 frame = after(lambda mode=mode: browser.choose(*browser.input_beside("mode"), mode),
                               lambda m, mode=mode: m["mode"] == mode and m["height"] == 96)
                 try:
+                    expected = json.dumps(json.dumps(frame["commands"], separators=(",", ":")))  # as JSON.stringify
                     browser.wait_for(f"(() => {{ const t = [...document.querySelectorAll('pre')].map(e => "
                                      f"e.textContent.trim()).filter(t => t); return JSON.stringify(t) === "
-                                     f"{json.dumps(json.dumps(frame['commands']))}; }})()", timeout=15,
-                                     what=f"the {mode} frame's commands in the panel")
+                                     f"{expected}; }})()", timeout=15, what=f"the {mode} frame's commands in the panel")
                     out["commands_match"][mode] = True
                 except TimeoutError:
-                    out["commands_match"][mode] = panel_commands(browser)
+                    out["commands_match"][mode] = {"panel": panel_commands(browser), "frame": frame["commands"]}
                 if mode == "inr | gt":
                     out["side_by_side_labels"] = frame["labels"]
                     band = frame["image"][1:14, 2:40].astype(int)  # where the left label's dark band lies
@@ -369,13 +369,15 @@ def drive_viewer(results, workdir, *, screenshot=None) -> dict:
                 if mode == "|inr - gt|":
                     out["diff_scale"], out["diff_status"] = frame["diff_scale"], frame["status"]
             # a second tab records into its own folder, numbered from 1, leaving the first tab's frames as they were
-            first_json = (record / "frame_00001.json").read_text()
+            first_file = sorted(record.glob("frame_*.json"))[0]
+            first_json = first_file.read_text()
             second = Browser(url, width=640, height=300)
             try:
                 other = client_folder(frames, 1)
                 next_frame(other, 0, lambda m: True)
                 out["second_tab_folder"] = other.name != record.name
-                out["first_tab_kept"] = (record / "frame_00001.json").read_text() == first_json
+                out["first_tab_kept"] = first_file.read_text() == first_json
+                out["second_tab_first"] = sorted(other.glob("frame_*.json"))[0].name
             finally:
                 second.close()
             if screenshot is not None:

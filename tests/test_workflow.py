@@ -149,9 +149,15 @@ def test_the_cache_region_travels_with_the_stores_and_checkpoints_and_render_kee
     anyway = subprocess.run([*base, "--light", "1", "0", "0.2", "--outside-region", "--out", str(finished / "y.png")],
                             capture_output=True, text=True)
     assert anyway.returncode == 0 and anyway.stdout.startswith("warning: the light is outside"), anyway.stdout
-    inside = subprocess.run([*base, "--light", "0.05", "0.05", "1", "--out", str(finished / "z.png")],
+    near = sets["unseen"][0]  # as near a training light as the evaluation went: quiet
+    inside = subprocess.run([*base, "--light", *(repr(float(x)) for x in near), "--out", str(finished / "z.png")],
                             capture_output=True, text=True)
     assert inside.returncode == 0 and inside.stdout.startswith("wrote") and "warning" not in inside.stdout
+    # this tiny run's 4 lights sit ~10 degrees from +z's neighbourhood: +z itself is inside, but farther out than
+    # its unseen lights went, so it renders with a one-line note
+    far = subprocess.run([*base, "--light", "0.05", "0.05", "1", "--out", str(finished / "f.png")],
+                         capture_output=True, text=True)
+    assert far.returncode == 0 and far.stdout.startswith("warning: the light is inside the cache's region but")
 
 
 def test_render_outputs(finished):
