@@ -184,18 +184,20 @@ class RunResults:
         from PIL import Image
 
         images = self.results / "images"
-        for row in self.images.get("images", []):
-            if row["set"] != "unseen" or row["mode"] not in ("inr_generated_data_inr", "inr_generated"):
+        rows = [r for r in self.images.get("images", []) if r["set"] == "unseen"]
+        # the deployed path first (data INR and the cache's shadow SIREN), else the cache's SIREN on the raw volume
+        for row in sorted(rows, key=lambda r: r["mode"] != "inr_generated_data_inr"):
+            if row["mode"] not in ("inr_generated_data_inr", "inr_generated"):
                 continue
             tag = f"unseen{row['light']}_view{row['view']}"
             ours, gt = images / f"{tag}_{row['mode']}.png", images / f"{tag}_gt.png"
             if not (ours.exists() and gt.exists()):
                 continue
-            a, b = (np.asarray(Image.open(p).convert("RGB")) for p in (ours, gt))
+            a, b = (np.asarray(Image.open(p).convert("RGB").resize((2 * Image.open(p).width, 2 * Image.open(p).height),
+                                                                    Image.Resampling.NEAREST)) for p in (ours, gt))
             side = np.concatenate([label_image(a, "ours", 0), label_image(b, "exact (gt)", 0)], axis=1)
-            big = Image.fromarray(side).resize((side.shape[1] * 2, side.shape[0] * 2), Image.Resampling.NEAREST)
             buf = io.BytesIO()
-            big.save(buf, format="PNG")
+            Image.fromarray(side).save(buf, format="PNG")
             what = "data INR and the cached shadow SIREN" if row["mode"] == "inr_generated_data_inr" else (
                 "the cached shadow SIREN on the raw volume")
             return buf.getvalue(), (f"Unseen test light {row['light']}, view {row['view']}: ours ({what}) beside the "
@@ -211,8 +213,10 @@ class RunResults:
         lines = [title, "-" * len(title), ""]
         if (picture := self.front_picture()) is not None:
             png, caption = picture
-            lines += [f".. figure:: data:image/png;base64,{base64.b64encode(png).decode()}", "   :alt: " + caption,
-                      "", "   " + caption, ""]
+            # the URI on indented lines (docutils joins them): one line would pass its 10,000-character limit
+            uri = "data:image/png;base64," + base64.b64encode(png).decode()
+            lines += [".. figure::", *(f"   {uri[i:i + 100]}" for i in range(0, len(uri), 100)),
+                      "   :alt: " + caption, "", "   " + caption, ""]
         lines += [".. list-table::", "   :widths: 45 55", ""]
         for name, value in self.headline():
             lines += [f"   * - {name}", f"     - {value}"]

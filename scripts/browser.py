@@ -2,8 +2,8 @@
 viser's, a dependency already): the viewer's browser test (tests/test_workflow.py) and what a person looks at.
 
     python scripts/browser.py viewer results/nucleon --screenshot docs/images/viewer.png   # the test's checks
-    python scripts/browser.py viewer-fps results/nucleon --sizes 128 256 --out viewer_fps.json
-    python scripts/browser.py report report.html --item summary --out shots
+    python scripts/browser.py viewer-fps results/nucleon --sizes 0 128 --out viewer_fps.json
+    python scripts/browser.py report report.html --out shots   # shots/landing.png is docs/images/report.png
 
 Needs Chromium on PATH (Debian: apt-get install chromium); WebGL runs on SwiftShader, no GPU needed.
 """
@@ -364,7 +364,8 @@ def drive_viewer(results, workdir, *, screenshot=None) -> dict:
                     out["commands_match"][mode] = {"panel": panel_commands(browser), "frame": frame["commands"]}
                 if mode == "inr | gt":
                     out["side_by_side_labels"] = frame["labels"]
-                    band = frame["image"][1:14, 2:40].astype(int)  # where the left label's dark band lies
+                    top = (frame["height"] - frame["height"] // 2) // 2  # the half-size frames, centred
+                    band = frame["image"][top + 1:top + 14, 2:40].astype(int)  # the left label's dark band
                     out["side_by_side_label_band"] = float((band <= 30).all(-1).mean())
                 if mode == "|inr - gt|":
                     out["diff_scale"], out["diff_status"] = frame["diff_scale"], frame["status"]
@@ -416,8 +417,8 @@ def _frames(record: Path) -> list[dict]:
 
 
 def _portrait(browser: Browser, record, path) -> None:
-    """The page at a reading size: the cached shadow beside the exact one for an unseen test light, the camera
-    zoomed in, a full-size frame."""
+    """The page at a reading size: the cached shadow beside the exact one for an unseen test light, from the
+    default (framed) view, a full frame at the canvas's size, and the light region's chart in the panel."""
     from PIL import Image
 
     def after(action, accept):
@@ -428,17 +429,9 @@ def _portrait(browser: Browser, record, path) -> None:
     browser.send("Emulation.setDeviceMetricsOverride", width=1000, height=560, deviceScaleFactor=1, mobile=False)
     after(lambda: browser.choose(*browser.input_beside("mode"), "inr | gt"), lambda m: m["mode"] == "inr | gt")
     after(lambda: browser.choose(*browser.input_beside("pick"), "unseen 1"),
-          lambda m: (m["light_kind"] or "").startswith("unseen test light 1")
-          and [m["width"], m["height"]] == browser.canvas_size())
-    rect = browser.canvas_rect()
-    cx, cy = rect["x"] + rect["width"] / 2, rect["y"] + rect["height"] / 2
-
-    def zoom():
-        for _ in range(4):
-            browser.send("Input.dispatchMouseEvent", type="mouseWheel", x=cx, y=cy, deltaX=0, deltaY=-120)
-            time.sleep(0.1)
-
-    frame = after(zoom, lambda m: [m["width"], m["height"]] == browser.canvas_size())
+          lambda m: (m["light_kind"] or "").startswith("unseen test light 1"))
+    frame = next_frame(record, 0, lambda m: (m["light_kind"] or "").startswith("unseen test light 1")
+                       and m["mode"] == "inr | gt" and [m["width"], m["height"]] == browser.canvas_size())
     shown(browser, frame)
     browser.js("document.activeElement && document.activeElement.blur()")
     Image.fromarray(browser.screenshot()).save(path)

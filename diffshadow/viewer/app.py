@@ -23,7 +23,9 @@ from diffshadow.render import Camera, RenderError
 from diffshadow.viewer.scene import DIFF, ViewerError, ViewerScene, azimuth_elevation, direction, region_chart
 
 STILL_S = 0.3  # no change for this long: draw at full size
-PREVIEW = 2  # while moving, the image height is divided by this
+PREVIEW = 2  # while moving, the image height is divided by this ...
+PREVIEW_BUDGET_S = 0.25  # ... or more, so that a moving frame takes about this long (a CPU at canvas size)
+PREVIEW_MIN = 32
 FREE = "(azimuth / elevation)"
 
 
@@ -58,6 +60,7 @@ class Session:
         self.lock, self.wake = threading.Lock(), threading.Event()
         self.version, self.changed_at = 0, time.monotonic()
         self.drawn = {"full": -1, "preview": -1}
+        self.per_pixel: dict[str, float] = {}  # the last frame's seconds per pixel, per mode
         self.frames = 0
         listed = viewer.listed()
         self.light = listed[0][1] if listed else direction(60.0, 40.0)
@@ -127,6 +130,15 @@ class Session:
         self.closed = True
         self.wake.set()
 
+    def _preview_height(self, mode: str, full: int) -> int:
+        """A moving frame's height: half the still frame's, lower where that would take longer than
+        PREVIEW_BUDGET_S by the mode's last cost per pixel (a 480-pixel canvas on 2 CPU cores: ~90 px)."""
+        height = full // PREVIEW
+        if (cost := self.per_pixel.get(mode)) is not None:
+            aspect = max(float(self.client.camera.aspect or 1.0), 1e-3)
+            height = min(height, int(math.sqrt(PREVIEW_BUDGET_S / cost / aspect)))
+        return max(PREVIEW_MIN, height)
+
     def _chart(self) -> np.ndarray:
         v = self.viewer
         return region_chart(v.region, v.train, v.unseen, self.light)
@@ -171,7 +183,7 @@ class Session:
     def _draw(self, kind: str) -> None:
         mode, step = self.mode.value, float(self.step.value)
         full = int(self.size.value) or int(self.client.camera.image_height) or 128
-        height = full // (PREVIEW if kind == "preview" else 1)
+        height = full if kind == "full" else self._preview_height(mode, full)
         camera = camera_of(self.client.camera, max(16, height))
         light = self.light
         if self.viewer.shown_mode(mode, light) in ("gt", "inr | gt", DIFF):
@@ -184,6 +196,7 @@ class Session:
         image, notes = self.viewer.frame(mode, camera, light, step=step)
         self.client.scene.set_background_image(image, format="png")
         seconds = time.perf_counter() - t0
+        self.per_pixel[mode] = seconds / (camera.width * camera.height)
         self.frames += 1
         # the commands that redraw this frame (the panel shows them, the record keeps them)
         commands = self.viewer.render_commands(mode, camera, light, step=step)
@@ -206,7 +219,7 @@ class Session:
             line += f"; its shadow SIREN made now in {info.generate_s:.2f} s ({self.viewer.cache_name})"
         self.light_note.content = line
         # this frame's time and rate, not an average: a 5 s frame reads 0.2 fps
-        status = (f"{camera.width}×{camera.height}{' (moving: half size)' if kind == 'preview' else ''} in "
+        status = (f"{camera.width}×{camera.height}{' (moving: preview)' if kind == 'preview' else ''} in "
                   f"{seconds * 1000:.0f} ms ({1 / max(seconds, 1e-9):.1f} fps) on {self.viewer.scene.device.type}")
         if notes.get("shown") == "gt":
             status = (f"**outside the cache: exact shadow, {notes['render_s'] * 1000:.0f} ms** (the cache was not "

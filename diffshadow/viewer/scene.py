@@ -187,12 +187,9 @@ class ViewerScene:
             gt, n2 = self.frame("gt", camera, light, step=step)
             notes = {**n1, "psnr_vs_gt": image_psnr(inr, gt), "gt_s": n2["render_s"],
                      "render_s": n1["render_s"] + n2["render_s"]}
-            if mode == "inr | gt":  # the central half of each frame, side by side
-                w = camera.width
-                half, q = w // 2, w // 4
-                image = np.concatenate([inr[:, q:q + half], gt[:, q:q + w - half]], axis=1)
+            if mode == "inr | gt":  # each whole frame at half size, side by side
                 notes["labels"] = [f"cache ({self.cache_name})", "exact (gt)"]
-                return label(label(image, notes["labels"][0], 0), notes["labels"][1], half), notes
+                return side_by_side(inr, gt, notes["labels"]), notes
             diff = np.abs(inr.astype(np.int32) - gt.astype(np.int32))
             notes["diff_scale"] = scale = diff_scale(diff)
             notes["labels"] = [f"|inr - gt| x {scale}"]
@@ -258,6 +255,26 @@ def image_psnr(a: np.ndarray, b: np.ndarray) -> float:
     """PSNR in dB between two uint8 images of the same size (every pixel and channel)."""
     err = np.mean((a.astype(np.float64) - b.astype(np.float64)) ** 2) / 255.0 ** 2
     return 10 * math.log10(1 / max(err, 1e-30))
+
+
+def half_size(image: np.ndarray) -> np.ndarray:
+    """(H // 2, W // 2, 3) uint8: the mean of each 2x2 block."""
+    h, w = image.shape[0] // 2, image.shape[1] // 2
+    blocks = image[:2 * h, :2 * w].astype(np.float64).reshape(h, 2, w, 2, -1)
+    return np.round(blocks.mean(axis=(1, 3))).astype(np.uint8)
+
+
+def side_by_side(left: np.ndarray, right: np.ndarray, labels: list[str]) -> np.ndarray:
+    """Two frames of one view at half size side by side, centred in a frame of their size on the background
+    (the right frame's corner pixel), each labelled: both whole, however wide or tall the view."""
+    h, w = left.shape[:2]
+    a, b = half_size(left), half_size(right)
+    out = np.empty_like(left)
+    out[:] = right[0, 0]
+    top = (h - a.shape[0]) // 2
+    out[top:top + a.shape[0], :a.shape[1]] = label(a, labels[0], 0)
+    out[top:top + b.shape[0], w - b.shape[1]:] = label(b, labels[1], 0)
+    return out
 
 
 def diff_scale(diff: np.ndarray) -> int:
