@@ -157,6 +157,9 @@ def blend_weights(train: np.ndarray, query: np.ndarray, k: int) -> tuple[np.ndar
     return idx, inverse_angle_weights(angles)
 
 
+INSIDE_TOLERANCE_DEG = 1e-6  # a training light on the cap's edge is inside it despite rounding
+
+
 @dataclass(frozen=True)
 class LightRegion:
     """The light directions a shadow cache was trained for: the cap around `center` that holds every training
@@ -194,6 +197,11 @@ class LightRegion:
         return {"center": list(self.center), "radius_deg": self.radius_deg, "spacing_deg": self.spacing_deg,
                 "far_deg": self.far_deg}
 
+    def contains(self, light) -> bool:
+        """Whether `light` lies in the cap (its angle to the centre only: no search of the training lights)."""
+        cos = float(as_direction(light) @ np.asarray(self.center))
+        return float(np.degrees(np.arccos(np.clip(cos, -1.0, 1.0)))) <= self.radius_deg + INSIDE_TOLERANCE_DEG
+
     def where(self, light) -> RegionCheck:
         """Where `light` stands: its angle to the centre and to the nearest training light, inside or not."""
         w = as_direction(light)
@@ -215,26 +223,23 @@ class RegionCheck:
 
     @property
     def inside(self) -> bool:
-        return self.to_center_deg <= self.region.radius_deg + 1e-6
+        return self.to_center_deg <= self.region.radius_deg + INSIDE_TOLERANCE_DEG
 
     @property
     def far(self) -> bool:
         """Inside, but farther from every training light than any unseen test light was (not evaluated there)."""
-        return self.inside and self.to_nearest_deg > self.region.far_deg + 1e-6
+        return self.inside and self.to_nearest_deg > self.region.far_deg + INSIDE_TOLERANCE_DEG
 
     def message(self) -> str:
-        """One line: what a cached answer for this light is worth."""
+        """One line on a light outside the region or far inside it: what a cached answer for it is worth."""
         r = self.region
         if not self.inside:
             return (f"the light is outside the cache's region ({r.describe()}): {self.to_center_deg:.1f}° from its "
                     f"centre, {self.to_center_deg - r.radius_deg:.1f}° past its edge, {self.to_nearest_deg:.1f}° from "
                     f"the nearest training light; the cache holds nothing there")
-        if self.far:
-            return (f"the light is inside the cache's region but {self.to_nearest_deg:.1f}° from the nearest training "
-                    f"light, farther than any unseen test light was ({r.far_deg:.1f}°): the cache was not evaluated "
-                    f"that far out")
-        return (f"inside the cache's region, {self.to_nearest_deg:.1f}° from the nearest training light "
-                f"(unseen test lights: up to {r.far_deg:.1f}°)")
+        return (f"the light is inside the cache's region but {self.to_nearest_deg:.1f}° from the nearest training "
+                f"light, farther than any unseen test light was ({r.far_deg:.1f}°): the cache was not evaluated "
+                f"that far out")
 
 
 def training_pool(train, center, n: int, *, seed: int) -> np.ndarray:

@@ -387,22 +387,11 @@ def project(data: dict, run: dict, paper: dict, gpu_costs: dict[str, dict], *, l
             continue
         used = max(ratio, 1.0)
         a100_total = cpu_total / used * factors.get(stage, 1.0) * A100_PER_H200  # all jobs of the stage
-        if stage == "fit_siren":
-            jobs = -(-lights // subset)
-            wall = a100_total / jobs * -(-jobs // (stage1_nodes * GPUS_PER_NODE))
-            node_hours = a100_total / GPUS_PER_NODE / 3600
-            per_job = a100_total / jobs
-        else:
-            wall = per_job = a100_total
-            node_hours = a100_total / 3600
-        request_h = per_job * MARGIN / 3600
         rss = predict(fit["max_rss_mib"], lights) or fit["max_rss_mib"]["points"][-1][1]
         model_mib = model_state_mib(stage, run, paper)
         rows[stage] = {"exponent": exponent, "cpu_s_run_config": cpu_total,
                        "h200_over_cpu": ratio, "speedup_used": used, "work_factor": factors.get(stage, 1.0),
-                       "a100_s_total": a100_total, "wall_s": wall, "node_hours": node_hours,
-                       "walltime_request_h": min(request_h, QUEUE_MAX_H),
-                       "resubmits": max(0, math.ceil(request_h / QUEUE_MAX_H) - 1),
+                       **_schedule(stage, a100_total, -(-lights // subset), stage1_nodes),
                        "rss_mib_run_config": rss, "model_state_mib": model_mib, "rss_mib": rss + max(model_mib, 0.0)}
     return {"lights": lights, "a100_per_h200": A100_PER_H200, "margin": MARGIN, "queue_max_h": QUEUE_MAX_H,
             "stages": rows, "storage_bytes": storage_at(paper, [lights, paper["lights"]["sphere"]])}
@@ -421,23 +410,30 @@ def measured_projection(proj: dict, bench: dict, *, stage1_nodes: int = 10) -> d
                          f"measured on a GPU (docs/measurements/<card>_bench_stages_paper.json)")
     out = {**proj, "stages": {k: {**v, "source": CPU_SOURCE} for k, v in proj["stages"].items()},
            "bench": {k: bench.get(k) for k in ("device", "torch", "cuda", "config")}}
-    lights = proj["lights"]
     for stage, row in bench["stages"].items():
-        total = row["projected_s"] * A100_PER_H200
-        r = out["stages"].setdefault(stage, {"rss_mib": None, "model_state_mib": 0.0})
-        if stage == "fit_siren":  # the bench projects one job; jobs run four to a node on stage1_nodes nodes
-            jobs = -(-lights // int(row["units"]))  # units: the SIRENs one job fits
-            per_job, wall = total, total * -(-jobs // (stage1_nodes * GPUS_PER_NODE))
-            node_hours = total * jobs / GPUS_PER_NODE / 3600
-        else:
-            per_job = wall = total
-            node_hours = total / 3600
-        request_h = per_job * proj["margin"] / 3600
-        r.update(a100_s_total=total if stage != "fit_siren" else total * jobs, wall_s=wall, node_hours=node_hours,
-                 walltime_request_h=min(request_h, proj["queue_max_h"]),
-                 resubmits=max(0, math.ceil(request_h / proj["queue_max_h"]) - 1),
-                 source=f"bench stages on {bench.get('device')} x {A100_PER_H200}")
+        jobs = -(-proj["lights"] // int(row["units"]))  # fit_siren: the bench times one job of `units` SIRENs
+        total = row["projected_s"] * A100_PER_H200 * (jobs if stage == "fit_siren" else 1)
+        out["stages"].setdefault(stage, {"rss_mib": None, "model_state_mib": 0.0}).update(
+            **_schedule(stage, total, jobs, stage1_nodes), source=f"bench stages on {bench.get('device')} x "
+                                                                 f"{A100_PER_H200}")
     return out
+
+
+def _schedule(stage: str, a100_total: float, jobs: int, stage1_nodes: int) -> dict:
+    """A stage's A100 seconds (all its jobs) as Polaris runs them: fit_siren's `jobs` four to a node on
+    `stage1_nodes` nodes, any other stage one job on one node; its wall time, node-hours, and a job's walltime
+    request (MARGIN x its time, at most QUEUE_MAX_H, `resubmits` more jobs resuming from the checkpoint)."""
+    if stage == "fit_siren":
+        per_job = a100_total / jobs
+        wall = a100_total / jobs * -(-jobs // (stage1_nodes * GPUS_PER_NODE))
+        node_hours = a100_total / GPUS_PER_NODE / 3600
+    else:
+        wall = per_job = a100_total
+        node_hours = a100_total / 3600
+    request_h = per_job * MARGIN / 3600
+    return {"a100_s_total": a100_total, "wall_s": wall, "node_hours": node_hours,
+            "walltime_request_h": min(request_h, QUEUE_MAX_H),
+            "resubmits": max(0, math.ceil(request_h / QUEUE_MAX_H) - 1)}
 
 
 def walltime(hours: float) -> str:

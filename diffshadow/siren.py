@@ -112,10 +112,8 @@ class FoldedSiren:
         self.forward = _compiled_forward() if compiled else forward_folded
 
     def __call__(self, x: torch.Tensor) -> torch.Tensor:
-        if self.forward is forward_folded:
-            return forward_folded(self.layers, x)
         key = (len(self.layers), x.ndim, x.device.type)
-        if key in _COMPILED:
+        if self.forward is forward_folded or key in _COMPILED:
             return self.forward(self.layers, x)
         with phase("compile"):  # the first call of a shape compiles: counted in the job's phases
             out = self.forward(self.layers, x)

@@ -193,8 +193,8 @@ class RunResults:
             ours, gt = images / f"{tag}_{row['mode']}.png", images / f"{tag}_gt.png"
             if not (ours.exists() and gt.exists()):
                 continue
-            a, b = (np.asarray(Image.open(p).convert("RGB").resize((2 * Image.open(p).width, 2 * Image.open(p).height),
-                                                                    Image.Resampling.NEAREST)) for p in (ours, gt))
+            a, b = (np.asarray(img.resize((2 * img.width, 2 * img.height), Image.Resampling.NEAREST))
+                    for img in (Image.open(p).convert("RGB") for p in (ours, gt)))
             side = np.concatenate([label_image(a, "ours", 0), label_image(b, "exact (gt)", 0)], axis=1)
             buf = io.BytesIO()
             Image.fromarray(side).save(buf, format="PNG")

@@ -47,10 +47,10 @@ def op_counts(fn: Callable[[], object], host_scopes: tuple[str, ...] = ()) -> di
     for e in prof.events():
         if e.name == LAUNCH:
             ops += 1
-        if not e.name.startswith("aten::") or _inside(e, LAUNCH):  # Triton's interpreter runs aten ops there
+        if not e.name.startswith("aten::") or _inside(e, (LAUNCH,)):  # Triton's interpreter runs aten ops there
             continue
         if e.name in SYNCS:
-            if e.name == "aten::_local_scalar_dense" and any(_inside_prefix(e, s) for s in host_scopes):
+            if e.name == "aten::_local_scalar_dense" and _inside(e, host_scopes):
                 host_reads += 1
             else:
                 syncs += 1
@@ -62,19 +62,11 @@ def op_counts(fn: Callable[[], object], host_scopes: tuple[str, ...] = ()) -> di
     return {"ops": ops, "syncs": syncs, **({"host_reads": host_reads} if host_scopes else {})}
 
 
-def _inside_prefix(event, prefix: str) -> bool:
+def _inside(event, prefixes: tuple[str, ...]) -> bool:
+    """Whether a profiler scope above `event` has a name starting with one of `prefixes`."""
     parent = event.cpu_parent
     while parent is not None:
-        if parent.name.startswith(prefix):
-            return True
-        parent = parent.cpu_parent
-    return False
-
-
-def _inside(event, name: str) -> bool:
-    parent = event.cpu_parent
-    while parent is not None:
-        if parent.name == name:
+        if parent.name.startswith(prefixes):
             return True
         parent = parent.cpu_parent
     return False

@@ -45,13 +45,8 @@ class Camera:
     def orbit(cls, extent, *, azimuth: float, elevation: float, distance: float = 2.2, fov: float = 60.0,
               size: int | tuple[int, int] = 128) -> Camera:
         """Looking at the box centre from (azimuth, elevation) in degrees; `distance` in box half-diagonals."""
-        extent = np.asarray(extent, dtype=float)
-        center = extent / 2
-        az, el = math.radians(azimuth), math.radians(elevation)
-        direction = np.array([math.cos(el) * math.cos(az), math.cos(el) * math.sin(az), math.sin(el)])
-        eye = center + distance * np.linalg.norm(center) * direction
-        up = (0.0, 0.0, 1.0) if abs(direction[2]) < 0.999 else (0.0, 1.0, 0.0)
-        return cls.look_at(eye, center, up=up, fov=fov, size=size)
+        center = np.asarray(extent, dtype=float) / 2
+        return cls._from_direction(center, distance * np.linalg.norm(center), azimuth, elevation, fov, size)
 
     @classmethod
     def framed(cls, sphere: tuple, *, azimuth: float = 30.0, elevation: float = 25.0, fov: float = 60.0,
@@ -64,11 +59,16 @@ class Camera:
         w, h = (size, size) if isinstance(size, int) else size
         half_v = math.radians(fov) / 2
         half = min(half_v, math.atan(math.tan(half_v) * w / h))
+        return cls._from_direction(center, margin * radius / math.sin(half), azimuth, elevation, fov, size)
+
+    @classmethod
+    def _from_direction(cls, center: np.ndarray, distance: float, azimuth: float, elevation: float, fov: float,
+                        size: int | tuple[int, int]) -> Camera:
+        """Looking at `center` from `distance` away toward (azimuth, elevation) in degrees, z up."""
         az, el = math.radians(azimuth), math.radians(elevation)
         direction = np.array([math.cos(el) * math.cos(az), math.cos(el) * math.sin(az), math.sin(el)])
-        eye = center + margin * radius / math.sin(half) * direction
         up = (0.0, 0.0, 1.0) if abs(direction[2]) < 0.999 else (0.0, 1.0, 0.0)
-        return cls.look_at(eye, center, up=up, fov=fov, size=size)
+        return cls.look_at(center + distance * direction, center, up=up, fov=fov, size=size)
 
     def rays(self, device: torch.device | str = "cpu") -> tuple[torch.Tensor, torch.Tensor]:
         """Origins and unit directions (H·W, 3), row 0 at the top of the image."""

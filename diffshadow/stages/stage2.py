@@ -165,7 +165,7 @@ def sample_shadows(checkpoint: Path, truth_path: Path, lights_path: Path, out: P
 
 def _check_region(region, unseen: np.ndarray, source: Path) -> None:
     """The cache is asked for its unseen test lights: each must lie in its region (they are drawn in its cap)."""
-    outside = [i for i, w in enumerate(unseen) if not region.where(w).inside]
+    outside = [i for i, w in enumerate(unseen) if not region.contains(w)]
     if outside:
         raise ValueError(f"{source}: unseen light {outside[0]} ({len(outside)} in all) lies outside the cache's region "
                          f"({region.describe()}); rerun the lights rule and everything after it")

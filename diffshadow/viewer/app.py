@@ -1,7 +1,8 @@
 """The browser viewer (`diffshadow view`), built on viser: each browser tab gets its own panel and a render
 thread that draws the scene from the tab's camera as the page's background image: at the canvas's own pixel size
-once the camera and the light have been still for `STILL_S` (or at the height the panel asks), at half that height
-while they move. Outside the cache's light region the cache's modes draw the exact shadow, and say so."""
+once the camera and the light have been still for `STILL_S` (or at the height the panel asks), smaller while they
+move (half that height, less where that would take longer than `PREVIEW_BUDGET_S`). Outside the cache's light
+region the cache's modes draw the exact shadow, and say so."""
 
 from __future__ import annotations
 
@@ -230,7 +231,7 @@ class Session:
             k = notes["diff_scale"]
             status += f"  \n|inr − gt| × {k}: white is a difference of {255 / k:.0f} of 255 levels"
         self.status.content = status
-        what = ("the inr and gt frames whose central halves are shown" if mode == "inr | gt" and len(commands) == 2
+        what = ("the inr and gt frames shown side by side" if mode == "inr | gt" and len(commands) == 2
                 else "the inr and gt frames whose difference is shown" if len(commands) == 2 else "this frame")
         self.command.content = f"{what} from the command line:\n\n" + "\n\n".join(
             f"```\n{c}\n```" for c in commands)

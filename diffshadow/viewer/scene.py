@@ -170,7 +170,7 @@ class ViewerScene:
     def shown_mode(self, mode: str, light) -> str:
         """The mode drawn for `mode` at `light`: a mode of the cache at a light outside the cache's region draws
         the exact shadow instead (the cache holds nothing there; the panel says so)."""
-        if mode in CACHE_MODES and self.region is not None and not self.region.where(light).inside:
+        if mode in CACHE_MODES and self.region is not None and not self.region.contains(light):
             return "gt"
         return mode
 
@@ -213,8 +213,8 @@ class ViewerScene:
 
     def render_commands(self, mode: str, camera: Camera, light, *, step: float) -> list[str]:
         """The `diffshadow render` commands that write this frame: one for a single mode (the exact shadow's where
-        a cache mode falls outside the region), the inr and gt frames whose central halves or difference the
-        composite modes show."""
+        a cache mode falls outside the region), the inr and gt frames that the composite modes show side by side
+        or as their difference."""
         mode = self.shown_mode(mode, light)
         if mode in ("inr | gt", DIFF):
             return [self.render_command(m, camera, light, step=step, out=f"{m}.png") for m in ("inr", "gt")]
@@ -322,7 +322,7 @@ def region_chart(region, train: np.ndarray, unseen: np.ndarray, light, *, size: 
             x, y = xy(d)
             draw.ellipse((x - 2.5, y - 2.5, x + 2.5, y + 2.5), fill=color)
     x, y = xy(w)
-    if region.where(w).inside:
+    if region.contains(w):
         draw.ellipse((x - 5, y - 5, x + 5, y + 5), fill=(220, 30, 30), outline=(0, 0, 0))
     else:
         draw.line((x - 6, y - 6, x + 6, y + 6), fill=(0, 0, 0), width=3)
