@@ -54,6 +54,18 @@ def _lights(n: int, center, gen: np.random.Generator) -> np.ndarray:
     return v / np.linalg.norm(v, axis=1, keepdims=True)
 
 
+def _pool(m: int, points: int, n_train: int, cfg: dict, volume, *, seed: int):
+    """`m` synthetic pool lights with `points` random points and shadows each, blended from up to 4 of `n_train`
+    training rows: a step's cost depends on these shapes, not on the values."""
+    from diffshadow.lights import PoolLights
+
+    g, k = torch.Generator().manual_seed(seed), min(4, n_train)
+    extent = torch.as_tensor(volume.extent, dtype=torch.float32)
+    return PoolLights(lights=torch.as_tensor(_lights(m, cfg["lights"]["center"], np.random.default_rng(seed))),
+                      points=torch.rand(m, points, 3, generator=g) * extent, values=torch.rand(m, points, generator=g),
+                      neighbours=torch.randint(0, n_train, (m, k), generator=g), blend=torch.full((m, k), 1.0 / k))
+
+
 def _scene(cfg: dict):
     from diffshadow.artifacts import scene_volume
 
@@ -63,7 +75,6 @@ def _scene(cfg: dict):
 def fit_siren(cfg: dict, device: torch.device, volume, tf, *, subset: bool = True) -> Timed:
     """A fit step of one subset (K SIRENs jointly), or (`subset` False) preoptimize's single-light step."""
     from diffshadow.fit import FitConfig, SubsetFit
-    from diffshadow.lights import PoolLights
     from diffshadow.siren import SirenConfig, WeightLayout, init_siren
 
     fit = FitConfig.from_config(cfg["fit"])
@@ -71,20 +82,12 @@ def fit_siren(cfg: dict, device: torch.device, volume, tf, *, subset: bool = Tru
     layout = WeightLayout.for_siren(siren)
     n_lights = int(cfg["lights"]["count"])
     k = min(int(cfg["subset_size"]), n_lights) if subset else 1
-    gen = np.random.default_rng(0)
-    lights = _lights(k, cfg["lights"]["center"], gen)
+    lights = _lights(k, cfg["lights"]["center"], np.random.default_rng(0))
     init = layout.flatten(init_siren(siren, torch.Generator().manual_seed(0)))
     pool = None
     if subset and fit.blend_weight > 0 and k >= 2:
-        # a pool of the size one subset takes (blend_per_light pool lights per training light, ~all of them its
-        # own), with random shadows: the step's cost depends on their count and points, not their values
-        m, bk = fit.blend_per_light * k, min(4, k)
-        g = torch.Generator().manual_seed(1)
-        pool = PoolLights(lights=torch.as_tensor(_lights(m, cfg["lights"]["center"], gen)),
-                          points=torch.rand(m, fit.blend_points, 3, generator=g) * torch.as_tensor(
-                              volume.extent, dtype=torch.float32),
-                          values=torch.rand(m, fit.blend_points, generator=g),
-                          neighbours=torch.randint(0, k, (m, bk), generator=g), blend=torch.full((m, bk), 1.0 / bk))
+        # a pool of the size one subset takes (blend_per_light pool lights per training light, ~all of them its own)
+        pool = _pool(fit.blend_per_light * k, fit.blend_points, k, cfg, volume, seed=1)
     if not subset:
         fit = replace(fit, lr=float(cfg["preoptimize"]["lr"]))
     run = SubsetFit(init, layout, siren, volume, tf, lights, fit, pool=pool, device=device)
@@ -114,7 +117,6 @@ def _training_data(cfg: dict, volume, device: torch.device):
     presampled points and shadows, pool lights."""
     from diffshadow.diffusion.config import DiffusionConfig
     from diffshadow.diffusion.train import TrainingData
-    from diffshadow.lights import PoolLights
     from diffshadow.siren import SirenConfig, WeightLayout, init_siren
 
     dcfg = DiffusionConfig.from_config(cfg["diffusion"])
@@ -128,11 +130,7 @@ def _training_data(cfg: dict, volume, device: torch.device):
     lights = torch.as_tensor(_lights(n, cfg["lights"]["center"], np.random.default_rng(2)))
     pool = None
     if dcfg.pool_lights > 0:
-        m = dcfg.pool_lights
-        pool = PoolLights(lights=torch.as_tensor(_lights(m, cfg["lights"]["center"], np.random.default_rng(3))),
-                          points=torch.rand(m, dcfg.pool_points, 3, generator=g) * extent,
-                          values=torch.rand(m, dcfg.pool_points, generator=g),
-                          neighbours=torch.randint(0, n, (m, 4), generator=g), blend=torch.full((m, 4), 0.25))
+        pool = _pool(dcfg.pool_lights, dcfg.pool_points, n, cfg, volume, seed=3)
     data = TrainingData(weights=weights, lights=lights,
                         points=torch.rand(n, dcfg.presample_points, 3, generator=g) * extent,
                         values=torch.rand(n, dcfg.presample_points, generator=g), extent=extent, layout=layout,
