@@ -19,7 +19,10 @@
 #           peak memory up to 2048²), the fused kernels (the CUDA default) first, then eager.
 # workflow: the README's run (`snakemake --profile local -j2`, the profile from profiles/) on an empty
 #           results/, its wall time and Snakemake's per-rule benchmark table, and the run's metrics.
-# checks:   pytest -m gpu.
+# checks:   pytest -m gpu (PYTEST_K narrows it with -k).
+# stages:   `bench stages` on the GPU at the paper's sizes (the JSON profiles/paper is generated from), at the
+#           defaults, and at the defaults with every training step's points and batch raised (STAGES_BIG, a YAML
+#           overlay): whether a bigger step costs a GPU more than a few launches.
 # stage1:   issue 56: stage 1 alone (snakemake ... results/nucleon/weights.zarr) at 512 of 2,048 lights, wall time
 #           and each fit_siren job's benchmark (a job cut short still leaves the finished subsets' figures).
 #
@@ -28,7 +31,7 @@ set -uo pipefail
 case ${1:-} in
     -h|--help) sed -n '2,/^set -uo/p' "$0" | sed '$d;s/^# \{0,1\}//'; exit 0 ;;
 esac
-part=${1:?usage: scripts/gpu_session.sh all|plans|render|workflow|checks|stage1}
+part=${1:?usage: scripts/gpu_session.sh all|plans|render|workflow|checks|stages|stage1}
 # Parts write under $root and are packed into $OUT/<part>.tgz at the end: a device call brings back at most 8
 # files, and one run writes dozens. `all` hands its root to the parts it runs (PART_ROOT) and packs once each.
 dest=${OUT:-gpu_session}
@@ -57,7 +60,22 @@ cat "$out/machine.txt"
 
 case $part in
 checks)
-    step pytest_gpu pytest -q -m gpu -rs --durations=10
+    step pytest_gpu pytest -q -m gpu -rs --durations=10 ${PYTEST_K:+-k "$PYTEST_K"}
+    ;;
+stages)
+    paper=(--configfile config/paper.yaml --budget 3 --max-steps 20)
+    [ "$quick" = 1 ] && paper=(--configfile config/paper.yaml --stages eval_truth --budget 0 --max-steps 1)
+    step bench_stages_paper diffshadow bench stages --device "$device" "${paper[@]}" --out "$out/bench_stages_paper.json"
+    step bench_stages_default diffshadow bench stages --device "$device" --out "$out/bench_stages_default.json"
+    if [ -n "${STAGES_BIG:-}" ]; then cp "$STAGES_BIG" "$out/big.yaml"; else cat >"$out/big.yaml" <<'YAML'
+fit: {points: 16384}
+data_inr: {points: 16384}
+diffusion: {batch_size: 64}
+finetune: {batch_size: 64}
+YAML
+    fi
+    step bench_stages_big diffshadow bench stages --device "$device" --configfile "$out/big.yaml" \
+        --stages fit_siren preoptimize train_data_inr train_diffusion finetune_render --out "$out/bench_stages_big.json"
     ;;
 render)
     sizes=(--sizes 128 512 1024 --memory-sizes 2048); [ "$quick" = 1 ] && sizes=(--sizes 32 64 --memory-sizes 96)
@@ -88,10 +106,16 @@ workflow)
     [ -L results ] && rm results  # a link to this machine's results elsewhere travels as a dangling link
     rm -rf results/nucleon
     t0=$SECONDS
-    step snakemake snakemake --profile profiles/local -j2
+    # the GPU's busy share through the run, every half second
+    nvidia-smi --query-gpu=timestamp,utilization.gpu,memory.used --format=csv -lms 500 >"$out/gpu_util.csv" 2>/dev/null &
+    smi=$!
+    # stopped 25 s before the part's cap, so that a cut run still brings back its finished rules' phases
+    step snakemake timeout $((${PART_CAP:-100000} - 25)) snakemake --profile profiles/local -j2
     echo "README run: $((SECONDS - t0)) s wall" | tee "$out/wall.txt"
+    kill $smi 2>/dev/null
     cp results/nucleon/*.json "$out/" 2>/dev/null
     cp -r results/nucleon/benchmarks results/nucleon/logs "$out/" 2>/dev/null
+    cp results/nucleon/stage_costs.tsv "$out/run_stage_costs.tsv" 2>/dev/null
     step stage_costs diffshadow stage-costs --out "$out/stage_costs.tsv" --benchmarks results/nucleon/benchmarks/*.tsv
     cat "$out/stage_costs.tsv" 2>/dev/null
     ;;
@@ -108,7 +132,7 @@ stage1)
     cp -r results/nucleon/benchmarks results/nucleon/logs "$out/" 2>/dev/null
     ;;
 *)
-    echo "unknown part $part (all, plans, render, workflow, checks or stage1)" >&2; exit 2
+    echo "unknown part $part (all, plans, render, workflow, checks, stages or stage1)" >&2; exit 2
     ;;
 esac
 pack
