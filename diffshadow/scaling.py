@@ -204,23 +204,29 @@ def projection_html(proj: dict | None, points: list[dict]) -> str:
     if not proj:
         return ""
     epochs = ", ".join(str(p.get("diffusion_epochs")) for p in points)
-    rows = "".join(
-        f"<tr><td>{html.escape(s)}</td><td>{r['exponent']:.2f}</td><td>{r['h200_over_cpu']:.1f} "
-        f"({r['speedup_used']:.1f})</td>"
-        f"<td>{r['work_factor']:,.0f}</td><td>{r['wall_s'] / 3600:,.2f}</td><td>{r['node_hours']:,.1f}</td>"
-        f"<td>{r['rss_mib'] / 1024:,.1f}</td></tr>"
-        for s, r in sorted(proj["stages"].items(), key=lambda kv: -kv[1]["node_hours"]))
+    def row(s: str, r: dict) -> str:
+        benched = r.get("source", CPU_SOURCE) != CPU_SOURCE  # timed by `bench stages` on a GPU: no CPU carry
+        carry = ("<td colspan=3>" + html.escape(r["source"]) + "</td>" if benched else
+                 f"<td>{r['exponent']:.2f}</td><td>{r['h200_over_cpu']:.1f} ({r['speedup_used']:.1f})</td>"
+                 f"<td>{r['work_factor']:,.0f}</td>")
+        memory = f"{r['rss_mib'] / 1024:,.1f}" if r.get("rss_mib") else ""
+        return (f"<tr><td>{html.escape(s)}</td>{carry}<td>{r['wall_s'] / 3600:,.2f}</td>"
+                f"<td>{r['node_hours']:,.1f}</td><td>{memory}</td></tr>")
+
+    rows = "".join(row(s, r) for s, r in sorted(proj["stages"].items(), key=lambda kv: -kv[1]["node_hours"]))
     total = sum(r["node_hours"] for r in proj["stages"].values())
+    bench = f" ({html.escape(proj['bench_stages'])})" if proj.get("bench_stages") else ""
     store = "".join(f"<tr><td>{n}</td>" + "".join(f"<td>{v / 2**20:,.0f}</td>" for v in b.values()) + "</tr>"
                     for n, b in proj["storage_bytes"].items())
     return f"""<h2>Projection: the paper's scale on Polaris</h2>
 <p>{proj['lights']:,} training lights at config/paper.yaml, each stage from this sweep's exponent, the H200's
 measured speed over this machine's per stage, the paper config's work per light over this run's, and an A100 taking
-{proj['a100_per_h200']}x an H200's time (an assumption). Stage 1: subsets of 50, four to a node, 10 nodes. Upper
-bounds where a small run leaves a GPU idle. train_diffusion's exponent is its cost per epoch, carried at the configured
-epochs (its gap check chose the epochs each point trained: {epochs}). Host memory: the peak RSS carried to this
-light count plus the paper model's parameters in host memory (weights, gradients, Adam's moments, EMA:
-scaling.MODEL_COPIES).</p>
+{proj['a100_per_h200']}x an H200's time (an assumption); a stage timed by `bench stages` at the paper's sizes on a
+GPU{bench} instead takes that measurement's steps (the same A100 factor). Stage 1: subsets of 50, four to a node,
+10 nodes. Upper bounds where a small run leaves a GPU idle. train_diffusion's exponent is its cost per epoch,
+carried at the configured epochs (its gap check chose the epochs each point trained: {epochs}). Host memory: the
+peak RSS carried to this light count plus the paper model's parameters in host memory (weights, gradients, Adam's
+moments, EMA: scaling.MODEL_COPIES).</p>
 <table><tr><th>stage</th><th>exponent</th><th>H200 / this CPU (used)</th><th>work factor</th><th>wall (h)</th>
 <th>node-hours</th><th>host memory per job (GiB)</th></tr>{rows}<tr><td>total</td><td></td><td></td><td></td><td></td>
 <td>{total:,.1f}</td><td></td></tr></table>
@@ -350,6 +356,10 @@ def model_state_mib(stage: str, run: dict, paper: dict) -> float:
 
 QUEUE_MAX_H = 72.0  # Polaris' preemptable queue's longest walltime (ALCF's documentation; check `qstat -Qf`)
 MARGIN = 1.5  # requests are the projection times this
+# A stage timed by `bench stages` asks at least this: the bench times steps, not a job's start-up, its
+# checkpoints, its periodic checks or its outputs (at the README's sizes on the H200 those were 14 of
+# fit_siren's 19 s, stage_costs.tsv against 1,000 steps of 5.6 ms)
+BENCH_FLOOR_H = 0.5
 
 
 def project(data: dict, run: dict, paper: dict, gpu_costs: dict[str, dict], *, lights: int | None = None,
@@ -403,7 +413,8 @@ CPU_SOURCE = "CPU sweep x the tiny run's H200 speed-up (upper bound)"
 def measured_projection(proj: dict, bench: dict, *, stage1_nodes: int = 10) -> dict:
     """`proj` (`project`) with each stage that `bench stages` measured at the paper config on a GPU (`bench`, its
     JSON) timed from that measurement instead: its seconds per step times the paper's steps, times A100_PER_H200
-    (the same stated assumption) for Polaris' A100s. Host memory stays the sweep's (the bench measures the GPU's).
+    (the same stated assumption) for Polaris' A100s, asking at least BENCH_FLOOR_H. Host memory stays the
+    sweep's (the bench measures the GPU's).
     Every row names its `source`; stages the bench did not time keep the CPU-based upper bound."""
     if bench.get("device_type") != "cuda":
         raise ValueError(f"bench stages JSON measured on {bench.get('device')!r}: the paper-scale plan needs one "
@@ -413,8 +424,10 @@ def measured_projection(proj: dict, bench: dict, *, stage1_nodes: int = 10) -> d
     for stage, row in bench["stages"].items():
         jobs = -(-proj["lights"] // int(row["units"]))  # fit_siren: the bench times one job of `units` SIRENs
         total = row["projected_s"] * A100_PER_H200 * (jobs if stage == "fit_siren" else 1)
+        plan = _schedule(stage, total, jobs, stage1_nodes)
+        plan["walltime_request_h"] = min(max(plan["walltime_request_h"], BENCH_FLOOR_H), QUEUE_MAX_H)
         out["stages"].setdefault(stage, {"rss_mib": None, "model_state_mib": 0.0}).update(
-            **_schedule(stage, total, jobs, stage1_nodes), source=f"bench stages on {bench.get('device')} x "
+            **plan, source=f"bench stages on {bench.get('device')} x "
                                                                  f"{A100_PER_H200}")
     return out
 

@@ -3,6 +3,9 @@ three figures and a page (`diffshadow.scaling`).
 
     python scripts/scaling_sweep.py --lights 32 128 512 --out sweep          # every stage, on this machine
     python scripts/scaling_sweep.py --lights 32 128 --out sweep --collect    # only re-read finished runs
+    python scripts/scaling_sweep.py --from-json docs/scaling/scaling.json --out docs/scaling \
+        --bench-stages docs/measurements/h200_bench_stages_paper.json --profile-out profiles/paper/config.yaml
+                                               # the projection and profiles/paper again from a committed sweep
 
 Each point is `snakemake --directory OUT/lights_N` with `lights: {count: N, sphere: 4N, unseen: U}` laid over the
 run config: the paper's cap fraction (2,000 training lights of 8,000), so the training lights grow denser with N,
@@ -39,6 +42,8 @@ def main() -> None:
     ap.add_argument("-j", "--jobs", type=int, default=2)
     ap.add_argument("--configfile", type=Path, help="a further overlay for every point (e.g. config/paper.yaml)")
     ap.add_argument("--collect", action="store_true", help="run nothing: read the finished points under --out")
+    ap.add_argument("--from-json", type=Path, help="run nothing: the points of an earlier sweep's scaling.json "
+                    "(e.g. docs/scaling/scaling.json), projected again")
     ap.add_argument("--paper", type=Path, default=ROOT / "config" / "paper.yaml",
                     help="the config overlay to project to (over config/config.yaml)")
     ap.add_argument("--gpu-costs", type=Path,
@@ -52,7 +57,7 @@ def main() -> None:
     a = ap.parse_args()
     out = a.out.resolve()
     runs = []
-    for n in sorted(a.lights):
+    for n in [] if a.from_json else sorted(a.lights):
         point = out / f"lights_{n}"
         runs.append(point / "results" / a.scene)
         if a.collect:
@@ -71,18 +76,21 @@ def main() -> None:
               flush=True)
         if rc:
             sys.exit(f"[sweep] the run at {n} lights failed; see {point / 'snakemake.log'}")
-    try:
-        data = scaling.sweep(runs)
-    except scaling.SweepError as e:  # e.g. one new point run alone: its results stand; collect with the others
-        sys.exit(f"[sweep] {e}; collect finished points together (--collect --lights N1 N2 ...)")
+    if a.from_json:
+        data = {k: v for k, v in json.loads(a.from_json.read_text()).items() if k != "projection"}
+    else:
+        try:
+            data = scaling.sweep(runs)
+        except scaling.SweepError as e:  # e.g. one new point run alone: its results stand; collect with the others
+            sys.exit(f"[sweep] {e}; collect finished points together (--collect --lights N1 N2 ...)")
     run_cfg = config.run_config(config.read_yaml(ROOT / "config" / "config.yaml"), "config/config.yaml")
     paper = config.run_config(config.merge(config.read_yaml(ROOT / "config" / "config.yaml"),
                                            config.read_yaml(a.paper)), str(a.paper))
     data["projection"] = scaling.project(data, run_cfg, paper, scaling.read_costs(a.gpu_costs))
-    data["projection"]["gpu_costs"] = str(a.gpu_costs)
+    data["projection"]["gpu_costs"] = _shown(a.gpu_costs)
     if a.bench_stages:  # stages timed at the paper's sizes on a GPU replace their CPU-based upper bounds
         data["projection"] = scaling.measured_projection(data["projection"], json.loads(a.bench_stages.read_text()))
-        data["projection"]["bench_stages"] = str(a.bench_stages)
+        data["projection"]["bench_stages"] = _shown(a.bench_stages)
     if a.profile_out:
         from diffshadow.io import atomic_write_text
 
@@ -91,6 +99,14 @@ def main() -> None:
         print(f"[sweep] wrote {a.profile_out} (per-rule walltimes for the paper config on Polaris)")
     scaling.write_sweep(data, out / "scaling.json")
     print(f"[sweep] wrote {out / 'scaling.json'}, {out / 'scaling.html'} and its three figures")
+
+
+def _shown(path: Path) -> str:
+    """`path` relative to the repository where it lies inside it (a committed JSON names no machine's folders)."""
+    try:
+        return str(path.resolve().relative_to(ROOT))
+    except ValueError:
+        return str(path)
 
 
 if __name__ == "__main__":

@@ -135,7 +135,7 @@ def test_the_sweep_script_collects_finished_points(tmp_path):
 def test_a_gpu_bench_of_the_paper_config_replaces_the_cpu_upper_bounds(tmp_path):
     """Stages that `bench stages` timed on a GPU are projected from it (step x the paper's steps, x the A100
     factor; fit_siren per job, jobs four to a node); the others keep the CPU-based upper bound, and the profile
-    names each rule's source. A bench from a CPU is refused."""
+    names each rule's source; no benched stage asks under BENCH_FLOOR_H. A bench from a CPU is refused."""
     data = scaling.sweep([_point(tmp_path, n) for n in (8, 32)])
     run = config.load_run(REPO / "config" / "config.yaml")
     gpu = {"fit_siren": {"wall_s": 2.0 * 8 / 4}, "train_diffusion": {"wall_s": 10.0 * 8 ** 0.5 * 2},
@@ -143,8 +143,11 @@ def test_a_gpu_bench_of_the_paper_config_replaces_the_cpu_upper_bounds(tmp_path)
     proj = scaling.project(data, run, run, gpu, lights=200, subset=50, stage1_nodes=1)
     bench = {"device": "NVIDIA H200", "device_type": "cuda", "torch": "2.x", "cuda": "13.0", "config": "paper",
              "stages": {"fit_siren": {"projected_s": 3600.0, "units": 50},
-                        "finetune_render": {"projected_s": 7200.0, "units": 1}}}
+                        "finetune_render": {"projected_s": 7200.0, "units": 1},
+                        "eval_truth": {"projected_s": 60.0, "units": 32}}}
     out = scaling.measured_projection(proj, bench, stage1_nodes=1)
+    # a benched stage of a minute still asks the floor: the bench times steps, not a job's start-up and checks
+    assert out["stages"]["eval_truth"]["walltime_request_h"] == scaling.BENCH_FLOOR_H
     fit, ft, diff = (out["stages"][s] for s in ("fit_siren", "finetune_render", "train_diffusion"))
     assert fit["walltime_request_h"] == pytest.approx(1.0 * scaling.A100_PER_H200 * scaling.MARGIN)
     assert fit["node_hours"] == pytest.approx(3600 * scaling.A100_PER_H200 * 4 / 4 / 3600)  # 4 jobs, one node
@@ -152,6 +155,6 @@ def test_a_gpu_bench_of_the_paper_config_replaces_the_cpu_upper_bounds(tmp_path)
     assert diff == {**proj["stages"]["train_diffusion"], "source": scaling.CPU_SOURCE}
     text = scaling.polaris_profile(out)
     assert "fit_siren:  # bench stages on NVIDIA H200" in text and "upper bound" in text
-    assert "finetune_render:  # bench" in text and text.count("    mem_mb: ") == len(out["stages"]) - 1
+    assert "finetune_render:  # bench" in text and text.count("    mem_mb: ") == len(out["stages"]) - 2
     with pytest.raises(ValueError, match="measured on 'cpu'"):
         scaling.measured_projection(proj, {**bench, "device": "cpu", "device_type": "cpu"})
