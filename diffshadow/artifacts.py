@@ -1,4 +1,4 @@
-"""Every file the stages pass to each other, in one place (DESIGN.md §3), each written atomically:
+"""Every file the stages pass to each other, in one place (docs/design.md §1), each written atomically:
 
 | file | written by | here |
 |---|---|---|
@@ -10,6 +10,7 @@
 | `diffusion_geometry.ckpt`, `diffusion.ckpt` | train_diffusion, finetune_render | `load_checkpoint` |
 | `targets.zarr` | render_targets | `write_targets` / `read_targets` |
 | `data_inr.pt` | train_data_inr | `save_data_inr` / `load_data_inr`; with a volume: `load_render_scene` |
+| `naive_images.zarr` | naive_images | `write_naive_images` / `read_naive_images`: the naive baseline's images |
 """
 
 from __future__ import annotations
@@ -27,7 +28,7 @@ from diffshadow.fit import Stage1Layout
 from diffshadow.io import VerifiedGroup, atomic_torch_save, error_line, write_zarr_group
 from diffshadow.lights import BLEND_K, PoolLights, blend_weights
 from diffshadow.phases import timed
-from diffshadow.render import Camera, Networks, RenderScene
+from diffshadow.render import Camera, Image, Networks, RenderScene
 from diffshadow.render.bundle import RayBundle
 from diffshadow.siren import Siren, SirenConfig, WeightLayout
 from diffshadow.store import WeightStore, open_store
@@ -194,6 +195,43 @@ def write_eval_truth(path: str | Path, truth: EvalTruth) -> None:
         root.attrs.update({"sets": list(truth.points), "extent": truth.extent.tolist()})
 
     write_zarr_group(path, fill, made_by="eval_truth")
+
+
+def write_naive_images(path: str | Path, images: dict[str, Image], lights: np.ndarray, cameras: list[Camera]) -> None:
+    """`naive_images`' renders by tag (`evaluate.naive_tags`): colour and opacity as rendered, the seconds each
+    took, and the lights and cameras of the run they were made for (evaluate_images checks them)."""
+
+    def fill(root) -> None:
+        for tag, img in images.items():
+            root.create_array(f"{tag}_rgb", data=img.rgb.cpu().numpy())
+            root.create_array(f"{tag}_alpha", data=img.alpha.cpu().numpy())
+        root.create_array("lights", data=np.asarray(lights, dtype=np.float64))
+        root.attrs.update({"tags": list(images), "seconds": {t: img.seconds for t, img in images.items()},
+                           "cameras": [_camera_row(c) for c in cameras]})
+
+    write_zarr_group(path, fill, made_by="naive_images")
+
+
+def _camera_row(c: Camera) -> list[float]:
+    """A camera as plain numbers (JSON attributes round-trip floats exactly)."""
+    return [float(x) for x in (*c.eye, *c.target, *c.up, c.fov, c.width, c.height)]
+
+
+def read_naive_images(path: str | Path, lights: np.ndarray, cameras: list[Camera]) -> dict[str, Image]:
+    """The naive images of `write_naive_images`, refused in one line if they were made for other lights or
+    cameras than these (a changed render config or light set: rerun naive_images)."""
+    try:
+        root = VerifiedGroup(path, "naive_images' renders")
+        tags, seconds = list(root.attrs["tags"]), root.attrs["seconds"]
+        made_for = (root.read("lights"), root.attrs["cameras"])
+        images = {t: Image(rgb=torch.from_numpy(root.read(f"{t}_rgb")), alpha=torch.from_numpy(root.read(f"{t}_alpha")),
+                           seconds=float(seconds[t])) for t in tags}
+    except KeyError as e:
+        raise ArtifactError(f"{path}: not naive_images' renders (missing {e})") from None
+    if made_for[1] != [_camera_row(c) for c in cameras] or not np.array_equal(made_for[0], np.asarray(lights)):
+        raise ArtifactError(f"{path}: rendered for other lights or cameras than this evaluation's; rerun "
+                            f"naive_images")
+    return images
 
 
 def read_eval_truth(path: str | Path) -> EvalTruth:

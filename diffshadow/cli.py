@@ -153,7 +153,14 @@ def _evaluate_images(a):
 
     images.evaluate_images(Path(a.volume), Path(a.lights), Path(a.data_inr), Path(a.weights),
                            Path(a.generated) if a.generated else None, Path(a.images), Path(a.out),
-                           cfg=_cfg(a)["render"], device=_device(a))
+                           cfg=_cfg(a)["render"], device=_device(a), naive_path=Path(a.naive) if a.naive else None)
+
+
+def _naive_images(a):
+    from diffshadow.stages import images
+
+    images.naive_images(Path(a.volume), Path(a.lights), Path(a.data_inr), Path(a.out), cfg=_cfg(a)["render"],
+                        device=_device(a))
 
 
 def _render(a):
@@ -309,6 +316,10 @@ def build_parser() -> argparse.ArgumentParser:
     p = _add(sub, "evaluate-images", _evaluate_images, "images and image metrics of every mode against gt",
              "volume", "lights", "data-inr", "weights", "images", config='{"render": {...}}')
     p.add_argument("--generated", help="stage 2's generated.zarr (optional)")
+    p.add_argument("--naive", help="naive-images' naive_images.zarr (optional: else the naive images are rendered "
+                   "here)")
+    _add(sub, "naive-images", _naive_images, "the naive baseline's images for evaluate-images (naive_images.zarr)",
+         "volume", "lights", "data-inr", config='{"render": {...}}')
     p = _add(sub, "render", _render, "render one image (PNG) in a shading mode")
     p.add_argument("--volume", help="results/<scene>/volume.zarr, or a raw volume file with --tf-json")
     p.add_argument("--scene-config", help="a scene file (config/scenes/<scene>.yaml): preview its volume and "

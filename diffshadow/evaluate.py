@@ -145,9 +145,35 @@ def voxel_metrics(state: dict | None, stage1, generated, truth: EvalTruth, light
 # ------------------------------------------------------------------------------------------- images
 
 
+def naive_tags(light_sets: dict, views: list, *, lights_per_set: int = 2, naive_views: int | None = None,
+               naive_lights: int | None = None) -> list[tuple[str, int, int]]:
+    """(tag, light row, view) of every image the slow naive baseline is rendered for: a few views and lights of
+    the training set only (it learns nothing from the training lights, so the unseen set would only repeat its
+    measurement; its comparison needs a few images, not all)."""
+    return [(f"train{i}_view{v}", int(i), v)
+            for j, i in enumerate(pick(len(light_sets["train"]), lights_per_set))
+            if naive_lights is None or j < naive_lights
+            for v in range(len(views)) if naive_views is None or v < naive_views]
+
+
+def naive_images(scene, light_sets: dict, views: list, *, step: float, lights_per_set: int = 2,
+                 naive_views: int | None = None, naive_lights: int | None = None, phong: bool = False,
+                 log=print) -> dict:
+    """The naive baseline's images (secondary rays through the data INR) by tag, for `image_evaluation`. They
+    need only the volume, the data INR and the lights, so the workflow renders them in a job of their own
+    (`naive_images`) while stage 1 and 2 run, not after them."""
+    out = {}
+    for tag, i, v in naive_tags(light_sets, views, lights_per_set=lights_per_set, naive_views=naive_views,
+                                naive_lights=naive_lights):
+        out[tag] = scene.render("naive", views[v], light=light_sets["train"][i], scalar="inr", phong=phong,
+                                step=step)
+        log(f"[naive images] {tag} {out[tag].seconds:.2f} s")
+    return out
+
+
 def image_evaluation(scene, light_sets: dict, stage1, generated, views: list, *, step: float, out_dir,
                      lights_per_set: int = 2, naive_views: int | None = None, naive_lights: int | None = None,
-                     lpips=None, phong: bool = False, log=print) -> dict:
+                     lpips=None, phong: bool = False, naive: dict | None = None, log=print) -> dict:
     """`image_metrics.json`: every mode against `gt` over a few training and unseen lights and views.
 
     Modes: `inr_stage1` / `inr_generated` (shadow INR on the raw scalar field, so only the shadow's error
@@ -155,6 +181,7 @@ def image_evaluation(scene, light_sets: dict, stage1, generated, views: list, *,
     (secondary rays through the data INR: it carries the data INR's error; training lights only, since it
     does not depend on which lights the model saw) and `noshadow` (the same shading
     without the shadow term, so its error is what the shadow adds). `phong` lights every mode, gt included.
+    `naive`: the naive images by tag (`naive_images`), rendered here when not given.
     """
     from pathlib import Path
 
@@ -164,13 +191,17 @@ def image_evaluation(scene, light_sets: dict, stage1, generated, views: list, *,
     out_dir = Path(out_dir)
     layout, blocks = stage1.layout, stage1.siren.blocks
     have_inr = scene.data_inr is not None
+    if naive is None:
+        naive = naive_images(scene, light_sets, views, step=step, lights_per_set=lights_per_set,
+                             naive_views=naive_views, naive_lights=naive_lights, phong=phong,
+                             log=log) if have_inr else {}
     gen_rows = {}
     if generated is not None:
         seen = generated.seen
         gen_rows = {"train": np.flatnonzero(seen), "unseen": np.flatnonzero(~seen)}
     per_image, sums = [], {}
     for set_name in ("train", "unseen"):
-        for j, i in enumerate(pick(len(light_sets[set_name]), lights_per_set)):
+        for i in pick(len(light_sets[set_name]), lights_per_set):
             light = light_sets[set_name][i]
             for v, cam in enumerate(views):
                 tag = f"{set_name}{i}_view{v}"
@@ -186,15 +217,12 @@ def image_evaluation(scene, light_sets: dict, stage1, generated, views: list, *,
                     if have_inr:
                         modes["inr_generated_data_inr"] = {"mode": "inr", "scalar": "inr",
                                                            "siren": (w, layout, blocks)}
-                # the slow baseline, on fewer views and lights: its comparison needs a few images, not all. It
-                # learns nothing from the training lights, so the unseen set would only repeat its measurement
-                if (have_inr and set_name == "train" and (naive_views is None or v < naive_views)
-                        and (naive_lights is None or j < naive_lights)):
-                    modes["naive"] = {"mode": "naive", "scalar": "inr"}
+                if tag in naive:
+                    modes["naive"] = {"image": naive[tag]}
                 modes["noshadow"] = {"mode": "noshadow", "scalar": "grid"}
                 for name, spec in modes.items():
-                    img = scene.render(spec["mode"], cam, light=light, siren=spec.get("siren"),
-                                       scalar=spec["scalar"], phong=phong, step=step)
+                    img = spec.get("image") or scene.render(spec["mode"], cam, light=light, siren=spec.get("siren"),
+                                                            scalar=spec["scalar"], phong=phong, step=step)
                     write_png(out_dir / f"{tag}_{name}.png", img)
                     m = image_metrics(img.rgb, gt.rgb, gt.alpha, lpips)
                     per_image.append({"set": set_name, "light": i, "view": v, "mode": name, **m,

@@ -1,6 +1,6 @@
 """Generic blocks on the vertex-centred voxel grid: trilinear lookup, ray–box slabs, cell value ranges and
 the macro-cells built from them, voxel coordinates. Used by the ground truth (`shadow`), stage 1 (`fit`),
-the data INR and the renderer; it knows nothing of any of them (DESIGN.md §4: the box convention).
+the data INR and the renderer; it knows nothing of any of them (docs/design.md §2: the box convention).
 """
 
 from __future__ import annotations

@@ -1,7 +1,7 @@
 """Safe output and input: write to a temporary name in the same folder, flush it to disk, give it the mode the
 user's umask gives any new file, then rename; Zarr stores carry a checksum of every array, verified on reading.
 
-A killed job or a crashed node therefore never leaves a file that looks finished (DESIGN.md §3), group members
+A killed job or a crashed node therefore never leaves a file that looks finished (docs/design.md §1), group members
 of a shared project folder can read what the umask lets them, and a damaged store is named, never read as
 zeros.
 """

@@ -1,6 +1,6 @@
 """Ground-truth shadow coefficients g(x, w) = exp(-∫_0^∞ μ(x + t w) dt)  (paper eq. 2).
 
-Two ways to compute them (DESIGN.md §6):
+Two ways to compute them (docs/design.md §3):
 
 * `transmittance` marches each query point toward the light: trilinear scalar lookups classified by
   the transfer function (post-classification), midpoint rule on a fixed lattice of samples per point,

@@ -1,4 +1,4 @@
-"""The shadow INR: a NeurComp-style SIREN (paper §3.2, DESIGN.md §6), and K of them evaluated at once.
+"""The shadow INR: a NeurComp-style SIREN (paper §3.2, docs/design.md §3), and K of them evaluated at once.
 
     x ∈ [-1, 1]³ → sin(ω0 (W0 x + b0))                      first sine layer, 3 → H
                  → x ← ½ (x + sin(ω0 L2(sin(ω0 L1(½ x)))))   residual blocks (NeurComp's averaging)

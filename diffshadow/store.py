@@ -1,4 +1,4 @@
-"""The SIREN weight store (DESIGN.md §3): per-subset `.npz` files and the collected Zarr v3 store.
+"""The SIREN weight store (docs/design.md §1): per-subset `.npz` files and the collected Zarr v3 store.
 
 `results/{scene}/weights.zarr`: array `weights` (n_lights, n_params) float32, one light per chunk;
 `lights` (n_lights, 3); `psnr` and `psnr_visible` (n_lights,); attrs `layout` ([name, shape] rows),

@@ -1,6 +1,6 @@
 """Scalar volumes: loading, normalisation and the box they live in.
 
-Grid convention (DESIGN.md §4, used everywhere): a volume of X×Y×Z voxels is stored as a float32
+Grid convention (docs/design.md §2, used everywhere): a volume of X×Y×Z voxels is stored as a float32
 array `(Z, Y, X)`; it fills a box whose longest side is 1. Vertex-centred: voxel `i` of `n` along an
 axis sits at `i / (n - 1) · extent`; values between voxels are trilinear; μ = 0 outside the box.
 """

@@ -27,8 +27,8 @@ from diffshadow.bench import BENCH_LIGHT
 from diffshadow.bench.profile import op_counts
 from diffshadow.data_inr import DataInrConfig, fit_data_inr
 from diffshadow.fit import FitConfig, fit_sirens
-from diffshadow.fused import available as fused_available
 from diffshadow.metrics import psnr
+from diffshadow.render.fused import available as fused_available
 from diffshadow.sampling import seeded
 from diffshadow.siren import SirenConfig, WeightLayout, init_siren
 

@@ -101,3 +101,39 @@ def test_quality_warnings_name_the_goal_missed_and_what_to_change():
     result["seen"]["generated_minus_stage1_median_db"] = -1.0
     result["unseen"]["generated_psnr_median"] = 34.0
     assert quality_warnings(result) == []
+
+
+def test_naive_images_made_apart_give_evaluate_images_the_same_metrics_and_pngs(tmp_path):
+    """The naive images rendered in a job of their own (`naive_images`) and read back are the ones
+    `image_evaluation` renders itself: the same metrics and PNG bytes; read for other cameras, they are refused."""
+    from types import SimpleNamespace
+
+    from conftest import data_inr_stub
+
+    from diffshadow.artifacts import ArtifactError, read_naive_images, write_naive_images
+    from diffshadow.evaluate import image_evaluation, naive_images, naive_tags
+    from diffshadow.render import Camera, RenderScene
+
+    vol, siren = _blob(16), SirenConfig(8, 1)
+    layout = WeightLayout.for_siren(siren)
+    scene = RenderScene(vol, identity_tf(), data_inr_stub(8, 1))
+    views = [Camera.orbit(vol.extent, azimuth=a, elevation=20, size=12) for a in (30, 150)]
+    lights = {"train": fibonacci_sphere(40)[:3], "unseen": fibonacci_sphere(40)[3:5]}
+    stage1 = SimpleNamespace(layout=layout, siren=siren,
+                             weights=np.stack([layout.flatten(init_siren(siren, torch.Generator().manual_seed(i)))
+                                               .numpy() for i in range(3)]))
+    picks = dict(lights_per_set=2, naive_views=1, naive_lights=1)
+    settings = dict(step=1.0, **picks)
+    assert [t for t, _, _ in naive_tags(lights, views, **picks)] == ["train0_view0"]
+    made = naive_images(scene, lights, views, log=lambda m: None, **settings)
+    write_naive_images(tmp_path / "naive.zarr", made, lights["train"], views)
+    read = read_naive_images(tmp_path / "naive.zarr", lights["train"], views)
+    inline = image_evaluation(scene, lights, stage1, None, views, out_dir=tmp_path / "a", log=lambda m: None,
+                              **settings)
+    apart = image_evaluation(scene, lights, stage1, None, views, out_dir=tmp_path / "b", naive=read,
+                             log=lambda m: None, **settings)
+    assert inline["modes"] == apart["modes"] and inline["modes"]["naive"]["count"] == 1
+    for png in sorted((tmp_path / "a").glob("*.png")):
+        assert (tmp_path / "b" / png.name).read_bytes() == png.read_bytes(), png.name
+    with pytest.raises(ArtifactError, match="naive.zarr: rendered for other lights or cameras.*rerun naive_images"):
+        read_naive_images(tmp_path / "naive.zarr", lights["train"], views[::-1])

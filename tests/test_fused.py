@@ -12,10 +12,9 @@ import pytest
 import torch
 from conftest import data_inr_stub
 
-from diffshadow import fused
 from diffshadow.analytic import gaussian_blob
-from diffshadow.fused import FusedSiren, FusedSirenError
-from diffshadow.render import Camera, Networks, RenderError, RenderScene
+from diffshadow.render import Camera, Networks, RenderError, RenderScene, fused
+from diffshadow.render.fused import FusedSiren, FusedSirenError
 from diffshadow.siren import Siren, SirenConfig, WeightLayout, init_siren
 from diffshadow.transfer import TransferFunction
 from diffshadow.volume import Volume
@@ -53,7 +52,7 @@ def test_the_kernels_sine_reduction_is_exact():
     where the GPU takes its special-function unit (tests/gpu: within 2e-6)."""
     import triton
 
-    from diffshadow._kernels import sine_kernel
+    from diffshadow.render._kernels import sine_kernel
 
     k = torch.arange(-3000, 3001, dtype=torch.float64)
     x = torch.cat([(torch.rand(100_000, generator=torch.Generator().manual_seed(2)) * 2 - 1) * 1e4,
@@ -86,7 +85,8 @@ def test_renderer_images_equal_with_the_fused_kernels(monkeypatch, mode):
     (`FusedSamples.march`: value, shadow, transfer function, shading, compositing); `naive` its secondary rays
     likewise (`FusedExtinction.march`). With nothing stopped early (min_transmittance 0, an optical depth bound
     no ray reaches) the images equal the eager renderer's, and so do the samples taken."""
-    from diffshadow import fused, render
+    from diffshadow import render
+    from diffshadow.render import fused
 
     volume, tf, data_inr, siren = _blob_scene()
     cls = fused.FusedExtinction if mode == "naive" else fused.FusedSamples
@@ -193,7 +193,7 @@ def test_every_launch_asks_for_fma_contraction(monkeypatch):
     written for FMAs, so each launch asks (`fused.FP_FUSION`) and the machine code does not change with Triton."""
     import types
 
-    from diffshadow import fused
+    from diffshadow.render import fused
 
     seen = []
     kernel = _Indexable(lambda grid: lambda *args, **options: seen.append((grid, options)))
@@ -228,7 +228,7 @@ def test_a_kernel_that_fails_to_compile_leaves_the_scene_eager(monkeypatch):
     not hidden."""
     import types
 
-    from diffshadow.fused import FusedKernelError, FusedKernelWarning
+    from diffshadow.render.fused import FusedKernelError, FusedKernelWarning
 
     volume, tf, data_inr, siren = _blob_scene()
     cam = Camera.orbit(volume.extent, azimuth=30.0, elevation=25.0, size=12)

@@ -10,11 +10,11 @@ PACKAGE = Path(__file__).resolve().parents[1] / "diffshadow"
 # lowest first; a module's layer is that of its longest listed prefix
 LAYERS = [
     # foundations
-    ["diffshadow", "phases", "config", "io", "progress", "metrics", "capacity", "analytic", "hpc", "_kernels"],
+    ["diffshadow", "phases", "config", "io", "progress", "metrics", "capacity", "analytic", "hpc"],
     ["volume", "transfer", "layout", "siren", "lights", "sampling", "grid", "store"],  # data: volumes, lights, SIRENs
-    ["shadow", "truth", "fused"],  # ground truth and the fused kernels
+    ["shadow", "truth"],  # ground truth
     ["data_inr"],
-    ["render"],  # the renderer
+    ["render"],  # the renderer, its fused kernels included
     ["fit"],  # stage 1
     ["diffusion"],  # stage 2
     ["evaluate", "report", "summary", "scaling"],

@@ -199,6 +199,7 @@ STAGE_OUTPUTS = {
     "sample_shadows": ["generated.zarr"],
     "evaluate_voxels": ["voxel_metrics.json"],
     "train_data_inr": ["data_inr.pt"],
+    "naive_images": ["naive_images.zarr"],
     "evaluate_images": ["image_metrics.json", "images"],
     "report_figures": ["report/config.yaml", "report/siren_psnr.png", "report/generated_psnr.png",
                        "report/generated_psnr.csv", "report/image_grid.png", "report/storage.png"],

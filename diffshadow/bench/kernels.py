@@ -22,8 +22,8 @@ import subprocess
 import tempfile
 from pathlib import Path
 
-from diffshadow.fused import FP_FUSION, WARPS, block_points
 from diffshadow.io import atomic_write_text
+from diffshadow.render.fused import FP_FUSION, WARPS, block_points
 from diffshadow.siren import RES_WEIGHT
 
 ARCHS = (80, 90)  # A100 (Polaris, Sophia); H100/H200
@@ -74,7 +74,7 @@ def compile_kernel(name: str, constants: dict, arch: int, warps: int = WARPS, sa
 
     if os.environ.get("TRITON_INTERPRET") == "1":
         raise KernelCompileError("bench kernels compiles for a GPU: run it without TRITON_INTERPRET=1")
-    from diffshadow import _kernels
+    from diffshadow.render import _kernels
 
     fn = getattr(_kernels, name)
     signature = {}

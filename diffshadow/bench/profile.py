@@ -2,7 +2,7 @@
 
 Counted with torch.profiler on any device. An *op* is a leaf aten op that does work (a kernel launch on
 a GPU): views, reshapes, allocations and scalar reads are left out, and a composite op counts through
-its leaves; a fused Triton kernel (`diffshadow.fused`) counts one op per launch. A *host sync* is an op
+its leaves; a fused Triton kernel (`diffshadow.render.fused`) counts one op per launch. A *host sync* is an op
 whose result the host must wait for: a scalar read (`_local_scalar_dense`, behind `.item()`, `bool()`,
 `int()`), `nonzero` (behind boolean indexing) and the other ops whose output shape depends on data.
 
@@ -19,7 +19,7 @@ from collections.abc import Callable
 
 from torch.profiler import ProfilerActivity, profile
 
-from diffshadow.fused import LAUNCH
+from diffshadow.render.fused import LAUNCH
 
 NO_WORK = frozenset({
     "aten::view", "aten::reshape", "aten::_reshape_alias", "aten::expand", "aten::expand_as", "aten::as_strided",

@@ -1,4 +1,4 @@
-"""The INR volume renderer (paper appendix, DESIGN.md §6), by concept:
+"""The INR volume renderer (paper appendix, docs/design.md §3), by concept:
 
 - `camera`: pinhole cameras, orbit and Fibonacci views;
 - `cells`: 16³ macro-cells and the runs of occupied samples they leave on each ray;

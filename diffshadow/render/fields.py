@@ -9,8 +9,8 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-from diffshadow.fused import COMPILE, FUSED, FusedSiren, FusedSirenError
 from diffshadow.grid import trilinear
+from diffshadow.render.fused import COMPILE, FUSED, FusedSiren, FusedSirenError
 from diffshadow.siren import FoldedSiren, Siren, WeightLayout, box_to_siren, fold, fold_flat
 from diffshadow.volume import Volume
 
@@ -40,7 +40,7 @@ class GridScalar:
 
 class InrScalar:
     """The data INR (a SIREN of the scalar field); gradients by autograd through the network. `fused`: "fused" for
-    the fused kernel for values (`diffshadow.fused`), "compile" for the eager SIREN through torch.compile, None
+    the fused kernel for values (`diffshadow.render.fused`), "compile" for the eager SIREN through torch.compile, None
     for the eager SIREN."""
 
     def __init__(self, model: Siren, extent, device: torch.device | str = "cpu", fused: str | None = None):

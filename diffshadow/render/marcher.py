@@ -1,4 +1,4 @@
-"""The wavefront ray marcher (paper appendix, DESIGN.md §6), shading, and the naive secondary-ray baseline.
+"""The wavefront ray marcher (paper appendix, docs/design.md §3), shading, and the naive secondary-ray baseline.
 
 The wavefront marcher works on tiles of rays. For each tile, `Runs.build` turns every ray's crossings of
 the macro-cell planes into runs of lattice samples t = t0 + (k + ½)·dt that lie in cells whose opacity
@@ -34,12 +34,12 @@ from dataclasses import dataclass, field
 import numpy as np
 import torch
 
-from diffshadow.fused import FusedExtinction, FusedSamples, FusedSiren
 from diffshadow.grid import ray_span
 from diffshadow.lights import as_direction
 from diffshadow.render.camera import Camera, RenderError
 from diffshadow.render.cells import MacroGrid, Runs
 from diffshadow.render.fields import InrScalar, SirenShadow
+from diffshadow.render.fused import FusedExtinction, FusedSamples, FusedSiren
 from diffshadow.transfer import TransferFunction
 
 DEFAULT_STEP = 0.5  # primary and secondary step, in voxels of the finest axis

@@ -10,13 +10,13 @@ import numpy as np
 import torch
 
 from diffshadow.data_inr import inr_cell_ranges
-from diffshadow.fused import COMPILE, FUSED, FusedKernelError, FusedKernelWarning
-from diffshadow.fused import available as fused_available
 from diffshadow.io import atomic_save
 from diffshadow.lights import as_direction
 from diffshadow.render.camera import Camera, RenderError, visible_sphere
 from diffshadow.render.cells import RENDER_CELL, MacroGrid
 from diffshadow.render.fields import GridScalar, GridShadow, InrScalar, SirenShadow
+from diffshadow.render.fused import COMPILE, FUSED, FusedKernelError, FusedKernelWarning
+from diffshadow.render.fused import available as fused_available
 from diffshadow.render.marcher import BACKGROUND, DEFAULT_STEP, MIN_TRANSMITTANCE, Image, MarchedShadow, Shading, render
 from diffshadow.shadow import shadow_grid
 from diffshadow.transfer import TransferFunction

@@ -12,6 +12,7 @@ from diffshadow import artifacts, report
 from diffshadow.data_inr import DataInrConfig, fit_data_inr
 from diffshadow.diffusion.finetune import FinetuneConfig
 from diffshadow.evaluate import image_evaluation
+from diffshadow.evaluate import naive_images as render_naive
 from diffshadow.io import atomic_write_text, finite_json
 from diffshadow.lights import read_lights
 from diffshadow.metrics import lpips_model, ms_ssim_status
@@ -92,20 +93,40 @@ def render_image(scene: RenderScene, out: Path, *, mode: str, camera: Camera, li
           f"({c.primary_samples:,} samples, {c.secondary_samples:,} on shadow rays)")
 
 
+def _views(scene: RenderScene, cfg: dict) -> list[Camera]:
+    return default_views(scene.visible_sphere(), cfg["views"], size=cfg["image_size"], fov=cfg["fov"])
+
+
+def _naive_settings(cfg: dict) -> dict:
+    return {"step": cfg["step"], "lights_per_set": cfg["lights_per_set"], "naive_views": cfg.get("naive_views"),
+            "naive_lights": cfg.get("naive_lights"), "phong": bool(cfg.get("phong", False))}
+
+
+def naive_images(volume_path: Path, lights_path: Path, data_inr: Path, out: Path, *, cfg: dict,
+                 device: torch.device) -> None:
+    """`naive_images.zarr`: the naive baseline's images for `evaluate_images` (the slowest of its renders, and
+    they need no SIREN of stage 1 or 2, so they are made while those train)."""
+    scene = artifacts.load_render_scene(volume_path, data_inr, device, render=cfg)
+    light_sets, views = read_lights(lights_path), _views(scene, cfg)
+    images = render_naive(scene, light_sets, views, **_naive_settings(cfg))
+    artifacts.write_naive_images(out, images, light_sets["train"], views)
+    print(f"wrote {out}: {len(images)} naive images")
+
+
 def evaluate_images(volume_path: Path, lights_path: Path, data_inr: Path, weights_path: Path,
                     generated_path: Path | None, images_dir: Path, out: Path, *, cfg: dict,
-                    device: torch.device) -> None:
-    """`image_metrics.json` and the PNGs: every shading mode against `gt`."""
+                    device: torch.device, naive_path: Path | None = None) -> None:
+    """`image_metrics.json` and the PNGs: every shading mode against `gt`; the naive images from `naive_path`
+    (`naive_images`) where given, else rendered here."""
     scene = artifacts.load_render_scene(volume_path, data_inr, device, render=cfg)
     light_sets = read_lights(lights_path)
     stage1 = open_store(weights_path)
     generated = open_store(generated_path) if generated_path else None
-    views = default_views(scene.visible_sphere(), cfg["views"], size=cfg["image_size"], fov=cfg["fov"])
+    views = _views(scene, cfg)
+    naive = artifacts.read_naive_images(naive_path, light_sets["train"], views) if naive_path else None
     lpips, reason = lpips_model()
-    result = image_evaluation(scene, light_sets, stage1, generated, views, step=cfg["step"], out_dir=images_dir,
-                              lights_per_set=cfg["lights_per_set"], naive_views=cfg.get("naive_views"),
-                              naive_lights=cfg.get("naive_lights"), lpips=lpips,
-                              phong=bool(cfg.get("phong", False)))
+    result = image_evaluation(scene, light_sets, stage1, generated, views, out_dir=images_dir, lpips=lpips,
+                              naive=naive, **_naive_settings(cfg))
     result.update({"lpips": "available (VGG)" if lpips is not None else f"unavailable: {reason}",
                    "image_size": cfg["image_size"], "views": cfg["views"], "step": cfg["step"],
                    "shading": shading_name(bool(cfg.get("phong"))), "ms_ssim": ms_ssim_status(cfg["image_size"]),

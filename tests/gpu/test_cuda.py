@@ -127,8 +127,8 @@ def test_the_kernels_sine_on_cuda():
     """`_kernels.sine` compiled (the special-function unit after the exact reduction), against float64 sin,
     |x| <= 1e4 (tests/test_fused.py checks the reduction in the interpreter)."""
     triton = pytest.importorskip("triton")
-    from diffshadow._kernels import sine_kernel
-    from diffshadow.fused import FP_FUSION
+    from diffshadow.render._kernels import sine_kernel
+    from diffshadow.render.fused import FP_FUSION
 
     x = ((torch.rand(1_000_000, generator=torch.Generator().manual_seed(2)) * 2 - 1) * 1e4).to(CUDA)
     y = torch.empty_like(x)
@@ -142,7 +142,7 @@ def test_fused_siren_agrees_with_eager_on_cuda():
     shadow SIREN's, against the eager SIREN on the same device. TF32 rounds the hidden layers' inputs to 10
     mantissa bits; its image PSNR is what scripts/render_plans.py reports (78 dB on an H200)."""
     pytest.importorskip("triton")
-    from diffshadow.fused import FusedSiren
+    from diffshadow.render.fused import FusedSiren
     from diffshadow.siren import Siren
 
     for width in (32, 64):

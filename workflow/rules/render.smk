@@ -20,6 +20,29 @@ rule train_data_inr:
         " --out {output} 2>&1 | tee {log}"
 
 
+rule naive_images:
+    input:
+        volume="results/{scene}/volume.zarr",
+        lights="results/{scene}/lights.json",
+        data_inr="results/{scene}/data_inr.pt",
+    output:
+        directory("results/{scene}/naive_images.zarr"),
+    params:
+        cfg=lambda wc: as_json(wc.scene, "render"),
+    # the slowest of evaluate_images' renders (48 of its 74 s on 2 cores), needing no SIREN: on a core that
+    # would idle while fit_siren runs, instead of after stage 2
+    threads: 1
+    log:
+        "results/{scene}/logs/naive_images.log",
+    benchmark:
+        "results/{scene}/benchmarks/naive_images.tsv",
+    conda:
+        "../envs/diffshadow.yaml"
+    shell:
+        "diffshadow --phases results/{wildcards.scene}/benchmarks/naive_images.phases.json naive-images --volume {input.volume} --lights {input.lights} --data-inr {input.data_inr}"
+        " --config-json {params.cfg:q} --threads {threads} --out {output} 2>&1 | tee {log}"
+
+
 rule evaluate_images:
     input:
         volume="results/{scene}/volume.zarr",
@@ -27,6 +50,7 @@ rule evaluate_images:
         data_inr="results/{scene}/data_inr.pt",
         weights="results/{scene}/weights.zarr",
         generated="results/{scene}/generated.zarr",
+        naive="results/{scene}/naive_images.zarr",
     output:
         metrics="results/{scene}/image_metrics.json",
         images=directory("results/{scene}/images"),
@@ -41,7 +65,7 @@ rule evaluate_images:
         "../envs/diffshadow.yaml"
     shell:
         "diffshadow --phases results/{wildcards.scene}/benchmarks/evaluate_images.phases.json evaluate-images --volume {input.volume} --lights {input.lights} --data-inr {input.data_inr}"
-        " --weights {input.weights} --generated {input.generated} --config-json {params.cfg:q}"
+        " --weights {input.weights} --generated {input.generated} --naive {input.naive} --config-json {params.cfg:q}"
         " --images {output.images} --threads {threads} --out {output.metrics} 2>&1 | tee {log}"
 
 

@@ -76,7 +76,7 @@ def available(device: torch.device, setting: str = FUSED) -> bool:
 def _kernels():
     """The kernels (`_kernels.py`), imported on first use: importing Triton costs every process that renders a
     second."""
-    from diffshadow import _kernels as k
+    from diffshadow.render import _kernels as k
 
     return k
 

@@ -1,4 +1,4 @@
-"""The Triton kernels of `diffshadow.fused` (imported on first use: importing Triton takes a second)."""
+"""The Triton kernels of `diffshadow.render.fused` (imported on first use: importing Triton takes a second)."""
 
 import os
 
