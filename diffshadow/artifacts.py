@@ -21,7 +21,7 @@ import numpy as np
 import torch
 
 from diffshadow.capacity import Choice
-from diffshadow.config import defaults, read_scene_file
+from diffshadow.config import read_scene_file
 from diffshadow.data_inr import DataInr
 from diffshadow.diffusion.train import TrainingData
 from diffshadow.fit import Stage1Layout
@@ -325,7 +325,7 @@ def load_scene_file(scene_file: Path, device: torch.device, render: dict | None 
     """A RenderScene straight from a scene file: what prepare_volume would make of it, for previews and
     benchmarks. Its networks: `render` over the file's `render` section over the defaults'."""
     own = read_scene_file(scene_file)
-    networks = Networks.from_config({**defaults()["render"], **own.get("render", {}), **(render or {})})
+    networks = Networks.from_config({**own.get("render", {}), **(render or {})})
     return RenderScene(*scene_volume(own), device=device, networks=networks)
 
 
@@ -345,5 +345,5 @@ def load_render_scene(volume_path: Path, data_inr: Path | None, device: torch.de
     if inr is not None and not np.allclose(inr.extent, volume.extent):
         raise ValueError(f"{data_inr}: fitted to a box of {inr.extent.tolist()}, the volume's is "
                          f"{volume.extent.tolist()}")
-    networks = Networks.from_config({**defaults()["render"], **(render or {})})
+    networks = Networks.from_config(render or {})
     return RenderScene(volume, tf, inr, device=device, networks=networks)

@@ -16,6 +16,7 @@ from diffshadow.argparsing import add_networks, network_flags
 from diffshadow.argparsing import add_subcommand as _add
 from diffshadow.argparsing import config_of as _cfg
 from diffshadow.argparsing import device_of as _device
+from diffshadow.config import defaults
 
 # ------------------------------------------------------------------------------------------- stage 1
 
@@ -264,6 +265,7 @@ def build_parser() -> argparse.ArgumentParser:
                         "compile, io, compute seconds) as JSON to FILE; the workflow puts it beside each job's "
                         "benchmark file")
     sub = parser.add_subparsers(dest="command", required=True)
+    evaluate = defaults()["evaluate"]  # the evaluation's package defaults (the workflow passes the run's)
 
     p = _add(sub, "lights", _lights, "training and unseen light directions as JSON", device=False)
     p.add_argument("--sphere", type=int, required=True, help="points on the Fibonacci sphere (paper: 8000)")
@@ -294,20 +296,23 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--nproc", type=int, required=True, help="processes asked for (finetune.nproc)")
     p = _add(sub, "eval-truth", _eval_truth, "evaluation points and the exact shadow of every light at them",
              "volume", "lights", device=False)
-    # 16k per set: ±0.5 dB sampling noise per light, and the medians over lights far less; the march is the cost
-    p.add_argument("--eval-points", type=int, default=16384, help="points per set (box, visible)")
-    p.add_argument("--seed", type=int, default=2)
+    p.add_argument("--eval-points", type=int, default=evaluate["points"], help="points per set (box, visible; "
+                   "evaluate.points)")
+    p.add_argument("--seed", type=int, default=evaluate["seed"], help="their random draw (evaluate.seed)")
     _add(sub, "sample-shadows", _sample_shadows, "generate SIRENs for every training and unseen light",
          "checkpoint", "truth", "lights")
     p = _add(sub, "blend-shadows", _blend_shadows, "cache: blend: every training light's stored SIREN and every "
              "unseen light's weight blend of the nearest, as sample-shadows' store", "weights", "truth", "lights",
              device=False)
-    p.add_argument("--blend-k", type=int, default=4, help="stored SIRENs blended per light (store.BLEND_K)")
+    p.add_argument("--blend-k", type=int, default=evaluate["blend_k"],
+                   help="stored SIRENs blended per light (evaluate.blend_k)")
     p = _add(sub, "evaluate-voxels", _evaluate_voxels, "voxel PSNR of generated SIRENs, baselines, storage, timing",
              "weights", "generated", "truth", "volume", "lights", device=False)
     p.add_argument("--checkpoint", help="the diffusion checkpoint that sampled --generated (none: cache: blend)")
-    p.add_argument("--blend-k", type=int, default=4, help="stored SIRENs blended per light (store.BLEND_K)")
-    p.add_argument("--ddpm-lights", type=int, default=8, help="training lights sampled with 500-step DDPM too")
+    p.add_argument("--blend-k", type=int, default=evaluate["blend_k"],
+                   help="stored SIRENs blended per light (evaluate.blend_k)")
+    p.add_argument("--ddpm-lights", type=int, default=evaluate["ddpm_lights"],
+                   help="training lights sampled with 500-step DDPM too (evaluate.ddpm_lights)")
     p.add_argument("--geometry-checkpoint", help="the model before fine-tuning: unseen lights before and after")
     _add(sub, "train-data-inr", _train_data_inr, "fit the data INR (a SIREN of the scalar field)", "volume",
          config='{"data_inr": {...}}')

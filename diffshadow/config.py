@@ -22,7 +22,7 @@ DEFAULTS_FILE = PACKAGE / "defaults.yaml"
 SCHEMAS = PACKAGE / "schemas"
 # the sections a scene file may override (everything in defaults.yaml but the run-wide keys)
 SECTIONS = ("lights", "siren", "subset_size", "cache", "preoptimize", "fit", "diffusion", "finetune", "data_inr",
-            "render")
+            "evaluate", "render")
 
 T = TypeVar("T")
 

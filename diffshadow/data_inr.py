@@ -21,7 +21,7 @@ from diffshadow.grid import cell_ranges, lookup_grids, voxel_points
 from diffshadow.io import atomic_torch_save, resume
 from diffshadow.metrics import psnr
 from diffshadow.progress import FirstNonFinite, eta
-from diffshadow.sampling import PointSampler, seeded
+from diffshadow.sampling import PointSampler, Stream, seeded
 from diffshadow.siren import Siren, SirenConfig, box_to_siren, cosine_lr
 from diffshadow.transfer import TransferFunction
 from diffshadow.volume import Volume
@@ -165,7 +165,7 @@ class DataInrFit:
 
     def __init__(self, volume: Volume, tf: TransferFunction, cfg: DataInrConfig, *, device: torch.device):
         self.cfg, self.device = cfg, device
-        self.model = Siren(cfg.siren, seeded(cfg.seed, 7)).to(device)
+        self.model = Siren(cfg.siren, seeded(cfg.seed, Stream.DATA_INR_INIT)).to(device)
         self.opt = torch.optim.Adam(self.model.parameters(), lr=cfg.lr)
         self.grid = torch.as_tensor(volume.data, device=device)[None]
         self.extent = torch.as_tensor(volume.extent, dtype=torch.float32, device=device)
@@ -183,7 +183,7 @@ class DataInrFit:
         cfg, hard = self.cfg, self.hard
         for group in self.opt.param_groups:
             group["lr"] = cosine_lr(step, cfg, cfg.width)  # same fields as FitConfig
-        gen = seeded(cfg.seed, 8, step)
+        gen = seeded(cfg.seed, Stream.DATA_INR_STEP, step)
         pts = self.sampler.sample(1, cfg.points - self.n_error, gen)
         if hard is not None:
             if step % hard.every == 0:  # a resumed run starts with the scores its checkpoint kept

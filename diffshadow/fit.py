@@ -24,7 +24,7 @@ from diffshadow.io import atomic_torch_save, resume
 from diffshadow.lights import BLEND_K, PoolLights, inverse_angle_weights, nearest, training_pool
 from diffshadow.metrics import psnr
 from diffshadow.progress import FirstNonFinite, eta
-from diffshadow.sampling import PointSampler, seeded
+from diffshadow.sampling import PointSampler, Stream, seeded
 from diffshadow.shadow import ShadowField, shadow_grid, transmittance_per_light
 from diffshadow.siren import BatchedSiren, SirenConfig, WeightLayout, box_to_siren, cosine_lr, init_siren
 from diffshadow.transfer import TransferFunction
@@ -109,10 +109,8 @@ class FitConfig:
 
 # Points per SIREN per pass on the CPU: `bench siren` on 2 cores gave 1.2-1.9x over one SIREN at a time
 # at 512 (larger passes fall out of cache). A GPU wants every point in one pass (0.26x at 512, 2.1-5.0x at
-# 32,768 on an H100: issue 15).
+# 32,768 on an H100; docs/performance.md).
 CPU_CHUNK = 512
-SHARED_STREAM = -2  # the random stream of `shared_points` (subsets use 0.., preoptimize -1)
-BLEND_STREAM = -4  # the blend pool's lights and points; each step's pick of them is -5 - stream
 
 
 def blend_pool(volume: Volume, tf: TransferFunction, train: np.ndarray, center, subset: list[int], cfg: FitConfig,
@@ -136,7 +134,7 @@ def blend_pool(volume: Volume, tf: TransferFunction, train: np.ndarray, center, 
     rows = np.flatnonzero(np.isin(idx, subset).all(axis=1))
     if len(rows) == 0:
         return None
-    points, values = presample(volume, tf, lights[rows], cfg.blend_points, seed=cfg.seed, stream=BLEND_STREAM,
+    points, values = presample(volume, tf, lights[rows], cfg.blend_points, seed=cfg.seed, stream=Stream.FIT_BLEND_POOL,
                                device=device)
     row_of = np.full(len(train), -1)
     row_of[subset] = np.arange(len(subset))  # light index -> row of the subset
@@ -265,11 +263,11 @@ class SubsetFit:
         for group in self.opt.param_groups:
             group["lr"] = cosine_lr(step, cfg, self.siren.width)
         if cfg.shared_points:
-            pts = self.sampler.sample(1, cfg.points, seeded(cfg.seed, SHARED_STREAM, step)).expand(k, -1, -1)
+            pts = self.sampler.sample(1, cfg.points, seeded(cfg.seed, Stream.FIT_SHARED_POINTS, step)).expand(k, -1, -1)
         else:
             pts = self.sampler.sample(k, cfg.points, seeded(cfg.seed, self.stream, step))
         pts = pts.to(self.device)
-        pool_gen = seeded(cfg.seed, -5 - self.stream, step) if self.pool is not None else None
+        pool_gen = seeded(cfg.seed, Stream.FIT_POOL_PICK - self.stream, step) if self.pool is not None else None
         return fit_step(self.weights, self.opt, pts, self.targets(pts), self.layout, self.siren, self.targets.extent,
                         cfg, chunk=self.chunk, autocast=self.autocast, pool=self.pool, pool_gen=pool_gen)
 
@@ -374,7 +372,7 @@ def evaluate_psnr(
     device = torch.device(device)
     extent = torch.as_tensor(volume.extent, dtype=torch.float32, device="cpu")  # points drawn on the CPU
     field = ShadowField.build(volume, tf, device=device)
-    gen = seeded(seed, 0x5EED, len(lights))  # a stream no training step uses
+    gen = seeded(seed, Stream.HELD_OUT, len(lights))
     box = torch.rand(len(lights), n_points, 3, generator=gen, device=gen.device) * extent
     vis_sampler = PointSampler(volume, tf, 1.0)
     vis = vis_sampler.sample(len(lights), n_points, gen) if vis_sampler.visible_fraction else box
@@ -389,7 +387,6 @@ def evaluate_psnr(
     return out[0], out[1]
 
 
-PREOPTIMIZE_STREAM, PROBE_STREAM = -1, -3  # random streams apart from every subset's (0..) and SHARED_STREAM
 
 
 @dataclass
@@ -431,10 +428,10 @@ def choose_layout(volume: Volume, tf: TransferFunction, lights: np.ndarray, sire
         if width not in inits:
             s = SirenConfig(width, siren.blocks)
             layout = WeightLayout.for_siren(s)
-            init = layout.flatten(init_siren(s, seeded(cfg.seed, PREOPTIMIZE_STREAM)))
+            init = layout.flatten(init_siren(s, seeded(cfg.seed, Stream.PREOPTIMIZE)))
             if pre.steps > 0:
                 log(f"pre-optimising one SIREN of width {width} on light 0 for {pre.steps} steps")
-                init = fit_sirens(init, layout, s, volume, tf, lights[:1], pre, stream=PREOPTIMIZE_STREAM,
+                init = fit_sirens(init, layout, s, volume, tf, lights[:1], pre, stream=Stream.PREOPTIMIZE,
                                   light_index=[0], device=device, log=log)[0]
             inits[width] = init
         return inits[width]
@@ -448,7 +445,7 @@ def choose_layout(volume: Volume, tf: TransferFunction, lights: np.ndarray, sire
         layout = WeightLayout.for_siren(s)
         log(f"probe: fitting light {probe} (the farthest from light 0) at width {rung.width} for {rung.steps} steps")
         w = fit_sirens(init, layout, s, volume, tf, lights[probe:probe + 1], replace(cfg, steps=rung.steps),
-                       stream=PROBE_STREAM, light_index=[probe], device=device, log=lambda m: None)
+                       stream=Stream.PROBE, light_index=[probe], device=device, log=lambda m: None)
         box, _ = evaluate_psnr(w, layout, s, volume, tf, lights[probe:probe + 1], n_points=cfg.eval_points,
                                seed=cfg.seed + 104729, device=device)
         log(f"probe: light {probe} held-out PSNR {float(box[0]):.2f} dB (target {cfg.target_psnr:g} dB)")

@@ -85,11 +85,6 @@ def atomic_write_text(path: str | Path, text: str) -> None:
         tmp.write_text(text)
 
 
-def atomic_write_bytes(path: str | Path, data: bytes) -> None:
-    with atomic_path(path) as tmp:
-        tmp.write_bytes(data)
-
-
 def atomic_save(path: str | Path, save: Callable[[Path], None], *, suffix: str | None = None) -> None:
     """Call `save(tmp_path)` and move the result into place (for writers that insist on a suffix)."""
     with atomic_path(path, suffix=suffix) as tmp:

@@ -1,11 +1,13 @@
-"""Reproducible randomness: generators seeded from tuples of ints, and the random box points that stage 1,
-the data INR and the evaluation draw (a share of them around visible voxels).
+"""Reproducible randomness: generators seeded from tuples of ints, every random stream of a run by name
+(`Stream`), and the random box points that stage 1, the data INR and the evaluation draw (a share of them
+around visible voxels).
 """
 
 from __future__ import annotations
 
 import hashlib
 import json
+from enum import IntEnum
 
 import torch
 
@@ -13,9 +15,36 @@ from diffshadow.transfer import TransferFunction
 from diffshadow.volume import Volume
 
 
+class Stream(IntEnum):
+    """Every random stream a run draws from, by name: `seeded(seed, Stream.X, ...)`. The numbers are part of the
+    results (the README run's bytes), so a stream is renamed, never renumbered; a new draw takes a number no
+    member has. Stage 1's subset k draws its points from stream k (0, 1, ...), and its pool lights' pick of each
+    step from `FIT_POOL_PICK - k`: both ranges stay clear of the members."""
+
+    # stage 1 (fit): below zero, apart from the subsets' own 0, 1, ...
+    PREOPTIMIZE = -1  # the shared init's random SIREN and its fit
+    FIT_SHARED_POINTS = -2  # fit.shared_points: the points every SIREN of a step sees
+    PROBE = -3  # the size ladder's probe fit
+    FIT_BLEND_POOL = -4  # the blend pool's lights and their exact shadows
+    FIT_POOL_PICK = -5  # minus the subset's stream: each step's pick of pool lights
+    # stage 2 (diffusion)
+    DIFFUSION_EPOCH = 1  # an epoch's batches, timesteps, noise and geometry points
+    SAMPLE_NOISE = 2  # DDPM/DDIM's starting noise per batch of lights
+    TRAIN_POINTS = 3  # presampled points with exact shadows, training lights
+    FINETUNE_EPOCH = 11  # an epoch's order of lights
+    FINETUNE_LIGHT = 12  # a light's timestep, noise and pixels in an epoch
+    POOL_POINTS = 13  # presampled points with exact shadows, pool lights
+    CHECK_POINTS = 23  # the seen-light gap's held-out points
+    # evaluation and the data INR
+    EVAL_POINTS = 4  # eval_truth's fixed evaluation points (box, visible)
+    DATA_INR_INIT = 7  # the data INR's initial weights
+    DATA_INR_STEP = 8  # the data INR's points of a step
+    HELD_OUT = 0x5EED  # stage 1's stored PSNR: fresh points no training step draws
+
+
 def seeded(*parts: int) -> torch.Generator:
     """A generator seeded from a tuple of ints (stable across runs and platforms)."""
-    digest = hashlib.sha256(json.dumps(list(parts)).encode()).digest()
+    digest = hashlib.sha256(json.dumps([int(x) for x in parts]).encode()).digest()
     return torch.Generator().manual_seed(int.from_bytes(digest[:8], "little") & (2**63 - 1))
 
 

@@ -18,7 +18,7 @@ from diffshadow.layout import SirenConfig, WeightLayout
 from diffshadow.lights import LightRegion, as_direction, blend_weights
 from diffshadow.phases import timed
 
-BLEND_K = 4  # stored SIRENs blended per light (`cache: blend`, and evaluate_voxels' baseline)
+BLEND_K = 4  # stored SIRENs blended per light: the package default of evaluate.blend_k (defaults.yaml)
 
 
 @dataclass

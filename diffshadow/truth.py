@@ -12,15 +12,13 @@ import torch
 
 from diffshadow.metrics import psnr
 from diffshadow.progress import eta
-from diffshadow.sampling import PointSampler, seeded
+from diffshadow.sampling import PointSampler, Stream, seeded
 from diffshadow.shadow import ShadowField, transmittance_per_light
 from diffshadow.siren import BatchedSiren, SirenConfig, WeightLayout, box_to_siren
 from diffshadow.volume import Volume
 
-TRAIN_STREAM, POOL_STREAM, CHECK_STREAM = 3, 13, 23  # random streams: training lights' points, pool lights', checks'
 
-
-def presample(volume: Volume, tf, lights: np.ndarray, n_points: int, *, seed: int, stream: int = TRAIN_STREAM,
+def presample(volume: Volume, tf, lights: np.ndarray, n_points: int, *, seed: int, stream: int = Stream.TRAIN_POINTS,
               visible_fraction: float = 0.5, device: torch.device | str = "cpu") -> tuple[torch.Tensor, torch.Tensor]:
     """Points (N, M, 3) and their true shadow (N, M) per light, for the geometry loss (paper §3.3); on the
     CPU, whatever device marched them (the points are drawn on the CPU: the same on every device)."""
@@ -47,7 +45,7 @@ def check_points(volume: Volume, tf, lights: np.ndarray, n_points: int = CHECK_P
     where the evaluation found 3.1 (docs/performance.md). On the CPU, whatever device marched them."""
     field = ShadowField.build(volume, tf, device=device)
     extent = torch.as_tensor(volume.extent, dtype=torch.float32)
-    gen = seeded(seed, CHECK_STREAM)
+    gen = seeded(seed, Stream.CHECK_POINTS)
     pts = torch.rand(n_points, 3, generator=gen, device=gen.device) * extent
     checked = np.asarray(lights)[check_rows(len(lights)).numpy()]
     values = transmittance_per_light(field, tf, checked, pts).cpu()
@@ -61,7 +59,7 @@ class TruthPoints:
         self.volume, self.tf = volume, tf
         self.field = ShadowField.build(volume, tf)
         self.extent = torch.as_tensor(volume.extent, dtype=torch.float32)
-        gen = seeded(seed, 4)
+        gen = seeded(seed, Stream.EVAL_POINTS)
         self.sets = {"box": torch.rand(n_points, 3, generator=gen, device=gen.device) * self.extent}
         vis = PointSampler(volume, tf, 1.0)
         if vis.visible_fraction:

@@ -1,5 +1,5 @@
 #!/usr/bin/env bash
-# The GPU figures that issue 54 asks for, in one device call (15 minutes of device time a session):
+# The GPU figures of docs/performance.md, in one device call (15 minutes of device time a session):
 #
 #   bash ../shared/gpu/prepare.sh                                   # here, once per session
 #   device run, carry [".devwheels"], timeout_s 600:
@@ -23,7 +23,7 @@
 # stages:   `bench stages` on the GPU at the paper's sizes (the JSON profiles/paper is generated from), at the
 #           defaults, and at the defaults with every training step's points and batch raised (STAGES_BIG, a YAML
 #           overlay): whether a bigger step costs a GPU more than a few launches.
-# stage1:   issue 56: stage 1 alone (snakemake ... results/nucleon/weights.zarr) at 512 of 2,048 lights, wall time
+# stage1:   stage 1 alone (snakemake ... results/nucleon/weights.zarr) at 512 of 2,048 lights, wall time
 #           and each fit_siren job's benchmark (a job cut short still leaves the finished subsets' figures).
 #
 # On a CPU it runs too (DIFFSHADOW_DEVICE=cpu, QUICK=1 for small sizes): that is how the script is tested.
@@ -120,7 +120,7 @@ workflow)
     cat "$out/stage_costs.tsv" 2>/dev/null
     ;;
 stage1)
-    # issue 56: stage 1 alone at 512 training lights, at the paper's cap fraction (a quarter of the sphere)
+    # stage 1 alone at 512 training lights, at the paper's cap fraction (a quarter of the sphere)
     n=512; [ "$quick" = 1 ] && n=40
     printf 'lights: {count: %d, sphere: %d, unseen: 32}\n' "$n" $((4 * n)) >"$out/lights.yaml"
     [ -L results ] && rm results

@@ -1,4 +1,4 @@
-"""Run the pipeline on several scenes at a reduced light count and print one quality table (issue 18).
+"""Run the pipeline on several scenes at a reduced light count and print one quality table.
 
     python scripts/quality_table.py --scenes nucleon neghip tooth hydrogen_atom --lights 32 --unseen 8
 

@@ -1,4 +1,4 @@
-"""The light-count sweep (issue 56): the workflow once per light count, each in its own folder, then one JSON,
+"""The light-count sweep: the workflow once per light count, each in its own folder, then one JSON,
 three figures and a page (`diffshadow.scaling`).
 
     python scripts/scaling_sweep.py --lights 32 128 512 --out sweep          # every stage, on this machine

@@ -7,7 +7,7 @@ import torch
 from conftest import default_device_meta
 
 from diffshadow.diffusion.config import DiffusionConfig, DiffusionError
-from diffshadow.diffusion.geometry import geometry_error, geometry_loss
+from diffshadow.diffusion.geometry import geometry_error
 from diffshadow.diffusion.model import WeightTransformer
 from diffshadow.diffusion.sample import generate, load_sampler
 from diffshadow.diffusion.schedule import Schedule
@@ -50,7 +50,7 @@ def test_geometry_loss_batched_equals_one_by_one():
     pts = torch.rand(4, 50, 3, generator=gen)
     vals = torch.rand(4, 50, generator=gen)
     extent = torch.ones(3)
-    batched = geometry_loss(w, LAYOUT, SIREN, pts, vals, extent).detach()
+    batched = geometry_error(w, LAYOUT, SIREN, pts, vals, extent).mean().detach()
     with torch.no_grad():
         separate = torch.stack([((Siren.from_flat(w[i], LAYOUT)(box_to_siren(pts[i], extent)) - vals[i]) ** 2)
                                 .mean() for i in range(4)]).mean()

@@ -451,12 +451,14 @@ def test_stage_costs_come_from_snakemakes_benchmarks(finished):
                                     "compile_s", "io_s", "compute_s", "launch_s"]
     rows = {line.split("\t")[0]: line.split("\t") for line in lines[1:]}
     assert rows["fit_siren"][1] == "2" and "fit_siren_0" not in rows
-    # every job recorded its phases; they add up to its wall time (launch_s: the rest, outside its process)
+    # every job recorded its phases; they add up to its wall time (launch_s: the rest, outside its process), up to
+    # the skew of two clocks: Snakemake's benchmark starts and stops its own (it polls), the process reads its
+    # start from /proc; a loaded machine put the process 0.2 s over its job's wall once (launch_s is then 0)
     for stage, row in rows.items():
         if stage.startswith("elapsed"):
             continue
         phases = [float(x) for x in row[5:]]
-        assert sum(phases) == pytest.approx(float(row[2]), abs=0.2 * int(row[1])), stage
+        assert sum(phases) == pytest.approx(float(row[2]), abs=0.5 * int(row[1])), stage
     assert float(rows["train_diffusion"][5]) > 0 and float(rows["train_diffusion"][9]) > 0  # imports, compute
     assert float(rows["presample"][8]) > 0  # its store written
     assert int(rows["total (sum over jobs)"][1]) == len(rules)

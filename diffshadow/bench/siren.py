@@ -116,7 +116,7 @@ def bench_init_spread(results: Path, out_dir: Path, *, n_lights: int = 8) -> dic
     """Weight spread across lights with the shared pre-optimised init (the store) vs each light fitted from
     its own random init with the same settings (paper §3.2: the shared init makes the weight space coherent)."""
     from diffshadow.fit import evaluate_psnr, fit_sirens
-    from diffshadow.sampling import seeded
+    from diffshadow.sampling import Stream, seeded
     from diffshadow.siren import init_siren
 
     volume, tf, store, lights, fit = _scene_inputs(results)
@@ -124,7 +124,7 @@ def bench_init_spread(results: Path, out_dir: Path, *, n_lights: int = 8) -> dic
     shared = torch.as_tensor(store.weights[idx])
     own = []
     for i in idx:
-        init = store.layout.flatten(init_siren(store.siren, seeded(fit.seed, -2, int(i))))
+        init = store.layout.flatten(init_siren(store.siren, seeded(fit.seed, Stream.FIT_SHARED_POINTS, int(i))))
         own.append(fit_sirens(init, store.layout, store.siren, volume, tf, lights[i:i + 1], fit, stream=int(i),
                               log=lambda *a: None)[0])
         print(f"[bench init-spread] fitted light {i} from its own random init", flush=True)

@@ -35,7 +35,7 @@ from diffshadow.diffusion.train import Batch, TrainingData, batch_loss
 from diffshadow.io import atomic_torch_save, resume
 from diffshadow.progress import FirstNonFinite, eta
 from diffshadow.render.bundle import RayBundle, bundle_colors
-from diffshadow.sampling import seeded
+from diffshadow.sampling import Stream, seeded
 from diffshadow.siren import BatchedSiren, SirenConfig, WeightLayout, box_to_siren
 from diffshadow.truth import EvalTruth, psnr_per_light
 
@@ -107,7 +107,7 @@ def _draws(cfg: FinetuneConfig, dcfg: DiffusionConfig, epoch: int, light: int, n
            n_views: int, steps: int, pool: tuple[int, int] = (0, 0)):
     """Every random draw for one light in one epoch: rank-independent by construction. With `pool` (pool
     lights, points per pool light), also one pool light and its timestep, noise and points."""
-    gen = seeded(cfg.seed, 12, epoch, light)
+    gen = seeded(cfg.seed, Stream.FINETUNE_LIGHT, epoch, light)
     cpu = gen.device  # the same numbers on every device: drawn here, moved by the caller
     t = torch.randint(0, steps, (1,), generator=gen, device=cpu)
     noise = torch.randn(1, n_params, generator=gen, device=cpu)
@@ -318,7 +318,7 @@ def finetune(geometry_state: dict, data: FinetuneData, cfg: FinetuneConfig, chec
     step_times: list[float] = []
     end = start if selection.stopped else cfg.epochs  # a run that stopped early has finished
     for epoch in range(start, end):
-        gen = seeded(cfg.seed, 11, epoch)
+        gen = seeded(cfg.seed, Stream.FINETUNE_EPOCH, epoch)
         order = torch.randperm(n, generator=gen, device=gen.device).tolist()
         totals = torch.zeros(3, dtype=torch.float64, device=device)  # summed on the device: no sync per step
         for b0 in range(0, n, cfg.batch_size):

@@ -13,9 +13,3 @@ def geometry_error(pred_weights: torch.Tensor, layout: WeightLayout, siren: Sire
     """Per light (B,): MSE between the predicted SIRENs at presampled points (B, G, 3) and the true shadow (B, G)."""
     pred = BatchedSiren(pred_weights, layout, siren.blocks)(box_to_siren(points, extent))
     return ((pred - values) ** 2).mean(1)
-
-
-def geometry_loss(pred_weights: torch.Tensor, layout: WeightLayout, siren: SirenConfig, points: torch.Tensor,
-                  values: torch.Tensor, extent: torch.Tensor) -> torch.Tensor:
-    """MSE between the predicted SIRENs at presampled points (B, G, 3) and the true shadow there (B, G)."""
-    return geometry_error(pred_weights, layout, siren, points, values, extent).mean()

@@ -13,7 +13,7 @@ from diffshadow.diffusion.model import WeightTransformer
 from diffshadow.diffusion.schedule import Schedule
 from diffshadow.diffusion.standardize import Standardizer
 from diffshadow.lights import LightRegion, as_direction
-from diffshadow.sampling import seeded
+from diffshadow.sampling import Stream, seeded
 from diffshadow.siren import SirenConfig, WeightLayout
 
 
@@ -56,7 +56,7 @@ def generate(model: WeightTransformer, std: Standardizer, lights, *, method: str
                                      f"lights {b0}..{b0 + len(w) - 1}); sample in float32")
             return out
 
-        gen = seeded(seed, 2, b0)
+        gen = seeded(seed, Stream.SAMPLE_NOISE, b0)
         shape = (len(w), std.layout.n_params)
         if method == "ddim":
             z = schedule.ddim_sample(denoise, shape, steps=steps, generator=gen, temperature=temperature,

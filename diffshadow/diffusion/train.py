@@ -1,9 +1,5 @@
-"""Training the weight-space diffusion model (paper §3.3): x0 MSE + geometry loss, resumable.
-
-Per-token standardisation: each parameter tensor's values get one scalar mean and std over the training
-set. The std is rounded to a power of two, so standardising and de-standardising (in float64) is an
-exact round trip; a tensor with zero spread gets std 0: it standardises to 0 and de-standardises to its
-mean whatever the model predicts (docs/numerics.md).
+"""Training the weight-space diffusion model (paper §3.3): x0 MSE + geometry loss, resumable. The model sees
+standardised weights (`diffusion.standardize`); one loss (`batch_loss`) serves this stage and fine-tuning.
 """
 
 from __future__ import annotations
@@ -29,7 +25,7 @@ from diffshadow.io import atomic_torch_save, resume
 from diffshadow.lights import PoolLights
 from diffshadow.metrics import psnr
 from diffshadow.progress import FirstNonFinite, eta
-from diffshadow.sampling import seeded
+from diffshadow.sampling import Stream, seeded
 from diffshadow.siren import BatchedSiren, SirenConfig, WeightLayout, box_to_siren
 from diffshadow.truth import check_rows
 
@@ -340,7 +336,7 @@ def train_diffusion(data: TrainingData, cfg: DiffusionConfig, checkpoint: Path, 
     per_epoch = math.ceil(n / cfg.batch_size)  # optimizer steps, for the EMA's warm-up
     nonfinite = FirstNonFinite((), device)  # read at log lines, checks and checkpoints, not every step
     while not growth.finished:
-        gen = seeded(cfg.seed, 1, epoch)
+        gen = seeded(cfg.seed, Stream.DIFFUSION_EPOCH, epoch)
         order = torch.randperm(n, generator=gen, device=gen.device)
         totals = torch.zeros(2, dtype=torch.float64, device=device)  # summed on the device: no sync per step
         for k, b0 in enumerate(range(0, n, cfg.batch_size)):

@@ -4,11 +4,12 @@ choice of how its networks are evaluated (`Networks`: config `render.kernel`).""
 from __future__ import annotations
 
 import warnings
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, field
 
 import numpy as np
 import torch
 
+from diffshadow.config import defaults
 from diffshadow.data_inr import inr_cell_ranges
 from diffshadow.io import atomic_save
 from diffshadow.lights import as_direction
@@ -39,7 +40,7 @@ class Networks:
     (docs/performance.md).
     """
 
-    kernel: str = "auto"
+    kernel: str = field(default_factory=lambda: defaults()["render"]["kernel"])  # one home: defaults.yaml
 
     def __post_init__(self):
         if self.kernel not in KERNELS:
@@ -47,7 +48,7 @@ class Networks:
 
     @classmethod
     def from_config(cls, render_cfg: dict) -> Networks:
-        """From a config's `render` section (missing: the default above)."""
+        """From a config's `render` section (a key it lacks: the package default)."""
         return cls(render_cfg["kernel"]) if "kernel" in render_cfg else cls()
 
     def setting(self, device: torch.device) -> str | None:

@@ -27,8 +27,9 @@ from diffshadow.evaluate import voxel_metrics
 from diffshadow.io import atomic_torch_save, atomic_write_text
 from diffshadow.lights import read_lights, training_pool, validation_lights
 from diffshadow.runtime import distributed, set_threads
+from diffshadow.sampling import Stream
 from diffshadow.store import BlendSampler, WeightStore, open_store, write_store
-from diffshadow.truth import POOL_STREAM, EvalTruth, check_points, psnr_per_light
+from diffshadow.truth import EvalTruth, check_points, psnr_per_light
 from diffshadow.truth import presample as presample_points
 
 # test lights further than this from a training light are helped by a denser sphere (tooth, docs/performance.md)
@@ -48,7 +49,7 @@ def presample(volume_path: Path, lights_path: Path, out: Path, *, cfg: Diffusion
         t0 = time.perf_counter()
         pool_lights = training_pool(train_lights, sets["center"], cfg.pool_lights, seed=cfg.seed)
         pool = (pool_lights, *presample_points(volume, tf, pool_lights, cfg.pool_points, seed=cfg.seed,
-                                                stream=POOL_STREAM, device=device))
+                                                stream=Stream.POOL_POINTS, device=device))
         print(f"pool: {cfg.pool_points} points and exact shadows for each of {cfg.pool_lights} lights without a "
               f"fitted SIREN ({time.perf_counter() - t0:.1f} s)", flush=True)
     check = check_points(volume, tf, train_lights, seed=cfg.seed, device=device)

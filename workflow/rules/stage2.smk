@@ -51,7 +51,8 @@ rule eval_truth:
     output:
         directory("results/{scene}/eval_truth.zarr"),
     params:
-        seed=lambda wc: scene_config(wc.scene)["diffusion"]["seed"] + 2,
+        points=lambda wc: scene_config(wc.scene)["evaluate"]["points"],
+        seed=lambda wc: scene_config(wc.scene)["evaluate"]["seed"],
     threads: 1  # a second thread sped it up 1.19x: better spent on the job beside it
     log:
         "results/{scene}/logs/eval_truth.log",
@@ -61,6 +62,7 @@ rule eval_truth:
         "../envs/diffshadow.yaml"
     shell:
         "diffshadow --phases results/{wildcards.scene}/benchmarks/eval_truth.phases.json eval-truth --volume {input.volume} --lights {input.lights} --seed {params.seed}"
+        " --eval-points {params.points}"
         " --threads {threads} --out {output} 2>&1 | tee {log}"
 
 
@@ -74,7 +76,8 @@ rule sample_shadows:
     output:
         directory("results/{scene}/generated.zarr"),
     params:
-        command=lambda wc, input: (f"blend-shadows --weights {input.weights}" if "weights" in input.keys()
+        command=lambda wc, input: (f"blend-shadows --weights {input.weights} --blend-k "
+                                   f"{scene_config(wc.scene)['evaluate']['blend_k']}" if "weights" in input.keys()
                                    else f"sample-shadows --checkpoint {input.checkpoint}"),
     threads: 2
     log:
@@ -102,6 +105,8 @@ rule evaluate_voxels:
     params:
         geometry=lambda wc, input: f"--geometry-checkpoint {input.geometry}" if "geometry" in input.keys() else "",
         checkpoint=lambda wc, input: f"--checkpoint {input.checkpoint}" if "checkpoint" in input.keys() else "",
+        blend_k=lambda wc: scene_config(wc.scene)["evaluate"]["blend_k"],
+        ddpm_lights=lambda wc: scene_config(wc.scene)["evaluate"]["ddpm_lights"],
     # one thread, beside evaluate_images (both wait only for sample_shadows): a second thread sped each up
     # 1.5-1.6x, so on 2 cores the pair ends sooner side by side than one after the other (docs/performance.md)
     threads: 1
@@ -114,7 +119,7 @@ rule evaluate_voxels:
     shell:
         "diffshadow --phases results/{wildcards.scene}/benchmarks/evaluate_voxels.phases.json evaluate-voxels {params.checkpoint} --weights {input.weights}"
         " --generated {input.generated} --truth {input.truth} --volume {input.volume} --lights {input.lights}"
-        " {params.geometry} --threads {threads}"
+        " {params.geometry} --blend-k {params.blend_k} --ddpm-lights {params.ddpm_lights} --threads {threads}"
         " --out {output} 2>&1 | tee {log}"
 
 

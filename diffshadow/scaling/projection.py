@@ -1,0 +1,207 @@
+"""The sweep (or a GPU's `bench stages`) carried to the paper's scale on Polaris: each stage's A100 time,
+node-hours, walltime requests and memory, and the workflow profile that asks for them."""
+
+from __future__ import annotations
+
+import functools
+import json
+import math
+
+from diffshadow.scaling.sweep import predict
+
+# An assumption, not a measurement: an A100 takes this many times an H200's time for this project's work. The
+# HBM bandwidth ratio (4.8 / 2.0 TB/s); fp32 peaks differ by 3.4x, launch-bound small kernels by ~1x.
+A100_PER_H200 = 2.4
+GPUS_PER_NODE = 4  # Polaris
+
+
+def model_size(cfg: dict) -> tuple[int, int]:
+    """(parameters, tokens) of the diffusion model a run config builds."""
+    return _model_size(json.dumps(cfg["siren"], sort_keys=True), json.dumps(cfg["diffusion"], sort_keys=True))
+
+
+@functools.lru_cache(maxsize=8)
+def _model_size(siren_json: str, diffusion_json: str) -> tuple[int, int]:
+    # built once per config: the paper's model has 172 million parameters
+    from diffshadow.diffusion.config import DiffusionConfig, build_model
+    from diffshadow.siren import SirenConfig, WeightLayout
+
+    siren = SirenConfig.from_config(json.loads(siren_json))
+    diffusion = DiffusionConfig.from_config(json.loads(diffusion_json)).for_siren(siren.width)
+    model = build_model(WeightLayout.for_siren(siren), diffusion)
+    return model.n_params(), len(model.sizes) + 2
+
+
+def model_cost(cfg: dict) -> float:
+    """Parameters x tokens of the diffusion model a run config builds: its forward cost up to a constant."""
+    params, tokens = model_size(cfg)
+    return float(params * tokens)
+
+
+def work_factors(run: dict, paper: dict) -> dict[str, float]:
+    """Per stage, the paper config's work per light (or per job) over the run config's, from what each stage
+    computes (the light count is the sweep's exponent's business): fitting costs steps x points x width² per
+    light; the diffusion stages cost their model's parameters x tokens per sample, times epochs (and views and
+    sampled pixels, over GPUs, for fine-tuning); evaluating and rendering SIRENs costs width². Other stages: 1.
+    Upper bounds on a GPU: small networks leave it idle, large ones use it better."""
+    fit = {k: paper["fit"][k] / run["fit"][k] for k in ("steps", "points")}
+    width2 = (paper["siren"]["width"] / run["siren"]["width"]) ** 2
+    model = model_cost(paper) / model_cost(run)
+    epochs = paper["diffusion"]["epochs"] / run["diffusion"]["epochs"]
+    ft = paper["finetune"]
+    # a step samples `pixels` per view per light (the target images' size changes only render_targets)
+    finetune = (ft["epochs"] / run["finetune"]["epochs"]) * (ft["views"] / run["finetune"]["views"]) * (
+        ft["pixels"] / run["finetune"]["pixels"]) * model / (ft["nproc"] / run["finetune"]["nproc"])
+    fitting = fit["steps"] * fit["points"] * width2
+    return {"fit_siren": fitting, "preoptimize": fitting, "train_diffusion": epochs * model,
+            "finetune_render": finetune, "sample_shadows": model, "evaluate_voxels": width2,
+            "evaluate_images": width2, "render_targets": width2, "benchmark": width2}
+
+
+
+# Copies of the diffusion model's parameters a stage's process holds in host memory: training holds weights,
+# gradients, Adam's two moments and the EMA (5); a loaded checkpoint holds weights, Adam's two and the EMA (4)
+# and the model built from it one more. Fine-tuning loads the geometry checkpoint and trains, per rank;
+# evaluate_voxels loads both checkpoints. The sweep's small model makes this term invisible in its RSS.
+MODEL_COPIES = {"train_diffusion": 5, "finetune_render": 4 + 5, "sample_shadows": 5, "evaluate_voxels": 2 * 5}
+
+
+def model_state_mib(stage: str, run: dict, paper: dict) -> float:
+    """Host memory (MiB) the paper's diffusion model adds over the run config's to one job of `stage`."""
+    copies = MODEL_COPIES.get(stage, 0)
+    if stage == "finetune_render":
+        copies *= paper["finetune"]["nproc"]  # one process per GPU on the node
+    if not copies:
+        return 0.0
+    return (model_size(paper)[0] - model_size(run)[0]) * 4 * copies / 2**20
+
+
+QUEUE_MAX_H = 72.0  # Polaris' preemptable queue's longest walltime (ALCF's documentation; check `qstat -Qf`)
+MARGIN = 1.5  # requests are the projection times this
+# A stage timed by `bench stages` asks at least this: the bench times steps, not a job's start-up, its
+# checkpoints, its periodic checks or its outputs (at the README's sizes on the H200 those were 14 of
+# fit_siren's 19 s, stage_costs.tsv against 1,000 steps of 5.6 ms)
+BENCH_FLOOR_H = 0.5
+
+
+def project(data: dict, run: dict, paper: dict, gpu_costs: dict[str, dict], *, lights: int | None = None,
+            subset: int | None = None, stage1_nodes: int = 10) -> dict:
+    """Each stage's wall time, node-hours and peak memory for `paper` at `lights` (default: the paper config's
+    count, in subsets of its subset_size) on Polaris: the sweep's CPU
+    power law carried to `lights` at the run's config, divided by the H200's speed over this CPU measured on
+    the same run config at the sweep's smallest point (`gpu_costs`: stage_costs of a GPU run), times the
+    paper's work per light (`work_factors`), times A100_PER_H200.
+
+    Upper bounds: the small run's GPU jobs are mostly start-up, so where the H200 measured slower than the CPU
+    it is taken as fast as the CPU (1x); preoptimize, one fit, takes fit_siren's speed-up. Stage 1 runs
+    lights / subset jobs four to a node on `stage1_nodes` nodes; fine-tuning on one node of four GPUs; every
+    other stage on one node. Requests: MARGIN x the projection, at most QUEUE_MAX_H; a stage that needs more
+    resumes from its checkpoint in further jobs (`resubmits`)."""
+    lights = lights or paper["lights"]["count"]
+    subset = subset or paper["subset_size"]
+    n0 = data["points"][0]["lights"]
+    factors = work_factors(run, paper)
+
+    def measured_ratio(stage):
+        cpu_n0 = dict((int(n), y) for n, y in data["fits"][stage]["wall_s"]["points"]).get(n0)
+        gpu = gpu_costs.get(stage)
+        return cpu_n0 / gpu["wall_s"] if cpu_n0 and gpu else None
+
+    rows = {}
+    for stage, fit in data["fits"].items():
+        cpu_total = predict(fit["wall_s"], lights)
+        exponent = fit["wall_s"]["exponent"]
+        if "wall_s_per_epoch" in fit and cpu_total is not None:  # at the run config's epochs, as work_factors counts
+            cpu_total = predict(fit["wall_s_per_epoch"], lights) * run["diffusion"]["epochs"]
+            exponent = fit["wall_s_per_epoch"]["exponent"]
+        ratio = measured_ratio("fit_siren" if stage == "preoptimize" else stage)
+        if cpu_total is None or ratio is None:
+            continue
+        used = max(ratio, 1.0)
+        a100_total = cpu_total / used * factors.get(stage, 1.0) * A100_PER_H200  # all jobs of the stage
+        rss = predict(fit["max_rss_mib"], lights) or fit["max_rss_mib"]["points"][-1][1]
+        model_mib = model_state_mib(stage, run, paper)
+        rows[stage] = {"exponent": exponent, "cpu_s_run_config": cpu_total,
+                       "h200_over_cpu": ratio, "speedup_used": used, "work_factor": factors.get(stage, 1.0),
+                       **_schedule(stage, a100_total, -(-lights // subset), stage1_nodes),
+                       "rss_mib_run_config": rss, "model_state_mib": model_mib, "rss_mib": rss + max(model_mib, 0.0)}
+    return {"lights": lights, "a100_per_h200": A100_PER_H200, "margin": MARGIN, "queue_max_h": QUEUE_MAX_H,
+            "stages": rows, "storage_bytes": storage_at(paper, [lights, paper["lights"]["sphere"]])}
+
+
+CPU_SOURCE = "CPU sweep x the tiny run's H200 speed-up (upper bound)"
+
+
+def measured_projection(proj: dict, bench: dict, *, stage1_nodes: int = 10) -> dict:
+    """`proj` (`project`) with each stage that `bench stages` measured at the paper config on a GPU (`bench`, its
+    JSON) timed from that measurement instead: its seconds per step times the paper's steps, times A100_PER_H200
+    (the same stated assumption) for Polaris' A100s, asking at least BENCH_FLOOR_H. Host memory stays the
+    sweep's (the bench measures the GPU's).
+    Every row names its `source`; stages the bench did not time keep the CPU-based upper bound."""
+    if bench.get("device_type") != "cuda":
+        raise ValueError(f"bench stages JSON measured on {bench.get('device')!r}: the paper-scale plan needs one "
+                         f"measured on a GPU (docs/measurements/<card>_bench_stages_paper.json)")
+    out = {**proj, "stages": {k: {**v, "source": CPU_SOURCE} for k, v in proj["stages"].items()},
+           "bench": {k: bench.get(k) for k in ("device", "torch", "cuda", "config")}}
+    for stage, row in bench["stages"].items():
+        jobs = -(-proj["lights"] // int(row["units"]))  # fit_siren: the bench times one job of `units` SIRENs
+        total = row["projected_s"] * A100_PER_H200 * (jobs if stage == "fit_siren" else 1)
+        plan = _schedule(stage, total, jobs, stage1_nodes)
+        plan["walltime_request_h"] = min(max(plan["walltime_request_h"], BENCH_FLOOR_H), QUEUE_MAX_H)
+        out["stages"].setdefault(stage, {"rss_mib": None, "model_state_mib": 0.0}).update(
+            **plan, source=f"bench stages on {bench.get('device')} x "
+                                                                 f"{A100_PER_H200}")
+    return out
+
+
+def _schedule(stage: str, a100_total: float, jobs: int, stage1_nodes: int) -> dict:
+    """A stage's A100 seconds (all its jobs) as Polaris runs them: fit_siren's `jobs` four to a node on
+    `stage1_nodes` nodes, any other stage one job on one node; its wall time, node-hours, and a job's walltime
+    request (MARGIN x its time, at most QUEUE_MAX_H, `resubmits` more jobs resuming from the checkpoint)."""
+    if stage == "fit_siren":
+        per_job = a100_total / jobs
+        wall = a100_total / jobs * -(-jobs // (stage1_nodes * GPUS_PER_NODE))
+        node_hours = a100_total / GPUS_PER_NODE / 3600
+    else:
+        wall = per_job = a100_total
+        node_hours = a100_total / 3600
+    request_h = per_job * MARGIN / 3600
+    return {"a100_s_total": a100_total, "wall_s": wall, "node_hours": node_hours,
+            "walltime_request_h": min(request_h, QUEUE_MAX_H),
+            "resubmits": max(0, math.ceil(request_h / QUEUE_MAX_H) - 1)}
+
+
+def walltime(hours: float) -> str:
+    """PBS's HH:MM:SS, rounded up to whole minutes."""
+    minutes = max(1, math.ceil(hours * 60))
+    return f"{minutes // 60:02d}:{minutes % 60:02d}:00"
+
+
+def polaris_profile(proj: dict) -> str:
+    """A Snakemake workflow profile (`--workflow-profile`) whose per-rule walltimes are the projection's
+    requests; laid over `--profile polaris`, it replaces the profile's guesses. `mem_mb`: the peak RSS carried to
+    the light count plus the paper model's state in host memory (`model_state_mib`), x margin (Polaris nodes
+    are whole: 512 GB; Snakemake checks it, qsub is not sent it)."""
+    lines = ["# Made by scripts/scaling_sweep.py from the light-count sweep (diffshadow.scaling.project): each",
+             f"# rule's projected A100 time at {proj['lights']:,} lights x {proj['margin']}, at most "
+             f"{proj['queue_max_h']:.0f} h",
+             "# (a longer stage resumes from its checkpoint in a further job); mem_mb: the peak RSS carried to that",
+             "# light count, plus the paper model's parameters held in host memory (scaling.MODEL_COPIES), x the",
+             "# margin (a Polaris node has 512 GB). Use:",
+             "#   snakemake --profile polaris --workflow-profile profiles/paper --configfile config/paper.yaml",
+             "set-resources:"]
+    for stage, r in sorted(proj["stages"].items()):
+        lines.append(f"  {stage}:  # {r.get('source', CPU_SOURCE)}")
+        lines.append(f"    walltime: \"{walltime(r['walltime_request_h'])}\"")
+        if r.get("rss_mib"):
+            lines.append(f"    mem_mb: {math.ceil(r['rss_mib'] * proj['margin'] * 1.048576 / 100) * 100}")
+    return "\n".join(lines) + "\n"
+
+
+def storage_at(cfg: dict, counts: list[int]) -> dict:
+    """Stored SIRENs (fp32, fp16) and the model (fp32) for a config, at each light count."""
+    from diffshadow.siren import SirenConfig, WeightLayout
+
+    per = WeightLayout.for_siren(SirenConfig.from_config(cfg["siren"])).n_params * 4
+    model = model_size(cfg)[0] * 4
+    return {str(n): {"sirens_fp32": per * n, "sirens_fp16": per * n // 2, "model": model} for n in counts}
