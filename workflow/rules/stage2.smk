@@ -172,9 +172,11 @@ rule finetune_render:
         "../envs/diffshadow.yaml"
     shell:
         # finetune.nproc processes as `threads` (so -j caps them on a laptop), no more than the device takes
-        # (one per GPU on CUDA), said in one line
+        # (one per GPU on CUDA), said in one line; one process runs without the launcher, which would only
+        # import PyTorch once more (4 s on an H200 node, 1 s here)
         "n=$(diffshadow ddp-processes --nproc {threads}) &&"
-        " $DIFFSHADOW_TORCHRUN --nproc_per_node=$n -m diffshadow.cli --phases results/{wildcards.scene}/benchmarks/finetune_render.phases.json finetune-render"
+        " if [ $n -gt 1 ]; then launch=\"$DIFFSHADOW_TORCHRUN --nproc_per_node=$n -m diffshadow.cli\"; else launch=diffshadow; fi &&"
+        " $launch --phases results/{wildcards.scene}/benchmarks/finetune_render.phases.json finetune-render"
         " --checkpoint {input.checkpoint} --weights {input.weights} --points {input.points}"
         " --targets {input.targets} --volume {input.volume} --lights {input.lights} --config-json {params.cfg:q} --threads 1"
         " --metrics {output.metrics} --out {output.checkpoint} 2>&1 | tee {log}"
