@@ -199,14 +199,32 @@ def _render(a):
                         scalar=a.scalar, phong=a.phong, step=a.step, skip=not a.no_skip)
 
 
+def run_render(a) -> dict:
+    """`view`'s render settings: the run's `render` section for the results folder's scene (`--configfile` and
+    the scene file, as the workflow merges them), under --kernel; the package defaults where there is no run
+    config for it (said in one line)."""
+    from diffshadow.config import ConfigError, load_run, scene_config
+
+    render = {}
+    if a.results is not None:
+        scene = Path(a.results).name
+        try:
+            render = scene_config(load_run(a.configfile), scene, scenes_dir=Path(a.scenes_dir))["render"]
+        except ConfigError as e:
+            print(f"view: no run config for scene {scene!r} ({e}): the package's render defaults", file=sys.stderr)
+    return {**render, **network_flags(a)}
+
+
 def _view(a):
     from diffshadow.viewer import serve
 
     if (a.results is None) == (a.scene_config is None):
         raise ValueError("view: give a results folder (results/<scene>) or --scene-config, not both")
+    render = run_render(a)
     serve(results=Path(a.results) if a.results else None,
           scene_config=Path(a.scene_config) if a.scene_config else None, device=_device(a), host=a.host,
-          port=a.port, size=a.size, step=a.step, render=network_flags(a), record=Path(a.record) if a.record else None)
+          port=a.port, size=a.size, step=a.step if a.step is not None else render.get("step", 0.5), render=render,
+          record=Path(a.record) if a.record else None)
 
 
 def _report_figures(a):
@@ -364,7 +382,11 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--port", type=int, default=8080)
     p.add_argument("--size", type=int, default=0, help="image height in pixels when still (default 0: the "
                    "canvas's own, sharp at any window size; a panel control)")
-    p.add_argument("--step", type=float, default=0.5, help="marching step in voxels (a panel control)")
+    p.add_argument("--step", type=float, help="marching step in voxels (a panel control; default: the run's "
+                   "render.step)")
+    p.add_argument("--configfile", default="config/config.yaml", help="the run's config, whose render section "
+                   "(the kernel, the step) the viewer uses for a results folder (default: config/config.yaml)")
+    p.add_argument("--scenes-dir", default="config/scenes")
     p.add_argument("--record", help="a folder where every still frame is written (PNG, and JSON with its render "
                    "command) and every frame's cost is logged (frames.jsonl)")
     add_networks(p)

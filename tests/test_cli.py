@@ -170,3 +170,24 @@ def test_lights_and_collect_weights_start_without_torch_and_record_their_phases(
     rec = run("collect-weights", "--lights", "lights.json", "--subsets", "subset_0.npz", "subset_1.npz",
               "--out", "weights.zarr")
     assert rec["io_s"] > 0 and (tmp_path / "weights.zarr").is_dir()
+
+
+def test_view_takes_the_runs_render_section_under_its_flags(tmp_path, capsys):
+    """`diffshadow view results/<scene>` renders as the run did (its config's render section over the scene
+    file's): the kernel and the step; --kernel wins; without a run config for the scene, the package defaults
+    and one line saying so."""
+    from diffshadow.cli import build_parser, run_render
+
+    cfg = tmp_path / "run.yaml"
+    cfg.write_text("scenes: [nucleon]\nrender: {kernel: eager, step: 0.25}\n")
+    scenes = REPO / "config" / "scenes"
+
+    def render(*args):
+        return run_render(build_parser().parse_args(["view", *args, "--configfile", str(cfg), "--scenes-dir",
+                                                     str(scenes)]))
+
+    got = render(str(tmp_path / "results" / "nucleon"))
+    assert (got["kernel"], got["step"]) == ("eager", 0.25)
+    assert render(str(tmp_path / "results" / "nucleon"), "--kernel", "compile")["kernel"] == "compile"
+    assert render(str(tmp_path / "results" / "elsewhere")) == {}
+    assert "no run config for scene 'elsewhere'" in capsys.readouterr().err
