@@ -104,7 +104,8 @@ def _ddp_processes(a):
 def _eval_truth(a):
     from diffshadow.stages import stage2
 
-    stage2.eval_truth(Path(a.volume), Path(a.lights), Path(a.out), eval_points=a.eval_points, seed=a.seed)
+    stage2.eval_truth(Path(a.volume), Path(a.lights), Path(a.out), eval_points=a.eval_points, seed=a.seed,
+                      device=_device(a))
 
 
 def _sample_shadows(a):
@@ -312,8 +313,8 @@ def build_parser() -> argparse.ArgumentParser:
     p = _add(sub, "ddp-processes", _ddp_processes, "how many DDP processes to launch here (prints a number)",
              out=False)
     p.add_argument("--nproc", type=int, required=True, help="processes asked for (finetune.nproc)")
-    p = _add(sub, "eval-truth", _eval_truth, "evaluation points and the exact shadow of every light at them",
-             "volume", "lights", device=False)
+    p = _add(sub, "eval-truth", _eval_truth, "evaluation points and the exact shadow of every light at them "
+             "(the workflow passes --device cpu unless evaluate.device is run)", "volume", "lights")
     p.add_argument("--eval-points", type=int, default=evaluate["points"], help="points per set (box, visible; "
                    "evaluate.points)")
     p.add_argument("--seed", type=int, default=evaluate["seed"], help="their random draw (evaluate.seed)")

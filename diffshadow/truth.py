@@ -55,9 +55,9 @@ def check_points(volume: Volume, tf, lights: np.ndarray, n_points: int = CHECK_P
 class TruthPoints:
     """Fixed evaluation points (box and visible) with the true shadow of every light that is asked for."""
 
-    def __init__(self, volume: Volume, tf, n_points: int, seed: int):
+    def __init__(self, volume: Volume, tf, n_points: int, seed: int, device: torch.device | str = "cpu"):
         self.volume, self.tf = volume, tf
-        self.field = ShadowField.build(volume, tf)
+        self.field = ShadowField.build(volume, tf, device=device)  # points are drawn on the CPU, truth kept there
         self.extent = torch.as_tensor(volume.extent, dtype=torch.float32)
         gen = seeded(seed, Stream.EVAL_POINTS)
         self.sets = {"box": torch.rand(n_points, 3, generator=gen, device=gen.device) * self.extent}
@@ -71,7 +71,7 @@ class TruthPoints:
         start, every, n = time.perf_counter(), max(1, len(lights) // 10), len(lights)
         for a in range(0, n, every):  # ~10 groups of lights, each marched together
             for k, p in self.sets.items():
-                out[k].append(transmittance_per_light(self.field, self.tf, lights[a:a + every], p))
+                out[k].append(transmittance_per_light(self.field, self.tf, lights[a:a + every], p).cpu())
             if log:
                 log(f"ground truth, {what}: {min(a + every, n)}/{n} ({eta(min(a + every, n), n, start)})")
         return {k: torch.cat(v) if v else torch.zeros(0, len(self.sets[k])) for k, v in out.items()}
@@ -91,8 +91,9 @@ class EvalTruth:
     extent: torch.Tensor
 
     @classmethod
-    def compute(cls, volume: Volume, tf, lights: np.ndarray, n_points: int, seed: int, log=None) -> EvalTruth:
-        points = TruthPoints(volume, tf, n_points, seed)
+    def compute(cls, volume: Volume, tf, lights: np.ndarray, n_points: int, seed: int, log=None,
+                device: torch.device | str = "cpu") -> EvalTruth:
+        points = TruthPoints(volume, tf, n_points, seed, device)
         return cls(points=points.sets, lights=np.asarray(lights, dtype=np.float64),
                    values=points.truth(lights, log, "all lights"), extent=points.extent)
 

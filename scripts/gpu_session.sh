@@ -17,8 +17,9 @@
 #           torch.profiler's top kernels and the device's busy fraction of one 1024² inr frame per variant.
 # render:   bench render on hydrogen_atom at 128², 512², 1024² (fps, ops and host syncs per frame, skipping,
 #           peak memory up to 2048²), the fused kernels (the CUDA default) first, then eager.
-# workflow: the README's run (`snakemake --profile local -j2`, the profile from profiles/) on an empty
-#           results/, its wall time and Snakemake's per-rule benchmark table, and the run's metrics.
+# workflow: the README's run (`snakemake --profile local -j2`, the profile from profiles/; SNAKEMAKE_ARGS added)
+#           on an empty results/, its wall time, each rule's phases (stage_costs.tsv), the GPU's busy share and
+#           the run's metrics.
 # checks:   pytest -m gpu (PYTEST_K narrows it with -k).
 # stages:   `bench stages` on the GPU at the paper's sizes (the JSON profiles/paper is generated from), at the
 #           defaults, and at the defaults with every training step's points and batch raised (STAGES_BIG, a YAML
@@ -110,7 +111,8 @@ workflow)
     nvidia-smi --query-gpu=timestamp,utilization.gpu,memory.used --format=csv -lms 500 >"$out/gpu_util.csv" 2>/dev/null &
     smi=$!
     # stopped 25 s before the part's cap, so that a cut run still brings back its finished rules' phases
-    step snakemake timeout $((${PART_CAP:-100000} - 25)) snakemake --profile profiles/local -j2
+    # SNAKEMAKE_ARGS: e.g. "--configfile config/config.yaml overlay.yaml" to time a switch (evaluate.device: run)
+    step snakemake timeout $((${PART_CAP:-100000} - 25)) snakemake --profile profiles/local -j2 ${SNAKEMAKE_ARGS:-}
     echo "README run: $((SECONDS - t0)) s wall" | tee "$out/wall.txt"
     kill $smi 2>/dev/null
     cp results/nucleon/*.json "$out/" 2>/dev/null

@@ -137,3 +137,15 @@ def test_naive_images_made_apart_give_evaluate_images_the_same_metrics_and_pngs(
         assert (tmp_path / "b" / png.name).read_bytes() == png.read_bytes(), png.name
     with pytest.raises(ArtifactError, match="naive.zarr: rendered for other lights or cameras.*rerun naive_images"):
         read_naive_images(tmp_path / "naive.zarr", lights["train"], views[::-1])
+
+
+@pytest.mark.gpu
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="no CUDA device")
+def test_eval_truth_on_cuda_is_the_cpus_to_float_rounding():
+    """evaluate.device: run marches on the GPU; the points are the CPU's draws and the truth comes back to the CPU."""
+    volume, tf, lights = _blob(), identity_tf(), fibonacci_sphere(6)
+    cpu = EvalTruth.compute(volume, tf, lights, 256, seed=3)
+    gpu = EvalTruth.compute(volume, tf, lights, 256, seed=3, device="cuda")
+    for name in cpu.points:
+        assert gpu.values[name].device.type == "cpu" and torch.equal(gpu.points[name], cpu.points[name])
+        assert float((gpu.values[name] - cpu.values[name]).abs().max()) < 1e-5

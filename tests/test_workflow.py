@@ -279,6 +279,18 @@ def test_diffusion_settings_do_not_refit(finished):
     assert planned(snakemake(finished, "-n", config=refit))["fit_siren"] == 2
 
 
+def test_eval_truth_marches_on_the_cpu_unless_evaluate_device_is_run(finished):
+    """evaluate.device: cpu (the default) keeps one truth on every machine: the rule passes --device cpu; `run`
+    gives the march the run's device, which changes the truth's bytes on a GPU, so eval_truth reruns."""
+    target = "results/nucleon/eval_truth.zarr"
+    default = snakemake(finished, "-n", "-p", "-f", target)
+    assert "--device cpu" in next(ln for ln in default.stdout.splitlines() if "eval-truth" in ln)
+    on_run = {**TINY, "evaluate": {"device": "run"}}
+    assert "eval_truth" in planned(snakemake(finished, "-n", config=on_run))
+    shell = snakemake(finished, "-n", "-p", "-f", target, config=on_run).stdout
+    assert "--device cpu" not in next(ln for ln in shell.splitlines() if "eval-truth" in ln)
+
+
 def test_rerun_one_subset(finished):
     sirens = finished / "results/nucleon/sirens"
     before = (sirens / "subset_0.npz").read_bytes(), (sirens / "subset_0.npz").stat().st_mtime_ns

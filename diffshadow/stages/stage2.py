@@ -126,14 +126,15 @@ def finetune_render(checkpoint: Path, weights_path: Path, points_path: Path, tar
         print(f"wrote {out} and {metrics_path}")
 
 
-def eval_truth(volume_path: Path, lights_path: Path, out: Path, *, eval_points: int, seed: int) -> None:
+def eval_truth(volume_path: Path, lights_path: Path, out: Path, *, eval_points: int, seed: int,
+               device: torch.device | str = "cpu") -> None:
     """Evaluation points and the exact shadow of every training and unseen light at them (the march),
     once per scene: it needs only the volume, so it runs beside stage 1, not after sampling."""
     volume, tf = artifacts.load_prepared(volume_path)
     light_sets = read_lights(lights_path)
     lights = np.concatenate([light_sets["train"], light_sets["unseen"]])
     print(f"exact shadows of {len(lights)} lights at {eval_points} points per set", flush=True)
-    truth = EvalTruth.compute(volume, tf, lights, eval_points, seed,
+    truth = EvalTruth.compute(volume, tf, lights, eval_points, seed, device=device,
                               log=lambda m: print(f"[eval truth] {m}", flush=True))
     artifacts.write_eval_truth(out, truth)
     print(f"wrote {out}: sets {', '.join(truth.points)}")

@@ -53,6 +53,7 @@ rule eval_truth:
     params:
         points=lambda wc: scene_config(wc.scene)["evaluate"]["points"],
         seed=lambda wc: scene_config(wc.scene)["evaluate"]["seed"],
+        device=lambda wc: "--device cpu" if scene_config(wc.scene)["evaluate"]["device"] == "cpu" else "",
     threads: 1  # a second thread sped it up 1.19x: better spent on the job beside it
     log:
         "results/{scene}/logs/eval_truth.log",
@@ -62,7 +63,7 @@ rule eval_truth:
         "../envs/diffshadow.yaml"
     shell:
         "diffshadow --phases results/{wildcards.scene}/benchmarks/eval_truth.phases.json eval-truth --volume {input.volume} --lights {input.lights} --seed {params.seed}"
-        " --eval-points {params.points}"
+        " --eval-points {params.points} {params.device}"
         " --threads {threads} --out {output} 2>&1 | tee {log}"
 
 
