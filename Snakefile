@@ -46,6 +46,7 @@ report: "workflow/report/workflow.rst"
 rule all:
     input:
         expand("results/{scene}/voxel_metrics.json", scene=config["scenes"]),
+        expand("results/{scene}/caches.json", scene=config["scenes"]),
         expand("results/{scene}/image_metrics.json", scene=config["scenes"]),
         expand("results/{scene}/bench.json", scene=config["scenes"]),
         expand("results/{scene}/stage_costs.tsv", scene=config["scenes"]),

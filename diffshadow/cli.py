@@ -108,6 +108,13 @@ def _eval_truth(a):
                       device=_device(a))
 
 
+def _caches(a):
+    from diffshadow.stages import stage2
+
+    stage2.caches(Path(a.weights), Path(a.generated), Path(a.truth), Path(a.lights), Path(a.volume),
+                  Path(a.checkpoint) if a.checkpoint else None, Path(a.out), Path(a.figure), blend_k=a.blend_k)
+
+
 def _sample_shadows(a):
     from diffshadow.stages import stage2
 
@@ -333,6 +340,13 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--ddpm-lights", type=int, default=evaluate["ddpm_lights"],
                    help="training lights sampled with 500-step DDPM too (evaluate.ddpm_lights)")
     p.add_argument("--geometry-checkpoint", help="the model before fine-tuning: unseen lights before and after")
+    p = _add(sub, "caches", _caches, "caches.json: every cache (stored SIRENs and their codecs, the model, dense "
+             "grids) as bytes against seen and unseen voxel PSNR", "weights", "generated", "truth", "lights", "volume",
+             "figure",
+             device=False)
+    p.add_argument("--checkpoint", help="the diffusion checkpoint (none: cache: blend, no model rows)")
+    p.add_argument("--blend-k", type=int, default=evaluate["blend_k"],
+                   help="stored SIRENs blended per new light (evaluate.blend_k)")
     _add(sub, "train-data-inr", _train_data_inr, "fit the data INR (a SIREN of the scalar field)", "volume",
          config='{"data_inr": {...}}')
     _add(sub, "render-targets", _render_targets, "ground-truth images per training light and view", "volume",

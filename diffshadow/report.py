@@ -210,6 +210,40 @@ def storage_figure(voxel_metrics: dict, n_lights: int, out: Path) -> None:
     save_figure(out, fig)
 
 
+def caches_figure(table: dict, out: Path) -> None:
+    """Rate against distortion (`caches.json`): each cache's bytes against its median voxel PSNR on unseen
+    lights (its own answer for a new light) and on the seen ones; up and to the left is better."""
+    plt = pyplot()
+    fig, axes = plt.subplots(1, 2, figsize=(11, 4.2), sharey=False)
+    colours = {"stored": "C1", "codec": "C1", "model": "C0", "grids": "C2"}
+    for ax, key, title in ((axes[0], "unseen_psnr", "unseen lights (the cache's answer)"),
+                           (axes[1], "seen_psnr", "seen (training) lights")):
+        for row in table["caches"]:
+            if row.get(key) is None:
+                continue
+            marker = "s" if row["kind"] == "stored" else "o"
+            ax.scatter(row["bytes"] / 2**20, row[key], color=colours[row["kind"]], marker=marker, s=36)
+            label = (row["cache"].replace("stored SIRENs ", "" if row["kind"] == "codec" else "SIRENs ")
+                     .replace("diffusion model", "model").replace("dense shadow grids", "grids"))
+            # codecs labelled to their left (the fp32 store sits just right of fp16), a model's fp16 below its
+            # fp32 twin at the same PSNR
+            left, below = row["kind"] == "codec", row["kind"] == "model" and label.endswith("fp16")
+            ax.annotate(label, (row["bytes"] / 2**20, row[key]), fontsize=7, ha="right" if left else "left",
+                        xytext=(-5 if left else 4, -10 if below else 3), textcoords="offset points")
+        ax.set_xscale("log")
+        lo, hi = ax.get_xlim()
+        ax.set_xlim(lo / 3, hi * 4)  # room for the labels on both sides
+        ax.set_xlabel("bytes stored (MiB, log)")
+        ax.set_ylabel("median voxel PSNR (dB)")
+        ax.set_title(title, fontsize=10)
+        ax.grid(alpha=0.3)
+    n = table["lights"]
+    fig.suptitle(f"caches of {n['train']} training lights: orange stored SIRENs and their codecs, blue the "
+                 f"diffusion model, green dense shadow grids", fontsize=9)
+    fig.tight_layout()
+    save_figure(out, fig)
+
+
 def shadow_curve_figure(bench_json: dict, out: Path) -> None:
     """The ground-truth shadow methods' time against error on this scene's volume (from bench shadow)."""
     plt = pyplot()

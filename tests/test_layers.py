@@ -11,13 +11,13 @@ PACKAGE = Path(__file__).resolve().parents[1] / "diffshadow"
 LAYERS = [
     # foundations
     ["diffshadow", "phases", "config", "io", "progress", "metrics", "capacity", "analytic", "hpc"],
-    ["volume", "transfer", "layout", "siren", "lights", "sampling", "grid", "store"],  # data: volumes, lights, SIRENs
+    ["volume", "transfer", "layout", "siren", "lights", "sampling", "grid", "store", "codecs"],  # data
     ["shadow", "truth"],  # ground truth
     ["data_inr"],
     ["render"],  # the renderer, its fused kernels included
     ["fit"],  # stage 1
     ["diffusion"],  # stage 2
-    ["evaluate", "report", "summary", "scaling"],
+    ["evaluate", "caches", "report", "summary", "scaling"],
     ["artifacts", "runtime", "argparsing", "stages", "bench", "parsl_fit", "viewer"],  # files, processes, stages
     ["cli"],
 ]

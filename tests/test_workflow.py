@@ -198,6 +198,7 @@ STAGE_OUTPUTS = {
     "finetune_render": ["diffusion.ckpt", "finetune_metrics.json"],
     "sample_shadows": ["generated.zarr"],
     "evaluate_voxels": ["voxel_metrics.json"],
+    "caches": ["caches.json", "report/caches.png"],
     "train_data_inr": ["data_inr.pt"],
     "naive_images": ["naive_images.zarr"],
     "evaluate_images": ["image_metrics.json", "images"],
@@ -279,6 +280,24 @@ def test_diffusion_settings_do_not_refit(finished):
     assert planned(snakemake(finished, "-n", config=refit))["fit_siren"] == 2
 
 
+def test_caches_table_every_cache_with_its_bytes_and_psnr(finished):
+    """caches.json: the stored SIRENs, at least one codec, the model in fp32 and fp16, the dense grids; each
+    with its bytes and seen and unseen PSNR; the model's fp32 row is the one voxel_metrics.json scores."""
+    import json
+
+    res = finished / "results/nucleon"
+    table = json.loads((res / "caches.json").read_text())
+    rows = {r["cache"]: r for r in table["caches"]}
+    assert {r["kind"] for r in rows.values()} == {"stored", "codec", "model", "grids"}
+    for r in rows.values():
+        assert r["bytes"] > 0 and np.isfinite(r["seen_psnr"]) and np.isfinite(r["unseen_psnr"]), r
+    assert rows["diffusion model fp16"]["bytes"] * 2 == rows["diffusion model fp32"]["bytes"]
+    assert rows["stored SIRENs fp16"]["bytes"] * 2 == rows["stored SIRENs fp32"]["bytes"]
+    voxel = json.loads((res / "voxel_metrics.json").read_text())
+    assert rows["diffusion model fp32"]["seen_psnr"] == pytest.approx(voxel["seen"]["generated_psnr_median"])
+    assert rows["stored SIRENs fp32"]["unseen_psnr"] == pytest.approx(voxel["unseen"]["weight_blend_psnr_median"])
+
+
 def test_eval_truth_marches_on_the_cpu_unless_evaluate_device_is_run(finished):
     """evaluate.device: cpu (the default) keeps one truth on every machine: the rule passes --device cpu; `run`
     gives the march the run's device, which changes the truth's bytes on a GPU, so eval_truth reruns."""
@@ -297,7 +316,7 @@ def test_rerun_one_subset(finished):
     target = "results/nucleon/sirens/subset_1.npz"
     assert planned(snakemake(finished, "-n", "-f", target)) == {"fit_siren": 1}
     downstream = {"fit_siren": 1, "collect_weights": 1, "train_diffusion": 1, "finetune_render": 1,
-                  "sample_shadows": 1, "evaluate_voxels": 1, "evaluate_images": 1, "benchmark": 1,
+                  "sample_shadows": 1, "evaluate_voxels": 1, "caches": 1, "evaluate_images": 1, "benchmark": 1,
                   "report_figures": 1, "stage_costs": 1, "summary": 1, "all": 1}
     assert planned(snakemake(finished, "-n", "-R", target)) == downstream
     # a corrupted subset is newer than the store: collecting again fails and names the file
@@ -502,6 +521,8 @@ def test_cache_blend_skips_stage_two(tmp_path):
     assert unseen["generated_psnr_median"] == pytest.approx(unseen["weight_blend_psnr_median"], abs=1e-3)
     assert metrics["seen"]["generated_psnr_median"] == pytest.approx(metrics["seen"]["stage1_psnr_median"], abs=1e-3)
     assert "cache: blend" in (res / "report/summary.html").read_text()
+    kinds = {r["kind"] for r in json.loads((res / "caches.json").read_text())["caches"]}
+    assert kinds == {"stored", "codec", "grids"}  # no model to weigh
     costs = (res / "stage_costs.tsv").read_text()
     assert "sample_shadows" in costs and "train_diffusion" not in costs
 

@@ -24,7 +24,7 @@ from diffshadow.diffusion.model import PRESETS
 from diffshadow.diffusion.sample import checkpoint_region, generate, load_sampler
 from diffshadow.diffusion.train import train_diffusion as train
 from diffshadow.evaluate import voxel_metrics
-from diffshadow.io import atomic_torch_save, atomic_write_text
+from diffshadow.io import atomic_torch_save, atomic_write_text, finite_json
 from diffshadow.lights import read_lights, training_pool, validation_lights
 from diffshadow.runtime import distributed, set_threads
 from diffshadow.sampling import Stream
@@ -217,6 +217,26 @@ def evaluate_voxels(checkpoint: Path | None, weights_path: Path, generated_path:
     print(json.dumps(result, indent=1))
     for line in quality_warnings(result):
         print(line)
+
+
+def caches(weights_path: Path, generated_path: Path, truth_path: Path, lights_path: Path, volume_path: Path,
+           checkpoint: Path | None, out: Path, figure: Path, *, blend_k: int) -> None:
+    """`caches.json` and its figure: every cache of this run as bytes against seen and unseen voxel PSNR
+    (`diffshadow.caches`); the model's rows where the run trained one (`checkpoint`)."""
+    from diffshadow.caches import cache_table
+    from diffshadow.report import caches_figure
+
+    volume, tf = artifacts.load_prepared(volume_path)
+    table = cache_table(open_store(weights_path), artifacts.read_eval_truth(truth_path), read_lights(lights_path),
+                        blend_k=blend_k, volume=volume, tf=tf,
+                        model_state=artifacts.load_checkpoint(checkpoint) if checkpoint else None,
+                        generated=open_store(generated_path))
+    atomic_write_text(out, json.dumps(finite_json(table), indent=1) + "\n")
+    caches_figure(table, figure)
+    for row in table["caches"]:
+        print(f"{row['cache']:28s} {row['bytes'] / 2**20:9.3f} MiB  seen {row['seen_psnr']:6.2f} dB  unseen "
+              f"{row.get('unseen_psnr', float('nan')):6.2f} dB  {row.get('answer_s', float('nan')) * 1e3:8.2f} ms")
+    print(f"wrote {out} and {figure}")
 
 
 def _wider_presets(model: dict) -> list[str]:

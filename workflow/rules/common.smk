@@ -85,8 +85,8 @@ def stage_benchmarks(wildcards):
     """Snakemake's benchmark file of every job that this scene runs."""
     cfg = scene_config(wildcards.scene)
     rules = ["lights", "prepare_volume", "preoptimize", "collect_weights", "eval_truth", "sample_shadows",
-             "evaluate_voxels", "train_data_inr", "naive_images", "evaluate_images", "shadow_bench", "report_figures",
-             "benchmark"]
+             "evaluate_voxels", "caches", "train_data_inr", "naive_images", "evaluate_images", "shadow_bench",
+             "report_figures", "benchmark"]
     if cfg["cache"] == "diffusion":  # stage 2
         rules += ["presample", "train_diffusion"]
         if cfg["finetune"]["enabled"]:

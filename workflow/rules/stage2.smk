@@ -124,6 +124,37 @@ rule evaluate_voxels:
         " --out {output} 2>&1 | tee {log}"
 
 
+# every cache the run can serve a light from, as rate (bytes) against distortion (seen and unseen voxel PSNR)
+rule caches:
+    input:
+        unpack(model_checkpoint),
+        weights="results/{scene}/weights.zarr",
+        generated="results/{scene}/generated.zarr",
+        truth="results/{scene}/eval_truth.zarr",
+        volume="results/{scene}/volume.zarr",
+        lights="results/{scene}/lights.json",
+    output:
+        table="results/{scene}/caches.json",
+        figure=report("results/{scene}/report/caches.png", caption="../report/caches.rst", category="{scene}",
+                      subcategory="storage"),
+    params:
+        checkpoint=lambda wc, input: f"--checkpoint {input.checkpoint}" if "checkpoint" in input.keys() else "",
+        blend_k=lambda wc: scene_config(wc.scene)["evaluate"]["blend_k"],
+        run=lambda wc: caption_values(wc.scene),  # for the caption
+    threads: 1
+    log:
+        "results/{scene}/logs/caches.log",
+    benchmark:
+        "results/{scene}/benchmarks/caches.tsv",
+    conda:
+        "../envs/diffshadow.yaml"
+    shell:
+        "diffshadow --phases results/{wildcards.scene}/benchmarks/caches.phases.json caches --weights {input.weights}"
+        " --generated {input.generated} --truth {input.truth} --volume {input.volume} --lights {input.lights}"
+        " {params.checkpoint} --blend-k {params.blend_k} --threads {threads} --figure {output.figure}"
+        " --out {output.table} 2>&1 | tee {log}"
+
+
 rule render_targets:
     input:
         volume="results/{scene}/volume.zarr",

@@ -1,0 +1,138 @@
+"""`caches.json`: every cache a run can serve a light from, as rate (bytes) against distortion (median voxel
+PSNR on seen and unseen lights) and the time to answer a new light.
+
+A cache's answer for an unseen light is its own: the diffusion model's sample, the weight blend of the `blend_k`
+nearest stored SIRENs (inverse-angle weights, as `cache: blend` makes it) decoded from each codec, the same
+blend of the dense shadow grids' values. Seen lights are the stored entries themselves. Every PSNR is at
+eval_truth's fixed points against the exact shadow (`truth.EvalTruth`), as in voxel_metrics.json.
+"""
+
+from __future__ import annotations
+
+import copy
+import time
+
+import numpy as np
+import torch
+
+from diffshadow.codecs import BasisCodec, HalfCodec
+from diffshadow.grid import trilinear
+from diffshadow.lights import inverse_angle_weights, nearest
+from diffshadow.metrics import psnr
+from diffshadow.shadow import shadow_grid
+from diffshadow.store import blend_rows
+from diffshadow.truth import EvalTruth, median, siren_values
+
+BASIS_K = (4, 8, 16, 32)  # the basis codec's sizes measured (those below the light count)
+
+
+def cache_table(stage1, truth: EvalTruth, light_sets: dict, *, blend_k: int, volume=None, tf=None,
+                model_state: dict | None = None, generated=None, log=print) -> dict:
+    """One row per cache: bytes, seen and unseen median voxel PSNR (box points), seconds to answer a new light."""
+    train, unseen = light_sets["train"], light_sets["unseen"]
+    layout, siren = stage1.layout, stage1.siren
+    weights = np.asarray(stage1.weights, dtype=np.float32)
+    truth_train, truth_unseen = truth.of(train), (truth.of(unseen) if len(unseen) else None)
+    idx, angles = nearest(train, unseen, blend_k) if len(unseen) else (None, None)
+    mix = inverse_angle_weights(angles) if len(unseen) else None
+
+    box = {"box": truth.points["box"]}  # the box set alone: the medians voxel_metrics.json reports
+
+    def scored(seen_weights: np.ndarray, unseen_weights: np.ndarray | None) -> dict:
+        def at_box(w, rows):
+            return median(psnr(siren_values(box, truth.extent, w, layout, siren)["box"], rows["box"], dim=1).numpy())
+
+        out = {"seen_psnr": at_box(seen_weights, truth_train)}
+        if unseen_weights is not None:
+            out["unseen_psnr"] = at_box(unseen_weights, truth_unseen)
+        return out
+
+    def blend_time(decode_one) -> float:
+        """Seconds to make one new light's SIREN: the nearest search, the blend, the decoding."""
+        if not len(unseen):
+            return float("nan")
+        t0 = time.perf_counter()
+        for w in unseen:
+            i, a = nearest(train, w[None], blend_k)
+            decode_one(i, inverse_angle_weights(a))
+        return (time.perf_counter() - t0) / len(unseen)
+
+    rows = []
+    plain = blend_rows(weights, idx, mix).astype(np.float32) if len(unseen) else None
+    rows.append({"cache": "stored SIRENs fp32", "kind": "stored", "bytes": int(weights.nbytes),
+                 **scored(weights, plain), "answer_s": blend_time(lambda i, m: blend_rows(weights, i, m))})
+    log(f"[caches] {rows[-1]}")
+    codecs = [HalfCodec("float16"), HalfCodec("bfloat16")] + [BasisCodec(k) for k in BASIS_K if k < len(train)]
+    for codec in codecs:
+        enc = codec.encode(weights, layout)
+        decoded = codec.decode(enc, layout)
+        if isinstance(codec, BasisCodec):  # a blend of SIRENs is the same blend of their coefficients
+            coeff = enc.arrays["coefficients"]
+            blended = codec.decode(enc, layout, blend_rows(coeff, idx, mix)) if len(unseen) else None
+            answer = blend_time(lambda i, m, c=codec, e=enc, k=coeff: c.decode(e, layout, blend_rows(k, i, m)))
+        else:
+            blended = blend_rows(decoded, idx, mix).astype(np.float32) if len(unseen) else None
+            answer = blend_time(lambda i, m, c=codec, e=enc: (c.decode(e, rows=i[0]) * m[0][:, None]).sum(0))
+        rows.append({"cache": f"stored SIRENs {codec.name}", "kind": "codec", "bytes": enc.nbytes,
+                     **scored(decoded, blended), "answer_s": answer})
+        log(f"[caches] {rows[-1]}")
+    if model_state is not None:
+        rows += _model_rows(model_state, generated, train, unseen, scored, log)
+    if volume is not None:
+        rows.append(_grid_row(volume, tf, truth, train, unseen, idx, mix, truth_train, truth_unseen))
+        log(f"[caches] {rows[-1]}")
+    return {"blend_k": blend_k, "lights": {"train": len(train), "unseen": len(unseen)},
+            "siren_parameters": layout.n_params, "eval_points": int(len(truth.points["box"])), "caches": rows}
+
+
+def _model_rows(state: dict, generated, train, unseen, scored, log) -> list[dict]:
+    """The diffusion model with its parameters stored in fp32 (its samples: sample_shadows' `generated` store)
+    and in fp16 (rounded, then sampled in fp32 with the same DDIM steps and seed: what storing them in 16 bits
+    costs). The time to answer: one DDIM sample per light, in batches as sample_shadows draws them."""
+    from diffshadow.diffusion.sample import generate, load_sampler
+
+    model, std, _, _ = load_sampler(state)
+    cfg = state["config"]
+    half = copy.deepcopy(model)
+    with torch.no_grad():
+        for p in half.parameters():
+            p.copy_(p.half().float())
+    lights = np.concatenate([train, unseen])
+    t0 = time.perf_counter()
+    with torch.no_grad():
+        w16 = generate(half, std, lights, method="ddim", steps=int(cfg["ddim_steps"]), seed=int(cfg["seed"]),
+                       temperature=cfg["temperature"]).numpy()
+    answer = (time.perf_counter() - t0) / len(lights)
+    seen = np.asarray(generated.seen)
+    w32 = np.concatenate([np.asarray(generated.weights)[seen], np.asarray(generated.weights)[~seen]])
+    n_params = sum(p.numel() for p in model.parameters())
+    rows = []
+    for name, w, bits in (("fp32", w32, 32), ("fp16", w16, 16)):
+        rows.append({"cache": f"diffusion model {name}", "kind": "model", "bytes": int(n_params * bits // 8),
+                     **scored(w[:len(train)], w[len(train):] if len(unseen) else None), "answer_s": answer})
+        log(f"[caches] {rows[-1]}")
+    return rows
+
+
+def _grid_row(volume, tf, truth: EvalTruth, train, unseen, idx, mix, truth_train, truth_unseen) -> dict:
+    """Dense shadow grids at the volume's resolution (fp16, as voxel_metrics' storage counts them), read
+    trilinearly at the evaluation points; an unseen light's answer is the blend of its nearest lights' grids."""
+    points = truth.points["box"]
+    voxel = torch.as_tensor(volume.voxel_size, dtype=torch.float32)
+
+    def values(w) -> torch.Tensor:
+        g = shadow_grid(volume, tf, w).half().float()
+        return trilinear(g[None], points / voxel)[0]
+
+    seen_vals = torch.stack([values(w) for w in train])
+    row = {"cache": "dense shadow grids fp16", "kind": "grids", "bytes": int(len(train) * volume.data.size * 2),
+           "seen_psnr": median(psnr(seen_vals, truth_train["box"], dim=1).numpy())}
+    if len(unseen):
+        blended = (seen_vals[torch.as_tensor(idx)] * torch.as_tensor(mix, dtype=torch.float32)[..., None]).sum(1)
+        row["unseen_psnr"] = median(psnr(blended, truth_unseen["box"], dim=1).numpy())
+        g = torch.randn(len(train), *volume.data.shape)
+        t0 = time.perf_counter()
+        for i, m in zip(idx, mix, strict=True):
+            (g[torch.as_tensor(i)] * torch.as_tensor(m, dtype=torch.float32)[:, None, None, None]).sum(0)
+        row["answer_s"] = (time.perf_counter() - t0) / len(unseen)
+    return row
