@@ -214,9 +214,46 @@ class Selection:
         return (self.val is not None and self.patience > 0 and len(scores) > self.patience
                 and max(scores[-self.patience:]) < scores[0])
 
+    def agreed_give_up(self, world: int, device: torch.device) -> bool:
+        """`give_up`, rank 0's verdict broadcast to every rank (only rank 0 validates)."""
+        verdict = self.give_up()
+        if world > 1:
+            import torch.distributed as dist
+
+            flag = torch.tensor([int(verdict)], device=device)
+            dist.broadcast(flag, 0)
+            verdict = bool(flag.item())
+        return verdict
+
     @property
     def stopped(self) -> bool:
         return bool(self.record.get("stopped_epoch"))
+
+
+class FinetuneCheckpoint:
+    """Fine-tuning's progress as one resumable checkpoint, written by rank 0 (every rank waits for it): before
+    the end the running model and the one `Selection` keeps; at the end, with validation, the kept one as the
+    model (what sample_shadows samples from)."""
+
+    def __init__(self, path: Path, geometry_state: dict, cfg: FinetuneConfig, fp: str, selection: Selection,
+                 validated: bool, rank: int, world: int):
+        self.path, self.geometry_state, self.cfg, self.fp = path, geometry_state, cfg, fp
+        self.selection, self.validated, self.rank, self.world = selection, validated, rank, world
+
+    def save(self, epoch: int, model, opt: torch.optim.Optimizer, *, last: bool) -> dict:
+        final = self.validated and last
+        kept = self.selection.kept
+        state = {**self.geometry_state, "model": kept if final else model.state_dict(), "ema": None,
+                 "optimizer": opt.state_dict(), "finetune_fingerprint": self.fp, "finetune_epoch": epoch,
+                 "finetune": asdict(self.cfg), "selection": self.selection.record,
+                 "kept_model": kept if self.validated and not final else None}
+        if self.rank == 0:
+            atomic_torch_save(self.path, state)
+        if self.world > 1:
+            import torch.distributed as dist
+
+            dist.barrier()
+        return state
 
 
 def train_step(model, base, opt: torch.optim.Optimizer, std: Standardizer, data: FinetuneData, z_all: torch.Tensor,
@@ -238,7 +275,8 @@ def train_step(model, base, opt: torch.optim.Optimizer, std: Standardizer, data:
 def finetune(geometry_state: dict, data: FinetuneData, cfg: FinetuneConfig, checkpoint: Path, *,
              rank: int = 0, world: int = 1, device: torch.device | str = "cpu",
              log=print, stop_after_epoch: int | None = None) -> dict:
-    """Fine-tune from the geometry-stage checkpoint state; resumable; only rank 0 writes."""
+    """Fine-tune from the geometry-stage checkpoint state; resumable; only rank 0 writes. `Selection` decides
+    which model is kept and when to stop, `FinetuneCheckpoint` what is written; this loop runs the steps."""
     import torch.distributed as dist
 
     device = torch.device(device)
@@ -275,27 +313,7 @@ def finetune(geometry_state: dict, data: FinetuneData, cfg: FinetuneConfig, chec
         model.load_state_dict(sampler)
         return model.to(device)
 
-    def give_up() -> bool:
-        verdict = selection.give_up()
-        if world > 1:
-            flag = torch.tensor([int(verdict)], device=device)
-            dist.broadcast(flag, 0)
-            verdict = bool(flag.item())
-        return verdict
-
-    def save(epoch: int, last: bool) -> dict:
-        # at the end the model written is the one validation kept; before it, the running one and the kept one
-        validated = data.val is not None
-        final = validated and last
-        state = {**geometry_state, "model": selection.kept if final else base.state_dict(), "ema": None,
-                 "optimizer": opt.state_dict(), "finetune_fingerprint": fp, "finetune_epoch": epoch,
-                 "finetune": asdict(cfg), "selection": selection.record,
-                 "kept_model": selection.kept if validated and not final else None}
-        if rank == 0:
-            atomic_torch_save(checkpoint, state)
-        if world > 1:
-            dist.barrier()
-        return state
+    writer = FinetuneCheckpoint(checkpoint, geometry_state, cfg, fp, selection, data.val is not None, rank, world)
 
     model = base
     if world > 1:
@@ -334,13 +352,13 @@ def finetune(geometry_state: dict, data: FinetuneData, cfg: FinetuneConfig, chec
         done = epoch + 1
         if done % cfg.checkpoint_every == 0 or done == cfg.epochs:
             selection.score(done, base, psnr_of)
-            stop = done < cfg.epochs and give_up()
+            stop = done < cfg.epochs and selection.agreed_give_up(world, device)
             if stop:
                 if rank == 0:
                     log(f"validation: the last {cfg.patience} checkpoints scored under the geometry stage; "
                         f"stopping at epoch {done}/{cfg.epochs} and keeping epoch {selection.record['kept_epoch']}")
                 selection.record["stopped_epoch"] = done
-            state = save(done, last=stop or done == cfg.epochs)
+            state = writer.save(done, base, opt, last=stop or done == cfg.epochs)
             if stop:
                 break
         if rank == 0 and (done % max(1, cfg.epochs // 10) == 0 or done == cfg.epochs):
