@@ -37,7 +37,7 @@ from diffshadow.siren import SirenConfig, WeightLayout, init_siren
 class Variant:
     batch: int | None = None  # None: the device's default
     tf32: bool = False  # TF32 matmuls (the eager SIREN)
-    fused: str | None = None  # the scene's network setting (render.Networks.setting(): "compile" or "fused")
+    kernel: str | None = None  # the scene's kernel (render.Networks.setting(): "compile" or "fused")
 
 
 def variants(device: torch.device) -> dict[str, Variant]:
@@ -48,20 +48,20 @@ def variants(device: torch.device) -> dict[str, Variant]:
     for lb in (20, 21, 22) if device.type == "cuda" else (16, 20, 22):
         out[f"batch 2^{lb}"] = Variant(batch=1 << lb)
     out["tf32 matmuls"] = Variant(tf32=True)
-    out["compiled SIREN"] = Variant(fused="compile")
+    out["compiled SIREN"] = Variant(kernel="compile")
     if fused_available(device):
-        out["fused"] = Variant(fused="fused")
+        out["fused"] = Variant(kernel="fused")
     return out
 
 
 @contextlib.contextmanager
 def variant(scene: R.RenderScene, v: Variant):
-    old = torch.backends.cuda.matmul.allow_tf32, scene.fused
-    torch.backends.cuda.matmul.allow_tf32, scene.fused = v.tf32, v.fused
+    old = torch.backends.cuda.matmul.allow_tf32, scene.kernel_used
+    torch.backends.cuda.matmul.allow_tf32, scene.kernel_used = v.tf32, v.kernel
     try:
         yield
     finally:
-        torch.backends.cuda.matmul.allow_tf32, scene.fused = old
+        torch.backends.cuda.matmul.allow_tf32, scene.kernel_used = old
 
 
 def main() -> None:
@@ -141,7 +141,7 @@ def main() -> None:
     if a.profile:
         cam = R.Camera.orbit(scene.volume.extent, azimuth=30.0, elevation=25.0, size=max(a.sizes))
         for name, v in plans.items():
-            if name == "default" or v.fused:  # the fused kernels and torch.compile
+            if name == "default" or v.kernel:  # the fused kernels and torch.compile
                 with variant(scene, v):
                     profile_frame(scene, cam, device, name, batch=v.batch, **kw)
 

@@ -103,7 +103,7 @@ def test_renderer_images_equal_with_the_fused_kernels(monkeypatch, mode):
     images = {}
     for setting in ("0", "1"):
         scene = RenderScene(volume, tf, data_inr, device="cpu", networks=FUSED if setting == "1" else None)
-        assert scene.fused == (None if setting == "0" else "fused")
+        assert scene.kernel_used == (None if setting == "0" else "fused")
         images[setting] = scene.render(mode, cam, light=(0.3, -0.5, 0.8), siren=siren, skip=False,
                                        min_transmittance=0.0)
         assert bool(calls) == (setting == "1")
@@ -247,7 +247,7 @@ def test_a_kernel_that_fails_to_compile_leaves_the_scene_eager(monkeypatch):
                                                 r"launch, compiling \(Triton .*\): RuntimeError: ptxas fatal: "
                                                 r"Unsupported .version 8.7.*eager SIREN from now on"):
         image = scene.render("inr", cam, **kw).rgb
-    assert torch.equal(image, eager) and scene.fused is None
+    assert torch.equal(image, eager) and scene.kernel_used is None
     assert torch.equal(scene.render("inr", cam, **kw).rgb, eager)  # no second warning: the filter makes it an error
 
     # a kernel that compiled and launched: its later failures are not compile failures

@@ -234,7 +234,7 @@ def test_compiled_sirens_render_the_same_images(blob, monkeypatch):
     images = {}
     for setting in ("0", "compile"):
         scene = RenderScene(blob, TF, data_inr, networks=Networks("compile") if setting == "compile" else None)
-        assert scene.fused == (None if setting == "0" else "compile")
+        assert scene.kernel_used == (None if setting == "0" else "compile")
         for mode, size in (("inr", 24), ("naive", 12)):
             cam = Camera.orbit(blob.extent, azimuth=30.0, elevation=25.0, size=size)
             images[setting, mode] = scene.render(mode, cam, light=(0.3, -0.5, 0.8),

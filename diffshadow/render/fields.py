@@ -1,5 +1,5 @@
 """What the marcher samples: the scalar field (raw grid or data INR) and the shadow source (a shadow grid or a
-shadow INR), each evaluated by the network path `Networks` chose (eager, compiled or a fused kernel)."""
+shadow INR), each evaluated by the kernel `Networks` chose (eager, compiled or fused)."""
 
 from __future__ import annotations
 
@@ -39,18 +39,18 @@ class GridScalar:
 
 
 class InrScalar:
-    """The data INR (a SIREN of the scalar field); gradients by autograd through the network. `fused`: "fused" for
+    """The data INR (a SIREN of the scalar field); gradients by autograd through the network. `kernel`: "fused" for
     the fused kernel for values (`diffshadow.render.fused`), "compile" for the eager SIREN through torch.compile, None
     for the eager SIREN."""
 
-    def __init__(self, model: Siren, extent, device: torch.device | str = "cpu", fused: str | None = None):
+    def __init__(self, model: Siren, extent, device: torch.device | str = "cpu", kernel: str | None = None):
         self.model = model.to(device).eval()
         for q in self.model.parameters():
             q.requires_grad_(False)
         self.extent = torch.as_tensor(np.asarray(extent), dtype=torch.float32, device=device)
         self.box = tuple(np.asarray(extent, dtype=float).tolist())  # on the host, to compare without a sync
         named, blocks = self.model.named_tensors(), self.model.cfg.blocks  # parameters without gradients
-        self.fast = _fast_siren(named, blocks, fused, lambda: fold(named, blocks))
+        self.fast = _fast_siren(named, blocks, kernel, lambda: fold(named, blocks))
 
     def value(self, p: torch.Tensor) -> torch.Tensor:
         return self.fast(box_to_siren(p, self.extent))
@@ -63,17 +63,17 @@ class InrScalar:
         return s.detach(), g
 
 
-def _fast_siren(named: dict, blocks: int, fused: str | None, layers) -> FusedSiren | FoldedSiren:
-    """A SIREN for inference: the fused kernel for `fused` = "fused", else the folded eager SIREN
+def _fast_siren(named: dict, blocks: int, kernel: str | None, layers) -> FusedSiren | FoldedSiren:
+    """A SIREN for inference: the fused kernel for `kernel` = "fused", else the folded eager SIREN
     (`layers()`: its folded layers), through torch.compile for "compile". A SIREN the kernel cannot take (a width
     that is not a power of two >= 16) falls back to the eager one, with a warning: the setting is a speed-up, not
     a result."""
-    if fused == FUSED:
+    if kernel == FUSED:
         try:
             return FusedSiren(named, blocks)
         except FusedSirenError as e:
             warnings.warn(f"render.kernel=fused: {e}; using the eager SIREN", stacklevel=3)
-    return FoldedSiren(layers(), compiled=fused == COMPILE)
+    return FoldedSiren(layers(), compiled=kernel == COMPILE)
 
 
 class GridShadow:
@@ -92,10 +92,10 @@ class SirenShadow:
     """A shadow INR (one flat weight vector in `layout`), evaluated in the same pass as the data INR."""
 
     def __init__(self, weights, layout: WeightLayout, blocks: int, extent, device: torch.device | str = "cpu",
-                 fused: str | None = None):
+                 kernel: str | None = None):
         w = torch.as_tensor(np.asarray(weights), dtype=torch.float32, device=device).reshape(1, -1)
         # eager: one SIREN with a leading K = 1, the batched matmuls of fitting, so the same values
-        self.fast = _fast_siren({k: v[0] for k, v in layout.unflatten(w).items()}, blocks, fused,
+        self.fast = _fast_siren({k: v[0] for k, v in layout.unflatten(w).items()}, blocks, kernel,
                                 lambda: fold_flat(w, layout, blocks))
         self.batched = not isinstance(self.fast, FusedSiren)
         self.extent = torch.as_tensor(np.asarray(extent), dtype=torch.float32, device=device)

@@ -73,9 +73,10 @@ class RenderScene:
         self.volume, self.tf, self.data_inr = volume, tf, data_inr
         self.device = torch.device(device)
         self.networks = networks or Networks()
-        # the SIRENs' path for values where it runs on this device, else eager (`networks_used` records which)
+        # the kernel the SIRENs' values take where it runs on this device, else None: eager (`networks_used`
+        # records which)
         setting = self.networks.setting(self.device)
-        self.fused = setting if setting and fused_available(self.device, setting) else None
+        self.kernel_used = setting if setting and fused_available(self.device, setting) else None
         self.gt_method, self.gt_upsample, self.cell = gt_method, gt_upsample, cell
         self.voxel = float(np.min(volume.voxel_size))
         self._cache: dict = {}
@@ -83,7 +84,7 @@ class RenderScene:
     def networks_used(self) -> dict:
         """The choice as configured and what this scene renders with now (after any fallback), for the
         metrics files and the report."""
-        return {**asdict(self.networks), "used": self.fused or "eager"}
+        return {**asdict(self.networks), "used": self.kernel_used or "eager"}
 
     def _cached(self, key, make):
         if key not in self._cache:
@@ -105,8 +106,8 @@ class RenderScene:
         if source == "inr":
             if self.data_inr is None:
                 raise RenderError("scalar 'inr' needs a data INR (train_data_inr's data_inr.pt)")
-            return self._cached(("inr", self.fused), lambda: InrScalar(
-                self.data_inr.model, self.volume.extent, self.device, self.fused))
+            return self._cached(("inr", self.kernel_used), lambda: InrScalar(
+                self.data_inr.model, self.volume.extent, self.device, self.kernel_used))
         raise RenderError(f"scalar: expected 'grid' or 'inr', got {source!r}")
 
     def macro(self, source: str, skip: bool) -> MacroGrid | None:
@@ -152,9 +153,9 @@ class RenderScene:
         try:
             return self._render(mode, camera, **kw)
         except FusedKernelError as e:
-            warnings.warn(f"render.kernel={self.networks.kernel} ({self.fused}): {e}; rendering with the eager SIREN "
-                          "from now on", FusedKernelWarning, stacklevel=2)
-            self.fused = None
+            warnings.warn(f"render.kernel={self.networks.kernel} ({self.kernel_used}): {e}; rendering with the eager "
+                          "SIREN from now on", FusedKernelWarning, stacklevel=2)
+            self.kernel_used = None
             return self._render(mode, camera, **kw)
 
     def _render(self, mode: str, camera: Camera, *, light, siren, scalar, phong, step, skip, batch,
@@ -176,7 +177,7 @@ class RenderScene:
             if siren is None:
                 raise RenderError("mode 'inr': needs the shadow INR's weights")
             weights, layout, blocks = siren
-            shadow = SirenShadow(weights, layout, blocks, self.volume.extent, self.device, self.fused)
+            shadow = SirenShadow(weights, layout, blocks, self.volume.extent, self.device, self.kernel_used)
         elif mode == "naive":
             shadow = MarchedShadow(field_, self.tf, self.volume.extent, self.voxel, step=step, macro=macro,
                                    samples_per_iter=samples_per_iter, batch=batch)

@@ -87,7 +87,7 @@ rule benchmark:
         step=lambda wc: scene_config(wc.scene)["render"]["step"],
         repeats=lambda wc: scene_config(wc.scene)["render"]["bench_repeats"],
         memory=lambda wc: " ".join(str(n) for n in scene_config(wc.scene)["render"].get("bench_memory_sizes", [])),
-        networks=lambda wc: f"--kernel {scene_config(wc.scene)['render']['kernel']}",
+        kernel=lambda wc: scene_config(wc.scene)["render"]["kernel"],
     threads: 2
     log:
         "results/{scene}/logs/benchmark.log",
@@ -98,5 +98,5 @@ rule benchmark:
     shell:
         "diffshadow --phases results/{wildcards.scene}/benchmarks/benchmark.phases.json bench render --volume {input.volume} --data-inr {input.data_inr} --weights {input.weights}"
         " --sizes {params.sizes} --memory-sizes {params.memory} --step {params.step} --repeats {params.repeats}"
-        " {params.networks} --threads {threads}"
+        " --kernel {params.kernel} --threads {threads}"
         " --out {output.bench} 2>&1 | tee {log}"
