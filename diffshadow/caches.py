@@ -16,12 +16,13 @@ import numpy as np
 import torch
 
 from diffshadow.codecs import BasisCodec, HalfCodec
+from diffshadow.evaluate import blend_baseline
 from diffshadow.grid import trilinear
 from diffshadow.lights import inverse_angle_weights, nearest
 from diffshadow.metrics import psnr
 from diffshadow.shadow import shadow_grid
 from diffshadow.store import blend_rows
-from diffshadow.truth import EvalTruth, median, siren_values
+from diffshadow.truth import EvalTruth, median
 
 BASIS_K = (4, 8, 16, 32)  # the basis codec's sizes measured (those below the light count)
 
@@ -32,19 +33,14 @@ def cache_table(stage1, truth: EvalTruth, light_sets: dict, *, blend_k: int, vol
     train, unseen = light_sets["train"], light_sets["unseen"]
     layout, siren = stage1.layout, stage1.siren
     weights = np.asarray(stage1.weights, dtype=np.float32)
-    truth_train, truth_unseen = truth.of(train), (truth.of(unseen) if len(unseen) else None)
     idx, angles = nearest(train, unseen, blend_k) if len(unseen) else (None, None)
     mix = inverse_angle_weights(angles) if len(unseen) else None
 
-    box = {"box": truth.points["box"]}  # the box set alone: the medians voxel_metrics.json reports
-
     def scored(seen_weights: np.ndarray, unseen_weights: np.ndarray | None) -> dict:
-        def at_box(w, rows):
-            return median(psnr(siren_values(box, truth.extent, w, layout, siren)["box"], rows["box"], dim=1).numpy())
-
-        out = {"seen_psnr": at_box(seen_weights, truth_train)}
+        """Median voxel PSNR at the box points, the set voxel_metrics.json's medians report."""
+        out = {"seen_psnr": truth.median_psnr(seen_weights, layout, siren, train)}
         if unseen_weights is not None:
-            out["unseen_psnr"] = at_box(unseen_weights, truth_unseen)
+            out["unseen_psnr"] = truth.median_psnr(unseen_weights, layout, siren, unseen)
         return out
 
     def blend_time(decode_one) -> float:
@@ -79,7 +75,7 @@ def cache_table(stage1, truth: EvalTruth, light_sets: dict, *, blend_k: int, vol
     if model_state is not None:
         rows += _model_rows(model_state, generated, train, unseen, scored, log)
     if volume is not None:
-        rows.append(_grid_row(volume, tf, truth, train, unseen, idx, mix, truth_train, truth_unseen))
+        rows.append(_grid_row(volume, tf, truth, train, unseen, idx, mix))
         log(f"[caches] {rows[-1]}")
     return {"blend_k": blend_k, "lights": {"train": len(train), "unseen": len(unseen)},
             "siren_parameters": layout.n_params, "eval_points": int(len(truth.points["box"])), "caches": rows}
@@ -103,18 +99,18 @@ def _model_rows(state: dict, generated, train, unseen, scored, log) -> list[dict
         w16 = generate(half, std, lights, method="ddim", steps=int(cfg["ddim_steps"]), seed=int(cfg["seed"]),
                        temperature=cfg["temperature"]).numpy()
     answer = (time.perf_counter() - t0) / len(lights)
-    seen = np.asarray(generated.seen)
-    w32 = np.concatenate([np.asarray(generated.weights)[seen], np.asarray(generated.weights)[~seen]])
+    seen, stored = np.asarray(generated.seen), np.asarray(generated.weights)
     n_params = sum(p.numel() for p in model.parameters())
     rows = []
-    for name, w, bits in (("fp32", w32, 32), ("fp16", w16, 16)):
+    for name, (w_seen, w_unseen), bits in (("fp32", (stored[seen], stored[~seen]), 32),
+                                           ("fp16", (w16[:len(train)], w16[len(train):]), 16)):
         rows.append({"cache": f"diffusion model {name}", "kind": "model", "bytes": int(n_params * bits // 8),
-                     **scored(w[:len(train)], w[len(train):] if len(unseen) else None), "answer_s": answer})
+                     **scored(w_seen, w_unseen if len(unseen) else None), "answer_s": answer})
         log(f"[caches] {rows[-1]}")
     return rows
 
 
-def _grid_row(volume, tf, truth: EvalTruth, train, unseen, idx, mix, truth_train, truth_unseen) -> dict:
+def _grid_row(volume, tf, truth: EvalTruth, train, unseen, idx, mix) -> dict:
     """Dense shadow grids at the volume's resolution (fp16, as voxel_metrics' storage counts them), read
     trilinearly at the evaluation points; an unseen light's answer is the blend of its nearest lights' grids."""
     points = truth.points["box"]
@@ -126,10 +122,10 @@ def _grid_row(volume, tf, truth: EvalTruth, train, unseen, idx, mix, truth_train
 
     seen_vals = torch.stack([values(w) for w in train])
     row = {"cache": "dense shadow grids fp16", "kind": "grids", "bytes": int(len(train) * volume.data.size * 2),
-           "seen_psnr": median(psnr(seen_vals, truth_train["box"], dim=1).numpy())}
+           "seen_psnr": median(psnr(seen_vals, truth.of(train)["box"], dim=1).numpy())}
     if len(unseen):
-        blended = (seen_vals[torch.as_tensor(idx)] * torch.as_tensor(mix, dtype=torch.float32)[..., None]).sum(1)
-        row["unseen_psnr"] = median(psnr(blended, truth_unseen["box"], dim=1).numpy())
+        blended = blend_baseline({"box": seen_vals}, idx, mix)["box"]
+        row["unseen_psnr"] = median(psnr(blended, truth.of(unseen)["box"], dim=1).numpy())
         g = torch.randn(len(train), *volume.data.shape)
         t0 = time.perf_counter()
         for i, m in zip(idx, mix, strict=True):

@@ -342,8 +342,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--geometry-checkpoint", help="the model before fine-tuning: unseen lights before and after")
     p = _add(sub, "caches", _caches, "caches.json: every cache (stored SIRENs and their codecs, the model, dense "
              "grids) as bytes against seen and unseen voxel PSNR", "weights", "generated", "truth", "lights", "volume",
-             "figure",
-             device=False)
+             "figure", device=False)
     p.add_argument("--checkpoint", help="the diffusion checkpoint (none: cache: blend, no model rows)")
     p.add_argument("--blend-k", type=int, default=evaluate["blend_k"],
                    help="stored SIRENs blended per new light (evaluate.blend_k)")

@@ -77,7 +77,7 @@ class TruthPoints:
         return {k: torch.cat(v) if v else torch.zeros(0, len(self.sets[k])) for k, v in out.items()}
 
     def sirens(self, weights: np.ndarray, layout: WeightLayout, siren: SirenConfig) -> dict[str, torch.Tensor]:
-        return siren_values(self.sets, self.extent, weights, layout, siren)
+        return _siren_values(self.sets, self.extent, weights, layout, siren)
 
 
 @dataclass
@@ -110,15 +110,17 @@ class EvalTruth:
         return {k: v[idx] for k, v in self.values.items()}
 
     def sirens(self, weights: np.ndarray, layout: WeightLayout, siren: SirenConfig) -> dict[str, torch.Tensor]:
-        return siren_values(self.points, self.extent, weights, layout, siren)
+        return _siren_values(self.points, self.extent, weights, layout, siren)
 
     def median_psnr(self, weights: np.ndarray, layout: WeightLayout, siren: SirenConfig, lights: np.ndarray,
                     point_set: str = "box") -> float:
-        """Median over `lights` of the voxel PSNR of their SIRENs `weights` (L, n_params) at one point set."""
-        return median(psnr_per_light(self.sirens(weights, layout, siren), self.of(lights))[point_set])
+        """Median over `lights` of the voxel PSNR of their SIRENs `weights` (L, n_params) at one point set (the
+        SIRENs evaluated there only)."""
+        values = _siren_values({point_set: self.points[point_set]}, self.extent, weights, layout, siren)
+        return median(psnr(values[point_set], self.of(lights)[point_set], dim=1).numpy())
 
 
-def siren_values(sets: dict, extent: torch.Tensor, weights, layout: WeightLayout,
+def _siren_values(sets: dict, extent: torch.Tensor, weights, layout: WeightLayout,
                   siren: SirenConfig) -> dict[str, torch.Tensor]:
     w = torch.as_tensor(np.asarray(weights), dtype=torch.float32)
     with torch.no_grad():
