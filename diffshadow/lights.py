@@ -189,6 +189,12 @@ class LightRegion:
         return cls(tuple(float(x) for x in c), radius, spacing, far, train)
 
     @classmethod
+    def recorded(cls, d: dict | None, train: np.ndarray) -> LightRegion:
+        """The region recorded with a cache (`to_dict`), else (a cache from before regions travelled with it) the
+        cap around its training lights' mean direction."""
+        return cls.from_dict(d, train) if d else cls.of(train)
+
+    @classmethod
     def from_dict(cls, d: dict, train: np.ndarray) -> LightRegion:
         return cls(tuple(float(x) for x in d["center"]), float(d["radius_deg"]), float(d["spacing_deg"]),
                    float(d["far_deg"]), np.asarray(train, dtype=np.float64).reshape(-1, 3))
@@ -197,17 +203,23 @@ class LightRegion:
         return {"center": list(self.center), "radius_deg": self.radius_deg, "spacing_deg": self.spacing_deg,
                 "far_deg": self.far_deg}
 
+    def angle_to_center(self, light) -> float:
+        """Degrees between `light` and the cap's centre."""
+        cos = float(as_direction(light) @ np.asarray(self.center))
+        return float(np.degrees(np.arccos(np.clip(cos, -1.0, 1.0))))
+
+    def holds(self, angle_to_center_deg: float) -> bool:
+        """Whether a light this far from the centre lies in the cap (a training light on its edge does)."""
+        return angle_to_center_deg <= self.radius_deg + INSIDE_TOLERANCE_DEG
+
     def contains(self, light) -> bool:
         """Whether `light` lies in the cap (its angle to the centre only: no search of the training lights)."""
-        cos = float(as_direction(light) @ np.asarray(self.center))
-        return float(np.degrees(np.arccos(np.clip(cos, -1.0, 1.0)))) <= self.radius_deg + INSIDE_TOLERANCE_DEG
+        return self.holds(self.angle_to_center(light))
 
     def where(self, light) -> RegionCheck:
         """Where `light` stands: its angle to the centre and to the nearest training light, inside or not."""
         w = as_direction(light)
-        to_center = float(np.degrees(np.arccos(np.clip(float(w @ np.asarray(self.center)), -1.0, 1.0))))
-        to_nearest = float(np.degrees(nearest(self.train, w[None], 1)[1][0, 0]))
-        return RegionCheck(self, to_center, to_nearest)
+        return RegionCheck(self, self.angle_to_center(w), float(np.degrees(nearest(self.train, w[None], 1)[1][0, 0])))
 
     def describe(self) -> str:
         c = ", ".join(f"{x:.3g}" for x in self.center)
@@ -223,7 +235,7 @@ class RegionCheck:
 
     @property
     def inside(self) -> bool:
-        return self.to_center_deg <= self.region.radius_deg + INSIDE_TOLERANCE_DEG
+        return self.region.holds(self.to_center_deg)
 
     @property
     def far(self) -> bool:

@@ -36,10 +36,7 @@ class WeightStore:
     def light_region(self) -> LightRegion:
         """The light region these SIRENs answer for: as written with the store, else (a store written before
         regions travelled with it) the cap around its training lights' mean direction."""
-        train = self.lights if self.seen is None else self.lights[self.seen]
-        if self.region is not None:
-            return LightRegion.from_dict(self.region, train)
-        return LightRegion.of(train)
+        return LightRegion.recorded(self.region, self.lights if self.seen is None else self.lights[self.seen])
 
 
 def blend_rows(weights: np.ndarray, idx: np.ndarray, mix: np.ndarray) -> np.ndarray:

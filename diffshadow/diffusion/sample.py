@@ -72,9 +72,7 @@ def generate(model: WeightTransformer, std: Standardizer, lights, *, method: str
 def checkpoint_region(state: dict) -> LightRegion:
     """The light region a checkpoint was trained for: as saved with it, else (a checkpoint from before regions
     were saved) the cap around its training lights' mean direction."""
-    if state.get("region"):
-        return LightRegion.from_dict(state["region"], state["train_lights"])
-    return LightRegion.of(np.asarray(state["train_lights"]))
+    return LightRegion.recorded(state.get("region"), np.asarray(state["train_lights"]))
 
 
 class ShadowSampler:

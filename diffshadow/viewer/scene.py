@@ -136,10 +136,11 @@ class ViewerScene:
 
     def light_info(self, light) -> LightInfo:
         w = as_direction(light)
-        nearest_deg = None
-        if len(self.train):
-            nearest_deg = float(np.degrees(nearest(self.train, w[None], 1)[1][0, 0]))
+        # the cache's training lights are the scene's: its region check has measured the nearest one already
         region = self.region.where(w) if self.region is not None else None
+        nearest_deg = region.to_nearest_deg if region is not None else None
+        if region is None and len(self.train):
+            nearest_deg = float(np.degrees(nearest(self.train, w[None], 1)[1][0, 0]))
         for kind, lights in (("training", self.train), ("unseen", self.unseen)):
             if (i := _index(lights, w)) is not None:
                 return LightInfo(kind, i, nearest_deg, region=region)
@@ -300,7 +301,7 @@ def region_chart(region, train: np.ndarray, unseen: np.ndarray, light, *, size: 
     u /= np.linalg.norm(u)
     v = np.cross(c, u)
     w = as_direction(light)
-    light_deg = float(np.degrees(np.arccos(np.clip(w @ c, -1, 1))))
+    light_deg = region.angle_to_center(w)
     reach = min(180.0, max(1.5 * region.radius_deg, light_deg * 1.1 + 2.0, 10.0))
     mid, scale = size / 2, (size / 2 - 14) / reach
 
