@@ -24,7 +24,76 @@ from diffshadow.shadow import shadow_grid
 from diffshadow.store import blend_rows
 from diffshadow.truth import EvalTruth, median
 
-BASIS_K = (4, 8, 16, 32)  # the basis codec's sizes measured (those below the light count)
+BASIS_K = (4, 8, 16, 32, 64, 128)  # the basis codec's sizes measured (those below the light count)
+
+
+def codec_named(name: str):
+    """The codec of a `cache` value: fp16, bf16 or basis-<k> (blend, the stored fp32 SIRENs, has none)."""
+    if name in ("fp16", "bf16"):
+        return HalfCodec("float16" if name == "fp16" else "bfloat16")
+    if name.startswith("basis-") and name[6:].isdigit() and int(name[6:]) >= 1:
+        return BasisCodec(int(name[6:]))
+    raise ValueError(f"cache: expected blend, fp16, bf16 or basis-<k>, got {name!r}")
+
+
+def encoded(weights: np.ndarray, layout, name: str) -> tuple[np.ndarray, int]:
+    """The stored SIRENs as the cache `name` serves them: (decoded weights (N, P) fp32, the store's bytes)."""
+    weights = np.asarray(weights, dtype=np.float32)
+    if name == "blend":
+        return weights, int(weights.nbytes)
+    codec = codec_named(name)
+    enc = codec.encode(weights, layout)
+    return codec.decode(enc, layout), enc.nbytes
+
+
+def leave_one_out_psnr(weights: np.ndarray, layout, siren, truth: EvalTruth, train: np.ndarray, k: int) -> float:
+    """Median voxel PSNR (box points) of every training light answered as if it were new: the weight blend of
+    its `k` nearest other stored SIRENs. What a blend cache can promise for lights it has not stored, measured on
+    the lights whose truth stage 1 already paid for; pessimistic, since a held-out light's neighbours lie about
+    one spacing away, an unseen light's about half of one."""
+    if len(train) < 2:
+        raise ValueError(f"leave-one-out: needs at least 2 training lights, got {len(train)}")
+    k = min(k, len(train) - 1)  # a few lights: blend all the others
+    idx, angles = nearest(train, train, k + 1)
+    own = idx == np.arange(len(train))[:, None]
+    # each light's own row is among its k+1 nearest (angle 0); drop it, or the farthest where ties hid it
+    keep = ~own
+    keep[~own.any(axis=1), -1] = False
+    idx, angles = idx[keep].reshape(len(train), k), angles[keep].reshape(len(train), k)
+    blended = blend_rows(np.asarray(weights, dtype=np.float32), idx, inverse_angle_weights(angles))
+    return truth.median_psnr(blended.astype(np.float32), layout, siren, train)
+
+
+def choose_cache(stage1, truth: EvalTruth, train: np.ndarray, *, blend_k: int, target_psnr: float,
+                 candidates: list[str], log=print) -> dict:
+    """`cache: auto`: the smallest of `candidates` (blend and codecs of the stored SIRENs) whose leave-one-out
+    median voxel PSNR reaches `target_psnr`; `diffusion` (train the model) when none does. Every candidate's
+    bytes and figure are kept, so the report can say why."""
+    rows, k = [], min(blend_k, len(train) - 1)  # what leave_one_out_psnr blends
+    for name in candidates if len(train) > 1 else []:  # one light: nothing to blend
+        if name.startswith("basis-") and int(name[6:]) >= len(train):
+            continue  # k directions need more lights than k
+        weights, nbytes = encoded(stage1.weights, stage1.layout, name)
+        row = {"cache": name, "bytes": nbytes,
+               "loo_psnr": leave_one_out_psnr(weights, stage1.layout, stage1.siren, truth, train, blend_k)}
+        rows.append(row)
+        log(f"[choose cache] {name}: {nbytes / 2**20:.3f} MiB, leave-one-out median {row['loo_psnr']:.2f} dB")
+    passing = sorted((r for r in rows if r["loo_psnr"] >= target_psnr),
+                     key=lambda r: (r["bytes"], -r["loo_psnr"], r["cache"]))
+    if passing:
+        best = passing[0]
+        why = (f"{best['cache']}: the smallest cache whose leave-one-out blend of the {k} nearest stored "
+               f"SIRENs reaches {target_psnr:g} dB ({best['loo_psnr']:.2f} dB, {best['bytes'] / 2**20:.3f} MiB); "
+               "no diffusion model trained")
+        choice = best["cache"]
+    else:
+        top = max(rows, key=lambda r: r["loo_psnr"], default=None)
+        why = ("diffusion: no stored-SIREN cache reaches " f"{target_psnr:g} dB left one out"
+               + (f" (best {top['cache']}, {top['loo_psnr']:.2f} dB)" if top else "") + "; the model is trained")
+        choice = "diffusion"
+    log(f"[choose cache] {why}")
+    return {"choice": choice, "why": why, "target_psnr": target_psnr, "blend_k": k,
+            "lights": len(train), "candidates": rows}
 
 
 def cache_table(stage1, truth: EvalTruth, light_sets: dict, *, blend_k: int, volume=None, tf=None,
@@ -36,11 +105,14 @@ def cache_table(stage1, truth: EvalTruth, light_sets: dict, *, blend_k: int, vol
     idx, angles = nearest(train, unseen, blend_k) if len(unseen) else (None, None)
     mix = inverse_angle_weights(angles) if len(unseen) else None
 
-    def scored(seen_weights: np.ndarray, unseen_weights: np.ndarray | None) -> dict:
-        """Median voxel PSNR at the box points, the set voxel_metrics.json's medians report."""
+    def scored(seen_weights: np.ndarray, unseen_weights: np.ndarray | None, loo: bool = False) -> dict:
+        """Median voxel PSNR at the box points, the set voxel_metrics.json's medians report; for the stored
+        SIRENs and their codecs also the leave-one-out figure that `cache: auto` decides on."""
         out = {"seen_psnr": truth.median_psnr(seen_weights, layout, siren, train)}
         if unseen_weights is not None:
             out["unseen_psnr"] = truth.median_psnr(unseen_weights, layout, siren, unseen)
+        if loo and len(train) > 1:
+            out["loo_psnr"] = leave_one_out_psnr(seen_weights, layout, siren, truth, train, blend_k)
         return out
 
     def blend_time(decode_one) -> float:
@@ -56,7 +128,7 @@ def cache_table(stage1, truth: EvalTruth, light_sets: dict, *, blend_k: int, vol
     rows = []
     plain = blend_rows(weights, idx, mix).astype(np.float32) if len(unseen) else None
     rows.append({"cache": "stored SIRENs fp32", "kind": "stored", "bytes": int(weights.nbytes),
-                 **scored(weights, plain), "answer_s": blend_time(lambda i, m: blend_rows(weights, i, m))})
+                 **scored(weights, plain, loo=True), "answer_s": blend_time(lambda i, m: blend_rows(weights, i, m))})
     log(f"[caches] {rows[-1]}")
     codecs = [HalfCodec("float16"), HalfCodec("bfloat16")] + [BasisCodec(k) for k in BASIS_K if k < len(train)]
     for codec in codecs:
@@ -70,7 +142,7 @@ def cache_table(stage1, truth: EvalTruth, light_sets: dict, *, blend_k: int, vol
             blended = blend_rows(decoded, idx, mix).astype(np.float32) if len(unseen) else None
             answer = blend_time(lambda i, m, c=codec, e=enc: (c.decode(e, rows=i[0]) * m[0][:, None]).sum(0))
         rows.append({"cache": f"stored SIRENs {codec.name}", "kind": "codec", "bytes": enc.nbytes,
-                     **scored(decoded, blended), "answer_s": answer})
+                     **scored(decoded, blended, loo=True), "answer_s": answer})
         log(f"[caches] {rows[-1]}")
     if model_state is not None:
         rows += _model_rows(model_state, generated, train, unseen, scored, log)

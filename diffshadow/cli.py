@@ -121,6 +121,19 @@ def _sample_shadows(a):
     stage2.sample_shadows(Path(a.checkpoint), Path(a.truth), Path(a.lights), Path(a.out), device=_device(a))
 
 
+def _choose_cache(a):
+    from diffshadow.stages import stage2
+
+    stage2.choose_cache(Path(a.weights), Path(a.truth), Path(a.lights), Path(a.out), blend_k=a.blend_k,
+                        target_psnr=a.target_psnr, candidates=a.candidates)
+
+
+def _encode_cache(a):
+    from diffshadow.stages import stage2
+
+    stage2.encode_cache(Path(a.weights), Path(a.truth), Path(a.lights), Path(a.out), codec=a.codec)
+
+
 def _blend_shadows(a):
     from diffshadow.stages import stage2
 
@@ -327,6 +340,18 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--seed", type=int, default=evaluate["seed"], help="their random draw (evaluate.seed)")
     _add(sub, "sample-shadows", _sample_shadows, "generate SIRENs for every training and unseen light",
          "checkpoint", "truth", "lights")
+    auto = defaults()["cache_auto"]
+    p = _add(sub, "choose-cache", _choose_cache, "cache: auto: the smallest stored-SIREN cache whose leave-one-out "
+             "blend reaches the target, else diffusion (cache_choice.json)", "weights", "truth", "lights",
+             device=False)
+    p.add_argument("--blend-k", type=int, default=evaluate["blend_k"],
+                   help="stored SIRENs blended per light (evaluate.blend_k)")
+    p.add_argument("--target-psnr", type=float, default=auto["target_psnr"],
+                   help="dB, leave-one-out median voxel PSNR (cache_auto.target_psnr)")
+    p.add_argument("--candidates", nargs="+", default=auto["candidates"],
+                   help="blend, fp16, bf16, basis-<k> (cache_auto.candidates)")
+    p = _add(sub, "encode-cache", _encode_cache, "a codec's cache: the stored SIRENs through fp16, bf16 or "
+             "basis-<k>, written decoded as a weight store", "weights", "truth", "lights", "codec", device=False)
     p = _add(sub, "blend-shadows", _blend_shadows, "cache: blend: every training light's stored SIREN and every "
              "unseen light's weight blend of the nearest, as sample-shadows' store", "weights", "truth", "lights",
              device=False)

@@ -100,6 +100,10 @@ def voxel_metrics(state: dict | None, stage1, generated, truth: EvalTruth, light
     stored = {"sirens": int(len(train) * layout.n_params * 4), "grids": int(len(train) * grid_voxels * 2)}
     if model is None:
         result["storage_bytes"] = {"model": 0, **stored}
+        codec = (generated.config or {}).get("codec", "fp32")
+        if codec != "fp32":  # cache: fp16, bf16, basis-<k>: the stored SIRENs' blend, stored in that codec
+            result["codec"] = codec
+            result["storage_bytes"]["cache"] = int(generated.config["encoded_bytes"])
         return result
     # DDIM at several step counts and 500-step DDPM on a spread of training lights: quality on the same lights,
     # time per INR alone; the report's DDIM curve plots these rows (one measurement, not two)

@@ -101,6 +101,7 @@ class RunResults:
         self.images = json.loads((results / "image_metrics.json").read_text())
         self.bench = _read_json(results / "bench.json")
         self.finetune = _read_json(results / "finetune_metrics.json")
+        self.choice = _read_json(results / "cache_choice.json")  # cache: auto's decision
         self.results = results
         costs = results / "stage_costs.tsv"
         lines = costs.read_text().splitlines() if costs.exists() else []
@@ -137,8 +138,13 @@ class RunResults:
         if total:
             rows.append(("run cost", (f"{float(elapsed['wall_s']) / 60:.1f} min elapsed, " if elapsed else "")
                          + f"{float(total['wall_s']) / 60:.1f} min summed over {int(total['jobs'])} jobs"))
+        if self.choice:
+            rows.append(("shadow cache chosen (cache: auto)", self.choice["why"]))
         if "seconds_per_inr" in v:
             rows.append(("time per shadow INR (DDIM)", f"{v['seconds_per_inr']['ddim']:.3f} s"))
+        elif "codec" in v:
+            rows.append(("shadow cache", f"cache: {v['codec']} (the weight blend of the stored SIRENs kept in "
+                         f"{v['codec']}, {v['storage_bytes']['cache'] / 2**20:.3f} MiB; no diffusion model)"))
         else:
             rows.append(("shadow cache", "cache: blend (the stored SIRENs' weight blend; no diffusion model)"))
         sizes = self.sizes()

@@ -41,6 +41,11 @@ def main() -> None:
     ap.add_argument("--profile", default=str(ROOT / "profiles" / "local"))
     ap.add_argument("-j", "--jobs", type=int, default=2)
     ap.add_argument("--configfile", type=Path, help="a further overlay for every point (e.g. config/paper.yaml)")
+    ap.add_argument("--caches", action="store_true", help="stage 1 and the caches table only (`cache: blend`, target "
+                    "caches.json): every codec's rate and distortion per light count, beside the model's figures "
+                    "from --model-json; writes OUT/caches.json and OUT/scaling_caches.png")
+    ap.add_argument("--model-json", type=Path, default=ROOT / "docs" / "scaling" / "scaling.json",
+                    help="with --caches: the sweep whose diffusion model the codecs are set beside")
     ap.add_argument("--collect", action="store_true", help="run nothing: read the finished points under --out")
     ap.add_argument("--from-json", type=Path, help="run nothing: the points of an earlier sweep's scaling.json "
                     "(e.g. docs/scaling/scaling.json), projected again")
@@ -65,9 +70,12 @@ def main() -> None:
         point.mkdir(parents=True, exist_ok=True)
         overlay = point / "lights.yaml"
         sphere = a.sphere or 4 * n
-        overlay.write_text(f"scenes: [{a.scene}]\nlights: {{count: {n}, sphere: {sphere}, unseen: {a.unseen}}}\n")
-        cmd = ["snakemake", "-s", str(ROOT / "Snakefile"), "--directory", str(point), "--profile", a.profile,
-               "-j", str(a.jobs), "--configfile", *([str(a.configfile)] if a.configfile else []), str(overlay)]
+        overlay.write_text(f"scenes: [{a.scene}]\nlights: {{count: {n}, sphere: {sphere}, unseen: {a.unseen}}}\n"
+                           + ("cache: blend\n" if a.caches else ""))
+        # the target first: --configfile takes every word after it
+        cmd = ["snakemake", *([f"results/{a.scene}/caches.json"] if a.caches else []), "-s", str(ROOT / "Snakefile"),
+               "--directory", str(point), "--profile", a.profile, "-j", str(a.jobs), "--configfile",
+               *([str(a.configfile)] if a.configfile else []), str(overlay)]
         print(f"[sweep] {n} lights: {' '.join(cmd)}", flush=True)
         t0 = time.monotonic()
         with open(point / "snakemake.log", "a") as log:
@@ -76,6 +84,15 @@ def main() -> None:
               flush=True)
         if rc:
             sys.exit(f"[sweep] the run at {n} lights failed; see {point / 'snakemake.log'}")
+    if a.caches:  # the codecs beside the full sweep's model, per light count
+        from diffshadow.scaling import rate_distortion
+
+        table = rate_distortion.collect(runs, json.loads(a.model_json.read_text())["points"])
+        table["model_json"] = _shown(a.model_json)
+        rate_distortion.write(table, out / "caches.json")
+        print(rate_distortion.markdown(table))
+        print(f"[sweep] wrote {out / 'caches.json'} and {out / 'scaling_caches.png'}")
+        return
     if a.from_json:
         data = {k: v for k, v in json.loads(a.from_json.read_text()).items() if k != "projection"}
     else:

@@ -539,3 +539,26 @@ def test_cache_blend_skips_stage_two(tmp_path):
     out = subprocess.run([str(installed("diffshadow")), *command.split()[1:]], capture_output=True, text=True,
                          timeout=300)
     assert out.returncode == 0 and (tmp_path / "x.png").is_file(), out.stderr[-2000:]
+
+
+def test_cache_auto_plans_stage_two_only_when_no_stored_cache_reaches_the_target(finished):
+    """`cache: auto` decides after stage 1 (the checkpoint choose_cache): with a target no stored-SIREN cache
+    reaches, the DAG holds the diffusion model's jobs; with one the smallest codec reaches, a dry run plans the
+    codec's cache and no stage-2 job at all. Stage 1 itself is not redone either way."""
+    import json
+
+    stage2 = {"presample", "train_diffusion", "render_targets", "finetune_render"}
+    for target, expected in ((1000.0, "diffusion"), (-1000.0, "fp16")):
+        cfg = {**TINY, "cache": "auto", "cache_auto": {"target_psnr": target, "candidates": ["blend", "fp16"]}}
+        snakemake(finished, "results/nucleon/cache_choice.json", config=cfg)
+        choice = json.loads((finished / "results/nucleon/cache_choice.json").read_text())
+        assert choice["choice"] == expected and [r["cache"] for r in choice["candidates"]] == ["blend", "fp16"]
+        dag = snakemake(finished, "--dag", config=cfg).stdout
+        plan = planned(snakemake(finished, "-n", config=cfg))
+        assert not {"fit_siren", "preoptimize", "eval_truth"} & set(plan)
+        if expected == "diffusion":
+            assert all(f"label = \"{r}\"" in dag for r in ("train_diffusion", "finetune_render"))
+            assert "encode_cache" not in dag
+        else:
+            assert not any(f"label = \"{r}\"" in dag for r in stage2) and not stage2 & set(plan)
+            assert plan["encode_cache"] == 1 and plan["sample_shadows"] == 1

@@ -9,7 +9,7 @@ do in proportion, so the model is smaller than the SIRENs it replaces past `cros
 
 By concern: `sweep` reads the finished runs and fits the power laws, `projection` carries them (or a GPU's
 `bench stages`) to the paper's scale on Polaris and writes its workflow profile, `figures` draws the figures
-and the page.
+and the page, `rate_distortion` sets each point's caches (codecs of the stored SIRENs, grids) beside the model.
 """
 
 from diffshadow.scaling.figures import cost_figure, page, projection_html, quality_figure, storage_figure, write_sweep

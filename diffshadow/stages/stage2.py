@@ -175,6 +175,41 @@ def _check_region(region, unseen: np.ndarray, source: Path) -> None:
           f"from the nearest training light", flush=True)
 
 
+def choose_cache(weights_path: Path, truth_path: Path, lights_path: Path, out: Path, *, blend_k: int,
+                 target_psnr: float, candidates: list[str]) -> None:
+    """`cache: auto`, right after stage 1: `cache_choice.json`, the cache that serves this scene (the smallest
+    stored-SIREN cache whose leave-one-out blend reaches `target_psnr`, else diffusion) with every candidate's
+    bytes and figure; the workflow runs stage 2 only when it says diffusion."""
+    from diffshadow.caches import choose_cache as choose
+
+    stage1 = open_store(weights_path)
+    train = read_lights(lights_path)["train"]
+    result = choose(stage1, artifacts.read_eval_truth(truth_path), train, blend_k=blend_k, target_psnr=target_psnr,
+                    candidates=candidates)
+    atomic_write_text(out, json.dumps(finite_json(result), indent=1) + "\n")
+    print(f"wrote {out}: cache {result['choice']}")
+
+
+def encode_cache(weights_path: Path, truth_path: Path, lights_path: Path, out: Path, *, codec: str) -> None:
+    """A codec's cache (`cache: fp16 | bf16 | basis-<k>`): the stored SIRENs through the codec, written decoded
+    (ordinary SIREN weights, which the renderer and the viewer read as any weight store) with the encoded
+    store's bytes and each decoded SIREN's voxel PSNR at eval_truth's points."""
+    from diffshadow.caches import encoded
+
+    stage1 = open_store(weights_path)
+    train = read_lights(lights_path)["train"]
+    weights, nbytes = encoded(stage1.weights, stage1.layout, codec)
+    truth = artifacts.read_eval_truth(truth_path)
+    scores = psnr_per_light(truth.sirens(weights, stage1.layout, stage1.siren), truth.of(train, str(truth_path)))
+    store = WeightStore(weights=weights, lights=stage1.lights, psnr=scores["box"],
+                        psnr_visible=scores.get("visible", scores["box"]), layout=stage1.layout, siren=stage1.siren,
+                        config={**(stage1.config or {}), "codec": codec, "encoded_bytes": nbytes,
+                                "source": str(weights_path)}, region=stage1.region)
+    write_store(out, store, made_by="encode_cache")
+    print(f"wrote {out}: {len(weights)} SIRENs through {codec}, {nbytes / 2**20:.3f} MiB encoded "
+          f"(fp32 {stage1.weights.nbytes / 2**20:.3f} MiB), voxel PSNR median {np.median(store.psnr):.2f} dB")
+
+
 def blend_shadows(weights_path: Path, truth_path: Path, lights_path: Path, out: Path, *, blend_k: int) -> None:
     """`cache: blend`: the SIRENs of every training and unseen light without a model: a training light's own
     stored SIREN, an unseen light's weight blend of its `blend_k` nearest (inverse-angle weights, the baseline
@@ -187,13 +222,16 @@ def blend_shadows(weights_path: Path, truth_path: Path, lights_path: Path, out: 
     all_lights = np.concatenate([train, unseen])
     seen = np.arange(len(all_lights)) < len(train)
     _check_region(blend.region, unseen, weights_path)
+    codec = (stage1.config or {}).get("codec", "fp32")  # cache: blend reads stage 1's own fp32 store
     print(f"blending {(~seen).sum()} unseen shadow SIRENs from the {blend_k} nearest of {len(train)} stored "
-          "(cache: blend)", flush=True)
+          f"({codec})", flush=True)
     truth = artifacts.read_eval_truth(truth_path)
     scores = psnr_per_light(truth.sirens(weights, stage1.layout, stage1.siren), truth.of(all_lights, str(truth_path)))
     store = WeightStore(weights=weights, lights=all_lights, psnr=scores["box"],
                         psnr_visible=scores.get("visible", scores["box"]), layout=stage1.layout, siren=stage1.siren,
-                        config={"cache": "blend", "blend_k": blend_k, "weights": str(weights_path)}, seen=seen,
+                        config={"cache": "blend", "codec": codec, "blend_k": blend_k, "weights": str(weights_path),
+                                **({"encoded_bytes": stage1.config["encoded_bytes"]} if codec != "fp32" else {})},
+                        seen=seen,
                         region=blend.region.to_dict())
     write_store(out, store, made_by="sample_shadows")
     print(f"wrote {out}: PSNR median seen {np.median(store.psnr[seen]):.2f} dB, "

@@ -106,7 +106,8 @@ class ViewerScene:
         scene = load_render_scene(results / "volume.zarr", results / "data_inr.pt", device, render=render)
         lights = read_lights(results / "lights.json")
         if generated.config.get("cache") == "blend":  # no model: new directions blend the stored SIRENs
-            weights = results / "weights.zarr"
+            # stage 1's own (cache: blend) or a codec's decoded store (cache.zarr), as blend-shadows read it
+            weights = results / Path(str(generated.config.get("weights", "weights.zarr"))).name
             return cls(scene, name=results.name, lights=lights, generated=generated,
                        sampler=BlendSampler(open_store(weights)), results=results, checkpoint=weights)
         ckpt = results / Path(str(generated.config.get("checkpoint", "diffusion.ckpt"))).name

@@ -56,16 +56,32 @@ def sampler_checkpoint(wildcards):
     return f"results/{wildcards.scene}/diffusion_geometry.ckpt"
 
 
+def cache_choice(scene):
+    """What answers a light: the config's `cache`, or with `cache: auto` what choose_cache (a checkpoint, after
+    stage 1) decided: diffusion, blend, or a codec of the stored SIRENs."""
+    cache = scene_config(scene)["cache"]
+    if cache != "auto":
+        return cache
+    with open(checkpoints.choose_cache.get(scene=scene).output[0]) as f:
+        return json.load(f)["choice"]
+
+
 def model_checkpoint(wildcards):
-    """The diffusion checkpoint that samples, as an input; none with `cache: blend` (no model)."""
-    if scene_config(wildcards.scene)["cache"] == "blend":
+    """The diffusion checkpoint that samples, as an input; none when the stored SIRENs answer (no model)."""
+    if cache_choice(wildcards.scene) != "diffusion":
         return {}
     return {"checkpoint": sampler_checkpoint(wildcards)}
 
 
 def shadow_source(wildcards):
-    """What answers a light (config `cache`): the diffusion model's checkpoint, or (blend) the stored SIRENs."""
-    return model_checkpoint(wildcards) or {"weights": f"results/{wildcards.scene}/weights.zarr"}
+    """What answers a light: the diffusion model's checkpoint, the stored SIRENs (blend), or their codec's
+    decoded store (encode_cache's cache.zarr)."""
+    cache = cache_choice(wildcards.scene)
+    if cache == "diffusion":
+        return model_checkpoint(wildcards)
+    if cache == "blend":
+        return {"weights": f"results/{wildcards.scene}/weights.zarr"}
+    return {"weights": f"results/{wildcards.scene}/cache.zarr"}
 
 
 def geometry_checkpoint(wildcards):
@@ -87,10 +103,15 @@ def stage_benchmarks(wildcards):
     rules = ["lights", "prepare_volume", "preoptimize", "collect_weights", "eval_truth", "sample_shadows",
              "evaluate_voxels", "caches", "train_data_inr", "naive_images", "evaluate_images", "shadow_bench",
              "report_figures", "benchmark"]
-    if cfg["cache"] == "diffusion":  # stage 2
+    cache = cache_choice(wildcards.scene)
+    if cfg["cache"] == "auto":
+        rules += ["choose_cache"]
+    if cache == "diffusion":  # stage 2
         rules += ["presample", "train_diffusion"]
         if cfg["finetune"]["enabled"]:
             rules += ["render_targets", "finetune_render"]
+    elif cache != "blend":
+        rules += ["encode_cache"]
     fits = [f"fit_siren_{i}" for i in range(n_subsets(wildcards.scene))]
     return [f"results/{wildcards.scene}/benchmarks/{r}.tsv" for r in rules + fits]
 
@@ -116,8 +137,10 @@ def summary_inputs(wildcards):
     files = {name: f"results/{wildcards.scene}/{name}" for name in
              ("voxel_metrics.json", "image_metrics.json", "bench.json", "stage_costs.tsv", "images")}
     cfg = scene_config(wildcards.scene)
-    if cfg["finetune"]["enabled"] and cfg["cache"] == "diffusion":
+    if cfg["finetune"]["enabled"] and cache_choice(wildcards.scene) == "diffusion":
         files["finetune_metrics.json"] = f"results/{wildcards.scene}/finetune_metrics.json"
+    if cfg["cache"] == "auto":  # the summary says what auto chose and why
+        files["cache_choice.json"] = f"results/{wildcards.scene}/cache_choice.json"
     return {k.replace(".", "_"): v for k, v in files.items()}
 
 

@@ -67,8 +67,57 @@ rule eval_truth:
         " --threads {threads} --out {output} 2>&1 | tee {log}"
 
 
-# the generated SIRENs of every evaluation light: sampled by the diffusion model, or (cache: blend) the stored
-# SIRENs and their weight blends, which leaves train_diffusion and finetune_render out of the run
+# cache: auto, right after stage 1: the smallest stored-SIREN cache whose leave-one-out blend reaches
+# cache_auto.target_psnr, else diffusion; a checkpoint, so stage 2's jobs enter the DAG only when it says diffusion
+checkpoint choose_cache:
+    input:
+        weights="results/{scene}/weights.zarr",
+        truth="results/{scene}/eval_truth.zarr",
+        lights="results/{scene}/lights.json",
+    output:
+        "results/{scene}/cache_choice.json",
+    params:
+        target=lambda wc: scene_config(wc.scene)["cache_auto"]["target_psnr"],
+        candidates=lambda wc: " ".join(scene_config(wc.scene)["cache_auto"]["candidates"]),
+        blend_k=lambda wc: scene_config(wc.scene)["evaluate"]["blend_k"],
+    threads: 1
+    log:
+        "results/{scene}/logs/choose_cache.log",
+    benchmark:
+        "results/{scene}/benchmarks/choose_cache.tsv",
+    conda:
+        "../envs/diffshadow.yaml"
+    shell:
+        "diffshadow --phases results/{wildcards.scene}/benchmarks/choose_cache.phases.json choose-cache --weights {input.weights}"
+        " --truth {input.truth} --lights {input.lights} --blend-k {params.blend_k} --target-psnr {params.target}"
+        " --candidates {params.candidates} --threads {threads} --out {output} 2>&1 | tee {log}"
+
+
+# a codec's cache (cache: fp16 | bf16 | basis-<k>, or auto's choice): the stored SIRENs through the codec, decoded
+rule encode_cache:
+    input:
+        weights="results/{scene}/weights.zarr",
+        truth="results/{scene}/eval_truth.zarr",
+        lights="results/{scene}/lights.json",
+    output:
+        directory("results/{scene}/cache.zarr"),
+    params:
+        codec=lambda wc: cache_choice(wc.scene),
+    threads: 1
+    log:
+        "results/{scene}/logs/encode_cache.log",
+    benchmark:
+        "results/{scene}/benchmarks/encode_cache.tsv",
+    conda:
+        "../envs/diffshadow.yaml"
+    shell:
+        "diffshadow --phases results/{wildcards.scene}/benchmarks/encode_cache.phases.json encode-cache --weights {input.weights}"
+        " --truth {input.truth} --lights {input.lights} --codec {params.codec} --threads {threads}"
+        " --out {output} 2>&1 | tee {log}"
+
+
+# the generated SIRENs of every evaluation light: sampled by the diffusion model, or (cache: blend or a codec) the
+# stored SIRENs and their weight blends, which leaves train_diffusion and finetune_render out of the run
 rule sample_shadows:
     input:
         unpack(shadow_source),
@@ -79,7 +128,8 @@ rule sample_shadows:
     params:
         command=lambda wc, input: (f"blend-shadows --weights {input.weights} --blend-k "
                                    f"{scene_config(wc.scene)['evaluate']['blend_k']}" if "weights" in input.keys()
-                                   else f"sample-shadows --checkpoint {input.checkpoint}"),
+                                   else f"sample-shadows --checkpoint {input.checkpoint}"
+                                   if "checkpoint" in input.keys() else ""),  # "": cache: auto, not yet chosen
     threads: 2
     log:
         "results/{scene}/logs/sample_shadows.log",

@@ -1,0 +1,107 @@
+"""The caches' rate and distortion across the sweep's light counts: each point's `caches.json` (the stored
+SIRENs, their codecs, the dense grids; a stage-1-only run, `cache: blend`) beside the diffusion model's figures
+at the same point from the full sweep's scaling.json (its bytes in fp32 and fp16, its seen and unseen medians).
+
+At each light count: where every cache sits on the bytes-PSNR plane, and the model against the best stored-SIREN
+cache no larger than it (`equal_bytes`)."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+
+from diffshadow.io import atomic_write_text, finite_json
+from diffshadow.report import pyplot, save_figure
+
+
+def collect(runs: list[Path], model_points: list[dict]) -> dict:
+    """One entry per run (results/<scene>/ with caches.json): its rows, plus the model's rows from the sweep
+    point of the same light count (none where the sweep has no such point)."""
+    models = {p["lights"]: p for p in model_points}
+    points = []
+    for results in runs:
+        path = Path(results) / "caches.json"
+        if not path.is_file():
+            raise FileNotFoundError(f"{path}: missing (run the point with scripts/scaling_sweep.py --caches)")
+        table = json.loads(path.read_text())
+        n = table["lights"]["train"]
+        rows = [r for r in table["caches"] if r["kind"] != "model"]
+        m = models.get(n)
+        if m is not None:
+            for name, nbytes in (("fp32", m["storage_bytes"]["model"]), ("fp16", m["storage_bytes"]["model"] // 2)):
+                rows.append({"cache": f"diffusion model {name}", "kind": "model", "bytes": int(nbytes),
+                             "seen_psnr": m["quality"]["seen"]["generated"],
+                             "unseen_psnr": m["quality"]["unseen"]["generated"],
+                             "source": "docs/scaling/scaling.json (fp16: half the bytes, the figures of fp32, which "
+                                       "the README run measured 0.01 dB apart)"})
+        points.append({"lights": n, "unseen_lights": table["lights"]["unseen"], "caches": rows,
+                       "equal_bytes": equal_bytes(rows)})
+    return {"points": sorted(points, key=lambda p: p["lights"])}
+
+
+def equal_bytes(rows: list[dict]) -> dict | None:
+    """The model (fp16, its smaller form) against the stored-SIREN cache of most unseen PSNR no larger than it."""
+    model = next((r for r in rows if r["cache"] == "diffusion model fp16"), None)
+    if model is None:
+        return None
+    stored = [r for r in rows if r["kind"] in ("stored", "codec") and r["bytes"] <= model["bytes"]]
+    best = max(stored, key=lambda r: r.get("unseen_psnr", -np.inf), default=None)
+    if best is None:
+        return {"model_bytes": model["bytes"], "best": None}
+    return {"model_bytes": model["bytes"], "model_unseen_psnr": model["unseen_psnr"], "best": best["cache"],
+            "best_bytes": best["bytes"], "best_unseen_psnr": best["unseen_psnr"],
+            "model_gain_db": model["unseen_psnr"] - best["unseen_psnr"]}
+
+
+def write(data: dict, out: Path) -> None:
+    """`out` (JSON) and scaling_caches.png beside it."""
+    out = Path(out)
+    atomic_write_text(out, json.dumps(finite_json(data), indent=1) + "\n")
+    save_figure(out.parent / "scaling_caches.png", figure(data))
+
+
+COLOURS = {"stored": "tab:blue", "codec": "tab:green", "model": "tab:red", "grids": "tab:gray"}
+
+
+def figure(data: dict):
+    """One panel per light count: bytes (log) against unseen median voxel PSNR, one point per cache, seen PSNR
+    as a faint marker above or below it."""
+    pts = data["points"]
+    fig, axes = pyplot().subplots(1, len(pts), figsize=(4.2 * len(pts), 4.4), sharey=True, squeeze=False)
+    for ax, p in zip(axes[0], pts, strict=True):
+        for r in p["caches"]:
+            if "unseen_psnr" not in r:
+                continue
+            c = COLOURS.get(r["kind"], "black")
+            ax.scatter(r["bytes"], r["unseen_psnr"], color=c, marker="*" if r["kind"] == "model" else "o",
+                       s=90 if r["kind"] == "model" else 30, zorder=3)
+            ax.scatter(r["bytes"], r["seen_psnr"], color=c, marker="_", s=60, alpha=0.5, zorder=2)
+            label = r["cache"].replace("stored SIRENs ", "").replace("diffusion model ", "model ")
+            label = label.replace("dense shadow grids ", "grids ")
+            ax.annotate(label, (r["bytes"], r["unseen_psnr"]), textcoords="offset points", xytext=(4, 3),
+                        fontsize=7)
+        ax.set_xscale("log")
+        ax.set_title(f"{p['lights']} training lights")
+        ax.set_xlabel("bytes")
+        ax.grid(alpha=0.3)
+    axes[0][0].set_ylabel("median voxel PSNR, unseen lights (dB); – seen")
+    fig.suptitle("caches as rate (bytes) against distortion: stored SIRENs (blue), codecs (green), diffusion "
+                 "model (red star), dense grids (grey)", fontsize=9)
+    fig.tight_layout()
+    return fig
+
+
+def markdown(data: dict) -> str:
+    """The table for docs: one row per cache and light count."""
+    lines = ["| lights | cache | MiB | seen dB | unseen dB | leave-one-out dB |", "|---|---|---|---|---|---|"]
+    for p in data["points"]:
+        for r in sorted(p["caches"], key=lambda r: r["bytes"]):
+            lines.append(f"| {p['lights']} | {r['cache']} | {r['bytes'] / 2**20:.3f} | {r['seen_psnr']:.2f} | "
+                         f"{r.get('unseen_psnr', float('nan')):.2f} | {_or_dash(r.get('loo_psnr'))} |")
+    return "\n".join(lines) + "\n"
+
+
+def _or_dash(x) -> str:
+    return "–" if x is None else f"{x:.2f}"

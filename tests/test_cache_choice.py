@@ -1,0 +1,91 @@
+"""`cache: auto` (`diffshadow.caches.choose_cache`): the leave-one-out figure it decides on, and its rule: the
+smallest stored-SIREN cache that reaches the target, else the diffusion model."""
+
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+import torch
+
+from diffshadow import caches
+from diffshadow.layout import SirenConfig, WeightLayout
+from diffshadow.lights import fibonacci_sphere, inverse_angle_weights, nearest
+from diffshadow.siren import init_siren
+from diffshadow.store import blend_rows
+
+SIREN = SirenConfig(8, 1)
+LAYOUT = WeightLayout.for_siren(SIREN)
+
+
+class Scored:
+    """An EvalTruth stand-in that keeps the SIRENs it is asked to score (and scores them 0 dB)."""
+
+    def __init__(self):
+        self.asked = []
+
+    def median_psnr(self, weights, layout, siren, lights):
+        self.asked.append(np.array(weights))
+        return 0.0
+
+
+def _store(n: int = 12):
+    init = LAYOUT.flatten(init_siren(SIREN, torch.Generator().manual_seed(0))).numpy()
+    w = (init + 0.01 * np.random.default_rng(1).standard_normal((n, LAYOUT.n_params))).astype(np.float32)
+    lights = fibonacci_sphere(4 * n)[:n]
+    return SimpleNamespace(weights=w, layout=LAYOUT, siren=SIREN), lights
+
+
+def test_leave_one_out_blends_each_light_from_its_nearest_others_never_itself():
+    store, lights = _store()
+    truth = Scored()
+    caches.leave_one_out_psnr(store.weights, LAYOUT, SIREN, truth, lights, 4)
+    blended = truth.asked[0]
+    idx, angles = nearest(lights, lights, 5)
+    assert np.all(idx[:, 0] == np.arange(len(lights)))  # each light is its own nearest: the one left out
+    expected = blend_rows(store.weights, idx[:, 1:], inverse_angle_weights(angles[:, 1:])).astype(np.float32)
+    assert np.array_equal(blended, expected)
+    # a light's own SIREN changes no answer for it
+    changed = store.weights.copy()
+    changed[3] += 100.0
+    caches.leave_one_out_psnr(changed, LAYOUT, SIREN, truth, lights, 4)
+    assert np.array_equal(truth.asked[1][3], blended[3]) and not np.array_equal(truth.asked[1], blended)
+
+
+def test_few_lights_blend_all_the_others_and_one_light_is_refused():
+    store, lights = _store(3)
+    truth = Scored()
+    caches.leave_one_out_psnr(store.weights, LAYOUT, SIREN, truth, lights, 4)
+    idx, angles = nearest(lights, lights, 3)
+    assert np.array_equal(truth.asked[0], blend_rows(store.weights, idx[:, 1:],
+                                                     inverse_angle_weights(angles[:, 1:])).astype(np.float32))
+    with pytest.raises(ValueError, match="at least 2 training lights, got 1"):
+        caches.leave_one_out_psnr(store.weights[:1], LAYOUT, SIREN, truth, lights[:1], 4)
+
+
+@pytest.mark.parametrize(("target", "candidates", "choice"), [
+    (0.0, ["blend", "fp16", "bf16", "basis-2"], "basis-2"),  # everything passes: the fewest bytes
+    (300.0, ["blend", "fp16", "bf16", "basis-2"], "blend"),  # only the exact store passes
+    (75.0, ["blend", "fp16", "bf16"], "fp16"),  # bf16 as small but under the target (8 bits of mantissa)
+    (300.0, ["fp16", "bf16", "basis-2"], "diffusion"),  # none passes: train the model
+])
+def test_auto_takes_the_smallest_cache_that_reaches_the_target_else_the_model(monkeypatch, target, candidates,
+                                                                               choice):
+    store, lights = _store()
+
+    def fidelity(weights, layout, siren, truth, train, k):
+        """PSNR of the decoded store against the fp32 one (inf when exact): a figure each codec earns."""
+        mse = float(np.mean((np.asarray(weights, np.float64) - store.weights) ** 2))
+        return float("inf") if mse == 0 else 10 * np.log10(float(np.abs(store.weights).max()) ** 2 / mse)
+
+    monkeypatch.setattr(caches, "leave_one_out_psnr", fidelity)
+    out = caches.choose_cache(store, None, lights, blend_k=4, target_psnr=target, candidates=candidates,
+                              log=lambda *a: None)
+    assert out["choice"] == choice and out["why"].startswith(f"{choice}:")
+    assert [r["cache"] for r in out["candidates"]] == candidates  # every candidate weighed, in order
+
+
+def test_codec_names_are_checked():
+    assert caches.codec_named("basis-16").k == 16 and caches.codec_named("bf16").name == "bf16"
+    for bad in ("basis-0", "basis-x", "int8", "blend"):
+        with pytest.raises(ValueError, match=f"expected blend, fp16, bf16 or basis-<k>, got '{bad}'"):
+            caches.codec_named(bad)
