@@ -52,3 +52,6 @@ rule all:
         expand("results/{scene}/stage_costs.tsv", scene=config["scenes"]),
         expand("results/{scene}/report/image_grid.png", scene=config["scenes"]),
         expand("results/{scene}/report/landing.rst", scene=config["scenes"]),
+        # cache: auto's decision asked for by name: a finished run switched to auto decides too (Snakemake does
+        # not run a checkpoint whose dependants' outputs already exist)
+        [f"results/{scene}/cache_choice.json" for scene in config["scenes"] if scene_config(scene)["cache"] == "auto"],

@@ -550,6 +550,8 @@ def test_cache_auto_plans_stage_two_only_when_no_stored_cache_reaches_the_target
     stage2 = {"presample", "train_diffusion", "render_targets", "finetune_render"}
     for target, expected in ((1000.0, "diffusion"), (-1000.0, "fp16")):
         cfg = {**TINY, "cache": "auto", "cache_auto": {"target_psnr": target, "candidates": ["blend", "fp16"]}}
+        if expected == "diffusion":  # a finished run switched to auto decides too (rule all asks for the choice)
+            assert planned(snakemake(finished, "-n", config=cfg))["choose_cache"] == 1
         snakemake(finished, "results/nucleon/cache_choice.json", config=cfg)
         choice = json.loads((finished / "results/nucleon/cache_choice.json").read_text())
         assert choice["choice"] == expected and [r["cache"] for r in choice["candidates"]] == ["blend", "fp16"]
