@@ -231,7 +231,7 @@ class RunResults:
     def tables(self) -> str:
         v, seen, unseen = self.voxel, self.voxel["seen"], self.voxel.get("unseen")
         parts = [_table("Headline", ["", "value"], [list(r) for r in self.headline()])]
-        made = "blended (cache: blend)" if v.get("cache") == "blend" else "generated (DDIM)"
+        made = f"blended (cache: {v.get('codec', 'blend')})" if v.get("cache") == "blend" else "generated (DDIM)"
         rows = [["seen", "stage-1 SIREN (fitted)", _num(seen["stage1_psnr_median"]),
                  _num(seen.get("stage1_psnr_visible_median")), ""],
                 ["seen", made, _num(seen["generated_psnr_median"]),
