@@ -124,8 +124,9 @@ def _sample_shadows(a):
 def _choose_cache(a):
     from diffshadow.stages import stage2
 
-    stage2.choose_cache(Path(a.weights), Path(a.truth), Path(a.lights), Path(a.out), blend_k=a.blend_k,
-                        target_psnr=a.target_psnr, candidates=a.candidates)
+    stage2.choose_cache(Path(a.weights), Path(a.truth), Path(a.volume), Path(a.lights), Path(a.out),
+                        blend_k=a.blend_k, target_psnr=a.target_psnr, candidates=a.candidates,
+                        val_lights=a.val_lights, val_points=a.val_points, seed=a.seed)
 
 
 def _encode_cache(a):
@@ -341,13 +342,16 @@ def build_parser() -> argparse.ArgumentParser:
     _add(sub, "sample-shadows", _sample_shadows, "generate SIRENs for every training and unseen light",
          "checkpoint", "truth", "lights")
     auto = defaults()["cache_auto"]
-    p = _add(sub, "choose-cache", _choose_cache, "cache: auto: the smallest stored-SIREN cache whose leave-one-out "
-             "blend reaches the target, else diffusion (cache_choice.json)", "weights", "truth", "lights",
-             device=False)
+    p = _add(sub, "choose-cache", _choose_cache, "cache: auto: the smallest stored-SIREN cache whose blend reaches "
+             "the target on validation lights, else diffusion (cache_choice.json)", "weights", "truth", "volume",
+             "lights", device=False)
     p.add_argument("--blend-k", type=int, default=evaluate["blend_k"],
                    help="stored SIRENs blended per light (evaluate.blend_k)")
     p.add_argument("--target-psnr", type=float, default=auto["target_psnr"],
-                   help="dB, leave-one-out median voxel PSNR (cache_auto.target_psnr)")
+                   help="dB, median voxel PSNR on the validation lights (cache_auto.target_psnr)")
+    p.add_argument("--val-lights", type=int, default=auto["val_lights"], help="cache_auto.val_lights")
+    p.add_argument("--val-points", type=int, default=auto["val_points"], help="cache_auto.val_points")
+    p.add_argument("--seed", type=int, default=auto["seed"], help="their random draw (cache_auto.seed)")
     p.add_argument("--candidates", nargs="+", default=auto["candidates"],
                    help="blend, fp16, bf16, basis-<k> (cache_auto.candidates)")
     p = _add(sub, "encode-cache", _encode_cache, "a codec's cache: the stored SIRENs through fp16, bf16 or "

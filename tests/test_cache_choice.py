@@ -1,5 +1,6 @@
-"""`cache: auto` (`diffshadow.caches.choose_cache`): the leave-one-out figure it decides on, and its rule: the
-smallest stored-SIREN cache that reaches the target, else the diffusion model."""
+"""`cache: auto` (`diffshadow.caches.choose_cache`): the figures it weighs (the blend at validation lights, and
+leave-one-out on the training lights), and its rule: the smallest stored-SIREN cache that reaches the target on
+the validation lights, else the diffusion model."""
 
 from types import SimpleNamespace
 
@@ -51,6 +52,16 @@ def test_leave_one_out_blends_each_light_from_its_nearest_others_never_itself():
     assert np.array_equal(truth.asked[1][3], blended[3]) and not np.array_equal(truth.asked[1], blended)
 
 
+def test_validation_lights_are_answered_by_the_blend_of_their_nearest_stored_sirens():
+    store, lights = _store()
+    val = Scored()
+    val.lights = fibonacci_sphere(400)[:5]
+    caches.validation_psnr(store.weights, LAYOUT, SIREN, lights, val, 4)
+    idx, angles = nearest(lights, val.lights, 4)
+    expected = blend_rows(store.weights, idx, inverse_angle_weights(angles)).astype(np.float32)
+    assert np.array_equal(val.asked[0], expected)
+
+
 def test_few_lights_blend_all_the_others_and_one_light_is_refused():
     store, lights = _store(3)
     truth = Scored()
@@ -72,13 +83,15 @@ def test_auto_takes_the_smallest_cache_that_reaches_the_target_else_the_model(mo
                                                                                choice):
     store, lights = _store()
 
-    def fidelity(weights, layout, siren, truth, train, k):
+    def fidelity(weights, layout, siren, train, val, k):
         """PSNR of the decoded store against the fp32 one (inf when exact): a figure each codec earns."""
         mse = float(np.mean((np.asarray(weights, np.float64) - store.weights) ** 2))
         return float("inf") if mse == 0 else 10 * np.log10(float(np.abs(store.weights).max()) ** 2 / mse)
 
-    monkeypatch.setattr(caches, "leave_one_out_psnr", fidelity)
-    out = caches.choose_cache(store, None, lights, blend_k=4, target_psnr=target, candidates=candidates,
+    monkeypatch.setattr(caches, "validation_psnr", fidelity)  # the figure it decides on
+    monkeypatch.setattr(caches, "leave_one_out_psnr", lambda *a: 0.0)  # recorded beside it, not decisive
+    val = SimpleNamespace(lights=np.zeros((3, 3)))
+    out = caches.choose_cache(store, None, val, lights, blend_k=4, target_psnr=target, candidates=candidates,
                               log=lambda *a: None)
     assert out["choice"] == choice and out["why"].startswith(f"{choice}:")
     assert [r["cache"] for r in out["candidates"]] == candidates  # every candidate weighed, in order

@@ -175,17 +175,24 @@ def _check_region(region, unseen: np.ndarray, source: Path) -> None:
           f"from the nearest training light", flush=True)
 
 
-def choose_cache(weights_path: Path, truth_path: Path, lights_path: Path, out: Path, *, blend_k: int,
-                 target_psnr: float, candidates: list[str]) -> None:
+def choose_cache(weights_path: Path, truth_path: Path, volume_path: Path, lights_path: Path, out: Path, *,
+                 blend_k: int, target_psnr: float, candidates: list[str], val_lights: int, val_points: int,
+                 seed: int) -> None:
     """`cache: auto`, right after stage 1: `cache_choice.json`, the cache that serves this scene (the smallest
-    stored-SIREN cache whose leave-one-out blend reaches `target_psnr`, else diffusion) with every candidate's
-    bytes and figure; the workflow runs stage 2 only when it says diffusion."""
+    stored-SIREN cache whose blend reaches `target_psnr` on `val_lights` validation lights, exact shadows at
+    `val_points` points each, else diffusion) with every candidate's bytes and figures; the workflow runs stage 2
+    only when it says diffusion."""
     from diffshadow.caches import choose_cache as choose
 
     stage1 = open_store(weights_path)
-    train = read_lights(lights_path)["train"]
-    result = choose(stage1, artifacts.read_eval_truth(truth_path), train, blend_k=blend_k, target_psnr=target_psnr,
-                    candidates=candidates)
+    light_sets = read_lights(lights_path)
+    train = light_sets["train"]
+    volume, tf = artifacts.load_prepared(volume_path)
+    lights = validation_lights(train, light_sets["center"], val_lights, seed=seed)
+    val = EvalTruth.compute(volume, tf, lights, val_points, seed + 1)
+    result = choose(stage1, artifacts.read_eval_truth(truth_path), val, train, blend_k=blend_k,
+                    target_psnr=target_psnr, candidates=candidates)
+    result["validation"] = {"lights": val_lights, "points": val_points, "seed": seed}
     atomic_write_text(out, json.dumps(finite_json(result), indent=1) + "\n")
     print(f"wrote {out}: cache {result['choice']}")
 

@@ -67,12 +67,13 @@ rule eval_truth:
         " --threads {threads} --out {output} 2>&1 | tee {log}"
 
 
-# cache: auto, right after stage 1: the smallest stored-SIREN cache whose leave-one-out blend reaches
-# cache_auto.target_psnr, else diffusion; a checkpoint, so stage 2's jobs enter the DAG only when it says diffusion
+# cache: auto, right after stage 1: the smallest stored-SIREN cache whose blend reaches cache_auto.target_psnr
+# on validation lights, else diffusion; a checkpoint, so stage 2's jobs enter the DAG only when it says diffusion
 checkpoint choose_cache:
     input:
         weights="results/{scene}/weights.zarr",
         truth="results/{scene}/eval_truth.zarr",
+        volume="results/{scene}/volume.zarr",
         lights="results/{scene}/lights.json",
     output:
         "results/{scene}/cache_choice.json",
@@ -80,6 +81,8 @@ checkpoint choose_cache:
         target=lambda wc: scene_config(wc.scene)["cache_auto"]["target_psnr"],
         candidates=lambda wc: " ".join(scene_config(wc.scene)["cache_auto"]["candidates"]),
         blend_k=lambda wc: scene_config(wc.scene)["evaluate"]["blend_k"],
+        val=lambda wc: "--val-lights {val_lights} --val-points {val_points} --seed {seed}".format(
+            **scene_config(wc.scene)["cache_auto"]),
     threads: 1
     log:
         "results/{scene}/logs/choose_cache.log",
@@ -89,8 +92,9 @@ checkpoint choose_cache:
         "../envs/diffshadow.yaml"
     shell:
         "diffshadow --phases results/{wildcards.scene}/benchmarks/choose_cache.phases.json choose-cache --weights {input.weights}"
-        " --truth {input.truth} --lights {input.lights} --blend-k {params.blend_k} --target-psnr {params.target}"
-        " --candidates {params.candidates} --threads {threads} --out {output} 2>&1 | tee {log}"
+        " --truth {input.truth} --volume {input.volume} --lights {input.lights} --blend-k {params.blend_k}"
+        " --target-psnr {params.target} --candidates {params.candidates} {params.val} --threads {threads}"
+        " --out {output} 2>&1 | tee {log}"
 
 
 # a codec's cache (cache: fp16 | bf16 | basis-<k>, or auto's choice): the stored SIRENs through the codec, decoded
