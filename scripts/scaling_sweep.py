@@ -87,7 +87,10 @@ def main() -> None:
     if a.caches:  # the codecs beside the full sweep's model, per light count
         from diffshadow.scaling import rate_distortion
 
-        table = rate_distortion.collect(runs, json.loads(a.model_json.read_text())["points"])
+        try:
+            table = rate_distortion.collect(runs, json.loads(a.model_json.read_text())["points"])
+        except FileNotFoundError as e:
+            sys.exit(f"[sweep] {e}")
         table["model_json"] = _shown(a.model_json)
         rate_distortion.write(table, out / "caches.json")
         print(rate_distortion.markdown(table))

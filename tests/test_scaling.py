@@ -158,3 +158,17 @@ def test_a_gpu_bench_of_the_paper_config_replaces_the_cpu_upper_bounds(tmp_path)
     assert "finetune_render:  # bench" in text and text.count("    mem_mb: ") == len(out["stages"]) - 2
     with pytest.raises(ValueError, match="measured on 'cpu'"):
         scaling.measured_projection(proj, {**bench, "device": "cpu", "device_type": "cpu"})
+
+
+def test_equal_bytes_sets_the_model_against_the_best_stored_cache_no_larger():
+    from diffshadow.scaling.rate_distortion import equal_bytes
+
+    rows = [{"cache": "stored SIRENs fp32", "kind": "stored", "bytes": 400, "unseen_psnr": 39.0},
+            {"cache": "stored SIRENs fp16", "kind": "codec", "bytes": 200, "unseen_psnr": 38.9},
+            {"cache": "stored SIRENs basis-4", "kind": "codec", "bytes": 50, "unseen_psnr": 30.0},
+            {"cache": "dense shadow grids fp16", "kind": "grids", "bytes": 100, "unseen_psnr": 41.0},
+            {"cache": "diffusion model fp16", "kind": "model", "bytes": 300, "unseen_psnr": 38.0}]
+    eq = equal_bytes(rows)
+    assert eq["best"] == "stored SIRENs fp16" and eq["model_gain_db"] == pytest.approx(-0.9)  # fp32 is larger
+    assert equal_bytes(rows[:4]) is None  # no model at this point
+    assert equal_bytes(rows[3:])["best"] is None  # nothing stored as small

@@ -28,6 +28,13 @@ def collect(runs: list[Path], model_points: list[dict]) -> dict:
         table = json.loads(path.read_text())
         n = table["lights"]["train"]
         rows = [r for r in table["caches"] if r["kind"] != "model"]
+        choice = _read(Path(results) / "cache_choice.json")  # where `cache: auto` was asked too
+        if choice:
+            val = {("fp32" if c["cache"] == "blend" else c["cache"]): c["val_psnr"] for c in choice["candidates"]}
+            for r in rows:
+                name = r["cache"].removeprefix("stored SIRENs ")
+                if r["kind"] in ("stored", "codec") and name in val:
+                    r["val_psnr"] = val[name]
         m = models.get(n)
         if m is not None:
             for name, nbytes in (("fp32", m["storage_bytes"]["model"]), ("fp16", m["storage_bytes"]["model"] // 2)):
@@ -37,8 +44,13 @@ def collect(runs: list[Path], model_points: list[dict]) -> dict:
                              "source": "docs/scaling/scaling.json (fp16: half the bytes, the figures of fp32, which "
                                        "the README run measured 0.01 dB apart)"})
         points.append({"lights": n, "unseen_lights": table["lights"]["unseen"], "caches": rows,
-                       "equal_bytes": equal_bytes(rows)})
+                       "equal_bytes": equal_bytes(rows),
+                       **({"auto": {k: choice[k] for k in ("choice", "why", "target_psnr")}} if choice else {})})
     return {"points": sorted(points, key=lambda p: p["lights"])}
+
+
+def _read(path: Path) -> dict | None:
+    return json.loads(path.read_text()) if path.is_file() else None
 
 
 def equal_bytes(rows: list[dict]) -> dict | None:
@@ -95,11 +107,20 @@ def figure(data: dict):
 
 def markdown(data: dict) -> str:
     """The table for docs: one row per cache and light count."""
-    lines = ["| lights | cache | MiB | seen dB | unseen dB | leave-one-out dB |", "|---|---|---|---|---|---|"]
+    lines = ["| lights | cache | MiB | seen dB | unseen dB | validation dB | leave-one-out dB |",
+             "|---|---|---|---|---|---|---|"]
     for p in data["points"]:
         for r in sorted(p["caches"], key=lambda r: r["bytes"]):
             lines.append(f"| {p['lights']} | {r['cache']} | {r['bytes'] / 2**20:.3f} | {r['seen_psnr']:.2f} | "
-                         f"{r.get('unseen_psnr', float('nan')):.2f} | {_or_dash(r.get('loo_psnr'))} |")
+                         f"{r.get('unseen_psnr', float('nan')):.2f} | {_or_dash(r.get('val_psnr'))} | "
+                         f"{_or_dash(r.get('loo_psnr'))} |")
+    for p in data["points"]:
+        eq = p.get("equal_bytes") or {}
+        if eq.get("best"):
+            lines.append(f"\n{p['lights']} lights: the model (fp16, {eq['model_bytes'] / 2**20:.2f} MiB) against "
+                         f"{eq['best']} ({eq['best_bytes'] / 2**20:.2f} MiB), the best stored cache no larger: "
+                         f"{eq['model_gain_db']:+.2f} dB on unseen lights."
+                         + (f" cache: auto chose {p['auto']['choice']}." if "auto" in p else ""))
     return "\n".join(lines) + "\n"
 
 
