@@ -90,17 +90,21 @@ def figure(data: dict):
             ax.scatter(r["bytes"], r["unseen_psnr"], color=c, marker="*" if r["kind"] == "model" else "o",
                        s=90 if r["kind"] == "model" else 30, zorder=3)
             ax.scatter(r["bytes"], r["seen_psnr"], color=c, marker="_", s=60, alpha=0.5, zorder=2)
-            label = r["cache"].replace("stored SIRENs ", "").replace("diffusion model ", "model ")
-            label = label.replace("dense shadow grids ", "grids ")
-            ax.annotate(label, (r["bytes"], r["unseen_psnr"]), textcoords="offset points", xytext=(4, 3),
-                        fontsize=7)
+            if r["cache"] == "diffusion model fp32":
+                continue  # one label for the model's two points (same PSNR)
+            label = r["cache"].replace("stored SIRENs ", "").replace("dense shadow grids ", "grids ")
+            label = label.replace("diffusion model fp16", "model fp16 | fp32")
+            below = label == "bf16"  # it sits on fp16's point
+            ax.annotate(label, (r["bytes"], r["unseen_psnr"]), textcoords="offset points",
+                        xytext=(-4, -10) if below else (4, 3), ha="right" if below else "left", fontsize=7)
         ax.set_xscale("log")
         ax.set_title(f"{p['lights']} training lights")
         ax.set_xlabel("bytes")
         ax.grid(alpha=0.3)
     axes[0][0].set_ylabel("median voxel PSNR, unseen lights (dB); – seen")
     fig.suptitle("caches as rate (bytes) against distortion: stored SIRENs (blue), codecs (green), diffusion "
-                 "model (red star), dense grids (grey)", fontsize=9)
+                 "model (red stars: fp16, fp32), dense grids (grey)\nmarkers: unseen lights; dashes: seen lights",
+                 fontsize=9)
     fig.tight_layout()
     return fig
 
