@@ -75,9 +75,9 @@ def test_few_lights_blend_all_the_others_and_one_light_is_refused():
 
 @pytest.mark.parametrize(("target", "candidates", "choice"), [
     (0.0, ["blend", "fp16", "bf16", "basis-2"], "basis-2"),  # everything passes: the fewest bytes
-    (300.0, ["blend", "fp16", "bf16", "basis-2"], "blend"),  # only the exact store passes
+    (99.0, ["blend", "fp16", "bf16", "basis-2"], "blend"),  # only the exact store passes
     (75.0, ["blend", "fp16", "bf16"], "fp16"),  # bf16 as small but under the target (8 bits of mantissa)
-    (300.0, ["fp16", "bf16", "basis-2"], "diffusion"),  # none passes: train the model
+    (99.0, ["fp16", "bf16", "basis-2"], "diffusion"),  # none passes: train the model
 ])
 def test_auto_takes_the_smallest_cache_that_reaches_the_target_else_the_model(monkeypatch, target, candidates,
                                                                                choice):
@@ -88,13 +88,30 @@ def test_auto_takes_the_smallest_cache_that_reaches_the_target_else_the_model(mo
         mse = float(np.mean((np.asarray(weights, np.float64) - store.weights) ** 2))
         return float("inf") if mse == 0 else 10 * np.log10(float(np.abs(store.weights).max()) ** 2 / mse)
 
-    monkeypatch.setattr(caches, "validation_psnr", fidelity)  # the figure it decides on
-    monkeypatch.setattr(caches, "leave_one_out_psnr", lambda *a: 0.0)  # recorded beside it, not decisive
+    monkeypatch.setattr(caches, "validation_psnr", fidelity)  # decisive, with the training lights' figure
+    monkeypatch.setattr(caches, "leave_one_out_psnr", lambda *a: 0.0)  # recorded beside them, not decisive
     val = SimpleNamespace(lights=np.zeros((3, 3)))
-    out = caches.choose_cache(store, None, val, lights, blend_k=4, target_psnr=target, candidates=candidates,
+    seen = SimpleNamespace(median_psnr=lambda w, layout, siren, lights: 100.0)  # every store passes there
+    out = caches.choose_cache(store, seen, val, lights, blend_k=4, target_psnr=target, candidates=candidates,
                               log=lambda *a: None)
     assert out["choice"] == choice and out["why"].startswith(f"{choice}:")
     assert [r["cache"] for r in out["candidates"]] == candidates  # every candidate weighed, in order
+
+
+def test_auto_needs_the_target_on_the_training_lights_too(monkeypatch):
+    """A codec that answers new lights well enough but its own stored lights worse does not serve."""
+    store, lights = _store()
+    monkeypatch.setattr(caches, "validation_psnr", lambda *a: 40.0)
+    monkeypatch.setattr(caches, "leave_one_out_psnr", lambda *a: 0.0)
+    exact = store.weights
+
+    def seen(w, layout, siren, train):  # the exact store 50 dB, every lossy one 30
+        return 50.0 if np.array_equal(w, exact) else 30.0
+
+    out = caches.choose_cache(store, SimpleNamespace(median_psnr=seen), SimpleNamespace(lights=np.zeros((3, 3))),
+                              lights, blend_k=4, target_psnr=35.0, candidates=["blend", "fp16", "basis-2"],
+                              log=lambda *a: None)
+    assert out["choice"] == "blend" and "30.00 and 40.00" not in out["why"]
 
 
 def test_codec_names_are_checked():
