@@ -24,7 +24,7 @@ from diffshadow.shadow import shadow_grid
 from diffshadow.store import blend_rows
 from diffshadow.truth import EvalTruth, median
 
-BASIS_K = (4, 8, 16, 32, 64, 128)  # the basis codec's sizes measured (those below the light count)
+BASIS_K = (4, 8, 16, 32, 64, 128, 256)  # the basis codec's sizes measured (those below the light count)
 
 
 def codec_named(name: str):
