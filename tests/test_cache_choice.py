@@ -1,6 +1,6 @@
-"""`cache: auto` (`diffshadow.caches.choose_cache`): the figures it weighs (the blend at validation lights, and
-leave-one-out on the training lights), and its rule: the smallest stored-SIREN cache that reaches the target on
-the validation lights, else the diffusion model."""
+"""`cache: auto` (`diffshadow.caches.choose_cache`): the figures it weighs (its stored SIRENs at the training
+lights, its blend at validation lights), and its rule: the smallest stored-SIREN cache that reaches the target on
+both, else the diffusion model."""
 
 from types import SimpleNamespace
 
@@ -36,22 +36,6 @@ def _store(n: int = 12):
     return SimpleNamespace(weights=w, layout=LAYOUT, siren=SIREN), lights
 
 
-def test_leave_one_out_blends_each_light_from_its_nearest_others_never_itself():
-    store, lights = _store()
-    truth = Scored()
-    caches.leave_one_out_psnr(store.weights, LAYOUT, SIREN, truth, lights, 4)
-    blended = truth.asked[0]
-    idx, angles = nearest(lights, lights, 5)
-    assert np.all(idx[:, 0] == np.arange(len(lights)))  # each light is its own nearest: the one left out
-    expected = blend_rows(store.weights, idx[:, 1:], inverse_angle_weights(angles[:, 1:])).astype(np.float32)
-    assert np.array_equal(blended, expected)
-    # a light's own SIREN changes no answer for it
-    changed = store.weights.copy()
-    changed[3] += 100.0
-    caches.leave_one_out_psnr(changed, LAYOUT, SIREN, truth, lights, 4)
-    assert np.array_equal(truth.asked[1][3], blended[3]) and not np.array_equal(truth.asked[1], blended)
-
-
 def test_validation_lights_are_answered_by_the_blend_of_their_nearest_stored_sirens():
     store, lights = _store()
     val = Scored()
@@ -60,17 +44,6 @@ def test_validation_lights_are_answered_by_the_blend_of_their_nearest_stored_sir
     idx, angles = nearest(lights, val.lights, 4)
     expected = blend_rows(store.weights, idx, inverse_angle_weights(angles)).astype(np.float32)
     assert np.array_equal(val.asked[0], expected)
-
-
-def test_few_lights_blend_all_the_others_and_one_light_is_refused():
-    store, lights = _store(3)
-    truth = Scored()
-    caches.leave_one_out_psnr(store.weights, LAYOUT, SIREN, truth, lights, 4)
-    idx, angles = nearest(lights, lights, 3)
-    assert np.array_equal(truth.asked[0], blend_rows(store.weights, idx[:, 1:],
-                                                     inverse_angle_weights(angles[:, 1:])).astype(np.float32))
-    with pytest.raises(ValueError, match="at least 2 training lights, got 1"):
-        caches.leave_one_out_psnr(store.weights[:1], LAYOUT, SIREN, truth, lights[:1], 4)
 
 
 @pytest.mark.parametrize(("target", "candidates", "choice"), [
@@ -89,7 +62,6 @@ def test_auto_takes_the_smallest_cache_that_reaches_the_target_else_the_model(mo
         return float("inf") if mse == 0 else 10 * np.log10(float(np.abs(store.weights).max()) ** 2 / mse)
 
     monkeypatch.setattr(caches, "validation_psnr", fidelity)  # decisive, with the training lights' figure
-    monkeypatch.setattr(caches, "leave_one_out_psnr", lambda *a: 0.0)  # recorded beside them, not decisive
     val = SimpleNamespace(lights=np.zeros((3, 3)))
     seen = SimpleNamespace(median_psnr=lambda w, layout, siren, lights: 100.0)  # every store passes there
     out = caches.choose_cache(store, seen, val, lights, blend_k=4, target_psnr=target, candidates=candidates,
@@ -102,7 +74,6 @@ def test_auto_needs_the_target_on_the_training_lights_too(monkeypatch):
     """A codec that answers new lights well enough but its own stored lights worse does not serve."""
     store, lights = _store()
     monkeypatch.setattr(caches, "validation_psnr", lambda *a: 40.0)
-    monkeypatch.setattr(caches, "leave_one_out_psnr", lambda *a: 0.0)
     exact = store.weights
 
     def seen(w, layout, siren, train):  # the exact store 50 dB, every lossy one 30

@@ -111,13 +111,11 @@ def figure(data: dict):
 
 def markdown(data: dict) -> str:
     """The table for docs: one row per cache and light count."""
-    lines = ["| lights | cache | MiB | seen dB | unseen dB | validation dB | leave-one-out dB |",
-             "|---|---|---|---|---|---|---|"]
+    lines = ["| lights | cache | MiB | seen dB | unseen dB | validation dB |", "|---|---|---|---|---|---|"]
     for p in data["points"]:
         for r in sorted(p["caches"], key=lambda r: r["bytes"]):
             lines.append(f"| {p['lights']} | {r['cache']} | {r['bytes'] / 2**20:.3f} | {r['seen_psnr']:.2f} | "
-                         f"{r.get('unseen_psnr', float('nan')):.2f} | {_or_dash(r.get('val_psnr'))} | "
-                         f"{_or_dash(r.get('loo_psnr'))} |")
+                         f"{r.get('unseen_psnr', float('nan')):.2f} | {_or_dash(r.get('val_psnr'))} |")
     for p in data["points"]:
         eq = p.get("equal_bytes") or {}
         if eq.get("best"):
