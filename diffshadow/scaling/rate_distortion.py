@@ -94,9 +94,11 @@ def figure(data: dict):
                 continue  # one label for the model's two points (same PSNR)
             label = r["cache"].replace("stored SIRENs ", "").replace("dense shadow grids ", "grids ")
             label = label.replace("diffusion model fp16", "model fp16 | fp32")
-            below = label == "bf16"  # it sits on fp16's point
-            ax.annotate(label, (r["bytes"], r["unseen_psnr"]), textcoords="offset points",
-                        xytext=(-4, -10) if below else (4, 3), ha="right" if below else "left", fontsize=7)
+            # bf16 sits on fp16's point: its label to the lower left; the model's below its stars
+            offset, ha = {"bf16": ((-4, -10), "right"), "model fp16 | fp32": ((4, -12), "left")}.get(
+                label, ((4, 3), "left"))
+            ax.annotate(label, (r["bytes"], r["unseen_psnr"]), textcoords="offset points", xytext=offset, ha=ha,
+                        fontsize=7)
         ax.set_xscale("log")
         ax.set_title(f"{p['lights']} training lights")
         ax.set_xlabel("bytes")
