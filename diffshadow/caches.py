@@ -15,25 +15,16 @@ import time
 import numpy as np
 import torch
 
-from diffshadow.codecs import BasisCodec, HalfCodec
+from diffshadow.codecs import BasisCodec, codec_named
 from diffshadow.evaluate import blend_baseline
 from diffshadow.grid import trilinear
-from diffshadow.lights import inverse_angle_weights, nearest
+from diffshadow.lights import blend_weights
 from diffshadow.metrics import psnr
 from diffshadow.shadow import shadow_grid
 from diffshadow.store import blend_rows
 from diffshadow.truth import EvalTruth, median
 
 BASIS_K = (4, 8, 16, 32, 64, 128, 256)  # the basis codec's sizes measured (those below the light count)
-
-
-def codec_named(name: str):
-    """The codec of a `cache` value: fp16, bf16 or basis-<k> (blend, the stored fp32 SIRENs, has none)."""
-    if name in ("fp16", "bf16"):
-        return HalfCodec("float16" if name == "fp16" else "bfloat16")
-    if name.startswith("basis-") and name[6:].isdigit() and int(name[6:]) >= 1:
-        return BasisCodec(int(name[6:]))
-    raise ValueError(f"cache: expected blend, fp16, bf16 or basis-<k>, got {name!r}")
 
 
 def encoded(weights: np.ndarray, layout, name: str) -> tuple[np.ndarray, int]:
@@ -50,8 +41,8 @@ def validation_psnr(weights: np.ndarray, layout, siren, train: np.ndarray, val: 
     """Median voxel PSNR (box points) at validation lights (`val`: drawn in the training cap like the unseen test
     set, but not from it) of the weight blend of each one's `k` nearest stored SIRENs: a blend cache's answer
     for lights it never stored, the figure `cache: auto` decides on."""
-    idx, angles = nearest(train, val.lights, min(k, len(train)))
-    blended = blend_rows(np.asarray(weights, dtype=np.float32), idx, inverse_angle_weights(angles))
+    idx, mix = blend_weights(train, val.lights, min(k, len(train)))
+    blended = blend_rows(np.asarray(weights, dtype=np.float32), idx, mix)
     return val.median_psnr(blended.astype(np.float32), layout, siren, val.lights)
 
 
@@ -67,7 +58,8 @@ def choose_cache(stage1, truth: EvalTruth, val: EvalTruth, train: np.ndarray, *,
     lights, where the validation lights read 1.0 dB under it (docs/performance.md, "cache: auto")."""
     rows, k = [], min(blend_k, len(train))
     for name in candidates:
-        if name.startswith("basis-") and int(name[6:]) >= len(train):
+        codec = None if name == "blend" else codec_named(name)
+        if isinstance(codec, BasisCodec) and codec.k >= len(train):
             continue  # k directions need more lights than k
         weights, nbytes = encoded(stage1.weights, stage1.layout, name)
         row = {"cache": name, "bytes": nbytes,
@@ -102,8 +94,7 @@ def cache_table(stage1, truth: EvalTruth, light_sets: dict, *, blend_k: int, vol
     train, unseen = light_sets["train"], light_sets["unseen"]
     layout, siren = stage1.layout, stage1.siren
     weights = np.asarray(stage1.weights, dtype=np.float32)
-    idx, angles = nearest(train, unseen, blend_k) if len(unseen) else (None, None)
-    mix = inverse_angle_weights(angles) if len(unseen) else None
+    idx, mix = blend_weights(train, unseen, blend_k) if len(unseen) else (None, None)
 
     def scored(seen_weights: np.ndarray, unseen_weights: np.ndarray | None) -> dict:
         """Median voxel PSNR at the box points, the set voxel_metrics.json's medians report."""
@@ -118,8 +109,7 @@ def cache_table(stage1, truth: EvalTruth, light_sets: dict, *, blend_k: int, vol
             return float("nan")
         t0 = time.perf_counter()
         for w in unseen:
-            i, a = nearest(train, w[None], blend_k)
-            decode_one(i, inverse_angle_weights(a))
+            decode_one(*blend_weights(train, w[None], blend_k))
         return (time.perf_counter() - t0) / len(unseen)
 
     rows = []
@@ -127,7 +117,7 @@ def cache_table(stage1, truth: EvalTruth, light_sets: dict, *, blend_k: int, vol
     rows.append({"cache": "stored SIRENs fp32", "kind": "stored", "bytes": int(weights.nbytes),
                  **scored(weights, plain), "answer_s": blend_time(lambda i, m: blend_rows(weights, i, m))})
     log(f"[caches] {rows[-1]}")
-    codecs = [HalfCodec("float16"), HalfCodec("bfloat16")] + [BasisCodec(k) for k in BASIS_K if k < len(train)]
+    codecs = [codec_named(n) for n in ("fp16", "bf16", *(f"basis-{k}" for k in BASIS_K if k < len(train)))]
     for codec in codecs:
         enc = codec.encode(weights, layout)
         decoded = codec.decode(enc, layout)

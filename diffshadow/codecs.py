@@ -92,6 +92,16 @@ class BasisCodec:
         return (z * _per_param(a["scale"].astype(np.float64), layout) + a["mean"]).astype(np.float32)
 
 
+def codec_named(name: str) -> HalfCodec | BasisCodec:
+    """The codec a `cache` value names (each codec's `name`): fp16, bf16 or basis-<k> (blend, the stored fp32
+    SIRENs, has none)."""
+    if name in ("fp16", "bf16"):
+        return HalfCodec("float16" if name == "fp16" else "bfloat16")
+    if name.startswith("basis-") and name[6:].isdigit() and int(name[6:]) >= 1:
+        return BasisCodec(int(name[6:]))
+    raise ValueError(f"cache: expected blend, fp16, bf16 or basis-<k>, got {name!r}")
+
+
 def _weights(weights, layout: WeightLayout) -> np.ndarray:
     w = np.asarray(weights)
     if w.ndim != 2 or w.shape[1] != layout.n_params:

@@ -9,6 +9,7 @@ import pytest
 import torch
 
 from diffshadow import caches
+from diffshadow.codecs import codec_named
 from diffshadow.layout import SirenConfig, WeightLayout
 from diffshadow.lights import fibonacci_sphere, inverse_angle_weights, nearest
 from diffshadow.siren import init_siren
@@ -86,7 +87,7 @@ def test_auto_needs_the_target_on_the_training_lights_too(monkeypatch):
 
 
 def test_codec_names_are_checked():
-    assert caches.codec_named("basis-16").k == 16 and caches.codec_named("bf16").name == "bf16"
+    assert codec_named("basis-16").k == 16 and codec_named("bf16").name == "bf16"
     for bad in ("basis-0", "basis-x", "int8", "blend"):
         with pytest.raises(ValueError, match=f"expected blend, fp16, bf16 or basis-<k>, got '{bad}'"):
-            caches.codec_named(bad)
+            codec_named(bad)
