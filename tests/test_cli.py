@@ -1,4 +1,5 @@
 import os
+import platform
 from pathlib import Path
 
 import numpy as np
@@ -133,6 +134,40 @@ def test_deterministic_switch_reads_its_words(monkeypatch, value, on):
         assert torch.are_deterministic_algorithms_enabled() is (on or before)
     finally:
         torch.use_deterministic_algorithms(before)
+
+
+ALLOCATION_HEAVY = """
+import hashlib, sys, torch
+from diffshadow.runtime import keep_freed_memory
+if sys.argv[1] == "keep":
+    assert keep_freed_memory()
+g = torch.Generator().manual_seed(0)
+x, w = torch.randn(200_000, 32, generator=g), torch.randn(32, 32, generator=g)
+h = hashlib.sha256()
+for _ in range(4):  # tensors of 25 MiB, allocated and freed in turn: the pattern the setting changes
+    x = torch.sin(x @ w + 0.1 * x.sum())
+    h.update(x.numpy().tobytes())
+print(h.hexdigest())
+"""
+
+
+@pytest.mark.skipif(platform.libc_ver()[0] != "glibc", reason="glibc's malloc only")
+def test_keeping_freed_memory_changes_no_value_and_a_users_malloc_settings_win(monkeypatch):
+    """The CLI asks glibc to keep freed memory (fewer page faults, docs/performance.md "The allocator"): a
+    computation gives the same bytes with and without it, and a user's own malloc tuning is left alone."""
+    import subprocess
+    import sys
+
+    from diffshadow.runtime import keep_freed_memory
+
+    env = {k: v for k, v in os.environ.items() if not k.startswith(("MALLOC_", "GLIBC_TUNABLES"))}
+    runs = [subprocess.run([sys.executable, "-c", ALLOCATION_HEAVY, mode], capture_output=True, text=True,
+                           check=True, env=env).stdout.strip() for mode in ("keep", "default")]
+    assert len(runs[0]) == 64 and runs[0] == runs[1]
+    for key in ("GLIBC_TUNABLES", "MALLOC_TRIM_THRESHOLD_"):
+        with monkeypatch.context() as m:
+            m.setenv(key, "")
+            assert keep_freed_memory() is False
 
 
 def test_lights_and_collect_weights_start_without_torch_and_record_their_phases(tmp_path):

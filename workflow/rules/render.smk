@@ -57,6 +57,8 @@ rule evaluate_images:
     params:
         cfg=lambda wc: as_json(wc.scene, "render"),
     threads: 1  # beside evaluate_voxels (see there)
+    # before `caches` (which only the summary reads): report_figures and benchmark wait for these images
+    priority: 5
     log:
         "results/{scene}/logs/evaluate_images.log",
     benchmark:

@@ -165,6 +165,7 @@ rule evaluate_voxels:
     # one thread, beside evaluate_images (both wait only for sample_shadows): a second thread sped each up
     # 1.5-1.6x, so on 2 cores the pair ends sooner side by side than one after the other (docs/performance.md)
     threads: 1
+    priority: 5  # report_figures waits for it; `caches` does not
     log:
         "results/{scene}/logs/evaluate_voxels.log",
     benchmark:
