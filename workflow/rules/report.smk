@@ -7,7 +7,9 @@ rule shadow_bench:
     output:
         json="results/{scene}/bench_shadow.json",
         png="results/{scene}/bench_shadow.png",
-    threads: 2
+    # one thread, on the core the side jobs leave idle near fit_siren's end: with two it ran between fit_siren
+    # and train_diffusion, on the critical path (its ratios are of one process; the JSON names the threads)
+    threads: 1
     log:
         "results/{scene}/logs/shadow_bench.log",
     benchmark:
