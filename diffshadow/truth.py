@@ -120,12 +120,33 @@ class EvalTruth:
         return median(psnr(values[point_set], self.of(lights)[point_set], dim=1).numpy())
 
 
+# Activations per chunk of SIRENs (64 MiB of float32): all 1,024 lights of a sweep point at once made 2-GiB
+# tensors, each a fresh mapping, and 9 GiB resident (choose-cache; docs/performance.md "The allocator"). The
+# README run's 32 lights at 16,384 points are one chunk.
+CHUNK_FLOATS = 1 << 24
+
+
+def light_chunks(n: int, per_light: int) -> list[slice]:
+    """Slices of `n` SIRENs with at most CHUNK_FLOATS activations each (`per_light` apiece). No chunk holds a
+    single SIREN unless `n` is 1: a batched product of one matrix takes another kernel than a batch of several and
+    rounds differently, and a chunk of two or more gives every SIREN the bits of one batch of all."""
+    step = max(2, CHUNK_FLOATS // max(1, per_light))
+    starts = list(range(0, n, step))
+    if len(starts) > 1 and n - starts[-1] == 1:
+        starts.pop()  # the last SIREN joins the chunk before it
+    return [slice(a, b) for a, b in zip(starts, [*starts[1:], n], strict=True)]
+
+
 def _siren_values(sets: dict, extent: torch.Tensor, weights, layout: WeightLayout,
                   siren: SirenConfig) -> dict[str, torch.Tensor]:
     w = torch.as_tensor(np.asarray(weights), dtype=torch.float32)
+    out = {}
     with torch.no_grad():
-        model = BatchedSiren(w, layout, siren.blocks)
-        return {k: model(box_to_siren(p.expand(len(w), -1, -1), extent)) for k, p in sets.items()}
+        for k, p in sets.items():
+            chunks = light_chunks(len(w), p.shape[-2] * siren.width)
+            out[k] = torch.cat([BatchedSiren(w[c], layout, siren.blocks)(
+                box_to_siren(p.expand(len(w[c]), -1, -1), extent)) for c in chunks])
+    return out
 
 
 def psnr_per_light(pred: dict, truth: dict) -> dict[str, np.ndarray]:

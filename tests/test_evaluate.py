@@ -1,3 +1,5 @@
+import itertools
+
 import numpy as np
 import pytest
 import torch
@@ -59,6 +61,34 @@ def test_median_psnr_scores_each_light_against_its_own_truth_row():
     truth.values = {k: v + torch.tensor([0.1, 0.01, 0.001])[:, None] for k, v in values.items()}
     assert truth.median_psnr(w, layout, cfg, lights) == pytest.approx(40.0, abs=1e-3)
     assert truth.median_psnr(w[[2, 1, 0]], layout, cfg, lights[[2, 1, 0]], "visible") == pytest.approx(40.0, abs=1e-3)
+
+
+@pytest.mark.parametrize("n", [1, 2, 7, 9, 33])
+def test_sirens_in_chunks_give_the_bits_of_one_batch(monkeypatch, n):
+    """Many SIRENs are evaluated in chunks of bounded memory (choose-cache at 1,024 lights held 9 GiB), never a
+    chunk of one (a batch of one matrix takes another kernel): every chunking gives one batch's bits."""
+    from diffshadow import truth as truth_module
+    from diffshadow.truth import light_chunks
+
+    for size in (1, 2, 7, 9, 33):
+        for per in (1, 3, 8):
+            monkeypatch.setattr(truth_module, "CHUNK_FLOATS", size * 8)
+            chunks = light_chunks(n, 8 * per)
+            lengths = [c.stop - c.start for c in chunks]
+            assert chunks[0].start == 0 and chunks[-1].stop == n and sum(lengths) == n
+            assert all(a.stop == b.start for a, b in itertools.pairwise(chunks))
+            assert n == 1 or min(lengths) >= 2
+    volume, tf = _blob(), identity_tf()
+    truth = EvalTruth.compute(volume, tf, fibonacci_sphere(2), 256, seed=0)
+    cfg = SirenConfig(width=8, blocks=1)
+    layout = WeightLayout.for_siren(cfg)
+    w = np.stack([layout.flatten(init_siren(cfg, torch.Generator().manual_seed(i))).numpy() for i in range(n)])
+    monkeypatch.setattr(truth_module, "CHUNK_FLOATS", 1 << 40)
+    whole = truth.sirens(w, layout, cfg)
+    for lights_per_chunk in (1, 2, 3, 4):  # CHUNK_FLOATS for that many SIRENs of 256 points at width 8
+        monkeypatch.setattr(truth_module, "CHUNK_FLOATS", lights_per_chunk * 256 * 8)
+        parts = truth.sirens(w, layout, cfg)
+        assert all(torch.equal(parts[k], whole[k]) for k in whole)
 
 
 def test_blend_baseline_is_the_convex_blend_of_the_chosen_rows():
