@@ -129,7 +129,8 @@ CHUNK_FLOATS = 1 << 24
 def light_chunks(n: int, per_light: int) -> list[slice]:
     """Slices of `n` SIRENs with at most CHUNK_FLOATS activations each (`per_light` apiece). No chunk holds a
     single SIREN unless `n` is 1: a batched product of one matrix takes another kernel than a batch of several and
-    rounds differently, and a chunk of two or more gives every SIREN the bits of one batch of all."""
+    rounds differently, while chunks of two or more gave every SIREN the bits of one batch of all in every case
+    measured (tests/test_evaluate.py)."""
     step = max(2, CHUNK_FLOATS // max(1, per_light))
     starts = list(range(0, n, step))
     if len(starts) > 1 and n - starts[-1] == 1:
@@ -140,7 +141,7 @@ def light_chunks(n: int, per_light: int) -> list[slice]:
 def _siren_values(sets: dict, extent: torch.Tensor, weights, layout: WeightLayout,
                   siren: SirenConfig) -> dict[str, torch.Tensor]:
     w = torch.as_tensor(np.asarray(weights), dtype=torch.float32)
-    out = {}
+    out: dict[str, torch.Tensor] = {}
     with torch.no_grad():
         for k, p in sets.items():
             chunks = light_chunks(len(w), p.shape[-2] * siren.width)
