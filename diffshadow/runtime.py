@@ -58,6 +58,20 @@ def start_device(device: torch.device) -> torch.device:
 JOB_ENVIRONMENT = {"MKL_CBWR": "AUTO,STRICT"}
 
 
+M_TRIM_THRESHOLD, M_MMAP_THRESHOLD = -1, -3  # glibc's mallopt parameters (malloc.h)
+
+
+def mallopt(settings: dict[int, int]) -> bool:
+    """glibc's `mallopt(parameter, value)` for each setting, in order; True when every one took, False where the C
+    library has no mallopt (macOS) or refused one."""
+    try:
+        call = ctypes.CDLL(None).mallopt
+    except (OSError, AttributeError):
+        return False
+    call.argtypes, call.restype = [ctypes.c_int, ctypes.c_int], ctypes.c_int
+    return all([call(param, value) == 1 for param, value in settings.items()])
+
+
 # glibc's malloc by default serves every block over a threshold (128 KiB, rising to at most 32 MiB as blocks are
 # freed) with its own mmap and hands freed memory back to the kernel, so a stage that allocates and frees
 # activation-sized tensors in a loop pays a page fault for every page of every tensor, every time: evaluate-images
@@ -65,21 +79,13 @@ JOB_ENVIRONMENT = {"MKL_CBWR": "AUTO,STRICT"}
 # allocator"). Kept in the process, freed memory is reused without faults; the price is a higher peak resident
 # size where a stage frees big tensors in turn (1.4-1.7x there). Addresses change, values do not (PyTorch aligns
 # every CPU tensor to 64 bytes either way).
-_MALLOPT = {"M_TRIM_THRESHOLD": (-1, 1 << 30), "M_MMAP_THRESHOLD": (-3, 1 << 30)}
-
-
 def keep_freed_memory() -> bool:
     """Ask glibc's malloc to keep freed memory for reuse (up to 1 GiB at the top of the heap, and blocks under
     1 GiB from the heap rather than a fresh mapping each). True when set; False where the C library is not glibc
     or the user tuned malloc through the environment (theirs wins)."""
     if any(key.startswith("MALLOC_") or key == "GLIBC_TUNABLES" for key in os.environ):
         return False
-    try:
-        mallopt = ctypes.CDLL(None).mallopt
-    except (OSError, AttributeError):  # not glibc (macOS, musl without mallopt)
-        return False
-    mallopt.argtypes, mallopt.restype = [ctypes.c_int, ctypes.c_int], ctypes.c_int
-    return all([mallopt(param, value) == 1 for param, value in _MALLOPT.values()])
+    return mallopt({M_TRIM_THRESHOLD: 1 << 30, M_MMAP_THRESHOLD: 1 << 30})
 
 
 def kernel_cache_environment(root: str | os.PathLike) -> dict[str, str]:

@@ -25,6 +25,7 @@ from diffshadow.bench.profile import op_counts
 from diffshadow.io import atomic_path, atomic_write_text, finite_json
 from diffshadow.metrics import foreground, image_psnr
 from diffshadow.render import DEFAULT_STEP, Camera, RenderScene
+from diffshadow.runtime import M_MMAP_THRESHOLD, M_TRIM_THRESHOLD, mallopt
 
 if TYPE_CHECKING:
     from matplotlib.figure import Figure
@@ -39,12 +40,8 @@ def _rss() -> int:
 
 
 def _exact_cpu_heap() -> None:
-    try:
-        libc = ctypes.CDLL("libc.so.6")
-        libc.mallopt(-3, 128 * 1024)  # M_MMAP_THRESHOLD: fixed, so freed big blocks go back at once
-        libc.mallopt(-1, 0)  # M_TRIM_THRESHOLD
-    except (OSError, AttributeError):
-        pass
+    # a fixed mmap threshold, so freed big blocks go back at once, and no free memory kept at the heap's top
+    mallopt({M_MMAP_THRESHOLD: 128 * 1024, M_TRIM_THRESHOLD: 0})
 
 
 def _trim() -> None:
