@@ -1,6 +1,7 @@
 """Rendering-loss fine-tuning: the ray-bundle colour equals the renderer's, and a DDP step over 2 gloo
 processes equals one single-process step on the same global batch."""
 
+import math
 from pathlib import Path
 
 import numpy as np
@@ -260,6 +261,15 @@ def test_fine_tuning_steps_from_the_raw_weights_and_keeps_the_ema_when_it_never_
     moved = {k: float((scored[1][k] - state["model"][k]).abs().max()) for k in state["model"]}
     from_avg = {k: float((scored[1][k] - state["ema"][k]).abs().max()) for k in state["ema"]}
     assert max(moved.values()) < max(from_avg.values())
+    # what kept epoch 0 holds samples as the geometry stage does, so stage 2 scores its images once, not twice
+    assert ft.same_sampler(state, out)
+    assert np.array_equal(ft.image_psnr_of_model(out, data), ft.image_psnr_of_model(state, data))
+    name = next(iter(state["ema"]))
+    nudged = {**out["model"], name: torch.nextafter(out["model"][name], torch.tensor(math.inf))}
+    assert not ft.same_sampler(state, {**out, "model": nudged})
+    assert not ft.same_sampler(state, {**out, "config": {**out["config"], "temperature": 0.5}})
+    assert not ft.same_sampler(state, out | {"standardizer": {**out["standardizer"],
+                                                               "std": out["standardizer"]["std"] * 2}})
 
 
 def test_pool_lights_add_their_loss_to_a_fine_tuning_step(setup):

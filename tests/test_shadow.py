@@ -238,6 +238,25 @@ def test_same_input_same_bytes_in_separate_processes(method, tmp_path):
                     f"{first}: {float(a[first])!r} against {float(b[first])!r}")
 
 
+@pytest.mark.parametrize("method", ["sweep", "march"])
+def test_shadow_bytes_do_not_depend_on_the_thread_count(method):
+    """torch splits an op's work by its thread count, not by the cores there are, so one to four threads on any
+    machine cover the splits that other machines' defaults make: the same bytes from each, in two light octants."""
+    from diffshadow.volume import Volume
+
+    vol = Volume(data=gaussian_blob(33, 0.15), extent=np.ones(3), name="blob")
+    before = torch.get_num_threads()
+    try:
+        for light in ((0.2, 0.3, 0.9), (-0.7, 0.1, -0.3)):
+            grids = []
+            for threads in (1, 2, 3, 4):
+                torch.set_num_threads(threads)
+                grids.append(shadow_grid(vol, identity_tf(), light, method=method))
+            assert all(torch.equal(g, grids[0]) for g in grids[1:]), f"{method}, light {light}"
+    finally:
+        torch.set_num_threads(before)
+
+
 @pytest.mark.parametrize("shape", [(1, 3, 4), (7, 5, 6), (40, 2, 3)])
 def test_sequential_cumsum_is_the_cpus_cumsum_bit_for_bit(shape):
     """The sweep's cumsum under the determinism switch on CUDA (where torch refuses a floating-point cumsum):

@@ -406,6 +406,19 @@ def _peak_memory(device: torch.device) -> int:
     return int(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss) * 1024
 
 
+def same_sampler(a: dict, b: dict) -> bool:
+    """Whether two checkpoints sample alike: the same weights bit for bit, standardizer, layout, SIREN and diffusion
+    config. Fine-tuning whose validation kept none of its epochs holds the geometry stage's sampler, and scoring it
+    again renders every training light a second time for the same numbers (3 of the README run's 16 s)."""
+    wa, wb = sampler_weights(a), sampler_weights(b)
+    if wa.keys() != wb.keys() or any(not torch.equal(wa[k], wb[k]) for k in wa):
+        return False
+    std_a, std_b = a["standardizer"], b["standardizer"]
+    return (all(torch.equal(torch.as_tensor(std_a[k]), torch.as_tensor(std_b[k])) for k in ("mean", "std"))
+            and all(a[k] == b[k] for k in ("layout", "siren"))
+            and DiffusionConfig.of_checkpoint(a) == DiffusionConfig.of_checkpoint(b))
+
+
 @torch.no_grad()
 def image_psnr_of_model(state: dict, data: FinetuneData, *,
                         device: torch.device | str = "cpu", chunk: int = 512) -> np.ndarray:

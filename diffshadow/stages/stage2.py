@@ -19,6 +19,7 @@ from diffshadow.diffusion.finetune import (
     finetune,
     image_psnr_of_model,
     keep_if_images_improve,
+    same_sampler,
 )
 from diffshadow.diffusion.model import PRESETS
 from diffshadow.diffusion.sample import checkpoint_region, generate, load_sampler
@@ -104,7 +105,7 @@ def finetune_render(checkpoint: Path, weights_path: Path, points_path: Path, tar
         if rank != 0:
             return
         before = image_psnr_of_model(geometry, data)
-        after = image_psnr_of_model(state, data)
+        after = before.copy() if same_sampler(geometry, state) else image_psnr_of_model(state, data)
         final, kept = keep_if_images_improve(geometry, state, before, after)
         if final is not state:
             state = final  # written without the per-rank timings, like finetune's own checkpoint (same bytes)
