@@ -94,9 +94,15 @@ def _finetune_render(a):
 
 
 def _ddp_processes(a):
-    from diffshadow.runtime import ddp_processes
+    from diffshadow.hpc import ddp_processes, gpu_possible
 
-    n, why = ddp_processes(a.nproc, _device(a))
+    gpus = None
+    if gpu_possible(a.device, a.config_device):  # else no torch import, which was 1.7 of this command's 1.7 s here
+        import torch
+
+        device = _device(a)
+        gpus = torch.cuda.device_count() if device.type == "cuda" else None
+    n, why = ddp_processes(a.nproc, gpus)
     print(f"diffshadow: {why}", file=sys.stderr)
     print(n)
 
@@ -470,8 +476,10 @@ _ONE_GPU = {"preoptimize", "fit-siren", "train-data-inr", "presample", "train-di
 
 # subcommands that never touch torch: importing it (~1 s on a CPU, seconds with a CUDA build) would be most of
 # their run; lights and collect-weights are workflow jobs, stage-costs and summary sit on every run's last
-# stretch, pbs-status in the scheduler's polling loop (tests/test_cli.py checks they start without torch)
-_NO_TORCH = {"lights", "collect-weights", "stage-costs", "summary", "pbs-status", "install-profiles"}
+# stretch, pbs-status in the scheduler's polling loop, ddp-processes before finetune_render (it imports torch only
+# where a GPU may be; tests/test_cli.py checks they start without torch)
+_NO_TORCH = {"lights", "collect-weights", "stage-costs", "summary", "pbs-status", "install-profiles",
+             "ddp-processes"}
 
 
 def main(argv: list[str] | None = None) -> None:

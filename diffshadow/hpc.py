@@ -22,6 +22,37 @@ import yaml
 _held: list[int] = []  # open lock file descriptors, kept for the life of the process
 
 
+# what a GPU build of PyTorch needs to see a GPU: NVIDIA's driver, AMD's (ROCm), WSL's GPU bridge
+GPU_DRIVER_FILES = ("/proc/driver/nvidia", "/dev/kfd", "/dev/dxg")
+
+
+def device_setting(flag: str | None = None, config: str | None = None) -> tuple[str, str]:
+    """A stage's device setting, unresolved, and where it came from: flag → DIFFSHADOW_DEVICE → config → auto."""
+    if flag:
+        return flag, "--device"
+    if os.environ.get("DIFFSHADOW_DEVICE"):
+        return os.environ["DIFFSHADOW_DEVICE"], "DIFFSHADOW_DEVICE"
+    return config or "auto", "device"
+
+
+def gpu_possible(flag: str | None = None, config: str | None = None) -> bool:
+    """Whether the device setting can resolve to a GPU here, answered without PyTorch: not for cpu, nor for auto on
+    a machine without a GPU driver."""
+    spec, _ = device_setting(flag, config)
+    return spec != "cpu" and not (spec == "auto" and not any(os.path.exists(f) for f in GPU_DRIVER_FILES))
+
+
+def ddp_processes(requested: int, gpus: int | None) -> tuple[int, str]:
+    """How many DDP processes to launch for `requested`, given the GPUs visible (None: the device is the CPU), and a
+    one-line reason: on CUDA one process per visible GPU at most (NCCL cannot put two ranks on one GPU); on CPU as
+    asked."""
+    if gpus is None:
+        return requested, f"{requested} CPU process(es) (gloo)"
+    if requested > gpus:
+        return gpus, f"finetune.nproc is {requested} but {gpus} GPU(s) are visible: running {gpus} process(es)"
+    return requested, f"{requested} process(es), one GPU each (NCCL)"
+
+
 def claim_gpu(n_gpus: int, *, lock_dir: str | Path | None = None, wait_s: float = 3600.0,
               poll_s: float = 0.5) -> int:
     """Take the first free of `n_gpus` GPUs on this node; set CUDA_VISIBLE_DEVICES to it; return its id."""

@@ -17,14 +17,15 @@ from dataclasses import dataclass
 
 import torch
 
+from diffshadow.hpc import device_setting
+
 CPU = torch.device("cpu")
 DEVICE_CHOICES = "auto, cpu, cuda or cuda:N"
 
 
 def resolve_device(flag: str | None = None, config: str | None = None) -> torch.device:
     """The device of a stage: flag → DIFFSHADOW_DEVICE → config → auto."""
-    spec = flag or os.environ.get("DIFFSHADOW_DEVICE") or config or "auto"
-    source = "--device" if flag else "DIFFSHADOW_DEVICE" if os.environ.get("DIFFSHADOW_DEVICE") else "device"
+    spec, source = device_setting(flag, config)
     if spec == "auto":
         return torch.device("cuda") if torch.cuda.is_available() else CPU
     try:
@@ -137,19 +138,6 @@ def claim_gpu_lock(command: str) -> None:
 
     gpu = claim_gpu(int(gpus))
     print(f"diffshadow {command}: claimed GPU {gpu} of {gpus} (CUDA_VISIBLE_DEVICES={gpu})", flush=True)
-
-
-def ddp_processes(requested: int, device: torch.device) -> tuple[int, str]:
-    """How many DDP processes to launch for `requested` on `device`, and a one-line reason.
-
-    On CUDA one process per visible GPU at most (NCCL cannot put two ranks on one GPU); on CPU as asked.
-    """
-    if device.type == "cuda":
-        gpus = torch.cuda.device_count()
-        if requested > gpus:
-            return gpus, f"finetune.nproc is {requested} but {gpus} GPU(s) are visible: running {gpus} process(es)"
-        return requested, f"{requested} process(es), one GPU each (NCCL)"
-    return requested, f"{requested} CPU process(es) (gloo)"
 
 
 @dataclass(frozen=True)

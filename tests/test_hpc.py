@@ -15,7 +15,7 @@ import yaml
 from conftest import installed
 from test_workflow import TINY
 
-from diffshadow.hpc import claim_gpu, pbs_state, pbs_status
+from diffshadow.hpc import GPU_DRIVER_FILES, claim_gpu, pbs_state, pbs_status
 from diffshadow.store import open_store
 
 REPO = Path(__file__).resolve().parents[1]
@@ -337,3 +337,33 @@ def test_paper_scale_config_plans_forty_subsets_four_to_a_node(tmp_path):
     for rule in ("train_diffusion", "eval_truth"):
         job = out.split(f"rule {rule}:")[1].split("\n\n")[0]
         assert f"walltime={projected[rule]['walltime']}" in job, job
+
+
+def test_ddp_processes_caps_ranks_at_the_visible_gpus_and_asks_torch_only_where_a_gpu_may_be(tmp_path, monkeypatch):
+    import diffshadow.hpc as hpc
+
+    assert hpc.ddp_processes(4, None) == (4, "4 CPU process(es) (gloo)")
+    assert hpc.ddp_processes(4, 2) == (2, "finetune.nproc is 4 but 2 GPU(s) are visible: running 2 process(es)")
+    assert hpc.ddp_processes(1, 2) == (1, "1 process(es), one GPU each (NCCL)")
+    monkeypatch.delenv("DIFFSHADOW_DEVICE", raising=False)
+    monkeypatch.setattr(hpc, "GPU_DRIVER_FILES", (str(tmp_path / "no-driver"),))
+    assert not hpc.gpu_possible() and not hpc.gpu_possible(None, "cpu") and hpc.gpu_possible("cuda:1")
+    monkeypatch.setenv("DIFFSHADOW_DEVICE", "cpu")
+    assert not hpc.gpu_possible(None, "cuda") and hpc.gpu_possible("cuda", "cpu")  # the flag, then the environment
+    monkeypatch.setenv("DIFFSHADOW_DEVICE", "")
+    (tmp_path / "driver").touch()
+    monkeypatch.setattr(hpc, "GPU_DRIVER_FILES", (str(tmp_path / "no-driver"), str(tmp_path / "driver")))
+    assert hpc.gpu_possible() and hpc.gpu_possible(None, "auto") and not hpc.gpu_possible(None, "cpu")
+
+
+@pytest.mark.skipif(any(os.path.exists(f) for f in GPU_DRIVER_FILES),
+                    reason="a GPU driver is here: the helper must ask torch")
+def test_the_ddp_helper_starts_without_torch_where_no_gpu_can_be():
+    """finetune_render's launch line asks `ddp-processes` first; on a CPU machine its answer needs no torch import
+    (`python -X importtime` lists every module a process imports)."""
+    done = subprocess.run([sys.executable, "-X", "importtime", "-m", "diffshadow.cli", "ddp-processes", "--nproc",
+                           "3"], capture_output=True, text=True, env={**os.environ, "DIFFSHADOW_DEVICE": ""})
+    assert done.returncode == 0, done.stderr
+    imported = [line.rsplit("|", 1)[-1].strip() for line in done.stderr.splitlines() if "import time:" in line]
+    assert "diffshadow.hpc" in imported and not [m for m in imported if m.split(".")[0] == "torch"]
+    assert done.stdout.strip() == "3" and "3 CPU process(es) (gloo)" in done.stderr
