@@ -256,10 +256,10 @@ def _view(a):
 
 
 def _report_figures(a):
-    from diffshadow.stages import images
+    from diffshadow.report import scene_figures
 
-    images.report_figures(Path(a.weights), Path(a.generated), Path(a.lights), Path(a.images), Path(a.voxel_metrics),
-                          Path(a.shadow_bench), _cfg(a), Path(a.out_dir))
+    scene_figures(Path(a.weights), Path(a.generated), Path(a.lights), Path(a.images), Path(a.voxel_metrics),
+                  Path(a.shadow_bench), _cfg(a), Path(a.out_dir))
 
 
 def _stage_costs(a):
@@ -476,10 +476,10 @@ _ONE_GPU = {"preoptimize", "fit-siren", "train-data-inr", "presample", "train-di
 
 # subcommands that never touch torch: importing it (~1 s on a CPU, seconds with a CUDA build) would be most of
 # their run; lights and collect-weights are workflow jobs, stage-costs and summary sit on every run's last
-# stretch, pbs-status in the scheduler's polling loop, ddp-processes before finetune_render (it imports torch only
-# where a GPU may be; tests/test_cli.py checks they start without torch)
+# stretch with report-figures, pbs-status in the scheduler's polling loop, ddp-processes before finetune_render (it
+# imports torch only where a GPU may be; tests/test_cli.py and tests/test_hpc.py check they start without torch)
 _NO_TORCH = {"lights", "collect-weights", "stage-costs", "summary", "pbs-status", "install-profiles",
-             "ddp-processes"}
+             "ddp-processes", "report-figures"}
 
 
 def main(argv: list[str] | None = None) -> None:

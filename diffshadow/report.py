@@ -263,6 +263,27 @@ def shadow_curve_figure(bench_json: dict, out: Path) -> None:
     save_figure(out, fig)
 
 
+def scene_figures(weights: Path, generated: Path, lights_path: Path, images_dir: Path, voxel_metrics: Path,
+                   shadow_bench: Path, cfg: dict, out: Path) -> None:
+    """The report's figures for one finished scene, from its results (nothing is re-trained or re-timed, and
+    torch is not imported: report_figures sits on the run's last stretch)."""
+    from diffshadow.lights import read_lights
+    from diffshadow.store import open_store
+
+    out.mkdir(parents=True, exist_ok=True)
+    write_config(out / "config.yaml", cfg)
+    stage1, generated_store = open_store(weights), open_store(generated)
+    siren_psnr_figure(stage1, out / "siren_psnr.png")
+    generated_figure(stage1, generated_store, out / "generated_psnr.png", out / "generated_psnr.csv")
+    lights = read_lights(lights_path)
+    image_grid_figure(images_dir, lights, out / "image_grid.png")
+    metrics = json.loads(voxel_metrics.read_text())
+    storage_figure(metrics, len(lights["train"]), out / "storage.png")
+    ddim_curve_figure(metrics.get("sampling"), out / "ddim_curve.png")
+    shadow_curve_figure(json.loads(shadow_bench.read_text()), out / "shadow_curve.png")
+    print(f"wrote the report figures in {out}")
+
+
 def write_config(path: Path, cfg: dict) -> None:
     import yaml
 

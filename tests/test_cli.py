@@ -207,6 +207,23 @@ def test_lights_and_collect_weights_start_without_torch_and_record_their_phases(
     assert rec["io_s"] > 0 and (tmp_path / "weights.zarr").is_dir()
 
 
+def test_report_figures_code_imports_no_torch():
+    """report_figures sits on the run's last stretch and only draws: its command skips torch (cli._NO_TORCH), and
+    nothing it imports (the CLI, report, store, lights, matplotlib's figures) brings torch in."""
+    import subprocess
+    import sys
+
+    from diffshadow.cli import _NO_TORCH
+
+    assert "report-figures" in _NO_TORCH
+    done = subprocess.run([sys.executable, "-X", "importtime", "-c", "import diffshadow.cli, diffshadow.report, "
+                           "diffshadow.store, diffshadow.lights; diffshadow.report.pyplot()"],
+                          capture_output=True, text=True)
+    assert done.returncode == 0, done.stderr
+    imported = [line.rsplit("|", 1)[-1].strip() for line in done.stderr.splitlines() if "import time:" in line]
+    assert "diffshadow.store" in imported and not [m for m in imported if m.split(".")[0] == "torch"]
+
+
 def test_view_takes_the_runs_render_section_under_its_flags(tmp_path, capsys):
     """`diffshadow view results/<scene>` renders as the run did (its config's render section over the scene
     file's): the kernel and the step; --kernel wins; without a run config for the scene, the package defaults

@@ -6,6 +6,6 @@ arguments and dispatches here; the Parsl worker calls `stage1.fit_subset` direct
 
 - `stage1`: lights, prepare_volume, preoptimize, fit_subset, collect_weights
 - `stage2`: presample, train_diffusion, finetune_render, sample_shadows, evaluate_voxels
-- `images`: train_data_inr, render_targets, evaluate_images, render_image, report_figures (the `benchmark`
-  rule runs `bench.render.run`)
+- `images`: train_data_inr, render_targets, evaluate_images, render_image (the `benchmark` rule runs
+  `bench.render.run`, report_figures `report.scene_figures`, which needs no torch)
 """

@@ -8,7 +8,7 @@ from pathlib import Path
 
 import torch
 
-from diffshadow import artifacts, report
+from diffshadow import artifacts
 from diffshadow.data_inr import DataInrConfig, fit_data_inr
 from diffshadow.diffusion.finetune import FinetuneConfig
 from diffshadow.evaluate import image_evaluation
@@ -144,20 +144,3 @@ def _data_inr_size(inr) -> dict | None:
         return None
     return {"width": inr.model.cfg.width, "blocks": inr.model.cfg.blocks, "parameters": inr.n_params,
             "psnr": inr.psnr, "capacity": inr.config.get("capacity")}
-
-
-def report_figures(weights: Path, generated: Path, lights_path: Path, images_dir: Path, voxel_metrics: Path,
-                   shadow_bench: Path, cfg: dict, out: Path) -> None:
-    """The report's figures for one finished scene, from its results (nothing is re-trained or re-timed)."""
-    out.mkdir(parents=True, exist_ok=True)
-    report.write_config(out / "config.yaml", cfg)
-    stage1, generated_store = open_store(weights), open_store(generated)
-    report.siren_psnr_figure(stage1, out / "siren_psnr.png")
-    report.generated_figure(stage1, generated_store, out / "generated_psnr.png", out / "generated_psnr.csv")
-    lights = read_lights(lights_path)
-    report.image_grid_figure(images_dir, lights, out / "image_grid.png")
-    metrics = json.loads(voxel_metrics.read_text())
-    report.storage_figure(metrics, len(lights["train"]), out / "storage.png")
-    report.ddim_curve_figure(metrics.get("sampling"), out / "ddim_curve.png")
-    report.shadow_curve_figure(json.loads(shadow_bench.read_text()), out / "shadow_curve.png")
-    print(f"wrote the report figures in {out}")

@@ -49,7 +49,7 @@ rule report_figures:
     params:
         cfg=lambda wc: json.dumps(scene_config(wc.scene), sort_keys=True),
         run=lambda wc: caption_values(wc.scene),  # for the captions
-    threads: 2
+    threads: 1  # figures only (matplotlib, no torch): it starts beside `caches` when evaluate_images is done
     log:
         "results/{scene}/logs/report_figures.log",
     benchmark:
