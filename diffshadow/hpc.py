@@ -39,7 +39,9 @@ def gpu_possible(flag: str | None = None, config: str | None = None) -> bool:
     """Whether the device setting can resolve to a GPU here, answered without PyTorch: not for cpu, nor for auto on
     a machine without a GPU driver."""
     spec, _ = device_setting(flag, config)
-    return spec != "cpu" and not (spec == "auto" and not any(os.path.exists(f) for f in GPU_DRIVER_FILES))
+    if spec == "cpu":
+        return False
+    return spec != "auto" or any(os.path.exists(f) for f in GPU_DRIVER_FILES)
 
 
 def ddp_processes(requested: int, gpus: int | None) -> tuple[int, str]:
