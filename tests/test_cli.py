@@ -170,9 +170,9 @@ def test_keeping_freed_memory_changes_no_value_and_a_users_malloc_settings_win(m
             assert keep_freed_memory() is False
 
 
-def test_lights_and_collect_weights_start_without_torch_and_record_their_phases(tmp_path):
-    """The two workflow jobs that compute nothing with torch import none (`python -X importtime` lists every module
-    a process imports), and `--phases` writes where their time went."""
+def test_lights_prepare_volume_and_collect_weights_start_without_torch_and_record_their_phases(tmp_path):
+    """The workflow jobs that compute nothing with torch import none (`python -X importtime` lists every module a
+    process imports), and `--phases` writes where their time went; the prepared volume reads back whole."""
     import json
     import subprocess
     import sys
@@ -187,8 +187,20 @@ def test_lights_and_collect_weights_start_without_torch_and_record_their_phases(
                                *argv], capture_output=True, text=True, cwd=tmp_path)
         assert done.returncode == 0, done.stderr
         imported = [line.rsplit("|", 1)[-1].strip() for line in done.stderr.splitlines() if "import time:" in line]
-        assert "diffshadow.lights" in imported and not [m for m in imported if m.split(".")[0] == "torch"]
+        assert "diffshadow.argparsing" in imported and not [m for m in imported if m.split(".")[0] == "torch"]
         return json.loads(phases.read_text())
+
+    from diffshadow.analytic import gaussian_blob
+    from diffshadow.volume import load_prepared
+
+    np.save(tmp_path / "blob.npy", gaussian_blob(9) * 3.0)
+    tf = {"opacity": [[0.0, 0.0], [1.0, 1.0]], "color": [[0.0, 1.0, 1.0, 1.0], [1.0, 1.0, 1.0, 1.0]],
+          "density_scale": 10.0}
+    rec = run("prepare-volume", "--config-json", json.dumps({"volume": "blob.npy", "transfer_function": tf}),
+              "--out", "volume.zarr")
+    volume, back = load_prepared(tmp_path / "volume.zarr")
+    assert rec["io_s"] > 0 and volume.data.shape == (9, 9, 9) and back.to_config() == tf
+    assert volume.data.min() == 0 and volume.data.max() == 1  # normalised on the way in
 
     rec = run("lights", "--sphere", "100", "--count", "4", "--center", "0", "0", "1", "--unseen", "2", "--out",
               "lights.json")

@@ -29,7 +29,7 @@ def tiny():
 
 @pytest.fixture(scope="module")
 def scene(tiny):
-    from diffshadow.artifacts import scene_volume
+    from diffshadow.volume import scene_volume
 
     return scene_volume(tiny)
 

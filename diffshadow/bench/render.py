@@ -309,13 +309,14 @@ def run(out: Path, *, scene_config: Path | None = None, volume: Path | None = No
     INR and one shadow INR (given, or fitted here), then `bench_render`; writes JSON and a plot."""
     import dataclasses
 
-    from diffshadow.artifacts import is_prepared, load_data_inr, load_render_scene, load_scene_file
+    from diffshadow.artifacts import load_data_inr, load_render_scene, load_scene_file
     from diffshadow.bench import BENCH_LIGHT, BENCH_TF
     from diffshadow.data_inr import DataInrConfig, fit_data_inr
     from diffshadow.fit import FitConfig, fit_sirens
     from diffshadow.sampling import seeded
     from diffshadow.siren import SirenConfig, WeightLayout, init_siren
     from diffshadow.store import open_store
+    from diffshadow.volume import is_prepared
 
     if scene_config:
         scene = load_scene_file(Path(scene_config), device, render)

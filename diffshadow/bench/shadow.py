@@ -100,7 +100,7 @@ def bench_shadow(
 
 def _load(path: Path, tf: TransferFunction) -> tuple[Volume, TransferFunction]:
     """A prepared volume with its transfer function; any other volume file with `tf`."""
-    from diffshadow.artifacts import is_prepared, load_prepared
+    from diffshadow.volume import is_prepared, load_prepared
 
     if is_prepared(path):
         return load_prepared(path)

@@ -95,10 +95,10 @@ def bench_siren(out_dir: Path, *, k: int = 16, points: int = 4096, widths=(32, 6
 
 
 def _scene_inputs(results: Path):
-    from diffshadow.artifacts import load_prepared
     from diffshadow.fit import FitConfig
     from diffshadow.lights import read_lights
     from diffshadow.store import open_store
+    from diffshadow.volume import load_prepared
 
     volume, tf = load_prepared(results / "volume.zarr")
     store = open_store(results / "weights.zarr")

@@ -67,7 +67,7 @@ def _pool(m: int, points: int, n_train: int, cfg: dict, volume, *, seed: int):
 
 
 def _scene(cfg: dict):
-    from diffshadow.artifacts import scene_volume
+    from diffshadow.volume import scene_volume
 
     return scene_volume(cfg)
 

@@ -20,11 +20,12 @@ from diffshadow.render import Camera, RenderScene, default_views, fibonacci_view
 from diffshadow.render.bundle import build_bundle
 from diffshadow.render.bundle import render_targets as targets
 from diffshadow.store import BlendSampler, open_store
+from diffshadow.volume import load_prepared
 
 
 def train_data_inr(volume_path: Path, out: Path, *, cfg: DataInrConfig, device: torch.device) -> None:
     """The SIREN of the scalar field the renderer queries; resumable from `<out>.ckpt`."""
-    volume, tf = artifacts.load_prepared(volume_path)
+    volume, tf = load_prepared(volume_path)
     inr = fit_data_inr(volume, tf, cfg, checkpoint=out.with_name(out.name + ".ckpt"), device=device)
     artifacts.save_data_inr(out, inr)
     print(f"wrote {out}: {inr.n_params} parameters, voxel PSNR {inr.psnr:.2f} dB, max error {inr.max_error:.4f}")
@@ -34,7 +35,7 @@ def render_targets(volume_path: Path, lights_path: Path, out: Path, *, cfg: Fine
                    device: torch.device) -> None:
     """`gt` images per training light × Fibonacci view, and each view's ray samples; a sweep's grid on the
     volume refined `upsample` times (stage 1's fit.grid_upsample)."""
-    volume, tf = artifacts.load_prepared(volume_path)
+    volume, tf = load_prepared(volume_path)
     train = read_lights(lights_path)["train"]
     cams = fibonacci_views(volume.extent, cfg.views, size=cfg.image_size, fov=cfg.fov)
     bundle = build_bundle(volume, tf, cams, step=cfg.step)  # one pass per view: CPU

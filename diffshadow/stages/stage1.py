@@ -17,6 +17,7 @@ import numpy as np
 from diffshadow.layout import SirenConfig
 from diffshadow.lights import LightRegion, index_ranges, make_light_sets, read_lights, subset_indices, write_lights
 from diffshadow.store import collect_subsets, write_store, write_subset
+from diffshadow.volume import load_prepared, save_prepared, scene_volume
 
 if TYPE_CHECKING:
     import torch
@@ -37,11 +38,9 @@ def lights(out: Path, *, sphere: int, count: int, center, unseen: int, seed: int
 
 
 def prepare_volume(out: Path, scene: dict) -> None:
-    """The scene's volume normalised to [0, 1] in its box, with its transfer function."""
-    from diffshadow import artifacts
-
-    volume, tf = artifacts.scene_volume(scene)
-    artifacts.save_prepared(out, volume, tf)
+    """The scene's volume normalised to [0, 1] in its box, with its transfer function (without torch)."""
+    volume, tf = scene_volume(scene)
+    save_prepared(out, volume, tf)
     print(f"wrote {out}: {volume.name} {volume.dims}, extent {volume.extent.round(4).tolist()}")
 
 
@@ -52,7 +51,7 @@ def preoptimize(volume_path: Path, lights_path: Path, out: Path, *, siren: Siren
     from diffshadow import artifacts
     from diffshadow.fit import choose_layout
 
-    volume, tf = artifacts.load_prepared(volume_path)
+    volume, tf = load_prepared(volume_path)
     train = read_lights(lights_path)["train"]
     chosen = choose_layout(volume, tf, train, siren, fit, preoptimize_steps=steps, preoptimize_lr=lr, device=device,
                            log=lambda m: print(m, flush=True))
@@ -67,7 +66,7 @@ def fit_subset(volume_path: Path, lights_path: Path, init_path: Path, subset: in
     from diffshadow import artifacts
     from diffshadow.fit import FitError, blend_pool, check_psnr, evaluate_psnr, fit_sirens
 
-    volume, tf = artifacts.load_prepared(volume_path)
+    volume, tf = load_prepared(volume_path)
     sets = read_lights(lights_path)
     train = sets["train"]
     idx = subset_indices(train, subset_size, subset)

@@ -32,6 +32,7 @@ from diffshadow.sampling import Stream
 from diffshadow.store import BlendSampler, WeightStore, open_store, write_store
 from diffshadow.truth import EvalTruth, check_points, psnr_per_light
 from diffshadow.truth import presample as presample_points
+from diffshadow.volume import load_prepared, prepared_voxels
 
 # test lights further than this from a training light are helped by a denser sphere (tooth, docs/performance.md)
 SPARSE_LIGHTS_DEG = 2.0
@@ -40,7 +41,7 @@ SPARSE_LIGHTS_DEG = 2.0
 def presample(volume_path: Path, lights_path: Path, out: Path, *, cfg: DiffusionConfig,
               device: torch.device) -> None:
     """Points and their true shadow per training light, for the geometry loss."""
-    volume, tf = artifacts.load_prepared(volume_path)
+    volume, tf = load_prepared(volume_path)
     sets = read_lights(lights_path)
     train_lights = sets["train"]
     print(f"presampling {cfg.presample_points} points for each of {len(train_lights)} lights", flush=True)
@@ -91,7 +92,7 @@ def finetune_render(checkpoint: Path, weights_path: Path, points_path: Path, tar
             raise ValueError(f"{targets_path}: its lights differ from {weights_path}'s; rerun render_targets")
         val = None
         if volume_path is not None and cfg.val_lights > 0 and rank == 0:
-            volume, tf = artifacts.load_prepared(volume_path)
+            volume, tf = load_prepared(volume_path)
             if lights_path is None:
                 raise ValueError("finetune_render: validation lights need the light sets (--lights) with the volume")
             lights = validation_lights(train_data.lights.numpy(), read_lights(lights_path)["center"], cfg.val_lights,
@@ -131,7 +132,7 @@ def eval_truth(volume_path: Path, lights_path: Path, out: Path, *, eval_points: 
                device: torch.device | str = "cpu") -> None:
     """Evaluation points and the exact shadow of every training and unseen light at them (the march),
     once per scene: it needs only the volume, so it runs beside stage 1, not after sampling."""
-    volume, tf = artifacts.load_prepared(volume_path)
+    volume, tf = load_prepared(volume_path)
     light_sets = read_lights(lights_path)
     lights = np.concatenate([light_sets["train"], light_sets["unseen"]])
     print(f"exact shadows of {len(lights)} lights at {eval_points} points per set", flush=True)
@@ -188,7 +189,7 @@ def choose_cache(weights_path: Path, truth_path: Path, volume_path: Path, lights
     stage1 = open_store(weights_path)
     light_sets = read_lights(lights_path)
     train = light_sets["train"]
-    volume, tf = artifacts.load_prepared(volume_path)
+    volume, tf = load_prepared(volume_path)
     lights = validation_lights(train, light_sets["center"], val_lights, seed=seed)
     val = EvalTruth.compute(volume, tf, lights, val_points, seed + 1)
     result = choose(stage1, artifacts.read_eval_truth(truth_path), val, train, blend_k=blend_k,
@@ -257,7 +258,7 @@ def evaluate_voxels(checkpoint: Path | None, weights_path: Path, generated_path:
     result = voxel_metrics(state, open_store(weights_path),
                            open_store(generated_path), artifacts.read_eval_truth(truth_path),
                            read_lights(lights_path), blend_k=blend_k,
-                           grid_voxels=artifacts.prepared_voxels(volume_path), ddpm_lights=ddpm_lights,
+                           grid_voxels=prepared_voxels(volume_path), ddpm_lights=ddpm_lights,
                            geometry_state=geometry)
     atomic_write_text(out, json.dumps(result, indent=1) + "\n")
     print(json.dumps(result, indent=1))
@@ -272,7 +273,7 @@ def caches(weights_path: Path, generated_path: Path, truth_path: Path, lights_pa
     from diffshadow.caches import cache_table
     from diffshadow.report import caches_figure
 
-    volume, tf = artifacts.load_prepared(volume_path)
+    volume, tf = load_prepared(volume_path)
     table = cache_table(open_store(weights_path), artifacts.read_eval_truth(truth_path), read_lights(lights_path),
                         blend_k=blend_k, volume=volume, tf=tf,
                         model_state=artifacts.load_checkpoint(checkpoint) if checkpoint else None,
