@@ -1,4 +1,4 @@
-"""Scalar volumes: loading, normalisation and the box they live in.
+"""Scalar volumes: loading, normalisation and the box they live in; prepare_volume's store of one with its TF.
 
 Grid convention (docs/design.md §2, used everywhere): a volume of X×Y×Z voxels is stored as a float32
 array `(Z, Y, X)`; it fills a box whose longest side is 1. Vertex-centred: voxel `i` of `n` along an
