@@ -46,6 +46,11 @@ def installed(name: str) -> Path:
     return Path(found)
 
 
+def imported_modules(importtime_stderr: str) -> list[str]:
+    """The modules a process imported, from its `python -X importtime` report (its stderr)."""
+    return [line.rsplit("|", 1)[-1].strip() for line in importtime_stderr.splitlines() if "import time:" in line]
+
+
 @pytest.fixture
 def shared_data() -> Path:
     if not SHARED_DATA.is_dir():

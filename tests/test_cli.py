@@ -4,6 +4,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from conftest import imported_modules
 
 from diffshadow.cli import main
 
@@ -186,7 +187,7 @@ def test_lights_prepare_volume_and_collect_weights_start_without_torch_and_recor
         done = subprocess.run([sys.executable, "-X", "importtime", "-m", "diffshadow.cli", "--phases", str(phases),
                                *argv], capture_output=True, text=True, cwd=tmp_path)
         assert done.returncode == 0, done.stderr
-        imported = [line.rsplit("|", 1)[-1].strip() for line in done.stderr.splitlines() if "import time:" in line]
+        imported = imported_modules(done.stderr)
         assert "diffshadow.argparsing" in imported and not [m for m in imported if m.split(".")[0] == "torch"]
         return json.loads(phases.read_text())
 
@@ -232,7 +233,7 @@ def test_report_figures_code_imports_no_torch():
                            "diffshadow.store, diffshadow.lights; diffshadow.report.pyplot()"],
                           capture_output=True, text=True)
     assert done.returncode == 0, done.stderr
-    imported = [line.rsplit("|", 1)[-1].strip() for line in done.stderr.splitlines() if "import time:" in line]
+    imported = imported_modules(done.stderr)
     assert "diffshadow.store" in imported and not [m for m in imported if m.split(".")[0] == "torch"]
 
 

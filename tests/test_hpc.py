@@ -12,7 +12,7 @@ from pathlib import Path
 
 import pytest
 import yaml
-from conftest import installed
+from conftest import imported_modules, installed
 from test_workflow import TINY
 
 from diffshadow.hpc import GPU_DRIVER_FILES, claim_gpu, pbs_state, pbs_status
@@ -364,6 +364,6 @@ def test_the_ddp_helper_starts_without_torch_where_no_gpu_can_be():
     done = subprocess.run([sys.executable, "-X", "importtime", "-m", "diffshadow.cli", "ddp-processes", "--nproc",
                            "3"], capture_output=True, text=True, env={**os.environ, "DIFFSHADOW_DEVICE": ""})
     assert done.returncode == 0, done.stderr
-    imported = [line.rsplit("|", 1)[-1].strip() for line in done.stderr.splitlines() if "import time:" in line]
+    imported = imported_modules(done.stderr)
     assert "diffshadow.hpc" in imported and not [m for m in imported if m.split(".")[0] == "torch"]
     assert done.stdout.strip() == "3" and "3 CPU process(es) (gloo)" in done.stderr
