@@ -74,7 +74,9 @@ def diffusion(results: Path, spec: dict) -> str:
     data, _ = artifacts.read_training_data(results / "weights.zarr", results / "geometry_points.zarr")
     truth = artifacts.read_eval_truth(results / "eval_truth.zarr")
     light_sets = read_lights(results / "lights.json")
-    cfg = dataclasses.replace(DiffusionConfig.from_config(spec), checkpoint_every=10**9)
+    cfg = DiffusionConfig.from_config(spec)
+    if not cfg.target_gap:  # no checkpoints to write; with a target gap they are where it is checked
+        cfg = dataclasses.replace(cfg, checkpoint_every=10**9)
     if cfg.pool_lights and (data.pool is None or len(data.pool.lights) != cfg.pool_lights):
         data.pool = _pool(results, light_sets, cfg)  # another count than presample's: drawn here the same way
     part = Path(f"/tmp/tuning_diffusion_{abs(hash(json.dumps(spec, sort_keys=True)))}.part")
@@ -89,7 +91,8 @@ def diffusion(results: Path, spec: dict) -> str:
         w = generate(model, std, light_sets[name], method="ddim", steps=cfg.ddim_steps, seed=cfg.seed,
                      temperature=cfg.temperature).numpy()
         scores.append(truth.median_psnr(w, layout, siren, light_sets[name]))
-    return f"{seconds:6.1f} s  generated median seen {scores[0]:.2f} dB, unseen {scores[1]:.2f} dB (geometry stage)"
+    return (f"{seconds:6.1f} s, {int(state['epoch'])} epochs  generated median seen {scores[0]:.2f} dB, unseen "
+            f"{scores[1]:.2f} dB (geometry stage)")
 
 
 def main() -> None:

@@ -175,6 +175,9 @@ def test_render_outputs(finished):
     bench = json.loads((res / "bench.json").read_text())
     row = bench["sizes"]["8"]
     assert set(row["fps"]) == set(row["peak_mem_bytes"]) == {"noshadow", "inr", "naive"}
+    # peak memory: the frames' tensors, at the bench size and the memory-only one past it
+    assert min(row["peak_mem_bytes"].values()) > 0
+    assert {m: set(r) for m, r in bench["memory_scaling"].items()} == {"noshadow": {"8", "16"}, "inr": {"8", "16"}}
     # no timing bar here (a busy machine made naive faster than inr at 8x8 once): the work, which does not drift
     assert row["speedup"] > 0 and row["overhead"] > 0
     assert row["samples"]["naive"]["secondary"] > 10 * row["samples"]["inr"]["primary"] > 0

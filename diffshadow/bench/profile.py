@@ -11,12 +11,18 @@ host from one it would have to fetch. One such case is known and named: PyTorch'
 `fused` or `capturable` keep their step counter as a CPU tensor on every device and read it in `step`
 (torch/optim/adam.py), a host read and no device sync. `host_scopes` lists the profiler scopes whose scalar
 reads are such host reads: counted as `host_reads`, not `syncs`.
+
+Given a device, the same profiled call also gives its peak memory: the most bytes its tensors held at once on
+that device's allocator, from the profiler's allocation events (frees count negative). On CUDA that is what
+`max_memory_allocated` says; on a CPU it needs no sampling of the resident set, and like the op count it does
+not drift with the machine's load.
 """
 
 from __future__ import annotations
 
 from collections.abc import Callable
 
+import torch
 from torch.profiler import ProfilerActivity, profile
 
 from diffshadow.render.fused import LAUNCH
@@ -38,11 +44,15 @@ SYNCS = frozenset({"aten::_local_scalar_dense", "aten::nonzero", "aten::masked_s
 OPTIMIZER_STEP = "Optimizer.step#"  # the profiler's scope of torch.optim's `step` (Optimizer.step#Adam.step)
 
 
-def op_counts(fn: Callable[[], object], host_scopes: tuple[str, ...] = ()) -> dict[str, int]:
+def op_counts(fn: Callable[[], object], host_scopes: tuple[str, ...] = (),
+              memory: torch.device | None = None) -> dict[str, int]:
     """{"ops": kernel-launching ops, "syncs": host syncs} of one call of `fn`; given `host_scopes` (scope-name
-    prefixes, see the module docstring), also "host_reads": the scalar reads inside them, not counted as syncs."""
-    with profile(activities=[ProfilerActivity.CPU], record_shapes=True) as prof:
+    prefixes, see the module docstring), also "host_reads": the scalar reads inside them, not counted as syncs;
+    given `memory`, a device, also "peak_bytes": the peak bytes the call's tensors added on its allocator."""
+    with profile(activities=[ProfilerActivity.CPU], record_shapes=True, profile_memory=memory is not None) as prof:
         fn()
+        if memory is not None and memory.type == "cuda":
+            torch.cuda.synchronize(memory)
     ops = syncs = host_reads = 0
     for e in prof.events():
         if e.name == LAUNCH:
@@ -59,7 +69,35 @@ def op_counts(fn: Callable[[], object], host_scopes: tuple[str, ...] = ()) -> di
         if e.name == "aten::copy_" and e.input_shapes and e.input_shapes[0] == []:
             continue  # a Python number wrapped and converted on the host (`x * 0.5`): no kernel on a GPU
         ops += 1
-    return {"ops": ops, "syncs": syncs, **({"host_reads": host_reads} if host_scopes else {})}
+    return {"ops": ops, "syncs": syncs, **({"host_reads": host_reads} if host_scopes else {}),
+            **({"peak_bytes": _peak_bytes(prof, memory)} if memory is not None else {})}
+
+
+def peak_memory(fn: Callable[[], object], device: torch.device) -> int:
+    """Peak bytes one call of `fn` added on `device`'s allocator (as `op_counts(fn, memory=device)`, without
+    counting ops: no slower than the call itself)."""
+    with profile(activities=[ProfilerActivity.CPU], profile_memory=True) as prof:
+        fn()
+        if device.type == "cuda":
+            torch.cuda.synchronize(device)
+    return _peak_bytes(prof, device)
+
+
+def _peak_bytes(prof: profile, device: torch.device) -> int:
+    """The running sum's maximum over the profiled call's allocation events on `device`, in time order."""
+    from torch._C._profiler import _EventType  # the event tree's tags; torch.profiler's own memory tools read it
+
+    events, stack = [], list(prof.profiler.kineto_results.experimental_event_tree())
+    while stack:
+        e = stack.pop()
+        stack.extend(e.children)
+        if e.tag == _EventType.Allocation and e.extra_fields.device.type == device.type:
+            events.append((e.start_time_ns, e.extra_fields.alloc_size))
+    live = peak = 0
+    for _, size in sorted(events):
+        live += size
+        peak = max(peak, live)
+    return peak
 
 
 def _inside(event, prefixes: tuple[str, ...]) -> bool:

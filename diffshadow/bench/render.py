@@ -1,93 +1,31 @@
 """`diffshadow bench render`: frames per second and peak memory of `noshadow`, `inr` and `naive`, side
 by side in one process; macro-cell skipping on against off; the renderer's step against error and time.
 
-Peak memory: on CUDA `max_memory_allocated`; on CPU the resident set size, sampled every 2 ms by a
-thread during the render, minus the RSS just before it. glibc keeps freed blocks and moves its mmap
-threshold as it goes, which makes RSS wander by tens of MiB; the memory pass therefore runs after all
-timings with every allocation above 128 KiB forced onto its own mapping (`mallopt`), so RSS follows the
-live bytes. (Forcing that slows allocation, which is why the timed runs come first, untouched.)
+Peak memory is what a frame's tensors held at once on the device's allocator (`bench.profile.op_counts`, from
+the same profiled frame that counts its ops): on CUDA what `max_memory_allocated` says, on a CPU the same
+quantity, not the resident set (which glibc's kept blocks make wander by tens of MiB).
 """
 
 from __future__ import annotations
 
-import ctypes
 import json
-import os
 import statistics
-import threading
 from pathlib import Path
 from typing import TYPE_CHECKING
 
 import numpy as np
 import torch
 
-from diffshadow.bench.profile import op_counts
+from diffshadow.bench.profile import op_counts, peak_memory
 from diffshadow.io import atomic_path, atomic_write_text, finite_json
 from diffshadow.metrics import foreground, image_psnr
 from diffshadow.render import DEFAULT_STEP, Camera, RenderScene
-from diffshadow.runtime import M_MMAP_THRESHOLD, M_TRIM_THRESHOLD, mallopt
 
 if TYPE_CHECKING:
     from matplotlib.figure import Figure
 
 BENCH_MODES = ("noshadow", "inr", "naive")
 REFERENCE_STEP = 0.125
-
-
-def _rss() -> int:
-    with open("/proc/self/statm") as f:
-        return int(f.read().split()[1]) * os.sysconf("SC_PAGE_SIZE")
-
-
-def _exact_cpu_heap() -> None:
-    # a fixed mmap threshold, so freed big blocks go back at once, and no free memory kept at the heap's top
-    mallopt({M_MMAP_THRESHOLD: 128 * 1024, M_TRIM_THRESHOLD: 0})
-
-
-def _trim() -> None:
-    try:
-        ctypes.CDLL("libc.so.6").malloc_trim(0)
-    except (OSError, AttributeError):
-        pass
-
-
-class PeakMemory:
-    """Context manager: peak bytes the enclosed code added (CUDA allocator, or sampled CPU RSS)."""
-
-    def __init__(self, device: torch.device, interval: float = 0.002):
-        self.device, self.interval = device, interval
-        self.peak = 0
-
-    def __enter__(self):
-        if self.device.type == "cuda":
-            torch.cuda.synchronize(self.device)
-            torch.cuda.reset_peak_memory_stats(self.device)
-            self.base = torch.cuda.memory_allocated(self.device)
-            return self
-        _trim()
-        self.base = _rss()
-        self._max = self.base
-        self._stop = threading.Event()
-
-        def poll():
-            while not self._stop.is_set():
-                self._max = max(self._max, _rss())
-                self._stop.wait(self.interval)
-
-        self._thread = threading.Thread(target=poll, daemon=True)
-        self._thread.start()
-        return self
-
-    def __exit__(self, *exc):
-        if self.device.type == "cuda":
-            torch.cuda.synchronize(self.device)
-            self.peak = torch.cuda.max_memory_allocated(self.device) - self.base
-        else:
-            self._max = max(self._max, _rss())
-            self._stop.set()
-            self._thread.join()
-            self.peak = self._max - self.base
-        return False
 
 
 def _sync(device: torch.device) -> None:
@@ -135,7 +73,9 @@ def bench_render(scene: RenderScene, siren, light, *, sizes=(64, 128), step: flo
                 log(f"[bench render] {n}x{n} {mode:8s} run {rep + 1}/{repeats}: {img.seconds:.3f} s")
         # naive's count takes minutes past the smallest size: its secondary rays are the point anyway
         counted = BENCH_MODES if n == min(sizes) else ("noshadow", "inr")
-        row["counts"] = {m: op_counts(lambda m=m, n=n: scene.render(m, cams[n], **kwargs)) for m in counted}
+        row["counts"] = {m: op_counts(lambda m=m, n=n: scene.render(m, cams[n], **kwargs), memory=device)
+                         for m in counted}
+        row["peak_mem_bytes"] = {m: c.pop("peak_bytes") for m, c in row["counts"].items()}
         log(f"[bench render] {n}x{n} per frame: " + ", ".join(
             f"{m} {c['ops']:,} ops {c['syncs']} host syncs" for m, c in row["counts"].items()))
         med = {m: statistics.median(v) for m, v in row["seconds"].items()}
@@ -189,51 +129,21 @@ def bench_render(scene: RenderScene, siren, light, *, sizes=(64, 128), step: flo
             f"{REFERENCE_STEP}")
     out["step_curve"] = {"size": curve_size, "reference_step": REFERENCE_STEP, "mode": "inr", "points": curve}
 
-    # memory, after every timing, in a fresh process (see the module docstring): each mode at the bench
-    # sizes, then noshadow and inr at 2x and 4x the largest side (naive would take minutes per frame).
-    if device.type == "cpu":
-        import multiprocessing
-
-        scene._cache.clear()
-        with multiprocessing.get_context("spawn").Pool(1) as pool:
-            mem = pool.apply(_memory_pass, (scene, siren, light, list(sizes), memory_sizes, step, azimuth,
-                                            elevation, torch.get_num_threads()))
-    else:
-        mem = _memory_pass(scene, siren, light, list(sizes), memory_sizes, step, azimuth, elevation, 0)
-    for n in sizes:
-        out["sizes"][str(n)]["peak_mem_bytes"] = mem["sizes"][str(n)]
-        log(f"[bench render] memory {n}²: " + ", ".join(f"{m} +{b / 2**20:.1f} MiB"
-                                                      for m, b in mem["sizes"][str(n)].items()))
-    for mode, row in mem["scaling"].items():
-        log(f"[bench render] memory {mode}: " + ", ".join(f"{n}² +{b / 2**20:.1f} MiB" for n, b in row.items()))
-    out["memory_scaling"] = mem["scaling"]
-    return out
-
-
-def _memory_pass(scene: RenderScene, siren, light, sizes: list[int], memory_sizes, step: float, azimuth: float,
-                 elevation: float, threads: int) -> dict:
-    device = scene.device
-    if device.type == "cpu":
-        _exact_cpu_heap()
-        if threads:
-            torch.set_num_threads(threads)
-    kwargs = {"light": light, "siren": siren, "step": step}
-    scene.render("inr", Camera.orbit(scene.volume.extent, azimuth=azimuth, elevation=elevation, size=8), **kwargs)
+    # peak memory of noshadow and inr past the bench sizes (2x and 4x the largest side by default; naive would
+    # take minutes per frame there): does it stay bounded?
     n0 = max(sizes)
     memory_sizes = [2 * n0, 4 * n0] if memory_sizes is None else [n for n in memory_sizes if n not in sizes]
-    out: dict = {"sizes": {}, "scaling": {"noshadow": {}, "inr": {}}}
-    for n in [*sizes, *memory_sizes]:
+    scaling: dict = {m: {str(n): out["sizes"][str(n)]["peak_mem_bytes"][m] for n in sizes} for m in ("noshadow", "inr")}
+    for n in memory_sizes:
         cam = Camera.orbit(scene.volume.extent, azimuth=azimuth, elevation=elevation, size=n)
-        # naive at the smallest size only: its secondary rays are chunked like the others' samples, and
-        # with the exact heap (mmap per block) one naive frame at 128² takes 20 s
-        for mode in BENCH_MODES if n == min(sizes) else ("noshadow", "inr"):
-            with PeakMemory(device) as mem:
-                scene.render(mode, cam, **kwargs)
-                _sync(device)
-            if n in sizes:
-                out["sizes"].setdefault(str(n), {})[mode] = mem.peak
-            if mode in out["scaling"]:
-                out["scaling"][mode][str(n)] = mem.peak
+        for mode, row in scaling.items():
+            row[str(n)] = peak_memory(lambda m=mode, c=cam: scene.render(m, c, **kwargs), device)
+    for n in sizes:
+        log(f"[bench render] memory {n}²: " + ", ".join(f"{m} +{b / 2**20:.1f} MiB"
+                                                      for m, b in out["sizes"][str(n)]["peak_mem_bytes"].items()))
+    for mode, row in scaling.items():
+        log(f"[bench render] memory {mode}: " + ", ".join(f"{n}² +{b / 2**20:.1f} MiB" for n, b in row.items()))
+    out["memory_scaling"] = scaling
     return out
 
 

@@ -15,9 +15,12 @@ seen-light gap), which the workflow's phase timings (stage_costs.tsv) show.
 
 from __future__ import annotations
 
+import ctypes
 import json
 import math
+import os
 import platform
+import threading
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, replace
@@ -27,11 +30,62 @@ import numpy as np
 import torch
 
 from diffshadow.bench.profile import OPTIMIZER_STEP, op_counts
-from diffshadow.bench.render import PeakMemory, _sync
+from diffshadow.bench.render import _sync
 from diffshadow.io import atomic_write_text
 
 STAGES = ("fit_siren", "preoptimize", "train_data_inr", "train_diffusion", "finetune_render", "sample_shadows",
           "eval_truth")
+
+
+def _rss() -> int:
+    with open("/proc/self/statm") as f:
+        return int(f.read().split()[1]) * os.sysconf("SC_PAGE_SIZE")
+
+
+def _trim() -> None:
+    try:
+        ctypes.CDLL("libc.so.6").malloc_trim(0)
+    except (OSError, AttributeError):
+        pass
+
+
+class PeakMemory:
+    """Context manager: peak bytes the enclosed code added (CUDA allocator, or sampled CPU RSS)."""
+
+    def __init__(self, device: torch.device, interval: float = 0.002):
+        self.device, self.interval = device, interval
+        self.peak = 0
+
+    def __enter__(self):
+        if self.device.type == "cuda":
+            torch.cuda.synchronize(self.device)
+            torch.cuda.reset_peak_memory_stats(self.device)
+            self.base = torch.cuda.memory_allocated(self.device)
+            return self
+        _trim()
+        self.base = _rss()
+        self._max = self.base
+        self._stop = threading.Event()
+
+        def poll():
+            while not self._stop.is_set():
+                self._max = max(self._max, _rss())
+                self._stop.wait(self.interval)
+
+        self._thread = threading.Thread(target=poll, daemon=True)
+        self._thread.start()
+        return self
+
+    def __exit__(self, *exc):
+        if self.device.type == "cuda":
+            torch.cuda.synchronize(self.device)
+            self.peak = torch.cuda.max_memory_allocated(self.device) - self.base
+        else:
+            self._max = max(self._max, _rss())
+            self._stop.set()
+            self._thread.join()
+            self.peak = self._max - self.base
+        return False
 
 
 @dataclass

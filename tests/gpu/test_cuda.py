@@ -255,3 +255,20 @@ def test_tiny_workflow_on_cuda_with_finetuning(tmp_path):
     snakemake(tmp_path, config={**TINY, "device": "cuda"})
     assert (tmp_path / "results/nucleon/diffusion.ckpt").exists()  # the fine-tuned model
     assert (tmp_path / "results/nucleon/image_metrics.json").exists()
+
+
+def test_profiled_peak_memory_is_cudas_max_memory_allocated():
+    """`bench render`'s peak memory on CUDA (the profiler's allocation events) says what the allocator's own peak
+    counter says."""
+    from diffshadow.bench.profile import peak_memory
+
+    def allocate_and_free():
+        a = torch.empty(1 << 20, device=CUDA)
+        b = torch.empty(3 << 20, device=CUDA)
+        del a
+        return b, torch.empty(1 << 19, device=CUDA)
+
+    torch.cuda.synchronize(CUDA)
+    torch.cuda.reset_peak_memory_stats(CUDA)
+    base = torch.cuda.memory_allocated(CUDA)
+    assert peak_memory(allocate_and_free, CUDA) == torch.cuda.max_memory_allocated(CUDA) - base == 16 << 20
