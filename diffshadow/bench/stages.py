@@ -218,10 +218,11 @@ def train_diffusion(cfg: dict, device: torch.device, volume, tf) -> Timed:
         batch = draw_batch(gen, idx, on_device, pool, dcfg, schedule.steps, device)
         return train_batch(model, opt, ema, std, on_device, z_all, pool, batch, dcfg, schedule, nonfinite, 0, i)
 
-    epochs = max(dcfg.epochs, dcfg.max_epochs) if dcfg.target_gap > 0 else dcfg.epochs
+    grows = dcfg.target_gap > 0 and dcfg.max_epochs > dcfg.epochs
+    epochs = dcfg.max_epochs if grows else dcfg.epochs
     return Timed(step, f"step of {dcfg.batch_size} lights ({model.n_params():,}-parameter '{dcfg.preset}' model)",
-                 per_epoch * epochs, f"{per_epoch} steps per epoch x {epochs} epochs (max_epochs: the gap check may "
-                 f"stop sooner)")
+                 per_epoch * epochs, f"{per_epoch} steps per epoch x {epochs} epochs"
+                 + (" (max_epochs: the gap check may stop sooner)" if grows else ""))
 
 
 def finetune_render(cfg: dict, device: torch.device, volume, tf) -> Timed:
