@@ -2,7 +2,7 @@
 
 import torch
 
-from diffshadow.bench.profile import op_counts, peak_memory
+from diffshadow.bench.profile import op_counts, peak_bytes
 
 CPU = torch.device("cpu")
 
@@ -16,14 +16,14 @@ def allocate_and_free():
     return b, c
 
 
-def test_peak_memory_is_the_most_bytes_live_at_once():
-    assert peak_memory(allocate_and_free, CPU) == 16_000
+def test_peak_bytes_is_the_most_bytes_live_at_once():
+    assert peak_bytes(allocate_and_free, CPU) == 16_000
     assert op_counts(allocate_and_free, memory=CPU)["peak_bytes"] == 16_000
     assert "peak_bytes" not in op_counts(allocate_and_free)
 
 
-def test_peak_memory_is_what_the_call_added():
+def test_peak_bytes_is_what_the_call_added():
     """Tensors alive before the call do not count, and a call that allocates nothing adds nothing."""
     before = torch.ones(10_000)
-    assert peak_memory(lambda: before + before, CPU) == 40_000
-    assert peak_memory(lambda: None, CPU) == 0
+    assert peak_bytes(lambda: before + before, CPU) == 40_000
+    assert peak_bytes(lambda: None, CPU) == 0

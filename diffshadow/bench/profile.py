@@ -70,20 +70,20 @@ def op_counts(fn: Callable[[], object], host_scopes: tuple[str, ...] = (),
             continue  # a Python number wrapped and converted on the host (`x * 0.5`): no kernel on a GPU
         ops += 1
     return {"ops": ops, "syncs": syncs, **({"host_reads": host_reads} if host_scopes else {}),
-            **({"peak_bytes": _peak_bytes(prof, memory)} if memory is not None else {})}
+            **({"peak_bytes": _allocated_peak(prof, memory)} if memory is not None else {})}
 
 
-def peak_memory(fn: Callable[[], object], device: torch.device) -> int:
+def peak_bytes(fn: Callable[[], object], device: torch.device) -> int:
     """Peak bytes one call of `fn` added on `device`'s allocator (as `op_counts(fn, memory=device)`, without
     counting ops: no slower than the call itself)."""
     with profile(activities=[ProfilerActivity.CPU], profile_memory=True) as prof:
         fn()
         if device.type == "cuda":
             torch.cuda.synchronize(device)
-    return _peak_bytes(prof, device)
+    return _allocated_peak(prof, device)
 
 
-def _peak_bytes(prof: profile, device: torch.device) -> int:
+def _allocated_peak(prof: profile, device: torch.device) -> int:
     """The running sum's maximum over the profiled call's allocation events on `device`, in time order."""
     from torch._C._profiler import _EventType  # the event tree's tags; torch.profiler's own memory tools read it
 

@@ -16,7 +16,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 import torch
 
-from diffshadow.bench.profile import op_counts, peak_memory
+from diffshadow.bench.profile import op_counts, peak_bytes
 from diffshadow.io import atomic_path, atomic_write_text, finite_json
 from diffshadow.metrics import foreground, image_psnr
 from diffshadow.render import DEFAULT_STEP, Camera, RenderScene
@@ -137,7 +137,7 @@ def bench_render(scene: RenderScene, siren, light, *, sizes=(64, 128), step: flo
     for n in memory_sizes:
         cam = Camera.orbit(scene.volume.extent, azimuth=azimuth, elevation=elevation, size=n)
         for mode, row in scaling.items():
-            row[str(n)] = peak_memory(lambda m=mode, c=cam: scene.render(m, c, **kwargs), device)
+            row[str(n)] = peak_bytes(lambda m=mode, c=cam: scene.render(m, c, **kwargs), device)
     for n in sizes:
         log(f"[bench render] memory {n}²: " + ", ".join(f"{m} +{b / 2**20:.1f} MiB"
                                                       for m, b in out["sizes"][str(n)]["peak_mem_bytes"].items()))

@@ -260,7 +260,7 @@ def test_tiny_workflow_on_cuda_with_finetuning(tmp_path):
 def test_profiled_peak_memory_is_cudas_max_memory_allocated():
     """`bench render`'s peak memory on CUDA (the profiler's allocation events) says what the allocator's own peak
     counter says."""
-    from diffshadow.bench.profile import peak_memory
+    from diffshadow.bench.profile import peak_bytes
 
     def allocate_and_free():
         a = torch.empty(1 << 20, device=CUDA)
@@ -271,4 +271,4 @@ def test_profiled_peak_memory_is_cudas_max_memory_allocated():
     torch.cuda.synchronize(CUDA)
     torch.cuda.reset_peak_memory_stats(CUDA)
     base = torch.cuda.memory_allocated(CUDA)
-    assert peak_memory(allocate_and_free, CUDA) == torch.cuda.max_memory_allocated(CUDA) - base == 16 << 20
+    assert peak_bytes(allocate_and_free, CUDA) == torch.cuda.max_memory_allocated(CUDA) - base == 16 << 20
