@@ -12,6 +12,7 @@ import torch
 import yaml
 from conftest import installed
 
+from diffshadow.config import defaults
 from diffshadow.lights import read_lights, subset_indices
 from diffshadow.store import open_store
 
@@ -28,7 +29,8 @@ TINY = {
             "target_psnr": 0.0, "blend_per_light": 2, "blend_points": 32},
     "diffusion": {"preset": "tiny", "epochs": 3, "batch_size": 2, "geometry_points": 16, "presample_points": 64,
                   "checkpoint_every": 1, "ddim_steps": 5, "pool_lights": 4, "pool_points": 32,
-                  "max_epochs": 5},
+                  # the gap check on, as the package has it (config/config.yaml turns it off for the README run)
+                  "max_epochs": 5, "target_gap": defaults()["diffusion"]["target_gap"]},
     "finetune": {"views": 1, "image_size": 16, "pixels": 4, "epochs": 2, "batch_size": 4, "nproc": 2,
                  "checkpoint_every": 1, "val_lights": 4, "val_points": 1024},
     "data_inr": {"width": 8, "blocks": 1, "steps": 20, "points": 512, "target_psnr": 0.0},
