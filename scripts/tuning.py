@@ -1,5 +1,6 @@
 """The runs behind the tiny scene's defaults (docs/performance.md): one stage refitted with settings given as JSON
-over config.yaml's, on a finished run's inputs, timed on one thread, scored on held-out points.
+over the package defaults (diffshadow/defaults.yaml, not config/config.yaml), on a finished run's inputs, timed on
+`--threads` threads (default one), scored on held-out points.
 
     python scripts/tuning.py fit '{}' '{"points": 4096}' '{"points": 1024, "lr": 2e-3}'   # 4 lights, like a subset
     python scripts/tuning.py data-inr '{}' '{"steps": 1500, "points": 16384}'
@@ -98,7 +99,7 @@ def diffusion(results: Path, spec: dict) -> str:
 def main() -> None:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("stage", choices=["fit", "data-inr", "diffusion"])
-    p.add_argument("specs", nargs="+", help="JSON settings over config.yaml's section, one run each")
+    p.add_argument("specs", nargs="+", help="JSON settings over the package defaults' section, one run each")
     p.add_argument("--results", type=Path, default=Path("results/nucleon"))
     p.add_argument("--threads", type=int, default=1)
     a = p.parse_args()
