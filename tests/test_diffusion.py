@@ -256,6 +256,7 @@ def test_a_zero_target_gap_trains_exactly_epochs_without_measuring(tmp_path, mon
     monkeypatch.setattr(train, "seen_gap_db", lambda *a: pytest.fail("measured"))
     state = train_diffusion(tiny_data(), CFG, tmp_path / "a.ckpt", log=lambda *a: None)
     assert state["epoch"] == CFG.epochs and state["growth"]["checks"] == []
+    assert state["growth"]["reason"] == "fixed length (diffusion.target_gap is 0)"
 
 
 def test_growth_makes_no_tensor_on_the_implicit_default_device(tmp_path):

@@ -155,8 +155,8 @@ class Growth:
         """At epoch `done`: measure the gap (`gap_db()`) and decide whether to train on."""
         cfg, growth = self.cfg, self.state
         if cfg.target_gap <= 0 or self.max_epochs <= cfg.epochs:
-            growth.update(finished=True, epochs=done, reason="fixed length (diffusion.target_gap 0 or max_epochs "
-                                                             "<= epochs)")
+            why = "diffusion.target_gap is 0" if cfg.target_gap <= 0 else "max_epochs is not past epochs"
+            growth.update(finished=True, epochs=done, reason=f"fixed length ({why})")
             return
         gap = gap_db()
         if not math.isfinite(gap):
