@@ -49,10 +49,7 @@ def op_counts(fn: Callable[[], object], host_scopes: tuple[str, ...] = (),
     """{"ops": kernel-launching ops, "syncs": host syncs} of one call of `fn`; given `host_scopes` (scope-name
     prefixes, see the module docstring), also "host_reads": the scalar reads inside them, not counted as syncs;
     given `memory`, a device, also "peak_bytes": the peak bytes the call's tensors added on its allocator."""
-    with profile(activities=[ProfilerActivity.CPU], record_shapes=True, profile_memory=memory is not None) as prof:
-        fn()
-        if memory is not None and memory.type == "cuda":
-            torch.cuda.synchronize(memory)
+    prof = _profiled(fn, shapes=True, memory=memory)
     ops = syncs = host_reads = 0
     for e in prof.events():
         if e.name == LAUNCH:
@@ -76,11 +73,17 @@ def op_counts(fn: Callable[[], object], host_scopes: tuple[str, ...] = (),
 def peak_bytes(fn: Callable[[], object], device: torch.device) -> int:
     """Peak bytes one call of `fn` added on `device`'s allocator (as `op_counts(fn, memory=device)`, without
     counting ops: no slower than the call itself)."""
-    with profile(activities=[ProfilerActivity.CPU], profile_memory=True) as prof:
+    return _allocated_peak(_profiled(fn, shapes=False, memory=device), device)
+
+
+def _profiled(fn: Callable[[], object], *, shapes: bool, memory: torch.device | None) -> profile:
+    """The profiler's record of one call of `fn` (with input shapes; with allocations on `memory`, whose work is
+    waited for inside the record)."""
+    with profile(activities=[ProfilerActivity.CPU], record_shapes=shapes, profile_memory=memory is not None) as prof:
         fn()
-        if device.type == "cuda":
-            torch.cuda.synchronize(device)
-    return _allocated_peak(prof, device)
+        if memory is not None and memory.type == "cuda":
+            torch.cuda.synchronize(memory)
+    return prof
 
 
 def _allocated_peak(prof: profile, device: torch.device) -> int:
