@@ -59,12 +59,6 @@ class MacroGrid:
                    torch.as_tensor(volume.voxel_size, dtype=torch.float32, device=device),
                    torch.as_tensor(volume.dims, dtype=torch.float32, device=device))
 
-    @classmethod
-    def disabled(cls, volume: Volume, device: torch.device | str = "cpu") -> MacroGrid:
-        one = torch.ones(1, 1, 1, device=device)
-        return cls(one, one < 0, max(volume.dims), torch.as_tensor(volume.voxel_size, dtype=torch.float32,
-                   device=device), torch.as_tensor(volume.dims, dtype=torch.float32, device=device))
-
     @property
     def empty_fraction(self) -> float:
         return float(self.empty.float().mean())
