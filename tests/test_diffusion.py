@@ -93,6 +93,62 @@ def test_wide_tensors_split_into_tokens_that_cover_them_and_the_model_maps_them_
     assert DiffusionConfig.of_checkpoint({"config": {**old, "tensor_tokens": 4}}).tensor_tokens == 4
 
 
+def per_token_reference(model: WeightTransformer, x, t, light) -> torch.Tensor:
+    """The model as the paper writes it: each token through its own linear map, one after another."""
+    from diffshadow.diffusion.model import light_encoding, timestep_embedding
+    tokens = [proj(p) for proj, p in zip(model.token_in, x.split(model.sizes, dim=1), strict=True)]
+    tokens.append(model.time_mlp(timestep_embedding(t, model.cfg.n_embd)))
+    tokens.append(model.light_in(light_encoding(light, model.cfg.light_freqs)))
+    h = torch.stack(tokens, dim=1) + model.pos
+    for block in model.blocks:
+        h = block(h)
+    h = model.ln_f(h)
+    return torch.cat([proj(h[:, i]) for i, proj in enumerate(model.token_out)], dim=1)
+
+
+@pytest.mark.parametrize("batch", [1, 5])
+def test_batched_token_maps_are_each_tokens_own_linear_map(batch):
+    """Tokens of one size share a batched product: the same outputs and gradients as a linear map per token (to
+    float32 rounding: another summation order), and the checkpoint keeps one map per token."""
+    from diffshadow.diffusion.model import PRESETS
+    cfg = dataclasses.replace(PRESETS["tiny"], n_embd=16, tensor_tokens=4)
+    model = WeightTransformer(LAYOUT, cfg)
+    assert len({s for s, _ in model.groups}) < len(model.sizes)  # some sizes repeat: batched products do occur
+    for p in model.token_out:
+        torch.nn.init.normal_(p.weight, std=0.02)
+    gen = torch.Generator().manual_seed(0)
+    x, light = torch.randn(batch, LAYOUT.n_params, generator=gen), torch.randn(batch, 3, generator=gen)
+    t = torch.randint(0, 500, (batch,), generator=gen)
+    grads = []
+    for forward in (model, lambda *a: per_token_reference(model, *a)):
+        model.zero_grad(set_to_none=True)
+        out = forward(x, t, light)
+        (out * torch.linspace(-1, 1, out.numel()).view(out.shape)).sum().backward()
+        grads.append((out.detach(), [p.grad for p in model.parameters()]))
+    (a, ga), (b, gb) = grads
+    assert torch.allclose(a, b, rtol=1e-5, atol=1e-6)
+    assert all(torch.allclose(u, v, rtol=1e-4, atol=1e-6) for u, v in zip(ga, gb, strict=True))
+    keys = model.state_dict().keys()
+    assert {f"token_in.{i}.weight" for i in range(len(model.sizes))} <= keys and not any("_cols" in k for k in keys)
+
+
+def test_ema_update_is_a_lerp_of_each_parameter_bit_for_bit():
+    from diffshadow.diffusion.model import PRESETS
+    from diffshadow.diffusion.train import Ema, ema_decay
+    model = WeightTransformer(LAYOUT, PRESETS["tiny"])
+    ema = Ema(model, 0.995)
+    expected = [p.detach().clone() for p in ema.model.parameters()]
+    gen = torch.Generator().manual_seed(1)
+    for step in range(3):
+        with torch.no_grad():
+            for p in model.parameters():
+                p.add_(torch.randn(p.shape, generator=gen))
+        expected = [e.lerp(p.detach(), 1 - ema_decay(0.995, step)) for e, p in zip(expected, model.parameters(),
+                                                                                strict=True)]
+        ema.update(model, step)
+    assert all(torch.equal(e, p) for e, p in zip(expected, ema.model.parameters(), strict=True))
+
+
 def test_schedule_edges_and_ddim_steps():
     s = Schedule()
     assert s.steps == 500 and abs(float(s.betas[0]) - 1e-4) < 1e-12 and abs(float(s.betas[-1]) - 2e-2) < 1e-12

@@ -319,7 +319,10 @@ def finetune(geometry_state: dict, data: FinetuneData, cfg: FinetuneConfig, chec
     if world > 1:
         from torch.nn.parallel import DistributedDataParallel
 
-        model = DistributedDataParallel(base, device_ids=[device.index] if device.type == "cuda" else None)
+        # the model's only buffers are index tables derived from the SIREN layout, the same on every rank: no
+        # broadcast of them before each forward
+        model = DistributedDataParallel(base, device_ids=[device.index] if device.type == "cuda" else None,
+                                        broadcast_buffers=False)
     schedule = Schedule()
     z_all = std.standardize(data.train.weights).float().to(device)
     data = data.to(device)  # the training set on the device once, not per step

@@ -130,6 +130,54 @@ class WeightTransformer(nn.Module):
         self.blocks = nn.ModuleList(Block(cfg) for _ in range(cfg.n_layer))
         self.ln_f = nn.LayerNorm(d)
         self.initialize()
+        self._group_tokens()
+
+    def _group_tokens(self) -> None:
+        """Tokens of one size share a batched product (`_tokens_in`, `_tokens_out`): the 24 tokens of a width-32
+        SIREN have 4 sizes. The per-token maps stay the parameters (checkpoints and gradient clipping unchanged);
+        the buffers below reorder weights and tokens between the layout's order and the groups'."""
+        starts = [0]
+        for size in self.sizes:
+            starts.append(starts[-1] + size)
+        groups: dict[int, list[int]] = {}
+        for i, size in enumerate(self.sizes):
+            groups.setdefault(size, []).append(i)
+        self.groups = list(groups.items())  # (size, token indices), in order of first appearance
+        order = [i for _, tokens in self.groups for i in tokens]
+        cols = torch.cat([torch.arange(starts[i], starts[i] + self.sizes[i]) for i in order])
+        # non-persistent: derived from the layout, so they follow .to(device) and stay out of the state dict
+        self.register_buffer("_cols", cols, persistent=False)  # weight columns in group order
+        self.register_buffer("_cols_back", torch.argsort(cols), persistent=False)
+        self.register_buffer("_tokens", torch.tensor(order), persistent=False)  # token indices in group order
+        self.register_buffer("_tokens_back", torch.argsort(torch.tensor(order)), persistent=False)
+
+    @staticmethod
+    def _stacked(maps: nn.ModuleList, tokens: list[int]) -> tuple[torch.Tensor, torch.Tensor]:
+        if len(tokens) == 1:
+            return maps[tokens[0]].weight[None], maps[tokens[0]].bias[None]
+        return torch.stack([maps[i].weight for i in tokens]), torch.stack([maps[i].bias for i in tokens])
+
+    def _tokens_in(self, x: torch.Tensor) -> torch.Tensor:
+        """(B, n_params) → (B, T, d): each token's own linear map, one batched product per token size."""
+        b, grouped, start, out = x.shape[0], x.index_select(1, self._cols), 0, []
+        for size, tokens in self.groups:
+            n = len(tokens)
+            part = grouped[:, start:start + n * size].view(b, n, size).transpose(0, 1)  # (n, B, size)
+            start += n * size
+            w, bias = self._stacked(self.token_in, tokens)  # (n, d, size), (n, d)
+            out.append(torch.baddbmm(bias[:, :, None], w, part.transpose(1, 2)))  # (n, d, B)
+        return torch.cat(out).index_select(0, self._tokens_back).permute(2, 0, 1)
+
+    def _tokens_out(self, h: torch.Tensor) -> torch.Tensor:
+        """(B, T + 2, d) → (B, n_params): the weight tokens' maps back out, one batched product per size."""
+        b, grouped, start, out = h.shape[0], h.index_select(1, self._tokens).transpose(0, 1), 0, []
+        for size, tokens in self.groups:
+            n = len(tokens)
+            w, bias = self._stacked(self.token_out, tokens)  # (n, size, d), (n, size)
+            y = torch.baddbmm(bias[:, :, None], w, grouped[start:start + n].transpose(1, 2))  # (n, size, B)
+            start += n
+            out.append(y.permute(2, 0, 1).reshape(b, n * size))
+        return torch.cat(out, dim=1).index_select(1, self._cols_back)
 
     def initialize(self) -> None:
         """GPT-2 style: normal(0, 0.02) linears, zero biases; the output maps start at zero so the first
@@ -146,14 +194,10 @@ class WeightTransformer(nn.Module):
         return sum(p.numel() for p in self.parameters())
 
     def forward(self, x: torch.Tensor, t: torch.Tensor, light: torch.Tensor) -> torch.Tensor:
-        parts = x.split(self.sizes, dim=1)
-        tokens = [proj(p) for proj, p in zip(self.token_in, parts, strict=True)]  # each (B, d)
         # the encodings are computed in float32 (sin of 2^k π w), then cast to the network's dtype
-        tokens.append(self.time_mlp(timestep_embedding(t, self.cfg.n_embd).to(x.dtype)))
-        tokens.append(self.light_in(light_encoding(light.float(), self.cfg.light_freqs).to(x.dtype)))
-        h = torch.stack(tokens, dim=1) + self.pos  # (B, T, d)
+        context = torch.stack([self.time_mlp(timestep_embedding(t, self.cfg.n_embd).to(x.dtype)),
+                               self.light_in(light_encoding(light.float(), self.cfg.light_freqs).to(x.dtype))], dim=1)
+        h = torch.cat([self._tokens_in(x), context], dim=1) + self.pos  # (B, T + 2, d)
         for block in self.blocks:
             h = block(h)
-        h = self.ln_f(h)
-        outs = [proj(h[:, i]) for i, proj in enumerate(self.token_out)]
-        return torch.cat(outs, dim=1)  # (B, n_params)
+        return self._tokens_out(self.ln_f(h))  # (B, n_params)

@@ -127,8 +127,10 @@ class Ema:
 
     @torch.no_grad()
     def update(self, model: WeightTransformer, step: int) -> None:
-        for pe, pm in zip(self.model.parameters(), model.parameters(), strict=True):
-            pe.lerp_(pm, 1 - ema_decay(self.target, step))
+        # one multi-tensor op, not a lerp per parameter tensor: on a GPU one launch for the model's 153 tensors
+        # (the 'small' preset), the same bits (per-tensor lerp on the CPU, the same lerp on CUDA)
+        torch._foreach_lerp_(list(self.model.parameters()), list(model.parameters()),
+                             1 - ema_decay(self.target, step))
 
 
 class Growth:

@@ -109,6 +109,25 @@ def test_diffusion_training_and_sampling_agree_with_cpu(tmp_path):
     assert float((a - b).abs().max() / a.abs().max()) <= 1e-4
 
 
+def test_ema_update_on_cuda_is_one_op_with_each_parameters_lerp():
+    """The EMA of the geometry stage's weights is one multi-tensor op a step on CUDA (not a lerp per parameter
+    tensor), with the bits of the per-tensor lerp."""
+    from diffshadow.bench.profile import op_counts
+    from diffshadow.diffusion.model import PRESETS, WeightTransformer
+    from diffshadow.diffusion.train import Ema, ema_decay
+
+    model = WeightTransformer(LAYOUT, PRESETS["tiny"]).to(CUDA)
+    ema = Ema(model, 0.995)
+    with torch.no_grad():
+        for p in model.parameters():
+            p.add_(torch.rand_like(p))
+    expected = [e.lerp(p, 1 - ema_decay(0.995, 0)) for e, p in zip(ema.model.parameters(), model.parameters(),
+                                                                   strict=True)]
+    ops = op_counts(lambda: ema.update(model, 0))["ops"]
+    assert all(torch.equal(e, p) for e, p in zip(expected, ema.model.parameters(), strict=True))
+    assert ops < len(expected) / 4, (ops, len(expected))
+
+
 @pytest.mark.parametrize("mode", ["noshadow", "gt", "naive", "inr"])
 def test_render_agrees_with_cpu(volume, mode):
     cam = Camera.orbit(volume.extent, azimuth=40, elevation=20, size=48)
