@@ -234,7 +234,7 @@ def run_render(a) -> dict:
     from diffshadow.config import ConfigError, load_run, scene_config
 
     render = {}
-    if a.results is not None:
+    if a.results is not None and Path(a.results).is_dir():  # a missing folder gets the viewer's own error alone
         scene = Path(a.results).name
         try:
             render = scene_config(load_run(a.configfile), scene, scenes_dir=Path(a.scenes_dir))["render"]
