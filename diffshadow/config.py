@@ -10,6 +10,7 @@ fills them from `defaults.yaml` and rejects unknown keys, naming the section.
 
 from __future__ import annotations
 
+import copy
 import functools
 import json
 from pathlib import Path
@@ -142,8 +143,28 @@ def scene_config(run: dict, scene: str, *, scenes_dir: str | Path) -> dict:
 
 def run_config(own: dict, where: str) -> dict:
     """A run's own choices (`where`: the file they came from, for errors) over the defaults, validated."""
-    run = merge(defaults(), dict(own))
+    run = _typed(merge(defaults(), copy.deepcopy(dict(own))), "config.schema.yaml")
     _validate(run, "config.schema.yaml", where)
+    return run
+
+
+def _typed(run: dict, schema_file: str) -> dict:
+    """Snakemake reads every value inside `--config section='{key: value}'` as a string ('{epochs: 60}' gives
+    '60'): where a string fails the schema and its YAML reading is no string (a number, a boolean, a list), that
+    reading takes its place, so a key given on the command line means what it means in a file. In place."""
+    import jsonschema
+
+    validator = jsonschema.Draft202012Validator(read_yaml(SCHEMAS / schema_file))
+    for error in list(validator.iter_errors(run)):
+        if not isinstance(error.instance, str) or not error.absolute_path:
+            continue
+        try:
+            value = yaml.safe_load(error.instance)
+        except yaml.YAMLError:
+            continue
+        if not isinstance(value, str):
+            *parents, last = error.absolute_path
+            functools.reduce(lambda node, key: node[key], parents, run)[last] = value
     return run
 
 

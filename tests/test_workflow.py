@@ -360,6 +360,9 @@ def test_config_typo_fails_before_any_job(tmp_path):
     wrong_type = {**TINY, "subset_size": "two"}
     proc = snakemake(tmp_path, "-n", config=wrong_type, check=False)
     assert proc.returncode != 0 and "'two' is not of type 'integer'" in proc.stdout + proc.stderr
+    # Snakemake reads `--config section='{key: value}'` values as strings: they still mean numbers
+    proc = snakemake(tmp_path, "-n", "-p", "--config", "finetune={epochs: 3}", "lights={unseen: 2}")
+    assert '"epochs": 3,' in proc.stdout + proc.stderr
     # a scene that has no file is named when the workflow is parsed, not from inside a rule's input function
     proc = snakemake(tmp_path, "-n", config={**TINY, "scenes": ["nosuch"]}, check=False)
     assert proc.returncode != 0 and "scene 'nosuch': no file" in proc.stdout + proc.stderr
