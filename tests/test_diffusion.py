@@ -149,6 +149,18 @@ def test_ema_update_is_a_lerp_of_each_parameter_bit_for_bit():
     assert all(torch.equal(e, p) for e, p in zip(expected, ema.model.parameters(), strict=True))
 
 
+def test_a_non_finite_sample_names_its_first_timestep():
+    """The finiteness of x0 is read once per batch, after sampling: the error still names the first bad timestep."""
+    from diffshadow.diffusion.model import PRESETS
+    model = WeightTransformer(LAYOUT, PRESETS["tiny"]).eval()
+    forward = model.forward
+    model.forward = lambda x, t, light: forward(x, t, light) + torch.where(t[:, None] < 300, torch.nan, 0.0)
+    std = Standardizer.fit(LAYOUT, weights(4), "param")
+    first = next(t for t in Schedule().ddim_timesteps(10) if t < 300)
+    with pytest.raises(DiffusionError, match=rf"x0 is not finite at timestep {first} \(torch.float32, lights 0..1\)"):
+        generate(model, std, [[0.0, 0.0, 1.0], [0.0, 0.6, 0.8]], steps=10)
+
+
 def test_schedule_edges_and_ddim_steps():
     s = Schedule()
     assert s.steps == 500 and abs(float(s.betas[0]) - 1e-4) < 1e-12 and abs(float(s.betas[-1]) - 2e-2) < 1e-12

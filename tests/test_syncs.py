@@ -71,3 +71,19 @@ def test_bench_stages_measures_and_projects_every_stage(tiny, tmp_path):
         assert stages[name]["seconds_per_unit"] * 8 == pytest.approx(stages[name]["projected_s"]), name
     with pytest.raises(ValueError, match="bench stages: unknown stage 'fit'"):
         bench_stages(tiny, out, device=torch.device("cpu"), stages=["fit"])
+
+
+def test_sampling_reads_the_host_once_per_batch_not_per_step():
+    """DDIM keeps its finiteness check on the device: 2 and 20 steps read the host equally often."""
+    from diffshadow.diffusion.model import PRESETS, WeightTransformer
+    from diffshadow.diffusion.sample import generate
+    from diffshadow.diffusion.standardize import Standardizer
+    from diffshadow.siren import SirenConfig, WeightLayout
+
+    layout = WeightLayout.for_siren(SirenConfig(8, 1))
+    model = WeightTransformer(layout, PRESETS["tiny"]).eval()
+    std = Standardizer.fit(layout, torch.randn(4, layout.n_params, generator=torch.Generator().manual_seed(0)),
+                           "param")
+    lights = [[0.0, 0.0, 1.0], [0.0, 0.6, 0.8]]
+    syncs = [op_counts(lambda n=n: generate(model, std, lights, steps=n, temperature=1.0))["syncs"] for n in (2, 20)]
+    assert syncs[0] == syncs[1] <= 3, syncs
