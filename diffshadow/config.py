@@ -92,12 +92,19 @@ def section(cls: type[T], name: str, values: dict | None = None) -> T:
     return cls(**{**base, **values})
 
 
+@functools.cache
+def _validator(schema_file: str):
+    """The jsonschema validator of one of the package's schemas (read once per process)."""
+    import jsonschema
+
+    return jsonschema.Draft202012Validator(read_yaml(SCHEMAS / schema_file))
+
+
 def _validate(value: dict, schema_file: str, where: str) -> None:
     """jsonschema validation with a one-line error naming `where` and the key path."""
     import jsonschema
 
-    schema = read_yaml(SCHEMAS / schema_file)
-    error = jsonschema.exceptions.best_match(jsonschema.Draft202012Validator(schema).iter_errors(value))
+    error = jsonschema.exceptions.best_match(_validator(schema_file).iter_errors(value))
     if error is not None:
         key = ".".join(str(p) for p in error.absolute_path) or "(top level)"
         raise ConfigError(f"{where}: key {key}: {error.message}")
@@ -152,10 +159,7 @@ def _typed(run: dict, schema_file: str) -> dict:
     """Snakemake reads every value inside `--config section='{key: value}'` as a string ('{epochs: 60}' gives
     '60'): where a string fails the schema and its YAML reading is no string (a number, a boolean, a list), that
     reading takes its place, so a key given on the command line means what it means in a file. In place."""
-    import jsonschema
-
-    validator = jsonschema.Draft202012Validator(read_yaml(SCHEMAS / schema_file))
-    for error in list(validator.iter_errors(run)):
+    for error in list(_validator(schema_file).iter_errors(run)):
         if not isinstance(error.instance, str) or not error.absolute_path:
             continue
         try:

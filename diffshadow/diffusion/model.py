@@ -136,20 +136,17 @@ class WeightTransformer(nn.Module):
         """Tokens of one size share a batched product (`_tokens_in`, `_tokens_out`): the 24 tokens of a width-32
         SIREN have 4 sizes. The per-token maps stay the parameters (checkpoints and gradient clipping unchanged);
         the buffers below reorder weights and tokens between the layout's order and the groups'."""
-        starts = [0]
-        for size in self.sizes:
-            starts.append(starts[-1] + size)
         groups: dict[int, list[int]] = {}
         for i, size in enumerate(self.sizes):
             groups.setdefault(size, []).append(i)
         self.groups = list(groups.items())  # (size, token indices), in order of first appearance
-        order = [i for _, tokens in self.groups for i in tokens]
-        cols = torch.cat([torch.arange(starts[i], starts[i] + self.sizes[i]) for i in order])
+        order = torch.tensor([i for _, tokens in self.groups for i in tokens])  # token indices in group order
+        columns = torch.arange(sum(self.sizes)).split(self.sizes)  # each token's weight columns
+        cols = torch.cat([columns[i] for i in order.tolist()])  # weight columns in group order
         # non-persistent: derived from the layout, so they follow .to(device) and stay out of the state dict
-        self.register_buffer("_cols", cols, persistent=False)  # weight columns in group order
-        self.register_buffer("_cols_back", torch.argsort(cols), persistent=False)
-        self.register_buffer("_tokens", torch.tensor(order), persistent=False)  # token indices in group order
-        self.register_buffer("_tokens_back", torch.argsort(torch.tensor(order)), persistent=False)
+        for name, index in (("_cols", cols), ("_cols_back", torch.argsort(cols)), ("_tokens", order),
+                            ("_tokens_back", torch.argsort(order))):
+            self.register_buffer(name, index, persistent=False)
 
     @staticmethod
     def _stacked(maps: nn.ModuleList, tokens: list[int]) -> tuple[torch.Tensor, torch.Tensor]:

@@ -45,18 +45,17 @@ def generate(model: WeightTransformer, std: Standardizer, lights, *, method: str
     if dtype != torch.float32:
         model = copy.deepcopy(model).to(dtype)
     schedule = Schedule()
-    if method not in ("ddim", "ddpm"):
-        raise ValueError(f"method: expected 'ddim' or 'ddpm', got {method!r}")
-    timesteps = schedule.ddim_timesteps(steps) if method == "ddim" else list(range(schedule.steps - 1, -1, -1))
     out = []
     for b0 in range(0, len(lights), batch):
         w = torch.as_tensor(lights[b0:b0 + batch], dtype=torch.float32, device=device)
-        # each step's largest |x0| stays on the device (amax keeps a NaN: finite iff all of x0 is) and is read once
-        # per batch, not at every step: on a GPU the host then queues the next step while this one runs
+        # each step's timestep and largest |x0| stay on the device (amax keeps a NaN: finite iff all of x0 is) and
+        # are read once per batch, not at every step: on a GPU the host then queues the next step while this one runs
+        steps_seen: list[torch.Tensor] = []
         peaks: list[torch.Tensor] = []
 
-        def denoise(x, t, w=w, peaks=peaks):
+        def denoise(x, t, w=w, steps_seen=steps_seen, peaks=peaks):
             out = model(x.to(dtype), t, w.to(dtype)).float()
+            steps_seen.append(t[0])
             peaks.append(out.abs().amax())
             return out
 
@@ -65,13 +64,15 @@ def generate(model: WeightTransformer, std: Standardizer, lights, *, method: str
         if method == "ddim":
             z = schedule.ddim_sample(denoise, shape, steps=steps, generator=gen, temperature=temperature,
                                      device=device)
-        else:
+        elif method == "ddpm":
             z = schedule.ddpm_sample(denoise, shape, generator=gen, device=device)
+        else:
+            raise ValueError(f"method: expected 'ddim' or 'ddpm', got {method!r}")
         finite = torch.isfinite(torch.stack(peaks)).cpu()
         if not finite.all():
-            raise DiffusionError(f"generate: the model's x0 is not finite at timestep "
-                                 f"{timesteps[int((~finite).nonzero()[0])]} ({dtype}, lights {b0}..{b0 + len(w) - 1});"
-                                 f" sample in float32")
+            first = int(torch.stack(steps_seen)[int((~finite).nonzero()[0])])
+            raise DiffusionError(f"generate: the model's x0 is not finite at timestep {first} ({dtype}, lights "
+                                 f"{b0}..{b0 + len(w) - 1}); sample in float32")
         out.append(std.destandardize(z.double()).float().cpu())
     return torch.cat(out)
 

@@ -21,8 +21,6 @@ class Schedule:
         # host-side tables: moved per use, so one Schedule serves every device
         self.betas = torch.linspace(beta_start, beta_end, steps, dtype=torch.float64, device="cpu")
         self.alpha_bar = torch.cumprod(1.0 - self.betas, dim=0)
-        # the samplers' per-step scalars as Python floats (the same float64 values), read without a tensor op
-        self._betas, self._alpha_bar = self.betas.tolist(), self.alpha_bar.tolist()
 
     def _coefficient(self, c: torch.Tensor, t: torch.Tensor, like: torch.Tensor) -> torch.Tensor:
         return c.to(like.device)[t].to(like.dtype).view(-1, *([1] * (like.ndim - 1)))
@@ -37,12 +35,12 @@ class Schedule:
     def ddpm_sample(self, model: Denoiser, shape, *, generator: torch.Generator, device=None) -> torch.Tensor:
         """Ancestral sampling over all T steps with the posterior q(x_{t-1} | x_t, x0̂)."""
         x = torch.randn(shape, generator=generator, device=generator.device).to(device)
-        ab = self._alpha_bar
+        ab, betas = self.alpha_bar.tolist(), self.betas.tolist()  # Python floats: no tensor read per step
         for t in range(self.steps - 1, -1, -1):
             x0 = model(x, torch.full((shape[0],), t, device=device, dtype=torch.long))
             if t == 0:
                 return x0
-            ab_t, ab_prev, beta = ab[t], ab[t - 1], self._betas[t]
+            ab_t, ab_prev, beta = ab[t], ab[t - 1], betas[t]
             c0 = ab_prev**0.5 * beta / (1 - ab_t)
             ct = (1 - beta) ** 0.5 * (1 - ab_prev) / (1 - ab_t)
             var = beta * (1 - ab_prev) / (1 - ab_t)
@@ -61,12 +59,13 @@ class Schedule:
         `temperature` scales the start noise (0: start from the mean, one path per light)."""
         x = temperature * torch.randn(shape, generator=generator, device=generator.device).to(device)
         ts = self.ddim_timesteps(steps)
+        ab = self.alpha_bar.tolist()  # Python floats: no tensor read per step
         x0 = x
         for i, t in enumerate(ts):
             x0 = model(x, torch.full((shape[0],), t, device=device, dtype=torch.long))
             if i == len(ts) - 1:
                 break
-            ab_t, ab_next = self._alpha_bar[t], self._alpha_bar[ts[i + 1]]
+            ab_t, ab_next = ab[t], ab[ts[i + 1]]
             eps = (x - ab_t**0.5 * x0) / (1 - ab_t) ** 0.5
             sigma = eta * ((1 - ab_next) / (1 - ab_t) * (1 - ab_t / ab_next)) ** 0.5
             x = ab_next**0.5 * x0 + max(1 - ab_next - sigma**2, 0.0) ** 0.5 * eps
