@@ -59,6 +59,24 @@ def test_a_config_json_without_the_stage_section_is_one_line(tmp_path, capsys):
     assert err.strip().count("\n") == 0 and "--config-json: no 'diffusion' section (it has ['epochs'])" in err
 
 
+def test_bench_out_takes_a_folder_and_refuses_an_unwritable_name_before_timing(tmp_path, capsys):
+    # a folder receives the bench's default file name (it used to end the timings in IsADirectoryError)
+    main(["bench", "stages", "--stages", "preoptimize", "--budget", "0", "--max-steps", "2", "--threads", "1",
+          "--device", "cpu", "--out", str(tmp_path)])
+    assert "preoptimize" in (tmp_path / "bench_stages.json").read_text()
+    capsys.readouterr()
+    (tmp_path / "notes").write_text("")
+    for argv in (["stages", "--stages", "preoptimize"], ["kernels"], ["render"]):
+        with pytest.raises(SystemExit) as exit_info:
+            main(["bench", *argv, "--out", str(tmp_path / "notes" / "b.json")])
+        assert exit_info.value.code == 2
+        err = capsys.readouterr().err
+        assert err.strip().count("\n") == 0 and f"{tmp_path / 'notes'} is a file, not a folder" in err, argv
+    with pytest.raises(SystemExit):
+        main(["bench", "siren", "--out", str(tmp_path / "notes")])
+    assert "expected a folder for the bench's files, found a file" in capsys.readouterr().err
+
+
 def test_stage_costs_sums_a_fanned_out_rule_and_names_a_bad_file(tmp_path):
     from diffshadow.report import ELAPSED_ROW, stage_costs
 

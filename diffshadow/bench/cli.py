@@ -9,30 +9,55 @@ from diffshadow.argparsing import add_subcommand as _add
 from diffshadow.argparsing import device_of as _device
 
 
+def _out_folder(value: str) -> Path:
+    """--out of a bench that writes several files: a folder, checked before the bench runs (minutes of timing
+    are not lost to a name that cannot be written)."""
+    path = Path(value)
+    if path.exists() and not path.is_dir():
+        raise ValueError(f"--out {value}: expected a folder for the bench's files, found a file")
+    return path
+
+
+def _out_file(value: str, default_name: str) -> Path:
+    """--out of a bench that writes one JSON: the file, or a folder (an existing one, or a name ending in /)
+    that receives `default_name`."""
+    path = Path(value)
+    if path.is_dir() or value.endswith("/"):
+        path = path / default_name
+    if path.exists() and not path.is_file():
+        raise ValueError(f"--out {value}: {path} exists and is not a file")
+    if any(p.exists() and not p.is_dir() for p in path.parents):
+        raise ValueError(f"--out {value}: {next(p for p in path.parents if p.exists() and not p.is_dir())} "
+                         f"is a file, not a folder")
+    return path
+
+
 def _bench_shadow(a):
     from diffshadow.bench import default_volumes
     from diffshadow.bench.shadow import bench_shadow
 
-    bench_shadow([Path(v) for v in a.volumes] if a.volumes else default_volumes(), Path(a.out), device=_device(a))
+    volumes = [Path(v) for v in a.volumes] if a.volumes else default_volumes()
+    bench_shadow(volumes, _out_folder(a.out), device=_device(a))
 
 
 def _bench_siren(a):
     from diffshadow.bench.siren import bench_siren
 
-    bench_siren(Path(a.out), k=a.k, points=a.points, widths=a.widths, device=_device(a))
+    bench_siren(_out_folder(a.out), k=a.k, points=a.points, widths=a.widths, device=_device(a))
 
 
 def _bench_init_spread(a):
     from diffshadow.bench.siren import bench_init_spread
 
-    bench_init_spread(Path(a.results), Path(a.out), n_lights=a.lights)
+    bench_init_spread(Path(a.results), _out_folder(a.out), n_lights=a.lights)
 
 
 def _bench_render(a):
     from diffshadow.bench.render import run
     from diffshadow.config import parse_json
 
-    run(a.out, scene_config=a.scene_config, volume=a.volume, data_inr=a.data_inr, inr_steps=a.inr_steps,
+    run(_out_file(a.out, "bench_render.json"), scene_config=a.scene_config, volume=a.volume, data_inr=a.data_inr,
+        inr_steps=a.inr_steps,
         tf_config=parse_json(a.tf_json, "--tf-json") if a.tf_json else None, weights=a.weights,
         light_index=a.light_index, siren_width=a.siren_width, siren_steps=a.siren_steps, sizes=a.sizes,
         step=a.step, repeats=a.repeats, memory_sizes=a.memory_sizes, render=network_flags(a), device=_device(a))
@@ -42,7 +67,7 @@ def _bench_kernels(a):
     from diffshadow.bench.kernels import KernelCompileError, bench_kernels
 
     try:
-        bench_kernels(Path(a.out), archs=a.arch)
+        bench_kernels(_out_file(a.out, "bench_kernels.json"), archs=a.arch)
     except KernelCompileError as e:
         raise SystemExit(f"bench kernels: {e}") from None
 
@@ -51,13 +76,14 @@ def _bench_stages(a):
     from diffshadow.bench.stages import bench_stages
     from diffshadow.config import ConfigError, load_run, scene_config
 
+    out = _out_file(a.out, "bench_stages.json")
     try:
         run = load_run(a.configfile)
         scene = a.scene or run["scenes"][0]
         cfg = scene_config(run, scene, scenes_dir=Path(a.scenes_dir))
     except ConfigError as e:
         raise ValueError(str(e)) from None
-    bench_stages(cfg, Path(a.out), device=_device(a), stages=a.stages, budget_s=a.budget, max_steps=a.max_steps,
+    bench_stages(cfg, out, device=_device(a), stages=a.stages, budget_s=a.budget, max_steps=a.max_steps,
                  config_name=f"{a.configfile or 'defaults'} (scene {scene})")
 
 
@@ -82,17 +108,17 @@ def add_bench_parsers(sub) -> None:
         dest="bench", required=True)
     p = _add(bench, "shadow", _bench_shadow, "time vs error of the ground-truth shadow methods", out=False)
     p.add_argument("--volumes", nargs="*", help="volume files (default: bundled nucleon + ../shared/data)")
-    p.add_argument("--out", default="bench")
+    p.add_argument("--out", default="bench", help="a folder for its JSON and figures")
     p = _add(bench, "siren", _bench_siren, "K SIRENs fitted jointly vs one after another", out=False)
     p.add_argument("--k", type=int, default=16)
     p.add_argument("--points", type=int, default=4096, help="points per SIREN per step")
     p.add_argument("--widths", type=int, nargs="+", default=[32, 64, 128])
-    p.add_argument("--out", default="bench")
+    p.add_argument("--out", default="bench", help="a folder for its JSON and figures")
     p = _add(bench, "init-spread", _bench_init_spread, "weight spread: shared init vs random inits", out=False,
              device=False)
     p.add_argument("--results", default="results/nucleon", help="a finished scene's results folder")
     p.add_argument("--lights", type=int, default=8, help="lights to refit from random inits")
-    p.add_argument("--out", default="bench")
+    p.add_argument("--out", default="bench", help="a folder for its JSON and figures")
     p = _add(bench, "render", _bench_render, "fps and memory of noshadow / inr / naive; skipping; step curve",
              out=False)
     for name, kind, default, helptext in (
@@ -103,7 +129,8 @@ def add_bench_parsers(sub) -> None:
             ("inr-steps", int, None, "steps when fitting the data INR here (default: config's data_inr.steps)"),
             ("weights", str, None, "a weight store whose SIREN --light-index is the shadow INR (default: fit one)"),
             ("light-index", int, 0, None), ("siren-width", int, 32, None), ("siren-steps", int, 300, None),
-            ("step", float, 0.5, "voxels"), ("repeats", int, 3, None), ("out", str, "bench/bench_render.json", None)):
+            ("step", float, 0.5, "voxels"), ("repeats", int, 3, None), ("out", str, "bench/bench_render.json",
+                                                     "a JSON file, or a folder for bench_render.json")):
         p.add_argument(f"--{name}", type=kind, default=default, help=helptext)
     p.add_argument("--sizes", type=int, nargs="+", default=[64, 128])
     p.add_argument("--memory-sizes", type=int, nargs="*", default=None,
@@ -119,11 +146,11 @@ def add_bench_parsers(sub) -> None:
                    "finetune_render sample_shadows eval_truth)")
     p.add_argument("--budget", type=float, default=2.0, help="seconds of timed steps per stage (at least 2 steps)")
     p.add_argument("--max-steps", type=int, default=50, help="timed steps per stage at most")
-    p.add_argument("--out", default="bench/bench_stages.json")
+    p.add_argument("--out", default="bench/bench_stages.json", help="a JSON file, or a folder for bench_stages.json")
     p = _add(bench, "kernels", _bench_kernels, "registers, spills, programs per SM and machine-code counts of the "
              "fused kernels, compiled for a GPU without one", out=False, device=False)
     p.add_argument("--arch", type=int, nargs="+", default=[80, 90], help="CUDA compute capabilities (80: A100)")
-    p.add_argument("--out", default="bench/bench_kernels.json")
+    p.add_argument("--out", default="bench/bench_kernels.json", help="a JSON file, or a folder for bench_kernels.json")
 
     p = _add(sub, "check-store", _check_store, "verify Zarr stores against their checksums (a store, or every "
              "store of a results folder); --psnr also re-evaluates every stored SIREN", out=False, device=False)
