@@ -153,7 +153,8 @@ def _evaluate_voxels(a):
     checkpoint = Path(a.checkpoint) if a.checkpoint else None
     stage2.evaluate_voxels(checkpoint, Path(a.weights), Path(a.generated), Path(a.truth), Path(a.volume),
                            Path(a.lights), Path(a.out), blend_k=a.blend_k, ddpm_lights=a.ddpm_lights,
-                           geometry_checkpoint=Path(a.geometry_checkpoint) if a.geometry_checkpoint else None)
+                           geometry_checkpoint=Path(a.geometry_checkpoint) if a.geometry_checkpoint else None,
+                           device=_device(a))
 
 
 # ------------------------------------------------------------------------------------- images, report
@@ -368,7 +369,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--blend-k", type=int, default=evaluate["blend_k"],
                    help="stored SIRENs blended per light (evaluate.blend_k)")
     p = _add(sub, "evaluate-voxels", _evaluate_voxels, "voxel PSNR of generated SIRENs, baselines, storage, timing",
-             "weights", "generated", "truth", "volume", "lights", device=False)
+             "weights", "generated", "truth", "volume", "lights")
     p.add_argument("--checkpoint", help="the diffusion checkpoint that sampled --generated (none: cache: blend)")
     p.add_argument("--blend-k", type=int, default=evaluate["blend_k"],
                    help="stored SIRENs blended per light (evaluate.blend_k)")

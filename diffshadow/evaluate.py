@@ -22,24 +22,28 @@ def blend_baseline(train_values: dict, idx: np.ndarray, weights: np.ndarray) -> 
 
 
 def seconds_per_inr(model, std, light, *, method: str, steps: int, repeats: int = 3,
-                    temperature: float = 1.0) -> float:
-    """Wall time to generate one shadow INR (batch of one), best of `repeats`."""
+                    temperature: float = 1.0, device: torch.device | str = "cpu") -> float:
+    """Wall time to generate one shadow INR (batch of one) on `device`, best of `repeats` (generate returns the
+    weights on the host, so a GPU's queue is drained inside each timing)."""
 
     best = float("inf")
     for r in range(repeats):
         t = time.perf_counter()
-        generate(model, std, light[None], method=method, steps=steps, seed=r, temperature=temperature)
+        generate(model, std, light[None], method=method, steps=steps, seed=r, temperature=temperature,
+                 device=device)
         best = min(best, time.perf_counter() - t)
     return best
 
 
 def voxel_metrics(state: dict | None, stage1, generated, truth: EvalTruth, light_sets: dict, *, blend_k: int,
-                  grid_voxels: int, ddpm_lights: int = 8, geometry_state: dict | None = None, log=print) -> dict:
+                  grid_voxels: int, ddpm_lights: int = 8, geometry_state: dict | None = None,
+                  device: torch.device | str = "cpu", log=print) -> dict:
     """`voxel_metrics.json`: generated SIRENs (seen and unseen) against the ground truth, beside the stage-1
     SIRENs, the nearest and blend baselines, DDIM vs DDPM on `ddpm_lights` training lights, and storage.
     With `geometry_state` (the model before rendering-loss fine-tuning), the unseen lights are also sampled
     from it: what fine-tuning did to lights it never saw. `state` None (`cache: blend`): `generated` holds the
-    stored and blended SIRENs; no sampler to time, no model to store."""
+    stored and blended SIRENs; no sampler to time, no model to store. The samplers run, and are timed, on
+    `device`; the truth and the PSNRs stay on the CPU."""
 
     train, unseen = light_sets["train"], light_sets["unseen"]
     seen = generated.seen
@@ -47,7 +51,7 @@ def voxel_metrics(state: dict | None, stage1, generated, truth: EvalTruth, light
         model, layout, siren = None, stage1.layout, stage1.siren
     else:
         cfg = state["config"]
-        model, std, layout, siren = load_sampler(state)
+        model, std, layout, siren = load_sampler(state, device)
     truth_train = truth.of(train)
     truth_unseen = truth.of(unseen) if len(unseen) else {}
     gen_seen = psnr_per_light(truth.sirens(generated.weights[seen], layout, siren), truth_train)
@@ -88,9 +92,9 @@ def voxel_metrics(state: dict | None, stage1, generated, truth: EvalTruth, light
             result["unseen"]["pool_lights"] = len(pool)
             result["unseen"]["nearest_trained_angle_median_deg"] = float(np.degrees(np.median(a_any[:, 0])))
         if geometry_state is not None:
-            g_model, g_std, _, _ = load_sampler(geometry_state)
+            g_model, g_std, _, _ = load_sampler(geometry_state, device)
             before = generate(g_model, g_std, unseen, method="ddim", steps=int(cfg["ddim_steps"]),
-                              seed=int(cfg["seed"]), temperature=cfg["temperature"]).numpy()
+                              seed=int(cfg["seed"]), temperature=cfg["temperature"], device=device).numpy()
             before_psnr = psnr_per_light(truth.sirens(before, layout, siren), truth_unseen)["box"]
             result["unseen"]["geometry_only_psnr_median"] = median(before_psnr)
             result["unseen"]["finetune_change_median_db"] = median(gen_unseen["box"] - before_psnr)
@@ -120,10 +124,10 @@ def voxel_metrics(state: dict | None, stage1, generated, truth: EvalTruth, light
             box = gen_seen["box"][sel]
         else:
             w = generate(model, std, train[sel], method=method, steps=k, seed=int(cfg["seed"]),
-                         temperature=cfg["temperature"]).numpy()
+                         temperature=cfg["temperature"], device=device).numpy()
             box = psnr_per_light(truth.sirens(w, layout, siren), truth_sel)["box"]
         seconds = seconds_per_inr(model, std, train[0], method=method, steps=k, repeats=3 if method == "ddim" else 1,
-                                  temperature=cfg["temperature"])
+                                  temperature=cfg["temperature"], device=device)
         curve.append({"method": method, "steps": k, "seconds_per_inr": seconds, "psnr_median": median(box)})
     log(f"[evaluate voxels] samplers done ({time.perf_counter() - t0:.0f} s)")
     ddim_row = next(r for r in curve if r["method"] == "ddim" and r["steps"] == ddim_steps)

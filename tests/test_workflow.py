@@ -303,16 +303,18 @@ def test_caches_table_every_cache_with_its_bytes_and_psnr(finished):
     assert rows["stored SIRENs fp32"]["unseen_psnr"] == pytest.approx(voxel["unseen"]["weight_blend_psnr_median"])
 
 
-def test_eval_truth_marches_on_the_cpu_unless_evaluate_device_is_run(finished):
-    """evaluate.device: cpu (the default) keeps one truth on every machine: the rule passes --device cpu; `run`
-    gives the march the run's device, which changes the truth's bytes on a GPU, so eval_truth reruns."""
-    target = "results/nucleon/eval_truth.zarr"
-    default = snakemake(finished, "-n", "-p", "-f", target)
-    assert "--device cpu" in next(ln for ln in default.stdout.splitlines() if "eval-truth" in ln)
+def test_the_evaluation_runs_on_the_cpu_unless_evaluate_device_is_run(finished):
+    """evaluate.device: cpu (the default) keeps one truth and one sampler curve on every machine: eval_truth and
+    evaluate_voxels get --device cpu; `run` gives them the run's device, which changes their bytes on a GPU, so
+    both rerun."""
+    targets = {"eval-truth": "results/nucleon/eval_truth.zarr", "evaluate-voxels": "results/nucleon/voxel_metrics.json"}
     on_run = {**TINY, "evaluate": {"device": "run"}}
-    assert "eval_truth" in planned(snakemake(finished, "-n", config=on_run))
-    shell = snakemake(finished, "-n", "-p", "-f", target, config=on_run).stdout
-    assert "--device cpu" not in next(ln for ln in shell.splitlines() if "eval-truth" in ln)
+    assert {"eval_truth", "evaluate_voxels"} <= set(planned(snakemake(finished, "-n", config=on_run)))
+    for command, target in targets.items():
+        default = snakemake(finished, "-n", "-p", "-f", target).stdout
+        assert "--device cpu" in next(ln for ln in default.splitlines() if command in ln), command
+        shell = snakemake(finished, "-n", "-p", "-f", target, config=on_run).stdout
+        assert "--device cpu" not in next(ln for ln in shell.splitlines() if command in ln), command
 
 
 def test_rerun_one_subset(finished):

@@ -249,8 +249,9 @@ def blend_shadows(weights_path: Path, truth_path: Path, lights_path: Path, out: 
 
 def evaluate_voxels(checkpoint: Path | None, weights_path: Path, generated_path: Path, truth_path: Path,
                     volume_path: Path, lights_path: Path, out: Path, *, blend_k: int, ddpm_lights: int,
-                    geometry_checkpoint: Path | None = None) -> None:
-    """`voxel_metrics.json`: generated against stage 1 and the baselines, storage, time per INR; with the
+                    geometry_checkpoint: Path | None = None, device: torch.device | str = "cpu") -> None:
+    """`voxel_metrics.json`: generated against stage 1 and the baselines, storage, time per INR (the samplers
+    run and are timed on `device`); with the
     geometry-stage checkpoint, unseen lights before and after fine-tuning. Without `checkpoint` (`cache: blend`)
     the generated SIRENs are the blended ones and there is no model to time."""
     geometry = artifacts.load_checkpoint(geometry_checkpoint) if geometry_checkpoint else None
@@ -259,7 +260,7 @@ def evaluate_voxels(checkpoint: Path | None, weights_path: Path, generated_path:
                            open_store(generated_path), artifacts.read_eval_truth(truth_path),
                            read_lights(lights_path), blend_k=blend_k,
                            grid_voxels=prepared_voxels(volume_path), ddpm_lights=ddpm_lights,
-                           geometry_state=geometry)
+                           geometry_state=geometry, device=device)
     atomic_write_text(out, json.dumps(result, indent=1) + "\n")
     print(json.dumps(result, indent=1))
     for line in quality_warnings(result):

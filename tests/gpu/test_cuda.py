@@ -271,8 +271,10 @@ def test_tiny_workflow_on_cuda_with_finetuning(tmp_path):
     sys.path.insert(0, str(REPO / "tests"))
     from test_workflow import TINY, snakemake
 
-    snakemake(tmp_path, config={**TINY, "device": "cuda"})
+    # evaluate.device: run: eval_truth marches and evaluate_voxels samples on the GPU too
+    snakemake(tmp_path, config={**TINY, "device": "cuda", "evaluate": {**TINY.get("evaluate", {}), "device": "run"}})
     assert (tmp_path / "results/nucleon/diffusion.ckpt").exists()  # the fine-tuned model
+    assert (tmp_path / "results/nucleon/voxel_metrics.json").exists()
     assert (tmp_path / "results/nucleon/image_metrics.json").exists()
 
 
