@@ -9,6 +9,7 @@ import numpy as np
 import torch
 
 from diffshadow.diffusion.sample import generate, load_sampler
+from diffshadow.hpc import device_name
 from diffshadow.lights import inverse_angle_weights, nearest, pick
 from diffshadow.store import blend_rows
 from diffshadow.truth import EvalTruth, median, psnr_per_light
@@ -132,7 +133,8 @@ def voxel_metrics(state: dict | None, stage1, generated, truth: EvalTruth, light
     log(f"[evaluate voxels] samplers done ({time.perf_counter() - t0:.0f} s)")
     ddim_row = next(r for r in curve if r["method"] == "ddim" and r["steps"] == ddim_steps)
     t_ddim, t_ddpm = ddim_row["seconds_per_inr"], curve[-1]["seconds_per_inr"]
-    result["sampling"] = {"ddim_steps": ddim_steps, "lights": len(sel),
+    result["sampling"] = {"ddim_steps": ddim_steps, "lights": len(sel), "device": device_name(device),
+                          "threads": torch.get_num_threads(),
                           "ddim_psnr_median": ddim_row["psnr_median"],
                           "ddpm_psnr_median": curve[-1]["psnr_median"], "speedup": t_ddpm / t_ddim, "curve": curve}
     result["seconds_per_inr"] = {"ddim": t_ddim, "ddpm": t_ddpm}

@@ -1,4 +1,5 @@
-"""Running on HPC systems: a node-local GPU lock, the PBS job state for Snakemake, the profiles' install.
+"""Running on HPC systems: a node-local GPU lock, the PBS job state for Snakemake, the profiles' install, the
+name of the device a figure was measured on.
 
 Snakemake does not assign GPU ids inside a node (snakemake issue #281). When several single-GPU jobs share
 a node (Polaris packs four `fit_siren` jobs per node), each job claims a GPU by taking an exclusive
@@ -12,12 +13,17 @@ import fcntl
 import filecmp
 import json
 import os
+import platform
 import subprocess
 import sys
 import time
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import yaml
+
+if TYPE_CHECKING:
+    import torch
 
 _held: list[int] = []  # open lock file descriptors, kept for the life of the process
 
@@ -173,3 +179,13 @@ def pbs_status(job: str, *, tries: int = 3, wait_s: float = 2.0) -> str:
         why = f"qstat exit {out.returncode}: {out.stderr.strip()[:200]}"
     print(f"pbs-status {job}: {why}; reported as running, asked again at the next check", file=sys.stderr)
     return "running"
+
+
+def device_name(device: torch.device | str) -> str:
+    """What a figure was measured on, for the outputs that record it: the GPU's name, or the CPU's type."""
+    import torch
+
+    device = torch.device(device)
+    if device.type == "cuda":
+        return torch.cuda.get_device_name(device)
+    return f"cpu ({platform.processor() or platform.machine()})"

@@ -20,6 +20,14 @@ def _num(value, fmt: str = ".2f") -> str:
     return "n/a" if value is None else f"{value:{fmt}}"
 
 
+def _sampled_on(sampling: dict) -> str:
+    """Where evaluate_voxels timed its samplers (`evaluate.device`); runs before the record say so vaguely."""
+    if "device" not in sampling:
+        return "evaluate_voxels' device"
+    threads = f", {sampling['threads']} thread{'s' * (sampling['threads'] != 1)}" if sampling.get("threads") else ""
+    return f"{sampling['device']}{threads}" if sampling["device"].startswith("cpu") else sampling["device"]
+
+
 def _table(title: str, header: list[str], rows: list[list], note: str = "") -> str:
     head = "".join(f"<th>{html.escape(h)}</th>" for h in header)
     body = "".join("<tr>" + "".join(f"<td>{html.escape(str(c))}</td>" for c in row) + "</tr>" for row in rows)
@@ -270,7 +278,7 @@ class RunResults:
                                 [[f"DDIM {s['ddim_steps']} steps", _num(s["ddim_psnr_median"]),
                                   _num(t["ddim"], ".3f")],
                                  ["DDPM 500 steps", _num(s["ddpm_psnr_median"]), _num(t["ddpm"], ".3f")]],
-                                f"DDIM is {s['speedup']:.0f}x faster; one INR alone, on evaluate_voxels' device."))
+                                f"DDIM is {s['speedup']:.0f}x faster; one INR alone, on {_sampled_on(s)}."))
         if self.finetune:
             f = self.finetune
             parts.append(_table(

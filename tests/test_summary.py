@@ -1,8 +1,9 @@
-"""The report's renderer table and bench.png: what `diffshadow bench render` measured, every size shown."""
+"""The report's renderer table and bench.png: what `diffshadow bench render` measured, every size shown; where
+the samplers were timed."""
 
 import pytest
 
-from diffshadow.summary import cache_verdict, renderer_rows
+from diffshadow.summary import _sampled_on, cache_verdict, renderer_rows
 
 MIB = 2**20
 
@@ -86,3 +87,11 @@ def test_the_cache_verdict_says_which_is_smaller_and_which_is_better():
     assert small.startswith("the model is 2.0x smaller than the 100 stored SIRENs")
     assert "their weight blend beats it on unseen lights by 1.50 dB: `cache: blend`" in small
     assert cache_verdict(voxel(model=0, generated=38.0, weight_blend=39.5)) == ""  # cache: blend, no model
+
+
+def test_the_sampler_timings_name_their_device():
+    """voxel_metrics.json records where its samplers ran (evaluate.device); a record from before says so vaguely."""
+    assert _sampled_on({"device": "cpu (x86_64)", "threads": 1}) == "cpu (x86_64), 1 thread"
+    assert _sampled_on({"device": "cpu (x86_64)", "threads": 2}) == "cpu (x86_64), 2 threads"
+    assert _sampled_on({"device": "NVIDIA H200", "threads": 1}) == "NVIDIA H200"
+    assert _sampled_on({"ddim_steps": 10}) == "evaluate_voxels' device"

@@ -31,6 +31,7 @@ import torch
 
 from diffshadow.bench.profile import OPTIMIZER_STEP, op_counts
 from diffshadow.bench.render import _sync
+from diffshadow.hpc import device_name
 from diffshadow.io import atomic_write_text
 
 STAGES = ("fit_siren", "preoptimize", "train_data_inr", "train_diffusion", "finetune_render", "sample_shadows",
@@ -342,7 +343,7 @@ def bench_stages(cfg: dict, out: Path, *, device: torch.device, stages: list[str
         log(f"{name:16s} {row['step_s'] * 1e3:9.2f} ms/{timed.per}: {row['ops']} ops, {row['syncs']} host syncs "
             f"({row['host_reads']} host reads), peak {row['peak_memory_mib']:.0f} MiB; projected "
             f"{_duration(row['projected_s'])} ({timed.note})")
-    result = {"config": config_name, "device": _device_name(device), "device_type": device.type,
+    result = {"config": config_name, "device": device_name(device), "device_type": device.type,
               "torch": torch.__version__,
               "cuda": torch.version.cuda, "threads": torch.get_num_threads(), "host": platform.node(),
               "peak_memory": "CUDA allocator peak" if device.type == "cuda" else "resident set added (sampled)",
@@ -350,12 +351,6 @@ def bench_stages(cfg: dict, out: Path, *, device: torch.device, stages: list[str
     atomic_write_text(out, json.dumps(result, indent=1) + "\n")
     log(f"wrote {out}")
     return result
-
-
-def _device_name(device: torch.device) -> str:
-    if device.type == "cuda":
-        return torch.cuda.get_device_name(device)
-    return f"cpu ({platform.processor() or platform.machine()})"
 
 
 def _duration(seconds: float) -> str:
