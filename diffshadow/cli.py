@@ -368,7 +368,8 @@ def build_parser() -> argparse.ArgumentParser:
              device=False)
     p.add_argument("--blend-k", type=int, default=evaluate["blend_k"],
                    help="stored SIRENs blended per light (evaluate.blend_k)")
-    p = _add(sub, "evaluate-voxels", _evaluate_voxels, "voxel PSNR of generated SIRENs, baselines, storage, timing",
+    p = _add(sub, "evaluate-voxels", _evaluate_voxels, "voxel PSNR of generated SIRENs, baselines, storage, the "
+             "samplers' timing (the workflow passes --device cpu unless evaluate.device is run)",
              "weights", "generated", "truth", "volume", "lights")
     p.add_argument("--checkpoint", help="the diffusion checkpoint that sampled --generated (none: cache: blend)")
     p.add_argument("--blend-k", type=int, default=evaluate["blend_k"],
@@ -506,6 +507,11 @@ def main(argv: list[str] | None = None) -> None:
         args.func(args)
     except ValueError as e:  # the library's input errors: one line, no traceback
         print(f"diffshadow {args.command}: error: {e}", file=sys.stderr)
+        raise SystemExit(2) from None
+    except OSError as e:  # a path given that cannot be read or written: the path and why, in one line
+        if e.filename is None:
+            raise
+        print(f"diffshadow {args.command}: error: {e.filename}: {e.strerror}", file=sys.stderr)
         raise SystemExit(2) from None
     if args.phases and os.environ.get("RANK", "0") == "0":  # under torchrun: rank 0's clock
         import json

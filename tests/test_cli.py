@@ -100,6 +100,19 @@ def test_stage_costs_sums_a_fanned_out_rule_and_names_a_bad_file(tmp_path):
         stage_costs([bad], tmp_path / "x.tsv")
 
 
+def test_a_path_that_cannot_be_read_and_a_port_out_of_range_are_one_line(tmp_path, capsys):
+    gone = tmp_path / "gone.tsv"
+    for argv, message in ((["stage-costs", "--benchmarks", str(gone), "--out", str(tmp_path / "c.tsv")],
+                           f"{gone}: No such file or directory"),
+                          (["view", "--scene-config", str(REPO / "config/scenes/nucleon.yaml"), "--port", "99999"],
+                           "--port 99999: expected a TCP port, 1 to 65535")):
+        with pytest.raises(SystemExit) as exit_info:
+            main(argv)
+        assert exit_info.value.code == 2
+        err = capsys.readouterr().err
+        assert err.strip().count("\n") == 0 and message in err, argv
+
+
 @pytest.mark.parametrize("argv", [["stage-costs", "--benchmarks", "{d}/lights.tsv", "--out", "{d}/costs.tsv"],
                                   ["install-profiles", "--source", str(REPO / "profiles"), "--target", "{d}/p"]])
 def test_bookkeeping_subcommands_do_not_import_torch(tmp_path, argv):

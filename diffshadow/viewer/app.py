@@ -260,6 +260,8 @@ def serve(*, results: Path | None, scene_config: Path | None, device: torch.devi
     """Serve the viewer until Ctrl-C (or `stop` is set)."""
     import viser
 
+    if not 1 <= port <= 65535:
+        raise ViewerError(f"--port {port}: expected a TCP port, 1 to 65535")
     if not port_free(host, port):
         raise ViewerError(f"port {port} on {host} is in use (another viewer?); choose another with --port")
     viewer = (ViewerScene.from_results(results, device, render) if results is not None
