@@ -189,6 +189,19 @@ def test_camera_rejects_bad_input(kwargs, match):
         Camera(**args)
 
 
+@pytest.mark.parametrize("kwargs, match", [
+    ({"fov": 0.0}, r"fov: expected degrees in \(0, 180\), got 0.0"),
+    ({"size": 0}, "image size: expected positive, got 0x0"),
+    ({"size": (16, 0)}, "image size: expected positive, got 16x0"),
+])
+def test_the_framed_and_orbit_views_name_a_bad_fov_size_or_distance(kwargs, match):
+    """framed() divides by the view's angle and aspect before it makes a camera: named, not a ZeroDivisionError."""
+    with pytest.raises(RenderError, match=match):
+        Camera.framed(((0.5, 0.5, 0.5), 0.3), **kwargs)
+    with pytest.raises(RenderError, match="distance: expected a positive number of box half-diagonals, got -1"):
+        Camera.orbit((1.0, 1.0, 1.0), azimuth=30, elevation=20, distance=-1)
+
+
 def test_render_rejects_bad_input(blob):
     cam, scalar, vox = setup(blob, size=4)
     scene = RenderScene(blob, TF)

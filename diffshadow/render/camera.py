@@ -16,6 +16,13 @@ class RenderError(ValueError):
     """Bad renderer input; the message names the argument."""
 
 
+def _check_view(fov: float, width: int, height: int) -> None:
+    if not (0 < fov < 180):
+        raise RenderError(f"camera fov: expected degrees in (0, 180), got {fov}")
+    if width < 1 or height < 1:
+        raise RenderError(f"camera image size: expected positive, got {width}x{height}")
+
+
 @dataclass(frozen=True)
 class Camera:
     """A pinhole camera in box coordinates; `fov` is vertical, in degrees."""
@@ -28,10 +35,7 @@ class Camera:
     height: int = 128
 
     def __post_init__(self):
-        if not (0 < self.fov < 180):
-            raise RenderError(f"camera fov: expected degrees in (0, 180), got {self.fov}")
-        if self.width < 1 or self.height < 1:
-            raise RenderError(f"camera image size: expected positive, got {self.width}x{self.height}")
+        _check_view(self.fov, self.width, self.height)
         forward = np.asarray(self.target, float) - np.asarray(self.eye, float)
         if not np.all(np.isfinite(forward)) or np.linalg.norm(forward) == 0:
             raise RenderError(f"camera: eye {self.eye} and target {self.target} must differ and be finite")
@@ -45,6 +49,8 @@ class Camera:
     def orbit(cls, extent, *, azimuth: float, elevation: float, distance: float = 2.2, fov: float = 60.0,
               size: int | tuple[int, int] = 128) -> Camera:
         """Looking at the box centre from (azimuth, elevation) in degrees; `distance` in box half-diagonals."""
+        if not distance > 0:  # a negative one would look from the opposite side, not the azimuth asked for
+            raise RenderError(f"camera distance: expected a positive number of box half-diagonals, got {distance}")
         center = np.asarray(extent, dtype=float) / 2
         return cls._from_direction(center, distance * np.linalg.norm(center), azimuth, elevation, fov, size)
 
@@ -57,6 +63,7 @@ class Camera:
         a sparse volume small (nucleon: 9 % of the viewer's canvas)."""
         center, radius = np.asarray(sphere[0], dtype=float), max(float(sphere[1]), 1e-6)
         w, h = (size, size) if isinstance(size, int) else size
+        _check_view(fov, w, h)  # before the distance, which divides by both
         half_v = math.radians(fov) / 2
         half = min(half_v, math.atan(math.tan(half_v) * w / h))
         return cls._from_direction(center, margin * radius / math.sin(half), azimuth, elevation, fov, size)
