@@ -149,7 +149,8 @@ class RunResults:
         if self.choice:
             rows.append(("shadow cache chosen (cache: auto)", self.choice["why"]))
         if "seconds_per_inr" in v:
-            rows.append(("time per shadow INR (DDIM)", f"{v['seconds_per_inr']['ddim']:.3f} s"))
+            rows.append(("time per shadow INR (DDIM)",
+                         f"{v['seconds_per_inr']['ddim']:.3f} s on {_sampled_on(v.get('sampling', {}))}"))
         elif "codec" in v:
             rows.append(("shadow cache", f"cache: {v['codec']} (the weight blend of the stored SIRENs kept in "
                          f"{v['codec']}, {v['storage_bytes']['cache'] / 2**20:.3f} MiB; no diffusion model)"))
