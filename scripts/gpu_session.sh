@@ -5,10 +5,13 @@
 #   device run, carry [".devwheels"], timeout_s 600:
 #       END=555 bash .devwheels/on-device.sh bash scripts/gpu_session.sh all
 #   then at once, on the still-warm machine (it goes back after 30 s idle), with what is left:
-#       END=230 PARTS="checks:130 stage1:0" bash .devwheels/on-device.sh bash scripts/gpu_session.sh all
+#       END=230 SWITCHES="evaluate: {device: run}" PARTS="workflow:0" bash .devwheels/on-device.sh \
+#           bash scripts/gpu_session.sh all
 #
-# `all` runs PARTS (default "plans:200 render:140 workflow:0"), each cut short so the whole ends by END seconds
-# (a cap of 0 = the time left), and packs everything into $OUT/all.tgz (a call brings back at most 8 files).
+# `all` runs PARTS (default "workflow:300 checks:0": what the GPU issue still lacks, the README run and the whole
+# `pytest -m gpu`; the renderer's plans and bench were measured on an H200 at 6a79efd), each cut short so the whole
+# ends by END seconds (a cap of 0 = the time left), and packs everything into $OUT/all.tgz (a call brings back at
+# most 8 files).
 # A part alone: `... gpu_session.sh render`.
 #
 # plans:    scripts/render_plans.py at 128², 512², 1024², inr and naive: every way the code can evaluate the
@@ -19,7 +22,8 @@
 #           peak memory up to 2048²), the fused kernels (the CUDA default) first, then eager.
 # workflow: the README's run (`snakemake --profile local -j2`, the profile from profiles/; SNAKEMAKE_ARGS added)
 #           on an empty results/, its wall time, each rule's phases (stage_costs.tsv), the GPU's busy share and
-#           the run's metrics.
+#           the run's metrics. SWITCHES, YAML over config/config.yaml, times a config switch (e.g.
+#           "evaluate: {device: run}": eval_truth and evaluate_voxels on the GPU).
 # checks:   pytest -m gpu (PYTEST_K narrows it with -k).
 # stages:   `bench stages` on the GPU at the paper's sizes (the JSON profiles/paper is generated from), at the
 #           defaults, and at the defaults with every training step's points and batch raised (STAGES_BIG, a YAML
@@ -94,9 +98,8 @@ plans)
     ;;
 all)
     end=${END:-540}
-    # the renderer's variants first (what decides the CUDA default), then its bench, then the README's run; a cap
-    # of 0 means whatever time is left
-    for p in ${PARTS:-plans:200 render:140 workflow:0}; do
+    # a cap of 0 means whatever time is left
+    for p in ${PARTS:-workflow:300 checks:0}; do
         left=$((end - SECONDS)); cap=${p#*:}; { [ "$cap" -eq 0 ] || [ "$left" -lt "$cap" ]; } && cap=$left
         if [ "$cap" -lt 30 ]; then echo "== ${p%%:*}: skipped, ${left} s left" | tee -a "$out/times.txt"; continue; fi
         PART_ROOT=$root PART_CAP=$cap timeout -k 5 "$cap" bash "$0" "${p%%:*}" || failed=1
@@ -111,8 +114,13 @@ workflow)
     nvidia-smi --query-gpu=timestamp,utilization.gpu,memory.used --format=csv -lms 500 >"$out/gpu_util.csv" 2>/dev/null &
     smi=$!
     # stopped 25 s before the part's cap, so that a cut run still brings back its finished rules' phases
-    # SNAKEMAKE_ARGS: e.g. "--configfile config/config.yaml overlay.yaml" to time a switch (evaluate.device: run)
-    step snakemake timeout $((${PART_CAP:-100000} - 25)) snakemake --profile profiles/local -j2 ${SNAKEMAKE_ARGS:-}
+    switches=()
+    if [ -n "${SWITCHES:-}" ]; then
+        printf '%s\n' "$SWITCHES" >"$out/switches.yaml"
+        switches=(--configfile config/config.yaml "$out/switches.yaml")
+    fi
+    step snakemake timeout $((${PART_CAP:-100000} - 25)) snakemake --profile profiles/local -j2 "${switches[@]}" \
+        ${SNAKEMAKE_ARGS:-}
     echo "README run: $((SECONDS - t0)) s wall" | tee "$out/wall.txt"
     kill $smi 2>/dev/null
     cp results/nucleon/*.json "$out/" 2>/dev/null
