@@ -26,9 +26,9 @@ def _out_file(value: str, default_name: str) -> Path:
         path = path / default_name
     if path.exists() and not path.is_file():
         raise ValueError(f"--out {value}: {path} exists and is not a file")
-    if any(p.exists() and not p.is_dir() for p in path.parents):
-        raise ValueError(f"--out {value}: {next(p for p in path.parents if p.exists() and not p.is_dir())} "
-                         f"is a file, not a folder")
+    blocking = next((p for p in path.parents if p.exists() and not p.is_dir()), None)
+    if blocking is not None:
+        raise ValueError(f"--out {value}: {blocking} is a file, not a folder")
     return path
 
 

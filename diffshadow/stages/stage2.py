@@ -251,9 +251,9 @@ def evaluate_voxels(checkpoint: Path | None, weights_path: Path, generated_path:
                     volume_path: Path, lights_path: Path, out: Path, *, blend_k: int, ddpm_lights: int,
                     geometry_checkpoint: Path | None = None, device: torch.device | str = "cpu") -> None:
     """`voxel_metrics.json`: generated against stage 1 and the baselines, storage, time per INR (the samplers
-    run and are timed on `device`); with the
-    geometry-stage checkpoint, unseen lights before and after fine-tuning. Without `checkpoint` (`cache: blend`)
-    the generated SIRENs are the blended ones and there is no model to time."""
+    run and are timed on `device`); with the geometry-stage checkpoint, unseen lights before and after
+    fine-tuning. Without `checkpoint` (`cache: blend`) the generated SIRENs are the blended ones and there is no
+    model to time."""
     geometry = artifacts.load_checkpoint(geometry_checkpoint) if geometry_checkpoint else None
     state = artifacts.load_checkpoint(checkpoint) if checkpoint else None
     result = voxel_metrics(state, open_store(weights_path),
