@@ -312,11 +312,11 @@ def test_the_evaluation_runs_on_the_cpu_unless_evaluate_device_is_run(finished):
     targets = {"eval-truth": "results/nucleon/eval_truth.zarr", "evaluate-voxels": "results/nucleon/voxel_metrics.json"}
     on_run = {**TINY, "evaluate": {"device": "run"}}
     assert {"eval_truth", "evaluate_voxels"} <= set(planned(snakemake(finished, "-n", config=on_run)))
-    for command, target in targets.items():
-        default = snakemake(finished, "-n", "-p", "-f", target).stdout
-        assert "--device cpu" in next(ln for ln in default.splitlines() if command in ln), command
-        shell = snakemake(finished, "-n", "-p", "-f", target, config=on_run).stdout
-        assert "--device cpu" not in next(ln for ln in shell.splitlines() if command in ln), command
+    default = snakemake(finished, "-n", "-p", "-f", *targets.values()).stdout.splitlines()
+    shell = snakemake(finished, "-n", "-p", "-f", *targets.values(), config=on_run).stdout.splitlines()
+    for command in targets:
+        assert "--device cpu" in next(ln for ln in default if command in ln), command
+        assert "--device cpu" not in next(ln for ln in shell if command in ln), command
 
 
 def test_rerun_one_subset(finished):
