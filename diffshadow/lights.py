@@ -285,6 +285,10 @@ def to_spherical(directions) -> np.ndarray:
 
 def make_light_sets(sphere: int, count: int, center, unseen: int, seed: int = 0) -> dict:
     """Training directions (a region of a Fibonacci sphere) and held-out unseen ones, as a JSON-able dict."""
+    # the workflow's schema holds these; the `lights` command and the library get them here, by name
+    for name, value, least in (("sphere", sphere, 1), ("count", count, 1), ("unseen", unseen, 0), ("seed", seed, 0)):
+        if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < least:
+            raise LightError(f"{name}: expected an integer >= {least}, got {value!r}")
     sphere_dirs = fibonacci_sphere(sphere)
     idx = select_region(sphere_dirs, center, count)
     train = sphere_dirs[idx]

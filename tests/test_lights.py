@@ -67,6 +67,16 @@ def test_bad_center_and_count():
         select_region(d, (0, 0, 1), 11)
 
 
+@pytest.mark.parametrize("key, value, least", [("unseen", -2, 0), ("seed", -1, 0), ("sphere", 0, 1), ("count", 0, 1),
+                                               ("unseen", 2.5, 0)])
+def test_light_set_sizes_and_seed_are_named_when_bad(key, value, least):
+    """A negative unseen count wrote '-2 unseen directions' (no set at all); a negative seed got numpy's nameless
+    'expected non-negative integer'."""
+    args = {"sphere": 100, "count": 4, "center": (0, 0, 1), "unseen": 2, "seed": 0, key: value}
+    with pytest.raises(LightError, match=rf"^{key}: expected an integer >= {least}, got {value!r}$"):
+        make_light_sets(**args)
+
+
 def test_cli_writes_json(tmp_path):
     out = tmp_path / "lights.json"
     main(["lights", "--sphere", "300", "--count", "40", "--unseen", "7", "--center", "0", "1", "1",
