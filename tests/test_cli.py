@@ -75,6 +75,13 @@ def test_bench_out_takes_a_folder_and_refuses_an_unwritable_name_before_timing(t
     with pytest.raises(SystemExit):
         main(["bench", "siren", "--out", str(tmp_path / "notes")])
     assert "expected a folder for the bench's files, found a file" in capsys.readouterr().err
+    # sizes that would time nothing: named, not a NaN per step or a ZeroDivisionError
+    for argv, message in ((["stages", "--max-steps", "0"], "--max-steps: expected at least 1 timed step, got 0"),
+                          (["siren", "--k", "0"], "--k: expected positive integers, got 0"),
+                          (["siren", "--widths", "32", "0"], "--widths: expected positive integers, got 32 0")):
+        with pytest.raises(SystemExit):
+            main(["bench", *argv, "--out", str(tmp_path / "figures")])
+        assert message in capsys.readouterr().err, argv
 
 
 def test_stage_costs_sums_a_fanned_out_rule_and_names_a_bad_file(tmp_path):

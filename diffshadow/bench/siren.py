@@ -53,6 +53,9 @@ def bench_siren(out_dir: Path, *, k: int = 16, points: int = 4096, widths=(32, 6
     from diffshadow.fit import FitConfig, points_per_pass
     from diffshadow.siren import SirenConfig
 
+    for flag, values in (("--k", [k]), ("--points", [points]), ("--widths", list(widths))):
+        if not values or min(values) < 1:  # none would divide the throughput by zero
+            raise ValueError(f"bench siren: {flag}: expected positive integers, got {' '.join(map(str, values))}")
     device = torch.device(device)
     default_chunk = points_per_pass(FitConfig.from_config().chunk, points, device)
     gen = torch.Generator().manual_seed(0)

@@ -324,6 +324,8 @@ def bench_stages(cfg: dict, out: Path, *, device: torch.device, stages: list[str
                  budget_s: float = 2.0, warmup: int = 2, max_steps: int = 50, config_name: str = "",
                  log=print) -> dict:
     """Measure each stage of `stages` (default all) at `cfg`'s sizes; write `out` (JSON) and print a table."""
+    if max_steps < 1:  # no timed step: a NaN time per step, projected to a NaN
+        raise ValueError(f"bench stages: --max-steps: expected at least 1 timed step, got {max_steps}")
     stages = list(stages or STAGES)
     unknown = [s for s in stages if s not in BUILDERS]
     if unknown:
