@@ -511,7 +511,13 @@ def main(argv: list[str] | None = None) -> None:
     except OSError as e:  # a path given that cannot be read or written: the path and why, in one line
         if e.filename is None:
             raise
-        print(f"diffshadow {args.command}: error: {e.filename}: {e.strerror}", file=sys.stderr)
+        where, why = e.filename, e.strerror
+        if isinstance(e, (FileExistsError, NotADirectoryError)):  # an output's folder, or a path through, is a file
+            path = Path(e.filename)
+            blocking = next((p for p in (path, *path.parents) if p.is_file()), None)
+            if blocking is not None:
+                where, why = blocking, "a file, where a folder is needed"
+        print(f"diffshadow {args.command}: error: {where}: {why}", file=sys.stderr)
         raise SystemExit(2) from None
     if args.phases and os.environ.get("RANK", "0") == "0":  # under torchrun: rank 0's clock
         import json

@@ -109,10 +109,15 @@ def test_stage_costs_sums_a_fanned_out_rule_and_names_a_bad_file(tmp_path):
 
 def test_a_path_that_cannot_be_read_and_a_port_out_of_range_are_one_line(tmp_path, capsys):
     gone = tmp_path / "gone.tsv"
+    (tmp_path / "c.tsv").write_text("")
     for argv, message in ((["stage-costs", "--benchmarks", str(gone), "--out", str(tmp_path / "c.tsv")],
                            f"{gone}: No such file or directory"),
                           (["view", "--scene-config", str(REPO / "config/scenes/nucleon.yaml"), "--port", "99999"],
-                           "--port 99999: expected a TCP port, 1 to 65535")):
+                           "--port 99999: expected a TCP port, 1 to 65535"),
+                          (["stage-costs", "--benchmarks", str(tmp_path / "c.tsv" / "b.tsv"), "--out", str(gone)],
+                           f"{tmp_path / 'c.tsv'}: a file, where a folder is needed"),
+                          (["install-profiles", "--target", str(tmp_path / "c.tsv")],
+                           f"{tmp_path / 'c.tsv'}: a file, where a folder is needed")):
         with pytest.raises(SystemExit) as exit_info:
             main(argv)
         assert exit_info.value.code == 2
