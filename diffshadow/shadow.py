@@ -26,7 +26,7 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-from diffshadow.grid import macro_cells, ray_box, trilinear, voxel_points
+from diffshadow.grid import check_step, macro_cells, ray_box, trilinear, voxel_points
 from diffshadow.lights import LightError, as_direction
 from diffshadow.transfer import TransferFunction
 from diffshadow.volume import Volume
@@ -105,7 +105,7 @@ def transmittance(
     enters it. `skip_empty` jumps over macro-cells whose μ is 0 under `tf` (None: when at least
     `AUTO_SKIP_FRACTION` of the cells are empty).
     """
-    _check_step(step)
+    check_step(step)
     w64 = as_direction(light_dir)
     if device is None:
         device = points.device if isinstance(points, torch.Tensor) else "cpu"
@@ -135,7 +135,7 @@ def transmittance_per_light(
     field's device. The same values as `transmittance` light by light, marched together in groups of up to
     `RAYS_PER_MARCH` rays: one small march per light is launch-bound (2048 pool lights × 1024 points took 75 s
     on an H200, light by light)."""
-    _check_step(step)
+    check_step(step)
     try:
         rows = np.asarray(lights, dtype=np.float64).reshape(-1, 3)
     except (TypeError, ValueError):
@@ -162,11 +162,6 @@ def transmittance_per_light(
         out.append(_transmittance_rays(field, w, p, step, skip_empty, tau_max, samples_per_iter, chunk)
                    .view(len(w_np), n_points))
     return torch.cat(out) if out else torch.zeros(0, n_points, device=field.scalar.device)
-
-
-def _check_step(step) -> None:
-    if not (isinstance(step, int | float) and math.isfinite(step) and step > 0):
-        raise ValueError(f"step: expected a positive number of voxels, got {step!r}")
 
 
 def _transmittance_rays(field: ShadowField, w: torch.Tensor, pts: torch.Tensor, step: float, skip_empty,

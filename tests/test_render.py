@@ -215,6 +215,8 @@ def test_render_rejects_bad_input(blob):
         scene.render("inr", cam, light=LIGHT)
     with pytest.raises(RenderError, match="step"):
         render(cam, scalar, TF, blob.extent, vox, step=0.0)
+    with pytest.raises(RenderError, match="step: 1e-09 voxels is finer than the finest step marched"):
+        render(cam, scalar, TF, blob.extent, vox, step=1e-9)
 
 
 @pytest.mark.parametrize("mode", ["noshadow", "gt", "naive", "inr"])

@@ -160,6 +160,10 @@ def test_bad_step_method_and_points(blob):
     tf = identity_tf()
     with pytest.raises(ValueError, match="step: expected a positive number"):
         transmittance(blob, tf, (0, 0, 1), [[0.5, 0.5, 0.5]], step=0)
+    # a step that would march for hours, refused at once (the finest taken is 2^-10 voxel)
+    with pytest.raises(ValueError, match=r"step: 1e-09 voxels is finer than the finest step marched"):
+        transmittance(blob, tf, (0, 0, 1), [[0.5, 0.5, 0.5]], step=1e-9)
+    assert transmittance(blob, tf, (0, 0, 1), [[0.5, 0.5, 0.5]], step=2.0 ** -10).shape == (1,)
     with pytest.raises(ValueError, match="sweep needs 1/k voxels"):
         shadow_grid(blob, tf, (0, 0, 1), method="sweep", step=0.3)
     with pytest.raises(ValueError, match="method: expected 'march' or 'sweep'"):

@@ -27,14 +27,13 @@ colour is first lit by Blinn-Phong from the field's gradient. `noshadow` has g =
 
 from __future__ import annotations
 
-import math
 import time
 from dataclasses import dataclass, field
 
 import numpy as np
 import torch
 
-from diffshadow.grid import ray_span
+from diffshadow.grid import check_step, ray_span
 from diffshadow.lights import as_direction
 from diffshadow.render.camera import Camera, RenderError
 from diffshadow.render.cells import MacroGrid, Runs
@@ -263,8 +262,10 @@ def render(
     a wavefront iteration: the images differ by less than that.
     """
     shading = shading or Shading()
-    if step <= 0 or not math.isfinite(step):
-        raise RenderError(f"step: expected a positive number of voxels, got {step}")
+    try:
+        check_step(step)
+    except ValueError as e:
+        raise RenderError(str(e)) from None
     if batch is not None and batch < (samples_per_iter or SAMPLES_PER_ITER):
         raise RenderError(f"batch: expected at least samples_per_iter ({samples_per_iter or SAMPLES_PER_ITER}), "
                           f"got {batch}")
