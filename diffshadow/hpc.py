@@ -54,6 +54,8 @@ def ddp_processes(requested: int, gpus: int | None) -> tuple[int, str]:
     """How many DDP processes to launch for `requested`, given the GPUs visible (None: the device is the CPU), and a
     one-line reason: on CUDA one process per visible GPU at most (NCCL cannot put two ranks on one GPU); on CPU as
     asked."""
+    if requested < 1:  # the schema holds the workflow's value; this is the command's own
+        raise ValueError(f"--nproc (finetune.nproc): expected at least 1 process, got {requested}")
     if gpus is None:
         return requested, f"{requested} CPU process(es) (gloo)"
     if requested > gpus:

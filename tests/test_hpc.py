@@ -345,6 +345,8 @@ def test_ddp_processes_caps_ranks_at_the_visible_gpus_and_asks_torch_only_where_
     assert hpc.ddp_processes(4, None) == (4, "4 CPU process(es) (gloo)")
     assert hpc.ddp_processes(4, 2) == (2, "finetune.nproc is 4 but 2 GPU(s) are visible: running 2 process(es)")
     assert hpc.ddp_processes(1, 2) == (1, "1 process(es), one GPU each (NCCL)")
+    with pytest.raises(ValueError, match=r"--nproc \(finetune.nproc\): expected at least 1 process, got 0"):
+        hpc.ddp_processes(0, None)  # printed 0, and torchrun was asked for no process
     monkeypatch.delenv("DIFFSHADOW_DEVICE", raising=False)
     monkeypatch.setattr(hpc, "GPU_DRIVER_FILES", (str(tmp_path / "no-driver"),))
     assert not hpc.gpu_possible() and not hpc.gpu_possible(None, "cpu") and hpc.gpu_possible("cuda:1")
