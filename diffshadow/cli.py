@@ -513,8 +513,9 @@ def main(argv: list[str] | None = None) -> None:
             raise
         where, why = e.filename, e.strerror
         if isinstance(e, (FileExistsError, NotADirectoryError)):  # an output's folder, or a path through, is a file
-            path = Path(e.filename)
-            blocking = next((p for p in (path, *path.parents) if p.is_file()), None)
+            from diffshadow.io import file_in_the_way
+
+            blocking = file_in_the_way(e.filename)
             if blocking is not None:
                 where, why = blocking, "a file, where a folder is needed"
         print(f"diffshadow {args.command}: error: {where}: {why}", file=sys.stderr)

@@ -20,12 +20,12 @@ from diffshadow.volume import Volume
 MIN_STEP = 2.0 ** -10
 
 
-def check_step(step) -> None:
-    """A marching step in voxels: finite, positive and not finer than MIN_STEP, else a ValueError naming it."""
+def check_step(step, error: type[ValueError] = ValueError) -> None:
+    """A marching step in voxels: finite, positive and not finer than MIN_STEP, else `error` naming it."""
     if isinstance(step, bool) or not isinstance(step, numbers.Real) or not (math.isfinite(step) and step > 0):
-        raise ValueError(f"step: expected a positive number of voxels, got {step!r}")
+        raise error(f"step: expected a positive number of voxels, got {step!r}")
     if step < MIN_STEP:
-        raise ValueError(f"step: {step!r} voxels is finer than the finest step marched ({MIN_STEP:g} voxels)")
+        raise error(f"step: {step!r} voxels is finer than the finest step marched ({MIN_STEP:g} voxels)")
 
 
 def trilinear(grid: torch.Tensor, pos_vox: torch.Tensor) -> torch.Tensor:

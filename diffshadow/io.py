@@ -209,6 +209,12 @@ def check_stores(paths: list[Path]):
         yield f"{store}: {', '.join(names)}: {state} ({size / 2 ** 20:.1f} MiB in {time.perf_counter() - t0:.2f} s)"
 
 
+def file_in_the_way(path: str | Path) -> Path | None:
+    """The first of `path` and its parents that is a file: where a folder is needed, it stops mkdir and open."""
+    path = Path(path)
+    return next((p for p in (path, *path.parents) if p.is_file()), None)
+
+
 def error_line(e: BaseException) -> str:
     """An exception as one short line: its type and first sentence (torch's miniz error appends a paragraph)."""
     text = str(e).splitlines()[0].split(". ")[0][:160] if str(e) else ""

@@ -26,7 +26,9 @@ def _out_file(value: str, default_name: str) -> Path:
         path = path / default_name
     if path.exists() and not path.is_file():
         raise ValueError(f"--out {value}: {path} exists and is not a file")
-    blocking = next((p for p in path.parents if p.exists() and not p.is_dir()), None)
+    from diffshadow.io import file_in_the_way
+
+    blocking = file_in_the_way(path.parent)
     if blocking is not None:
         raise ValueError(f"--out {value}: {blocking} is a file, not a folder")
     return path

@@ -262,10 +262,7 @@ def render(
     a wavefront iteration: the images differ by less than that.
     """
     shading = shading or Shading()
-    try:
-        check_step(step)
-    except ValueError as e:
-        raise RenderError(str(e)) from None
+    check_step(step, RenderError)
     if batch is not None and batch < (samples_per_iter or SAMPLES_PER_ITER):
         raise RenderError(f"batch: expected at least samples_per_iter ({samples_per_iter or SAMPLES_PER_ITER}), "
                           f"got {batch}")

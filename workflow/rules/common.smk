@@ -121,6 +121,12 @@ def volume_file(wildcards):
     return str(_resolve_path(scene_config(wildcards.scene)["volume"]))
 
 
+def evaluate_device(wildcards):
+    """eval_truth's and evaluate_voxels' device flag: the CPU under evaluate.device cpu (one truth and one sampler
+    curve on every machine), else none (the run's device)."""
+    return "--device cpu" if scene_config(wildcards.scene)["evaluate"]["device"] == "cpu" else ""
+
+
 def check_scenes():
     """Every scene of the run merged and validated when the workflow is parsed: a typo in a scene file stops
     the run in one line naming the file and key, before any job starts."""

@@ -53,7 +53,7 @@ rule eval_truth:
     params:
         points=lambda wc: scene_config(wc.scene)["evaluate"]["points"],
         seed=lambda wc: scene_config(wc.scene)["evaluate"]["seed"],
-        device=lambda wc: "--device cpu" if scene_config(wc.scene)["evaluate"]["device"] == "cpu" else "",
+        device=evaluate_device,
     threads: 1  # a second thread sped it up 1.19x: better spent on the job beside it
     log:
         "results/{scene}/logs/eval_truth.log",
@@ -162,7 +162,7 @@ rule evaluate_voxels:
         checkpoint=lambda wc, input: f"--checkpoint {input.checkpoint}" if "checkpoint" in input.keys() else "",
         blend_k=lambda wc: scene_config(wc.scene)["evaluate"]["blend_k"],
         ddpm_lights=lambda wc: scene_config(wc.scene)["evaluate"]["ddpm_lights"],
-        device=lambda wc: "--device cpu" if scene_config(wc.scene)["evaluate"]["device"] == "cpu" else "",
+        device=evaluate_device,
     # one thread, beside evaluate_images (both wait only for sample_shadows): a second thread sped each up
     # 1.5-1.6x, so on 2 cores the pair ends sooner side by side than one after the other (docs/performance.md)
     threads: 1
