@@ -179,9 +179,23 @@ def load_run(configfile: str | Path | None = None) -> dict:
     return run_config(read_yaml(configfile), str(configfile))
 
 
+# Settings added after runs existed, at the value that does what those runs did without them. A job's params leave
+# them out at that value: the workflow reruns a job whose params change, and a finished run should not redo
+# train_diffusion (days at the paper's sizes) for a new key that changes none of its bytes. The job still reads
+# them: a section missing a key takes defaults.yaml's (`section`).
+UNCHANGED_WHEN = {("diffusion", "precision"): "float32"}
+_ABSENT = object()
+
+
 def as_json(cfg: dict, *keys: str) -> str:
-    """The sections a stage depends on, as one canonical JSON argument."""
-    return json.dumps({k: cfg[k] for k in keys}, sort_keys=True)
+    """The sections a stage depends on, as one canonical JSON argument (without UNCHANGED_WHEN's settings at
+    their values)."""
+    def kept(name: str, value):
+        if not isinstance(value, dict):
+            return value
+        return {k: v for k, v in value.items() if UNCHANGED_WHEN.get((name, k), _ABSENT) != v}
+
+    return json.dumps({k: kept(k, cfg[k]) for k in keys}, sort_keys=True)
 
 
 class _Sections(dict):

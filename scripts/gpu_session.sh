@@ -28,6 +28,9 @@
 # stages:   `bench stages` on the GPU at the paper's sizes (the JSON profiles/paper is generated from), at the
 #           defaults, and at the defaults with every training step's points and batch raised (STAGES_BIG, a YAML
 #           overlay): whether a bigger step costs a GPU more than a few launches.
+# precision: `bench stages` of the two training stages at the paper's sizes (where the products, not the launches,
+#           take the time), diffusion.precision float32 then bfloat16 then both again: what bfloat16 autocast saves
+#           a step (its quality was measured on a CPU: docs/performance.md, stage 2).
 # stage1:   stage 1 alone (snakemake ... results/nucleon/weights.zarr) at 512 of 2,048 lights, wall time
 #           and each fit_siren job's benchmark (a job cut short still leaves the finished subsets' figures).
 #
@@ -36,7 +39,7 @@ set -uo pipefail
 case ${1:-} in
     -h|--help) sed -n '2,/^set -uo/p' "$0" | sed '$d;s/^# \{0,1\}//'; exit 0 ;;
 esac
-part=${1:?usage: scripts/gpu_session.sh all|plans|render|workflow|checks|stages|stage1}
+part=${1:?usage: scripts/gpu_session.sh all|plans|render|workflow|checks|stages|precision|stage1}
 # Parts write under $root and are packed into $OUT/<part>.tgz at the end: a device call brings back at most 8
 # files, and one run writes dozens. `all` hands its root to the parts it runs (PART_ROOT) and packs once each.
 dest=${OUT:-gpu_session}
@@ -129,6 +132,20 @@ workflow)
     step stage_costs diffshadow stage-costs --out "$out/stage_costs.tsv" --benchmarks results/nucleon/benchmarks/*.tsv
     cat "$out/stage_costs.tsv" 2>/dev/null
     ;;
+precision)
+    args=(--stages train_diffusion finetune_render --budget 3 --max-steps 20)
+    [ "$quick" = 1 ] && args=(--stages train_diffusion --budget 0 --max-steps 2)
+    for round in 1 2; do
+        for p in float32 bfloat16; do
+            python -c "import sys, yaml; c = yaml.safe_load(open('config/paper.yaml')); \
+c.setdefault('diffusion', {})['precision'] = sys.argv[1]; yaml.safe_dump(c, open(sys.argv[2], 'w'))" \
+                "$p" "$out/paper_$p.yaml"
+            [ "$quick" = 1 ] && printf 'diffusion: {preset: tiny, precision: %s}\n' "$p" >"$out/paper_$p.yaml"
+            step "bench_$p$round" diffshadow bench stages --device "$device" --configfile "$out/paper_$p.yaml" \
+                "${args[@]}" --out "$out/bench_stages_paper_$p$round.json"
+        done
+    done
+    ;;
 stage1)
     # stage 1 alone at 512 training lights, at the paper's cap fraction (a quarter of the sphere)
     n=512; [ "$quick" = 1 ] && n=40
@@ -142,7 +159,7 @@ stage1)
     cp -r results/nucleon/benchmarks results/nucleon/logs "$out/" 2>/dev/null
     ;;
 *)
-    echo "unknown part $part (all, plans, render, workflow, checks, stages or stage1)" >&2; exit 2
+    echo "unknown part $part (all, plans, render, workflow, checks, stages, precision or stage1)" >&2; exit 2
     ;;
 esac
 pack

@@ -14,3 +14,22 @@ def test_command_line_strings_take_the_type_the_schema_asks_for():
         run_config({"diffusion": {"epochs": "sixty"}}, "--config")
     with pytest.raises(ConfigError, match=r"key lights.count"):
         run_config({"lights": {"count": "[1, 2]"}}, "--config")  # read as a list: still not an integer
+
+
+def test_a_setting_added_at_its_old_behaviour_stays_out_of_the_params_so_finished_runs_rerun_nothing():
+    """diffusion.precision came after runs existed: at float32 (what they did) a job's params are the JSON they
+    had before it, and the job still reads float32; bfloat16 is in the params (a changed param reruns the job)."""
+    import json
+
+    from diffshadow.config import UNCHANGED_WHEN, as_json, load_run
+    from diffshadow.diffusion.config import DiffusionConfig
+
+    run = load_run(None)
+    for (name, key), value in UNCHANGED_WHEN.items():
+        assert run[name][key] == value  # the default is the old behaviour
+    params = json.loads(as_json(run, "diffusion", "siren"))
+    assert "precision" not in params["diffusion"] and params["siren"] == run["siren"]
+    assert {**params["diffusion"], "precision": "float32"} == run["diffusion"]
+    assert DiffusionConfig.from_config(params["diffusion"]).precision == "float32"
+    run["diffusion"]["precision"] = "bfloat16"
+    assert json.loads(as_json(run, "diffusion"))["diffusion"]["precision"] == "bfloat16"

@@ -426,3 +426,38 @@ def test_auto_preset_widens_the_model_with_the_siren_and_checkpoints_the_concret
     assert model.n_params() == sum(v.numel() for v in state["model"].values())
     with pytest.raises(ValueError, match=r"diffusion.preset: expected auto or one of .*got 'huge'"):
         DiffusionConfig.from_config({"preset": "huge"})
+
+
+def test_bfloat16_precision_runs_the_products_in_bfloat16_and_keeps_the_rest_float32(tmp_path):
+    """`diffusion.precision: bfloat16`: the forward's linear maps run in bfloat16, the prediction moves from
+    float32's by bfloat16 rounding (not more), the loss and the trained weights stay float32, and the checkpoint
+    records the choice; a checkpoint from before the key read float32, and a bad value is named."""
+    from diffshadow.diffusion.config import build_model
+    from diffshadow.diffusion.train import batch_loss, draw_batch
+
+    data = tiny_data()
+    std = Standardizer.fit(data.layout, data.weights, CFG.standardize)
+    z_all = std.standardize(data.weights).float()
+    model = build_model(LAYOUT, CFG)
+    gen = torch.Generator().manual_seed(0)
+    with torch.no_grad():  # the output maps start at zero (a new model predicts the mean): give them weights
+        for p in model.token_out.parameters():
+            p.copy_(torch.randn(p.shape, generator=gen) * 0.1)
+    seen = []
+    model.blocks[0].mlp.fc.register_forward_hook(lambda m, i, out: seen.append(out.dtype))
+    batch = draw_batch(gen, torch.arange(2), data, None, CFG, Schedule().steps, torch.device("cpu"))
+    out = {p: batch_loss(model, std, data, z_all, None, batch, dataclasses.replace(CFG, precision=p), Schedule())
+           for p in ("float32", "bfloat16")}
+    assert seen == [torch.float32, torch.bfloat16]
+    pred32, pred16 = out["float32"][3], out["bfloat16"][3]
+    assert pred16.dtype == torch.float32 and out["bfloat16"][0].dtype == torch.float32
+    apart = (pred16 - pred32).abs().max()
+    assert 0 < apart < 0.02 * pred32.abs().max()  # bfloat16 keeps 8 bits: 0.4 % here
+    state = train_diffusion(data, dataclasses.replace(CFG, epochs=1, precision="bfloat16"), tmp_path / "b.ckpt",
+                            log=lambda *a: None)
+    assert state["config"]["precision"] == "bfloat16"
+    assert all(v.dtype == torch.float32 for v in state["model"].values())
+    old = {**state, "config": {k: v for k, v in state["config"].items() if k != "precision"}}
+    assert DiffusionConfig.of_checkpoint(old).precision == "float32"
+    with pytest.raises(ValueError, match=r"diffusion.precision: expected one of float32, bfloat16, got 'half'"):
+        DiffusionConfig.from_config({"precision": "half"})

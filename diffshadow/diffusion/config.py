@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 from dataclasses import dataclass
 
@@ -12,6 +13,7 @@ from diffshadow.diffusion.model import PRESETS, WeightTransformer
 from diffshadow.siren import WeightLayout
 
 AUTO_PRESETS = ((32, "small"), (64, "medium"))
+PRECISIONS = ("float32", "bfloat16")
 
 
 class DiffusionError(ValueError):
@@ -48,6 +50,9 @@ class DiffusionConfig:
     # than target_gap dB under stage 1, up to max_epochs; 0 target_gap: exactly `epochs`
     target_gap: float
     max_epochs: int
+    # the training forward's matrix products: "bfloat16" runs them under autocast (losses, SIRENs and the optimiser
+    # stay float32); sampling always runs float32
+    precision: str
 
     @classmethod
     def from_config(cls, d: dict | None = None) -> DiffusionConfig:
@@ -55,6 +60,8 @@ class DiffusionConfig:
         cfg = section(cls, "diffusion", d)
         if cfg.preset not in PRESETS and cfg.preset != "auto":
             raise ValueError(f"diffusion.preset: expected auto or one of {sorted(PRESETS)}, got {cfg.preset!r}")
+        if cfg.precision not in PRECISIONS:
+            raise ValueError(f"diffusion.precision: expected one of {', '.join(PRECISIONS)}, got {cfg.precision!r}")
         return cfg
 
     def for_siren(self, width: int) -> DiffusionConfig:
@@ -70,6 +77,14 @@ class DiffusionConfig:
         """The config a checkpoint was trained with; one written before `tensor_tokens` existed had one token
         per tensor, whatever config.yaml says now."""
         return cls.from_config({"tensor_tokens": 1, **state["config"]})
+
+
+def forward_precision(precision: str, device: torch.device) -> contextlib.AbstractContextManager:
+    """The context a training forward runs in: bfloat16 autocast on `device`'s type, or nothing for float32 (the
+    same ops, the same bytes as without it)."""
+    if precision == "float32":
+        return contextlib.nullcontext()
+    return torch.autocast(device.type, dtype=torch.bfloat16)
 
 
 def make_optimizer(params, lr: float, weight_decay: float) -> torch.optim.AdamW:

@@ -15,7 +15,7 @@ from pathlib import Path
 
 import torch
 
-from diffshadow.diffusion.config import DiffusionConfig, DiffusionError, build_model, make_optimizer
+from diffshadow.diffusion.config import DiffusionConfig, DiffusionError, build_model, forward_precision, make_optimizer
 from diffshadow.diffusion.geometry import geometry_error
 from diffshadow.diffusion.model import WeightTransformer
 from diffshadow.diffusion.sample import generate
@@ -240,7 +240,9 @@ def batch_loss(model: WeightTransformer, std: Standardizer, data: TrainingData, 
     if pool is not None:  # one forward for both: a batch of 2b costs 0.75 of two batches of b
         x0p, x_tp, light_p = pool_noised(pool, z_all, batch.j, batch.tp, batch.noise_p, schedule)
         x_t, t_in, light_in = torch.cat([x_t, x_tp]), torch.cat([t_in, batch.tp]), torch.cat([light_in, light_p])
-    pred_all = model(x_t, t_in, light_in)
+    with forward_precision(cfg.precision, z_all.device):
+        pred_all = model(x_t, t_in, light_in)
+    pred_all = pred_all.float()  # the losses and the generated SIRENs' geometry error stay float32
     loss_x0 = ((pred_all[:b] - x0) ** 2).mean()
     loss = loss_x0
     loss_geo = torch.zeros((), device=z_all.device)
