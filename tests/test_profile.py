@@ -1,4 +1,5 @@
-"""`bench.profile`: the peak memory a call's tensors add, from the profiler's allocation events."""
+"""`bench.profile`: the peak memory a call's tensors add, from the profiler's allocation events; what counts as
+one op."""
 
 import torch
 
@@ -27,3 +28,17 @@ def test_peak_bytes_is_what_the_call_added():
     before = torch.ones(10_000)
     assert peak_bytes(lambda: before + before, CPU) == 40_000
     assert peak_bytes(lambda: None, CPU) == 0
+
+
+def test_a_multi_tensor_op_counts_one_op_whatever_its_tensors():
+    """A GPU runs `_foreach_lerp_` over ten tensors as one call (a few launches); a CPU as ten lerps underneath,
+    which the count leaves out, so a CPU's count says what a GPU launches. The same lerps one by one are ten."""
+    xs, ys = [torch.zeros(3) for _ in range(10)], [torch.ones(3) for _ in range(10)]
+    assert op_counts(lambda: torch._foreach_lerp_(xs, ys, 0.5))["ops"] == 1
+    assert op_counts(lambda: [x.lerp_(y, 0.5) for x, y in zip(xs, ys, strict=True)])["ops"] == 10
+    params = [torch.nn.Parameter(torch.ones(4)) for _ in range(6)]
+    for p in params:
+        p.grad = torch.ones(4)
+    opt = torch.optim.AdamW(params, lr=0.1, fused=True)
+    opt.step()  # the first step makes the state
+    assert op_counts(opt.step)["ops"] == 2  # the step counters' foreach add and the fused update, not 6 of each

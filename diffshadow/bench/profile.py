@@ -12,6 +12,11 @@ host from one it would have to fetch. One such case is known and named: PyTorch'
 (torch/optim/adam.py), a host read and no device sync. `host_scopes` lists the profiler scopes whose scalar
 reads are such host reads: counted as `host_reads`, not `syncs`.
 
+A multi-tensor op (`_foreach_*`, `_fused_*`: the EMA's lerp, the gradient clip's norms and scaling, fused AdamW)
+counts one op on every device: a GPU runs it as a few launches over all the tensors, a CPU as one op per tensor
+underneath, which would count the CPU's loop (608 of the geometry stage's 1,026 ops a step at the README's
+sizes) where a GPU has one call.
+
 Given a device, the same profiled call also gives its peak memory: the most bytes its tensors held at once on
 that device's allocator, from the profiler's allocation events (frees count negative). On CUDA that is what
 `max_memory_allocated` says; on a CPU it needs no sampling of the resident set, and like the op count it does
@@ -41,6 +46,7 @@ SYNCS = frozenset({"aten::_local_scalar_dense", "aten::nonzero", "aten::masked_s
                    "aten::unique_consecutive", "aten::unique_dim"})
 
 
+MULTI_TENSOR = ("aten::_foreach_", "aten::_fused_")
 OPTIMIZER_STEP = "Optimizer.step#"  # the profiler's scope of torch.optim's `step` (Optimizer.step#Adam.step)
 
 
@@ -61,6 +67,11 @@ def op_counts(fn: Callable[[], object], host_scopes: tuple[str, ...] = (),
                 host_reads += 1
             else:
                 syncs += 1
+        if _inside(e, MULTI_TENSOR):  # a CPU's per-tensor loop inside one multi-tensor op
+            continue
+        if e.name.startswith(MULTI_TENSOR):
+            ops += 1
+            continue
         if e.name in NO_WORK or any(c.name.startswith("aten::") and c.name not in NO_WORK for c in e.cpu_children):
             continue
         if e.name == "aten::copy_" and e.input_shapes and e.input_shapes[0] == []:

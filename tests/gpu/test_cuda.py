@@ -111,7 +111,10 @@ def test_diffusion_training_and_sampling_agree_with_cpu(tmp_path):
 
 def test_ema_update_on_cuda_is_one_op_with_each_parameters_lerp():
     """The EMA of the geometry stage's weights is one multi-tensor op a step on CUDA (not a lerp per parameter
-    tensor), with the bits of the per-tensor lerp."""
+    tensor), with the bits of the per-tensor lerp. The op count takes a multi-tensor op as one on every device,
+    so the fast path is checked in the profile: no per-tensor lerp under it, as a CPU (or CUDA's fallback) has."""
+    from torch.profiler import ProfilerActivity, profile
+
     from diffshadow.bench.profile import op_counts
     from diffshadow.diffusion.model import PRESETS, WeightTransformer
     from diffshadow.diffusion.train import Ema, ema_decay
@@ -126,6 +129,10 @@ def test_ema_update_on_cuda_is_one_op_with_each_parameters_lerp():
     ops = op_counts(lambda: ema.update(model, 0))["ops"]
     assert all(torch.equal(e, p) for e, p in zip(expected, ema.model.parameters(), strict=True))
     assert ops < len(expected) / 4, (ops, len(expected))
+    with profile(activities=[ProfilerActivity.CPU]) as prof:
+        ema.update(model, 1)
+    names = [e.name for e in prof.events()]
+    assert "aten::_foreach_lerp_" in names and "aten::lerp_" not in names, sorted(set(names))
 
 
 @pytest.mark.parametrize("mode", ["noshadow", "gt", "naive", "inr"])
