@@ -150,7 +150,8 @@ def scene_config(run: dict, scene: str, *, scenes_dir: str | Path) -> dict:
 
 def run_config(own: dict, where: str) -> dict:
     """A run's own choices (`where`: the file they came from, for errors) over the defaults, validated."""
-    run = _typed(merge(defaults(), copy.deepcopy(dict(own))), "config.schema.yaml")
+    # copies all round: a caller that changes its run must not change the cached defaults of every later one
+    run = _typed(merge(copy.deepcopy(defaults()), copy.deepcopy(dict(own))), "config.schema.yaml")
     _validate(run, "config.schema.yaml", where)
     return run
 

@@ -33,3 +33,16 @@ def test_a_setting_added_at_its_old_behaviour_stays_out_of_the_params_so_finishe
     assert DiffusionConfig.from_config(params["diffusion"]).precision == "float32"
     run["diffusion"]["precision"] = "bfloat16"
     assert json.loads(as_json(run, "diffusion"))["diffusion"]["precision"] == "bfloat16"
+    assert load_run(None)["diffusion"]["precision"] == "float32"  # a run's change stays in that run
+
+
+def test_changing_one_run_config_leaves_the_defaults_of_the_next():
+    """load_run's sections are the run's own: changing one in place (as a test or a script may) changed the cached
+    defaults under every later config of the process, so a test's bfloat16 reached other tests' models."""
+    from diffshadow.config import defaults, load_run
+
+    run = load_run(None)
+    run["diffusion"]["epochs"] = -1
+    run["fit"]["lr"] = 99.0
+    assert defaults()["diffusion"]["epochs"] != -1 and defaults()["fit"]["lr"] != 99.0
+    assert load_run(None)["diffusion"]["epochs"] == defaults()["diffusion"]["epochs"]
