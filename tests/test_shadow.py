@@ -216,15 +216,25 @@ tf = TransferFunction.from_config({"opacity": [[0, 0], [1, 1]], "color": [[0, 1,
                                    "density_scale": 10.0})
 grid = shadow_grid(vol, tf, (0.2, 0.3, 0.9), method=sys.argv[1]).numpy()
 np.save(sys.argv[2], grid)  # kept for the failure message: which voxels differ, and by how much
-print(hashlib.sha256(grid.tobytes()).hexdigest(), torch.get_num_threads(), torch.backends.cpu.get_cpu_capability())
+try:  # the CPU this process ran on (a virtual machine may move between hosts): model, microcode, its flags' hash
+    info = {k.strip(): v.strip() for k, v in (line.split(":", 1) for line in
+                                              open("/proc/cpuinfo").read().split("\\n\\n")[0].splitlines()
+                                              if ":" in line)}
+    cpu = "|".join([info.get("model name", "?"), info.get("microcode", "?"),
+                    hashlib.sha256(info.get("flags", "").encode()).hexdigest()[:8]]).replace(" ", "_")
+except OSError:
+    cpu = "unknown"
+print(hashlib.sha256(grid.tobytes()).hexdigest(), torch.get_num_threads(), torch.backends.cpu.get_cpu_capability(),
+      "input=" + hashlib.sha256(vol.data.tobytes()).hexdigest()[:12], cpu)
 """
 
 
 @pytest.mark.parametrize("method", ["sweep", "march"])
 def test_same_input_same_bytes_in_separate_processes(method, tmp_path):
     """Two fresh processes (a new allocator, new thread pools each), one with a single thread: the same bytes.
-    It failed once in a whole-suite run on a loaded machine and never again in 200 reruns, so a mismatch says what
-    differed: each process's threads and vector unit, and the voxels apart."""
+    It failed once in a whole-suite run on a loaded machine and never again in over 250 reruns, so a mismatch says
+    what differed: each process's threads, vector unit, input volume and CPU (model, microcode, flags), and the
+    voxels apart."""
     import os
     import subprocess
     import sys
@@ -237,7 +247,7 @@ def test_same_input_same_bytes_in_separate_processes(method, tmp_path):
         a, b = np.load(tmp_path / "0.npy"), np.load(tmp_path / "1.npy")
         apart = np.argwhere(a != b)
         first = tuple(int(i) for i in apart[0])
-        pytest.fail(f"{method}: processes (threads, vector unit) {runs[0][1:]} and {runs[1][1:]} differ at "
+        pytest.fail(f"{method}: processes (threads, vector unit, input, CPU) {runs[0][1:]} and {runs[1][1:]} differ at "
                     f"{len(apart)} of {a.size} voxels, by at most {np.abs(a - b).max():.3g}; first at (z, y, x) = "
                     f"{first}: {float(a[first])!r} against {float(b[first])!r}")
 
