@@ -185,18 +185,16 @@ def load_run(configfile: str | Path | None = None) -> dict:
 # train_diffusion (days at the paper's sizes) for a new key that changes none of its bytes. The job still reads
 # them: a section missing a key takes defaults.yaml's (`section`).
 UNCHANGED_WHEN = {("diffusion", "precision"): "float32"}
-_ABSENT = object()
 
 
 def as_json(cfg: dict, *keys: str) -> str:
     """The sections a stage depends on, as one canonical JSON argument (without UNCHANGED_WHEN's settings at
     their values)."""
-    def kept(name: str, value):
-        if not isinstance(value, dict):
-            return value
-        return {k: v for k, v in value.items() if UNCHANGED_WHEN.get((name, k), _ABSENT) != v}
-
-    return json.dumps({k: kept(k, cfg[k]) for k in keys}, sort_keys=True)
+    sections = {k: dict(cfg[k]) if isinstance(cfg[k], dict) else cfg[k] for k in keys}
+    for (name, key), value in UNCHANGED_WHEN.items():
+        if name in sections and key in sections[name] and sections[name][key] == value:
+            del sections[name][key]
+    return json.dumps(sections, sort_keys=True)
 
 
 class _Sections(dict):

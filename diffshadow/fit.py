@@ -26,7 +26,16 @@ from diffshadow.metrics import psnr
 from diffshadow.progress import FirstNonFinite, eta
 from diffshadow.sampling import PointSampler, Stream, seeded
 from diffshadow.shadow import ShadowField, shadow_grid, transmittance_per_light
-from diffshadow.siren import BatchedSiren, SirenConfig, WeightLayout, box_to_siren, cosine_lr, init_siren
+from diffshadow.siren import (
+    PRECISIONS,
+    BatchedSiren,
+    SirenConfig,
+    WeightLayout,
+    box_to_siren,
+    cosine_lr,
+    forward_precision,
+    init_siren,
+)
 from diffshadow.transfer import TransferFunction
 from diffshadow.truth import presample
 from diffshadow.volume import Volume, refine
@@ -102,7 +111,7 @@ class FitConfig:
             raise ValueError(f"fit.blend_weight, blend_per_light, blend_points: expected a weight >= 0 and, when it "
                              f"is above 0, counts >= 1; got {cfg.blend_weight}, {cfg.blend_per_light}, "
                              f"{cfg.blend_points}")
-        if cfg.precision not in ("float32", "bfloat16"):
+        if cfg.precision not in PRECISIONS:
             raise ValueError(f"fit.precision: expected 'float32' or 'bfloat16', got {cfg.precision!r}")
         return cfg
 
@@ -253,7 +262,7 @@ class SubsetFit:
         self.opt = torch.optim.Adam([self.weights], lr=cfg.lr)
         self.pool = pool.to(device) if pool is not None else None
         self.chunk = points_per_pass(cfg.chunk, cfg.points, device)
-        self.autocast = torch.autocast(device.type, dtype=torch.bfloat16, enabled=cfg.precision == "bfloat16")
+        self.autocast = forward_precision(cfg.precision, device)
         self.device = device
 
     def step(self, step: int) -> torch.Tensor:

@@ -12,6 +12,7 @@ diffusion geometry loss and the renderer.
 
 from __future__ import annotations
 
+import contextlib
 import functools
 import math
 
@@ -189,6 +190,17 @@ def box_to_siren(points: torch.Tensor, extent: torch.Tensor) -> torch.Tensor:
 
 
 LR_WIDTH = 64  # the widest SIREN that the configured lr (1e-3) trains stably
+
+
+PRECISIONS = ("float32", "bfloat16")  # of a training forward: fit.precision (the SIRENs), diffusion.precision
+
+
+def forward_precision(precision: str, device: torch.device) -> contextlib.AbstractContextManager:
+    """The context a training forward runs in under a precision setting: bfloat16 autocast on `device`'s type, or
+    nothing for float32 (the same ops, the same bytes as without it)."""
+    if precision == "float32":
+        return contextlib.nullcontext()
+    return torch.autocast(device.type, dtype=torch.bfloat16)
 
 
 def cosine_lr(step: int, cfg, width: int) -> float:

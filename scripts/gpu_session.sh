@@ -135,12 +135,14 @@ workflow)
 precision)
     args=(--stages train_diffusion finetune_render --budget 3 --max-steps 20)
     [ "$quick" = 1 ] && args=(--stages train_diffusion --budget 0 --max-steps 2)
+    for p in float32 bfloat16; do  # config/paper.yaml with the precision set
+        python -c "import sys, yaml; c = yaml.safe_load(open('config/paper.yaml')); \
+c.setdefault('diffusion', {})['precision'] = sys.argv[1]; yaml.safe_dump(c, open(sys.argv[2], 'w'))" \
+            "$p" "$out/paper_$p.yaml"
+        [ "$quick" = 1 ] && printf 'diffusion: {preset: tiny, precision: %s}\n' "$p" >"$out/paper_$p.yaml"
+    done
     for round in 1 2; do
         for p in float32 bfloat16; do
-            python -c "import sys, yaml; c = yaml.safe_load(open('config/paper.yaml')); \
-c.setdefault('diffusion', {})['precision'] = sys.argv[1]; yaml.safe_dump(c, open(sys.argv[2], 'w'))" \
-                "$p" "$out/paper_$p.yaml"
-            [ "$quick" = 1 ] && printf 'diffusion: {preset: tiny, precision: %s}\n' "$p" >"$out/paper_$p.yaml"
             step "bench_$p$round" diffshadow bench stages --device "$device" --configfile "$out/paper_$p.yaml" \
                 "${args[@]}" --out "$out/bench_stages_paper_$p$round.json"
         done

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import contextlib
 import dataclasses
 from dataclasses import dataclass
 
@@ -10,10 +9,9 @@ import torch
 
 from diffshadow.config import section
 from diffshadow.diffusion.model import PRESETS, WeightTransformer
-from diffshadow.siren import WeightLayout
+from diffshadow.siren import PRECISIONS, WeightLayout
 
 AUTO_PRESETS = ((32, "small"), (64, "medium"))
-PRECISIONS = ("float32", "bfloat16")
 
 
 class DiffusionError(ValueError):
@@ -77,14 +75,6 @@ class DiffusionConfig:
         """The config a checkpoint was trained with; one written before `tensor_tokens` existed had one token
         per tensor, whatever config.yaml says now."""
         return cls.from_config({"tensor_tokens": 1, **state["config"]})
-
-
-def forward_precision(precision: str, device: torch.device) -> contextlib.AbstractContextManager:
-    """The context a training forward runs in: bfloat16 autocast on `device`'s type, or nothing for float32 (the
-    same ops, the same bytes as without it)."""
-    if precision == "float32":
-        return contextlib.nullcontext()
-    return torch.autocast(device.type, dtype=torch.bfloat16)
 
 
 def make_optimizer(params, lr: float, weight_decay: float) -> torch.optim.AdamW:

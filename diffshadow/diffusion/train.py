@@ -15,7 +15,7 @@ from pathlib import Path
 
 import torch
 
-from diffshadow.diffusion.config import DiffusionConfig, DiffusionError, build_model, forward_precision, make_optimizer
+from diffshadow.diffusion.config import DiffusionConfig, DiffusionError, build_model, make_optimizer
 from diffshadow.diffusion.geometry import geometry_error
 from diffshadow.diffusion.model import WeightTransformer
 from diffshadow.diffusion.sample import generate
@@ -26,7 +26,7 @@ from diffshadow.lights import PoolLights
 from diffshadow.metrics import psnr
 from diffshadow.progress import FirstNonFinite, eta
 from diffshadow.sampling import Stream, seeded
-from diffshadow.siren import BatchedSiren, SirenConfig, WeightLayout, box_to_siren
+from diffshadow.siren import BatchedSiren, SirenConfig, WeightLayout, box_to_siren, forward_precision
 from diffshadow.truth import check_rows
 
 # (largest SIREN width, preset) for `preset: auto`: the model widens with the SIREN, so a scene whose stage 1
