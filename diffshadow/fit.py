@@ -24,7 +24,7 @@ from diffshadow.io import atomic_torch_save, resume
 from diffshadow.lights import BLEND_K, PoolLights, inverse_angle_weights, nearest, training_pool
 from diffshadow.metrics import psnr
 from diffshadow.progress import FirstNonFinite, eta
-from diffshadow.sampling import PointSampler, Stream, seeded
+from diffshadow.sampling import FIT_BLEND_POOL_SEED, PROBE_HELD_OUT_SEED, PointSampler, Stream, seeded
 from diffshadow.shadow import ShadowField, shadow_grid, transmittance_per_light
 from diffshadow.siren import (
     PRECISIONS,
@@ -138,7 +138,7 @@ def blend_pool(volume: Volume, tf: TransferFunction, train: np.ndarray, center, 
         return None
     train = np.asarray(train, dtype=np.float64)
     k = min(BLEND_K, len(subset))
-    lights = training_pool(train, center, cfg.blend_per_light * len(train), seed=cfg.seed + 7919)  # not presample's
+    lights = training_pool(train, center, cfg.blend_per_light * len(train), seed=cfg.seed + FIT_BLEND_POOL_SEED)
     idx, angles = nearest(train, lights, k)
     rows = np.flatnonzero(np.isin(idx, subset).all(axis=1))
     if len(rows) == 0:
@@ -456,7 +456,7 @@ def choose_layout(volume: Volume, tf: TransferFunction, lights: np.ndarray, sire
         w = fit_sirens(init, layout, s, volume, tf, lights[probe:probe + 1], replace(cfg, steps=rung.steps),
                        stream=Stream.PROBE, light_index=[probe], device=device, log=lambda m: None)
         box, _ = evaluate_psnr(w, layout, s, volume, tf, lights[probe:probe + 1], n_points=cfg.eval_points,
-                               seed=cfg.seed + 104729, device=device)
+                               seed=cfg.seed + PROBE_HELD_OUT_SEED, device=device)
         log(f"probe: light {probe} held-out PSNR {float(box[0]):.2f} dB (target {cfg.target_psnr:g} dB)")
         return rung, float(box[0])
 

@@ -14,6 +14,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from diffshadow.io import atomic_write_text
+from diffshadow.sampling import LightStream
 
 if TYPE_CHECKING:  # light sets are read and written without torch (the lights and collect_weights jobs)
     import torch
@@ -257,7 +258,7 @@ class RegionCheck:
 def training_pool(train, center, n: int, *, seed: int) -> np.ndarray:
     """`n` random directions in the training lights' cap for diffusion training on exact shadows only (no
     fitted SIREN): drawn like the unseen test set but from another random stream, so never the same lights."""
-    return unseen_directions(train, center, n, seed=[seed, 1])
+    return unseen_directions(train, center, n, seed=[seed, LightStream.POOL])
 
 
 def validation_lights(train, center, n: int, *, seed: int) -> np.ndarray:
@@ -265,7 +266,7 @@ def validation_lights(train, center, n: int, *, seed: int) -> np.ndarray:
     unseen test set, so they stand for it, but from a third random stream (never a test or pool light).
     Halfway points between neighbouring training lights had stood in before; they disagreed with the test
     set on whether fine-tuning helped (nucleon: +0.8 dB there, -0.4 dB on the unseen lights)."""
-    return unseen_directions(train, center, n, seed=[seed, 2])
+    return unseen_directions(train, center, n, seed=[seed, LightStream.VALIDATION])
 
 
 def _orthonormal_basis(c: np.ndarray) -> np.ndarray:

@@ -1,25 +1,34 @@
-"""Reproducible randomness: generators seeded from tuples of ints, every random stream of a run by name
-(`Stream`), and the random box points that stage 1, the data INR and the evaluation draw (a share of them
-around visible voxels).
+"""Reproducible randomness: generators seeded from tuples of ints, every random draw of a run by name (`Stream`,
+`LightStream`, the derived seeds `*_SEED`), and the random box points that stage 1, the data INR and the
+evaluation draw (a share of them around visible voxels).
+
+Imports torch only where a generator or points are made: `lights` (the light-sets job, which starts without
+torch) takes its streams from here.
 """
 
 from __future__ import annotations
 
 import hashlib
 import json
-from enum import IntEnum
+from enum import IntEnum, unique
+from typing import TYPE_CHECKING
 
-import torch
+if TYPE_CHECKING:
+    import torch
 
-from diffshadow.transfer import TransferFunction
-from diffshadow.volume import Volume
+    from diffshadow.transfer import TransferFunction
+    from diffshadow.volume import Volume
 
 
+@unique
 class Stream(IntEnum):
     """Every random stream a run draws from, by name: `seeded(seed, Stream.X, ...)`. The numbers are part of the
     results (the README run's bytes), so a stream is renamed, never renumbered; a new draw takes a number no
-    member has. Stage 1's subset k draws its points from stream k (0, 1, ...), and its pool lights' pick of each
-    step from `FIT_POOL_PICK - k`: both ranges stay clear of the members."""
+    member has. Stage 1's subset k draws its points from stream k (0, 1, ...) of fit.seed, and its pool lights' pick
+    of each step from `FIT_POOL_PICK - k`, below every member. Stage 1's members are negative, so no subset
+    meets them; the positive ones are stage 2's and the evaluation's, drawn from their own sections' seeds (at
+    equal seeds, subset k and member k draw equal numbers for unrelated uses: a point's position, a batch's
+    order)."""
 
     # stage 1 (fit): below zero, apart from the subsets' own 0, 1, ...
     PREOPTIMIZE = -1  # the shared init's random SIREN and its fit
@@ -42,8 +51,27 @@ class Stream(IntEnum):
     HELD_OUT = 0x5EED  # stage 1's stored PSNR: fresh points no training step draws
 
 
+@unique
+class LightStream(IntEnum):
+    """numpy's draws of random directions in the training lights' cap (`lights.unseen_directions`), seeded
+    [seed, member]; the unseen test set draws from the bare `lights.seed`. Renamed, never renumbered."""
+
+    POOL = 1  # pool lights: stage 2's from diffusion.seed, stage 1's blend pool from fit.seed + FIT_BLEND_POOL_SEED
+    VALIDATION = 2  # the validation lights of fine-tuning's model choice and of `cache: auto`
+
+
+# Derived seeds: a draw that repeats another's stream with fresh values takes the config seed plus one of these
+# (primes, so no two of them meet: subset k's held-out seed is never the probe's). Part of the results too.
+VALIDATION_POINTS_SEED = 1  # the validation lights' exact-shadow points (EvalTruth; eval_truth's own: the seed)
+FIT_BLEND_POOL_SEED = 7919  # stage 1's blend-pool lights (LightStream.POOL; stage 2's pool: the seed itself)
+SUBSET_HELD_OUT_SEED = 7919  # stage 1's held-out points of subset k: fit.seed + 7919 (k + 1) (Stream.HELD_OUT)
+PROBE_HELD_OUT_SEED = 104729  # the size probe's held-out points (Stream.HELD_OUT)
+
+
 def seeded(*parts: int) -> torch.Generator:
     """A generator seeded from a tuple of ints (stable across runs and platforms)."""
+    import torch
+
     digest = hashlib.sha256(json.dumps([int(x) for x in parts]).encode()).digest()
     return torch.Generator().manual_seed(int.from_bytes(digest[:8], "little") & (2**63 - 1))
 
@@ -53,6 +81,8 @@ class PointSampler:
     points on every device); the caller moves them."""
 
     def __init__(self, volume: Volume, tf: TransferFunction, visible_fraction: float):
+        import torch
+
         self.extent = torch.as_tensor(volume.extent, dtype=torch.float32, device="cpu")
         self.voxel = torch.as_tensor(volume.voxel_size, dtype=torch.float32, device="cpu")
         opacity = tf.opacity(torch.as_tensor(volume.data, device="cpu"))
@@ -62,6 +92,8 @@ class PointSampler:
 
     def sample(self, k: int, n: int, generator: torch.Generator) -> torch.Tensor:
         """(k, n, 3) points in box coordinates."""
+        import torch
+
         n_vis = int(round(n * self.visible_fraction))
         pts = torch.rand(k, n, 3, generator=generator, device=generator.device) * self.extent
         if n_vis:

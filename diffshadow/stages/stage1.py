@@ -16,6 +16,7 @@ import numpy as np
 
 from diffshadow.layout import SirenConfig
 from diffshadow.lights import LightRegion, index_ranges, make_light_sets, read_lights, subset_indices, write_lights
+from diffshadow.sampling import SUBSET_HELD_OUT_SEED
 from diffshadow.store import collect_subsets, write_store, write_subset
 from diffshadow.volume import load_prepared, save_prepared, scene_volume
 
@@ -27,7 +28,7 @@ if TYPE_CHECKING:
 
 def heldout_seed(fit: FitConfig, subset: int) -> int:
     """The seed of a subset's held-out evaluation points: apart from every training stream."""
-    return fit.seed + 7919 * (subset + 1)
+    return fit.seed + SUBSET_HELD_OUT_SEED * (subset + 1)
 
 
 def lights(out: Path, *, sphere: int, count: int, center, unseen: int, seed: int) -> None:

@@ -28,7 +28,7 @@ from diffshadow.evaluate import voxel_metrics
 from diffshadow.io import atomic_torch_save, atomic_write_text, finite_json
 from diffshadow.lights import read_lights, training_pool, validation_lights
 from diffshadow.runtime import distributed, set_threads
-from diffshadow.sampling import Stream
+from diffshadow.sampling import VALIDATION_POINTS_SEED, Stream
 from diffshadow.store import BlendSampler, WeightStore, open_store, write_store
 from diffshadow.truth import EvalTruth, check_points, psnr_per_light
 from diffshadow.truth import presample as presample_points
@@ -97,7 +97,7 @@ def finetune_render(checkpoint: Path, weights_path: Path, points_path: Path, tar
                 raise ValueError("finetune_render: validation lights need the light sets (--lights) with the volume")
             lights = validation_lights(train_data.lights.numpy(), read_lights(lights_path)["center"], cfg.val_lights,
                                        seed=cfg.seed)
-            val = EvalTruth.compute(volume, tf, lights, cfg.val_points, cfg.seed + 1)
+            val = EvalTruth.compute(volume, tf, lights, cfg.val_points, cfg.seed + VALIDATION_POINTS_SEED)
         data = FinetuneData(train_data, bundle, images, val)
         part = out.with_name(out.name + ".part")
         t0 = time.perf_counter()
@@ -191,7 +191,7 @@ def choose_cache(weights_path: Path, truth_path: Path, volume_path: Path, lights
     train = light_sets["train"]
     volume, tf = load_prepared(volume_path)
     lights = validation_lights(train, light_sets["center"], val_lights, seed=seed)
-    val = EvalTruth.compute(volume, tf, lights, val_points, seed + 1)
+    val = EvalTruth.compute(volume, tf, lights, val_points, seed + VALIDATION_POINTS_SEED)
     result = choose(stage1, artifacts.read_eval_truth(truth_path), val, train, blend_k=blend_k,
                     target_psnr=target_psnr, candidates=candidates)
     result["validation"] = {"lights": val_lights, "points": val_points, "seed": seed}
