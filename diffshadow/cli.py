@@ -224,7 +224,7 @@ def _render(a):
     images.render_image(scene, Path(a.out), mode=a.mode, camera=cam, light=a.light,
                         weights_path=Path(a.weights) if a.weights else None, light_index=a.light_index,
                         diffusion=Path(a.diffusion) if a.diffusion else None,
-                        blend=Path(a.blend) if a.blend else None, outside_region=a.outside_region,
+                        blend=Path(a.blend) if a.blend else None, blend_k=a.blend_k, outside_region=a.outside_region,
                         scalar=a.scalar, phong=a.phong, step=a.step, skip=not a.no_skip)
 
 
@@ -409,6 +409,8 @@ def build_parser() -> argparse.ArgumentParser:
                    "generates the shadow SIREN of --light now, as the viewer does for a new direction")
     p.add_argument("--blend", help="mode inr, cache: blend: a weight store (results/<scene>/weights.zarr) whose "
                    "nearest SIRENs to --light are blended, as the viewer does for a new direction")
+    p.add_argument("--blend-k", type=int, default=evaluate["blend_k"],
+                   help="with --blend: stored SIRENs blended (the run's evaluate.blend_k, in generated.zarr's config)")
     p.add_argument("--light", type=float, nargs=3, metavar=("X", "Y", "Z"), help="toward the light")
     p.add_argument("--outside-region", action="store_true", help="with --diffusion or --blend: draw the cache's "
                    "answer for a light outside the region it was trained for (refused otherwise, exit code 2)")

@@ -18,8 +18,6 @@ from diffshadow.layout import SirenConfig, WeightLayout
 from diffshadow.lights import LightRegion, as_direction, blend_weights
 from diffshadow.phases import timed
 
-BLEND_K = 4  # stored SIRENs blended per light: the package default of evaluate.blend_k (defaults.yaml)
-
 
 @dataclass
 class WeightStore:
@@ -47,10 +45,12 @@ def blend_rows(weights: np.ndarray, idx: np.ndarray, mix: np.ndarray) -> np.ndar
 
 class BlendSampler:
     """`cache: blend`: the shadow SIREN of any light as the weight blend of the `k` stored SIRENs nearest to it
-    (inverse-angle weights), the way `blend-shadows` makes generated.zarr's unseen rows. The same interface as
-    the diffusion model's `ShadowSampler`: call it with a direction."""
+    (inverse-angle weights), the way `blend-shadows` makes generated.zarr's unseen rows (its `blend_k`, recorded in
+    that store's config). The same interface as the diffusion model's `ShadowSampler`: call it with a direction."""
 
-    def __init__(self, store: WeightStore, k: int = BLEND_K):
+    def __init__(self, store: WeightStore, k: int):
+        if not 1 <= k <= len(store.lights):
+            raise ValueError(f"blend k: expected 1 to {len(store.lights)} (the stored SIRENs), got {k}")
         self.store, self.k = store, k
         self.layout, self.siren = store.layout, store.siren
         self.region = store.light_region()

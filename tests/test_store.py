@@ -204,3 +204,14 @@ def test_checksums_are_written_in_name_order(tmp_path):
     texts = [(tmp_path / f"{i}.zarr" / "zarr.json").read_text() for i in range(2)]
     assert list(json.loads(texts[0])["attributes"]["checksums"]) == ["alpha", "mid", "zeta"]
     assert texts[0] == texts[1]
+
+
+def test_a_blend_takes_between_one_and_every_stored_siren(tmp_path):
+    """k = 1 gives the nearest stored SIREN itself; k outside 1..N is named in one line (render --blend-k)."""
+    from diffshadow.store import BlendSampler
+
+    store = open_store(stored(tmp_path))
+    assert np.array_equal(BlendSampler(store, 1)(LIGHTS[2] + [0, 0.01, 0]), store.weights[2])
+    for k in (0, 5):
+        with pytest.raises(ValueError, match=rf"^blend k: expected 1 to 4 \(the stored SIRENs\), got {k}$"):
+            BlendSampler(store, k)

@@ -518,13 +518,15 @@ def test_cache_blend_skips_stage_two(tmp_path):
 
     from diffshadow.store import BlendSampler
 
-    snakemake(tmp_path, config={**TINY, "cache": "blend"})
+    # a blend k other than the package's 4: the viewer and `render --blend` must take the run's
+    snakemake(tmp_path, config={**TINY, "cache": "blend", "evaluate": {"blend_k": 3}})
     res = tmp_path / "results/nucleon"
     assert not list(res.glob("diffusion*.ckpt")) and not (res / "finetune_metrics.json").exists()
     stage1, generated = open_store(res / "weights.zarr"), open_store(res / "generated.zarr")
     seen = generated.seen
     assert np.array_equal(generated.weights[seen], stage1.weights)
-    blend = BlendSampler(stage1)
+    assert generated.config["blend_k"] == 3
+    blend = BlendSampler(stage1, 3)
     for light, w in zip(generated.lights[~seen], generated.weights[~seen], strict=True):
         assert np.array_equal(w, blend(light))
     metrics = json.loads((res / "voxel_metrics.json").read_text())
@@ -547,7 +549,7 @@ def test_cache_blend_skips_stage_two(tmp_path):
     assert info.kind == "new" and np.array_equal(weights.numpy(), blend(new))
     cam = Camera.orbit(view.scene.volume.extent, azimuth=30.0, elevation=25.0, size=16)
     command = view.render_command("inr", cam, new, step=0.5, out=str(tmp_path / "x.png"))
-    assert f"--blend {res / 'weights.zarr'}" in command
+    assert f"--blend {res / 'weights.zarr'} --blend-k 3" in command
     out = subprocess.run([str(installed("diffshadow")), *command.split()[1:]], capture_output=True, text=True,
                          timeout=300)
     assert out.returncode == 0 and (tmp_path / "x.png").is_file(), out.stderr[-2000:]

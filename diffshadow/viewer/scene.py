@@ -109,7 +109,8 @@ class ViewerScene:
             # stage 1's own (cache: blend) or a codec's decoded store (cache.zarr), as blend-shadows read it
             weights = results / Path(str(generated.config.get("weights", "weights.zarr"))).name
             return cls(scene, name=results.name, lights=lights, generated=generated,
-                       sampler=BlendSampler(open_store(weights)), results=results, checkpoint=weights)
+                       sampler=BlendSampler(open_store(weights), int(generated.config["blend_k"])), results=results,
+                       checkpoint=weights)
         ckpt = results / Path(str(generated.config.get("checkpoint", "diffusion.ckpt"))).name
         if not ckpt.exists():
             raise ViewerError(f"{ckpt}: missing, the diffusion checkpoint that generated.zarr was sampled from "
@@ -238,7 +239,7 @@ class ViewerScene:
                 if row is not None:
                     args += ["--weights", str(self.results / "generated.zarr"), "--light-index", str(row)]
                 elif isinstance(self.sampler, BlendSampler):
-                    args += ["--blend", str(self.checkpoint)]
+                    args += ["--blend", str(self.checkpoint), "--blend-k", str(self.sampler.k)]
                 else:
                     args += ["--diffusion", str(self.checkpoint)]
         return shlex.join(args)
