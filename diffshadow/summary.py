@@ -186,6 +186,10 @@ class RunResults:
                               for r in cap.get("rungs", []))
             target = cap.get("target_psnr") or None
             reached = _num(cap.get("psnr")) + ("" if cap.get("met", True) else " (missed)")
+            median = self.voxel.get("seen", {}).get("stage1_psnr_median") if name.startswith("stage-1") else None
+            if target and median is not None:  # the probe is one light: say what every training light reached
+                reached += f"; every training light's median {_num(median)}" + (" (below it)" if median < target
+                                                                                else "")
             rows.append([name, size["width"], size["blocks"], f"{size['parameters']:,}", cap.get("steps", "n/a"),
                          _num(target, "g"), reached, tried or "n/a"])
         return rows
@@ -319,7 +323,8 @@ class RunResults:
                                                                      "steps", "target (dB)", "reached (dB)", "tried"],
                                 sizes, "A stage with a target grows its SIREN until the target is reached: steps "
                                 "x2 first, then width x2 (capacity.ladder). Stage 1's PSNR is preoptimize's "
-                                "probe light (held-out points); the data INR's is over every voxel."))
+                                "probe light (held-out points), beside the median the subsets' fits reached; the "
+                                "data INR's is over every voxel."))
         sb = v["storage_bytes"]
         n = seen["count"]
         parts.append(_table("Storage of the shadow cache", ["what", "MiB"],

@@ -95,3 +95,21 @@ def test_the_sampler_timings_name_their_device():
     assert _sampled_on({"device": "cpu (x86_64)", "threads": 2}) == "cpu (x86_64), 2 threads"
     assert _sampled_on({"device": "NVIDIA H200", "threads": 1}) == "NVIDIA H200"
     assert _sampled_on({"ddim_steps": 10}) == "evaluate_voxels' device"
+
+
+def test_the_sizes_table_sets_every_training_lights_median_beside_the_probe_light():
+    """Stage 1's size is chosen on one probe light; the table also says what every training light reached, and
+    when that median is below the target the probe met (bi2o3: probe 39.33 dB, median 37.29)."""
+    from diffshadow.summary import RunResults
+
+    run = RunResults.__new__(RunResults)
+    cap = {"target_psnr": 39.0, "met": True, "psnr": 39.33, "steps": 2000,
+           "rungs": [{"width": 64, "steps": 2000, "psnr": 39.33}]}
+    run.images = {}
+    for median, said in ((37.29, "39.33; every training light's median 37.29 (below it)"),
+                         (41.25, "39.33; every training light's median 41.25")):
+        run.voxel = {"stage1": {"width": 64, "blocks": 2, "parameters": 16961, "capacity": cap},
+                     "seen": {"stage1_psnr_median": median}}
+        assert run.sizes()[0][6] == said
+    run.voxel["stage1"]["capacity"] = {**cap, "target_psnr": 0}  # no target: the configured size, no probe
+    assert run.sizes()[0][6] == "39.33"
