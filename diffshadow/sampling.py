@@ -60,8 +60,9 @@ class LightStream(IntEnum):
     VALIDATION = 2  # the validation lights of fine-tuning's model choice and of `cache: auto`
 
 
-# Derived seeds: a draw that repeats another's stream with fresh values takes the config seed plus one of these
-# (primes, so no two of them meet: subset k's held-out seed is never the probe's). Part of the results too.
+# Derived seeds: a draw that repeats another's stream with fresh values takes the config seed plus one of these.
+# Part of the results too. Two that feed one stream never meet: subset k's held-out seed, 7919 (k + 1), is never
+# the probe's (104729 is prime).
 VALIDATION_POINTS_SEED = 1  # the validation lights' exact-shadow points (EvalTruth; eval_truth's own: the seed)
 FIT_BLEND_POOL_SEED = 7919  # stage 1's blend-pool lights (LightStream.POOL; stage 2's pool: the seed itself)
 SUBSET_HELD_OUT_SEED = 7919  # stage 1's held-out points of subset k: fit.seed + 7919 (k + 1) (Stream.HELD_OUT)
