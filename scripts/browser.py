@@ -291,7 +291,8 @@ def drive_viewer(results, workdir, *, screenshot=None) -> dict:
             n_train = len(read_lights(results / "lights.json")["train"])
             # what makes a new direction's SIREN: the diffusion checkpoint, or with cache: blend the stored SIRENs
             made = open_store(results / "generated.zarr").config
-            new_source = (["--blend", str(results / "weights.zarr")] if made.get("cache") == "blend"
+            new_source = (["--blend", str(results / Path(str(made.get("weights", "weights.zarr"))).name),
+                           "--blend-k", str(made["blend_k"])] if made.get("cache") == "blend"
                           else ["--diffusion", str(results / Path(str(made["checkpoint"])).name)])
 
             def render(args: list[str], name: str) -> np.ndarray:
