@@ -424,9 +424,10 @@ def choose_layout(volume: Volume, tf: TransferFunction, lights: np.ndarray, sire
                   log=print) -> Stage1Layout:
     """The shared init (one SIREN fitted to light 0) and one SIREN size for every subset of the scene.
 
-    With `cfg.target_psnr` > 0, a probe fits the light farthest from light 0 from the init exactly as a
-    subset would, and its held-out PSNR decides: below the target, the fit steps double, then the width
-    does (capacity.ladder). Without a target, the configured size is kept and nothing is probed.
+    With `cfg.target_psnr` > 0, a probe fits the light farthest from light 0 from the init as a subset would,
+    but alone (a one-light subset has no blend loss, which costs a light ~1 dB in its subset: docs/performance.md,
+    stage 1), and its held-out PSNR decides: below the target, the fit steps double, then the width does
+    (capacity.ladder). Without a target, the configured size is kept and nothing is probed.
     """
     lights = np.asarray(lights, dtype=np.float64)
     pre = replace(cfg, steps=int(preoptimize_steps), lr=float(preoptimize_lr))
