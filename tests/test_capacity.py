@@ -119,3 +119,20 @@ def test_stage1_layout_is_probed_grown_and_round_trips(blob, tmp_path):
     fixed = choose_layout(blob, tf, lights, siren, FitConfig.from_config({**fit.__dict__, "target_psnr": 0.0}),
                           preoptimize_steps=3, preoptimize_lr=1e-3, log=lambda m: None)
     assert fixed.siren == siren and fixed.steps == 6 and fixed.choice.rungs[0]["psnr"] is None
+
+
+def test_a_subset_below_the_target_its_probe_met_is_named():
+    """The probe fits one light alone; a subset whose held-out median misses the target the probe met gets one
+    line (bi2o3: probe 39.33 dB, subset median 37.29); none when it meets it, when there is no target, or when the
+    probe missed it too (preoptimize said so already)."""
+    from diffshadow.stages.stage1 import below_probe_target
+
+    probe = [{"width": 64, "steps": 2000, "psnr": 39.33}]
+    met = Choice(39.0, probe, 0)
+    line = below_probe_target(met, np.array([36.0, 37.29, 38.1]), 3)
+    assert line == ("WARNING: subset 3: held-out median 37.29 dB is below fit.target_psnr 39 dB, which preoptimize's "
+                    "probe light reached alone (39.33 dB at width 64, 2000 steps); raising fit.target_psnr by the gap "
+                    "makes the probe choose a larger size")
+    assert below_probe_target(met, np.array([39.0, 41.0]), 3) is None
+    assert below_probe_target(Choice(0.0, probe, 0), np.array([20.0]), 3) is None
+    assert below_probe_target(Choice(40.0, probe, 0), np.array([20.0]), 3) is None  # missed by the probe too

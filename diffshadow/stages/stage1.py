@@ -23,6 +23,7 @@ from diffshadow.volume import load_prepared, save_prepared, scene_volume
 if TYPE_CHECKING:
     import torch
 
+    from diffshadow.capacity import Choice
     from diffshadow.fit import FitConfig
 
 
@@ -91,10 +92,24 @@ def fit_subset(volume_path: Path, lights_path: Path, init_path: Path, subset: in
                              seed=heldout_seed(fit, subset), device=device)
     if fit.min_psnr > 0:
         check_psnr(box, idx, fit.min_psnr, f"{where})")
+    if (warning := below_probe_target(chosen.choice, box, subset)) is not None:
+        print(warning, flush=True)
     write_subset(out, weights=weights.numpy(), light_index=idx, lights=train[idx], psnr=box, psnr_visible=vis,
                  layout=layout, siren=siren, config={**config, "capacity": chosen.choice.to_dict()})
     print(f"wrote {out}: PSNR box median {float(np.median(box)):.2f} dB (min {box.min():.2f}), "
           f"visible median {float(np.median(vis)):.2f} dB")
+
+
+def below_probe_target(choice: Choice, box: np.ndarray, subset: int) -> str | None:
+    """One line when a subset's held-out median misses the target preoptimize's probe light met: the probe fits
+    its light alone, without the blend loss that costs a light ~1 dB in a subset (docs/performance.md, stage 1)."""
+    median = float(np.median(box))
+    if choice.target <= 0 or not choice.met or median >= choice.target:
+        return None
+    c = choice.chosen
+    return (f"WARNING: subset {subset}: held-out median {median:.2f} dB is below fit.target_psnr {choice.target:g} dB, "
+            f"which preoptimize's probe light reached alone ({c['psnr']:.2f} dB at width {c['width']}, {c['steps']} "
+            f"steps); raising fit.target_psnr by the gap makes the probe choose a larger size")
 
 
 def collect_weights(lights_path: Path, subset_paths: list[Path], out: Path) -> None:
