@@ -44,6 +44,7 @@ class Stream(IntEnum):
     FINETUNE_LIGHT = 12  # a light's timestep, noise and pixels in an epoch
     POOL_POINTS = 13  # presampled points with exact shadows, pool lights
     CHECK_POINTS = 23  # the seen-light gap's held-out points
+    BOOTSTRAP = 24  # the evaluation's resampled lights: the interval of a median gap
     # evaluation and the data INR
     EVAL_POINTS = 4  # eval_truth's fixed evaluation points (box, visible)
     DATA_INR_INIT = 7  # the data INR's initial weights

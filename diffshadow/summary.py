@@ -361,8 +361,17 @@ def cache_verdict(voxel: dict) -> str:
             f"{sb['model'] / (sb['sirens'] / n):,.0f} lights at these sizes)" if sb["model"] > sb["sirens"]
             else f"the model is {sb['sirens'] / sb['model']:.1f}x smaller than the {n} stored SIRENs")
     gap = unseen["generated_psnr_median"] - unseen["weight_blend_psnr_median"]
-    better = (f"it beats their weight blend on unseen lights by {gap:.2f} dB" if gap > 0 else
-              f"their weight blend beats it on unseen lights by {-gap:.2f} dB: `cache: blend` would skip stage 2")
+    lo, hi = unseen.get("weight_blend_gap_interval95_db") or (None, None)  # absent from an older voxel_metrics.json
+    spread = ("" if lo is None else f" (better on {unseen['better_than_weight_blend']} of {unseen['count']} lights; "
+              f"95 % interval over resampled test lights {lo:+.2f} to {hi:+.2f} dB)")
+    if lo is not None and lo <= 0 <= hi:
+        better = (f"it ties with their weight blend on unseen lights: {gap:+.2f} dB{spread}, so other test lights "
+                  f"could reverse it")
+    elif gap > 0:
+        better = f"it beats their weight blend on unseen lights by {gap:.2f} dB{spread}"
+    else:
+        better = (f"their weight blend beats it on unseen lights by {-gap:.2f} dB{spread}: `cache: blend` would skip "
+                  f"stage 2")
     return f"{size}; {better} (against the light count: docs/performance.md, \"Scaling with the light count\")"
 
 

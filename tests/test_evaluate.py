@@ -179,3 +179,19 @@ def test_eval_truth_on_cuda_is_the_cpus_to_float_rounding():
     for name in cpu.points:
         assert gpu.values[name].device.type == "cpu" and torch.equal(gpu.points[name], cpu.points[name])
         assert float((gpu.values[name] - cpu.values[name]).abs().max()) < 1e-5
+
+
+def test_the_median_gap_interval_is_paired_fixed_and_says_when_a_gap_is_the_draw():
+    """The bootstrap interval of median(a) - median(b) over lights resampled in pairs: a constant offset is exact
+    whatever the lights, swapping the two negates it, it is the same every call, and it holds 0 for a gap that
+    is only noise while it excludes 0 for a real one."""
+    from diffshadow.evaluate import median_gap_interval
+
+    rng = np.random.default_rng(5)
+    b = rng.normal(35.0, 2.0, 32)
+    assert median_gap_interval(b + 1.5, b) == pytest.approx([1.5, 1.5])
+    noise = b + rng.normal(0.0, 1.0, 32)
+    lo, hi = median_gap_interval(noise, b)
+    assert median_gap_interval(noise, b) == [lo, hi] and lo < 0 < hi
+    assert median_gap_interval(b, noise) == pytest.approx([-hi, -lo])
+    assert median_gap_interval(noise + 3.0, b)[0] > 0

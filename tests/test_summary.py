@@ -89,6 +89,24 @@ def test_the_cache_verdict_says_which_is_smaller_and_which_is_better():
     assert cache_verdict(voxel(model=0, generated=38.0, weight_blend=39.5)) == ""  # cache: blend, no model
 
 
+def test_a_gap_within_its_interval_over_resampled_lights_is_called_a_tie():
+    """bi2o3: the model 26.18 dB, the weight blend 26.11 on 32 unseen lights: +0.07 dB is no win when other test
+    lights could reverse it (the interval holds 0); a gap whose interval excludes 0 keeps its verdict and says it."""
+    tie = voxel(model=250_000, generated=26.18, weight_blend=26.11)
+    tie["unseen"].update(weight_blend_gap_interval95_db=[-0.62, 0.71], better_than_weight_blend=14, count=32)
+    assert ("it ties with their weight blend on unseen lights: +0.07 dB (better on 14 of 32 lights; 95 % interval "
+            "over resampled test lights -0.62 to +0.71 dB), so other test lights could reverse it"
+            ) in cache_verdict(tie)
+    win = voxel(model=250_000, generated=35.74, weight_blend=34.04)
+    win["unseen"].update(weight_blend_gap_interval95_db=[0.96, 4.61], better_than_weight_blend=26, count=32)
+    assert "it beats their weight blend on unseen lights by 1.70 dB (better on 26 of 32 lights; 95 % interval " \
+           "over resampled test lights +0.96 to +4.61 dB)" in cache_verdict(win)
+    loss = voxel(model=50_000, generated=38.0, weight_blend=39.5)
+    loss["unseen"].update(weight_blend_gap_interval95_db=[-2.0, -1.0], better_than_weight_blend=3, count=32)
+    assert "their weight blend beats it on unseen lights by 1.50 dB (better on 3 of 32 lights; 95 %" in \
+        cache_verdict(loss)
+
+
 def test_the_sampler_timings_name_their_device():
     """voxel_metrics.json records where its samplers ran (evaluate.device); a record from before says so vaguely."""
     assert _sampled_on({"device": "cpu (x86_64)", "threads": 1}) == "cpu (x86_64), 1 thread"
