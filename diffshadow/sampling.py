@@ -44,9 +44,9 @@ class Stream(IntEnum):
     FINETUNE_LIGHT = 12  # a light's timestep, noise and pixels in an epoch
     POOL_POINTS = 13  # presampled points with exact shadows, pool lights
     CHECK_POINTS = 23  # the seen-light gap's held-out points
-    BOOTSTRAP = 24  # the evaluation's resampled lights: the interval of a median gap
     # evaluation and the data INR
     EVAL_POINTS = 4  # eval_truth's fixed evaluation points (box, visible)
+    BOOTSTRAP = 24  # the evaluation's resampled lights: the interval of a median gap
     DATA_INR_INIT = 7  # the data INR's initial weights
     DATA_INR_STEP = 8  # the data INR's points of a step
     HELD_OUT = 0x5EED  # stage 1's stored PSNR: fresh points no training step draws
