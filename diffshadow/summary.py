@@ -372,7 +372,7 @@ def cache_verdict(voxel: dict) -> str:
     else:
         better = (f"their weight blend beats it on unseen lights by {-gap:.2f} dB{spread}: `cache: blend` would skip "
                   f"stage 2")
-    return f"{size}; {better} (against the light count: docs/performance.md, \"Scaling with the light count\")"
+    return f"{size}; {better}. Against the light count: docs/performance.md, \"Scaling with the light count\""
 
 
 STYLE = """body{font-family:sans-serif;margin:1.5em;color:#222}table{border-collapse:collapse;margin:.4em 0}
