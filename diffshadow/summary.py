@@ -177,8 +177,10 @@ class RunResults:
     def sizes(self) -> list[list]:
         """Rows of the chosen-sizes table: stage-1 SIRENs and the data INR, with every size tried."""
         rows = []
-        for name, size in (("stage-1 shadow SIRENs", self.voxel.get("stage1")),
-                           ("data INR", self.images.get("data_inr"))):
+        # stage 1's size is probed on one light: beside it, what every training light reached
+        for name, size, median in (("stage-1 shadow SIRENs", self.voxel.get("stage1"),
+                                    self.voxel.get("seen", {}).get("stage1_psnr_median")),
+                                   ("data INR", self.images.get("data_inr"), None)):
             if not size:
                 continue
             cap = size.get("capacity") or {}
@@ -186,8 +188,7 @@ class RunResults:
                               for r in cap.get("rungs", []))
             target = cap.get("target_psnr") or None
             reached = _num(cap.get("psnr")) + ("" if cap.get("met", True) else " (missed)")
-            median = self.voxel.get("seen", {}).get("stage1_psnr_median") if name.startswith("stage-1") else None
-            if target and median is not None:  # the probe is one light: say what every training light reached
+            if target and median is not None:
                 reached += f"; every training light's median {_num(median)}" + (" (below it)" if median < target
                                                                                 else "")
             rows.append([name, size["width"], size["blocks"], f"{size['parameters']:,}", cap.get("steps", "n/a"),

@@ -287,13 +287,14 @@ def drive_viewer(results, workdir, *, screenshot=None) -> dict:
 
             from diffshadow.lights import read_lights
             from diffshadow.store import open_store
+            from diffshadow.viewer.scene import cache_source
 
             n_train = len(read_lights(results / "lights.json")["train"])
             # what makes a new direction's SIREN: the diffusion checkpoint, or with cache: blend the stored SIRENs
-            made = open_store(results / "generated.zarr").config
-            new_source = (["--blend", str(results / Path(str(made.get("weights", "weights.zarr"))).name),
-                           "--blend-k", str(made["blend_k"])] if made.get("cache") == "blend"
-                          else ["--diffusion", str(results / Path(str(made["checkpoint"])).name)])
+            generated = open_store(results / "generated.zarr")
+            made, source = generated.config, str(cache_source(results, generated))
+            new_source = (["--blend", source, "--blend-k", str(made["blend_k"])] if made.get("cache") == "blend"
+                          else ["--diffusion", source])
 
             def render(args: list[str], name: str) -> np.ndarray:
                 ref = workdir / f"{name}.png"

@@ -49,8 +49,8 @@ def render_targets(volume_path: Path, lights_path: Path, out: Path, *, cfg: Fine
 
 def render_image(scene: RenderScene, out: Path, *, mode: str, camera: Camera, light=None,
                  weights_path: Path | None = None, light_index: int = 0, diffusion: Path | None = None,
-                 blend: Path | None = None, blend_k: int | None = None, scalar: str | None = None, phong: bool = False,
-                 step: float, skip: bool = True, outside_region: bool = False) -> None:
+                 blend: Path | None = None, blend_k: int, scalar: str | None = None, phong: bool = False, step: float,
+                 skip: bool = True, outside_region: bool = False) -> None:
     """One image (PNG) in a shading mode; the shadow INR of mode `inr` is row `light_index` of a store, or
     made for `light` by the diffusion checkpoint `diffusion` or (`cache: blend`) as the weight blend of the
     nearest SIRENs of the store `blend`. A light outside the cache's region (`lights.LightRegion`) is refused
@@ -69,8 +69,6 @@ def render_image(scene: RenderScene, out: Path, *, mode: str, camera: Camera, li
 
             sampler = ShadowSampler(artifacts.load_checkpoint(diffusion), scene.device)
         else:
-            if blend_k is None:
-                raise ValueError("render: --blend needs --blend-k, the stored SIRENs blended per light")
             sampler = BlendSampler(open_store(blend), blend_k)
         check = sampler.region.where(light)
         if not check.inside and not outside_region:

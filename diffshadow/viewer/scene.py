@@ -105,13 +105,12 @@ class ViewerScene:
         generated = open_store(results / "generated.zarr")
         scene = load_render_scene(results / "volume.zarr", results / "data_inr.pt", device, render=render)
         lights = read_lights(results / "lights.json")
+        source = cache_source(results, generated)
         if generated.config.get("cache") == "blend":  # no model: new directions blend the stored SIRENs
-            # stage 1's own (cache: blend) or a codec's decoded store (cache.zarr), as blend-shadows read it
-            weights = results / Path(str(generated.config.get("weights", "weights.zarr"))).name
             return cls(scene, name=results.name, lights=lights, generated=generated,
-                       sampler=BlendSampler(open_store(weights), int(generated.config["blend_k"])), results=results,
-                       checkpoint=weights)
-        ckpt = results / Path(str(generated.config.get("checkpoint", "diffusion.ckpt"))).name
+                       sampler=BlendSampler(open_store(source), int(generated.config["blend_k"])), results=results,
+                       checkpoint=source)
+        ckpt = source
         if not ckpt.exists():
             raise ViewerError(f"{ckpt}: missing, the diffusion checkpoint that generated.zarr was sampled from "
                               f"(made by the rule `finetune_render` or `train_diffusion`)")
@@ -243,6 +242,15 @@ class ViewerScene:
                 else:
                     args += ["--diffusion", str(self.checkpoint)]
         return shlex.join(args)
+
+
+def cache_source(results: Path, generated: WeightStore) -> Path:
+    """The file that answers a new direction for this run's generated.zarr: with `cache: blend` the stored SIRENs it
+    blends (stage 1's own weights.zarr or a codec's decoded cache.zarr, as blend-shadows read it), else the
+    diffusion checkpoint it was sampled from."""
+    key, default = (("weights", "weights.zarr") if generated.config.get("cache") == "blend"
+                    else ("checkpoint", "diffusion.ckpt"))
+    return Path(results) / Path(str(generated.config.get(key, default))).name
 
 
 def _index(lights: np.ndarray, light: np.ndarray) -> int | None:
