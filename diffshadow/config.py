@@ -182,18 +182,22 @@ def load_run(configfile: str | Path | None = None) -> dict:
 
 # Settings added after runs existed, at the value that does what those runs did without them. A job's params leave
 # them out at that value: the workflow reruns a job whose params change, and a finished run should not redo
-# train_diffusion (days at the paper's sizes) for a new key that changes none of its bytes. The job still reads
+# train_diffusion (days at the paper's sizes) for a new key that changes none of its bytes. A checkpoint's
+# fingerprint leaves them out too, so a training stopped before the key existed resumes. The job still reads
 # them: a section missing a key takes defaults.yaml's (`section`).
-UNCHANGED_WHEN = {("diffusion", "precision"): "float32"}
+UNCHANGED_WHEN = {("diffusion", "precision"): "float32", ("diffusion", "cuda_graph"): False}
+_ABSENT = object()
+
+
+def changed_settings(name: str, values: dict) -> dict:
+    """Section `name`'s `values` without UNCHANGED_WHEN's settings at their values."""
+    return {k: v for k, v in values.items() if UNCHANGED_WHEN.get((name, k), _ABSENT) != v}
 
 
 def as_json(cfg: dict, *keys: str) -> str:
     """The sections a stage depends on, as one canonical JSON argument (without UNCHANGED_WHEN's settings at
     their values)."""
-    sections = {k: dict(cfg[k]) if isinstance(cfg[k], dict) else cfg[k] for k in keys}
-    for (name, key), value in UNCHANGED_WHEN.items():
-        if name in sections and key in sections[name] and sections[name][key] == value:
-            del sections[name][key]
+    sections = {k: changed_settings(k, cfg[k]) if isinstance(cfg[k], dict) else cfg[k] for k in keys}
     return json.dumps(sections, sort_keys=True)
 
 

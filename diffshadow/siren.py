@@ -197,10 +197,11 @@ PRECISIONS = ("float32", "bfloat16")  # of a training forward: fit.precision (th
 
 def forward_precision(precision: str, device: torch.device) -> contextlib.AbstractContextManager:
     """The context a training forward runs in under a precision setting: bfloat16 autocast on `device`'s type, or
-    nothing for float32 (the same ops, the same bytes as without it)."""
+    nothing for float32 (the same ops, the same bytes as without it). Autocast keeps no cache of cast weights: a
+    CUDA graph cannot capture one (`diffshadow.graphs`), and each weight is cast once per forward anyway."""
     if precision == "float32":
         return contextlib.nullcontext()
-    return torch.autocast(device.type, dtype=torch.bfloat16)
+    return torch.autocast(device.type, dtype=torch.bfloat16, cache_enabled=False)
 
 
 def cosine_lr(step: int, cfg, width: int) -> float:

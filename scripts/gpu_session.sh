@@ -31,6 +31,9 @@
 # precision: `bench stages` of the two training stages at the paper's sizes (where the products, not the launches,
 #           take the time), diffusion.precision float32 then bfloat16 then both again: what bfloat16 autocast saves
 #           a step (its quality was measured on a CPU: docs/performance.md, stage 2).
+# graph:    `bench stages --stages train_diffusion` at the README's config and at the paper's, diffusion.cuda_graph
+#           false then true, twice, then `pytest -m gpu -k graph` (graphed steps train what eager steps train):
+#           what one replayed graph a step saves the geometry stage against its ~750 launches.
 # stage1:   stage 1 alone (snakemake ... results/nucleon/weights.zarr) at 512 of 2,048 lights, wall time
 #           and each fit_siren job's benchmark (a job cut short still leaves the finished subsets' figures).
 #
@@ -39,7 +42,7 @@ set -uo pipefail
 case ${1:-} in
     -h|--help) sed -n '2,/^set -uo/p' "$0" | sed '$d;s/^# \{0,1\}//'; exit 0 ;;
 esac
-part=${1:?usage: scripts/gpu_session.sh all|plans|render|workflow|checks|stages|precision|stage1}
+part=${1:?usage: scripts/gpu_session.sh all|plans|render|workflow|checks|stages|precision|graph|stage1}
 # Parts write under $root and are packed into $OUT/<part>.tgz at the end: a device call brings back at most 8
 # files, and one run writes dozens. `all` hands its root to the parts it runs (PART_ROOT) and packs once each.
 dest=${OUT:-gpu_session}
@@ -148,6 +151,28 @@ c.setdefault('diffusion', {})['precision'] = sys.argv[1]; yaml.safe_dump(c, open
         done
     done
     ;;
+graph)
+    args=(--stages train_diffusion --budget 3 --max-steps 30)
+    [ "$quick" = 1 ] && args=(--stages train_diffusion --budget 0 --max-steps 2)
+    for c in config paper; do
+        for g in false true; do  # the config with diffusion.cuda_graph set
+            python -c "import sys, yaml; c = yaml.safe_load(open(sys.argv[1])); \
+c.setdefault('diffusion', {})['cuda_graph'] = sys.argv[2] == 'true'; yaml.safe_dump(c, open(sys.argv[3], 'w'))" \
+                "config/$c.yaml" "$g" "$out/${c}_graph_$g.yaml"
+            [ "$quick" = 1 ] && [ "$c" = paper ] && printf 'diffusion: {preset: tiny, cuda_graph: %s}\n' "$g" \
+                >"$out/${c}_graph_$g.yaml"
+        done
+    done
+    for round in 1 2; do
+        for c in config paper; do
+            for g in false true; do
+                step "bench_${c}_graph_$g$round" diffshadow bench stages --device "$device" \
+                    --configfile "$out/${c}_graph_$g.yaml" "${args[@]}" --out "$out/bench_stages_${c}_graph_$g$round.json"
+            done
+        done
+    done
+    step pytest_graph pytest -q -m gpu -rs -k graph
+    ;;
 stage1)
     # stage 1 alone at 512 training lights, at the paper's cap fraction (a quarter of the sphere)
     n=512; [ "$quick" = 1 ] && n=40
@@ -161,7 +186,7 @@ stage1)
     cp -r results/nucleon/benchmarks results/nucleon/logs "$out/" 2>/dev/null
     ;;
 *)
-    echo "unknown part $part (all, plans, render, workflow, checks, stages, precision or stage1)" >&2; exit 2
+    echo "unknown part $part (all, plans, render, workflow, checks, stages, precision, graph or stage1)" >&2; exit 2
     ;;
 esac
 pack

@@ -203,6 +203,34 @@ def test_resume_matches_uninterrupted(tmp_path):
             assert torch.equal(value, resumed[key][name]), name
 
 
+def test_cuda_graph_off_cuda_steps_eagerly_to_the_same_bytes_and_is_its_own_fingerprint(tmp_path):
+    """`diffusion.cuda_graph` on a CPU: the log says the steps run eagerly, and they train the same bytes. The
+    checkpoint's fingerprint holds the setting where it is on, and leaves it (and `precision`) out at the old
+    behaviour: a default run's fingerprint is the one computed before either key existed, so its checkpoints
+    resume across the upgrade."""
+    import hashlib
+    import json
+
+    from diffshadow.graphs import StepGraphs
+
+    data = tiny_data()
+    msgs = []
+    plain = train_diffusion(data, CFG, tmp_path / "a.ckpt", log=lambda *a: None)
+    graphed = train_diffusion(data, dataclasses.replace(CFG, cuda_graph=True), tmp_path / "b.ckpt", log=msgs.append)
+    assert "diffusion.cuda_graph: CUDA graphs need a CUDA device; stepping eagerly on cpu" in msgs
+    for key in ("model", "ema"):
+        assert all(torch.equal(plain[key][k], graphed[key][k]) for k in plain[key])
+    assert graphed["config"]["cuda_graph"] and graphed["fingerprint"] != plain["fingerprint"]
+    before = hashlib.sha256()
+    for t in (data.weights, data.lights, data.points, data.values):
+        before.update(t.numpy().tobytes())
+    old_config = {k: v for k, v in dataclasses.asdict(CFG).items() if k not in ("precision", "cuda_graph")}
+    before.update(json.dumps(old_config, sort_keys=True).encode())
+    assert plain["fingerprint"] == before.hexdigest()
+    with pytest.raises(ValueError, match="CUDA graphs: expected a CUDA device, got cpu"):
+        StepGraphs(torch.device("cpu"))
+
+
 GROWING = dataclasses.replace(CFG, epochs=2, target_gap=1.0, max_epochs=10)
 
 

@@ -10,7 +10,7 @@ PACKAGE = Path(__file__).resolve().parents[1] / "diffshadow"
 # lowest first; a module's layer is that of its longest listed prefix
 LAYERS = [
     # foundations
-    ["diffshadow", "phases", "config", "io", "progress", "metrics", "capacity", "analytic", "hpc"],
+    ["diffshadow", "phases", "config", "io", "progress", "metrics", "capacity", "analytic", "hpc", "graphs"],
     ["volume", "transfer", "layout", "siren", "lights", "sampling", "grid", "store", "codecs"],  # data
     ["shadow", "truth"],  # ground truth
     ["data_inr"],

@@ -87,3 +87,55 @@ def test_sampling_reads_the_host_once_per_batch_not_per_step():
     lights = [[0.0, 0.0, 1.0], [0.0, 0.6, 0.8]]
     syncs = [op_counts(lambda n=n: generate(model, std, lights, steps=n, temperature=1.0))["syncs"] for n in (2, 20)]
     assert syncs[0] == syncs[1] <= 3, syncs
+
+
+class HostTraffic(torch.utils._python_dispatch.TorchDispatchMode):
+    """Counts, under it, tensors copied from the host onto the "meta" device and scalars read back: on a real
+    device, what a CUDA graph cannot capture."""
+
+    def __init__(self):
+        super().__init__()
+        self.copies = self.reads = 0
+
+    def __torch_dispatch__(self, func, types, args=(), kwargs=None):
+        kwargs = kwargs or {}
+        if func is torch.ops.aten._to_copy.default and args[0].device.type == "cpu" \
+                and str(kwargs.get("device")) == "meta":
+            self.copies += 1
+        if func is torch.ops.aten._local_scalar_dense.default:
+            self.reads += 1
+        return func(*args, **kwargs)
+
+
+def test_a_geometry_step_copies_nothing_from_the_host_after_its_first(tiny, scene):
+    """What `diffusion.cuda_graph` captures (loss, backward, gradient clip; AdamW is torch's own `capturable`),
+    run on the "meta" device, where every tensor moved from the host shows as a copy: the first step moves the
+    schedule's and the standardizer's tables once, later steps move nothing and read nothing back (six copies a
+    step before the tables were kept on the device). A copy made inside is counted."""
+    from diffshadow.bench.stages import _training_data
+    from diffshadow.diffusion.config import build_model
+    from diffshadow.diffusion.schedule import Schedule
+    from diffshadow.diffusion.standardize import Standardizer
+    from diffshadow.diffusion.train import batch_loss, draw_batch
+
+    meta = torch.device("meta")
+    dcfg, data = _training_data(tiny, scene[0], meta)
+    model = build_model(data.layout, dcfg).to(meta)
+    std = Standardizer.fit(data.layout, data.weights, dcfg.standardize)
+    z_all, on_meta, schedule = std.standardize(data.weights).float().to(meta), data.to(meta), Schedule()
+
+    def step(i: int, extra: bool = False):
+        gen = torch.Generator().manual_seed(i)
+        batch = draw_batch(gen, torch.arange(dcfg.batch_size, device=meta), on_meta, on_meta.pool, dcfg,
+                           schedule.steps, meta)
+        with (traffic := HostTraffic()):
+            loss = batch_loss(model, std, on_meta, z_all, on_meta.pool, batch, dcfg, schedule)[0]
+            loss.backward()
+            torch.nn.utils.clip_grad_norm_(model.parameters(), dcfg.grad_clip)
+            if extra:
+                loss = loss + torch.ones(()).to(meta)
+        return traffic.copies, traffic.reads
+
+    assert step(0)[0] > 0
+    assert step(1) == (0, 0)
+    assert step(2, extra=True) == (1, 0)

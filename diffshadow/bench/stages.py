@@ -197,7 +197,7 @@ def train_diffusion(cfg: dict, device: torch.device, volume, tf) -> Timed:
     from diffshadow.diffusion.config import build_model, make_optimizer
     from diffshadow.diffusion.schedule import Schedule
     from diffshadow.diffusion.standardize import Standardizer
-    from diffshadow.diffusion.train import Ema, draw_batch, train_batch
+    from diffshadow.diffusion.train import Ema, draw_batch, step_graphs, train_batch
     from diffshadow.progress import FirstNonFinite
     from diffshadow.sampling import Stream, seeded
 
@@ -207,7 +207,8 @@ def train_diffusion(cfg: dict, device: torch.device, volume, tf) -> Timed:
     z_all = std.standardize(data.weights).float().to(device)
     on_device = data.to(device)
     pool = on_device.pool if dcfg.pool_lights > 0 else None
-    opt = make_optimizer(model.parameters(), dcfg.lr, dcfg.weight_decay)
+    graphs = step_graphs(dcfg, device, log=lambda message: None)
+    opt = make_optimizer(model.parameters(), dcfg.lr, dcfg.weight_decay, capturable=graphs is not None)
     ema = Ema(model, dcfg.ema) if dcfg.ema > 0 else None
     schedule, nonfinite = Schedule(), FirstNonFinite((), device)
     n = len(z_all)
@@ -217,12 +218,16 @@ def train_diffusion(cfg: dict, device: torch.device, volume, tf) -> Timed:
         gen = seeded(dcfg.seed, Stream.DIFFUSION_EPOCH, i)
         idx = torch.randperm(n, generator=gen, device=gen.device)[:dcfg.batch_size].to(device)
         batch = draw_batch(gen, idx, on_device, pool, dcfg, schedule.steps, device)
-        return train_batch(model, opt, ema, std, on_device, z_all, pool, batch, dcfg, schedule, nonfinite, 0, i)
+        return train_batch(model, opt, ema, std, on_device, z_all, pool, batch, dcfg, schedule, nonfinite, 0, i,
+                           graphs)
 
+    if graphs is not None:  # the eager warm-up and the capture, before any step is timed
+        for i in range(graphs.warmup + 1):
+            step(i)
     grows = dcfg.target_gap > 0 and dcfg.max_epochs > dcfg.epochs
     epochs = dcfg.max_epochs if grows else dcfg.epochs
     return Timed(step, f"step of {dcfg.batch_size} lights ({model.n_params():,}-parameter '{dcfg.preset}' model"
-                 f"{_products(dcfg)})",
+                 f"{_products(dcfg)}{'; CUDA graph' if graphs is not None else ''})",
                  per_epoch * epochs, f"{per_epoch} steps per epoch x {epochs} epochs"
                  + (" (max_epochs: the gap check may stop sooner)" if grows else ""))
 

@@ -51,6 +51,9 @@ class DiffusionConfig:
     # the training forward's matrix products: "bfloat16" runs them under autocast (losses, SIRENs and the optimiser
     # stay float32); sampling always runs float32
     precision: str
+    # the optimizer step as a replayed CUDA graph (diffshadow.graphs): one launch for its ~750 kernels at the
+    # README's sizes; CUDA only (elsewhere the step runs eagerly, saying so)
+    cuda_graph: bool
 
     @classmethod
     def from_config(cls, d: dict | None = None) -> DiffusionConfig:
@@ -77,10 +80,15 @@ class DiffusionConfig:
         return cls.from_config({"tensor_tokens": 1, **state["config"]})
 
 
-def make_optimizer(params, lr: float, weight_decay: float) -> torch.optim.AdamW:
+def make_optimizer(params, lr: float, weight_decay: float, *, capturable: bool = False) -> torch.optim.AdamW:
     """AdamW, fused where this torch has the kernel for the device (CPU since torch 2.4): on the small
-    preset's 3.5M parameters the per-tensor loop took 27 ms of a 270 ms CPU step, the fused one 5 ms."""
+    preset's 3.5M parameters the per-tensor loop took 27 ms of a 270 ms CPU step, the fused one 5 ms.
+    `capturable` (for a CUDA graph): the learning rate is a tensor on the parameters' device, which the lr
+    scheduler fills in place, so a replayed step reads the current one."""
     params = list(params)
+    if capturable:
+        lr = torch.tensor(lr, dtype=torch.float32, device=params[0].device)
+        return torch.optim.AdamW(params, lr=lr, weight_decay=weight_decay, fused=True, capturable=True)
     try:
         return torch.optim.AdamW(params, lr=lr, weight_decay=weight_decay, fused=True)
     except RuntimeError:  # torch 2.3 on CPU: no fused kernel

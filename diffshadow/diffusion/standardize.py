@@ -34,6 +34,7 @@ class Standardizer:
         self.layout = layout
         self.mean = mean.double()  # (n_tokens,) or (n_params,)
         self.std = std.double()
+        self._expanded: dict[tuple, torch.Tensor] = {}
 
     @classmethod
     def fit(cls, layout: WeightLayout, weights: torch.Tensor, mode: str = "token") -> Standardizer:
@@ -55,19 +56,27 @@ class Standardizer:
         std = torch.tensor([float(p.std()) if p.numel() > 1 else 0.0 for p in parts], dtype=torch.float64)
         return cls(layout, mean, _pow2_std(std))
 
-    def _expand(self, v: torch.Tensor, like: torch.Tensor) -> torch.Tensor:
-        if len(v) == self.layout.n_params:
-            return v.to(like.device)
-        return torch.repeat_interleave(v.to(like.device), torch.tensor(self.layout.sizes, device=like.device))
+    def _expand(self, name: str, like: torch.Tensor, dtype: torch.dtype = torch.float64) -> torch.Tensor:
+        """`mean` or `std` per parameter (n_params,), in `dtype` on `like`'s device: made once per device and
+        dtype, so a training step's de-standardisation copies nothing from the host (two copies and two casts a
+        step before; per token, also a repeat whose size CUDA reads back), as a CUDA graph requires."""
+        key = (name, like.device, dtype)
+        if key not in self._expanded:
+            v = getattr(self, name).to(like.device)
+            if len(v) != self.layout.n_params:
+                sizes = torch.tensor(self.layout.sizes, device=like.device)
+                v = torch.repeat_interleave(v, sizes, output_size=self.layout.n_params)
+            self._expanded[key] = v.to(dtype)
+        return self._expanded[key]
 
     def standardize(self, w: torch.Tensor) -> torch.Tensor:
         """(..., n_params) weights → standardised, in float64 (0 where the std is 0)."""
-        std = self._expand(self.std, w)
-        return (w.double() - self._expand(self.mean, w)) / torch.where(std > 0, std, 1.0) * (std > 0)
+        std = self._expand("std", w)
+        return (w.double() - self._expand("mean", w)) / torch.where(std > 0, std, 1.0) * (std > 0)
 
     def destandardize(self, z: torch.Tensor) -> torch.Tensor:
         """Inverse of `standardize`; keeps the autograd graph (the geometry loss differentiates through it)."""
-        return z * self._expand(self.std, z).to(z.dtype) + self._expand(self.mean, z).to(z.dtype)
+        return z * self._expand("std", z, z.dtype) + self._expand("mean", z, z.dtype)
 
     def state(self) -> dict:
         return {"mean": self.mean, "std": self.std}

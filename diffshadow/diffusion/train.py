@@ -15,12 +15,14 @@ from pathlib import Path
 
 import torch
 
+from diffshadow.config import changed_settings
 from diffshadow.diffusion.config import DiffusionConfig, DiffusionError, build_model, make_optimizer
 from diffshadow.diffusion.geometry import geometry_error
 from diffshadow.diffusion.model import WeightTransformer
 from diffshadow.diffusion.sample import generate
 from diffshadow.diffusion.schedule import Schedule
 from diffshadow.diffusion.standardize import Standardizer
+from diffshadow.graphs import StepGraphs
 from diffshadow.io import atomic_torch_save, resume
 from diffshadow.lights import PoolLights
 from diffshadow.metrics import psnr
@@ -77,7 +79,7 @@ def _fingerprint(data: TrainingData, cfg: DiffusionConfig) -> str:
         tensors += list(data.check)
     for t in tensors:
         h.update(t.detach().cpu().numpy().tobytes())
-    h.update(json.dumps(asdict(cfg), sort_keys=True).encode())
+    h.update(json.dumps(changed_settings("diffusion", asdict(cfg)), sort_keys=True).encode())
     return h.hexdigest()
 
 
@@ -260,21 +262,47 @@ def batch_loss(model: WeightTransformer, std: Standardizer, data: TrainingData, 
     return loss, loss_x0, loss_geo, pred_all
 
 
-def train_batch(model: WeightTransformer, opt: torch.optim.Optimizer, ema: Ema | None, std: Standardizer,
-                data: TrainingData, z_all: torch.Tensor, pool: PoolLights | None, batch: Batch, cfg: DiffusionConfig,
-                schedule: Schedule, nonfinite: FirstNonFinite, epoch: int, step: int) -> torch.Tensor:
-    """One optimiser step of the geometry stage (the loop body of `train_diffusion`, which `bench stages` times
-    as it is); the batch's summed (x0, geometry) losses, on the device. It reads nothing back to the host
-    (tests/test_syncs.py): the loss's finiteness goes to `nonfinite`, read at log lines and checkpoints."""
+def optimizer_step(model: WeightTransformer, opt: torch.optim.Optimizer, std: Standardizer, data: TrainingData,
+                   z_all: torch.Tensor, pool: PoolLights | None, batch: Batch, cfg: DiffusionConfig,
+                   schedule: Schedule, *, keep_grads: bool = False) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Loss, backward, gradient clip and AdamW on one batch: the loss and its x0 and geometry parts, detached, on
+    the device. `keep_grads` zeroes the gradients in place instead of dropping them: a CUDA graph's replays write
+    the same gradient tensors every time (`diffshadow.graphs`)."""
     loss, loss_x0, loss_geo, _ = batch_loss(model, std, data, z_all, pool, batch, cfg, schedule)
-    nonfinite.record(loss.detach(), epoch)
-    opt.zero_grad(set_to_none=True)
+    opt.zero_grad(set_to_none=not keep_grads)
     loss.backward()
     torch.nn.utils.clip_grad_norm_(model.parameters(), cfg.grad_clip)
     opt.step()
+    return loss.detach(), loss_x0.detach(), loss_geo.detach()
+
+
+def train_batch(model: WeightTransformer, opt: torch.optim.Optimizer, ema: Ema | None, std: Standardizer,
+                data: TrainingData, z_all: torch.Tensor, pool: PoolLights | None, batch: Batch, cfg: DiffusionConfig,
+                schedule: Schedule, nonfinite: FirstNonFinite, epoch: int, step: int,
+                graphs: StepGraphs | None = None) -> torch.Tensor:
+    """One optimiser step of the geometry stage (the loop body of `train_diffusion`, which `bench stages` times
+    as it is); the batch's summed (x0, geometry) losses, on the device. It reads nothing back to the host
+    (tests/test_syncs.py): the loss's finiteness goes to `nonfinite`, read at log lines and checkpoints. With
+    `graphs` (`diffusion.cuda_graph`) the optimizer step is a CUDA graph's replay; the EMA (whose weight warms
+    up step by step) and the record of a non-finite loss (which names the epoch) run outside it."""
+    def optimize(b: Batch):
+        return optimizer_step(model, opt, std, data, z_all, pool, b, cfg, schedule, keep_grads=graphs is not None)
+
+    loss, loss_x0, loss_geo = optimize(batch) if graphs is None else graphs(optimize, batch)
+    nonfinite.record(loss, epoch)
     if ema is not None:
         ema.update(model, step)
-    return torch.stack([loss_x0.detach(), loss_geo.detach()]).double() * len(batch.idx)
+    return torch.stack([loss_x0, loss_geo]).double() * len(batch.idx)
+
+
+def step_graphs(cfg: DiffusionConfig, device: torch.device, log=print) -> StepGraphs | None:
+    """The geometry stage's CUDA graphs where `diffusion.cuda_graph` asks for them and the device has them."""
+    if not cfg.cuda_graph:
+        return None
+    if device.type != "cuda":
+        log(f"diffusion.cuda_graph: CUDA graphs need a CUDA device; stepping eagerly on {device}")
+        return None
+    return StepGraphs(device)
 
 
 def train_diffusion(data: TrainingData, cfg: DiffusionConfig, checkpoint: Path, *,
@@ -299,7 +327,8 @@ def train_diffusion(data: TrainingData, cfg: DiffusionConfig, checkpoint: Path, 
         raise DiffusionError(f"train_diffusion: diffusion.pool_lights is {cfg.pool_lights} but the geometry points "
                              f"hold {have} pool lights; rerun presample with this config")
     schedule = Schedule()
-    opt = make_optimizer(model.parameters(), cfg.lr, cfg.weight_decay)
+    graphs = step_graphs(cfg, device, log)
+    opt = make_optimizer(model.parameters(), cfg.lr, cfg.weight_decay, capturable=graphs is not None)
     sched = torch.optim.lr_scheduler.StepLR(opt, step_size=cfg.lr_step_epochs, gamma=cfg.lr_gamma)
     ema = Ema(model, cfg.ema) if cfg.ema > 0 else None
     sampled = ema.model if ema is not None else model  # the weights that sampling uses: checked, and the best kept
@@ -347,7 +376,7 @@ def train_diffusion(data: TrainingData, cfg: DiffusionConfig, checkpoint: Path, 
             batch = draw_batch(gen, order[b0:b0 + cfg.batch_size].to(device), on_device, pool, cfg, schedule.steps,
                                device)
             totals += train_batch(model, opt, ema, std, on_device, z_all, pool, batch, cfg, schedule,
-                                  nonfinite, epoch, epoch * per_epoch + k)
+                                  nonfinite, epoch, epoch * per_epoch + k, graphs)
         if epoch < cfg.epochs:  # growth past `epochs` keeps the lr reached there (decayed on, tooth plateaued)
             sched.step()
         done = epoch = epoch + 1

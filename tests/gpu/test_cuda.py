@@ -109,6 +109,37 @@ def test_diffusion_training_and_sampling_agree_with_cpu(tmp_path):
     assert float((a - b).abs().max() / a.abs().max()) <= 1e-4
 
 
+def test_graphed_geometry_steps_train_what_eager_steps_train(tmp_path, monkeypatch):
+    """diffusion.cuda_graph: the geometry stage's steps replayed as CUDA graphs give eager steps' weights. Four
+    lights in batches of 3: an epoch's short last batch gets a graph of its own; the lr, halved every epoch, reaches
+    the replays (a graph that kept its first lr would drift from eager); a run resumed from a checkpoint (its
+    optimizer state and tensor lr) graphs on to the same weights."""
+    import dataclasses
+
+    from diffshadow.diffusion import train as train_module
+
+    made = []
+
+    class Recorded(train_module.StepGraphs):
+        def __init__(self, *args, **kwargs):
+            super().__init__(*args, **kwargs)
+            made.append(self)
+
+    monkeypatch.setattr(train_module, "StepGraphs", Recorded)
+    data = _training_data()
+    cfg = dataclasses.replace(DCFG, batch_size=3, epochs=6, lr_step_epochs=1, lr_gamma=0.5, checkpoint_every=3)
+    graphed_cfg = dataclasses.replace(cfg, cuda_graph=True)
+    eager = train_diffusion(data, cfg, tmp_path / "eager.ckpt", device=CUDA, log=lambda m: None)
+    graphed = train_diffusion(data, graphed_cfg, tmp_path / "graph.ckpt", device=CUDA, log=lambda m: None)
+    assert len(made) == 1 and made[0].calls == 12 and len(made[0].graphs) == 2  # batches of 3 and of 1
+    train_diffusion(data, graphed_cfg, tmp_path / "resumed.ckpt", device=CUDA, log=lambda m: None, stop_after_epoch=3)
+    resumed = train_diffusion(data, graphed_cfg, tmp_path / "resumed.ckpt", device=CUDA, log=lambda m: None)
+    for other in (graphed, resumed):
+        for key in ("model", "ema"):
+            diff = max(float((eager[key][k] - other[key][k]).abs().max()) for k in eager[key])
+            assert diff <= 1e-5, (key, diff)
+
+
 def test_ema_update_on_cuda_is_one_op_with_each_parameters_lerp():
     """The EMA of the geometry stage's weights is one multi-tensor op a step on CUDA (not a lerp per parameter
     tensor), with the bits of the per-tensor lerp. The op count takes a multi-tensor op as one on every device,

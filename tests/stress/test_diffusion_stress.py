@@ -44,7 +44,7 @@ def test_standardisation_is_finite_and_its_inverse_exact(w, mode):
     back = std.destandardize(z).float()
     # Exact, except where a weight is below 2^-28 of its tensor's mean: w - mean then needs more than
     # float64's 53 bits, and the round trip is off by at most 2^-53 |mean| (docs/numerics.md).
-    mean = std._expand(std.mean, w)
+    mean = std._expand("mean", w)
     exact = (w.double().abs() >= 2.0**-28 * mean.abs()) | (w == 0)
     assert torch.equal(back[exact], w[exact])
     assert ((back.double() - w.double()).abs() <= 2.0**-52 * mean.abs() + 1e-45).all()
@@ -58,11 +58,11 @@ def test_a_model_error_lands_scaled_to_each_tensors_own_spread(w, mode, eps):
     std = Standardizer.fit(LAYOUT, w, mode)
     z = std.standardize(w) + eps
     a, b = std.destandardize(z), std.destandardize(std.standardize(w))
-    spread, mean = std._expand(std.std, w), std._expand(std.mean, w)
+    spread, mean = std._expand("std", w), std._expand("mean", w)
     rounding = 2.0**-50 * (mean.abs() + a.abs() + b.abs())  # float64, relative to what is added and subtracted
     assert ((a - b).abs() <= abs(eps) * spread + rounding).all()
     zero = spread == 0
-    assert torch.equal(std.destandardize(z)[:, zero], std._expand(std.mean, w)[zero].expand(len(w), -1))
+    assert torch.equal(std.destandardize(z)[:, zero], std._expand("mean", w)[zero].expand(len(w), -1))
 
 
 def test_non_finite_weights_are_named_by_row():

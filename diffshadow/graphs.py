@@ -1,0 +1,71 @@
+"""A training step replayed as a CUDA graph (config `diffusion.cuda_graph`).
+
+At the README's sizes every training step on a GPU is bound by its host: ~750 kernel launches at ~40 µs each,
+the GPU idle most of the time (docs/performance.md). A CUDA graph records a step's kernels once and replays them
+with one launch. What a replay needs from the step, and what the geometry stage's step provides:
+- no host reads inside (tests/test_syncs.py) and nothing copied from the host (the schedule's and standardizer's
+  tables are moved to the device once; tests/test_diffusion.py checks a step on the "meta" device);
+- its inputs in tensors the graph owns: each call copies the batch into them, then replays;
+- the optimizer's state and learning rate on the device (AdamW `capturable`, a tensor lr that StepLR fills);
+- gradients that stay where they are (zeroed in place, not dropped: `keep_grads`).
+What varies per step outside the tensors (the EMA's warm-up, the epoch a non-finite loss is recorded at) stays
+outside the graph, in the caller.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from collections.abc import Callable
+from typing import Any
+
+import torch
+
+WARMUP_CALLS = 3  # eager calls before the first capture, on a side stream (as PyTorch's CUDA graph notes ask)
+
+
+class StepGraphs:
+    """`step(inputs)` — a dataclass of tensors (or None) in, tensors out — as one captured CUDA graph per input
+    shape (an epoch's short last batch gets its own). The first `warmup` calls run eagerly: they create the
+    optimizer's state and the libraries' handles outside any capture. Outputs of a replay are the graph's own
+    tensors, overwritten by the next replay."""
+
+    def __init__(self, device: torch.device, warmup: int = WARMUP_CALLS):
+        if device.type != "cuda":
+            raise ValueError(f"CUDA graphs: expected a CUDA device, got {device}")
+        self.device, self.warmup, self.calls = device, warmup, 0
+        self.graphs: dict[tuple, tuple[torch.cuda.CUDAGraph, Any, Any]] = {}
+
+    def __call__(self, step: Callable[[Any], Any], inputs: Any) -> Any:
+        self.calls += 1
+        stream = torch.cuda.current_stream(self.device)
+        if self.calls <= self.warmup:
+            side = torch.cuda.Stream(self.device)
+            side.wait_stream(stream)
+            with torch.cuda.stream(side):
+                out = step(inputs)
+            stream.wait_stream(side)
+            return out
+        key = shapes(inputs)
+        if key not in self.graphs:
+            static = dataclasses.replace(inputs, **{k: None if v is None else v.clone()
+                                                    for k, v in tensor_fields(inputs).items()})
+            graph = torch.cuda.CUDAGraph()
+            with torch.cuda.graph(graph):
+                out = step(static)
+            self.graphs[key] = (graph, static, out)
+        graph, static, out = self.graphs[key]
+        for name, value in tensor_fields(inputs).items():
+            if value is not None:
+                getattr(static, name).copy_(value)
+        graph.replay()
+        return out
+
+
+def tensor_fields(inputs: Any) -> dict[str, torch.Tensor | None]:
+    """The dataclass's fields by name (each a tensor or None)."""
+    return {f.name: getattr(inputs, f.name) for f in dataclasses.fields(inputs)}
+
+
+def shapes(inputs: Any) -> tuple:
+    """What a graph is captured for: each field's shape and dtype (None for an absent one)."""
+    return tuple(None if v is None else (tuple(v.shape), v.dtype) for v in tensor_fields(inputs).values())
