@@ -137,7 +137,7 @@ def test_graphed_geometry_steps_train_what_eager_steps_train(tmp_path, monkeypat
     for other in (graphed, resumed):
         for key in ("model", "ema"):
             diff = max(float((eager[key][k] - other[key][k]).abs().max()) for k in eager[key])
-            assert diff <= 1e-5, (key, diff)
+            assert diff <= 1e-4, (key, diff)  # as CUDA against the CPU (above): Adam lifts tiny gradients
 
 
 def test_ema_update_on_cuda_is_one_op_with_each_parameters_lerp():
