@@ -3,8 +3,8 @@
 At the README's sizes every training step on a GPU is bound by its host: ~750 kernel launches at ~40 µs each,
 the GPU idle most of the time (docs/performance.md). A CUDA graph records a step's kernels once and replays them
 with one launch. What a replay needs from the step, and what the geometry stage's step provides:
-- no host reads inside (tests/test_syncs.py) and nothing copied from the host (the schedule's and standardizer's
-  tables are moved to the device once; tests/test_diffusion.py checks a step on the "meta" device);
+- no host reads inside and nothing copied from the host (the schedule's and standardizer's tables are moved to the
+  device once; tests/test_syncs.py counts both, the copies on the "meta" device);
 - its inputs in tensors the graph owns: each call copies the batch into them, then replays;
 - the optimizer's state and learning rate on the device (AdamW `capturable`, a tensor lr that StepLR fills);
 - gradients that stay where they are (zeroed in place, not dropped: `keep_grads`).
