@@ -78,6 +78,16 @@ def seeded(*parts: int) -> torch.Generator:
     return torch.Generator().manual_seed(int.from_bytes(digest[:8], "little") & (2**63 - 1))
 
 
+def to_device(draw: torch.Tensor, device: torch.device) -> torch.Tensor:
+    """A draw made on the host, on `device` without waiting for it. On CUDA, PyTorch's copy from ordinary host
+    memory first waits for every kernel queued before it (it synchronizes the stream), so a training step's draws
+    would hold the host until the previous step had run; a pinned draw is copied asynchronously instead, and
+    PyTorch keeps the pinned block until its copy is done. The same values on every device."""
+    if device.type == "cuda":
+        draw = draw.pin_memory()
+    return draw.to(device, non_blocking=True)
+
+
 class PointSampler:
     """Random box points; a share of them jittered around visible voxels. Drawn on the CPU (the same
     points on every device); the caller moves them."""

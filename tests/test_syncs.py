@@ -90,18 +90,20 @@ def test_sampling_reads_the_host_once_per_batch_not_per_step():
 
 
 class HostTraffic(torch.utils._python_dispatch.TorchDispatchMode):
-    """Counts, under it, tensors copied from the host onto the "meta" device and scalars read back: on a real
-    device, what a CUDA graph cannot capture."""
+    """Counts, under it, tensors copied from the host onto the "meta" device (and of them, those copied blocking:
+    on CUDA, PyTorch synchronizes the stream for one) and scalars read back: on a real device, what a CUDA graph
+    cannot capture, and what keeps the host from running ahead."""
 
     def __init__(self):
         super().__init__()
-        self.copies = self.reads = 0
+        self.copies = self.blocking = self.reads = 0
 
     def __torch_dispatch__(self, func, types, args=(), kwargs=None):
         kwargs = kwargs or {}
         if func is torch.ops.aten._to_copy.default and args[0].device.type == "cpu" \
                 and str(kwargs.get("device")) == "meta":
             self.copies += 1
+            self.blocking += not kwargs.get("non_blocking", False)
         if func is torch.ops.aten._local_scalar_dense.default:
             self.reads += 1
         return func(*args, **kwargs)
@@ -111,12 +113,14 @@ def test_a_geometry_step_copies_nothing_from_the_host_after_its_first(tiny, scen
     """What `diffusion.cuda_graph` captures (loss, backward, gradient clip; AdamW is torch's own `capturable`),
     run on the "meta" device, where every tensor moved from the host shows as a copy: the first step moves the
     schedule's and the standardizer's tables once, later steps move nothing and read nothing back (six copies a
-    step before the tables were kept on the device). A copy made inside is counted."""
+    step before the tables were kept on the device). Its eight draws are copied without blocking (on CUDA, eight
+    stream syncs a step before `sampling.to_device`). A copy made inside, and a blocking one, are counted."""
     from diffshadow.bench.stages import _training_data
     from diffshadow.diffusion.config import build_model
     from diffshadow.diffusion.schedule import Schedule
     from diffshadow.diffusion.standardize import Standardizer
     from diffshadow.diffusion.train import batch_loss, draw_batch
+    from diffshadow.sampling import to_device
 
     meta = torch.device("meta")
     dcfg, data = _training_data(tiny, scene[0], meta)
@@ -126,8 +130,10 @@ def test_a_geometry_step_copies_nothing_from_the_host_after_its_first(tiny, scen
 
     def step(i: int, extra: bool = False):
         gen = torch.Generator().manual_seed(i)
-        batch = draw_batch(gen, torch.arange(dcfg.batch_size, device=meta), on_meta, on_meta.pool, dcfg,
-                           schedule.steps, meta)
+        with (drawn := HostTraffic()):  # the batch's draws, made on the host: copied, but never blocking
+            batch = draw_batch(gen, to_device(torch.arange(dcfg.batch_size), meta), on_meta, on_meta.pool, dcfg,
+                               schedule.steps, meta)
+        assert drawn.copies == 8 and drawn.blocking == 0, (drawn.copies, drawn.blocking)
         with (traffic := HostTraffic()):
             loss = batch_loss(model, std, on_meta, z_all, on_meta.pool, batch, dcfg, schedule)[0]
             loss.backward()
@@ -139,3 +145,6 @@ def test_a_geometry_step_copies_nothing_from_the_host_after_its_first(tiny, scen
     assert step(0)[0] > 0
     assert step(1) == (0, 0)
     assert step(2, extra=True) == (1, 0)
+    with (plain := HostTraffic()):
+        torch.ones(3).to(meta)
+    assert plain.blocking == 1

@@ -199,7 +199,7 @@ def train_diffusion(cfg: dict, device: torch.device, volume, tf) -> Timed:
     from diffshadow.diffusion.standardize import Standardizer
     from diffshadow.diffusion.train import Ema, draw_batch, step_graphs, train_batch
     from diffshadow.progress import FirstNonFinite
-    from diffshadow.sampling import Stream, seeded
+    from diffshadow.sampling import Stream, seeded, to_device
 
     dcfg, data = _training_data(cfg, volume, device)
     model = build_model(data.layout, dcfg).to(device)
@@ -216,7 +216,7 @@ def train_diffusion(cfg: dict, device: torch.device, volume, tf) -> Timed:
 
     def step(i: int):
         gen = seeded(dcfg.seed, Stream.DIFFUSION_EPOCH, i)
-        idx = torch.randperm(n, generator=gen, device=gen.device)[:dcfg.batch_size].to(device)
+        idx = to_device(torch.randperm(n, generator=gen, device=gen.device)[:dcfg.batch_size], device)
         batch = draw_batch(gen, idx, on_device, pool, dcfg, schedule.steps, device)
         return train_batch(model, opt, ema, std, on_device, z_all, pool, batch, dcfg, schedule, nonfinite, 0, i,
                            graphs)

@@ -35,7 +35,7 @@ from diffshadow.diffusion.train import Batch, TrainingData, batch_loss
 from diffshadow.io import atomic_torch_save, resume
 from diffshadow.progress import FirstNonFinite, eta
 from diffshadow.render.bundle import RayBundle, bundle_colors
-from diffshadow.sampling import Stream, seeded
+from diffshadow.sampling import Stream, seeded, to_device
 from diffshadow.siren import BatchedSiren, SirenConfig, WeightLayout, box_to_siren
 from diffshadow.truth import EvalTruth, psnr_per_light
 
@@ -141,12 +141,12 @@ def step_loss(model, std: Standardizer, data: FinetuneData, z_all: torch.Tensor,
              for i in local]
 
     def stacked(i: int, cat=torch.cat) -> torch.Tensor:
-        return cat([d[i] for d in draws]).to(device)
+        return to_device(cat([d[i] for d in draws]), device)
 
     def pooled(i: int, cat=torch.cat) -> torch.Tensor:
-        return cat([d[4][i] for d in draws]).to(device)
+        return to_device(cat([d[4][i] for d in draws]), device)
 
-    batch = Batch(torch.tensor(local, device=device), stacked(0), stacked(1), stacked(2, torch.stack))
+    batch = Batch(to_device(torch.tensor(local, device="cpu"), device), stacked(0), stacked(1), stacked(2, torch.stack))
     if pool is not None:
         batch.j, batch.tp, batch.noise_p, batch.pick_p = pooled(0), pooled(1), pooled(2), pooled(3, torch.stack)
     loss, l_x0, l_geo, pred_all = batch_loss(model, std, tr, z_all, pool, batch, dcfg, schedule)

@@ -27,7 +27,7 @@ from diffshadow.io import atomic_torch_save, resume
 from diffshadow.lights import PoolLights
 from diffshadow.metrics import psnr
 from diffshadow.progress import FirstNonFinite, eta
-from diffshadow.sampling import Stream, seeded
+from diffshadow.sampling import Stream, seeded, to_device
 from diffshadow.siren import BatchedSiren, SirenConfig, WeightLayout, box_to_siren, forward_precision
 from diffshadow.truth import check_rows
 
@@ -215,10 +215,10 @@ def draw_batch(gen: torch.Generator, idx: torch.Tensor, data: TrainingData, pool
     b, n_params = len(idx), data.weights.shape[1]
 
     def randint(high: int, shape: tuple) -> torch.Tensor:
-        return torch.randint(0, high, shape, generator=gen, device=gen.device).to(device)
+        return to_device(torch.randint(0, high, shape, generator=gen, device=gen.device), device)
 
     def randn(shape: tuple) -> torch.Tensor:
-        return torch.randn(shape, generator=gen, device=gen.device).to(device)
+        return to_device(torch.randn(shape, generator=gen, device=gen.device), device)
 
     geometry = cfg.geometry_weight > 0
     batch = Batch(idx, randint(steps, (b,)), randn((b, n_params)),
@@ -373,8 +373,8 @@ def train_diffusion(data: TrainingData, cfg: DiffusionConfig, checkpoint: Path, 
         order = torch.randperm(n, generator=gen, device=gen.device)
         totals = torch.zeros(2, dtype=torch.float64, device=device)  # summed on the device: no sync per step
         for k, b0 in enumerate(range(0, n, cfg.batch_size)):
-            batch = draw_batch(gen, order[b0:b0 + cfg.batch_size].to(device), on_device, pool, cfg, schedule.steps,
-                               device)
+            batch = draw_batch(gen, to_device(order[b0:b0 + cfg.batch_size], device), on_device, pool, cfg,
+                               schedule.steps, device)
             totals += train_batch(model, opt, ema, std, on_device, z_all, pool, batch, cfg, schedule,
                                   nonfinite, epoch, epoch * per_epoch + k, graphs)
         if epoch < cfg.epochs:  # growth past `epochs` keeps the lr reached there (decayed on, tooth plateaued)

@@ -140,6 +140,32 @@ def test_graphed_geometry_steps_train_what_eager_steps_train(tmp_path, monkeypat
             assert diff <= 1e-4, (key, diff)  # as CUDA against the CPU (above): Adam lifts tiny gradients
 
 
+def test_a_geometry_step_never_waits_for_the_gpu():
+    """A training step's draws, made on the host, are pinned and copied asynchronously (`sampling.to_device`): the
+    CUDA profile of three steps has no stream or device synchronization. A blocking copy from ordinary host memory
+    synchronizes the stream, and the step had eight of them."""
+    from torch.profiler import ProfilerActivity, profile
+
+    from diffshadow.bench.stages import BUILDERS
+    from diffshadow.config import merge, run_config, scene_config
+    from diffshadow.volume import scene_volume
+
+    tiny = {"lights": {"count": 6, "unseen": 2}, "subset_size": 6,
+            "diffusion": {"presample_points": 64, "pool_lights": 4, "pool_points": 32, "geometry_points": 16,
+                          "batch_size": 4, "epochs": 3, "max_epochs": 3}}
+    cfg = scene_config(run_config(merge({}, tiny), "test"), "nucleon", scenes_dir=REPO / "config/scenes")
+    timed = BUILDERS["train_diffusion"](cfg, CUDA, *scene_volume(cfg))
+    for i in range(3):  # the pinned blocks' cache fills
+        timed.step(i)
+    torch.cuda.synchronize()
+    with profile(activities=[ProfilerActivity.CPU, ProfilerActivity.CUDA]) as prof:
+        for i in range(3, 6):
+            timed.step(i)
+    names = {e.name for e in prof.events()}
+    assert "cudaLaunchKernel" in names or any("Launch" in n for n in names), sorted(names)[:20]
+    assert not {n for n in names if "Synchronize" in n}, sorted(n for n in names if "Synchronize" in n)
+
+
 def test_ema_update_on_cuda_is_one_op_with_each_parameters_lerp():
     """The EMA of the geometry stage's weights is one multi-tensor op a step on CUDA (not a lerp per parameter
     tensor), with the bits of the per-tensor lerp. The op count takes a multi-tensor op as one on every device,
