@@ -65,6 +65,11 @@ step() {  # step NAME CMD...: run, log to $out/NAME.log, time it, go on past a f
     [ "$rc" -eq 0 ] || failed=1
 }
 
+with_diffusion() {  # with_diffusion IN KEY VALUE OUT: the config IN with diffusion.KEY set to VALUE (YAML), as OUT
+    python -c "import sys, yaml; c = yaml.safe_load(open(sys.argv[1])); \
+c.setdefault('diffusion', {})[sys.argv[2]] = yaml.safe_load(sys.argv[3]); yaml.safe_dump(c, open(sys.argv[4], 'w'))" "$@"
+}
+
 { python -c "import torch; print('torch', torch.__version__, 'cuda', torch.version.cuda, 'available', torch.cuda.is_available())"
   nvidia-smi -L 2>/dev/null; nproc; git rev-parse HEAD 2>/dev/null; } >"$out/machine.txt" 2>&1
 cat "$out/machine.txt"
@@ -139,9 +144,7 @@ precision)
     args=(--stages train_diffusion finetune_render --budget 3 --max-steps 20)
     [ "$quick" = 1 ] && args=(--stages train_diffusion --budget 0 --max-steps 2)
     for p in float32 bfloat16; do  # config/paper.yaml with the precision set
-        python -c "import sys, yaml; c = yaml.safe_load(open('config/paper.yaml')); \
-c.setdefault('diffusion', {})['precision'] = sys.argv[1]; yaml.safe_dump(c, open(sys.argv[2], 'w'))" \
-            "$p" "$out/paper_$p.yaml"
+        with_diffusion config/paper.yaml precision "$p" "$out/paper_$p.yaml"
         [ "$quick" = 1 ] && printf 'diffusion: {preset: tiny, precision: %s}\n' "$p" >"$out/paper_$p.yaml"
     done
     for round in 1 2; do
@@ -156,9 +159,7 @@ graph)
     [ "$quick" = 1 ] && args=(--stages train_diffusion --budget 0 --max-steps 2)
     for c in config paper; do
         for g in false true; do  # the config with diffusion.cuda_graph set
-            python -c "import sys, yaml; c = yaml.safe_load(open(sys.argv[1])); \
-c.setdefault('diffusion', {})['cuda_graph'] = sys.argv[2] == 'true'; yaml.safe_dump(c, open(sys.argv[3], 'w'))" \
-                "config/$c.yaml" "$g" "$out/${c}_graph_$g.yaml"
+            with_diffusion "config/$c.yaml" cuda_graph "$g" "$out/${c}_graph_$g.yaml"
             [ "$quick" = 1 ] && [ "$c" = paper ] && printf 'diffusion: {preset: tiny, cuda_graph: %s}\n' "$g" \
                 >"$out/${c}_graph_$g.yaml"
         done

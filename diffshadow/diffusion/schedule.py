@@ -21,26 +21,25 @@ class Schedule:
         # host-side tables (the samplers read them as Python floats); q_sample's roots go to each device once
         self.betas = torch.linspace(beta_start, beta_end, steps, dtype=torch.float64, device="cpu")
         self.alpha_bar = torch.cumprod(1.0 - self.betas, dim=0)
-        self._roots: dict[torch.device, tuple[torch.Tensor, torch.Tensor]] = {}
+        self._roots: dict[tuple, tuple[torch.Tensor, torch.Tensor]] = {}
 
-    def _q_roots(self, device: torch.device) -> tuple[torch.Tensor, torch.Tensor]:
-        """√ᾱ and √(1-ᾱ) (float64) on `device`, moved there once: a training step then copies nothing from the
-        host (four copies a step before), which a step captured as a CUDA graph requires."""
-        if device not in self._roots:
+    def _q_roots(self, like: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """√ᾱ and √(1-ᾱ), computed in float64 and cast to `like`'s dtype on its device once (as the standardizer's
+        tables are): a training step then copies and casts nothing (four copies and four casts a step before), and
+        copies from the host are what a step captured as a CUDA graph cannot hold."""
+        key = (like.device, like.dtype)
+        if key not in self._roots:
             ab = self.alpha_bar
-            self._roots[device] = (ab.sqrt().to(device), (1 - ab).sqrt().to(device))
-        return self._roots[device]
-
-    @staticmethod
-    def _coefficient(c: torch.Tensor, t: torch.Tensor, like: torch.Tensor) -> torch.Tensor:
-        return c[t].to(like.dtype).view(-1, *([1] * (like.ndim - 1)))
+            self._roots[key] = (ab.sqrt().to(like.device, like.dtype), (1 - ab).sqrt().to(like.device, like.dtype))
+        return self._roots[key]
 
     def q_sample(self, x0: torch.Tensor, t: torch.Tensor, noise: torch.Tensor) -> torch.Tensor:
         """x_t = √ᾱ_t x0 + √(1-ᾱ_t) ε."""
         # Both roots in float64, then cast (found by the stress suite): 1 - ᾱ in float32 at t = 0 is
         # 1.66e-4 off in relative terms, since ᾱ_0 = 0.9999 keeps only 4 of float32's 7 digits past 1.
-        root_ab, root_rest = self._q_roots(x0.device)
-        return self._coefficient(root_ab, t, x0) * x0 + self._coefficient(root_rest, t, x0) * noise
+        root_ab, root_rest = self._q_roots(x0)
+        shape = (-1, *([1] * (x0.ndim - 1)))
+        return root_ab[t].view(shape) * x0 + root_rest[t].view(shape) * noise
 
     def ddpm_sample(self, model: Denoiser, shape, *, generator: torch.Generator, device=None) -> torch.Tensor:
         """Ancestral sampling over all T steps with the posterior q(x_{t-1} | x_t, x0̂)."""

@@ -110,14 +110,13 @@ class ViewerScene:
             return cls(scene, name=results.name, lights=lights, generated=generated,
                        sampler=BlendSampler(open_store(source), int(generated.config["blend_k"])), results=results,
                        checkpoint=source)
-        ckpt = source
-        if not ckpt.exists():
-            raise ViewerError(f"{ckpt}: missing, the diffusion checkpoint that generated.zarr was sampled from "
+        if not source.exists():
+            raise ViewerError(f"{source}: missing, the diffusion checkpoint that generated.zarr was sampled from "
                               f"(made by the rule `finetune_render` or `train_diffusion`)")
         from diffshadow.diffusion.sample import ShadowSampler
 
         return cls(scene, name=results.name, lights=lights, generated=generated,
-                   sampler=ShadowSampler(load_checkpoint(ckpt), device), results=results, checkpoint=ckpt)
+                   sampler=ShadowSampler(load_checkpoint(source), device), results=results, checkpoint=source)
 
     @classmethod
     def from_scene_config(cls, path: Path, device: torch.device, render: dict | None = None) -> ViewerScene:
