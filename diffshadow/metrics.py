@@ -90,7 +90,9 @@ def lpips_model():
 
 
 def image_metrics(pred: torch.Tensor, target: torch.Tensor, target_alpha: torch.Tensor, lpips=None) -> dict:
-    """Foreground PSNR, SSIM, MS-SSIM (and LPIPS when a model is given) of one image against a reference."""
+    """Foreground PSNR, SSIM, MS-SSIM (and LPIPS when a model is given) of one image against a reference, on the
+    reference's device (a stored image, e.g. a naive one read back, is on the CPU)."""
+    pred = pred.to(target.device)
     out = {"psnr": image_psnr(pred, target, foreground(target_alpha)), "ssim": ssim(pred, target),
            "ms_ssim": ms_ssim(pred, target)}
     if lpips is not None:
