@@ -184,14 +184,16 @@ def load_run(configfile: str | Path | None = None) -> dict:
 # them out at that value: the workflow reruns a job whose params change, and a finished run should not redo
 # train_diffusion (days at the paper's sizes) for a new key that changes none of its bytes. A checkpoint's
 # fingerprint leaves them out too, so a training stopped before the key existed resumes. The job still reads
-# them: a section missing a key takes defaults.yaml's (`section`).
-UNCHANGED_WHEN = {("diffusion", "precision"): "float32", ("diffusion", "cuda_graph"): False}
-_ABSENT = object()
+# them: a section missing a key takes defaults.yaml's (`section`). diffusion.cuda_graph: the geometry stage
+# records what it did (False: eager steps, as every run before the key), and "auto", its default since, leaves a
+# finished run as it is (on a CPU it does what False does; a CUDA run finished before it keeps its eager weights).
+UNCHANGED_WHEN = {("diffusion", "precision"): ("float32",), ("diffusion", "cuda_graph"): ("auto", False)}
 
 
 def changed_settings(name: str, values: dict) -> dict:
     """Section `name`'s `values` without UNCHANGED_WHEN's settings at their values."""
-    return {k: v for k, v in values.items() if UNCHANGED_WHEN.get((name, k), _ABSENT) != v}
+    return {k: v for k, v in values.items()
+            if not any(v is u or (type(v) is type(u) and v == u) for u in UNCHANGED_WHEN.get((name, k), ()))}
 
 
 def as_json(cfg: dict, *keys: str) -> str:

@@ -32,7 +32,7 @@
 #           take the time), diffusion.precision float32 then bfloat16 then both again: what bfloat16 autocast saves
 #           a step (its quality was measured on a CPU: docs/performance.md, stage 2).
 # graph:    `bench stages --stages train_diffusion` at the README's config and at the paper's, diffusion.cuda_graph
-#           false then true, twice, then `pytest -m gpu -k graph` (graphed steps train what eager steps train):
+#           false then true, twice (ROUNDS="1" once), then `pytest -m gpu -k graph` (graphed steps train what eager steps train):
 #           what one replayed graph a step saves the geometry stage against its ~750 launches.
 # stage1:   stage 1 alone (snakemake ... results/nucleon/weights.zarr) at 512 of 2,048 lights, wall time
 #           and each fit_siren job's benchmark (a job cut short still leaves the finished subsets' figures).
@@ -164,7 +164,7 @@ graph)
                 >"$out/${c}_graph_$g.yaml"
         done
     done
-    for round in 1 2; do
+    for round in ${ROUNDS:-1 2}; do
         for c in config paper; do
             for g in false true; do
                 step "bench_${c}_graph_$g$round" diffshadow bench stages --device "$device" \

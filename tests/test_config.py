@@ -17,9 +17,10 @@ def test_command_line_strings_take_the_type_the_schema_asks_for():
 
 
 def test_a_setting_added_at_its_old_behaviour_stays_out_of_the_params_so_finished_runs_rerun_nothing():
-    """diffusion.precision and diffusion.cuda_graph came after runs existed: at what those runs did (float32, no
-    graph) a job's params are the JSON they had before them, and the job still reads those values; another value
-    is in the params (a changed param reruns the job)."""
+    """diffusion.precision and diffusion.cuda_graph came after runs existed: at their defaults (float32; "auto",
+    which on a CPU does what those runs did) and at what those runs did (no graph), a job's params are the JSON they
+    had before them, and the job still reads those values; another value is in the params (a changed param reruns
+    the job)."""
     import json
 
     from diffshadow.config import UNCHANGED_WHEN, as_json, changed_settings, load_run
@@ -28,17 +29,19 @@ def test_a_setting_added_at_its_old_behaviour_stays_out_of_the_params_so_finishe
     run = load_run(None)
     added = {key for name, key in UNCHANGED_WHEN if name == "diffusion"}
     assert added == {"precision", "cuda_graph"}
-    for (name, key), value in UNCHANGED_WHEN.items():
-        assert run[name][key] == value  # the default is the old behaviour
+    for (name, key), values in UNCHANGED_WHEN.items():
+        assert run[name][key] == values[0]  # the default is the first value left out
     params = json.loads(as_json(run, "diffusion", "siren"))
     assert not added & set(params["diffusion"]) and params["siren"] == run["siren"]
     assert {**params["diffusion"], **{key: run["diffusion"][key] for key in added}} == run["diffusion"]
     cfg = DiffusionConfig.from_config(params["diffusion"])
-    assert (cfg.precision, cfg.cuda_graph) == ("float32", False)
+    assert (cfg.precision, cfg.cuda_graph) == ("float32", "auto")
     run["diffusion"].update(precision="bfloat16", cuda_graph=True)
     assert {key: json.loads(as_json(run, "diffusion"))["diffusion"][key] for key in added} == {
         "precision": "bfloat16", "cuda_graph": True}
     assert changed_settings("diffusion", {"cuda_graph": False, "lr": 1.0}) == {"lr": 1.0}
+    assert changed_settings("diffusion", {"cuda_graph": "auto", "precision": "float32"}) == {}
+    assert changed_settings("diffusion", {"cuda_graph": 0}) == {"cuda_graph": 0}  # not False: the schema's error
     assert changed_settings("fit", {"cuda_graph": False}) == {"cuda_graph": False}  # another section's key
     assert load_run(None)["diffusion"]["precision"] == "float32"  # a run's change stays in that run
 

@@ -203,11 +203,11 @@ def test_resume_matches_uninterrupted(tmp_path):
             assert torch.equal(value, resumed[key][name]), name
 
 
-def test_cuda_graph_off_cuda_steps_eagerly_to_the_same_bytes_and_is_its_own_fingerprint(tmp_path):
-    """`diffusion.cuda_graph` on a CPU: the log says the steps run eagerly, and they train the same bytes. The
-    checkpoint's fingerprint holds the setting where it is on, and leaves it (and `precision`) out at the old
-    behaviour: a default run's fingerprint is the one computed before either key existed, so its checkpoints
-    resume across the upgrade."""
+def test_cuda_graph_off_cuda_steps_eagerly_to_the_same_bytes_and_the_same_fingerprint(tmp_path):
+    """`diffusion.cuda_graph` on a CPU: "auto" (the default) steps eagerly without a word; True says that the steps
+    run eagerly, and they train the same bytes. The checkpoint records what was done (no graph), and its
+    fingerprint leaves that (and `precision`) out at the old behaviour: a default run's fingerprint is the one
+    computed before either key existed, so its checkpoints resume across the upgrade."""
     import hashlib
     import json
 
@@ -215,12 +215,16 @@ def test_cuda_graph_off_cuda_steps_eagerly_to_the_same_bytes_and_is_its_own_fing
 
     data = tiny_data()
     msgs = []
-    plain = train_diffusion(data, CFG, tmp_path / "a.ckpt", log=lambda *a: None)
+    plain_msgs = []
+    assert CFG.cuda_graph == "auto"
+    plain = train_diffusion(data, CFG, tmp_path / "a.ckpt", log=plain_msgs.append)
+    assert not any("cuda_graph" in m for m in plain_msgs), plain_msgs
     graphed = train_diffusion(data, dataclasses.replace(CFG, cuda_graph=True), tmp_path / "b.ckpt", log=msgs.append)
     assert "diffusion.cuda_graph: CUDA graphs need a CUDA device; stepping eagerly on cpu" in msgs
     for key in ("model", "ema"):
         assert all(torch.equal(plain[key][k], graphed[key][k]) for k in plain[key])
-    assert graphed["config"]["cuda_graph"] and graphed["fingerprint"] != plain["fingerprint"]
+    assert plain["config"]["cuda_graph"] is graphed["config"]["cuda_graph"] is False
+    assert graphed["fingerprint"] == plain["fingerprint"]
     before = hashlib.sha256()
     for t in (data.weights, data.lights, data.points, data.values):
         before.update(t.numpy().tobytes())

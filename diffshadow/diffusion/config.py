@@ -51,9 +51,10 @@ class DiffusionConfig:
     # the training forward's matrix products: "bfloat16" runs them under autocast (losses, SIRENs and the optimiser
     # stay float32); sampling always runs float32
     precision: str
-    # the optimizer step as a replayed CUDA graph (diffshadow.graphs): one launch for its ~750 kernels at the
-    # README's sizes; CUDA only (elsewhere the step runs eagerly, saying so)
-    cuda_graph: bool
+    # the optimizer step as a replayed CUDA graph (diffshadow.graphs): one launch for its ~420 kernels at the
+    # README's sizes. "auto": where the device is CUDA; True: also asked for elsewhere (the step then runs eagerly,
+    # saying so); False: never. A trained model records what was done (True or False)
+    cuda_graph: bool | str
 
     @classmethod
     def from_config(cls, d: dict | None = None) -> DiffusionConfig:

@@ -296,11 +296,13 @@ def train_batch(model: WeightTransformer, opt: torch.optim.Optimizer, ema: Ema |
 
 
 def step_graphs(cfg: DiffusionConfig, device: torch.device, log=print) -> StepGraphs | None:
-    """The geometry stage's CUDA graphs where `diffusion.cuda_graph` asks for them and the device has them."""
-    if not cfg.cuda_graph:
+    """The geometry stage's CUDA graphs where `diffusion.cuda_graph` asks for them ("auto" or True) and the device
+    has them."""
+    if cfg.cuda_graph is False:
         return None
     if device.type != "cuda":
-        log(f"diffusion.cuda_graph: CUDA graphs need a CUDA device; stepping eagerly on {device}")
+        if cfg.cuda_graph is True:
+            log(f"diffusion.cuda_graph: CUDA graphs need a CUDA device; stepping eagerly on {device}")
         return None
     return StepGraphs(device)
 
@@ -328,6 +330,9 @@ def train_diffusion(data: TrainingData, cfg: DiffusionConfig, checkpoint: Path, 
                              f"hold {have} pool lights; rerun presample with this config")
     schedule = Schedule()
     graphs = step_graphs(cfg, device, log)
+    # what was done, not what was asked: the checkpoint's config and fingerprint (eager steps train the same
+    # bytes whatever the setting, so a CPU run resumes a checkpoint whichever it was asked)
+    cfg = dataclasses.replace(cfg, cuda_graph=graphs is not None)
     opt = make_optimizer(model.parameters(), cfg.lr, cfg.weight_decay, capturable=graphs is not None)
     sched = torch.optim.lr_scheduler.StepLR(opt, step_size=cfg.lr_step_epochs, gamma=cfg.lr_gamma)
     ema = Ema(model, cfg.ema) if cfg.ema > 0 else None

@@ -127,11 +127,13 @@ def test_graphed_geometry_steps_train_what_eager_steps_train(tmp_path, monkeypat
 
     monkeypatch.setattr(train_module, "StepGraphs", Recorded)
     data = _training_data()
-    cfg = dataclasses.replace(DCFG, batch_size=3, epochs=6, lr_step_epochs=1, lr_gamma=0.5, checkpoint_every=3)
+    cfg = dataclasses.replace(DCFG, batch_size=3, epochs=6, lr_step_epochs=1, lr_gamma=0.5, checkpoint_every=3,
+                              cuda_graph=False)
     graphed_cfg = dataclasses.replace(cfg, cuda_graph=True)
     eager = train_diffusion(data, cfg, tmp_path / "eager.ckpt", device=CUDA, log=lambda m: None)
     graphed = train_diffusion(data, graphed_cfg, tmp_path / "graph.ckpt", device=CUDA, log=lambda m: None)
     assert len(made) == 1 and made[0].calls == 12 and len(made[0].graphs) == 2  # batches of 3 and of 1
+    assert (eager["config"]["cuda_graph"], graphed["config"]["cuda_graph"]) == (False, True)
     train_diffusion(data, graphed_cfg, tmp_path / "resumed.ckpt", device=CUDA, log=lambda m: None, stop_after_epoch=3)
     resumed = train_diffusion(data, graphed_cfg, tmp_path / "resumed.ckpt", device=CUDA, log=lambda m: None)
     for other in (graphed, resumed):
@@ -152,7 +154,7 @@ def test_a_geometry_step_never_waits_for_the_gpu():
 
     tiny = {"lights": {"count": 6, "unseen": 2}, "subset_size": 6,
             "diffusion": {"presample_points": 64, "pool_lights": 4, "pool_points": 32, "geometry_points": 16,
-                          "batch_size": 4, "epochs": 3, "max_epochs": 3}}
+                          "batch_size": 4, "epochs": 3, "max_epochs": 3, "cuda_graph": False}}
     cfg = scene_config(run_config(merge({}, tiny), "test"), "nucleon", scenes_dir=REPO / "config/scenes")
     timed = BUILDERS["train_diffusion"](cfg, CUDA, *scene_volume(cfg))
     for i in range(3):  # the pinned blocks' cache fills
