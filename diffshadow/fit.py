@@ -18,13 +18,14 @@ import numpy as np
 import torch
 
 from diffshadow.capacity import Choice, Rung, climb, ladder
-from diffshadow.config import section
+from diffshadow.config import changed_settings, section
+from diffshadow.graphs import StepGraphs
 from diffshadow.grid import lookup_grids
 from diffshadow.io import atomic_torch_save, resume
 from diffshadow.lights import BLEND_K, PoolLights, inverse_angle_weights, nearest, training_pool
 from diffshadow.metrics import psnr
 from diffshadow.progress import FirstNonFinite, eta
-from diffshadow.sampling import FIT_BLEND_POOL_SEED, PROBE_HELD_OUT_SEED, PointSampler, Stream, seeded
+from diffshadow.sampling import FIT_BLEND_POOL_SEED, PROBE_HELD_OUT_SEED, PointSampler, Stream, seeded, to_device
 from diffshadow.shadow import ShadowField, shadow_grid, transmittance_per_light
 from diffshadow.siren import (
     PRECISIONS,
@@ -100,6 +101,10 @@ class FitConfig:
     # over the cap thinned the pool as lights were added (200 lights: 1 per light -1.8 dB blend, docs/performance.md)
     blend_per_light: int = 64
     blend_points: int = 1024  # presampled points with exact shadows per pool light
+    # each optimiser step as a replayed CUDA graph (diffshadow.graphs), with grid targets (sweep or march): "auto"
+    # where the device is CUDA, True also asked for elsewhere (the fit then steps eagerly, saying so), False never
+    # (the default until a GPU times it). A fit's checkpoint records what was done (True or False)
+    cuda_graph: bool | str = False
 
     @classmethod
     def from_config(cls, d: dict | None = None) -> FitConfig:
@@ -185,10 +190,13 @@ class Targets:
 
 def fit_step(weights: torch.Tensor, opt: torch.optim.Optimizer, pts: torch.Tensor, target: torch.Tensor,
              layout: WeightLayout, siren: SirenConfig, extent: torch.Tensor, cfg: FitConfig, *, chunk: int,
-             autocast, pool: PoolLights | None = None, pool_gen: torch.Generator | None = None) -> torch.Tensor:
-    """One Adam step of all K SIRENs on their points; returns each SIREN's mean squared error (K,) before it."""
+             autocast, pool: PoolLights | None = None, pool_draw: tuple[torch.Tensor, torch.Tensor] | None = None,
+             keep_grads: bool = False) -> torch.Tensor:
+    """One Adam step of all K SIRENs on their points; returns each SIREN's mean squared error (K,) before it.
+    With `pool`, `pool_draw` is `draw_pool`'s (lights, points) on the device. `keep_grads` zeroes the gradient in
+    place instead of dropping it (what a replayed CUDA graph needs: its kernels write to fixed addresses)."""
     k = len(weights)
-    opt.zero_grad(set_to_none=True)
+    opt.zero_grad(set_to_none=not keep_grads)
     per_siren = torch.zeros(k, device=weights.device)
     for c0 in range(0, cfg.points, chunk):
         model = BatchedSiren(weights, layout, siren.blocks)
@@ -199,7 +207,7 @@ def fit_step(weights: torch.Tensor, opt: torch.optim.Optimizer, pts: torch.Tenso
         sq.sum().backward()
         per_siren += sq.detach()
     if pool is not None:
-        _blend_loss(weights, pool, layout, siren, extent, cfg, k, pool_gen)
+        _blend_loss(weights, pool, layout, siren, extent, cfg, k, *pool_draw)
     opt.step()
     return per_siren
 
@@ -247,19 +255,47 @@ class Watch:
         self.window, self.window_steps = torch.zeros_like(self.window), 0
 
 
+@dataclass
+class FitDraw:
+    """One step's random draws, made on the host from the step's seeds and moved to the device: the inputs of
+    `SubsetFit.update` (and of its CUDA graph)."""
+    pts: torch.Tensor  # (K, N, 3) points in volume coordinates
+    pool_lights: torch.Tensor | None  # (K,) the pool lights the blend loss scores (with a pool)
+    pool_points: torch.Tensor | None  # (K, M) their presampled points
+
+
+def fit_graphs(cfg: FitConfig, device: torch.device, log=print) -> StepGraphs | None:
+    """The fit's CUDA graphs where `fit.cuda_graph` asks for them ("auto" or True) and the device and targets allow
+    them (exact transmittance targets march with host reads)."""
+    if cfg.cuda_graph is False:
+        return None
+    if device.type != "cuda" or cfg.target == "transmittance":
+        if cfg.cuda_graph is True:
+            log(f"fit.cuda_graph: CUDA graphs need a CUDA device and grid targets (sweep or march); stepping "
+                f"eagerly on {device} with fit.target {cfg.target}")
+        return None
+    return StepGraphs(device)
+
+
 class SubsetFit:
     """The K SIRENs of one light subset being fitted, and one optimiser step of them (`step`): the loop body of
-    `fit_sirens`, which `bench stages` times as it is. The step reads nothing back to the host (tests/test_syncs.py):
-    its points are drawn on the CPU and moved, its loss stays on the device for `Watch`."""
+    `fit_sirens`, which `bench stages` times as it is. The step's draws are made on the host and copied to the
+    device without waiting for it; the update (`update`) then reads nothing back and copies nothing from the host
+    (tests/test_syncs.py), so that it can be one replayed CUDA graph (`fit.cuda_graph`); its loss stays on the
+    device for `Watch`."""
 
     def __init__(self, init: torch.Tensor, layout: WeightLayout, siren: SirenConfig, volume: Volume,
                  tf: TransferFunction, lights: np.ndarray, cfg: FitConfig, *, stream: int = 0,
-                 pool: PoolLights | None = None, device: torch.device):
+                 pool: PoolLights | None = None, device: torch.device, log=print):
         self.layout, self.siren, self.cfg, self.stream, self.k = layout, siren, cfg, stream, len(lights)
         self.sampler = PointSampler(volume, tf, cfg.visible_fraction)
         self.targets = Targets(volume, tf, lights, cfg, device)
         self.weights = init.to(device=device, dtype=torch.float32).expand(self.k, -1).clone().requires_grad_(True)
-        self.opt = torch.optim.Adam([self.weights], lr=cfg.lr)
+        self.graphs = fit_graphs(cfg, device, log)
+        # a graph replays its kernels with the arguments they were captured with: its learning rate is a device
+        # tensor that each step fills, and Adam keeps its step count on the device (`capturable`)
+        lr = cfg.lr if self.graphs is None else torch.tensor(cfg.lr, device=device)
+        self.opt = torch.optim.Adam([self.weights], lr=lr, capturable=self.graphs is not None)
         self.pool = pool.to(device) if pool is not None else None
         self.chunk = points_per_pass(cfg.chunk, cfg.points, device)
         self.autocast = forward_precision(cfg.precision, device)
@@ -268,17 +304,37 @@ class SubsetFit:
     def step(self, step: int) -> torch.Tensor:
         """Optimiser step `step` (its points depend only on the seed, the subset's stream and `step`); each SIREN's
         mean squared error before it (K,), on the device."""
-        cfg, k = self.cfg, self.k
+        lr = cosine_lr(step, self.cfg, self.siren.width)
         for group in self.opt.param_groups:
-            group["lr"] = cosine_lr(step, cfg, self.siren.width)
-        if cfg.shared_points:
-            pts = self.sampler.sample(1, cfg.points, seeded(cfg.seed, Stream.FIT_SHARED_POINTS, step)).expand(k, -1, -1)
+            if self.graphs is None:
+                group["lr"] = lr
+            elif isinstance(group["lr"], torch.Tensor):
+                group["lr"].fill_(lr)
+            else:  # an eager fit's checkpoint brought a number back; the graph reads a tensor
+                group["lr"] = torch.tensor(lr, device=self.device)
+        draw = self.draw(step)
+        return self.update(draw) if self.graphs is None else self.graphs(self.update, draw)
+
+    def draw(self, step: int) -> FitDraw:
+        """Step `step`'s points (and pool picks), drawn on the host and on the device without waiting for it."""
+        cfg, k = self.cfg, self.k
+        if cfg.shared_points:  # one draw, moved once, seen by every SIREN
+            shared = self.sampler.sample(1, cfg.points, seeded(cfg.seed, Stream.FIT_SHARED_POINTS, step))
+            pts = to_device(shared, self.device).expand(k, -1, -1)
         else:
-            pts = self.sampler.sample(k, cfg.points, seeded(cfg.seed, self.stream, step))
-        pts = pts.to(self.device)
-        pool_gen = seeded(cfg.seed, Stream.FIT_POOL_PICK - self.stream, step) if self.pool is not None else None
-        return fit_step(self.weights, self.opt, pts, self.targets(pts), self.layout, self.siren, self.targets.extent,
-                        cfg, chunk=self.chunk, autocast=self.autocast, pool=self.pool, pool_gen=pool_gen)
+            pts = to_device(self.sampler.sample(k, cfg.points, seeded(cfg.seed, self.stream, step)), self.device)
+        if self.pool is None:
+            return FitDraw(pts, None, None)
+        gen = seeded(cfg.seed, Stream.FIT_POOL_PICK - self.stream, step)
+        j, pick = draw_pool(len(self.pool.lights), self.pool.points.shape[1], k, cfg, gen)
+        return FitDraw(pts, to_device(j, self.device), to_device(pick, self.device))
+
+    def update(self, draw: FitDraw) -> torch.Tensor:
+        """The optimiser step on `draw`: each SIREN's mean squared error before it (K,)."""
+        pool_draw = None if self.pool is None else (draw.pool_lights, draw.pool_points)
+        return fit_step(self.weights, self.opt, draw.pts, self.targets(draw.pts), self.layout, self.siren,
+                        self.targets.extent, self.cfg, chunk=self.chunk, autocast=self.autocast, pool=self.pool,
+                        pool_draw=pool_draw, keep_grads=self.graphs is not None)
 
 
 def fit_sirens(
@@ -309,8 +365,9 @@ def fit_sirens(
     lights = np.asarray(lights, dtype=np.float64)
     k = len(lights)
     light_index = list(range(k)) if light_index is None else list(light_index)
-    run = SubsetFit(init, layout, siren, volume, tf, lights, cfg, stream=stream, pool=pool, device=device)
+    run = SubsetFit(init, layout, siren, volume, tf, lights, cfg, stream=stream, pool=pool, device=device, log=log)
     weights, opt = run.weights, run.opt
+    cfg = replace(cfg, cuda_graph=run.graphs is not None)  # what was done: the checkpoint's fingerprint
     fingerprint = _fingerprint(init, lights, cfg, siren, stream, pool, volume, tf)
     start, initial = 0, None
     if state := resume(checkpoint, fingerprint, log=log, map_location=device, weights_only=True):
@@ -338,12 +395,17 @@ def fit_sirens(
     return weights.detach().cpu()
 
 
+def draw_pool(n_lights: int, n_points: int, k: int, cfg: FitConfig,
+              gen: torch.Generator) -> tuple[torch.Tensor, torch.Tensor]:
+    """The blend loss's draw for one step: K random pool lights (of `n_lights`) and cfg.points / 2 random points
+    each (of the `n_points` presampled), on `gen`'s device."""
+    j = torch.randperm(n_lights, generator=gen, device=gen.device)[:k]
+    return j, torch.randint(0, n_points, (len(j), max(1, cfg.points // 2)), generator=gen, device=gen.device)
+
+
 def _blend_loss(weights: torch.Tensor, pool: PoolLights, layout: WeightLayout, siren: SirenConfig,
-                extent: torch.Tensor, cfg: FitConfig, k: int, gen: torch.Generator) -> None:
-    """Backpropagate the blend loss of K random pool lights at cfg.points / 2 random points each."""
-    j = torch.randperm(len(pool.lights), generator=gen, device=gen.device)[:k]
-    pick = torch.randint(0, pool.points.shape[1], (len(j), max(1, cfg.points // 2)), generator=gen, device=gen.device)
-    j, pick = j.to(weights.device), pick.to(weights.device)
+                extent: torch.Tensor, cfg: FitConfig, k: int, j: torch.Tensor, pick: torch.Tensor) -> None:
+    """Backpropagate the blend loss of pool lights `j` at their points `pick` (`draw_pool`, on the device)."""
     pts, truth = pool.samples(j, pick)
     pred = BatchedSiren(pool.x0(weights, j), layout, siren.blocks)(box_to_siren(pts, extent)).float()
     # a mean per pool light, summed and scaled to K lights: weight 1 gives the pool the training lights' say
@@ -361,7 +423,7 @@ def _fingerprint(init, lights, cfg, siren, stream, pool: PoolLights | None, volu
     h.update(np.asarray(lights, np.float64).tobytes())
     if pool is not None:
         h.update(pool.lights.cpu().numpy().astype(np.float64).tobytes())
-    h.update(json.dumps([asdict(cfg), siren.to_config(), stream], sort_keys=True).encode())
+    h.update(json.dumps([changed_settings("fit", asdict(cfg)), siren.to_config(), stream], sort_keys=True).encode())
     return h.hexdigest()
 
 

@@ -1,4 +1,4 @@
-"""A training step replayed as a CUDA graph (config `diffusion.cuda_graph`).
+"""A training step replayed as a CUDA graph (config `diffusion.cuda_graph`, `fit.cuda_graph`).
 
 At the README's sizes every training step on a GPU is bound by its host: ~750 kernel launches at ~40 µs each,
 the GPU idle most of the time (docs/performance.md). A CUDA graph records a step's kernels once and replays them
@@ -9,7 +9,9 @@ with one launch. What a replay needs from the step, and what the geometry stage'
 - the optimizer's state and learning rate on the device (AdamW `capturable`, a tensor lr that StepLR fills);
 - gradients that stay where they are (zeroed in place, not dropped: `keep_grads`).
 What varies per step outside the tensors (the EMA's warm-up, the epoch a non-finite loss is recorded at) stays
-outside the graph, in the caller.
+outside the graph, in the caller. A fit's update (`fit.SubsetFit.update`) follows the same rules: its step's points
+and pool picks are drawn on the host first and are the graph's inputs, its cosine learning rate a device tensor
+that each step fills, its Adam `capturable`.
 """
 
 from __future__ import annotations

@@ -4,14 +4,15 @@
 #   bash ../shared/gpu/prepare.sh                                   # here, once per session
 #   device run, carry [".devwheels"], timeout_s 600:
 #       END=555 bash .devwheels/on-device.sh bash scripts/gpu_session.sh all
-#   then at once, on the still-warm machine (it goes back after 30 s idle), with what is left:
+#   then at once, on the still-warm machine (it goes back after 30 s idle), with what is left, e.g.:
 #       END=230 SWITCHES="evaluate: {device: run}" PARTS="workflow:0" bash .devwheels/on-device.sh \
 #           bash scripts/gpu_session.sh all
 #
-# `all` runs PARTS (default "workflow:300 checks:0": what the GPU issue still lacks, the README run and the whole
-# `pytest -m gpu`; the renderer's plans and bench were measured on an H200 at 6a79efd), each cut short so the whole
-# ends by END seconds (a cap of 0 = the time left), and packs everything into $OUT/all.tgz (a call brings back at
-# most 8 files).
+# `all` runs PARTS (default "workflow:300 checks:0": the README run and the whole `pytest -m gpu`, which the GPU
+# issue asks for at every change of a CUDA default; the renderer's plans and bench were measured on an H200 at
+# 6a79efd, the geometry stage's graphs at 437d7d4), each cut short so the whole ends by END seconds (a cap of 0 =
+# the time left), and packs everything into $OUT/all.tgz (a call brings back at most 8 files). PYTEST_K narrows
+# `checks` (e.g. "not tiny_workflow": that test is a whole workflow, ~2 minutes on the H200).
 # A part alone: `... gpu_session.sh render`.
 #
 # plans:    scripts/render_plans.py at 128², 512², 1024², inr and naive: every way the code can evaluate the
@@ -31,9 +32,11 @@
 # precision: `bench stages` of the two training stages at the paper's sizes (where the products, not the launches,
 #           take the time), diffusion.precision float32 then bfloat16 then both again: what bfloat16 autocast saves
 #           a step (its quality was measured on a CPU: docs/performance.md, stage 2).
-# graph:    `bench stages --stages train_diffusion` at the README's config and at the paper's, diffusion.cuda_graph
-#           false then true, twice (ROUNDS="1" once), then `pytest -m gpu -k graph` (graphed steps train what eager steps train):
-#           what one replayed graph a step saves the geometry stage against its ~750 launches.
+# graph:    `bench stages --stages fit_siren preoptimize train_diffusion` at the README's config and at the paper's,
+#           fit.cuda_graph and diffusion.cuda_graph both false then both true, twice (ROUNDS="1" once), then
+#           `pytest -m gpu -k graph` (graphed steps train what eager steps train): what one replayed graph a step
+#           saves the fits (~100-200 launches a step) and the geometry stage (~420); the geometry stage's graph is
+#           the CUDA default since 4cf72ee, the fits' waits on this.
 # stage1:   stage 1 alone (snakemake ... results/nucleon/weights.zarr) at 512 of 2,048 lights, wall time
 #           and each fit_siren job's benchmark (a job cut short still leaves the finished subsets' figures).
 #
@@ -65,9 +68,9 @@ step() {  # step NAME CMD...: run, log to $out/NAME.log, time it, go on past a f
     [ "$rc" -eq 0 ] || failed=1
 }
 
-with_diffusion() {  # with_diffusion IN KEY VALUE OUT: the config IN with diffusion.KEY set to VALUE (YAML), as OUT
+with_setting() {  # with_setting IN SECTION KEY VALUE OUT: the config IN with SECTION.KEY set to VALUE (YAML), as OUT
     python -c "import sys, yaml; c = yaml.safe_load(open(sys.argv[1])); \
-c.setdefault('diffusion', {})[sys.argv[2]] = yaml.safe_load(sys.argv[3]); yaml.safe_dump(c, open(sys.argv[4], 'w'))" "$@"
+c.setdefault(sys.argv[2], {})[sys.argv[3]] = yaml.safe_load(sys.argv[4]); yaml.safe_dump(c, open(sys.argv[5], 'w'))" "$@"
 }
 
 { python -c "import torch; print('torch', torch.__version__, 'cuda', torch.version.cuda, 'available', torch.cuda.is_available())"
@@ -144,7 +147,7 @@ precision)
     args=(--stages train_diffusion finetune_render --budget 3 --max-steps 20)
     [ "$quick" = 1 ] && args=(--stages train_diffusion --budget 0 --max-steps 2)
     for p in float32 bfloat16; do  # config/paper.yaml with the precision set
-        with_diffusion config/paper.yaml precision "$p" "$out/paper_$p.yaml"
+        with_setting config/paper.yaml diffusion precision "$p" "$out/paper_$p.yaml"
         [ "$quick" = 1 ] && printf 'diffusion: {preset: tiny, precision: %s}\n' "$p" >"$out/paper_$p.yaml"
     done
     for round in 1 2; do
@@ -155,13 +158,14 @@ precision)
     done
     ;;
 graph)
-    args=(--stages train_diffusion --budget 3 --max-steps 30)
-    [ "$quick" = 1 ] && args=(--stages train_diffusion --budget 0 --max-steps 2)
+    args=(--stages fit_siren preoptimize train_diffusion --budget 3 --max-steps 30)
+    [ "$quick" = 1 ] && args=(--stages fit_siren preoptimize train_diffusion --budget 0 --max-steps 2)
     for c in config paper; do
-        for g in false true; do  # the config with diffusion.cuda_graph set
-            with_diffusion "config/$c.yaml" cuda_graph "$g" "$out/${c}_graph_$g.yaml"
-            [ "$quick" = 1 ] && [ "$c" = paper ] && printf 'diffusion: {preset: tiny, cuda_graph: %s}\n' "$g" \
-                >"$out/${c}_graph_$g.yaml"
+        for g in false true; do  # the config with fit.cuda_graph and diffusion.cuda_graph set
+            with_setting "config/$c.yaml" diffusion cuda_graph "$g" "$out/${c}_graph_$g.yaml"
+            with_setting "$out/${c}_graph_$g.yaml" fit cuda_graph "$g" "$out/${c}_graph_$g.yaml"
+            [ "$quick" = 1 ] && [ "$c" = paper ] && printf 'diffusion: {preset: tiny, cuda_graph: %s}\nfit: {cuda_graph: %s}\n' \
+                "$g" "$g" >"$out/${c}_graph_$g.yaml"
         done
     done
     for round in ${ROUNDS:-1 2}; do

@@ -17,10 +17,10 @@ def test_command_line_strings_take_the_type_the_schema_asks_for():
 
 
 def test_a_setting_added_at_its_old_behaviour_stays_out_of_the_params_so_finished_runs_rerun_nothing():
-    """diffusion.precision and diffusion.cuda_graph came after runs existed: at their defaults (float32; "auto",
-    which on a CPU does what those runs did) and at what those runs did (no graph), a job's params are the JSON they
-    had before them, and the job still reads those values; another value is in the params (a changed param reruns
-    the job)."""
+    """diffusion.precision, diffusion.cuda_graph and fit.cuda_graph came after runs existed: at their defaults
+    (float32; "auto", which on a CPU does what those runs did; False) and at what those runs did (no graph), a job's
+    params are the JSON they had before them, and the job still reads those values; another value is in the params
+    (a changed param reruns the job)."""
     import json
 
     from diffshadow.config import UNCHANGED_WHEN, as_json, changed_settings, load_run
@@ -42,7 +42,9 @@ def test_a_setting_added_at_its_old_behaviour_stays_out_of_the_params_so_finishe
     assert changed_settings("diffusion", {"cuda_graph": False, "lr": 1.0}) == {"lr": 1.0}
     assert changed_settings("diffusion", {"cuda_graph": "auto", "precision": "float32"}) == {}
     assert changed_settings("diffusion", {"cuda_graph": 0}) == {"cuda_graph": 0}  # not False: the schema's error
-    assert changed_settings("fit", {"cuda_graph": False}) == {"cuda_graph": False}  # another section's key
+    assert changed_settings("fit", {"cuda_graph": False}) == {}  # fit.cuda_graph came later, off by default
+    assert changed_settings("fit", {"precision": "float32"}) == {"precision": "float32"}  # another section's key
+    assert "cuda_graph" not in json.loads(as_json(load_run(None), "fit"))["fit"]
     assert load_run(None)["diffusion"]["precision"] == "float32"  # a run's change stays in that run
 
 

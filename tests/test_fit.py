@@ -46,6 +46,36 @@ def test_resume_gives_the_same_weights(scene, tmp_path):
     assert not ckpt.exists()
 
 
+def test_fit_cuda_graph_off_cuda_steps_eagerly_to_the_same_bytes_and_resumes_a_default_fit(scene, tmp_path):
+    """`fit.cuda_graph` on a CPU: False (the default) and "auto" step eagerly without a word; True says that the fit
+    steps eagerly, and trains the same bytes. The fingerprint holds what was done (no graph), so a checkpoint of a
+    default fit resumes under True."""
+    from dataclasses import replace
+
+    vol, tf, lights = scene
+    cfg = FitConfig.from_config(dict(steps=12, points=64, checkpoint_every=4, eval_points=16))
+    assert cfg.cuda_graph is False
+    quiet = []
+    plain = fit_sirens(init(), LAYOUT, CFG, vol, tf, lights, replace(cfg, cuda_graph="auto"), log=quiet.append)
+    assert not any("cuda_graph" in m for m in quiet), quiet
+    ckpt, calls = tmp_path / "subset.ckpt", []
+
+    def interrupt(msg):  # progress is logged every step here; stop the run after step 6
+        calls.append(msg)
+        if len(calls) == 6:
+            raise KeyboardInterrupt
+
+    with pytest.raises(KeyboardInterrupt):
+        fit_sirens(init(), LAYOUT, CFG, vol, tf, lights, cfg, checkpoint=ckpt, log=interrupt)
+    messages = []
+    graphed = fit_sirens(init(), LAYOUT, CFG, vol, tf, lights, replace(cfg, cuda_graph=True), checkpoint=ckpt,
+                         log=messages.append)
+    assert messages[0] == ("fit.cuda_graph: CUDA graphs need a CUDA device and grid targets (sweep or march); "
+                           "stepping eagerly on cpu with fit.target sweep")
+    assert messages[1].startswith(f"resuming from {ckpt} at step 4")
+    assert torch.equal(graphed, plain)
+
+
 @pytest.mark.parametrize("change", ["transfer function", "volume"])
 def test_a_checkpoint_of_other_targets_is_not_resumed(scene, tmp_path, change):
     """A fit killed, then rerun after the TF or the volume changed, starts afresh (preoptimize.steps: 0 leaves

@@ -148,3 +148,33 @@ def test_a_geometry_step_copies_nothing_from_the_host_after_its_first(tiny, scen
     with (plain := HostTraffic()):
         torch.ones(3).to(meta)
     assert plain.blocking == 1
+
+
+class _NoOptimizer:
+    """Adam's place in a step counted on the "meta" device: Adam is torch's own `capturable` on CUDA."""
+
+    def zero_grad(self, set_to_none: bool = True) -> None:
+        pass
+
+    def step(self) -> None:
+        pass
+
+
+def test_a_fit_update_copies_nothing_from_the_host_and_reads_nothing(tiny, scene):
+    """What `fit.cuda_graph` captures (`SubsetFit.update`: the targets' lookup, the SIRENs' forward and backward,
+    the blend loss), run on the "meta" device: nothing copied from the host, nothing read back. The step's draws
+    (the shared points, the pool lights and their points) are copied before it, without blocking."""
+    run = BUILDERS["fit_siren"](tiny, torch.device("cpu"), *scene).step.__self__
+    assert run.pool is not None and run.targets.grids is not None and run.cfg.shared_points
+    meta = torch.device("meta")
+    run.weights = run.weights.detach().to(meta).requires_grad_(True)
+    run.targets.grids, run.targets.extent = run.targets.grids.to(meta), run.targets.extent.to(meta)
+    run.pool, run.opt, run.device = run.pool.to(meta), _NoOptimizer(), meta
+    with (drawn := HostTraffic()):
+        draw = run.draw(1)
+    assert (drawn.copies, drawn.blocking) == (3, 0)
+    assert draw.pts.shape == (run.k, run.cfg.points, 3) and draw.pts.device == meta
+    with (traffic := HostTraffic()):
+        per_siren = run.update(draw)
+    assert per_siren.shape == (run.k,)
+    assert (traffic.copies, traffic.reads) == (0, 0)

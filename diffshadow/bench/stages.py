@@ -145,13 +145,19 @@ def fit_siren(cfg: dict, device: torch.device, volume, tf, *, subset: bool = Tru
         pool = _pool(fit.blend_per_light * k, fit.blend_points, k, cfg, volume, seed=1)
     if not subset:
         fit = replace(fit, lr=float(cfg["preoptimize"]["lr"]))
-    run = SubsetFit(init, layout, siren, volume, tf, lights, fit, pool=pool, device=device)
+    run = SubsetFit(init, layout, siren, volume, tf, lights, fit, pool=pool, device=device, log=lambda m: None)
+    graphed = ""
+    if run.graphs is not None:  # the eager warm-up and the capture, before any step is timed
+        for i in range(run.graphs.warmup + 1):
+            run.step(i)
+        graphed = "; CUDA graph"
     if subset:
         jobs = math.ceil(n_lights / int(cfg["subset_size"]))
-        return Timed(run.step, f"step of {k} SIRENs", fit.steps,
+        return Timed(run.step, f"step of {k} SIRENs{graphed}", fit.steps,
                      f"{fit.steps} steps per job ({jobs} jobs of up to {cfg['subset_size']} lights, one GPU each)", k)
     steps = int(cfg["preoptimize"]["steps"])
-    return Timed(run.step, "step of 1 SIREN", steps, f"{steps} steps at siren.width (capacity growth not counted)")
+    return Timed(run.step, f"step of 1 SIREN{graphed}", steps,
+                 f"{steps} steps at siren.width (capacity growth not counted)")
 
 
 def train_data_inr(cfg: dict, device: torch.device, volume, tf) -> Timed:

@@ -59,6 +59,48 @@ def test_fit_agrees_with_cpu(volume):
     assert float((a - b).abs().max()) <= 1e-3
 
 
+def test_graphed_fit_steps_fit_what_eager_steps_fit(volume, tmp_path, monkeypatch):
+    """fit.cuda_graph: a subset's steps replayed as CUDA graphs give eager steps' SIRENs, with the blend loss's pool
+    (its picks are graph inputs), the cosine learning rate (a device tensor each step fills: a graph that kept its
+    first lr would drift from eager) and a fit resumed from a checkpoint."""
+    from dataclasses import replace
+
+    from diffshadow import fit as fit_module
+    from diffshadow.fit import blend_pool
+
+    made = []
+
+    class Recorded(fit_module.StepGraphs):
+        def __init__(self, *args, **kwargs):
+            super().__init__(*args, **kwargs)
+            made.append(self)
+
+    monkeypatch.setattr(fit_module, "StepGraphs", Recorded)
+    cfg = FitConfig.from_config(dict(steps=24, points=1024, eval_points=512, grid_upsample=1, min_psnr=0.0,
+                                     checkpoint_every=8, blend_weight=1.0, blend_per_light=4, blend_points=256))
+    pool = blend_pool(volume, TF, LIGHTS, np.array([0.0, 0.0, 1.0]), [0, 1, 2, 3], cfg)
+    run = {"pool": pool, "device": CUDA, "log": lambda m: None}
+    eager = fit_sirens(_init(), LAYOUT, SIREN, volume, TF, LIGHTS, cfg, **run)
+    graphed = fit_sirens(_init(), LAYOUT, SIREN, volume, TF, LIGHTS, replace(cfg, cuda_graph=True), **run)
+    assert len(made) == 1 and made[0].calls == 24 and len(made[0].graphs) == 1
+    ckpt, calls = tmp_path / "subset.ckpt", []
+
+    def interrupt(msg):  # progress every 2 steps here (a tenth of the fit): stop after step 10, saved at 8
+        calls.append(msg)
+        if len(calls) == 5:
+            raise KeyboardInterrupt
+
+    with pytest.raises(KeyboardInterrupt):
+        fit_sirens(_init(), LAYOUT, SIREN, volume, TF, LIGHTS, replace(cfg, cuda_graph=True), checkpoint=ckpt,
+                   pool=pool, device=CUDA, log=interrupt)
+    resumed = fit_sirens(_init(), LAYOUT, SIREN, volume, TF, LIGHTS, replace(cfg, cuda_graph=True),
+                         checkpoint=ckpt, **run)
+    pts = torch.rand(len(LIGHTS), 1000, 3, generator=torch.Generator().manual_seed(1)) * 2 - 1
+    a = BatchedSiren(eager, LAYOUT, SIREN.blocks)(pts)
+    for other in (graphed, resumed):
+        assert float((a - BatchedSiren(other, LAYOUT, SIREN.blocks)(pts)).abs().max()) <= 1e-3
+
+
 def test_data_inr_with_error_points_resumes_on_cuda(volume, tmp_path):
     """The error-driven points' scores ride in the checkpoint, which loads onto the GPU; the points are drawn on
     the CPU, so a resumed run must bring the scores back there."""
