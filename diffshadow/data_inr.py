@@ -21,7 +21,7 @@ from diffshadow.grid import cell_ranges, lookup_grids, voxel_points
 from diffshadow.io import atomic_torch_save, resume
 from diffshadow.metrics import psnr
 from diffshadow.progress import FirstNonFinite, eta
-from diffshadow.sampling import PointSampler, Stream, seeded
+from diffshadow.sampling import PointSampler, Stream, seeded, to_device
 from diffshadow.siren import Siren, SirenConfig, box_to_siren, cosine_lr
 from diffshadow.transfer import TransferFunction
 from diffshadow.volume import Volume
@@ -189,7 +189,7 @@ class DataInrFit:
             if step % hard.every == 0:  # a resumed run starts with the scores its checkpoint kept
                 hard.score(self.model, self.device)
             pts = torch.cat([pts, hard.sample(self.n_error, gen)[None]], dim=1)
-        pts = pts.to(self.device)
+        pts = to_device(pts, self.device)  # on CUDA, a blocking copy would wait for the previous step
         with torch.no_grad():
             target = lookup_grids(self.grid, pts, self.extent)[0]
         loss = ((self.model(box_to_siren(pts[0], self.extent)) - target) ** 2).mean()

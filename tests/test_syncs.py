@@ -153,6 +153,8 @@ def test_a_geometry_step_copies_nothing_from_the_host_after_its_first(tiny, scen
 class _NoOptimizer:
     """Adam's place in a step counted on the "meta" device: Adam is torch's own `capturable` on CUDA."""
 
+    param_groups = ({"lr": 0.0},)
+
     def zero_grad(self, set_to_none: bool = True) -> None:
         pass
 
@@ -178,3 +180,20 @@ def test_a_fit_update_copies_nothing_from_the_host_and_reads_nothing(tiny, scene
         per_siren = run.update(draw)
     assert per_siren.shape == (run.k,)
     assert (traffic.copies, traffic.reads) == (0, 0)
+
+
+def test_a_data_inr_step_never_blocks_on_its_points(tiny, scene):
+    """The data INR's step draws its points (box, visible and error-driven) on the host and copies them once,
+    without blocking (on CUDA a blocking copy from ordinary host memory waits for the previous step's kernels),
+    and reads nothing back between the error sampler's rescorings. Counted on the "meta" device."""
+    from diffshadow.data_inr import DataInrConfig, DataInrFit
+
+    run = DataInrFit(*scene, DataInrConfig.from_config(tiny["data_inr"]), device=torch.device("cpu"))
+    assert run.hard is not None and 1 % run.hard.every != 0  # step 1 draws error points without rescoring
+    run.hard.score(run.model, torch.device("cpu"))  # as at step 0
+    meta = torch.device("meta")
+    run.model, run.grid, run.extent = run.model.to(meta), run.grid.to(meta), run.extent.to(meta)
+    run.opt, run.device = _NoOptimizer(), meta
+    with (traffic := HostTraffic()):
+        loss = run.step(1)
+    assert loss.shape == () and (traffic.copies, traffic.blocking, traffic.reads) == (1, 0, 0)
