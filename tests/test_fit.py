@@ -23,21 +23,27 @@ def init():
     return LAYOUT.flatten(init_siren(CFG, torch.Generator().manual_seed(0)))
 
 
-def test_resume_gives_the_same_weights(scene, tmp_path):
-    vol, tf, lights = scene
-    cfg = FitConfig.from_config(dict(steps=12, points=64, checkpoint_every=4, eval_points=16))
-    full = fit_sirens(init(), LAYOUT, CFG, vol, tf, lights, cfg, log=lambda *a: None)
-
-    ckpt = tmp_path / "subset.ckpt"
+def stop_after_six_log_lines(vol, tf, lights, cfg: FitConfig, ckpt) -> None:
+    """A fit of init() killed after its sixth log line (step 6 where progress is logged every step), leaving the
+    checkpoint it wrote before."""
     calls = []
 
-    def interrupt(msg):  # progress is logged every step here; stop the run after step 6
+    def interrupt(msg):
         calls.append(msg)
         if len(calls) == 6:
             raise KeyboardInterrupt
 
     with pytest.raises(KeyboardInterrupt):
         fit_sirens(init(), LAYOUT, CFG, vol, tf, lights, cfg, checkpoint=ckpt, log=interrupt)
+
+
+def test_resume_gives_the_same_weights(scene, tmp_path):
+    vol, tf, lights = scene
+    cfg = FitConfig.from_config(dict(steps=12, points=64, checkpoint_every=4, eval_points=16))
+    full = fit_sirens(init(), LAYOUT, CFG, vol, tf, lights, cfg, log=lambda *a: None)
+
+    ckpt = tmp_path / "subset.ckpt"
+    stop_after_six_log_lines(vol, tf, lights, cfg, ckpt)
     assert ckpt.exists()  # saved at step 4
     messages = []
     resumed = fit_sirens(init(), LAYOUT, CFG, vol, tf, lights, cfg, checkpoint=ckpt, log=messages.append)
@@ -58,15 +64,8 @@ def test_fit_cuda_graph_off_cuda_steps_eagerly_to_the_same_bytes_and_resumes_a_d
     quiet = []
     plain = fit_sirens(init(), LAYOUT, CFG, vol, tf, lights, replace(cfg, cuda_graph="auto"), log=quiet.append)
     assert not any("cuda_graph" in m for m in quiet), quiet
-    ckpt, calls = tmp_path / "subset.ckpt", []
-
-    def interrupt(msg):  # progress is logged every step here; stop the run after step 6
-        calls.append(msg)
-        if len(calls) == 6:
-            raise KeyboardInterrupt
-
-    with pytest.raises(KeyboardInterrupt):
-        fit_sirens(init(), LAYOUT, CFG, vol, tf, lights, cfg, checkpoint=ckpt, log=interrupt)
+    ckpt = tmp_path / "subset.ckpt"
+    stop_after_six_log_lines(vol, tf, lights, cfg, ckpt)
     messages = []
     graphed = fit_sirens(init(), LAYOUT, CFG, vol, tf, lights, replace(cfg, cuda_graph=True), checkpoint=ckpt,
                          log=messages.append)
@@ -83,15 +82,7 @@ def test_a_checkpoint_of_other_targets_is_not_resumed(scene, tmp_path, change):
     vol, tf, lights = scene
     cfg = FitConfig.from_config(dict(steps=8, points=64, checkpoint_every=4, eval_points=16))
     ckpt = tmp_path / "subset.ckpt"
-    calls = []
-
-    def interrupt(msg):
-        calls.append(msg)
-        if len(calls) == 6:
-            raise KeyboardInterrupt
-
-    with pytest.raises(KeyboardInterrupt):
-        fit_sirens(init(), LAYOUT, CFG, vol, tf, lights, cfg, checkpoint=ckpt, log=interrupt)
+    stop_after_six_log_lines(vol, tf, lights, cfg, ckpt)
     assert ckpt.exists()
     if change == "volume":
         vol = Volume(data=vol.data[::-1].copy(), extent=vol.extent, name=vol.name)

@@ -49,6 +49,19 @@ def _init():
     return LAYOUT.flatten(init_siren(SIREN, torch.Generator().manual_seed(0)))
 
 
+def recorded_graphs(monkeypatch, module) -> list:
+    """The `StepGraphs` that `module` makes from now on, in a list as they are made."""
+    made = []
+
+    class Recorded(module.StepGraphs):
+        def __init__(self, *args, **kwargs):
+            super().__init__(*args, **kwargs)
+            made.append(self)
+
+    monkeypatch.setattr(module, "StepGraphs", Recorded)
+    return made
+
+
 def test_fit_agrees_with_cpu(volume):
     cfg = FitConfig.from_config(dict(steps=20, points=2048, eval_points=512, grid_upsample=1, min_psnr=0.0,
                                      chunk=0))
@@ -68,14 +81,7 @@ def test_graphed_fit_steps_fit_what_eager_steps_fit(volume, tmp_path, monkeypatc
     from diffshadow import fit as fit_module
     from diffshadow.fit import blend_pool
 
-    made = []
-
-    class Recorded(fit_module.StepGraphs):
-        def __init__(self, *args, **kwargs):
-            super().__init__(*args, **kwargs)
-            made.append(self)
-
-    monkeypatch.setattr(fit_module, "StepGraphs", Recorded)
+    made = recorded_graphs(monkeypatch, fit_module)
     cfg = FitConfig.from_config(dict(steps=24, points=1024, eval_points=512, grid_upsample=1, min_psnr=0.0,
                                      checkpoint_every=8, blend_weight=1.0, blend_per_light=4, blend_points=256))
     pool = blend_pool(volume, TF, LIGHTS, np.array([0.0, 0.0, 1.0]), [0, 1, 2, 3], cfg)
@@ -160,14 +166,7 @@ def test_graphed_geometry_steps_train_what_eager_steps_train(tmp_path, monkeypat
 
     from diffshadow.diffusion import train as train_module
 
-    made = []
-
-    class Recorded(train_module.StepGraphs):
-        def __init__(self, *args, **kwargs):
-            super().__init__(*args, **kwargs)
-            made.append(self)
-
-    monkeypatch.setattr(train_module, "StepGraphs", Recorded)
+    made = recorded_graphs(monkeypatch, train_module)
     data = _training_data()
     cfg = dataclasses.replace(DCFG, batch_size=3, epochs=6, lr_step_epochs=1, lr_gamma=0.5, checkpoint_every=3,
                               cuda_graph=False)
