@@ -188,7 +188,7 @@ def load_run(configfile: str | Path | None = None) -> dict:
 # records what it did (False: eager steps, as every run before the key), and "auto", its default since, leaves a
 # finished run as it is (on a CPU it does what False does; a CUDA run finished before it keeps its eager weights).
 UNCHANGED_WHEN = {("diffusion", "precision"): ("float32",), ("diffusion", "cuda_graph"): ("auto", False),
-                  ("fit", "cuda_graph"): (False,)}
+                  ("fit", "cuda_graph"): (False,), ("data_inr", "cuda_graph"): (False,)}
 
 
 def changed_settings(name: str, values: dict) -> dict:

@@ -16,7 +16,8 @@ import numpy as np
 import torch
 
 from diffshadow.capacity import Rung, climb, ladder
-from diffshadow.config import ConfigError, section
+from diffshadow.config import ConfigError, changed_settings, section
+from diffshadow.graphs import requested, set_lr
 from diffshadow.grid import cell_ranges, lookup_grids, voxel_points
 from diffshadow.io import atomic_torch_save, resume
 from diffshadow.metrics import psnr
@@ -42,6 +43,9 @@ class DataInrConfig:
     max_width: int = 256
     error_fraction: float = 0.0  # share of points near the voxels the INR gets most wrong (ErrorSampler)
     error_every: int = 300  # steps between scorings of the voxels
+    # each optimiser step as a replayed CUDA graph (diffshadow.graphs): "auto" where the device is CUDA, True also
+    # asked for elsewhere (the fit then steps eagerly, saying so), False never (the default until a GPU times it)
+    cuda_graph: bool | str = False
 
     def __post_init__(self):
         if self.visible_fraction + self.error_fraction > 1:
@@ -158,15 +162,28 @@ def fit_data_inr(volume: Volume, tf: TransferFunction, cfg: DataInrConfig, *, ch
     return inr
 
 
+@dataclass
+class DataInrDraw:
+    """One step's points (box, visible and error-driven), drawn on the host and moved to the device: the input of
+    `DataInrFit.update` (and of its CUDA graph)."""
+    pts: torch.Tensor  # (1, N, 3) in volume coordinates
+
+
 class DataInrFit:
     """A data INR being fitted, and one optimiser step of it (`step`): the loop body of `fit_data_inr_once`, which
-    `bench stages` times as it is. The step reads nothing back to the host (tests/test_syncs.py) except at the
-    steps where the error-driven sampler rescores the voxels (every `error_every`)."""
+    `bench stages` times as it is. The step draws its points on the host (`draw`; the error-driven sampler rescores
+    the voxels there every `error_every` steps, the one place it reads the device) and copies them without
+    waiting; the update (`update`) reads nothing back and copies nothing from the host (tests/test_syncs.py), so
+    that it can be one replayed CUDA graph (`data_inr.cuda_graph`)."""
 
-    def __init__(self, volume: Volume, tf: TransferFunction, cfg: DataInrConfig, *, device: torch.device):
+    def __init__(self, volume: Volume, tf: TransferFunction, cfg: DataInrConfig, *, device: torch.device,
+                 log=print):
         self.cfg, self.device = cfg, device
         self.model = Siren(cfg.siren, seeded(cfg.seed, Stream.DATA_INR_INIT)).to(device)
-        self.opt = torch.optim.Adam(self.model.parameters(), lr=cfg.lr)
+        self.graphs = requested(cfg.cuda_graph, "data_inr.cuda_graph", device, log)
+        # a replayed graph reads its learning rate from a device tensor and Adam's step count from the device
+        lr = cfg.lr if self.graphs is None else torch.tensor(cfg.lr, device=device)
+        self.opt = torch.optim.Adam(self.model.parameters(), lr=lr, capturable=self.graphs is not None)
         self.grid = torch.as_tensor(volume.data, device=device)[None]
         self.extent = torch.as_tensor(volume.extent, dtype=torch.float32, device=device)
         self.n_error = int(round(cfg.points * cfg.error_fraction))
@@ -180,20 +197,28 @@ class DataInrFit:
     def step(self, step: int) -> torch.Tensor:
         """Optimiser step `step` (its points depend only on the seed and `step`); the loss before it, on the
         device."""
+        set_lr(self.opt, cosine_lr(step, self.cfg, self.cfg.width), self.graphs is not None, self.device)
+        draw = self.draw(step)
+        return self.update(draw) if self.graphs is None else self.graphs(self.update, draw)
+
+    def draw(self, step: int) -> DataInrDraw:
+        """Step `step`'s points, on the device without waiting for it (on CUDA a blocking copy from ordinary host
+        memory waits for the previous step's kernels)."""
         cfg, hard = self.cfg, self.hard
-        for group in self.opt.param_groups:
-            group["lr"] = cosine_lr(step, cfg, cfg.width)  # same fields as FitConfig
         gen = seeded(cfg.seed, Stream.DATA_INR_STEP, step)
         pts = self.sampler.sample(1, cfg.points - self.n_error, gen)
         if hard is not None:
             if step % hard.every == 0:  # a resumed run starts with the scores its checkpoint kept
                 hard.score(self.model, self.device)
             pts = torch.cat([pts, hard.sample(self.n_error, gen)[None]], dim=1)
-        pts = to_device(pts, self.device)  # on CUDA, a blocking copy would wait for the previous step
+        return DataInrDraw(to_device(pts, self.device))
+
+    def update(self, draw: DataInrDraw) -> torch.Tensor:
+        """The optimiser step on `draw`: the loss before it."""
         with torch.no_grad():
-            target = lookup_grids(self.grid, pts, self.extent)[0]
-        loss = ((self.model(box_to_siren(pts[0], self.extent)) - target) ** 2).mean()
-        self.opt.zero_grad(set_to_none=True)
+            target = lookup_grids(self.grid, draw.pts, self.extent)[0]
+        loss = ((self.model(box_to_siren(draw.pts[0], self.extent)) - target) ** 2).mean()
+        self.opt.zero_grad(set_to_none=self.graphs is None)  # a graph's kernels write to fixed addresses
         loss.backward()
         self.opt.step()
         return loss.detach()
@@ -204,8 +229,9 @@ def fit_data_inr_once(volume: Volume, tf: TransferFunction, cfg: DataInrConfig, 
     """Fit a data INR of exactly cfg's size to trilinear samples of the volume (Adam, cosine decay,
     resumable)."""
     device = torch.device(device)
-    run = DataInrFit(volume, tf, cfg, device=device)
+    run = DataInrFit(volume, tf, cfg, device=device, log=log)
     model, opt, hard = run.model, run.opt, run.hard
+    cfg = replace(cfg, cuda_graph=run.graphs is not None)  # what was done: the checkpoint's and the INR's record
     fingerprint = _fingerprint(volume, cfg)
     start = 0
     if state := resume(checkpoint, fingerprint, log=log, map_location=device, weights_only=True):
@@ -266,5 +292,5 @@ def inr_cell_ranges(model: Siren, volume: Volume, *, cell: int = 16, refine: int
 
 def _fingerprint(volume: Volume, cfg: DataInrConfig) -> str:
     h = hashlib.sha256(volume.data.tobytes())
-    h.update(json.dumps([asdict(cfg), np.asarray(volume.extent).tolist()]).encode())
+    h.update(json.dumps([changed_settings("data_inr", asdict(cfg)), np.asarray(volume.extent).tolist()]).encode())
     return h.hexdigest()

@@ -19,7 +19,7 @@ import torch
 
 from diffshadow.capacity import Choice, Rung, climb, ladder
 from diffshadow.config import changed_settings, section
-from diffshadow.graphs import StepGraphs
+from diffshadow.graphs import StepGraphs, requested, set_lr
 from diffshadow.grid import lookup_grids
 from diffshadow.io import atomic_torch_save, resume
 from diffshadow.lights import BLEND_K, PoolLights, inverse_angle_weights, nearest, training_pool
@@ -267,14 +267,8 @@ class FitDraw:
 def fit_graphs(cfg: FitConfig, device: torch.device, log=print) -> StepGraphs | None:
     """The fit's CUDA graphs where `fit.cuda_graph` asks for them ("auto" or True) and the device and targets allow
     them (exact transmittance targets march with host reads)."""
-    if cfg.cuda_graph is False:
-        return None
-    if device.type != "cuda" or cfg.target == "transmittance":
-        if cfg.cuda_graph is True:
-            log(f"fit.cuda_graph: CUDA graphs need a CUDA device and grid targets (sweep or march); stepping "
-                f"eagerly on {device} with fit.target {cfg.target}")
-        return None
-    return StepGraphs(device)
+    unsupported = "fit.target transmittance marches with host reads" if cfg.target == "transmittance" else ""
+    return requested(cfg.cuda_graph, "fit.cuda_graph", device, log, unsupported=unsupported)
 
 
 class SubsetFit:
@@ -304,14 +298,7 @@ class SubsetFit:
     def step(self, step: int) -> torch.Tensor:
         """Optimiser step `step` (its points depend only on the seed, the subset's stream and `step`); each SIREN's
         mean squared error before it (K,), on the device."""
-        lr = cosine_lr(step, self.cfg, self.siren.width)
-        for group in self.opt.param_groups:
-            if self.graphs is None:
-                group["lr"] = lr
-            elif isinstance(group["lr"], torch.Tensor):
-                group["lr"].fill_(lr)
-            else:  # an eager fit's checkpoint brought a number back; the graph reads a tensor
-                group["lr"] = torch.tensor(lr, device=self.device)
+        set_lr(self.opt, cosine_lr(step, self.cfg, self.siren.width), self.graphs is not None, self.device)
         draw = self.draw(step)
         return self.update(draw) if self.graphs is None else self.graphs(self.update, draw)
 

@@ -1,4 +1,5 @@
-"""A training step replayed as a CUDA graph (config `diffusion.cuda_graph`, `fit.cuda_graph`).
+"""A training step replayed as a CUDA graph (config `diffusion.cuda_graph`, `fit.cuda_graph`,
+`data_inr.cuda_graph`).
 
 At the README's sizes every training step on a GPU is bound by its host: ~750 kernel launches at ~40 µs each,
 the GPU idle most of the time (docs/performance.md). A CUDA graph records a step's kernels once and replays them
@@ -9,9 +10,10 @@ with one launch. What a replay needs from the step, and what the geometry stage'
 - the optimizer's state and learning rate on the device (AdamW `capturable`, a tensor lr that StepLR fills);
 - gradients that stay where they are (zeroed in place, not dropped: `keep_grads`).
 What varies per step outside the tensors (the EMA's warm-up, the epoch a non-finite loss is recorded at) stays
-outside the graph, in the caller. A fit's update (`fit.SubsetFit.update`) follows the same rules: its step's points
-and pool picks are drawn on the host first and are the graph's inputs, its cosine learning rate a device tensor
-that each step fills, its Adam `capturable`.
+outside the graph, in the caller. A fit's update (`fit.SubsetFit.update`) and the data INR's
+(`data_inr.DataInrFit.update`) follow the same rules: their step's points (and pool picks) are drawn on the host
+first and are the graph's inputs, the cosine learning rate a device tensor that each step fills (`set_lr`), Adam
+`capturable`.
 """
 
 from __future__ import annotations
@@ -61,6 +63,34 @@ class StepGraphs:
                 getattr(static, name).copy_(value)
         graph.replay()
         return out
+
+
+def requested(setting: bool | str, key: str, device: torch.device, log=print, *,
+              unsupported: str = "") -> StepGraphs | None:
+    """A stage's graphs where its `cuda_graph` setting (`key`) asks for them ("auto" or True) and the device (and
+    the stage's other settings: `unsupported` says why they cannot be captured) allows them. True where they
+    cannot be says so in the log; "auto" stays silent."""
+    if setting is False:
+        return None
+    if device.type != "cuda" or unsupported:
+        if setting is True:
+            why = f"CUDA graphs need a CUDA device; stepping eagerly on {device}" if device.type != "cuda" else \
+                f"{unsupported}; stepping eagerly"
+            log(f"{key}: {why}")
+        return None
+    return StepGraphs(device)
+
+
+def set_lr(opt: torch.optim.Optimizer, lr: float, graphed: bool, device: torch.device) -> None:
+    """Each parameter group's learning rate for the next step. A replayed graph reads it from a device tensor,
+    filled in place (a checkpoint of an eager run brings a number back: it becomes a tensor before the capture)."""
+    for group in opt.param_groups:
+        if not graphed:
+            group["lr"] = lr
+        elif isinstance(group["lr"], torch.Tensor):
+            group["lr"].fill_(lr)
+        else:
+            group["lr"] = torch.tensor(lr, device=device)
 
 
 def tensor_fields(inputs: Any) -> dict[str, torch.Tensor | None]:

@@ -32,11 +32,12 @@
 # precision: `bench stages` of the two training stages at the paper's sizes (where the products, not the launches,
 #           take the time), diffusion.precision float32 then bfloat16 then both again: what bfloat16 autocast saves
 #           a step (its quality was measured on a CPU: docs/performance.md, stage 2).
-# graph:    `bench stages --stages fit_siren preoptimize train_diffusion` at the README's config and at the paper's,
-#           fit.cuda_graph and diffusion.cuda_graph both false then both true, twice (ROUNDS="1" once), then
-#           `pytest -m gpu -k graph` (graphed steps train what eager steps train): what one replayed graph a step
-#           saves the fits (~100-200 launches a step) and the geometry stage (~420); the geometry stage's graph is
-#           the CUDA default since 4cf72ee, the fits' waits on this.
+# graph:    `bench stages --stages fit_siren preoptimize train_data_inr train_diffusion` at the README's config and
+#           at the paper's, fit.cuda_graph, data_inr.cuda_graph and diffusion.cuda_graph all false then all true,
+#           twice (ROUNDS="1" once), then `pytest -m gpu -k graph` (graphed steps train what eager steps train):
+#           what one replayed graph a step saves the fits and the data INR (~100-250 launches a step) and the
+#           geometry stage (~420); the geometry stage's graph is the CUDA default since 4cf72ee, the others wait on
+#           this.
 # stage1:   stage 1 alone (snakemake ... results/nucleon/weights.zarr) at 512 of 2,048 lights, wall time
 #           and each fit_siren job's benchmark (a job cut short still leaves the finished subsets' figures).
 #
@@ -158,14 +159,17 @@ precision)
     done
     ;;
 graph)
-    args=(--stages fit_siren preoptimize train_diffusion --budget 3 --max-steps 30)
-    [ "$quick" = 1 ] && args=(--stages fit_siren preoptimize train_diffusion --budget 0 --max-steps 2)
+    stages=(--stages fit_siren preoptimize train_data_inr train_diffusion)
+    args=("${stages[@]}" --budget 3 --max-steps 30)
+    [ "$quick" = 1 ] && args=("${stages[@]}" --budget 0 --max-steps 2)
     for c in config paper; do
-        for g in false true; do  # the config with fit.cuda_graph and diffusion.cuda_graph set
-            with_setting "config/$c.yaml" diffusion cuda_graph "$g" "$out/${c}_graph_$g.yaml"
-            with_setting "$out/${c}_graph_$g.yaml" fit cuda_graph "$g" "$out/${c}_graph_$g.yaml"
-            [ "$quick" = 1 ] && [ "$c" = paper ] && printf 'diffusion: {preset: tiny, cuda_graph: %s}\nfit: {cuda_graph: %s}\n' \
-                "$g" "$g" >"$out/${c}_graph_$g.yaml"
+        for g in false true; do  # the config with every stage's cuda_graph set
+            cp "config/$c.yaml" "$out/${c}_graph_$g.yaml"
+            for section in fit data_inr diffusion; do
+                with_setting "$out/${c}_graph_$g.yaml" "$section" cuda_graph "$g" "$out/${c}_graph_$g.yaml"
+            done
+            [ "$quick" = 1 ] && [ "$c" = paper ] && printf '%s\n' "diffusion: {preset: tiny, cuda_graph: $g}" \
+                "fit: {cuda_graph: $g}" "data_inr: {cuda_graph: $g}" >"$out/${c}_graph_$g.yaml"
         done
     done
     for round in ${ROUNDS:-1 2}; do

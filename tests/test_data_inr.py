@@ -65,6 +65,34 @@ def test_resume_gives_the_same_bytes(blob, tmp_path):
     assert not list(tmp_path.glob("inr.ckpt*"))
 
 
+def test_cuda_graph_off_cuda_steps_eagerly_to_the_same_bytes_and_resumes_a_default_fit(blob, tmp_path):
+    """`data_inr.cuda_graph` on a CPU: True says that the fit steps eagerly and gives the same bytes; the
+    fingerprint holds what was done (no graph), so a default fit's checkpoint resumes under True, and the INR
+    records `cuda_graph: False`."""
+    from dataclasses import replace
+
+    short = DataInrConfig(**{**CFG.__dict__, "steps": 60, "checkpoint_every": 20, "error_every": 30})
+    assert short.cuda_graph is False
+    whole = fit_data_inr(blob, TF, short, log=lambda m: None)
+
+    class Stop(Exception):
+        pass
+
+    def stop_at_42(msg):
+        if msg.startswith("step 42/"):
+            raise Stop
+
+    with pytest.raises(Stop):
+        fit_data_inr(blob, TF, short, checkpoint=tmp_path / "inr.ckpt", log=stop_at_42)
+    messages = []
+    graphed = fit_data_inr(blob, TF, replace(short, cuda_graph=True), checkpoint=tmp_path / "inr.ckpt",
+                           log=messages.append)
+    assert "data_inr.cuda_graph: CUDA graphs need a CUDA device; stepping eagerly on cpu" in messages
+    assert any("resuming" in m and "step 40" in m for m in messages)
+    assert torch.equal(graphed.model.flat(), whole.model.flat())
+    assert graphed.config["cuda_graph"] is False
+
+
 def test_cell_ranges_bound_the_inr(fitted, blob):
     lo, hi = inr_cell_ranges(fitted.model, blob, cell=4, margin=0.0)
     # random points inside cell (0, 0, 0) stay within its range up to the lattice's resolution

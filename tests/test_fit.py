@@ -69,10 +69,23 @@ def test_fit_cuda_graph_off_cuda_steps_eagerly_to_the_same_bytes_and_resumes_a_d
     messages = []
     graphed = fit_sirens(init(), LAYOUT, CFG, vol, tf, lights, replace(cfg, cuda_graph=True), checkpoint=ckpt,
                          log=messages.append)
-    assert messages[0] == ("fit.cuda_graph: CUDA graphs need a CUDA device and grid targets (sweep or march); "
-                           "stepping eagerly on cpu with fit.target sweep")
+    assert messages[0] == "fit.cuda_graph: CUDA graphs need a CUDA device; stepping eagerly on cpu"
     assert messages[1].startswith(f"resuming from {ckpt} at step 4")
     assert torch.equal(graphed, plain)
+
+
+def test_fit_cuda_graph_says_where_targets_cannot_be_captured():
+    """Exact transmittance targets march with host reads: asked for graphs on CUDA, the fit says it steps eagerly;
+    "auto" steps eagerly without a word. (Decided before any CUDA call: this runs on a CPU.)"""
+    from dataclasses import replace
+
+    from diffshadow.fit import fit_graphs
+
+    cfg = FitConfig.from_config(dict(target="transmittance"))
+    messages = []
+    assert fit_graphs(replace(cfg, cuda_graph=True), torch.device("cuda"), messages.append) is None
+    assert fit_graphs(replace(cfg, cuda_graph="auto"), torch.device("cuda"), messages.append) is None
+    assert messages == ["fit.cuda_graph: fit.target transmittance marches with host reads; stepping eagerly"]
 
 
 @pytest.mark.parametrize("change", ["transfer function", "volume"])

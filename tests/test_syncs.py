@@ -182,10 +182,11 @@ def test_a_fit_update_copies_nothing_from_the_host_and_reads_nothing(tiny, scene
     assert (traffic.copies, traffic.reads) == (0, 0)
 
 
-def test_a_data_inr_step_never_blocks_on_its_points(tiny, scene):
+def test_a_data_inr_step_never_blocks_on_its_points_and_its_update_copies_nothing(tiny, scene):
     """The data INR's step draws its points (box, visible and error-driven) on the host and copies them once,
     without blocking (on CUDA a blocking copy from ordinary host memory waits for the previous step's kernels),
-    and reads nothing back between the error sampler's rescorings. Counted on the "meta" device."""
+    and reads nothing back between the error sampler's rescorings; its update, what `data_inr.cuda_graph`
+    captures, copies nothing from the host and reads nothing. Counted on the "meta" device."""
     from diffshadow.data_inr import DataInrConfig, DataInrFit
 
     run = DataInrFit(*scene, DataInrConfig.from_config(tiny["data_inr"]), device=torch.device("cpu"))
@@ -197,3 +198,8 @@ def test_a_data_inr_step_never_blocks_on_its_points(tiny, scene):
     with (traffic := HostTraffic()):
         loss = run.step(1)
     assert loss.shape == () and (traffic.copies, traffic.blocking, traffic.reads) == (1, 0, 0)
+    with (drawn := HostTraffic()):
+        draw = run.draw(2)
+    with (traffic := HostTraffic()):
+        run.update(draw)
+    assert (drawn.copies, drawn.blocking, traffic.copies, traffic.reads) == (1, 0, 0, 0)

@@ -164,12 +164,21 @@ def train_data_inr(cfg: dict, device: torch.device, volume, tf) -> Timed:
     from diffshadow.data_inr import DataInrConfig, DataInrFit
 
     dcfg = DataInrConfig.from_config(cfg["data_inr"])
-    run = DataInrFit(volume, tf, dcfg, device=device)
+    run = DataInrFit(volume, tf, dcfg, device=device, log=lambda m: None)
     # the error-driven sampler rescores every voxel every error_every steps (periodic, like a checkpoint): scored
     # once here, then only the steps between rescorings are timed
     if run.hard is not None:
         run.hard.score(run.model, device)
-    return Timed(lambda i: run.step(i + 1 + (i // max(1, dcfg.error_every - 1))), f"step of {dcfg.points} points",
+
+    def step(i: int) -> torch.Tensor:
+        return run.step(i + 1 + (i // max(1, dcfg.error_every - 1)))
+
+    graphed = ""
+    if run.graphs is not None:  # the eager warm-up and the capture, before any step is timed
+        for i in range(run.graphs.warmup + 1):
+            step(i)
+        graphed = "; CUDA graph"
+    return Timed(step, f"step of {dcfg.points} points{graphed}",
                  dcfg.steps, f"{dcfg.steps} steps at data_inr.width (capacity growth and voxel rescoring not counted)")
 
 

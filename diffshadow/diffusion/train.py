@@ -22,7 +22,7 @@ from diffshadow.diffusion.model import WeightTransformer
 from diffshadow.diffusion.sample import generate
 from diffshadow.diffusion.schedule import Schedule
 from diffshadow.diffusion.standardize import Standardizer
-from diffshadow.graphs import StepGraphs
+from diffshadow.graphs import StepGraphs, requested
 from diffshadow.io import atomic_torch_save, resume
 from diffshadow.lights import PoolLights
 from diffshadow.metrics import psnr
@@ -298,13 +298,7 @@ def train_batch(model: WeightTransformer, opt: torch.optim.Optimizer, ema: Ema |
 def step_graphs(cfg: DiffusionConfig, device: torch.device, log=print) -> StepGraphs | None:
     """The geometry stage's CUDA graphs where `diffusion.cuda_graph` asks for them ("auto" or True) and the device
     has them."""
-    if cfg.cuda_graph is False:
-        return None
-    if device.type != "cuda":
-        if cfg.cuda_graph is True:
-            log(f"diffusion.cuda_graph: CUDA graphs need a CUDA device; stepping eagerly on {device}")
-        return None
-    return StepGraphs(device)
+    return requested(cfg.cuda_graph, "diffusion.cuda_graph", device, log)
 
 
 def train_diffusion(data: TrainingData, cfg: DiffusionConfig, checkpoint: Path, *,

@@ -49,16 +49,18 @@ def _init():
     return LAYOUT.flatten(init_siren(SIREN, torch.Generator().manual_seed(0)))
 
 
-def recorded_graphs(monkeypatch, module) -> list:
-    """The `StepGraphs` that `module` makes from now on, in a list as they are made."""
+def recorded_graphs(monkeypatch) -> list:
+    """The `StepGraphs` that the stages make from now on (through `graphs.requested`), in a list as made."""
+    from diffshadow import graphs
+
     made = []
 
-    class Recorded(module.StepGraphs):
+    class Recorded(graphs.StepGraphs):
         def __init__(self, *args, **kwargs):
             super().__init__(*args, **kwargs)
             made.append(self)
 
-    monkeypatch.setattr(module, "StepGraphs", Recorded)
+    monkeypatch.setattr(graphs, "StepGraphs", Recorded)
     return made
 
 
@@ -78,10 +80,9 @@ def test_graphed_fit_steps_fit_what_eager_steps_fit(volume, tmp_path, monkeypatc
     first lr would drift from eager) and a fit resumed from a checkpoint."""
     from dataclasses import replace
 
-    from diffshadow import fit as fit_module
     from diffshadow.fit import blend_pool
 
-    made = recorded_graphs(monkeypatch, fit_module)
+    made = recorded_graphs(monkeypatch)
     cfg = FitConfig.from_config(dict(steps=24, points=1024, eval_points=512, grid_upsample=1, min_psnr=0.0,
                                      checkpoint_every=8, blend_weight=1.0, blend_per_light=4, blend_points=256))
     pool = blend_pool(volume, TF, LIGHTS, np.array([0.0, 0.0, 1.0]), [0, 1, 2, 3], cfg)
@@ -131,6 +132,35 @@ def test_data_inr_with_error_points_resumes_on_cuda(volume, tmp_path):
     assert np.isfinite(inr.psnr) and abs(inr.psnr - whole.psnr) < 0.01, (inr.psnr, whole.psnr)
 
 
+def test_graphed_data_inr_steps_fit_what_eager_steps_fit(volume, tmp_path, monkeypatch):
+    """data_inr.cuda_graph: the data INR's steps replayed as CUDA graphs end where eager steps end, with the
+    error-driven points (rescored outside the graph), the cosine learning rate (a device tensor) and a resume."""
+    from dataclasses import replace
+
+    made = recorded_graphs(monkeypatch)
+    cfg = DataInrConfig.from_config(dict(width=16, blocks=1, steps=60, points=512, checkpoint_every=20,
+                                         error_every=30, target_psnr=0))
+    eager = fit_data_inr(volume, TF, cfg, device=CUDA, log=lambda m: None)
+    graphed_cfg = replace(cfg, cuda_graph=True)
+    graphed = fit_data_inr(volume, TF, graphed_cfg, device=CUDA, log=lambda m: None)
+    assert len(made) == 1 and made[0].calls == 60 and len(made[0].graphs) == 1
+    assert (eager.config["cuda_graph"], graphed.config["cuda_graph"]) == (False, True)
+
+    class Stop(Exception):
+        pass
+
+    def stop_at_42(msg):
+        if msg.startswith("step 42/"):
+            raise Stop
+
+    with pytest.raises(Stop):
+        fit_data_inr(volume, TF, graphed_cfg, checkpoint=tmp_path / "inr.ckpt", device=CUDA, log=stop_at_42)
+    resumed = fit_data_inr(volume, TF, graphed_cfg, checkpoint=tmp_path / "inr.ckpt", device=CUDA,
+                           log=lambda m: None)
+    for other in (graphed, resumed):
+        assert abs(other.psnr - eager.psnr) < 0.01, (other.psnr, eager.psnr)
+
+
 def _training_data():
     gen = torch.Generator().manual_seed(0)
     weights = _init() + 0.01 * torch.randn(len(LIGHTS), LAYOUT.n_params, generator=gen)
@@ -164,9 +194,7 @@ def test_graphed_geometry_steps_train_what_eager_steps_train(tmp_path, monkeypat
     optimizer state and tensor lr) graphs on to the same weights."""
     import dataclasses
 
-    from diffshadow.diffusion import train as train_module
-
-    made = recorded_graphs(monkeypatch, train_module)
+    made = recorded_graphs(monkeypatch)
     data = _training_data()
     cfg = dataclasses.replace(DCFG, batch_size=3, epochs=6, lr_step_epochs=1, lr_gamma=0.5, checkpoint_every=3,
                               cuda_graph=False)
