@@ -186,13 +186,15 @@ def load_run(configfile: str | Path | None = None) -> dict:
 # fingerprint leaves them out too, so a training stopped before the key existed resumes. The job still reads
 # them: a section missing a key takes defaults.yaml's (`section`). diffusion.cuda_graph: the geometry stage
 # records what it did (False: eager steps, as every run before the key), and "auto", its default since, leaves a
-# finished run as it is (on a CPU it does what False does; a CUDA run finished before it keeps its eager weights).
+# finished run as it is (on a CPU it does what False does; a CUDA run finished before it keeps its eager weights);
+# fit.cuda_graph and data_inr.cuda_graph are off by default until a GPU times them.
 UNCHANGED_WHEN = {("diffusion", "precision"): ("float32",), ("diffusion", "cuda_graph"): ("auto", False),
                   ("fit", "cuda_graph"): (False,), ("data_inr", "cuda_graph"): (False,)}
 
 
 def changed_settings(name: str, values: dict) -> dict:
     """Section `name`'s `values` without UNCHANGED_WHEN's settings at their values."""
+    # equal and of one type: False, not 0 (which the schema refuses, and which must not pass for the default)
     return {k: v for k, v in values.items()
             if not any(v is u or (type(v) is type(u) and v == u) for u in UNCHANGED_WHEN.get((name, k), ()))}
 
