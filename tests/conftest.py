@@ -58,6 +58,19 @@ def shared_data() -> Path:
     return SHARED_DATA
 
 
+class Stopped(Exception):
+    """A run killed by `stop_at`'s log function."""
+
+
+def stop_at(prefix: str):
+    """A log function that kills the run (raises Stopped) at the first line starting with `prefix`: a job killed
+    at a known step, its checkpoints as they were."""
+    def log(message: str) -> None:
+        if message.startswith(prefix):
+            raise Stopped(message)
+    return log
+
+
 @contextlib.contextmanager
 def default_device_meta():
     """Guard for the CUDA path on a machine without CUDA: a tensor made without naming its device lands

@@ -16,6 +16,7 @@ import numpy as np
 import pytest
 import torch
 import torch.multiprocessing as mp
+from conftest import Stopped, stop_at
 
 from diffshadow.analytic import gaussian_blob
 from diffshadow.data_inr import DataInrConfig, fit_data_inr
@@ -114,15 +115,8 @@ def test_data_inr_with_error_points_resumes_on_cuda(volume, tmp_path):
     cfg = DataInrConfig.from_config(dict(width=16, blocks=1, steps=60, points=512, checkpoint_every=20,
                                          error_every=30, target_psnr=0))
 
-    class Stop(Exception):
-        pass
-
-    def stop_at_42(msg):
-        if msg.startswith("step 42/"):
-            raise Stop
-
-    with pytest.raises(Stop):
-        fit_data_inr(volume, TF, cfg, checkpoint=tmp_path / "inr.ckpt", device=CUDA, log=stop_at_42)
+    with pytest.raises(Stopped):
+        fit_data_inr(volume, TF, cfg, checkpoint=tmp_path / "inr.ckpt", device=CUDA, log=stop_at("step 42/"))
     messages = []
     inr = fit_data_inr(volume, TF, cfg, checkpoint=tmp_path / "inr.ckpt", device=CUDA, log=messages.append)
     assert any("resuming" in m for m in messages)
@@ -146,15 +140,9 @@ def test_graphed_data_inr_steps_fit_what_eager_steps_fit(volume, tmp_path, monke
     assert len(made) == 1 and made[0].calls == 60 and len(made[0].graphs) == 1
     assert (eager.config["cuda_graph"], graphed.config["cuda_graph"]) == (False, True)
 
-    class Stop(Exception):
-        pass
-
-    def stop_at_42(msg):
-        if msg.startswith("step 42/"):
-            raise Stop
-
-    with pytest.raises(Stop):
-        fit_data_inr(volume, TF, graphed_cfg, checkpoint=tmp_path / "inr.ckpt", device=CUDA, log=stop_at_42)
+    with pytest.raises(Stopped):
+        fit_data_inr(volume, TF, graphed_cfg, checkpoint=tmp_path / "inr.ckpt", device=CUDA,
+                     log=stop_at("step 42/"))
     resumed = fit_data_inr(volume, TF, graphed_cfg, checkpoint=tmp_path / "inr.ckpt", device=CUDA,
                            log=lambda m: None)
     for other in (graphed, resumed):
