@@ -17,7 +17,7 @@ import torch
 
 from diffshadow.capacity import Rung, climb, ladder
 from diffshadow.config import ConfigError, changed_settings, section
-from diffshadow.graphs import requested, set_lr
+from diffshadow.graphs import adam, requested, set_lr
 from diffshadow.grid import cell_ranges, lookup_grids, voxel_points
 from diffshadow.io import atomic_torch_save, resume
 from diffshadow.metrics import psnr
@@ -181,9 +181,7 @@ class DataInrFit:
         self.cfg, self.device = cfg, device
         self.model = Siren(cfg.siren, seeded(cfg.seed, Stream.DATA_INR_INIT)).to(device)
         self.graphs = requested(cfg.cuda_graph, "data_inr.cuda_graph", device, log)
-        # a replayed graph reads its learning rate from a device tensor and Adam's step count from the device
-        lr = cfg.lr if self.graphs is None else torch.tensor(cfg.lr, device=device)
-        self.opt = torch.optim.Adam(self.model.parameters(), lr=lr, capturable=self.graphs is not None)
+        self.opt = adam(self.model.parameters(), cfg.lr, graphed=self.graphs is not None)
         self.grid = torch.as_tensor(volume.data, device=device)[None]
         self.extent = torch.as_tensor(volume.extent, dtype=torch.float32, device=device)
         self.n_error = int(round(cfg.points * cfg.error_fraction))
@@ -197,7 +195,7 @@ class DataInrFit:
     def step(self, step: int) -> torch.Tensor:
         """Optimiser step `step` (its points depend only on the seed and `step`); the loss before it, on the
         device."""
-        set_lr(self.opt, cosine_lr(step, self.cfg, self.cfg.width), self.graphs is not None, self.device)
+        set_lr(self.opt, cosine_lr(step, self.cfg, self.cfg.width))
         draw = self.draw(step)
         return self.update(draw) if self.graphs is None else self.graphs(self.update, draw)
 

@@ -19,7 +19,7 @@ import torch
 
 from diffshadow.capacity import Choice, Rung, climb, ladder
 from diffshadow.config import changed_settings, section
-from diffshadow.graphs import StepGraphs, requested, set_lr
+from diffshadow.graphs import StepGraphs, adam, requested, set_lr
 from diffshadow.grid import lookup_grids
 from diffshadow.io import atomic_torch_save, resume
 from diffshadow.lights import BLEND_K, PoolLights, inverse_angle_weights, nearest, training_pool
@@ -286,10 +286,7 @@ class SubsetFit:
         self.targets = Targets(volume, tf, lights, cfg, device)
         self.weights = init.to(device=device, dtype=torch.float32).expand(self.k, -1).clone().requires_grad_(True)
         self.graphs = fit_graphs(cfg, device, log)
-        # a graph replays its kernels with the arguments they were captured with: its learning rate is a device
-        # tensor that each step fills, and Adam keeps its step count on the device (`capturable`)
-        lr = cfg.lr if self.graphs is None else torch.tensor(cfg.lr, device=device)
-        self.opt = torch.optim.Adam([self.weights], lr=lr, capturable=self.graphs is not None)
+        self.opt = adam([self.weights], cfg.lr, graphed=self.graphs is not None)
         self.pool = pool.to(device) if pool is not None else None
         self.chunk = points_per_pass(cfg.chunk, cfg.points, device)
         self.autocast = forward_precision(cfg.precision, device)
@@ -298,7 +295,7 @@ class SubsetFit:
     def step(self, step: int) -> torch.Tensor:
         """Optimiser step `step` (its points depend only on the seed, the subset's stream and `step`); each SIREN's
         mean squared error before it (K,), on the device."""
-        set_lr(self.opt, cosine_lr(step, self.cfg, self.siren.width), self.graphs is not None, self.device)
+        set_lr(self.opt, cosine_lr(step, self.cfg, self.siren.width))
         draw = self.draw(step)
         return self.update(draw) if self.graphs is None else self.graphs(self.update, draw)
 

@@ -13,8 +13,8 @@ with one launch. What a replay needs from the step, and what the geometry stage'
 What varies per step outside the tensors (the EMA's warm-up, the epoch a non-finite loss is recorded at) stays
 outside the graph, in the caller. A fit's update (`fit.SubsetFit.update`) and the data INR's
 (`data_inr.DataInrFit.update`) follow the same rules: their step's points (and pool picks) are drawn on the host
-first and are the graph's inputs, the cosine learning rate a device tensor that each step fills (`set_lr`), Adam
-`capturable`.
+first and are the graph's inputs, their Adam `capturable` with the cosine learning rate a device tensor that each
+step fills (`adam`, `set_lr`).
 """
 
 from __future__ import annotations
@@ -82,16 +82,24 @@ def requested(setting: bool | str, key: str, device: torch.device, log=print, *,
     return StepGraphs(device)
 
 
-def set_lr(opt: torch.optim.Optimizer, lr: float, graphed: bool, device: torch.device) -> None:
-    """Each parameter group's learning rate for the next step. A replayed graph reads it from a device tensor,
-    filled in place (a checkpoint of an eager run brings a number back: it becomes a tensor before the capture)."""
+def adam(params, lr: float, graphed: bool) -> torch.optim.Adam:
+    """Adam for a step that `StepGraphs` may replay (`graphed`): `capturable`, its learning rate a tensor on the
+    parameters' device that `set_lr` fills; else plain Adam. (A checkpoint's fingerprint holds whether its run was
+    graphed, so an optimizer never resumes the other kind's state.)"""
+    params = list(params)
+    if not graphed:
+        return torch.optim.Adam(params, lr=lr)
+    return torch.optim.Adam(params, lr=torch.tensor(lr, device=params[0].device), capturable=True)
+
+
+def set_lr(opt: torch.optim.Optimizer, lr: float) -> None:
+    """Each parameter group's learning rate for the next step: a graphed optimizer's tensor filled in place (a
+    replay reads it there), a plain one's number replaced."""
     for group in opt.param_groups:
-        if not graphed:
-            group["lr"] = lr
-        elif isinstance(group["lr"], torch.Tensor):
+        if isinstance(group["lr"], torch.Tensor):
             group["lr"].fill_(lr)
         else:
-            group["lr"] = torch.tensor(lr, device=device)
+            group["lr"] = lr
 
 
 def tensor_fields(inputs: Any) -> dict[str, torch.Tensor | None]:

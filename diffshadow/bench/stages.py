@@ -127,6 +127,16 @@ def _scene(cfg: dict):
     return scene_volume(cfg)
 
 
+def _captured(graphs, step: Callable[[int], object]) -> str:
+    """With `graphs` (a stage's `StepGraphs`), the eager warm-up steps and the capture run before any step is
+    timed; the words the step's description gets for it."""
+    if graphs is None:
+        return ""
+    for i in range(graphs.warmup + 1):
+        step(i)
+    return "; CUDA graph"
+
+
 def fit_siren(cfg: dict, device: torch.device, volume, tf, *, subset: bool = True) -> Timed:
     """A fit step of one subset (K SIRENs jointly), or (`subset` False) preoptimize's single-light step."""
     from diffshadow.fit import FitConfig, SubsetFit
@@ -146,11 +156,7 @@ def fit_siren(cfg: dict, device: torch.device, volume, tf, *, subset: bool = Tru
     if not subset:
         fit = replace(fit, lr=float(cfg["preoptimize"]["lr"]))
     run = SubsetFit(init, layout, siren, volume, tf, lights, fit, pool=pool, device=device, log=lambda m: None)
-    graphed = ""
-    if run.graphs is not None:  # the eager warm-up and the capture, before any step is timed
-        for i in range(run.graphs.warmup + 1):
-            run.step(i)
-        graphed = "; CUDA graph"
+    graphed = _captured(run.graphs, run.step)
     if subset:
         jobs = math.ceil(n_lights / int(cfg["subset_size"]))
         return Timed(run.step, f"step of {k} SIRENs{graphed}", fit.steps,
@@ -173,12 +179,7 @@ def train_data_inr(cfg: dict, device: torch.device, volume, tf) -> Timed:
     def step(i: int) -> torch.Tensor:
         return run.step(i + 1 + (i // max(1, dcfg.error_every - 1)))
 
-    graphed = ""
-    if run.graphs is not None:  # the eager warm-up and the capture, before any step is timed
-        for i in range(run.graphs.warmup + 1):
-            step(i)
-        graphed = "; CUDA graph"
-    return Timed(step, f"step of {dcfg.points} points{graphed}",
+    return Timed(step, f"step of {dcfg.points} points{_captured(run.graphs, step)}",
                  dcfg.steps, f"{dcfg.steps} steps at data_inr.width (capacity growth and voxel rescoring not counted)")
 
 
@@ -236,13 +237,11 @@ def train_diffusion(cfg: dict, device: torch.device, volume, tf) -> Timed:
         return train_batch(model, opt, ema, std, on_device, z_all, pool, batch, dcfg, schedule, nonfinite, 0, i,
                            graphs)
 
-    if graphs is not None:  # the eager warm-up and the capture, before any step is timed
-        for i in range(graphs.warmup + 1):
-            step(i)
+    graphed = _captured(graphs, step)
     grows = dcfg.target_gap > 0 and dcfg.max_epochs > dcfg.epochs
     epochs = dcfg.max_epochs if grows else dcfg.epochs
     return Timed(step, f"step of {dcfg.batch_size} lights ({model.n_params():,}-parameter '{dcfg.preset}' model"
-                 f"{_products(dcfg)}{'; CUDA graph' if graphs is not None else ''})",
+                 f"{_products(dcfg)}{graphed})",
                  per_epoch * epochs, f"{per_epoch} steps per epoch x {epochs} epochs"
                  + (" (max_epochs: the gap check may stop sooner)" if grows else ""))
 
