@@ -101,9 +101,12 @@ def _ddp_worker(rank, world, port, data, state, out_dir):
     # teardown; without one, gloo can abort a rank whose peer is still writing ("terminate called
     # without an active exception")
     import os
+    import warnings
 
     from diffshadow.runtime import CPU, distributed
 
+    # PyTorch's deprecations would reach every fine-tuning log (2.13 renamed DDP's buffer switch): here they fail
+    warnings.simplefilter("error", FutureWarning)
     os.environ.update(RANK=str(rank), LOCAL_RANK=str(rank), WORLD_SIZE=str(world), MASTER_ADDR="127.0.0.1",
                       MASTER_PORT=str(port))
     torch.set_num_threads(1)

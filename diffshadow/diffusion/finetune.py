@@ -17,6 +17,7 @@ DDP's gradient average equals the single-process gradient of the same global bat
 from __future__ import annotations
 
 import hashlib
+import inspect
 import json
 import math
 import time
@@ -74,6 +75,13 @@ class FinetuneConfig:
 
 
 # -------------------------------------------------------------------------------------------- training
+
+# The model's only buffers are index tables derived from the SIREN layout, the same on every rank: DDP need not
+# sync them before each forward. PyTorch 2.13 renamed the switch (the old name warns in every fine-tuning log);
+# 2.3-2.12 know only the old one.
+NO_BUFFER_SYNC = ({"forward_sync_buffers": False}
+                  if "forward_sync_buffers" in inspect.signature(torch.nn.parallel.DistributedDataParallel).parameters
+                  else {"broadcast_buffers": False})
 
 
 @dataclass
@@ -319,10 +327,8 @@ def finetune(geometry_state: dict, data: FinetuneData, cfg: FinetuneConfig, chec
     if world > 1:
         from torch.nn.parallel import DistributedDataParallel
 
-        # the model's only buffers are index tables derived from the SIREN layout, the same on every rank: no
-        # broadcast of them before each forward
         model = DistributedDataParallel(base, device_ids=[device.index] if device.type == "cuda" else None,
-                                        broadcast_buffers=False)
+                                        **NO_BUFFER_SYNC)
     schedule = Schedule()
     z_all = std.standardize(data.train.weights).float().to(device)
     data = data.to(device)  # the training set on the device once, not per step
