@@ -303,3 +303,27 @@ def test_view_takes_the_runs_render_section_under_its_flags(tmp_path, capsys):
     assert "no run config for scene 'elsewhere'" in capsys.readouterr().err
     # a folder that is not there: the viewer's error alone says so, not a line about its config first
     assert render(str(tmp_path / "results" / "missing")) == {} and capsys.readouterr().err == ""
+
+
+def test_a_torch_command_ends_without_pythons_teardown_once_its_output_is_written(tmp_path):
+    """`run`, the console command: after a command that used PyTorch succeeds, the process ends at once (atexit
+    handlers do not run), its output in place and its lines printed; a failed command, and one that never imported
+    PyTorch, end the normal way."""
+    import subprocess
+    import sys
+
+    code = "import atexit; atexit.register(lambda: print('teardown ran')); from diffshadow.cli import run; run()"
+
+    def command(*argv):
+        return subprocess.run([sys.executable, "-c", code, *argv], capture_output=True, text=True)
+
+    scene = str(REPO / "config/scenes/nucleon.yaml")
+    rendered = command("render", "--scene-config", scene, "--mode", "noshadow", "--size", "16", "--out",
+                       str(tmp_path / "a.png"))
+    assert rendered.returncode == 0, rendered.stderr
+    assert (tmp_path / "a.png").exists() and "wrote" in rendered.stdout and "teardown ran" not in rendered.stdout
+    failed = command("render", "--scene-config", str(tmp_path / "none.yaml"), "--out", str(tmp_path / "b.png"))
+    assert failed.returncode == 2 and "none.yaml" in failed.stderr and "teardown ran" in failed.stdout
+    lights = command("lights", "--sphere", "64", "--count", "8", "--center", "0", "0", "1", "--unseen", "2",
+                     "--out", str(tmp_path / "lights.json"))
+    assert lights.returncode == 0 and "teardown ran" in lights.stdout, lights.stderr
