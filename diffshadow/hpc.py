@@ -50,6 +50,46 @@ def gpu_possible(flag: str | None = None, config: str | None = None) -> bool:
     return spec != "auto" or any(os.path.exists(f) for f in GPU_DRIVER_FILES)
 
 
+# where NVIDIA's driver lists the GPUs this machine (or container) has: one folder each in NVIDIA_GPUS, one device
+# node each (nvidia0, nvidia1, ...) in DEVICE_NODES
+NVIDIA_GPUS = "/proc/driver/nvidia/gpus"
+DEVICE_NODES = "/dev"
+ROCM_DRIVER = "/dev/kfd"
+
+
+def torch_has_cuda() -> bool:
+    """Whether the installed PyTorch is a CUDA build (its CUDA library is there), answered without importing it."""
+    import importlib.util
+
+    spec = importlib.util.find_spec("torch")
+    return bool(spec and spec.submodule_search_locations and
+                any((Path(d) / "lib" / "libtorch_cuda.so").exists() for d in spec.submodule_search_locations))
+
+
+def visible_nvidia_gpus() -> int | None:
+    """How many NVIDIA GPUs PyTorch would count here (`torch.cuda.device_count()`), answered without importing it:
+    the driver's GPUs (its folders and device nodes, the fewer: a container may see only some nodes), through
+    CUDA_VISIBLE_DEVICES as CUDA reads a list of indices (up to the first one out of range). None where only
+    PyTorch can tell: a CPU build of PyTorch, no NVIDIA driver, an AMD one beside it, GPUs named by UUID or MIG
+    instance, an index given twice."""
+    if not torch_has_cuda() or not os.path.isdir(NVIDIA_GPUS) or os.path.exists(ROCM_DRIVER):
+        return None
+    nodes = sum(1 for name in os.listdir(DEVICE_NODES) if name.startswith("nvidia") and name[6:].isdigit())
+    n = min(len(os.listdir(NVIDIA_GPUS)), nodes)
+    visible = os.environ.get("CUDA_VISIBLE_DEVICES")
+    if visible is None:
+        return n
+    ids = [v.strip() for v in visible.split(",")] if visible.strip() else []
+    if not all(v.lstrip("-").isdigit() for v in ids) or len(set(ids)) != len(ids):
+        return None
+    count = 0
+    for v in ids:
+        if not 0 <= int(v) < n:
+            break
+        count += 1
+    return count
+
+
 def ddp_processes(requested: int, gpus: int | None) -> tuple[int, str]:
     """How many DDP processes to launch for `requested`, given the GPUs visible (None: the device is the CPU), and a
     one-line reason: on CUDA one process per visible GPU at most (NCCL cannot put two ranks on one GPU); on CPU as

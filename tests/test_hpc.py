@@ -358,6 +358,69 @@ def test_ddp_processes_caps_ranks_at_the_visible_gpus_and_asks_torch_only_where_
     assert hpc.gpu_possible() and hpc.gpu_possible(None, "auto") and not hpc.gpu_possible(None, "cpu")
 
 
+def fake_nvidia_machine(root, monkeypatch, gpus: int, nodes: int, *, cuda_build: bool = True, rocm: bool = False):
+    import diffshadow.hpc as hpc
+
+    (root / "gpus").mkdir(parents=True)
+    (root / "dev").mkdir()
+    for i in range(gpus):
+        (root / "gpus" / f"0000:{i:02x}:00.0").mkdir()
+    for name in [f"nvidia{i}" for i in range(nodes)] + ["nvidiactl", "nvidia-uvm", "null"]:
+        (root / "dev" / name).touch()
+    monkeypatch.setattr(hpc, "NVIDIA_GPUS", str(root / "gpus"))
+    monkeypatch.setattr(hpc, "DEVICE_NODES", str(root / "dev"))
+    monkeypatch.setattr(hpc, "ROCM_DRIVER", str(root / ("dev/null" if rocm else "no-kfd")))
+    monkeypatch.setattr(hpc, "torch_has_cuda", lambda: cuda_build)
+
+
+@pytest.mark.parametrize("visible, count", [(None, 4), ("1", 1), ("3,0", 2), ("0,5,1", 1), ("-1,0", 0), ("", 0),
+                                            ("GPU-8f3e2a", None), ("MIG-1", None), ("0,0", None)])
+def test_the_driver_counts_visible_gpus_as_cuda_reads_cuda_visible_devices(tmp_path, monkeypatch, visible, count):
+    """As `torch.cuda.device_count()`: a list of indices up to the first one out of range; names only PyTorch can
+    resolve say None (tests/gpu checks the two against each other on a real GPU)."""
+    import diffshadow.hpc as hpc
+
+    fake_nvidia_machine(tmp_path, monkeypatch, gpus=4, nodes=4)
+    if visible is None:
+        monkeypatch.delenv("CUDA_VISIBLE_DEVICES", raising=False)
+    else:
+        monkeypatch.setenv("CUDA_VISIBLE_DEVICES", visible)
+    assert hpc.visible_nvidia_gpus() == count
+
+
+def test_the_driver_count_is_none_where_only_torch_can_tell(tmp_path, monkeypatch):
+    import diffshadow.hpc as hpc
+
+    monkeypatch.delenv("CUDA_VISIBLE_DEVICES", raising=False)
+    fake_nvidia_machine(tmp_path / "container", monkeypatch, gpus=8, nodes=2)
+    assert hpc.visible_nvidia_gpus() == 2  # a container with 2 of the host's 8 GPUs' device nodes
+    for name, kwargs in (("cpu", {"cuda_build": False}), ("rocm", {"rocm": True})):
+        fake_nvidia_machine(tmp_path / name, monkeypatch, gpus=2, nodes=2, **kwargs)
+        assert hpc.visible_nvidia_gpus() is None, name
+    monkeypatch.setattr(hpc, "NVIDIA_GPUS", str(tmp_path / "no-driver"))
+    assert hpc.visible_nvidia_gpus() is None
+
+
+def test_the_ddp_helper_takes_the_drivers_count_without_asking_torch(tmp_path, monkeypatch, capsys):
+    import diffshadow.cli as cli
+
+    fake_nvidia_machine(tmp_path, monkeypatch, gpus=2, nodes=2)
+    monkeypatch.delenv("CUDA_VISIBLE_DEVICES", raising=False)
+    monkeypatch.delenv("DIFFSHADOW_DEVICE", raising=False)
+
+    def no_torch(_):
+        raise AssertionError("the device was resolved through torch")
+
+    monkeypatch.setattr(cli, "_device", no_torch)
+    monkeypatch.setattr("diffshadow.hpc.gpu_possible", lambda *_: True)
+    cli.main(["ddp-processes", "--nproc", "4"])
+    out = capsys.readouterr()
+    assert out.out.strip() == "2" and "finetune.nproc is 4 but 2 GPU(s) are visible" in out.err
+    monkeypatch.setenv("CUDA_VISIBLE_DEVICES", "")  # no GPU visible: torch decides (here: the CPU)
+    with pytest.raises(AssertionError, match="through torch"):
+        cli.main(["ddp-processes", "--nproc", "4"])
+
+
 @pytest.mark.skipif(any(os.path.exists(f) for f in GPU_DRIVER_FILES),
                     reason="a GPU driver is here: the helper must ask torch")
 def test_the_ddp_helper_starts_without_torch_where_no_gpu_can_be():

@@ -420,3 +420,19 @@ def test_peak_memory_on_cuda_is_the_most_bytes_a_call_ever_held():
     held = torch.empty(1 << 22, device=CUDA)  # noqa: F841 (the caller's, before the call)
     assert peak_bytes(allocate_and_free, CUDA) == 16 << 20
     assert op_counts(allocate_and_free, memory=CUDA)["peak_bytes"] == 16 << 20
+
+
+@pytest.mark.parametrize("visible", [None, "0", "0,0"])
+def test_the_drivers_gpu_count_is_torchs(visible):
+    """finetune_render's `ddp-processes` counts the GPUs from the driver, without PyTorch (hpc.visible_nvidia_gpus):
+    where it answers, torch.cuda.device_count() in a fresh process with the same CUDA_VISIBLE_DEVICES agrees."""
+    env = {k: v for k, v in os.environ.items() if k != "CUDA_VISIBLE_DEVICES"}
+    if visible is not None:
+        env["CUDA_VISIBLE_DEVICES"] = visible
+    code = "import torch; from diffshadow.hpc import visible_nvidia_gpus as v; print(v(), torch.cuda.device_count())"
+    ours, torchs = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True,
+                                  check=True).stdout.split()
+    if visible == "0,0":
+        assert ours == "None"  # an index twice: only PyTorch can tell
+    else:
+        assert ours == torchs, (visible, ours, torchs)
