@@ -71,7 +71,8 @@ def visible_nvidia_gpus() -> int | None:
     the driver's GPUs (its folders and device nodes, the fewer: a container may see only some nodes), through
     CUDA_VISIBLE_DEVICES as CUDA reads a list of indices (up to the first one out of range). None where only
     PyTorch can tell: a CPU build of PyTorch, no NVIDIA driver, an AMD one beside it, GPUs named by UUID or MIG
-    instance, an index given twice."""
+    instance, an index given twice. A count too high (a GPU CUDA cannot start) is caught by the ranks:
+    `runtime.distributed` runs them on the CPU, saying so."""
     if not torch_has_cuda() or not os.path.isdir(NVIDIA_GPUS) or os.path.exists(ROCM_DRIVER):
         return None
     nodes = sum(1 for name in os.listdir(DEVICE_NODES) if name.startswith("nvidia") and name[6:].isdigit())
