@@ -109,13 +109,19 @@ def per_token_reference(model: WeightTransformer, x, t, light) -> torch.Tensor:
 @pytest.mark.parametrize("batch", [1, 5])
 def test_batched_token_maps_are_each_tokens_own_linear_map(batch):
     """Tokens of one size share a batched product: the same outputs and gradients as a linear map per token (to
-    float32 rounding: another summation order), and the checkpoint keeps one map per token."""
+    float32 rounding: another summation order), and the checkpoint keeps one map per token. A gradient entry that
+    sums terms of both signs can differ by more than 1e-4 of itself, so each tensor is compared at its own scale:
+    over 400 random models (1 and 2 threads) the largest difference was 4e-6 of the tensor's largest entry, and
+    2.5-5 % of those models failed an entry-by-entry rtol of 1e-4 (the whole suite once drew one: its global
+    random state seeded the model)."""
     from diffshadow.diffusion.model import PRESETS
     cfg = dataclasses.replace(PRESETS["tiny"], n_embd=16, tensor_tokens=4)
-    model = WeightTransformer(LAYOUT, cfg)
+    with torch.random.fork_rng():
+        torch.manual_seed(0)
+        model = WeightTransformer(LAYOUT, cfg)
+        for p in model.token_out:
+            torch.nn.init.normal_(p.weight, std=0.02)
     assert len({s for s, _ in model.groups}) < len(model.sizes)  # some sizes repeat: batched products do occur
-    for p in model.token_out:
-        torch.nn.init.normal_(p.weight, std=0.02)
     gen = torch.Generator().manual_seed(0)
     x, light = torch.randn(batch, LAYOUT.n_params, generator=gen), torch.randn(batch, 3, generator=gen)
     t = torch.randint(0, 500, (batch,), generator=gen)
@@ -127,7 +133,7 @@ def test_batched_token_maps_are_each_tokens_own_linear_map(batch):
         grads.append((out.detach(), [p.grad for p in model.parameters()]))
     (a, ga), (b, gb) = grads
     assert torch.allclose(a, b, rtol=1e-5, atol=1e-6)
-    assert all(torch.allclose(u, v, rtol=1e-4, atol=1e-6) for u, v in zip(ga, gb, strict=True))
+    assert all(float((u - v).abs().max()) <= 1e-5 * float(v.abs().max()) for u, v in zip(ga, gb, strict=True))
     keys = model.state_dict().keys()
     assert {f"token_in.{i}.weight" for i in range(len(model.sizes))} <= keys and not any("_cols" in k for k in keys)
 
