@@ -1,5 +1,6 @@
-"""Running on HPC systems: a node-local GPU lock, the PBS job state for Snakemake, the profiles' install, the
-name of the device a figure was measured on.
+"""Running on HPC systems: the environment every job runs in, a node-local GPU lock, the PBS job state for
+Snakemake, the profiles' install, the name of the device a figure was measured on. Nothing here imports PyTorch:
+the Snakefile imports this module in Snakemake's process and, on PBS, once more in every job's.
 
 Snakemake does not assign GPU ids inside a node (snakemake issue #281). When several single-GPU jobs share
 a node (Polaris packs four `fit_siren` jobs per node), each job claims a GPU by taking an exclusive
@@ -30,6 +31,23 @@ _held: list[int] = []  # open lock file descriptors, kept for the life of the pr
 
 # what a GPU build of PyTorch needs to see a GPU: NVIDIA's driver, AMD's (ROCm), WSL's GPU bridge
 GPU_DRIVER_FILES = ("/proc/driver/nvidia", "/dev/kfd", "/dev/dxg")
+
+
+# The environment every job runs in, set by the workflow (workflow/rules/common.smk) and the Parsl configs, not
+# by the library. MKL (PyTorch's CPU BLAS on x86) splits a long matrix product's inner sum across threads, so by
+# default its last bits depend on the thread count: sample-shadows rerun with other threads wrote other bytes.
+# Strict conditional numerical reproducibility fixes the split and keeps the fastest code path (docs/numerics.md);
+# MKL reads it at its first call. A user's own MKL_CBWR wins.
+JOB_ENVIRONMENT = {"MKL_CBWR": "AUTO,STRICT"}
+
+
+def kernel_cache_environment(root: str | os.PathLike) -> dict[str, str]:
+    """Where a run's jobs keep compiled kernels, so that no job recompiles what an earlier one compiled: Triton's
+    cache (the fused renderer kernels) and inductor's (torch.compile), both under `root` (the workflow passes
+    `results/.kernel-cache`, an absolute path on the file system every node of a PBS run shares; inductor's own
+    default is node-local /tmp). A user's own TRITON_CACHE_DIR or TORCHINDUCTOR_CACHE_DIR wins."""
+    root = os.path.abspath(root)
+    return {"TRITON_CACHE_DIR": os.path.join(root, "triton"), "TORCHINDUCTOR_CACHE_DIR": os.path.join(root, "inductor")}
 
 
 def device_setting(flag: str | None = None, config: str | None = None) -> tuple[str, str]:

@@ -11,6 +11,11 @@ import numpy as np
 from diffshadow.io import atomic_path, atomic_write_text
 
 
+def shading_name(phong: bool) -> str:
+    """How the image modes shade a sample (what a report states beside image metrics)."""
+    return "Blinn-Phong" if phong else "unlit (colour x (0.1 + 0.9 g))"
+
+
 def save_figure(path: Path, fig) -> None:
     """A figure as a PNG, written atomically, then closed."""
     with atomic_path(path, suffix=".png") as tmp:

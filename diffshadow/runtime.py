@@ -51,14 +51,6 @@ def start_device(device: torch.device) -> torch.device:
     return device
 
 
-# The environment every job runs in, set by the workflow (workflow/rules/common.smk) and the Parsl configs, not
-# by the library. MKL (PyTorch's CPU BLAS on x86) splits a long matrix product's inner sum across threads, so by
-# default its last bits depend on the thread count: sample-shadows rerun with other threads wrote other bytes.
-# Strict conditional numerical reproducibility fixes the split and keeps the fastest code path (docs/numerics.md);
-# MKL reads it at its first call. A user's own MKL_CBWR wins.
-JOB_ENVIRONMENT = {"MKL_CBWR": "AUTO,STRICT"}
-
-
 M_TRIM_THRESHOLD, M_MMAP_THRESHOLD = -1, -3  # glibc's mallopt parameters (malloc.h)
 
 
@@ -87,15 +79,6 @@ def keep_freed_memory() -> bool:
     if any(key.startswith("MALLOC_") or key == "GLIBC_TUNABLES" for key in os.environ):
         return False
     return mallopt({M_TRIM_THRESHOLD: 1 << 30, M_MMAP_THRESHOLD: 1 << 30})
-
-
-def kernel_cache_environment(root: str | os.PathLike) -> dict[str, str]:
-    """Where a run's jobs keep compiled kernels, so that no job recompiles what an earlier one compiled: Triton's
-    cache (the fused renderer kernels) and inductor's (torch.compile), both under `root` (the workflow passes
-    `results/.kernel-cache`, an absolute path on the file system every node of a PBS run shares; inductor's own
-    default is node-local /tmp). A user's own TRITON_CACHE_DIR or TORCHINDUCTOR_CACHE_DIR wins."""
-    root = os.path.abspath(root)
-    return {"TRITON_CACHE_DIR": os.path.join(root, "triton"), "TORCHINDUCTOR_CACHE_DIR": os.path.join(root, "inductor")}
 
 
 DETERMINISTIC_VALUES = {"": False, "0": False, "false": False, "no": False, "off": False,

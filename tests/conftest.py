@@ -13,7 +13,7 @@ if not torch.cuda.is_available():
     # the fused SIREN's kernel runs through Triton's interpreter in tests/test_fused.py
     os.environ.setdefault("TRITON_INTERPRET", "1")
 
-from diffshadow.runtime import JOB_ENVIRONMENT
+from diffshadow.hpc import JOB_ENVIRONMENT
 from diffshadow.siren import Siren, SirenConfig
 from diffshadow.transfer import TransferFunction
 

@@ -4,7 +4,7 @@ from parsl.config import Config
 from parsl.executors import HighThroughputExecutor
 from parsl.providers import LocalProvider
 
-from diffshadow.runtime import JOB_ENVIRONMENT
+from diffshadow.hpc import JOB_ENVIRONMENT
 
 # the job environment the workflow gives its jobs (MKL's strict mode), a user's own setting kept
 _exports = "; ".join(f"export {k}=${{{k}:-{v}}}" for k, v in JOB_ENVIRONMENT.items())

@@ -10,7 +10,7 @@ from parsl.executors import HighThroughputExecutor
 from parsl.launchers import MpiExecLauncher
 from parsl.providers import PBSProProvider
 
-from diffshadow.runtime import JOB_ENVIRONMENT
+from diffshadow.hpc import JOB_ENVIRONMENT
 
 config = Config(
     executors=[HighThroughputExecutor(

@@ -24,11 +24,10 @@ from diffshadow.render.marcher import (
     front_to_back,
     render,
     render_all_at_once,
-    shading_name,
 )
 from diffshadow.render.scene import KERNELS, MODES, Networks, RenderScene, write_png
 
 __all__ = ["BACKGROUND", "DEFAULT_STEP", "KERNELS", "MIN_TRANSMITTANCE", "MODES", "RENDER_CELL", "Camera", "Counters",
            "GridScalar", "GridShadow", "Image", "InrScalar", "MacroGrid", "MarchPlan", "MarchedShadow", "Networks",
            "RenderError", "RenderScene", "Runs", "Shading", "SirenShadow", "default_views", "fibonacci_views",
-           "front_to_back", "render", "render_all_at_once", "shading_name", "write_png"]
+           "front_to_back", "render", "render_all_at_once", "write_png"]

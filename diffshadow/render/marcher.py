@@ -149,11 +149,6 @@ def _whole_rays(o, d, t0, t1, dt: float, macro: MacroGrid | None, plan: MarchPla
     return tiles, int(samples), int(slots)  # the frame's only host reads, at its end
 
 
-def shading_name(phong: bool) -> str:
-    """How the image modes shade a sample (what a report states beside image metrics)."""
-    return "Blinn-Phong" if phong else "unlit (colour x (0.1 + 0.9 g))"
-
-
 @dataclass
 class Shading:
     phong: bool = False

@@ -16,9 +16,10 @@ from diffshadow.evaluate import naive_images as render_naive
 from diffshadow.io import atomic_write_text, finite_json
 from diffshadow.lights import read_lights
 from diffshadow.metrics import lpips_model, ms_ssim_status
-from diffshadow.render import Camera, RenderScene, default_views, fibonacci_views, shading_name, write_png
+from diffshadow.render import Camera, RenderScene, default_views, fibonacci_views, write_png
 from diffshadow.render.bundle import build_bundle
 from diffshadow.render.bundle import render_targets as targets
+from diffshadow.report import shading_name
 from diffshadow.store import BlendSampler, open_store
 from diffshadow.volume import load_prepared
 

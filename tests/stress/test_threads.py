@@ -7,7 +7,7 @@ import sys
 import pytest
 import torch
 
-from diffshadow.runtime import JOB_ENVIRONMENT
+from diffshadow.hpc import JOB_ENVIRONMENT
 
 pytestmark = pytest.mark.stress
 
@@ -16,7 +16,7 @@ pytestmark = pytest.mark.stress
 PRODUCT = """
 import torch
 
-from diffshadow.runtime import JOB_ENVIRONMENT
+from diffshadow.hpc import JOB_ENVIRONMENT
 {first}
 torch.manual_seed(0)
 a, b = torch.randn(64, 32768), torch.randn(32768, 64)

@@ -5,10 +5,10 @@ import json
 from diffshadow.config import ConfigError as _ConfigError
 from diffshadow.config import as_json as _as_json
 from diffshadow.config import scene_config as _scene_config
+from diffshadow.hpc import JOB_ENVIRONMENT as _JOB_ENVIRONMENT
+from diffshadow.hpc import kernel_cache_environment as _kernel_cache_environment
 from diffshadow.lights import n_subsets as _n_subsets
-from diffshadow.render import shading_name as _shading_name
-from diffshadow.runtime import JOB_ENVIRONMENT as _JOB_ENVIRONMENT
-from diffshadow.runtime import kernel_cache_environment as _kernel_cache_environment
+from diffshadow.report import shading_name as _shading_name
 from diffshadow.volume import resolve_path as _resolve_path
 
 _SCENES = {}
