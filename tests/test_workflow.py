@@ -357,6 +357,29 @@ def test_a_fit_below_the_psnr_floor_is_refused_and_not_stored(finished, tmp_path
     assert "Traceback" not in proc.stderr and not out.exists() and not list(tmp_path.iterdir())
 
 
+PARSE_ONLY = """
+import runpy, sys
+sys.argv = ["snakemake", *sys.argv[1:]]
+try:
+    runpy.run_module("snakemake", run_name="__main__", alter_sys=True)
+except SystemExit as done:
+    assert not done.code, done.code
+print("torch imported:", "torch" in sys.modules)
+"""
+
+
+def test_parsing_the_workflow_does_not_import_torch(tmp_path):
+    """Snakemake parses the Snakefile in its own process and, on PBS, once more in every job before the job's
+    command starts: importing PyTorch there cost 2.5 s a parse here (4.7 against 2.2 s for a dry run)."""
+    cfg = tmp_path / "tiny.yaml"
+    cfg.write_text(yaml.safe_dump(TINY))
+    proc = subprocess.run([sys.executable, "-c", PARSE_ONLY, "-s", str(REPO / "Snakefile"), "--directory",
+                           str(tmp_path), "--configfile", str(cfg), "--cores", "1", "-n", "-q"],
+                          capture_output=True, text=True, timeout=300)
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    assert "torch imported: False" in proc.stdout, proc.stdout[-2000:]
+
+
 def test_config_typo_fails_before_any_job(tmp_path):
     bad = {**TINY, "fit": {**TINY["fit"], "stpes": 3}}
     proc = snakemake(tmp_path, "-n", config=bad, check=False)
