@@ -80,7 +80,8 @@ cat "$out/machine.txt"
 
 case $part in
 checks)
-    step pytest_gpu pytest -q -m gpu -rs --durations=10 ${PYTEST_K:+-k "$PYTEST_K"}
+    # the GPU checks are one file: one process, without the thread share the parallel suite gives its workers
+    step pytest_gpu pytest -q -n 0 -m gpu -rs --durations=10 ${PYTEST_K:+-k "$PYTEST_K"}
     ;;
 stages)
     paper=(--configfile config/paper.yaml --budget 3 --max-steps 20)
@@ -180,7 +181,7 @@ graph)
             done
         done
     done
-    step pytest_graph pytest -q -m gpu -rs -k graph
+    step pytest_graph pytest -q -n 0 -m gpu -rs -k graph
     ;;
 stage1)
     # stage 1 alone at 512 training lights, at the paper's cap fraction (a quarter of the sphere)

@@ -90,3 +90,25 @@ def default_device_meta():
         torch.set_default_device(None)
         for hook in hooks:
             hook.remove()
+
+
+def _cores() -> int:
+    return len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1
+
+
+def pytest_configure(config) -> None:
+    """pytest-xdist (the `-n` in pyproject.toml) runs test files in parallel processes. PyTorch's OpenMP threads spin
+    while they wait for each other, so two processes of 2 threads each on 2 cores can stall each other: a loop of
+    small products took 6-146 s instead of 1.5 s (docs/performance.md, "The test suite"). Each worker, and every
+    process it starts, gets its share of the cores, unless the user set OMP_NUM_THREADS."""
+    workers = int(os.environ.get("PYTEST_XDIST_WORKER_COUNT", "1"))
+    if workers > 1 and "OMP_NUM_THREADS" not in os.environ:
+        share = max(1, _cores() // workers)
+        os.environ["OMP_NUM_THREADS"] = str(share)
+        torch.set_num_threads(share)
+
+
+def pytest_xdist_auto_num_workers(config) -> int:
+    """What `-n auto` means: a worker per core, at most 4. The longest test file (tests/test_workflow.py, its
+    Snakemake runs one after another) bounds the suite's time whatever the number of workers."""
+    return max(1, min(4, _cores()))
