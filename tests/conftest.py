@@ -92,7 +92,8 @@ def default_device_meta():
             hook.remove()
 
 
-def _cores() -> int:
+def cores() -> int:
+    """The cores this process may run on."""
     return len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1
 
 
@@ -103,7 +104,7 @@ def pytest_configure(config) -> None:
     process it starts, gets its share of the cores, unless the user set OMP_NUM_THREADS."""
     workers = int(os.environ.get("PYTEST_XDIST_WORKER_COUNT", "1"))
     if workers > 1 and "OMP_NUM_THREADS" not in os.environ:
-        share = max(1, _cores() // workers)
+        share = max(1, cores() // workers)
         os.environ["OMP_NUM_THREADS"] = str(share)
         torch.set_num_threads(share)
 
@@ -111,4 +112,4 @@ def pytest_configure(config) -> None:
 def pytest_xdist_auto_num_workers(config) -> int:
     """What `-n auto` means: a worker per core, at most 4. The longest test file (tests/test_workflow.py, its
     Snakemake runs one after another) bounds the suite's time whatever the number of workers."""
-    return max(1, min(4, _cores()))
+    return max(1, min(4, cores()))

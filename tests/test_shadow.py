@@ -239,11 +239,13 @@ def test_same_input_same_bytes_in_separate_processes(method, tmp_path):
     import subprocess
     import sys
 
-    # a thread per core in the first (named: a pytest-xdist worker's processes get their share, tests/conftest.py)
-    cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1
+    from conftest import cores
+
+    # a thread per core in the first, named (a pytest-xdist worker's processes get their share: tests/conftest.py)
+    n = str(cores())
     runs = [subprocess.run([sys.executable, "-c", SAME_BYTES, method, str(tmp_path / f"{i}.npy")],
                            capture_output=True, text=True, check=True, env={**os.environ, **env}).stdout.split()
-            for i, env in enumerate(({"OMP_NUM_THREADS": str(cores), "MKL_NUM_THREADS": str(cores)},
+            for i, env in enumerate(({"OMP_NUM_THREADS": n, "MKL_NUM_THREADS": n},
                                      {"OMP_NUM_THREADS": "1", "MKL_NUM_THREADS": "1"}))]
     assert len(runs[0][0]) == 64
     if runs[0][0] != runs[1][0]:
