@@ -100,8 +100,8 @@ def cores() -> int:
 def pytest_configure(config) -> None:
     """pytest-xdist (the `-n` in pyproject.toml) runs test files in parallel processes. PyTorch's OpenMP threads spin
     while they wait for each other, so two processes of 2 threads each on 2 cores can stall each other: a loop of
-    small products took 6-146 s instead of 1.5 s (docs/performance.md, "The test suite"). Each worker, and every
-    process it starts, gets its share of the cores, unless the user set OMP_NUM_THREADS."""
+    small products took 9-76 s a process against 2.5-3.9 s alone (docs/performance.md, "The test suite"). Each
+    worker, and every process it starts, gets its share of the cores, unless the user set OMP_NUM_THREADS."""
     workers = int(os.environ.get("PYTEST_XDIST_WORKER_COUNT", "1"))
     if workers > 1 and "OMP_NUM_THREADS" not in os.environ:
         share = max(1, cores() // workers)

@@ -5,7 +5,7 @@ import warnings
 import numpy as np
 import pytest
 import torch
-from conftest import default_device_meta, identity_tf
+from conftest import cores, default_device_meta, identity_tf
 
 from diffshadow import shadow as shadow_module
 from diffshadow.analytic import BLOB_DENSITY as K
@@ -238,8 +238,6 @@ def test_same_input_same_bytes_in_separate_processes(method, tmp_path):
     import os
     import subprocess
     import sys
-
-    from conftest import cores
 
     # a thread per core in the first, named (a pytest-xdist worker's processes get their share: tests/conftest.py)
     n = str(cores())

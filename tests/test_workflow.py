@@ -39,7 +39,10 @@ TINY = {
 }
 
 
-def snakemake(workdir: Path, *args: str, config: dict = TINY, check: bool = True) -> subprocess.CompletedProcess:
+def snakemake(workdir: Path, *args: str, config: dict = TINY, check: bool = True,
+              runner: tuple[str, ...] = ("-m", "snakemake")) -> subprocess.CompletedProcess:
+    """Snakemake on the tiny config in `workdir`; `runner` is what follows the interpreter (a script that runs
+    Snakemake in its own process and inspects it, for one)."""
     cfg = workdir / "tiny.yaml"
     cfg.write_text(yaml.safe_dump(config))
     env = {**os.environ, "PATH": f"{installed('diffshadow').parent}{os.pathsep}{os.environ['PATH']}"}
@@ -49,7 +52,7 @@ def snakemake(workdir: Path, *args: str, config: dict = TINY, check: bool = True
         env["DIFFSHADOW_DETERMINISTIC"] = "1"
     # a GPU machine's jobs wait mostly on starting PyTorch and CUDA (4-5 s each on the H200): four at a time there
     cores = "4" if CUDA and (os.cpu_count() or 1) >= 4 else "2"
-    cmd = [sys.executable, "-m", "snakemake", "-s", str(REPO / "Snakefile"), "--directory", str(workdir),
+    cmd = [sys.executable, *runner, "-s", str(REPO / "Snakefile"), "--directory", str(workdir),
            "--configfile", str(cfg), "--cores", cores, *args]
     proc = subprocess.run(cmd, env=env, capture_output=True, text=True, timeout=600)
     if check and proc.returncode != 0:
@@ -371,12 +374,7 @@ print("torch imported:", "torch" in sys.modules)
 def test_parsing_the_workflow_does_not_import_torch(tmp_path):
     """Snakemake parses the Snakefile in its own process and, on PBS, once more in every job before the job's
     command starts: importing PyTorch there cost 2.5 s a parse here (4.7 against 2.2 s for a dry run)."""
-    cfg = tmp_path / "tiny.yaml"
-    cfg.write_text(yaml.safe_dump(TINY))
-    proc = subprocess.run([sys.executable, "-c", PARSE_ONLY, "-s", str(REPO / "Snakefile"), "--directory",
-                           str(tmp_path), "--configfile", str(cfg), "--cores", "1", "-n", "-q"],
-                          capture_output=True, text=True, timeout=300)
-    assert proc.returncode == 0, proc.stderr[-2000:]
+    proc = snakemake(tmp_path, "-n", "-q", runner=("-c", PARSE_ONLY))
     assert "torch imported: False" in proc.stdout, proc.stdout[-2000:]
 
 
