@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import functools
 import os
+import sys
 import time
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
@@ -82,9 +83,29 @@ def reset() -> None:
         _totals[key] = 0.0
 
 
+def usage() -> dict[str, float]:
+    """This process's CPU seconds (user and system, its threads and the children it waited for) and its peak
+    resident set in MiB (the largest of itself and any one such child), from the kernel's own accounting.
+    Snakemake's benchmark samples a job's processes every 30 s once it has run 15 s, so it misses a job's last
+    stretch and any peak between samples (`report.stage_costs` takes the larger of the two)."""
+    t = os.times()
+    out = {"cpu_s": t.user + t.system + t.children_user + t.children_system, "max_rss_mib": 0.0}
+    try:
+        import resource
+
+        unit = 1 if sys.platform == "darwin" else 1024  # ru_maxrss: bytes on macOS, KiB on Linux
+        peak = max(resource.getrusage(who).ru_maxrss for who in (resource.RUSAGE_SELF, resource.RUSAGE_CHILDREN))
+        out["max_rss_mib"] = peak * unit / 2**20
+    except (ImportError, OSError):  # no resource module (Windows): the peak stays unknown, 0
+        pass
+    return out
+
+
 def record(command: str) -> dict:
-    """The clock as a JSON-able record (`<phase>_s`, and `process_s`, the process's life) of `command`."""
+    """The clock as a JSON-able record (`<phase>_s`, and `process_s`, the process's life) of `command`, with the
+    process's `usage` (`cpu_s`, `max_rss_mib`)."""
     out: dict = {f"{k}_s": round(v, 3) for k, v in totals().items()}
     out["process_s"] = round(sum(out.values()), 3)
+    out.update({k: round(v, 3) for k, v in usage().items()})
     out["command"] = command
     return out

@@ -302,7 +302,8 @@ STAGE_COST_COLUMNS = ("stage", "jobs", "wall_s", "cpu_s", "max_rss_mib", *PHASE_
 def job_phases(benchmark: Path, wall: float) -> dict[str, float] | None:
     """The phases of one job (`<benchmark stem>.phases.json`, which `diffshadow --phases` writes beside its
     benchmark file), with `launch_s`: the job's wall time outside its `diffshadow` process (the shell, `tee`,
-    torchrun and its helper processes). None where the job wrote none (a job of an older run)."""
+    torchrun and its helper processes); and the process's own `cpu_s` and `max_rss_mib` where it recorded them
+    (`phases.usage`). None where the job wrote none (a job of an older run)."""
     path = Path(benchmark).with_suffix(".phases.json")
     if not path.exists():
         return None
@@ -313,12 +314,18 @@ def job_phases(benchmark: Path, wall: float) -> dict[str, float] | None:
         raise ValueError(f"{path}: expected a phases file ({', '.join(PHASE_COLUMNS[:-1])}), as written by "
                          f"diffshadow --phases") from None
     out["launch_s"] = max(0.0, wall - sum(out.values()))
+    try:
+        out.update({k: float(rec[k]) for k in ("cpu_s", "max_rss_mib") if k in rec})
+    except (ValueError, TypeError):
+        raise ValueError(f"{path}: cpu_s and max_rss_mib: expected numbers, got {rec.get('cpu_s')!r} and "
+                         f"{rec.get('max_rss_mib')!r}") from None
     return out
 
 
 def stage_costs(benchmarks: list[Path], out: Path) -> list[dict]:
     """One row per rule from Snakemake's `benchmark:` files (`<rule>.tsv`, or `<rule>_<n>.tsv` per job of a
-    fanned-out rule): jobs, summed wall and CPU seconds, the largest resident set, and where the wall time went
+    fanned-out rule): jobs, summed wall and CPU seconds, the largest resident set (each job's CPU seconds and
+    peak the larger of Snakemake's polls and the process's own record, `job_phases`), and where the wall time went
     (`job_phases`, summed over the rule's jobs; NA where a job recorded none); a total row (the sum of
     jobs' wall times, which exceeds the run's wall time where jobs overlapped); and an elapsed row, the time
     in which at least one job ran. Snakemake writes a benchmark file as its job ends, so a job ran from the
@@ -343,11 +350,15 @@ def stage_costs(benchmarks: list[Path], out: Path) -> list[dict]:
         stage = stem.rsplit("_", 1)[0] if stem.rsplit("_", 1)[-1].isdigit() else stem
         row = rows.setdefault(stage, {"stage": stage, "jobs": 0, "wall_s": 0.0, "cpu_s": 0.0, "max_rss_mib": 0.0,
                                       **dict.fromkeys(PHASE_COLUMNS, 0.0)})
+        phases = job_phases(Path(path), wall)
+        # both are lower bounds: Snakemake's polls miss a job's last stretch and peaks between polls, the process's
+        # own record misses other processes of the job (torchrun's other ranks), so the larger is the closer
+        own = phases or {}
+        cpu, rss = max(cpu, own.get("cpu_s", 0.0)), max(rss, own.get("max_rss_mib", 0.0))
         row["jobs"] += 1
         row["wall_s"] += wall
         row["cpu_s"] += cpu
         row["max_rss_mib"] = max(row["max_rss_mib"], rss)
-        phases = job_phases(Path(path), wall)
         for key in PHASE_COLUMNS:
             row[key] = None if phases is None or row[key] is None else row[key] + phases[key]
     table = sorted(rows.values(), key=lambda r: -r["wall_s"])

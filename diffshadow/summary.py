@@ -341,12 +341,12 @@ class RunResults:
                                   *(r.get(k, "NA") for k in PHASE_COLUMNS)] for r in self.costs],
                                 "Wall and CPU seconds summed over a stage's jobs; jobs that ran side by side "
                                 "overlap, so the total exceeds the run's wall time, which is the last row: the time "
-                                "in which at least one job ran. CPU seconds of short jobs are undercounted "
-                                "(Snakemake polls). Where the wall time went, per job's process: interpreter "
-                                "start and imports, device start (CUDA's context), compilation (Triton, "
-                                "torch.compile), reading and writing files (checksums included), compute (the "
-                                "rest), and launch: the job's time outside its diffshadow process (shell, "
-                                "torchrun and its helper)."))
+                                "in which at least one job ran. A job's CPU seconds and peak memory are the larger "
+                                "of Snakemake's polls and its process's own count. Where the wall time went, per "
+                                "job's process: interpreter start and imports, device start (CUDA's context), "
+                                "compilation (Triton, torch.compile), reading and writing files (checksums "
+                                "included), compute (the rest), and launch: the job's time outside its diffshadow "
+                                "process (shell, torchrun and its helper)."))
         return "".join(parts)
 
 

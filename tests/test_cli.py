@@ -249,6 +249,7 @@ def test_lights_prepare_volume_and_collect_weights_start_without_torch_and_recor
     rec = run("lights", "--sphere", "100", "--count", "4", "--center", "0", "0", "1", "--unseen", "2", "--out",
               "lights.json")
     assert rec["command"] == "lights" and rec["device_s"] == 0 and rec["import_s"] > 0
+    assert 0 < rec["cpu_s"] and 0 < rec["max_rss_mib"] < 1024  # the process's own count (phases.usage)
     assert sum(rec[f"{k}_s"] for k in ("import", "device", "compile", "io", "compute")) == pytest.approx(
         rec["process_s"], abs=0.01)
     siren = SirenConfig(width=4, blocks=1)

@@ -49,6 +49,33 @@ def test_imports_before_main_count_as_import():
     assert t["import"] > 0 and t["import"] <= phases.process_age()
 
 
+USAGE = """
+import json, sys, time
+import numpy as np
+from diffshadow import phases
+before = phases.usage()
+block = np.ones(300 * 2**20 // 8)  # 300 MiB, every page written
+del block
+end = time.process_time() + 0.5
+while time.process_time() < end:  # half a second of this process's CPU
+    pass
+print(json.dumps({"before": before, "after": phases.usage()}))
+"""
+
+
+def test_a_process_counts_its_own_cpu_seconds_and_peak_memory():
+    """A fresh process (its peak not set by other tests): 300 MiB written and freed, then half a CPU-second spun,
+    show in `usage` afterwards and not before; a freed block still counts, as the peak it was."""
+    import subprocess
+    import sys
+
+    done = subprocess.run([sys.executable, "-c", USAGE], capture_output=True, text=True, check=True)
+    rec = json.loads(done.stdout)
+    before, after = rec["before"], rec["after"]
+    assert before["max_rss_mib"] < 290 <= after["max_rss_mib"]
+    assert after["cpu_s"] - before["cpu_s"] >= 0.5
+
+
 HEADER = "s\th:m:s\tmax_rss\tmax_vms\tmax_uss\tmax_pss\tio_in\tio_out\tmean_load\tcpu_time\n"
 
 
@@ -74,3 +101,23 @@ def test_stage_costs_sum_each_rules_phases_and_the_launch_outside_its_process(tm
     (tmp_path / "fit_siren_0.phases.json").write_text("{}")
     with pytest.raises(ValueError, match=r"fit_siren_0.phases.json: expected a phases file \(import_s"):
         stage_costs(benchmarks, tmp_path / "out" / "costs.tsv")
+
+
+def test_a_jobs_cpu_seconds_and_peak_are_the_larger_of_snakemakes_polls_and_its_own_record(tmp_path):
+    """Snakemake polls every 30 s, so a 41-s job read 15 CPU-s; the process's own count misses torchrun's other
+    ranks. Each is a lower bound: the larger is taken, per job, before a rule's jobs are summed."""
+    phases_of = dict(import_s=1, device_s=0, compile_s=0, io_s=0, compute_s=8)
+    jobs = (("fit_siren_0", 15.0, 100, {"cpu_s": 38.5, "max_rss_mib": 60}),  # polls missed the end
+            ("fit_siren_1", 15.0, 700, {"cpu_s": 2.0, "max_rss_mib": 650}),  # the record missed other processes
+            ("lights", 20.0, 30, None))  # an older run's job: Snakemake's alone
+    for name, cpu, rss, own in jobs:
+        path = tmp_path / f"{name}.tsv"
+        path.write_text(HEADER + f"40.0\t0:00:40\t{rss}\t0\t0\t0\t0\t0\t0\t{cpu}\n")
+        if own:
+            (tmp_path / f"{name}.phases.json").write_text(json.dumps({**phases_of, **own}))
+    rows = {r["stage"]: r for r in stage_costs([tmp_path / f"{n}.tsv" for n, *_ in jobs], tmp_path / "costs.tsv")}
+    assert (rows["fit_siren"]["cpu_s"], rows["fit_siren"]["max_rss_mib"]) == (38.5 + 15.0, 700)
+    assert (rows["lights"]["cpu_s"], rows["lights"]["max_rss_mib"]) == (20.0, 30)
+    (tmp_path / "lights.phases.json").write_text(json.dumps({**phases_of, "cpu_s": "many"}))
+    with pytest.raises(ValueError, match=r"lights.phases.json: cpu_s and max_rss_mib: expected numbers, got 'many'"):
+        stage_costs([tmp_path / "lights.tsv"], tmp_path / "costs.tsv")

@@ -241,18 +241,21 @@ def test_same_input_same_bytes_in_separate_processes(method, tmp_path):
 
     # a thread per core in the first, named (a pytest-xdist worker's processes get their share: tests/conftest.py)
     n = str(cores())
-    runs = [subprocess.run([sys.executable, "-c", SAME_BYTES, method, str(tmp_path / f"{i}.npy")],
-                           capture_output=True, text=True, check=True, env={**os.environ, **env}).stdout.split()
+    done = [subprocess.run([sys.executable, "-c", SAME_BYTES, method, str(tmp_path / f"{i}.npy")],
+                           capture_output=True, text=True, check=True, env={**os.environ, **env})
             for i, env in enumerate(({"OMP_NUM_THREADS": n, "MKL_NUM_THREADS": n},
                                      {"OMP_NUM_THREADS": "1", "MKL_NUM_THREADS": "1"}))]
+    runs = [d.stdout.split() for d in done]
     assert len(runs[0][0]) == 64
     if runs[0][0] != runs[1][0]:
         a, b = np.load(tmp_path / "0.npy"), np.load(tmp_path / "1.npy")
         apart = np.argwhere(a != b)
         first = tuple(int(i) for i in apart[0])
+        # PyTorch falls back to its scalar kernels, other bytes, where cpuinfo fails to start: it says so on stderr
+        said = [d.stderr.strip()[-300:] or "nothing" for d in done]
         pytest.fail(f"{method}: processes (threads, vector unit, input, CPU) {runs[0][1:]} and {runs[1][1:]} differ at "
                     f"{len(apart)} of {a.size} voxels, by at most {np.abs(a - b).max():.3g}; first at (z, y, x) = "
-                    f"{first}: {float(a[first])!r} against {float(b[first])!r}")
+                    f"{first}: {float(a[first])!r} against {float(b[first])!r}; on stderr they said {said}")
 
 
 @pytest.mark.parametrize("method", ["sweep", "march"])
