@@ -57,6 +57,8 @@ CASES = [
      {"DIFFSHADOW_GPU_LOCK": "four"}, "DIFFSHADOW_GPU_LOCK: expected the number of GPUs per node"),
     ("DIFFSHADOW_DETERMINISTIC=maybe", lambda t: _render(["--volume", npy(t, "v.npy"), "--tf-json", json.dumps(TF)]),
      {"DIFFSHADOW_DETERMINISTIC": "maybe"}, "DIFFSHADOW_DETERMINISTIC: expected 0 or 1"),
+    ("an image named .jpg", lambda t: [*_render(["--volume", npy(t, "v.npy"), "--tf-json", json.dumps(TF)])[:-2],
+                                       "--out", "x.jpg"], {}, r"--out x.jpg: the image is written as a PNG"),
     ("an unknown kernel", lambda t: _render(["--volume", npy(t, "v.npy"), "--tf-json", json.dumps(TF)], "--kernel",
                                             "bogus"), {}, "argument --kernel: invalid choice: 'bogus'"),
     ("--config-json: a string for a number", lambda t: _config_json(t, '{"data_inr": {"steps": "many"}}'), {},

@@ -52,12 +52,14 @@ def render_image(scene: RenderScene, out: Path, *, mode: str, camera: Camera, li
                  weights_path: Path | None = None, light_index: int = 0, diffusion: Path | None = None,
                  blend: Path | None = None, blend_k: int, scalar: str | None = None, phong: bool = False, step: float,
                  skip: bool = True, outside_region: bool = False) -> None:
-    """One image (PNG) in a shading mode; the shadow INR of mode `inr` is row `light_index` of a store, or
-    made for `light` by the diffusion checkpoint `diffusion` or (`cache: blend`) as the weight blend of the
-    nearest SIRENs of the store `blend`. A light outside the cache's region (`lights.LightRegion`) is refused
+    """One image (a PNG, `out` named .png) in a shading mode; the shadow INR of mode `inr` is row `light_index` of
+    a store, or made for `light` by the diffusion checkpoint `diffusion` or (`cache: blend`) as the weight blend of
+    the nearest SIRENs of the store `blend`. A light outside the cache's region (`lights.LightRegion`) is refused
     in one line naming the region and the light's angle to it, unless `outside_region` asks for the cache's
     answer anyway (then the line is a warning); one inside it but farther from the training lights than any
     unseen test light was gets a one-line note."""
+    if Path(out).suffix.lower() != ".png":  # before any work: a PNG under another name opens wrongly, or not at all
+        raise ValueError(f"--out {out}: the image is written as a PNG; give a name ending in .png")
     siren = None
     if sum(x is not None for x in (weights_path, diffusion, blend)) > 1:
         raise ValueError("render: --weights, --diffusion and --blend each give the shadow INR; give one")
