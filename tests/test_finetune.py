@@ -96,6 +96,37 @@ def test_sweep_targets_match_march_targets(volume, setup):
         render_targets(volume, TF, LIGHTS, cams, step=FT.step, method="exact")
 
 
+def test_target_images_resume_where_an_interrupted_job_stopped(volume, setup, tmp_path):
+    """A job stopped after two of four lights (saving after every light) resumes at the third: the same bytes
+    as the images rendered in one go, the checkpoint gone at the end; one of other lights is not resumed."""
+    cams, _, images, _, _ = setup
+    ckpt, said = tmp_path / "targets.zarr.ckpt", []
+
+    class Preempted(Exception):
+        pass
+
+    def stop_after_two(message):
+        said.append(message)
+        if message.startswith("target images: 2/4"):
+            raise Preempted
+
+    with pytest.raises(Preempted):
+        render_targets(volume, TF, LIGHTS, cams, step=FT.step, checkpoint=ckpt, checkpoint_s=0, log=stop_after_two)
+    assert ckpt.exists()
+    said.clear()
+    resumed = render_targets(volume, TF, LIGHTS, cams, step=FT.step, checkpoint=ckpt, checkpoint_s=0,
+                             log=said.append)
+    assert said[0] == f"resuming from {ckpt} at light 2/4" and not any("1/4" in m for m in said)
+    assert torch.equal(resumed, images) and not ckpt.exists()
+    with pytest.raises(Preempted):
+        render_targets(volume, TF, LIGHTS, cams, step=FT.step, checkpoint=ckpt, checkpoint_s=0, log=stop_after_two)
+    said.clear()
+    other = render_targets(volume, TF, LIGHTS[::-1].copy(), cams, step=FT.step, checkpoint=ckpt, checkpoint_s=0,
+                           log=said.append)
+    assert said[0] == f"ignoring {ckpt}: it belongs to other inputs or settings"
+    assert torch.equal(other, images.flip(0))
+
+
 def _ddp_worker(rank, world, port, data, state, out_dir):
     # the production path (runtime.distributed, as under torchrun): it ends with a barrier before the
     # teardown; without one, gloo can abort a rank whose peer is still writing ("terminate called

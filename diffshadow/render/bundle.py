@@ -4,13 +4,17 @@ and the `gt` target images they are compared to."""
 
 from __future__ import annotations
 
+import hashlib
+import json
 import time
-from dataclasses import dataclass
+from dataclasses import asdict, dataclass
+from pathlib import Path
 
 import numpy as np
 import torch
 
 from diffshadow.grid import ray_span
+from diffshadow.io import atomic_torch_save, resume
 from diffshadow.progress import eta
 from diffshadow.render.camera import Camera
 from diffshadow.render.fields import GridScalar
@@ -18,6 +22,8 @@ from diffshadow.render.marcher import BACKGROUND, front_to_back
 from diffshadow.render.scene import RenderScene
 from diffshadow.transfer import TransferFunction
 from diffshadow.volume import Volume
+
+TARGETS_CHECKPOINT_S = 300.0  # seconds of rendering between saves: a preempted job loses at most this much
 
 
 @dataclass
@@ -99,19 +105,48 @@ def bundle_colors(bundle: RayBundle, g: torch.Tensor, view_idx: torch.Tensor, pi
 
 def render_targets(volume: Volume, tf: TransferFunction, lights: np.ndarray, cameras: list[Camera], *,
                    step: float, method: str = "sweep", upsample: int = 1, device: torch.device | str = "cpu",
+                   checkpoint: Path | None = None, checkpoint_s: float = TARGETS_CHECKPOINT_S,
                    log=print) -> torch.Tensor:
     """Ground-truth images (L, V, H, W, 3) on the CPU, rendered on `device` by the renderer's `gt` mode
     (early termination far below 8 bits) with shadow grids by `method` ("sweep" or "march") on the volume
-    refined `upsample` times."""
+    refined `upsample` times.
+
+    Resumable: every `checkpoint_s` seconds of rendering the lights done so far are saved to `checkpoint`, and a
+    rerun for the same inputs and settings starts at the first light not done (each light's images are rendered
+    alone, so the result is the same bytes as an uninterrupted run); the checkpoint is removed at the end."""
     if method not in ("sweep", "march"):
         raise ValueError(f"finetune.targets: expected 'sweep' or 'march', got {method!r}")
     scene = RenderScene(volume, tf, device=device, gt_method=method, gt_upsample=upsample)
     out = torch.zeros(len(lights), len(cameras), cameras[0].height, cameras[0].width, 3)
-    t0 = time.perf_counter()
-    for i, w in enumerate(lights):
+    fingerprint = _targets_fingerprint(volume, tf, lights, cameras, step, method, upsample, scene.device)
+    start = 0
+    if state := resume(checkpoint, fingerprint, log=log, weights_only=True):
+        start = int(state["done"])
+        out[:start] = state["images"]
+        log(f"resuming from {checkpoint} at light {start}/{len(lights)}")
+    t0 = saved = time.perf_counter()
+    for i in range(start, len(lights)):
+        w = lights[i]
         for v, cam in enumerate(cameras):
             out[i, v] = scene.render("gt", cam, light=w, step=step, min_transmittance=1e-6).rgb
         scene.forget_gt(w)
-        if (i + 1) % max(1, len(lights) // 10) == 0 or i + 1 == len(lights):
-            log(f"target images: {i + 1}/{len(lights)} lights ({eta(i + 1, len(lights), t0)})")
+        done = i + 1
+        if checkpoint is not None and done < len(lights) and time.perf_counter() - saved >= checkpoint_s:
+            atomic_torch_save(checkpoint, {"fingerprint": fingerprint, "done": done, "images": out[:done].clone()})
+            saved = time.perf_counter()
+        if done % max(1, len(lights) // 10) == 0 or done == len(lights):
+            log(f"target images: {done}/{len(lights)} lights ({eta(done, len(lights), t0, start=start)})")
+    if checkpoint is not None and Path(checkpoint).exists():
+        Path(checkpoint).unlink()
     return out
+
+
+def _targets_fingerprint(volume: Volume, tf: TransferFunction, lights, cameras: list[Camera], step: float,
+                         method: str, upsample: int, device: torch.device) -> str:
+    """What the target images depend on: the volume, TF, lights, views, settings and the kind of device (a GPU
+    renders other bits than a CPU, and one run's images come from one kind)."""
+    h = hashlib.sha256(np.ascontiguousarray(volume.data).tobytes())
+    h.update(np.ascontiguousarray(lights, dtype=np.float64).tobytes())
+    h.update(json.dumps([tf.to_config(), np.asarray(volume.extent).tolist(), [asdict(c) for c in cameras], step,
+                         method, upsample, device.type]).encode())
+    return h.hexdigest()

@@ -35,7 +35,7 @@ def train_data_inr(volume_path: Path, out: Path, *, cfg: DataInrConfig, device: 
 def render_targets(volume_path: Path, lights_path: Path, out: Path, *, cfg: FinetuneConfig, upsample: int,
                    device: torch.device) -> None:
     """`gt` images per training light × Fibonacci view, and each view's ray samples; a sweep's grid on the
-    volume refined `upsample` times (stage 1's fit.grid_upsample)."""
+    volume refined `upsample` times (stage 1's fit.grid_upsample). Resumable from `<out>.ckpt`."""
     volume, tf = load_prepared(volume_path)
     train = read_lights(lights_path)["train"]
     cams = fibonacci_views(volume.extent, cfg.views, size=cfg.image_size, fov=cfg.fov)
@@ -43,7 +43,8 @@ def render_targets(volume_path: Path, lights_path: Path, out: Path, *, cfg: Fine
     print(f"{cfg.views} views of {cfg.image_size}²: {bundle.count.tolist()} foreground pixels, up to "
           f"{bundle.pts.shape[2]} samples each", flush=True)
     images = targets(volume, tf, train, cams, step=cfg.step, method=cfg.targets,
-                     upsample=upsample if cfg.targets == "sweep" else 1, device=device)
+                     upsample=upsample if cfg.targets == "sweep" else 1, device=device,
+                     checkpoint=out.with_name(out.name + ".ckpt"))
     artifacts.write_targets(out, images, bundle, cams, train, step=cfg.step, extent=volume.extent)
     print(f"wrote {out}: {len(train)} lights x {cfg.views} views")
 
