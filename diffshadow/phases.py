@@ -87,7 +87,9 @@ def usage() -> dict[str, float]:
     """This process's CPU seconds (user and system, its threads and the children it waited for) and its peak
     resident set in MiB (the largest of itself and any one such child), from the kernel's own accounting.
     Snakemake's benchmark samples a job's processes every 30 s once it has run 15 s, so it misses a job's last
-    stretch and any peak between samples (`report.stage_costs` takes the larger of the two)."""
+    stretch and any peak between samples (`report.stage_costs` takes the larger of the two). Linux starts a
+    process's peak at its parent's resident set when the parent forked it: a job's process, forked by the job's
+    shell, starts near 0; a DDP rank, forked by torchrun, at torchrun's."""
     t = os.times()
     out = {"cpu_s": t.user + t.system + t.children_user + t.children_system, "max_rss_mib": 0.0}
     try:
