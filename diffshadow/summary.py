@@ -269,8 +269,9 @@ class RunResults:
                              _num(unseen["siren_blend_psnr_median"]), "",
                              f"baseline ({unseen['blend_k']} SIRENs per sample; stage 1's fit error included)"])
             if unseen.get("pool_lights"):
-                rows.append(["unseen", "pool lights (exact shadows, no fitted SIREN) in training",
-                             str(unseen["pool_lights"]), "",
+                # a count, not a PSNR: it goes in the description, the PSNR columns stay empty
+                rows.append(["unseen", f"{unseen['pool_lights']} pool lights (exact shadows, no fitted SIREN) in "
+                             "training", "", "",
                              f"nearest light trained on {unseen['nearest_trained_angle_median_deg']:.1f}° away "
                              f"(median); no unseen test light is one of them"])
         parts.append(_table("Shadow INRs: voxel PSNR against the marched ground truth (median over lights, dB)",

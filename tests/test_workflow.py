@@ -495,6 +495,10 @@ def test_report_front_page_has_the_runs_numbers(finished):
         assert f"{value:.2f} dB" in page and f"{value:.2f}" in tables
     assert "Scene nucleon" in page and "summary.html" in page
     assert f"{voxel['diffusion_model']['parameters']:,} parameters" in page
+    # the pool lights' row: their count in the words, the PSNR columns empty (the count once sat in "box")
+    pool = voxel["unseen"]["pool_lights"]
+    row = f"<td>unseen</td><td>{pool} pool lights (exact shadows, no fitted SIREN) in training</td><td></td><td></td>"
+    assert row in tables
     assert f"{voxel['diffusion_model']['epochs']} epochs: {voxel['diffusion_model']['stopped']}" in page
     costs = {line.split("\t")[0]: line.split("\t") for line in (res / "stage_costs.tsv").read_text().splitlines()}
     assert f"{float(costs['elapsed (a job running)'][2]) / 60:.1f} min elapsed" in page  # the run's own wall time
