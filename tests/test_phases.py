@@ -76,7 +76,7 @@ def test_a_process_counts_its_own_cpu_seconds_and_peak_memory():
     rec = json.loads(done.stdout)
     before, after = rec["before"], rec["after"]
     assert before["max_rss_mib"] < 290 <= after["max_rss_mib"]
-    assert after["cpu_s"] - before["cpu_s"] >= 0.5
+    assert after["cpu_s"] - before["cpu_s"] >= 0.48  # os.times counts in clock ticks (10 ms)
 
 
 HEADER = "s\th:m:s\tmax_rss\tmax_vms\tmax_uss\tmax_pss\tio_in\tio_out\tmean_load\tcpu_time\n"
