@@ -15,16 +15,16 @@ def fit_task(paths: dict[str, str], subset: int, cfg: dict, device: str | None, 
     """Run in a Parsl worker: one subset's fit, stdout and stderr to `log_path`; returns the file written."""
     import contextlib
     import os
-    import resource
     import time
 
     from diffshadow.fit import FitConfig
+    from diffshadow.phases import usage
     from diffshadow.runtime import resolve_device, set_threads
     from diffshadow.siren import SirenConfig
     from diffshadow.stages.stage1 import fit_subset
 
     Path(log_path).parent.mkdir(parents=True, exist_ok=True)
-    start, usage = time.perf_counter(), resource.getrusage(resource.RUSAGE_SELF)
+    start, before = time.perf_counter(), usage()
     with open(log_path, "w") as log, contextlib.redirect_stdout(log), contextlib.redirect_stderr(log):
         print(f"parsl worker pid {os.getpid()}, CUDA_VISIBLE_DEVICES={os.environ.get('CUDA_VISIBLE_DEVICES')}")
         set_threads(threads)
@@ -32,9 +32,9 @@ def fit_task(paths: dict[str, str], subset: int, cfg: dict, device: str | None, 
                    siren=SirenConfig.from_config(cfg["siren"]), fit=FitConfig.from_config(cfg["fit"]),
                    subset_size=int(cfg["subset_size"]), config=cfg, device=resolve_device(None, device))
     if paths.get("benchmark"):
-        end = resource.getrusage(resource.RUSAGE_SELF)
-        write_benchmark(Path(paths["benchmark"]), time.perf_counter() - start,
-                        end.ru_utime + end.ru_stime - usage.ru_utime - usage.ru_stime, end.ru_maxrss / 1024)
+        after = usage()
+        write_benchmark(Path(paths["benchmark"]), time.perf_counter() - start, after["cpu_s"] - before["cpu_s"],
+                        after["max_rss_mib"])
     return paths["out"]
 
 

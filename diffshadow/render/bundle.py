@@ -136,8 +136,8 @@ def render_targets(volume: Volume, tf: TransferFunction, lights: np.ndarray, cam
             saved = time.perf_counter()
         if done % max(1, len(lights) // 10) == 0 or done == len(lights):
             log(f"target images: {done}/{len(lights)} lights ({eta(done, len(lights), t0, start=start)})")
-    if checkpoint is not None and Path(checkpoint).exists():
-        Path(checkpoint).unlink()
+    if checkpoint is not None:
+        Path(checkpoint).unlink(missing_ok=True)
     return out
 
 
