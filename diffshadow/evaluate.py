@@ -3,13 +3,17 @@ baselines for unseen lights, plus storage and time per shadow INR."""
 
 from __future__ import annotations
 
+import hashlib
+import json
 import time
+from pathlib import Path
 
 import numpy as np
 import torch
 
 from diffshadow.diffusion.sample import generate, load_sampler
 from diffshadow.hpc import device_name
+from diffshadow.io import atomic_torch_save, resume
 from diffshadow.lights import inverse_angle_weights, nearest, pick
 from diffshadow.sampling import Stream, seeded
 from diffshadow.store import blend_rows
@@ -48,13 +52,19 @@ def median_gap_interval(a: np.ndarray, b: np.ndarray, *, resamples: int = 2000) 
 
 def voxel_metrics(state: dict | None, stage1, generated, truth: EvalTruth, light_sets: dict, *, blend_k: int,
                   grid_voxels: int, ddpm_lights: int = 8, geometry_state: dict | None = None,
-                  device: torch.device | str = "cpu", log=print) -> dict:
+                  device: torch.device | str = "cpu", curve_checkpoint: Path | None = None,
+                  log=print) -> dict:
     """`voxel_metrics.json`: generated SIRENs (seen and unseen) against the ground truth, beside the stage-1
     SIRENs, the nearest and blend baselines, DDIM vs DDPM on `ddpm_lights` training lights, and storage.
     With `geometry_state` (the model before rendering-loss fine-tuning), the unseen lights are also sampled
     from it: what fine-tuning did to lights it never saw. `state` None (`cache: blend`): `generated` holds the
     stored and blended SIRENs; no sampler to time, no model to store. The samplers run, and are timed, on
-    `device`; the truth and the PSNRs stay on the CPU."""
+    `device`; the truth and the PSNRs stay on the CPU.
+
+    Resumable: the sampler curve (its 500-step DDPM the longest row) saves its rows to `curve_checkpoint` as
+    each is done, and a rerun for the same model, lights, truth and device kind starts at the first row not done
+    (each row samples from a fixed seed, so the PSNRs are the same; the timings are those measured then). The
+    checkpoint is removed at the end."""
 
     train, unseen = light_sets["train"], light_sets["unseen"]
     seen = generated.seen
@@ -132,8 +142,13 @@ def voxel_metrics(state: dict | None, stage1, generated, truth: EvalTruth, light
     steps = sorted({5, 10, 20, 50, ddim_steps})
     log(f"[evaluate voxels] DDIM {', '.join(map(str, steps))} steps and 500-step DDPM for "
         f"{len(sel)} of the {len(train)} training lights, and one INR of each timed ...")
-    curve = []
-    for method, k in [*(("ddim", s) for s in steps), ("ddpm", 500)]:
+    rows = [*(("ddim", s) for s in steps), ("ddpm", 500)]
+    fingerprint = _curve_fingerprint(model, std, train[sel], truth_sel, cfg, rows, device)
+    saved = resume(curve_checkpoint, fingerprint, log=log, weights_only=True)
+    curve = list(saved["curve"]) if saved else []
+    if curve:
+        log(f"[evaluate voxels] resuming from {curve_checkpoint} after {len(curve)} of {len(rows)} sampler rows")
+    for method, k in rows[len(curve):]:
         if method == "ddim" and k == ddim_steps:  # the run's own sampler: `generated` already holds these lights
             box = gen_seen["box"][sel]
         else:
@@ -143,7 +158,13 @@ def voxel_metrics(state: dict | None, stage1, generated, truth: EvalTruth, light
         seconds = seconds_per_inr(model, std, train[0], method=method, steps=k, repeats=3 if method == "ddim" else 1,
                                   temperature=cfg["temperature"], device=device)
         curve.append({"method": method, "steps": k, "seconds_per_inr": seconds, "psnr_median": median(box)})
+        if curve_checkpoint is not None and len(curve) < len(rows):
+            atomic_torch_save(curve_checkpoint, {"fingerprint": fingerprint, "curve": curve})
+        log(f"[evaluate voxels] {method} {k} steps: {curve[-1]['psnr_median']:.2f} dB, {seconds:.3g} s an INR "
+            f"({len(curve)}/{len(rows)})")
     log(f"[evaluate voxels] samplers done ({time.perf_counter() - t0:.0f} s)")
+    if curve_checkpoint is not None:
+        Path(curve_checkpoint).unlink(missing_ok=True)
     ddim_row = next(r for r in curve if r["method"] == "ddim" and r["steps"] == ddim_steps)
     t_ddim, t_ddpm = ddim_row["seconds_per_inr"], curve[-1]["seconds_per_inr"]
     result["sampling"] = {"ddim_steps": ddim_steps, "lights": len(sel), "device": device_name(device),
@@ -163,6 +184,16 @@ def voxel_metrics(state: dict | None, stage1, generated, truth: EvalTruth, light
     result["storage_bytes"] = {"model": int(sum(p.numel() * p.element_size() for p in model.parameters())
                                             + 2 * 8 * len(std.mean)), **stored}
     return result
+
+
+def _curve_fingerprint(model, std, lights: np.ndarray, truth: dict, cfg: dict, rows: list, device) -> str:
+    """What the sampler curve's rows depend on: the model's weights and standardiser, the lights and their truth,
+    the sampler settings and rows, and the kind of device (a GPU samples other bits, and times otherwise)."""
+    h = hashlib.sha256(np.ascontiguousarray(lights, dtype=np.float64).tobytes())
+    for t in [*model.state_dict().values(), std.mean, std.std, *(truth[k] for k in sorted(truth))]:
+        h.update(torch.as_tensor(t).detach().cpu().contiguous().numpy().tobytes())
+    h.update(json.dumps([int(cfg["seed"]), cfg["temperature"], rows, torch.device(device).type]).encode())
+    return h.hexdigest()
 
 
 # ------------------------------------------------------------------------------------------- images

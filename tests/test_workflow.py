@@ -308,6 +308,50 @@ def test_caches_table_every_cache_with_its_bytes_and_psnr(finished):
     assert rows["stored SIRENs fp32"]["unseen_psnr"] == pytest.approx(voxel["unseen"]["weight_blend_psnr_median"])
 
 
+def test_the_sampler_curve_resumes_where_an_interrupted_evaluation_stopped(finished, tmp_path):
+    """evaluate_voxels stopped after two of its five sampler rows resumes at the third: the same metrics as one
+    uninterrupted evaluation, the first two rows' timings those measured before the stop, the checkpoint gone at
+    the end; a checkpoint made for other lights is not resumed."""
+    from conftest import Stopped, stop_at
+
+    from diffshadow import artifacts
+    from diffshadow.evaluate import voxel_metrics
+    from diffshadow.stages.stage2 import prepared_voxels
+
+    res, ckpt = finished / "results/nucleon", tmp_path / "voxel_metrics.json.ckpt"
+    lights = read_lights(res / "lights.json")
+    state, geometry = (artifacts.load_checkpoint(res / name) for name in ("diffusion.ckpt", "diffusion_geometry.ckpt"))
+
+    def evaluate(log, light_sets=lights):
+        return voxel_metrics(state, open_store(res / "weights.zarr"), open_store(res / "generated.zarr"),
+                             artifacts.read_eval_truth(res / "eval_truth.zarr"), light_sets, blend_k=2,
+                             ddpm_lights=2, grid_voxels=prepared_voxels(res / "volume.zarr"), geometry_state=geometry,
+                             curve_checkpoint=ckpt, log=log)
+
+    whole = evaluate(log=lambda m: None)
+    with pytest.raises(Stopped):
+        evaluate(log=stop_at("[evaluate voxels] ddim 10 steps"))
+    before = torch.load(ckpt, weights_only=True)["curve"]
+    said = []
+    resumed = evaluate(log=said.append)
+    assert f"[evaluate voxels] resuming from {ckpt} after 2 of 5 sampler rows" in said
+    assert not any(m.startswith(("[evaluate voxels] ddim 5 ", "[evaluate voxels] ddim 10 ")) for m in said)
+    assert resumed["sampling"]["curve"][:2] == before and not ckpt.exists()
+    timed = ("seconds_per_inr", "speedup")
+    strip = [{k: v for k, v in r.items() if k not in timed} for r in (whole["sampling"], resumed["sampling"])]
+    for r in strip:
+        r["curve"] = [{k: v for k, v in row.items() if k not in timed} for row in r["curve"]]
+    assert strip[0] == strip[1]
+    assert {k: v for k, v in whole.items() if k not in ("sampling", *timed)} == \
+        {k: v for k, v in resumed.items() if k not in ("sampling", *timed)}
+    with pytest.raises(Stopped):
+        evaluate(log=stop_at("[evaluate voxels] ddim 10 steps"))
+    said.clear()
+    other = {**lights, "train": lights["train"][::-1].copy()}
+    evaluate(log=said.append, light_sets=other)
+    assert f"ignoring {ckpt}: it belongs to other inputs or settings" in said and not ckpt.exists()
+
+
 def test_the_evaluation_runs_on_the_cpu_unless_evaluate_device_is_run(finished):
     """evaluate.device: cpu (the default) keeps one truth and one sampler curve on every machine: eval_truth and
     evaluate_voxels get --device cpu; `run` gives them the run's device, which changes their bytes on a GPU, so

@@ -253,14 +253,15 @@ def evaluate_voxels(checkpoint: Path | None, weights_path: Path, generated_path:
     """`voxel_metrics.json`: generated against stage 1 and the baselines, storage, time per INR (the samplers
     run and are timed on `device`); with the geometry-stage checkpoint, unseen lights before and after
     fine-tuning. Without `checkpoint` (`cache: blend`) the generated SIRENs are the blended ones and there is no
-    model to time."""
+    model to time. The sampler curve resumes from `<out>.ckpt`."""
     geometry = artifacts.load_checkpoint(geometry_checkpoint) if geometry_checkpoint else None
     state = artifacts.load_checkpoint(checkpoint) if checkpoint else None
     result = voxel_metrics(state, open_store(weights_path),
                            open_store(generated_path), artifacts.read_eval_truth(truth_path),
                            read_lights(lights_path), blend_k=blend_k,
                            grid_voxels=prepared_voxels(volume_path), ddpm_lights=ddpm_lights,
-                           geometry_state=geometry, device=device)
+                           geometry_state=geometry, device=device,
+                           curve_checkpoint=out.with_name(out.name + ".ckpt"))
     atomic_write_text(out, json.dumps(result, indent=1) + "\n")
     print(json.dumps(result, indent=1))
     for line in quality_warnings(result):
