@@ -500,9 +500,11 @@ def main(argv: list[str] | None = None) -> None:
         if args.command not in _NO_TORCH:
             import torch  # noqa: F401  (here, so that its import is timed as such, not as the stage's compute)
 
-            from diffshadow.runtime import claim_gpu_lock, keep_freed_memory, set_threads
+            from diffshadow.runtime import claim_gpu_lock, keep_freed_memory, set_threads, vector_unit_warning
 
             keep_freed_memory()
+            if warning := vector_unit_warning():
+                print(warning, file=sys.stderr)
             if args.command in _ONE_GPU:
                 claim_gpu_lock(args.command)
             if args.command not in ("finetune-render", "parsl-fit"):  # threads per rank and per worker: set there

@@ -104,6 +104,32 @@ def set_deterministic_from_env() -> bool:
     return True
 
 
+def cpu_flags(path: str = "/proc/cpuinfo") -> set[str]:
+    """The first CPU's feature flags as Linux lists them; empty where there is no such file (macOS) or no flags."""
+    try:
+        with open(path) as f:
+            for line in f:
+                if line.startswith("flags"):
+                    return set(line.split(":", 1)[1].split())
+    except OSError:
+        pass
+    return set()
+
+
+def vector_unit_warning(capability: str | None = None, flags: set[str] | None = None,
+                        forced: str | None = None) -> str | None:
+    """A warning when PyTorch runs its scalar CPU kernels on an x86 CPU with AVX2 and FMA, unasked (no
+    ATEN_CPU_CAPABILITY): it does so silently when its CPU probe (cpuinfo) fails to start, and its scalar kernels
+    round otherwise (torch.lerp and grid_sample: 1,626 of the 33³ test blob's 35,937 sweep voxels differ), so
+    that job's results differ in the last bits from the same job run again on the same machine. None otherwise."""
+    capability = torch.backends.cpu.get_cpu_capability() if capability is None else capability
+    forced = os.environ.get("ATEN_CPU_CAPABILITY") if forced is None else forced
+    if forced or capability.upper() != "DEFAULT" or not {"avx2", "fma"} <= (cpu_flags() if flags is None else flags):
+        return None
+    return ("WARNING: PyTorch runs its scalar CPU kernels on a CPU with AVX2 (its CPU probe failed to start?): "
+            "this job's results will differ in the last bits from the same job run again here")
+
+
 def set_threads(n: int) -> None:
     """torch's intra-op threads (0: torch's default)."""
     if n:

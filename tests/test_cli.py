@@ -249,6 +249,7 @@ def test_lights_prepare_volume_and_collect_weights_start_without_torch_and_recor
     rec = run("lights", "--sphere", "100", "--count", "4", "--center", "0", "0", "1", "--unseen", "2", "--out",
               "lights.json")
     assert rec["command"] == "lights" and rec["device_s"] == 0 and rec["import_s"] > 0
+    assert "cpu_capability" not in rec  # recorded only where torch was imported (test below)
     assert 0 < rec["cpu_s"] and 0 < rec["max_rss_mib"] < 1024  # the process's own count (phases.usage)
     assert sum(rec[f"{k}_s"] for k in ("import", "device", "compile", "io", "compute")) == pytest.approx(
         rec["process_s"], abs=0.01)
@@ -328,3 +329,46 @@ def test_a_torch_command_ends_without_pythons_teardown_once_its_output_is_writte
     lights = command("lights", "--sphere", "64", "--count", "8", "--center", "0", "0", "1", "--unseen", "2",
                      "--out", str(tmp_path / "lights.json"))
     assert lights.returncode == 0 and "teardown ran" in lights.stdout, lights.stderr
+
+
+@pytest.mark.parametrize("capability, flags, forced, warned", [
+    ("DEFAULT", {"avx2", "fma", "sse4_2"}, "", True),  # the silent fallback: a CPU with AVX2, scalar kernels
+    ("DEFAULT", {"avx2", "fma"}, "default", False),   # asked for (ATEN_CPU_CAPABILITY)
+    ("AVX2", {"avx2", "fma"}, "", False),
+    ("AVX512", {"avx2", "fma", "avx512f"}, "", False),
+    ("DEFAULT", {"sse4_2"}, "", False),  # an older x86 CPU: scalar is all there is
+    ("DEFAULT", set(), "", False),  # no flags (macOS, an ARM CPU's 'Features')
+])
+def test_scalar_cpu_kernels_on_an_avx2_cpu_are_warned_of(capability, flags, forced, warned):
+    from diffshadow.runtime import vector_unit_warning
+
+    said = vector_unit_warning(capability, flags, forced)
+    assert (said is not None) is warned
+    if warned:
+        assert said.startswith("WARNING: PyTorch runs its scalar CPU kernels") and "\n" not in said
+
+
+def test_a_torch_job_records_its_cpu_kernels_and_warns_only_when_unasked(tmp_path):
+    """Every job that imports torch records which CPU kernels PyTorch chose (`cpu_capability` in its phases file:
+    they change the last bits of its results); a job told to run the scalar ones records that and is not warned."""
+    import json
+    import subprocess
+    import sys
+
+    import torch
+
+    from diffshadow.analytic import gaussian_blob
+
+    np.save(tmp_path / "blob.npy", gaussian_blob(9))
+    tf = json.dumps({"opacity": [[0.0, 0.0], [1.0, 1.0]], "color": [[0.0, 1.0, 1.0, 1.0], [1.0, 1.0, 1.0, 1.0]],
+                     "density_scale": 10.0})
+    records = {}
+    for name, extra in (("own", {}), ("scalar", {"ATEN_CPU_CAPABILITY": "default"})):
+        env = {k: v for k, v in os.environ.items() if k != "ATEN_CPU_CAPABILITY"} | extra
+        done = subprocess.run([sys.executable, "-m", "diffshadow.cli", "--phases", f"{name}.json", "render",
+                               "--volume", "blob.npy", "--tf-json", tf, "--mode", "noshadow", "--size", "8",
+                               "--out", f"{name}.png"], capture_output=True, text=True, cwd=tmp_path, env=env)
+        assert done.returncode == 0 and "WARNING: PyTorch" not in done.stderr, done.stderr
+        records[name] = json.loads((tmp_path / f"{name}.json").read_text())
+    assert records["own"]["cpu_capability"] == torch.backends.cpu.get_cpu_capability()
+    assert records["scalar"]["cpu_capability"] == "DEFAULT"
