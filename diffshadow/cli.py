@@ -266,9 +266,12 @@ def _report_figures(a):
 
 
 def _stage_costs(a):
-    from diffshadow.report import stage_costs
+    from diffshadow.report import mixed_cpu_kernels, stage_costs
 
-    stage_costs([Path(b) for b in a.benchmarks], Path(a.out))
+    benchmarks = [Path(b) for b in a.benchmarks]
+    stage_costs(benchmarks, Path(a.out))
+    if warning := mixed_cpu_kernels(benchmarks):
+        print(warning, file=sys.stderr)
 
 
 def _summary(a):

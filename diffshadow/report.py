@@ -376,6 +376,28 @@ def stage_costs(benchmarks: list[Path], out: Path) -> list[dict]:
     return [*table, total, elapsed]
 
 
+def mixed_cpu_kernels(benchmarks: list[Path]) -> str | None:
+    """A warning when a run's jobs ran on different PyTorch CPU kernels (`cpu_capability` in their phases files:
+    the vector unit changes the last bits, so such jobs' results are not comparable bit for bit), naming each
+    kind's jobs; None when they agree or none recorded them."""
+    kinds: dict[str, list[str]] = {}
+    for path in benchmarks:
+        phases = Path(path).with_suffix(".phases.json")
+        if phases.exists():
+            try:
+                kind = json.loads(phases.read_text()).get("cpu_capability")
+            except (ValueError, AttributeError):
+                continue  # job_phases names a file that is not a phases record
+            if isinstance(kind, str):
+                kinds.setdefault(kind, []).append(Path(path).stem)
+    if len(kinds) < 2:
+        return None
+    parts = "; ".join(f"{kind}: {', '.join(sorted(jobs)[:5])}{' ...' if len(jobs) > 5 else ''} "
+                      f"({len(jobs)} job{'s' if len(jobs) > 1 else ''})" for kind, jobs in sorted(kinds.items()))
+    return (f"WARNING: this run's jobs ran on different PyTorch CPU kernels ({parts}); their results differ in the "
+            "last bits")
+
+
 ELAPSED_ROW = "elapsed (a job running)"
 
 

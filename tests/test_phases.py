@@ -124,3 +124,20 @@ def test_a_jobs_cpu_seconds_and_peak_are_the_larger_of_snakemakes_polls_and_its_
     (tmp_path / "lights.phases.json").write_text(json.dumps({**phases_of, "cpu_s": "many"}))
     with pytest.raises(ValueError, match=r"lights.phases.json: cpu_s and max_rss_mib: expected numbers, got 'many'"):
         stage_costs([tmp_path / "lights.tsv"], tmp_path / "costs.tsv")
+
+
+def test_jobs_on_different_cpu_kernels_are_named(tmp_path):
+    """A run whose jobs ran on different PyTorch CPU kernels (their phases files' cpu_capability) is warned of, each
+    kind with its jobs; jobs that agree, or recorded none (torch-free jobs, older runs), are not."""
+    from diffshadow.report import mixed_cpu_kernels
+
+    def job(name: str, kind: str | None):
+        (tmp_path / f"{name}.phases.json").write_text(json.dumps({"compute_s": 1.0, **({"cpu_capability": kind}
+                                                                                      if kind else {})}))
+        return tmp_path / f"{name}.tsv"
+
+    agree = [job("fit_siren_0", "AVX2"), job("fit_siren_1", "AVX2"), job("lights", None), tmp_path / "old.tsv"]
+    assert mixed_cpu_kernels(agree) is None and mixed_cpu_kernels([]) is None
+    said = mixed_cpu_kernels([*agree, job("fit_siren_2", "DEFAULT")])
+    assert said == ("WARNING: this run's jobs ran on different PyTorch CPU kernels (AVX2: fit_siren_0, fit_siren_1 "
+                    "(2 jobs); DEFAULT: fit_siren_2 (1 job)); their results differ in the last bits")
