@@ -304,15 +304,13 @@ def job_phases(benchmark: Path, wall: float) -> dict[str, float] | None:
     benchmark file), with `launch_s`: the job's wall time outside its `diffshadow` process (the shell, `tee`,
     torchrun and its helper processes); and the process's own `cpu_s` and `max_rss_mib` where it recorded them
     (`phases.usage`). None where the job wrote none (a job of an older run)."""
-    path = Path(benchmark).with_suffix(".phases.json")
-    if not path.exists():
+    path, rec = _phases_record(benchmark)
+    if rec is None:
         return None
     try:
-        rec = json.loads(path.read_text())
         out = {k: float(rec[k]) for k in PHASE_COLUMNS[:-1]}
-    except (ValueError, KeyError, TypeError):
-        raise ValueError(f"{path}: expected a phases file ({', '.join(PHASE_COLUMNS[:-1])}), as written by "
-                         f"diffshadow --phases") from None
+    except (KeyError, TypeError, ValueError):
+        raise _not_a_phases_file(path) from None
     out["launch_s"] = max(0.0, wall - sum(out.values()))
     try:
         out.update({k: float(rec[k]) for k in ("cpu_s", "max_rss_mib") if k in rec})
@@ -320,6 +318,26 @@ def job_phases(benchmark: Path, wall: float) -> dict[str, float] | None:
         raise ValueError(f"{path}: cpu_s and max_rss_mib: expected numbers, got {rec.get('cpu_s')!r} and "
                          f"{rec.get('max_rss_mib')!r}") from None
     return out
+
+
+def _phases_record(benchmark: Path) -> tuple[Path, dict | None]:
+    """The phases file beside a job's benchmark file and its record (None where the job wrote none); a file that
+    is not a JSON object is named in one line."""
+    path = Path(benchmark).with_suffix(".phases.json")
+    if not path.exists():
+        return path, None
+    try:
+        rec = json.loads(path.read_text())
+    except ValueError:
+        rec = None
+    if not isinstance(rec, dict):
+        raise _not_a_phases_file(path)
+    return path, rec
+
+
+def _not_a_phases_file(path: Path) -> ValueError:
+    return ValueError(f"{path}: expected a phases file ({', '.join(PHASE_COLUMNS[:-1])}), as written by "
+                      f"diffshadow --phases")
 
 
 def stage_costs(benchmarks: list[Path], out: Path) -> list[dict]:
@@ -382,14 +400,9 @@ def mixed_cpu_kernels(benchmarks: list[Path]) -> str | None:
     kind's jobs; None when they agree or none recorded them."""
     kinds: dict[str, list[str]] = {}
     for path in benchmarks:
-        phases = Path(path).with_suffix(".phases.json")
-        if phases.exists():
-            try:
-                kind = json.loads(phases.read_text()).get("cpu_capability")
-            except (ValueError, AttributeError):
-                continue  # job_phases names a file that is not a phases record
-            if isinstance(kind, str):
-                kinds.setdefault(kind, []).append(Path(path).stem)
+        kind = (_phases_record(path)[1] or {}).get("cpu_capability")
+        if isinstance(kind, str):
+            kinds.setdefault(kind, []).append(Path(path).stem)
     if len(kinds) < 2:
         return None
     parts = "; ".join(f"{kind}: {', '.join(sorted(jobs)[:5])}{' ...' if len(jobs) > 5 else ''} "
