@@ -10,6 +10,28 @@ from diffshadow.config import ConfigError, run_config
 configfile: os.path.join(workflow.basedir, "config", "config.yaml")
 
 
+def _profile_machine():
+    """The machine a PBS profile names in its default resource `pbs_system` (profiles/polaris, profiles/sophia), or
+    None. Snakemake hands the default resources on to every batch job, so the job's own parse finds it too."""
+    resources = workflow.resource_settings.default_resources
+    for arg in (resources.args if resources is not None else None) or ():
+        key, _, value = arg.partition("=")
+        if key.strip() == "pbs_system":
+            return value.strip().strip("'\"")
+    return None
+
+
+# The machine's settings (profiles/<machine>/<machine>.yaml: the system, finetune.nproc) under the run's own: a
+# profile's `configfile:` is replaced by any --configfile on the command line, and the paper's command lost them so
+# (no PBS_ACCOUNT check, no results/pbs for the job logs, fine-tuning on the default 2 of a node's 4 GPUs).
+if _machine := _profile_machine():
+    _machine_file = os.path.join(workflow.basedir, "profiles", _machine, f"{_machine}.yaml")
+    if not os.path.isfile(_machine_file):
+        raise WorkflowError(f"the profile's default resource pbs_system={_machine!r} names no machine: "
+                            f"{_machine_file} does not exist (expected polaris or sophia)")
+    configfile: _machine_file
+
+
 # the run's own choices (config/config.yaml, --configfile, --config) over the package's defaults, validated
 try:
     _run = run_config(config, "config/config.yaml with --configfile/--config")
@@ -35,8 +57,9 @@ include: "workflow/rules/render.smk"
 include: "workflow/rules/report.smk"
 
 
-# jobs of a second or less run where Snakemake runs, not as batch jobs (PBS queueing would dwarf them)
-localrules: all, lights, prepare_volume, collect_weights, stage_costs, summary
+# jobs of a few seconds without PyTorch run where Snakemake runs, not as batch jobs (a PBS queue wait would dwarf
+# them); report_figures (matplotlib, 2 s here) is one on the run's last stretch
+localrules: all, lights, prepare_volume, collect_weights, report_figures, stage_costs, summary
 
 
 # the report's landing page: what was run and each scene's headline numbers (results/<scene>/report/landing.rst)

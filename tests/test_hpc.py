@@ -183,8 +183,8 @@ def run_profile(workdir: Path, profile: str, *args: str, fail_subset: int | None
     env_script = workdir / "env.sh"  # the documented DIFFSHADOW_ENV: what a job sources to find diffshadow
     env_script.write_text(f"export PATH={shim}:{BIN}:$PATH\nexport DIFFSHADOW_DEVICE=cpu\n"
                           f"export DIFFSHADOW_LOCK_DIR={workdir / 'locks'}\nexport OMP_NUM_THREADS=1\n")
-    cfg = {**TINY, "lights": {**TINY["lights"], "count": 8}, "pbs_system": profile,
-           "fit": {**TINY["fit"], **(fit or {})}}
+    # no pbs_system here: the profile names its machine, whose settings outlive this --configfile (Snakefile)
+    cfg = {**TINY, "lights": {**TINY["lights"], "count": 8}, "fit": {**TINY["fit"], **(fit or {})}}
     (workdir / "tiny.yaml").write_text(yaml.safe_dump(cfg))
     env = {**os.environ, "PATH": f"{PBS}{os.pathsep}{BIN}{os.pathsep}{os.environ['PATH']}",
            "PBS_ACCOUNT": "testproj", "DIFFSHADOW_ENV": str(env_script),
@@ -221,6 +221,8 @@ def test_polaris_profile_end_to_end_with_packing_and_a_failed_subset(tmp_path):
     for name in ("voxel_metrics.json", "image_metrics.json", "bench.json", "finetune_metrics.json"):
         assert (tmp_path / "results/nucleon" / name).exists()
     assert "2 process(es) on cpu" in (logs / "finetune_render.log").read_text()
+    # seconds of figures, no PyTorch: where Snakemake runs, not a queue wait before the end
+    assert not [s for s in subs if "report_figures" in s["script"]] and (logs / "report_figures.log").exists()
 
     # subset 3 fails on its node; it is rerun alone with -f, and a plain run completes the workflow
     sirens = tmp_path / "results/nucleon/sirens"
@@ -337,6 +339,34 @@ def test_paper_scale_config_plans_forty_subsets_four_to_a_node(tmp_path):
     for rule in ("train_diffusion", "eval_truth"):
         job = out.split(f"rule {rule}:")[1].split("\n\n")[0]
         assert f"walltime={projected[rule]['walltime']}" in job, job
+
+
+@pytest.mark.parametrize("profile", ["polaris", "sophia"])
+def test_a_pbs_profile_keeps_its_machine_under_the_runs_own_configfile(tmp_path, profile):
+    """A --configfile on the command line replaces a profile's own `configfile:`, which is how config/paper.yaml's
+    command lost the machine's settings. The profile names its machine in a default resource instead, and the
+    Snakefile reads the machine's file under the run's: without PBS_ACCOUNT the run stops naming the profile;
+    fine-tuning asks for the machine's 4 GPUs, or what the run's file says; the benchmark waits for the scene's
+    other jobs only where jobs share a node (Sophia), not on Polaris's whole nodes (dry runs)."""
+    def plan(run: dict, account: bool = True) -> subprocess.CompletedProcess:
+        (tmp_path / "run.yaml").write_text(yaml.safe_dump(run))
+        env = {k: v for k, v in os.environ.items() if k != "PBS_ACCOUNT"} | ({"PBS_ACCOUNT": "x"} if account else {})
+        return subprocess.run([sys.executable, "-m", "snakemake", "-s", str(REPO / "Snakefile"), "--directory",
+                               str(tmp_path), "--profile", str(REPO / "profiles" / profile), "--configfile",
+                               str(tmp_path / "run.yaml"), "-n"], env=env, capture_output=True, text=True, timeout=300)
+
+    def job(out: str, rule: str) -> str:
+        return out.split(f"rule {rule}:")[1].split("\n\n")[0]
+
+    unset = plan({"lights": {"count": 8}}, account=False)
+    said = unset.stdout + unset.stderr  # Snakemake prints a parse error on stdout
+    assert unset.returncode != 0 and f"profile {profile}: PBS_ACCOUNT is not set" in said, said[-2000:]
+    planned = plan({"lights": {"count": 8}})
+    assert planned.returncode == 0, planned.stderr[-3000:]
+    assert "gpu=4" in job(planned.stdout, "finetune_render"), job(planned.stdout, "finetune_render")
+    assert ("image_metrics.json" in job(planned.stdout, "benchmark")) == (profile == "sophia")
+    own = plan({"lights": {"count": 8}, "finetune": {"nproc": 3}})  # the run's own file wins over the machine's
+    assert own.returncode == 0 and "gpu=3" in job(own.stdout, "finetune_render"), own.stderr[-2000:]
 
 
 def test_ddp_processes_caps_ranks_at_the_visible_gpus_and_asks_torch_only_where_a_gpu_may_be(tmp_path, monkeypatch):

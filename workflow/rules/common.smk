@@ -161,3 +161,15 @@ def caption_values(scene):
 
 
 check_scenes()
+
+
+def benchmark_waits_for(wildcards):
+    """Outputs the benchmark waits for without reading them, so that no job of the scene shares its cores: its last
+    job on a machine that runs several at once (Snakemake's local scheduler may start two multi-threaded jobs on
+    -j2; Sophia's by-gpu queue shares a node between jobs). Polaris gives every job whole nodes, so there the
+    benchmark starts as soon as its inputs exist, beside stage 2, and is no longer two queue waits on the run's
+    last stretch (docs/performance.md, "Requests")."""
+    if config.get("pbs_system") == "polaris":
+        return []
+    return [f"results/{wildcards.scene}/{name}" for name in ("image_metrics.json", "voxel_metrics.json",
+                                                              "report/image_grid.png")]

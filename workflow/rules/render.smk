@@ -76,10 +76,7 @@ rule benchmark:
         volume="results/{scene}/volume.zarr",
         data_inr="results/{scene}/data_inr.pt",
         weights="results/{scene}/weights.zarr",
-        # not read: they make the benchmark the scene's last job, so no other job shares the cores with
-        # its timings (Snakemake's local scheduler may start two multi-threaded jobs on -j2)
-        after=["results/{scene}/image_metrics.json", "results/{scene}/voxel_metrics.json",
-               "results/{scene}/report/image_grid.png"],
+        after=benchmark_waits_for,  # not read: see there
     output:
         bench="results/{scene}/bench.json",
         plot=report("results/{scene}/bench.png", caption="../report/bench.rst", category="{scene}",
