@@ -347,16 +347,26 @@ def test_a_pbs_profile_keeps_its_machine_under_the_runs_own_configfile(tmp_path,
     command lost the machine's settings. The profile names its machine in a default resource instead, and the
     Snakefile reads the machine's file under the run's: without PBS_ACCOUNT the run stops naming the profile;
     fine-tuning asks for the machine's 4 GPUs, or what the run's file says; the benchmark waits for the scene's
-    other jobs only where jobs share a node (Sophia), not on Polaris's whole nodes (dry runs)."""
-    def plan(run: dict, account: bool = True) -> subprocess.CompletedProcess:
+    other jobs only where jobs share a node (Sophia), not on Polaris's whole nodes; and under the paper's workflow
+    profile, whose per-rule resources replace the machine profile's, fine-tuning's qsub line still asks for its
+    GPUs (dry runs)."""
+    def plan(run: dict, *args: str, account: bool = True) -> subprocess.CompletedProcess:
         (tmp_path / "run.yaml").write_text(yaml.safe_dump(run))
         env = {k: v for k, v in os.environ.items() if k != "PBS_ACCOUNT"} | ({"PBS_ACCOUNT": "x"} if account else {})
         return subprocess.run([sys.executable, "-m", "snakemake", "-s", str(REPO / "Snakefile"), "--directory",
                                str(tmp_path), "--profile", str(REPO / "profiles" / profile), "--configfile",
-                               str(tmp_path / "run.yaml"), "-n"], env=env, capture_output=True, text=True, timeout=300)
+                               str(tmp_path / "run.yaml"), "-n", *args], env=env, capture_output=True, text=True,
+                              timeout=300)
 
     def job(out: str, rule: str) -> str:
         return out.split(f"rule {rule}:")[1].split("\n\n")[0]
+
+    def qsub(out: str, rule: str) -> str:
+        """The profile's submit command for that job, its {resources.X} filled from the plan."""
+        line = next(x for x in job(out, rule).splitlines() if x.strip().startswith("resources:"))
+        resources = dict(kv.split("=", 1) for kv in line.split(":", 1)[1].replace(" ", "").split(","))
+        submit = yaml.safe_load((REPO / "profiles" / profile / "config.yaml").read_text())["cluster-generic-submit-cmd"]
+        return submit.format(resources=type("R", (), resources))
 
     unset = plan({"lights": {"count": 8}}, account=False)
     said = unset.stdout + unset.stderr  # Snakemake prints a parse error on stdout
@@ -367,6 +377,15 @@ def test_a_pbs_profile_keeps_its_machine_under_the_runs_own_configfile(tmp_path,
     assert ("image_metrics.json" in job(planned.stdout, "benchmark")) == (profile == "sophia")
     own = plan({"lights": {"count": 8}, "finetune": {"nproc": 3}})  # the run's own file wins over the machine's
     assert own.returncode == 0 and "gpu=3" in job(own.stdout, "finetune_render"), own.stderr[-2000:]
+    paper = plan(yaml.safe_load((REPO / "config" / "paper.yaml").read_text()), "--workflow-profile",
+                 str(REPO / "profiles" / "paper"))
+    assert paper.returncode == 0, paper.stderr[-3000:]
+    whole_node, one_gpu = {"polaris": ("select=1:system=polaris",) * 2, "sophia": ("select=1:ngpus=4",
+                                                                                   "select=1:ngpus=1")}[profile]
+    assert whole_node in qsub(paper.stdout, "finetune_render"), qsub(paper.stdout, "finetune_render")
+    projected = yaml.safe_load((REPO / "profiles" / "paper" / "config.yaml").read_text())["set-resources"]
+    training = qsub(paper.stdout, "train_diffusion")
+    assert one_gpu in training and f"walltime={projected['train_diffusion']['walltime']}" in training, training
 
 
 def test_ddp_processes_caps_ranks_at_the_visible_gpus_and_asks_torch_only_where_a_gpu_may_be(tmp_path, monkeypatch):
