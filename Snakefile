@@ -23,7 +23,7 @@ def _profile_machine():
 
 # The machine's settings (profiles/<machine>/<machine>.yaml: the system, finetune.nproc) under the run's own: a
 # profile's `configfile:` is replaced by any --configfile on the command line, and the paper's command lost them so
-# (no PBS_ACCOUNT check, no results/pbs for the job logs, fine-tuning on the default 2 of a node's 4 GPUs).
+# (no PBS_ACCOUNT check, no results/pbs for the job logs; a run file without finetune.nproc fine-tuned on 2 GPUs).
 if _machine := _profile_machine():
     _machine_file = os.path.join(workflow.basedir, "profiles", _machine, f"{_machine}.yaml")
     if not os.path.isfile(_machine_file):

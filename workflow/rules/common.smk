@@ -160,9 +160,6 @@ def caption_values(scene):
             "shading": _shading_name(bool(render.get("phong")))}
 
 
-check_scenes()
-
-
 def benchmark_waits_for(wildcards):
     """Outputs the benchmark waits for without reading them, so that no job of the scene shares its cores: its last
     job on a machine that runs several at once (Snakemake's local scheduler may start two multi-threaded jobs on
@@ -173,3 +170,6 @@ def benchmark_waits_for(wildcards):
         return []
     return [f"results/{wildcards.scene}/{name}" for name in ("image_metrics.json", "voxel_metrics.json",
                                                               "report/image_grid.png")]
+
+
+check_scenes()
