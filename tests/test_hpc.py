@@ -346,7 +346,8 @@ def test_a_pbs_profile_keeps_its_machine_under_the_runs_own_configfile(tmp_path,
     """A --configfile on the command line replaces a profile's own `configfile:`, which is how config/paper.yaml's
     command lost the machine's settings. The profile names its machine in a default resource instead, and the
     Snakefile reads the machine's file under the run's: without PBS_ACCOUNT the run stops naming the profile;
-    fine-tuning asks for the machine's 4 GPUs, or what the run's file says; the benchmark waits for the scene's
+    fine-tuning asks for and launches the machine's 4 GPUs' processes, or what the run's file says (a profile's
+    set-threads must not stand in for finetune.nproc); the benchmark waits for the scene's
     other jobs only where jobs share a node (Sophia), not on Polaris's whole nodes; and under the paper's workflow
     profile, whose per-rule resources replace the machine profile's, fine-tuning's qsub line still asks for its
     GPUs (dry runs)."""
@@ -371,12 +372,15 @@ def test_a_pbs_profile_keeps_its_machine_under_the_runs_own_configfile(tmp_path,
     unset = plan({"lights": {"count": 8}}, account=False)
     said = unset.stdout + unset.stderr  # Snakemake prints a parse error on stdout
     assert unset.returncode != 0 and f"profile {profile}: PBS_ACCOUNT is not set" in said, said[-2000:]
-    planned = plan({"lights": {"count": 8}})
+    # --cores as a node's: a dry run otherwise caps every job's threads, which finetune_render's launch line uses
+    planned = plan({"lights": {"count": 8}}, "--cores", "64")
     assert planned.returncode == 0, planned.stderr[-3000:]
-    assert "gpu=4" in job(planned.stdout, "finetune_render"), job(planned.stdout, "finetune_render")
+    tuning = job(planned.stdout, "finetune_render")
+    assert "gpu=4" in tuning and "ddp-processes --nproc 4)" in tuning, tuning
     assert ("image_metrics.json" in job(planned.stdout, "benchmark")) == (profile == "sophia")
-    own = plan({"lights": {"count": 8}, "finetune": {"nproc": 3}})  # the run's own file wins over the machine's
-    assert own.returncode == 0 and "gpu=3" in job(own.stdout, "finetune_render"), own.stderr[-2000:]
+    own = plan({"lights": {"count": 8}, "finetune": {"nproc": 3}}, "--cores", "64")  # the run's file wins
+    assert own.returncode == 0, own.stderr[-2000:]
+    assert "gpu=3" in job(own.stdout, "finetune_render") and "--nproc 3)" in job(own.stdout, "finetune_render")
     paper = plan(yaml.safe_load((REPO / "config" / "paper.yaml").read_text()), "--workflow-profile",
                  str(REPO / "profiles" / "paper"))
     assert paper.returncode == 0, paper.stderr[-3000:]
