@@ -341,6 +341,24 @@ def test_paper_scale_config_plans_forty_subsets_four_to_a_node(tmp_path):
         assert f"walltime={projected[rule]['walltime']}" in job, job
 
 
+def submit_line(profile: str, resources: dict, env: dict | None = None) -> str:
+    """The qsub line a profile's submit command becomes for a job with these resources: filled in by format, as
+    Snakemake's cluster-generic executor fills it, then expanded by the shell it runs it in (echo for qsub)."""
+    submit = yaml.safe_load((REPO / "profiles" / profile / "config.yaml").read_text())["cluster-generic-submit-cmd"]
+    filled = submit.format(resources=type("R", (), resources)).replace("qsub ", "echo qsub ", 1)
+    return subprocess.run(["bash", "-c", filled], env={"PBS_ACCOUNT": "x", **(env or {})}, capture_output=True,
+                          text=True, check=True).stdout.strip()
+
+
+def test_polaris_jobs_go_to_the_queue_pbs_queue_names():
+    """The Polaris profile's word: preemptable by default, PBS_QUEUE=debug for quick tests (the variable was named
+    there but read nowhere: every job went to preemptable)."""
+    job = {"queue": "preemptable", "select": "1:system=polaris", "walltime": "00:10:00", "filesystems": "home:eagle",
+           "rerunnable": "y", "pbs_log": "results/pbs"}
+    assert " -q preemptable " in submit_line("polaris", job)
+    assert " -q debug " in submit_line("polaris", job, {"PBS_QUEUE": "debug"})
+
+
 @pytest.mark.parametrize("profile", ["polaris", "sophia"])
 def test_a_pbs_profile_keeps_its_machine_under_the_runs_own_configfile(tmp_path, profile):
     """A --configfile on the command line replaces a profile's own `configfile:`, which is how config/paper.yaml's
@@ -363,11 +381,8 @@ def test_a_pbs_profile_keeps_its_machine_under_the_runs_own_configfile(tmp_path,
         return out.split(f"rule {rule}:")[1].split("\n\n")[0]
 
     def qsub(out: str, rule: str) -> str:
-        """The profile's submit command for that job, its {resources.X} filled from the plan."""
         line = next(x for x in job(out, rule).splitlines() if x.strip().startswith("resources:"))
-        resources = dict(kv.split("=", 1) for kv in line.split(":", 1)[1].replace(" ", "").split(","))
-        submit = yaml.safe_load((REPO / "profiles" / profile / "config.yaml").read_text())["cluster-generic-submit-cmd"]
-        return submit.format(resources=type("R", (), resources))
+        return submit_line(profile, dict(kv.split("=", 1) for kv in line.split(":", 1)[1].replace(" ", "").split(",")))
 
     unset = plan({"lights": {"count": 8}}, account=False)
     said = unset.stdout + unset.stderr  # Snakemake prints a parse error on stdout
