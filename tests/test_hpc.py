@@ -397,7 +397,7 @@ def test_a_pbs_profile_keeps_its_machine_under_the_runs_own_configfile(tmp_path,
     assert own.returncode == 0, own.stderr[-2000:]
     assert "gpu=3" in job(own.stdout, "finetune_render") and "--nproc 3)" in job(own.stdout, "finetune_render")
     paper = plan(yaml.safe_load((REPO / "config" / "paper.yaml").read_text()), "--workflow-profile",
-                 str(REPO / "profiles" / "paper"))
+                 str(REPO / "profiles" / "paper"), "--cores", "64")
     assert paper.returncode == 0, paper.stderr[-3000:]
     whole_node, one_gpu = {"polaris": ("select=1:system=polaris",) * 2, "sophia": ("select=1:ngpus=4",
                                                                                    "select=1:ngpus=1")}[profile]
@@ -405,6 +405,13 @@ def test_a_pbs_profile_keeps_its_machine_under_the_runs_own_configfile(tmp_path,
     projected = yaml.safe_load((REPO / "profiles" / "paper" / "config.yaml").read_text())["set-resources"]
     training = qsub(paper.stdout, "train_diffusion")
     assert one_gpu in training and f"walltime={projected['train_diffusion']['walltime']}" in training, training
+    # caches, which the sweep did not time (~100 min on one thread at these sizes): the workflow profile's set-resources
+    # replace the machine's whole, so profiles/paper asks for it too, over the default hour
+    assert f"walltime={projected['caches']['walltime']}" in qsub(paper.stdout, "caches")
+    assert projected["caches"]["walltime"] >= "02:00:00"
+    machine = yaml.safe_load((REPO / "profiles" / profile / "config.yaml").read_text())
+    threads = machine.get("set-threads", {}).get("caches", 1)
+    assert f"--threads {threads} " in job(paper.stdout, "caches"), job(paper.stdout, "caches")
 
 
 def test_ddp_processes_caps_ranks_at_the_visible_gpus_and_asks_torch_only_where_a_gpu_may_be(tmp_path, monkeypatch):
