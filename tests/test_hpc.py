@@ -365,10 +365,10 @@ def test_a_pbs_profile_keeps_its_machine_under_the_runs_own_configfile(tmp_path,
     command lost the machine's settings. The profile names its machine in a default resource instead, and the
     Snakefile reads the machine's file under the run's: without PBS_ACCOUNT the run stops naming the profile;
     fine-tuning asks for and launches the machine's 4 GPUs' processes, or what the run's file says (a profile's
-    set-threads must not stand in for finetune.nproc); the benchmark waits for the scene's
-    other jobs only where jobs share a node (Sophia), not on Polaris's whole nodes; and under the paper's workflow
-    profile, whose per-rule resources replace the machine profile's, fine-tuning's qsub line still asks for its
-    GPUs (dry runs)."""
+    set-threads must not stand in for finetune.nproc); the benchmark waits for the scene's other jobs only where
+    jobs share a node (Sophia), not on Polaris's whole nodes. Under the paper's workflow profile, whose
+    set-resources replace the machine profile's whole, fine-tuning's qsub line still asks for its GPUs and caches
+    for more than the default hour (dry runs)."""
     def plan(run: dict, *args: str, account: bool = True) -> subprocess.CompletedProcess:
         (tmp_path / "run.yaml").write_text(yaml.safe_dump(run))
         env = {k: v for k, v in os.environ.items() if k != "PBS_ACCOUNT"} | ({"PBS_ACCOUNT": "x"} if account else {})
@@ -405,8 +405,7 @@ def test_a_pbs_profile_keeps_its_machine_under_the_runs_own_configfile(tmp_path,
     projected = yaml.safe_load((REPO / "profiles" / "paper" / "config.yaml").read_text())["set-resources"]
     training = qsub(paper.stdout, "train_diffusion")
     assert one_gpu in training and f"walltime={projected['train_diffusion']['walltime']}" in training, training
-    # caches, which the sweep did not time (~100 min on one thread at these sizes): the workflow profile's set-resources
-    # replace the machine's whole, so profiles/paper asks for it too, over the default hour
+    # caches, which the sweep did not time (~100 min on one thread at these sizes): profiles/paper asks for it too
     assert f"walltime={projected['caches']['walltime']}" in qsub(paper.stdout, "caches")
     assert projected["caches"]["walltime"] >= "02:00:00"
     machine = yaml.safe_load((REPO / "profiles" / profile / "config.yaml").read_text())
