@@ -380,7 +380,7 @@ def test_a_pbs_profile_keeps_its_machine_under_the_runs_own_configfile(tmp_path,
     def job(out: str, rule: str) -> str:
         return out.split(f"rule {rule}:")[1].split("\n\n")[0]
 
-    def qsub(out: str, rule: str) -> str:
+    def submitted(out: str, rule: str) -> str:
         line = next(x for x in job(out, rule).splitlines() if x.strip().startswith("resources:"))
         return submit_line(profile, dict(kv.split("=", 1) for kv in line.split(":", 1)[1].replace(" ", "").split(",")))
 
@@ -401,12 +401,12 @@ def test_a_pbs_profile_keeps_its_machine_under_the_runs_own_configfile(tmp_path,
     assert paper.returncode == 0, paper.stderr[-3000:]
     whole_node, one_gpu = {"polaris": ("select=1:system=polaris",) * 2, "sophia": ("select=1:ngpus=4",
                                                                                    "select=1:ngpus=1")}[profile]
-    assert whole_node in qsub(paper.stdout, "finetune_render"), qsub(paper.stdout, "finetune_render")
+    assert whole_node in submitted(paper.stdout, "finetune_render"), submitted(paper.stdout, "finetune_render")
     projected = yaml.safe_load((REPO / "profiles" / "paper" / "config.yaml").read_text())["set-resources"]
-    training = qsub(paper.stdout, "train_diffusion")
+    training = submitted(paper.stdout, "train_diffusion")
     assert one_gpu in training and f"walltime={projected['train_diffusion']['walltime']}" in training, training
     # caches, which the sweep did not time (~100 min on one thread at these sizes): profiles/paper asks for it too
-    assert f"walltime={projected['caches']['walltime']}" in qsub(paper.stdout, "caches")
+    assert f"walltime={projected['caches']['walltime']}" in submitted(paper.stdout, "caches")
     assert projected["caches"]["walltime"] >= "02:00:00"
     machine = yaml.safe_load((REPO / "profiles" / profile / "config.yaml").read_text())
     threads = machine.get("set-threads", {}).get("caches", 1)

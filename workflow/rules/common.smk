@@ -165,7 +165,7 @@ def benchmark_waits_for(wildcards):
     job on a machine that runs several at once (Snakemake's local scheduler may start two multi-threaded jobs on
     -j2; Sophia's by-gpu queue shares a node between jobs). Polaris gives every job whole nodes, so there the
     benchmark starts as soon as its inputs exist, beside stage 2, and is no longer two queue waits on the run's
-    last stretch (docs/performance.md, "Requests")."""
+    last stretch (docs/performance.md, "Queue waits in a row")."""
     if config.get("pbs_system") == "polaris":
         return []
     return [f"results/{wildcards.scene}/{name}" for name in ("image_metrics.json", "voxel_metrics.json",
