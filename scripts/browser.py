@@ -269,8 +269,6 @@ def drive_viewer(results, workdir, *, screenshot=None) -> dict:
     outside the cache's region (the exact shadow, labelled); a second tab recording apart from the first. Each
     single-mode frame on the canvas is compared with `diffshadow render` for the same camera and light:
     `<name>_psnr_vs_render`; `*_changed_psnr` compare the canvas before and after a light change."""
-    from PIL import Image
-
     results, workdir = Path(results), Path(workdir)  # as given: the panel shows the command with this path
     frames = workdir / "frames"
     log = workdir / "view.log"
@@ -296,10 +294,7 @@ def drive_viewer(results, workdir, *, screenshot=None) -> dict:
             new_source = (["--blend", source, "--blend-k", str(made["blend_k"])] if made.get("cache") == "blend"
                           else ["--diffusion", source])
 
-            def render(args: list[str], name: str) -> np.ndarray:
-                ref = workdir / f"{name}.png"
-                subprocess.run([str(DIFFSHADOW), "render", *args, "--out", str(ref)], check=True, capture_output=True)
-                return np.asarray(Image.open(ref))
+            renders = []  # (name, `diffshadow render` arguments, the image to compare with), rendered at the end
 
             def check(frame: dict, name: str) -> np.ndarray:
                 """The canvas against `diffshadow render` from the camera the viewer starts with (set by the
@@ -318,9 +313,8 @@ def drive_viewer(results, workdir, *, screenshot=None) -> dict:
                     else:
                         row = int(kind.split(",")[0].split()[-1]) + (n_train if kind.startswith("unseen") else 0)
                         args += ["--weights", str(results / "generated.zarr"), "--light-index", str(row)]
-                out[f"{name}_psnr_vs_render"] = psnr(on_canvas, render(args, name))
-                panel = render(shlex.split(frame["command"])[2:], f"{name}_panel")
-                out[f"{name}_frame_vs_panel_max_diff"] = int(np.abs(frame["image"].astype(int) - panel).max())
+                renders.append((name, args, on_canvas))
+                renders.append((f"{name}_panel", shlex.split(frame["command"])[2:], frame["image"]))
                 return on_canvas
 
             def after(action, accept, timeout: float = 180.0) -> dict:
@@ -386,11 +380,38 @@ def drive_viewer(results, workdir, *, screenshot=None) -> dict:
             if screenshot is not None:
                 browser.type_into(*browser.input_beside("height (px, 0: canvas)"), "0")
                 _portrait(browser, record, screenshot)
+            for name, image in render_all([(name, args) for name, args, _ in renders], workdir).items():
+                expected = next(seen for n, _, seen in renders if n == name)
+                if name.endswith("_panel"):
+                    out[f"{name[:-len('_panel')]}_frame_vs_panel_max_diff"] = int(
+                        np.abs(expected.astype(int) - image.astype(int)).max())
+                else:
+                    out[f"{name}_psnr_vs_render"] = psnr(expected, image)
             return out
         except Exception as e:
             raise AssertionError(f"{e}\n--- the viewer's output:\n{log.read_text()[-3000:]}") from e
         finally:
             browser.close()
+
+
+RENDER_ALL = """import json, sys
+from diffshadow.cli import main
+for argv in json.loads(sys.argv[1]):
+    main(argv)
+"""
+
+
+def render_all(requests: list[tuple[str, list[str]]], workdir: Path) -> dict[str, np.ndarray]:
+    """`diffshadow render ARGS --out <workdir>/<name>.png` for each (name, ARGS), all in one process: the commands
+    as a user runs them, without starting PyTorch ten times (3-4 s each on a 2-core machine)."""
+    from PIL import Image
+
+    argvs = [["render", *args, "--out", str(workdir / f"{name}.png")] for name, args in requests]
+    proc = subprocess.run([sys.executable, "-c", RENDER_ALL, json.dumps(argvs)],
+                          capture_output=True, text=True)
+    if proc.returncode != 0:
+        raise RuntimeError(f"diffshadow render failed: {proc.stderr[-3000:]}")
+    return {name: np.asarray(Image.open(workdir / f"{name}.png")) for name, _ in requests}
 
 
 @contextmanager

@@ -247,7 +247,8 @@ def test_a_preempted_node_is_requeued_and_its_fits_resume_to_the_same_bytes(tmp_
     byte-identical to one from fits that ran uninterrupted."""
     fit = {"steps": 120, "checkpoint_every": 10}
     preempt = {"STANDIN_PBS_PREEMPT": "fit_siren=results/nucleon/sirens/subset_*.npz.ckpt"}
-    proc = run_profile(tmp_path, "polaris", "results/nucleon/weights.zarr", fit=fit, env=preempt)
+    one = ("--set-threads", "fit_siren=1")  # two fits at a time on a 2-core machine, not one (8 threads each)
+    proc = run_profile(tmp_path, "polaris", "results/nucleon/weights.zarr", *one, fit=fit, env=preempt)
     assert proc.returncode == 0, proc.stderr[-3000:]
     packed = [s for s in submissions(tmp_path) if "fit_siren:" in s["script"]]
     assert len(packed) == 1
@@ -260,7 +261,7 @@ def test_a_preempted_node_is_requeued_and_its_fits_resume_to_the_same_bytes(tmp_
     resumed = {p.name: p.read_bytes() for p in sirens.glob("subset_*.npz")}
     store = open_store(tmp_path / "results/nucleon/weights.zarr")
     # the same fits, uninterrupted
-    again = run_profile(tmp_path, "polaris", "results/nucleon/weights.zarr", "--forcerun", "fit_siren", fit=fit)
+    again = run_profile(tmp_path, "polaris", "results/nucleon/weights.zarr", *one, "--forcerun", "fit_siren", fit=fit)
     assert again.returncode == 0, again.stderr[-3000:]
     assert {p.name: p.read_bytes() for p in sirens.glob("subset_*.npz")} == resumed
     assert open_store(tmp_path / "results/nucleon/weights.zarr").weights.tobytes() == store.weights.tobytes()

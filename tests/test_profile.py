@@ -1,9 +1,11 @@
 """`bench.profile`: the peak memory a call's tensors add, from the profiler's allocation events; what counts as
 one op."""
 
+import os
+
 import torch
 
-from diffshadow.bench.profile import op_counts, peak_bytes
+from diffshadow.bench.profile import _without_kineto_chatter, op_counts, peak_bytes
 
 CPU = torch.device("cpu")
 
@@ -42,3 +44,14 @@ def test_a_multi_tensor_op_counts_one_op_whatever_its_tensors():
     opt = torch.optim.AdamW(params, lr=0.1, fused=True)
     opt.step()  # the first step makes the state
     assert op_counts(opt.step)["ops"] == 2  # the step counters' foreach add and the fused update, not 6 of each
+
+
+def test_counting_writes_nothing_to_stderr_and_passes_other_lines_on(capfd):
+    """The profiler's own start and stop lines (PyTorch 2.13's Kineto writes them to file descriptor 2) do not reach
+    a job's log; another line written while they are held back does, and so does what the call itself writes."""
+    op_counts(lambda: os.write(2, b"the call's own line\n"))
+    assert capfd.readouterr().err == "the call's own line\n"
+    with _without_kineto_chatter():
+        os.write(2, b"USDT:2026-11-29 03:24:31 30640:30640 SyncActivityProfilerHandler.cpp:52] profiler_start\n"
+                    b"a warning\n")
+    assert capfd.readouterr().err == "a warning\n"

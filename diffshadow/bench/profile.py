@@ -25,7 +25,12 @@ not drift with the machine's load.
 
 from __future__ import annotations
 
-from collections.abc import Callable
+import os
+import re
+import sys
+import tempfile
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
 
 import torch
 from torch.profiler import ProfilerActivity, profile
@@ -98,14 +103,48 @@ def _profiled(fn: Callable[[], object], *, shapes: bool,
         torch.cuda.synchronize(memory)
         torch.cuda.reset_peak_memory_stats(memory)
         base = torch.cuda.memory_allocated(memory)
-    with profile(activities=[ProfilerActivity.CPU], record_shapes=shapes,
-                 profile_memory=memory is not None and not cuda) as prof:
+    prof = profile(activities=[ProfilerActivity.CPU], record_shapes=shapes,
+                   profile_memory=memory is not None and not cuda)
+    with _without_kineto_chatter():
+        prof.start()
+    try:
         fn()
         if cuda:
             torch.cuda.synchronize(memory)
+    finally:
+        with _without_kineto_chatter():
+            prof.stop()
     if memory is None:
         return prof, None
     return prof, (torch.cuda.max_memory_allocated(memory) - base if cuda else _allocated_peak(prof, memory))
+
+
+# Kineto's own log lines: "USDT:2026-11-29 03:24:31 30640:30640 SyncActivityProfilerHandler.cpp:52] profiler_start"
+KINETO_CHATTER = re.compile(rb"^[A-Z]+:\S+ \S+ \d+:\d+ \w+\.cpp:\d+\] ")
+
+
+@contextmanager
+def _without_kineto_chatter() -> Iterator[None]:
+    """Drop Kineto's log lines from what is written to the process's stderr (file descriptor 2) meanwhile.
+
+    PyTorch 2.13's profiler writes "profiler_start" and "profiler_stop" lines there at every start and stop, which
+    neither KINETO_LOG_LEVEL nor GLOG_minloglevel silences: 14 of them filled the README run's benchmark log. Only
+    the start and the stop run inside this, and any other line written meanwhile is passed on."""
+    sys.stderr.flush()
+    saved = os.dup(2)
+    try:
+        with tempfile.TemporaryFile() as caught:
+            os.dup2(caught.fileno(), 2)
+            try:
+                yield
+            finally:
+                os.dup2(saved, 2)
+                caught.seek(0)
+                kept = [line for line in caught.read().splitlines(keepends=True) if not KINETO_CHATTER.match(line)]
+                if kept:
+                    os.write(2, b"".join(kept))
+    finally:
+        os.close(saved)
 
 
 def _allocated_peak(prof: profile, device: torch.device) -> int:
