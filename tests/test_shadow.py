@@ -29,7 +29,7 @@ def errors(blob, step):
     errs = []
     for w, pts in blob_cases():
         got = transmittance(field, field.tf, w, pts, step=step).numpy()
-        errs.extend(abs(g - blob_transmittance(p, w)) for g, p in zip(got, pts, strict=True))
+        errs.extend(abs(float(g) - blob_transmittance(p, w)) for g, p in zip(got, pts, strict=True))
     return np.asarray(errs)
 
 
@@ -37,6 +37,16 @@ def test_analytic_gaussian_at_default_step(blob):
     err = errors(blob, step=0.5)
     assert len(err) == 1000
     assert err.max() <= 3e-3 and err.mean() <= 5e-4, (err.max(), err.mean())
+
+
+def test_the_shadow_benchs_closed_form_check_scores_every_point_as_marched_one_light_at_a_time(blob):
+    """`bench shadow` marches the blob's directions in groups: the same 1,000 errors as one direction at a time."""
+    from diffshadow.bench.shadow import bench_analytic
+
+    err = errors(blob, step=1.0)
+    got = bench_analytic(steps=(1.0,))[1.0]
+    assert got == {"max_err": float(err.max()), "mean_err": pytest.approx(float(err.mean()), rel=1e-12),
+                   "points": 1000}
 
 
 def test_converges_as_step_halves(blob):
