@@ -380,13 +380,13 @@ def drive_viewer(results, workdir, *, screenshot=None) -> dict:
             if screenshot is not None:
                 browser.type_into(*browser.input_beside("height (px, 0: canvas)"), "0")
                 _portrait(browser, record, screenshot)
-            for name, image in render_all([(name, args) for name, args, _ in renders], workdir).items():
-                expected = next(seen for n, _, seen in renders if n == name)
+            images = render_all([(name, args) for name, args, _ in renders], workdir)
+            for name, _, seen in renders:
                 if name.endswith("_panel"):
-                    out[f"{name[:-len('_panel')]}_frame_vs_panel_max_diff"] = int(
-                        np.abs(expected.astype(int) - image.astype(int)).max())
+                    out[f"{name.removesuffix('_panel')}_frame_vs_panel_max_diff"] = int(
+                        np.abs(seen.astype(int) - images[name].astype(int)).max())
                 else:
-                    out[f"{name}_psnr_vs_render"] = psnr(expected, image)
+                    out[f"{name}_psnr_vs_render"] = psnr(seen, images[name])
             return out
         except Exception as e:
             raise AssertionError(f"{e}\n--- the viewer's output:\n{log.read_text()[-3000:]}") from e
@@ -407,8 +407,7 @@ def render_all(requests: list[tuple[str, list[str]]], workdir: Path) -> dict[str
     from PIL import Image
 
     argvs = [["render", *args, "--out", str(workdir / f"{name}.png")] for name, args in requests]
-    proc = subprocess.run([sys.executable, "-c", RENDER_ALL, json.dumps(argvs)],
-                          capture_output=True, text=True)
+    proc = subprocess.run([sys.executable, "-c", RENDER_ALL, json.dumps(argvs)], capture_output=True, text=True)
     if proc.returncode != 0:
         raise RuntimeError(f"diffshadow render failed: {proc.stderr[-3000:]}")
     return {name: np.asarray(Image.open(workdir / f"{name}.png")) for name, _ in requests}
