@@ -123,16 +123,17 @@ def _plot(results: dict, path: Path) -> None:
     from diffshadow.report import decade_labels
 
     names = list(results["volumes"])
-    fig, axes = plt.subplots(1, len(names), figsize=(4.2 * len(names), 3.8), squeeze=False)
+    fig, axes = plt.subplots(1, len(names), figsize=(4.2 * len(names), 3.8), squeeze=False, layout="constrained")
     for ax, name in zip(axes[0], names, strict=True):
         rows = [r for r in results["volumes"][name]["rows"] if r["mean_err"] > 0]
-        for method, marker in (("march", "o"), ("march_noskip", "x"), ("sweep", "s")):
+        # march_noskip's one point sits on march's at the same step: its label goes below, not on top of march's
+        for method, marker, offset in (("march", "o", (3, 3)), ("march_noskip", "x", (3, -9)), ("sweep", "s", (3, 3))):
             pts = sorted((r["seconds"], r["mean_err"], r["step"]) for r in rows if r["method"] == method)
             if not pts:
                 continue
             ax.loglog([p[0] for p in pts], [p[1] for p in pts], marker=marker, label=method)
             for t, e, s in pts:
-                ax.annotate(f"{s:g}", (t, e), fontsize=7, textcoords="offset points", xytext=(3, 3))
+                ax.annotate(f"{s:g}", (t, e), fontsize=7, textcoords="offset points", xytext=offset)
         ax.set_title(f"{name} {results['volumes'][name]['dims']}")
         ax.set_xlabel("wall time [s]")
         ax.set_ylabel("mean |error| vs march @ 1/8 voxel")
@@ -142,6 +143,5 @@ def _plot(results: dict, path: Path) -> None:
         decade_labels(ax.yaxis)
     # two lines: one panel (one volume) is narrower than the title on one line
     fig.suptitle("Ground-truth shadow: time vs error\n(point labels: step in voxels)", fontsize=10)
-    fig.tight_layout(rect=(0, 0, 1, 0.9))  # room for the suptitle
     atomic_save(path, lambda tmp: fig.savefig(tmp, dpi=110, format="png"), suffix=".png")
     plt.close(fig)
