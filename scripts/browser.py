@@ -433,9 +433,11 @@ def viewer(results: Path, record: Path, *, size: int, log: Path):
         proc.wait(20)
 
 
-def _frames(record: Path) -> list[dict]:
-    """Every frame the viewer drew (its frames.jsonl)."""
-    return [json.loads(line) for line in (record / "frames.jsonl").read_text().splitlines()]
+def _frames(record: Path, *, given_up: bool = False) -> list[dict]:
+    """Every frame the viewer drew (its frames.jsonl), and with `given_up` the still frames it gave up for a newer
+    view too."""
+    frames = [json.loads(line) for line in (record / "frames.jsonl").read_text().splitlines()]
+    return [f for f in frames if given_up or not f.get("interrupted")]
 
 
 def _portrait(browser: Browser, record, path) -> None:
@@ -501,10 +503,44 @@ def drag(browser: Browser, start: tuple[float, float], span: tuple[float, float]
 CANVAS = 480  # the square canvas' side when measuring, in CSS pixels
 
 
+def nudge(browser: Browser, thumb: tuple[float, float], px: float) -> float:
+    """Move the slider whose thumb is at `thumb` by `px` pixels and let go; returns when the press began
+    (time.time())."""
+    x, y = thumb
+    browser.send("Input.dispatchMouseEvent", type="mouseMoved", x=x, y=y)
+    began = time.time()
+    browser.send("Input.dispatchMouseEvent", type="mousePressed", x=x, y=y, button="left", buttons=1, clickCount=1)
+    browser.send("Input.dispatchMouseEvent", type="mouseMoved", x=x + px, y=y, button="left", buttons=1)
+    browser.send("Input.dispatchMouseEvent", type="mouseReleased", x=x + px, y=y, button="left", buttons=0,
+                 clickCount=1)
+    return began
+
+
+def measure_response(browser: Browser, record: Path, *, trials: int = 4, into_still_s: float = 2.0,
+                     timeout: float = 600.0) -> dict:
+    """What a user waits for when they move the light while a still frame is being drawn: the light's slider nudged
+    `into_still_s` after the last answer (the still frame starts 0.3 s after a change), `trials` times; seconds from
+    the press to the next frame drawn, and how many still frames were given up."""
+    waits = []
+    for i in range(trials):
+        time.sleep(into_still_s)
+        x, y, _, _ = slider_thumb(browser, "azimuth")
+        began = nudge(browser, (x, y), 6.0 if i % 2 == 0 else -6.0)
+        deadline = time.monotonic() + timeout
+        while not (after := [f for f in _frames(record) if f["time"] > began]):
+            if time.monotonic() > deadline:
+                raise TimeoutError(f"no frame in {timeout:.0f} s after moving the light")
+            time.sleep(0.02)
+        waits.append(after[0]["time"] - began)
+    given_up = [f for f in _frames(record, given_up=True) if f.get("interrupted")]
+    return {"seconds": waits, "median_s": float(np.median(waits)), "max_s": max(waits), "given_up": len(given_up)}
+
+
 def measure_viewer(results, workdir, *, sizes=(128, 256), seconds: float = 8.0) -> dict:
     """The viewer's frame rate as a user gets it in Chromium on this machine: the light's azimuth slider dragged
-    for `seconds`, then the camera orbited with the mouse, at each image height (a square canvas); full-size
-    frame times once still; a new direction's generation time; the viewer's peak resident memory."""
+    for `seconds`, then the camera orbited with the mouse, then the light moved while a still frame draws
+    (`measure_response`), at each image height (a square canvas); full-size frame times once still; a new
+    direction's generation time; the viewer's peak resident memory."""
     results, out = Path(results).resolve(), {}
     for size in sizes:
         root = Path(workdir) / f"frames_{size}"
@@ -530,6 +566,7 @@ def measure_viewer(results, workdir, *, sizes=(128, 256), seconds: float = 8.0) 
                 cx, cy = rect["x"] + rect["width"] / 2, rect["y"] + rect["height"] / 2
                 began = drag(browser, (cx, cy), (cx - rect["width"] / 4, cx + rect["width"] / 4), seconds)
                 orbit = _rate(record, began, seconds)
+                response = measure_response(browser, record)
                 time.sleep(2)
             finally:
                 browser.close()
@@ -538,7 +575,7 @@ def measure_viewer(results, workdir, *, sizes=(128, 256), seconds: float = 8.0) 
             made = [f["generate_s"] for f in frames if f.get("generate_s") is not None]
             status = Path(f"/proc/{proc.pid}/status").read_text()
             peak = int(re.search(r"VmHWM:\s+(\d+) kB", status).group(1)) * 1024
-            out[size] = {"dragging_light": light, "orbiting_camera": orbit,
+            out[size] = {"dragging_light": light, "orbiting_camera": orbit, "light_moved_while_still": response,
                          "still_fps": 1 / float(np.median(full)) if full else None, "still_frames": len(full),
                          "generate_s_median": float(np.median(made)) if made else None, "generated": len(made),
                          "peak_rss_mib": peak / 2 ** 20}

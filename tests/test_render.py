@@ -14,6 +14,7 @@ from diffshadow.render import (
     Camera,
     GridScalar,
     GridShadow,
+    Interrupted,
     MacroGrid,
     MarchedShadow,
     MarchPlan,
@@ -23,6 +24,8 @@ from diffshadow.render import (
     render,
     render_all_at_once,
 )
+from diffshadow.render.cells import Runs
+from diffshadow.render.marcher import _whole_rays
 from diffshadow.shadow import ShadowField, shadow_grid, transmittance
 from diffshadow.siren import SirenConfig, WeightLayout, init_siren
 from diffshadow.transfer import TransferFunction
@@ -217,6 +220,67 @@ def test_render_rejects_bad_input(blob):
         render(cam, scalar, TF, blob.extent, vox, step=0.0)
     with pytest.raises(RenderError, match="step: 1e-09 voxels is finer than the finest step marched"):
         render(cam, scalar, TF, blob.extent, vox, step=1e-9)
+
+
+class Asker:
+    """An `interrupt` that counts the times it is asked and says stop from the `stop_at`-th on (0: never)."""
+
+    def __init__(self, stop_at: int = 0):
+        self.asked, self.stop_at = 0, stop_at
+
+    def __call__(self) -> bool:
+        self.asked += 1
+        return 0 < self.stop_at <= self.asked
+
+
+def test_a_frame_is_given_up_when_its_interrupt_says_so_and_is_the_same_image_when_it_does_not(blob):
+    """`interrupt` (the viewer's "the view changed") is asked before every iteration of the primary rays, and of
+    the naive baseline's secondary rays; a frame it never stops is the same image, and once it says stop the frame
+    ends with `Interrupted` without asking again."""
+    cam, scalar, vox = setup(blob, size=32)
+    macro = MacroGrid.build(blob, TF, cell=8)
+
+    def frame(shadowed: bool, interrupt=None):
+        shadow = MarchedShadow(scalar, TF, blob.extent, vox, macro=macro, batch=256) if shadowed else None
+        return render(cam, scalar, TF, blob.extent, vox, light=LIGHT, shadow=shadow, macro=macro, batch=256,
+                      interrupt=interrupt)
+
+    for shadowed in (False, True):
+        plain, never = frame(shadowed), Asker()
+        kept = frame(shadowed, never)
+        assert torch.equal(kept.rgb, plain.rgb) and torch.equal(kept.alpha, plain.alpha)
+        if shadowed:  # the secondary rays' iterations are asked too
+            assert never.asked > 2 * plain.counters.iterations, (never.asked, plain.counters.iterations)
+        else:
+            assert never.asked == plain.counters.iterations > 10
+        for stop_at in (1, never.asked // 2):
+            stop = Asker(stop_at)
+            with pytest.raises(Interrupted):
+                frame(shadowed, stop)
+            assert stop.asked == stop_at
+
+
+def test_whole_ray_kernels_are_asked_before_every_tile():
+    """The fused path (`_whole_rays`): `interrupt` is asked before each tile's kernel, which does not run once it
+    says stop."""
+    n = 40
+    o = torch.zeros(n, 3)
+    d = torch.tensor([[1.0, 0.0, 0.0]]).expand(n, 3).contiguous()
+    t0, t1 = torch.zeros(n), torch.ones(n)
+    plan = MarchPlan(batch=64, min_samples=8)  # tiles of 8 rays: 5 tiles
+    marched = []
+
+    def march(sl, runs: Runs):
+        marched.append(sl.start)
+        return torch.ones(len(o[sl]), dtype=torch.int64), torch.ones(1, dtype=torch.int64), 1
+
+    never = Asker()
+    assert _whole_rays(o, d, t0, t1, 0.1, None, plan, march, never)[0] == 5
+    assert never.asked == 5 and marched == [0, 8, 16, 24, 32]
+    marched.clear()
+    with pytest.raises(Interrupted):
+        _whole_rays(o, d, t0, t1, 0.1, None, plan, march, Asker(3))
+    assert marched == [0, 8]
 
 
 @pytest.mark.parametrize("mode", ["noshadow", "gt", "naive", "inr"])

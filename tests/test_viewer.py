@@ -16,7 +16,7 @@ import torch
 from diffshadow.analytic import gaussian_blob
 from diffshadow.cli import build_parser
 from diffshadow.lights import as_direction
-from diffshadow.render import Camera, RenderScene
+from diffshadow.render import Camera, Interrupted, RenderScene
 from diffshadow.siren import SirenConfig, WeightLayout, init_siren
 from diffshadow.store import WeightStore
 from diffshadow.transfer import TransferFunction
@@ -105,6 +105,20 @@ def test_frames_of_every_mode(viewer):
     assert not np.array_equal(images["inr"][0], images["noshadow"][0])  # the shadow darkens the blob
     with pytest.raises(ViewerError, match="mode: expected one of"):
         viewer.frame("shadows", CAM, light, step=1.0)
+
+
+@pytest.mark.parametrize("mode", ["inr", "inr | gt"])
+def test_a_frame_given_up_leaves_nothing_behind(viewer, mode):
+    """A still frame the viewer gives up for a newer view (`interrupt`) raises `Interrupted`, and the next frame of
+    the same view is the same bytes as one never interrupted."""
+    light = viewer.unseen[0]
+    before, _ = viewer.frame(mode, CAM, light, step=1.0)
+    asked = []
+    with pytest.raises(Interrupted):
+        viewer.frame(mode, CAM, light, step=1.0, interrupt=lambda: not asked.append(1))
+    assert len(asked) == 1
+    after, _ = viewer.frame(mode, CAM, light, step=1.0)
+    assert np.array_equal(before, after)
 
 
 def test_a_scene_without_a_cache_offers_noshadow_and_gt():

@@ -18,6 +18,7 @@ from diffshadow.render.marcher import (
     MIN_TRANSMITTANCE,
     Counters,
     Image,
+    Interrupted,
     MarchedShadow,
     MarchPlan,
     Shading,
@@ -28,6 +29,6 @@ from diffshadow.render.marcher import (
 from diffshadow.render.scene import KERNELS, MODES, Networks, RenderScene, write_png
 
 __all__ = ["BACKGROUND", "DEFAULT_STEP", "KERNELS", "MIN_TRANSMITTANCE", "MODES", "RENDER_CELL", "Camera", "Counters",
-           "GridScalar", "GridShadow", "Image", "InrScalar", "MacroGrid", "MarchPlan", "MarchedShadow", "Networks",
-           "RenderError", "RenderScene", "Runs", "Shading", "SirenShadow", "default_views", "fibonacci_views",
-           "front_to_back", "render", "render_all_at_once", "write_png"]
+           "GridScalar", "GridShadow", "Image", "InrScalar", "Interrupted", "MacroGrid", "MarchPlan", "MarchedShadow",
+           "Networks", "RenderError", "RenderScene", "Runs", "Shading", "SirenShadow", "default_views",
+           "fibonacci_views", "front_to_back", "render", "render_all_at_once", "write_png"]

@@ -23,11 +23,15 @@ an iteration, which changes the image by less than that threshold.
 
 Shading: colour × (0.1 + 0.9·g) with shadow coefficient g (the authors' code); with `phong=True` the
 colour is first lit by Blinn-Phong from the field's gradient. `noshadow` has g = 1.
+
+A frame can be given up part-way (`interrupt`, asked before every iteration or tile; `Interrupted`): a 480² frame
+takes tens of seconds on 2 CPU cores, and the viewer must answer a moved light sooner (docs/performance.md).
 """
 
 from __future__ import annotations
 
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -58,6 +62,15 @@ def front_to_back(alpha: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     """Compositing weights (R, S) of samples seen through those before them, and what gets through (R,)."""
     before = torch.cumprod(torch.cat([torch.ones_like(alpha[:, :1]), 1 - alpha[:, :-1]], 1), 1)
     return before * alpha, (1 - alpha).prod(1)
+
+
+class Interrupted(Exception):
+    """The frame was given up: its `interrupt` said so before an iteration or tile (nothing is returned)."""
+
+
+def _go_on(interrupt: Callable[[], bool] | None) -> None:
+    if interrupt is not None and interrupt():
+        raise Interrupted
 
 
 @dataclass
@@ -106,10 +119,12 @@ def cuda_batch(device: torch.device) -> int:
     return min(CUDA_BATCH_MAX, max(CUDA_BATCH_MIN, 1 << (fits.bit_length() - 1)))
 
 
-def _march(o, d, t0, t1, dt: float, macro: MacroGrid | None, plan: MarchPlan, step, done) -> int:
+def _march(o, d, t0, t1, dt: float, macro: MacroGrid | None, plan: MarchPlan, step, done,
+           interrupt: Callable[[], bool] | None = None) -> int:
     """March rays (R,) through their occupied samples. Per iteration, `step(rows, t, valid)` gets the
     live rows, their sample parameters t (R', n) and which samples exist; afterwards `done(rows)` says
-    which rows have finished early (opaque, or optically deep). Returns the number of iterations."""
+    which rows have finished early (opaque, or optically deep). Returns the number of iterations. `interrupt`
+    is asked before each iteration (`Interrupted`)."""
     iterations = 0
     for a in range(0, len(o), plan.tile):
         sl = slice(a, a + plan.tile)
@@ -119,6 +134,7 @@ def _march(o, d, t0, t1, dt: float, macro: MacroGrid | None, plan: MarchPlan, st
         left = int(runs.total.max()) if len(rows) else 0  # iterations bound: one host read per tile
         i = 0
         while len(rows) and left > 0:
+            _go_on(interrupt)
             n = plan.samples_per_ray(len(rows))
             k, valid = runs.samples(rows, m[rows], n)
             rr = rows + a
@@ -133,14 +149,17 @@ def _march(o, d, t0, t1, dt: float, macro: MacroGrid | None, plan: MarchPlan, st
     return iterations
 
 
-def _whole_rays(o, d, t0, t1, dt: float, macro: MacroGrid | None, plan: MarchPlan, march) -> tuple[int, int, int]:
+def _whole_rays(o, d, t0, t1, dt: float, macro: MacroGrid | None, plan: MarchPlan, march,
+                interrupt: Callable[[], bool] | None = None) -> tuple[int, int, int]:
     """March rays (R,) in tiles with a kernel that takes each ray from entry to stop: per tile, the runs of
     occupied samples (`Runs.build`), then `march(sl, runs)`, which returns the samples each ray took, the trips
-    of each of its programs and their rays per program. Returns (tiles, samples, lane slots)."""
+    of each of its programs and their rays per program. Returns (tiles, samples, lane slots). `interrupt` is
+    asked before each tile (`Interrupted`)."""
     samples = torch.zeros((), dtype=torch.int64, device=o.device)
     slots = torch.zeros((), dtype=torch.int64, device=o.device)
     tiles = 0
     for a in range(0, len(o), plan.tile):
+        _go_on(interrupt)
         sl = slice(a, a + plan.tile)
         count, trips, block = march(sl, Runs.build(o[sl], d[sl], t0[sl], t1[sl], dt, macro))
         samples += count.sum()
@@ -184,6 +203,7 @@ class MarchedShadow:
         self.min_samples, self.batch = samples_per_iter, batch
         self.light: torch.Tensor | None = None
         self.counters: Counters | None = None
+        self.interrupt: Callable[[], bool] | None = None  # the frame's (`render` sets all three)
         # with a fused data INR, whole secondary rays in one kernel: the same treatment as `inr`'s primary rays
         # (FusedSamples.march), so the baseline is as optimised as ours
         self.fused = (FusedExtinction(scalar.fast, scalar.extent, tf.optics_knots(scalar.extent.device),
@@ -202,7 +222,7 @@ class MarchedShadow:
                 tau[sl], count, trips = self.fused.march(p[sl], d[sl], t0[sl], t1[sl], runs, self.dt, self.tau_max)
                 return count, trips, self.fused.block
 
-            samples = _whole_rays(p, d, t0, t1, self.dt, self.macro, plan, march)[1]
+            samples = _whole_rays(p, d, t0, t1, self.dt, self.macro, plan, march, self.interrupt)[1]
             if self.counters is not None:
                 self.counters.secondary_samples += samples
             return torch.exp(-tau)
@@ -215,7 +235,7 @@ class MarchedShadow:
             s = torch.zeros(valid.numel(), device=device).index_copy_(0, idx, self.scalar.value(pts[idx]))
             tau[rows] += (self.tf.extinction(s.view(valid.shape)) * valid).sum(1) * self.dt
 
-        _march(p, d, t0, t1, self.dt, self.macro, plan, step, lambda rows: tau[rows] >= self.tau_max)
+        _march(p, d, t0, t1, self.dt, self.macro, plan, step, lambda rows: tau[rows] >= self.tau_max, self.interrupt)
         return torch.exp(-tau)
 
 
@@ -246,6 +266,7 @@ def render(
     samples_per_iter: int | None = None,
     batch: int | None = None,
     device: torch.device | str = "cpu",
+    interrupt: Callable[[], bool] | None = None,
 ) -> Image:
     """Render one image with the wavefront marcher.
 
@@ -255,6 +276,10 @@ def render(
     each ray is marched from entry to stop in one kernel (`FusedSamples.march`) instead of the wavefront loop. A
     ray then stops at the first sample that takes its transmittance below `min_transmittance`, not at the end of
     a wavefront iteration: the images differ by less than that.
+
+    `interrupt`, if given, is called before every iteration (with whole rays: every tile), the naive baseline's
+    secondary ones included; once it returns True the frame is given up with `Interrupted`. It must not read the
+    device: it is a host-side flag (the viewer's "the view changed"), and the image does not depend on it.
     """
     shading = shading or Shading()
     check_step(step, RenderError)
@@ -268,7 +293,7 @@ def render(
         w = torch.as_tensor(as_direction(light), dtype=torch.float32, device=device)
     counters = Counters()
     if isinstance(shadow, MarchedShadow):
-        shadow.light, shadow.counters = w, counters
+        shadow.light, shadow.counters, shadow.interrupt = w, counters, interrupt
     plan = MarchPlan.for_device(torch.device(device), batch, samples_per_iter)
     start = time.perf_counter()
     extent_t = torch.as_tensor(np.asarray(extent), dtype=torch.float32, device=device)
@@ -285,7 +310,7 @@ def render(
             return count, trips, fused.block
 
         counters.iterations, counters.primary_samples, counters.slots = _whole_rays(o, d, t0, t1, dt, macro, plan,
-                                                                                    march)
+                                                                                    march, interrupt)
         return _image(camera, color, trans, shading, start, counters)
 
     def composite(rows, t, valid):
@@ -310,7 +335,7 @@ def render(
         trans[rows] *= through
 
     counters.iterations = _march(o, d, t0, t1, dt, macro, plan, composite,
-                                 lambda rows: trans[rows] < min_transmittance)
+                                 lambda rows: trans[rows] < min_transmittance, interrupt)
     return _image(camera, color, trans, shading, start, counters)
 
 

@@ -4,6 +4,7 @@ choice of how its networks are evaluated (`Networks`: config `render.kernel`).""
 from __future__ import annotations
 
 import warnings
+from collections.abc import Callable
 from dataclasses import asdict, dataclass, field
 
 import numpy as np
@@ -144,12 +145,13 @@ class RenderScene:
     def render(self, mode: str, camera: Camera, *, light=None, siren=None, scalar: str | None = None,
                phong: bool = False, step: float = DEFAULT_STEP, skip: bool = True, batch: int | None = None,
                samples_per_iter: int | None = None, min_transmittance: float = MIN_TRANSMITTANCE,
-               background: float = BACKGROUND) -> Image:
+               background: float = BACKGROUND, interrupt: Callable[[], bool] | None = None) -> Image:
         """`siren`: (weights, layout, blocks) of the shadow INR, for mode `inr`. A fused kernel that fails to
-        compile leaves this scene on the eager SIREN, with a warning: the setting is a speed-up, not a result."""
+        compile leaves this scene on the eager SIREN, with a warning: the setting is a speed-up, not a result.
+        `interrupt`: `render`'s (the frame given up with `Interrupted` once it returns True)."""
         kw = {"light": light, "siren": siren, "scalar": scalar, "phong": phong, "step": step, "skip": skip,
               "batch": batch, "samples_per_iter": samples_per_iter, "min_transmittance": min_transmittance,
-              "background": background}
+              "background": background, "interrupt": interrupt}
         try:
             return self._render(mode, camera, **kw)
         except FusedKernelError as e:
@@ -159,7 +161,7 @@ class RenderScene:
             return self._render(mode, camera, **kw)
 
     def _render(self, mode: str, camera: Camera, *, light, siren, scalar, phong, step, skip, batch,
-                samples_per_iter, min_transmittance, background) -> Image:
+                samples_per_iter, min_transmittance, background, interrupt) -> Image:
         if mode not in MODES:
             raise RenderError(f"mode: expected one of {MODES}, got {mode!r}")
         if scalar is None:
@@ -185,7 +187,7 @@ class RenderScene:
             return render(camera, field_, self.tf, self.volume.extent, self.voxel, light=light, shadow=shadow,
                           shading=Shading(phong=phong, background=background), step=step, macro=macro,
                           min_transmittance=min_transmittance, samples_per_iter=samples_per_iter, batch=batch,
-                          device=self.device)
+                          device=self.device, interrupt=interrupt)
 
 
 def write_png(path, image: Image) -> None:

@@ -20,7 +20,7 @@ import numpy as np
 import torch
 
 from diffshadow.io import atomic_save, atomic_write_text
-from diffshadow.render import Camera, RenderError
+from diffshadow.render import Camera, Interrupted, RenderError
 from diffshadow.viewer.scene import DIFF, ViewerError, ViewerScene, azimuth_elevation, direction, region_chart
 
 STILL_S = 0.3  # no change for this long: draw at full size
@@ -165,7 +165,8 @@ class Session:
                 self._place_camera()
                 continue
             try:
-                self._draw(kind)
+                if not self._draw(kind, version):
+                    continue  # given up for a newer view: its preview comes next
             except (ViewerError, RenderError, ValueError) as e:
                 self.status.content = f"**cannot draw:** {e}"
             self.drawn[kind] = version
@@ -181,7 +182,8 @@ class Session:
         self.placed = True
         self.changed()
 
-    def _draw(self, kind: str) -> None:
+    def _draw(self, kind: str, version: int) -> bool:
+        """Draw view `version` as a still frame or a preview; False if it was given up for a newer view."""
         mode, step = self.mode.value, float(self.step.value)
         full = int(self.size.value) or int(self.client.camera.image_height) or 128
         height = full if kind == "full" else self._preview_height(mode, full)
@@ -194,7 +196,15 @@ class Session:
             if not self.viewer.scene.has_gt(light):
                 self.status.content = "computing the exact shadow for this light (once per light) ..."
         t0 = time.perf_counter()
-        image, notes = self.viewer.frame(mode, camera, light, step=step)
+        # a still frame (20 s at 480² on 2 CPU cores) is given up as soon as the view changes. A preview is not: it
+        # is short, and while the light is dragged the view changes every few milliseconds, so none would be shown.
+        interrupt = (lambda: self.version != version) if kind == "full" else None
+        try:
+            image, notes = self.viewer.frame(mode, camera, light, step=step, interrupt=interrupt)
+        except Interrupted:
+            self._log_frame({"kind": kind, "mode": mode, "width": camera.width, "height": camera.height,
+                             "seconds": time.perf_counter() - t0, "interrupted": True})
+            return False
         self.client.scene.set_background_image(image, format="png")
         seconds = time.perf_counter() - t0
         self.per_pixel[mode] = seconds / (camera.width * camera.height)
@@ -204,14 +214,18 @@ class Session:
         if self.gizmo is not None and not np.array_equal(self.charted, light):
             self.gizmo.image, self.charted = self._chart(), light
         self._notes(kind, mode, camera, light, notes, seconds, commands)
+        made = notes["light"].generate_s if notes.get("light") else None
+        self._log_frame({"kind": kind, "mode": mode, "shown": notes.get("shown", mode), "width": camera.width,
+                         "height": camera.height, "seconds": seconds, "generate_s": made})
+        if self.record is not None and kind == "full":
+            self._record(image, mode, camera, light, notes, commands)
+        return True
+
+    def _log_frame(self, entry: dict) -> None:
+        """Every frame's cost, drawn or given up, with the time it ended (frames.jsonl; for measuring the viewer)."""
         if self.record is not None:
-            with open(self.record / "frames.jsonl", "a") as f:  # every frame's cost, for measuring the viewer
-                made = notes["light"].generate_s if notes.get("light") else None
-                f.write(json.dumps({"kind": kind, "mode": mode, "shown": notes.get("shown", mode),
-                                    "width": camera.width, "height": camera.height, "seconds": seconds,
-                                    "generate_s": made, "time": time.time()}) + "\n")
-            if kind == "full":
-                self._record(image, mode, camera, light, notes, commands)
+            with open(self.record / "frames.jsonl", "a") as f:
+                f.write(json.dumps({**entry, "time": time.time()}) + "\n")
 
     def _notes(self, kind, mode, camera, light, notes, seconds, commands) -> None:
         info = notes.get("light") or self.viewer.light_info(light)

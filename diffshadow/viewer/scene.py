@@ -8,6 +8,7 @@ import math
 import shlex
 import time
 from collections import OrderedDict
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -175,17 +176,19 @@ class ViewerScene:
             return "gt"
         return mode
 
-    def frame(self, mode: str, camera: Camera, light, *, step: float) -> tuple[np.ndarray, dict]:
-        """(H, W, 3) uint8 image of `mode` and what the panel says about it (light, timings, PSNR)."""
+    def frame(self, mode: str, camera: Camera, light, *, step: float,
+              interrupt: Callable[[], bool] | None = None) -> tuple[np.ndarray, dict]:
+        """(H, W, 3) uint8 image of `mode` and what the panel says about it (light, timings, PSNR). `interrupt`:
+        the renderer's (`render.Interrupted` once it returns True)."""
         if mode not in self.modes:
             raise ViewerError(f"mode: expected one of {', '.join(self.modes)}, got {mode!r}")
         if (shown := self.shown_mode(mode, light)) != mode:
-            image, notes = self.frame(shown, camera, light, step=step)
+            image, notes = self.frame(shown, camera, light, step=step, interrupt=interrupt)
             return image, {**notes, "shown": shown}
         if mode in ("inr | gt", DIFF):
             # both from full frames of the same camera, so the PSNR is one number whichever of the two is shown
-            inr, n1 = self.frame("inr", camera, light, step=step)
-            gt, n2 = self.frame("gt", camera, light, step=step)
+            inr, n1 = self.frame("inr", camera, light, step=step, interrupt=interrupt)
+            gt, n2 = self.frame("gt", camera, light, step=step, interrupt=interrupt)
             notes = {**n1, "psnr_vs_gt": image_psnr(inr, gt), "gt_s": n2["render_s"],
                      "render_s": n1["render_s"] + n2["render_s"]}
             if mode == "inr | gt":  # each whole frame at half size, side by side
@@ -204,7 +207,7 @@ class ViewerScene:
             notes = {} if mode == "noshadow" else {"light": self.light_info(light)}
         t0 = time.perf_counter()
         img = self.scene.render(mode, camera, light=None if mode == "noshadow" else as_direction(light),
-                                siren=siren, step=step)
+                                siren=siren, step=step, interrupt=interrupt)
         notes["render_s"] = time.perf_counter() - t0
         return img.to_uint8(), notes
 
