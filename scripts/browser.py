@@ -273,6 +273,10 @@ def drive_viewer(results, workdir, *, screenshot=None) -> dict:
     frames = workdir / "frames"
     log = workdir / "view.log"
     with viewer(results, frames, size=0, log=log) as (url, _):
+        # the page at a fixed pixel ratio: viser lowers it when the page draws slowly (SwiftShader on a loaded CPU)
+        # without telling the viewer, which then fills a smaller canvas at the size it was told: the canvas is no
+        # longer the frame, pixel for pixel (a user's GPU draws this page fast; `viewer-fps` keeps viser's default)
+        url = f"{url}/?fixedDpr=1"
         browser = Browser(url, width=800, height=335)
         try:
             out = {}
@@ -516,31 +520,62 @@ def nudge(browser: Browser, thumb: tuple[float, float], px: float) -> float:
     return began
 
 
+def _begun_after(record: Path, t: float) -> list[dict]:
+    """The frames drawn that began after time `t` (so of the view after any change made before it)."""
+    return [f for f in _frames(record) if f["time"] - f["seconds"] > t]
+
+
+def _wait_for(record: Path, t: float, accept, timeout: float, what: str) -> list[dict]:
+    deadline = time.monotonic() + timeout
+    while not ((frames := _begun_after(record, t)) and accept(frames)):
+        if time.monotonic() > deadline:
+            raise TimeoutError(f"no {what} in {timeout:.0f} s")
+        time.sleep(0.02)
+    return frames
+
+
 def measure_response(browser: Browser, record: Path, *, trials: int = 4, into_still_s: float = 2.0,
                      timeout: float = 600.0) -> dict:
     """What a user waits for when they move the light while a still frame is being drawn: the light's slider nudged
     `into_still_s` after the last answer (the still frame starts 0.3 s after a change), `trials` times; seconds from
-    the press to the next frame drawn, and how many still frames were given up."""
-    waits = []
+    the press to the end of the first frame begun after it (a frame begun before shows the old light), how many
+    still frames were given up, and when the last press was."""
+    waits, began = [], 0.0
     for i in range(trials):
         time.sleep(into_still_s)
         x, y, _, _ = slider_thumb(browser, "azimuth")
         began = nudge(browser, (x, y), 6.0 if i % 2 == 0 else -6.0)
-        deadline = time.monotonic() + timeout
-        while not (after := [f for f in _frames(record) if f["time"] > began]):
-            if time.monotonic() > deadline:
-                raise TimeoutError(f"no frame in {timeout:.0f} s after moving the light")
-            time.sleep(0.02)
-        waits.append(after[0]["time"] - began)
+        answer = _wait_for(record, began, lambda f: True, timeout, "frame after moving the light")[0]
+        waits.append(answer["time"] - began)
     given_up = [f for f in _frames(record, given_up=True) if f.get("interrupted")]
-    return {"seconds": waits, "median_s": float(np.median(waits)), "max_s": max(waits), "given_up": len(given_up)}
+    return {"seconds": waits, "median_s": float(np.median(waits)), "max_s": max(waits), "given_up": len(given_up),
+            "last_press": began}
+
+
+def measure_sharpening(browser: Browser, record: Path, since: float, *, timeout: float = 600.0) -> dict:
+    """What a user sees once they stop moving the light: the frames drawn after one nudge of its slider, made once
+    the viewer is idle (the still frame of the last change, at `since`, drawn), to the still frame at full size,
+    each with its size and the seconds since the press."""
+    def whole(frames: list[dict]) -> bool:
+        return any(f["kind"] == "full" for f in frames)
+
+    _wait_for(record, since, whole, timeout, "still frame")
+    time.sleep(1.0)
+    x, y, _, _ = slider_thumb(browser, "azimuth")
+    began = nudge(browser, (x, y), 6.0)
+    after = _wait_for(record, began, whole, timeout, "still frame after moving the light")
+    frames = after[:next(i for i, f in enumerate(after) if f["kind"] == "full") + 1]
+    still = [f for f in frames if f["kind"] != "preview"]
+    return {"frames": [[f["kind"], f"{f['width']}x{f['height']}", round(f["time"] - began, 2)] for f in frames],
+            "first_still_s": still[0]["time"] - began, "full_s": still[-1]["time"] - began}
 
 
 def measure_viewer(results, workdir, *, sizes=(128, 256), seconds: float = 8.0) -> dict:
     """The viewer's frame rate as a user gets it in Chromium on this machine: the light's azimuth slider dragged
     for `seconds`, then the camera orbited with the mouse, then the light moved while a still frame draws
-    (`measure_response`), at each image height (a square canvas); full-size frame times once still; a new
-    direction's generation time; the viewer's peak resident memory."""
+    (`measure_response`) and the frames that follow when it stops (`measure_sharpening`), at each image height
+    (a square canvas); full-size frame times once still; a new direction's generation time; the viewer's peak
+    resident memory."""
     results, out = Path(results).resolve(), {}
     for size in sizes:
         root = Path(workdir) / f"frames_{size}"
@@ -567,6 +602,7 @@ def measure_viewer(results, workdir, *, sizes=(128, 256), seconds: float = 8.0) 
                 began = drag(browser, (cx, cy), (cx - rect["width"] / 4, cx + rect["width"] / 4), seconds)
                 orbit = _rate(record, began, seconds)
                 response = measure_response(browser, record)
+                sharpening = measure_sharpening(browser, record, response["last_press"])
                 time.sleep(2)
             finally:
                 browser.close()
@@ -576,6 +612,7 @@ def measure_viewer(results, workdir, *, sizes=(128, 256), seconds: float = 8.0) 
             status = Path(f"/proc/{proc.pid}/status").read_text()
             peak = int(re.search(r"VmHWM:\s+(\d+) kB", status).group(1)) * 1024
             out[size] = {"dragging_light": light, "orbiting_camera": orbit, "light_moved_while_still": response,
+                         "after_the_light_stops": sharpening,
                          "still_fps": 1 / float(np.median(full)) if full else None, "still_frames": len(full),
                          "generate_s_median": float(np.median(made)) if made else None, "generated": len(made),
                          "peak_rss_mib": peak / 2 ** 20}

@@ -21,7 +21,7 @@ from diffshadow.siren import SirenConfig, WeightLayout, init_siren
 from diffshadow.store import WeightStore
 from diffshadow.transfer import TransferFunction
 from diffshadow.viewer import ViewerError, ViewerScene, azimuth_elevation, direction
-from diffshadow.viewer.app import camera_of, port_free
+from diffshadow.viewer.app import STEP_UP_S, Session, camera_of, port_free
 from diffshadow.viewer.scene import GENERATED_KEEP
 from diffshadow.volume import Volume
 
@@ -127,6 +127,35 @@ def test_a_scene_without_a_cache_offers_noshadow_and_gt():
     assert bare.modes == ("noshadow", "gt")
     with pytest.raises(ViewerError, match="mode: expected one of noshadow, gt, got 'inr'"):
         bare.frame("inr", CAM, direction(0, 45), step=1.0)
+
+
+def still_rungs(seconds_per_pixel: float | None, full: int = 480, version: int = 1, state=None) -> list[int]:
+    """A tab's still-frame heights (`Session._rungs`) for a square canvas, where its last still frame cost
+    `seconds_per_pixel` (None: nothing drawn yet)."""
+    tab = state or SimpleNamespace(rungs=(-1, []), per_pixel={}, still_per_pixel={},
+                                   client=SimpleNamespace(camera=SimpleNamespace(aspect=1.0)))
+    if seconds_per_pixel is not None:
+        tab.per_pixel["inr"] = tab.still_per_pixel["inr"] = seconds_per_pixel
+    tab._preview_height = lambda mode, height: Session._preview_height(tab, mode, height)
+    return Session._rungs(tab, version, "inr", full)
+
+
+def test_a_long_still_frame_is_drawn_at_a_quarter_of_its_height_first():
+    """Each rung before the full frame is a quarter of the next, added while the next is predicted to take over
+    STEP_UP_S, and stays above the preview's height; a fast frame (a GPU) is drawn whole at once."""
+    assert still_rungs(None) == [480]  # no cost known yet
+    assert still_rungs(0.9 * STEP_UP_S / 480 ** 2) == [480]
+    assert still_rungs(22.0 / 480 ** 2) == [120, 480]  # 2 CPU cores: 22 s at 480², 1.4 s at 120²
+    assert still_rungs(22.0 / 480 ** 2, full=1920) == [120, 480, 1920]
+    # however slow, no rung at or under the preview's height (32 px here: a quarter of 120 is not drawn)
+    assert still_rungs(1e3 / 480 ** 2, full=1920) == [120, 480, 1920]
+    # the rungs of one view are kept while they are drawn (the loop takes them off); a new view gets its own
+    tab = SimpleNamespace(rungs=(-1, []), per_pixel={}, still_per_pixel={},
+                          client=SimpleNamespace(camera=SimpleNamespace(aspect=1.0)))
+    first = still_rungs(22.0 / 480 ** 2, state=tab)
+    first.pop(0)
+    assert still_rungs(22.0 / 480 ** 2, state=tab) == [480]
+    assert still_rungs(22.0 / 480 ** 2, version=2, state=tab) == [120, 480]
 
 
 def test_the_render_command_reproduces_the_camera_and_the_light(viewer):

@@ -1,8 +1,9 @@
 """The browser viewer (`diffshadow view`), built on viser: each browser tab gets its own panel and a render
 thread that draws the scene from the tab's camera as the page's background image: at the canvas's own pixel size
 once the camera and the light have been still for `STILL_S` (or at the height the panel asks), smaller while they
-move (half that height, less where that would take longer than `PREVIEW_BUDGET_S`). Outside the cache's light
-region the cache's modes draw the exact shadow, and say so."""
+move (half that height, less where that would take longer than `PREVIEW_BUDGET_S`). A still frame that would take
+longer than `STEP_UP_S` is drawn first at a quarter of its height, and any still frame is given up as soon as the view
+changes. Outside the cache's light region the cache's modes draw the exact shadow, and say so."""
 
 from __future__ import annotations
 
@@ -27,6 +28,8 @@ STILL_S = 0.3  # no change for this long: draw at full size
 PREVIEW = 2  # while moving, the image height is divided by this ...
 PREVIEW_BUDGET_S = 0.25  # ... or more, so that a moving frame takes about this long (a CPU at canvas size)
 PREVIEW_MIN = 32
+STEP_UP_S = 2.0  # a still frame predicted to take longer is drawn at a quarter of its height first (and so on)
+STEP_UP = 4  # ... a quarter: 1/16 of the pixels, so the still frame costs 6 % more (a half: 25 % more)
 FREE = "(azimuth / elevation)"
 
 
@@ -61,7 +64,9 @@ class Session:
         self.lock, self.wake = threading.Lock(), threading.Event()
         self.version, self.changed_at = 0, time.monotonic()
         self.drawn = {"full": -1, "preview": -1}
+        self.rungs: tuple[int, list[int]] = (-1, [])  # a view's still-frame heights still to draw (`_rungs`)
         self.per_pixel: dict[str, float] = {}  # the last frame's seconds per pixel, per mode
+        self.still_per_pixel: dict[str, float] = {}  # the same of still frames (a preview's includes more overhead)
         self.frames = 0
         listed = viewer.listed()
         self.light = listed[0][1] if listed else direction(60.0, 40.0)
@@ -140,6 +145,20 @@ class Session:
             height = min(height, int(math.sqrt(PREVIEW_BUDGET_S / cost / aspect)))
         return max(PREVIEW_MIN, height)
 
+    def _rungs(self, version: int, mode: str, full: int) -> list[int]:
+        """The heights of view `version`'s still frame still to draw, the full height last: before it, quarters of
+        it while the mode's last cost per pixel predicts more than STEP_UP_S for the frame above, down to the
+        preview's height. On 2 CPU cores a 480-pixel canvas gets 120, 480; on a GPU the full frame alone."""
+        if self.rungs[0] != version:
+            heights = [full]
+            if (cost := self.still_per_pixel.get(mode, self.per_pixel.get(mode))) is not None:
+                aspect = max(float(self.client.camera.aspect or 1.0), 1e-3)
+                while (heights[0] // STEP_UP > self._preview_height(mode, full)
+                       and cost * aspect * heights[0] ** 2 > STEP_UP_S):
+                    heights.insert(0, heights[0] // STEP_UP)
+            self.rungs = (version, heights)
+        return self.rungs[1]
+
     def _chart(self) -> np.ndarray:
         v = self.viewer
         return region_chart(v.region, v.train, v.unseen, self.light)
@@ -164,11 +183,20 @@ class Session:
             if not self.placed:
                 self._place_camera()
                 continue
+            full = int(self.size.value) or int(self.client.camera.image_height) or 128
+            height = self._preview_height(self.mode.value, full)
+            if kind == "full":
+                rungs = self._rungs(version, self.mode.value, full)
+                height, kind = rungs[0], "full" if len(rungs) == 1 else "sharpening"
             try:
-                if not self._draw(kind, version):
+                if not self._draw(kind, version, height):
                     continue  # given up for a newer view: its preview comes next
             except (ViewerError, RenderError, ValueError) as e:
                 self.status.content = f"**cannot draw:** {e}"
+                kind = "full"
+            if kind == "sharpening":
+                self.rungs[1].pop(0)
+                continue
             self.drawn[kind] = version
 
     def _place_camera(self) -> None:
@@ -182,11 +210,10 @@ class Session:
         self.placed = True
         self.changed()
 
-    def _draw(self, kind: str, version: int) -> bool:
-        """Draw view `version` as a still frame or a preview; False if it was given up for a newer view."""
+    def _draw(self, kind: str, version: int, height: int) -> bool:
+        """Draw view `version` `height` pixels high as a still frame ("full", or "sharpening" on the way to it) or a
+        preview; False if it was given up for a newer view."""
         mode, step = self.mode.value, float(self.step.value)
-        full = int(self.size.value) or int(self.client.camera.image_height) or 128
-        height = full if kind == "full" else self._preview_height(mode, full)
         camera = camera_of(self.client.camera, max(16, height))
         light = self.light
         if self.viewer.shown_mode(mode, light) in ("gt", "inr | gt", DIFF):
@@ -198,16 +225,18 @@ class Session:
         t0 = time.perf_counter()
         # a still frame (20 s at 480² on 2 CPU cores) is given up as soon as the view changes. A preview is not: it
         # is short, and while the light is dragged the view changes every few milliseconds, so none would be shown.
-        interrupt = (lambda: self.version != version) if kind == "full" else None
+        interrupt = None if kind == "preview" else (lambda: self.version != version)
         try:
             image, notes = self.viewer.frame(mode, camera, light, step=step, interrupt=interrupt)
         except Interrupted:
-            self._log_frame({"kind": kind, "mode": mode, "width": camera.width, "height": camera.height,
-                             "seconds": time.perf_counter() - t0, "interrupted": True})
+            self._log_frame({"kind": kind, "view": version, "mode": mode, "width": camera.width,
+                             "height": camera.height, "seconds": time.perf_counter() - t0, "interrupted": True})
             return False
         self.client.scene.set_background_image(image, format="png")
         seconds = time.perf_counter() - t0
         self.per_pixel[mode] = seconds / (camera.width * camera.height)
+        if kind != "preview":
+            self.still_per_pixel[mode] = self.per_pixel[mode]
         self.frames += 1
         # the commands that redraw this frame (the panel shows them, the record keeps them)
         commands = self.viewer.render_commands(mode, camera, light, step=step)
@@ -215,8 +244,8 @@ class Session:
             self.gizmo.image, self.charted = self._chart(), light
         self._notes(kind, mode, camera, light, notes, seconds, commands)
         made = notes["light"].generate_s if notes.get("light") else None
-        self._log_frame({"kind": kind, "mode": mode, "shown": notes.get("shown", mode), "width": camera.width,
-                         "height": camera.height, "seconds": seconds, "generate_s": made})
+        self._log_frame({"kind": kind, "view": version, "mode": mode, "shown": notes.get("shown", mode),
+                         "width": camera.width, "height": camera.height, "seconds": seconds, "generate_s": made})
         if self.record is not None and kind == "full":
             self._record(image, mode, camera, light, notes, commands)
         return True
@@ -234,7 +263,8 @@ class Session:
             line += f"; its shadow SIREN made now in {info.generate_s:.2f} s ({self.viewer.cache_name})"
         self.light_note.content = line
         # this frame's time and rate, not an average: a 5 s frame reads 0.2 fps
-        status = (f"{camera.width}×{camera.height}{' (moving: preview)' if kind == 'preview' else ''} in "
+        said = {"preview": " (moving: preview)", "sharpening": " (still: a sharper frame follows)"}.get(kind, "")
+        status = (f"{camera.width}×{camera.height}{said} in "
                   f"{seconds * 1000:.0f} ms ({1 / max(seconds, 1e-9):.1f} fps) on {self.viewer.scene.device.type}")
         if notes.get("shown") == "gt":
             status = (f"**outside the cache: exact shadow, {notes['render_s'] * 1000:.0f} ms** (the cache was not "
