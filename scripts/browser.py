@@ -535,11 +535,11 @@ def _wait_for(record: Path, t: float, accept, timeout: float, what: str) -> list
 
 
 def measure_response(browser: Browser, record: Path, *, trials: int = 4, into_still_s: float = 2.0,
-                     timeout: float = 600.0) -> dict:
+                     timeout: float = 600.0) -> tuple[dict, float]:
     """What a user waits for when they move the light while a still frame is being drawn: the light's slider nudged
     `into_still_s` after the last answer (the still frame starts 0.3 s after a change), `trials` times; seconds from
-    the press to the end of the first frame begun after it (a frame begun before shows the old light), how many
-    still frames were given up, and when the last press was."""
+    the press to the end of the first frame begun after it (a frame begun before shows the old light) and how many
+    still frames were given up; and when the last press was."""
     waits, began = [], 0.0
     for i in range(trials):
         time.sleep(into_still_s)
@@ -548,8 +548,8 @@ def measure_response(browser: Browser, record: Path, *, trials: int = 4, into_st
         answer = _wait_for(record, began, lambda f: True, timeout, "frame after moving the light")[0]
         waits.append(answer["time"] - began)
     given_up = [f for f in _frames(record, given_up=True) if f.get("interrupted")]
-    return {"seconds": waits, "median_s": float(np.median(waits)), "max_s": max(waits), "given_up": len(given_up),
-            "last_press": began}
+    return {"seconds": waits, "median_s": float(np.median(waits)), "max_s": max(waits),
+            "given_up": len(given_up)}, began
 
 
 def measure_sharpening(browser: Browser, record: Path, since: float, *, timeout: float = 600.0) -> dict:
@@ -601,8 +601,8 @@ def measure_viewer(results, workdir, *, sizes=(128, 256), seconds: float = 8.0) 
                 cx, cy = rect["x"] + rect["width"] / 2, rect["y"] + rect["height"] / 2
                 began = drag(browser, (cx, cy), (cx - rect["width"] / 4, cx + rect["width"] / 4), seconds)
                 orbit = _rate(record, began, seconds)
-                response = measure_response(browser, record)
-                sharpening = measure_sharpening(browser, record, response["last_press"])
+                response, last_press = measure_response(browser, record)
+                sharpening = measure_sharpening(browser, record, last_press)
                 time.sleep(2)
             finally:
                 browser.close()

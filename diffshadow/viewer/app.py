@@ -184,10 +184,11 @@ class Session:
                 self._place_camera()
                 continue
             full = int(self.size.value) or int(self.client.camera.image_height) or 128
-            height = self._preview_height(self.mode.value, full)
             if kind == "full":
                 rungs = self._rungs(version, self.mode.value, full)
                 height, kind = rungs[0], "full" if len(rungs) == 1 else "sharpening"
+            else:
+                height = self._preview_height(self.mode.value, full)
             try:
                 if not self._draw(kind, version, height):
                     continue  # given up for a newer view: its preview comes next
