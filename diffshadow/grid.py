@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import math
 import numbers
+from collections.abc import Callable
 
 import torch
 import torch.nn.functional as F
@@ -18,6 +19,16 @@ from diffshadow.volume import Volume
 # The finest marching step taken, in voxels: 128x finer than the benches' reference step (1/8 voxel). Finer steps
 # only make a march take hours without a word (render --step 1e-9 ran 7e10 samples a ray).
 MIN_STEP = 2.0 ** -10
+
+
+class Interrupted(Exception):
+    """A march was given up: its `interrupt` said so before an iteration (nothing is returned)."""
+
+
+def go_on(interrupt: Callable[[], bool] | None) -> None:
+    """Raise `Interrupted` if `interrupt` (a host-side flag, asked between a march's iterations) says stop."""
+    if interrupt is not None and interrupt():
+        raise Interrupted
 
 
 def check_step(step, error: type[ValueError] = ValueError) -> None:

@@ -20,13 +20,14 @@ Everything is torch and runs on CPU or CUDA through the same code.
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
 import torch
 import torch.nn.functional as F
 
-from diffshadow.grid import check_step, macro_cells, ray_box, trilinear, voxel_points
+from diffshadow.grid import check_step, go_on, macro_cells, ray_box, trilinear, voxel_points
 from diffshadow.lights import LightError, as_direction
 from diffshadow.transfer import TransferFunction
 from diffshadow.volume import Volume
@@ -98,12 +99,14 @@ def transmittance(
     samples_per_iter: int = SAMPLES_PER_ITER,
     chunk: int = CHUNK,
     device: torch.device | str = "cpu",
+    interrupt: Callable[[], bool] | None = None,
 ) -> torch.Tensor:
     """Shadow coefficient at each point (P, 3) for a light in direction `light_dir` → (P,) in [0, 1].
 
     `step` is in voxels (of the finest axis). Points outside the box are marched from where their ray
     enters it. `skip_empty` jumps over macro-cells whose μ is 0 under `tf` (None: when at least
-    `AUTO_SKIP_FRACTION` of the cells are empty).
+    `AUTO_SKIP_FRACTION` of the cells are empty). `interrupt`, if given, is asked before every iteration; once
+    it returns True the march ends with `grid.Interrupted` (the viewer gives up a light it has left).
     """
     check_step(step)
     w64 = as_direction(light_dir)
@@ -112,7 +115,7 @@ def transmittance(
     field = volume if isinstance(volume, ShadowField) else ShadowField.build(volume, tf, device=device)
     pts = _as_points(points, field.scalar.device)
     w = torch.as_tensor(w64, dtype=torch.float32, device=pts.device)  # one direction, broadcast: no (P, 3) copy
-    return _transmittance_rays(field, w, pts, step, skip_empty, tau_max, samples_per_iter, chunk)
+    return _transmittance_rays(field, w, pts, step, skip_empty, tau_max, samples_per_iter, chunk, interrupt)
 
 
 RAYS_PER_MARCH = 1 << 21  # rays marched together by transmittance_per_light (~120 MiB of per-ray state)
@@ -165,7 +168,8 @@ def transmittance_per_light(
 
 
 def _transmittance_rays(field: ShadowField, w: torch.Tensor, pts: torch.Tensor, step: float, skip_empty,
-                        tau_max: float, samples_per_iter: int, chunk: int) -> torch.Tensor:
+                        tau_max: float, samples_per_iter: int, chunk: int,
+                        interrupt: Callable[[], bool] | None = None) -> torch.Tensor:
     """exp(-optical depth) from each point (R, 3) toward its light, w (R, 3) or one for all (3,)."""
     t0, t1 = ray_box(pts, w, field.extent)
     t0 = t0.clamp_min(0.0)
@@ -187,12 +191,13 @@ def _transmittance_rays(field: ShadowField, w: torch.Tensor, pts: torch.Tensor, 
     per_chunk = max(1, chunk // samples_per_iter)
     for start in range(0, len(pts), per_chunk):
         sl = slice(start, start + per_chunk)
-        tau[sl] = _march_chunk(field, exit_vox[sl], dq[sl], dt, last[sl], n[sl], skip, tau_max, samples_per_iter)
+        tau[sl] = _march_chunk(field, exit_vox[sl], dq[sl], dt, last[sl], n[sl], skip, tau_max, samples_per_iter,
+                               interrupt)
     return torch.exp(-tau)
 
 
 def _march_chunk(field: ShadowField, q0, dq, dt: float, last, n, skip: bool, tau_max: float,
-                 S: int) -> torch.Tensor:
+                 S: int, interrupt: Callable[[], bool] | None = None) -> torch.Tensor:
     """Optical depth for one chunk of rays; sample j of a ray sits at q0 + (j + ½) dq and weighs dt,
     except the last (j = n - 1), which weighs `last`."""
     device = q0.device
@@ -202,6 +207,7 @@ def _march_chunk(field: ShadowField, q0, dq, dt: float, last, n, skip: bool, tau
     ncell = torch.tensor(field.empty.shape[::-1], device=device)  # (cx, cy, cz)
     live = torch.nonzero(n > 0).squeeze(1)
     while live.numel():
+        go_on(interrupt)
         kk = k[live, None] + offsets  # (L, S)
         in_range = kk < n[live, None]
         pos = q0[live, None, :] + (kk[..., None] + 0.5) * dq[live, None, :]  # (L, S, 3) voxels
@@ -249,9 +255,9 @@ def shadow_grid(
 ) -> torch.Tensor:
     """Shadow coefficient at every voxel → (Z, Y, X) float32.
 
-    `method="march"`: `transmittance` at every voxel (the reference); `step` in voxels, default
-    `DEFAULT_STEP`. `method="sweep"`: the shear sweep; `step` is the sample spacing along the lines in
-    slices and must be 1/k for an integer k (default 1).
+    `method="march"`: `transmittance` at every voxel (the reference; its options too, `interrupt` among them);
+    `step` in voxels, default `DEFAULT_STEP`. `method="sweep"`: the shear sweep; `step` is the sample spacing
+    along the lines in slices and must be 1/k for an integer k (default 1).
     """
     w = as_direction(light_dir)
     if method == "march":

@@ -419,11 +419,12 @@ def render_all(requests: list[tuple[str, list[str]]], workdir: Path) -> dict[str
 
 @contextmanager
 def viewer(results: Path, record: Path, *, size: int, log: Path):
-    """`diffshadow view results` on a free port, recording into `record`, its output in `log`; yields (its URL,
-    its process) once it serves, and stops it after."""
+    """`diffshadow view results` (or `--scene-config` a scene file) on a free port, recording into `record`, its
+    output in `log`; yields (its URL, its process) once it serves, and stops it after."""
     port = free_port()
+    source = ["--scene-config", str(results)] if Path(results).suffix in (".yaml", ".yml") else [str(results)]
     with open(log, "w") as f:
-        proc = subprocess.Popen([str(DIFFSHADOW), "view", str(results), "--port",
+        proc = subprocess.Popen([str(DIFFSHADOW), "view", *source, "--port",
                                  str(port), "--size", str(size), "--record", str(record)], stdout=f,
                                 stderr=subprocess.STDOUT, text=True)
     try:
@@ -570,12 +571,12 @@ def measure_sharpening(browser: Browser, record: Path, since: float, *, timeout:
             "first_still_s": still[0]["time"] - began, "full_s": still[-1]["time"] - began}
 
 
-def measure_viewer(results, workdir, *, sizes=(128, 256), seconds: float = 8.0) -> dict:
-    """The viewer's frame rate as a user gets it in Chromium on this machine: the light's azimuth slider dragged
-    for `seconds`, then the camera orbited with the mouse, then the light moved while a still frame draws
-    (`measure_response`) and the frames that follow when it stops (`measure_sharpening`), at each image height
-    (a square canvas); full-size frame times once still; a new direction's generation time; the viewer's peak
-    resident memory."""
+def measure_viewer(results, workdir, *, sizes=(128, 256), seconds: float = 8.0, mode: str | None = None) -> dict:
+    """The viewer's frame rate as a user gets it in Chromium on this machine, in `mode` (None: the first offered):
+    the light's azimuth slider dragged for `seconds`, then the camera orbited with the mouse, then the light moved
+    while a still frame draws (`measure_response`) and the frames that follow when it stops (`measure_sharpening`),
+    at each image height (a square canvas); full-size frame times once still; a new direction's generation time;
+    the viewer's peak resident memory. `results`: a results folder, or a scene file (modes noshadow and gt)."""
     results, out = Path(results).resolve(), {}
     for size in sizes:
         root = Path(workdir) / f"frames_{size}"
@@ -592,6 +593,11 @@ def measure_viewer(results, workdir, *, sizes=(128, 256), seconds: float = 8.0) 
                              deviceScaleFactor=1, mobile=False)
                 next_frame(record, 0, lambda m, s=size or CANVAS: m["height"] == s)
                 browser.dismiss_notifications()
+                if mode is not None:
+                    chosen = time.time()
+                    browser.choose(*browser.input_beside("mode"), mode)
+                    _wait_for(record, chosen, lambda fs: any(f["kind"] == "full" and f["mode"] == mode for f in fs),
+                              600.0, f"still frame in mode {mode}")
                 time.sleep(2)
                 x, y, lo, hi = slider_thumb(browser, "azimuth")
                 began = drag(browser, (x, y), (lo + 2, hi - 2), seconds)
@@ -611,7 +617,9 @@ def measure_viewer(results, workdir, *, sizes=(128, 256), seconds: float = 8.0) 
             made = [f["generate_s"] for f in frames if f.get("generate_s") is not None]
             status = Path(f"/proc/{proc.pid}/status").read_text()
             peak = int(re.search(r"VmHWM:\s+(\d+) kB", status).group(1)) * 1024
-            out[size] = {"dragging_light": light, "orbiting_camera": orbit, "light_moved_while_still": response,
+            swept = [f for f in frames if f.get("exact_by") == "sweep"]
+            out[size] = {"mode": mode or frames[0]["mode"], "previews_by_the_sweep": len(swept),
+                         "dragging_light": light, "orbiting_camera": orbit, "light_moved_while_still": response,
                          "after_the_light_stops": sharpening,
                          "still_fps": 1 / float(np.median(full)) if full else None, "still_frames": len(full),
                          "generate_s_median": float(np.median(made)) if made else None, "generated": len(made),
@@ -664,7 +672,8 @@ def main() -> None:
     v.add_argument("results", help="a finished scene's results folder")
     v.add_argument("--screenshot", help="PNG of the page to write (docs/images/viewer.png)")
     f = sub.add_parser("viewer-fps", help="the viewer's frame rates as a user gets them in Chromium")
-    f.add_argument("results", help="a finished scene's results folder")
+    f.add_argument("results", help="a finished scene's results folder, or a scene file (config/scenes/*.yaml)")
+    f.add_argument("--mode", help="the panel's mode to measure (default: the first offered)")
     f.add_argument("--sizes", type=int, nargs="+", default=[0, 128],
                    help="image heights (square images; 0: the canvas's own, 480)")
     f.add_argument("--out", help="JSON for the figures")
@@ -679,7 +688,7 @@ def main() -> None:
         return
     with tempfile.TemporaryDirectory() as tmp:
         if a.what == "viewer-fps":
-            figures = measure_viewer(a.results, tmp, sizes=a.sizes)
+            figures = measure_viewer(a.results, tmp, sizes=a.sizes, mode=a.mode)
         else:
             figures = drive_viewer(a.results, tmp, screenshot=a.screenshot)
         print(json.dumps(figures, indent=1))

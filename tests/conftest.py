@@ -58,6 +58,17 @@ def shared_data() -> Path:
     return SHARED_DATA
 
 
+class Asker:
+    """An `interrupt` that counts the times it is asked and says stop from the `stop_at`-th on (0: never)."""
+
+    def __init__(self, stop_at: int = 0):
+        self.asked, self.stop_at = 0, stop_at
+
+    def __call__(self) -> bool:
+        self.asked += 1
+        return 0 < self.stop_at <= self.asked
+
+
 class Stopped(Exception):
     """A run killed by `stop_at`'s log function."""
 

@@ -7,7 +7,7 @@ import shutil
 import numpy as np
 import pytest
 import torch
-from conftest import data_inr_stub, default_device_meta
+from conftest import Asker, data_inr_stub, default_device_meta
 
 from diffshadow.analytic import gaussian_blob
 from diffshadow.render import (
@@ -222,17 +222,6 @@ def test_render_rejects_bad_input(blob):
         render(cam, scalar, TF, blob.extent, vox, step=1e-9)
 
 
-class Asker:
-    """An `interrupt` that counts the times it is asked and says stop from the `stop_at`-th on (0: never)."""
-
-    def __init__(self, stop_at: int = 0):
-        self.asked, self.stop_at = 0, stop_at
-
-    def __call__(self) -> bool:
-        self.asked += 1
-        return 0 < self.stop_at <= self.asked
-
-
 def test_a_frame_is_given_up_when_its_interrupt_says_so_and_is_the_same_image_when_it_does_not(blob):
     """`interrupt` (the viewer's "the view changed") is asked before every iteration of the primary rays, and of
     the naive baseline's secondary rays; a frame it never stops is the same image, and once it says stop the frame
@@ -281,6 +270,38 @@ def test_whole_ray_kernels_are_asked_before_every_tile():
     with pytest.raises(Interrupted):
         _whole_rays(o, d, t0, t1, 0.1, None, plan, march, Asker(3))
     assert marched == [0, 8]
+
+
+def test_a_gt_frame_is_given_up_while_its_shadow_grid_is_marched_and_caches_nothing(blob):
+    """Mode `gt` marches its exact shadow grid first (10-16 s for a 128³ volume on 2 CPU cores): `interrupt` is
+    asked there too, a grid given up is not cached, and the next frame is the same image as one never asked."""
+    cam, _, _ = setup(blob, size=16)
+    plain = RenderScene(blob, TF, cell=8).render("gt", cam, light=LIGHT)
+    scene = RenderScene(blob, TF, cell=8)
+    with pytest.raises(Interrupted):
+        scene.render("gt", cam, light=LIGHT, interrupt=Asker(1))
+    assert not scene.has_gt(LIGHT)
+    never = Asker()
+    kept = scene.render("gt", cam, light=LIGHT, interrupt=never)
+    assert torch.equal(kept.rgb, plain.rgb) and scene.has_gt(LIGHT)
+    frame_only = Asker()
+    scene.render("gt", cam, light=LIGHT, interrupt=frame_only)  # the grid cached: only the frame's iterations
+    assert never.asked > frame_only.asked > 0
+
+
+def test_a_gt_frame_takes_its_grid_by_the_method_asked_and_caches_each_apart(blob):
+    """`gt_method` picks the grid's method for one frame (the viewer's previews: the sweep) without touching the
+    scene's own, and `forget_gt` drops both."""
+    cam, _, _ = setup(blob, size=16)
+    scene = RenderScene(blob, TF, cell=8)  # gt_method "march"
+    swept = scene.render("gt", cam, light=LIGHT, gt_method="sweep")
+    assert scene.has_gt(LIGHT, "sweep") and not scene.has_gt(LIGHT)
+    assert torch.equal(swept.rgb, RenderScene(blob, TF, cell=8, gt_method="sweep").render("gt", cam, light=LIGHT).rgb)
+    marched = scene.render("gt", cam, light=LIGHT)
+    assert scene.has_gt(LIGHT) and not torch.equal(marched.rgb, swept.rgb)
+    assert float((marched.rgb - swept.rgb).abs().max()) < 0.05  # two ways to the same shadow
+    scene.forget_gt(LIGHT)
+    assert not scene.has_gt(LIGHT) and not scene.has_gt(LIGHT, "sweep")
 
 
 @pytest.mark.parametrize("mode", ["noshadow", "gt", "naive", "inr"])

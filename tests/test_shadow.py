@@ -5,12 +5,13 @@ import warnings
 import numpy as np
 import pytest
 import torch
-from conftest import cores, default_device_meta, identity_tf
+from conftest import Asker, cores, default_device_meta, identity_tf
 
 from diffshadow import shadow as shadow_module
 from diffshadow.analytic import BLOB_DENSITY as K
 from diffshadow.analytic import BLOB_SIGMA as SIGMA
 from diffshadow.analytic import blob_cases, blob_transmittance, gaussian_blob
+from diffshadow.grid import Interrupted, voxel_points
 from diffshadow.lights import LightError
 from diffshadow.shadow import ShadowField, shadow_grid, transmittance, transmittance_per_light
 from diffshadow.transfer import TransferFunction
@@ -107,6 +108,26 @@ def test_chunking_and_samples_per_iteration_do_not_matter(blob):
     for chunk, spi in [(64, 1), (1000, 8), (37, 3)]:
         torch.testing.assert_close(transmittance(blob, tf, w, pts, chunk=chunk, samples_per_iter=spi), base,
                                    atol=1e-6, rtol=0)
+
+
+def test_a_march_is_given_up_when_its_interrupt_says_so_and_is_the_same_values_when_it_does_not(blob):
+    """`interrupt` (the viewer leaving a light) is asked before every iteration of every chunk; a march it never
+    stops gives the same values, and once it says stop the march ends with `Interrupted` without asking again."""
+    tf = identity_tf(K)
+    pts = voxel_points(blob)[::7]
+    w = (0.1, 0.7, -0.2)
+    chunks = -(-len(pts) // 1000)  # `chunk` counts samples: 4 a ray per iteration
+    plain, never = transmittance(blob, tf, w, pts, chunk=4000), Asker()
+    assert torch.equal(transmittance(blob, tf, w, pts, chunk=4000, interrupt=never), plain)
+    assert never.asked > 10 * chunks, (never.asked, chunks)  # several iterations a chunk, each asked
+    whole = Asker()  # shadow_grid's march passes it on
+    asked = shadow_grid(blob, tf, w, method="march", interrupt=whole)
+    assert torch.equal(asked, shadow_grid(blob, tf, w, method="march"))
+    for stop_at in (1, whole.asked // 2):
+        stop = Asker(stop_at)
+        with pytest.raises(Interrupted):
+            shadow_grid(blob, tf, w, method="march", interrupt=stop)
+        assert stop.asked == stop_at
 
 
 def test_empty_volume_is_exactly_one(blob):

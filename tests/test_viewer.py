@@ -2,6 +2,7 @@
 described, the frame modes, the camera taken from the browser, the command that reproduces a frame, and the
 one-line errors. The browser itself is driven in tests/test_workflow.py (test_viewer_in_a_browser)."""
 
+import json
 import math
 import socket
 import subprocess
@@ -156,6 +157,51 @@ def test_a_long_still_frame_is_drawn_at_a_quarter_of_its_height_first():
     first.pop(0)
     assert still_rungs(22.0 / 480 ** 2, state=tab) == [480]
     assert still_rungs(22.0 / 480 ** 2, version=2, state=tab) == [120, 480]
+
+
+@pytest.mark.parametrize("mode", ["gt", "inr | gt"])
+def test_a_preview_takes_the_quick_sweep_until_the_light_is_marched(viewer, mode):
+    """While the light moves, a light whose exact shadow is not marched yet is previewed with the shear sweep's
+    grid (under a second where the march takes 10-16 s on a 128³ volume), and the notes say so; the still frame
+    marches it (what `diffshadow render --mode gt` draws), and the previews after it use the march."""
+    light, scene = direction(33, 47), viewer.scene
+    scene.forget_gt(light)
+    quick, notes = viewer.frame(mode, CAM, light, step=1.0, preview=True)
+    assert notes["exact_by"] == "sweep" and scene.has_gt(light, "sweep") and not scene.has_gt(light)
+    swept = scene.render("gt", CAM, light=light, step=1.0, gt_method="sweep").to_uint8()
+    still, notes = viewer.frame(mode, CAM, light, step=1.0)
+    assert notes["exact_by"] == "march" and scene.has_gt(light)
+    marched = scene.render("gt", CAM, light=light, step=1.0).to_uint8()
+    if mode == "gt":
+        assert np.array_equal(quick, swept) and np.array_equal(still, marched) and not np.array_equal(quick, still)
+    again, notes = viewer.frame(mode, CAM, light, step=1.0, preview=True)
+    assert notes["exact_by"] == "march" and np.array_equal(again, still)
+    scene.forget_gt(light)
+
+
+def test_a_frames_cost_per_pixel_leaves_out_the_exact_shadows_grid(viewer, tmp_path):
+    """The grid is paid once per light: what predicts the next frame's size (`Session.per_pixel`) is the frame's
+    seconds less the grid's, and a preview drawn with the sweep says so in the status."""
+    light = direction(-33, 52)
+    viewer.scene.forget_gt(light)
+    browser = SimpleNamespace(position=np.array([2.0, 1.0, 1.5]), look_at=np.full(3, 0.5),
+                              up_direction=np.array([0.0, 0.0, 1.0]), fov=math.radians(50.0), aspect=1.25,
+                              image_width=20, image_height=16)
+    tab = SimpleNamespace(mode=SimpleNamespace(value="gt"), step=SimpleNamespace(value=1.0), light=light,
+                          client=SimpleNamespace(camera=browser, scene=SimpleNamespace(
+                              set_background_image=lambda *a, **k: None)),
+                          viewer=viewer, gt_light=None, version=1, per_pixel={}, still_per_pixel={}, frames=0,
+                          gizmo=None, charted=light, record=tmp_path, status=SimpleNamespace(content=""),
+                          light_note=SimpleNamespace(content=""), command=SimpleNamespace(content=""))
+    for name in ("_log_frame", "_notes", "_record"):
+        setattr(tab, name, getattr(Session, name).__get__(tab))
+    for kind in ("preview", "full"):
+        assert Session._draw(tab, kind, 1, 16)
+        entry = json.loads((tmp_path / "frames.jsonl").read_text().splitlines()[-1])
+        assert entry["kind"] == kind and entry["exact_by"] == ("sweep" if kind == "preview" else "march")
+        assert tab.per_pixel["gt"] * 20 * 16 == pytest.approx(entry["seconds"] - entry["grid_s"], rel=1e-6)
+        assert ("exact shadow by the quick sweep while moving" in tab.status.content) == (kind == "preview")
+    viewer.scene.forget_gt(light)
 
 
 def test_the_render_command_reproduces_the_camera_and_the_light(viewer):

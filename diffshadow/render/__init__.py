@@ -9,6 +9,7 @@
 - `bundle`: light-independent ray bundles and target images for the rendering loss.
 """
 
+from diffshadow.grid import Interrupted
 from diffshadow.render.camera import Camera, RenderError, default_views, fibonacci_views
 from diffshadow.render.cells import RENDER_CELL, MacroGrid, Runs
 from diffshadow.render.fields import GridScalar, GridShadow, InrScalar, SirenShadow
@@ -18,7 +19,6 @@ from diffshadow.render.marcher import (
     MIN_TRANSMITTANCE,
     Counters,
     Image,
-    Interrupted,
     MarchedShadow,
     MarchPlan,
     Shading,

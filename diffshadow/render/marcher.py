@@ -37,7 +37,7 @@ from dataclasses import dataclass, field
 import numpy as np
 import torch
 
-from diffshadow.grid import check_step, ray_span
+from diffshadow.grid import check_step, go_on, ray_span
 from diffshadow.lights import as_direction
 from diffshadow.render.camera import Camera, RenderError
 from diffshadow.render.cells import MacroGrid, Runs
@@ -62,15 +62,6 @@ def front_to_back(alpha: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     """Compositing weights (R, S) of samples seen through those before them, and what gets through (R,)."""
     before = torch.cumprod(torch.cat([torch.ones_like(alpha[:, :1]), 1 - alpha[:, :-1]], 1), 1)
     return before * alpha, (1 - alpha).prod(1)
-
-
-class Interrupted(Exception):
-    """The frame was given up: its `interrupt` said so before an iteration or tile (nothing is returned)."""
-
-
-def _go_on(interrupt: Callable[[], bool] | None) -> None:
-    if interrupt is not None and interrupt():
-        raise Interrupted
 
 
 @dataclass
@@ -134,7 +125,7 @@ def _march(o, d, t0, t1, dt: float, macro: MacroGrid | None, plan: MarchPlan, st
         left = int(runs.total.max()) if len(rows) else 0  # iterations bound: one host read per tile
         i = 0
         while len(rows) and left > 0:
-            _go_on(interrupt)
+            go_on(interrupt)
             n = plan.samples_per_ray(len(rows))
             k, valid = runs.samples(rows, m[rows], n)
             rr = rows + a
@@ -159,7 +150,7 @@ def _whole_rays(o, d, t0, t1, dt: float, macro: MacroGrid | None, plan: MarchPla
     slots = torch.zeros((), dtype=torch.int64, device=o.device)
     tiles = 0
     for a in range(0, len(o), plan.tile):
-        _go_on(interrupt)
+        go_on(interrupt)
         sl = slice(a, a + plan.tile)
         count, trips, block = march(sl, Runs.build(o[sl], d[sl], t0[sl], t1[sl], dt, macro))
         samples += count.sum()

@@ -124,34 +124,46 @@ class RenderScene:
                                                                      ranges=ranges, device=self.device))
 
     @staticmethod
-    def _gt_key(light) -> tuple:
-        return ("gt", tuple(np.round(as_direction(light), 12).tolist()))
+    def _gt_key(light, method: str) -> tuple:
+        return ("gt", method, tuple(np.round(as_direction(light), 12).tolist()))
 
-    def has_gt(self, light) -> bool:
-        """Whether the exact shadow of `light` is cached (else the next `gt` frame computes it)."""
-        return self._gt_key(light) in self._cache
+    def has_gt(self, light, method: str | None = None) -> bool:
+        """Whether the exact shadow of `light` by `method` (None: the scene's `gt_method`) is cached (else the
+        next `gt` frame computes it)."""
+        return self._gt_key(light, method or self.gt_method) in self._cache
 
     def forget_gt(self, light) -> None:
-        """Drop the cached shadow grid of `light` (a loop over many lights need not keep them all)."""
-        self._cache.pop(self._gt_key(light), None)
+        """Drop the cached shadow grids of `light`, by either method (a loop over many lights need not keep
+        them all)."""
+        for method in ("march", "sweep"):
+            self._cache.pop(self._gt_key(light, method), None)
 
-    def gt_shadow(self, light) -> GridShadow:
-        key = self._gt_key(light)
-        w = key[1]
+    def gt_shadow(self, light, *, method: str | None = None,
+                  interrupt: Callable[[], bool] | None = None) -> GridShadow:
+        """The exact shadow grid of `light` (cached), by `method` (None: the scene's `gt_method`). `interrupt`:
+        asked between the march's iterations (`Interrupted`; nothing is cached); the sweep is not asked (under a
+        second on 128³ voxels, 2 CPU cores: docs/performance.md)."""
+        method = method or self.gt_method
+        key = self._gt_key(light, method)
+        if key in self._cache:
+            return self._cache[key]
         fine = self._cached("gt_volume", lambda: refine(self.volume, self.gt_upsample))
-        return self._cached(key, lambda: GridShadow(
-            shadow_grid(fine, self.tf, w, method=self.gt_method, device=self.device), self.volume.extent, self.device))
+        options = {"interrupt": interrupt} if method == "march" else {}
+        grid = shadow_grid(fine, self.tf, key[2], method=method, device=self.device, **options)
+        return self._cached(key, lambda: GridShadow(grid, self.volume.extent, self.device))
 
     def render(self, mode: str, camera: Camera, *, light=None, siren=None, scalar: str | None = None,
                phong: bool = False, step: float = DEFAULT_STEP, skip: bool = True, batch: int | None = None,
                samples_per_iter: int | None = None, min_transmittance: float = MIN_TRANSMITTANCE,
-               background: float = BACKGROUND, interrupt: Callable[[], bool] | None = None) -> Image:
+               background: float = BACKGROUND, interrupt: Callable[[], bool] | None = None,
+               gt_method: str | None = None) -> Image:
         """`siren`: (weights, layout, blocks) of the shadow INR, for mode `inr`. A fused kernel that fails to
         compile leaves this scene on the eager SIREN, with a warning: the setting is a speed-up, not a result.
-        `interrupt`: `render`'s (the frame given up with `Interrupted` once it returns True)."""
+        `interrupt`: `render`'s (the frame given up with `Interrupted` once it returns True), also asked while mode
+        `gt` marches its shadow grid. `gt_method`: mode `gt`'s grid by this method, not the scene's."""
         kw = {"light": light, "siren": siren, "scalar": scalar, "phong": phong, "step": step, "skip": skip,
               "batch": batch, "samples_per_iter": samples_per_iter, "min_transmittance": min_transmittance,
-              "background": background, "interrupt": interrupt}
+              "background": background, "interrupt": interrupt, "gt_method": gt_method}
         try:
             return self._render(mode, camera, **kw)
         except FusedKernelError as e:
@@ -161,7 +173,7 @@ class RenderScene:
             return self._render(mode, camera, **kw)
 
     def _render(self, mode: str, camera: Camera, *, light, siren, scalar, phong, step, skip, batch,
-                samples_per_iter, min_transmittance, background, interrupt) -> Image:
+                samples_per_iter, min_transmittance, background, interrupt, gt_method) -> Image:
         if mode not in MODES:
             raise RenderError(f"mode: expected one of {MODES}, got {mode!r}")
         if scalar is None:
@@ -174,7 +186,7 @@ class RenderScene:
         if mode != "noshadow" and light is None:
             raise RenderError(f"mode {mode!r}: needs a light direction")
         if mode == "gt":
-            shadow = self.gt_shadow(light)
+            shadow = self.gt_shadow(light, method=gt_method, interrupt=interrupt)
         elif mode == "inr":
             if siren is None:
                 raise RenderError("mode 'inr': needs the shadow INR's weights")

@@ -221,21 +221,23 @@ class Session:
             if self.gt_light is not None and not np.array_equal(self.gt_light, light):
                 self.viewer.scene.forget_gt(self.gt_light)  # one light's exact shadow kept, not every light's
             self.gt_light = light
-            if not self.viewer.scene.has_gt(light):
+            if kind != "preview" and not self.viewer.scene.has_gt(light):
                 self.status.content = "computing the exact shadow for this light (once per light) ..."
         t0 = time.perf_counter()
         # a still frame (20 s at 480² on 2 CPU cores) is given up as soon as the view changes. A preview is not: it
         # is short, and while the light is dragged the view changes every few milliseconds, so none would be shown.
         interrupt = None if kind == "preview" else (lambda: self.version != version)
         try:
-            image, notes = self.viewer.frame(mode, camera, light, step=step, interrupt=interrupt)
+            image, notes = self.viewer.frame(mode, camera, light, step=step, interrupt=interrupt,
+                                             preview=kind == "preview")
         except Interrupted:
             self._log_frame({"kind": kind, "view": version, "mode": mode, "width": camera.width,
                              "height": camera.height, "seconds": time.perf_counter() - t0, "interrupted": True})
             return False
         self.client.scene.set_background_image(image, format="png")
         seconds = time.perf_counter() - t0
-        self.per_pixel[mode] = seconds / (camera.width * camera.height)
+        # the exact shadow's grid is paid once per light, not per pixel: left out of what predicts the next frame
+        self.per_pixel[mode] = (seconds - notes.get("grid_s", 0.0)) / (camera.width * camera.height)
         if kind != "preview":
             self.still_per_pixel[mode] = self.per_pixel[mode]
         self.frames += 1
@@ -246,7 +248,8 @@ class Session:
         self._notes(kind, mode, camera, light, notes, seconds, commands)
         made = notes["light"].generate_s if notes.get("light") else None
         self._log_frame({"kind": kind, "view": version, "mode": mode, "shown": notes.get("shown", mode),
-                         "width": camera.width, "height": camera.height, "seconds": seconds, "generate_s": made})
+                         "width": camera.width, "height": camera.height, "seconds": seconds, "generate_s": made,
+                         "grid_s": notes.get("grid_s"), "exact_by": notes.get("exact_by")})
         if self.record is not None and kind == "full":
             self._record(image, mode, camera, light, notes, commands)
         return True
@@ -267,6 +270,8 @@ class Session:
         said = {"preview": " (moving: preview)", "sharpening": " (still: a sharper frame follows)"}.get(kind, "")
         status = (f"{camera.width}×{camera.height}{said} in "
                   f"{seconds * 1000:.0f} ms ({1 / max(seconds, 1e-9):.1f} fps) on {self.viewer.scene.device.type}")
+        if (by := notes.get("exact_by")) is not None and by != (still := self.viewer.scene.gt_method):
+            status += f"  \nexact shadow by the quick {by} while moving (the {still} when still)"
         if notes.get("shown") == "gt":
             status = (f"**outside the cache: exact shadow, {notes['render_s'] * 1000:.0f} ms** (the cache was not "
                       f"trained for this light)  \n" + status)
@@ -296,7 +301,7 @@ class Session:
             "far": bool(info and info.region is not None and info.region.far), "labels": notes.get("labels", []),
             "psnr_vs_gt": notes.get("psnr_vs_gt"), "diff_scale": notes.get("diff_scale"),
             "status": self.status.content, "generate_s": info.generate_s if info else None,
-            "render_s": notes.get("render_s")}, indent=1) + "\n")
+            "render_s": notes.get("render_s"), "exact_by": notes.get("exact_by")}, indent=1) + "\n")
 
 
 def serve(*, results: Path | None, scene_config: Path | None, device: torch.device, host: str = "127.0.0.1",

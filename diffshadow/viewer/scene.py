@@ -176,21 +176,23 @@ class ViewerScene:
             return "gt"
         return mode
 
-    def frame(self, mode: str, camera: Camera, light, *, step: float,
-              interrupt: Callable[[], bool] | None = None) -> tuple[np.ndarray, dict]:
+    def frame(self, mode: str, camera: Camera, light, *, step: float, interrupt: Callable[[], bool] | None = None,
+              preview: bool = False) -> tuple[np.ndarray, dict]:
         """(H, W, 3) uint8 image of `mode` and what the panel says about it (light, timings, PSNR). `interrupt`:
-        the renderer's (`render.Interrupted` once it returns True)."""
+        the renderer's (`render.Interrupted` once it returns True), asked while the exact shadow is marched too.
+        `preview`: a light whose exact shadow grid is not cached gets the shear sweep's (`exact_by`: "sweep"; under
+        a second where the march takes 10-16 s on a 128³ volume, 2 CPU cores: docs/performance.md)."""
         if mode not in self.modes:
             raise ViewerError(f"mode: expected one of {', '.join(self.modes)}, got {mode!r}")
         if (shown := self.shown_mode(mode, light)) != mode:
-            image, notes = self.frame(shown, camera, light, step=step, interrupt=interrupt)
+            image, notes = self.frame(shown, camera, light, step=step, interrupt=interrupt, preview=preview)
             return image, {**notes, "shown": shown}
         if mode in ("inr | gt", DIFF):
             # both from full frames of the same camera, so the PSNR is one number whichever of the two is shown
             inr, n1 = self.frame("inr", camera, light, step=step, interrupt=interrupt)
-            gt, n2 = self.frame("gt", camera, light, step=step, interrupt=interrupt)
-            notes = {**n1, "psnr_vs_gt": image_psnr(inr, gt), "gt_s": n2["render_s"],
-                     "render_s": n1["render_s"] + n2["render_s"]}
+            gt, n2 = self.frame("gt", camera, light, step=step, interrupt=interrupt, preview=preview)
+            notes = {**n1, "psnr_vs_gt": image_psnr(inr, gt), "gt_s": n2["render_s"], "grid_s": n2["grid_s"],
+                     "exact_by": n2["exact_by"], "render_s": n1["render_s"] + n2["render_s"]}
             if mode == "inr | gt":  # each whole frame at half size, side by side
                 notes["labels"] = [f"cache ({self.cache_name})", "exact (gt)"]
                 return side_by_side(inr, gt, notes["labels"]), notes
@@ -206,8 +208,15 @@ class ViewerScene:
         else:
             notes = {} if mode == "noshadow" else {"light": self.light_info(light)}
         t0 = time.perf_counter()
-        img = self.scene.render(mode, camera, light=None if mode == "noshadow" else as_direction(light),
-                                siren=siren, step=step, interrupt=interrupt)
+        w = None if mode == "noshadow" else as_direction(light)
+        method = None
+        if mode == "gt":
+            scene = self.scene
+            method = "sweep" if preview and not scene.has_gt(w) else scene.gt_method
+            scene.gt_shadow(w, method=method, interrupt=interrupt)  # timed apart: a frame's cost leaves it out
+            notes.update(grid_s=time.perf_counter() - t0, exact_by=method)
+        img = self.scene.render(mode, camera, light=w, siren=siren, step=step, interrupt=interrupt,
+                                gt_method=method)
         notes["render_s"] = time.perf_counter() - t0
         return img.to_uint8(), notes
 
