@@ -251,25 +251,53 @@ def shadow_grid(
     method: str = "sweep",
     step: float | None = None,
     device: torch.device | str = "cpu",
+    voxels: torch.Tensor | None = None,
     **march_options,
 ) -> torch.Tensor:
     """Shadow coefficient at every voxel → (Z, Y, X) float32.
 
     `method="march"`: `transmittance` at every voxel (the reference; its options too, `interrupt` among them);
-    `step` in voxels, default `DEFAULT_STEP`. `method="sweep"`: the shear sweep; `step` is the sample spacing
-    along the lines in slices and must be 1/k for an integer k (default 1).
+    `step` in voxels, default `DEFAULT_STEP`; `voxels` (bool, the grid's shape), if given, the only voxels
+    marched, the others 1 (`seen_voxels`: what a renderer reads). `method="sweep"`: the shear sweep; `step` is the
+    sample spacing along the lines in slices and must be 1/k for an integer k (default 1).
     """
     w = as_direction(light_dir)
     if method == "march":
         field = ShadowField.build(volume, tf, device=device)
         pts = voxel_points(volume, device=field.scalar.device)
-        g = transmittance(field, tf, w, pts, step=DEFAULT_STEP if step is None else step, **march_options)
-        return g.view(volume.data.shape)
+        step = DEFAULT_STEP if step is None else step
+        if voxels is None:
+            return transmittance(field, tf, w, pts, step=step, **march_options).view(volume.data.shape)
+        if tuple(voxels.shape) != volume.data.shape or voxels.dtype != torch.bool:
+            raise ValueError(f"voxels: expected a bool mask of shape {volume.data.shape}, got {voxels.dtype} "
+                             f"{tuple(voxels.shape)}")
+        keep = voxels.to(pts.device).flatten()
+        out = torch.ones(len(pts), dtype=torch.float32, device=pts.device)
+        out[keep] = transmittance(field, tf, w, pts[keep], step=step, **march_options)
+        return out.view(volume.data.shape)
     if method == "sweep":
+        if voxels is not None:
+            march_options["voxels"] = voxels
         if march_options:
             raise TypeError(f"shadow_grid(method='sweep') takes no {sorted(march_options)}")
         return _sweep(volume, tf, w, DEFAULT_SWEEP_STEP if step is None else step, device)
     raise ValueError(f"method: expected 'march' or 'sweep', got {method!r}")
+
+
+def seen_voxels(volume: Volume, tf: TransferFunction, factor: int = 1, device: torch.device | str = "cpu"
+                ) -> torch.Tensor:
+    """(Z, Y, X) bool on the volume refined `factor` times (`volume.refine`): the corners of every unit cell of
+    `volume` where μ can be non-zero under `tf` (`grid.macro_cells`), as the fine grid's voxels. A renderer reads a
+    shadow grid trilinearly at its samples and weighs it by the sample's opacity; a sample in any other cell has μ =
+    0, so the shadow there is never seen: `shadow_grid(..., voxels=seen_voxels(...))` draws the same image.
+    Judged on `volume` itself, not the refined grid, whose own cell ranges round differently."""
+    scalar = torch.as_tensor(np.ascontiguousarray(volume.data), dtype=torch.float32, device=device)
+    occupied = ~macro_cells(scalar, tf, 1)  # (Z-1, Y-1, X-1): unit cells, boundary voxels included
+    for axis in range(3):
+        occupied = occupied.repeat_interleave(factor, dim=axis)
+    # a voxel is seen where any of the (up to) 8 cells it is a corner of is occupied
+    padded = F.pad(occupied[None, None].float(), (1, 1, 1, 1, 1, 1))
+    return F.max_pool3d(padded, 2, stride=1)[0, 0] > 0
 
 
 def _sweep(volume: Volume, tf: TransferFunction, w: np.ndarray, step: float, device,

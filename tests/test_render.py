@@ -304,6 +304,26 @@ def test_a_gt_frame_takes_its_grid_by_the_method_asked_and_caches_each_apart(blo
     assert not scene.has_gt(LIGHT) and not scene.has_gt(LIGHT, "sweep")
 
 
+@pytest.mark.parametrize("upsample", [1, 2])
+def test_a_gt_frame_marches_only_the_voxels_it_reads_and_is_the_same_image(blob, upsample):
+    """Mode `gt` marches its grid at `seen_voxels` alone (11x faster on hydrogen_atom): the same bytes as a frame
+    from the grid marched at every voxel, with and without Phong shading and empty-space skipping."""
+    from diffshadow.render.fields import GridShadow
+    from diffshadow.shadow import seen_voxels
+    from diffshadow.volume import refine
+
+    scene = RenderScene(blob, TF, cell=8, gt_upsample=upsample)
+    assert float(seen_voxels(blob, TF, upsample).float().mean()) < 0.6
+    full = RenderScene(blob, TF, cell=8, gt_upsample=upsample)
+    full._cache[full._gt_key(LIGHT, "march")] = GridShadow(
+        shadow_grid(refine(blob, upsample), TF, LIGHT, method="march"), blob.extent)
+    for phong, skip in ((False, True), (True, False)):
+        cam = Camera.orbit(blob.extent, azimuth=40 + 90 * phong, elevation=20, size=24)
+        a = scene.render("gt", cam, light=LIGHT, phong=phong, skip=skip)
+        b = full.render("gt", cam, light=LIGHT, phong=phong, skip=skip)
+        assert torch.equal(a.rgb, b.rgb) and torch.equal(a.alpha, b.alpha)
+
+
 @pytest.mark.parametrize("mode", ["noshadow", "gt", "naive", "inr"])
 def test_rendering_makes_no_tensor_on_the_implicit_default_device(blob, mode):
     """Guard for the CUDA path (see conftest.default_device_meta): the same image with the default device

@@ -13,9 +13,9 @@ from diffshadow.analytic import BLOB_SIGMA as SIGMA
 from diffshadow.analytic import blob_cases, blob_transmittance, gaussian_blob
 from diffshadow.grid import Interrupted, voxel_points
 from diffshadow.lights import LightError
-from diffshadow.shadow import ShadowField, shadow_grid, transmittance, transmittance_per_light
+from diffshadow.shadow import ShadowField, seen_voxels, shadow_grid, transmittance, transmittance_per_light
 from diffshadow.transfer import TransferFunction
-from diffshadow.volume import load_volume
+from diffshadow.volume import Volume, load_volume, refine
 
 
 @pytest.fixture(scope="module")
@@ -201,6 +201,37 @@ def test_bad_step_method_and_points(blob):
         shadow_grid(blob, tf, (0, 0, 1), method="raytrace")
     with pytest.raises(ValueError, match=r"points: expected shape \(P, 3\)"):
         transmittance(blob, tf, (0, 0, 1), [0.5, 0.5, 0.5])
+
+
+@pytest.mark.parametrize("factor", [1, 2])
+def test_the_seen_voxels_of_one_visible_voxel_are_the_corners_of_its_cells(factor):
+    """A single voxel where μ > 0 makes the 8 unit cells it is a corner of visible; their corners, on the volume
+    refined `factor` times, are the (2·factor + 1)³ block around it."""
+    data = np.zeros((6, 7, 8), np.float32)
+    data[2, 3, 4] = 1.0
+    seen = seen_voxels(Volume(data=data, extent=np.ones(3), name="dot"), identity_tf(), factor)
+    expect = torch.zeros([(n - 1) * factor + 1 for n in data.shape], dtype=torch.bool)
+    expect[(2 - 1) * factor:(2 + 1) * factor + 1, (3 - 1) * factor:(3 + 1) * factor + 1,
+           (4 - 1) * factor:(4 + 1) * factor + 1] = True
+    assert torch.equal(seen, expect)
+
+
+def test_a_march_of_the_seen_voxels_alone_is_the_full_marchs_there_and_one_elsewhere():
+    blob = Volume(data=gaussian_blob(33, SIGMA), extent=np.ones(3), name="blob")
+    tf = TransferFunction.from_config({"opacity": [[0.0, 0.0], [0.2, 0.0], [1.0, 0.8]], "density_scale": 25.0,
+                                       "color": [[0.0, 1.0, 1.0, 1.0], [1.0, 1.0, 1.0, 1.0]]})
+    w = (0.3, -0.5, 0.8)
+    for factor in (1, 2):
+        fine = refine(blob, factor)
+        seen = seen_voxels(blob, tf, factor)
+        assert 0.01 < float(seen.float().mean()) < 0.5  # the blob's corners are empty under this TF
+        full = shadow_grid(fine, tf, w, method="march")
+        part = shadow_grid(fine, tf, w, method="march", voxels=seen)
+        assert torch.equal(part[seen], full[seen]) and (part[~seen] == 1).all()
+    with pytest.raises(ValueError, match=r"voxels: expected a bool mask of shape \(33, 33, 33\), got torch.float32"):
+        shadow_grid(blob, tf, w, method="march", voxels=seen.float())
+    with pytest.raises(TypeError, match=r"shadow_grid\(method='sweep'\) takes no \['voxels'\]"):
+        shadow_grid(blob, tf, w, voxels=seen_voxels(blob, tf))
 
 
 LIGHTS = np.array([[0.2, 0.3, 0.9], [0.0, 0.0, -1.0], [1.0, 0.0, 0.0], [-0.5, 0.7, 0.1], [0.3, -0.2, -0.9]])

@@ -20,7 +20,7 @@ from diffshadow.render.fields import GridScalar, GridShadow, InrScalar, SirenSha
 from diffshadow.render.fused import COMPILE, FUSED, FusedKernelError, FusedKernelWarning
 from diffshadow.render.fused import available as fused_available
 from diffshadow.render.marcher import BACKGROUND, DEFAULT_STEP, MIN_TRANSMITTANCE, Image, MarchedShadow, Shading, render
-from diffshadow.shadow import shadow_grid
+from diffshadow.shadow import seen_voxels, shadow_grid
 from diffshadow.transfer import TransferFunction
 from diffshadow.volume import Volume, refine
 
@@ -148,7 +148,10 @@ class RenderScene:
         if key in self._cache:
             return self._cache[key]
         fine = self._cached("gt_volume", lambda: refine(self.volume, self.gt_upsample))
-        options = {"interrupt": interrupt} if method == "march" else {}
+        options = {}
+        if method == "march":  # only the voxels a frame reads: 11x faster on hydrogen_atom (docs/performance.md)
+            options = {"interrupt": interrupt, "voxels": self._cached("gt_seen", lambda: seen_voxels(
+                self.volume, self.tf, self.gt_upsample, self.device))}
         grid = shadow_grid(fine, self.tf, key[2], method=method, device=self.device, **options)
         return self._cached(key, lambda: GridShadow(grid, self.volume.extent, self.device))
 
