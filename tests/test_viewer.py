@@ -204,6 +204,31 @@ def test_a_frames_cost_per_pixel_leaves_out_the_exact_shadows_grid(viewer, tmp_p
     viewer.scene.forget_gt(light)
 
 
+def test_a_view_first_seen_still_gets_a_preview_if_its_still_frame_marches_a_new_lights_shadow(viewer):
+    """`Session._kind`: a preview while the view changes (once), the still frame once it has been still for STILL_S;
+    but a view the loop first sees already still (the previous frame took longer than STILL_S) gets a preview
+    first where its still frame must march a new light's exact shadow, so the canvas shows the new light at once."""
+    from diffshadow.viewer.app import STILL_S
+
+    light = direction(71, 33)
+    viewer.scene.forget_gt(light)
+    tab = SimpleNamespace(drawn={"full": 1, "preview": 1}, viewer=viewer, mode=SimpleNamespace(value="gt"),
+                          light=light)
+    assert Session._kind(tab, 2, 0.0) == "preview"
+    assert Session._kind(tab, 1, 0.0) is None  # its preview drawn: wait until still
+    assert Session._kind(tab, 2, STILL_S) == "preview"  # first seen still, the grid not marched yet
+    tab.drawn["preview"] = 2
+    assert Session._kind(tab, 2, STILL_S) == "full"
+    for mode in ("noshadow", "inr"):  # no grid to march: straight to the still frame
+        tab.mode.value = mode
+        assert Session._kind(tab, 3, STILL_S) == "full"
+    tab.mode.value = "inr | gt"
+    assert Session._kind(tab, 3, STILL_S) == "preview"
+    viewer.frame("gt", CAM, light, step=1.0)  # marched
+    assert Session._kind(tab, 3, STILL_S) == "full"
+    viewer.scene.forget_gt(light)
+
+
 def test_the_render_command_reproduces_the_camera_and_the_light(viewer):
     light = direction(12, 34)
     cmd = viewer.render_command("inr", CAM, light, step=0.75)

@@ -136,6 +136,17 @@ class Session:
         self.closed = True
         self.wake.set()
 
+    def _kind(self, version: int, still_s: float) -> str | None:
+        """What to draw of view `version`, still for `still_s`: a "preview" while it changes, else the "full" frame;
+        None when its preview is drawn and it is not still yet. A view first seen when already still gets a preview
+        too if its still frame must march a new light's exact shadow first (6-7 s on tooth, 2 CPU cores): until then
+        the canvas would show the light before the change."""
+        if still_s < STILL_S:
+            return None if version == self.drawn["preview"] else "preview"
+        if version != self.drawn["preview"] and self.viewer.marches(self.mode.value, self.light):
+            return "preview"
+        return "full"
+
     def _preview_height(self, mode: str, full: int) -> int:
         """A moving frame's height: half the still frame's, lower where that would take longer than
         PREVIEW_BUDGET_S by the mode's last cost per pixel (a 480-pixel canvas on 2 CPU cores: ~90 px)."""
@@ -173,8 +184,8 @@ class Session:
                 version, changed_at = self.version, self.changed_at
             if version == self.drawn["full"]:
                 continue
-            kind = "preview" if time.monotonic() - changed_at < STILL_S else "full"
-            if kind == "preview" and version == self.drawn["preview"]:
+            kind = self._kind(version, time.monotonic() - changed_at)
+            if kind is None:
                 continue  # drawn small already; wait until it is still
             try:
                 self.client.camera.update_timestamp  # noqa: B018 - raises until the browser sent its camera

@@ -176,6 +176,10 @@ class ViewerScene:
             return "gt"
         return mode
 
+    def marches(self, mode: str, light) -> bool:
+        """Whether a still frame of `mode` at `light` must first march the light's exact shadow grid (not cached)."""
+        return self.shown_mode(mode, light) in ("gt", "inr | gt", DIFF) and not self.scene.has_gt(light)
+
     def frame(self, mode: str, camera: Camera, light, *, step: float, interrupt: Callable[[], bool] | None = None,
               preview: bool = False) -> tuple[np.ndarray, dict]:
         """(H, W, 3) uint8 image of `mode` and what the panel says about it (light, timings, PSNR). `interrupt`:
