@@ -24,7 +24,7 @@ an iteration, which changes the image by less than that threshold.
 Shading: colour × (0.1 + 0.9·g) with shadow coefficient g (the authors' code); with `phong=True` the
 colour is first lit by Blinn-Phong from the field's gradient. `noshadow` has g = 1.
 
-A frame can be given up part-way (`interrupt`, asked before every iteration or tile; `Interrupted`): a 480² frame
+A frame can be given up part-way (`interrupt`, asked before every iteration or tile; `grid.Interrupted`): a 480² frame
 takes tens of seconds on 2 CPU cores, and the viewer must answer a moved light sooner (docs/performance.md).
 """
 

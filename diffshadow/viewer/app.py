@@ -3,7 +3,8 @@ thread that draws the scene from the tab's camera as the page's background image
 once the camera and the light have been still for `STILL_S` (or at the height the panel asks), smaller while they
 move (half that height, less where that would take longer than `PREVIEW_BUDGET_S`). A still frame that would take
 longer than `STEP_UP_S` is drawn first at a quarter of its height, and any still frame is given up as soon as the view
-changes. Outside the cache's light region the cache's modes draw the exact shadow, and say so."""
+changes. In the exact shadow's modes a light whose shadow grid is not marched yet is previewed with the shear
+sweep's grid. Outside the cache's light region the cache's modes draw the exact shadow, and say so."""
 
 from __future__ import annotations
 
