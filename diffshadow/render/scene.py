@@ -153,7 +153,8 @@ class RenderScene:
             options = {"interrupt": interrupt, "voxels": self._cached("gt_seen", lambda: seen_voxels(
                 self.volume, self.tf, self.gt_upsample, self.device))}
         grid = shadow_grid(fine, self.tf, key[2], method=method, device=self.device, **options)
-        return self._cached(key, lambda: GridShadow(grid, self.volume.extent, self.device))
+        self._cache[key] = GridShadow(grid, self.volume.extent, self.device)
+        return self._cache[key]
 
     def render(self, mode: str, camera: Camera, *, light=None, siren=None, scalar: str | None = None,
                phong: bool = False, step: float = DEFAULT_STEP, skip: bool = True, batch: int | None = None,

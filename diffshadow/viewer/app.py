@@ -23,7 +23,7 @@ import torch
 
 from diffshadow.io import atomic_save, atomic_write_text
 from diffshadow.render import Camera, Interrupted, RenderError
-from diffshadow.viewer.scene import DIFF, ViewerError, ViewerScene, azimuth_elevation, direction, region_chart
+from diffshadow.viewer.scene import ViewerError, ViewerScene, azimuth_elevation, direction, region_chart
 
 STILL_S = 0.3  # no change for this long: draw at full size
 PREVIEW = 2  # while moving, the image height is divided by this ...
@@ -229,11 +229,11 @@ class Session:
         mode, step = self.mode.value, float(self.step.value)
         camera = camera_of(self.client.camera, max(16, height))
         light = self.light
-        if self.viewer.shown_mode(mode, light) in ("gt", "inr | gt", DIFF):
+        if self.viewer.needs_gt(mode, light):
             if self.gt_light is not None and not np.array_equal(self.gt_light, light):
                 self.viewer.scene.forget_gt(self.gt_light)  # one light's exact shadow kept, not every light's
             self.gt_light = light
-            if kind != "preview" and not self.viewer.scene.has_gt(light):
+            if kind != "preview" and self.viewer.marches(mode, light):
                 self.status.content = "computing the exact shadow for this light (once per light) ..."
         t0 = time.perf_counter()
         # a still frame (20 s at 480² on 2 CPU cores) is given up as soon as the view changes. A preview is not: it

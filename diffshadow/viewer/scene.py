@@ -176,9 +176,13 @@ class ViewerScene:
             return "gt"
         return mode
 
+    def needs_gt(self, mode: str, light) -> bool:
+        """Whether a frame of `mode` at `light` draws the light's exact shadow grid."""
+        return self.shown_mode(mode, light) in ("gt", "inr | gt", DIFF)
+
     def marches(self, mode: str, light) -> bool:
         """Whether a still frame of `mode` at `light` must first march the light's exact shadow grid (not cached)."""
-        return self.shown_mode(mode, light) in ("gt", "inr | gt", DIFF) and not self.scene.has_gt(light)
+        return self.needs_gt(mode, light) and not self.scene.has_gt(light)
 
     def frame(self, mode: str, camera: Camera, light, *, step: float, interrupt: Callable[[], bool] | None = None,
               preview: bool = False) -> tuple[np.ndarray, dict]:
