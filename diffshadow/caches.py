@@ -2,8 +2,9 @@
 PSNR on seen and unseen lights) and the time to answer a new light.
 
 A cache's answer for an unseen light is its own: the diffusion model's sample, the weight blend of the `blend_k`
-nearest stored SIRENs (inverse-angle weights, as `cache: blend` makes it) decoded from each codec, the same
-blend of the dense shadow grids' values. Seen lights are the stored entries themselves. Every PSNR is at
+nearest stored SIRENs (inverse-angle weights, as `cache: blend` makes it) decoded from each codec, the mix of the
+two that sample_shadows chose (`diffusion.mix`: model and stored SIRENs both kept), the same blend of the dense
+shadow grids' values. Seen lights are the stored entries themselves. Every PSNR is at
 eval_truth's fixed points against the exact shadow (`truth.EvalTruth`), as in voxel_metrics.json.
 """
 
@@ -132,7 +133,7 @@ def cache_table(stage1, truth: EvalTruth, light_sets: dict, *, blend_k: int, vol
                      **scored(decoded, blended), "answer_s": answer})
         log(f"[caches] {rows[-1]}")
     if model_state is not None:
-        rows += _model_rows(model_state, generated, train, unseen, scored, log)
+        rows += _model_rows(model_state, generated, train, unseen, scored, log, stored=weights, blend_k=blend_k)
     if volume is not None:
         rows.append(_grid_row(volume, tf, truth, train, unseen, idx, mix))
         log(f"[caches] {rows[-1]}")
@@ -140,32 +141,53 @@ def cache_table(stage1, truth: EvalTruth, light_sets: dict, *, blend_k: int, vol
             "siren_parameters": layout.n_params, "eval_points": int(len(truth.points["box"])), "caches": rows}
 
 
-def _model_rows(state: dict, generated, train, unseen, scored, log) -> list[dict]:
-    """The diffusion model with its parameters stored in fp32 (its samples: sample_shadows' `generated` store)
-    and in fp16 (rounded, then sampled in fp32 with the same DDIM steps and seed: what storing them in 16 bits
-    costs). The time to answer: one DDIM sample per light, in batches as sample_shadows draws them."""
+def _model_rows(state: dict, generated, train, unseen, scored, log, *, stored: np.ndarray, blend_k: int) -> list[dict]:
+    """The diffusion model with its parameters stored in fp32 (its samples: sample_shadows' `generated` store, or
+    sampled again where that store mixed them with the stored SIRENs) and in fp16 (rounded, then sampled in fp32
+    with the same DDIM steps and seed: what storing them in 16 bits costs). The time to answer: one DDIM sample per
+    light, in batches as sample_shadows draws them. Where sample_shadows mixed (its config's `mix`), also the mix
+    at its share: the model and the stored SIRENs, both in fp32 (`generated`'s own SIRENs), and both in fp16."""
+    from diffshadow.diffusion.mix import mix_weights
     from diffshadow.diffusion.sample import generate, load_sampler
 
-    model, std, _, _ = load_sampler(state)
+    model, std, layout, _ = load_sampler(state)
     cfg = state["config"]
     half = copy.deepcopy(model)
     with torch.no_grad():
         for p in half.parameters():
             p.copy_(p.half().float())
     lights = np.concatenate([train, unseen])
+
+    def sample(net) -> np.ndarray:
+        with torch.no_grad():
+            return generate(net, std, lights, method="ddim", steps=int(cfg["ddim_steps"]), seed=int(cfg["seed"]),
+                            temperature=cfg["temperature"]).numpy()
+
     t0 = time.perf_counter()
-    with torch.no_grad():
-        w16 = generate(half, std, lights, method="ddim", steps=int(cfg["ddim_steps"]), seed=int(cfg["seed"]),
-                       temperature=cfg["temperature"]).numpy()
+    w16 = sample(half)
     answer = (time.perf_counter() - t0) / len(lights)
-    seen, stored = np.asarray(generated.seen), np.asarray(generated.weights)
+    mixed = (generated.config or {}).get("mix")
+    seen, made = np.asarray(generated.seen), np.asarray(generated.weights)
+    w32 = sample(model) if mixed else np.concatenate([made[seen], made[~seen]])
     n_params = sum(p.numel() for p in model.parameters())
+    n = len(train)
     rows = []
-    for name, (w_seen, w_unseen), bits in (("fp32", (stored[seen], stored[~seen]), 32),
-                                           ("fp16", (w16[:len(train)], w16[len(train):]), 16)):
+    for name, w, bits in (("fp32", w32, 32), ("fp16", w16, 16)):
         rows.append({"cache": f"diffusion model {name}", "kind": "model", "bytes": int(n_params * bits // 8),
-                     **scored(w_seen, w_unseen if len(unseen) else None), "answer_s": answer})
+                     **scored(w[:n], w[n:] if len(unseen) else None), "answer_s": answer})
         log(f"[caches] {rows[-1]}")
+    if mixed:
+        share, k = float(mixed["model_share"]), min(int(mixed.get("blend_k", blend_k)), n)
+        fp16 = codec_named("fp16")
+        enc = fp16.encode(stored, layout)
+        stored16 = fp16.decode(enc, layout)
+        blend16 = np.concatenate([stored16, blend_rows(stored16, *blend_weights(train, unseen, k)).astype(np.float32)])
+        for name, w, nbytes in (("fp32", np.concatenate([made[seen], made[~seen]]), 4 * n_params + stored.nbytes),
+                                ("fp16", mix_weights(w16, blend16, share), 2 * n_params + enc.nbytes)):
+            rows.append({"cache": f"model {share:g} + stored SIRENs {1 - share:g}, both {name}", "kind": "mix",
+                         "share": share, "bytes": int(nbytes), **scored(w[:n], w[n:] if len(unseen) else None),
+                         "answer_s": answer})
+            log(f"[caches] {rows[-1]}")
     return rows
 
 

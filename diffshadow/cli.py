@@ -126,7 +126,10 @@ def _caches(a):
 def _sample_shadows(a):
     from diffshadow.stages import stage2
 
-    stage2.sample_shadows(Path(a.checkpoint), Path(a.truth), Path(a.lights), Path(a.out), device=_device(a))
+    mix = {"model_share": a.model_share, "val_lights": a.val_lights, "val_points": a.val_points, "seed": a.seed}
+    stage2.sample_shadows(Path(a.checkpoint), Path(a.truth), Path(a.lights), Path(a.out), device=_device(a), mix=mix,
+                          weights_path=a.weights and Path(a.weights), volume_path=a.volume and Path(a.volume),
+                          blend_k=a.blend_k)
 
 
 def _choose_cache(a):
@@ -226,7 +229,8 @@ def _render(a):
     images.render_image(scene, Path(a.out), mode=a.mode, camera=cam, light=a.light,
                         weights_path=Path(a.weights) if a.weights else None, light_index=a.light_index,
                         diffusion=Path(a.diffusion) if a.diffusion else None,
-                        blend=Path(a.blend) if a.blend else None, blend_k=a.blend_k, outside_region=a.outside_region,
+                        blend=Path(a.blend) if a.blend else None, blend_k=a.blend_k, model_share=a.model_share,
+                        outside_region=a.outside_region,
                         scalar=a.scalar, phong=a.phong, step=a.step, skip=not a.no_skip)
 
 
@@ -351,8 +355,19 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--eval-points", type=int, default=evaluate["points"], help="points per set (box, visible; "
                    "evaluate.points)")
     p.add_argument("--seed", type=int, default=evaluate["seed"], help="their random draw (evaluate.seed)")
-    _add(sub, "sample-shadows", _sample_shadows, "generate SIRENs for every training and unseen light",
-         "checkpoint", "truth", "lights")
+    mix = defaults()["mix"]
+    p = _add(sub, "sample-shadows", _sample_shadows, "generate SIRENs for every training and unseen light, mixed "
+             "with the stored SIRENs' weight blend (mix.model_share)", "checkpoint", "truth", "lights")
+    p.add_argument("--weights", help="stage 1's stored SIRENs (weights.zarr): the blend a model share under 1 mixes in")
+    p.add_argument("--volume", help="the prepared volume: the validation lights' exact shadows (--model-share auto)")
+    p.add_argument("--model-share", default="1",
+                   help="auto (chosen on validation lights, with --weights and --volume) or 0..1 (with --weights); "
+                   "default 1: the model alone, as before the mix (the workflow passes mix.model_share)")
+    p.add_argument("--blend-k", type=int, default=evaluate["blend_k"],
+                   help="stored SIRENs blended per light (evaluate.blend_k)")
+    p.add_argument("--val-lights", type=int, default=mix["val_lights"], help="mix.val_lights")
+    p.add_argument("--val-points", type=int, default=mix["val_points"], help="mix.val_points")
+    p.add_argument("--seed", type=int, default=mix["seed"], help="their random draw (mix.seed)")
     auto = defaults()["cache_auto"]
     p = _add(sub, "choose-cache", _choose_cache, "cache: auto: the smallest stored-SIREN cache whose blend reaches "
              "the target on validation lights, else diffusion (cache_choice.json)", "weights", "truth", "volume",
@@ -416,6 +431,8 @@ def build_parser() -> argparse.ArgumentParser:
                    "nearest SIRENs to --light are blended, as the viewer does for a new direction")
     p.add_argument("--blend-k", type=int, default=evaluate["blend_k"],
                    help="with --blend: stored SIRENs blended (the run's evaluate.blend_k, in generated.zarr's config)")
+    p.add_argument("--model-share", type=float, help="with --diffusion and --blend: the model's share of the SIREN "
+                   "beside the blend's, as the run mixed them (generated.zarr's config, mix.model_share)")
     p.add_argument("--light", type=float, nargs=3, metavar=("X", "Y", "Z"), help="toward the light")
     p.add_argument("--outside-region", action="store_true", help="with --diffusion or --blend: draw the cache's "
                    "answer for a light outside the region it was trained for (refused otherwise, exit code 2)")

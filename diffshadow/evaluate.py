@@ -58,8 +58,10 @@ def voxel_metrics(state: dict | None, stage1, generated, truth: EvalTruth, light
     SIRENs, the nearest and blend baselines, DDIM vs DDPM on `ddpm_lights` training lights, and storage.
     With `geometry_state` (the model before rendering-loss fine-tuning), the unseen lights are also sampled
     from it: what fine-tuning did to lights it never saw. `state` None (`cache: blend`): `generated` holds the
-    stored and blended SIRENs; no sampler to time, no model to store. The samplers run, and are timed, on
-    `device`; the truth and the PSNRs stay on the CPU.
+    stored and blended SIRENs; no sampler to time, no model to store. Where sample_shadows mixed the model's SIRENs
+    with the stored ones' blend (its config's `mix`), the model's own are sampled again and scored beside them
+    (`model_alone_psnr_median`); fine-tuning's change and the sampler curve are the model's own. The samplers run,
+    and are timed, on `device`; the truth and the PSNRs stay on the CPU.
 
     Resumable: the sampler curve (its 500-step DDPM the longest row) saves its rows to `curve_checkpoint` as
     each is done, and a rerun for the same model, lights, truth and device kind starts at the first row not done
@@ -76,6 +78,14 @@ def voxel_metrics(state: dict | None, stage1, generated, truth: EvalTruth, light
     truth_train = truth.of(train)
     truth_unseen = truth.of(unseen) if len(unseen) else {}
     gen_seen = psnr_per_light(truth.sirens(generated.weights[seen], layout, siren), truth_train)
+    mixed = (generated.config or {}).get("mix") if model is not None else None
+    alone_seen, alone_unseen = gen_seen, None  # the model's own SIRENs: generated.zarr's unless a mix made those
+    if mixed:  # sampled as sample_shadows did (one batch of every light), before its mix with the stored SIRENs
+        alone = generate(model, std, np.concatenate([train, unseen]), method="ddim", steps=int(cfg["ddim_steps"]),
+                         seed=int(cfg["seed"]), temperature=cfg["temperature"], device=device).numpy()
+        alone_seen = psnr_per_light(truth.sirens(alone[:len(train)], layout, siren), truth_train)
+        if len(unseen):
+            alone_unseen = psnr_per_light(truth.sirens(alone[len(train):], layout, siren), truth_unseen)
     stage1_values = truth.sirens(stage1.weights, layout, siren)
     stage1_seen = psnr_per_light(stage1_values, truth_train)
     result = {"seen": {"count": int(seen.sum()),
@@ -87,10 +97,14 @@ def voxel_metrics(state: dict | None, stage1, generated, truth: EvalTruth, light
     if "visible" in gen_seen:
         result["seen"]["generated_psnr_visible_median"] = median(gen_seen["visible"])
         result["seen"]["stage1_psnr_visible_median"] = median(stage1_seen["visible"])
+    if mixed:
+        result["mix"] = {k: mixed[k] for k in ("model_share", "chosen", "blend_k")}
+        result["seen"]["model_alone_psnr_median"] = median(alone_seen["box"])
     if len(unseen):
         idx, angles = nearest(train, unseen, blend_k)
         mix = inverse_angle_weights(angles)
         gen_unseen = psnr_per_light(truth.sirens(generated.weights[~seen], layout, siren), truth_unseen)
+        alone_unseen = alone_unseen or gen_unseen
         near = psnr_per_light(truth.sirens(stage1.weights[idx[:, 0]], layout, siren), truth_unseen)
         blend = psnr_per_light(blend_baseline(truth_train, idx, mix), truth_unseen)
         # the same blend of the stage-1 SIRENs' weights: one SIREN per unseen light, as the model gives
@@ -110,6 +124,8 @@ def voxel_metrics(state: dict | None, stage1, generated, truth: EvalTruth, light
                             "siren_blend_psnr_median": median(sblend["box"]),
                             "blend_k": blend_k,
                             "nearest_angle_median_deg": float(np.degrees(np.median(angles[:, 0])))}
+        if mixed:
+            result["unseen"]["model_alone_psnr_median"] = median(alone_unseen["box"])
         pool = np.asarray((state or {}).get("pool_lights") or np.zeros((0, 3)), dtype=np.float64).reshape(-1, 3)
         if len(pool):  # lights trained on exact shadows only: how close the test lights came to any of them
             _, a_any = nearest(np.concatenate([train, pool]), unseen, 1)
@@ -121,7 +137,7 @@ def voxel_metrics(state: dict | None, stage1, generated, truth: EvalTruth, light
                               seed=int(cfg["seed"]), temperature=cfg["temperature"], device=device).numpy()
             before_psnr = psnr_per_light(truth.sirens(before, layout, siren), truth_unseen)["box"]
             result["unseen"]["geometry_only_psnr_median"] = median(before_psnr)
-            result["unseen"]["finetune_change_median_db"] = median(gen_unseen["box"] - before_psnr)
+            result["unseen"]["finetune_change_median_db"] = median(alone_unseen["box"] - before_psnr)
     result["stage1"] = {"width": siren.width, "blocks": siren.blocks, "parameters": layout.n_params,
                         "capacity": (stage1.config or {}).get("capacity")}
     result["cache"] = "diffusion" if model is not None else "blend"
@@ -149,8 +165,8 @@ def voxel_metrics(state: dict | None, stage1, generated, truth: EvalTruth, light
     if curve:
         log(f"[evaluate voxels] resuming from {curve_checkpoint} after {len(curve)} of {len(rows)} sampler rows")
     for method, k in rows[len(curve):]:
-        if method == "ddim" and k == ddim_steps:  # the run's own sampler: `generated` already holds these lights
-            box = gen_seen["box"][sel]
+        if method == "ddim" and k == ddim_steps:  # the run's own sampler: these lights are already scored
+            box = alone_seen["box"][sel]
         else:
             w = generate(model, std, train[sel], method=method, steps=k, seed=int(cfg["seed"]),
                          temperature=cfg["temperature"], device=device).numpy()

@@ -196,10 +196,11 @@ def storage_figure(voxel_metrics: dict, n_lights: int, out: Path) -> None:
     """Bytes of the diffusion cache against the N SIRENs and N dense float16 grids it replaces."""
     plt = pyplot()
     sb = voxel_metrics["storage_bytes"]
+    mixed = "mix" in voxel_metrics  # the cache keeps the model and the stored SIRENs it mixes in
     fig, ax = plt.subplots(figsize=(6.5, 3.8))
-    names = ["diffusion model" if sb["model"] else "no model (cache: blend)", f"{n_lights} SIRENs (fp32)",
-             f"{n_lights} dense grids (fp16)"]
-    values = np.asarray([sb["model"], sb["sirens"], sb["grids"]]) / 2**20
+    names = ["model + SIRENs (the mix)" if mixed else "diffusion model" if sb["model"] else "no model (cache: blend)",
+             f"{n_lights} SIRENs (fp32)", f"{n_lights} dense grids (fp16)"]
+    values = np.asarray([sb["model"] + (sb["sirens"] if mixed else 0), sb["sirens"], sb["grids"]]) / 2**20
     ax.bar(names, values, color=["C0", "C1", "C2"])
     for i, v in enumerate(values):
         ax.annotate(f"{v:.2f} MiB", (i, v), ha="center", va="bottom")
@@ -207,9 +208,10 @@ def storage_figure(voxel_metrics: dict, n_lights: int, out: Path) -> None:
     ax.set_ylim(0, values.max() * 1.2)
     ratio = values[0] / values[2]
     # the model's size does not grow with the light count; the grids grow with lights x voxels
+    cache = "the model and the SIRENs" if mixed else "the model"
     verdict = ("the stored SIRENs are the cache (cache: blend)" if not sb["model"] else
-               f"the model is {ratio:.1f}x the grids it replaces at this scale" if ratio > 1
-               else f"the model is {1 / ratio:.1f}x smaller than the grids it replaces")
+               f"{cache} take {ratio:.1f}x the grids' bytes at this scale" if ratio > 1
+               else f"{cache} take {1 / ratio:.1f}x fewer bytes than the grids")
     ax.set_title(f"{verdict}\n(the model's size is fixed; grids grow with lights x voxels)", fontsize=9)
     fig.tight_layout()
     save_figure(out, fig)
@@ -220,7 +222,8 @@ def caches_figure(table: dict, out: Path) -> None:
     lights (its own answer for a new light) and on the seen ones; up and to the left is better."""
     plt = pyplot()
     fig, axes = plt.subplots(1, 2, figsize=(11, 4.2), sharey=False)
-    colours = {"stored": "C1", "codec": "C1", "model": "C0", "grids": "C2"}
+    colours = {"stored": "C1", "codec": "C1", "model": "C0", "mix": "C4", "grids": "C2"}
+    mixed = any(row["kind"] == "mix" for row in table["caches"])
     for ax, key, title in ((axes[0], "unseen_psnr", "unseen lights (the cache's answer)"),
                            (axes[1], "seen_psnr", "seen (training) lights")):
         for row in table["caches"]:
@@ -230,9 +233,14 @@ def caches_figure(table: dict, out: Path) -> None:
             ax.scatter(row["bytes"] / 2**20, row[key], color=colours[row["kind"]], marker=marker, s=36)
             label = (row["cache"].replace("stored SIRENs ", "" if row["kind"] == "codec" else "SIRENs ")
                      .replace("diffusion model", "model").replace("dense shadow grids", "grids"))
-            # codecs labelled to their left (the fp32 store sits just right of fp16), a model's fp16 below its
-            # fp32 twin at the same PSNR
-            left, below = row["kind"] == "codec", row["kind"] == "model" and label.endswith("fp16")
+            if row["kind"] == "mix":
+                label = f"mix {row['share']:g}, {label.rsplit(' ', 1)[-1]}"
+            # codecs labelled to their left (the fp32 store sits just right of fp16); a model's fp16 below its fp32
+            # twin at the same PSNR, or, beside the mix (just above the model): fp16 to the left, fp32 to the right,
+            # each model below and each mix above
+            fp16 = label.endswith("fp16")
+            left = row["kind"] == "codec" or (mixed and row["kind"] in ("model", "mix") and fp16)
+            below = row["kind"] == "model" and (mixed or fp16)
             ax.annotate(label, (row["bytes"] / 2**20, row[key]), fontsize=7, ha="right" if left else "left",
                         xytext=(-5 if left else 4, -10 if below else 3), textcoords="offset points")
         ax.set_xscale("log")
@@ -244,7 +252,8 @@ def caches_figure(table: dict, out: Path) -> None:
         ax.grid(alpha=0.3)
     n = table["lights"]
     fig.suptitle(f"caches of {n['train']} training lights: orange stored SIRENs and their codecs, blue the "
-                 f"diffusion model, green dense shadow grids", fontsize=9)
+                 f"diffusion model, {'purple the two mixed (both kept), ' if mixed else ''}green dense shadow grids",
+                 fontsize=9)
     fig.tight_layout()
     save_figure(out, fig)
 

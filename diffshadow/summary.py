@@ -120,12 +120,14 @@ class RunResults:
         rows = [("lights", f"{seen['count']} training, {unseen['count'] if unseen else 0} unseen"),
                 ("stage-1 SIRENs (median voxel PSNR)", f"{seen['stage1_psnr_median']:.2f} dB"),
                 ("generated, seen lights", f"{seen['generated_psnr_median']:.2f} dB "
-                 f"({seen['generated_minus_stage1_median_db']:+.2f} dB against stage 1)")]
+                 f"({seen['generated_minus_stage1_median_db']:+.2f} dB against stage 1{_alone(seen)})")]
         if unseen:
             rows.append(("generated, unseen lights",
                          f"{unseen['generated_psnr_median']:.2f} dB (blend of {unseen['blend_k']} nearest true "
                          f"shadows {unseen['blend_psnr_median']:.2f} dB, nearest training SIREN "
-                         f"{unseen['nearest_psnr_median']:.2f} dB)"))
+                         f"{unseen['nearest_psnr_median']:.2f} dB{_alone(unseen)})"))
+        if v.get("mix"):
+            rows.append(("the cache's answer", mix_words(v["mix"])))
         verdict = cache_verdict(self.voxel)
         if verdict:
             rows.append(("model or stored SIRENs?", verdict))
@@ -245,17 +247,24 @@ class RunResults:
     def tables(self) -> str:
         v, seen, unseen = self.voxel, self.voxel["seen"], self.voxel.get("unseen")
         parts = [_table("Headline", ["", "value"], [list(r) for r in self.headline()])]
-        made = f"blended (cache: {v.get('codec', 'blend')})" if v.get("cache") == "blend" else "generated (DDIM)"
+        made = (f"blended (cache: {v.get('codec', 'blend')})" if v.get("cache") == "blend" else
+                f"generated (DDIM), mixed: model share {v['mix']['model_share']:g}" if v.get("mix") else
+                "generated (DDIM)")
         rows = [["seen", "stage-1 SIREN (fitted)", _num(seen["stage1_psnr_median"]),
                  _num(seen.get("stage1_psnr_visible_median")), ""],
                 ["seen", made, _num(seen["generated_psnr_median"]),
                  _num(seen.get("generated_psnr_visible_median")),
                  f"min {seen['generated_psnr_min']:.2f}; {seen['generated_minus_stage1_median_db']:+.2f} vs stage 1"]]
+        if "model_alone_psnr_median" in seen:
+            rows.append(["seen", "the model alone (the paper's cache)", _num(seen["model_alone_psnr_median"]), "", ""])
         if unseen:
             if "geometry_only_psnr_median" in unseen:
                 rows.append(["unseen", "generated before fine-tuning (geometry loss only)",
                              _num(unseen["geometry_only_psnr_median"]), "",
                              f"fine-tuning changed it by {unseen['finetune_change_median_db']:+.2f} dB"])
+            if "model_alone_psnr_median" in unseen:
+                rows.append(["unseen", "the model alone (the paper's cache)", _num(unseen["model_alone_psnr_median"]),
+                             "", ""])
             rows += [["unseen", made, _num(unseen["generated_psnr_median"]), "", ""],
                      ["unseen", f"blend of {unseen['blend_k']} nearest true shadows",
                       _num(unseen["blend_psnr_median"]), "", "baseline"],
@@ -332,6 +341,8 @@ class RunResults:
         parts.append(_table("Storage of the shadow cache", ["what", "MiB"],
                             [["diffusion model (weights and standardiser)", _num(sb["model"] / MIB)],
                              [f"{n} stage-1 SIRENs (fp32)", _num(sb["sirens"] / MIB)],
+                             *([["the cache: the model and the stored SIRENs it mixes in",
+                                 _num((sb["model"] + sb["sirens"]) / MIB)]] if v.get("mix") else []),
                              [f"{n} dense shadow grids (fp16)", _num(sb["grids"] / MIB)]],
                             "The model's size is fixed; SIRENs and grids grow with the light count."))
         if self.costs:
@@ -351,6 +362,20 @@ class RunResults:
         return "".join(parts)
 
 
+def _alone(lights: dict) -> str:
+    """", the model alone X dB" where the cache mixed its SIRENs with the stored ones (voxel_metrics' `mix`)."""
+    alone = lights.get("model_alone_psnr_median")
+    return "" if alone is None else f"; the model alone {alone:.2f} dB"
+
+
+def mix_words(mix: dict) -> str:
+    """The cache's answer for a light in words (voxel_metrics.json's `mix`)."""
+    share = float(mix["model_share"])
+    how = "chosen on validation lights" if mix.get("chosen") == "validation lights" else "set in the config"
+    return (f"{share:g} x the diffusion model's SIREN + {1 - share:g} x the weight blend of the {mix['blend_k']} "
+            f"nearest stored SIRENs (mix.model_share {how}; both are kept)")
+
+
 def cache_verdict(voxel: dict) -> str:
     """What a run says about the method (voxel_metrics.json): is the model smaller than the stored SIRENs it
     regenerates, and better than their weight blend (the same render cost, no model) on unseen lights? Empty
@@ -362,18 +387,21 @@ def cache_verdict(voxel: dict) -> str:
     size = (f"the model is {sb['model'] / sb['sirens']:.1f}x the {n} stored SIRENs (smaller past "
             f"{sb['model'] / (sb['sirens'] / n):,.0f} lights at these sizes)" if sb["model"] > sb["sirens"]
             else f"the model is {sb['sirens'] / sb['model']:.1f}x smaller than the {n} stored SIRENs")
+    if voxel.get("mix"):  # the cache keeps both, so its bytes are their sum
+        size += f"; mixing the two, the cache keeps both ({(sb['model'] + sb['sirens']) / MIB:.2f} MiB)"
     gap = unseen["generated_psnr_median"] - unseen["weight_blend_psnr_median"]
     lo, hi = unseen.get("weight_blend_gap_interval95_db") or (None, None)  # absent from an older voxel_metrics.json
     spread = ("" if lo is None else f" (better on {unseen['better_than_weight_blend']} of {unseen['count']} lights; "
               f"95 % interval over resampled test lights {lo:+.2f} to {hi:+.2f} dB)")
+    who = "the mix" if voxel.get("mix") else "it"
     if lo is not None and lo <= 0 <= hi:
-        better = (f"it ties with their weight blend on unseen lights: {gap:+.2f} dB{spread}, so other test lights "
+        better = (f"{who} ties with their weight blend on unseen lights: {gap:+.2f} dB{spread}, so other test lights "
                   f"could reverse it")
     elif gap > 0:
-        better = f"it beats their weight blend on unseen lights by {gap:.2f} dB{spread}"
+        better = f"{who} beats their weight blend on unseen lights by {gap:.2f} dB{spread}"
     else:
-        better = (f"their weight blend beats it on unseen lights by {-gap:.2f} dB{spread}: `cache: blend` would skip "
-                  f"stage 2")
+        better = (f"their weight blend beats {who} on unseen lights by {-gap:.2f} dB{spread}: `cache: blend` would "
+                  f"skip stage 2")
     return f"{size}; {better}. Against the light count: docs/performance.md, \"Scaling with the light count\""
 
 

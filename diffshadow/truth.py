@@ -92,8 +92,12 @@ class EvalTruth:
 
     @classmethod
     def compute(cls, volume: Volume, tf, lights: np.ndarray, n_points: int, seed: int, log=None,
-                device: torch.device | str = "cpu") -> EvalTruth:
+                device: torch.device | str = "cpu", sets: tuple[str, ...] | None = None) -> EvalTruth:
+        """The exact shadow of every light at `n_points` points per set; `sets` keeps only those named (None: box
+        and visible), the same points as the whole truth's (each set is drawn whether kept or not)."""
         points = TruthPoints(volume, tf, n_points, seed, device)
+        if sets is not None:
+            points.sets = {k: v for k, v in points.sets.items() if k in sets}
         return cls(points=points.sets, lights=np.asarray(lights, dtype=np.float64),
                    values=points.truth(lights, log, "all lights"), extent=points.extent)
 

@@ -62,6 +62,8 @@ def row(scene: str, wall: float | None) -> dict:
             "diffusion": f"{dm.get('preset')} x{dm.get('epochs')} ep" + (f" (kept {kept})" if kept else ""),
             "seen dB": voxel["seen"]["generated_psnr_median"],
             "unseen dB": unseen.get("generated_psnr_median"),
+            "share": (voxel.get("mix") or {}).get("model_share"),  # the model's in the mix (none: the model alone)
+            "model alone dB": unseen.get("model_alone_psnr_median"),
             "before FT": unseen.get("geometry_only_psnr_median"),
             "blend dB": unseen.get("blend_psnr_median"),
             "weight blend dB": unseen.get("weight_blend_psnr_median"),

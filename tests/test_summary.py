@@ -107,6 +107,32 @@ def test_a_gap_within_its_interval_over_resampled_lights_is_called_a_tie():
         cache_verdict(loss)
 
 
+def test_a_mixed_cache_counts_both_its_parts_and_says_how_it_answers(tmp_path):
+    """With sample_shadows' mix (voxel_metrics' `mix`), the verdict is the mix's and counts the model's and the
+    stored SIRENs' bytes together; the headline states the answer and the model alone beside the mix."""
+    import json
+
+    from diffshadow.summary import RunResults, mix_words
+
+    mixed = voxel(model=250_000, generated=36.82, weight_blend=34.04)
+    mixed["mix"] = {"model_share": 0.7, "chosen": "validation lights", "blend_k": 4}
+    verdict = cache_verdict(mixed)
+    assert "mixing the two, the cache keeps both (0.33 MiB)" in verdict  # 250,000 + 100,000 bytes
+    assert "the mix beats their weight blend on unseen lights by 2.78 dB" in verdict
+    assert mix_words(mixed["mix"]) == ("0.7 x the diffusion model's SIREN + 0.3 x the weight blend of the 4 nearest "
+                                       "stored SIRENs (mix.model_share chosen on validation lights; both are kept)")
+    mixed["seen"].update(generated_psnr_median=40.72, generated_minus_stage1_median_db=-0.55, stage1_psnr_median=41.27,
+                         model_alone_psnr_median=40.23)
+    mixed["unseen"].update(model_alone_psnr_median=35.74, blend_psnr_median=27.5, nearest_psnr_median=23.8,
+                           blend_k=4, count=32)
+    (tmp_path / "voxel_metrics.json").write_text(json.dumps(mixed))
+    (tmp_path / "image_metrics.json").write_text(json.dumps({"modes": {}}))
+    rows = dict(RunResults(tmp_path, "blob").headline())
+    assert rows["generated, seen lights"] == "40.72 dB (-0.55 dB against stage 1; the model alone 40.23 dB)"
+    assert rows["generated, unseen lights"].endswith("nearest training SIREN 23.80 dB; the model alone 35.74 dB)")
+    assert rows["the cache's answer"] == mix_words(mixed["mix"])
+
+
 def test_the_sampler_timings_name_their_device():
     """voxel_metrics.json records where its samplers ran (evaluate.device); a record from before says so vaguely."""
     assert _sampled_on({"device": "cpu (x86_64)", "threads": 1}) == "cpu (x86_64), 1 thread"

@@ -239,6 +239,32 @@ def test_the_render_command_reproduces_the_camera_and_the_light(viewer):
     assert (stored.weights, stored.light_index) == ("results/blob/generated.zarr", 3)
 
 
+def test_a_mixed_cache_names_its_share_and_its_render_command_mixes_the_same_way(viewer):
+    """With sample_shadows' mix, a new direction's SIREN is the model's and the stored SIRENs' blend mixed at the
+    run's share, and the panel's command asks `render` for the same mix."""
+    from diffshadow.diffusion.mix import MixedSampler, mix_weights
+    from diffshadow.store import BlendSampler
+
+    class Model(CountingSampler):
+        layout, siren, region = LAYOUT, SIREN, None
+
+    g = viewer.generated
+    stored = WeightStore(weights=g.weights[:3], lights=viewer.train, psnr=np.zeros(3), psnr_visible=np.zeros(3),
+                         layout=LAYOUT, siren=SIREN, config={})
+    blend = BlendSampler(stored, 2)
+    mixed = ViewerScene(viewer.scene, name="blob", lights={"train": viewer.train, "unseen": viewer.unseen},
+                        generated=g, sampler=MixedSampler(Model(), blend, 0.7), results=Path("results/blob"),
+                        checkpoint=Path("results/blob/diffusion.ckpt"), stored=Path("results/blob/weights.zarr"))
+    assert mixed.cache_name == "diffusion 0.7 + weight blend 0.3"
+    new = direction(21, 40)
+    w, info = mixed.shadow_weights(new)
+    expected = mix_weights(np.asarray(Model()(new))[None], blend(new)[None], 0.7)[0]
+    assert info.kind == "new" and np.array_equal(w.numpy(), expected)
+    a = build_parser().parse_args(mixed.render_command("inr", CAM, new, step=0.75).split()[1:])
+    assert (a.diffusion, a.blend, a.blend_k, a.model_share) == ("results/blob/diffusion.ckpt",
+                                                                "results/blob/weights.zarr", 2, 0.7)
+
+
 def test_camera_of_a_browser_camera():
     eye, target = np.array([2.0, 1.0, 1.5]), np.array([0.5, 0.5, 0.5])
     browser = SimpleNamespace(position=eye, look_at=target, up_direction=np.array([0.0, 0.0, 1.0]),

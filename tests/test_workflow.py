@@ -13,6 +13,7 @@ import yaml
 from conftest import installed
 
 from diffshadow.config import defaults
+from diffshadow.diffusion.mix import SHARES
 from diffshadow.lights import read_lights, subset_indices
 from diffshadow.store import open_store
 
@@ -33,6 +34,7 @@ TINY = {
                   "max_epochs": 5, "target_gap": defaults()["diffusion"]["target_gap"]},
     "finetune": {"views": 1, "image_size": 16, "pixels": 4, "epochs": 2, "batch_size": 4, "nproc": 2,
                  "checkpoint_every": 1, "val_lights": 4, "val_points": 1024},
+    "mix": {"val_lights": 8, "val_points": 128},
     "data_inr": {"width": 8, "blocks": 1, "steps": 20, "points": 512, "target_psnr": 0.0},
     "render": {"image_size": 16, "views": 1, "lights_per_set": 1, "bench_sizes": [8], "bench_repeats": 1,
                "bench_memory_sizes": [16]},
@@ -101,6 +103,39 @@ def test_stage2_outputs(finished):
     assert "within the target" in dm["stopped"] or "max_epochs" in dm["stopped"]
     generated = open_store(finished / "results/nucleon/generated.zarr")
     assert generated.seen.tolist() == [True] * 4 + [False] * 2 and np.isfinite(generated.psnr).all()
+    # the model's SIRENs mixed with the stored ones' blend at a share chosen on 8 validation lights; evaluate_voxels
+    # scores the model alone beside the mix
+    mix = generated.config["mix"]
+    assert mix["chosen"] == "validation lights" and mix["validation"] == {"lights": 8, "points": 128, "seed": 0}
+    assert mix["model_share"] in SHARES and [r["share"] for r in mix["curve"]] == list(SHARES)
+    assert metrics["mix"] == {"model_share": mix["model_share"], "chosen": "validation lights", "blend_k": 4}
+    assert np.isfinite(metrics["seen"]["model_alone_psnr_median"])
+    assert np.isfinite(metrics["unseen"]["model_alone_psnr_median"])
+
+
+def test_the_stored_sirens_are_the_models_mixed_with_the_blend_at_the_share_recorded(finished, tmp_path):
+    """generated.zarr = share x (sample_shadows at share 1: the model alone) + (1 - share) x (at share 0: each
+    training light's own stored SIREN, each unseen light's blend of its nearest stored SIRENs)."""
+    from diffshadow.diffusion.mix import mix_weights
+    from diffshadow.stages.stage2 import sample_shadows
+    from diffshadow.store import BlendSampler
+
+    results = finished / "results/nucleon"
+    generated = open_store(results / "generated.zarr")
+    ends = {}
+    for share in (1, 0):
+        out = tmp_path / f"share{share}.zarr"
+        sample_shadows(finished / generated.config["checkpoint"], results / "eval_truth.zarr",
+                       results / "lights.json", out, device=torch.device("cuda" if CUDA else "cpu"),
+                       mix={"model_share": share}, weights_path=results / "weights.zarr", blend_k=4)
+        ends[share] = open_store(out)
+        assert ("mix" in ends[share].config) == (share == 0)
+    stored = open_store(results / "weights.zarr")
+    assert np.array_equal(ends[0].weights[:4], stored.weights)
+    unseen = read_lights(results / "lights.json")["unseen"]
+    assert np.allclose(ends[0].weights[4:], np.stack([BlendSampler(stored, 4)(w) for w in unseen]), atol=1e-7)
+    expected = mix_weights(ends[1].weights, ends[0].weights, generated.config["mix"]["model_share"])
+    np.testing.assert_allclose(generated.weights, expected, rtol=0, atol=1e-5 if CUDA else 0)
 
 
 def test_viewer_in_a_browser(finished, tmp_path):
@@ -127,7 +162,9 @@ def test_viewer_in_a_browser(finished, tmp_path):
     assert figures["outside_shown"] == "gt" and figures["outside_panel"], figures
     assert "outside the cache: exact shadow" in figures["outside_status"], figures
     assert all(v is True for v in figures["commands_match"].values()), figures["commands_match"]
-    assert figures["side_by_side_labels"] == ["cache (diffusion)", "exact (gt)"], figures
+    share = open_store(finished / "results/nucleon/generated.zarr").config["mix"]["model_share"]
+    assert figures["side_by_side_labels"] == [f"cache (diffusion {share:g} + weight blend {1 - share:g})",
+                                              "exact (gt)"], figures
     assert figures["side_by_side_label_band"] > 0.3, figures  # the dark band behind the label is drawn
     assert figures["diff_scale"] in (1, 2, 4, 8, 16, 32, 64) and "white is a difference" in figures["diff_status"]
     assert figures["second_tab_folder"] and figures["first_tab_kept"], figures
@@ -298,14 +335,33 @@ def test_caches_table_every_cache_with_its_bytes_and_psnr(finished):
     res = finished / "results/nucleon"
     table = json.loads((res / "caches.json").read_text())
     rows = {r["cache"]: r for r in table["caches"]}
-    assert {r["kind"] for r in rows.values()} == {"stored", "codec", "model", "grids"}
+    assert {r["kind"] for r in rows.values()} == {"stored", "codec", "model", "mix", "grids"}
     for r in rows.values():
         assert r["bytes"] > 0 and np.isfinite(r["seen_psnr"]) and np.isfinite(r["unseen_psnr"]), r
     assert rows["diffusion model fp16"]["bytes"] * 2 == rows["diffusion model fp32"]["bytes"]
     assert rows["stored SIRENs fp16"]["bytes"] * 2 == rows["stored SIRENs fp32"]["bytes"]
     voxel = json.loads((res / "voxel_metrics.json").read_text())
-    assert rows["diffusion model fp32"]["seen_psnr"] == pytest.approx(voxel["seen"]["generated_psnr_median"])
+    assert rows["diffusion model fp32"]["seen_psnr"] == pytest.approx(voxel["seen"]["model_alone_psnr_median"])
     assert rows["stored SIRENs fp32"]["unseen_psnr"] == pytest.approx(voxel["unseen"]["weight_blend_psnr_median"])
+    # the mix kept in fp32 is what sample_shadows stored; in fp16 it keeps both parts at half the bytes
+    share = voxel["mix"]["model_share"]
+    mixed = rows[f"model {share:g} + stored SIRENs {1 - share:g}, both fp32"]
+    assert mixed["seen_psnr"] == pytest.approx(voxel["seen"]["generated_psnr_median"])
+    assert mixed["unseen_psnr"] == pytest.approx(voxel["unseen"]["generated_psnr_median"])
+    assert mixed["bytes"] == rows["diffusion model fp32"]["bytes"] + rows["stored SIRENs fp32"]["bytes"]
+    half = rows[f"model {share:g} + stored SIRENs {1 - share:g}, both fp16"]
+    assert half["bytes"] == rows["diffusion model fp16"]["bytes"] + rows["stored SIRENs fp16"]["bytes"]
+
+
+def test_the_model_alone_reads_no_stored_sirens_and_a_new_share_resamples_only(finished):
+    """mix.model_share 1: sample_shadows' command reads no stored SIRENs (the model alone); another share reruns
+    sample_shadows and what reads its store, never stage 2's training."""
+    alone = {**TINY, "mix": {**TINY["mix"], "model_share": 1}}
+    shell = snakemake(finished, "-n", "-p", "-f", "results/nucleon/generated.zarr", config=alone).stdout
+    line = next(x for x in shell.splitlines() if " sample-shadows " in x)
+    assert "--weights" not in line and "--model-share" not in line, line
+    fixed = planned(snakemake(finished, "-n", config={**TINY, "mix": {**TINY["mix"], "model_share": 0.5}}))
+    assert "sample_shadows" in fixed and "evaluate_voxels" in fixed and "train_diffusion" not in fixed, fixed
 
 
 def test_the_sampler_curve_resumes_where_an_interrupted_evaluation_stopped(finished, tmp_path):
@@ -558,9 +614,11 @@ def test_report_front_page_has_the_runs_numbers(finished):
     assert f"{voxel['diffusion_model']['epochs']} epochs: {voxel['diffusion_model']['stopped']}" in page
     costs = {line.split("\t")[0]: line.split("\t") for line in (res / "stage_costs.tsv").read_text().splitlines()}
     assert f"{float(costs['elapsed (a job running)'][2]) / 60:.1f} min elapsed" in page  # the run's own wall time
-    # two unseen lights: a median is their mean, so the median change is exactly the change of the medians
+    # two unseen lights: a median is their mean, so the median change is exactly the change of the medians (of the
+    # model's own SIRENs: the run's cache mixes them with the stored ones' blend)
     assert "before fine-tuning" in tables and voxel["unseen"]["finetune_change_median_db"] == pytest.approx(
-        voxel["unseen"]["generated_psnr_median"] - voxel["unseen"]["geometry_only_psnr_median"], abs=1e-9)
+        voxel["unseen"]["model_alone_psnr_median"] - voxel["unseen"]["geometry_only_psnr_median"], abs=1e-9)
+    assert f"{voxel['mix']['model_share']:g} x the diffusion model's SIREN" in page
     for title in ("Shadow INRs", "Sampling", "Rendering-loss fine-tuning", "Images", "Renderer", "SIREN sizes chosen",
                   "Storage", "Stage costs"):
         assert f"<h2>{title}" in tables, title

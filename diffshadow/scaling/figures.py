@@ -65,7 +65,9 @@ def quality_figure(data: dict):
     ns = [p["lights"] for p in data["points"]]
     for key, label in UNSEEN:
         k = key.removesuffix("_psnr_median")
-        ax[0].plot(ns, [p["quality"]["unseen"][k] for p in data["points"]], "o-", label=label)
+        ys = [p["quality"]["unseen"].get(k) for p in data["points"]]
+        if any(y is not None for y in ys):  # a row the points measured (the model alone: only where mixed)
+            ax[0].plot(ns, [np.nan if y is None else y for y in ys], "o-", label=label)
     for k, label in (("generated", "generated (diffusion)"), ("stage1", "stage 1 (stored SIRENs)")):
         ax[1].plot(ns, [p["quality"]["seen"][k] for p in data["points"]], "o-", label=label)
     for a, title in ((ax[0], "unseen lights"), (ax[1], "training lights")):
@@ -161,7 +163,8 @@ def page(data: dict) -> str:
     notes = "".join(f"<li>{n} lights: {html.escape(p['note'])}</li>" for n, p in zip(ns, pts, strict=True)
                     if p.get("note"))
     q = "".join(f"<tr><td>{n}</td>" + "".join(
-        f"<td>{(p['quality']['unseen'][k.removesuffix('_psnr_median')] or float('nan')):.2f}</td>" for k, _ in UNSEEN)
+        f"<td>{(p['quality']['unseen'].get(k.removesuffix('_psnr_median')) or float('nan')):.2f}</td>"
+        for k, _ in UNSEEN)
         + f"<td>{p['quality']['seen']['generated']:.2f}</td><td>{p['quality']['seen']['stage1']:.2f}</td></tr>"
         for n, p in zip(ns, pts, strict=True))
     qhead = "".join(f"<th>unseen: {html.escape(label)}</th>" for _, label in UNSEEN)

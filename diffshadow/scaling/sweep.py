@@ -10,7 +10,10 @@ from pathlib import Path
 import numpy as np
 
 # the quality rows of the figure and the JSON: (key in voxel_metrics.json's "unseen" section, label)
-UNSEEN = (("generated_psnr_median", "generated (diffusion)"), ("weight_blend_psnr_median", "weight blend, 4 nearest"),
+# (the model alone only where the cache mixed it with the stored SIRENs' blend: diffusion/mix.py)
+UNSEEN = (("generated_psnr_median", "generated (the cache's answer)"),
+          ("model_alone_psnr_median", "the model alone (the paper)"),
+          ("weight_blend_psnr_median", "weight blend, 4 nearest"),
           ("siren_blend_psnr_median", "SIREN blend, 4 nearest"), ("nearest_psnr_median", "nearest stored SIREN"))
 
 

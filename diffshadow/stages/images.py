@@ -51,29 +51,34 @@ def render_targets(volume_path: Path, lights_path: Path, out: Path, *, cfg: Fine
 
 def render_image(scene: RenderScene, out: Path, *, mode: str, camera: Camera, light=None,
                  weights_path: Path | None = None, light_index: int = 0, diffusion: Path | None = None,
-                 blend: Path | None = None, blend_k: int, scalar: str | None = None, phong: bool = False, step: float,
-                 skip: bool = True, outside_region: bool = False) -> None:
+                 blend: Path | None = None, blend_k: int, model_share: float | None = None, scalar: str | None = None,
+                 phong: bool = False, step: float, skip: bool = True, outside_region: bool = False) -> None:
     """One image (a PNG, `out` named .png) in a shading mode; the shadow INR of mode `inr` is row `light_index` of
     a store, or made for `light` by the diffusion checkpoint `diffusion` or (`cache: blend`) as the weight blend of
-    the nearest SIRENs of the store `blend`. A light outside the cache's region (`lights.LightRegion`) is refused
-    in one line naming the region and the light's angle to it, unless `outside_region` asks for the cache's
-    answer anyway (then the line is a warning); one inside it but farther from the training lights than any
-    unseen test light was gets a one-line note."""
+    the nearest SIRENs of the store `blend`, or by both mixed, `model_share` of the model's (diffusion/mix.py). A
+    light outside the cache's region (`lights.LightRegion`) is refused in one line naming the region and the
+    light's angle to it, unless `outside_region` asks for the cache's answer anyway (then the line is a warning);
+    one inside it but farther from the training lights than any unseen test light was gets a one-line note."""
     if Path(out).suffix.lower() != ".png":  # before any work: a PNG under another name opens wrongly, or not at all
         raise ValueError(f"--out {out}: the image is written as a PNG; give a name ending in .png")
     siren = None
-    if sum(x is not None for x in (weights_path, diffusion, blend)) > 1:
-        raise ValueError("render: --weights, --diffusion and --blend each give the shadow INR; give one")
+    mixed = model_share is not None
+    if mixed and (diffusion is None or blend is None):
+        raise ValueError("render: --model-share mixes the model's SIREN with the stored SIRENs' blend; give "
+                         "--diffusion and --blend with it")
+    if sum(x is not None for x in (weights_path, diffusion, blend)) > 1 and not (mixed and weights_path is None):
+        raise ValueError("render: --weights, --diffusion and --blend each give the shadow INR; give one (or "
+                         "--diffusion and --blend with --model-share: the two mixed)")
     if diffusion or blend:
         if light is None:
             raise ValueError(f"--{'diffusion' if diffusion else 'blend'}: needs --light, the direction to make the "
                              "shadow SIREN for")
-        if diffusion:
-            from diffshadow.diffusion.sample import ShadowSampler
+        from diffshadow.diffusion.mix import MixedSampler
+        from diffshadow.diffusion.sample import ShadowSampler
 
-            sampler = ShadowSampler(artifacts.load_checkpoint(diffusion), scene.device)
-        else:
-            sampler = BlendSampler(open_store(blend), blend_k)
+        model = ShadowSampler(artifacts.load_checkpoint(diffusion), scene.device) if diffusion else None
+        stored = BlendSampler(open_store(blend), blend_k) if blend else None
+        sampler = MixedSampler(model, stored, model_share) if mixed else model or stored
         check = sampler.region.where(light)
         if not check.inside and not outside_region:
             raise ValueError(f"{check.message()} (--mode gt draws the exact shadow; --outside-region draws the "

@@ -26,10 +26,10 @@ from diffshadow.diffusion.sample import checkpoint_region, generate, load_sample
 from diffshadow.diffusion.train import train_diffusion as train
 from diffshadow.evaluate import voxel_metrics
 from diffshadow.io import atomic_torch_save, atomic_write_text, finite_json
-from diffshadow.lights import read_lights, training_pool, validation_lights
+from diffshadow.lights import blend_weights, read_lights, training_pool, validation_lights
 from diffshadow.runtime import distributed, set_threads
 from diffshadow.sampling import VALIDATION_POINTS_SEED, Stream
-from diffshadow.store import BlendSampler, WeightStore, open_store, write_store
+from diffshadow.store import BlendSampler, WeightStore, blend_rows, open_store, write_store
 from diffshadow.truth import EvalTruth, check_points, psnr_per_light
 from diffshadow.truth import presample as presample_points
 from diffshadow.volume import load_prepared, prepared_voxels
@@ -142,29 +142,98 @@ def eval_truth(volume_path: Path, lights_path: Path, out: Path, *, eval_points: 
     print(f"wrote {out}: sets {', '.join(truth.points)}")
 
 
-def sample_shadows(checkpoint: Path, truth_path: Path, lights_path: Path, out: Path, *,
-                   device: torch.device) -> None:
-    """SIRENs generated for every training and unseen light, with their voxel PSNR."""
+def sample_shadows(checkpoint: Path, truth_path: Path, lights_path: Path, out: Path, *, device: torch.device,
+                   mix: dict | None = None, weights_path: Path | None = None, volume_path: Path | None = None,
+                   blend_k: int = 4) -> None:
+    """SIRENs generated for every training and unseen light, with their voxel PSNR. With `mix` (the config's
+    section) and a model share under 1, each is mixed with the weight blend of the `blend_k` nearest stored SIRENs
+    of `weights_path` (a training light's blend is its own stored SIREN); share `auto` is chosen on validation
+    lights with exact shadows from `volume_path` (diffusion/mix.py). The share and its curve are recorded in the
+    store's config, where the viewer reads them."""
+    from diffshadow.diffusion.mix import mix_weights
+
     state = artifacts.load_checkpoint(checkpoint)
     model, std, layout, siren = load_sampler(state, device)
     cfg = state["config"]
     light_sets = read_lights(lights_path)
-    all_lights = np.concatenate([light_sets["train"], light_sets["unseen"]])
-    seen = np.arange(len(all_lights)) < len(light_sets["train"])
+    train, unseen = light_sets["train"], light_sets["unseen"]
+    all_lights = np.concatenate([train, unseen])
+    seen = np.arange(len(all_lights)) < len(train)
     region = checkpoint_region(state)
-    _check_region(region, light_sets["unseen"], checkpoint)
+    _check_region(region, unseen, checkpoint)
+    share = "1" if mix is None else str(mix["model_share"])
+    stage1 = _mix_inputs(share, weights_path, volume_path, layout)
+    blend_k = min(blend_k, len(train))
     print(f"sampling {len(all_lights)} shadow SIRENs ({seen.sum()} seen, {(~seen).sum()} unseen) with "
           f"DDIM {cfg['ddim_steps']} steps", flush=True)
-    weights = generate(model, std, all_lights, method="ddim", steps=cfg["ddim_steps"], seed=cfg["seed"],
-                       temperature=cfg["temperature"], device=device).numpy()
+
+    def sample(lights: np.ndarray) -> np.ndarray:
+        return generate(model, std, lights, method="ddim", steps=cfg["ddim_steps"], seed=cfg["seed"],
+                        temperature=cfg["temperature"], device=device).numpy()
+
+    weights = sample(all_lights)
+    config = {"diffusion": cfg, "checkpoint": str(checkpoint)}
+    if stage1 is not None:
+        blend = np.concatenate([np.asarray(stage1.weights, dtype=np.float32),
+                                blend_rows(stage1.weights, *blend_weights(train, unseen, blend_k))])
+        record = {"blend_k": blend_k, "weights": str(weights_path)}
+        if share == "auto":
+            record.update(_choose_share(sample, stage1, volume_path, light_sets, mix, blend_k))
+            record["chosen"] = "validation lights"
+        else:
+            record.update(model_share=float(share), chosen="config")
+        weights = mix_weights(weights, blend, record["model_share"])
+        config["mix"] = record
+        print(f"the cache's answer: {record['model_share']:g} x the model's SIREN + {1 - record['model_share']:g} x "
+              f"the weight blend of the {blend_k} nearest stored SIRENs ({record['chosen']})", flush=True)
     truth = artifacts.read_eval_truth(truth_path)
     scores = psnr_per_light(truth.sirens(weights, layout, siren), truth.of(all_lights, str(truth_path)))
     store = WeightStore(weights=weights, lights=all_lights, psnr=scores["box"],
                         psnr_visible=scores.get("visible", scores["box"]), layout=layout, siren=siren,
-                        config={"diffusion": cfg, "checkpoint": str(checkpoint)}, seen=seen, region=region.to_dict())
+                        config=config, seen=seen, region=region.to_dict())
     write_store(out, store, made_by="sample_shadows")
     print(f"wrote {out}: PSNR median seen {np.median(store.psnr[seen]):.2f} dB, "
           f"unseen {np.median(store.psnr[~seen]) if (~seen).any() else float('nan'):.2f} dB")
+
+
+def _mix_inputs(share: str, weights_path: Path | None, volume_path: Path | None, layout) -> WeightStore | None:
+    """The stored SIRENs a model share under 1 mixes in (None for share 1: the model alone), checked against the
+    model's SIREN layout; one ValueError naming what is missing or wrong."""
+    from diffshadow.diffusion.mix import check_share
+
+    if share != "auto" and check_share(share) == 1.0:
+        return None
+    if weights_path is None or (share == "auto" and volume_path is None):
+        need = "--weights (stage 1's weights.zarr)" + (" and --volume" if share == "auto" else "")
+        raise ValueError(f"mix.model_share {share}: the model is mixed with the stored SIRENs' blend; give {need}, "
+                         f"or model share 1 for the model alone")
+    stage1 = open_store(weights_path)
+    if stage1.layout.n_params != layout.n_params:
+        raise ValueError(f"{weights_path}: SIRENs of {stage1.layout.n_params} parameters, but the model makes "
+                         f"{layout.n_params}; rerun stage 2 on these SIRENs")
+    return stage1
+
+
+def _choose_share(sample, stage1: WeightStore, volume_path: Path, light_sets: dict, mix: dict, blend_k: int) -> dict:
+    """`mix.model_share: auto`: the share chosen on `mix.val_lights` validation lights (exact shadows at
+    `mix.val_points` box points each, marched on the CPU as eval_truth's are), with its curve."""
+    from diffshadow.diffusion.mix import choose_share
+
+    t0 = time.perf_counter()
+    train = light_sets["train"]
+    lights = validation_lights(train, light_sets["center"], int(mix["val_lights"]), seed=int(mix["seed"]))
+    volume, tf = load_prepared(volume_path)
+    # the box points alone: the set the medians are reported on (the visible set would double the march and scoring)
+    val = EvalTruth.compute(volume, tf, lights, int(mix["val_points"]), int(mix["seed"]) + VALIDATION_POINTS_SEED,
+                            sets=("box",))
+    truth = val.of(lights)
+    share, curve = choose_share(sample(lights), blend_rows(stage1.weights, *blend_weights(train, lights, blend_k)),
+                                lambda w: psnr_per_light(val.sirens(w, stage1.layout, stage1.siren), truth)["box"])
+    print("model share on the validation lights (mean / median voxel PSNR, dB): "
+          + ", ".join(f"{r['share']:g}: {r['psnr_mean']:.2f} / {r['psnr_median']:.2f}" for r in curve)
+          + f"; chose {share:g} ({time.perf_counter() - t0:.1f} s)", flush=True)
+    return {"model_share": share, "curve": curve,
+            "validation": {"lights": len(lights), "points": int(mix["val_points"]), "seed": int(mix["seed"])}}
 
 
 def _check_region(region, unseen: np.ndarray, source: Path) -> None:

@@ -75,18 +75,19 @@ class LightInfo:
 
 class ViewerScene:
     """One scene to view: `scene` renders; `generated` (a generated store) and `sampler` (a diffusion
-    checkpoint's `ShadowSampler`, or with `cache: blend` the stored SIRENs' `BlendSampler`) supply the `inr`
-    mode's shadow; without them only `noshadow` and `gt`. `checkpoint`: the file the sampler reads."""
+    checkpoint's `ShadowSampler`, or with `cache: blend` the stored SIRENs' `BlendSampler`, or the two mixed,
+    `diffusion.mix.MixedSampler`) supply the `inr` mode's shadow; without them only `noshadow` and `gt`.
+    `checkpoint`: the file the sampler reads; `stored`: the stored SIRENs a mixed sampler blends."""
 
     def __init__(self, scene: RenderScene, *, name: str, lights: dict | None = None,
                  generated: WeightStore | None = None, sampler=None, results: Path | None = None,
-                 checkpoint: Path | None = None, scene_file: Path | None = None):
+                 checkpoint: Path | None = None, scene_file: Path | None = None, stored: Path | None = None):
         self.scene, self.name, self.generated, self.sampler = scene, name, generated, sampler
         self.region = getattr(sampler, "region", None)  # lights.LightRegion of the cache (None: no region known)
         self.train = lights["train"] if lights else np.zeros((0, 3))
         self.unseen = lights["unseen"] if lights else np.zeros((0, 3))
         # where the scene came from, for the `diffshadow render` command of a frame
-        self.results, self.checkpoint, self.scene_file = results, checkpoint, scene_file
+        self.results, self.checkpoint, self.scene_file, self.stored = results, checkpoint, scene_file, stored
         self._made: OrderedDict[tuple, torch.Tensor] = OrderedDict()
 
     @property
@@ -116,8 +117,19 @@ class ViewerScene:
                               f"(made by the rule `finetune_render` or `train_diffusion`)")
         from diffshadow.diffusion.sample import ShadowSampler
 
-        return cls(scene, name=results.name, lights=lights, generated=generated,
-                   sampler=ShadowSampler(load_checkpoint(source), device), results=results, checkpoint=source)
+        sampler = ShadowSampler(load_checkpoint(source), device)
+        mix = generated.config.get("mix")
+        if mix:  # sample_shadows mixed the model's SIRENs with the stored SIRENs' blend: so is a new direction's
+            from diffshadow.diffusion.mix import MixedSampler
+
+            stored = Path(results) / Path(str(mix["weights"])).name
+            if not stored.exists():
+                raise ViewerError(f"{stored}: missing, the stored SIRENs that generated.zarr's SIRENs were mixed "
+                                  f"with (made by the rule `collect_weights`)")
+            sampler = MixedSampler(sampler, BlendSampler(open_store(stored), int(mix["blend_k"])),
+                                   float(mix["model_share"]))
+        return cls(scene, name=results.name, lights=lights, generated=generated, sampler=sampler, results=results,
+                   checkpoint=source, stored=stored if mix else None)
 
     @classmethod
     def from_scene_config(cls, path: Path, device: torch.device, render: dict | None = None) -> ViewerScene:
@@ -230,7 +242,10 @@ class ViewerScene:
 
     @property
     def cache_name(self) -> str:
-        return "weight blend" if isinstance(self.sampler, BlendSampler) else "diffusion"
+        if isinstance(self.sampler, BlendSampler):
+            return "weight blend"
+        share = getattr(self.sampler, "share", None)  # diffusion.mix.MixedSampler
+        return "diffusion" if share is None else f"diffusion {share:g} + weight blend {1 - share:g}"
 
     def render_commands(self, mode: str, camera: Camera, light, *, step: float) -> list[str]:
         """The `diffshadow render` commands that write this frame: one for a single mode (the exact shadow's where
@@ -258,6 +273,9 @@ class ViewerScene:
                     args += ["--weights", str(self.results / "generated.zarr"), "--light-index", str(row)]
                 elif isinstance(self.sampler, BlendSampler):
                     args += ["--blend", str(self.checkpoint), "--blend-k", str(self.sampler.k)]
+                elif hasattr(self.sampler, "share"):  # the model mixed with the stored SIRENs' blend
+                    args += ["--diffusion", str(self.checkpoint), "--blend", str(self.stored), "--blend-k",
+                             str(self.sampler.blend.k), "--model-share", f"{self.sampler.share:.17g}"]
                 else:
                     args += ["--diffusion", str(self.checkpoint)]
         return shlex.join(args)

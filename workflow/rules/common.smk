@@ -74,14 +74,42 @@ def model_checkpoint(wildcards):
 
 
 def shadow_source(wildcards):
-    """What answers a light: the diffusion model's checkpoint, the stored SIRENs (blend), or their codec's
-    decoded store (encode_cache's cache.zarr)."""
+    """What answers a light: the diffusion model's checkpoint (with stage 1's stored SIRENs and the volume when
+    `mix.model_share` mixes their blend in), the stored SIRENs (blend), or their codec's decoded store
+    (encode_cache's cache.zarr)."""
     cache = cache_choice(wildcards.scene)
     if cache == "diffusion":
-        return model_checkpoint(wildcards)
+        if model_alone(wildcards.scene):
+            return model_checkpoint(wildcards)
+        # the model's SIRENs mixed with the stored ones' blend; validation lights' exact shadows from the volume
+        return {**model_checkpoint(wildcards), "stored": f"results/{wildcards.scene}/weights.zarr",
+                "volume": f"results/{wildcards.scene}/volume.zarr"}
     if cache == "blend":
         return {"weights": f"results/{wildcards.scene}/weights.zarr"}
     return {"weights": f"results/{wildcards.scene}/cache.zarr"}
+
+
+def sample_command(scene, input):
+    """sample-shadows with the model's share of each SIREN (mix) and what the mix reads; at share 1 (the model
+    alone) it reads no stored SIRENs."""
+    mix, blend_k = scene_config(scene)["mix"], scene_config(scene)["evaluate"]["blend_k"]
+    if "stored" not in input.keys():
+        return f"sample-shadows --checkpoint {input.checkpoint}"
+    return (f"sample-shadows --checkpoint {input.checkpoint} --model-share {mix['model_share']} --weights "
+            f"{input.stored} --volume {input.volume} --blend-k {blend_k} --val-lights {mix['val_lights']} "
+            f"--val-points {mix['val_points']} --seed {mix['seed']}")
+
+
+def model_alone(scene):
+    """`mix.model_share: 1`: the model's SIRENs answer alone, not mixed with the stored SIRENs' blend."""
+    return str(scene_config(scene)["mix"]["model_share"]) in ("1", "1.0")
+
+
+def mix_settings(scene):
+    """sample_shadows' settings: the stored SIRENs' blend k and, unless the model alone answers, the mix."""
+    cfg = scene_config(scene)
+    return json.dumps({"blend_k": cfg["evaluate"]["blend_k"], **({} if model_alone(scene) else {"mix": cfg["mix"]})},
+                      sort_keys=True)
 
 
 def geometry_checkpoint(wildcards):

@@ -132,8 +132,11 @@ rule sample_shadows:
     params:
         command=lambda wc, input: (f"blend-shadows --weights {input.weights} --blend-k "
                                    f"{scene_config(wc.scene)['evaluate']['blend_k']}" if "weights" in input.keys()
-                                   else f"sample-shadows --checkpoint {input.checkpoint}"
+                                   else sample_command(wc.scene, input)
                                    if "checkpoint" in input.keys() else ""),  # "": cache: auto, not yet chosen
+        # what the command's flags carry, as a param of the wildcards alone: Snakemake reruns the job when it
+        # changes (a param that reads `input`, as `command` does, is not compared with the run's record)
+        settings=lambda wc: mix_settings(wc.scene),
     threads: 2
     log:
         "results/{scene}/logs/sample_shadows.log",
