@@ -35,6 +35,10 @@ def test_eval_truth_is_the_exact_march_and_survives_a_round_trip(tmp_path):
         assert torch.equal(back.values[name], truth.values[name])
     # the same points as a TruthPoints of the same seed: one evaluation sample whoever asks
     assert torch.equal(TruthPoints(volume, tf, 64, seed=3).sets["box"], truth.points["box"])
+    # the box set alone (the mix's validation lights): the same points and values, no visible set marched
+    box = EvalTruth.compute(volume, tf, lights, 64, seed=3, sets=("box",))
+    assert set(box.points) == set(box.values) == {"box"} and "visible" in truth.points
+    assert torch.equal(box.points["box"], truth.points["box"]) and torch.equal(box.values["box"], truth.values["box"])
 
 
 def test_eval_truth_rows_follow_the_lights_asked_for_and_a_missing_light_is_named():
