@@ -133,7 +133,7 @@ def cache_table(stage1, truth: EvalTruth, light_sets: dict, *, blend_k: int, vol
                      **scored(decoded, blended), "answer_s": answer})
         log(f"[caches] {rows[-1]}")
     if model_state is not None:
-        rows += _model_rows(model_state, generated, train, unseen, scored, log, stored=weights, blend_k=blend_k)
+        rows += _model_rows(model_state, generated, train, unseen, scored, log, stored=weights)
     if volume is not None:
         rows.append(_grid_row(volume, tf, truth, train, unseen, idx, mix))
         log(f"[caches] {rows[-1]}")
@@ -141,12 +141,13 @@ def cache_table(stage1, truth: EvalTruth, light_sets: dict, *, blend_k: int, vol
             "siren_parameters": layout.n_params, "eval_points": int(len(truth.points["box"])), "caches": rows}
 
 
-def _model_rows(state: dict, generated, train, unseen, scored, log, *, stored: np.ndarray, blend_k: int) -> list[dict]:
-    """The diffusion model with its parameters stored in fp32 (its samples: sample_shadows' `generated` store, or
-    sampled again where that store mixed them with the stored SIRENs) and in fp16 (rounded, then sampled in fp32
-    with the same DDIM steps and seed: what storing them in 16 bits costs). The time to answer: one DDIM sample per
-    light, in batches as sample_shadows draws them. Where sample_shadows mixed (its config's `mix`), also the mix
-    at its share: the model and the stored SIRENs, both in fp32 (`generated`'s own SIRENs), and both in fp16."""
+def _model_rows(state: dict, generated, train, unseen, scored, log, *, stored: np.ndarray) -> list[dict]:
+    """The diffusion model with its parameters stored in fp32 (its samples: sample_shadows' `generated` store, or,
+    where that store mixed them with the stored SIRENs, their PSNRs as it scored them before the mix) and in fp16
+    (rounded, then sampled in fp32 with the same DDIM steps and seed: what storing them in 16 bits costs). The time
+    to answer: one DDIM sample per light, in batches as sample_shadows draws them. Where sample_shadows mixed, also
+    the mix at its share: the model and the stored SIRENs, both in fp32 (`generated`'s own SIRENs), and both in
+    fp16."""
     from diffshadow.diffusion.mix import mix_weights
     from diffshadow.diffusion.sample import generate, load_sampler
 
@@ -157,36 +158,42 @@ def _model_rows(state: dict, generated, train, unseen, scored, log, *, stored: n
         for p in half.parameters():
             p.copy_(p.half().float())
     lights = np.concatenate([train, unseen])
-
-    def sample(net) -> np.ndarray:
-        with torch.no_grad():
-            return generate(net, std, lights, method="ddim", steps=int(cfg["ddim_steps"]), seed=int(cfg["seed"]),
-                            temperature=cfg["temperature"]).numpy()
-
     t0 = time.perf_counter()
-    w16 = sample(half)
+    with torch.no_grad():
+        w16 = generate(half, std, lights, method="ddim", steps=int(cfg["ddim_steps"]), seed=int(cfg["seed"]),
+                       temperature=cfg["temperature"]).numpy()
     answer = (time.perf_counter() - t0) / len(lights)
     mixed = (generated.config or {}).get("mix")
-    seen, made = np.asarray(generated.seen), np.asarray(generated.weights)
-    w32 = sample(model) if mixed else np.concatenate([made[seen], made[~seen]])
+    seen = np.asarray(generated.seen)
+
+    def medians(per_light) -> dict:
+        """The seen and unseen medians of box PSNRs per light in `generated`'s order (its own, scored at the same
+        points by sample_shadows)."""
+        per_light = np.asarray(per_light)
+        return {"seen_psnr": median(per_light[seen]),
+                **({"unseen_psnr": median(per_light[~seen])} if len(unseen) else {})}
+
     n_params = sum(p.numel() for p in model.parameters())
     n = len(train)
+    # the model's own SIRENs: `generated`'s, or as sample_shadows scored them before it mixed them
+    fp32 = medians(mixed["model_alone_psnr"] if mixed else generated.psnr)
     rows = []
-    for name, w, bits in (("fp32", w32, 32), ("fp16", w16, 16)):
+    for name, psnrs, bits in (("fp32", fp32, 32), ("fp16", scored(w16[:n], w16[n:] if len(unseen) else None), 16)):
         rows.append({"cache": f"diffusion model {name}", "kind": "model", "bytes": int(n_params * bits // 8),
-                     **scored(w[:n], w[n:] if len(unseen) else None), "answer_s": answer})
+                     **psnrs, "answer_s": answer})
         log(f"[caches] {rows[-1]}")
     if mixed:
-        share, k = float(mixed["model_share"]), min(int(mixed.get("blend_k", blend_k)), n)
+        share, k = float(mixed["model_share"]), min(int(mixed["blend_k"]), n)
         fp16 = codec_named("fp16")
         enc = fp16.encode(stored, layout)
         stored16 = fp16.decode(enc, layout)
         blend16 = np.concatenate([stored16, blend_rows(stored16, *blend_weights(train, unseen, k)).astype(np.float32)])
-        for name, w, nbytes in (("fp32", np.concatenate([made[seen], made[~seen]]), 4 * n_params + stored.nbytes),
-                                ("fp16", mix_weights(w16, blend16, share), 2 * n_params + enc.nbytes)):
+        w16_mix = mix_weights(w16, blend16, share)
+        for name, psnrs, nbytes in (("fp32", medians(generated.psnr), 4 * n_params + stored.nbytes),
+                                    ("fp16", scored(w16_mix[:n], w16_mix[n:] if len(unseen) else None),
+                                     2 * n_params + enc.nbytes)):
             rows.append({"cache": f"model {share:g} + stored SIRENs {1 - share:g}, both {name}", "kind": "mix",
-                         "share": share, "bytes": int(nbytes), **scored(w[:n], w[n:] if len(unseen) else None),
-                         "answer_s": answer})
+                         "share": share, "bytes": int(nbytes), **psnrs, "answer_s": answer})
             log(f"[caches] {rows[-1]}")
     return rows
 

@@ -59,8 +59,9 @@ def voxel_metrics(state: dict | None, stage1, generated, truth: EvalTruth, light
     With `geometry_state` (the model before rendering-loss fine-tuning), the unseen lights are also sampled
     from it: what fine-tuning did to lights it never saw. `state` None (`cache: blend`): `generated` holds the
     stored and blended SIRENs; no sampler to time, no model to store. Where sample_shadows mixed the model's SIRENs
-    with the stored ones' blend (its config's `mix`), the model's own are sampled again and scored beside them
-    (`model_alone_psnr_median`); fine-tuning's change and the sampler curve are the model's own. The samplers run,
+    with the stored ones' blend (its config's `mix`), the model's own, as sample_shadows scored them before the mix,
+    are reported beside them (`model_alone_psnr_median`); fine-tuning's change and the sampler curve are the
+    model's own. The samplers run,
     and are timed, on `device`; the truth and the PSNRs stay on the CPU.
 
     Resumable: the sampler curve (its 500-step DDPM the longest row) saves its rows to `curve_checkpoint` as
@@ -79,13 +80,10 @@ def voxel_metrics(state: dict | None, stage1, generated, truth: EvalTruth, light
     truth_unseen = truth.of(unseen) if len(unseen) else {}
     gen_seen = psnr_per_light(truth.sirens(generated.weights[seen], layout, siren), truth_train)
     mixed = (generated.config or {}).get("mix") if model is not None else None
-    alone_seen, alone_unseen = gen_seen, None  # the model's own SIRENs: generated.zarr's unless a mix made those
-    if mixed:  # sampled as sample_shadows did (one batch of every light), before its mix with the stored SIRENs
-        alone = generate(model, std, np.concatenate([train, unseen]), method="ddim", steps=int(cfg["ddim_steps"]),
-                         seed=int(cfg["seed"]), temperature=cfg["temperature"], device=device).numpy()
-        alone_seen = psnr_per_light(truth.sirens(alone[:len(train)], layout, siren), truth_train)
-        if len(unseen):
-            alone_unseen = psnr_per_light(truth.sirens(alone[len(train):], layout, siren), truth_unseen)
+    # the model's own SIRENs' box PSNR per light: generated.zarr's, or, where sample_shadows mixed them with the
+    # stored SIRENs' blend, as it scored them before the mix
+    alone = np.asarray(mixed["model_alone_psnr"]) if mixed else None
+    alone_seen = alone[seen] if mixed else gen_seen["box"]
     stage1_values = truth.sirens(stage1.weights, layout, siren)
     stage1_seen = psnr_per_light(stage1_values, truth_train)
     result = {"seen": {"count": int(seen.sum()),
@@ -99,12 +97,12 @@ def voxel_metrics(state: dict | None, stage1, generated, truth: EvalTruth, light
         result["seen"]["stage1_psnr_visible_median"] = median(stage1_seen["visible"])
     if mixed:
         result["mix"] = {k: mixed[k] for k in ("model_share", "chosen", "blend_k")}
-        result["seen"]["model_alone_psnr_median"] = median(alone_seen["box"])
+        result["seen"]["model_alone_psnr_median"] = median(alone_seen)
     if len(unseen):
         idx, angles = nearest(train, unseen, blend_k)
         mix = inverse_angle_weights(angles)
         gen_unseen = psnr_per_light(truth.sirens(generated.weights[~seen], layout, siren), truth_unseen)
-        alone_unseen = alone_unseen or gen_unseen
+        alone_unseen = alone[~seen] if mixed else gen_unseen["box"]
         near = psnr_per_light(truth.sirens(stage1.weights[idx[:, 0]], layout, siren), truth_unseen)
         blend = psnr_per_light(blend_baseline(truth_train, idx, mix), truth_unseen)
         # the same blend of the stage-1 SIRENs' weights: one SIREN per unseen light, as the model gives
@@ -125,7 +123,7 @@ def voxel_metrics(state: dict | None, stage1, generated, truth: EvalTruth, light
                             "blend_k": blend_k,
                             "nearest_angle_median_deg": float(np.degrees(np.median(angles[:, 0])))}
         if mixed:
-            result["unseen"]["model_alone_psnr_median"] = median(alone_unseen["box"])
+            result["unseen"]["model_alone_psnr_median"] = median(alone_unseen)
         pool = np.asarray((state or {}).get("pool_lights") or np.zeros((0, 3)), dtype=np.float64).reshape(-1, 3)
         if len(pool):  # lights trained on exact shadows only: how close the test lights came to any of them
             _, a_any = nearest(np.concatenate([train, pool]), unseen, 1)
@@ -137,7 +135,7 @@ def voxel_metrics(state: dict | None, stage1, generated, truth: EvalTruth, light
                               seed=int(cfg["seed"]), temperature=cfg["temperature"], device=device).numpy()
             before_psnr = psnr_per_light(truth.sirens(before, layout, siren), truth_unseen)["box"]
             result["unseen"]["geometry_only_psnr_median"] = median(before_psnr)
-            result["unseen"]["finetune_change_median_db"] = median(alone_unseen["box"] - before_psnr)
+            result["unseen"]["finetune_change_median_db"] = median(alone_unseen - before_psnr)
     result["stage1"] = {"width": siren.width, "blocks": siren.blocks, "parameters": layout.n_params,
                         "capacity": (stage1.config or {}).get("capacity")}
     result["cache"] = "diffusion" if model is not None else "blend"
@@ -166,7 +164,7 @@ def voxel_metrics(state: dict | None, stage1, generated, truth: EvalTruth, light
         log(f"[evaluate voxels] resuming from {curve_checkpoint} after {len(curve)} of {len(rows)} sampler rows")
     for method, k in rows[len(curve):]:
         if method == "ddim" and k == ddim_steps:  # the run's own sampler: these lights are already scored
-            box = alone_seen["box"][sel]
+            box = alone_seen[sel]
         else:
             w = generate(model, std, train[sel], method=method, steps=k, seed=int(cfg["seed"]),
                          temperature=cfg["temperature"], device=device).numpy()

@@ -172,6 +172,8 @@ def sample_shadows(checkpoint: Path, truth_path: Path, lights_path: Path, out: P
                         temperature=cfg["temperature"], device=device).numpy()
 
     weights = sample(all_lights)
+    truth = artifacts.read_eval_truth(truth_path)
+    truth_rows = truth.of(all_lights, str(truth_path))
     config = {"diffusion": cfg, "checkpoint": str(checkpoint)}
     if stage1 is not None:
         blend = np.concatenate([np.asarray(stage1.weights, dtype=np.float32),
@@ -182,12 +184,15 @@ def sample_shadows(checkpoint: Path, truth_path: Path, lights_path: Path, out: P
             record["chosen"] = "validation lights"
         else:
             record.update(model_share=float(share), chosen="config")
+        # the model's own SIRENs scored before the mix (box points, per light): evaluate_voxels and caches report
+        # the model alone from these instead of sampling every light again
+        alone = psnr_per_light(truth.sirens(weights, layout, siren), {"box": truth_rows["box"]})["box"]
+        record["model_alone_psnr"] = [float(x) for x in alone]
         weights = mix_weights(weights, blend, record["model_share"])
         config["mix"] = record
         print(f"the cache's answer: {record['model_share']:g} x the model's SIREN + {1 - record['model_share']:g} x "
               f"the weight blend of the {blend_k} nearest stored SIRENs ({record['chosen']})", flush=True)
-    truth = artifacts.read_eval_truth(truth_path)
-    scores = psnr_per_light(truth.sirens(weights, layout, siren), truth.of(all_lights, str(truth_path)))
+    scores = psnr_per_light(truth.sirens(weights, layout, siren), truth_rows)
     store = WeightStore(weights=weights, lights=all_lights, psnr=scores["box"],
                         psnr_visible=scores.get("visible", scores["box"]), layout=layout, siren=siren,
                         config=config, seen=seen, region=region.to_dict())

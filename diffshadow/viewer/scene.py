@@ -117,7 +117,7 @@ class ViewerScene:
                               f"(made by the rule `finetune_render` or `train_diffusion`)")
         from diffshadow.diffusion.sample import ShadowSampler
 
-        sampler = ShadowSampler(load_checkpoint(source), device)
+        sampler, stored = ShadowSampler(load_checkpoint(source), device), None
         mix = generated.config.get("mix")
         if mix:  # sample_shadows mixed the model's SIRENs with the stored SIRENs' blend: so is a new direction's
             from diffshadow.diffusion.mix import MixedSampler
@@ -129,7 +129,7 @@ class ViewerScene:
             sampler = MixedSampler(sampler, BlendSampler(open_store(stored), int(mix["blend_k"])),
                                    float(mix["model_share"]))
         return cls(scene, name=results.name, lights=lights, generated=generated, sampler=sampler, results=results,
-                   checkpoint=source, stored=stored if mix else None)
+                   checkpoint=source, stored=stored)
 
     @classmethod
     def from_scene_config(cls, path: Path, device: torch.device, render: dict | None = None) -> ViewerScene:
