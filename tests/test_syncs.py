@@ -67,8 +67,16 @@ def test_bench_stages_measures_and_projects_every_stage(tiny, tmp_path):
     stages = result["stages"]
     assert stages["fit_siren"]["steps"] == tiny["fit"]["steps"]
     assert stages["train_diffusion"]["steps"] == 2 * 3  # 6 lights in batches of 4, 3 epochs
-    for name in ("eval_truth", "sample_shadows"):  # per light, over the 8 training and unseen lights
-        assert stages[name]["seconds_per_unit"] * 8 == pytest.approx(stages[name]["projected_s"]), name
+    # per light, over the 8 training and unseen lights, and for the mix's choice (model share auto) its validation
+    # lights as well
+    val = tiny["mix"]["val_lights"]
+    assert tiny["mix"]["model_share"] == "auto" and val > 0
+    for name, lights in (("eval_truth", 8), ("sample_shadows", 8 + val)):
+        assert stages[name]["seconds_per_unit"] * lights == pytest.approx(stages[name]["projected_s"]), name
+    fixed = bench_stages(merge(tiny, {"mix": {"model_share": 1}}), tmp_path / "alone.json", device=torch.device("cpu"),
+                         stages=["sample_shadows"], budget_s=0.0, warmup=1, max_steps=2, log=lambda *a: None)
+    row = fixed["stages"]["sample_shadows"]
+    assert row["seconds_per_unit"] * 8 == pytest.approx(row["projected_s"])  # the model alone: no choice to make
     with pytest.raises(ValueError, match="bench stages: unknown stage 'fit'"):
         bench_stages(tiny, out, device=torch.device("cpu"), stages=["fit"])
 
