@@ -224,8 +224,10 @@ def caches_figure(table: dict, out: Path) -> None:
     fig, axes = plt.subplots(1, 2, figsize=(11, 4.2), sharey=False)
     colours = {"stored": "C1", "codec": "C1", "model": "C0", "mix": "C4", "grids": "C2"}
     mixed = any(row["kind"] == "mix" for row in table["caches"])
+    panels = []
     for ax, key, title in ((axes[0], "unseen_psnr", "unseen lights (the cache's answer)"),
                            (axes[1], "seen_psnr", "seen (training) lights")):
+        points, labels = [], []
         for row in table["caches"]:
             if row.get(key) is None:
                 continue
@@ -235,27 +237,76 @@ def caches_figure(table: dict, out: Path) -> None:
                      .replace("diffusion model", "model").replace("dense shadow grids", "grids"))
             if row["kind"] == "mix":
                 label = f"mix {row['share']:g}, {label.rsplit(' ', 1)[-1]}"
-            # codecs labelled to their left (the fp32 store sits just right of fp16); a model's fp16 below its fp32
-            # twin at the same PSNR, or, beside the mix (just above the model): fp16 to the left, fp32 to the right,
-            # each model below and each mix above
-            fp16 = label.endswith("fp16")
-            left = row["kind"] == "codec" or (mixed and row["kind"] in ("model", "mix") and fp16)
-            below = row["kind"] == "model" and (mixed or fp16)
-            ax.annotate(label, (row["bytes"] / 2**20, row[key]), fontsize=7, ha="right" if left else "left",
-                        xytext=(-5 if left else 4, -10 if below else 3), textcoords="offset points")
+            points.append((row["bytes"] / 2**20, row[key]))
+            labels.append(label)
         ax.set_xscale("log")
         lo, hi = ax.get_xlim()
-        ax.set_xlim(lo / 3, hi * 4)  # room for the labels on both sides
+        ax.set_xlim(lo / 3, hi * 4)  # room for the labels on both sides, and above the best caches
+        lo, hi = ax.get_ylim()
+        ax.set_ylim(lo, hi + 0.12 * (hi - lo))
         ax.set_xlabel("bytes stored (MiB, log)")
         ax.set_ylabel("median voxel PSNR (dB)")
         ax.set_title(title, fontsize=10)
         ax.grid(alpha=0.3)
+        panels.append((ax, points, labels))
     n = table["lights"]
     fig.suptitle(f"caches of {n['train']} training lights: orange stored SIRENs and their codecs, blue the "
                  f"diffusion model, {'purple the two mixed (both kept), ' if mixed else ''}green dense shadow grids",
                  fontsize=9)
     fig.tight_layout()
+    for ax, points, labels in panels:  # after the layout: labels are placed where they will be drawn
+        label_points(ax, points, labels)
     save_figure(out, fig)
+
+
+# where a point's label may go, in order of preference: (dx, dy) in points from the point, and its alignment
+LABEL_PLACES = tuple((sx * dx, sy * dy, "left" if sx * dx > 0 else "right" if sx * dx < 0 else "center",
+                      "bottom" if sy > 0 else "top")
+                     for dx, dy in ((4, 3), (0, 7), (4, 11), (12, 3), (10, 18), (24, 8), (0, 24), (28, 20),
+                                    (16, 32), (40, 4))
+                     for sy in (1, -1) for sx in ((1, -1) if dx else (1,)))
+LEADER_FROM = 10  # points: a label this far from its point is drawn with a line to it
+
+
+def label_points(ax, points: list[tuple[float, float]], labels: list[str], *, fontsize: float = 7) -> list:
+    """Each point's label beside it, at the first of `LABEL_PLACES` where it overlaps no label placed before it
+    and no other point and stays inside the axes; where none is free, where it overlaps least (a label over a
+    label counts double). The axes' limits and the figure's layout must be final: boxes are measured as drawn.
+    Returns the labels' boxes (display units)."""
+    from matplotlib.text import Text
+    from matplotlib.transforms import Bbox
+
+    renderer = ax.figure.canvas.get_renderer()
+    ax.set_xlim(ax.get_xlim())  # frozen: a later autoscale would move the points from under their labels
+    ax.set_ylim(ax.get_ylim())
+    at = ax.transData.transform(np.asarray(points, dtype=float).reshape(-1, 2))
+    half = 5 * ax.figure.dpi / 72  # a marker's half width and a margin, so that a label is not read as a neighbour's
+    markers = [Bbox.from_extents(x - half, y - half, x + half, y + half) for x, y in at]
+    frame = ax.get_window_extent(renderer)
+    placed = []
+    for i, (point, text) in enumerate(zip(points, labels, strict=True)):
+        best = None
+        for dx, dy, ha, va in LABEL_PLACES:
+            leader = {"arrowprops": {"arrowstyle": "-", "lw": 0.5, "color": "0.5", "shrinkA": 0, "shrinkB": 3}
+                      } if max(abs(dx), abs(dy)) > LEADER_FROM else {}
+            note = ax.annotate(text, point, xytext=(dx, dy), textcoords="offset points", fontsize=fontsize,
+                               ha=ha, va=va, **leader)
+            # the text's box alone (an annotation's own box takes in its leader line), with a gap around it
+            note.update_positions(renderer)
+            box = Text.get_window_extent(note, renderer).padded(2 * ax.figure.dpi / 72)
+            inside = (frame.x0 <= box.x0 and box.x1 <= frame.x1 and frame.y0 <= box.y0 and box.y1 <= frame.y1)
+            cost = (2 * sum(box.overlaps(b) for b in placed)
+                    + sum(box.overlaps(m) for j, m in enumerate(markers) if j != i) + 4 * (not inside))
+            if best is None or cost < best[0]:
+                if best is not None:
+                    best[1].remove()
+                best = (cost, note, box)
+            else:
+                note.remove()
+            if cost == 0:
+                break
+        placed.append(best[2])
+    return placed
 
 
 def shadow_curve_figure(bench_json: dict, out: Path) -> None:

@@ -13,7 +13,7 @@ from pathlib import Path
 import numpy as np
 
 from diffshadow.io import atomic_write_text, finite_json
-from diffshadow.report import pyplot, save_figure
+from diffshadow.report import label_points, pyplot, save_figure
 
 
 def collect(runs: list[Path], model_points: list[dict]) -> dict:
@@ -82,7 +82,9 @@ def figure(data: dict):
     as a faint marker above or below it."""
     pts = data["points"]
     fig, axes = pyplot().subplots(1, len(pts), figsize=(4.2 * len(pts), 4.4), sharey=True, squeeze=False)
+    labelled = []
     for ax, p in zip(axes[0], pts, strict=True):
+        points, labels = [], []
         for r in p["caches"]:
             if "unseen_psnr" not in r:
                 continue
@@ -93,21 +95,20 @@ def figure(data: dict):
             if r["cache"] == "diffusion model fp32":
                 continue  # one label for the model's two points (same PSNR)
             label = r["cache"].replace("stored SIRENs ", "").replace("dense shadow grids ", "grids ")
-            label = label.replace("diffusion model fp16", "model fp16 | fp32")
-            # bf16 sits on fp16's point: its label to the lower left; the model's below its stars
-            offset, ha = {"bf16": ((-4, -10), "right"), "model fp16 | fp32": ((4, -12), "left")}.get(
-                label, ((4, 3), "left"))
-            ax.annotate(label, (r["bytes"], r["unseen_psnr"]), textcoords="offset points", xytext=offset, ha=ha,
-                        fontsize=7)
+            points.append((r["bytes"], r["unseen_psnr"]))
+            labels.append(label.replace("diffusion model fp16", "model fp16 | fp32"))
         ax.set_xscale("log")
         ax.set_title(f"{p['lights']} training lights")
         ax.set_xlabel("bytes")
         ax.grid(alpha=0.3)
+        labelled.append((ax, points, labels))
     axes[0][0].set_ylabel("median voxel PSNR, unseen lights (dB); – seen")
     fig.suptitle("caches as rate (bytes) against distortion: stored SIRENs (blue), codecs (green), diffusion "
                  "model (red stars: fp16, fp32), dense grids (grey)\nmarkers: unseen lights; dashes: seen lights",
                  fontsize=9)
     fig.tight_layout()
+    for ax, points, labels in labelled:  # after the layout: labels are placed where they will be drawn
+        label_points(ax, points, labels)
     return fig
 
 
