@@ -175,8 +175,6 @@ def ddim_curve_figure(sampling: dict | None, out: Path) -> None:
     rows = sampling["curve"]
     d = [r for r in rows if r["method"] == "ddim"]
     ax.plot([r["seconds_per_inr"] for r in d], [r["psnr_median"] for r in d], "o-", label="DDIM")
-    for r in d:
-        ax.annotate(f"{r['steps']}", (r["seconds_per_inr"], r["psnr_median"]))
     p = rows[-1]
     ax.plot([p["seconds_per_inr"]], [p["psnr_median"]], "s", label="DDPM 500")
     ax.set_xscale("log")
@@ -189,6 +187,7 @@ def ddim_curve_figure(sampling: dict | None, out: Path) -> None:
     ax.set_ylim(min(lo - 0.3, mid - 1.0), max(hi + 0.3, mid + 1.0))
     ax.legend()
     fig.tight_layout()
+    label_points(ax, [(r["seconds_per_inr"], r["psnr_median"]) for r in d], [f"{r['steps']}" for r in d], fontsize=9)
     save_figure(out, fig)
 
 
