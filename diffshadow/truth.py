@@ -113,14 +113,18 @@ class EvalTruth:
         idx = torch.as_tensor(rows)
         return {k: v[idx] for k, v in self.values.items()}
 
-    def sirens(self, weights: np.ndarray, layout: WeightLayout, siren: SirenConfig) -> dict[str, torch.Tensor]:
-        return _siren_values(self.points, self.extent, weights, layout, siren)
+    def sirens(self, weights: np.ndarray, layout: WeightLayout, siren: SirenConfig,
+               sets: tuple[str, ...] | None = None) -> dict[str, torch.Tensor]:
+        """The SIRENs `weights` (L, n_params) at the points of every set, or only of those named in `sets` (each
+        set costs a full evaluation)."""
+        points = self.points if sets is None else {k: self.points[k] for k in sets}
+        return _siren_values(points, self.extent, weights, layout, siren)
 
     def median_psnr(self, weights: np.ndarray, layout: WeightLayout, siren: SirenConfig, lights: np.ndarray,
                     point_set: str = "box") -> float:
         """Median over `lights` of the voxel PSNR of their SIRENs `weights` (L, n_params) at one point set (the
         SIRENs evaluated there only)."""
-        values = _siren_values({point_set: self.points[point_set]}, self.extent, weights, layout, siren)
+        values = self.sirens(weights, layout, siren, sets=(point_set,))
         return median(psnr(values[point_set], self.of(lights)[point_set], dim=1).numpy())
 
 

@@ -112,3 +112,12 @@ def test_sample_shadows_says_what_a_mix_needs(tmp_path):
         _mix_inputs("0.5", None, None, None)
     with pytest.raises(ValueError, match="expected a number from 0 to 1"):
         _mix_inputs("3", tmp_path / "w.zarr", tmp_path / "v.zarr", None)
+
+
+def test_model_alone_is_share_one_however_written():
+    from diffshadow.diffusion.mix import model_alone
+
+    assert model_alone(1) and model_alone(1.0) and model_alone("1") and model_alone("1.0")
+    assert not model_alone("auto") and not model_alone(0.7) and not model_alone(0)
+    with pytest.raises(ValueError, match="mix.model_share"):
+        model_alone("most")

@@ -33,6 +33,12 @@ def check_share(share: float, where: str = "mix.model_share") -> float:
     return value
 
 
+def model_alone(share) -> bool:
+    """Whether `mix.model_share` (auto or a number) is 1: the model's SIRENs answer alone, nothing is mixed in and
+    no stored SIREN is read. A bad share raises `check_share`'s error."""
+    return str(share) != "auto" and check_share(share) == 1.0
+
+
 def mix_weights(model: np.ndarray, blend: np.ndarray, share: float) -> np.ndarray:
     """share * model + (1 - share) * blend, rows (N, n_params) of SIREN weights, summed in float64 and returned as
     float32. Share 1 returns the model's rows exactly, share 0 the blend's."""

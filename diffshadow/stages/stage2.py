@@ -186,7 +186,7 @@ def sample_shadows(checkpoint: Path, truth_path: Path, lights_path: Path, out: P
             record.update(model_share=float(share), chosen="config")
         # the model's own SIRENs scored before the mix (box points, per light): evaluate_voxels and caches report
         # the model alone from these instead of sampling every light again
-        alone = psnr_per_light(truth.sirens(weights, layout, siren), {"box": truth_rows["box"]})["box"]
+        alone = psnr_per_light(truth.sirens(weights, layout, siren, sets=("box",)), {"box": truth_rows["box"]})["box"]
         record["model_alone_psnr"] = [float(x) for x in alone]
         weights = mix_weights(weights, blend, record["model_share"])
         config["mix"] = record
@@ -204,9 +204,9 @@ def sample_shadows(checkpoint: Path, truth_path: Path, lights_path: Path, out: P
 def _mix_inputs(share: str, weights_path: Path | None, volume_path: Path | None, layout) -> WeightStore | None:
     """The stored SIRENs a model share under 1 mixes in (None for share 1: the model alone), checked against the
     model's SIREN layout; one ValueError naming what is missing or wrong."""
-    from diffshadow.diffusion.mix import check_share
+    from diffshadow.diffusion.mix import model_alone
 
-    if share != "auto" and check_share(share) == 1.0:
+    if model_alone(share):
         return None
     if weights_path is None or (share == "auto" and volume_path is None):
         need = "--weights (stage 1's weights.zarr)" + (" and --volume" if share == "auto" else "")

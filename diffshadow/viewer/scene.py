@@ -16,6 +16,7 @@ import numpy as np
 import torch
 
 from diffshadow.artifacts import load_checkpoint, load_render_scene, load_scene_file
+from diffshadow.diffusion.mix import MixedSampler
 from diffshadow.lights import RegionCheck, as_direction, nearest, read_lights
 from diffshadow.render import Camera, RenderScene
 from diffshadow.report import label_image as label
@@ -120,8 +121,6 @@ class ViewerScene:
         sampler, stored = ShadowSampler(load_checkpoint(source), device), None
         mix = generated.config.get("mix")
         if mix:  # sample_shadows mixed the model's SIRENs with the stored SIRENs' blend: so is a new direction's
-            from diffshadow.diffusion.mix import MixedSampler
-
             stored = Path(results) / Path(str(mix["weights"])).name
             if not stored.exists():
                 raise ViewerError(f"{stored}: missing, the stored SIRENs that generated.zarr's SIRENs were mixed "
@@ -244,8 +243,9 @@ class ViewerScene:
     def cache_name(self) -> str:
         if isinstance(self.sampler, BlendSampler):
             return "weight blend"
-        share = getattr(self.sampler, "share", None)  # diffusion.mix.MixedSampler
-        return "diffusion" if share is None else f"diffusion {share:g} + weight blend {1 - share:g}"
+        if isinstance(self.sampler, MixedSampler):
+            return f"diffusion {self.sampler.share:g} + weight blend {1 - self.sampler.share:g}"
+        return "diffusion"
 
     def render_commands(self, mode: str, camera: Camera, light, *, step: float) -> list[str]:
         """The `diffshadow render` commands that write this frame: one for a single mode (the exact shadow's where
@@ -273,7 +273,7 @@ class ViewerScene:
                     args += ["--weights", str(self.results / "generated.zarr"), "--light-index", str(row)]
                 elif isinstance(self.sampler, BlendSampler):
                     args += ["--blend", str(self.checkpoint), "--blend-k", str(self.sampler.k)]
-                elif hasattr(self.sampler, "share"):  # the model mixed with the stored SIRENs' blend
+                elif isinstance(self.sampler, MixedSampler):
                     args += ["--diffusion", str(self.checkpoint), "--blend", str(self.stored), "--blend-k",
                              str(self.sampler.blend.k), "--model-share", f"{self.sampler.share:.17g}"]
                 else:

@@ -5,6 +5,7 @@ import json
 from diffshadow.config import ConfigError as _ConfigError
 from diffshadow.config import as_json as _as_json
 from diffshadow.config import scene_config as _scene_config
+from diffshadow.diffusion.mix import model_alone as _model_alone
 from diffshadow.hpc import JOB_ENVIRONMENT as _JOB_ENVIRONMENT
 from diffshadow.hpc import kernel_cache_environment as _kernel_cache_environment
 from diffshadow.lights import n_subsets as _n_subsets
@@ -92,7 +93,8 @@ def shadow_source(wildcards):
 def sample_command(scene, input):
     """sample-shadows with the model's share of each SIREN (mix) and what the mix reads; at share 1 (the model
     alone) it reads no stored SIRENs."""
-    mix, blend_k = scene_config(scene)["mix"], scene_config(scene)["evaluate"]["blend_k"]
+    cfg = scene_config(scene)
+    mix, blend_k = cfg["mix"], cfg["evaluate"]["blend_k"]
     if "stored" not in input.keys():
         return f"sample-shadows --checkpoint {input.checkpoint}"
     return (f"sample-shadows --checkpoint {input.checkpoint} --model-share {mix['model_share']} --weights "
@@ -102,7 +104,7 @@ def sample_command(scene, input):
 
 def model_alone(scene):
     """`mix.model_share: 1`: the model's SIRENs answer alone, not mixed with the stored SIRENs' blend."""
-    return str(scene_config(scene)["mix"]["model_share"]) in ("1", "1.0")
+    return _model_alone(scene_config(scene)["mix"]["model_share"])
 
 
 def mix_settings(scene):
