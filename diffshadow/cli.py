@@ -511,12 +511,7 @@ _NO_TORCH = {"lights", "prepare-volume", "collect-weights", "stage-costs", "summ
 
 def main(argv: list[str] | None = None) -> None:
     from diffshadow import phases
-    from diffshadow.hpc import JOB_ENVIRONMENT
 
-    # a command typed by hand gets the workflow job's bytes: MKL reads MKL_CBWR at its first product, which comes
-    # later (a user's own setting wins)
-    for key, value in JOB_ENVIRONMENT.items():
-        os.environ.setdefault(key, value)
     args = build_parser().parse_args(argv)
     # a rule pipes the output through `tee`: without line buffering its progress would arrive at the end
     if hasattr(sys.stdout, "reconfigure"):

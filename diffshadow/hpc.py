@@ -33,9 +33,8 @@ _held: list[int] = []  # open lock file descriptors, kept for the life of the pr
 GPU_DRIVER_FILES = ("/proc/driver/nvidia", "/dev/kfd", "/dev/dxg")
 
 
-# The environment every job runs in, set by the workflow (workflow/rules/common.smk), the Parsl configs and the
-# `diffshadow` command's start (cli.main, so a rule's command rerun by hand writes the job's bytes), not by
-# importing the library. MKL (PyTorch's CPU BLAS on x86) splits a long matrix product's inner sum across threads, so by
+# The environment every job runs in, set by the workflow (workflow/rules/common.smk) and the Parsl configs, not
+# by the library. MKL (PyTorch's CPU BLAS on x86) splits a long matrix product's inner sum across threads, so by
 # default its last bits depend on the thread count: sample-shadows rerun with other threads wrote other bytes.
 # Strict conditional numerical reproducibility fixes the split and keeps the fastest code path (docs/numerics.md);
 # MKL reads it at its first call. A user's own MKL_CBWR wins.

@@ -39,17 +39,3 @@ def test_a_matrix_product_does_not_depend_on_the_thread_count():
     if differing_outputs({}) == 0:  # the control, without the workflow's job environment
         pytest.skip("this machine's MKL does not split the product across threads: nothing to show")
     assert differing_outputs(JOB_ENVIRONMENT) == 0
-
-
-@pytest.mark.skipif(not torch.backends.mkl.is_available(), reason="torch is not built with MKL")
-def test_a_command_run_by_hand_gets_the_jobs_bytes():
-    """`diffshadow ...` typed outside the workflow (a rule's command copied from its log) sets the job environment
-    itself: after its start, the product no longer depends on the thread count. (sample-shadows by hand had
-    written weights 6e-8 off the workflow's own.)"""
-    if differing_outputs({}) == 0:
-        pytest.skip("this machine's MKL does not split the product across threads: nothing to show")
-    start = "from diffshadow import cli\ntry:\n    cli.main(['render', '--help'])\nexcept SystemExit:\n    pass"
-    env = {k: v for k, v in os.environ.items() if k != "MKL_CBWR"}
-    out = subprocess.run([sys.executable, "-c", PRODUCT.format(first=start)], capture_output=True, text=True,
-                         check=True, env=env)
-    assert int(out.stdout.splitlines()[-1]) == 0
