@@ -159,7 +159,7 @@ def _evaluate_voxels(a):
     stage2.evaluate_voxels(checkpoint, Path(a.weights), Path(a.generated), Path(a.truth), Path(a.volume),
                            Path(a.lights), Path(a.out), blend_k=a.blend_k, ddpm_lights=a.ddpm_lights,
                            geometry_checkpoint=Path(a.geometry_checkpoint) if a.geometry_checkpoint else None,
-                           device=_device(a))
+                           device=_device(a), wide_lights=a.wide_lights, wide_points=a.wide_points, wide_seed=a.seed)
 
 
 # ------------------------------------------------------------------------------------- images, report
@@ -397,6 +397,12 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--ddpm-lights", type=int, default=evaluate["ddpm_lights"],
                    help="training lights sampled with 500-step DDPM too (evaluate.ddpm_lights)")
     p.add_argument("--geometry-checkpoint", help="the model before fine-tuning: unseen lights before and after")
+    p.add_argument("--wide-lights", type=int, default=evaluate["wide_lights"],
+                   help="further test lights the cache's answer, the weight blend and the model alone are compared on "
+                   "(evaluate.wide_lights; 0: none)")
+    p.add_argument("--wide-points", type=int, default=evaluate["wide_points"],
+                   help="box points per further test light (evaluate.wide_points)")
+    p.add_argument("--seed", type=int, default=evaluate["seed"], help="the further test lights' draw (evaluate.seed)")
     p = _add(sub, "caches", _caches, "caches.json: every cache (stored SIRENs and their codecs, the model, dense "
              "grids) as bytes against seen and unseen voxel PSNR", "weights", "generated", "truth", "lights", "volume",
              "figure", device=False)

@@ -269,6 +269,12 @@ def validation_lights(train, center, n: int, *, seed: int) -> np.ndarray:
     return unseen_directions(train, center, n, seed=[seed, LightStream.VALIDATION])
 
 
+def wide_test_lights(train, center, n: int, *, seed: int) -> np.ndarray:
+    """`n` further test lights for evaluate_voxels' wide comparison: drawn like the unseen test set, from a fourth
+    random stream (never a test, pool or validation light, so never one the mix's share was chosen on)."""
+    return unseen_directions(train, center, n, seed=[seed, LightStream.WIDE])
+
+
 def _orthonormal_basis(c: np.ndarray) -> np.ndarray:
     helper = np.array([1.0, 0.0, 0.0]) if abs(c[0]) < 0.9 else np.array([0.0, 1.0, 0.0])
     u = np.cross(c, helper)

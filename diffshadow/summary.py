@@ -283,6 +283,17 @@ class RunResults:
                              "training", "", "",
                              f"nearest light trained on {unseen['nearest_trained_angle_median_deg']:.1f}° away "
                              f"(median); no unseen test light is one of them"])
+        wide = v.get("wide")
+        if wide:  # the same comparison on many more lights drawn like the test ones (box points only)
+            further = f"further ({wide['lights']:,})"
+            lo, hi = wide["weight_blend_gap_interval95_db"]
+            rows += [[further, made, _num(wide["generated_psnr_median"]), "",
+                      f"better than the weight blend on {wide['better_than_weight_blend']:,}; 95 % interval of the "
+                      f"gap {lo:+.2f} to {hi:+.2f} dB"],
+                     [further, "the model alone (the paper's cache)", _num(wide["model_alone_psnr_median"]), "", ""],
+                     [further, f"blend of {unseen['blend_k']} nearest training SIRENs' weights",
+                      _num(wide["weight_blend_psnr_median"]), "",
+                      f"{wide['points']:,} points per light; drawn as the unseen test lights are, none of them"]]
         parts.append(_table("Shadow INRs: voxel PSNR against the marched ground truth (median over lights, dB)",
                             ["lights", "shadow INR", "box", "visible region", ""], rows,
                             f"{v['eval_points']:,} fresh points per light and region that no fit used."))
@@ -393,6 +404,13 @@ def cache_verdict(voxel: dict) -> str:
     lo, hi = unseen.get("weight_blend_gap_interval95_db") or (None, None)  # absent from an older voxel_metrics.json
     spread = ("" if lo is None else f" (better on {unseen['better_than_weight_blend']} of {unseen['count']} lights; "
               f"95 % interval over resampled test lights {lo:+.2f} to {hi:+.2f} dB)")
+    wide = voxel.get("wide")
+    if wide:  # many more lights drawn like the test ones decide; the test lights' own gap is said beside
+        test_gap = gap
+        gap = wide["generated_psnr_median"] - wide["weight_blend_psnr_median"]
+        lo, hi = wide["weight_blend_gap_interval95_db"]
+        spread = (f" (on {wide['lights']:,} further test lights: better on {wide['better_than_weight_blend']:,}, 95 % "
+                  f"interval {lo:+.2f} to {hi:+.2f} dB; on the {unseen['count']} test lights {test_gap:+.2f} dB)")
     who = "the mix" if voxel.get("mix") else "it"
     if lo is not None and lo <= 0 <= hi:
         better = (f"{who} ties with their weight blend on unseen lights: {gap:+.2f} dB{spread}, so other test lights "

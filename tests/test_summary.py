@@ -107,6 +107,22 @@ def test_a_gap_within_its_interval_over_resampled_lights_is_called_a_tie():
         cache_verdict(loss)
 
 
+def test_further_test_lights_decide_the_verdict_and_the_test_lights_gap_is_said_beside():
+    """512 training lights: on the 32 test lights the mix's +0.33 dB over the weight blend lies within its interval
+    (a tie); on 1,024 further lights drawn like them its +0.68 dB does not, so the verdict is a win, on those lights,
+    naming both gaps."""
+    mixed = voxel(model=250_000, generated=39.96, weight_blend=39.63)
+    mixed["mix"] = {"model_share": 0.3, "chosen": "validation lights", "blend_k": 4}
+    mixed["unseen"].update(weight_blend_gap_interval95_db=[-0.37, 0.81], better_than_weight_blend=27, count=32)
+    assert "the mix ties with their weight blend" in cache_verdict(mixed)
+    mixed["wide"] = {"lights": 1024, "generated_psnr_median": 39.26, "weight_blend_psnr_median": 38.58,
+                     "weight_blend_gap_interval95_db": [0.57, 0.85], "better_than_weight_blend": 812}
+    assert ("the mix beats their weight blend on unseen lights by 0.68 dB (on 1,024 further test lights: better on "
+            "812, 95 % interval +0.57 to +0.85 dB; on the 32 test lights +0.33 dB)") in cache_verdict(mixed)
+    mixed["wide"].update(weight_blend_gap_interval95_db=[-0.05, 0.12], generated_psnr_median=38.61)
+    assert "the mix ties with their weight blend on unseen lights: +0.03 dB (on 1,024" in cache_verdict(mixed)
+
+
 def test_a_mixed_cache_counts_both_its_parts_and_says_how_it_answers(tmp_path):
     """With sample_shadows' mix (voxel_metrics' `mix`), the verdict is the mix's and counts the model's and the
     stored SIRENs' bytes together; the headline states the answer and the model alone beside the mix."""

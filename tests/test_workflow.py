@@ -35,6 +35,7 @@ TINY = {
     "finetune": {"views": 1, "image_size": 16, "pixels": 4, "epochs": 2, "batch_size": 4, "nproc": 2,
                  "checkpoint_every": 1, "val_lights": 4, "val_points": 1024},
     "mix": {"val_lights": 8, "val_points": 128},
+    "evaluate": {"wide_lights": 16, "wide_points": 128},
     "data_inr": {"width": 8, "blocks": 1, "steps": 20, "points": 512, "target_psnr": 0.0},
     "render": {"image_size": 16, "views": 1, "lights_per_set": 1, "bench_sizes": [8], "bench_repeats": 1,
                "bench_memory_sizes": [16]},
@@ -111,6 +112,36 @@ def test_stage2_outputs(finished):
     assert metrics["mix"] == {"model_share": mix["model_share"], "chosen": "validation lights", "blend_k": 4}
     assert np.isfinite(metrics["seen"]["model_alone_psnr_median"])
     assert np.isfinite(metrics["unseen"]["model_alone_psnr_median"])
+    # the further test lights: the same comparison at the run's share, with its own draw and counts
+    wide = metrics["wide"]
+    assert (wide["lights"], wide["points"], wide["seed"], wide["model_share"]) == (16, 128, 2, mix["model_share"])
+    assert 0 <= wide["better_than_weight_blend"] <= 16 and 0 <= wide["better_than_model_alone"] <= 16
+    lo, hi = wide["weight_blend_gap_interval95_db"]
+    assert lo <= hi and np.isfinite([lo, hi, wide["generated_psnr_median"], wide["model_alone_psnr_median"]]).all()
+
+
+def test_the_wide_comparison_at_share_0_is_the_blend_and_at_share_1_the_model(finished):
+    """The cache's answer on the further test lights is the weight blend at share 0 (no light better, a zero gap)
+    and the model alone at share 1; its lights are none of the test, validation or pool lights."""
+    from diffshadow import artifacts
+    from diffshadow.evaluate import wide_comparison
+    from diffshadow.lights import training_pool, validation_lights, wide_test_lights
+    from diffshadow.volume import load_prepared
+
+    res = finished / "results/nucleon"
+    lights, state = read_lights(res / "lights.json"), artifacts.load_checkpoint(res / "diffusion.ckpt")
+    volume, tf = load_prepared(res / "volume.zarr")
+    ends = {share: wide_comparison(state, open_store(res / "weights.zarr"), lights, volume, tf, share=share, lights=12,
+                                   points=64, seed=3, blend_k=2) for share in (0.0, 1.0)}
+    blend, model = ends[0.0], ends[1.0]
+    assert blend["generated_psnr_median"] == blend["weight_blend_psnr_median"] == model["weight_blend_psnr_median"]
+    assert blend["better_than_weight_blend"] == 0 and blend["weight_blend_gap_interval95_db"] == [0.0, 0.0]
+    assert model["generated_psnr_median"] == model["model_alone_psnr_median"] == blend["model_alone_psnr_median"]
+    assert model["better_than_model_alone"] == 0 and model["model_alone_gap_interval95_db"] == [0.0, 0.0]
+    wide = wide_test_lights(lights["train"], lights["center"], 12, seed=3)
+    others = np.concatenate([lights["unseen"], validation_lights(lights["train"], lights["center"], 12, seed=3),
+                             training_pool(lights["train"], lights["center"], 12, seed=3)])
+    assert np.abs(wide @ others.T).max() < 1 - 1e-9  # no further test light is any of those
 
 
 def test_the_stored_sirens_are_the_models_mixed_with_the_blend_at_the_share_recorded(finished, tmp_path):
@@ -413,7 +444,7 @@ def test_the_evaluation_runs_on_the_cpu_unless_evaluate_device_is_run(finished):
     evaluate_voxels get --device cpu; `run` gives them the run's device, which changes their bytes on a GPU, so
     both rerun."""
     targets = {"eval-truth": "results/nucleon/eval_truth.zarr", "evaluate-voxels": "results/nucleon/voxel_metrics.json"}
-    on_run = {**TINY, "evaluate": {"device": "run"}}
+    on_run = {**TINY, "evaluate": {**TINY["evaluate"], "device": "run"}}
     assert {"eval_truth", "evaluate_voxels"} <= set(planned(snakemake(finished, "-n", config=on_run)))
     default = snakemake(finished, "-n", "-p", "-f", *targets.values()).stdout.splitlines()
     shell = snakemake(finished, "-n", "-p", "-f", *targets.values(), config=on_run).stdout.splitlines()
@@ -660,7 +691,7 @@ def test_cache_blend_skips_stage_two(finished, tmp_path):
     from diffshadow.store import BlendSampler
 
     # a blend k other than the package's 4: the viewer and `render --blend` must take the run's
-    blend = {**TINY, "cache": "blend", "evaluate": {"blend_k": 3}}
+    blend = {**TINY, "cache": "blend", "evaluate": {**TINY["evaluate"], "blend_k": 3}}
     (tmp_path / "fresh").mkdir()
     fresh = planned(snakemake(tmp_path / "fresh", "-n", config=blend))
     assert {"fit_siren", "eval_truth", "sample_shadows"} <= set(fresh), fresh

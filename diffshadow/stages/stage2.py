@@ -24,7 +24,7 @@ from diffshadow.diffusion.finetune import (
 from diffshadow.diffusion.model import PRESETS
 from diffshadow.diffusion.sample import checkpoint_region, generate, load_sampler
 from diffshadow.diffusion.train import train_diffusion as train
-from diffshadow.evaluate import voxel_metrics
+from diffshadow.evaluate import voxel_metrics, wide_comparison
 from diffshadow.io import atomic_torch_save, atomic_write_text, finite_json
 from diffshadow.lights import blend_weights, read_lights, training_pool, validation_lights
 from diffshadow.runtime import distributed, set_threads
@@ -323,11 +323,13 @@ def blend_shadows(weights_path: Path, truth_path: Path, lights_path: Path, out: 
 
 def evaluate_voxels(checkpoint: Path | None, weights_path: Path, generated_path: Path, truth_path: Path,
                     volume_path: Path, lights_path: Path, out: Path, *, blend_k: int, ddpm_lights: int,
-                    geometry_checkpoint: Path | None = None, device: torch.device | str = "cpu") -> None:
+                    geometry_checkpoint: Path | None = None, device: torch.device | str = "cpu",
+                    wide_lights: int = 0, wide_points: int = 1024, wide_seed: int = 0) -> None:
     """`voxel_metrics.json`: generated against stage 1 and the baselines, storage, time per INR (the samplers
     run and are timed on `device`); with the geometry-stage checkpoint, unseen lights before and after
     fine-tuning. Without `checkpoint` (`cache: blend`) the generated SIRENs are the blended ones and there is no
-    model to time. The sampler curve resumes from `<out>.ckpt`."""
+    model to time. The sampler curve resumes from `<out>.ckpt`. With a model and `wide_lights`, the cache's answer,
+    the weight blend and the model alone on that many further test lights too (`evaluate.wide_comparison`)."""
     geometry = artifacts.load_checkpoint(geometry_checkpoint) if geometry_checkpoint else None
     state = artifacts.load_checkpoint(checkpoint) if checkpoint else None
     result = voxel_metrics(state, open_store(weights_path),
@@ -336,6 +338,19 @@ def evaluate_voxels(checkpoint: Path | None, weights_path: Path, generated_path:
                            grid_voxels=prepared_voxels(volume_path), ddpm_lights=ddpm_lights,
                            geometry_state=geometry, device=device,
                            curve_checkpoint=out.with_name(out.name + ".ckpt"))
+    if state is not None and wide_lights > 0:
+        t0 = time.perf_counter()
+        volume, tf = load_prepared(volume_path)
+        share = float((result.get("mix") or {}).get("model_share", 1.0))
+        result["wide"] = wide_comparison(state, open_store(weights_path), read_lights(lights_path), volume, tf,
+                                         share=share, lights=wide_lights, points=wide_points, seed=wide_seed,
+                                         blend_k=blend_k, device=device)
+        w = result["wide"]
+        lo, hi = w["weight_blend_gap_interval95_db"]
+        print(f"[evaluate voxels] {wide_lights} further test lights: the cache's answer "
+              f"{w['generated_psnr_median']:.2f} dB, weight blend {w['weight_blend_psnr_median']:.2f}, "
+              f"model alone {w['model_alone_psnr_median']:.2f}"
+              f" (over the blend: interval {lo:+.2f} to {hi:+.2f} dB; {time.perf_counter() - t0:.1f} s)", flush=True)
     atomic_write_text(out, json.dumps(result, indent=1) + "\n")
     print(json.dumps(result, indent=1))
     for line in quality_warnings(result):

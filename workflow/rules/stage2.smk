@@ -165,6 +165,8 @@ rule evaluate_voxels:
         checkpoint=lambda wc, input: f"--checkpoint {input.checkpoint}" if "checkpoint" in input.keys() else "",
         blend_k=lambda wc: scene_config(wc.scene)["evaluate"]["blend_k"],
         ddpm_lights=lambda wc: scene_config(wc.scene)["evaluate"]["ddpm_lights"],
+        wide=lambda wc: "--wide-lights {wide_lights} --wide-points {wide_points} --seed {seed}".format(
+            **scene_config(wc.scene)["evaluate"]),
         device=evaluate_device,
     # one thread, beside evaluate_images (both wait only for sample_shadows): a second thread sped each up
     # 1.5-1.6x, so on 2 cores the pair ends sooner side by side than one after the other (docs/performance.md)
@@ -179,7 +181,7 @@ rule evaluate_voxels:
     shell:
         "diffshadow --phases results/{wildcards.scene}/benchmarks/evaluate_voxels.phases.json evaluate-voxels {params.checkpoint} --weights {input.weights}"
         " --generated {input.generated} --truth {input.truth} --volume {input.volume} --lights {input.lights}"
-        " {params.geometry} --blend-k {params.blend_k} --ddpm-lights {params.ddpm_lights} {params.device}"
+        " {params.geometry} --blend-k {params.blend_k} --ddpm-lights {params.ddpm_lights} {params.wide} {params.device}"
         " --threads {threads}"
         " --out {output} 2>&1 | tee {log}"
 
