@@ -59,6 +59,9 @@ def wide_comparison(state: dict, stage1, light_sets: dict, volume, tf, *, share:
     interval many times tighter. 32 test lights cannot tell a few tenths of a dB (nucleon, 512 training lights: the
     mix over the blend +0.36 dB, interval +0.04 to +0.78, on its 32 test lights; +0.77, +0.73 to +0.84, on 4,096
     of these). The model samples on `device`; the truth and the PSNRs stay on the CPU."""
+    if lights < 1 or points < 1:  # the schema holds the workflow's values; these are the command's own
+        raise ValueError(f"--wide-lights and --wide-points (evaluate.wide_lights, evaluate.wide_points): expected at "
+                         f"least 1 light and 1 point, got {lights} and {points} (wide_lights 0 skips the comparison)")
     cfg = state["config"]
     model, std, layout, siren = load_sampler(state, device)
     train = light_sets["train"]
@@ -72,7 +75,7 @@ def wide_comparison(state: dict, stage1, light_sets: dict, volume, tf, *, share:
              for name, w in (("answer", mix_weights(sampled, blend, share)), ("weight_blend", blend),
                              ("model_alone", sampled))}
     a, b, m = score["answer"], score["weight_blend"], score["model_alone"]
-    return {"lights": lights, "points": points, "seed": seed, "model_share": share,
+    return {"lights": lights, "points": points, "seed": seed, "model_share": share, "blend_k": blend_k,
             "generated_psnr_median": median(a), "weight_blend_psnr_median": median(b),
             "model_alone_psnr_median": median(m),
             "weight_blend_gap_interval95_db": median_gap_interval(a, b),

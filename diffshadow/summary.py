@@ -291,7 +291,7 @@ class RunResults:
                       f"better than the weight blend on {wide['better_than_weight_blend']:,}; 95 % interval of the "
                       f"gap {lo:+.2f} to {hi:+.2f} dB"],
                      [further, "the model alone (the paper's cache)", _num(wide["model_alone_psnr_median"]), "", ""],
-                     [further, f"blend of {unseen['blend_k']} nearest training SIRENs' weights",
+                     [further, f"blend of {wide['blend_k']} nearest training SIRENs' weights",
                       _num(wide["weight_blend_psnr_median"]), "",
                       f"{wide['points']:,} points per light; drawn as the unseen test lights are, none of them"]]
         parts.append(_table("Shadow INRs: voxel PSNR against the marched ground truth (median over lights, dB)",

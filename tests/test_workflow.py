@@ -114,7 +114,8 @@ def test_stage2_outputs(finished):
     assert np.isfinite(metrics["unseen"]["model_alone_psnr_median"])
     # the further test lights: the same comparison at the run's share, with its own draw and counts
     wide = metrics["wide"]
-    assert (wide["lights"], wide["points"], wide["seed"], wide["model_share"]) == (16, 128, 2, mix["model_share"])
+    assert (wide["lights"], wide["points"], wide["seed"], wide["model_share"], wide["blend_k"]) == \
+        (16, 128, 2, mix["model_share"], 4)
     assert 0 <= wide["better_than_weight_blend"] <= 16 and 0 <= wide["better_than_model_alone"] <= 16
     lo, hi = wide["weight_blend_gap_interval95_db"]
     assert lo <= hi and np.isfinite([lo, hi, wide["generated_psnr_median"], wide["model_alone_psnr_median"]]).all()
@@ -142,6 +143,10 @@ def test_the_wide_comparison_at_share_0_is_the_blend_and_at_share_1_the_model(fi
     others = np.concatenate([lights["unseen"], validation_lights(lights["train"], lights["center"], 12, seed=3),
                              training_pool(lights["train"], lights["center"], 12, seed=3)])
     assert np.abs(wide @ others.T).max() < 1 - 1e-9  # no further test light is any of those
+    with pytest.raises(ValueError, match=r"evaluate.wide_lights, evaluate.wide_points\): expected at least 1 light "
+                       r"and 1 point, got -3 and 64"):
+        wide_comparison(state, open_store(res / "weights.zarr"), lights, volume, tf, share=0.5, lights=-3, points=64,
+                        seed=3, blend_k=2)
 
 
 def test_the_stored_sirens_are_the_models_mixed_with_the_blend_at_the_share_recorded(finished, tmp_path):
@@ -638,6 +643,10 @@ def test_report_front_page_has_the_runs_numbers(finished):
         assert f"{value:.2f} dB" in page and f"{value:.2f}" in tables
     assert "Scene nucleon" in page and "summary.html" in page
     assert f"{voxel['diffusion_model']['parameters']:,} parameters" in page
+    # the further test lights' rows: the cache's answer, the model alone and the blend at their medians
+    wide = voxel["wide"]
+    for key in ("generated_psnr_median", "model_alone_psnr_median", "weight_blend_psnr_median"):
+        assert "<td>further (16)</td><td>" in tables and f"{wide[key]:.2f}" in tables
     # the pool lights' row: their count in the words, the PSNR columns empty (the count once sat in "box")
     pool = voxel["unseen"]["pool_lights"]
     row = f"<td>unseen</td><td>{pool} pool lights (exact shadows, no fitted SIREN) in training</td><td></td><td></td>"

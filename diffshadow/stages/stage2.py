@@ -338,7 +338,7 @@ def evaluate_voxels(checkpoint: Path | None, weights_path: Path, generated_path:
                            grid_voxels=prepared_voxels(volume_path), ddpm_lights=ddpm_lights,
                            geometry_state=geometry, device=device,
                            curve_checkpoint=out.with_name(out.name + ".ckpt"))
-    if state is not None and wide_lights > 0:
+    if state is not None and wide_lights != 0:  # negative: wide_comparison says what it expects
         t0 = time.perf_counter()
         volume, tf = load_prepared(volume_path)
         share = float((result.get("mix") or {}).get("model_share", 1.0))
