@@ -332,9 +332,9 @@ def evaluate_voxels(checkpoint: Path | None, weights_path: Path, generated_path:
     the weight blend and the model alone on that many further test lights too (`evaluate.wide_comparison`)."""
     geometry = artifacts.load_checkpoint(geometry_checkpoint) if geometry_checkpoint else None
     state = artifacts.load_checkpoint(checkpoint) if checkpoint else None
-    result = voxel_metrics(state, open_store(weights_path),
-                           open_store(generated_path), artifacts.read_eval_truth(truth_path),
-                           read_lights(lights_path), blend_k=blend_k,
+    stage1, light_sets = open_store(weights_path), read_lights(lights_path)  # read (and verified) once for both
+    result = voxel_metrics(state, stage1, open_store(generated_path), artifacts.read_eval_truth(truth_path),
+                           light_sets, blend_k=blend_k,
                            grid_voxels=prepared_voxels(volume_path), ddpm_lights=ddpm_lights,
                            geometry_state=geometry, device=device,
                            curve_checkpoint=out.with_name(out.name + ".ckpt"))
@@ -342,7 +342,7 @@ def evaluate_voxels(checkpoint: Path | None, weights_path: Path, generated_path:
         t0 = time.perf_counter()
         volume, tf = load_prepared(volume_path)
         share = float((result.get("mix") or {}).get("model_share", 1.0))
-        result["wide"] = wide_comparison(state, open_store(weights_path), read_lights(lights_path), volume, tf,
+        result["wide"] = wide_comparison(state, stage1, light_sets, volume, tf,
                                          share=share, lights=wide_lights, points=wide_points, seed=wide_seed,
                                          blend_k=blend_k, device=device)
         w = result["wide"]
