@@ -123,7 +123,8 @@ def read_training_data(weights_path: str | Path, points_path: str | Path) -> tup
         pool = None
         if "pool_lights" in geo:
             pool_lights = geo.read("pool_lights")
-            idx, blend = blend_weights(np.asarray(store.lights, dtype=np.float64), pool_lights, BLEND_K)
+            idx, blend = blend_weights(np.asarray(store.lights, dtype=np.float64), pool_lights, BLEND_K,
+                                       "inverse-angle")
             pool = PoolLights(lights=torch.as_tensor(pool_lights), points=torch.as_tensor(geo.read("pool_points")),
                               values=torch.as_tensor(geo.read("pool_values")), neighbours=torch.as_tensor(idx),
                               blend=torch.as_tensor(blend, dtype=torch.float32))

@@ -1,8 +1,8 @@
 """`caches.json`: every cache a run can serve a light from, as rate (bytes) against distortion (median voxel
 PSNR on seen and unseen lights) and the time to answer a new light.
 
-A cache's answer for an unseen light is its own: the diffusion model's sample, the weight blend of the `blend_k`
-nearest stored SIRENs (inverse-angle weights, as `cache: blend` makes it) decoded from each codec, the mix of the
+A cache's answer for an unseen light is its own: the diffusion model's sample, the weight blend of the stored
+SIRENs (`lights.blend_weights`, as `cache: blend` makes it) decoded from each codec, the mix of the
 two that sample_shadows chose (`diffusion.mix`: model and stored SIRENs both kept), the same blend of the dense
 shadow grids' values. Seen lights are the stored entries themselves. Every PSNR is at
 eval_truth's fixed points against the exact shadow (`truth.EvalTruth`), as in voxel_metrics.json.
@@ -19,7 +19,7 @@ import torch
 from diffshadow.codecs import BasisCodec, codec_named
 from diffshadow.evaluate import blend_baseline
 from diffshadow.grid import trilinear
-from diffshadow.lights import blend_weights
+from diffshadow.lights import OLD_WEIGHTING, Triangulation, blend_weights
 from diffshadow.metrics import psnr
 from diffshadow.shadow import shadow_grid
 from diffshadow.store import blend_rows
@@ -38,17 +38,18 @@ def encoded(weights: np.ndarray, layout, name: str) -> tuple[np.ndarray, int]:
     return codec.decode(enc, layout), enc.nbytes
 
 
-def validation_psnr(weights: np.ndarray, layout, siren, train: np.ndarray, val: EvalTruth, k: int) -> float:
+def validation_psnr(weights: np.ndarray, layout, siren, train: np.ndarray, val: EvalTruth, k: int,
+                    weighting: str) -> float:
     """Median voxel PSNR (box points) at validation lights (`val`: drawn in the training cap like the unseen test
-    set, but not from it) of the weight blend of each one's `k` nearest stored SIRENs: a blend cache's answer
-    for lights it never stored, the figure `cache: auto` decides on."""
-    idx, mix = blend_weights(train, val.lights, min(k, len(train)))
+    set, but not from it) of each one's weight blend of the stored SIRENs (`weighting`, `k`): a blend cache's
+    answer for lights it never stored, the figure `cache: auto` decides on."""
+    idx, mix = blend_weights(train, val.lights, min(k, len(train)), weighting)
     blended = blend_rows(np.asarray(weights, dtype=np.float32), idx, mix)
     return val.median_psnr(blended.astype(np.float32), layout, siren, val.lights)
 
 
-def choose_cache(stage1, truth: EvalTruth, val: EvalTruth, train: np.ndarray, *, blend_k: int, target_psnr: float,
-                 candidates: list[str], log=print) -> dict:
+def choose_cache(stage1, truth: EvalTruth, val: EvalTruth, train: np.ndarray, *, blend_k: int, weighting: str,
+                 target_psnr: float, candidates: list[str], log=print) -> dict:
     """`cache: auto`: the smallest of `candidates` (blend and codecs of the stored SIRENs) whose median voxel PSNR
     reaches `target_psnr` both on the training lights (`truth`: its decoded SIRENs, what it answers for a stored
     light) and on the validation lights `val` (its blend, what it answers for a new one); `diffusion` (train the
@@ -65,7 +66,7 @@ def choose_cache(stage1, truth: EvalTruth, val: EvalTruth, train: np.ndarray, *,
         weights, nbytes = encoded(stage1.weights, stage1.layout, name)
         row = {"cache": name, "bytes": nbytes,
                "seen_psnr": truth.median_psnr(weights, stage1.layout, stage1.siren, train),
-               "val_psnr": validation_psnr(weights, stage1.layout, stage1.siren, train, val, k)}
+               "val_psnr": validation_psnr(weights, stage1.layout, stage1.siren, train, val, k, weighting)}
         row["psnr"] = min(row["seen_psnr"], row["val_psnr"])  # what it promises for a stored and a new light
         rows.append(row)
         log(f"[choose cache] {name}: {nbytes / 2**20:.3f} MiB, median {row['seen_psnr']:.2f} dB on the training "
@@ -74,7 +75,8 @@ def choose_cache(stage1, truth: EvalTruth, val: EvalTruth, train: np.ndarray, *,
     where = f"on the training lights and on {len(val.lights)} validation lights"
     if passing:
         best = passing[0]
-        why = (f"{best['cache']}: the smallest stored-SIREN cache (its new lights the blend of the {k} nearest) "
+        blend = "the triangle around it" if weighting == "triangle" else f"the {k} nearest"
+        why = (f"{best['cache']}: the smallest stored-SIREN cache (its new lights the blend of {blend}) "
                f"that reaches {target_psnr:g} dB {where} ({best['seen_psnr']:.2f} and {best['val_psnr']:.2f} dB, "
                f"{best['bytes'] / 2**20:.3f} MiB); no diffusion model trained")
         choice = best["cache"]
@@ -85,17 +87,20 @@ def choose_cache(stage1, truth: EvalTruth, val: EvalTruth, train: np.ndarray, *,
                + "; the model is trained")
         choice = "diffusion"
     log(f"[choose cache] {why}")
-    return {"choice": choice, "why": why, "target_psnr": target_psnr, "blend_k": k, "lights": len(train),
-            "validation_lights": len(val.lights), "candidates": rows}
+    return {"choice": choice, "why": why, "target_psnr": target_psnr, "blend_weights": weighting, "blend_k": k,
+            "lights": len(train), "validation_lights": len(val.lights), "candidates": rows}
 
 
-def cache_table(stage1, truth: EvalTruth, light_sets: dict, *, blend_k: int, volume=None, tf=None,
+def cache_table(stage1, truth: EvalTruth, light_sets: dict, *, blend_k: int, weighting: str, volume=None, tf=None,
                 model_state: dict | None = None, generated=None, log=print) -> dict:
     """One row per cache: bytes, seen and unseen median voxel PSNR (box points), seconds to answer a new light."""
     train, unseen = light_sets["train"], light_sets["unseen"]
     layout, siren = stage1.layout, stage1.siren
     weights = np.asarray(stage1.weights, dtype=np.float32)
-    idx, mix = blend_weights(train, unseen, blend_k) if len(unseen) else (None, None)
+    idx, mix = blend_weights(train, unseen, blend_k, weighting) if len(unseen) else (None, None)
+    # a new light's answer: the triangulation is made once, as the viewer's BlendSampler makes it
+    find = Triangulation(train).weights if weighting == "triangle" else (
+        lambda w: blend_weights(train, w, blend_k, weighting))
 
     def scored(seen_weights: np.ndarray, unseen_weights: np.ndarray | None) -> dict:
         """Median voxel PSNR at the box points, the set voxel_metrics.json's medians report."""
@@ -110,7 +115,7 @@ def cache_table(stage1, truth: EvalTruth, light_sets: dict, *, blend_k: int, vol
             return float("nan")
         t0 = time.perf_counter()
         for w in unseen:
-            decode_one(*blend_weights(train, w[None], blend_k))
+            decode_one(*find(w[None]))
         return (time.perf_counter() - t0) / len(unseen)
 
     rows = []
@@ -137,7 +142,7 @@ def cache_table(stage1, truth: EvalTruth, light_sets: dict, *, blend_k: int, vol
     if volume is not None:
         rows.append(_grid_row(volume, tf, truth, train, unseen, idx, mix))
         log(f"[caches] {rows[-1]}")
-    return {"blend_k": blend_k, "lights": {"train": len(train), "unseen": len(unseen)},
+    return {"blend_weights": weighting, "blend_k": blend_k, "lights": {"train": len(train), "unseen": len(unseen)},
             "siren_parameters": layout.n_params, "eval_points": int(len(truth.points["box"])), "caches": rows}
 
 
@@ -184,10 +189,12 @@ def _model_rows(state: dict, generated, train, unseen, scored, log, *, stored: n
         log(f"[caches] {rows[-1]}")
     if mixed:
         share, k = float(mixed["model_share"]), min(int(mixed["blend_k"]), n)
+        weighting = mixed.get("blend_weights", OLD_WEIGHTING)
         fp16 = codec_named("fp16")
         enc = fp16.encode(stored, layout)
         stored16 = fp16.decode(enc, layout)
-        blend16 = np.concatenate([stored16, blend_rows(stored16, *blend_weights(train, unseen, k)).astype(np.float32)])
+        blended16 = blend_rows(stored16, *blend_weights(train, unseen, k, weighting)).astype(np.float32)
+        blend16 = np.concatenate([stored16, blended16])
         w16_mix = mix_weights(w16, blend16, share)
         for name, psnrs, nbytes in (("fp32", medians(generated.psnr), 4 * n_params + stored.nbytes),
                                     ("fp16", scored(w16_mix[:n], w16_mix[n:] if len(unseen) else None),

@@ -120,7 +120,8 @@ def _caches(a):
     from diffshadow.stages import stage2
 
     stage2.caches(Path(a.weights), Path(a.generated), Path(a.truth), Path(a.lights), Path(a.volume),
-                  Path(a.checkpoint) if a.checkpoint else None, Path(a.out), Path(a.figure), blend_k=a.blend_k)
+                  Path(a.checkpoint) if a.checkpoint else None, Path(a.out), Path(a.figure), blend_k=a.blend_k,
+                  weighting=a.blend_weights)
 
 
 def _sample_shadows(a):
@@ -129,15 +130,15 @@ def _sample_shadows(a):
     mix = {"model_share": a.model_share, "val_lights": a.val_lights, "val_points": a.val_points, "seed": a.seed}
     stage2.sample_shadows(Path(a.checkpoint), Path(a.truth), Path(a.lights), Path(a.out), device=_device(a), mix=mix,
                           weights_path=a.weights and Path(a.weights), volume_path=a.volume and Path(a.volume),
-                          blend_k=a.blend_k)
+                          blend_k=a.blend_k, weighting=a.blend_weights)
 
 
 def _choose_cache(a):
     from diffshadow.stages import stage2
 
     stage2.choose_cache(Path(a.weights), Path(a.truth), Path(a.volume), Path(a.lights), Path(a.out),
-                        blend_k=a.blend_k, target_psnr=a.target_psnr, candidates=a.candidates,
-                        val_lights=a.val_lights, val_points=a.val_points, seed=a.seed)
+                        blend_k=a.blend_k, weighting=a.blend_weights, target_psnr=a.target_psnr,
+                        candidates=a.candidates, val_lights=a.val_lights, val_points=a.val_points, seed=a.seed)
 
 
 def _encode_cache(a):
@@ -149,7 +150,8 @@ def _encode_cache(a):
 def _blend_shadows(a):
     from diffshadow.stages import stage2
 
-    stage2.blend_shadows(Path(a.weights), Path(a.truth), Path(a.lights), Path(a.out), blend_k=a.blend_k)
+    stage2.blend_shadows(Path(a.weights), Path(a.truth), Path(a.lights), Path(a.out), blend_k=a.blend_k,
+                         weighting=a.blend_weights)
 
 
 def _evaluate_voxels(a):
@@ -157,7 +159,8 @@ def _evaluate_voxels(a):
 
     checkpoint = Path(a.checkpoint) if a.checkpoint else None
     stage2.evaluate_voxels(checkpoint, Path(a.weights), Path(a.generated), Path(a.truth), Path(a.volume),
-                           Path(a.lights), Path(a.out), blend_k=a.blend_k, ddpm_lights=a.ddpm_lights,
+                           Path(a.lights), Path(a.out), blend_k=a.blend_k, weighting=a.blend_weights,
+                           ddpm_lights=a.ddpm_lights,
                            geometry_checkpoint=Path(a.geometry_checkpoint) if a.geometry_checkpoint else None,
                            device=_device(a), wide_lights=a.wide_lights, wide_points=a.wide_points, wide_seed=a.seed)
 
@@ -229,7 +232,8 @@ def _render(a):
     images.render_image(scene, Path(a.out), mode=a.mode, camera=cam, light=a.light,
                         weights_path=Path(a.weights) if a.weights else None, light_index=a.light_index,
                         diffusion=Path(a.diffusion) if a.diffusion else None,
-                        blend=Path(a.blend) if a.blend else None, blend_k=a.blend_k, model_share=a.model_share,
+                        blend=Path(a.blend) if a.blend else None, blend_k=a.blend_k,
+                        weighting=a.blend_weights, model_share=a.model_share,
                         outside_region=a.outside_region,
                         scalar=a.scalar, phong=a.phong, step=a.step, skip=not a.no_skip)
 
@@ -312,6 +316,14 @@ def _install_profiles(a):
 # ------------------------------------------------------------------------------------------- parser
 
 
+def _blend_args(p: argparse.ArgumentParser, evaluate: dict, *, used: str = "") -> None:
+    p.add_argument("--blend-weights", choices=["triangle", "inverse-angle"], default=evaluate["blend_weights"],
+                   help=f"{used}how a light's stored SIRENs are blended: the corners of its Delaunay triangle, or the "
+                   "--blend-k nearest (evaluate.blend_weights)")
+    p.add_argument("--blend-k", type=int, default=evaluate["blend_k"],
+                   help="with --blend-weights inverse-angle: stored SIRENs blended per light (evaluate.blend_k)")
+
+
 def build_parser() -> argparse.ArgumentParser:
     from diffshadow.bench.cli import add_bench_parsers
 
@@ -363,8 +375,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--model-share", default="1",
                    help="auto (chosen on validation lights, with --weights and --volume) or 0..1 (with --weights); "
                    "default 1: the model alone, as before the mix (the workflow passes mix.model_share)")
-    p.add_argument("--blend-k", type=int, default=evaluate["blend_k"],
-                   help="stored SIRENs blended per light (evaluate.blend_k)")
+    _blend_args(p, evaluate)
     p.add_argument("--val-lights", type=int, default=mix["val_lights"], help="mix.val_lights")
     p.add_argument("--val-points", type=int, default=mix["val_points"], help="mix.val_points")
     p.add_argument("--seed", type=int, default=mix["seed"], help="their random draw (mix.seed)")
@@ -372,8 +383,7 @@ def build_parser() -> argparse.ArgumentParser:
     p = _add(sub, "choose-cache", _choose_cache, "cache: auto: the smallest stored-SIREN cache whose blend reaches "
              "the target on validation lights, else diffusion (cache_choice.json)", "weights", "truth", "volume",
              "lights", device=False)
-    p.add_argument("--blend-k", type=int, default=evaluate["blend_k"],
-                   help="stored SIRENs blended per light (evaluate.blend_k)")
+    _blend_args(p, evaluate)
     p.add_argument("--target-psnr", type=float, default=auto["target_psnr"],
                    help="dB, median voxel PSNR on the validation lights (cache_auto.target_psnr)")
     p.add_argument("--val-lights", type=int, default=auto["val_lights"], help="cache_auto.val_lights")
@@ -386,14 +396,12 @@ def build_parser() -> argparse.ArgumentParser:
     p = _add(sub, "blend-shadows", _blend_shadows, "cache: blend: every training light's stored SIREN and every "
              "unseen light's weight blend of the nearest, as sample-shadows' store", "weights", "truth", "lights",
              device=False)
-    p.add_argument("--blend-k", type=int, default=evaluate["blend_k"],
-                   help="stored SIRENs blended per light (evaluate.blend_k)")
+    _blend_args(p, evaluate)
     p = _add(sub, "evaluate-voxels", _evaluate_voxels, "voxel PSNR of generated SIRENs, baselines, storage, the "
              "samplers' timing (the workflow passes --device cpu unless evaluate.device is run)",
              "weights", "generated", "truth", "volume", "lights")
     p.add_argument("--checkpoint", help="the diffusion checkpoint that sampled --generated (none: cache: blend)")
-    p.add_argument("--blend-k", type=int, default=evaluate["blend_k"],
-                   help="stored SIRENs blended per light (evaluate.blend_k)")
+    _blend_args(p, evaluate)
     p.add_argument("--ddpm-lights", type=int, default=evaluate["ddpm_lights"],
                    help="training lights sampled with 500-step DDPM too (evaluate.ddpm_lights)")
     p.add_argument("--geometry-checkpoint", help="the model before fine-tuning: unseen lights before and after")
@@ -407,8 +415,7 @@ def build_parser() -> argparse.ArgumentParser:
              "grids) as bytes against seen and unseen voxel PSNR", "weights", "generated", "truth", "lights", "volume",
              "figure", device=False)
     p.add_argument("--checkpoint", help="the diffusion checkpoint (none: cache: blend, no model rows)")
-    p.add_argument("--blend-k", type=int, default=evaluate["blend_k"],
-                   help="stored SIRENs blended per new light (evaluate.blend_k)")
+    _blend_args(p, evaluate)
     _add(sub, "train-data-inr", _train_data_inr, "fit the data INR (a SIREN of the scalar field)", "volume",
          config='{"data_inr": {...}}')
     _add(sub, "render-targets", _render_targets, "ground-truth images per training light and view", "volume",
@@ -435,8 +442,7 @@ def build_parser() -> argparse.ArgumentParser:
                    "generates the shadow SIREN of --light now, as the viewer does for a new direction")
     p.add_argument("--blend", help="mode inr, cache: blend: a weight store (results/<scene>/weights.zarr) whose "
                    "nearest SIRENs to --light are blended, as the viewer does for a new direction")
-    p.add_argument("--blend-k", type=int, default=evaluate["blend_k"],
-                   help="with --blend: stored SIRENs blended (the run's evaluate.blend_k, in generated.zarr's config)")
+    _blend_args(p, evaluate, used="with --blend (the run's, in generated.zarr's config): ")
     p.add_argument("--model-share", type=float, help="with --diffusion and --blend: the model's share of the SIREN "
                    "beside the blend's, as the run mixed them (generated.zarr's config, mix.model_share)")
     p.add_argument("--light", type=float, nargs=3, metavar=("X", "Y", "Z"), help="toward the light")

@@ -15,7 +15,7 @@ from diffshadow.diffusion.mix import mix_weights
 from diffshadow.diffusion.sample import generate, load_sampler
 from diffshadow.hpc import device_name
 from diffshadow.io import atomic_torch_save, resume
-from diffshadow.lights import blend_weights, inverse_angle_weights, nearest, pick, wide_test_lights
+from diffshadow.lights import OLD_WEIGHTING, blend_weights, nearest, pick, wide_test_lights
 from diffshadow.sampling import Stream, seeded
 from diffshadow.store import blend_rows
 from diffshadow.truth import EvalTruth, median, psnr_per_light
@@ -23,7 +23,7 @@ from diffshadow.truth import EvalTruth, median, psnr_per_light
 
 def blend_baseline(train_values: dict, idx: np.ndarray, weights: np.ndarray) -> dict[str, torch.Tensor]:
     """Per set, the rows (L, P) of the k nearest training lights `idx` (Q, k) blended with
-    `lights.inverse_angle_weights` (Q, k): their true shadows, or their stage-1 SIRENs' values."""
+    `lights.blend_weights` (Q, k): their true shadows, or their stage-1 SIRENs' values."""
     w = torch.as_tensor(weights, dtype=torch.float32)
     return {key: (vals[torch.as_tensor(idx)] * w[..., None]).sum(dim=1) for key, vals in train_values.items()}
 
@@ -52,13 +52,14 @@ def median_gap_interval(a: np.ndarray, b: np.ndarray, *, resamples: int = 2000) 
 
 
 def wide_comparison(state: dict, stage1, light_sets: dict, volume, tf, *, share: float, lights: int, points: int,
-                    seed: int, blend_k: int, device: torch.device | str = "cpu") -> dict:
-    """The cache's answer (`share` x the model's SIREN + the rest x the weight blend of the `blend_k` nearest stored
-    SIRENs; share 1: the model alone), the weight blend and the model alone on `lights` further test lights
-    (`lights.wide_test_lights`), exact shadows at `points` box points each: the test lights' comparison, with an
-    interval many times tighter. 32 test lights cannot tell a few tenths of a dB (nucleon, 512 training lights: the
-    mix over the blend +0.36 dB, interval +0.04 to +0.78, on its 32 test lights; +0.77, +0.73 to +0.84, on 4,096
-    of these). The model samples on `device`; the truth and the PSNRs stay on the CPU."""
+                    seed: int, blend_k: int, weighting: str, device: torch.device | str = "cpu") -> dict:
+    """The cache's answer (`share` x the model's SIREN + the rest x the weight blend of the stored SIRENs,
+    `lights.blend_weights` by `weighting` and `blend_k`; share 1: the model alone), the weight blend and the model
+    alone on `lights` further test lights (`lights.wide_test_lights`), exact shadows at `points` box points each:
+    the test lights' comparison, with an interval many times tighter. 32 test lights cannot tell a few tenths of a
+    dB (nucleon, 512 training lights: the mix over the blend +0.36 dB, interval +0.04 to +0.78, on its 32 test
+    lights; +0.77, +0.73 to +0.84, on 4,096 of these). The model samples on `device`; the truth and the PSNRs
+    stay on the CPU."""
     if lights < 1 or points < 1:  # the schema holds the workflow's values; these are the command's own
         raise ValueError(f"--wide-lights and --wide-points (evaluate.wide_lights, evaluate.wide_points): expected at "
                          f"least 1 light and 1 point, got {lights} and {points} (wide_lights 0 skips the comparison)")
@@ -70,12 +71,13 @@ def wide_comparison(state: dict, stage1, light_sets: dict, volume, tf, *, share:
     rows = truth.of(wide)
     sampled = generate(model, std, wide, method="ddim", steps=int(cfg["ddim_steps"]), seed=int(cfg["seed"]),
                        temperature=cfg["temperature"], device=device).numpy()
-    blend = blend_rows(stage1.weights, *blend_weights(train, wide, blend_k)).astype(np.float32)
+    blend = blend_rows(stage1.weights, *blend_weights(train, wide, blend_k, weighting)).astype(np.float32)
     score = {name: psnr_per_light(truth.sirens(w, layout, siren), rows)["box"].astype(np.float64)
              for name, w in (("answer", mix_weights(sampled, blend, share)), ("weight_blend", blend),
                              ("model_alone", sampled))}
     a, b, m = score["answer"], score["weight_blend"], score["model_alone"]
-    return {"lights": lights, "points": points, "seed": seed, "model_share": share, "blend_k": blend_k,
+    return {"lights": lights, "points": points, "seed": seed, "model_share": share, "blend_weights": weighting,
+            "blend_k": blend_k,
             "generated_psnr_median": median(a), "weight_blend_psnr_median": median(b),
             "model_alone_psnr_median": median(m),
             "weight_blend_gap_interval95_db": median_gap_interval(a, b),
@@ -85,7 +87,7 @@ def wide_comparison(state: dict, stage1, light_sets: dict, volume, tf, *, share:
 
 
 def voxel_metrics(state: dict | None, stage1, generated, truth: EvalTruth, light_sets: dict, *, blend_k: int,
-                  grid_voxels: int, ddpm_lights: int = 8, geometry_state: dict | None = None,
+                  weighting: str, grid_voxels: int, ddpm_lights: int = 8, geometry_state: dict | None = None,
                   device: torch.device | str = "cpu", curve_checkpoint: Path | None = None,
                   log=print) -> dict:
     """`voxel_metrics.json`: generated SIRENs (seen and unseen) against the ground truth, beside the stage-1
@@ -131,13 +133,14 @@ def voxel_metrics(state: dict | None, stage1, generated, truth: EvalTruth, light
         result["seen"]["stage1_psnr_visible_median"] = median(stage1_seen["visible"])
     if mixed:
         result["mix"] = {k: mixed[k] for k in ("model_share", "chosen", "blend_k")}
+        result["mix"]["blend_weights"] = mixed.get("blend_weights", OLD_WEIGHTING)
         result["seen"]["model_alone_psnr_median"] = median(alone_seen)
     if len(unseen):
-        idx, angles = nearest(train, unseen, blend_k)
-        mix = inverse_angle_weights(angles)
+        idx, mix = blend_weights(train, unseen, blend_k, weighting)
+        near_idx, angles = nearest(train, unseen, 1)
         gen_unseen = psnr_per_light(truth.sirens(generated.weights[~seen], layout, siren), truth_unseen)
         alone_unseen = alone[~seen] if mixed else gen_unseen["box"]
-        near = psnr_per_light(truth.sirens(stage1.weights[idx[:, 0]], layout, siren), truth_unseen)
+        near = psnr_per_light(truth.sirens(stage1.weights[near_idx[:, 0]], layout, siren), truth_unseen)
         blend = psnr_per_light(blend_baseline(truth_train, idx, mix), truth_unseen)
         # the same blend of the stage-1 SIRENs' weights: one SIREN per unseen light, as the model gives
         weight_blend = blend_rows(stage1.weights, idx, mix)
@@ -154,7 +157,7 @@ def voxel_metrics(state: dict | None, stage1, generated, truth: EvalTruth, light
                             "weight_blend_gap_interval95_db": median_gap_interval(gen_unseen["box"], wblend["box"]),
                             "better_than_weight_blend": int((gen_unseen["box"] > wblend["box"]).sum()),
                             "siren_blend_psnr_median": median(sblend["box"]),
-                            "blend_k": blend_k,
+                            "blend_weights": weighting, "blend_k": blend_k,
                             "nearest_angle_median_deg": float(np.degrees(np.median(angles[:, 0])))}
         if mixed:
             result["unseen"]["model_alone_psnr_median"] = median(alone_unseen)

@@ -152,10 +152,126 @@ def inverse_angle_weights(angles: np.ndarray) -> np.ndarray:
     return w / w.sum(axis=1, keepdims=True)
 
 
-def blend_weights(train: np.ndarray, query: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray]:
-    """The k nearest training directions of each query (Q, k) and inverse-angle weights (Q, k) summing to 1."""
+WEIGHTINGS = ("triangle", "inverse-angle")  # evaluate.blend_weights: how a light's stored SIRENs are blended
+OLD_WEIGHTING = "inverse-angle"  # what a store or metrics file made before evaluate.blend_weights used
+
+
+def blend_weights(train: np.ndarray, query: np.ndarray, k: int, weighting: str) -> tuple[np.ndarray, np.ndarray]:
+    """The training directions a weight blend of each query takes (Q, m) and their weights (Q, m) summing to 1.
+    `weighting` "triangle": the three corners of the training lights' spherical Delaunay triangle around the
+    query, barycentric weights (`Triangulation`; `k` unused); "inverse-angle": the k nearest."""
+    if weighting == "triangle":
+        return Triangulation(train).weights(query)
+    if weighting != "inverse-angle":
+        raise LightError(f"evaluate.blend_weights: expected one of {', '.join(WEIGHTINGS)}, got {weighting!r}")
     idx, angles = nearest(train, query, k)
     return idx, inverse_angle_weights(angles)
+
+
+def blend_label(record: dict) -> str:
+    """"triangle blend of the" or "blend of k nearest", for a metrics record's `blend_weights` and `blend_k` (a
+    record made before the key: inverse-angle)."""
+    if record.get("blend_weights", OLD_WEIGHTING) == "triangle":
+        return "triangle blend of the"
+    return f"blend of {record['blend_k']} nearest"
+
+
+def describe_blend(weighting: str, k: int) -> str:
+    """The weight blend in words, for logs and the report."""
+    if weighting == "triangle":
+        return "the weight blend of the stored SIRENs at the corners of its triangle"
+    return f"the weight blend of the {k} nearest stored SIRENs"
+
+
+class Triangulation:
+    """The training lights' spherical Delaunay triangulation, and barycentric blend weights over it.
+
+    A light inside a triangle gets its three corners, weighted by its barycentric coordinates in the flat
+    triangle (the direction is their weighted sum up to length): the weights reproduce the light's direction
+    exactly, move continuously across edges, and give a training light its own SIREN alone. The k nearest with
+    inverse-angle weights reproduce neither: a light between two rows of training lights takes its k nearest
+    from one row (docs/performance.md, "The weight blend: the triangle around the light").
+
+    The triangles are the faces of the lights' convex hull (every light lies on the sphere, so each face's
+    circumscribed cap holds no other light). Where the lights do not surround the origin (a cap of the sphere),
+    the hull is taken with one more point, the antipode of their mean direction: its faces fan from the region's
+    rim to that point, so every direction lies in exactly one face. A light past the rim, in a fan face, gets the
+    rim edge's two lights, weighted by where it lies along that edge."""
+
+    def __init__(self, train: np.ndarray):
+        train = np.asarray(train, dtype=np.float64).reshape(-1, 3)
+        self.n = len(train)
+        points, self.faces = train, None
+        total = train.sum(axis=0)
+        hole = -total / np.linalg.norm(total) if np.linalg.norm(total) > 1e-9 * max(1, self.n) else None
+        for extra in ((None, hole) if hole is not None else (None,)):
+            points = train if extra is None else np.vstack([train, extra])
+            faces = _hull_faces(points)
+            if faces is not None and (extra is not None or _surrounds_origin(points, faces)):
+                self.faces = faces
+                break
+        self.points = points
+        if self.faces is None:  # fewer than 3 lights, or all on one great circle: no triangles
+            return
+        a, b, c = (points[self.faces[:, i]] for i in range(3))
+        # q = la a + lb b + lc c by Cramer's rule: la = det(q, b, c) / det(a, b, c), and so on
+        self.cross = np.stack([np.cross(b, c), np.cross(c, a), np.cross(a, b)], axis=1)  # (F, 3 corners, 3)
+        self.det = _dot3(a, self.cross[:, 0])
+
+    def weights(self, query: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Corners (Q, 3) and barycentric weights (Q, 3) summing to 1 (the nearest lights with inverse-angle
+        weights where there are no triangles: fewer than three lights, or lights on one great circle)."""
+        query = np.asarray(query, dtype=np.float64).reshape(-1, 3)
+        if self.faces is None:
+            idx, angles = nearest(self.points[:self.n], query, min(3, self.n))
+            return idx, inverse_angle_weights(angles)
+        idx = np.empty((len(query), 3), dtype=np.int64)
+        lam = np.empty((len(query), 3))
+        step = max(1, BLOCK_PAIRS // 8 // len(self.faces))  # (query, face) pairs per block: ~40 MB at a time
+        for start in range(0, len(query), step):
+            q = query[start:start + step]
+            coords = _dot3(q[:, None, None, :], self.cross[None]) / self.det[None, :, None]  # (q, F, 3)
+            # the face that holds the light: the faces' cones tile the sphere, so every other face has a negative
+            # coordinate. On a shared edge both give the same weights; ties go to the first (faces are sorted).
+            face = np.argmax(coords.min(axis=2), axis=1)
+            idx[start:start + len(q)] = self.faces[face]
+            lam[start:start + len(q)] = coords[np.arange(len(q)), face]
+        lam = np.clip(lam, 0.0, None)
+        real = idx < self.n
+        lam = np.where(real, lam, 0.0)  # the antipode's share: a light past the rim takes the rim edge's lights
+        idx = np.where(real, idx, np.take_along_axis(idx, np.argmax(real, axis=1)[:, None], axis=1))
+        total = lam.sum(axis=1, keepdims=True)
+        lam = np.where(total > 0, lam / np.where(total > 0, total, 1.0), real / real.sum(axis=1, keepdims=True))
+        return idx, lam
+
+
+def _dot3(x: np.ndarray, y: np.ndarray) -> np.ndarray:
+    """x . y over the last axis, summed x, y, z in order (see `nearest`: the same bytes whatever BLAS does)."""
+    return x[..., 0] * y[..., 0] + x[..., 1] * y[..., 1] + x[..., 2] * y[..., 2]
+
+
+def _hull_faces(points: np.ndarray) -> np.ndarray | None:
+    """The convex hull's triangles (F, 3) as sorted corner indices, in sorted order (the same faces whatever
+    order Qhull lists them in); None where there is no hull (fewer than 4 points, or all in one plane)."""
+    from scipy.spatial import ConvexHull, QhullError
+
+    if len(points) < 4:
+        return None
+    try:
+        faces = np.sort(ConvexHull(points).simplices, axis=1)
+    except QhullError:
+        return None
+    return faces[np.lexsort(faces.T[::-1])]
+
+
+def _surrounds_origin(points: np.ndarray, faces: np.ndarray) -> bool:
+    """Whether the origin lies inside the hull: every face's plane has it on the inner side."""
+    a, b, c = (points[faces[:, i]] for i in range(3))
+    normal = np.cross(b - a, c - a)
+    centroid = points.mean(axis=0)
+    # orient each normal away from the hull's centroid; the origin is inside when it is behind every face
+    sign = np.sign(_dot3(normal, a - centroid))
+    return bool(np.all(sign * _dot3(normal, -a) < 0))
 
 
 INSIDE_TOLERANCE_DEG = 1e-6  # a training light on the cap's edge is inside it despite rounding

@@ -15,7 +15,7 @@ import numpy as np
 
 from diffshadow.io import StoreError, VerifiedGroup, atomic_save, write_zarr_group
 from diffshadow.layout import SirenConfig, WeightLayout
-from diffshadow.lights import LightRegion, as_direction, blend_weights
+from diffshadow.lights import LightRegion, Triangulation, as_direction, blend_weights
 from diffshadow.phases import timed
 
 
@@ -44,20 +44,27 @@ def blend_rows(weights: np.ndarray, idx: np.ndarray, mix: np.ndarray) -> np.ndar
 
 
 class BlendSampler:
-    """`cache: blend`: the shadow SIREN of any light as the weight blend of the `k` stored SIRENs nearest to it
-    (inverse-angle weights), the way `blend-shadows` makes generated.zarr's unseen rows (its `blend_k`, recorded in
-    that store's config). The same interface as the diffusion model's `ShadowSampler`: call it with a direction."""
+    """`cache: blend`: the shadow SIREN of any light as a weight blend of the stored SIRENs (`lights.blend_weights`
+    by `weighting`, `k`), the way `blend-shadows` makes generated.zarr's unseen rows (both recorded in that store's
+    config). The same interface as the diffusion model's `ShadowSampler`: call it with a direction."""
 
-    def __init__(self, store: WeightStore, k: int):
+    def __init__(self, store: WeightStore, k: int, weighting: str):
         if not 1 <= k <= len(store.lights):
             raise ValueError(f"blend k: expected 1 to {len(store.lights)} (the stored SIRENs), got {k}")
-        self.store, self.k = store, k
+        self.store, self.k, self.weighting = store, k, weighting
         self.layout, self.siren = store.layout, store.siren
         self.region = store.light_region()
+        train = np.asarray(store.lights, dtype=np.float64)
+        # the triangulation once: a viewer asks for a light each frame
+        self._find = (Triangulation(train).weights if weighting == "triangle"
+                      else lambda q: blend_weights(train, q, k, weighting))
+
+    def many(self, lights: np.ndarray) -> np.ndarray:
+        """The blended SIRENs (Q, P) float32 of `lights` (Q, 3)."""
+        return blend_rows(self.store.weights, *self._find(np.asarray(lights, dtype=np.float64))).astype(np.float32)
 
     def __call__(self, light) -> np.ndarray:
-        idx, mix = blend_weights(self.store.lights, as_direction(light)[None], self.k)
-        return blend_rows(self.store.weights, idx, mix)[0].astype(np.float32)
+        return self.many(as_direction(light)[None])[0]
 
 
 def write_subset(path, *, weights, light_index, lights, psnr, psnr_visible, layout: WeightLayout,

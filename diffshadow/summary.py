@@ -11,6 +11,7 @@ from pathlib import Path
 import numpy as np
 
 from diffshadow.io import atomic_write_text
+from diffshadow.lights import blend_label
 from diffshadow.report import ELAPSED_ROW, PHASE_COLUMNS, label_image
 
 MIB = 2**20
@@ -123,7 +124,7 @@ class RunResults:
                  f"({seen['generated_minus_stage1_median_db']:+.2f} dB against stage 1{_alone(seen)})")]
         if unseen:
             rows.append(("generated, unseen lights",
-                         f"{unseen['generated_psnr_median']:.2f} dB (blend of {unseen['blend_k']} nearest true "
+                         f"{unseen['generated_psnr_median']:.2f} dB ({blend_label(unseen)} true "
                          f"shadows {unseen['blend_psnr_median']:.2f} dB, nearest training SIREN "
                          f"{unseen['nearest_psnr_median']:.2f} dB{_alone(unseen)})"))
         if v.get("mix"):
@@ -266,17 +267,17 @@ class RunResults:
                 rows.append(["unseen", "the model alone (the paper's cache)", _num(unseen["model_alone_psnr_median"]),
                              "", ""])
             rows += [["unseen", made, _num(unseen["generated_psnr_median"]), "", ""],
-                     ["unseen", f"blend of {unseen['blend_k']} nearest true shadows",
+                     ["unseen", f"{blend_label(unseen)} true shadows",
                       _num(unseen["blend_psnr_median"]), "", "baseline"],
                      ["unseen", "nearest training SIREN", _num(unseen["nearest_psnr_median"]), "",
                       f"baseline; nearest light {unseen['nearest_angle_median_deg']:.1f}° away (median)"]]
             if "weight_blend_psnr_median" in unseen:
-                rows.append(["unseen", f"blend of {unseen['blend_k']} nearest training SIRENs' weights",
+                rows.append(["unseen", f"{blend_label(unseen)} training SIRENs' weights",
                              _num(unseen["weight_blend_psnr_median"]), "", "baseline (one SIREN per light)"])
             if "siren_blend_psnr_median" in unseen:
-                rows.append(["unseen", f"blend of {unseen['blend_k']} nearest training SIRENs' values",
+                rows.append(["unseen", f"{blend_label(unseen)} training SIRENs' values",
                              _num(unseen["siren_blend_psnr_median"]), "",
-                             f"baseline ({unseen['blend_k']} SIRENs per sample; stage 1's fit error included)"])
+                             f"baseline ({len_blend(unseen)} SIRENs per sample; stage 1's fit error included)"])
             if unseen.get("pool_lights"):
                 # a count, not a PSNR: it goes in the description, the PSNR columns stay empty
                 rows.append(["unseen", f"{unseen['pool_lights']} pool lights (exact shadows, no fitted SIREN) in "
@@ -291,7 +292,7 @@ class RunResults:
                       f"better than the weight blend on {wide['better_than_weight_blend']:,}; 95 % interval of the "
                       f"gap {lo:+.2f} to {hi:+.2f} dB"],
                      [further, "the model alone (the paper's cache)", _num(wide["model_alone_psnr_median"]), "", ""],
-                     [further, f"blend of {wide['blend_k']} nearest training SIRENs' weights",
+                     [further, f"{blend_label(wide)} training SIRENs' weights",
                       _num(wide["weight_blend_psnr_median"]), "",
                       f"{wide['points']:,} points per light; drawn as the unseen test lights are, none of them"]]
         parts.append(_table("Shadow INRs: voxel PSNR against the marched ground truth (median over lights, dB)",
@@ -379,12 +380,19 @@ def _alone(lights: dict) -> str:
     return "" if alone is None else f"; the model alone {alone:.2f} dB"
 
 
+def len_blend(record: dict) -> int:
+    """SIRENs in one light's blend: a triangle's 3, or blend_k."""
+    return 3 if record.get("blend_weights") == "triangle" else int(record["blend_k"])
+
+
 def mix_words(mix: dict) -> str:
     """The cache's answer for a light in words (voxel_metrics.json's `mix`)."""
     share = float(mix["model_share"])
     how = "chosen on validation lights" if mix.get("chosen") == "validation lights" else "set in the config"
-    return (f"{share:g} x the diffusion model's SIREN + {1 - share:g} x the weight blend of the {mix['blend_k']} "
-            f"nearest stored SIRENs (mix.model_share {how}; both are kept)")
+    blend = ("the stored SIRENs at the corners of the light's triangle" if mix.get("blend_weights") == "triangle"
+             else f"the {mix['blend_k']} nearest stored SIRENs")
+    return (f"{share:g} x the diffusion model's SIREN + {1 - share:g} x the weight blend of {blend} "
+            f"(mix.model_share {how}; both are kept)")
 
 
 def cache_verdict(voxel: dict) -> str:

@@ -11,7 +11,7 @@ import torch
 from diffshadow import caches
 from diffshadow.codecs import codec_named
 from diffshadow.layout import SirenConfig, WeightLayout
-from diffshadow.lights import fibonacci_sphere, inverse_angle_weights, nearest
+from diffshadow.lights import Triangulation, fibonacci_sphere, inverse_angle_weights, nearest
 from diffshadow.siren import init_siren
 from diffshadow.store import blend_rows
 
@@ -37,14 +37,18 @@ def _store(n: int = 12):
     return SimpleNamespace(weights=w, layout=LAYOUT, siren=SIREN), lights
 
 
-def test_validation_lights_are_answered_by_the_blend_of_their_nearest_stored_sirens():
+@pytest.mark.parametrize("weighting", ["triangle", "inverse-angle"])
+def test_validation_lights_are_answered_by_the_blend_of_their_stored_sirens(weighting):
     store, lights = _store()
     val = Scored()
     val.lights = fibonacci_sphere(400)[:5]
-    caches.validation_psnr(store.weights, LAYOUT, SIREN, lights, val, 4)
-    idx, angles = nearest(lights, val.lights, 4)
-    expected = blend_rows(store.weights, idx, inverse_angle_weights(angles)).astype(np.float32)
-    assert np.array_equal(val.asked[0], expected)
+    caches.validation_psnr(store.weights, LAYOUT, SIREN, lights, val, 4, weighting)
+    if weighting == "triangle":
+        idx, w = Triangulation(lights).weights(val.lights)
+    else:
+        idx, angles = nearest(lights, val.lights, 4)
+        w = inverse_angle_weights(angles)
+    assert np.array_equal(val.asked[0], blend_rows(store.weights, idx, w).astype(np.float32))
 
 
 @pytest.mark.parametrize(("target", "candidates", "choice"), [
@@ -57,7 +61,7 @@ def test_auto_takes_the_smallest_cache_that_reaches_the_target_else_the_model(mo
                                                                                choice):
     store, lights = _store()
 
-    def fidelity(weights, layout, siren, train, val, k):
+    def fidelity(weights, layout, siren, train, val, k, weighting):
         """PSNR of the decoded store against the fp32 one (inf when exact): a figure each codec earns."""
         mse = float(np.mean((np.asarray(weights, np.float64) - store.weights) ** 2))
         return float("inf") if mse == 0 else 10 * np.log10(float(np.abs(store.weights).max()) ** 2 / mse)
@@ -65,8 +69,8 @@ def test_auto_takes_the_smallest_cache_that_reaches_the_target_else_the_model(mo
     monkeypatch.setattr(caches, "validation_psnr", fidelity)  # decisive, with the training lights' figure
     val = SimpleNamespace(lights=np.zeros((3, 3)))
     seen = SimpleNamespace(median_psnr=lambda w, layout, siren, lights: 100.0)  # every store passes there
-    out = caches.choose_cache(store, seen, val, lights, blend_k=4, target_psnr=target, candidates=candidates,
-                              log=lambda *a: None)
+    out = caches.choose_cache(store, seen, val, lights, blend_k=4, weighting="triangle", target_psnr=target,
+                              candidates=candidates, log=lambda *a: None)
     assert out["choice"] == choice and out["why"].startswith(f"{choice}:")
     assert [r["cache"] for r in out["candidates"]] == candidates  # every candidate weighed, in order
 
@@ -81,8 +85,8 @@ def test_auto_needs_the_target_on_the_training_lights_too(monkeypatch):
         return 50.0 if np.array_equal(w, exact) else 30.0
 
     out = caches.choose_cache(store, SimpleNamespace(median_psnr=seen), SimpleNamespace(lights=np.zeros((3, 3))),
-                              lights, blend_k=4, target_psnr=35.0, candidates=["blend", "fp16", "basis-2"],
-                              log=lambda *a: None)
+                              lights, blend_k=4, weighting="triangle", target_psnr=35.0,
+                              candidates=["blend", "fp16", "basis-2"], log=lambda *a: None)
     assert out["choice"] == "blend" and "30.00 and 40.00" not in out["why"]
 
 

@@ -216,7 +216,7 @@ def test_blend_pool_holds_the_lights_whose_nearest_are_the_subsets_blended_as_th
     taken = []
     for subset in light_subsets(train, 16):
         pool = blend_pool(vol, tf, train, center, subset, cfg)
-        idx, mix = blend_weights(train, pool.lights.numpy(), 4)
+        idx, mix = blend_weights(train, pool.lights.numpy(), 4, "inverse-angle")
         assert np.isin(idx, subset).all()
         assert (np.asarray(subset)[pool.neighbours.numpy()] == idx).all()
         assert torch.allclose(pool.blend, torch.as_tensor(mix, dtype=torch.float32))

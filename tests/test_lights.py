@@ -118,10 +118,10 @@ def test_blend_weights_sum_to_one_and_favour_the_closest():
     train = fibonacci_sphere(40)[:12]
     q = train[[2, 5]] * 0.9 + train[[3, 6]] * 0.1
     q /= np.linalg.norm(q, axis=1, keepdims=True)
-    idx, w = blend_weights(train, q, 4)
+    idx, w = blend_weights(train, q, 4, "inverse-angle")
     assert np.allclose(w.sum(1), 1) and (w > 0).all()
     assert idx[:, 0].tolist() == [2, 5] and (w[:, 0] == w.max(1)).all()
-    idx, w = blend_weights(train, train[[7]], 3)  # on a training light: (almost) all its own weight
+    idx, w = blend_weights(train, train[[7]], 3, "inverse-angle")  # on a training light: (almost) all its own weight
     assert idx[0, 0] == 7 and w[0, 0] > 1 - 1e-5
 
 
@@ -149,7 +149,7 @@ def test_light_subsets_keep_a_pool_lights_neighbours_together():
     sphere = fibonacci_sphere(1600)
     train = sphere[select_region(sphere, [0, 0, 1], 400)]
     pool = training_pool(train, [0, 0, 1], 2048, seed=1)
-    nearest4 = blend_weights(train, pool, 4)[0]
+    nearest4 = blend_weights(train, pool, 4, "inverse-angle")[0]
 
     def together(groups):
         owner = np.empty(len(train), dtype=int)
@@ -203,3 +203,60 @@ def test_nearest_is_a_stable_sort_of_the_angles(n, k):
     assert np.array_equal(idx, expected)
     assert np.array_equal(angles, np.arccos(np.take_along_axis(cos, expected, axis=1)))
     assert idx[0, 0] == 0 and idx[1, 0] == 0  # query 1 = train 1 = train 0: the tie goes to the lower index
+
+
+def test_triangle_weights_reproduce_the_light_and_a_training_light_gets_its_own():
+    """Inside the training lights' hull the barycentric weights sum to 1, are >= 0, and the weighted corners point
+    exactly at the light; at a training light its own weight is (to rounding) 1."""
+    from diffshadow.lights import Triangulation, validation_lights
+
+    train = cap_lights(60)
+    tri = Triangulation(train)
+    assert len(tri.points) == len(train) + 1  # a cap: the antipode of the lights' mean closes the hull
+    q = validation_lights(train, CAP_CENTER, 200, seed=4)
+    idx, w = tri.weights(q)
+    assert idx.shape == w.shape == (200, 3) and np.allclose(w.sum(1), 1) and (w >= 0).all()
+    rim = (w == 0).any(axis=1)  # past the rim: two rim lights
+    made = (train[idx] * w[..., None]).sum(1)
+    made /= np.linalg.norm(made, axis=1, keepdims=True)
+    assert np.allclose(made[~rim], q[~rim], atol=1e-12) and (~rim).sum() > 100
+    idx, w = tri.weights(train)
+    assert (idx[np.arange(len(train)), w.argmax(1)] == np.arange(len(train))).all() and w.max(1).min() > 1 - 1e-12
+
+
+def test_triangle_weights_do_not_depend_on_the_lights_order():
+    from diffshadow.lights import Triangulation
+
+    train = cap_lights(40)
+    q = fibonacci_sphere(50)[:10]
+    perm = np.random.default_rng(0).permutation(len(train))
+    a_idx, a_w = Triangulation(train).weights(q)
+    b_idx, b_w = Triangulation(train[perm]).weights(q)
+    for i in range(len(q)):  # the same lights with the same weights, whatever order they are listed in
+        a = sorted(zip(a_idx[i].tolist(), a_w[i].round(12).tolist(), strict=True))
+        b = sorted(zip(perm[b_idx[i]].tolist(), b_w[i].round(12).tolist(), strict=True))
+        assert [x for x in a if x[1] > 0] == [x for x in b if x[1] > 0]
+
+
+def test_triangle_weights_on_the_whole_sphere_and_with_too_few_lights():
+    from diffshadow.lights import Triangulation, blend_weights
+
+    sphere = fibonacci_sphere(100)
+    tri = Triangulation(sphere)
+    assert len(tri.points) == 100  # the lights surround the origin: no extra point
+    q = fibonacci_sphere(333)
+    idx, w = tri.weights(q)
+    made = (sphere[idx] * w[..., None]).sum(1)
+    assert np.allclose(made / np.linalg.norm(made, axis=1, keepdims=True), q, atol=1e-12)
+    for n in (1, 2):  # no triangle: the nearest with inverse-angle weights
+        idx, w = Triangulation(sphere[:n]).weights(q[:4])
+        near, nw = blend_weights(sphere[:n], q[:4], n, "inverse-angle")
+        assert np.array_equal(idx, near) and np.array_equal(w, nw)
+
+
+def test_an_unknown_blend_weighting_is_named():
+    from diffshadow.lights import LightError, blend_weights
+
+    with pytest.raises(LightError, match=r"^evaluate.blend_weights: expected one of triangle, inverse-angle, got "
+                       r"'nearest'$"):
+        blend_weights(cap_lights(8), cap_lights(8)[:1], 4, "nearest")

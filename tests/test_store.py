@@ -83,7 +83,7 @@ def test_geometry_points_round_trip_with_pool_lights(tmp_path):
     assert all(torch.equal(a, b) for a, b in zip(data.check, check, strict=True))
     assert np.allclose(data.pool.lights.numpy(), pool) and torch.equal(data.pool.values, pool_vals)
     assert torch.equal(data.pool.points, pool_pts)
-    idx, w = blend_weights(LIGHTS, pool, 4)
+    idx, w = blend_weights(LIGHTS, pool, 4, "inverse-angle")
     np.testing.assert_array_equal(data.pool.neighbours.numpy(), idx)
     assert np.allclose(data.pool.blend.numpy(), w) and np.allclose(data.pool.blend.sum(1).numpy(), 1)
 
@@ -211,7 +211,7 @@ def test_a_blend_takes_between_one_and_every_stored_siren(tmp_path):
     from diffshadow.store import BlendSampler
 
     store = open_store(stored(tmp_path))
-    assert np.array_equal(BlendSampler(store, 1)(LIGHTS[2] + [0, 0.01, 0]), store.weights[2])
+    assert np.array_equal(BlendSampler(store, 1, "inverse-angle")(LIGHTS[2] + [0, 0.01, 0]), store.weights[2])
     for k in (0, 5):
         with pytest.raises(ValueError, match=rf"^blend k: expected 1 to 4 \(the stored SIRENs\), got {k}$"):
-            BlendSampler(store, k)
+            BlendSampler(store, k, "inverse-angle")

@@ -251,7 +251,7 @@ def test_a_mixed_cache_names_its_share_and_its_render_command_mixes_the_same_way
     g = viewer.generated
     stored = WeightStore(weights=g.weights[:3], lights=viewer.train, psnr=np.zeros(3), psnr_visible=np.zeros(3),
                          layout=LAYOUT, siren=SIREN, config={})
-    blend = BlendSampler(stored, 2)
+    blend = BlendSampler(stored, 2, "triangle")
     mixed = ViewerScene(viewer.scene, name="blob", lights={"train": viewer.train, "unseen": viewer.unseen},
                         generated=g, sampler=MixedSampler(Model(), blend, 0.7), results=Path("results/blob"),
                         checkpoint=Path("results/blob/diffusion.ckpt"), stored=Path("results/blob/weights.zarr"))

@@ -109,7 +109,8 @@ def test_stage2_outputs(finished):
     mix = generated.config["mix"]
     assert mix["chosen"] == "validation lights" and mix["validation"] == {"lights": 8, "points": 128, "seed": 0}
     assert mix["model_share"] in SHARES and [r["share"] for r in mix["curve"]] == list(SHARES)
-    assert metrics["mix"] == {"model_share": mix["model_share"], "chosen": "validation lights", "blend_k": 4}
+    assert metrics["mix"] == {"model_share": mix["model_share"], "chosen": "validation lights", "blend_k": 4,
+                              "blend_weights": "triangle"}
     assert np.isfinite(metrics["seen"]["model_alone_psnr_median"])
     assert np.isfinite(metrics["unseen"]["model_alone_psnr_median"])
     # the further test lights: the same comparison at the run's share, with its own draw and counts
@@ -133,7 +134,7 @@ def test_the_wide_comparison_at_share_0_is_the_blend_and_at_share_1_the_model(fi
     lights, state = read_lights(res / "lights.json"), artifacts.load_checkpoint(res / "diffusion.ckpt")
     volume, tf = load_prepared(res / "volume.zarr")
     ends = {share: wide_comparison(state, open_store(res / "weights.zarr"), lights, volume, tf, share=share, lights=12,
-                                   points=64, seed=3, blend_k=2) for share in (0.0, 1.0)}
+                                   points=64, seed=3, blend_k=2, weighting="triangle") for share in (0.0, 1.0)}
     blend, model = ends[0.0], ends[1.0]
     assert blend["generated_psnr_median"] == blend["weight_blend_psnr_median"] == model["weight_blend_psnr_median"]
     assert blend["better_than_weight_blend"] == 0 and blend["weight_blend_gap_interval95_db"] == [0.0, 0.0]
@@ -146,7 +147,7 @@ def test_the_wide_comparison_at_share_0_is_the_blend_and_at_share_1_the_model(fi
     with pytest.raises(ValueError, match=r"evaluate.wide_lights, evaluate.wide_points\): expected at least 1 light "
                        r"and 1 point, got -3 and 64"):
         wide_comparison(state, open_store(res / "weights.zarr"), lights, volume, tf, share=0.5, lights=-3, points=64,
-                        seed=3, blend_k=2)
+                        seed=3, blend_k=2, weighting="triangle")
 
 
 def test_the_stored_sirens_are_the_models_mixed_with_the_blend_at_the_share_recorded(finished, tmp_path):
@@ -169,7 +170,8 @@ def test_the_stored_sirens_are_the_models_mixed_with_the_blend_at_the_share_reco
     stored = open_store(results / "weights.zarr")
     assert np.array_equal(ends[0].weights[:4], stored.weights)
     unseen = read_lights(results / "lights.json")["unseen"]
-    assert np.allclose(ends[0].weights[4:], np.stack([BlendSampler(stored, 4)(w) for w in unseen]), atol=1e-7)
+    blend = BlendSampler(stored, 4, "triangle")
+    assert np.allclose(ends[0].weights[4:], np.stack([blend(w) for w in unseen]), atol=1e-7)
     expected = mix_weights(ends[1].weights, ends[0].weights, generated.config["mix"]["model_share"])
     np.testing.assert_allclose(generated.weights, expected, rtol=0, atol=1e-5 if CUDA else 0)
 
@@ -417,8 +419,8 @@ def test_the_sampler_curve_resumes_where_an_interrupted_evaluation_stopped(finis
     def evaluate(log, light_sets=lights):
         return voxel_metrics(state, open_store(res / "weights.zarr"), open_store(res / "generated.zarr"),
                              artifacts.read_eval_truth(res / "eval_truth.zarr"), light_sets, blend_k=2,
-                             ddpm_lights=2, grid_voxels=prepared_voxels(res / "volume.zarr"), geometry_state=geometry,
-                             curve_checkpoint=ckpt, log=log)
+                             weighting="triangle", ddpm_lights=2, grid_voxels=prepared_voxels(res / "volume.zarr"),
+                             geometry_state=geometry, curve_checkpoint=ckpt, log=log)
 
     whole = evaluate(log=lambda m: None)
     with pytest.raises(Stopped):
@@ -716,7 +718,7 @@ def test_cache_blend_skips_stage_two(finished, tmp_path):
     seen = generated.seen
     assert np.array_equal(generated.weights[seen], stage1.weights)
     assert generated.config["blend_k"] == 3
-    blend = BlendSampler(stage1, 3)
+    blend = BlendSampler(stage1, 3, generated.config["blend_weights"])
     for light, w in zip(generated.lights[~seen], generated.weights[~seen], strict=True):
         assert np.array_equal(w, blend(light))
     metrics = json.loads((res / "voxel_metrics.json").read_text())
@@ -739,7 +741,7 @@ def test_cache_blend_skips_stage_two(finished, tmp_path):
     assert info.kind == "new" and np.array_equal(weights.numpy(), blend(new))
     cam = Camera.orbit(view.scene.volume.extent, azimuth=30.0, elevation=25.0, size=16)
     command = view.render_command("inr", cam, new, step=0.5, out=str(tmp_path / "x.png"))
-    assert f"--blend {res / 'weights.zarr'} --blend-k 3" in command
+    assert f"--blend {res / 'weights.zarr'} --blend-weights triangle --blend-k 3" in command
     out = subprocess.run([str(installed("diffshadow")), *command.split()[1:]], capture_output=True, text=True,
                          timeout=300)
     assert out.returncode == 0 and (tmp_path / "x.png").is_file(), out.stderr[-2000:]

@@ -1,5 +1,6 @@
 """The cache's answer for a light: the diffusion model's SIREN mixed in weight space with the weight blend of the
-`blend_k` stored SIRENs nearest to the light (inverse-angle weights, `lights.blend_weights`).
+stored SIRENs around the light (`lights.blend_weights`: by default the corners of its triangle among the training
+lights, barycentric weights).
 
     answer(w) = share * model(w) + (1 - share) * blend(w)
 

@@ -51,14 +51,16 @@ def render_targets(volume_path: Path, lights_path: Path, out: Path, *, cfg: Fine
 
 def render_image(scene: RenderScene, out: Path, *, mode: str, camera: Camera, light=None,
                  weights_path: Path | None = None, light_index: int = 0, diffusion: Path | None = None,
-                 blend: Path | None = None, blend_k: int, model_share: float | None = None, scalar: str | None = None,
+                 blend: Path | None = None, blend_k: int, weighting: str = "triangle",
+                 model_share: float | None = None, scalar: str | None = None,
                  phong: bool = False, step: float, skip: bool = True, outside_region: bool = False) -> None:
-    """One image (a PNG, `out` named .png) in a shading mode; the shadow INR of mode `inr` is row `light_index` of
-    a store, or made for `light` by the diffusion checkpoint `diffusion` or (`cache: blend`) as the weight blend of
-    the nearest SIRENs of the store `blend`, or by both mixed, `model_share` of the model's (diffusion/mix.py). A
-    light outside the cache's region (`lights.LightRegion`) is refused in one line naming the region and the
-    light's angle to it, unless `outside_region` asks for the cache's answer anyway (then the line is a warning);
-    one inside it but farther from the training lights than any unseen test light was gets a one-line note."""
+    """One image (a PNG, `out` named .png) in a shading mode; the shadow INR of mode `inr` is row `light_index` of a
+    store, or made for `light` by the diffusion checkpoint `diffusion` or (`cache: blend`) as the weight blend of the
+    SIRENs of the store `blend` (`weighting`, `blend_k`: the run's, in generated.zarr's config), or by both mixed,
+    `model_share` of the model's (diffusion/mix.py). A light outside the cache's region (`lights.LightRegion`) is
+    refused in one line naming the region and the light's angle to it, unless `outside_region` asks for the cache's
+    answer anyway (then the line is a warning); one inside it but farther from the training lights than any unseen test
+    light was gets a one-line note."""
     if Path(out).suffix.lower() != ".png":  # before any work: a PNG under another name opens wrongly, or not at all
         raise ValueError(f"--out {out}: the image is written as a PNG; give a name ending in .png")
     siren = None
@@ -77,7 +79,7 @@ def render_image(scene: RenderScene, out: Path, *, mode: str, camera: Camera, li
         from diffshadow.diffusion.sample import ShadowSampler
 
         model = ShadowSampler(artifacts.load_checkpoint(diffusion), scene.device) if diffusion else None
-        stored = BlendSampler(open_store(blend), blend_k) if blend else None
+        stored = BlendSampler(open_store(blend), blend_k, weighting) if blend else None
         sampler = MixedSampler(model, stored, model_share) if mixed else model or stored
         check = sampler.region.where(light)
         if not check.inside and not outside_region:

@@ -26,7 +26,7 @@ from diffshadow.diffusion.sample import checkpoint_region, generate, load_sample
 from diffshadow.diffusion.train import train_diffusion as train
 from diffshadow.evaluate import voxel_metrics, wide_comparison
 from diffshadow.io import atomic_torch_save, atomic_write_text, finite_json
-from diffshadow.lights import blend_weights, read_lights, training_pool, validation_lights
+from diffshadow.lights import blend_label, blend_weights, describe_blend, read_lights, training_pool, validation_lights
 from diffshadow.runtime import distributed, set_threads
 from diffshadow.sampling import VALIDATION_POINTS_SEED, Stream
 from diffshadow.store import BlendSampler, WeightStore, blend_rows, open_store, write_store
@@ -144,12 +144,12 @@ def eval_truth(volume_path: Path, lights_path: Path, out: Path, *, eval_points: 
 
 def sample_shadows(checkpoint: Path, truth_path: Path, lights_path: Path, out: Path, *, device: torch.device,
                    mix: dict | None = None, weights_path: Path | None = None, volume_path: Path | None = None,
-                   blend_k: int = 4) -> None:
-    """SIRENs generated for every training and unseen light, with their voxel PSNR. With `mix` (the config's
-    section) and a model share under 1, each is mixed with the weight blend of the `blend_k` nearest stored SIRENs
-    of `weights_path` (a training light's blend is its own stored SIREN); share `auto` is chosen on validation
-    lights with exact shadows from `volume_path` (diffusion/mix.py). The share and its curve are recorded in the
-    store's config, where the viewer reads them."""
+                   blend_k: int = 4, weighting: str = "triangle") -> None:
+    """SIRENs generated for every training and unseen light, with their voxel PSNR. With `mix` (the config's section)
+    and a model share under 1, each is mixed with the weight blend of the stored SIRENs of `weights_path`
+    (`lights.blend_weights` by `weighting`, `blend_k`; a training light's blend is its own stored SIREN); share `auto`
+    is chosen on validation lights with exact shadows from `volume_path` (diffusion/mix.py). The share and its curve are
+    recorded in the store's config, where the viewer reads them."""
     from diffshadow.diffusion.mix import mix_weights
 
     state = artifacts.load_checkpoint(checkpoint)
@@ -177,10 +177,10 @@ def sample_shadows(checkpoint: Path, truth_path: Path, lights_path: Path, out: P
     config = {"diffusion": cfg, "checkpoint": str(checkpoint)}
     if stage1 is not None:
         blend = np.concatenate([np.asarray(stage1.weights, dtype=np.float32),
-                                blend_rows(stage1.weights, *blend_weights(train, unseen, blend_k))])
-        record = {"blend_k": blend_k, "weights": str(weights_path)}
+                                blend_rows(stage1.weights, *blend_weights(train, unseen, blend_k, weighting))])
+        record = {"blend_weights": weighting, "blend_k": blend_k, "weights": str(weights_path)}
         if share == "auto":
-            record.update(_choose_share(sample, stage1, volume_path, light_sets, mix, blend_k))
+            record.update(_choose_share(sample, stage1, volume_path, light_sets, mix, blend_k, weighting))
             record["chosen"] = "validation lights"
         else:
             record.update(model_share=float(share), chosen="config")
@@ -191,7 +191,7 @@ def sample_shadows(checkpoint: Path, truth_path: Path, lights_path: Path, out: P
         weights = mix_weights(weights, blend, record["model_share"])
         config["mix"] = record
         print(f"the cache's answer: {record['model_share']:g} x the model's SIREN + {1 - record['model_share']:g} x "
-              f"the weight blend of the {blend_k} nearest stored SIRENs ({record['chosen']})", flush=True)
+              f"{describe_blend(weighting, blend_k)} ({record['chosen']})", flush=True)
     scores = psnr_per_light(truth.sirens(weights, layout, siren), truth_rows)
     store = WeightStore(weights=weights, lights=all_lights, psnr=scores["box"],
                         psnr_visible=scores.get("visible", scores["box"]), layout=layout, siren=siren,
@@ -219,7 +219,8 @@ def _mix_inputs(share: str, weights_path: Path | None, volume_path: Path | None,
     return stage1
 
 
-def _choose_share(sample, stage1: WeightStore, volume_path: Path, light_sets: dict, mix: dict, blend_k: int) -> dict:
+def _choose_share(sample, stage1: WeightStore, volume_path: Path, light_sets: dict, mix: dict, blend_k: int,
+                  weighting: str) -> dict:
     """`mix.model_share: auto`: the share chosen on `mix.val_lights` validation lights (exact shadows at
     `mix.val_points` box points each, marched on the CPU as eval_truth's are), with its curve."""
     from diffshadow.diffusion.mix import choose_share
@@ -232,7 +233,8 @@ def _choose_share(sample, stage1: WeightStore, volume_path: Path, light_sets: di
     val = EvalTruth.compute(volume, tf, lights, int(mix["val_points"]), int(mix["seed"]) + VALIDATION_POINTS_SEED,
                             sets=("box",))
     truth = val.of(lights)
-    share, curve = choose_share(sample(lights), blend_rows(stage1.weights, *blend_weights(train, lights, blend_k)),
+    blend = blend_rows(stage1.weights, *blend_weights(train, lights, blend_k, weighting))
+    share, curve = choose_share(sample(lights), blend,
                                 lambda w: psnr_per_light(val.sirens(w, stage1.layout, stage1.siren), truth)["box"])
     print("model share on the validation lights (mean / median voxel PSNR, dB): "
           + ", ".join(f"{r['share']:g}: {r['psnr_mean']:.2f} / {r['psnr_median']:.2f}" for r in curve)
@@ -252,8 +254,8 @@ def _check_region(region, unseen: np.ndarray, source: Path) -> None:
 
 
 def choose_cache(weights_path: Path, truth_path: Path, volume_path: Path, lights_path: Path, out: Path, *,
-                 blend_k: int, target_psnr: float, candidates: list[str], val_lights: int, val_points: int,
-                 seed: int) -> None:
+                 blend_k: int, weighting: str, target_psnr: float, candidates: list[str], val_lights: int,
+                 val_points: int, seed: int) -> None:
     """`cache: auto`, right after stage 1: `cache_choice.json`, the cache that serves this scene (the smallest
     stored-SIREN cache whose blend reaches `target_psnr` on `val_lights` validation lights, exact shadows at
     `val_points` points each, else diffusion) with every candidate's bytes and figures; the workflow runs stage 2
@@ -267,7 +269,7 @@ def choose_cache(weights_path: Path, truth_path: Path, volume_path: Path, lights
     lights = validation_lights(train, light_sets["center"], val_lights, seed=seed)
     val = EvalTruth.compute(volume, tf, lights, val_points, seed + VALIDATION_POINTS_SEED)
     result = choose(stage1, artifacts.read_eval_truth(truth_path), val, train, blend_k=blend_k,
-                    target_psnr=target_psnr, candidates=candidates)
+                    weighting=weighting, target_psnr=target_psnr, candidates=candidates)
     result["validation"] = {"lights": val_lights, "points": val_points, "seed": seed}
     atomic_write_text(out, json.dumps(finite_json(result), indent=1) + "\n")
     print(f"wrote {out}: cache {result['choice']}")
@@ -293,26 +295,29 @@ def encode_cache(weights_path: Path, truth_path: Path, lights_path: Path, out: P
           f"(fp32 {stage1.weights.nbytes / 2**20:.3f} MiB), voxel PSNR median {np.median(store.psnr):.2f} dB")
 
 
-def blend_shadows(weights_path: Path, truth_path: Path, lights_path: Path, out: Path, *, blend_k: int) -> None:
+def blend_shadows(weights_path: Path, truth_path: Path, lights_path: Path, out: Path, *, blend_k: int,
+                  weighting: str) -> None:
     """`cache: blend`: the SIRENs of every training and unseen light without a model: a training light's own
-    stored SIREN, an unseen light's weight blend of its `blend_k` nearest (inverse-angle weights, the baseline
-    evaluate_voxels scores), with their voxel PSNR; the same store as `sample_shadows` writes."""
+    stored SIREN, an unseen light's weight blend of the stored ones (`lights.blend_weights` by `weighting`,
+    `blend_k`: the baseline evaluate_voxels scores), with their voxel PSNR; the same store as `sample_shadows`
+    writes."""
     stage1 = open_store(weights_path)
     light_sets = read_lights(lights_path)
     train, unseen = light_sets["train"], light_sets["unseen"]
-    blend = BlendSampler(stage1, blend_k)  # what the viewer and `render --blend` make of a new direction
-    weights = np.concatenate([np.asarray(stage1.weights, dtype=np.float32), *(blend(u)[None] for u in unseen)])
+    blend = BlendSampler(stage1, blend_k, weighting)  # what the viewer and `render --blend` make of a new direction
+    weights = np.concatenate([np.asarray(stage1.weights, dtype=np.float32), blend.many(unseen)])
     all_lights = np.concatenate([train, unseen])
     seen = np.arange(len(all_lights)) < len(train)
     _check_region(blend.region, unseen, weights_path)
     codec = (stage1.config or {}).get("codec", "fp32")  # cache: blend reads stage 1's own fp32 store
-    print(f"blending {(~seen).sum()} unseen shadow SIRENs from the {blend_k} nearest of {len(train)} stored "
-          f"({codec})", flush=True)
+    print(f"blending {(~seen).sum()} unseen shadow SIRENs, each {describe_blend(weighting, blend_k)} "
+          f"({len(train)} stored, {codec})", flush=True)
     truth = artifacts.read_eval_truth(truth_path)
     scores = psnr_per_light(truth.sirens(weights, stage1.layout, stage1.siren), truth.of(all_lights, str(truth_path)))
     store = WeightStore(weights=weights, lights=all_lights, psnr=scores["box"],
                         psnr_visible=scores.get("visible", scores["box"]), layout=stage1.layout, siren=stage1.siren,
-                        config={"cache": "blend", "codec": codec, "blend_k": blend_k, "weights": str(weights_path),
+                        config={"cache": "blend", "codec": codec, "blend_weights": weighting, "blend_k": blend_k,
+                                "weights": str(weights_path),
                                 **({"encoded_bytes": stage1.config["encoded_bytes"]} if codec != "fp32" else {})},
                         seen=seen,
                         region=blend.region.to_dict())
@@ -322,7 +327,8 @@ def blend_shadows(weights_path: Path, truth_path: Path, lights_path: Path, out: 
 
 
 def evaluate_voxels(checkpoint: Path | None, weights_path: Path, generated_path: Path, truth_path: Path,
-                    volume_path: Path, lights_path: Path, out: Path, *, blend_k: int, ddpm_lights: int,
+                    volume_path: Path, lights_path: Path, out: Path, *, blend_k: int, weighting: str,
+                    ddpm_lights: int,
                     geometry_checkpoint: Path | None = None, device: torch.device | str = "cpu",
                     wide_lights: int = 0, wide_points: int = 1024, wide_seed: int = 0) -> None:
     """`voxel_metrics.json`: generated against stage 1 and the baselines, storage, time per INR (the samplers
@@ -334,7 +340,7 @@ def evaluate_voxels(checkpoint: Path | None, weights_path: Path, generated_path:
     state = artifacts.load_checkpoint(checkpoint) if checkpoint else None
     stage1, light_sets = open_store(weights_path), read_lights(lights_path)  # read (and verified) once for both
     result = voxel_metrics(state, stage1, open_store(generated_path), artifacts.read_eval_truth(truth_path),
-                           light_sets, blend_k=blend_k,
+                           light_sets, blend_k=blend_k, weighting=weighting,
                            grid_voxels=prepared_voxels(volume_path), ddpm_lights=ddpm_lights,
                            geometry_state=geometry, device=device,
                            curve_checkpoint=out.with_name(out.name + ".ckpt"))
@@ -344,7 +350,7 @@ def evaluate_voxels(checkpoint: Path | None, weights_path: Path, generated_path:
         share = float((result.get("mix") or {}).get("model_share", 1.0))
         result["wide"] = wide_comparison(state, stage1, light_sets, volume, tf,
                                          share=share, lights=wide_lights, points=wide_points, seed=wide_seed,
-                                         blend_k=blend_k, device=device)
+                                         blend_k=blend_k, weighting=weighting, device=device)
         w = result["wide"]
         lo, hi = w["weight_blend_gap_interval95_db"]
         print(f"[evaluate voxels] {wide_lights} further test lights: the cache's answer "
@@ -358,7 +364,7 @@ def evaluate_voxels(checkpoint: Path | None, weights_path: Path, generated_path:
 
 
 def caches(weights_path: Path, generated_path: Path, truth_path: Path, lights_path: Path, volume_path: Path,
-           checkpoint: Path | None, out: Path, figure: Path, *, blend_k: int) -> None:
+           checkpoint: Path | None, out: Path, figure: Path, *, blend_k: int, weighting: str) -> None:
     """`caches.json` and its figure: every cache of this run as bytes against seen and unseen voxel PSNR
     (`diffshadow.caches`); the model's rows where the run trained one (`checkpoint`)."""
     from diffshadow.caches import cache_table
@@ -366,7 +372,7 @@ def caches(weights_path: Path, generated_path: Path, truth_path: Path, lights_pa
 
     volume, tf = load_prepared(volume_path)
     table = cache_table(open_store(weights_path), artifacts.read_eval_truth(truth_path), read_lights(lights_path),
-                        blend_k=blend_k, volume=volume, tf=tf,
+                        blend_k=blend_k, weighting=weighting, volume=volume, tf=tf,
                         model_state=artifacts.load_checkpoint(checkpoint) if checkpoint else None,
                         generated=open_store(generated_path))
     atomic_write_text(out, json.dumps(finite_json(table), indent=1) + "\n")
@@ -408,7 +414,7 @@ def quality_warnings(result: dict, *, max_gap_db: float = 1.5) -> list[str]:
                   "region) or " if angle is None or angle > SPARSE_LIGHTS_DEG else "")
         bigger = f"set a wider diffusion.preset ({', '.join(wider)})" if wider else "raise diffusion.max_epochs"
         out.append(f"WARNING: generated SIRENs on unseen lights ({unseen['generated_psnr_median']:.2f} dB) are under "
-                   f"the blend of the {unseen['blend_k']} nearest true shadows ({unseen['blend_psnr_median']:.2f} dB)"
+                   f"the {blend_label(unseen)} true shadows ({unseen['blend_psnr_median']:.2f} dB)"
                    f"{where}: {closer}{bigger} (docs/performance.md)")
     if unseen and unseen.get("finetune_change_median_db", 0.0) < -0.1:
         out.append(f"WARNING: rendering-loss fine-tuning lowered unseen lights by "

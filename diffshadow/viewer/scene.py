@@ -17,7 +17,7 @@ import torch
 
 from diffshadow.artifacts import load_checkpoint, load_render_scene, load_scene_file
 from diffshadow.diffusion.mix import MixedSampler
-from diffshadow.lights import RegionCheck, as_direction, nearest, read_lights
+from diffshadow.lights import OLD_WEIGHTING, RegionCheck, as_direction, nearest, read_lights
 from diffshadow.render import Camera, RenderScene
 from diffshadow.report import label_image as label
 from diffshadow.store import BlendSampler, WeightStore, open_store
@@ -111,7 +111,8 @@ class ViewerScene:
         source = cache_source(results, generated)
         if generated.config.get("cache") == "blend":  # no model: new directions blend the stored SIRENs
             return cls(scene, name=results.name, lights=lights, generated=generated,
-                       sampler=BlendSampler(open_store(source), int(generated.config["blend_k"])), results=results,
+                       sampler=BlendSampler(open_store(source), int(generated.config["blend_k"]),
+                                            generated.config.get("blend_weights", OLD_WEIGHTING)), results=results,
                        checkpoint=source)
         if not source.exists():
             raise ViewerError(f"{source}: missing, the diffusion checkpoint that generated.zarr was sampled from "
@@ -125,7 +126,8 @@ class ViewerScene:
             if not stored.exists():
                 raise ViewerError(f"{stored}: missing, the stored SIRENs that generated.zarr's SIRENs were mixed "
                                   f"with (made by the rule `collect_weights`)")
-            sampler = MixedSampler(sampler, BlendSampler(open_store(stored), int(mix["blend_k"])),
+            blend = BlendSampler(open_store(stored), int(mix["blend_k"]), mix.get("blend_weights", OLD_WEIGHTING))
+            sampler = MixedSampler(sampler, blend,
                                    float(mix["model_share"]))
         return cls(scene, name=results.name, lights=lights, generated=generated, sampler=sampler, results=results,
                    checkpoint=source, stored=stored)
@@ -272,10 +274,10 @@ class ViewerScene:
                 if row is not None:
                     args += ["--weights", str(self.results / "generated.zarr"), "--light-index", str(row)]
                 elif isinstance(self.sampler, BlendSampler):
-                    args += ["--blend", str(self.checkpoint), "--blend-k", str(self.sampler.k)]
+                    args += ["--blend", str(self.checkpoint), *_blend_flags(self.sampler)]
                 elif isinstance(self.sampler, MixedSampler):
-                    args += ["--diffusion", str(self.checkpoint), "--blend", str(self.stored), "--blend-k",
-                             str(self.sampler.blend.k), "--model-share", f"{self.sampler.share:.17g}"]
+                    args += ["--diffusion", str(self.checkpoint), "--blend", str(self.stored),
+                             *_blend_flags(self.sampler.blend), "--model-share", f"{self.sampler.share:.17g}"]
                 else:
                     args += ["--diffusion", str(self.checkpoint)]
         return shlex.join(args)
@@ -378,3 +380,8 @@ def region_chart(region, train: np.ndarray, unseen: np.ndarray, light, *, size: 
     draw.text((4, 2), f"cache region: {region.radius_deg:.0f} deg cap", fill=(40, 110, 40))
     draw.text((4, size - 12), f"edge of chart: {reach:.0f} deg from its centre", fill=(110, 110, 110))
     return np.asarray(img)
+
+
+def _blend_flags(blend: BlendSampler) -> list[str]:
+    """`render`'s flags for the weight blend a viewer's sampler makes."""
+    return ["--blend-weights", blend.weighting, "--blend-k", str(blend.k)]

@@ -90,15 +90,21 @@ def shadow_source(wildcards):
     return {"weights": f"results/{wildcards.scene}/cache.zarr"}
 
 
+def blend_args(scene):
+    """How a light's stored SIRENs are blended (evaluate.blend_weights, evaluate.blend_k), as command flags."""
+    ev = scene_config(scene)["evaluate"]
+    return f"--blend-weights {ev['blend_weights']} --blend-k {ev['blend_k']}"
+
+
 def sample_command(scene, input):
     """sample-shadows with the model's share of each SIREN (mix) and what the mix reads; at share 1 (the model
     alone) it reads no stored SIRENs."""
     cfg = scene_config(scene)
-    mix, blend_k = cfg["mix"], cfg["evaluate"]["blend_k"]
+    mix = cfg["mix"]
     if "stored" not in input.keys():
         return f"sample-shadows --checkpoint {input.checkpoint}"
     return (f"sample-shadows --checkpoint {input.checkpoint} --model-share {mix['model_share']} --weights "
-            f"{input.stored} --volume {input.volume} --blend-k {blend_k} --val-lights {mix['val_lights']} "
+            f"{input.stored} --volume {input.volume} {blend_args(scene)} --val-lights {mix['val_lights']} "
             f"--val-points {mix['val_points']} --seed {mix['seed']}")
 
 
@@ -108,9 +114,9 @@ def model_alone(scene):
 
 
 def mix_settings(scene):
-    """sample_shadows' settings: the stored SIRENs' blend k and, unless the model alone answers, the mix."""
+    """sample_shadows' settings: the stored SIRENs' blend and, unless the model alone answers, the mix."""
     cfg = scene_config(scene)
-    return json.dumps({"blend_k": cfg["evaluate"]["blend_k"], **({} if model_alone(scene) else {"mix": cfg["mix"]})},
+    return json.dumps({"blend_k": cfg["evaluate"]["blend_k"], "blend_weights": cfg["evaluate"]["blend_weights"], **({} if model_alone(scene) else {"mix": cfg["mix"]})},
                       sort_keys=True)
 
 

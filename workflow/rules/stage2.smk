@@ -80,7 +80,7 @@ checkpoint choose_cache:
     params:
         target=lambda wc: scene_config(wc.scene)["cache_auto"]["target_psnr"],
         candidates=lambda wc: " ".join(scene_config(wc.scene)["cache_auto"]["candidates"]),
-        blend_k=lambda wc: scene_config(wc.scene)["evaluate"]["blend_k"],
+        blend=lambda wc: blend_args(wc.scene),
         val=lambda wc: "--val-lights {val_lights} --val-points {val_points} --seed {seed}".format(
             **scene_config(wc.scene)["cache_auto"]),
     threads: 1
@@ -92,7 +92,7 @@ checkpoint choose_cache:
         "../envs/diffshadow.yaml"
     shell:
         "diffshadow --phases results/{wildcards.scene}/benchmarks/choose_cache.phases.json choose-cache --weights {input.weights}"
-        " --truth {input.truth} --volume {input.volume} --lights {input.lights} --blend-k {params.blend_k}"
+        " --truth {input.truth} --volume {input.volume} --lights {input.lights} {params.blend}"
         " --target-psnr {params.target} --candidates {params.candidates} {params.val} --threads {threads}"
         " --out {output} 2>&1 | tee {log}"
 
@@ -130,8 +130,8 @@ rule sample_shadows:
     output:
         directory("results/{scene}/generated.zarr"),
     params:
-        command=lambda wc, input: (f"blend-shadows --weights {input.weights} --blend-k "
-                                   f"{scene_config(wc.scene)['evaluate']['blend_k']}" if "weights" in input.keys()
+        command=lambda wc, input: (f"blend-shadows --weights {input.weights} {blend_args(wc.scene)}"
+                                   if "weights" in input.keys()
                                    else sample_command(wc.scene, input)
                                    if "checkpoint" in input.keys() else ""),  # "": cache: auto, not yet chosen
         # what the command's flags carry, as a param of the wildcards alone: Snakemake reruns the job when it
@@ -163,7 +163,7 @@ rule evaluate_voxels:
     params:
         geometry=lambda wc, input: f"--geometry-checkpoint {input.geometry}" if "geometry" in input.keys() else "",
         checkpoint=lambda wc, input: f"--checkpoint {input.checkpoint}" if "checkpoint" in input.keys() else "",
-        blend_k=lambda wc: scene_config(wc.scene)["evaluate"]["blend_k"],
+        blend=lambda wc: blend_args(wc.scene),
         ddpm_lights=lambda wc: scene_config(wc.scene)["evaluate"]["ddpm_lights"],
         wide=lambda wc: "--wide-lights {wide_lights} --wide-points {wide_points} --seed {seed}".format(
             **scene_config(wc.scene)["evaluate"]),
@@ -181,7 +181,7 @@ rule evaluate_voxels:
     shell:
         "diffshadow --phases results/{wildcards.scene}/benchmarks/evaluate_voxels.phases.json evaluate-voxels {params.checkpoint} --weights {input.weights}"
         " --generated {input.generated} --truth {input.truth} --volume {input.volume} --lights {input.lights}"
-        " {params.geometry} --blend-k {params.blend_k} --ddpm-lights {params.ddpm_lights} {params.wide} {params.device}"
+        " {params.geometry} {params.blend} --ddpm-lights {params.ddpm_lights} {params.wide} {params.device}"
         " --threads {threads}"
         " --out {output} 2>&1 | tee {log}"
 
@@ -201,7 +201,7 @@ rule caches:
                       subcategory="storage"),
     params:
         checkpoint=lambda wc, input: f"--checkpoint {input.checkpoint}" if "checkpoint" in input.keys() else "",
-        blend_k=lambda wc: scene_config(wc.scene)["evaluate"]["blend_k"],
+        blend=lambda wc: blend_args(wc.scene),
         run=lambda wc: caption_values(wc.scene),  # for the caption
     threads: 1
     log:
@@ -213,7 +213,7 @@ rule caches:
     shell:
         "diffshadow --phases results/{wildcards.scene}/benchmarks/caches.phases.json caches --weights {input.weights}"
         " --generated {input.generated} --truth {input.truth} --volume {input.volume} --lights {input.lights}"
-        " {params.checkpoint} --blend-k {params.blend_k} --threads {threads} --figure {output.figure}"
+        " {params.checkpoint} {params.blend} --threads {threads} --figure {output.figure}"
         " --out {output.table} 2>&1 | tee {log}"
 
 
