@@ -295,10 +295,9 @@ def drive_viewer(results, workdir, *, screenshot=None) -> dict:
             # what makes a new direction's SIREN: the diffusion checkpoint, or with cache: blend the stored SIRENs
             generated = open_store(results / "generated.zarr")
             made, source = generated.config, str(cache_source(results, generated))
-            blend = ["--blend", source, "--blend-k", str(made["blend_k"]),
-                     "--blend-weights", made.get("blend_weights", "inverse-angle")]
-            new_source = (blend if made.get("cache") == "blend"
-                          else ["--diffusion", source])
+            new_source = (["--blend", source, "--blend-k", str(made["blend_k"]),
+                           "--blend-weights", made.get("blend_weights", "inverse-angle")]
+                          if made.get("cache") == "blend" else ["--diffusion", source])
 
             renders = []  # (name, `diffshadow render` arguments, the image to compare with), rendered at the end
 
