@@ -260,3 +260,28 @@ def test_an_unknown_blend_weighting_is_named():
     with pytest.raises(LightError, match=r"^evaluate.blend_weights: expected one of triangle, inverse-angle, got "
                        r"'nearest'$"):
         blend_weights(cap_lights(8), cap_lights(8)[:1], 4, "nearest")
+
+
+def test_triangle_weights_move_continuously_with_the_light():
+    """Along a path from the cap's centre out past its rim, each training light's weight changes by at most a few
+    times the step over the lights' spacing: no jump where the light crosses an edge or the rim (the k nearest
+    with inverse-angle weights jump where the k-th nearest changes)."""
+    from diffshadow.lights import LightRegion, Triangulation, blend_weights
+
+    train = cap_lights(60)
+    region = LightRegion.of(train)
+    c = np.asarray(region.center)
+    side = np.cross(c, [1.0, 0.0, 0.0])
+    side /= np.linalg.norm(side)
+    angles = np.radians(np.linspace(0, region.radius_deg + 2 * region.spacing_deg, 4000))
+    path = np.cos(angles)[:, None] * c + np.sin(angles)[:, None] * side
+    step = np.radians(region.radius_deg + 2 * region.spacing_deg) / 3999 / np.radians(region.spacing_deg)
+
+    def dense(idx, w):
+        out = np.zeros((len(path), len(train)))
+        np.add.at(out, (np.repeat(np.arange(len(path)), idx.shape[1]), idx.ravel()), w.ravel())
+        return out
+
+    jump = np.abs(np.diff(dense(*Triangulation(train).weights(path)), axis=0)).max()
+    assert jump < 20 * step
+    assert np.abs(np.diff(dense(*blend_weights(train, path, 4, "inverse-angle")), axis=0)).max() > 20 * step
