@@ -13,8 +13,8 @@ import numpy as np
 # (the model alone only where the cache mixed it with the stored SIRENs' blend: diffusion/mix.py)
 UNSEEN = (("generated_psnr_median", "generated (the cache's answer)"),
           ("model_alone_psnr_median", "the model alone (the paper)"),
-          ("weight_blend_psnr_median", "weight blend, 4 nearest"),
-          ("siren_blend_psnr_median", "SIREN blend, 4 nearest"), ("nearest_psnr_median", "nearest stored SIREN"))
+          ("weight_blend_psnr_median", "weight blend"),
+          ("siren_blend_psnr_median", "SIREN values' blend"), ("nearest_psnr_median", "nearest stored SIREN"))
 
 
 class SweepError(ValueError):
