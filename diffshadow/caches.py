@@ -19,7 +19,7 @@ import torch
 from diffshadow.codecs import BasisCodec, codec_named
 from diffshadow.evaluate import blend_baseline
 from diffshadow.grid import trilinear
-from diffshadow.lights import OLD_WEIGHTING, Triangulation, blend_weights
+from diffshadow.lights import OLD_WEIGHTING, Triangulation, blend_weights, describe_blend
 from diffshadow.metrics import psnr
 from diffshadow.shadow import shadow_grid
 from diffshadow.store import blend_rows
@@ -75,8 +75,7 @@ def choose_cache(stage1, truth: EvalTruth, val: EvalTruth, train: np.ndarray, *,
     where = f"on the training lights and on {len(val.lights)} validation lights"
     if passing:
         best = passing[0]
-        blend = "the triangle around it" if weighting == "triangle" else f"the {k} nearest"
-        why = (f"{best['cache']}: the smallest stored-SIREN cache (its new lights the blend of {blend}) "
+        why = (f"{best['cache']}: the smallest stored-SIREN cache (a new light: {describe_blend(weighting, k)}) "
                f"that reaches {target_psnr:g} dB {where} ({best['seen_psnr']:.2f} and {best['val_psnr']:.2f} dB, "
                f"{best['bytes'] / 2**20:.3f} MiB); no diffusion model trained")
         choice = best["cache"]

@@ -189,8 +189,8 @@ class Triangulation:
     A light inside a triangle gets its three corners, weighted by its barycentric coordinates in the flat
     triangle (the direction is their weighted sum up to length): the weights reproduce the light's direction
     exactly, move continuously across edges, and give a training light its own SIREN alone. The k nearest with
-    inverse-angle weights reproduce neither: a light between two rows of training lights takes its k nearest
-    from one row (docs/performance.md, "The weight blend: the triangle around the light").
+    inverse-angle weights do neither, and jump where the k-th nearest light changes (docs/performance.md, "The
+    weight blend: the triangle around the light").
 
     The triangles are the faces of the lights' convex hull (every light lies on the sphere, so each face's
     circumscribed cap holds no other light). Where the lights do not surround the origin (a cap of the sphere),

@@ -11,7 +11,7 @@ from pathlib import Path
 import numpy as np
 
 from diffshadow.io import atomic_write_text
-from diffshadow.lights import blend_label
+from diffshadow.lights import OLD_WEIGHTING, blend_label, describe_blend
 from diffshadow.report import ELAPSED_ROW, PHASE_COLUMNS, label_image
 
 MIB = 2**20
@@ -389,10 +389,8 @@ def mix_words(mix: dict) -> str:
     """The cache's answer for a light in words (voxel_metrics.json's `mix`)."""
     share = float(mix["model_share"])
     how = "chosen on validation lights" if mix.get("chosen") == "validation lights" else "set in the config"
-    blend = ("the stored SIRENs at the corners of the light's triangle" if mix.get("blend_weights") == "triangle"
-             else f"the {mix['blend_k']} nearest stored SIRENs")
-    return (f"{share:g} x the diffusion model's SIREN + {1 - share:g} x the weight blend of {blend} "
-            f"(mix.model_share {how}; both are kept)")
+    blend = describe_blend(mix.get("blend_weights", OLD_WEIGHTING), mix["blend_k"])
+    return f"{share:g} x the diffusion model's SIREN + {1 - share:g} x {blend} (mix.model_share {how}; both are kept)"
 
 
 def cache_verdict(voxel: dict) -> str:
