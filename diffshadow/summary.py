@@ -393,6 +393,9 @@ def mix_words(mix: dict) -> str:
     return f"{share:g} x the diffusion model's SIREN + {1 - share:g} x {blend} (mix.model_share {how}; both are kept)"
 
 
+AGAINST_COUNT = "Against the light count: docs/performance.md, \"Scaling with the light count\""
+
+
 def cache_verdict(voxel: dict) -> str:
     """What a run says about the method (voxel_metrics.json): is the model smaller than the stored SIRENs it
     regenerates, and better than their weight blend (the same render cost, no model) on unseen lights? Empty
@@ -406,6 +409,8 @@ def cache_verdict(voxel: dict) -> str:
             else f"the model is {sb['sirens'] / sb['model']:.1f}x smaller than the {n} stored SIRENs")
     if voxel.get("mix"):  # the cache keeps both, so its bytes are their sum
         size += f"; mixing the two, the cache keeps both ({(sb['model'] + sb['sirens']) / MIB:.2f} MiB)"
+        if float(voxel["mix"]["model_share"]) == 0:  # the mix is the blend: say what the model adds instead
+            return f"{size}; {_share_zero(unseen, voxel.get('wide'))}. {AGAINST_COUNT}"
     gap = unseen["generated_psnr_median"] - unseen["weight_blend_psnr_median"]
     lo, hi = unseen.get("weight_blend_gap_interval95_db") or (None, None)  # absent from an older voxel_metrics.json
     spread = ("" if lo is None else f" (better on {unseen['better_than_weight_blend']} of {unseen['count']} lights; "
@@ -426,7 +431,19 @@ def cache_verdict(voxel: dict) -> str:
     else:
         better = (f"their weight blend beats {who} on unseen lights by {-gap:.2f} dB{spread}: `cache: blend` would "
                   f"skip stage 2")
-    return f"{size}; {better}. Against the light count: docs/performance.md, \"Scaling with the light count\""
+    return f"{size}; {better}. {AGAINST_COUNT}"
+
+
+def _share_zero(unseen: dict, wide: dict | None) -> str:
+    """The verdict where the validation lights chose model share 0: the answer is the weight blend alone."""
+    where = wide or unseen
+    gap = where["generated_psnr_median"] - where["model_alone_psnr_median"]
+    lo, hi = where.get("model_alone_gap_interval95_db") or (None, None)
+    on = f"on {wide['lights']:,} further test lights" if wide else f"on the {unseen['count']} test lights"
+    spread = "" if lo is None else f", 95 % interval {lo:+.2f} to {hi:+.2f} dB"
+    return (f"the validation lights chose model share 0: the cache's answer is their weight blend alone, "
+            f"{gap:+.2f} dB against the model alone {on}{spread}; the model adds nothing, and `cache: blend` (or a "
+            f"codec of it, `cache: fp16`) would skip stage 2 and its bytes")
 
 
 STYLE = """body{font-family:sans-serif;margin:1.5em;color:#222}table{border-collapse:collapse;margin:.4em 0}

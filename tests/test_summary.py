@@ -123,6 +123,23 @@ def test_further_test_lights_decide_the_verdict_and_the_test_lights_gap_is_said_
     assert "the mix ties with their weight blend on unseen lights: +0.03 dB (on 1,024" in cache_verdict(mixed)
 
 
+def test_at_model_share_0_the_verdict_says_the_model_adds_nothing():
+    """1,024 training lights: the validation lights chose share 0, so the mix is the weight blend (a zero gap to it);
+    the verdict says so and what the blend gains over the model alone, not a tie."""
+    mixed = voxel(model=250_000, generated=41.69, weight_blend=41.69)
+    mixed["mix"] = {"model_share": 0.0, "chosen": "validation lights", "blend_k": 4, "blend_weights": "triangle"}
+    mixed["unseen"].update(model_alone_psnr_median=38.45, weight_blend_gap_interval95_db=[0.0, 0.0], count=32)
+    assert ("the cache's answer is their weight blend alone, +3.24 dB against the model alone on the 32 test lights; "
+            "the model adds nothing, and `cache: blend` (or a codec of it, `cache: fp16`) would skip stage 2 and its "
+            "bytes. Against the light count") in cache_verdict(mixed)
+    mixed["wide"] = {"lights": 256, "generated_psnr_median": 41.42, "weight_blend_psnr_median": 41.42,
+                     "model_alone_psnr_median": 38.04, "model_alone_gap_interval95_db": [3.18, 3.59],
+                     "weight_blend_gap_interval95_db": [0.0, 0.0], "better_than_weight_blend": 0}
+    assert "+3.38 dB against the model alone on 256 further test lights, 95 % interval +3.18 to +3.59 dB" in \
+        cache_verdict(mixed)
+    assert "ties" not in cache_verdict(mixed)
+
+
 def test_a_mixed_cache_counts_both_its_parts_and_says_how_it_answers(tmp_path):
     """With sample_shadows' mix (voxel_metrics' `mix`), the verdict is the mix's and counts the model's and the
     stored SIRENs' bytes together; the headline states the answer and the model alone beside the mix."""
