@@ -19,7 +19,7 @@ import torch
 from diffshadow.codecs import BasisCodec, codec_named
 from diffshadow.evaluate import blend_baseline
 from diffshadow.grid import trilinear
-from diffshadow.lights import OLD_WEIGHTING, Triangulation, blend_weights, describe_blend
+from diffshadow.lights import OLD_WEIGHTING, blend_finder, blend_weights, describe_blend
 from diffshadow.metrics import psnr
 from diffshadow.shadow import shadow_grid
 from diffshadow.store import blend_rows
@@ -96,10 +96,8 @@ def cache_table(stage1, truth: EvalTruth, light_sets: dict, *, blend_k: int, wei
     train, unseen = light_sets["train"], light_sets["unseen"]
     layout, siren = stage1.layout, stage1.siren
     weights = np.asarray(stage1.weights, dtype=np.float32)
-    idx, mix = blend_weights(train, unseen, blend_k, weighting) if len(unseen) else (None, None)
-    # a new light's answer: the triangulation is made once, as the viewer's BlendSampler makes it
-    find = Triangulation(train).weights if weighting == "triangle" else (
-        lambda w: blend_weights(train, w, blend_k, weighting))
+    find = blend_finder(train, blend_k, weighting)  # made once, as the viewer's BlendSampler makes it
+    idx, mix = find(unseen) if len(unseen) else (None, None)
 
     def scored(seen_weights: np.ndarray, unseen_weights: np.ndarray | None) -> dict:
         """Median voxel PSNR at the box points, the set voxel_metrics.json's medians report."""

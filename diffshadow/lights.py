@@ -160,12 +160,22 @@ def blend_weights(train: np.ndarray, query: np.ndarray, k: int, weighting: str) 
     """The training directions a weight blend of each query takes (Q, m) and their weights (Q, m) summing to 1.
     `weighting` "triangle": the three corners of the training lights' spherical Delaunay triangle around the
     query, barycentric weights (`Triangulation`; `k` unused); "inverse-angle": the k nearest."""
+    return blend_finder(train, k, weighting)(query)
+
+
+def blend_finder(train: np.ndarray, k: int, weighting: str):
+    """`blend_weights` for these training lights as a function of the queries, its triangulation made once (a
+    viewer or a timing loop asks for one light at a time)."""
     if weighting == "triangle":
-        return Triangulation(train).weights(query)
+        return Triangulation(train).weights
     if weighting != "inverse-angle":
         raise LightError(f"evaluate.blend_weights: expected one of {', '.join(WEIGHTINGS)}, got {weighting!r}")
-    idx, angles = nearest(train, query, k)
-    return idx, inverse_angle_weights(angles)
+
+    def find(query: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        idx, angles = nearest(train, query, k)
+        return idx, inverse_angle_weights(angles)
+
+    return find
 
 
 def blend_label(record: dict) -> str:

@@ -15,7 +15,7 @@ import numpy as np
 
 from diffshadow.io import StoreError, VerifiedGroup, atomic_save, write_zarr_group
 from diffshadow.layout import SirenConfig, WeightLayout
-from diffshadow.lights import LightRegion, Triangulation, as_direction, blend_weights
+from diffshadow.lights import LightRegion, as_direction, blend_finder
 from diffshadow.phases import timed
 
 
@@ -54,10 +54,7 @@ class BlendSampler:
         self.store, self.k, self.weighting = store, k, weighting
         self.layout, self.siren = store.layout, store.siren
         self.region = store.light_region()
-        train = np.asarray(store.lights, dtype=np.float64)
-        # the triangulation once: a viewer asks for a light each frame
-        self._find = (Triangulation(train).weights if weighting == "triangle"
-                      else lambda q: blend_weights(train, q, k, weighting))
+        self._find = blend_finder(np.asarray(store.lights, dtype=np.float64), k, weighting)
 
     def many(self, lights: np.ndarray) -> np.ndarray:
         """The blended SIRENs (Q, P) float32 of `lights` (Q, 3)."""

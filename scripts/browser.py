@@ -287,7 +287,7 @@ def drive_viewer(results, workdir, *, screenshot=None) -> dict:
             out["still_size"], out["canvas_size"] = [first["width"], first["height"]], browser.canvas_size()
             before = shown(browser, first)
 
-            from diffshadow.lights import read_lights
+            from diffshadow.lights import OLD_WEIGHTING, read_lights
             from diffshadow.store import open_store
             from diffshadow.viewer.scene import cache_source
 
@@ -296,7 +296,7 @@ def drive_viewer(results, workdir, *, screenshot=None) -> dict:
             generated = open_store(results / "generated.zarr")
             made, source = generated.config, str(cache_source(results, generated))
             new_source = (["--blend", source, "--blend-k", str(made["blend_k"]),
-                           "--blend-weights", made.get("blend_weights", "inverse-angle")]
+                           "--blend-weights", made.get("blend_weights", OLD_WEIGHTING)]
                           if made.get("cache") == "blend" else ["--diffusion", source])
 
             renders = []  # (name, `diffshadow render` arguments, the image to compare with), rendered at the end
