@@ -6,6 +6,7 @@ JSON are (theta, phi): theta the polar angle from +z, phi the azimuth from +x to
 
 from __future__ import annotations
 
+import heapq
 import json
 from dataclasses import dataclass
 from pathlib import Path
@@ -206,7 +207,8 @@ class Triangulation:
     circumscribed cap holds no other light). Where the lights do not surround the origin (a cap of the sphere),
     the hull is taken with one more point, the antipode of their mean direction: its faces fan from the region's
     rim to that point, so every direction lies in exactly one face. A light past the rim, in a fan face, gets the
-    rim edge's two lights, weighted by where it lies along that edge."""
+    rim edge's two lights, weighted by where it lies along that edge; the rim's slivers are opened first
+    (`_open_rim_slivers`), so a light lying just inside a rim edge is a rim light itself."""
 
     def __init__(self, train: np.ndarray):
         train = np.asarray(train, dtype=np.float64).reshape(-1, 3)
@@ -223,6 +225,8 @@ class Triangulation:
         self.points = points
         if self.faces is None:  # fewer than 3 lights, or all on one great circle: no triangles
             return
+        if len(points) > self.n:
+            self.faces = _open_rim_slivers(points, self.faces, self.n)
         a, b, c = (points[self.faces[:, i]] for i in range(3))
         # q = la a + lb b + lc c by Cramer's rule: la = det(q, b, c) / det(a, b, c), and so on
         self.cross = np.stack([np.cross(b, c), np.cross(c, a), np.cross(a, b)], axis=1)  # (F, 3 corners, 3)
@@ -253,6 +257,71 @@ class Triangulation:
         total = lam.sum(axis=1, keepdims=True)
         lam = np.where(total > 0, lam / np.where(total > 0, total, 1.0), real / real.sum(axis=1, keepdims=True))
         return idx, lam
+
+
+RIM_SLIVER_DEG = 135.0  # a rim triangle whose angle opposite the rim is wider is a sliver: its corner joins the rim
+
+
+def _open_rim_slivers(points: np.ndarray, faces: np.ndarray, hole: int) -> np.ndarray:
+    """`faces` with the rim's slivers opened: a triangle (a, b, c) on the rim edge ab whose angle at c exceeds
+    RIM_SLIVER_DEG, with the fan face (a, b, hole), becomes the fan faces (a, c, hole) and (c, b, hole), so c,
+    which lies almost on the rim, becomes a rim light (an edge flip: the same quadrilateral, still tiled).
+
+    The convex hull's rim skips lights that lie just inside it (a cap's outermost lights are nearly on a circle):
+    at 32 lights 8 rim edges, 5 of them over such a light at 160-170 degrees, so a light just past the rim next
+    to one got the rim edge's two lights, each a spacing or more away, and none of the one beside it. Triangles
+    are opened widest first (ties by their corners' coordinates), the same whatever order the lights come in;
+    a new rim edge is examined in its turn (docs/performance.md, "Past the rim: the slivers opened")."""
+    cos_max = np.cos(np.radians(RIM_SLIVER_DEG))
+    faces = [tuple(f) for f in faces.tolist()]
+    alive = [True] * len(faces)
+    by_edge: dict[tuple[int, int], list[int]] = {}
+
+    def index(i: int) -> None:
+        f = faces[i]
+        for e in ((f[0], f[1]), (f[0], f[2]), (f[1], f[2])):
+            by_edge.setdefault(e, []).append(i)
+
+    def add(face: tuple[int, int, int]) -> None:
+        faces.append(tuple(sorted(face)))
+        alive.append(True)
+        index(len(faces) - 1)
+
+    for i in range(len(faces)):
+        index(i)
+    rim = {v for f in faces if f[2] == hole for v in f[:2]}
+
+    def examine(a: int, b: int, heap: list) -> None:
+        inner = [i for i in by_edge[(a, b)] if alive[i] and hole not in faces[i]]
+        if len(inner) != 1:
+            return
+        c = next(v for v in faces[inner[0]] if v not in (a, b))
+        u, w = points[a] - points[c], points[b] - points[c]
+        cos = _dot3(u, w) / (np.sqrt(_dot3(u, u)) * np.sqrt(_dot3(w, w)))
+        if cos < cos_max:  # widest first; ties by the corners' coordinates, not their indices
+            heapq.heappush(heap, (float(cos), sorted((tuple(points[a]), tuple(points[b]))), a, b))
+
+    heap: list = []
+    for a, b in sorted(f[:2] for f in faces if f[2] == hole):  # corners sorted: the hole, index n, comes last
+        examine(a, b, heap)
+    while heap:
+        _, _, a, b = heapq.heappop(heap)
+        fan = [i for i in by_edge[(a, b)] if alive[i] and hole in faces[i]]
+        inner = [i for i in by_edge[(a, b)] if alive[i] and hole not in faces[i]]
+        if len(fan) != 1 or len(inner) != 1:
+            continue
+        c = next(v for v in faces[inner[0]] if v not in (a, b))
+        normal = np.cross(points[c], points[hole])  # a and b on either side of the plane (c, hole): still tiled
+        if c in rim or np.sign(_dot3(normal, points[a])) * np.sign(_dot3(normal, points[b])) >= 0:
+            continue
+        alive[fan[0]] = alive[inner[0]] = False
+        add((a, c, hole))
+        add((c, b, hole))
+        rim.add(c)
+        for e in (tuple(sorted((a, c))), tuple(sorted((c, b)))):
+            examine(*e, heap)
+    out = np.array([f for f, keep in zip(faces, alive, strict=True) if keep], dtype=np.int64)
+    return out[np.lexsort(out.T[::-1])]
 
 
 def _dot3(x: np.ndarray, y: np.ndarray) -> np.ndarray:

@@ -254,6 +254,56 @@ def test_triangle_weights_on_the_whole_sphere_and_with_too_few_lights():
         assert np.array_equal(idx, near) and np.array_equal(w, nw)
 
 
+def _ring_with_a_light_near_the_rim(inset_deg: float) -> np.ndarray:
+    """A centre light, 8 lights 20 degrees around it, and one more on the rim chord between two of them, `inset_deg`
+    inside it (the way a cap's outermost Fibonacci lights sit nearly on a circle)."""
+    from diffshadow.lights import as_direction
+
+    c = as_direction(CAP_CENTER)
+    u = np.cross(c, [1.0, 0.0, 0.0])
+    u /= np.linalg.norm(u)
+    v = np.cross(c, u)
+
+    def at(radius_deg: float, azimuth_deg: float) -> np.ndarray:
+        r, a = np.radians(radius_deg), np.radians(azimuth_deg)
+        return np.cos(r) * c + np.sin(r) * (np.cos(a) * u + np.sin(a) * v)
+
+    ring = [at(20.0, 45.0 * i) for i in range(8)]
+    mid = ring[0] + ring[1]
+    mid /= np.linalg.norm(mid)  # on the rim edge between ring lights 0 and 1, 18.5 degrees from the centre
+    rim_radius = np.degrees(np.arccos(mid @ c))
+    return np.array([c, *ring, at(rim_radius - inset_deg, 22.5)])
+
+
+def test_a_light_just_inside_the_rim_joins_it():
+    """A light just inside a rim edge (the angle opposite the edge about 170 degrees) joins the rim: a light just
+    past the rim beside it takes it (the convex hull's rim edge alone would give it none), and the faces still tile
+    the sphere: every direction lies in exactly one. A light well inside (its angle under RIM_SLIVER_DEG) does not."""
+    from diffshadow.lights import RIM_SLIVER_DEG, Triangulation, as_direction
+
+    def opposite_deg(train: np.ndarray) -> float:
+        a, b = train[1] - train[-1], train[2] - train[-1]
+        return float(np.degrees(np.arccos(a @ b / np.linalg.norm(a) / np.linalg.norm(b))))
+
+    train = _ring_with_a_light_near_the_rim(0.3)
+    near = train[-1]
+    assert opposite_deg(train) > RIM_SLIVER_DEG
+    c = as_direction(CAP_CENTER)
+    outward = near - (near @ c) * c
+    past = np.cos(np.radians(0.6)) * near + np.sin(np.radians(0.6)) * outward / np.linalg.norm(outward)
+    tri = Triangulation(train)
+    idx, w = tri.weights(past[None])
+    assert dict(zip(idx[0].tolist(), w[0].tolist(), strict=True)).get(len(train) - 1, 0.0) > 0.99
+    q = fibonacci_sphere(5000)
+    coords = (q[:, None, None, :] * tri.cross[None]).sum(-1) / tri.det[None, :, None]
+    holding = (coords.min(axis=2) > 1e-9).sum(axis=1)
+    assert holding.max() == 1 and (holding == 1).mean() > 0.99  # none in two faces; the rest lie on an edge
+    inside = _ring_with_a_light_near_the_rim(4.0)
+    assert 90 < opposite_deg(inside) < RIM_SLIVER_DEG
+    idx, w = Triangulation(inside).weights(past[None])
+    assert sorted(idx[0][w[0] > 0].tolist()) == [1, 2]  # the rim edge's two lights
+
+
 def test_an_unknown_blend_weighting_is_named():
     from diffshadow.lights import LightError, blend_weights
 
