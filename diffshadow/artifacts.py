@@ -26,7 +26,7 @@ from diffshadow.data_inr import DataInr
 from diffshadow.diffusion.train import TrainingData
 from diffshadow.fit import Stage1Layout
 from diffshadow.io import VerifiedGroup, atomic_torch_save, error_line, write_zarr_group
-from diffshadow.lights import BLEND_K, PoolLights, blend_weights
+from diffshadow.lights import BLEND_K, POOL_X0_WEIGHTING, PoolLights, blend_weights
 from diffshadow.phases import timed
 from diffshadow.render import Camera, Image, Networks, RenderScene
 from diffshadow.render.bundle import RayBundle
@@ -113,7 +113,7 @@ def write_geometry_points(path: str | Path, points: torch.Tensor, values: torch.
 
 def read_training_data(weights_path: str | Path, points_path: str | Path) -> tuple[TrainingData, WeightStore]:
     """The diffusion model's training set: the weight store with the presampled geometry points, and the
-    pool lights (exact shadows, x0 from the blend of their `BLEND_K` nearest training SIRENs) if presampled."""
+    pool lights (exact shadows, x0 the blend of their `BLEND_K` nearest training SIRENs) if presampled."""
     store = open_store(weights_path)
     try:
         geo = VerifiedGroup(points_path, "presample's geometry points")
@@ -124,7 +124,7 @@ def read_training_data(weights_path: str | Path, points_path: str | Path) -> tup
         if "pool_lights" in geo:
             pool_lights = geo.read("pool_lights")
             idx, blend = blend_weights(np.asarray(store.lights, dtype=np.float64), pool_lights, BLEND_K,
-                                       "inverse-angle")
+                                       POOL_X0_WEIGHTING)
             pool = PoolLights(lights=torch.as_tensor(pool_lights), points=torch.as_tensor(geo.read("pool_points")),
                               values=torch.as_tensor(geo.read("pool_values")), neighbours=torch.as_tensor(idx),
                               blend=torch.as_tensor(blend, dtype=torch.float32))

@@ -22,7 +22,7 @@ from diffshadow.config import changed_settings, section
 from diffshadow.graphs import StepGraphs, adam, requested, set_lr
 from diffshadow.grid import lookup_grids
 from diffshadow.io import atomic_torch_save, resume
-from diffshadow.lights import BLEND_K, PoolLights, inverse_angle_weights, nearest, training_pool
+from diffshadow.lights import BLEND_K, WEIGHTINGS, PoolLights, blend_weights, training_pool
 from diffshadow.metrics import psnr
 from diffshadow.progress import FirstNonFinite, eta
 from diffshadow.sampling import FIT_BLEND_POOL_SEED, PROBE_HELD_OUT_SEED, PointSampler, Stream, seeded, to_device
@@ -94,9 +94,10 @@ class FitConfig:
     # common to all lights, so neighbouring lights' SIRENs stay close in weight space (docs/performance.md)
     shared_points: bool = True
     # The blend loss: lights between the training lights (exact shadows, no SIREN of their own) scored with the
-    # inverse-angle blend of their nearest training SIRENs' weights, so that the fits vary smoothly with the
-    # light and the diffusion model can interpolate them (docs/performance.md)
+    # weight blend of their training SIRENs (`blend_weights`, as lights.blend_weights), so that the fits vary
+    # smoothly with the light and the blend and the diffusion model can interpolate them (docs/performance.md)
     blend_weight: float = 0.0  # 0: off
+    blend_weights: str = "triangle"  # "triangle" or "inverse-angle" (the 4 nearest): set it as evaluate.blend_weights
     # pool lights drawn in the training lights' cap per training light (each subset takes its own): a count
     # over the cap thinned the pool as lights were added (200 lights: 1 per light -1.8 dB blend, docs/performance.md)
     blend_per_light: int = 64
@@ -118,6 +119,8 @@ class FitConfig:
                              f"{cfg.blend_points}")
         if cfg.precision not in PRECISIONS:
             raise ValueError(f"fit.precision: expected 'float32' or 'bfloat16', got {cfg.precision!r}")
+        if cfg.blend_weights not in WEIGHTINGS:
+            raise ValueError(f"fit.blend_weights: expected one of {', '.join(WEIGHTINGS)}, got {cfg.blend_weights!r}")
         return cfg
 
 
@@ -130,11 +133,11 @@ CPU_CHUNK = 512
 def blend_pool(volume: Volume, tf: TransferFunction, train: np.ndarray, center, subset: list[int], cfg: FitConfig,
                *, device: torch.device | str = "cpu") -> PoolLights | None:
     """Pool lights for the blend loss: `cfg.blend_per_light` directions per training light drawn in the training
-    lights' cap (the same for every subset), of which this subset takes those whose k = min(BLEND_K,
-    len(subset)) nearest training lights are all its own, with their exact shadow at `cfg.blend_points` points,
-    each blended from those k lights (`neighbours` are rows of the subset); None when the blend loss is off or
-    the subset has fewer than 2 lights. Coupling stays inside a subset, so subsets are still fitted as
-    independent jobs.
+    lights' cap (the same for every subset), of which this subset takes those whose blend (`cfg.blend_weights`:
+    the corners of their triangle among all the training lights, or their k = min(BLEND_K, len(subset)) nearest)
+    takes only its own lights, with their exact shadow at `cfg.blend_points` points (`neighbours` are rows of the
+    subset); None when the blend loss is off or the subset has fewer than 2 lights. Coupling stays inside a
+    subset, so subsets are still fitted as independent jobs.
 
     A pool light at a subset's border is left out, not blended from the subset's own nearest lights: that
     blend is not the one the diffusion model's pool prior and the weight-blend baseline use, and fitting
@@ -142,9 +145,8 @@ def blend_pool(volume: Volume, tf: TransferFunction, train: np.ndarray, center, 
     if cfg.blend_weight <= 0 or len(subset) < 2:
         return None
     train = np.asarray(train, dtype=np.float64)
-    k = min(BLEND_K, len(subset))
     lights = training_pool(train, center, cfg.blend_per_light * len(train), seed=cfg.seed + FIT_BLEND_POOL_SEED)
-    idx, angles = nearest(train, lights, k)
+    idx, mix = blend_weights(train, lights, min(BLEND_K, len(subset)), cfg.blend_weights)
     rows = np.flatnonzero(np.isin(idx, subset).all(axis=1))
     if len(rows) == 0:
         return None
@@ -154,7 +156,7 @@ def blend_pool(volume: Volume, tf: TransferFunction, train: np.ndarray, center, 
     row_of[subset] = np.arange(len(subset))  # light index -> row of the subset
     return PoolLights(lights=torch.as_tensor(lights[rows], device="cpu"), points=points, values=values,
                       neighbours=torch.as_tensor(row_of[idx[rows]], device="cpu"),
-                      blend=torch.as_tensor(inverse_angle_weights(angles[rows]), dtype=torch.float32, device="cpu"))
+                      blend=torch.as_tensor(mix[rows], dtype=torch.float32, device="cpu"))
 
 
 def points_per_pass(chunk: int | str, points: int, device: torch.device) -> int:

@@ -587,15 +587,19 @@ def index_ranges(idx: list[int]) -> str:
 
 
 BLEND_K = 4  # training SIRENs blended into a pool light's x0 target (the evaluation's blend baseline: 4 too)
+# the diffusion model's pool lights' x0 targets: the triangle blend's lost (the model alone -0.69 / -0.50 dB, the mix
+# -0.32 / -0.29 on validation lights, seeds 0 / 1; docs/performance.md), while stage 1's blend loss gains by it
+POOL_X0_WEIGHTING = "inverse-angle"
 
 
 @dataclass
 class PoolLights:
-    """Pool lights: directions in the training lights' cap with no fitted SIREN. Each has an x0 target, the
-    inverse-angle blend of its `BLEND_K` nearest training SIRENs' weights (`neighbours`, `blend`), and its
-    exact shadow at presampled points for the geometry loss. The blend alone is a usable SIREN because every
-    training SIREN starts from one pre-optimised init (nucleon: 30.0 dB at unseen lights against 27.9 for
-    blending the shadows themselves); the geometry loss corrects it towards the truth."""
+    """Pool lights: directions in the training lights' cap with no fitted SIREN. Each has an x0 target, a weight
+    blend of training SIRENs (`neighbours`, `blend`: stage 1's blend loss by `fit.blend_weights`, the diffusion
+    model's by POOL_X0_WEIGHTING), and its exact shadow at presampled points for the geometry loss. The blend
+    alone is a usable SIREN because every training SIREN starts from one pre-optimised init (nucleon: 30.0 dB at
+    unseen lights against 27.9 for blending the shadows themselves); the geometry loss corrects it towards the
+    truth."""
 
     lights: torch.Tensor  # (M, 3)
     points: torch.Tensor  # (M, P, 3)

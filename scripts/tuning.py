@@ -56,14 +56,14 @@ def data_inr(results: Path, spec: dict) -> str:
 
 
 def _pool(results: Path, light_sets: dict, cfg):
-    from diffshadow.lights import BLEND_K, PoolLights, blend_weights, training_pool
+    from diffshadow.lights import BLEND_K, POOL_X0_WEIGHTING, PoolLights, blend_weights, training_pool
     from diffshadow.sampling import Stream
     from diffshadow.truth import presample
 
     volume, tf = load_prepared(results / "volume.zarr")
     lights = training_pool(light_sets["train"], light_sets["center"], cfg.pool_lights, seed=cfg.seed)
     pts, values = presample(volume, tf, lights, cfg.pool_points, seed=cfg.seed, stream=Stream.POOL_POINTS)
-    idx, blend = blend_weights(light_sets["train"], lights, BLEND_K)
+    idx, blend = blend_weights(light_sets["train"], lights, BLEND_K, POOL_X0_WEIGHTING)
     return PoolLights(torch.as_tensor(lights), pts, values, torch.as_tensor(idx),
                       torch.as_tensor(blend, dtype=torch.float32))
 

@@ -201,22 +201,24 @@ def _cap_lights():
     return d / np.linalg.norm(d, axis=1, keepdims=True), np.array([0.0, 0.0, 1.0])
 
 
-def test_blend_pool_holds_the_lights_whose_nearest_are_the_subsets_blended_as_the_model_blends(scene):
-    """A subset takes the pool lights whose 4 nearest training lights are all its own, so the blend it fits
-    them with is the blend of the whole light set (the diffusion model's pool prior, the baseline)."""
+@pytest.mark.parametrize("weighting", ["triangle", "inverse-angle"])
+def test_blend_pool_holds_the_lights_whose_blend_is_the_subsets_blended_as_the_cache_blends(scene, weighting):
+    """A subset takes the pool lights whose blend (the corners of their triangle, or their 4 nearest) takes only
+    its own training lights, so the blend it fits them with is the blend of the whole light set (the cache's
+    `blend_weights`, the baseline)."""
     from diffshadow.fit import blend_pool
     from diffshadow.lights import blend_weights, fibonacci_sphere, light_subsets, select_region
 
     vol, tf, _ = scene
     sphere = fibonacci_sphere(400)
     train, center = sphere[select_region(sphere, [0, 0, 1], 32)], np.array([0.0, 0.0, 1.0])
-    cfg = FitConfig.from_config(dict(blend_weight=0.5, blend_per_light=2, blend_points=8))
+    cfg = FitConfig.from_config(dict(blend_weight=0.5, blend_per_light=2, blend_points=8, blend_weights=weighting))
     whole = blend_pool(vol, tf, train, center, list(range(32)), cfg)
     assert len(whole.lights) == 64 and whole.points.shape == (64, 8, 3)  # one subset: the whole pool
     taken = []
     for subset in light_subsets(train, 16):
         pool = blend_pool(vol, tf, train, center, subset, cfg)
-        idx, mix = blend_weights(train, pool.lights.numpy(), 4, "inverse-angle")
+        idx, mix = blend_weights(train, pool.lights.numpy(), 4, weighting)
         assert np.isin(idx, subset).all()
         assert (np.asarray(subset)[pool.neighbours.numpy()] == idx).all()
         assert torch.allclose(pool.blend, torch.as_tensor(mix, dtype=torch.float32))
@@ -225,6 +227,12 @@ def test_blend_pool_holds_the_lights_whose_nearest_are_the_subsets_blended_as_th
     assert 0 < len(taken) < 64 and len(torch.unique(taken, dim=0)) == len(taken)  # border lights: no subset's
     assert blend_pool(vol, tf, train, center, [0, 1], FitConfig.from_config(dict(blend_weight=0.0))) is None
     assert blend_pool(vol, tf, train, center, [2], cfg) is None  # nothing to blend
+
+
+def test_an_unknown_blend_weighting_for_the_blend_loss_is_named():
+    with pytest.raises(ValueError, match=r"^fit.blend_weights: expected one of triangle, inverse-angle, got "
+                       r"'nearest'$"):
+        FitConfig.from_config(dict(blend_weights="nearest"))
 
 
 def test_blend_loss_makes_weight_blends_fit_the_pool():
