@@ -426,6 +426,9 @@ def cache_verdict(voxel: dict) -> str:
     if lo is not None and lo <= 0 <= hi:
         better = (f"{who} ties with their weight blend on unseen lights: {gap:+.2f} dB{spread}, so other test lights "
                   f"could reverse it")
+        if voxel.get("mix") or sb["model"] > sb["sirens"]:  # the blend alone keeps fewer bytes, and no stage 2
+            better += ("; the stored SIRENs alone (`cache: blend`, or a codec of it) would answer as well, without "
+                       "stage 2")
     elif gap > 0:
         better = f"{who} beats their weight blend on unseen lights by {gap:.2f} dB{spread}"
     else:

@@ -95,8 +95,11 @@ def test_a_gap_within_its_interval_over_resampled_lights_is_called_a_tie():
     tie = voxel(model=250_000, generated=26.18, weight_blend=26.11)
     tie["unseen"].update(weight_blend_gap_interval95_db=[-0.62, 0.71], better_than_weight_blend=14, count=32)
     assert ("it ties with their weight blend on unseen lights: +0.07 dB (better on 14 of 32 lights; 95 % interval "
-            "over resampled test lights -0.62 to +0.71 dB), so other test lights could reverse it"
-            ) in cache_verdict(tie)
+            "over resampled test lights -0.62 to +0.71 dB), so other test lights could reverse it; the stored SIRENs "
+            "alone (`cache: blend`, or a codec of it) would answer as well, without stage 2") in cache_verdict(tie)
+    smaller = voxel(model=50_000, generated=26.18, weight_blend=26.11)  # a tie, but the model keeps fewer bytes
+    smaller["unseen"].update(weight_blend_gap_interval95_db=[-0.62, 0.71], better_than_weight_blend=14, count=32)
+    assert "could reverse it. " in cache_verdict(smaller) and "cache: blend" not in cache_verdict(smaller)
     win = voxel(model=250_000, generated=35.74, weight_blend=34.04)
     win["unseen"].update(weight_blend_gap_interval95_db=[0.96, 4.61], better_than_weight_blend=26, count=32)
     assert "it beats their weight blend on unseen lights by 1.70 dB (better on 26 of 32 lights; 95 % interval " \
