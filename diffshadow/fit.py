@@ -22,7 +22,7 @@ from diffshadow.config import changed_settings, section
 from diffshadow.graphs import StepGraphs, adam, requested, set_lr
 from diffshadow.grid import lookup_grids
 from diffshadow.io import atomic_torch_save, resume
-from diffshadow.lights import BLEND_K, WEIGHTINGS, PoolLights, blend_weights, training_pool
+from diffshadow.lights import BLEND_K, PoolLights, blend_weights, check_weighting, training_pool
 from diffshadow.metrics import psnr
 from diffshadow.progress import FirstNonFinite, eta
 from diffshadow.sampling import FIT_BLEND_POOL_SEED, PROBE_HELD_OUT_SEED, PointSampler, Stream, seeded, to_device
@@ -119,8 +119,7 @@ class FitConfig:
                              f"{cfg.blend_points}")
         if cfg.precision not in PRECISIONS:
             raise ValueError(f"fit.precision: expected 'float32' or 'bfloat16', got {cfg.precision!r}")
-        if cfg.blend_weights not in WEIGHTINGS:
-            raise ValueError(f"fit.blend_weights: expected one of {', '.join(WEIGHTINGS)}, got {cfg.blend_weights!r}")
+        check_weighting(cfg.blend_weights, "fit.blend_weights")
         return cfg
 
 

@@ -157,6 +157,13 @@ WEIGHTINGS = ("triangle", "inverse-angle")  # evaluate.blend_weights: how a ligh
 OLD_WEIGHTING = "inverse-angle"  # what a store or metrics file made before evaluate.blend_weights used
 
 
+def check_weighting(weighting: str, key: str = "evaluate.blend_weights") -> str:
+    """`weighting` if it names a blend (WEIGHTINGS), else a LightError naming the config `key`."""
+    if weighting not in WEIGHTINGS:
+        raise LightError(f"{key}: expected one of {', '.join(WEIGHTINGS)}, got {weighting!r}")
+    return weighting
+
+
 def blend_weights(train: np.ndarray, query: np.ndarray, k: int, weighting: str) -> tuple[np.ndarray, np.ndarray]:
     """The training directions a weight blend of each query takes (Q, m) and their weights (Q, m) summing to 1.
     `weighting` "triangle": the three corners of the training lights' spherical Delaunay triangle around the
@@ -169,8 +176,7 @@ def blend_finder(train: np.ndarray, k: int, weighting: str):
     viewer or a timing loop asks for one light at a time)."""
     if weighting == "triangle":
         return Triangulation(train).weights
-    if weighting != "inverse-angle":
-        raise LightError(f"evaluate.blend_weights: expected one of {', '.join(WEIGHTINGS)}, got {weighting!r}")
+    check_weighting(weighting)
 
     def find(query: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         idx, angles = nearest(train, query, k)
@@ -273,25 +279,21 @@ def _open_rim_slivers(points: np.ndarray, faces: np.ndarray, hole: int) -> np.nd
     are opened widest first (ties by their corners' coordinates), the same whatever order the lights come in;
     a new rim edge is examined in its turn (docs/performance.md, "Past the rim: the slivers opened")."""
     cos_max = np.cos(np.radians(RIM_SLIVER_DEG))
-    faces = [tuple(f) for f in faces.tolist()]
-    alive = [True] * len(faces)
+    start = faces.tolist()
+    faces, alive = [], []
     by_edge: dict[tuple[int, int], list[int]] = {}
+    heap: list = []  # (cos of the angle opposite the rim edge, its corners' coordinates, fan face, inner face, c)
 
-    def index(i: int) -> None:
-        f = faces[i]
-        for e in ((f[0], f[1]), (f[0], f[2]), (f[1], f[2])):
-            by_edge.setdefault(e, []).append(i)
-
-    def add(face: tuple[int, int, int]) -> None:
-        faces.append(tuple(sorted(face)))
+    def add(face) -> int:
+        faces.append(tuple(sorted(face)))  # the hole, index n, sorts last
         alive.append(True)
-        index(len(faces) - 1)
+        a, b, c = faces[-1]
+        for edge in ((a, b), (a, c), (b, c)):
+            by_edge.setdefault(edge, []).append(len(faces) - 1)
+        return len(faces) - 1
 
-    for i in range(len(faces)):
-        index(i)
-    rim = {v for f in faces if f[2] == hole for v in f[:2]}
-
-    def examine(a: int, b: int, heap: list) -> None:
+    def examine(fan: int) -> None:
+        a, b = faces[fan][:2]
         inner = [i for i in by_edge[(a, b)] if alive[i] and hole not in faces[i]]
         if len(inner) != 1:
             return
@@ -299,27 +301,25 @@ def _open_rim_slivers(points: np.ndarray, faces: np.ndarray, hole: int) -> np.nd
         u, w = points[a] - points[c], points[b] - points[c]
         cos = _dot3(u, w) / (np.sqrt(_dot3(u, u)) * np.sqrt(_dot3(w, w)))
         if cos < cos_max:  # widest first; ties by the corners' coordinates, not their indices
-            heapq.heappush(heap, (float(cos), sorted((tuple(points[a]), tuple(points[b]))), a, b))
+            heapq.heappush(heap, (float(cos), sorted((tuple(points[a]), tuple(points[b]))), fan, inner[0], c))
 
-    heap: list = []
-    for a, b in sorted(f[:2] for f in faces if f[2] == hole):  # corners sorted: the hole, index n, comes last
-        examine(a, b, heap)
+    for face in start:
+        add(face)
+    rim = {v for f in faces if f[2] == hole for v in f[:2]}
+    for fan in [i for i, f in enumerate(faces) if f[2] == hole]:
+        examine(fan)
     while heap:
-        _, _, a, b = heapq.heappop(heap)
-        fan = [i for i in by_edge[(a, b)] if alive[i] and hole in faces[i]]
-        inner = [i for i in by_edge[(a, b)] if alive[i] and hole not in faces[i]]
-        if len(fan) != 1 or len(inner) != 1:
+        *_, fan, inner, c = heapq.heappop(heap)
+        if not (alive[fan] and alive[inner]) or c in rim:  # the edge was opened already, or c joined the rim
             continue
-        c = next(v for v in faces[inner[0]] if v not in (a, b))
+        a, b = faces[fan][:2]
         normal = np.cross(points[c], points[hole])  # a and b on either side of the plane (c, hole): still tiled
-        if c in rim or np.sign(_dot3(normal, points[a])) * np.sign(_dot3(normal, points[b])) >= 0:
+        if np.sign(_dot3(normal, points[a])) * np.sign(_dot3(normal, points[b])) >= 0:
             continue
-        alive[fan[0]] = alive[inner[0]] = False
-        add((a, c, hole))
-        add((c, b, hole))
+        alive[fan] = alive[inner] = False
         rim.add(c)
-        for e in (tuple(sorted((a, c))), tuple(sorted((c, b)))):
-            examine(*e, heap)
+        examine(add((a, c, hole)))
+        examine(add((c, b, hole)))
     out = np.array([f for f, keep in zip(faces, alive, strict=True) if keep], dtype=np.int64)
     return out[np.lexsort(out.T[::-1])]
 
