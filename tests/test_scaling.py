@@ -30,6 +30,8 @@ def _point(root: Path, n: int, epochs: int | None = None) -> Path:
                           "siren_blend_psnr_median": 27.0, "nearest_psnr_median": 23.0},
                "storage_bytes": {"model": 1000 * 4, "sirens": 40 * n, "grids": 400 * n},
                "stage1": {"parameters": 10}, "diffusion_model": {"parameters": 1000, "epochs": epochs}}
+    if n >= 32:  # a run with the mix scores the model alone too; one from before it does not
+        metrics["seen"]["model_alone_psnr_median"] = 39.0
     (res / "voxel_metrics.json").write_text(json.dumps(metrics))
     (res / "lights.json").write_text(json.dumps({"sphere": 4 * n}))
     return res
@@ -52,6 +54,10 @@ def test_power_laws_crossover_and_files(tmp_path):
         assert (tmp_path / name).read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
     page = (tmp_path / "scaling.html").read_text()
     assert "scaling_costs.png" in page and "past 100 lights (fp32)" in page
+    # the model alone on seen lights: a number where the run measured it, nan where it did not
+    assert [p["quality"]["seen"]["model_alone"] for p in data["points"]] == [None, 39.0]
+    assert "<th>seen: the model alone (the paper)</th>" in page
+    assert "<tr><td>8</td>" in page and "<td>nan</td><td>41.00</td></tr>" in page and "<td>39.00</td>" in page
 
 
 def test_projection_and_its_workflow_profile(tmp_path):

@@ -59,8 +59,14 @@ def cost_figure(data: dict):
     return fig
 
 
+# the seen lights' rows of the figure and the page: (key in a point's quality["seen"], label)
+SEEN = (("generated", "generated (the cache's answer)"), ("model_alone", "the model alone (the paper)"),
+        ("stage1", "stage 1 (stored SIRENs)"))
+
+
 def quality_figure(data: dict):
-    """Median voxel PSNR on unseen lights (generated, blends, nearest) and on seen lights (generated, stage 1)."""
+    """Median voxel PSNR on unseen lights (generated, the model alone, blends, nearest) and on seen lights
+    (generated, the model alone, stage 1); a row no point measured is left out."""
     fig, ax = _axes(2, 6.0)
     ns = [p["lights"] for p in data["points"]]
     for key, label in UNSEEN:
@@ -68,8 +74,10 @@ def quality_figure(data: dict):
         ys = [p["quality"]["unseen"].get(k) for p in data["points"]]
         if any(y is not None for y in ys):  # a row the points measured (the model alone: only where mixed)
             ax[0].plot(ns, [np.nan if y is None else y for y in ys], "o-", label=label)
-    for k, label in (("generated", "generated (diffusion)"), ("stage1", "stage 1 (stored SIRENs)")):
-        ax[1].plot(ns, [p["quality"]["seen"][k] for p in data["points"]], "o-", label=label)
+    for k, label in SEEN:
+        ys = [p["quality"]["seen"].get(k) for p in data["points"]]
+        if any(y is not None for y in ys):  # sweeps from before the mix have no model-alone row
+            ax[1].plot(ns, [np.nan if y is None else y for y in ys], "o-", label=label)
     for a, title in ((ax[0], "unseen lights"), (ax[1], "training lights")):
         a.set_xscale("log")
         a.set_xticks(ns, [str(n) for n in ns])
@@ -165,9 +173,10 @@ def page(data: dict) -> str:
     q = "".join(f"<tr><td>{n}</td>" + "".join(
         f"<td>{(p['quality']['unseen'].get(k.removesuffix('_psnr_median')) or float('nan')):.2f}</td>"
         for k, _ in UNSEEN)
-        + f"<td>{p['quality']['seen']['generated']:.2f}</td><td>{p['quality']['seen']['stage1']:.2f}</td></tr>"
+        + "".join(f"<td>{(p['quality']['seen'].get(k) or float('nan')):.2f}</td>" for k, _ in SEEN) + "</tr>"
         for n, p in zip(ns, pts, strict=True))
     qhead = "".join(f"<th>unseen: {html.escape(label)}</th>" for _, label in UNSEEN)
+    qhead += "".join(f"<th>seen: {html.escape(label)}</th>" for _, label in SEEN)
     c = data["crossover_lights"]
     return f"""<!doctype html><html><head><meta charset="utf-8"><title>diffshadow: scaling with the light count</title>
 <style>body{{font-family:sans-serif;max-width:1100px;margin:2em auto}}td,th{{padding:2px 8px;text-align:right}}
@@ -180,7 +189,7 @@ and model sizes.</p>
 <h2>Cost per stage</h2><img src="scaling_costs.png" width="900">
 <table><tr><th>stage</th>{head}<th>exponent</th><th>peak RSS (MiB)</th></tr>{"".join(rows)}</table>
 <h2>Quality</h2><img src="scaling_quality.png" width="1000">
-<table><tr><th>lights</th>{qhead}<th>seen: generated</th><th>seen: stage 1</th></tr>{q}</table>
+<table><tr><th>lights</th>{qhead}</tr>{q}</table>
 <h2>Storage</h2><img src="scaling_storage.png" width="800">
 {projection_html(data.get("projection"), pts)}
 </body></html>

@@ -38,6 +38,7 @@ def read_point(results: Path) -> dict:
         "lights": n, "sphere": lights.get("sphere"), "unseen_count": int(m["unseen"]["count"]),
         "stages": stages,
         "quality": {"seen": {"generated": m["seen"]["generated_psnr_median"],
+                             "model_alone": m["seen"].get("model_alone_psnr_median"),
                              "stage1": m["seen"]["stage1_psnr_median"]},
                     "unseen": {key.removesuffix("_psnr_median"): m["unseen"].get(key) for key, _ in UNSEEN}},
         "storage_bytes": {"model": storage["model"], "sirens_fp32": storage["sirens"],
