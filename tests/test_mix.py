@@ -86,6 +86,25 @@ def test_the_mixed_sampler_mixes_its_two_answers_and_keeps_the_models_region():
         MixedSampler(model, Fixed(BLEND[0, :9]), 0.5)
 
 
+class Refused:
+    """A sampler that must not be asked."""
+
+    layout, siren, region = SimpleNamespace(n_params=MODEL.shape[1]), "siren", "region"
+
+    def __call__(self, light):
+        raise AssertionError("asked for a light its share gives no weight")
+
+
+def test_a_side_with_no_share_is_not_asked():
+    """At share 0 the answer is the blend's bytes without sampling the model (its DDIM is the slow side); at 1 the
+    model's without blending."""
+    light = [0.0, 0.0, 1.0]
+    assert np.array_equal(MixedSampler(Refused(), Fixed(BLEND[0]), 0.0)(light), mix_weights(MODEL[:1], BLEND[:1], 0)[0])
+    assert np.array_equal(MixedSampler(Fixed(MODEL[0]), Refused(), 1.0)(light), MODEL[0])
+    with pytest.raises(AssertionError, match="no weight"):
+        MixedSampler(Refused(), Fixed(BLEND[0]), 0.1)(light)
+
+
 def test_render_mixes_only_when_asked_with_both_sources(tmp_path):
     """`render --model-share` needs --diffusion and --blend; the two without it are refused as before."""
     from diffshadow.stages.images import render_image

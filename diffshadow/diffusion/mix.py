@@ -88,6 +88,12 @@ class MixedSampler:
         self.layout, self.siren, self.region = model.layout, model.siren, model.region
 
     def __call__(self, light) -> np.ndarray:
-        """(n_params,) float32 weights of the mixed shadow SIREN of one light direction."""
+        """(n_params,) float32 weights of the mixed shadow SIREN of one light direction. At share 0 (or 1) the side
+        with no weight is not asked: the answer is the same bytes, and the model's DDIM is ~30 ms a light on one
+        CPU thread against the blend's 0.1 ms (the validation lights chose share 0 on tooth and at 128 lights)."""
+        if self.share == 0.0:
+            return np.asarray(self.blend(light), dtype=np.float32)
+        if self.share == 1.0:
+            return np.asarray(self.model(light), dtype=np.float32)
         own = np.asarray(self.model(light))
         return mix_weights(own[None], self.blend(light)[None], self.share)[0]
