@@ -11,7 +11,7 @@ import numpy as np
 from diffshadow.io import atomic_write_text, finite_json
 from diffshadow.report import pyplot, save_figure
 from diffshadow.scaling.projection import CPU_SOURCE
-from diffshadow.scaling.sweep import UNSEEN
+from diffshadow.scaling.sweep import SEEN, UNSEEN
 
 
 def write_sweep(data: dict, out: Path) -> None:
@@ -59,11 +59,6 @@ def cost_figure(data: dict):
     return fig
 
 
-# the seen lights' rows of the figure and the page: (key in a point's quality["seen"], label)
-SEEN = (("generated", "generated (the cache's answer)"), ("model_alone", "the model alone (the paper)"),
-        ("stage1", "stage 1 (stored SIRENs)"))
-
-
 def quality_figure(data: dict):
     """Median voxel PSNR on unseen lights (generated, the model alone, blends, nearest) and on seen lights
     (generated, the model alone, stage 1); a row no point measured is left out."""
@@ -74,8 +69,8 @@ def quality_figure(data: dict):
         ys = [p["quality"]["unseen"].get(k) for p in data["points"]]
         if any(y is not None for y in ys):  # a row the points measured (the model alone: only where mixed)
             ax[0].plot(ns, [np.nan if y is None else y for y in ys], "o-", label=label)
-    for k, label in SEEN:
-        ys = [p["quality"]["seen"].get(k) for p in data["points"]]
+    for key, label in SEEN:
+        ys = [p["quality"]["seen"].get(key.removesuffix("_psnr_median")) for p in data["points"]]
         if any(y is not None for y in ys):  # sweeps from before the mix have no model-alone row
             ax[1].plot(ns, [np.nan if y is None else y for y in ys], "o-", label=label)
     for a, title in ((ax[0], "unseen lights"), (ax[1], "training lights")):
@@ -173,7 +168,8 @@ def page(data: dict) -> str:
     q = "".join(f"<tr><td>{n}</td>" + "".join(
         f"<td>{(p['quality']['unseen'].get(k.removesuffix('_psnr_median')) or float('nan')):.2f}</td>"
         for k, _ in UNSEEN)
-        + "".join(f"<td>{(p['quality']['seen'].get(k) or float('nan')):.2f}</td>" for k, _ in SEEN) + "</tr>"
+        + "".join(f"<td>{(p['quality']['seen'].get(k.removesuffix('_psnr_median')) or float('nan')):.2f}</td>"
+                  for k, _ in SEEN) + "</tr>"
         for n, p in zip(ns, pts, strict=True))
     qhead = "".join(f"<th>unseen: {html.escape(label)}</th>" for _, label in UNSEEN)
     qhead += "".join(f"<th>seen: {html.escape(label)}</th>" for _, label in SEEN)

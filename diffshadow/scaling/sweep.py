@@ -15,6 +15,9 @@ UNSEEN = (("generated_psnr_median", "generated (the cache's answer)"),
           ("model_alone_psnr_median", "the model alone (the paper)"),
           ("weight_blend_psnr_median", "weight blend"),
           ("siren_blend_psnr_median", "SIREN values' blend"), ("nearest_psnr_median", "nearest stored SIREN"))
+# and of its "seen" section; the model alone is scored only where the run mixed
+SEEN = (("generated_psnr_median", "generated (the cache's answer)"),
+        ("model_alone_psnr_median", "the model alone (the paper)"), ("stage1_psnr_median", "stage 1 (stored SIRENs)"))
 
 
 class SweepError(ValueError):
@@ -37,9 +40,7 @@ def read_point(results: Path) -> dict:
         "note": note.read_text().strip() if note.is_file() else "",
         "lights": n, "sphere": lights.get("sphere"), "unseen_count": int(m["unseen"]["count"]),
         "stages": stages,
-        "quality": {"seen": {"generated": m["seen"]["generated_psnr_median"],
-                             "model_alone": m["seen"].get("model_alone_psnr_median"),
-                             "stage1": m["seen"]["stage1_psnr_median"]},
+        "quality": {"seen": {key.removesuffix("_psnr_median"): m["seen"].get(key) for key, _ in SEEN},
                     "unseen": {key.removesuffix("_psnr_median"): m["unseen"].get(key) for key, _ in UNSEEN}},
         "storage_bytes": {"model": storage["model"], "sirens_fp32": storage["sirens"],
                           "sirens_fp16": storage["sirens"] // 2, "grids_fp16": storage["grids"]},
