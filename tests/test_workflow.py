@@ -186,6 +186,8 @@ def test_viewer_in_a_browser(finished, tmp_path):
     sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "scripts"))
     from browser import drive_viewer, find_browser
 
+    from diffshadow.viewer.scene import mix_name
+
     if find_browser() is None:
         pytest.skip("no Chromium on PATH (Debian: apt-get install chromium): the viewer's browser test needs one")
     figures = drive_viewer(finished / "results/nucleon", tmp_path)
@@ -201,8 +203,7 @@ def test_viewer_in_a_browser(finished, tmp_path):
     assert "outside the cache: exact shadow" in figures["outside_status"], figures
     assert all(v is True for v in figures["commands_match"].values()), figures["commands_match"]
     share = open_store(finished / "results/nucleon/generated.zarr").config["mix"]["model_share"]
-    assert figures["side_by_side_labels"] == [f"cache (diffusion {share:g} + weight blend {1 - share:g})",
-                                              "exact (gt)"], figures
+    assert figures["side_by_side_labels"] == [f"cache ({mix_name(share)})", "exact (gt)"], figures
     assert figures["side_by_side_label_band"] > 0.3, figures  # the dark band behind the label is drawn
     assert figures["diff_scale"] in (1, 2, 4, 8, 16, 32, 64) and "white is a difference" in figures["diff_status"]
     assert figures["second_tab_folder"] and figures["first_tab_kept"], figures

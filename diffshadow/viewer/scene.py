@@ -246,7 +246,7 @@ class ViewerScene:
         if isinstance(self.sampler, BlendSampler):
             return "weight blend"
         if isinstance(self.sampler, MixedSampler):
-            return f"diffusion {self.sampler.share:g} + weight blend {1 - self.sampler.share:g}"
+            return mix_name(self.sampler.share)
         return "diffusion"
 
     def render_commands(self, mode: str, camera: Camera, light, *, step: float) -> list[str]:
@@ -281,6 +281,16 @@ class ViewerScene:
                 else:
                     args += ["--diffusion", str(self.checkpoint)]
         return shlex.join(args)
+
+
+def mix_name(share: float) -> str:
+    """The viewer's name for a mixed cache at `share`; at 0 or 1 one side answers alone (and only it is asked), so
+    it is named, not a mix."""
+    if share == 0.0:
+        return "weight blend (model share 0)"
+    if share == 1.0:
+        return "diffusion (model share 1)"
+    return f"diffusion {share:g} + weight blend {1 - share:g}"
 
 
 def cache_source(results: Path, generated: WeightStore) -> Path:
