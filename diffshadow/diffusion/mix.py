@@ -90,7 +90,8 @@ class MixedSampler:
     def __call__(self, light) -> np.ndarray:
         """(n_params,) float32 weights of the mixed shadow SIREN of one light direction. At share 0 (or 1) the side
         with no weight is not asked: the answer is the same bytes, and the model's DDIM is ~30 ms a light on one
-        CPU thread against the blend's 0.1 ms (the validation lights chose share 0 on tooth and at 128 lights)."""
+        CPU thread against the blend's 0.3 ms (the validation lights chose share 0 on tooth and at 128 and 512
+        lights)."""
         if self.share == 0.0:
             return np.asarray(self.blend(light), dtype=np.float32)
         if self.share == 1.0:
