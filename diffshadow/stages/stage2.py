@@ -267,7 +267,8 @@ def choose_cache(weights_path: Path, truth_path: Path, volume_path: Path, lights
     train = light_sets["train"]
     volume, tf = load_prepared(volume_path)
     lights = validation_lights(train, light_sets["center"], val_lights, seed=seed)
-    val = EvalTruth.compute(volume, tf, lights, val_points, seed + VALIDATION_POINTS_SEED)
+    # the box points alone, as the mix's choice: the medians are taken there, and the visible set doubled the march
+    val = EvalTruth.compute(volume, tf, lights, val_points, seed + VALIDATION_POINTS_SEED, sets=("box",))
     result = choose(stage1, artifacts.read_eval_truth(truth_path), val, train, blend_k=blend_k,
                     weighting=weighting, target_psnr=target_psnr, candidates=candidates)
     result["validation"] = {"lights": val_lights, "points": val_points, "seed": seed}
