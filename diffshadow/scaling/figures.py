@@ -59,20 +59,21 @@ def cost_figure(data: dict):
     return fig
 
 
+def _quality(point: dict, section: str, key: str) -> float | None:
+    """A point's figure for the voxel_metrics `key` of `section` ("seen" or "unseen"); None where not measured."""
+    return point["quality"][section].get(key.removesuffix("_psnr_median"))
+
+
 def quality_figure(data: dict):
     """Median voxel PSNR on unseen lights (generated, the model alone, blends, nearest) and on seen lights
     (generated, the model alone, stage 1); a row no point measured is left out."""
     fig, ax = _axes(2, 6.0)
     ns = [p["lights"] for p in data["points"]]
-    for key, label in UNSEEN:
-        k = key.removesuffix("_psnr_median")
-        ys = [p["quality"]["unseen"].get(k) for p in data["points"]]
-        if any(y is not None for y in ys):  # a row the points measured (the model alone: only where mixed)
-            ax[0].plot(ns, [np.nan if y is None else y for y in ys], "o-", label=label)
-    for key, label in SEEN:
-        ys = [p["quality"]["seen"].get(key.removesuffix("_psnr_median")) for p in data["points"]]
-        if any(y is not None for y in ys):  # sweeps from before the mix have no model-alone row
-            ax[1].plot(ns, [np.nan if y is None else y for y in ys], "o-", label=label)
+    for a, section, rows in ((ax[0], "unseen", UNSEEN), (ax[1], "seen", SEEN)):
+        for key, label in rows:
+            ys = [_quality(p, section, key) for p in data["points"]]
+            if any(y is not None for y in ys):  # a row the points measured (the model alone: only where mixed)
+                a.plot(ns, [np.nan if y is None else y for y in ys], "o-", label=label)
     for a, title in ((ax[0], "unseen lights"), (ax[1], "training lights")):
         a.set_xscale("log")
         a.set_xticks(ns, [str(n) for n in ns])
@@ -165,12 +166,9 @@ def page(data: dict) -> str:
     head = "".join(f"<th>{n} lights (s)</th>" for n in ns)
     notes = "".join(f"<li>{n} lights: {html.escape(p['note'])}</li>" for n, p in zip(ns, pts, strict=True)
                     if p.get("note"))
-    q = "".join(f"<tr><td>{n}</td>" + "".join(
-        f"<td>{(p['quality']['unseen'].get(k.removesuffix('_psnr_median')) or float('nan')):.2f}</td>"
-        for k, _ in UNSEEN)
-        + "".join(f"<td>{(p['quality']['seen'].get(k.removesuffix('_psnr_median')) or float('nan')):.2f}</td>"
-                  for k, _ in SEEN) + "</tr>"
-        for n, p in zip(ns, pts, strict=True))
+    cols = [("unseen", k) for k, _ in UNSEEN] + [("seen", k) for k, _ in SEEN]
+    q = "".join(f"<tr><td>{n}</td>" + "".join(f"<td>{(_quality(p, *c) or float('nan')):.2f}</td>" for c in cols)
+                + "</tr>" for n, p in zip(ns, pts, strict=True))
     qhead = "".join(f"<th>unseen: {html.escape(label)}</th>" for _, label in UNSEEN)
     qhead += "".join(f"<th>seen: {html.escape(label)}</th>" for _, label in SEEN)
     c = data["crossover_lights"]
