@@ -162,7 +162,8 @@ def _evaluate_voxels(a):
                            Path(a.lights), Path(a.out), blend_k=a.blend_k, weighting=a.blend_weights,
                            ddpm_lights=a.ddpm_lights,
                            geometry_checkpoint=Path(a.geometry_checkpoint) if a.geometry_checkpoint else None,
-                           device=_device(a), wide_lights=a.wide_lights, wide_points=a.wide_points, wide_seed=a.seed)
+                           device=_device(a), wide_lights=a.wide_lights, wide_points=a.wide_points, wide_seed=a.seed,
+                           cache_path=Path(a.cache_weights) if a.cache_weights else None)
 
 
 # ------------------------------------------------------------------------------------- images, report
@@ -411,6 +412,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--wide-points", type=int, default=evaluate["wide_points"],
                    help="box points per further test light (evaluate.wide_points)")
     p.add_argument("--seed", type=int, default=evaluate["seed"], help="the further test lights' draw (evaluate.seed)")
+    p.add_argument("--cache-weights", help="a codec's decoded store (encode-cache's cache.zarr) that --generated "
+                   "blended: the further test lights' answer blends it (none: --weights)")
     p = _add(sub, "caches", _caches, "caches.json: every cache (stored SIRENs and their codecs, the model, dense "
              "grids) as bytes against seen and unseen voxel PSNR", "weights", "generated", "truth", "lights", "volume",
              "figure", device=False)

@@ -51,39 +51,59 @@ def median_gap_interval(a: np.ndarray, b: np.ndarray, *, resamples: int = 2000) 
     return [float(x) for x in np.percentile(gaps, [2.5, 97.5])]
 
 
-def wide_comparison(state: dict, stage1, light_sets: dict, volume, tf, *, share: float, lights: int, points: int,
-                    seed: int, blend_k: int, weighting: str, device: torch.device | str = "cpu") -> dict:
+def wide_comparison(state: dict | None, stage1, light_sets: dict, volume, tf, *, share: float, lights: int,
+                    points: int, seed: int, blend_k: int, weighting: str, device: torch.device | str = "cpu",
+                    cache=None) -> dict:
     """The cache's answer (`share` x the model's SIREN + the rest x the weight blend of the stored SIRENs,
     `lights.blend_weights` by `weighting` and `blend_k`; share 1: the model alone), the weight blend and the model
     alone on `lights` further test lights (`lights.wide_test_lights`), exact shadows at `points` box points each:
     the test lights' comparison, with an interval many times tighter. 32 test lights cannot tell a few tenths of a
     dB (nucleon, 512 training lights: the mix over the blend +0.36 dB, interval +0.04 to +0.78, on its 32 test
     lights; +0.77, +0.73 to +0.84, on 4,096 of these). The model samples on `device`; the truth and the PSNRs
-    stay on the CPU."""
+    stay on the CPU.
+
+    Without a model (`state` None: `cache: blend` or a codec) the cache's answer is the weight blend of `cache`'s
+    SIRENs (a codec's decoded store, set beside stage 1's fp32 blend: what the codec costs), or, `cache` None, the
+    weight blend itself; `share` is not read. Either way the lights are those a diffusion run draws at `seed`, so
+    the two runs' medians stand side by side."""
     if lights < 1 or points < 1:  # the schema holds the workflow's values; these are the command's own
         raise ValueError(f"--wide-lights and --wide-points (evaluate.wide_lights, evaluate.wide_points): expected at "
                          f"least 1 light and 1 point, got {lights} and {points} (wide_lights 0 skips the comparison)")
-    cfg = state["config"]
-    model, std, layout, siren = load_sampler(state, device)
     train = light_sets["train"]
+    if cache is not None and not np.array_equal(np.asarray(cache.lights), np.asarray(stage1.lights)):
+        raise ValueError(f"the cache's store holds {len(cache.lights)} lights, not stage 1's {len(stage1.lights)} "
+                         f"(expected the codec's decoded copy of weights.zarr)")
     wide = wide_test_lights(train, light_sets["center"], lights, seed=seed)
     truth = EvalTruth.compute(volume, tf, wide, points, seed, sets=("box",))
     rows = truth.of(wide)
-    sampled = generate(model, std, wide, method="ddim", steps=int(cfg["ddim_steps"]), seed=int(cfg["seed"]),
-                       temperature=cfg["temperature"], device=device).numpy()
-    blend = blend_rows(stage1.weights, *blend_weights(train, wide, blend_k, weighting)).astype(np.float32)
-    score = {name: psnr_per_light(truth.sirens(w, layout, siren), rows)["box"].astype(np.float64)
-             for name, w in (("answer", mix_weights(sampled, blend, share)), ("weight_blend", blend),
-                             ("model_alone", sampled))}
-    a, b, m = score["answer"], score["weight_blend"], score["model_alone"]
-    return {"lights": lights, "points": points, "seed": seed, "model_share": share, "blend_weights": weighting,
-            "blend_k": blend_k,
-            "generated_psnr_median": median(a), "weight_blend_psnr_median": median(b),
-            "model_alone_psnr_median": median(m),
-            "weight_blend_gap_interval95_db": median_gap_interval(a, b),
-            "better_than_weight_blend": int((a > b).sum()),
-            "model_alone_gap_interval95_db": median_gap_interval(a, m),
-            "better_than_model_alone": int((a > m).sum())}
+    idx, w = blend_weights(train, wide, blend_k, weighting)
+    blend = blend_rows(stage1.weights, idx, w).astype(np.float32)
+    out = {"lights": lights, "points": points, "seed": seed}
+    if state is None:
+        layout, siren = stage1.layout, stage1.siren
+        sides = {"weight_blend": blend}
+        if cache is not None:
+            sides["answer"] = blend_rows(cache.weights, idx, w).astype(np.float32)
+            out["codec"] = (cache.config or {}).get("codec", "fp32")
+    else:
+        cfg = state["config"]
+        model, std, layout, siren = load_sampler(state, device)
+        sampled = generate(model, std, wide, method="ddim", steps=int(cfg["ddim_steps"]), seed=int(cfg["seed"]),
+                           temperature=cfg["temperature"], device=device).numpy()
+        sides = {"answer": mix_weights(sampled, blend, share), "weight_blend": blend, "model_alone": sampled}
+        out["model_share"] = share
+    score = {name: psnr_per_light(truth.sirens(x, layout, siren), rows)["box"].astype(np.float64)
+             for name, x in sides.items()}
+    a, b = score.get("answer", score["weight_blend"]), score["weight_blend"]
+    m = score.get("model_alone")
+    out.update(blend_weights=weighting, blend_k=blend_k, generated_psnr_median=median(a),
+               weight_blend_psnr_median=median(b), **({} if m is None else {"model_alone_psnr_median": median(m)}))
+    if "answer" in score:
+        out.update(weight_blend_gap_interval95_db=median_gap_interval(a, b),
+                   better_than_weight_blend=int((a > b).sum()))
+    if m is not None:
+        out.update(model_alone_gap_interval95_db=median_gap_interval(a, m), better_than_model_alone=int((a > m).sum()))
+    return out
 
 
 def voxel_metrics(state: dict | None, stage1, generated, truth: EvalTruth, light_sets: dict, *, blend_k: int,

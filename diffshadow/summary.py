@@ -109,7 +109,8 @@ class RunResults:
         self.voxel = json.loads((results / "voxel_metrics.json").read_text())
         self.images = json.loads((results / "image_metrics.json").read_text())
         self.bench = _read_json(results / "bench.json")
-        self.finetune = _read_json(results / "finetune_metrics.json")
+        # no model, no fine-tuning: a finished run switched to a stored-SIREN cache keeps the old run's file
+        self.finetune = None if self.voxel.get("cache") == "blend" else _read_json(results / "finetune_metrics.json")
         self.choice = _read_json(results / "cache_choice.json")  # cache: auto's decision
         self.results = results
         costs = results / "stage_costs.tsv"
@@ -286,15 +287,7 @@ class RunResults:
                              f"(median); no unseen test light is one of them"])
         wide = v.get("wide")
         if wide:  # the same comparison on many more lights drawn like the test ones (box points only)
-            further = f"further ({wide['lights']:,})"
-            lo, hi = wide["weight_blend_gap_interval95_db"]
-            rows += [[further, made, _num(wide["generated_psnr_median"]), "",
-                      f"better than the weight blend on {wide['better_than_weight_blend']:,}; 95 % interval of the "
-                      f"gap {lo:+.2f} to {hi:+.2f} dB"],
-                     [further, "the model alone (the paper's cache)", _num(wide["model_alone_psnr_median"]), "", ""],
-                     [further, f"{blend_label(wide)} training SIRENs' weights",
-                      _num(wide["weight_blend_psnr_median"]), "",
-                      f"{wide['points']:,} points per light; drawn as the unseen test lights are, none of them"]]
+            rows += _further_rows(wide, made)
         parts.append(_table("Shadow INRs: voxel PSNR against the marched ground truth (median over lights, dB)",
                             ["lights", "shadow INR", "box", "visible region", ""], rows,
                             f"{v['eval_points']:,} fresh points per light and region that no fit used."))
@@ -350,13 +343,17 @@ class RunResults:
                                 "data INR's is over every voxel."))
         sb = v["storage_bytes"]
         n = seen["count"]
-        parts.append(_table("Storage of the shadow cache", ["what", "MiB"],
-                            [["diffusion model (weights and standardiser)", _num(sb["model"] / MIB)],
-                             [f"{n} stage-1 SIRENs (fp32)", _num(sb["sirens"] / MIB)],
-                             *([["the cache: the model and the stored SIRENs it mixes in",
-                                 _num((sb["model"] + sb["sirens"]) / MIB)]] if v.get("mix") else []),
-                             [f"{n} dense shadow grids (fp16)", _num(sb["grids"] / MIB)]],
-                            "The model's size is fixed; SIRENs and grids grow with the light count."))
+        # a run without a model (cache: blend, or a codec's store) has no model row; a codec's cache its own
+        rows = [*([["diffusion model (weights and standardiser)", _num(sb["model"] / MIB)]] if sb["model"] else []),
+                [f"{n} stage-1 SIRENs (fp32)", _num(sb["sirens"] / MIB)],
+                *([["the cache: the model and the stored SIRENs it mixes in",
+                    _num((sb["model"] + sb["sirens"]) / MIB)]] if v.get("mix") else []),
+                *([[f"the cache: the {n} SIRENs in {v.get('codec')}", _num(sb["cache"] / MIB)]] if "cache" in sb
+                  else []),
+                [f"{n} dense shadow grids (fp16)", _num(sb["grids"] / MIB)]]
+        parts.append(_table("Storage of the shadow cache", ["what", "MiB"], rows,
+                            ("The model's size is fixed; " if sb["model"] else "") +
+                            "SIRENs and grids grow with the light count."))
         if self.costs:
             parts.append(_table("Stage costs (Snakemake benchmark files)",
                                 ["stage", "jobs", "wall s", "CPU s", "max RSS MiB", "import s", "device s",
@@ -435,6 +432,25 @@ def cache_verdict(voxel: dict) -> str:
         better = (f"their weight blend beats {who} on unseen lights by {-gap:.2f} dB{spread}: `cache: blend` would "
                   f"skip stage 2")
     return f"{size}; {better}. {AGAINST_COUNT}"
+
+
+def _further_rows(wide: dict, made: str) -> list[list[str]]:
+    """The "further" rows of the voxel table: the cache's answer on evaluate_voxels' further test lights, the
+    model alone where there is a model, and the weight blend of stage 1's SIRENs, which alone is the answer of
+    `cache: blend` (no row of its own then)."""
+    further = f"further ({wide['lights']:,})"
+    drawn = f"{wide['points']:,} points per light; drawn as the unseen test lights are, none of them"
+    rows = []
+    if "weight_blend_gap_interval95_db" in wide:
+        lo, hi = wide["weight_blend_gap_interval95_db"]
+        rows.append([further, made, _num(wide["generated_psnr_median"]), "",
+                     f"better than the weight blend on {wide['better_than_weight_blend']:,}; 95 % interval of the "
+                     f"gap {lo:+.2f} to {hi:+.2f} dB"])
+    if "model_alone_psnr_median" in wide:
+        rows.append([further, "the model alone (the paper's cache)", _num(wide["model_alone_psnr_median"]), "", ""])
+    name = f"{blend_label(wide)} training SIRENs' weights" + (" (fp32)" if "codec" in wide else "")
+    rows.append([further, name if rows else made, _num(wide["weight_blend_psnr_median"]), "", drawn])
+    return rows
 
 
 def _share_zero(unseen: dict, wide: dict | None) -> str:

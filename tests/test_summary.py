@@ -193,3 +193,50 @@ def test_the_sizes_table_sets_every_training_lights_median_beside_the_probe_ligh
         assert run.sizes()[0][6] == said
     run.voxel["stage1"]["capacity"] = {**cap, "target_psnr": 0}  # no target: the configured size, no probe
     assert run.sizes()[0][6] == "39.33"
+
+
+def test_the_further_rows_name_what_each_cache_answers_with():
+    """The further test lights' rows: a model's cache sets its answer beside the model alone and the blend; a codec
+    (no model) its decoded store's blend beside stage 1's fp32 blend; `cache: blend` one row, the blend itself."""
+    from diffshadow.summary import _further_rows
+
+    base = {"lights": 256, "points": 1024, "blend_weights": "triangle", "blend_k": 4,
+            "generated_psnr_median": 39.5, "weight_blend_psnr_median": 39.49}
+    compared = {"weight_blend_gap_interval95_db": [-0.01, 0.02], "better_than_weight_blend": 131}
+    model = _further_rows({**base, **compared, "model_share": 0.2, "model_alone_psnr_median": 36.2}, "mixed")
+    assert [r[1] for r in model] == ["mixed", "the model alone (the paper's cache)",
+                                     "triangle blend of the training SIRENs' weights"]
+    assert [r[2] for r in model] == ["39.50", "36.20", "39.49"] and "better than the weight blend on 131" in model[0][4]
+    codec = _further_rows({**base, **compared, "codec": "fp16"}, "blended (cache: fp16)")
+    assert [r[1] for r in codec] == ["blended (cache: fp16)",
+                                     "triangle blend of the training SIRENs' weights (fp32)"]
+    blend = _further_rows({**base, "generated_psnr_median": 39.49}, "blended (cache: blend)")
+    assert [(r[0], r[1], r[2]) for r in blend] == [("further (256)", "blended (cache: blend)", "39.49")]
+    assert "1,024 points per light" in blend[0][4]
+
+
+def test_a_codec_cache_has_no_model_rows_even_where_an_old_runs_files_remain(tmp_path):
+    """A run switched to a codec's cache: its storage table counts the codec's bytes and no model, and the old
+    diffusion run's finetune_metrics.json, still in the folder, is neither in the headline nor in the tables."""
+    import json
+
+    from diffshadow.summary import RunResults
+
+    codec = voxel(model=0, generated=39.49, weight_blend=39.50)
+    codec.update(cache="blend", codec="fp16", eval_points=16384)
+    codec["storage_bytes"]["cache"] = 50 * 1000
+    codec["seen"].update(stage1_psnr_median=41.58, generated_psnr_median=41.53, generated_psnr_min=39.18,
+                         generated_minus_stage1_median_db=-0.06)
+    codec["unseen"].update(blend_psnr_median=28.8, nearest_psnr_median=23.75, nearest_angle_median_deg=4.3,
+                           blend_weights="triangle", blend_k=4, count=32)
+    (tmp_path / "voxel_metrics.json").write_text(json.dumps(codec))
+    images = {"modes": {}, "image_size": 128, "views": 2, "step": 0.5, "reference": "gt", "lpips": "n/a"}
+    (tmp_path / "image_metrics.json").write_text(json.dumps(images))
+    old = {"image_psnr_geometry_only": {"mean": 51.43, "min": 48.1}, "image_psnr_finetuned": {"mean": 50.98,
+                                                                                              "min": 47.1}}
+    (tmp_path / "finetune_metrics.json").write_text(json.dumps(old))
+    run = RunResults(tmp_path, "blob")
+    tables = run.tables()
+    assert "the cache: the 100 SIRENs in fp16</td><td>0.05</td>" in tables  # 50,000 bytes
+    assert "diffusion model (weights" not in tables and "fine-tuning" not in tables
+    assert not any("fine-tuning" in name for name, _ in run.headline())

@@ -150,6 +150,40 @@ def test_the_wide_comparison_at_share_0_is_the_blend_and_at_share_1_the_model(fi
                         seed=3, blend_k=2, weighting="triangle")
 
 
+
+def test_without_a_model_the_wide_comparison_is_the_caches_blend(finished):
+    """No model (`cache: blend` or a codec): the further lights are those a diffusion run draws, the weight blend's
+    median is the one it reports; `cache: blend` answers with that blend (no gap to state), a codec with its decoded
+    store's blend (the fp32 store itself: a zero gap; fp16: within 0.05 dB, no model keys either way), and a store
+    of other lights is refused by name."""
+    import dataclasses
+
+    from diffshadow import artifacts
+    from diffshadow.evaluate import wide_comparison
+    from diffshadow.volume import load_prepared
+
+    res = finished / "results/nucleon"
+    lights, state = read_lights(res / "lights.json"), artifacts.load_checkpoint(res / "diffusion.ckpt")
+    volume, tf = load_prepared(res / "volume.zarr")
+    stage1 = open_store(res / "weights.zarr")
+    args = dict(share=0.5, lights=12, points=64, seed=3, blend_k=2, weighting="triangle")
+    model = wide_comparison(state, stage1, lights, volume, tf, **args)
+    blend = wide_comparison(None, stage1, lights, volume, tf, **args)
+    assert blend["generated_psnr_median"] == blend["weight_blend_psnr_median"] == model["weight_blend_psnr_median"]
+    assert not {"model_share", "model_alone_psnr_median", "weight_blend_gap_interval95_db", "codec"} & set(blend)
+    same = wide_comparison(None, stage1, lights, volume, tf, cache=stage1, **args)
+    assert same["weight_blend_gap_interval95_db"] == [0.0, 0.0] and same["better_than_weight_blend"] == 0
+    half = dataclasses.replace(stage1, weights=np.asarray(stage1.weights, np.float16).astype(np.float32),
+                               config={**stage1.config, "codec": "fp16"})
+    fp16 = wide_comparison(None, stage1, lights, volume, tf, cache=half, **args)
+    assert fp16["codec"] == "fp16" and "model_alone_psnr_median" not in fp16
+    assert abs(fp16["generated_psnr_median"] - fp16["weight_blend_psnr_median"]) < 0.05
+    fewer = dataclasses.replace(stage1, weights=stage1.weights[:-1], lights=stage1.lights[:-1])
+    with pytest.raises(ValueError, match=f"the cache's store holds {len(stage1.lights) - 1} lights, not stage 1's "
+                       f"{len(stage1.lights)}"):
+        wide_comparison(None, stage1, lights, volume, tf, cache=fewer, **args)
+
+
 def test_the_stored_sirens_are_the_models_mixed_with_the_blend_at_the_share_recorded(finished, tmp_path):
     """generated.zarr = share x (sample_shadows at share 1: the model alone) + (1 - share) x (at share 0: each
     training light's own stored SIREN, each unseen light's blend of its nearest stored SIRENs)."""
@@ -726,8 +760,16 @@ def test_cache_blend_skips_stage_two(finished, tmp_path):
     assert metrics["cache"] == "blend" and metrics["storage_bytes"]["model"] == 0 and "sampling" not in metrics
     unseen = metrics["unseen"]
     assert unseen["generated_psnr_median"] == pytest.approx(unseen["weight_blend_psnr_median"], abs=1e-3)
+    # the further test lights without a model: the blend alone, on the lights the diffusion run drew
+    wide, drawn = metrics["wide"], json.loads((finished / "results/nucleon/voxel_metrics.json").read_text())["wide"]
+    assert (wide["lights"], wide["points"], wide["blend_k"]) == (drawn["lights"], drawn["points"], 3)
+    assert wide["generated_psnr_median"] == wide["weight_blend_psnr_median"] and "model_alone_psnr_median" not in wide
+    assert f"<td>further ({wide['lights']})</td><td>blended (cache: blend)</td>" in \
+        (res / "report/summary.html").read_text()
     assert metrics["seen"]["generated_psnr_median"] == pytest.approx(metrics["seen"]["stage1_psnr_median"], abs=1e-3)
-    assert "cache: blend" in (res / "report/summary.html").read_text()
+    summary = (res / "report/summary.html").read_text()
+    assert "cache: blend" in summary
+    assert "fine-tuning" not in summary  # the diffusion run's finetune_metrics.json is still there, and not read
     kinds = {r["kind"] for r in json.loads((res / "caches.json").read_text())["caches"]}
     assert kinds == {"stored", "codec", "grids"}  # no model to weigh
     costs = (res / "stage_costs.tsv").read_text()
@@ -771,3 +813,6 @@ def test_cache_auto_plans_stage_two_only_when_no_stored_cache_reaches_the_target
         else:
             assert not any(f"label = \"{r}\"" in dag for r in stage2) and not stage2 & set(plan)
             assert plan["encode_cache"] == 1 and plan["sample_shadows"] == 1
+            # the further test lights' answer blends the codec's decoded store, not stage 1's fp32 one
+            commands = snakemake(finished, "-n", "-p", "results/nucleon/voxel_metrics.json", config=cfg).stdout
+            assert "--cache-weights results/nucleon/cache.zarr" in commands, commands[-3000:]

@@ -331,12 +331,14 @@ def evaluate_voxels(checkpoint: Path | None, weights_path: Path, generated_path:
                     volume_path: Path, lights_path: Path, out: Path, *, blend_k: int, weighting: str,
                     ddpm_lights: int,
                     geometry_checkpoint: Path | None = None, device: torch.device | str = "cpu",
-                    wide_lights: int = 0, wide_points: int = 1024, wide_seed: int = 0) -> None:
+                    wide_lights: int = 0, wide_points: int = 1024, wide_seed: int = 0,
+                    cache_path: Path | None = None) -> None:
     """`voxel_metrics.json`: generated against stage 1 and the baselines, storage, time per INR (the samplers
     run and are timed on `device`); with the geometry-stage checkpoint, unseen lights before and after
-    fine-tuning. Without `checkpoint` (`cache: blend`) the generated SIRENs are the blended ones and there is no
-    model to time. The sampler curve resumes from `<out>.ckpt`. With a model and `wide_lights`, the cache's answer,
-    the weight blend and the model alone on that many further test lights too (`evaluate.wide_comparison`)."""
+    fine-tuning. Without `checkpoint` (`cache: blend` or a codec) the generated SIRENs are the blended ones and
+    there is no model to time. The sampler curve resumes from `<out>.ckpt`. With `wide_lights`, the cache's answer,
+    the weight blend and (with a model) the model alone on that many further test lights too
+    (`evaluate.wide_comparison`); a codec's answer blends its decoded store, `cache_path`."""
     geometry = artifacts.load_checkpoint(geometry_checkpoint) if geometry_checkpoint else None
     state = artifacts.load_checkpoint(checkpoint) if checkpoint else None
     stage1, light_sets = open_store(weights_path), read_lights(lights_path)  # read (and verified) once for both
@@ -345,19 +347,21 @@ def evaluate_voxels(checkpoint: Path | None, weights_path: Path, generated_path:
                            grid_voxels=prepared_voxels(volume_path), ddpm_lights=ddpm_lights,
                            geometry_state=geometry, device=device,
                            curve_checkpoint=out.with_name(out.name + ".ckpt"))
-    if state is not None and wide_lights != 0:  # negative: wide_comparison says what it expects
+    if wide_lights != 0:  # negative: wide_comparison says what it expects
         t0 = time.perf_counter()
         volume, tf = load_prepared(volume_path)
         share = float((result.get("mix") or {}).get("model_share", 1.0))
-        result["wide"] = wide_comparison(state, stage1, light_sets, volume, tf,
-                                         share=share, lights=wide_lights, points=wide_points, seed=wide_seed,
-                                         blend_k=blend_k, weighting=weighting, device=device)
-        w = result["wide"]
-        lo, hi = w["weight_blend_gap_interval95_db"]
-        print(f"[evaluate voxels] {wide_lights} further test lights: the cache's answer "
-              f"{w['generated_psnr_median']:.2f} dB, weight blend {w['weight_blend_psnr_median']:.2f}, "
-              f"model alone {w['model_alone_psnr_median']:.2f}"
-              f" (over the blend: interval {lo:+.2f} to {hi:+.2f} dB; {time.perf_counter() - t0:.1f} s)", flush=True)
+        result["wide"] = w = wide_comparison(state, stage1, light_sets, volume, tf, share=share, lights=wide_lights,
+                                             points=wide_points, seed=wide_seed, blend_k=blend_k, weighting=weighting,
+                                             device=device, cache=open_store(cache_path) if cache_path else None)
+        said = [f"the cache's answer {w['generated_psnr_median']:.2f} dB", f"weight blend "
+                f"{w['weight_blend_psnr_median']:.2f}"]
+        if "model_alone_psnr_median" in w:
+            said.append(f"model alone {w['model_alone_psnr_median']:.2f}")
+        lo, hi = w.get("weight_blend_gap_interval95_db") or (None, None)  # none where the answer is the blend
+        gap = "" if lo is None else f"over the blend: interval {lo:+.2f} to {hi:+.2f} dB; "
+        print(f"[evaluate voxels] {wide_lights} further test lights: {', '.join(said)} "
+              f"({gap}{time.perf_counter() - t0:.1f} s)", flush=True)
     atomic_write_text(out, json.dumps(result, indent=1) + "\n")
     print(json.dumps(result, indent=1))
     for line in quality_warnings(result):

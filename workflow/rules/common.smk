@@ -90,6 +90,13 @@ def shadow_source(wildcards):
     return {"weights": f"results/{wildcards.scene}/cache.zarr"}
 
 
+def codec_store(wildcards):
+    """A codec's decoded store (cache.zarr) where one answers: evaluate_voxels blends it for further lights."""
+    if cache_choice(wildcards.scene) in ("diffusion", "blend"):
+        return {}
+    return {"cache": shadow_source(wildcards)["weights"]}
+
+
 def blend_args(scene):
     """How a light's stored SIRENs are blended (evaluate.blend_weights, evaluate.blend_k), as command flags."""
     ev = scene_config(scene)["evaluate"]

@@ -153,6 +153,7 @@ rule evaluate_voxels:
     input:
         unpack(geometry_checkpoint),
         unpack(model_checkpoint),
+        unpack(codec_store),
         weights="results/{scene}/weights.zarr",
         generated="results/{scene}/generated.zarr",
         truth="results/{scene}/eval_truth.zarr",
@@ -163,6 +164,7 @@ rule evaluate_voxels:
     params:
         geometry=lambda wc, input: f"--geometry-checkpoint {input.geometry}" if "geometry" in input.keys() else "",
         checkpoint=lambda wc, input: f"--checkpoint {input.checkpoint}" if "checkpoint" in input.keys() else "",
+        cache=lambda wc, input: f"--cache-weights {input.cache}" if "cache" in input.keys() else "",
         blend=lambda wc: blend_args(wc.scene),
         ddpm_lights=lambda wc: scene_config(wc.scene)["evaluate"]["ddpm_lights"],
         wide=lambda wc: "--wide-lights {wide_lights} --wide-points {wide_points} --seed {seed}".format(
@@ -181,7 +183,8 @@ rule evaluate_voxels:
     shell:
         "diffshadow --phases results/{wildcards.scene}/benchmarks/evaluate_voxels.phases.json evaluate-voxels {params.checkpoint} --weights {input.weights}"
         " --generated {input.generated} --truth {input.truth} --volume {input.volume} --lights {input.lights}"
-        " {params.geometry} {params.blend} --ddpm-lights {params.ddpm_lights} {params.wide} {params.device}"
+        " {params.geometry} {params.cache} {params.blend} --ddpm-lights {params.ddpm_lights} {params.wide}"
+        " {params.device}"
         " --threads {threads}"
         " --out {output} 2>&1 | tee {log}"
 
