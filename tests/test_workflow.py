@@ -151,11 +151,11 @@ def test_the_wide_comparison_at_share_0_is_the_blend_and_at_share_1_the_model(fi
 
 
 
-def test_without_a_model_the_wide_comparison_is_the_caches_blend(finished):
+def test_without_a_model_the_wide_comparison_is_the_caches_blend(finished, tmp_path):
     """No model (`cache: blend` or a codec): the further lights are those a diffusion run draws, the weight blend's
     median is the one it reports; `cache: blend` answers with that blend (no gap to state), a codec with its decoded
     store's blend (the fp32 store itself: a zero gap; fp16: within 0.05 dB, no model keys either way), and a store
-    of other lights is refused by name."""
+    of other lights is refused by name, before the work."""
     import dataclasses
 
     from diffshadow import artifacts
@@ -178,10 +178,15 @@ def test_without_a_model_the_wide_comparison_is_the_caches_blend(finished):
     fp16 = wide_comparison(None, stage1, lights, volume, tf, cache=half, **args)
     assert fp16["codec"] == "fp16" and "model_alone_psnr_median" not in fp16
     assert abs(fp16["generated_psnr_median"] - fp16["weight_blend_psnr_median"]) < 0.05
-    fewer = dataclasses.replace(stage1, weights=stage1.weights[:-1], lights=stage1.lights[:-1])
-    with pytest.raises(ValueError, match=f"the cache's store holds {len(stage1.lights) - 1} lights, not stage 1's "
-                       f"{len(stage1.lights)}"):
-        wide_comparison(None, stage1, lights, volume, tf, cache=fewer, **args)
+    # a store of other lights (here the generated one: training and unseen) is refused before any work is done
+    from diffshadow.stages.stage2 import evaluate_voxels
+    n = len(stage1.lights)
+    with pytest.raises(ValueError, match=f"--cache-weights {res / 'generated.zarr'}: {n + 2} lights, not the {n} of "
+                       f"--weights {res / 'weights.zarr'} in their order"):
+        evaluate_voxels(None, res / "weights.zarr", res / "generated.zarr", res / "eval_truth.zarr",
+                        res / "volume.zarr", res / "lights.json", tmp_path / "v.json", blend_k=2, weighting="triangle",
+                        ddpm_lights=0, wide_lights=12, cache_path=res / "generated.zarr")
+    assert not (tmp_path / "v.json").exists()
 
 
 def test_the_stored_sirens_are_the_models_mixed_with_the_blend_at_the_share_recorded(finished, tmp_path):

@@ -342,6 +342,10 @@ def evaluate_voxels(checkpoint: Path | None, weights_path: Path, generated_path:
     geometry = artifacts.load_checkpoint(geometry_checkpoint) if geometry_checkpoint else None
     state = artifacts.load_checkpoint(checkpoint) if checkpoint else None
     stage1, light_sets = open_store(weights_path), read_lights(lights_path)  # read (and verified) once for both
+    cache = open_store(cache_path) if cache_path else None
+    if cache is not None and not np.array_equal(cache.lights, stage1.lights):  # before the work, not after
+        raise ValueError(f"--cache-weights {cache_path}: {len(cache.lights)} lights, not the {len(stage1.lights)} of "
+                         f"--weights {weights_path} in their order (expected encode-cache's decoded copy of it)")
     result = voxel_metrics(state, stage1, open_store(generated_path), artifacts.read_eval_truth(truth_path),
                            light_sets, blend_k=blend_k, weighting=weighting,
                            grid_voxels=prepared_voxels(volume_path), ddpm_lights=ddpm_lights,
@@ -353,7 +357,7 @@ def evaluate_voxels(checkpoint: Path | None, weights_path: Path, generated_path:
         share = float((result.get("mix") or {}).get("model_share", 1.0))
         result["wide"] = w = wide_comparison(state, stage1, light_sets, volume, tf, share=share, lights=wide_lights,
                                              points=wide_points, seed=wide_seed, blend_k=blend_k, weighting=weighting,
-                                             device=device, cache=open_store(cache_path) if cache_path else None)
+                                             device=device, cache=cache)
         said = [f"the cache's answer {w['generated_psnr_median']:.2f} dB", f"weight blend "
                 f"{w['weight_blend_psnr_median']:.2f}"]
         if "model_alone_psnr_median" in w:
