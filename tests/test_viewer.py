@@ -241,7 +241,8 @@ def test_the_render_command_reproduces_the_camera_and_the_light(viewer):
 
 def test_a_mixed_cache_names_its_share_and_its_render_command_mixes_the_same_way(viewer):
     """With sample_shadows' mix, a new direction's SIREN is the model's and the stored SIRENs' blend mixed at the
-    run's share, and the panel's command asks `render` for the same mix."""
+    run's share, and the panel's command asks `render` for the same mix; a blend of a codec's store names the
+    codec."""
     from diffshadow.diffusion.mix import MixedSampler, mix_weights
     from diffshadow.store import BlendSampler
 
@@ -258,6 +259,9 @@ def test_a_mixed_cache_names_its_share_and_its_render_command_mixes_the_same_way
     assert mixed.cache_name == "diffusion 0.7 + weight blend 0.3"
     for share, name in ((0.0, "weight blend (model share 0)"), (1.0, "diffusion (model share 1)")):
         mixed.sampler = MixedSampler(Model(), blend, share)  # one side alone: named as that side, not a mix
+        assert mixed.cache_name == name
+    for config, name in (({}, "weight blend"), ({"codec": "fp16"}, "weight blend, fp16")):  # a codec's store
+        mixed.sampler = BlendSampler(WeightStore(**{**vars(stored), "config": config}), 2, "triangle")
         assert mixed.cache_name == name
     mixed.sampler = MixedSampler(Model(), blend, 0.7)
     new = direction(21, 40)
