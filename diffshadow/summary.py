@@ -119,12 +119,13 @@ class RunResults:
 
     def headline(self) -> list[tuple[str, str]]:
         v, seen, unseen = self.voxel, self.voxel["seen"], self.voxel.get("unseen")
+        made = "blended" if v.get("cache") == "blend" else "generated"  # no model: nothing is generated
         rows = [("lights", f"{seen['count']} training, {unseen['count'] if unseen else 0} unseen"),
                 ("stage-1 SIRENs (median voxel PSNR)", f"{seen['stage1_psnr_median']:.2f} dB"),
-                ("generated, seen lights", f"{seen['generated_psnr_median']:.2f} dB "
+                (f"{made}, seen lights", f"{seen['generated_psnr_median']:.2f} dB "
                  f"({seen['generated_minus_stage1_median_db']:+.2f} dB against stage 1{_alone(seen)})")]
         if unseen:
-            rows.append(("generated, unseen lights",
+            rows.append((f"{made}, unseen lights",
                          f"{unseen['generated_psnr_median']:.2f} dB ({blend_label(unseen)} true "
                          f"shadows {unseen['blend_psnr_median']:.2f} dB, nearest training SIREN "
                          f"{unseen['nearest_psnr_median']:.2f} dB{_alone(unseen)})"))

@@ -239,4 +239,6 @@ def test_a_codec_cache_has_no_model_rows_even_where_an_old_runs_files_remain(tmp
     tables = run.tables()
     assert "the cache: the 100 SIRENs in fp16</td><td>0.05</td>" in tables  # 50,000 bytes
     assert "diffusion model (weights" not in tables and "fine-tuning" not in tables
-    assert not any("fine-tuning" in name for name, _ in run.headline())
+    names = [name for name, _ in run.headline()]
+    assert not any("fine-tuning" in name for name in names)
+    assert "blended, unseen lights" in names and not any(name.startswith("generated") for name in names)
