@@ -82,7 +82,7 @@ def wide_comparison(state: dict | None, stage1, light_sets: dict, volume, tf, *,
         sides = {"weight_blend": blend}
         if cache is not None:
             sides["answer"] = blend_rows(cache.weights, idx, w).astype(np.float32)
-            out["codec"] = (cache.config or {}).get("codec", "fp32")
+            out["codec"] = cache.codec
     else:
         cfg = state["config"]
         model, std, layout, siren = load_sampler(state, device)
@@ -197,7 +197,7 @@ def voxel_metrics(state: dict | None, stage1, generated, truth: EvalTruth, light
     stored = {"sirens": int(len(train) * layout.n_params * 4), "grids": int(len(train) * grid_voxels * 2)}
     if model is None:
         result["storage_bytes"] = {"model": 0, **stored}
-        codec = (generated.config or {}).get("codec", "fp32")
+        codec = generated.codec
         if codec != "fp32":  # cache: fp16, bf16, basis-<k>: the stored SIRENs' blend, stored in that codec
             result["codec"] = codec
             result["storage_bytes"]["cache"] = int(generated.config["encoded_bytes"])

@@ -31,6 +31,12 @@ class WeightStore:
     seen: np.ndarray | None = None  # generated stores: True for training lights, False for unseen ones
     region: dict | None = None  # the light region of the cache (lights.LightRegion.to_dict)
 
+    @property
+    def codec(self) -> str:
+        """The codec its SIRENs went through (a codec's decoded cache.zarr, or a blend cache's generated store
+        records it); fp32 where none did."""
+        return (self.config or {}).get("codec", "fp32")
+
     def light_region(self) -> LightRegion:
         """The light region these SIRENs answer for: as written with the store, else (a store written before
         regions travelled with it) the cap around its training lights' mean direction."""

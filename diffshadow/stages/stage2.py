@@ -310,7 +310,7 @@ def blend_shadows(weights_path: Path, truth_path: Path, lights_path: Path, out: 
     all_lights = np.concatenate([train, unseen])
     seen = np.arange(len(all_lights)) < len(train)
     _check_region(blend.region, unseen, weights_path)
-    codec = (stage1.config or {}).get("codec", "fp32")  # cache: blend reads stage 1's own fp32 store
+    codec = stage1.codec  # cache: blend reads stage 1's own fp32 store
     print(f"blending {(~seen).sum()} unseen shadow SIRENs, each {describe_blend(weighting, blend_k)} "
           f"({len(train)} stored, {codec})", flush=True)
     truth = artifacts.read_eval_truth(truth_path)

@@ -244,7 +244,7 @@ class ViewerScene:
     @property
     def cache_name(self) -> str:
         if isinstance(self.sampler, BlendSampler):  # a codec's decoded store says which codec (cache: fp16, ...)
-            codec = (self.sampler.store.config or {}).get("codec", "fp32")
+            codec = self.sampler.store.codec
             return "weight blend" if codec == "fp32" else f"weight blend, {codec}"
         if isinstance(self.sampler, MixedSampler):
             return mix_name(self.sampler.share)
