@@ -120,11 +120,15 @@ def project(data: dict, run: dict, paper: dict, gpu_costs: dict[str, dict], *, l
         used = max(ratio, 1.0)
         a100_total = cpu_total / used * factors.get(stage, 1.0) * A100_PER_H200  # all jobs of the stage
         rss = predict(fit["max_rss_mib"], lights) or fit["max_rss_mib"]["points"][-1][1]
+        # A job on a GPU node holds at least what the same job held on the H200 at the run's sizes (CUDA's host
+        # context and libraries: 505 MiB for `lights`, which the CPU sweep measured at 41)
+        gpu_rss = float(gpu_costs.get(stage, {}).get("max_rss_mib") or 0.0)
         model_mib = model_state_mib(stage, run, paper)
         rows[stage] = {"exponent": exponent, "cpu_s_run_config": cpu_total,
                        "h200_over_cpu": ratio, "speedup_used": used, "work_factor": factors.get(stage, 1.0),
                        **_schedule(stage, a100_total, -(-lights // subset), stage1_nodes),
-                       "rss_mib_run_config": rss, "model_state_mib": model_mib, "rss_mib": rss + max(model_mib, 0.0)}
+                       "rss_mib_run_config": rss, "rss_mib_gpu_run": gpu_rss, "model_state_mib": model_mib,
+                       "rss_mib": max(rss, gpu_rss) + max(model_mib, 0.0)}
     return {"lights": lights, "a100_per_h200": A100_PER_H200, "margin": MARGIN, "queue_max_h": QUEUE_MAX_H,
             "stages": rows, "storage_bytes": storage_at(paper, [lights, paper["lights"]["sphere"]])}
 
