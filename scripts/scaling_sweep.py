@@ -3,7 +3,7 @@ three figures and a page (`diffshadow.scaling`).
 
     python scripts/scaling_sweep.py --lights 32 128 512 --out sweep          # every stage, on this machine
     python scripts/scaling_sweep.py --lights 32 128 --out sweep --collect    # only re-read finished runs
-    python scripts/scaling_sweep.py --from-json docs/scaling/scaling.json --out docs/scaling \
+    python scripts/scaling_sweep.py --from-json docs/scaling/triangle/scaling.json --out docs/scaling/triangle \
         --bench-stages docs/measurements/h200_bench_stages_paper.json --profile-out profiles/paper/config.yaml
                                                # the projection and profiles/paper again from a committed sweep
 
@@ -48,7 +48,7 @@ def main() -> None:
                     help="with --caches: the sweep whose diffusion model the codecs are set beside")
     ap.add_argument("--collect", action="store_true", help="run nothing: read the finished points under --out")
     ap.add_argument("--from-json", type=Path, help="run nothing: the points of an earlier sweep's scaling.json "
-                    "(e.g. docs/scaling/scaling.json), projected again")
+                    "(e.g. docs/scaling/triangle/scaling.json), projected again")
     ap.add_argument("--paper", type=Path, default=ROOT / "config" / "paper.yaml",
                     help="the config overlay to project to (over config/config.yaml)")
     ap.add_argument("--gpu-costs", type=Path,
@@ -91,7 +91,7 @@ def main() -> None:
         from diffshadow.scaling import rate_distortion
 
         try:
-            table = rate_distortion.collect(runs, json.loads(a.model_json.read_text())["points"])
+            table = rate_distortion.collect(runs, json.loads(a.model_json.read_text())["points"], _shown(a.model_json))
         except FileNotFoundError as e:
             sys.exit(f"[sweep] {e}")
         table["model_json"] = _shown(a.model_json)

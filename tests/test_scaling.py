@@ -65,10 +65,12 @@ def test_projection_and_its_workflow_profile(tmp_path):
     paper's work per light; the profile's walltimes are its requests, capped at the queue's longest."""
     data = scaling.sweep([_point(tmp_path, n) for n in (8, 32)])
     run = config.load_run(REPO / "config" / "config.yaml")
-    gpu = {"fit_siren": {"wall_s": 2.0 * 8 / 4}, "train_diffusion": {"wall_s": 10.0 * 8 ** 0.5 * 2},
+    gpu = {"fit_siren": {"wall_s": 2.0 * 8 / 4, "max_rss_mib": 1e6}, "train_diffusion": {"wall_s": 10.0 * 8 ** 0.5 * 2},
            "preoptimize": {"wall_s": 1.0}}  # fit 4x faster on the GPU; diffusion 2x slower (start-up)
     proj = scaling.project(data, run, run, gpu, lights=200, subset=50, stage1_nodes=1)
     fit, diff, pre = (proj["stages"][s] for s in ("fit_siren", "train_diffusion", "preoptimize"))
+    # memory: what the job held on the GPU where that is more than the CPU sweep carries to 200 lights
+    assert fit["rss_mib"] == 1e6 and diff["rss_mib"] == diff["rss_mib_run_config"] < 1e6
     assert fit["speedup_used"] == pytest.approx(4.0) and diff["speedup_used"] == 1.0
     assert pre["speedup_used"] == pytest.approx(4.0)  # one fit: fit_siren's speed-up, not its own start-up
     # the same config: work factor 1 for every stage
@@ -178,3 +180,31 @@ def test_equal_bytes_sets_the_model_against_the_best_stored_cache_no_larger():
     assert eq["best"] == "stored SIRENs fp16" and eq["model_gain_db"] == pytest.approx(-0.9)  # fp32 is larger
     assert equal_bytes(rows[:4]) is None  # no model at this point
     assert equal_bytes(rows[3:])["best"] is None  # nothing stored as small
+
+
+def test_the_caches_study_keeps_a_full_runs_own_model_rows(tmp_path):
+    """A full run's caches.json measured its model (and the mix) on the same points: those rows stay. A
+    stage-1-only run's table has none, so it gets the sweep's model at its light count, naming where from."""
+    from diffshadow.scaling.rate_distortion import collect, markdown
+
+    stored = {"cache": "stored SIRENs fp32", "kind": "stored", "bytes": 400, "seen_psnr": 41.0, "unseen_psnr": 40.0}
+    own = [{"cache": f"diffusion model {c}", "kind": "model", "bytes": b, "seen_psnr": 38.0, "unseen_psnr": 37.5}
+           for c, b in (("fp32", 2000), ("fp16", 1000))]
+    mix = {"cache": "model 0 + stored SIRENs 1, both fp16", "kind": "mix", "share": 0.0, "bytes": 1200,
+           "seen_psnr": 41.0, "unseen_psnr": 40.0}
+    runs = []
+    for n, rows in ((8, [stored, *own, mix]), (32, [stored])):
+        res = tmp_path / f"lights_{n}"
+        res.mkdir()
+        (res / "caches.json").write_text(json.dumps({"lights": {"train": n, "unseen": 4}, "caches": rows}))
+        runs.append(res)
+    sweep_points = [{"lights": n, "storage_bytes": {"model": 3000},
+                     "quality": {"seen": {"generated": 39.0}, "unseen": {"generated": 36.0}}} for n in (8, 32)]
+    table = collect(runs, sweep_points, "sweep/scaling.json")
+    full, stage1 = table["points"]
+    assert [r["cache"] for r in full["caches"]] == [r["cache"] for r in (stored, *own, mix)]
+    assert full["equal_bytes"]["model_unseen_psnr"] == 37.5  # its own model, not the sweep's 36.0
+    model = [r for r in stage1["caches"] if r["kind"] == "model"]
+    assert [(r["bytes"], r["unseen_psnr"]) for r in model] == [(3000, 36.0), (1500, 36.0)]
+    assert model[0]["source"].startswith("sweep/scaling.json")
+    assert "| 8 | model 0 + stored SIRENs 1, both fp16 |" in markdown(table)

@@ -16,9 +16,11 @@ from diffshadow.io import atomic_write_text, finite_json
 from diffshadow.report import label_points, pyplot, save_figure
 
 
-def collect(runs: list[Path], model_points: list[dict]) -> dict:
-    """One entry per run (results/<scene>/ with caches.json): its rows, plus the model's rows from the sweep
-    point of the same light count (none where the sweep has no such point)."""
+def collect(runs: list[Path], model_points: list[dict], model_source: str = "the sweep's scaling.json") -> dict:
+    """One entry per run (results/<scene>/ with caches.json): its rows. A full run's table holds the model's own
+    rows (and the mix's), measured on the same points; a stage-1-only run's (`cache: blend`) gets the model's
+    rows from the sweep point of the same light count (`model_points`, read from `model_source`; none where the
+    sweep has no such point)."""
     models = {p["lights"]: p for p in model_points}
     points = []
     for results in runs:
@@ -27,7 +29,7 @@ def collect(runs: list[Path], model_points: list[dict]) -> dict:
             raise FileNotFoundError(f"{path}: missing (run the point with scripts/scaling_sweep.py --caches)")
         table = json.loads(path.read_text())
         n = table["lights"]["train"]
-        rows = [r for r in table["caches"] if r["kind"] != "model"]
+        rows = list(table["caches"])
         choice = _read(Path(results) / "cache_choice.json")  # where `cache: auto` was asked too
         if choice:
             val = {("fp32" if c["cache"] == "blend" else c["cache"]): c["val_psnr"] for c in choice["candidates"]}
@@ -36,13 +38,13 @@ def collect(runs: list[Path], model_points: list[dict]) -> dict:
                 if r["kind"] in ("stored", "codec") and name in val:
                     r["val_psnr"] = val[name]
         m = models.get(n)
-        if m is not None:
+        if m is not None and not any(r["kind"] == "model" for r in rows):
             for name, nbytes in (("fp32", m["storage_bytes"]["model"]), ("fp16", m["storage_bytes"]["model"] // 2)):
                 rows.append({"cache": f"diffusion model {name}", "kind": "model", "bytes": int(nbytes),
                              "seen_psnr": m["quality"]["seen"]["generated"],
                              "unseen_psnr": m["quality"]["unseen"]["generated"],
-                             "source": "docs/scaling/scaling.json (fp16: half the bytes, the figures of fp32, which "
-                                       "the README run measured 0.01 dB apart)"})
+                             "source": f"{model_source} (fp16: half the bytes, the figures of fp32, which the "
+                                       "README run measured 0.01 dB apart)"})
         points.append({"lights": n, "unseen_lights": table["lights"]["unseen"], "caches": rows,
                        "equal_bytes": equal_bytes(rows),
                        **({"auto": {k: choice[k] for k in ("choice", "why", "target_psnr")}} if choice else {})})
@@ -74,7 +76,7 @@ def write(data: dict, out: Path) -> None:
     save_figure(out.parent / "scaling_caches.png", figure(data))
 
 
-COLOURS = {"stored": "tab:blue", "codec": "tab:green", "model": "tab:red", "grids": "tab:gray"}
+COLOURS = {"stored": "tab:blue", "codec": "tab:green", "model": "tab:red", "mix": "tab:purple", "grids": "tab:gray"}
 
 
 def figure(data: dict):
@@ -92,9 +94,11 @@ def figure(data: dict):
             ax.scatter(r["bytes"], r["unseen_psnr"], color=c, marker="*" if r["kind"] == "model" else "o",
                        s=90 if r["kind"] == "model" else 30, zorder=3)
             ax.scatter(r["bytes"], r["seen_psnr"], color=c, marker="_", s=60, alpha=0.5, zorder=2)
-            if r["cache"] == "diffusion model fp32":
-                continue  # one label for the model's two points (same PSNR)
+            if r["cache"] == "diffusion model fp32" or (r["kind"] == "mix" and "fp32" in r["cache"]):
+                continue  # one label for the model's (or the mix's) two points (the same PSNR within 0.1 dB)
             label = r["cache"].replace("stored SIRENs ", "").replace("dense shadow grids ", "grids ")
+            if r["kind"] == "mix":
+                label = f"mix, model share {r['share']:g}: fp16 | fp32"
             points.append((r["bytes"], r["unseen_psnr"]))
             labels.append(label.replace("diffusion model fp16", "model fp16 | fp32"))
         ax.set_xscale("log")
@@ -104,7 +108,8 @@ def figure(data: dict):
         labelled.append((ax, points, labels))
     axes[0][0].set_ylabel("median voxel PSNR, unseen lights (dB); – seen")
     fig.suptitle("caches as rate (bytes) against distortion: stored SIRENs (blue), codecs (green), diffusion "
-                 "model (red stars: fp16, fp32), dense grids (grey)\nmarkers: unseen lights; dashes: seen lights",
+                 "model (red stars: fp16, fp32), its mix with the stored SIRENs (purple), dense grids (grey)\n"
+                 "markers: unseen lights; dashes: seen lights",
                  fontsize=9)
     fig.tight_layout()
     for ax, points, labels in labelled:  # after the layout: labels are placed where they will be drawn
