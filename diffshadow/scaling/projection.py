@@ -181,12 +181,13 @@ def walltime(hours: float) -> str:
     return f"{minutes // 60:02d}:{minutes % 60:02d}:00"
 
 
-# Rules the sweep did not time (they came after it), from a measurement at the paper's sizes on one thread of a
-# 2-core CPU: `caches` scores 12 rows of 2,500 SIRENs of width 128 at 16,384 points (6.0 min a row) and draws every
-# light once with the model's DDIM (`bench stages --stages sample_shadows`: 23.9 s per 64 lights on 2 threads,
-# ~26 min on one), ~100 min in all; asked for at MARGIN x that (docs/performance.md, "caches at the paper's sizes").
+# Rules the H200's README run did not time (they came after it), so the sweep's CPU power law has no GPU speed to
+# carry it with; from a measurement at the paper's sizes on one thread of a 2-core CPU: `caches` scores 12 rows of
+# 2,500 SIRENs of width 128 at 16,384 points (6.0 min a row) and draws every light once with the model's DDIM
+# (`bench stages --stages sample_shadows`: 23.9 s per 64 lights on 2 threads, ~26 min on one), ~100 min in all;
+# asked for at MARGIN x that (docs/performance.md, "caches at the paper's sizes").
 UNSWEPT_CPU_S = {"caches": 100 * 60.0}
-UNSWEPT_SOURCE = "not in the sweep: one CPU thread at the paper's sizes, measured per row"
+UNSWEPT_SOURCE = "no H200 timing: one CPU thread at the paper's sizes, measured per row"
 
 
 def polaris_profile(proj: dict) -> str:
