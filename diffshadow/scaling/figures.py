@@ -141,8 +141,8 @@ measured speed over this machine's per stage, the paper config's work per light 
 GPU{bench} instead takes that measurement's steps (the same A100 factor). Stage 1: subsets of 50, four to a node,
 10 nodes. Upper bounds where a small run leaves a GPU idle. train_diffusion's exponent is its cost per epoch,
 carried at the configured epochs (its gap check chose the epochs each point trained: {epochs}). Host memory: the
-peak RSS carried to this light count plus the paper model's parameters in host memory (weights, gradients, Adam's
-moments, EMA: scaling.MODEL_COPIES).</p>
+peak RSS carried to this light count (at least the same job's RSS on the H200: CUDA's host context) plus the paper
+model's parameters in host memory (weights, gradients, Adam's moments, EMA: scaling.MODEL_COPIES).</p>
 <table><tr><th>stage</th><th>exponent</th><th>H200 / this CPU (used)</th><th>work factor</th><th>wall (h)</th>
 <th>node-hours</th><th>host memory per job (GiB)</th></tr>{rows}<tr><td>total</td><td></td><td></td><td></td><td></td>
 <td>{total:,.1f}</td><td></td></tr></table>

@@ -193,14 +193,14 @@ UNSWEPT_SOURCE = "no H200 timing: one CPU thread at the paper's sizes, measured 
 def polaris_profile(proj: dict) -> str:
     """A Snakemake workflow profile (`--workflow-profile`) whose per-rule walltimes are the projection's
     requests; laid over `--profile polaris`, it replaces the profile's guesses. `mem_mb`: the peak RSS carried to
-    the light count plus the paper model's state in host memory (`model_state_mib`), x margin (Polaris nodes
-    are whole: 512 GB; Snakemake checks it, qsub is not sent it)."""
+    the light count (at least the job's RSS on the H200) plus the paper model's state in host memory
+    (`model_state_mib`), x margin (Polaris nodes are whole: 512 GB; Snakemake checks it, qsub is not sent it)."""
     lines = ["# Made by scripts/scaling_sweep.py from the light-count sweep (diffshadow.scaling.project): each",
              f"# rule's projected A100 time at {proj['lights']:,} lights x {proj['margin']}, at most "
              f"{proj['queue_max_h']:.0f} h",
              "# (a longer stage resumes from its checkpoint in a further job); mem_mb: the peak RSS carried to that",
-             "# light count, plus the paper model's parameters held in host memory (scaling.MODEL_COPIES), x the",
-             "# margin (a Polaris node has 512 GB). Use:",
+             "# light count (at least the job's RSS on the H200), plus the paper model's parameters held in host",
+             "# memory (scaling.MODEL_COPIES), x the margin (a Polaris node has 512 GB). Use:",
              "#   snakemake --profile polaris --workflow-profile profiles/paper --configfile config/paper.yaml",
              "set-resources:"]
     for stage, r in sorted(proj["stages"].items()):
