@@ -44,7 +44,7 @@ def main() -> None:
     ap.add_argument("--caches", action="store_true", help="stage 1 and the caches table only (`cache: blend`, target "
                     "caches.json): every codec's rate and distortion per light count, beside the model's figures "
                     "from --model-json; writes OUT/caches.json and OUT/scaling_caches.png")
-    ap.add_argument("--model-json", type=Path, default=ROOT / "docs" / "scaling" / "scaling.json",
+    ap.add_argument("--model-json", type=Path, default=ROOT / "docs" / "scaling" / "triangle" / "scaling.json",
                     help="with --caches: the sweep whose diffusion model the codecs are set beside")
     ap.add_argument("--collect", action="store_true", help="run nothing: read the finished points under --out")
     ap.add_argument("--from-json", type=Path, help="run nothing: the points of an earlier sweep's scaling.json "
