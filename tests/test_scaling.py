@@ -198,13 +198,18 @@ def test_the_caches_study_keeps_a_full_runs_own_model_rows(tmp_path):
         res.mkdir()
         (res / "caches.json").write_text(json.dumps({"lights": {"train": n, "unseen": 4}, "caches": rows}))
         runs.append(res)
+    # the sweep mixed the model's SIRENs with the blend: "generated" is the mix's answer, "model_alone" the model's
     sweep_points = [{"lights": n, "storage_bytes": {"model": 3000},
-                     "quality": {"seen": {"generated": 39.0}, "unseen": {"generated": 36.0}}} for n in (8, 32)]
+                     "quality": {"seen": {"generated": 41.0, "model_alone": 39.0},
+                                 "unseen": {"generated": 40.0, "model_alone": 36.0}}} for n in (8, 32)]
     table = collect(runs, sweep_points, "sweep/scaling.json")
     full, stage1 = table["points"]
     assert [r["cache"] for r in full["caches"]] == [r["cache"] for r in (stored, *own, mix)]
     assert full["equal_bytes"]["model_unseen_psnr"] == 37.5  # its own model, not the sweep's 36.0
     model = [r for r in stage1["caches"] if r["kind"] == "model"]
-    assert [(r["bytes"], r["unseen_psnr"]) for r in model] == [(3000, 36.0), (1500, 36.0)]
+    assert [(r["bytes"], r["seen_psnr"], r["unseen_psnr"]) for r in model] == [(3000, 39.0, 36.0), (1500, 39.0, 36.0)]
     assert model[0]["source"].startswith("sweep/scaling.json")
+    # an old sweep (no mix) has only "generated", the model's own
+    old = [{**p, "quality": {"seen": {"generated": 39.5}, "unseen": {"generated": 36.5}}} for p in sweep_points]
+    assert [r["unseen_psnr"] for r in collect(runs, old)["points"][1]["caches"] if r["kind"] == "model"] == [36.5] * 2
     assert "| 8 | model 0 + stored SIRENs 1, both fp16 |" in markdown(table)

@@ -39,10 +39,12 @@ def collect(runs: list[Path], model_points: list[dict], model_source: str = "the
                     r["val_psnr"] = val[name]
         m = models.get(n)
         if m is not None and not any(r["kind"] == "model" for r in rows):
+            # the model's own SIRENs: where the sweep mixed them with the blend, "generated" is the mix's answer
+            seen, unseen = (m["quality"][k].get("model_alone") or m["quality"][k]["generated"]
+                            for k in ("seen", "unseen"))
             for name, nbytes in (("fp32", m["storage_bytes"]["model"]), ("fp16", m["storage_bytes"]["model"] // 2)):
                 rows.append({"cache": f"diffusion model {name}", "kind": "model", "bytes": int(nbytes),
-                             "seen_psnr": m["quality"]["seen"]["generated"],
-                             "unseen_psnr": m["quality"]["unseen"]["generated"],
+                             "seen_psnr": seen, "unseen_psnr": unseen,
                              "source": f"{model_source} (fp16: half the bytes, the figures of fp32, which the "
                                        "README run measured 0.01 dB apart)"})
         points.append({"lights": n, "unseen_lights": table["lights"]["unseen"], "caches": rows,
