@@ -217,3 +217,20 @@ def test_the_caches_study_keeps_a_full_runs_own_model_rows(tmp_path):
     old = [{**p, "quality": {"seen": {"generated": 39.5}, "unseen": {"generated": 36.5}}} for p in sweep_points]
     assert [r["unseen_psnr"] for r in collect(runs, old)["points"][1]["caches"] if r["kind"] == "model"] == [36.5] * 2
     assert "| 8 | model 0 + stored SIRENs 1, both fp16 |" in markdown(table)
+
+
+def test_work_factors_count_what_each_stage_computes():
+    """Fitting grows with steps x points x width²; the fine-tuning targets (exact shadows, no SIREN) with views x
+    pixels, not with the SIRENs' width; evaluating SIRENs with width²."""
+    import copy
+
+    run = config.load_run(REPO / "config" / "config.yaml")
+    paper = copy.deepcopy(run)
+    paper["siren"]["width"] *= 2
+    paper["fit"]["steps"] *= 3
+    paper["finetune"]["views"] *= 2
+    paper["finetune"]["image_size"] *= 2
+    f = scaling.work_factors(run, paper)
+    assert f["fit_siren"] == pytest.approx(3 * 4) and f["evaluate_voxels"] == pytest.approx(4)
+    assert f["render_targets"] == pytest.approx(2 * 4)
+    assert scaling.work_factors(run, run)["render_targets"] == 1.0

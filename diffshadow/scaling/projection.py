@@ -42,7 +42,8 @@ def work_factors(run: dict, paper: dict) -> dict[str, float]:
     """Per stage, the paper config's work per light (or per job) over the run config's, from what each stage
     computes (the light count is the sweep's exponent's business): fitting costs steps x points x width² per
     light; the diffusion stages cost their model's parameters x tokens per sample, times epochs (and views and
-    sampled pixels, over GPUs, for fine-tuning); evaluating and rendering SIRENs costs width². Other stages: 1.
+    sampled pixels, over GPUs, for fine-tuning); evaluating and rendering SIRENs costs width²; the fine-tuning
+    targets (exact shadows, no SIREN) cost views x pixels per light. Other stages: 1.
     Upper bounds on a GPU: small networks leave it idle, large ones use it better."""
     fit = {k: paper["fit"][k] / run["fit"][k] for k in ("steps", "points")}
     width2 = (paper["siren"]["width"] / run["siren"]["width"]) ** 2
@@ -52,10 +53,11 @@ def work_factors(run: dict, paper: dict) -> dict[str, float]:
     # a step samples `pixels` per view per light (the target images' size changes only render_targets)
     finetune = (ft["epochs"] / run["finetune"]["epochs"]) * (ft["views"] / run["finetune"]["views"]) * (
         ft["pixels"] / run["finetune"]["pixels"]) * model / (ft["nproc"] / run["finetune"]["nproc"])
+    targets = (ft["views"] / run["finetune"]["views"]) * (ft["image_size"] / run["finetune"]["image_size"]) ** 2
     fitting = fit["steps"] * fit["points"] * width2
     return {"fit_siren": fitting, "preoptimize": fitting, "train_diffusion": epochs * model,
             "finetune_render": finetune, "sample_shadows": model, "evaluate_voxels": width2,
-            "evaluate_images": width2, "render_targets": width2, "benchmark": width2}
+            "evaluate_images": width2, "render_targets": targets, "benchmark": width2}
 
 
 
