@@ -43,7 +43,8 @@ def work_factors(run: dict, paper: dict) -> dict[str, float]:
     computes (the light count is the sweep's exponent's business): fitting costs steps x points x width² per
     light; the diffusion stages cost their model's parameters x tokens per sample, times epochs (and views and
     sampled pixels, over GPUs, for fine-tuning); evaluating and rendering SIRENs costs width²; the fine-tuning
-    targets (exact shadows, no SIREN) cost views x pixels per light. Other stages: 1.
+    targets (exact shadows, no SIREN: a grid swept per light, which does not grow, then views x pixels read from
+    it) at most views x pixels. Other stages: 1.
     Upper bounds on a GPU: small networks leave it idle, large ones use it better."""
     fit = {k: paper["fit"][k] / run["fit"][k] for k in ("steps", "points")}
     width2 = (paper["siren"]["width"] / run["siren"]["width"]) ** 2
