@@ -93,7 +93,9 @@ def project(data: dict, run: dict, paper: dict, gpu_costs: dict[str, dict], *, l
     count, in subsets of its subset_size) on Polaris: the sweep's CPU
     power law carried to `lights` at the run's config, divided by the H200's speed over this CPU measured on
     the same run config at the sweep's smallest point (`gpu_costs`: stage_costs of a GPU run), times the
-    paper's work per light (`work_factors`), times A100_PER_H200.
+    paper's work per light (`work_factors`), times A100_PER_H200. Memory: the sweep's peak RSS carried the same
+    way, at least the job's RSS on the GPU run, plus the paper model's state. Rules timed at the paper's sizes
+    (PAPER_CPU_S) are not carried.
 
     Upper bounds: the small run's GPU jobs are mostly start-up, so where the H200 measured slower than the CPU
     it is taken as fast as the CPU (1x); preoptimize, one fit, takes fit_siren's speed-up. Stage 1 runs
