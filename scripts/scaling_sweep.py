@@ -90,11 +90,12 @@ def main() -> None:
     if a.caches:  # the codecs beside the full sweep's model, per light count
         from diffshadow.scaling import rate_distortion
 
+        source = _shown(a.model_json)
         try:
-            table = rate_distortion.collect(runs, json.loads(a.model_json.read_text())["points"], _shown(a.model_json))
+            table = rate_distortion.collect(runs, json.loads(a.model_json.read_text())["points"], source)
         except FileNotFoundError as e:
             sys.exit(f"[sweep] {e}")
-        table["model_json"] = _shown(a.model_json)
+        table["model_json"] = source
         rate_distortion.write(table, out / "caches.json")
         print(rate_distortion.markdown(table))
         print(f"[sweep] wrote {out / 'caches.json'} and {out / 'scaling_caches.png'}")

@@ -218,10 +218,11 @@ def polaris_profile(proj: dict) -> str:
         lines.append(f"    walltime: \"{walltime(r['walltime_request_h'])}\"")
         if r.get("rss_mib"):
             lines.append(f"    mem_mb: {math.ceil(r['rss_mib'] * proj['margin'] * 1.048576 / 100) * 100}")
+    # `project` carries none of these; listed all the same, since a workflow profile's set-resources replaces the
+    # machine's whole
     for stage, cpu_s in sorted(PAPER_CPU_S.items()):
-        if stage not in proj["stages"]:  # a workflow profile's set-resources replaces the machine's whole
-            lines.append(f"  {stage}:  # {PAPER_CPU_SOURCE}")
-            lines.append(f"    walltime: \"{walltime(min(cpu_s * proj['margin'] / 3600, proj['queue_max_h']))}\"")
+        lines.append(f"  {stage}:  # {PAPER_CPU_SOURCE}")
+        lines.append(f"    walltime: \"{walltime(min(cpu_s * proj['margin'] / 3600, proj['queue_max_h']))}\"")
     return "\n".join(lines) + "\n"
 
 
