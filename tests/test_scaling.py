@@ -73,6 +73,10 @@ def test_projection_and_its_workflow_profile(tmp_path):
     # caches was timed at the paper's sizes: that measurement, not a carry, whatever the sweep and the GPU say
     assert "caches" not in proj["stages"]
     assert f'caches:  # {scaling.PAPER_CPU_SOURCE}\n    walltime: "02:30:00"' in scaling.polaris_profile(proj)
+    # evaluate_voxels too (1,169 s and 6,277 MiB on one thread), with its measured peak as its memory request
+    assert "evaluate_voxels" not in proj["stages"]
+    assert (f'evaluate_voxels:  # {scaling.PAPER_CPU_SOURCE}\n    walltime: "00:30:00"\n    mem_mb: 9900'
+            in scaling.polaris_profile(proj))
     # memory: what the job held on the GPU where that is more than the CPU sweep carries to 200 lights
     assert fit["rss_mib"] == 1e6 and diff["rss_mib"] == diff["rss_mib_run_config"] < 1e6
     assert fit["speedup_used"] == pytest.approx(4.0) and diff["speedup_used"] == 1.0
@@ -89,6 +93,13 @@ def test_projection_and_its_workflow_profile(tmp_path):
     assert scaling.walltime(1.0) == "01:00:00" and scaling.walltime(0.001) == "00:01:00"
     assert scaling.walltime(72.0) == "72:00:00"
     assert all(r["model_state_mib"] == 0.0 for r in proj["stages"].values())  # the same model: nothing added
+    # the page lists the rules measured at the paper's sizes too; its total counts those a run of the paper config
+    # has (evaluate_voxels, caches), not cache: auto's choice or a codec's encoding
+    table = scaling.projection_html({**proj, "storage_bytes": {}}, [])
+    assert "<td>evaluate_voxels</td><td colspan=3>one CPU thread" in table and "not in the total" in table
+    total = (sum(r["node_hours"] for r in proj["stages"].values())
+             + (scaling.PAPER_CPU_S["evaluate_voxels"] + scaling.PAPER_CPU_S["caches"]) / 3600)
+    assert f"<td>total</td><td></td><td></td><td></td><td></td>\n<td>{total:,.1f}</td>" in table
 
 
 def test_train_diffusion_projects_its_cost_per_epoch(tmp_path):
@@ -167,7 +178,8 @@ def test_a_gpu_bench_of_the_paper_config_replaces_the_cpu_upper_bounds(tmp_path)
     assert diff == {**proj["stages"]["train_diffusion"], "source": scaling.CPU_SOURCE}
     text = scaling.polaris_profile(out)
     assert "fit_siren:  # bench stages on NVIDIA H200" in text and "upper bound" in text
-    assert "finetune_render:  # bench" in text and text.count("    mem_mb: ") == len(out["stages"]) - 2
+    assert "finetune_render:  # bench" in text
+    assert text.count("    mem_mb: ") == len(out["stages"]) - 2 + len(scaling.PAPER_CPU_RSS_MIB)
     with pytest.raises(ValueError, match="measured on 'cpu'"):
         scaling.measured_projection(proj, {**bench, "device": "cpu", "device_type": "cpu"})
 

@@ -215,3 +215,32 @@ def test_a_blend_takes_between_one_and_every_stored_siren(tmp_path):
     for k in (0, 5):
         with pytest.raises(ValueError, match=rf"^blend k: expected 1 to 4 \(the stored SIRENs\), got {k}$"):
             BlendSampler(store, k, "inverse-angle")
+
+
+def test_a_loaded_checkpoint_outlives_the_next_one_written_over_it(tmp_path):
+    """load_checkpoint maps the file (a sampler reads its EMA weights, not the optimizer's moments): the state
+    keeps its values when training writes the next checkpoint to the same path, and when the caller changes its
+    tensors the file is not changed. A file in torch's old, unmappable format still loads."""
+    import io
+
+    import torch
+
+    from diffshadow.artifacts import load_checkpoint
+    from diffshadow.io import atomic_torch_save
+
+    path = tmp_path / "diffusion.ckpt"
+
+    def state(value: float) -> dict:
+        return {"model": {"w": torch.full((4096,), value)}, "standardizer": {}, "layout": [], "config": {}}
+
+    atomic_torch_save(path, state(1.0))
+    first = load_checkpoint(path)
+    atomic_torch_save(path, state(2.0))
+    assert torch.equal(first["model"]["w"], torch.full((4096,), 1.0))
+    second = load_checkpoint(path)
+    second["model"]["w"].add_(1.0)
+    assert torch.equal(load_checkpoint(path)["model"]["w"], torch.full((4096,), 2.0))
+    buf = io.BytesIO()
+    torch.save(state(3.0), buf, _use_new_zipfile_serialization=False)
+    path.write_bytes(buf.getvalue())
+    assert torch.equal(load_checkpoint(path)["model"]["w"], torch.full((4096,), 3.0))

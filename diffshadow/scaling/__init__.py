@@ -20,6 +20,7 @@ from diffshadow.scaling.projection import (
     GPUS_PER_NODE,
     MARGIN,
     MODEL_COPIES,
+    PAPER_CPU_RSS_MIB,
     PAPER_CPU_S,
     PAPER_CPU_SOURCE,
     QUEUE_MAX_H,
@@ -35,8 +36,8 @@ from diffshadow.scaling.projection import (
 )
 from diffshadow.scaling.sweep import UNSEEN, SweepError, crossover, power_law, predict, read_costs, read_point, sweep
 
-__all__ = ["A100_PER_H200", "BENCH_FLOOR_H", "CPU_SOURCE", "GPUS_PER_NODE", "MARGIN", "MODEL_COPIES", "PAPER_CPU_S",
-           "PAPER_CPU_SOURCE", "QUEUE_MAX_H",
+__all__ = ["A100_PER_H200", "BENCH_FLOOR_H", "CPU_SOURCE", "GPUS_PER_NODE", "MARGIN", "MODEL_COPIES",
+           "PAPER_CPU_RSS_MIB", "PAPER_CPU_S", "PAPER_CPU_SOURCE", "QUEUE_MAX_H",
            "UNSEEN", "SweepError", "cost_figure", "crossover", "measured_projection", "model_cost", "model_size",
            "model_state_mib", "page", "polaris_profile", "power_law", "predict", "project", "projection_html",
            "quality_figure", "read_costs", "read_point", "storage_at", "storage_figure", "sweep", "walltime",

@@ -129,8 +129,14 @@ def projection_html(proj: dict | None, points: list[dict]) -> str:
         return (f"<tr><td>{html.escape(s)}</td>{carry}<td>{r['wall_s'] / 3600:,.2f}</td>"
                 f"<td>{r['node_hours']:,.1f}</td><td>{memory}</td></tr>")
 
-    rows = "".join(row(s, r) for s, r in sorted(proj["stages"].items(), key=lambda kv: -kv[1]["node_hours"]))
-    total = sum(r["node_hours"] for r in proj["stages"].values())
+    # the CPU rules timed at the paper's sizes beside the carried and benched ones; the total counts those that a
+    # run of the paper config has
+    measured = {s: {**r, "source": r["source"] + (f" (only under {r['only_with']}; not in the total)"
+                                                   if r["only_with"] else "")}
+                for s, r in proj.get("measured", {}).items()}
+    stages = {**proj["stages"], **measured}
+    rows = "".join(row(s, r) for s, r in sorted(stages.items(), key=lambda kv: -kv[1]["node_hours"]))
+    total = sum(r["node_hours"] for r in stages.values() if not r.get("only_with"))
     bench = f" ({html.escape(proj['bench_stages'])})" if proj.get("bench_stages") else ""
     store = "".join(f"<tr><td>{n}</td>" + "".join(f"<td>{v / 2**20:,.0f}</td>" for v in b.values()) + "</tr>"
                     for n, b in proj["storage_bytes"].items())
@@ -138,7 +144,8 @@ def projection_html(proj: dict | None, points: list[dict]) -> str:
 <p>{proj['lights']:,} training lights at config/paper.yaml, each stage from this sweep's exponent, the H200's
 measured speed over this machine's per stage, the paper config's work per light over this run's, and an A100 taking
 {proj['a100_per_h200']}x an H200's time (an assumption); a stage timed by `bench stages` at the paper's sizes on a
-GPU{bench} instead takes that measurement's steps (the same A100 factor). Stage 1: subsets of 50, four to a node,
+GPU{bench} instead takes that measurement's steps (the same A100 factor), and a CPU rule timed at the paper's sizes on
+one thread of this machine takes that time, on one node. Stage 1: subsets of 50, four to a node,
 10 nodes. Upper bounds where a small run leaves a GPU idle. train_diffusion's exponent is its cost per epoch,
 carried at the configured epochs (its gap check chose the epochs each point trained: {epochs}). Host memory: the
 peak RSS carried to this light count (at least the same job's RSS on the H200: CUDA's host context) plus the paper

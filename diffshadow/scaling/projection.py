@@ -136,8 +136,14 @@ def project(data: dict, run: dict, paper: dict, gpu_costs: dict[str, dict], *, l
                        **_schedule(stage, a100_total, -(-lights // subset), stage1_nodes),
                        "rss_mib_run_config": rss, "rss_mib_gpu_run": gpu_rss, "model_state_mib": model_mib,
                        "rss_mib": max(rss, gpu_rss) + max(model_mib, 0.0)}
+    # the CPU rules timed at the paper's sizes: one node each for the time measured
+    measured = {stage: {"wall_s": cpu_s, "node_hours": cpu_s / 3600,
+                        "walltime_request_h": min(cpu_s * MARGIN / 3600, QUEUE_MAX_H),
+                        "rss_mib": PAPER_CPU_RSS_MIB.get(stage), "source": PAPER_CPU_SOURCE,
+                        "only_with": PAPER_CPU_ONLY_WITH.get(stage)} for stage, cpu_s in sorted(PAPER_CPU_S.items())}
     return {"lights": lights, "a100_per_h200": A100_PER_H200, "margin": MARGIN, "queue_max_h": QUEUE_MAX_H,
-            "stages": rows, "storage_bytes": storage_at(paper, [lights, paper["lights"]["sphere"]])}
+            "stages": rows, "measured": measured,
+            "storage_bytes": storage_at(paper, [lights, paper["lights"]["sphere"]])}
 
 
 CPU_SOURCE = "CPU sweep x the tiny run's H200 speed-up (upper bound)"
@@ -195,35 +201,50 @@ def walltime(hours: float) -> str:
 # lights on 2 threads, ~26 min on one), ~100 min in all; asked for at MARGIN x that, and taken over any carry
 # (docs/performance.md, "caches at the paper's sizes"). `choose_cache` (`cache: auto` only) scored all 8 candidates
 # for 2,000 width-128 SIRENs in 1,086 s on one thread, and `encode_cache` wrote them through basis-256, the
-# costliest codec, in 255 s (docs/performance.md, "Measured at the paper's sizes").
-PAPER_CPU_S = {"caches": 100 * 60.0, "choose_cache": 1086.0, "encode_cache": 255.0}
+# costliest codec, in 255 s (docs/performance.md, "Measured at the paper's sizes"). `evaluate_voxels` (the CPU's
+# under `evaluate.device: cpu`) took 1,169 s with the geometry stage's checkpoint beside the model's, as in a run
+# that fine-tunes; the carry, by the SIRENs' width² alone, asked 59 min. Their peak RSS where measured
+# (PAPER_CPU_RSS_MIB; choose_cache's and encode_cache's before `truth._siren_values` wrote its chunks into one
+# tensor, so upper bounds) is their memory request, x MARGIN.
+PAPER_CPU_S = {"caches": 100 * 60.0, "choose_cache": 1086.0, "encode_cache": 255.0, "evaluate_voxels": 1169.0}
+PAPER_CPU_RSS_MIB = {"choose_cache": 13.5 * 1024, "encode_cache": 4.8 * 1024, "evaluate_voxels": 6277.0}
 PAPER_CPU_SOURCE = "one CPU thread at the paper's sizes, measured"
+PAPER_CPU_ONLY_WITH = {"choose_cache": "cache: auto", "encode_cache": "a codec's cache"}  # not the paper's run
 
 
 def polaris_profile(proj: dict) -> str:
     """A Snakemake workflow profile (`--workflow-profile`) whose per-rule walltimes are the projection's
     requests; laid over `--profile polaris`, it replaces the profile's guesses. `mem_mb`: the peak RSS carried to
     the light count (at least the job's RSS on the H200) plus the paper model's state in host memory
-    (`model_state_mib`), x margin (Polaris nodes are whole: 512 GB; Snakemake checks it, qsub is not sent it)."""
+    (`model_state_mib`), x margin (Polaris nodes are whole: 512 GB; Snakemake checks it, qsub is not sent it).
+    The rules measured at the paper's sizes (`proj["measured"]`) ask MARGIN x their time and peak RSS."""
     lines = ["# Made by scripts/scaling_sweep.py from the light-count sweep (diffshadow.scaling.project): each",
              f"# rule's projected A100 time at {proj['lights']:,} lights x {proj['margin']}, at most "
              f"{proj['queue_max_h']:.0f} h",
              "# (a longer stage resumes from its checkpoint in a further job); mem_mb: the peak RSS carried to that",
              "# light count (at least the job's RSS on the H200), plus the paper model's parameters held in host",
-             "# memory (scaling.MODEL_COPIES), x the margin (a Polaris node has 512 GB). Use:",
+             "# memory (scaling.MODEL_COPIES), x the margin (a Polaris node has 512 GB). Rules measured on one CPU",
+             "# thread at the paper's sizes ask the margin x that time and peak RSS. Use:",
              "#   snakemake --profile polaris --workflow-profile profiles/paper --configfile config/paper.yaml",
              "set-resources:"]
     for stage, r in sorted(proj["stages"].items()):
         lines.append(f"  {stage}:  # {r.get('source', CPU_SOURCE)}")
         lines.append(f"    walltime: \"{walltime(r['walltime_request_h'])}\"")
         if r.get("rss_mib"):
-            lines.append(f"    mem_mb: {math.ceil(r['rss_mib'] * proj['margin'] * 1.048576 / 100) * 100}")
+            lines.append(f"    mem_mb: {_mem_mb(r['rss_mib'], proj['margin'])}")
     # `project` carries none of these; listed all the same, since a workflow profile's set-resources replaces the
     # machine's whole
-    for stage, cpu_s in sorted(PAPER_CPU_S.items()):
-        lines.append(f"  {stage}:  # {PAPER_CPU_SOURCE}")
-        lines.append(f"    walltime: \"{walltime(min(cpu_s * proj['margin'] / 3600, proj['queue_max_h']))}\"")
+    for stage, r in proj["measured"].items():
+        lines.append(f"  {stage}:  # {r['source']}")
+        lines.append(f"    walltime: \"{walltime(r['walltime_request_h'])}\"")
+        if r["rss_mib"]:
+            lines.append(f"    mem_mb: {_mem_mb(r['rss_mib'], proj['margin'])}")
     return "\n".join(lines) + "\n"
+
+
+def _mem_mb(rss_mib: float, margin: float) -> int:
+    """Snakemake's mem_mb (MB) for a peak of `rss_mib` MiB x `margin`, rounded up to 100 MB."""
+    return math.ceil(rss_mib * margin * 1.048576 / 100) * 100
 
 
 def storage_at(cfg: dict, counts: list[int]) -> dict:
