@@ -203,11 +203,10 @@ def walltime(hours: float) -> str:
 # for 2,000 width-128 SIRENs in 1,086 s on one thread, and `encode_cache` wrote them through basis-256, the
 # costliest codec, in 255 s (docs/performance.md, "Measured at the paper's sizes"). `evaluate_voxels` (the CPU's
 # under `evaluate.device: cpu`) took 1,169 s with the geometry stage's checkpoint beside the model's, as in a run
-# that fine-tunes; the carry, by the SIRENs' width² alone, asked 59 min. Their peak RSS where measured
-# (PAPER_CPU_RSS_MIB; choose_cache's and encode_cache's before `truth._siren_values` wrote its chunks into one
-# tensor, so upper bounds) is their memory request, x MARGIN.
+# that fine-tunes; the carry, by the SIRENs' width² alone, asked 59 min. Their peak RSS (PAPER_CPU_RSS_MIB, from
+# the kernel: `/usr/bin/time -v`) is their memory request, x MARGIN; `caches` has none measured.
 PAPER_CPU_S = {"caches": 100 * 60.0, "choose_cache": 1086.0, "encode_cache": 255.0, "evaluate_voxels": 1169.0}
-PAPER_CPU_RSS_MIB = {"choose_cache": 13.5 * 1024, "encode_cache": 4.8 * 1024, "evaluate_voxels": 6277.0}
+PAPER_CPU_RSS_MIB = {"choose_cache": 9504.0, "encode_cache": 7100.0, "evaluate_voxels": 6277.0}
 PAPER_CPU_SOURCE = "one CPU thread at the paper's sizes, measured"
 PAPER_CPU_ONLY_WITH = {"choose_cache": "cache: auto", "encode_cache": "a codec's cache"}  # not the paper's run
 
