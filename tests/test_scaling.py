@@ -243,6 +243,6 @@ def test_work_factors_count_what_each_stage_computes():
     paper["finetune"]["views"] *= 2
     paper["finetune"]["image_size"] *= 2
     f = scaling.work_factors(run, paper)
-    assert f["fit_siren"] == pytest.approx(3 * 4) and f["evaluate_voxels"] == pytest.approx(4)
+    assert f["fit_siren"] == pytest.approx(3 * 4) and f["evaluate_images"] == pytest.approx(4)
     assert f["render_targets"] == pytest.approx(2 * 4)
     assert scaling.work_factors(run, run)["render_targets"] == 1.0

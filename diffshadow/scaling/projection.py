@@ -57,16 +57,17 @@ def work_factors(run: dict, paper: dict) -> dict[str, float]:
     targets = (ft["views"] / run["finetune"]["views"]) * (ft["image_size"] / run["finetune"]["image_size"]) ** 2
     fitting = fit["steps"] * fit["points"] * width2
     return {"fit_siren": fitting, "preoptimize": fitting, "train_diffusion": epochs * model,
-            "finetune_render": finetune, "sample_shadows": model, "evaluate_voxels": width2,
+            "finetune_render": finetune, "sample_shadows": model,
             "evaluate_images": width2, "render_targets": targets, "benchmark": width2}
 
 
 
 # Copies of the diffusion model's parameters a stage's process holds in host memory: training holds weights,
 # gradients, Adam's two moments and the EMA (5); a loaded checkpoint holds weights, Adam's two and the EMA (4)
-# and the model built from it one more. Fine-tuning loads the geometry checkpoint and trains, per rank;
-# evaluate_voxels loads both checkpoints. The sweep's small model makes this term invisible in its RSS.
-MODEL_COPIES = {"train_diffusion": 5, "finetune_render": 4 + 5, "sample_shadows": 5, "evaluate_voxels": 2 * 5}
+# and the model built from it one more (an upper bound: `artifacts.load_checkpoint` maps the file, so only the
+# tensors read count). Fine-tuning loads the geometry checkpoint and trains, per rank. The sweep's small model makes
+# this term invisible in its RSS. evaluate_voxels, which loads both checkpoints, is measured (PAPER_CPU_S).
+MODEL_COPIES = {"train_diffusion": 5, "finetune_render": 4 + 5, "sample_shadows": 5}
 
 
 def model_state_mib(stage: str, run: dict, paper: dict) -> float:
@@ -95,7 +96,7 @@ def project(data: dict, run: dict, paper: dict, gpu_costs: dict[str, dict], *, l
     the same run config at the sweep's smallest point (`gpu_costs`: stage_costs of a GPU run), times the
     paper's work per light (`work_factors`), times A100_PER_H200. Memory: the sweep's peak RSS carried the same
     way, at least the job's RSS on the GPU run, plus the paper model's state. Rules timed at the paper's sizes
-    (PAPER_CPU_S) are not carried.
+    (PAPER_CPU_S) are not carried: `measured` gives their time and peak RSS there.
 
     Upper bounds: the small run's GPU jobs are mostly start-up, so where the H200 measured slower than the CPU
     it is taken as fast as the CPU (1x); preoptimize, one fit, takes fit_siren's speed-up. Stage 1 runs
