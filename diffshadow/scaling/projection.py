@@ -232,8 +232,8 @@ def polaris_profile(proj: dict) -> str:
         lines.append(f"    walltime: \"{walltime(r['walltime_request_h'])}\"")
         if r.get("rss_mib"):
             lines.append(f"    mem_mb: {_mem_mb(r['rss_mib'], proj['margin'])}")
-    # `project` carries none of these; listed all the same, since a workflow profile's set-resources replaces the
-    # machine's whole
+    # the rules measured at the paper's sizes, which `project` does not carry: every rule is listed, since a workflow
+    # profile's set-resources replaces the machine profile's whole
     for stage, r in proj["measured"].items():
         lines.append(f"  {stage}:  # {r['source']}")
         lines.append(f"    walltime: \"{walltime(r['walltime_request_h'])}\"")
