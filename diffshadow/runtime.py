@@ -15,6 +15,8 @@ import os
 from collections.abc import Iterator
 from dataclasses import dataclass
 
+import numpy  # noqa: F401  (loads its OpenBLAS, so that set_threads reaches it)
+import threadpoolctl
 import torch
 
 from diffshadow.hpc import device_setting
@@ -131,9 +133,15 @@ def vector_unit_warning(capability: str | None = None, flags: set[str] | None = 
 
 
 def set_threads(n: int) -> None:
-    """torch's intra-op threads (0: torch's default)."""
+    """torch's intra-op threads and numpy's BLAS threads (0: leave both at their defaults).
+
+    Snakemake sets `OPENBLAS_NUM_THREADS` to a rule's threads before its job starts; a command typed by hand
+    gets the same BLAS threads from `--threads` here, so that it writes the workflow's bytes (how OpenBLAS
+    splits a float64 SVD across threads changes its last bits; docs/performance.md, "The allocator").
+    """
     if n:
         torch.set_num_threads(n)
+        threadpoolctl.threadpool_limits(n, user_api="blas")  # the loaded ones: numpy's is, imported above
 
 
 def claim_gpu_lock(command: str) -> None:

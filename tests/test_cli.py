@@ -214,6 +214,31 @@ def test_keeping_freed_memory_changes_no_value_and_a_users_malloc_settings_win(m
             assert keep_freed_memory() is False
 
 
+BLAS_THREADS = """
+import numpy, threadpoolctl
+def blas():
+    return {i["num_threads"] for i in threadpoolctl.threadpool_info() if "openblas64" in i["filepath"]}
+before = blas()
+from diffshadow.runtime import set_threads
+set_threads(1)
+print(sorted(before), sorted(blas()))
+"""
+
+
+def test_threads_set_numpys_blas_as_snakemake_sets_it_for_a_rule():
+    """`--threads` caps numpy's OpenBLAS as Snakemake's OPENBLAS_NUM_THREADS does for a rule, so a command typed
+    by hand splits a float64 SVD as the workflow's job did and writes its bytes (docs/performance.md)."""
+    import subprocess
+    import sys
+
+    env = {**os.environ, "OPENBLAS_NUM_THREADS": "2"}  # a shell's default on a machine of two cores or more
+    done = subprocess.run([sys.executable, "-c", BLAS_THREADS], capture_output=True, text=True, env=env, check=True)
+    before, after = done.stdout.split()
+    if before != "[2]":
+        pytest.skip(f"numpy's OpenBLAS starts at {before} threads here, not 2")
+    assert after == "[1]"
+
+
 def test_lights_prepare_volume_and_collect_weights_start_without_torch_and_record_their_phases(tmp_path):
     """The workflow jobs that compute nothing with torch import none (`python -X importtime` lists every module a
     process imports), and `--phases` writes where their time went; the prepared volume reads back whole."""
