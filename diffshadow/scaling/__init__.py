@@ -19,7 +19,6 @@ from diffshadow.scaling.projection import (
     CPU_SOURCE,
     GPUS_PER_NODE,
     MARGIN,
-    MODEL_COPIES,
     PAPER_CPU_RSS_MIB,
     PAPER_CPU_S,
     PAPER_CPU_SOURCE,
@@ -27,7 +26,7 @@ from diffshadow.scaling.projection import (
     measured_projection,
     model_cost,
     model_size,
-    model_state_mib,
+    paper_cpu_rss_mib,
     polaris_profile,
     project,
     storage_at,
@@ -36,9 +35,9 @@ from diffshadow.scaling.projection import (
 )
 from diffshadow.scaling.sweep import UNSEEN, SweepError, crossover, power_law, predict, read_costs, read_point, sweep
 
-__all__ = ["A100_PER_H200", "BENCH_FLOOR_H", "CPU_SOURCE", "GPUS_PER_NODE", "MARGIN", "MODEL_COPIES",
+__all__ = ["A100_PER_H200", "BENCH_FLOOR_H", "CPU_SOURCE", "GPUS_PER_NODE", "MARGIN",
            "PAPER_CPU_RSS_MIB", "PAPER_CPU_S", "PAPER_CPU_SOURCE", "QUEUE_MAX_H",
            "UNSEEN", "SweepError", "cost_figure", "crossover", "measured_projection", "model_cost", "model_size",
-           "model_state_mib", "page", "polaris_profile", "power_law", "predict", "project", "projection_html",
+           "page", "paper_cpu_rss_mib", "polaris_profile", "power_law", "predict", "project", "projection_html",
            "quality_figure", "read_costs", "read_point", "storage_at", "storage_figure", "sweep", "walltime",
            "work_factors", "write_sweep"]

@@ -148,8 +148,9 @@ GPU{bench} instead takes that measurement's steps (the same A100 factor), and a 
 one thread of this machine takes that time, on one node. Stage 1: subsets of 50, four to a node,
 10 nodes. Upper bounds where a small run leaves a GPU idle. train_diffusion's exponent is its cost per epoch,
 carried at the configured epochs (its gap check chose the epochs each point trained: {epochs}). Host memory: the
-peak RSS carried to this light count (at least the same job's RSS on the H200: CUDA's host context) plus the paper
-model's parameters in host memory (weights, gradients, Adam's moments, EMA: scaling.MODEL_COPIES).</p>
+largest of the peak RSS carried to this light count, the same job's RSS on the H200 (CUDA's host context) and, where
+measured, its peak on a CPU at the paper's sizes (scaling.PAPER_CPU_RSS_MIB: an upper bound for a GPU job, whose
+model lives on the device; fine-tuning's per process, x its processes).</p>
 <table><tr><th>stage</th><th>exponent</th><th>H200 / this CPU (used)</th><th>work factor</th><th>wall (h)</th>
 <th>node-hours</th><th>host memory per job (GiB)</th></tr>{rows}<tr><td>total</td><td></td><td></td><td></td><td></td>
 <td>{total:,.1f}</td><td></td></tr></table>

@@ -62,24 +62,6 @@ def work_factors(run: dict, paper: dict) -> dict[str, float]:
 
 
 
-# Copies of the diffusion model's parameters a stage's process holds in host memory: training holds weights,
-# gradients, Adam's two moments and the EMA (5); a loaded checkpoint holds weights, Adam's two and the EMA (4)
-# and the model built from it one more (an upper bound: `artifacts.load_checkpoint` maps the file, so only the
-# tensors read count). Fine-tuning loads the geometry checkpoint and trains, per rank. The sweep's small model makes
-# this term invisible in its RSS. evaluate_voxels, which loads both checkpoints, is measured (PAPER_CPU_S).
-MODEL_COPIES = {"train_diffusion": 5, "finetune_render": 4 + 5, "sample_shadows": 5}
-
-
-def model_state_mib(stage: str, run: dict, paper: dict) -> float:
-    """Host memory (MiB) the paper's diffusion model adds over the run config's to one job of `stage`."""
-    copies = MODEL_COPIES.get(stage, 0)
-    if stage == "finetune_render":
-        copies *= paper["finetune"]["nproc"]  # one process per GPU on the node
-    if not copies:
-        return 0.0
-    return (model_size(paper)[0] - model_size(run)[0]) * 4 * copies / 2**20
-
-
 QUEUE_MAX_H = 72.0  # Polaris' preemptable queue's longest walltime (ALCF's documentation; check `qstat -Qf`)
 MARGIN = 1.5  # requests are the projection times this
 # A stage timed by `bench stages` asks at least this: the bench times steps, not a job's start-up, its
@@ -94,8 +76,9 @@ def project(data: dict, run: dict, paper: dict, gpu_costs: dict[str, dict], *, l
     count, in subsets of its subset_size) on Polaris: the sweep's CPU
     power law carried to `lights` at the run's config, divided by the H200's speed over this CPU measured on
     the same run config at the sweep's smallest point (`gpu_costs`: stage_costs of a GPU run), times the
-    paper's work per light (`work_factors`), times A100_PER_H200. Memory: the sweep's peak RSS carried the same
-    way, at least the job's RSS on the GPU run, plus the paper model's state. Rules timed at the paper's sizes
+    paper's work per light (`work_factors`), times A100_PER_H200. Memory: the largest of the sweep's peak RSS carried
+    the same way, the job's RSS on the GPU run, and the job's peak on a CPU at the paper's sizes
+    (`PAPER_CPU_RSS_MIB`; per process for finetune_render, x its processes). Rules timed at the paper's sizes
     (PAPER_CPU_S) are not carried: `measured` gives their time and peak RSS there.
 
     Upper bounds: the small run's GPU jobs are mostly start-up, so where the H200 measured slower than the CPU
@@ -131,12 +114,12 @@ def project(data: dict, run: dict, paper: dict, gpu_costs: dict[str, dict], *, l
         # A job on a GPU node holds at least what the same job held on the H200 at the run's sizes (CUDA's host
         # context and libraries: 505 MiB for `lights`, which the CPU sweep measured at 41)
         gpu_rss = float(gpu_costs.get(stage, {}).get("max_rss_mib") or 0.0)
-        model_mib = model_state_mib(stage, run, paper)
+        paper_rss = paper_cpu_rss_mib(stage, paper)
         rows[stage] = {"exponent": exponent, "cpu_s_run_config": cpu_total,
                        "h200_over_cpu": ratio, "speedup_used": used, "work_factor": factors.get(stage, 1.0),
                        **_schedule(stage, a100_total, -(-lights // subset), stage1_nodes),
-                       "rss_mib_run_config": rss, "rss_mib_gpu_run": gpu_rss, "model_state_mib": model_mib,
-                       "rss_mib": max(rss, gpu_rss) + max(model_mib, 0.0)}
+                       "rss_mib_run_config": rss, "rss_mib_gpu_run": gpu_rss, "rss_mib_paper_cpu": paper_rss,
+                       "rss_mib": max(rss, gpu_rss, paper_rss)}
     # the CPU rules timed at the paper's sizes: one node each for the time measured
     measured = {stage: {"wall_s": cpu_s, "node_hours": cpu_s / 3600,
                         "walltime_request_h": min(cpu_s * MARGIN / 3600, QUEUE_MAX_H),
@@ -166,7 +149,7 @@ def measured_projection(proj: dict, bench: dict, *, stage1_nodes: int = 10) -> d
         total = row["projected_s"] * A100_PER_H200 * (jobs if stage == "fit_siren" else 1)
         plan = _schedule(stage, total, jobs, stage1_nodes)
         plan["walltime_request_h"] = min(max(plan["walltime_request_h"], BENCH_FLOOR_H), QUEUE_MAX_H)
-        out["stages"].setdefault(stage, {"rss_mib": None, "model_state_mib": 0.0}).update(
+        out["stages"].setdefault(stage, {"rss_mib": None}).update(
             **plan, source=f"bench stages on {bench.get('device')} x "
                                                                  f"{A100_PER_H200}")
     return out
@@ -197,33 +180,46 @@ def walltime(hours: float) -> str:
 
 # Rules timed on a CPU at the paper's sizes, whose time no carry can give: `caches` runs on the CPU (so no GPU speed
 # applies) and mixes costs that grow by different factors at the paper's sizes (its SIRENs' width², the model's
-# DDIM). It scores 12 rows of 2,500 SIRENs of width 128 at 16,384 points (6.0 min a row on one thread of a 2-core
-# CPU) and draws every light once with the model's DDIM (`bench stages --stages sample_shadows`: 23.9 s per 64
-# lights on 2 threads, ~26 min on one), ~100 min in all; asked for at MARGIN x that, and taken over any carry
-# (docs/performance.md, "caches at the paper's sizes"). `choose_cache` (`cache: auto` only) scored all 8 candidates
-# for 2,000 width-128 SIRENs in 1,086 s on one thread, and `encode_cache` wrote them through basis-256, the
-# costliest codec, in 255 s (docs/performance.md, "Measured at the paper's sizes"). `evaluate_voxels` (the CPU's
+# DDIM). It scored 13 rows of 2,500 SIRENs of width 128 at 16,384 points (about 3 min a row) and drew every light
+# once with the model's DDIM (0.47 s a light) in 3,125 s on one thread (a count from unit costs had said ~100 min).
+# `choose_cache` (`cache: auto` only) scored all 8 candidates for 2,000 width-128 SIRENs in 1,086 s on one thread,
+# and `encode_cache` wrote them through basis-256, the costliest codec, in 255 s. `evaluate_voxels` (the CPU's
 # under `evaluate.device: cpu`) took 1,169 s with the geometry stage's checkpoint beside the model's, as in a run
-# that fine-tunes; the carry, by the SIRENs' width² alone, asked 59 min. Their peak RSS (PAPER_CPU_RSS_MIB, from
-# the kernel: `/usr/bin/time -v`) is their memory request, x MARGIN; `caches` has none measured.
-PAPER_CPU_S = {"caches": 100 * 60.0, "choose_cache": 1086.0, "encode_cache": 255.0, "evaluate_voxels": 1169.0}
-PAPER_CPU_RSS_MIB = {"choose_cache": 9504.0, "encode_cache": 7100.0, "evaluate_voxels": 6277.0}
+# that fine-tunes; the carry, by the SIRENs' width² alone, asked 59 min. Each is asked for at MARGIN x its time,
+# over any carry (docs/performance.md, "Measured at the paper's sizes").
+PAPER_CPU_S = {"caches": 3125.0, "choose_cache": 1086.0, "encode_cache": 255.0, "evaluate_voxels": 1169.0}
+# Peak RSS (MiB, the kernel's: `/usr/bin/time -v` or the job's getrusage) of a job at the paper's sizes on a CPU,
+# the memory request (x MARGIN) of the rules in PAPER_CPU_S. For a rule timed on a GPU it bounds the job's host
+# memory from above, since on a GPU the model, its gradients, Adam's moments and the activations live on the device:
+# train_diffusion (one epoch, 2,256 lights with the pool) and sample_shadows from the paper-size run
+# (docs/performance.md, "Measured at the paper's sizes"); finetune_render per process, from `bench stages
+# --device cpu --threads 1 --configfile config/paper.yaml --stages finetune_render` (the targets of 2,000 lights x 7
+# views x 128² pixels, 2.6 GiB, are held by every process).
+PAPER_CPU_RSS_MIB = {"caches": 10818.0, "choose_cache": 9504.0, "encode_cache": 7100.0, "evaluate_voxels": 6277.0,
+                     "train_diffusion": 6727.0, "sample_shadows": 9048.0, "finetune_render": 8365.0}
 PAPER_CPU_SOURCE = "one CPU thread at the paper's sizes, measured"
 PAPER_CPU_ONLY_WITH = {"choose_cache": "cache: auto", "encode_cache": "a codec's cache"}  # not the paper's run
 
 
+def paper_cpu_rss_mib(stage: str, paper: dict) -> float:
+    """A job's peak host memory (MiB) measured on a CPU at the paper's sizes (0: not measured): per process, times
+    fine-tuning's processes on the node."""
+    rss = PAPER_CPU_RSS_MIB.get(stage, 0.0)
+    return rss * paper["finetune"]["nproc"] if stage == "finetune_render" else rss
+
+
 def polaris_profile(proj: dict) -> str:
     """A Snakemake workflow profile (`--workflow-profile`) whose per-rule walltimes are the projection's
-    requests; laid over `--profile polaris`, it replaces the profile's guesses. `mem_mb`: the peak RSS carried to
-    the light count (at least the job's RSS on the H200) plus the paper model's state in host memory
-    (`model_state_mib`), x margin (Polaris nodes are whole: 512 GB; Snakemake checks it, qsub is not sent it).
+    requests; laid over `--profile polaris`, it replaces the profile's guesses. `mem_mb`: the largest of the peak
+    RSS carried to the light count, the job's RSS on the H200 and its peak on a CPU at the paper's sizes, x margin
+    (Polaris nodes are whole: 512 GB; Snakemake checks it, qsub is not sent it).
     The rules measured at the paper's sizes (`proj["measured"]`) ask MARGIN x their time and peak RSS."""
     lines = ["# Made by scripts/scaling_sweep.py from the light-count sweep (diffshadow.scaling.project): each",
              f"# rule's projected A100 time at {proj['lights']:,} lights x {proj['margin']}, at most "
              f"{proj['queue_max_h']:.0f} h",
-             "# (a longer stage resumes from its checkpoint in a further job); mem_mb: the peak RSS carried to that",
-             "# light count (at least the job's RSS on the H200), plus the paper model's parameters held in host",
-             "# memory (scaling.MODEL_COPIES), x the margin (a Polaris node has 512 GB). Rules measured on one CPU",
+             "# (a longer stage resumes from its checkpoint in a further job); mem_mb: the largest of the peak RSS",
+             "# carried to that light count, the job's RSS on the H200 and its peak on a CPU at the paper's sizes",
+             "# (scaling.PAPER_CPU_RSS_MIB), x the margin (a Polaris node has 512 GB). Rules measured on one CPU",
              "# thread at the paper's sizes ask the margin x that time and peak RSS. Use:",
              "#   snakemake --profile polaris --workflow-profile profiles/paper --configfile config/paper.yaml",
              "set-resources:"]
