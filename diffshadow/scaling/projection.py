@@ -61,7 +61,6 @@ def work_factors(run: dict, paper: dict) -> dict[str, float]:
             "evaluate_images": width2, "render_targets": targets, "benchmark": width2}
 
 
-
 QUEUE_MAX_H = 72.0  # Polaris' preemptable queue's longest walltime (ALCF's documentation; check `qstat -Qf`)
 MARGIN = 1.5  # requests are the projection times this
 # A stage timed by `bench stages` asks at least this: the bench times steps, not a job's start-up, its
