@@ -25,6 +25,18 @@ def test_the_mix_is_the_convex_combination_and_its_ends_are_exact():
     assert np.array_equal(mixed, expected.astype(np.float32))
 
 
+def test_a_mix_in_passes_has_the_bits_of_one_pass(monkeypatch):
+    """A set larger than one pass (here 7 weights a pass over 60, the last pass short; a float64 blend as
+    sample_shadows passes it) is mixed element by element as one pass would: every byte the same."""
+    import diffshadow.diffusion.mix as mix
+
+    blend = BLEND.astype(np.float64) / 3
+    whole = mix_weights(MODEL, blend, 0.7)
+    monkeypatch.setattr(mix, "MIX_CHUNK", 7)
+    assert whole.tobytes() == mix_weights(MODEL, blend, 0.7).tobytes()
+    assert whole.tobytes() == (0.7 * MODEL.astype(np.float64) + 0.3 * blend).astype(np.float32).tobytes()
+
+
 @pytest.mark.parametrize("share, message", [(1.5, "expected a number from 0 to 1"),
                                             (-0.1, "expected a number from 0 to 1"),
                                             ("half", "expected auto or a number"), (None, "expected auto or")])

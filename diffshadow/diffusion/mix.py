@@ -21,6 +21,10 @@ from collections.abc import Callable
 import numpy as np
 
 SHARES = tuple(round(0.1 * i, 1) for i in range(11))  # the model's shares tried by `choose_share`
+# Weights mixed per pass: the float64 sum of a whole paper-size set at once (2,500 SIRENs of 66,689 weights) made
+# three 1.3-GB temporaries, sample_shadows' peak (docs/performance.md, "The allocator"); each element's sum is the
+# same in any pass, so the bytes are too
+MIX_CHUNK = 1 << 22
 
 
 def check_share(share: float, where: str = "mix.model_share") -> float:
@@ -53,7 +57,12 @@ def mix_weights(model: np.ndarray, blend: np.ndarray, share: float) -> np.ndarra
         return model.astype(np.float32)
     if share == 0.0:
         return blend.astype(np.float32)
-    return (share * model.astype(np.float64) + (1.0 - share) * blend.astype(np.float64)).astype(np.float32)
+    m, b = model.reshape(-1), blend.reshape(-1)
+    out = np.empty(m.shape, dtype=np.float32)
+    for i in range(0, m.size, MIX_CHUNK):
+        part = slice(i, i + MIX_CHUNK)
+        out[part] = share * m[part].astype(np.float64) + (1.0 - share) * b[part].astype(np.float64)
+    return out.reshape(model.shape)
 
 
 def choose_share(model: np.ndarray, blend: np.ndarray, score: Callable[[np.ndarray], np.ndarray],
