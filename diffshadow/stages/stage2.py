@@ -176,8 +176,6 @@ def sample_shadows(checkpoint: Path, truth_path: Path, lights_path: Path, out: P
     truth_rows = truth.of(all_lights, str(truth_path))
     config = {"diffusion": cfg, "checkpoint": str(checkpoint)}
     if stage1 is not None:
-        blend = np.concatenate([np.asarray(stage1.weights, dtype=np.float32),
-                                blend_rows(stage1.weights, *blend_weights(train, unseen, blend_k, weighting))])
         record = {"blend_weights": weighting, "blend_k": blend_k, "weights": str(weights_path)}
         if share == "auto":
             record.update(_choose_share(sample, stage1, volume_path, light_sets, mix, blend_k, weighting))
@@ -188,7 +186,11 @@ def sample_shadows(checkpoint: Path, truth_path: Path, lights_path: Path, out: P
         # the model alone from these instead of sampling every light again
         alone = psnr_per_light(truth.sirens(weights, layout, siren, sets=("box",)), {"box": truth_rows["box"]})["box"]
         record["model_alone_psnr"] = [float(x) for x in alone]
-        weights = mix_weights(weights, blend, record["model_share"])
+        # a training light's blend is its own stored SIREN, an unseen light's a float64 blend (blend_rows): mixed
+        # apart, so that the stored SIRENs are not widened to float64 beside them (1.3 GB at the paper's sizes)
+        n, unseen_blend = len(train), blend_rows(stage1.weights, *blend_weights(train, unseen, blend_k, weighting))
+        weights = np.concatenate([mix_weights(weights[:n], stage1.weights, record["model_share"]),
+                                  mix_weights(weights[n:], unseen_blend, record["model_share"])])
         config["mix"] = record
         print(f"the cache's answer: {record['model_share']:g} x the model's SIREN + {1 - record['model_share']:g} x "
               f"{describe_blend(weighting, blend_k)} ({record['chosen']})", flush=True)
