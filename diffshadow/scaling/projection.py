@@ -122,7 +122,7 @@ def project(data: dict, run: dict, paper: dict, gpu_costs: dict[str, dict], *, l
     # the CPU rules timed at the paper's sizes: one node each for the time measured
     measured = {stage: {"wall_s": cpu_s, "node_hours": cpu_s / 3600,
                         "walltime_request_h": min(cpu_s * MARGIN / 3600, QUEUE_MAX_H),
-                        "rss_mib": PAPER_CPU_RSS_MIB.get(stage), "source": PAPER_CPU_SOURCE,
+                        "rss_mib": paper_cpu_rss_mib(stage, paper) or None, "source": PAPER_CPU_SOURCE,
                         "only_with": PAPER_CPU_ONLY_WITH.get(stage)} for stage, cpu_s in sorted(PAPER_CPU_S.items())}
     return {"lights": lights, "a100_per_h200": A100_PER_H200, "margin": MARGIN, "queue_max_h": QUEUE_MAX_H,
             "stages": rows, "measured": measured,
@@ -223,17 +223,12 @@ def polaris_profile(proj: dict) -> str:
              "# thread at the paper's sizes ask the margin x that time and peak RSS. Use:",
              "#   snakemake --profile polaris --workflow-profile profiles/paper --configfile config/paper.yaml",
              "set-resources:"]
-    for stage, r in sorted(proj["stages"].items()):
+    # then the rules measured at the paper's sizes, which `project` does not carry: every rule is listed, since a
+    # workflow profile's set-resources replaces the machine profile's whole
+    for stage, r in [*sorted(proj["stages"].items()), *proj["measured"].items()]:
         lines.append(f"  {stage}:  # {r.get('source', CPU_SOURCE)}")
         lines.append(f"    walltime: \"{walltime(r['walltime_request_h'])}\"")
         if r.get("rss_mib"):
-            lines.append(f"    mem_mb: {_mem_mb(r['rss_mib'], proj['margin'])}")
-    # the rules measured at the paper's sizes, which `project` does not carry: every rule is listed, since a workflow
-    # profile's set-resources replaces the machine profile's whole
-    for stage, r in proj["measured"].items():
-        lines.append(f"  {stage}:  # {r['source']}")
-        lines.append(f"    walltime: \"{walltime(r['walltime_request_h'])}\"")
-        if r["rss_mib"]:
             lines.append(f"    mem_mb: {_mem_mb(r['rss_mib'], proj['margin'])}")
     return "\n".join(lines) + "\n"
 
