@@ -1,7 +1,7 @@
 #!/usr/bin/env bash
 # The GPU figures of docs/performance.md, in one device call (15 minutes of device time a session):
 #
-#   bash ../shared/gpu/prepare.sh                                   # here, once per session
+#   bash scripts/gpu_prepare.sh                                     # here, once per session
 #   device run, carry [".devwheels"], timeout_s 600:
 #       END=555 bash .devwheels/on-device.sh bash scripts/gpu_session.sh all
 #   then at once, on the still-warm machine (it goes back after 30 s idle), with what is left, e.g.:

@@ -29,3 +29,33 @@ def test_gpu_session_help(tmp_path):
     assert out.returncode == 0 and "QUICK=1" in out.stdout, out.stdout
     out = subprocess.run(["bash", str(script)], cwd=tmp_path, capture_output=True, text=True, timeout=60)
     assert out.returncode != 0 and "usage: scripts/gpu_session.sh" in out.stderr
+
+
+# What the lent GPU machine's image holds (shared/gpu/README.md names these and says "..."; scipy and pillow come
+# with scikit-image and matplotlib), and the one dependency the device never needs.
+GPU_IMAGE = {"torch", "numpy", "h5py", "scikit-image", "scipy", "matplotlib", "pillow", "pyyaml", "tqdm", "pytest",
+             "hypothesis", "jinja2", "requests", "psutil"}
+NOT_ON_DEVICE = {"parsl"}  # imported only by `diffshadow parsl-fit`, a login-node command
+
+
+def test_every_dependency_reaches_the_gpu_machine():
+    """Each runtime dependency in pyproject.toml is on the GPU machine's image, in the shared wheel list, or among
+    the wheels scripts/gpu_prepare.sh adds: otherwise `import diffshadow` fails there on the first rule (it did for
+    threadpoolctl, rehearsed in a virtual environment of the image's packages)."""
+    import re
+    import tomllib
+
+    wheels = Path(__file__).resolve().parents[2] / "shared" / "gpu" / "wheels.txt"
+    if not wheels.exists():
+        pytest.skip("../shared/gpu/wheels.txt is absent")
+
+    def name(req: str) -> str:
+        return re.split(r"[\s\[<>=!~;]", req.strip(), maxsplit=1)[0].lower().replace("_", "-")
+
+    shared = {name(line) for line in wheels.read_text().splitlines() if line.strip() and not line.startswith("#")}
+    extra = re.search(r"^extra=\((.*)\)", (SCRIPTS / "gpu_prepare.sh").read_text(), re.M)
+    assert extra, "scripts/gpu_prepare.sh: no extra=(...) line"
+    added = {name(req) for req in extra.group(1).split()}
+    project = tomllib.loads((SCRIPTS.parent / "pyproject.toml").read_text())["project"]
+    missing = {name(req) for req in project["dependencies"]} - GPU_IMAGE - shared - added - NOT_ON_DEVICE
+    assert not missing, f"not carried to the GPU machine: {sorted(missing)} (add to scripts/gpu_prepare.sh's extra)"
