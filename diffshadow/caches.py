@@ -11,7 +11,11 @@ eval_truth's fixed points against the exact shadow (`truth.EvalTruth`), as in vo
 from __future__ import annotations
 
 import copy
+import hashlib
+import json
 import time
+from collections.abc import Callable
+from pathlib import Path
 
 import numpy as np
 import torch
@@ -19,6 +23,7 @@ import torch
 from diffshadow.codecs import BasisCodec, codec_named
 from diffshadow.evaluate import blend_baseline
 from diffshadow.grid import trilinear
+from diffshadow.io import atomic_torch_save, resume
 from diffshadow.lights import OLD_WEIGHTING, blend_finder, blend_weights, describe_blend
 from diffshadow.metrics import psnr
 from diffshadow.shadow import shadow_grid
@@ -91,8 +96,12 @@ def choose_cache(stage1, truth: EvalTruth, val: EvalTruth, train: np.ndarray, *,
 
 
 def cache_table(stage1, truth: EvalTruth, light_sets: dict, *, blend_k: int, weighting: str, volume=None, tf=None,
-                model_state: dict | None = None, generated=None, log=print) -> dict:
-    """One row per cache: bytes, seen and unseen median voxel PSNR (box points), seconds to answer a new light."""
+                model_state: dict | None = None, generated=None, log=print, checkpoint: Path | None = None) -> dict:
+    """One row per cache: bytes, seen and unseen median voxel PSNR (box points), seconds to answer a new light.
+
+    Resumable: with `checkpoint`, each finished group of rows (a codec's; the model's, with its DDIM of every
+    light; the grids') is saved there, and a rerun on the same inputs starts at the first group not done. At the
+    paper's sizes a group is ~3 min on one thread and the model's ~25, of 52 min (docs/performance.md)."""
     train, unseen = light_sets["train"], light_sets["unseen"]
     layout, siren = stage1.layout, stage1.siren
     weights = np.asarray(stage1.weights, dtype=np.float32)
@@ -115,35 +124,85 @@ def cache_table(stage1, truth: EvalTruth, light_sets: dict, *, blend_k: int, wei
             decode_one(*find(w[None]))
         return (time.perf_counter() - t0) / len(unseen)
 
-    rows = []
-    plain = blend_rows(weights, idx, mix).astype(np.float32) if len(unseen) else None
-    rows.append({"cache": "stored SIRENs fp32", "kind": "stored", "bytes": int(weights.nbytes),
-                 **scored(weights, plain), "answer_s": blend_time(lambda i, m: blend_rows(weights, i, m))})
-    log(f"[caches] {rows[-1]}")
-    codecs = [codec_named(n) for n in ("fp16", "bf16", *(f"basis-{k}" for k in BASIS_K if k < len(train)))]
-    for codec in codecs:
+    def stored_rows() -> list[dict]:
+        plain = blend_rows(weights, idx, mix).astype(np.float32) if len(unseen) else None
+        return [{"cache": "stored SIRENs fp32", "kind": "stored", "bytes": int(weights.nbytes),
+                 **scored(weights, plain), "answer_s": blend_time(lambda i, m: blend_rows(weights, i, m))}]
+
+    def codec_rows(codec) -> list[dict]:
         enc = codec.encode(weights, layout)
         decoded = codec.decode(enc, layout)
         if isinstance(codec, BasisCodec):  # a blend of SIRENs is the same blend of their coefficients
             coeff = enc.arrays["coefficients"]
             blended = codec.decode(enc, layout, blend_rows(coeff, idx, mix)) if len(unseen) else None
-            answer = blend_time(lambda i, m, c=codec, e=enc, k=coeff: c.decode(e, layout, blend_rows(k, i, m)))
+            answer = blend_time(lambda i, m: codec.decode(enc, layout, blend_rows(coeff, i, m)))
         else:
             blended = blend_rows(decoded, idx, mix).astype(np.float32) if len(unseen) else None
-            answer = blend_time(lambda i, m, c=codec, e=enc: (c.decode(e, rows=i[0]) * m[0][:, None]).sum(0))
-        rows.append({"cache": f"stored SIRENs {codec.name}", "kind": "codec", "bytes": enc.nbytes,
-                     **scored(decoded, blended), "answer_s": answer})
-        log(f"[caches] {rows[-1]}")
+            answer = blend_time(lambda i, m: (codec.decode(enc, rows=i[0]) * m[0][:, None]).sum(0))
+        return [{"cache": f"stored SIRENs {codec.name}", "kind": "codec", "bytes": enc.nbytes,
+                 **scored(decoded, blended), "answer_s": answer}]
+
+    codecs = [codec_named(n) for n in ("fp16", "bf16", *(f"basis-{k}" for k in BASIS_K if k < len(train)))]
+    work: list[tuple[str, Callable[[], list[dict]]]] = [("stored SIRENs fp32", stored_rows)]
+    work += [(f"stored SIRENs {c.name}", lambda c=c: codec_rows(c)) for c in codecs]
     if model_state is not None:
-        rows += _model_rows(model_state, generated, train, unseen, scored, log, stored=weights)
+        work.append(("diffusion model", lambda: _model_rows(model_state, generated, train, unseen, scored,
+                                                            stored=weights)))
     if volume is not None:
-        rows.append(_grid_row(volume, tf, truth, train, unseen, idx, mix))
-        log(f"[caches] {rows[-1]}")
+        work.append(("dense shadow grids", lambda: [_grid_row(volume, tf, truth, train, unseen, idx, mix)]))
+    fingerprint = _fingerprint(weights, truth, light_sets, [name for name, _ in work], blend_k=blend_k,
+                               weighting=weighting, model_state=model_state, generated=generated, volume=volume,
+                               tf=tf)
+    saved = resume(checkpoint, fingerprint, log=log, weights_only=True)
+    groups = list(saved["groups"]) if saved else []
+    if groups:
+        log(f"[caches] resuming from {checkpoint} after {len(groups)} of {len(work)} groups of rows")
+    for name, rows_of in work[len(groups):]:
+        groups.append((name, rows_of()))
+        if checkpoint is not None and len(groups) < len(work):
+            atomic_torch_save(checkpoint, {"fingerprint": fingerprint, "groups": groups})
+        for row in groups[-1][1]:
+            log(f"[caches] {row}")
+    if checkpoint is not None:
+        Path(checkpoint).unlink(missing_ok=True)
     return {"blend_weights": weighting, "blend_k": blend_k, "lights": {"train": len(train), "unseen": len(unseen)},
-            "siren_parameters": layout.n_params, "eval_points": int(len(truth.points["box"])), "caches": rows}
+            "siren_parameters": layout.n_params, "eval_points": int(len(truth.points["box"])),
+            "caches": [row for _, rows in groups for row in rows]}
 
 
-def _model_rows(state: dict, generated, train, unseen, scored, log, *, stored: np.ndarray) -> list[dict]:
+def _fingerprint(weights: np.ndarray, truth: EvalTruth, light_sets: dict, groups: list[str], *, blend_k: int,
+                 weighting: str, model_state: dict | None, generated, volume, tf) -> str:
+    """What the table's rows depend on: the stored SIRENs, the truth and its points, the lights, the blend, the
+    groups of rows, the sampler's weights and settings, `generated`'s figures and mix, the volume and TF, and the
+    threads (a product's sums split by thread: the same bytes need the same count). Arrays are hashed in place."""
+    h = hashlib.sha256(np.ascontiguousarray(weights))
+    for name in sorted(truth.values):
+        h.update(truth.values[name].contiguous().numpy())
+        h.update(truth.points[name].contiguous().numpy())
+    for name in ("train", "unseen"):
+        h.update(np.ascontiguousarray(light_sets[name], dtype=np.float64))
+    meta = [blend_k, weighting, groups, torch.get_num_threads()]
+    if model_state is not None:
+        from diffshadow.diffusion.sample import sampler_weights
+
+        for key, tensor in sampler_weights(model_state).items():
+            h.update(key.encode())
+            h.update(tensor.detach().cpu().contiguous().reshape(-1).view(torch.uint8).numpy())
+        for key in ("mean", "std"):
+            h.update(np.ascontiguousarray(np.asarray(model_state["standardizer"][key], dtype=np.float64)))
+        meta.append(model_state["config"])
+    if generated is not None:
+        h.update(np.ascontiguousarray(generated.psnr, dtype=np.float64))
+        h.update(np.ascontiguousarray(generated.seen, dtype=bool))
+        meta.append(generated.config or {})
+    if volume is not None:
+        h.update(np.ascontiguousarray(volume.data, dtype=np.float32))
+        meta += [np.asarray(volume.extent, np.float64).tolist(), tf.to_config()]
+    h.update(json.dumps(meta, sort_keys=True, default=str).encode())
+    return h.hexdigest()
+
+
+def _model_rows(state: dict, generated, train, unseen, scored, *, stored: np.ndarray) -> list[dict]:
     """The diffusion model with its parameters stored in fp32 (its samples: sample_shadows' `generated` store, or,
     where that store mixed them with the stored SIRENs, their PSNRs as it scored them before the mix) and in fp16
     (rounded, then sampled in fp32 with the same DDIM steps and seed: what storing them in 16 bits costs). The time
@@ -183,7 +242,6 @@ def _model_rows(state: dict, generated, train, unseen, scored, log, *, stored: n
     for name, psnrs, bits in (("fp32", fp32, 32), ("fp16", scored(w16[:n], w16[n:] if len(unseen) else None), 16)):
         rows.append({"cache": f"diffusion model {name}", "kind": "model", "bytes": int(n_params * bits // 8),
                      **psnrs, "answer_s": answer})
-        log(f"[caches] {rows[-1]}")
     if mixed:
         share, k = float(mixed["model_share"]), min(int(mixed["blend_k"]), n)
         weighting = mixed.get("blend_weights", OLD_WEIGHTING)
@@ -198,7 +256,6 @@ def _model_rows(state: dict, generated, train, unseen, scored, log, *, stored: n
                                      2 * n_params + enc.nbytes)):
             rows.append({"cache": f"model {share:g} + stored SIRENs {1 - share:g}, both {name}", "kind": "mix",
                          "share": share, "bytes": int(nbytes), **psnrs, "answer_s": answer})
-            log(f"[caches] {rows[-1]}")
     return rows
 
 

@@ -385,7 +385,7 @@ def caches(weights_path: Path, generated_path: Path, truth_path: Path, lights_pa
     table = cache_table(open_store(weights_path), artifacts.read_eval_truth(truth_path), read_lights(lights_path),
                         blend_k=blend_k, weighting=weighting, volume=volume, tf=tf,
                         model_state=artifacts.load_checkpoint(checkpoint) if checkpoint else None,
-                        generated=open_store(generated_path))
+                        generated=open_store(generated_path), checkpoint=out.with_name(out.name + ".ckpt"))
     atomic_write_text(out, json.dumps(finite_json(table), indent=1) + "\n")
     caches_figure(table, figure)
     for row in table["caches"]:

@@ -1,0 +1,93 @@
+"""`caches.json` (`diffshadow.caches.cache_table`) resumes: a job stopped between its groups of rows (a codec's,
+the model's, the grids') starts again at the first group not done, with the rows it had saved, and the table it
+writes is the one an unbroken job writes."""
+
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+import torch
+
+from diffshadow import caches
+from diffshadow.layout import SirenConfig, WeightLayout
+from diffshadow.lights import fibonacci_sphere
+from diffshadow.siren import init_siren
+from diffshadow.truth import EvalTruth
+
+SIREN = SirenConfig(8, 1)
+LAYOUT = WeightLayout.for_siren(SIREN)
+
+
+class Stopped(Exception):
+    pass
+
+
+def _inputs(n: int = 12, unseen: int = 3, seed: int = 1):
+    init = LAYOUT.flatten(init_siren(SIREN, torch.Generator().manual_seed(0))).numpy()
+    w = (init + 0.01 * np.random.default_rng(seed).standard_normal((n, LAYOUT.n_params))).astype(np.float32)
+    lights = fibonacci_sphere(4 * (n + unseen))[:n + unseen]
+    g = torch.Generator().manual_seed(2)
+    truth = EvalTruth(points={"box": torch.rand(64, 3, generator=g) * 2}, lights=lights,
+                      values={"box": torch.rand(n + unseen, 64, generator=g)}, extent=torch.full((3,), 2.0))
+    store = SimpleNamespace(weights=w, layout=LAYOUT, siren=SIREN)
+    return store, truth, {"train": lights[:n], "unseen": lights[n:]}
+
+
+def _table(store, truth, sets, *, log=lambda line: None, checkpoint=None, weighting: str = "triangle"):
+    return caches.cache_table(store, truth, sets, blend_k=4, weighting=weighting, log=log, checkpoint=checkpoint)
+
+
+def _stop_at_group(k: int):
+    """A log that stops the job at the k-th group's row, after that group was saved."""
+    seen = []
+
+    def log(line: str):
+        if line.startswith("[caches] {"):
+            seen.append(line)
+            if len(seen) == k:
+                raise Stopped
+    return log
+
+
+def _without_times(table: dict) -> dict:
+    return {**table, "caches": [{k: v for k, v in r.items() if k != "answer_s"} for r in table["caches"]]}
+
+
+def test_a_stopped_table_resumes_at_its_first_group_not_done(tmp_path):
+    store, truth, sets = _inputs()
+    whole = _table(store, truth, sets)
+    assert [r["cache"] for r in whole["caches"]] == ["stored SIRENs fp32", "stored SIRENs fp16",
+                                                      "stored SIRENs bf16", "stored SIRENs basis-4",
+                                                      "stored SIRENs basis-8"]
+    ckpt = tmp_path / "caches.json.ckpt"
+    with pytest.raises(Stopped):
+        _table(store, truth, sets, log=_stop_at_group(3), checkpoint=ckpt)
+    saved = torch.load(ckpt, weights_only=True)["groups"]
+    assert [name for name, _ in saved] == ["stored SIRENs fp32", "stored SIRENs fp16", "stored SIRENs bf16"]
+
+    lines = []
+    resumed = _table(store, truth, sets, log=lines.append, checkpoint=ckpt)
+    assert f"[caches] resuming from {ckpt} after 3 of 5 groups of rows" in lines
+    # the saved rows are kept as they were (their times too: a row measured again would time otherwise)
+    assert resumed["caches"][:3] == [row for _, rows in saved for row in rows]
+    assert _without_times(resumed) == _without_times(whole)
+    assert sum(line.startswith("[caches] {") for line in lines) == 2  # only the two groups not done
+    assert not ckpt.exists()
+
+
+@pytest.mark.parametrize("change", ["weights", "weighting"])
+def test_a_checkpoint_of_other_inputs_is_not_resumed(tmp_path, change):
+    store, truth, sets = _inputs()
+    ckpt = tmp_path / "caches.json.ckpt"
+    with pytest.raises(Stopped):
+        _table(store, truth, sets, log=_stop_at_group(2), checkpoint=ckpt)
+    weighting = "triangle"
+    if change == "weights":
+        store, _, _ = _inputs(seed=2)
+    else:
+        weighting = "inverse-angle"
+    lines = []
+    table = _table(store, truth, sets, log=lines.append, checkpoint=ckpt, weighting=weighting)
+    assert f"ignoring {ckpt}: it belongs to other inputs or settings" in lines
+    assert not any("resuming" in line for line in lines)
+    assert _without_times(table) == _without_times(_table(store, truth, sets, weighting=weighting))
