@@ -23,6 +23,7 @@ import torch
 from diffshadow.codecs import BasisCodec, codec_named
 from diffshadow.evaluate import blend_baseline
 from diffshadow.grid import trilinear
+from diffshadow.hpc import device_name
 from diffshadow.io import atomic_torch_save, resume
 from diffshadow.lights import OLD_WEIGHTING, blend_finder, blend_weights, describe_blend
 from diffshadow.metrics import psnr
@@ -96,8 +97,11 @@ def choose_cache(stage1, truth: EvalTruth, val: EvalTruth, train: np.ndarray, *,
 
 
 def cache_table(stage1, truth: EvalTruth, light_sets: dict, *, blend_k: int, weighting: str, volume=None, tf=None,
-                model_state: dict | None = None, generated=None, log=print, checkpoint: Path | None = None) -> dict:
+                model_state: dict | None = None, generated=None, log=print, checkpoint: Path | None = None,
+                device: torch.device | str = "cpu") -> dict:
     """One row per cache: bytes, seen and unseen median voxel PSNR (box points), seconds to answer a new light.
+
+    The model's fp16 rows sample (and time) its DDIM on `device`; every PSNR is taken on the CPU.
 
     Resumable: with `checkpoint`, each finished group of rows (a codec's; the model's, with its DDIM of every
     light; the grids') is saved there, and a rerun on the same inputs starts at the first group not done. At the
@@ -147,12 +151,12 @@ def cache_table(stage1, truth: EvalTruth, light_sets: dict, *, blend_k: int, wei
     work += [(f"stored SIRENs {c.name}", lambda c=c: codec_rows(c)) for c in codecs]
     if model_state is not None:
         work.append(("diffusion model", lambda: _model_rows(model_state, generated, train, unseen, scored,
-                                                            stored=weights)))
+                                                            stored=weights, device=device)))
     if volume is not None:
         work.append(("dense shadow grids", lambda: [_grid_row(volume, tf, truth, train, unseen, idx, mix)]))
     fingerprint = _fingerprint(weights, truth, light_sets, [name for name, _ in work], blend_k=blend_k,
                                weighting=weighting, model_state=model_state, generated=generated, volume=volume,
-                               tf=tf)
+                               tf=tf, device=device)
     saved = resume(checkpoint, fingerprint, log=log, weights_only=True)
     groups = list(saved["groups"]) if saved else []
     if groups:
@@ -171,17 +175,19 @@ def cache_table(stage1, truth: EvalTruth, light_sets: dict, *, blend_k: int, wei
 
 
 def _fingerprint(weights: np.ndarray, truth: EvalTruth, light_sets: dict, groups: list[str], *, blend_k: int,
-                 weighting: str, model_state: dict | None, generated, volume, tf) -> str:
+                 weighting: str, model_state: dict | None, generated, volume, tf,
+                 device: torch.device | str = "cpu") -> str:
     """What the table's rows depend on: the stored SIRENs, the truth and its points, the lights, the blend, the
-    groups of rows, the sampler's weights and settings, `generated`'s figures and mix, the volume and TF, and the
-    threads (a product's sums split by thread: the same bytes need the same count). Arrays are hashed in place."""
+    groups of rows, the sampler's weights and settings, `generated`'s figures and mix, the volume and TF, the
+    threads (a product's sums split by thread: the same bytes need the same count) and the kind of device that
+    samples (a GPU samples other bits, and times otherwise). Arrays are hashed in place."""
     h = hashlib.sha256(np.ascontiguousarray(weights))
     for name in sorted(truth.values):
         h.update(truth.values[name].contiguous().numpy())
         h.update(truth.points[name].contiguous().numpy())
     for name in ("train", "unseen"):
         h.update(np.ascontiguousarray(light_sets[name], dtype=np.float64))
-    meta = [blend_k, weighting, groups, torch.get_num_threads()]
+    meta = [blend_k, weighting, groups, torch.get_num_threads(), torch.device(device).type]
     if model_state is not None:
         from diffshadow.diffusion.sample import sampler_weights
 
@@ -202,7 +208,8 @@ def _fingerprint(weights: np.ndarray, truth: EvalTruth, light_sets: dict, groups
     return h.hexdigest()
 
 
-def _model_rows(state: dict, generated, train, unseen, scored, *, stored: np.ndarray) -> list[dict]:
+def _model_rows(state: dict, generated, train, unseen, scored, *, stored: np.ndarray,
+                device: torch.device | str = "cpu") -> list[dict]:
     """The diffusion model with its parameters stored in fp32 (its samples: sample_shadows' `generated` store, or,
     where that store mixed them with the stored SIRENs, their PSNRs as it scored them before the mix) and in fp16
     (rounded, then sampled in fp32 with the same DDIM steps and seed: what storing them in 16 bits costs). The time
@@ -212,7 +219,7 @@ def _model_rows(state: dict, generated, train, unseen, scored, *, stored: np.nda
     from diffshadow.diffusion.mix import mix_weights
     from diffshadow.diffusion.sample import generate, load_sampler
 
-    model, std, layout, _ = load_sampler(state)
+    model, std, layout, _ = load_sampler(state, device)
     cfg = state["config"]
     half = copy.deepcopy(model)
     with torch.no_grad():
@@ -222,8 +229,8 @@ def _model_rows(state: dict, generated, train, unseen, scored, *, stored: np.nda
     t0 = time.perf_counter()
     with torch.no_grad():
         w16 = generate(half, std, lights, method="ddim", steps=int(cfg["ddim_steps"]), seed=int(cfg["seed"]),
-                       temperature=cfg["temperature"]).numpy()
-    answer = (time.perf_counter() - t0) / len(lights)
+                       temperature=cfg["temperature"], device=device).numpy()
+    answer = (time.perf_counter() - t0) / len(lights)  # the copy back to the host waited for the device
     mixed = (generated.config or {}).get("mix")
     seen = np.asarray(generated.seen)
 
@@ -241,7 +248,7 @@ def _model_rows(state: dict, generated, train, unseen, scored, *, stored: np.nda
     rows = []
     for name, psnrs, bits in (("fp32", fp32, 32), ("fp16", scored(w16[:n], w16[n:] if len(unseen) else None), 16)):
         rows.append({"cache": f"diffusion model {name}", "kind": "model", "bytes": int(n_params * bits // 8),
-                     **psnrs, "answer_s": answer})
+                     **psnrs, "answer_s": answer, "device": device_name(device)})
     if mixed:
         share, k = float(mixed["model_share"]), min(int(mixed["blend_k"]), n)
         weighting = mixed.get("blend_weights", OLD_WEIGHTING)
@@ -255,7 +262,8 @@ def _model_rows(state: dict, generated, train, unseen, scored, *, stored: np.nda
                                     ("fp16", scored(w16_mix[:n], w16_mix[n:] if len(unseen) else None),
                                      2 * n_params + enc.nbytes)):
             rows.append({"cache": f"model {share:g} + stored SIRENs {1 - share:g}, both {name}", "kind": "mix",
-                         "share": share, "bytes": int(nbytes), **psnrs, "answer_s": answer})
+                         "share": share, "bytes": int(nbytes), **psnrs, "answer_s": answer,
+                         "device": device_name(device)})
     return rows
 
 

@@ -121,7 +121,7 @@ def _caches(a):
 
     stage2.caches(Path(a.weights), Path(a.generated), Path(a.truth), Path(a.lights), Path(a.volume),
                   Path(a.checkpoint) if a.checkpoint else None, Path(a.out), Path(a.figure), blend_k=a.blend_k,
-                  weighting=a.blend_weights)
+                  weighting=a.blend_weights, device=_device(a))
 
 
 def _sample_shadows(a):
@@ -415,8 +415,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--cache-weights", help="a codec's decoded store (encode-cache's cache.zarr) that --generated "
                    "blended: the further test lights' answer blends it (none: --weights)")
     p = _add(sub, "caches", _caches, "caches.json: every cache (stored SIRENs and their codecs, the model, dense "
-             "grids) as bytes against seen and unseen voxel PSNR", "weights", "generated", "truth", "lights", "volume",
-             "figure", device=False)
+             "grids) as bytes against seen and unseen voxel PSNR; the model's fp16 DDIM samples (and is timed) on "
+             "--device (the workflow passes --device cpu unless evaluate.device is run), the PSNRs on the CPU",
+             "weights", "generated", "truth", "lights", "volume", "figure")
     p.add_argument("--checkpoint", help="the diffusion checkpoint (none: cache: blend, no model rows)")
     _blend_args(p, evaluate)
     _add(sub, "train-data-inr", _train_data_inr, "fit the data INR (a SIREN of the scalar field)", "volume",
@@ -512,7 +513,7 @@ def build_parser() -> argparse.ArgumentParser:
 
 # subcommands that use one GPU: on a node shared by several jobs each claims its own (DIFFSHADOW_GPU_LOCK)
 _ONE_GPU = {"preoptimize", "fit-siren", "train-data-inr", "presample", "train-diffusion", "sample-shadows",
-            "evaluate-voxels", "render-targets", "evaluate-images", "render"}
+            "evaluate-voxels", "caches", "render-targets", "evaluate-images", "render"}
 
 
 # subcommands that never touch torch: importing it (~1 s on a CPU, seconds with a CUDA build) would be most of

@@ -91,3 +91,44 @@ def test_a_checkpoint_of_other_inputs_is_not_resumed(tmp_path, change):
     assert f"ignoring {ckpt}: it belongs to other inputs or settings" in lines
     assert not any("resuming" in line for line in lines)
     assert _without_times(table) == _without_times(_table(store, truth, sets, weighting=weighting))
+
+
+def _model_state(store, sets, tmp_path):
+    """A tiny model trained for two epochs on the stored SIRENs (what its rows need: a checkpoint's state)."""
+    from diffshadow.diffusion.config import DiffusionConfig
+    from diffshadow.diffusion.train import TrainingData, train_diffusion
+
+    n, g = len(sets["train"]), torch.Generator().manual_seed(0)
+    data = TrainingData(weights=torch.as_tensor(store.weights),
+                        lights=torch.as_tensor(sets["train"], dtype=torch.float32),
+                        points=torch.rand(n, 32, 3, generator=g), values=torch.rand(n, 32, generator=g),
+                        extent=torch.ones(3), layout=LAYOUT, siren=SIREN)
+    cfg = DiffusionConfig.from_config(dict(preset="tiny", epochs=2, batch_size=4, geometry_points=16, pool_lights=0,
+                                           target_gap=0.0, ddim_steps=4))
+    return train_diffusion(data, cfg, tmp_path / "model.ckpt", device="cpu", log=lambda m: None)
+
+
+def test_the_models_rows_sample_on_the_device_they_are_given(tmp_path, monkeypatch):
+    """evaluate.device reaches the model's fp16 DDIM (the workflow passes --device cpu unless it is `run`), and each
+    model row names the device its answer was timed on."""
+    from diffshadow.diffusion import sample
+    from diffshadow.hpc import device_name
+
+    store, truth, sets = _inputs()
+    state = _model_state(store, sets, tmp_path)
+    n = len(sets["train"]) + len(sets["unseen"])
+    generated = SimpleNamespace(psnr=np.linspace(30, 40, n), seen=np.arange(n) < len(sets["train"]), config={})
+    asked, generate = [], sample.generate
+
+    def recorded(*args, **kwargs):
+        asked.append(kwargs.get("device"))  # None: sampled wherever generate's default is
+        return generate(*args, **kwargs)
+
+    monkeypatch.setattr(sample, "generate", recorded)
+    table = caches.cache_table(store, truth, sets, blend_k=4, weighting="triangle", log=lambda m: None,
+                               model_state=state, generated=generated, device=torch.device("cpu"))
+    rows = {r["cache"]: r for r in table["caches"]}
+    assert asked == [torch.device("cpu")]
+    for name in ("diffusion model fp32", "diffusion model fp16"):
+        assert rows[name]["device"] == device_name("cpu") and rows[name]["answer_s"] > 0
+    assert rows["diffusion model fp32"]["seen_psnr"] == pytest.approx(np.median(generated.psnr[generated.seen]))

@@ -487,12 +487,13 @@ def test_the_sampler_curve_resumes_where_an_interrupted_evaluation_stopped(finis
 
 
 def test_the_evaluation_runs_on_the_cpu_unless_evaluate_device_is_run(finished):
-    """evaluate.device: cpu (the default) keeps one truth and one sampler curve on every machine: eval_truth and
-    evaluate_voxels get --device cpu; `run` gives them the run's device, which changes their bytes on a GPU, so
-    both rerun."""
-    targets = {"eval-truth": "results/nucleon/eval_truth.zarr", "evaluate-voxels": "results/nucleon/voxel_metrics.json"}
+    """evaluate.device: cpu (the default) keeps one truth, one sampler curve and one fp16 model row on every
+    machine: eval_truth, evaluate_voxels and caches get --device cpu; `run` gives them the run's device, which
+    changes their bytes on a GPU, so all three rerun."""
+    targets = {"eval-truth": "results/nucleon/eval_truth.zarr", "evaluate-voxels": "results/nucleon/voxel_metrics.json",
+               " caches --weights": "results/nucleon/caches.json"}
     on_run = {**TINY, "evaluate": {**TINY["evaluate"], "device": "run"}}
-    assert {"eval_truth", "evaluate_voxels"} <= set(planned(snakemake(finished, "-n", config=on_run)))
+    assert {"eval_truth", "evaluate_voxels", "caches"} <= set(planned(snakemake(finished, "-n", config=on_run)))
     default = snakemake(finished, "-n", "-p", "-f", *targets.values()).stdout.splitlines()
     shell = snakemake(finished, "-n", "-p", "-f", *targets.values(), config=on_run).stdout.splitlines()
     for command in targets:

@@ -375,9 +375,10 @@ def evaluate_voxels(checkpoint: Path | None, weights_path: Path, generated_path:
 
 
 def caches(weights_path: Path, generated_path: Path, truth_path: Path, lights_path: Path, volume_path: Path,
-           checkpoint: Path | None, out: Path, figure: Path, *, blend_k: int, weighting: str) -> None:
+           checkpoint: Path | None, out: Path, figure: Path, *, blend_k: int, weighting: str,
+           device: torch.device | str = "cpu") -> None:
     """`caches.json` and its figure: every cache of this run as bytes against seen and unseen voxel PSNR
-    (`diffshadow.caches`); the model's rows where the run trained one (`checkpoint`)."""
+    (`diffshadow.caches`); the model's rows where the run trained one (`checkpoint`), its DDIM on `device`."""
     from diffshadow.caches import cache_table
     from diffshadow.report import caches_figure
 
@@ -385,7 +386,8 @@ def caches(weights_path: Path, generated_path: Path, truth_path: Path, lights_pa
     table = cache_table(open_store(weights_path), artifacts.read_eval_truth(truth_path), read_lights(lights_path),
                         blend_k=blend_k, weighting=weighting, volume=volume, tf=tf,
                         model_state=artifacts.load_checkpoint(checkpoint) if checkpoint else None,
-                        generated=open_store(generated_path), checkpoint=out.with_name(out.name + ".ckpt"))
+                        generated=open_store(generated_path), checkpoint=out.with_name(out.name + ".ckpt"),
+                        device=device)
     atomic_write_text(out, json.dumps(finite_json(table), indent=1) + "\n")
     caches_figure(table, figure)
     for row in table["caches"]:

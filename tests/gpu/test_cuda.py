@@ -175,6 +175,32 @@ def test_diffusion_training_and_sampling_agree_with_cpu(tmp_path):
     assert float((a - b).abs().max() / a.abs().max()) <= 1e-4
 
 
+def test_caches_model_rows_on_cuda_are_the_cpus_to_float_rounding(tmp_path):
+    """evaluate.device: run samples caches' fp16 model on the GPU; its PSNRs (taken on the CPU) are the CPU run's
+    to float rounding, and its rows name the GPU."""
+    from types import SimpleNamespace
+
+    from diffshadow.caches import cache_table
+    from diffshadow.truth import EvalTruth
+
+    data = _training_data()
+    state = train_diffusion(data, DCFG, tmp_path / "m.ckpt", device="cpu", log=lambda m: None)
+    train, unseen = LIGHTS[:3], LIGHTS[3:]
+    g = torch.Generator().manual_seed(4)
+    truth = EvalTruth(points={"box": torch.rand(128, 3, generator=g)}, lights=LIGHTS,
+                      values={"box": torch.rand(len(LIGHTS), 128, generator=g)}, extent=torch.ones(3))
+    store = SimpleNamespace(weights=data.weights[:3].numpy(), layout=LAYOUT, siren=SIREN)
+    generated = SimpleNamespace(psnr=np.full(4, 30.0), seen=np.arange(4) < 3, config={})
+    tables = [cache_table(store, truth, {"train": train, "unseen": unseen}, blend_k=3, weighting="inverse-angle",
+                          model_state=state, generated=generated, device=d, log=lambda m: None)
+              for d in ("cpu", CUDA)]
+    cpu, gpu = ({r["cache"]: r for r in t["caches"]} for t in tables)
+    row = "diffusion model fp16"
+    assert gpu[row]["device"] == torch.cuda.get_device_name(CUDA) and cpu[row]["device"].startswith("cpu")
+    for key in ("seen_psnr", "unseen_psnr"):
+        assert abs(gpu[row][key] - cpu[row][key]) < 0.01, (key, gpu[row][key], cpu[row][key])
+
+
 def test_graphed_geometry_steps_train_what_eager_steps_train(tmp_path, monkeypatch):
     """diffusion.cuda_graph: the geometry stage's steps replayed as CUDA graphs give eager steps' weights. Four
     lights in batches of 3: an epoch's short last batch gets a graph of its own; the lr, halved every epoch, reaches

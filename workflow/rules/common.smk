@@ -165,8 +165,8 @@ def volume_file(wildcards):
 
 
 def evaluate_device(wildcards):
-    """eval_truth's and evaluate_voxels' device flag: the CPU under evaluate.device cpu (one truth and one sampler
-    curve on every machine), else none (the run's device)."""
+    """eval_truth's, evaluate_voxels' and caches' device flag: the CPU under evaluate.device cpu (one truth, one
+    sampler curve and one fp16 model row on every machine), else none (the run's device)."""
     return "--device cpu" if scene_config(wildcards.scene)["evaluate"]["device"] == "cpu" else ""
 
 

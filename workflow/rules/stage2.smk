@@ -205,6 +205,7 @@ rule caches:
     params:
         checkpoint=lambda wc, input: f"--checkpoint {input.checkpoint}" if "checkpoint" in input.keys() else "",
         blend=lambda wc: blend_args(wc.scene),
+        device=evaluate_device,
         run=lambda wc: caption_values(wc.scene),  # for the caption
     threads: 1
     log:
@@ -216,7 +217,7 @@ rule caches:
     shell:
         "diffshadow --phases results/{wildcards.scene}/benchmarks/caches.phases.json caches --weights {input.weights}"
         " --generated {input.generated} --truth {input.truth} --volume {input.volume} --lights {input.lights}"
-        " {params.checkpoint} {params.blend} --threads {threads} --figure {output.figure}"
+        " {params.checkpoint} {params.blend} {params.device} --threads {threads} --figure {output.figure}"
         " --out {output.table} 2>&1 | tee {log}"
 
 
