@@ -101,7 +101,8 @@ def cache_table(stage1, truth: EvalTruth, light_sets: dict, *, blend_k: int, wei
                 device: torch.device | str = "cpu") -> dict:
     """One row per cache: bytes, seen and unseen median voxel PSNR (box points), seconds to answer a new light.
 
-    The model's fp16 rows sample (and time) its DDIM on `device`; every PSNR is taken on the CPU.
+    The model's fp16 rows sample (and time) its DDIM on `device`; the SIRENs are evaluated where `truth` says
+    (`EvalTruth.on`), and every PSNR is taken on the CPU.
 
     Resumable: with `checkpoint`, each finished group of rows (a codec's; the model's, with its DDIM of every
     light; the grids') is saved there, and a rerun on the same inputs starts at the first group not done. At the

@@ -399,7 +399,8 @@ def build_parser() -> argparse.ArgumentParser:
              device=False)
     _blend_args(p, evaluate)
     p = _add(sub, "evaluate-voxels", _evaluate_voxels, "voxel PSNR of generated SIRENs, baselines, storage, the "
-             "samplers' timing (the workflow passes --device cpu unless evaluate.device is run)",
+             "samplers' timing; the samplers and the SIRENs' evaluation on --device (the workflow passes --device cpu "
+             "unless evaluate.device is run), the PSNRs on the CPU",
              "weights", "generated", "truth", "volume", "lights")
     p.add_argument("--checkpoint", help="the diffusion checkpoint that sampled --generated (none: cache: blend)")
     _blend_args(p, evaluate)
@@ -415,8 +416,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--cache-weights", help="a codec's decoded store (encode-cache's cache.zarr) that --generated "
                    "blended: the further test lights' answer blends it (none: --weights)")
     p = _add(sub, "caches", _caches, "caches.json: every cache (stored SIRENs and their codecs, the model, dense "
-             "grids) as bytes against seen and unseen voxel PSNR; the model's fp16 DDIM samples (and is timed) on "
-             "--device (the workflow passes --device cpu unless evaluate.device is run), the PSNRs on the CPU",
+             "grids) as bytes against seen and unseen voxel PSNR; the model's fp16 DDIM (timed) and the SIRENs' "
+             "evaluation on --device (the workflow passes --device cpu unless evaluate.device is run), the PSNRs on "
+             "the CPU",
              "weights", "generated", "truth", "lights", "volume", "figure")
     p.add_argument("--checkpoint", help="the diffusion checkpoint (none: cache: blend, no model rows)")
     _blend_args(p, evaluate)

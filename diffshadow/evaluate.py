@@ -59,8 +59,8 @@ def wide_comparison(state: dict | None, stage1, light_sets: dict, volume, tf, *,
     alone on `lights` further test lights (`lights.wide_test_lights`), exact shadows at `points` box points each:
     the test lights' comparison, with an interval many times tighter. 32 test lights cannot tell a few tenths of a
     dB (nucleon, 512 training lights: the mix over the blend +0.36 dB, interval +0.04 to +0.78, on its 32 test
-    lights; +0.77, +0.73 to +0.84, on 4,096 of these). The model samples on `device`; the truth and the PSNRs
-    stay on the CPU.
+    lights; +0.77, +0.73 to +0.84, on 4,096 of these). The model samples, and the SIRENs are evaluated at the
+    points, on `device`; the truth (marched on the CPU) and the PSNRs stay on the CPU.
 
     Without a model (`state` None: `cache: blend` or a codec) the cache's answer is the weight blend of `cache`'s
     SIRENs (a codec's decoded store of stage 1's lights in their order, set beside stage 1's fp32 blend: what the
@@ -72,7 +72,7 @@ def wide_comparison(state: dict | None, stage1, light_sets: dict, volume, tf, *,
                          f"least 1 light and 1 point, got {lights} and {points} (wide_lights 0 skips the comparison)")
     train = light_sets["train"]
     wide = wide_test_lights(train, light_sets["center"], lights, seed=seed)
-    truth = EvalTruth.compute(volume, tf, wide, points, seed, sets=("box",))
+    truth = EvalTruth.compute(volume, tf, wide, points, seed, sets=("box",)).on(device)
     rows = truth.of(wide)
     idx, w = blend_weights(train, wide, blend_k, weighting)
     blend = blend_rows(stage1.weights, idx, w).astype(np.float32)
@@ -116,7 +116,8 @@ def voxel_metrics(state: dict | None, stage1, generated, truth: EvalTruth, light
     with the stored ones' blend (its config's `mix`), the model's own, as sample_shadows scored them before the mix,
     are reported beside them (`model_alone_psnr_median`); fine-tuning's change and the sampler curve are the
     model's own. The samplers run,
-    and are timed, on `device`; the truth and the PSNRs stay on the CPU.
+    and are timed, on `device`, where `truth` (`EvalTruth.on`) evaluates the SIRENs it scores; the truth and the
+    PSNRs stay on the CPU.
 
     Resumable: the sampler curve (its 500-step DDPM the longest row) saves its rows to `curve_checkpoint` as
     each is done, and a rerun for the same model, lights, truth and device kind starts at the first row not done

@@ -4,6 +4,7 @@ evaluation points with every light's exact shadow (the march is their cost)."""
 
 from __future__ import annotations
 
+import dataclasses
 import time
 from dataclasses import dataclass
 
@@ -80,6 +81,9 @@ class TruthPoints:
         return _siren_values(self.sets, self.extent, weights, layout, siren)
 
 
+CPU = torch.device("cpu")
+
+
 @dataclass
 class EvalTruth:
     """`eval_truth`'s fixed evaluation points (per set: box, visible) and the exact shadow of every light
@@ -89,6 +93,13 @@ class EvalTruth:
     lights: np.ndarray  # (L, 3)
     values: dict[str, torch.Tensor]  # set -> (L, P)
     extent: torch.Tensor
+    # where `sirens` evaluates the SIRENs it scores (their values come back to the CPU, as the truth is kept):
+    # evaluate.device: run puts them on the run's GPU (`on`)
+    device: torch.device = CPU
+
+    def on(self, device: torch.device | str) -> EvalTruth:
+        """This truth with its SIRENs evaluated on `device` (the points and the truth stay on the CPU)."""
+        return dataclasses.replace(self, device=torch.device(device))
 
     @classmethod
     def compute(cls, volume: Volume, tf, lights: np.ndarray, n_points: int, seed: int, log=None,
@@ -118,7 +129,7 @@ class EvalTruth:
         """The SIRENs `weights` (L, n_params) at the points of every set, or only of those named in `sets` (each
         set costs a full evaluation)."""
         points = self.points if sets is None else {k: self.points[k] for k in sets}
-        return _siren_values(points, self.extent, weights, layout, siren)
+        return _siren_values(points, self.extent, weights, layout, siren, device=self.device)
 
     def median_psnr(self, weights: np.ndarray, layout: WeightLayout, siren: SirenConfig, lights: np.ndarray,
                     point_set: str = "box") -> float:
@@ -146,8 +157,9 @@ def light_chunks(n: int, per_light: int) -> list[slice]:
     return [slice(a, b) for a, b in zip(starts, [*starts[1:], n], strict=True)]
 
 
-def _siren_values(sets: dict, extent: torch.Tensor, weights, layout: WeightLayout,
-                  siren: SirenConfig) -> dict[str, torch.Tensor]:
+def _siren_values(sets: dict, extent: torch.Tensor, weights, layout: WeightLayout, siren: SirenConfig, *,
+                  device: torch.device | str = "cpu") -> dict[str, torch.Tensor]:
+    """The SIRENs `weights` at each set's points, evaluated on `device` in chunks; the values on the CPU."""
     w = torch.as_tensor(np.asarray(weights), dtype=torch.float32)
     out: dict[str, torch.Tensor] = {}
     with torch.no_grad():
@@ -156,8 +168,10 @@ def _siren_values(sets: dict, extent: torch.Tensor, weights, layout: WeightLayou
             # under `runtime.keep_freed_memory`) grew the heap by about a chunk's activations per chunk; at the
             # paper's sizes evaluate_voxels held 15 GiB resident for 6 GiB of live tensors (docs/performance.md)
             values = out[k] = torch.empty(len(w), p.shape[-2])
+            p, box = p.to(device), extent.to(device)
             for c in light_chunks(len(w), p.shape[-2] * siren.width):
-                values[c] = BatchedSiren(w[c], layout, siren.blocks)(box_to_siren(p.expand(len(w[c]), -1, -1), extent))
+                x = box_to_siren(p.expand(len(w[c]), -1, -1), box)
+                values[c] = BatchedSiren(w[c].to(device), layout, siren.blocks)(x)
     return out
 
 

@@ -176,6 +176,45 @@ def test_naive_images_made_apart_give_evaluate_images_the_same_metrics_and_pngs(
         read_naive_images(tmp_path / "naive.zarr", lights["train"], views[::-1])
 
 
+def _truth_and_sirens(n: int = 5):
+    siren = SirenConfig(8, 1)
+    layout = WeightLayout.for_siren(siren)
+    init = layout.flatten(init_siren(siren, torch.Generator().manual_seed(0))).numpy()
+    w = (init + 0.05 * np.random.default_rng(0).standard_normal((n, layout.n_params))).astype(np.float32)
+    truth = EvalTruth.compute(_blob(), identity_tf(), fibonacci_sphere(n), 128, seed=3)
+    return truth, w, layout, siren
+
+
+def test_a_truth_evaluates_its_sirens_where_it_is_put(monkeypatch):
+    """evaluate.device: run puts the SIRENs that evaluate_voxels and caches score on the run's device
+    (`EvalTruth.on`): `sirens` evaluates there, and on the CPU (the default) the values are the same bytes."""
+    from diffshadow import truth as truth_module
+
+    truth, w, layout, siren = _truth_and_sirens()
+    before = truth.sirens(w, layout, siren)
+    asked, values = [], truth_module._siren_values
+
+    def recorded(*args, **kwargs):
+        asked.append(kwargs.get("device"))  # None: evaluated wherever _siren_values' default is
+        return values(*args, **kwargs)
+
+    monkeypatch.setattr(truth_module, "_siren_values", recorded)
+    put = truth.on("cpu")
+    after = put.sirens(w, layout, siren)
+    assert asked == [torch.device("cpu")] and put.device == torch.device("cpu") and truth.device.type == "cpu"
+    assert put.points is truth.points and put.values is truth.values  # the truth itself stays on the CPU
+    assert all(torch.equal(before[k], after[k]) for k in before)
+
+
+@pytest.mark.gpu
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="no CUDA device")
+def test_sirens_evaluated_on_cuda_are_the_cpus_to_float_rounding():
+    truth, w, layout, siren = _truth_and_sirens()
+    cpu, gpu = truth.sirens(w, layout, siren), truth.on("cuda").sirens(w, layout, siren)
+    for k in cpu:
+        assert gpu[k].device.type == "cpu" and float((gpu[k] - cpu[k]).abs().max()) < 1e-5
+
+
 @pytest.mark.gpu
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="no CUDA device")
 def test_eval_truth_on_cuda_is_the_cpus_to_float_rounding():

@@ -336,11 +336,11 @@ def evaluate_voxels(checkpoint: Path | None, weights_path: Path, generated_path:
                     wide_lights: int = 0, wide_points: int = 1024, wide_seed: int = 0,
                     cache_path: Path | None = None) -> None:
     """`voxel_metrics.json`: generated against stage 1 and the baselines, storage, time per INR (the samplers
-    run and are timed on `device`); with the geometry-stage checkpoint, unseen lights before and after
-    fine-tuning. Without `checkpoint` (`cache: blend` or a codec) the generated SIRENs are the blended ones and
-    there is no model to time. The sampler curve resumes from `<out>.ckpt`. With `wide_lights`, the cache's answer,
-    the weight blend and (with a model) the model alone on that many further test lights too
-    (`evaluate.wide_comparison`); a codec's answer blends its decoded store, `cache_path`."""
+    run and are timed on `device`, and the SIRENs are evaluated there); with the geometry-stage checkpoint, unseen
+    lights before and after fine-tuning. Without `checkpoint` (`cache: blend` or a codec) the generated SIRENs are
+    the blended ones and there is no model to time. The sampler curve resumes from `<out>.ckpt`. With
+    `wide_lights`, the cache's answer, the weight blend and (with a model) the model alone on that many further test
+    lights too (`evaluate.wide_comparison`); a codec's answer blends its decoded store, `cache_path`."""
     geometry = artifacts.load_checkpoint(geometry_checkpoint) if geometry_checkpoint else None
     state = artifacts.load_checkpoint(checkpoint) if checkpoint else None
     stage1, light_sets = open_store(weights_path), read_lights(lights_path)  # read (and verified) once for both
@@ -348,8 +348,9 @@ def evaluate_voxels(checkpoint: Path | None, weights_path: Path, generated_path:
     if cache is not None and not np.array_equal(cache.lights, stage1.lights):  # before the work, not after
         raise ValueError(f"--cache-weights {cache_path}: {len(cache.lights)} lights, not the {len(stage1.lights)} of "
                          f"--weights {weights_path} in their order (expected encode-cache's decoded copy of it)")
-    result = voxel_metrics(state, stage1, open_store(generated_path), artifacts.read_eval_truth(truth_path),
-                           light_sets, blend_k=blend_k, weighting=weighting,
+    truth = artifacts.read_eval_truth(truth_path).on(device)
+    result = voxel_metrics(state, stage1, open_store(generated_path), truth, light_sets, blend_k=blend_k,
+                           weighting=weighting,
                            grid_voxels=prepared_voxels(volume_path), ddpm_lights=ddpm_lights,
                            geometry_state=geometry, device=device,
                            curve_checkpoint=out.with_name(out.name + ".ckpt"))
@@ -378,12 +379,14 @@ def caches(weights_path: Path, generated_path: Path, truth_path: Path, lights_pa
            checkpoint: Path | None, out: Path, figure: Path, *, blend_k: int, weighting: str,
            device: torch.device | str = "cpu") -> None:
     """`caches.json` and its figure: every cache of this run as bytes against seen and unseen voxel PSNR
-    (`diffshadow.caches`); the model's rows where the run trained one (`checkpoint`), its DDIM on `device`."""
+    (`diffshadow.caches`); the model's rows where the run trained one (`checkpoint`), its DDIM and every SIREN's
+    evaluation on `device`."""
     from diffshadow.caches import cache_table
     from diffshadow.report import caches_figure
 
     volume, tf = load_prepared(volume_path)
-    table = cache_table(open_store(weights_path), artifacts.read_eval_truth(truth_path), read_lights(lights_path),
+    table = cache_table(open_store(weights_path), artifacts.read_eval_truth(truth_path).on(device),
+                        read_lights(lights_path),
                         blend_k=blend_k, weighting=weighting, volume=volume, tf=tf,
                         model_state=artifacts.load_checkpoint(checkpoint) if checkpoint else None,
                         generated=open_store(generated_path), checkpoint=out.with_name(out.name + ".ckpt"),
