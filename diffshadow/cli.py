@@ -128,9 +128,11 @@ def _sample_shadows(a):
     from diffshadow.stages import stage2
 
     mix = {"model_share": a.model_share, "val_lights": a.val_lights, "val_points": a.val_points, "seed": a.seed}
-    stage2.sample_shadows(Path(a.checkpoint), Path(a.truth), Path(a.lights), Path(a.out), device=_device(a), mix=mix,
+    device = _device(a)
+    stage2.sample_shadows(Path(a.checkpoint), Path(a.truth), Path(a.lights), Path(a.out), device=device, mix=mix,
                           weights_path=a.weights and Path(a.weights), volume_path=a.volume and Path(a.volume),
-                          blend_k=a.blend_k, weighting=a.blend_weights)
+                          blend_k=a.blend_k, weighting=a.blend_weights,
+                          score_device=device if a.score_on == "run" else "cpu")
 
 
 def _choose_cache(a):
@@ -380,6 +382,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--val-lights", type=int, default=mix["val_lights"], help="mix.val_lights")
     p.add_argument("--val-points", type=int, default=mix["val_points"], help="mix.val_points")
     p.add_argument("--seed", type=int, default=mix["seed"], help="their random draw (mix.seed)")
+    p.add_argument("--score-on", choices=("cpu", "run"), default="cpu",
+                   help="where the SIRENs are evaluated for their PSNR: cpu (default), or run: --device (the workflow "
+                   "passes run under evaluate.device: run)")
     auto = defaults()["cache_auto"]
     p = _add(sub, "choose-cache", _choose_cache, "cache: auto: the smallest stored-SIREN cache whose blend reaches "
              "the target on validation lights, else diffusion (cache_choice.json)", "weights", "truth", "volume",

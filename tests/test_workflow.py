@@ -487,18 +487,23 @@ def test_the_sampler_curve_resumes_where_an_interrupted_evaluation_stopped(finis
 
 
 def test_the_evaluation_runs_on_the_cpu_unless_evaluate_device_is_run(finished):
-    """evaluate.device: cpu (the default) keeps one truth, one sampler curve and one fp16 model row on every
-    machine: eval_truth, evaluate_voxels and caches get --device cpu; `run` gives them the run's device, which
-    changes their bytes on a GPU, so all three rerun."""
+    """evaluate.device: cpu (the default) keeps one truth, one sampler curve and one score of each SIREN on every
+    machine: eval_truth, evaluate_voxels and caches get --device cpu, and sample_shadows (on the run's device)
+    scores its SIRENs on the CPU; `run` gives them the run's device, which changes their bytes on a GPU, so all
+    four rerun."""
     targets = {"eval-truth": "results/nucleon/eval_truth.zarr", "evaluate-voxels": "results/nucleon/voxel_metrics.json",
                " caches --weights": "results/nucleon/caches.json"}
     on_run = {**TINY, "evaluate": {**TINY["evaluate"], "device": "run"}}
-    assert {"eval_truth", "evaluate_voxels", "caches"} <= set(planned(snakemake(finished, "-n", config=on_run)))
-    default = snakemake(finished, "-n", "-p", "-f", *targets.values()).stdout.splitlines()
-    shell = snakemake(finished, "-n", "-p", "-f", *targets.values(), config=on_run).stdout.splitlines()
+    assert {"eval_truth", "sample_shadows", "evaluate_voxels", "caches"} <= set(
+        planned(snakemake(finished, "-n", config=on_run)))
+    generated = "results/nucleon/generated.zarr"
+    default = snakemake(finished, "-n", "-p", "-f", *targets.values(), generated).stdout.splitlines()
+    shell = snakemake(finished, "-n", "-p", "-f", *targets.values(), generated, config=on_run).stdout.splitlines()
     for command in targets:
         assert "--device cpu" in next(ln for ln in default if command in ln), command
         assert "--device cpu" not in next(ln for ln in shell if command in ln), command
+    assert "--score-on" not in next(ln for ln in default if "sample-shadows" in ln)
+    assert "--score-on run" in next(ln for ln in shell if "sample-shadows" in ln)
 
 
 def test_rerun_one_subset(finished):

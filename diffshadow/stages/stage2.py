@@ -25,6 +25,7 @@ from diffshadow.diffusion.model import PRESETS
 from diffshadow.diffusion.sample import checkpoint_region, generate, load_sampler
 from diffshadow.diffusion.train import train_diffusion as train
 from diffshadow.evaluate import voxel_metrics, wide_comparison
+from diffshadow.hpc import device_name
 from diffshadow.io import atomic_torch_save, atomic_write_text, finite_json
 from diffshadow.lights import blend_label, blend_weights, describe_blend, read_lights, training_pool, validation_lights
 from diffshadow.runtime import distributed, set_threads
@@ -144,8 +145,9 @@ def eval_truth(volume_path: Path, lights_path: Path, out: Path, *, eval_points: 
 
 def sample_shadows(checkpoint: Path, truth_path: Path, lights_path: Path, out: Path, *, device: torch.device,
                    mix: dict | None = None, weights_path: Path | None = None, volume_path: Path | None = None,
-                   blend_k: int = 4, weighting: str = "triangle") -> None:
-    """SIRENs generated for every training and unseen light, with their voxel PSNR. With `mix` (the config's section)
+                   blend_k: int = 4, weighting: str = "triangle", score_device: torch.device | str = "cpu") -> None:
+    """SIRENs generated (on `device`) for every training and unseen light, with their voxel PSNR (the SIRENs
+    evaluated on `score_device`: evaluate.device, the CPU by default). With `mix` (the config's section)
     and a model share under 1, each is mixed with the weight blend of the stored SIRENs of `weights_path`
     (`lights.blend_weights` by `weighting`, `blend_k`; a training light's blend is its own stored SIREN); share `auto`
     is chosen on validation lights with exact shadows from `volume_path` (diffusion/mix.py). The share and its curve are
@@ -172,13 +174,16 @@ def sample_shadows(checkpoint: Path, truth_path: Path, lights_path: Path, out: P
                         temperature=cfg["temperature"], device=device).numpy()
 
     weights = sample(all_lights)
-    truth = artifacts.read_eval_truth(truth_path)
+    truth = artifacts.read_eval_truth(truth_path).on(score_device)
     truth_rows = truth.of(all_lights, str(truth_path))
     config = {"diffusion": cfg, "checkpoint": str(checkpoint)}
+    if torch.device(score_device).type != "cpu":  # recorded where it is not the CPU (a store before the key: the CPU)
+        config["scored_on"] = device_name(score_device)
     if stage1 is not None:
         record = {"blend_weights": weighting, "blend_k": blend_k, "weights": str(weights_path)}
         if share == "auto":
-            record.update(_choose_share(sample, stage1, volume_path, light_sets, mix, blend_k, weighting))
+            record.update(_choose_share(sample, stage1, volume_path, light_sets, mix, blend_k, weighting,
+                                        score_device))
             record["chosen"] = "validation lights"
         else:
             record.update(model_share=float(share), chosen="config")
@@ -222,9 +227,10 @@ def _mix_inputs(share: str, weights_path: Path | None, volume_path: Path | None,
 
 
 def _choose_share(sample, stage1: WeightStore, volume_path: Path, light_sets: dict, mix: dict, blend_k: int,
-                  weighting: str) -> dict:
+                  weighting: str, score_device: torch.device | str = "cpu") -> dict:
     """`mix.model_share: auto`: the share chosen on `mix.val_lights` validation lights (exact shadows at
-    `mix.val_points` box points each, marched on the CPU as eval_truth's are), with its curve."""
+    `mix.val_points` box points each, marched on the CPU as eval_truth's are; the SIRENs evaluated on
+    `score_device`), with its curve."""
     from diffshadow.diffusion.mix import choose_share
 
     t0 = time.perf_counter()
@@ -233,7 +239,7 @@ def _choose_share(sample, stage1: WeightStore, volume_path: Path, light_sets: di
     volume, tf = load_prepared(volume_path)
     # the box points alone: the set the medians are reported on (the visible set would double the march and scoring)
     val = EvalTruth.compute(volume, tf, lights, int(mix["val_points"]), int(mix["seed"]) + VALIDATION_POINTS_SEED,
-                            sets=("box",))
+                            sets=("box",)).on(score_device)
     truth = val.of(lights)
     blend = blend_rows(stage1.weights, *blend_weights(train, lights, blend_k, weighting))
     share, curve = choose_share(sample(lights), blend,

@@ -7,6 +7,7 @@ summation order: ~1e-6 relative per op. A few optimiser steps of a SIREN (ω0 = 
 1e-3 on fitted SIREN outputs; renders and shadow grids, which have no training, are held to 1e-4.
 """
 
+import json
 import os
 import subprocess
 import sys
@@ -26,6 +27,7 @@ from diffshadow.diffusion.train import TrainingData, train_diffusion
 from diffshadow.fit import FitConfig, fit_sirens
 from diffshadow.render import Camera, Networks, RenderScene
 from diffshadow.siren import BatchedSiren, SirenConfig, WeightLayout, init_siren
+from diffshadow.store import open_store
 from diffshadow.transfer import TransferFunction
 from diffshadow.volume import Volume
 
@@ -425,11 +427,16 @@ def test_tiny_workflow_on_cuda_with_finetuning(tmp_path):
     sys.path.insert(0, str(REPO / "tests"))
     from test_workflow import TINY, snakemake
 
-    # evaluate.device: run: eval_truth marches and evaluate_voxels samples on the GPU too
+    # evaluate.device: run: eval_truth marches, evaluate_voxels and caches sample, and they and sample_shadows score
+    # their SIRENs on the GPU too
     snakemake(tmp_path, config={**TINY, "device": "cuda", "evaluate": {**TINY.get("evaluate", {}), "device": "run"}})
-    assert (tmp_path / "results/nucleon/diffusion.ckpt").exists()  # the fine-tuned model
-    assert (tmp_path / "results/nucleon/voxel_metrics.json").exists()
-    assert (tmp_path / "results/nucleon/image_metrics.json").exists()
+    res = tmp_path / "results/nucleon"
+    assert (res / "diffusion.ckpt").exists()  # the fine-tuned model
+    assert (res / "voxel_metrics.json").exists()
+    assert (res / "image_metrics.json").exists()
+    gpu = torch.cuda.get_device_name(CUDA)
+    assert open_store(res / "generated.zarr").config["scored_on"] == gpu
+    assert {r.get("device") for r in json.loads((res / "caches.json").read_text())["caches"]} == {None, gpu}
 
 
 def test_peak_memory_on_cuda_is_the_most_bytes_a_call_ever_held():

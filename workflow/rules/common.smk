@@ -108,11 +108,12 @@ def sample_command(scene, input):
     alone) it reads no stored SIRENs."""
     cfg = scene_config(scene)
     mix = cfg["mix"]
+    score = " --score-on run" if cfg["evaluate"]["device"] == "run" else ""  # evaluate.device: where SIRENs are scored
     if "stored" not in input.keys():
-        return f"sample-shadows --checkpoint {input.checkpoint}"
+        return f"sample-shadows --checkpoint {input.checkpoint}{score}"
     return (f"sample-shadows --checkpoint {input.checkpoint} --model-share {mix['model_share']} --weights "
             f"{input.stored} --volume {input.volume} {blend_args(scene)} --val-lights {mix['val_lights']} "
-            f"--val-points {mix['val_points']} --seed {mix['seed']}")
+            f"--val-points {mix['val_points']} --seed {mix['seed']}{score}")
 
 
 def model_alone(scene):
@@ -121,9 +122,12 @@ def model_alone(scene):
 
 
 def mix_settings(scene):
-    """sample_shadows' settings: the stored SIRENs' blend and, unless the model alone answers, the mix."""
+    """sample_shadows' settings: the stored SIRENs' blend, unless the model alone answers the mix, and where its
+    SIRENs are scored where that is not the CPU (evaluate.device: run; a run's record before the key stays valid)."""
     cfg = scene_config(scene)
-    return json.dumps({"blend_k": cfg["evaluate"]["blend_k"], "blend_weights": cfg["evaluate"]["blend_weights"], **({} if model_alone(scene) else {"mix": cfg["mix"]})},
+    return json.dumps({"blend_k": cfg["evaluate"]["blend_k"], "blend_weights": cfg["evaluate"]["blend_weights"],
+                       **({} if model_alone(scene) else {"mix": cfg["mix"]}),
+                       **({"score_on": "run"} if cfg["evaluate"]["device"] == "run" else {})},
                       sort_keys=True)
 
 
