@@ -140,20 +140,22 @@ def _choose_cache(a):
 
     stage2.choose_cache(Path(a.weights), Path(a.truth), Path(a.volume), Path(a.lights), Path(a.out),
                         blend_k=a.blend_k, weighting=a.blend_weights, target_psnr=a.target_psnr,
-                        candidates=a.candidates, val_lights=a.val_lights, val_points=a.val_points, seed=a.seed)
+                        candidates=a.candidates, val_lights=a.val_lights, val_points=a.val_points, seed=a.seed,
+                        device=_device(a))
 
 
 def _encode_cache(a):
     from diffshadow.stages import stage2
 
-    stage2.encode_cache(Path(a.weights), Path(a.truth), Path(a.lights), Path(a.out), codec=a.codec)
+    stage2.encode_cache(Path(a.weights), Path(a.truth), Path(a.lights), Path(a.out), codec=a.codec,
+                        device=_device(a))
 
 
 def _blend_shadows(a):
     from diffshadow.stages import stage2
 
     stage2.blend_shadows(Path(a.weights), Path(a.truth), Path(a.lights), Path(a.out), blend_k=a.blend_k,
-                         weighting=a.blend_weights)
+                         weighting=a.blend_weights, device=_device(a))
 
 
 def _evaluate_voxels(a):
@@ -327,6 +329,11 @@ def _blend_args(p: argparse.ArgumentParser, evaluate: dict, *, used: str = "") -
                    help="with --blend-weights inverse-angle: stored SIRENs blended per light (evaluate.blend_k)")
 
 
+# the commands that only score SIRENs: --device is where (evaluate.device)
+SCORED = ("the SIRENs evaluated for their PSNR on --device (the workflow passes --device cpu unless evaluate.device "
+          "is run)")
+
+
 def build_parser() -> argparse.ArgumentParser:
     from diffshadow.bench.cli import add_bench_parsers
 
@@ -387,8 +394,8 @@ def build_parser() -> argparse.ArgumentParser:
                    "passes run under evaluate.device: run)")
     auto = defaults()["cache_auto"]
     p = _add(sub, "choose-cache", _choose_cache, "cache: auto: the smallest stored-SIREN cache whose blend reaches "
-             "the target on validation lights, else diffusion (cache_choice.json)", "weights", "truth", "volume",
-             "lights", device=False)
+             "the target on validation lights, else diffusion (cache_choice.json); " + SCORED, "weights", "truth",
+             "volume", "lights")
     _blend_args(p, evaluate)
     p.add_argument("--target-psnr", type=float, default=auto["target_psnr"],
                    help="dB, median voxel PSNR on the validation lights (cache_auto.target_psnr)")
@@ -398,10 +405,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--candidates", nargs="+", default=auto["candidates"],
                    help="blend, fp16, bf16, basis-<k> (cache_auto.candidates)")
     p = _add(sub, "encode-cache", _encode_cache, "a codec's cache: the stored SIRENs through fp16, bf16 or "
-             "basis-<k>, written decoded as a weight store", "weights", "truth", "lights", "codec", device=False)
+             "basis-<k>, written decoded as a weight store; " + SCORED, "weights", "truth", "lights", "codec")
     p = _add(sub, "blend-shadows", _blend_shadows, "cache: blend: every training light's stored SIREN and every "
-             "unseen light's weight blend of the nearest, as sample-shadows' store", "weights", "truth", "lights",
-             device=False)
+             "unseen light's weight blend of the nearest, as sample-shadows' store; " + SCORED, "weights", "truth",
+             "lights")
     _blend_args(p, evaluate)
     p = _add(sub, "evaluate-voxels", _evaluate_voxels, "voxel PSNR of generated SIRENs, baselines, storage, the "
              "samplers' timing; the samplers and the SIRENs' evaluation on --device (the workflow passes --device cpu "

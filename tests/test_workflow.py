@@ -504,6 +504,15 @@ def test_the_evaluation_runs_on_the_cpu_unless_evaluate_device_is_run(finished):
         assert "--device cpu" not in next(ln for ln in shell if command in ln), command
     assert "--score-on" not in next(ln for ln in default if "sample-shadows" in ln)
     assert "--score-on run" in next(ln for ln in shell if "sample-shadows" in ln)
+    # the stored-SIREN caches' rules score their SIRENs the same way: cache: auto's choice, a codec's store, the blend
+    for cache, target, commands in (("auto", "results/nucleon/cache_choice.json", ["choose-cache"]),
+                                    ("fp16", "results/nucleon/generated.zarr", ["encode-cache", "blend-shadows"])):
+        config = {**TINY, "cache": cache}
+        lines = {device: snakemake(finished, "-n", "-p", "--forceall", target, config=cfg).stdout.splitlines()
+                 for device, cfg in (("cpu", config), ("run", {**config, "evaluate": on_run["evaluate"]}))}
+        for command in commands:
+            assert "--device cpu" in next(ln for ln in lines["cpu"] if f" {command} " in ln), command
+            assert "--device cpu" not in next(ln for ln in lines["run"] if f" {command} " in ln), command
 
 
 def test_rerun_one_subset(finished):

@@ -177,8 +177,7 @@ def sample_shadows(checkpoint: Path, truth_path: Path, lights_path: Path, out: P
     truth = artifacts.read_eval_truth(truth_path).on(score_device)
     truth_rows = truth.of(all_lights, str(truth_path))
     config = {"diffusion": cfg, "checkpoint": str(checkpoint)}
-    if torch.device(score_device).type != "cpu":  # recorded where it is not the CPU (a store before the key: the CPU)
-        config["scored_on"] = device_name(score_device)
+    config.update(scored_on(score_device))
     if stage1 is not None:
         record = {"blend_weights": weighting, "blend_k": blend_k, "weights": str(weights_path)}
         if share == "auto":
@@ -206,6 +205,12 @@ def sample_shadows(checkpoint: Path, truth_path: Path, lights_path: Path, out: P
     write_store(out, store, made_by="sample_shadows")
     print(f"wrote {out}: PSNR median seen {np.median(store.psnr[seen]):.2f} dB, "
           f"unseen {np.median(store.psnr[~seen]) if (~seen).any() else float('nan'):.2f} dB")
+
+
+def scored_on(device: torch.device | str) -> dict:
+    """Where a store's or a choice's PSNRs were scored, for its record, where that is not the CPU (evaluate.device:
+    run); nothing on the CPU, so that a store written before the key reads as the CPU's."""
+    return {} if torch.device(device).type == "cpu" else {"scored_on": device_name(device)}
 
 
 def _mix_inputs(share: str, weights_path: Path | None, volume_path: Path | None, layout) -> WeightStore | None:
@@ -263,7 +268,7 @@ def _check_region(region, unseen: np.ndarray, source: Path) -> None:
 
 def choose_cache(weights_path: Path, truth_path: Path, volume_path: Path, lights_path: Path, out: Path, *,
                  blend_k: int, weighting: str, target_psnr: float, candidates: list[str], val_lights: int,
-                 val_points: int, seed: int) -> None:
+                 val_points: int, seed: int, device: torch.device | str = "cpu") -> None:
     """`cache: auto`, right after stage 1: `cache_choice.json`, the cache that serves this scene (the smallest
     stored-SIREN cache whose blend reaches `target_psnr` on `val_lights` validation lights, exact shadows at
     `val_points` points each, else diffusion) with every candidate's bytes and figures; the workflow runs stage 2
@@ -276,15 +281,17 @@ def choose_cache(weights_path: Path, truth_path: Path, volume_path: Path, lights
     volume, tf = load_prepared(volume_path)
     lights = validation_lights(train, light_sets["center"], val_lights, seed=seed)
     # the box points alone, as the mix's choice: the medians are taken there, and the visible set doubled the march
-    val = EvalTruth.compute(volume, tf, lights, val_points, seed + VALIDATION_POINTS_SEED, sets=("box",))
-    result = choose(stage1, artifacts.read_eval_truth(truth_path), val, train, blend_k=blend_k,
+    val = EvalTruth.compute(volume, tf, lights, val_points, seed + VALIDATION_POINTS_SEED, sets=("box",)).on(device)
+    result = choose(stage1, artifacts.read_eval_truth(truth_path).on(device), val, train, blend_k=blend_k,
                     weighting=weighting, target_psnr=target_psnr, candidates=candidates)
     result["validation"] = {"lights": val_lights, "points": val_points, "seed": seed}
+    result.update(scored_on(device))
     atomic_write_text(out, json.dumps(finite_json(result), indent=1) + "\n")
     print(f"wrote {out}: cache {result['choice']}")
 
 
-def encode_cache(weights_path: Path, truth_path: Path, lights_path: Path, out: Path, *, codec: str) -> None:
+def encode_cache(weights_path: Path, truth_path: Path, lights_path: Path, out: Path, *, codec: str,
+                 device: torch.device | str = "cpu") -> None:
     """A codec's cache (`cache: fp16 | bf16 | basis-<k>`): the stored SIRENs through the codec, written decoded
     (ordinary SIREN weights, which the renderer and the viewer read as any weight store) with the encoded
     store's bytes and each decoded SIREN's voxel PSNR at eval_truth's points."""
@@ -293,19 +300,19 @@ def encode_cache(weights_path: Path, truth_path: Path, lights_path: Path, out: P
     stage1 = open_store(weights_path)
     train = read_lights(lights_path)["train"]
     weights, nbytes = encoded(stage1.weights, stage1.layout, codec)
-    truth = artifacts.read_eval_truth(truth_path)
+    truth = artifacts.read_eval_truth(truth_path).on(device)
     scores = psnr_per_light(truth.sirens(weights, stage1.layout, stage1.siren), truth.of(train, str(truth_path)))
     store = WeightStore(weights=weights, lights=stage1.lights, psnr=scores["box"],
                         psnr_visible=scores.get("visible", scores["box"]), layout=stage1.layout, siren=stage1.siren,
                         config={**(stage1.config or {}), "codec": codec, "encoded_bytes": nbytes,
-                                "source": str(weights_path)}, region=stage1.region)
+                                "source": str(weights_path), **scored_on(device)}, region=stage1.region)
     write_store(out, store, made_by="encode_cache")
     print(f"wrote {out}: {len(weights)} SIRENs through {codec}, {nbytes / 2**20:.3f} MiB encoded "
           f"(fp32 {stage1.weights.nbytes / 2**20:.3f} MiB), voxel PSNR median {np.median(store.psnr):.2f} dB")
 
 
 def blend_shadows(weights_path: Path, truth_path: Path, lights_path: Path, out: Path, *, blend_k: int,
-                  weighting: str) -> None:
+                  weighting: str, device: torch.device | str = "cpu") -> None:
     """`cache: blend`: the SIRENs of every training and unseen light without a model: a training light's own
     stored SIREN, an unseen light's weight blend of the stored ones (`lights.blend_weights` by `weighting`,
     `blend_k`: the baseline evaluate_voxels scores), with their voxel PSNR; the same store as `sample_shadows`
@@ -321,13 +328,14 @@ def blend_shadows(weights_path: Path, truth_path: Path, lights_path: Path, out: 
     codec = stage1.codec  # cache: blend reads stage 1's own fp32 store
     print(f"blending {(~seen).sum()} unseen shadow SIRENs, each {describe_blend(weighting, blend_k)} "
           f"({len(train)} stored, {codec})", flush=True)
-    truth = artifacts.read_eval_truth(truth_path)
+    truth = artifacts.read_eval_truth(truth_path).on(device)
     scores = psnr_per_light(truth.sirens(weights, stage1.layout, stage1.siren), truth.of(all_lights, str(truth_path)))
     store = WeightStore(weights=weights, lights=all_lights, psnr=scores["box"],
                         psnr_visible=scores.get("visible", scores["box"]), layout=stage1.layout, siren=stage1.siren,
                         config={"cache": "blend", "codec": codec, "blend_weights": weighting, "blend_k": blend_k,
                                 "weights": str(weights_path),
-                                **({"encoded_bytes": stage1.config["encoded_bytes"]} if codec != "fp32" else {})},
+                                **({"encoded_bytes": stage1.config["encoded_bytes"]} if codec != "fp32" else {}),
+                                **scored_on(device)},
                         seen=seen,
                         region=blend.region.to_dict())
     write_store(out, store, made_by="sample_shadows")

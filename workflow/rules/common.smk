@@ -169,8 +169,9 @@ def volume_file(wildcards):
 
 
 def evaluate_device(wildcards):
-    """eval_truth's, evaluate_voxels' and caches' device flag: the CPU under evaluate.device cpu (one truth, one
-    sampler curve and one fp16 model row on every machine), else none (the run's device)."""
+    """The device flag of eval_truth and of the rules that score SIRENs (evaluate_voxels, caches, choose_cache,
+    encode_cache, blend-shadows): the CPU under evaluate.device cpu (one truth, one sampler curve and one score on
+    every machine), else none (the run's device)."""
     return "--device cpu" if scene_config(wildcards.scene)["evaluate"]["device"] == "cpu" else ""
 
 

@@ -83,6 +83,7 @@ checkpoint choose_cache:
         blend=lambda wc: blend_args(wc.scene),
         val=lambda wc: "--val-lights {val_lights} --val-points {val_points} --seed {seed}".format(
             **scene_config(wc.scene)["cache_auto"]),
+        device=evaluate_device,
     threads: 1
     log:
         "results/{scene}/logs/choose_cache.log",
@@ -93,7 +94,7 @@ checkpoint choose_cache:
     shell:
         "diffshadow --phases results/{wildcards.scene}/benchmarks/choose_cache.phases.json choose-cache --weights {input.weights}"
         " --truth {input.truth} --volume {input.volume} --lights {input.lights} {params.blend}"
-        " --target-psnr {params.target} --candidates {params.candidates} {params.val} --threads {threads}"
+        " --target-psnr {params.target} --candidates {params.candidates} {params.val} {params.device} --threads {threads}"
         " --out {output} 2>&1 | tee {log}"
 
 
@@ -107,6 +108,7 @@ rule encode_cache:
         directory("results/{scene}/cache.zarr"),
     params:
         codec=lambda wc: cache_choice(wc.scene),
+        device=evaluate_device,
     threads: 1
     log:
         "results/{scene}/logs/encode_cache.log",
@@ -116,7 +118,7 @@ rule encode_cache:
         "../envs/diffshadow.yaml"
     shell:
         "diffshadow --phases results/{wildcards.scene}/benchmarks/encode_cache.phases.json encode-cache --weights {input.weights}"
-        " --truth {input.truth} --lights {input.lights} --codec {params.codec} --threads {threads}"
+        " --truth {input.truth} --lights {input.lights} --codec {params.codec} {params.device} --threads {threads}"
         " --out {output} 2>&1 | tee {log}"
 
 
@@ -130,7 +132,8 @@ rule sample_shadows:
     output:
         directory("results/{scene}/generated.zarr"),
     params:
-        command=lambda wc, input: (f"blend-shadows --weights {input.weights} {blend_args(wc.scene)}"
+        command=lambda wc, input: (f"blend-shadows --weights {input.weights} {blend_args(wc.scene)} "
+                                   f"{evaluate_device(wc)}"
                                    if "weights" in input.keys()
                                    else sample_command(wc.scene, input)
                                    if "checkpoint" in input.keys() else ""),  # "": cache: auto, not yet chosen
