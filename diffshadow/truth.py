@@ -171,7 +171,7 @@ def _siren_values(sets: dict, extent: torch.Tensor, weights, layout: WeightLayou
             p, box = p.to(device), extent.to(device)
             for c in light_chunks(len(w), p.shape[-2] * siren.width):
                 x = box_to_siren(p.expand(len(w[c]), -1, -1), box)
-                values[c] = BatchedSiren(w[c].to(device), layout, siren.blocks)(x)
+                values[c] = BatchedSiren(w[c].to(device), layout, siren.blocks)(x).cpu()
     return out
 
 
