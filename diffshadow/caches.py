@@ -180,15 +180,15 @@ def _fingerprint(weights: np.ndarray, truth: EvalTruth, light_sets: dict, groups
                  device: torch.device | str = "cpu") -> str:
     """What the table's rows depend on: the stored SIRENs, the truth and its points, the lights, the blend, the
     groups of rows, the sampler's weights and settings, `generated`'s figures and mix, the volume and TF, the
-    threads (a product's sums split by thread: the same bytes need the same count) and the kind of device that
-    samples (a GPU samples other bits, and times otherwise). Arrays are hashed in place."""
+    threads (a product's sums split by thread: the same bytes need the same count) and the kinds of device that
+    sample and evaluate (a GPU computes other bits, and times otherwise). Arrays are hashed in place."""
     h = hashlib.sha256(np.ascontiguousarray(weights))
     for name in sorted(truth.values):
         h.update(truth.values[name].contiguous().numpy())
         h.update(truth.points[name].contiguous().numpy())
     for name in ("train", "unseen"):
         h.update(np.ascontiguousarray(light_sets[name], dtype=np.float64))
-    meta = [blend_k, weighting, groups, torch.get_num_threads(), torch.device(device).type]
+    meta = [blend_k, weighting, groups, torch.get_num_threads(), torch.device(device).type, truth.device.type]
     if model_state is not None:
         from diffshadow.diffusion.sample import sampler_weights
 
