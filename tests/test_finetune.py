@@ -25,7 +25,7 @@ from diffshadow.diffusion.train import TrainingData, train_diffusion
 from diffshadow.lights import PoolLights
 from diffshadow.metrics import psnr
 from diffshadow.render import GridShadow, fibonacci_views
-from diffshadow.render.bundle import build_bundle, bundle_colors, render_targets
+from diffshadow.render.bundle import build_bundle, bundle_colors, foreground, render_targets
 from diffshadow.shadow import shadow_grid
 from diffshadow.siren import SirenConfig, WeightLayout, init_siren
 from diffshadow.transfer import TransferFunction
@@ -68,7 +68,8 @@ def make_setup(volume, workdir):
     dcfg = DiffusionConfig.from_config(dict(preset="tiny", epochs=1, batch_size=4, geometry_points=16,
                                               checkpoint_every=1, pool_lights=2, target_gap=0.0))
     state = train_diffusion(train, dcfg, workdir / "geo.ckpt", log=lambda m: None)
-    return cams, bundle, images, FinetuneData(train, bundle, images.reshape(4, FT.views, -1, 3)), state
+    data = FinetuneData(train, bundle, foreground(images.reshape(4, FT.views, -1, 3), bundle))
+    return cams, bundle, images, data, state
 
 
 def test_bundle_colour_equals_the_renderer(volume, setup):
@@ -83,6 +84,23 @@ def test_bundle_colour_equals_the_renderer(volume, setup):
             color = bundle_colors(bundle, g, torch.full_like(rows, v), rows)
             target = images[i, v].reshape(-1, 3)[bundle.pix[v, rows]]
             assert float((color - target).abs().max()) <= 1e-4
+
+
+def test_targets_are_read_back_at_each_views_foreground_pixels(volume, setup, tmp_path):
+    """targets.zarr holds whole images; fine-tuning reads only the foreground pixels, so they are read back (a few
+    lights at a time) as (L, V, F, 3) in the bundle's row order: each row is its pixel's colour in the image."""
+    from diffshadow.artifacts import read_targets, write_targets
+
+    cams, bundle, images, data, _ = setup
+    write_targets(tmp_path / "targets.zarr", images, bundle, cams, LIGHTS, step=FT.step, extent=volume.extent)
+    targets, read_bundle, lights = read_targets(tmp_path / "targets.zarr")
+    flat = images.reshape(len(LIGHTS), FT.views, -1, 3)
+    assert targets.shape == (len(LIGHTS), FT.views, bundle.pix.shape[1], 3) and np.array_equal(lights, LIGHTS)
+    assert torch.equal(read_bundle.pix, bundle.pix) and torch.equal(targets, data.targets)
+    for v in range(FT.views):
+        f = int(bundle.count[v])
+        assert torch.equal(targets[:, v, :f], flat[:, v, bundle.pix[v, :f]])
+    assert bundle.pix.shape[1] < flat.shape[2] / 2  # the foreground is what is kept: under half the pixels here
 
 
 def test_sweep_targets_match_march_targets(volume, setup):

@@ -266,7 +266,7 @@ def finetune_render(cfg: dict, device: torch.device, volume, tf) -> Timed:
     bundle = build_bundle(volume, tf, cameras, step=fcfg.step)  # the real views' samples: their count sets the cost
     n = len(data.weights)
     g = torch.Generator().manual_seed(4)
-    targets = torch.rand(n, fcfg.views, fcfg.image_size ** 2, 3, generator=g)
+    targets = torch.rand(n, fcfg.views, bundle.pix.shape[1], 3, generator=g)  # the foreground pixels' colours
     fdata = FinetuneData(data, bundle, targets).to(device)
     model = build_model(data.layout, dcfg).to(device)
     std = Standardizer.fit(data.layout, data.weights, dcfg.standardize)

@@ -88,7 +88,7 @@ NO_BUFFER_SYNC = ({"forward_sync_buffers": False}
 class FinetuneData:
     train: TrainingData
     bundle: RayBundle
-    targets: torch.Tensor  # (L, V, H·W, 3)
+    targets: torch.Tensor  # (L, V, F, 3): the target images' `render.bundle.foreground`, in its row order
     val: EvalTruth | None = None  # exact shadows at validation lights (random in the training cap)
 
     def to(self, device) -> FinetuneData:
@@ -168,8 +168,7 @@ def step_loss(model, std: Standardizer, data: FinetuneData, z_all: torch.Tensor,
     n = spts.shape[-2]
     g = siren(box_to_siren(spts.reshape(n_light, -1, 3), extent)).view(n_light, nv, p, n)
     color = bundle_colors(b, g, views, pix)
-    flat_pix = b.pix[views, pix]  # image pixel ids (B, V, P)
-    target = data.targets[batch.idx[:, None, None], views, flat_pix]
+    target = data.targets[batch.idx[:, None, None], views, pix]
     l_render = ((color - target) ** 2).mean((1, 2, 3))
     # batch_loss is a mean over the lights: times their count, the per-light sum DDP's scale expects
     total = (loss + cfg.render_weight * l_render.mean()) * (n_light * scale)
@@ -451,7 +450,7 @@ def image_psnr_of_model(state: dict, data: FinetuneData, *,
                 g = siren(box_to_siren(pts.reshape(1, -1, 3), extent)).view(len(rows), -1).clamp(0, 1)
                 vv = torch.full_like(rows, v)
                 color = bundle_colors(b, g, vv, rows)
-                target = data.targets[i, v, b.pix[v, rows]]
+                target = data.targets[i, v, rows]
                 se += float(((color - target) ** 2).sum())
                 count += color.numel()
         out.append(10 * math.log10(1.0 / max(se / max(count, 1), 1e-30)))

@@ -194,9 +194,10 @@ PAPER_CPU_S = {"caches": 3125.0, "choose_cache": 1086.0, "encode_cache": 255.0, 
 # run's command after the mix in passes and apart (docs/performance.md, "Measured at the paper's sizes" and "The
 # allocator");
 # finetune_render per process, from `bench stages --device cpu --threads 1 --configfile config/paper.yaml --stages
-# finetune_render` (the targets of 2,000 lights x 7 views x 128² pixels, 2.6 GiB, are held by every process).
+# finetune_render` (every process holds the targets of 2,000 lights x 7 views at their 2,095 foreground pixels a
+# view, 0.35 GB: 9,235 MiB when it held the whole 128² images, 2.75 GB, side by side).
 PAPER_CPU_RSS_MIB = {"caches": 10818.0, "choose_cache": 9504.0, "encode_cache": 7100.0, "evaluate_voxels": 6277.0,
-                     "train_diffusion": 6727.0, "sample_shadows": 6823.0, "finetune_render": 8365.0}
+                     "train_diffusion": 6727.0, "sample_shadows": 6823.0, "finetune_render": 7038.0}
 PAPER_CPU_SOURCE = "one CPU thread at the paper's sizes, measured"
 PAPER_CPU_ONLY_WITH = {"choose_cache": "cache: auto", "encode_cache": "a codec's cache"}  # not the paper's run
 

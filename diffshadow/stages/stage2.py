@@ -88,7 +88,7 @@ def finetune_render(checkpoint: Path, weights_path: Path, points_path: Path, tar
         log = print if rank == 0 else (lambda m: print(m) if m.startswith(f"rank {rank}") else None)
         geometry = artifacts.load_checkpoint(checkpoint)
         train_data, _ = artifacts.read_training_data(weights_path, points_path)
-        images, bundle, target_lights = artifacts.read_targets(targets_path)
+        targets, bundle, target_lights = artifacts.read_targets(targets_path)
         if not np.allclose(target_lights, train_data.lights.numpy()):
             raise ValueError(f"{targets_path}: its lights differ from {weights_path}'s; rerun render_targets")
         val = None
@@ -99,7 +99,7 @@ def finetune_render(checkpoint: Path, weights_path: Path, points_path: Path, tar
             lights = validation_lights(train_data.lights.numpy(), read_lights(lights_path)["center"], cfg.val_lights,
                                        seed=cfg.seed)
             val = EvalTruth.compute(volume, tf, lights, cfg.val_points, cfg.seed + VALIDATION_POINTS_SEED)
-        data = FinetuneData(train_data, bundle, images, val)
+        data = FinetuneData(train_data, bundle, targets, val)
         part = out.with_name(out.name + ".part")
         t0 = time.perf_counter()
         state = finetune(geometry, data, cfg, part, rank=rank, world=world, device=ddp.device, log=log)
