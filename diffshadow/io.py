@@ -136,9 +136,15 @@ def write_zarr_group(path, fill, *, made_by: str) -> None:
 def array_checksum(values) -> str:
     """sha256 of an array's values, shape and dtype (what a reader gets, whatever the chunks and codecs)."""
     values = np.ascontiguousarray(values)
-    h = hashlib.sha256(f"{values.dtype.str} {values.shape}".encode())
+    h = _checksum_of(values.dtype, values.shape)
     h.update(values.tobytes())
     return h.hexdigest()
+
+
+def _checksum_of(dtype, shape: tuple):
+    """`array_checksum`'s sha256 with its header (dtype and shape) taken: the values' bytes follow, in C order,
+    whole or a slab at a time (`VerifiedGroup.read_rows`)."""
+    return hashlib.sha256(f"{np.dtype(dtype).str} {tuple(shape)}".encode())
 
 
 class VerifiedGroup:
@@ -163,18 +169,28 @@ class VerifiedGroup:
         step = self.attrs.get("made_by")
         return f"rerun `{step}` to rewrite it" if step else "rerun the step that writes it"
 
-    @timed("io")
-    def read(self, name: str) -> np.ndarray:
+    def _array(self, name: str):
         try:
-            values = np.asarray(self.root[name][...])
+            return self.root[name]
         except KeyError:
             raise StoreError(f"{self.path}: not {self.what} (no array {name!r})") from None
+
+    def _values(self, array, name: str, where=Ellipsis) -> np.ndarray:
+        try:
+            return np.asarray(array[where])
         except Exception as e:  # a truncated or garbled chunk fails in the codec, deep inside zarr
             raise StoreError(f"{self.path}: array {name!r} cannot be read ({type(e).__name__}: {e}); it is "
                              f"damaged, {self.remake()}") from None
-        if self.checksums is not None and name in self.checksums and array_checksum(values) != self.checksums[name]:
+
+    def _check(self, name: str, checksum: str) -> None:
+        if self.checksums is not None and name in self.checksums and checksum != self.checksums[name]:
             raise StoreError(f"{self.path}: array {name!r} does not match its checksum (a chunk is missing or was "
                              f"changed); it is damaged, {self.remake()}")
+
+    @timed("io")
+    def read(self, name: str) -> np.ndarray:
+        values = self._values(self._array(name), name)
+        self._check(name, array_checksum(values))
         return values
 
     @timed("io")
@@ -182,23 +198,13 @@ class VerifiedGroup:
         """What `keep` makes of the array `name`, read `rows` rows (along its first axis) at a time and joined:
         the whole array is never held (its checksum is taken over the slabs in order, the same sha256 as `read`'s).
         `keep` maps a slab (r, ...) to an array whose first axis is r."""
-        try:
-            array = self.root[name]
-        except KeyError:
-            raise StoreError(f"{self.path}: not {self.what} (no array {name!r})") from None
-        h = hashlib.sha256(f"{np.dtype(array.dtype).str} {tuple(array.shape)}".encode())
-        kept = []
+        array = self._array(name)
+        h, kept = _checksum_of(array.dtype, array.shape), []
         for r0 in range(0, array.shape[0], rows):
-            try:
-                slab = np.ascontiguousarray(array[r0:r0 + rows])
-            except Exception as e:  # as in `read`: a damaged chunk fails deep inside zarr
-                raise StoreError(f"{self.path}: array {name!r} cannot be read ({type(e).__name__}: {e}); it is "
-                                 f"damaged, {self.remake()}") from None
+            slab = self._values(array, name, slice(r0, r0 + rows))
             h.update(slab.tobytes())
             kept.append(keep(slab))
-        if self.checksums is not None and name in self.checksums and h.hexdigest() != self.checksums[name]:
-            raise StoreError(f"{self.path}: array {name!r} does not match its checksum (a chunk is missing or was "
-                             f"changed); it is damaged, {self.remake()}")
+        self._check(name, h.hexdigest())
         return np.concatenate(kept) if kept else keep(np.zeros((0, *array.shape[1:]), dtype=array.dtype))
 
     def verify(self) -> list[str]:
