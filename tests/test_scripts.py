@@ -31,6 +31,18 @@ def test_gpu_session_help(tmp_path):
     assert out.returncode != 0 and "usage: scripts/gpu_session.sh" in out.stderr
 
 
+
+def test_gpu_prepare_help_and_a_missing_shared_folder(tmp_path):
+    """scripts/gpu_prepare.sh answers --help without fetching anything, and names the folder it could not find."""
+    import os
+
+    script = SCRIPTS / "gpu_prepare.sh"
+    out = subprocess.run(["bash", str(script), "--help"], cwd=tmp_path, capture_output=True, text=True, timeout=60)
+    assert out.returncode == 0 and "SHARED" in out.stdout and "GPU_PYTHON" in out.stdout, out.stdout
+    env = {**os.environ, "SHARED": str(tmp_path / "nowhere")}
+    out = subprocess.run(["bash", str(script)], cwd=tmp_path, capture_output=True, text=True, timeout=60, env=env)
+    assert out.returncode == 2 and f"{tmp_path / 'nowhere'}/gpu/prepare.sh not found" in out.stderr, out.stderr
+
 # What the lent GPU machine's image holds (shared/gpu/README.md names these and says "..."; scipy and pillow come
 # with scikit-image and matplotlib), and the one dependency the device never needs.
 GPU_IMAGE = {"torch", "numpy", "h5py", "scikit-image", "scipy", "matplotlib", "pillow", "pyyaml", "tqdm", "pytest",
