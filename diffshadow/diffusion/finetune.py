@@ -179,7 +179,8 @@ def step_loss(model, std: Standardizer, data: FinetuneData, z_all: torch.Tensor,
 def fingerprint(state: dict, cfg: FinetuneConfig, data: FinetuneData) -> str:
     h = hashlib.sha256(str(state.get("fingerprint")).encode())
     h.update(json.dumps(asdict(cfg), sort_keys=True).encode())
-    h.update(data.targets.numpy().tobytes()[:1 << 20])
+    # the first MiB of the targets' bytes, without copying all of them first
+    h.update(np.ascontiguousarray(data.targets.numpy()).reshape(-1).view(np.uint8)[:1 << 20])
     h.update(str(tuple(data.targets.shape)).encode())
     return h.hexdigest()
 
