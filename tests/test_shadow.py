@@ -130,6 +130,27 @@ def test_a_march_is_given_up_when_its_interrupt_says_so_and_is_the_same_values_w
         assert stop.asked == stop_at
 
 
+@pytest.mark.parametrize("skip", [False, True])
+def test_a_march_reads_the_host_at_most_twice_an_iteration(blob, skip):
+    """On a GPU every boolean mask and scalar read waits for the device: an iteration of the march reads the host
+    for its occupied samples and its live rays, and skipping empty cells for the rays that jump (seven to eleven
+    reads before the rows were gathered by index); the trilinear lookup reads none."""
+    from diffshadow.bench.profile import op_counts
+    from diffshadow.grid import trilinear
+    from diffshadow.volume import Volume
+
+    data = np.where(blob.data > 0.05, blob.data, 0).astype(np.float32)  # empty cells around the blob to jump
+    vol = Volume(data=data, extent=blob.extent, name="sparse blob")
+    field = ShadowField.build(vol, identity_tf(K))
+    assert bool(field.empty.any()) and not bool(field.empty.all())
+    pts = voxel_points(vol)[::5]
+    asker = Asker()
+    counts = op_counts(lambda: transmittance(field, field.tf, (0.3, -0.5, 0.8), pts, skip_empty=skip,
+                                             interrupt=asker))
+    assert asker.asked > 10 and counts["syncs"] <= (3 if skip else 2) * asker.asked + 3, (asker.asked, counts)
+    assert op_counts(lambda: trilinear(field.scalar[0], pts / field.voxel_size))["syncs"] == 0
+
+
 def test_empty_volume_is_exactly_one(blob):
     from diffshadow.volume import Volume
     vol = Volume(data=np.zeros((9, 9, 9), np.float32), extent=np.ones(3), name="empty")
