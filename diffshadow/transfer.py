@@ -32,8 +32,9 @@ def _piecewise_linear(s: torch.Tensor, xs: torch.Tensor, ys: torch.Tensor) -> to
     hi = torch.bucketize(s, xs, right=True).clamp(1, len(xs) - 1)
     lo = hi - 1
 
-    def at(table: torch.Tensor, i: torch.Tensor) -> torch.Tensor:  # table[i]: index_select gathers 3-5x faster
-        return table.index_select(0, i.reshape(-1)).view(*i.shape, *table.shape[1:])  # on a CPU than aten::index
+    # table[i] through index_select: on a CPU 3-5x faster than aten::index's gather, the same values
+    def at(table: torch.Tensor, i: torch.Tensor) -> torch.Tensor:
+        return table.index_select(0, i.reshape(-1)).view(*i.shape, *table.shape[1:])
 
     x0, x1 = at(xs, lo), at(xs, hi)
     w = ((s - x0) / (x1 - x0).clamp_min(1e-12)).clamp(0.0, 1.0)
