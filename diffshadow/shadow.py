@@ -204,13 +204,13 @@ def _march_chunk(field: ShadowField, q0, dq, dt: float, last, n, skip: bool, tau
     tau = torch.zeros(len(q0), dtype=torch.float32, device=device)
     k = torch.zeros(len(q0), dtype=torch.int64, device=device)
     offsets = torch.arange(S, device=device)
-    ncell = torch.tensor(field.empty.shape[::-1], device=device)  # (cx, cy, cz)
     # Rows are gathered by index (index_select, index_copy_), not by boolean masks: on a CPU aten::index gathers
     # 3-5x slower (the same values), and on a GPU every mask is a nonzero that waits for the device. An iteration
     # reads the host twice (the occupied samples, the rays still live), three times skipping empty cells.
-    empty_flat = field.empty.reshape(-1)
     cz, cy, cx = field.empty.shape
+    ncell = torch.tensor([cx, cy, cz], device=device)
     cell_stride = torch.tensor([1, cx, cx * cy], device=device)
+    empty_flat = field.empty.reshape(-1)
     live = torch.nonzero(n > 0).squeeze(1)
     while live.numel():
         go_on(interrupt)
