@@ -5,6 +5,7 @@ the data INR and the renderer; it knows nothing of any of them (docs/design.md �
 
 from __future__ import annotations
 
+import functools
 import math
 import numbers
 from collections.abc import Callable
@@ -47,11 +48,11 @@ def trilinear(grid: torch.Tensor, pos_vox: torch.Tensor) -> torch.Tensor:
     transfer function times density 1e8 turns into μ ≈ 6 where the true μ is 0 (stress suite).
     """
     c, nz, ny, nx = grid.shape
-    top = torch.tensor([nx - 1, ny - 1, nz - 1], dtype=pos_vox.dtype, device=pos_vox.device)
+    top, last_cell, strides = lattice((nz, ny, nx), pos_vox.dtype, pos_vox.device)
     p = torch.minimum(pos_vox.clamp_min(0), top)
-    i0 = torch.minimum(p.floor(), (top - 1).clamp_min(0))  # the last cell includes its far face
+    i0 = torch.minimum(p.floor(), last_cell)  # the last cell includes its far face
     f = p - i0
-    base = (i0.long() * torch.tensor([1, nx, nx * ny], device=pos_vox.device)).sum(dim=1)
+    base = (i0.long() * strides).sum(dim=1)
     # the neighbours' offsets from the grid's shape, not read back from the stride tensor: on a GPU each read syncs
     sx, sy, sz = (s if n > 1 else 0 for s, n in ((1, nx), (nx, ny), (nx * ny, nz)))
     flat = grid.reshape(c, -1)
@@ -63,6 +64,21 @@ def trilinear(grid: torch.Tensor, pos_vox: torch.Tensor) -> torch.Tensor:
     y0 = torch.lerp(torch.lerp(at(0), at(sx), fx), torch.lerp(at(sy), at(sy + sx), fx), fy)
     y1 = torch.lerp(torch.lerp(at(sz), at(sz + sx), fx), torch.lerp(at(sz + sy), at(sz + sy + sx), fx), fy)
     return torch.lerp(y0, y1, fz)
+
+
+@functools.lru_cache(maxsize=64)
+def lattice(shape: tuple[int, int, int], dtype: torch.dtype, device: torch.device
+            ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """For a (Z, Y, X) lattice: its last point and the first corner of its last cell, (x, y, z) in `dtype`, and its
+    flat strides (x, y, z) as int64, all on `device`. Shared between calls, so never written to.
+
+    Made once per shape and device: on a GPU a tensor built from host numbers is a copy the host waits for
+    (PyTorch's blocking host-to-device copy synchronises the stream), which a march paid at every iteration.
+    """
+    nz, ny, nx = shape
+    top = torch.tensor([nx - 1, ny - 1, nz - 1], dtype=dtype, device=device)
+    last_cell = torch.tensor([max(nx - 2, 0), max(ny - 2, 0), max(nz - 2, 0)], dtype=dtype, device=device)
+    return top, last_cell, torch.tensor([1, nx, nx * ny], dtype=torch.int64, device=device)
 
 
 def macro_cells(scalar: torch.Tensor, tf: TransferFunction, cell: int) -> torch.Tensor:

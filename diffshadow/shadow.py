@@ -27,7 +27,7 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-from diffshadow.grid import check_step, go_on, macro_cells, ray_box, trilinear, voxel_points
+from diffshadow.grid import check_step, go_on, lattice, macro_cells, ray_box, trilinear, voxel_points
 from diffshadow.lights import LightError, as_direction
 from diffshadow.transfer import TransferFunction
 from diffshadow.volume import Volume
@@ -207,9 +207,7 @@ def _march_chunk(field: ShadowField, q0, dq, dt: float, last, n, skip: bool, tau
     # Rows are gathered by index (index_select, index_copy_), not by boolean masks: on a CPU aten::index gathers
     # 3-5x slower (the same values), and on a GPU every mask is a nonzero that waits for the device. An iteration
     # reads the host twice (the occupied samples, the rays still live), three times skipping empty cells.
-    cz, cy, cx = field.empty.shape
-    ncell = torch.tensor([cx, cy, cz], device=device)
-    cell_stride = torch.tensor([1, cx, cx * cy], device=device)
+    last_cell, _, cell_stride = lattice(tuple(field.empty.shape), torch.int64, device)
     empty_flat = field.empty.reshape(-1)
     live = torch.nonzero(n > 0).squeeze(1)
     while live.numel():
@@ -221,8 +219,7 @@ def _march_chunk(field: ShadowField, q0, dq, dt: float, last, n, skip: bool, tau
         dq_live = dq.index_select(0, live)
         pos = q0.index_select(0, live)[:, None, :] + (kk[..., None] + 0.5) * dq_live[:, None, :]
         if skip:
-            cidx = torch.minimum(torch.div(pos, field.cell, rounding_mode="floor").long().clamp_min(0),
-                                 ncell - 1)
+            cidx = torch.minimum(torch.div(pos, field.cell, rounding_mode="floor").long().clamp_min(0), last_cell)
             empty = empty_flat.index_select(0, (cidx * cell_stride).sum(dim=-1).view(-1)).view(kk.shape)
             occupied = in_range & ~empty
         else:

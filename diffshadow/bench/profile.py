@@ -4,7 +4,12 @@ Counted with torch.profiler on any device. An *op* is a leaf aten op that does w
 a GPU): views, reshapes, allocations and scalar reads are left out, and a composite op counts through
 its leaves; a fused Triton kernel (`diffshadow.render.fused`) counts one op per launch. A *host sync* is an op
 whose result the host must wait for: a scalar read (`_local_scalar_dense`, behind `.item()`, `bool()`,
-`int()`), `nonzero` (behind boolean indexing) and the other ops whose output shape depends on data.
+`int()`), `nonzero` (behind boolean indexing) and the other ops whose output shape depends on data. A *host
+tensor* is a tensor built from host numbers or arrays (`torch.tensor`, `as_tensor`, `from_numpy`: the profiler's
+`aten::lift_fresh`). On a GPU each one built there is a blocking host-to-device copy, which PyTorch follows with a
+wait for the device's queue (a stream synchronise): a sync that no op count sees, since on a CPU it is no op at all.
+Counted apart from the syncs because a CPU count cannot tell the ones a GPU run builds on the device (inputs,
+constants) from those it keeps on the host.
 
 On a CPU every tensor is on the host, so a count taken there cannot tell a scalar that a GPU run keeps on the
 host from one it would have to fetch. One such case is known and named: PyTorch's Adam and AdamW without
@@ -57,16 +62,19 @@ OPTIMIZER_STEP = "Optimizer.step#"  # the profiler's scope of torch.optim's `ste
 
 def op_counts(fn: Callable[[], object], host_scopes: tuple[str, ...] = (),
               memory: torch.device | None = None) -> dict[str, int]:
-    """{"ops": kernel-launching ops, "syncs": host syncs} of one call of `fn`; given `host_scopes` (scope-name
-    prefixes, see the module docstring), also "host_reads": the scalar reads inside them, not counted as syncs;
-    given `memory`, a device, also "peak_bytes": the peak bytes the call's tensors added on its allocator."""
+    """{"ops": kernel-launching ops, "syncs": host syncs, "host_tensors": tensors built from host data} of one
+    call of `fn`; given `host_scopes` (scope-name prefixes, see the module docstring), also "host_reads": the
+    scalar reads inside them, not counted as syncs; given `memory`, a device, also "peak_bytes": the peak bytes
+    the call's tensors added on its allocator."""
     prof, peak = _profiled(fn, shapes=True, memory=memory)
-    ops = syncs = host_reads = 0
+    ops = syncs = host_reads = host_tensors = 0
     for e in prof.events():
         if e.name == LAUNCH:
             ops += 1
         if not e.name.startswith("aten::") or _inside(e, (LAUNCH,)):  # Triton's interpreter runs aten ops there
             continue
+        if e.name == "aten::lift_fresh":
+            host_tensors += 1
         if e.name in SYNCS:
             if e.name == "aten::_local_scalar_dense" and _inside(e, host_scopes):
                 host_reads += 1
@@ -82,7 +90,8 @@ def op_counts(fn: Callable[[], object], host_scopes: tuple[str, ...] = (),
         if e.name == "aten::copy_" and e.input_shapes and e.input_shapes[0] == []:
             continue  # a Python number wrapped and converted on the host (`x * 0.5`): no kernel on a GPU
         ops += 1
-    return {"ops": ops, "syncs": syncs, **({"host_reads": host_reads} if host_scopes else {}),
+    return {"ops": ops, "syncs": syncs, "host_tensors": host_tensors,
+            **({"host_reads": host_reads} if host_scopes else {}),
             **({"peak_bytes": peak} if memory is not None else {})}
 
 

@@ -77,7 +77,8 @@ def bench_render(scene: RenderScene, siren, light, *, sizes=(64, 128), step: flo
                          for m in counted}
         row["peak_mem_bytes"] = {m: c.pop("peak_bytes") for m, c in row["counts"].items()}
         log(f"[bench render] {n}x{n} per frame: " + ", ".join(
-            f"{m} {c['ops']:,} ops {c['syncs']} host syncs" for m, c in row["counts"].items()))
+            f"{m} {c['ops']:,} ops {c['syncs']} host syncs {c['host_tensors']} host tensors"
+            for m, c in row["counts"].items()))
         med = {m: statistics.median(v) for m, v in row["seconds"].items()}
         row["fps"] = {m: 1.0 / t for m, t in med.items()}
         row["speedup"] = med["naive"] / med["inr"]

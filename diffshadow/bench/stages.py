@@ -6,11 +6,12 @@ Every stage is timed through the loop body it runs (`fit.SubsetFit.step`, `data_
 `truth.transmittance_per_light`) on synthetic inputs of the config's shapes: random weights, points and
 shadows, so that no earlier stage is needed. Only the volume is the scene's own (the shadow march and the
 point sampler read it). Per stage: seconds per step (the median of timed steps after a warm-up, a device
-sync around each), kernel-launching ops and host syncs per step (`bench.profile.op_counts`, counts that do
-not drift with load), peak memory (CUDA's allocator, or the process's sampled resident set added while the
-stage was built and run on a CPU), and the projection. The projection multiplies the step by the config's
-count of such steps; it leaves out start-up, checkpoints, logging and the periodic checks (validation, the
-seen-light gap), which the workflow's phase timings (stage_costs.tsv) show.
+sync around each), kernel-launching ops, host syncs and tensors built from host data per step
+(`bench.profile.op_counts`, counts that do not drift with load), peak memory (CUDA's allocator, or the
+process's sampled resident set added while the stage was built and run on a CPU), and the projection. The
+projection multiplies the step by the config's count of such steps; it leaves out start-up, checkpoints,
+logging and the periodic checks (validation, the seen-light gap), which the workflow's phase timings
+(stage_costs.tsv) show.
 """
 
 from __future__ import annotations
@@ -374,8 +375,8 @@ def bench_stages(cfg: dict, out: Path, *, device: torch.device, stages: list[str
                    bench_s=time.perf_counter() - t0)
         rows[name] = row
         log(f"{name:16s} {row['step_s'] * 1e3:9.2f} ms/{timed.per}: {row['ops']} ops, {row['syncs']} host syncs "
-            f"({row['host_reads']} host reads), peak {row['peak_memory_mib']:.0f} MiB; projected "
-            f"{_duration(row['projected_s'])} ({timed.note})")
+            f"({row['host_reads']} host reads), {row['host_tensors']} host tensors, peak "
+            f"{row['peak_memory_mib']:.0f} MiB; projected {_duration(row['projected_s'])} ({timed.note})")
     result = {"config": config_name, "device": device_name(device), "device_type": device.type,
               "torch": torch.__version__,
               "cuda": torch.version.cuda, "threads": torch.get_num_threads(), "host": platform.node(),
