@@ -258,6 +258,39 @@ def test_a_geometry_step_never_waits_for_the_gpu():
     assert sorted(n for n in calls if "Synchronize" in n) == sorted(base), sorted(set(calls))
 
 
+def test_a_march_waits_for_the_gpu_as_often_as_its_cpu_count_says(volume):
+    """Each host sync a CPU count sees (scalar reads, nonzero) and each tensor built from host data is one stream
+    synchronise on CUDA, and the march makes no other: the counts taken on a CPU are the GPU's waits. (Its
+    lookup once built two tensors from host numbers at every iteration, waits no CPU count saw.)"""
+    from torch.profiler import ProfilerActivity, profile
+
+    from diffshadow.bench.profile import op_counts
+    from diffshadow.shadow import ShadowField, transmittance
+
+    pts = torch.rand(4096, 3, generator=torch.Generator().manual_seed(0))
+
+    def march(device):
+        field = ShadowField.build(volume, TF, device=device)
+        p = pts.to(device)
+        return lambda: transmittance(field, TF, (0.3, -0.5, 0.8), p, skip_empty=True)
+
+    on_cpu, on_cuda = march(torch.device("cpu")), march(CUDA)
+    on_cpu(), on_cuda()  # a grid shape's constants are built once (`grid.lattice`)
+    torch.cuda.synchronize()
+    counts = op_counts(on_cpu)
+
+    def runtime_calls(fn) -> list[str]:  # the CUDA runtime calls a profile of fn records
+        with profile(activities=[ProfilerActivity.CPU, ProfilerActivity.CUDA]) as prof:
+            fn()
+        return [e.name for e in prof.events() if e.name.startswith("cuda")]
+
+    base = sum("Synchronize" in n for n in runtime_calls(lambda: None))  # the profiler may synchronize as it stops
+    calls = runtime_calls(on_cuda)
+    assert any("Launch" in n for n in calls), sorted(set(calls))  # the profile sees the runtime's calls
+    waits = sum("Synchronize" in n for n in calls) - base
+    assert counts["syncs"] > 10 and waits <= counts["syncs"] + counts["host_tensors"], (waits, counts)
+
+
 def test_ema_update_on_cuda_is_one_op_with_each_parameters_lerp():
     """The EMA of the geometry stage's weights is one multi-tensor op a step on CUDA (not a lerp per parameter
     tensor), with the bits of the per-tensor lerp. The op count takes a multi-tensor op as one on every device,
