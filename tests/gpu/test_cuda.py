@@ -227,10 +227,13 @@ def test_graphed_geometry_steps_train_what_eager_steps_train(tmp_path, monkeypat
             assert diff <= 1e-4, (key, diff)  # as CUDA against the CPU (above): Adam lifts tiny gradients
 
 
-def test_a_geometry_step_never_waits_for_the_gpu():
+@pytest.mark.parametrize("stage", ["train_diffusion", "fit_siren", "preoptimize", "train_data_inr",
+                                   "finetune_render"])
+def test_a_training_step_never_waits_for_the_gpu(stage):
     """A training step's draws, made on the host, are pinned and copied asynchronously (`sampling.to_device`): the
     CUDA profile of three steps has no stream or device synchronization beyond what an empty profile has. A
-    blocking copy from ordinary host memory synchronizes the stream, and the step had eight of them."""
+    blocking copy from ordinary host memory synchronizes the stream, and the geometry step had eight of them.
+    Every stage's step, as `bench stages` times it (eager: the graphs are off)."""
     from torch.profiler import ProfilerActivity, profile
 
     from diffshadow.bench.stages import BUILDERS
@@ -238,10 +241,13 @@ def test_a_geometry_step_never_waits_for_the_gpu():
     from diffshadow.volume import scene_volume
 
     tiny = {"lights": {"count": 6, "unseen": 2}, "subset_size": 6,
+            "fit": {"points": 128, "blend_per_light": 2, "blend_points": 32, "cuda_graph": False},
+            "data_inr": {"points": 512, "width": 16, "blocks": 1, "cuda_graph": False},
+            "finetune": {"views": 1, "image_size": 16, "pixels": 4, "batch_size": 4, "nproc": 2},
             "diffusion": {"presample_points": 64, "pool_lights": 4, "pool_points": 32, "geometry_points": 16,
                           "batch_size": 4, "epochs": 3, "max_epochs": 3, "cuda_graph": False}}
     cfg = scene_config(run_config(merge({}, tiny), "test"), "nucleon", scenes_dir=REPO / "config/scenes")
-    timed = BUILDERS["train_diffusion"](cfg, CUDA, *scene_volume(cfg))
+    timed = BUILDERS[stage](cfg, CUDA, *scene_volume(cfg))
     for i in range(3):  # the pinned blocks' cache fills
         timed.step(i)
     torch.cuda.synchronize()
