@@ -46,6 +46,20 @@ def test_a_multi_tensor_op_counts_one_op_whatever_its_tensors():
     assert op_counts(opt.step)["ops"] == 2  # the step counters' foreach add and the fused update, not 6 of each
 
 
+def test_a_tensor_built_from_host_data_counts_once_and_arithmetic_on_tensors_never():
+    """On a GPU a tensor built from host numbers or an array is a blocking copy (a stream synchronise), which no
+    op or sync count sees: each one counts as a host tensor, whatever builds it; a Python number in arithmetic is
+    passed to the kernel and a tensor already made is not built again."""
+    import numpy as np
+
+    x = torch.ones(3)
+    array = np.arange(3.0)
+    assert op_counts(lambda: torch.tensor([1.0, 2.0]))["host_tensors"] == 1
+    assert op_counts(lambda: [torch.as_tensor(array, dtype=torch.float32), torch.from_numpy(array)]) == {
+        "ops": 1, "syncs": 0, "host_tensors": 2}  # the one op: as_tensor's conversion to float32
+    assert op_counts(lambda: [x * 2.0, torch.as_tensor(x), x.new_full((3,), 2.0)])["host_tensors"] == 0
+
+
 def test_counting_writes_nothing_to_stderr_and_passes_other_lines_on(capfd):
     """The profiler's own start and stop lines (PyTorch 2.13's Kineto writes them to file descriptor 2) do not reach
     a job's log; another line written while they are held back does, and so does what the call itself writes."""
