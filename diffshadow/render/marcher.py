@@ -205,7 +205,9 @@ class MarchedShadow:
         device = p.device
         plan = MarchPlan.for_device(device, self.batch, self.min_samples)
         d = self.light.to(device).expand(len(p), 3).contiguous()
-        _, t1 = ray_span(p, d, self.extent.to(device))
+        if self.extent.device != device:  # moved once: a copy from the host at every call waits for the GPU
+            self.extent = self.extent.to(device)
+        _, t1 = ray_span(p, d, self.extent)
         t0 = torch.zeros_like(t1)
         tau = torch.zeros_like(t1)
         if self.fused is not None:
