@@ -158,6 +158,26 @@ def test_a_geometry_step_copies_nothing_from_the_host_after_its_first(tiny, scen
     assert plain.blocking == 1
 
 
+def test_the_samplers_draw_their_noise_without_blocking():
+    """DDPM draws fresh noise on the host at each of its 500 steps, and DDIM with eta > 0 at each of its steps (the
+    same numbers on every device): on the "meta" device every draw shows as a copy, none of them blocking (a
+    blocking copy synchronizes the stream on CUDA: 500 waits for the GPU a DDPM sample before), none read back."""
+    from diffshadow.diffusion.schedule import Schedule
+
+    meta, schedule = torch.device("meta"), Schedule()
+
+    def denoise(x, t):
+        return 0.5 * x
+
+    with (ddpm := HostTraffic()):
+        schedule.ddpm_sample(denoise, (2, 8), generator=torch.Generator().manual_seed(0), device=meta)
+    with (ddim := HostTraffic()):
+        schedule.ddim_sample(denoise, (2, 8), steps=10, eta=1.0, generator=torch.Generator().manual_seed(0),
+                             device=meta)
+    assert (ddpm.copies, ddpm.blocking, ddpm.reads) == (500, 0, 0)
+    assert (ddim.copies, ddim.blocking, ddim.reads) == (10, 0, 0)
+
+
 class _NoOptimizer:
     """Adam's place in a step counted on the "meta" device: Adam is torch's own `capturable` on CUDA."""
 

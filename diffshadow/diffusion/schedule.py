@@ -9,6 +9,8 @@ from collections.abc import Callable
 
 import torch
 
+from diffshadow.sampling import to_device
+
 T_STEPS = 500  # paper §3.4
 BETA_START, BETA_END = 1e-4, 2e-2  # linear schedule (DDPM)
 
@@ -43,7 +45,7 @@ class Schedule:
 
     def ddpm_sample(self, model: Denoiser, shape, *, generator: torch.Generator, device=None) -> torch.Tensor:
         """Ancestral sampling over all T steps with the posterior q(x_{t-1} | x_t, x0̂)."""
-        x = torch.randn(shape, generator=generator, device=generator.device).to(device)
+        x = _noise(shape, generator, device)
         ab, betas = self.alpha_bar.tolist(), self.betas.tolist()  # Python floats: no tensor read per step
         for t in range(self.steps - 1, -1, -1):
             x0 = model(x, torch.full((shape[0],), t, device=device, dtype=torch.long))
@@ -53,7 +55,7 @@ class Schedule:
             c0 = ab_prev**0.5 * beta / (1 - ab_t)
             ct = (1 - beta) ** 0.5 * (1 - ab_prev) / (1 - ab_t)
             var = beta * (1 - ab_prev) / (1 - ab_t)
-            noise = torch.randn(shape, generator=generator, device=generator.device).to(device)
+            noise = _noise(shape, generator, device)
             x = c0 * x0 + ct * x + var**0.5 * noise
         return x
 
@@ -66,7 +68,7 @@ class Schedule:
                     temperature: float = 1.0, device=None) -> torch.Tensor:
         """DDIM (Song et al.) on a subsequence of timesteps; deterministic given the start noise when eta = 0.
         `temperature` scales the start noise (0: start from the mean, one path per light)."""
-        x = temperature * torch.randn(shape, generator=generator, device=generator.device).to(device)
+        x = temperature * _noise(shape, generator, device)
         ts = self.ddim_timesteps(steps)
         ab = self.alpha_bar.tolist()  # Python floats: no tensor read per step
         x0 = x
@@ -79,6 +81,14 @@ class Schedule:
             sigma = eta * ((1 - ab_next) / (1 - ab_t) * (1 - ab_t / ab_next)) ** 0.5
             x = ab_next**0.5 * x0 + max(1 - ab_next - sigma**2, 0.0) ** 0.5 * eps
             if sigma > 0:
-                x = x + sigma * torch.randn(shape, generator=generator, device=generator.device).to(device)
+                x = x + sigma * _noise(shape, generator, device)
         # the last model call is at t = 0 (or the last step taken): its x0 is the sample
         return x0
+
+
+def _noise(shape, generator: torch.Generator, device) -> torch.Tensor:
+    """Standard normal noise drawn on the generator's device (the same numbers on every device), on `device`
+    without waiting for it (`sampling.to_device`): a blocking copy at every one of DDPM's 500 steps made the host
+    wait for the GPU each time."""
+    draw = torch.randn(shape, generator=generator, device=generator.device)
+    return draw if device is None else to_device(draw, torch.device(device))
