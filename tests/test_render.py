@@ -152,6 +152,36 @@ def test_constant_shadow_inr_scales_colour_by_the_authors_formula(blob):
     assert torch.allclose(inr.alpha, plain.alpha)
 
 
+def test_an_inr_frame_reuses_the_last_frames_shadow_inr_only_for_the_same_weights(blob, monkeypatch):
+    """Frames of one light (the viewer orbiting it) build its shadow INR once: the same image from the one built
+    before, and other weights, however given (an array, a tensor, float64), a new one whose image is theirs."""
+    from diffshadow.render import scene as scene_module
+
+    cam = setup(blob)[0]
+    cfg = SirenConfig(16, 1)
+    layout = WeightLayout.for_siren(cfg)
+    a, b = (layout.flatten(init_siren(cfg, torch.Generator().manual_seed(s))) for s in (0, 1))
+    built = []
+    real = scene_module.SirenShadow
+
+    def counted(*args):
+        built.append(args[0])
+        return real(*args)
+
+    monkeypatch.setattr(scene_module, "SirenShadow", counted)
+    scene, fresh = RenderScene(blob, TF), RenderScene(blob, TF)
+
+    def frame(rs, w):
+        return rs.render("inr", cam, light=LIGHT, siren=(w, layout, cfg.blocks), scalar="grid").rgb
+
+    first = frame(scene, a)
+    assert torch.equal(frame(scene, a.numpy()), first) and torch.equal(frame(scene, a.double()), first)
+    assert len(built) == 1
+    other = frame(scene, b)
+    assert len(built) == 2 and not torch.equal(other, first) and torch.equal(other, frame(fresh, b))
+    assert torch.equal(frame(scene, a), first) and len(built) == 4  # the last frame's only, not every one seen
+
+
 def test_empty_and_opaque_extremes():
     vol = Volume(data=np.zeros((9, 9, 9), np.float32), extent=np.ones(3), name="zero")
     cam = Camera.orbit(vol.extent, azimuth=0, elevation=0, size=8)

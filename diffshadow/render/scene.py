@@ -3,6 +3,7 @@ choice of how its networks are evaluated (`Networks`: config `render.kernel`).""
 
 from __future__ import annotations
 
+import hashlib
 import warnings
 from collections.abc import Callable
 from dataclasses import asdict, dataclass, field
@@ -13,6 +14,7 @@ import torch
 from diffshadow.config import defaults
 from diffshadow.data_inr import inr_cell_ranges
 from diffshadow.io import atomic_save
+from diffshadow.layout import WeightLayout
 from diffshadow.lights import as_direction
 from diffshadow.render.camera import Camera, RenderError, visible_sphere
 from diffshadow.render.cells import RENDER_CELL, MacroGrid
@@ -81,6 +83,7 @@ class RenderScene:
         self.gt_method, self.gt_upsample, self.cell = gt_method, gt_upsample, cell
         self.voxel = float(np.min(volume.voxel_size))
         self._cache: dict = {}
+        self._last_shadow: tuple | None = None  # (key, SirenShadow) of the last `inr` frame
 
     def networks_used(self) -> dict:
         """The choice as configured and what this scene renders with now (after any fallback), for the
@@ -91,6 +94,18 @@ class RenderScene:
         if key not in self._cache:
             self._cache[key] = make()
         return self._cache[key]
+
+    def _siren_shadow(self, weights, layout: WeightLayout, blocks: int) -> SirenShadow:
+        """The shadow INR of `weights`: the last frame's again where its weights, layout, blocks and kernel are the
+        same (as while the viewer orbits one light; a kernel that failed to compile leaves the scene eager). Built
+        anew it copied the weights from the host and laid them out for the kernel at every frame."""
+        w = np.ascontiguousarray(weights, dtype=np.float32)
+        key = (hashlib.blake2b(w.tobytes(), digest_size=16).digest(), w.shape, layout, blocks, self.kernel_used)
+        last = self._last_shadow  # one tuple, replaced whole: frames rendered from two threads see a matching pair
+        if last is None or last[0] != key:
+            last = (key, SirenShadow(w, layout, blocks, self.volume.extent, self.device, self.kernel_used))
+            self._last_shadow = last
+        return last[1]
 
     def visible_sphere(self) -> tuple[np.ndarray, float]:
         """The sphere around what the TF shows (`camera.visible_sphere`): what the default views frame."""
@@ -194,8 +209,7 @@ class RenderScene:
         elif mode == "inr":
             if siren is None:
                 raise RenderError("mode 'inr': needs the shadow INR's weights")
-            weights, layout, blocks = siren
-            shadow = SirenShadow(weights, layout, blocks, self.volume.extent, self.device, self.kernel_used)
+            shadow = self._siren_shadow(*siren)
         elif mode == "naive":
             shadow = MarchedShadow(field_, self.tf, self.volume.extent, self.voxel, step=step, macro=macro,
                                    samples_per_iter=samples_per_iter, batch=batch)
