@@ -67,6 +67,15 @@ def recorded_graphs(monkeypatch) -> list:
     return made
 
 
+def runtime_calls(fn) -> list[str]:
+    """The CUDA runtime calls (cudaLaunchKernel, cudaStreamSynchronize, ...) a profile of one call of `fn` records."""
+    from torch.profiler import ProfilerActivity, profile
+
+    with profile(activities=[ProfilerActivity.CPU, ProfilerActivity.CUDA]) as prof:
+        fn()
+    return [e.name for e in prof.events() if e.name.startswith("cuda")]
+
+
 def test_fit_agrees_with_cpu(volume):
     cfg = FitConfig.from_config(dict(steps=20, points=2048, eval_points=512, grid_upsample=1, min_psnr=0.0,
                                      chunk=0))
@@ -234,8 +243,6 @@ def test_a_training_step_never_waits_for_the_gpu(stage):
     CUDA profile of three steps has no stream or device synchronization beyond what an empty profile has. A
     blocking copy from ordinary host memory synchronizes the stream, and the geometry step had eight of them.
     Every stage's step, as `bench stages` times it (eager: the graphs are off)."""
-    from torch.profiler import ProfilerActivity, profile
-
     from diffshadow.bench.stages import BUILDERS
     from diffshadow.config import merge, run_config, scene_config
     from diffshadow.volume import scene_volume
@@ -251,12 +258,6 @@ def test_a_training_step_never_waits_for_the_gpu(stage):
     for i in range(3):  # the pinned blocks' cache fills
         timed.step(i)
     torch.cuda.synchronize()
-
-    def runtime_calls(fn) -> list[str]:  # the CUDA runtime calls a profile of fn records
-        with profile(activities=[ProfilerActivity.CPU, ProfilerActivity.CUDA]) as prof:
-            fn()
-        return [e.name for e in prof.events() if e.name.startswith("cuda")]
-
     # the profiler may synchronize as it stops: what an empty profile records is the baseline
     base = [n for n in runtime_calls(lambda: None) if "Synchronize" in n]
     calls = runtime_calls(lambda: [timed.step(i) for i in range(3, 6)])
@@ -268,8 +269,6 @@ def test_a_march_waits_for_the_gpu_as_often_as_its_cpu_count_says(volume):
     """Each host sync a CPU count sees (scalar reads, nonzero) and each tensor built from host data is one stream
     synchronise on CUDA, and the march makes no other: the counts taken on a CPU are the GPU's waits. (Its
     lookup once built two tensors from host numbers at every iteration, waits no CPU count saw.)"""
-    from torch.profiler import ProfilerActivity, profile
-
     from diffshadow.bench.profile import op_counts
     from diffshadow.shadow import ShadowField, transmittance
 
@@ -284,12 +283,6 @@ def test_a_march_waits_for_the_gpu_as_often_as_its_cpu_count_says(volume):
     on_cpu(), on_cuda()  # a grid shape's constants are built once (`grid.lattice`)
     torch.cuda.synchronize()
     counts = op_counts(on_cpu)
-
-    def runtime_calls(fn) -> list[str]:  # the CUDA runtime calls a profile of fn records
-        with profile(activities=[ProfilerActivity.CPU, ProfilerActivity.CUDA]) as prof:
-            fn()
-        return [e.name for e in prof.events() if e.name.startswith("cuda")]
-
     base = sum("Synchronize" in n for n in runtime_calls(lambda: None))  # the profiler may synchronize as it stops
     calls = runtime_calls(on_cuda)
     assert any("Launch" in n for n in calls), sorted(set(calls))  # the profile sees the runtime's calls
