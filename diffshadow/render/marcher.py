@@ -186,9 +186,11 @@ class MarchedShadow:
 
     def __init__(self, scalar, tf: TransferFunction, extent, voxel: float, *, step: float = DEFAULT_STEP,
                  macro: MacroGrid | None = None, tau_max: float | None = None,
-                 samples_per_iter: int | None = None, batch: int | None = None):
+                 samples_per_iter: int | None = None, batch: int | None = None,
+                 device: torch.device | str = "cpu"):
         self.scalar, self.tf, self.macro = scalar, tf, macro
-        self.extent = torch.as_tensor(np.asarray(extent), dtype=torch.float32, device="cpu")
+        # on the device once, as GridShadow's and SirenShadow's: copied at every call, it waited for the GPU
+        self.extent = torch.as_tensor(np.asarray(extent), dtype=torch.float32, device=device)
         self.dt = step * voxel
         self.tau_max = SHADOW_TAU_MAX if tau_max is None else tau_max
         self.min_samples, self.batch = samples_per_iter, batch
@@ -205,8 +207,6 @@ class MarchedShadow:
         device = p.device
         plan = MarchPlan.for_device(device, self.batch, self.min_samples)
         d = self.light.to(device).expand(len(p), 3).contiguous()
-        if self.extent.device != device:  # moved once: a copy from the host at every call waits for the GPU
-            self.extent = self.extent.to(device)
         _, t1 = ray_span(p, d, self.extent)
         t0 = torch.zeros_like(t1)
         tau = torch.zeros_like(t1)

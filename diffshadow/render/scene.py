@@ -100,7 +100,7 @@ class RenderScene:
         same (as while the viewer orbits one light; a kernel that failed to compile leaves the scene eager). Built
         anew it copied the weights from the host and laid them out for the kernel at every frame."""
         w = np.ascontiguousarray(weights, dtype=np.float32)
-        key = (hashlib.blake2b(w.tobytes(), digest_size=16).digest(), w.shape, layout, blocks, self.kernel_used)
+        key = (hashlib.blake2b(w.tobytes(), digest_size=16).digest(), layout, blocks, self.kernel_used)
         last = self._last_shadow  # one tuple, replaced whole: frames rendered from two threads see a matching pair
         if last is None or last[0] != key:
             last = (key, SirenShadow(w, layout, blocks, self.volume.extent, self.device, self.kernel_used))
@@ -212,7 +212,7 @@ class RenderScene:
             shadow = self._siren_shadow(*siren)
         elif mode == "naive":
             shadow = MarchedShadow(field_, self.tf, self.volume.extent, self.voxel, step=step, macro=macro,
-                                   samples_per_iter=samples_per_iter, batch=batch)
+                                   samples_per_iter=samples_per_iter, batch=batch, device=self.device)
         with torch.no_grad():
             return render(camera, field_, self.tf, self.volume.extent, self.voxel, light=light, shadow=shadow,
                           shading=Shading(phong=phong, background=background), step=step, macro=macro,
