@@ -10,6 +10,7 @@ import math
 import numbers
 from collections.abc import Callable
 
+import numpy as np
 import torch
 import torch.nn.functional as F
 
@@ -79,6 +80,17 @@ def lattice(shape: tuple[int, int, int], dtype: torch.dtype, device: torch.devic
     top = torch.tensor([nx - 1, ny - 1, nz - 1], dtype=dtype, device=device)
     last_cell = torch.tensor([max(nx - 2, 0), max(ny - 2, 0), max(nz - 2, 0)], dtype=dtype, device=device)
     return top, last_cell, torch.tensor([1, nx, nx * ny], dtype=torch.int64, device=device)
+
+
+def box(extent, device: torch.device | str) -> torch.Tensor:
+    """A volume's extent (x, y, z) as float32 on `device`, made once per extent and device and shared between
+    calls, so never written to: a frame that built it from the host made its GPU wait for the copy."""
+    return _box(tuple(float(v) for v in np.asarray(extent, dtype=np.float64).reshape(-1)), torch.device(device))
+
+
+@functools.lru_cache(maxsize=64)
+def _box(extent: tuple[float, ...], device: torch.device) -> torch.Tensor:
+    return torch.tensor(extent, dtype=torch.float32, device=device)
 
 
 def macro_cells(scalar: torch.Tensor, tf: TransferFunction, cell: int) -> torch.Tensor:

@@ -182,6 +182,27 @@ def test_an_inr_frame_reuses_the_last_frames_shadow_inr_only_for_the_same_weight
     assert torch.equal(frame(scene, a), first) and len(built) == 4  # the last frame's only, not every one seen
 
 
+@pytest.mark.parametrize("mode", ["noshadow", "gt", "inr", "naive"])
+def test_a_repeated_frame_builds_from_host_numbers_only_its_camera_and_light(blob, mode):
+    """On a GPU each tensor built from host numbers is a copy the host waits for: a frame builds one for the
+    camera's vectors and one for the light (mode noshadow: no light), nothing per iteration or per sample."""
+    from diffshadow.bench.profile import op_counts
+
+    cam = setup(blob, size=12)[0]
+    cfg = SirenConfig(16, 1)
+    layout = WeightLayout.for_siren(cfg)
+    siren = (layout.flatten(init_siren(cfg, torch.Generator().manual_seed(0))), layout, cfg.blocks)
+    scene = RenderScene(blob, TF)
+
+    def frame():
+        return scene.render(mode, cam, light=LIGHT, siren=siren, scalar="grid")
+
+    first = frame().rgb  # the scene's caches (grids, the shadow INR) are made at the first frame
+    counts = op_counts(frame)
+    assert counts["host_tensors"] == (1 if mode == "noshadow" else 2), counts
+    assert torch.equal(frame().rgb, first)
+
+
 def test_empty_and_opaque_extremes():
     vol = Volume(data=np.zeros((9, 9, 9), np.float32), extent=np.ones(3), name="zero")
     cam = Camera.orbit(vol.extent, azimuth=0, elevation=0, size=8)

@@ -37,7 +37,7 @@ from dataclasses import dataclass, field
 import numpy as np
 import torch
 
-from diffshadow.grid import check_step, go_on, ray_span
+from diffshadow.grid import box, check_step, go_on, ray_span
 from diffshadow.lights import as_direction
 from diffshadow.render.camera import Camera, RenderError
 from diffshadow.render.cells import MacroGrid, Runs
@@ -189,8 +189,8 @@ class MarchedShadow:
                  samples_per_iter: int | None = None, batch: int | None = None,
                  device: torch.device | str = "cpu"):
         self.scalar, self.tf, self.macro = scalar, tf, macro
-        # on the device once, as GridShadow's and SirenShadow's: copied at every call, it waited for the GPU
-        self.extent = torch.as_tensor(np.asarray(extent), dtype=torch.float32, device=device)
+        # on the device once per scene (a frame makes its own MarchedShadow): copied anew, it made a GPU wait
+        self.extent = box(extent, device)
         self.dt = step * voxel
         self.tau_max = SHADOW_TAU_MAX if tau_max is None else tau_max
         self.min_samples, self.batch = samples_per_iter, batch
@@ -289,9 +289,8 @@ def render(
         shadow.light, shadow.counters, shadow.interrupt = w, counters, interrupt
     plan = MarchPlan.for_device(torch.device(device), batch, samples_per_iter)
     start = time.perf_counter()
-    extent_t = torch.as_tensor(np.asarray(extent), dtype=torch.float32, device=device)
     o, d = camera.rays(device)
-    t0, t1 = ray_span(o, d, extent_t)
+    t0, t1 = ray_span(o, d, box(extent, device))
     dt = step * voxel
     trans = torch.ones(len(o), device=device)
     color = torch.zeros(len(o), 3, device=device)
