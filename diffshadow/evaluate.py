@@ -350,10 +350,10 @@ def image_evaluation(scene, light_sets: dict, stage1, generated, views: list, *,
                     write_png(out_dir / f"{tag}_{name}.png", img)
                     m = image_metrics(img.rgb, gt.rgb, gt.alpha, lpips)
                     per_image.append({"set": set_name, "light": i, "view": v, "mode": name, **m,
-                                      "seconds": img.seconds})
+                                      "seconds": img.seconds, "replayed": img.replayed})
                     sums.setdefault((set_name, name), []).append(m)
                     log(f"[evaluate images] {tag} {name:24s} PSNR {m['psnr']:6.2f} dB  SSIM {m['ssim']:.4f}  "
-                        f"{img.seconds:.2f} s")
+                        f"{img.seconds:.2f} s{' (kept samples)' if img.replayed else ''}")
     by_set: dict = {}
     overall: dict = {}
     for (set_name, name), rows in sums.items():

@@ -182,6 +182,59 @@ def test_an_inr_frame_reuses_the_last_frames_shadow_inr_only_for_the_same_weight
     assert torch.equal(frame(scene, a), first) and len(built) == 4  # the last frame's only, not every one seen
 
 
+def test_a_view_under_another_light_is_drawn_from_its_kept_samples_to_the_byte(blob):
+    """A scene that keeps samples draws a view it has marched again under any light from them (only the shadow
+    evaluated): every mode's image and counters are a fresh scene's, to the byte."""
+    cam = setup(blob, size=20)[0]
+    cfg = SirenConfig(16, 1)
+    layout = WeightLayout.for_siren(cfg)
+    siren = (layout.flatten(init_siren(cfg, torch.Generator().manual_seed(0))), layout, cfg.blocks)
+    keeping, fresh = RenderScene(blob, TF, keep_samples=1 << 26), RenderScene(blob, TF)
+    lights = [LIGHT, (-0.6, 0.2, 0.7), (0.1, 0.9, -0.3)]
+    for mode in ("noshadow", "gt", "inr", "naive"):
+        for i, light in enumerate(lights):
+            kw = {"light": light, "siren": siren, "scalar": "grid", "batch": 512}
+            img, want = keeping.render(mode, cam, **kw), fresh.render(mode, cam, **kw)
+            assert img.replayed == (i > 0 or mode != "noshadow") and not want.replayed, (mode, i)
+            assert torch.equal(img.rgb, want.rgb) and torch.equal(img.alpha, want.alpha), (mode, i)
+            assert img.counters == want.counters and img.samples is None  # the scene holds them, not the image
+    assert len(keeping._samples) == 1  # one view: every mode's frames share its samples
+
+
+def test_kept_samples_stay_within_the_scenes_budget_and_only_serve_their_own_view(blob):
+    cam, other = setup(blob, size=16)[0], Camera.orbit(blob.extent, azimuth=100, elevation=10, size=16)
+    scene = RenderScene(blob, TF, keep_samples=1 << 26)
+    scene.render("gt", cam, light=LIGHT)
+    one = next(iter(scene._samples.values())).nbytes
+    # another camera, step or shading is marched; Phong shading keeps nothing (the light lights every sample)
+    assert not scene.render("gt", other, light=LIGHT).replayed
+    assert not scene.render("gt", cam, light=LIGHT, step=0.25).replayed
+    assert not scene.render("gt", cam, light=LIGHT, phong=True).replayed
+    assert scene.render("gt", cam, light=LIGHT).replayed
+    assert len(scene._samples) == 3
+    scene.keep_samples = int(1.5 * one)  # room for one view: a new view's samples push the oldest out
+    third = Camera.orbit(blob.extent, azimuth=-60, elevation=30, size=16)
+    scene.render("gt", third, light=LIGHT)
+    assert len(scene._samples) == 1 and scene.render("gt", third, light=(-0.6, 0.2, 0.7)).replayed
+    assert not scene.render("gt", cam, light=LIGHT).replayed
+    small = RenderScene(blob, TF, keep_samples=one // 2)  # a frame past the budget keeps nothing
+    small.render("gt", cam, light=LIGHT)
+    assert not small._samples and not small.render("gt", cam, light=LIGHT).replayed
+
+
+def test_a_replayed_frame_is_given_up_when_its_interrupt_says_so(blob):
+    cam = setup(blob, size=16)[0]
+    scene = RenderScene(blob, TF, keep_samples=1 << 26)
+    first = scene.render("gt", cam, light=LIGHT, batch=256)
+    never = Asker()
+    again = scene.render("gt", cam, light=LIGHT, batch=256, interrupt=never)
+    assert again.replayed and torch.equal(again.rgb, first.rgb) and never.asked == first.counters.iterations > 2
+    stop = Asker(2)
+    with pytest.raises(Interrupted):
+        scene.render("gt", cam, light=(-0.6, 0.2, 0.7), batch=256, interrupt=stop)
+    assert stop.asked == 2
+
+
 @pytest.mark.parametrize("mode", ["noshadow", "gt", "inr", "naive"])
 def test_a_repeated_frame_builds_from_host_numbers_only_its_camera_and_light(blob, mode):
     """On a GPU each tensor built from host numbers is a copy the host waits for: a frame builds one for the

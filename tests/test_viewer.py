@@ -181,7 +181,8 @@ def test_a_preview_takes_the_quick_sweep_until_the_light_is_marched(viewer, mode
 
 def test_a_frames_cost_per_pixel_leaves_out_the_exact_shadows_grid(viewer, tmp_path):
     """The grid is paid once per light: what predicts the next frame's size (`Session.per_pixel`) is the frame's
-    seconds less the grid's, and a preview drawn with the sweep says so in the status."""
+    seconds less the grid's, and a preview drawn with the sweep says so in the status. The still frame of the same
+    view is drawn from the preview's kept samples, which predict no other view: the cost stays the preview's."""
     light = direction(-33, 52)
     viewer.scene.forget_gt(light)
     browser = SimpleNamespace(position=np.array([2.0, 1.0, 1.5]), look_at=np.full(3, 0.5),
@@ -199,7 +200,11 @@ def test_a_frames_cost_per_pixel_leaves_out_the_exact_shadows_grid(viewer, tmp_p
         assert Session._draw(tab, kind, 1, 16)
         entry = json.loads((tmp_path / "frames.jsonl").read_text().splitlines()[-1])
         assert entry["kind"] == kind and entry["exact_by"] == ("sweep" if kind == "preview" else "march")
-        assert tab.per_pixel["gt"] * 20 * 16 == pytest.approx(entry["seconds"] - entry["grid_s"], rel=1e-6)
+        assert entry["replayed"] == (kind == "full")
+        if kind == "preview":
+            marched = entry
+        assert tab.per_pixel["gt"] * 20 * 16 == pytest.approx(marched["seconds"] - marched["grid_s"], rel=1e-6)
+        assert "gt" not in tab.still_per_pixel  # neither a preview's cost nor one from kept samples
         assert ("exact shadow by the quick sweep while moving" in tab.status.content) == (kind == "preview")
     viewer.scene.forget_gt(light)
 

@@ -19,7 +19,7 @@ from diffshadow.progress import eta
 from diffshadow.render.camera import Camera
 from diffshadow.render.fields import GridScalar
 from diffshadow.render.marcher import BACKGROUND, front_to_back
-from diffshadow.render.scene import RenderScene
+from diffshadow.render.scene import KEEP_SAMPLES_BYTES, RenderScene
 from diffshadow.transfer import TransferFunction
 from diffshadow.volume import Volume
 
@@ -125,7 +125,9 @@ def render_targets(volume: Volume, tf: TransferFunction, lights: np.ndarray, cam
     alone, so the result is the same bytes as an uninterrupted run); the checkpoint is removed at the end."""
     if method not in ("sweep", "march"):
         raise ValueError(f"finetune.targets: expected 'sweep' or 'march', got {method!r}")
-    scene = RenderScene(volume, tf, device=device, gt_method=method, gt_upsample=upsample)
+    # each view's samples kept for the next lights' images (the same bytes as marching them)
+    scene = RenderScene(volume, tf, device=device, gt_method=method, gt_upsample=upsample,
+                        keep_samples=KEEP_SAMPLES_BYTES)
     out = torch.zeros(len(lights), len(cameras), cameras[0].height, cameras[0].width, 3)
     fingerprint = _targets_fingerprint(volume, tf, lights, cameras, step, method, upsample, scene.device)
     start = 0

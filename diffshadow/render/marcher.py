@@ -160,6 +160,25 @@ def _whole_rays(o, d, t0, t1, dt: float, macro: MacroGrid | None, plan: MarchPla
 
 
 @dataclass
+class Samples:
+    """A frame's primary samples with everything about them that no light changes: per iteration of the
+    marcher, its rows, which of their slots held a sample (`idx`), the samples' points and TF colour, and
+    each slot's compositing weight (what gets through times the sample's opacity). Under another light only the
+    shadow at the points differs, so `render(..., samples=)` draws the same view from them with the shadow source
+    alone, through the same operations in the same order: the image the full march draws, to the byte. Kept for
+    unlit shading on the wavefront path (with the fused kernels each ray is marched whole in one kernel)."""
+
+    steps: list[tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]]  # rows, idx, flat, rgb, tw
+    trans: torch.Tensor  # (R,) what gets through each ray
+    primary_samples: int
+    iterations: int
+
+    @property
+    def nbytes(self) -> int:
+        return self.trans.nbytes + sum(t.nbytes for step in self.steps for t in step)
+
+
+@dataclass
 class Shading:
     phong: bool = False
     background: float = BACKGROUND
@@ -238,6 +257,8 @@ class Image:
     alpha: torch.Tensor  # (H, W) accumulated opacity
     seconds: float
     counters: Counters = field(default_factory=Counters)
+    samples: Samples | None = None  # kept when `render(..., keep=True)` could keep them
+    replayed: bool = False  # drawn from kept samples (`render(..., samples=)`), not marched
 
     def to_uint8(self) -> np.ndarray:
         return (self.rgb.clamp(0, 1).cpu().numpy() * 255 + 0.5).astype(np.uint8)
@@ -260,6 +281,8 @@ def render(
     batch: int | None = None,
     device: torch.device | str = "cpu",
     interrupt: Callable[[], bool] | None = None,
+    keep: int = 0,
+    samples: Samples | None = None,
 ) -> Image:
     """Render one image with the wavefront marcher.
 
@@ -273,6 +296,11 @@ def render(
     `interrupt`, if given, is called before every iteration (with whole rays: every tile), the naive baseline's
     secondary ones included; once it returns True the frame is given up with `Interrupted`. It must not read the
     device: it is a host-side flag (the viewer's "the view changed"), and the image does not depend on it.
+
+    `keep`: where the frame is marched on the wavefront path with unlit shading, return its `Samples` with it
+    (`Image.samples`) if they take at most `keep` bytes. `samples`: a kept frame's, of this camera, scalar field,
+    step and marching settings: the image is drawn from them with only `shadow` evaluated (`Image.replayed`), the
+    same bytes as marching it.
     """
     shading = shading or Shading()
     check_step(step, RenderError)
@@ -295,6 +323,10 @@ def render(
     trans = torch.ones(len(o), device=device)
     color = torch.zeros(len(o), 3, device=device)
 
+    if samples is not None:
+        color = _replay(samples, shadow, w, shading, counters, interrupt)
+        return _image(camera, color, samples.trans, shading, start, counters, replayed=True)
+
     fused = _fused_samples(scalar, shadow, tf, dt, shading)
     if fused is not None:
         def march(sl, runs):
@@ -305,7 +337,11 @@ def render(
                                                                                     march, interrupt)
         return _image(camera, color, trans, shading, start, counters)
 
+    kept = [] if keep > 0 and not shading.phong else None
+    kept_bytes = 0
+
     def composite(rows, t, valid):
+        nonlocal kept, kept_bytes
         pts = (o[rows, None] + t[..., None] * d[rows, None]).view(-1, 3)
         idx = torch.nonzero(valid.view(-1)).flatten()
         flat = pts[idx]
@@ -321,20 +357,49 @@ def render(
         a = 1 - torch.exp(-mu * dt)
         c = _shade(rgb, grad, g, view, w, shading)
         alpha = torch.zeros(valid.numel(), device=device).index_copy_(0, idx, a)
-        rgb = torch.zeros(valid.numel(), 3, device=device).index_copy_(0, idx, c)
         weight, through = front_to_back(alpha.view(valid.shape))
-        color[rows] += ((trans[rows, None] * weight)[..., None] * rgb.view(*valid.shape, 3)).sum(1)
+        tw = trans[rows, None] * weight
+        if kept is not None:
+            kept.append((rows, idx, flat, rgb, tw))
+            kept_bytes += sum(x.nbytes for x in kept[-1])
+            if kept_bytes + trans.nbytes > keep:  # past the budget: keep nothing, and free what was kept
+                kept = None
+        color[rows] += _composited(tw, idx, c)
         trans[rows] *= through
 
     counters.iterations = _march(o, d, t0, t1, dt, macro, plan, composite,
                                  lambda rows: trans[rows] < min_transmittance, interrupt)
-    return _image(camera, color, trans, shading, start, counters)
+    image = _image(camera, color, trans, shading, start, counters)
+    if kept is not None:
+        image.samples = Samples(kept, trans, counters.primary_samples, counters.iterations)
+    return image
 
 
-def _image(camera: Camera, color, trans, shading: Shading, start: float, counters: Counters) -> Image:
+def _composited(tw: torch.Tensor, idx: torch.Tensor, c: torch.Tensor) -> torch.Tensor:
+    """One iteration's colour per ray (R,): its samples' shaded colours `c` at their slots `idx`, weighted."""
+    rgb = torch.zeros(tw.numel(), 3, device=c.device).index_copy_(0, idx, c)
+    return (tw[..., None] * rgb.view(*tw.shape, 3)).sum(1)
+
+
+def _replay(samples: Samples, shadow, w, shading: Shading, counters: Counters,
+            interrupt: Callable[[], bool] | None) -> torch.Tensor:
+    """The colour of a kept frame's rays under the light `w`: each iteration's shadow and shading again, composited
+    as the march did."""
+    color = torch.zeros(len(samples.trans), 3, device=samples.trans.device)
+    for rows, idx, flat, rgb, tw in samples.steps:
+        go_on(interrupt)
+        g = shadow(flat) if shadow is not None else None
+        color[rows] += _composited(tw, idx, _shade(rgb, None, g, None, w, shading))
+    counters.primary_samples, counters.iterations = samples.primary_samples, samples.iterations
+    return color
+
+
+def _image(camera: Camera, color, trans, shading: Shading, start: float, counters: Counters,
+           replayed: bool = False) -> Image:
     out = color + trans[:, None] * shading.background
     h, w = camera.height, camera.width
-    return Image(out.view(h, w, 3), (1 - trans).view(h, w), time.perf_counter() - start, counters)
+    return Image(out.view(h, w, 3), (1 - trans).view(h, w), time.perf_counter() - start, counters,
+                 replayed=replayed)
 
 
 def _fused_samples(scalar, shadow, tf: TransferFunction, dt: float, shading: Shading) -> FusedSamples | None:

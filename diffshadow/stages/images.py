@@ -19,6 +19,7 @@ from diffshadow.metrics import lpips_model, ms_ssim_status
 from diffshadow.render import Camera, RenderScene, default_views, fibonacci_views, write_png
 from diffshadow.render.bundle import build_bundle
 from diffshadow.render.bundle import render_targets as targets
+from diffshadow.render.scene import KEEP_SAMPLES_BYTES
 from diffshadow.report import shading_name
 from diffshadow.store import BlendSampler, open_store
 from diffshadow.volume import load_prepared
@@ -131,6 +132,7 @@ def evaluate_images(volume_path: Path, lights_path: Path, data_inr: Path, weight
     """`image_metrics.json` and the PNGs: every shading mode against `gt`; the naive images from `naive_path`
     (`naive_images`) where given, else rendered here."""
     scene = artifacts.load_render_scene(volume_path, data_inr, device, render=cfg)
+    scene.keep_samples = KEEP_SAMPLES_BYTES  # a view's samples serve every light and shadow INR drawn of it
     light_sets = read_lights(lights_path)
     stage1 = open_store(weights_path)
     generated = open_store(generated_path) if generated_path else None

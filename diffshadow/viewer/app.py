@@ -248,10 +248,12 @@ class Session:
             return False
         self.client.scene.set_background_image(image, format="png")
         seconds = time.perf_counter() - t0
-        # the exact shadow's grid is paid once per light, not per pixel: left out of what predicts the next frame
-        self.per_pixel[mode] = (seconds - notes.get("grid_s", 0.0)) / (camera.width * camera.height)
-        if kind != "preview":
-            self.still_per_pixel[mode] = self.per_pixel[mode]
+        # the exact shadow's grid is paid once per light, not per pixel: left out of what predicts the next frame.
+        # A frame drawn from a view's kept samples predicts no other view's: the cost stays the last marched one's
+        if not notes.get("replayed"):
+            self.per_pixel[mode] = (seconds - notes.get("grid_s", 0.0)) / (camera.width * camera.height)
+            if kind != "preview":
+                self.still_per_pixel[mode] = self.per_pixel[mode]
         self.frames += 1
         # the commands that redraw this frame (the panel shows them, the record keeps them)
         commands = self.viewer.render_commands(mode, camera, light, step=step)
@@ -261,7 +263,8 @@ class Session:
         made = notes["light"].generate_s if notes.get("light") else None
         self._log_frame({"kind": kind, "view": version, "mode": mode, "shown": notes.get("shown", mode),
                          "width": camera.width, "height": camera.height, "seconds": seconds, "generate_s": made,
-                         "grid_s": notes.get("grid_s"), "exact_by": notes.get("exact_by")})
+                         "grid_s": notes.get("grid_s"), "exact_by": notes.get("exact_by"),
+                         "replayed": notes.get("replayed", False)})
         if self.record is not None and kind == "full":
             self._record(image, mode, camera, light, notes, commands)
         return True

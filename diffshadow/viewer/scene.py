@@ -19,6 +19,7 @@ from diffshadow.artifacts import load_checkpoint, load_render_scene, load_scene_
 from diffshadow.diffusion.mix import MixedSampler
 from diffshadow.lights import OLD_WEIGHTING, RegionCheck, as_direction, nearest, read_lights
 from diffshadow.render import Camera, RenderScene
+from diffshadow.render.scene import KEEP_SAMPLES_BYTES
 from diffshadow.report import label_image as label
 from diffshadow.store import BlendSampler, WeightStore, open_store
 
@@ -84,6 +85,8 @@ class ViewerScene:
                  generated: WeightStore | None = None, sampler=None, results: Path | None = None,
                  checkpoint: Path | None = None, scene_file: Path | None = None, stored: Path | None = None):
         self.scene, self.name, self.generated, self.sampler = scene, name, generated, sampler
+        # a light moved over a still view draws it from the samples kept of it: 5-6x faster on a CPU, the same bytes
+        scene.keep_samples = KEEP_SAMPLES_BYTES
         self.region = getattr(sampler, "region", None)  # lights.LightRegion of the cache (None: no region known)
         self.train = lights["train"] if lights else np.zeros((0, 3))
         self.unseen = lights["unseen"] if lights else np.zeros((0, 3))
@@ -213,7 +216,8 @@ class ViewerScene:
             inr, n1 = self.frame("inr", camera, light, step=step, interrupt=interrupt)
             gt, n2 = self.frame("gt", camera, light, step=step, interrupt=interrupt, preview=preview)
             notes = {**n1, "psnr_vs_gt": image_psnr(inr, gt), "gt_s": n2["render_s"], "grid_s": n2["grid_s"],
-                     "exact_by": n2["exact_by"], "render_s": n1["render_s"] + n2["render_s"]}
+                     "exact_by": n2["exact_by"], "render_s": n1["render_s"] + n2["render_s"],
+                     "replayed": n1["replayed"] and n2["replayed"]}
             if mode == "inr | gt":  # each whole frame at half size, side by side
                 notes["labels"] = [f"cache ({self.cache_name})", "exact (gt)"]
                 return side_by_side(inr, gt, notes["labels"]), notes
@@ -238,7 +242,7 @@ class ViewerScene:
             notes.update(grid_s=time.perf_counter() - t0, exact_by=method)
         img = self.scene.render(mode, camera, light=w, siren=siren, step=step, interrupt=interrupt,
                                 gt_method=method)
-        notes["render_s"] = time.perf_counter() - t0
+        notes.update(render_s=time.perf_counter() - t0, replayed=img.replayed)
         return img.to_uint8(), notes
 
     @property
