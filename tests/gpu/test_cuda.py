@@ -330,6 +330,23 @@ def test_render_agrees_with_cpu(volume, mode):
     assert float((a.rgb - b.rgb.cpu()).abs().max()) <= 1e-4
 
 
+@pytest.mark.parametrize("kernel", ["eager", "auto"])
+def test_a_view_under_another_light_from_kept_samples_on_cuda_is_the_marched_image(volume, kernel):
+    """On CUDA as on the CPU: a view drawn again under another light from its kept samples is the image a fresh
+    scene marches, to the byte, with the shadow INR eager or fused (over the raw grid the frame is marched by the
+    wavefront loop either way; with the fused data INR too, whole rays in one kernel, nothing is kept)."""
+    cam = Camera.orbit(volume.extent, azimuth=40, elevation=20, size=48)
+    siren = (LAYOUT.flatten(init_siren(SIREN, torch.Generator().manual_seed(0))), LAYOUT, SIREN.blocks)
+    keeping = RenderScene(volume, TF, device=CUDA, networks=Networks(kernel), keep_samples=1 << 28)
+    fresh = RenderScene(volume, TF, device=CUDA, networks=Networks(kernel))
+    for mode in ("gt", "inr"):
+        for i, light in enumerate(LIGHTS[1:]):
+            kw = {"light": light, "siren": siren, "scalar": "grid"}
+            img, want = keeping.render(mode, cam, **kw), fresh.render(mode, cam, **kw)
+            assert img.replayed == ((mode, i) != ("gt", 0)) and not want.replayed, (mode, i)
+            assert torch.equal(img.rgb, want.rgb), (mode, i)
+
+
 def test_the_kernels_sine_on_cuda():
     """`_kernels.sine` compiled (the special-function unit after the exact reduction), against float64 sin,
     |x| <= 1e4 (tests/test_fused.py checks the reduction in the interpreter)."""
