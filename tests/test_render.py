@@ -201,9 +201,14 @@ def test_a_view_under_another_light_is_drawn_from_its_kept_samples_to_the_byte(b
     assert len(keeping._samples) == 1  # one view: every mode's frames share its samples
 
 
-def test_kept_samples_stay_within_the_scenes_budget_and_only_serve_their_own_view(blob):
+def test_kept_samples_stay_within_the_scenes_budget_and_only_serve_their_own_view(blob, monkeypatch):
+    from diffshadow.render import scene as scene_module
+
     cam, other = setup(blob, size=16)[0], Camera.orbit(blob.extent, azimuth=100, elevation=10, size=16)
     scene = RenderScene(blob, TF, keep_samples=1 << 26)
+    held = []  # what the scene holds as each frame starts: a view to be kept is made room for before it marches
+    real = scene_module.render
+    monkeypatch.setattr(scene_module, "render", lambda *a, **k: held.append(len(scene._samples)) or real(*a, **k))
     scene.render("gt", cam, light=LIGHT)
     one = next(iter(scene._samples.values())).nbytes
     # another camera, step or shading is marched; Phong shading keeps nothing (the light lights every sample)
@@ -215,6 +220,7 @@ def test_kept_samples_stay_within_the_scenes_budget_and_only_serve_their_own_vie
     scene.keep_samples = int(1.5 * one)  # room for one view: a new view's samples push the oldest out
     third = Camera.orbit(blob.extent, azimuth=-60, elevation=30, size=16)
     scene.render("gt", third, light=LIGHT)
+    assert held[-1] == 0  # all three older views dropped before the march, not after it
     assert len(scene._samples) == 1 and scene.render("gt", third, light=(-0.6, 0.2, 0.7)).replayed
     assert not scene.render("gt", cam, light=LIGHT).replayed
     small = RenderScene(blob, TF, keep_samples=one // 2)  # a frame past the budget keeps nothing

@@ -162,13 +162,14 @@ def _whole_rays(o, d, t0, t1, dt: float, macro: MacroGrid | None, plan: MarchPla
 @dataclass
 class Samples:
     """A frame's primary samples with everything about them that no light changes: per iteration of the
-    marcher, its rows, which of their slots held a sample (`idx`), the samples' points and TF colour, and
-    each slot's compositing weight (what gets through times the sample's opacity). Under another light only the
-    shadow at the points differs, so `render(..., samples=)` draws the same view from them with the shadow source
-    alone, through the same operations in the same order: the image the full march draws, to the byte. Kept for
-    unlit shading on the wavefront path (with the fused kernels each ray is marched whole in one kernel)."""
+    marcher, its rows, which of their slots held a sample (`idx`, int32), the samples' points and scalar values,
+    and each slot's compositing weight (what gets through times the sample's opacity); ~26 bytes a sample.
+    Under another light only the shadow at the points differs, so `render(..., samples=)` draws the same view
+    from them with the shadow source and the TF's colour alone, through the same operations in the same order:
+    the image the full march draws, to the byte. Kept for unlit shading on the wavefront path (with the fused
+    kernels each ray is marched whole in one kernel)."""
 
-    steps: list[tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]]  # rows, idx, flat, rgb, tw
+    steps: list[tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]]  # rows, idx, flat, s, tw
     trans: torch.Tensor  # (R,) what gets through each ray
     primary_samples: int
     iterations: int
@@ -324,7 +325,7 @@ def render(
     color = torch.zeros(len(o), 3, device=device)
 
     if samples is not None:
-        color = _replay(samples, shadow, w, shading, counters, interrupt)
+        color = _replay(samples, tf, shadow, w, shading, counters, interrupt)
         return _image(camera, color, samples.trans, shading, start, counters, replayed=True)
 
     fused = _fused_samples(scalar, shadow, tf, dt, shading)
@@ -360,7 +361,7 @@ def render(
         weight, through = front_to_back(alpha.view(valid.shape))
         tw = trans[rows, None] * weight
         if kept is not None:
-            kept.append((rows, idx, flat, rgb, tw))
+            kept.append((rows, idx.int(), flat, s, tw))
             kept_bytes += sum(x.nbytes for x in kept[-1])
             if kept_bytes + trans.nbytes > keep:  # past the budget: keep nothing, and free what was kept
                 kept = None
@@ -381,15 +382,15 @@ def _composited(tw: torch.Tensor, idx: torch.Tensor, c: torch.Tensor) -> torch.T
     return (tw[..., None] * rgb.view(*tw.shape, 3)).sum(1)
 
 
-def _replay(samples: Samples, shadow, w, shading: Shading, counters: Counters,
+def _replay(samples: Samples, tf: TransferFunction, shadow, w, shading: Shading, counters: Counters,
             interrupt: Callable[[], bool] | None) -> torch.Tensor:
-    """The colour of a kept frame's rays under the light `w`: each iteration's shadow and shading again, composited
-    as the march did."""
+    """The colour of a kept frame's rays under the light `w`: each iteration's colour, shadow and shading again
+    (the colour from the scalar, a third of its bytes to keep), composited as the march did."""
     color = torch.zeros(len(samples.trans), 3, device=samples.trans.device)
-    for rows, idx, flat, rgb, tw in samples.steps:
+    for rows, idx, flat, s, tw in samples.steps:
         go_on(interrupt)
         g = shadow(flat) if shadow is not None else None
-        color[rows] += _composited(tw, idx, _shade(rgb, None, g, None, w, shading))
+        color[rows] += _composited(tw, idx.long(), _shade(tf.optics(s)[1], None, g, None, w, shading))
     counters.primary_samples, counters.iterations = samples.primary_samples, samples.iterations
     return color
 

@@ -39,8 +39,8 @@ from diffshadow.volume import Volume, refine
 
 MODES = ("noshadow", "gt", "inr", "naive")
 KERNELS = ("auto", "eager", COMPILE, FUSED)
-# The samples a scene keeps to draw a view again under another light (`RenderScene(keep_samples=)`): ~38 bytes a
-# sample, so a 256² frame of nucleon (3.5M samples) takes 124 MiB and a 480² one about 450 MiB
+# The samples a scene keeps to draw a view again under another light (`RenderScene(keep_samples=)`): ~26 bytes a
+# sample, so a 256² frame of nucleon (3.5M samples) takes 85 MiB and a 480² one about 300 MiB
 KEEP_SAMPLES_BYTES = 512 << 20
 
 
@@ -238,6 +238,8 @@ class RenderScene:
             kept = self._samples.get(key) if key is not None else None
             if kept is not None:
                 self._samples.move_to_end(key)
+            elif key is not None:
+                self._make_room(camera.width * camera.height)
         with torch.no_grad():
             img = render(camera, field_, self.tf, self.volume.extent, self.voxel, light=light, shadow=shadow,
                          shading=Shading(phong=phong, background=background), step=step, macro=macro,
@@ -248,6 +250,18 @@ class RenderScene:
             self._keep(key, img.samples)
             img.samples = None  # the scene holds them, within its budget; an image a caller keeps does not
         return img
+
+    def _make_room(self, pixels: int) -> None:
+        """Before a view is marched to be kept: the oldest kept views go until its samples, estimated from the last
+        kept view's bytes per pixel, fit beside the rest, so that the budget bounds what is held while it marches
+        too, not twice the budget."""
+        if not self._samples:
+            return
+        (camera, *_), last = next(reversed(self._samples.items()))
+        need = last.nbytes / (camera.width * camera.height) * pixels
+        total = sum(s.nbytes for s in self._samples.values())
+        while self._samples and total + need > self.keep_samples:
+            total -= self._samples.popitem(last=False)[1].nbytes
 
     def _keep(self, key: tuple, samples: Samples) -> None:
         with self._samples_lock:
