@@ -173,10 +173,33 @@ class Samples:
     trans: torch.Tensor  # (R,) what gets through each ray
     primary_samples: int
     iterations: int
+    nbytes: int  # what they hold on the device
+
+
+class _Arena:
+    """Tensors copied into a few large blocks as they are kept. Kept where they were made, each a small block left
+    among the march's freed temporaries, they split the heap's free space: 480² nucleon frames in the viewer
+    (`ViewerScene.frame`, 2 CPU cores) peaked at 1,330 MiB with 298 MiB kept, 779-817 MiB with 320 MiB kept in
+    blocks, against 535 MiB keeping nothing."""
+
+    FIRST, LARGEST = 1 << 20, 32 << 20  # each block twice the last: a small frame wastes little, a large one few
+
+    def __init__(self, device: torch.device):
+        self.device, self.chunks, self.used = device, [], 0
 
     @property
     def nbytes(self) -> int:
-        return self.trans.nbytes + sum(t.nbytes for step in self.steps for t in step)
+        return sum(c.numel() for c in self.chunks)
+
+    def put(self, t: torch.Tensor) -> torch.Tensor:
+        n = t.numel() * t.element_size()
+        if not self.chunks or self.used + n > self.chunks[-1].numel():
+            size = min(2 * self.chunks[-1].numel(), self.LARGEST) if self.chunks else self.FIRST
+            self.chunks.append(torch.empty(max(size, n), dtype=torch.uint8, device=self.device))
+            self.used = 0
+        out = self.chunks[-1][self.used:self.used + n].view(t.dtype).view(t.shape).copy_(t)
+        self.used += -(-n // 64) * 64  # the next one aligned for any dtype
+        return out
 
 
 @dataclass
@@ -339,10 +362,10 @@ def render(
         return _image(camera, color, trans, shading, start, counters)
 
     kept = [] if keep > 0 and not shading.phong else None
-    kept_bytes = 0
+    arena = _Arena(trans.device)
 
     def composite(rows, t, valid):
-        nonlocal kept, kept_bytes
+        nonlocal kept
         pts = (o[rows, None] + t[..., None] * d[rows, None]).view(-1, 3)
         idx = torch.nonzero(valid.view(-1)).flatten()
         flat = pts[idx]
@@ -361,10 +384,9 @@ def render(
         weight, through = front_to_back(alpha.view(valid.shape))
         tw = trans[rows, None] * weight
         if kept is not None:
-            kept.append((rows, idx.int(), flat, s, tw))
-            kept_bytes += sum(x.nbytes for x in kept[-1])
-            if kept_bytes + trans.nbytes > keep:  # past the budget: keep nothing, and free what was kept
-                kept = None
+            kept.append(tuple(arena.put(x) for x in (rows, idx.int(), flat, s, tw)))
+            if arena.nbytes + trans.nbytes > keep:  # past the budget: keep nothing, and free what was kept
+                kept, arena.chunks = None, []
         color[rows] += _composited(tw, idx, c)
         trans[rows] *= through
 
@@ -372,7 +394,8 @@ def render(
                                  lambda rows: trans[rows] < min_transmittance, interrupt)
     image = _image(camera, color, trans, shading, start, counters)
     if kept is not None:
-        image.samples = Samples(kept, trans, counters.primary_samples, counters.iterations)
+        image.samples = Samples(kept, trans, counters.primary_samples, counters.iterations,
+                                arena.nbytes + trans.nbytes)
     return image
 
 
