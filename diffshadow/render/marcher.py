@@ -281,7 +281,7 @@ class Image:
     alpha: torch.Tensor  # (H, W) accumulated opacity
     seconds: float
     counters: Counters = field(default_factory=Counters)
-    samples: Samples | None = None  # kept when `render(..., keep=True)` could keep them
+    samples: Samples | None = None  # the frame's, when `render(..., keep=)` kept them
     replayed: bool = False  # drawn from kept samples (`render(..., samples=)`), not marched
 
     def to_uint8(self) -> np.ndarray:
@@ -341,15 +341,14 @@ def render(
         shadow.light, shadow.counters, shadow.interrupt = w, counters, interrupt
     plan = MarchPlan.for_device(torch.device(device), batch, samples_per_iter)
     start = time.perf_counter()
+    if samples is not None:  # the view's samples were kept: no ray is marched
+        color = _replay(samples, tf, shadow, w, shading, counters, interrupt)
+        return _image(camera, color, samples.trans, shading, start, counters, replayed=True)
     o, d = camera.rays(device)
     t0, t1 = ray_span(o, d, box(extent, device))
     dt = step * voxel
     trans = torch.ones(len(o), device=device)
     color = torch.zeros(len(o), 3, device=device)
-
-    if samples is not None:
-        color = _replay(samples, tf, shadow, w, shading, counters, interrupt)
-        return _image(camera, color, samples.trans, shading, start, counters, replayed=True)
 
     fused = _fused_samples(scalar, shadow, tf, dt, shading)
     if fused is not None:
