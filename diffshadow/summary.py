@@ -88,16 +88,18 @@ def renderer_rows(bench: dict) -> tuple[list[str], list[list]]:
     sizes, peaks = peak_memory(bench)
     modes = [m for m in ("noshadow", "inr", "naive") if any(m in r.get("fps", {}) for r in timed.values())]
     counted = [m for m in modes if any(m in r.get("counts", {}) for r in timed.values())]
+    relit = any(r.get("fps_light_moved") for r in timed.values())  # inr from a view's kept samples
     rows = []
     for s in sizes:
         r = timed.get(s, {})
         fps, counts = r.get("fps", {}), r.get("counts", {})
         peak = [peaks.get(m, {}).get(s) for m in modes]
-        rows.append([f"{s}²", *(_num(fps.get(m)) for m in modes),
+        moved = [_num(r.get("fps_light_moved"))] if relit else []
+        rows.append([f"{s}²", *(_num(fps.get(m)) for m in modes), *moved,
                      *(_num(None if b is None else b / MIB, ".0f") for b in peak),
                      *(f"{counts[m]['ops']:,} / {counts[m]['syncs']}" if m in counts else "n/a" for m in counted)])
-    header = ["image", *(f"{m} fps" for m in modes), *(f"{m} peak MiB" for m in modes),
-              *(f"{m} ops / syncs" for m in counted)]
+    header = ["image", *(f"{m} fps" for m in modes), *(["inr fps, light moved"] if relit else []),
+              *(f"{m} peak MiB" for m in modes), *(f"{m} ops / syncs" for m in counted)]
     return header, rows
 
 
@@ -177,6 +179,8 @@ class RunResults:
         size = max(self.bench["sizes"], key=int)
         fps = self.bench["sizes"][size].get("fps", {})
         parts = [f"{mode} {fps[mode]:.2f}" for mode in ("noshadow", "inr", "naive") if mode in fps]
+        if moved := self.bench["sizes"][size].get("fps_light_moved"):
+            parts.append(f"inr with the light moved over a still view {moved:.2f} (the view's kept samples)")
         return f"frames per second at {size}²: " + ", ".join(parts) if parts else ""
 
     def sizes(self) -> list[list]:
@@ -333,7 +337,9 @@ class RunResults:
                                 "kernel-launching ops and host syncs per frame, counted with torch.profiler, so "
                                 "they do not drift with the machine's load. naive and inr evaluate their SIRENs "
                                 "the same way (both eager, or both fused: naive's secondary rays are whole-ray "
-                                "kernels as inr's primary rays are), so naive/inr compares methods, not code."))
+                                "kernels as inr's primary rays are), so naive/inr compares methods, not code. "
+                                "inr fps, light moved: the same view under a moved light, drawn as the viewer "
+                                "draws it from the samples it kept of the view (the same image)."))
         sizes = self.sizes()
         if sizes:
             parts.append(_table("SIREN sizes chosen for this scene", ["network", "width", "blocks", "parameters",

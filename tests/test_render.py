@@ -217,10 +217,11 @@ def test_kept_samples_stay_within_the_scenes_budget_and_only_serve_their_own_vie
     assert not scene.render("gt", cam, light=LIGHT, phong=True).replayed
     assert scene.render("gt", cam, light=LIGHT).replayed
     assert len(scene._samples) == 3
-    scene.keep_samples = int(1.5 * one)  # room for one view: a new view's samples push the oldest out
+    scene.keep_views(int(1.5 * one))  # room for one view: the last stays, and a new one pushes it out
+    assert len(scene._samples) == 1
     third = Camera.orbit(blob.extent, azimuth=-60, elevation=30, size=16)
     scene.render("gt", third, light=LIGHT)
-    assert held[-1] == 0  # all three older views dropped before the march, not after it
+    assert held[-1] == 0  # the older view dropped before the march, not after it
     assert len(scene._samples) == 1 and scene.render("gt", third, light=(-0.6, 0.2, 0.7)).replayed
     assert not scene.render("gt", cam, light=LIGHT).replayed
     small = RenderScene(blob, TF, keep_samples=one // 2)  # a frame past the budget keeps nothing

@@ -49,6 +49,17 @@ def test_counts_and_peaks_come_from_their_own_size():
     assert second["inr fps"] == "1.50" and second["inr ops / syncs"] == "1,400 / 20"
 
 
+def test_inr_with_the_light_moved_gets_its_column_where_measured():
+    """bench.json's fps_light_moved (inr from a view's kept samples) beside the fps; none where the fused kernels
+    kept nothing, and no column in a bench.json from before it."""
+    b = bench()
+    b["sizes"]["64"]["fps_light_moved"], b["sizes"]["256"]["fps_light_moved"] = 60.0, None
+    header, rows = renderer_rows(b)
+    assert header[:5] == ["image", "noshadow fps", "inr fps", "naive fps", "inr fps, light moved"]
+    assert [r[4] for r in rows] == ["60.00", "n/a", "n/a"]
+    assert "inr fps, light moved" not in renderer_rows(bench())[0]
+
+
 def test_a_bench_from_before_memory_scaling_and_counts_still_reads():
     old = bench(memory_scaling=False)
     for row in old["sizes"].values():

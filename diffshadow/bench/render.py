@@ -20,6 +20,7 @@ from diffshadow.bench.profile import op_counts, peak_bytes
 from diffshadow.io import atomic_path, atomic_write_text, finite_json
 from diffshadow.metrics import foreground, image_psnr
 from diffshadow.render import DEFAULT_STEP, Camera, RenderScene
+from diffshadow.render.scene import KEEP_SAMPLES_BYTES
 
 if TYPE_CHECKING:
     from matplotlib.figure import Figure
@@ -34,6 +35,26 @@ def _sync(device: torch.device) -> None:
 
 
 SLOW_FRAME_S = 1.0  # a mode this slow per frame is timed once: its run-to-run noise is small beside it
+
+
+def _light_moved_fps(scene: RenderScene, camera: Camera, kwargs: dict, repeats: int) -> float | None:
+    """Frames per second of `inr` with the light moved over a still view, as the viewer draws them: from the view's
+    kept samples (the shadow INR evaluated at them alone; the same image). None where the scene keeps nothing for
+    `inr` (the fused kernels march whole rays over the data INR). The scene keeps nothing again afterwards."""
+    scene.keep_views(KEEP_SAMPLES_BYTES)
+    try:
+        scene.render("inr", camera, **kwargs)  # marched, its samples kept
+        seconds = []
+        for _ in range(repeats):
+            _sync(scene.device)
+            img = scene.render("inr", camera, **kwargs)
+            _sync(scene.device)
+            if not img.replayed:
+                return None
+            seconds.append(img.seconds)
+    finally:
+        scene.keep_views(0)
+    return 1.0 / statistics.median(seconds)
 
 
 def bench_render(scene: RenderScene, siren, light, *, sizes=(64, 128), step: float = DEFAULT_STEP,
@@ -82,10 +103,13 @@ def bench_render(scene: RenderScene, siren, light, *, sizes=(64, 128), step: flo
             for m, c in row["counts"].items()))
         med = {m: statistics.median(v) for m, v in row["seconds"].items()}
         row["fps"] = {m: 1.0 / t for m, t in med.items()}
+        row["fps_light_moved"] = _light_moved_fps(scene, cams[n], kwargs, repeats)
         row["speedup"] = med["naive"] / med["inr"]
         row["overhead"] = med["inr"] / med["noshadow"]
         lanes = {m: c["primary"] / c["slots"] for m, c in row["samples"].items() if c["slots"]}
+        moved = row["fps_light_moved"]
         log(f"[bench render] {n}x{n}: fps " + ", ".join(f"{m} {row['fps'][m]:.2f}" for m in BENCH_MODES)
+            + (f", inr with the light moved {moved:.2f}" if moved else "")
             + f"; naive/inr {row['speedup']:.1f}x, inr/noshadow {row['overhead']:.2f}x"
             + "".join(f"; {m} lanes {u:.1%} useful" for m, u in lanes.items()))
         out["sizes"][str(n)] = row

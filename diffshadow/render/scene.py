@@ -251,6 +251,14 @@ class RenderScene:
             img.samples = None  # the scene holds them, within its budget; an image a caller keeps does not
         return img
 
+    def keep_views(self, nbytes: int) -> None:
+        """Keep up to `nbytes` of views' samples from now on, the last views first (0: none, and drop those kept)."""
+        with self._samples_lock:
+            self.keep_samples = nbytes
+            total = sum(s.nbytes for s in self._samples.values())
+            while total > nbytes:
+                total -= self._samples.popitem(last=False)[1].nbytes
+
     def _make_room(self, pixels: int) -> None:
         """Before a view is marched to be kept: the oldest kept views go until its samples, estimated from the last
         kept view's bytes per pixel, fit beside the rest, so that the budget bounds what is held while it marches
@@ -266,9 +274,7 @@ class RenderScene:
     def _keep(self, key: tuple, samples: Samples) -> None:
         with self._samples_lock:
             self._samples[key] = samples
-            total = sum(s.nbytes for s in self._samples.values())
-            while total > self.keep_samples:
-                total -= self._samples.popitem(last=False)[1].nbytes
+        self.keep_views(self.keep_samples)
 
 
 def write_png(path, image: Image) -> None:

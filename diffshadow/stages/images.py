@@ -132,7 +132,7 @@ def evaluate_images(volume_path: Path, lights_path: Path, data_inr: Path, weight
     """`image_metrics.json` and the PNGs: every shading mode against `gt`; the naive images from `naive_path`
     (`naive_images`) where given, else rendered here."""
     scene = artifacts.load_render_scene(volume_path, data_inr, device, render=cfg)
-    scene.keep_samples = KEEP_SAMPLES_BYTES  # a view's samples serve every light and shadow INR drawn of it
+    scene.keep_views(KEEP_SAMPLES_BYTES)  # a view's samples serve every light and shadow INR drawn of it
     light_sets = read_lights(lights_path)
     stage1 = open_store(weights_path)
     generated = open_store(generated_path) if generated_path else None

@@ -86,7 +86,7 @@ class ViewerScene:
                  checkpoint: Path | None = None, scene_file: Path | None = None, stored: Path | None = None):
         self.scene, self.name, self.generated, self.sampler = scene, name, generated, sampler
         # a light moved over a still view draws it from the samples kept of it: 5-6x faster on a CPU, the same bytes
-        scene.keep_samples = KEEP_SAMPLES_BYTES
+        scene.keep_views(KEEP_SAMPLES_BYTES)
         self.region = getattr(sampler, "region", None)  # lights.LightRegion of the cache (None: no region known)
         self.train = lights["train"] if lights else np.zeros((0, 3))
         self.unseen = lights["unseen"] if lights else np.zeros((0, 3))
