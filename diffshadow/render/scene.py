@@ -255,26 +255,25 @@ class RenderScene:
         """Keep up to `nbytes` of views' samples from now on, the last views first (0: none, and drop those kept)."""
         with self._samples_lock:
             self.keep_samples = nbytes
-            total = sum(s.nbytes for s in self._samples.values())
-            while total > nbytes:
-                total -= self._samples.popitem(last=False)[1].nbytes
+            self._evict(0.0)
 
     def _make_room(self, pixels: int) -> None:
-        """Before a view is marched to be kept: the oldest kept views go until its samples, estimated from the last
-        kept view's bytes per pixel, fit beside the rest, so that the budget bounds what is held while it marches
-        too, not twice the budget."""
-        if not self._samples:
-            return
-        (camera, *_), last = next(reversed(self._samples.items()))
-        need = last.nbytes / (camera.width * camera.height) * pixels
-        total = sum(s.nbytes for s in self._samples.values())
-        while self._samples and total + need > self.keep_samples:
-            total -= self._samples.popitem(last=False)[1].nbytes
+        """Before a view is marched to be kept: room for its samples, estimated from the last kept view's bytes per
+        pixel, so that the budget bounds what is held while it marches too, not twice the budget."""
+        if self._samples:
+            (camera, *_), last = next(reversed(self._samples.items()))
+            self._evict(last.nbytes / (camera.width * camera.height) * pixels)
 
     def _keep(self, key: tuple, samples: Samples) -> None:
         with self._samples_lock:
             self._samples[key] = samples
-        self.keep_views(self.keep_samples)
+            self._evict(0.0)
+
+    def _evict(self, room: float) -> None:
+        """The oldest kept views go until `room` more bytes fit beside the rest within the budget (lock held)."""
+        total = sum(s.nbytes for s in self._samples.values())
+        while self._samples and total + room > self.keep_samples:
+            total -= self._samples.popitem(last=False)[1].nbytes
 
 
 def write_png(path, image: Image) -> None:
