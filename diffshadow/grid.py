@@ -67,30 +67,28 @@ def trilinear(grid: torch.Tensor, pos_vox: torch.Tensor) -> torch.Tensor:
     return torch.lerp(y0, y1, fz)
 
 
-@functools.lru_cache(maxsize=64)
 def lattice(shape: tuple[int, int, int], dtype: torch.dtype, device: torch.device
             ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """For a (Z, Y, X) lattice: its last point and the first corner of its last cell, (x, y, z) in `dtype`, and its
-    flat strides (x, y, z) as int64, all on `device`. Shared between calls, so never written to.
-
-    Made once per shape and device: on a GPU a tensor built from host numbers is a copy the host waits for
-    (PyTorch's blocking host-to-device copy synchronises the stream), which a march paid at every iteration.
-    """
+    flat strides (x, y, z) as int64, all on `device` (`constant`s: shared, never written to)."""
     nz, ny, nx = shape
-    top = torch.tensor([nx - 1, ny - 1, nz - 1], dtype=dtype, device=device)
-    last_cell = torch.tensor([max(nx - 2, 0), max(ny - 2, 0), max(nz - 2, 0)], dtype=dtype, device=device)
-    return top, last_cell, torch.tensor([1, nx, nx * ny], dtype=torch.int64, device=device)
+    return (constant((nx - 1, ny - 1, nz - 1), dtype, device),
+            constant((max(nx - 2, 0), max(ny - 2, 0), max(nz - 2, 0)), dtype, device),
+            constant((1, nx, nx * ny), torch.int64, device))
 
 
 def box(extent, device: torch.device | str) -> torch.Tensor:
-    """A volume's extent (x, y, z) as float32 on `device`, made once per extent and device and shared between
-    calls, so never written to: a frame that built it from the host made its GPU wait for the copy."""
-    return _box(tuple(float(v) for v in np.asarray(extent, dtype=np.float64).reshape(-1)), torch.device(device))
+    """A volume's extent (x, y, z) as a float32 `constant` on `device`."""
+    return constant(tuple(float(v) for v in np.asarray(extent, dtype=np.float64).reshape(-1)), torch.float32,
+                    torch.device(device))
 
 
-@functools.lru_cache(maxsize=64)
-def _box(extent: tuple[float, ...], device: torch.device) -> torch.Tensor:
-    return torch.tensor(extent, dtype=torch.float32, device=device)
+@functools.lru_cache(maxsize=256)
+def constant(values: tuple, dtype: torch.dtype, device: torch.device) -> torch.Tensor:
+    """`values` as a tensor on `device`, made once per values, dtype and device and shared between calls, so never
+    written to: on a GPU a tensor built from host numbers is a copy the host waits for (PyTorch's blocking
+    host-to-device copy synchronises the stream), which a march paid at every iteration and a frame at its start."""
+    return torch.tensor(values, dtype=dtype, device=device)
 
 
 def macro_cells(scalar: torch.Tensor, tf: TransferFunction, cell: int) -> torch.Tensor:
