@@ -9,7 +9,7 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-from diffshadow.grid import trilinear
+from diffshadow.grid import box, trilinear
 from diffshadow.render.fused import COMPILE, FUSED, FusedSiren, FusedSirenError
 from diffshadow.siren import FoldedSiren, Siren, WeightLayout, box_to_siren, fold, fold_flat
 from diffshadow.volume import Volume
@@ -19,7 +19,7 @@ class GridScalar:
     """The raw volume: trilinear value and (central-difference) gradient from one 4-channel lookup."""
 
     def __init__(self, volume: Volume, device: torch.device | str = "cpu"):
-        self.extent = torch.as_tensor(volume.extent, dtype=torch.float32, device=device)
+        self.extent = box(volume.extent, device)
         self.voxel = torch.as_tensor(volume.voxel_size, dtype=torch.float32, device=device)
         data = volume.data.astype(np.float64)
         spacing = volume.voxel_size  # (x, y, z)
@@ -47,7 +47,7 @@ class InrScalar:
         self.model = model.to(device).eval()
         for q in self.model.parameters():
             q.requires_grad_(False)
-        self.extent = torch.as_tensor(np.asarray(extent), dtype=torch.float32, device=device)
+        self.extent = box(extent, device)
         self.box = tuple(np.asarray(extent, dtype=float).tolist())  # on the host, to compare without a sync
         named, blocks = self.model.named_tensors(), self.model.cfg.blocks  # parameters without gradients
         self.fast = _fast_siren(named, blocks, kernel, lambda: fold(named, blocks))
@@ -81,7 +81,7 @@ class GridShadow:
 
     def __init__(self, grid, extent, device: torch.device | str = "cpu"):
         self.grid = torch.as_tensor(grid, dtype=torch.float32, device=device)[None, None]
-        self.extent = torch.as_tensor(np.asarray(extent), dtype=torch.float32, device=device)
+        self.extent = box(extent, device)
 
     def __call__(self, p: torch.Tensor) -> torch.Tensor:
         g = box_to_siren(p, self.extent).view(1, 1, 1, -1, 3)
@@ -98,7 +98,7 @@ class SirenShadow:
         self.fast = _fast_siren({k: v[0] for k, v in layout.unflatten(w).items()}, blocks, kernel,
                                 lambda: fold_flat(w, layout, blocks))
         self.batched = not isinstance(self.fast, FusedSiren)
-        self.extent = torch.as_tensor(np.asarray(extent), dtype=torch.float32, device=device)
+        self.extent = box(extent, device)
         self.box = tuple(np.asarray(extent, dtype=float).tolist())
 
     def __call__(self, p: torch.Tensor) -> torch.Tensor:
