@@ -48,6 +48,13 @@ def blob():
     return Volume(data=np.maximum(a, b), extent=np.array([1.0, 1.0, 1.0]), name="blobs")
 
 
+def shadow_inr(seed: int = 0) -> tuple:
+    """(weights, layout, blocks) of a freshly initialised width-16 shadow SIREN, as `render(..., siren=)` takes."""
+    cfg = SirenConfig(16, 1)
+    layout = WeightLayout.for_siren(cfg)
+    return layout.flatten(init_siren(cfg, torch.Generator().manual_seed(seed))), layout, cfg.blocks
+
+
 def setup(vol, size=24):
     cam = Camera.orbit(vol.extent, azimuth=40, elevation=20, size=size)
     return cam, GridScalar(vol), float(np.min(vol.voxel_size))
@@ -158,9 +165,7 @@ def test_an_inr_frame_reuses_the_last_frames_shadow_inr_only_for_the_same_weight
     from diffshadow.render import scene as scene_module
 
     cam = setup(blob)[0]
-    cfg = SirenConfig(16, 1)
-    layout = WeightLayout.for_siren(cfg)
-    a, b = (layout.flatten(init_siren(cfg, torch.Generator().manual_seed(s))) for s in (0, 1))
+    (a, layout, blocks), b = shadow_inr(0), shadow_inr(1)[0]
     built = []
     real = scene_module.SirenShadow
 
@@ -172,7 +177,7 @@ def test_an_inr_frame_reuses_the_last_frames_shadow_inr_only_for_the_same_weight
     scene, fresh = RenderScene(blob, TF), RenderScene(blob, TF)
 
     def frame(rs, w):
-        return rs.render("inr", cam, light=LIGHT, siren=(w, layout, cfg.blocks), scalar="grid").rgb
+        return rs.render("inr", cam, light=LIGHT, siren=(w, layout, blocks), scalar="grid").rgb
 
     first = frame(scene, a)
     assert torch.equal(frame(scene, a.numpy()), first) and torch.equal(frame(scene, a.double()), first)
@@ -186,9 +191,7 @@ def test_a_view_under_another_light_is_drawn_from_its_kept_samples_to_the_byte(b
     """A scene that keeps samples draws a view it has marched again under any light from them (only the shadow
     evaluated): every mode's image and counters are a fresh scene's, to the byte."""
     cam = setup(blob, size=20)[0]
-    cfg = SirenConfig(16, 1)
-    layout = WeightLayout.for_siren(cfg)
-    siren = (layout.flatten(init_siren(cfg, torch.Generator().manual_seed(0))), layout, cfg.blocks)
+    siren = shadow_inr()
     keeping, fresh = RenderScene(blob, TF, keep_samples=1 << 26), RenderScene(blob, TF)
     lights = [LIGHT, (-0.6, 0.2, 0.7), (0.1, 0.9, -0.3)]
     for mode in ("noshadow", "gt", "inr", "naive"):
@@ -249,9 +252,7 @@ def test_a_repeated_frame_builds_from_host_numbers_only_its_camera_and_light(blo
     from diffshadow.bench.profile import op_counts
 
     cam = setup(blob, size=12)[0]
-    cfg = SirenConfig(16, 1)
-    layout = WeightLayout.for_siren(cfg)
-    siren = (layout.flatten(init_siren(cfg, torch.Generator().manual_seed(0))), layout, cfg.blocks)
+    siren = shadow_inr()
     scene = RenderScene(blob, TF)
 
     def frame():
