@@ -101,18 +101,53 @@ def _forward(p: dict[str, torch.Tensor], x: torch.Tensor, blocks: int) -> torch.
     return forward_folded(fold(p, blocks), x)
 
 
+# Activations per pass of a SIREN's inference on a CPU (512 KiB of float32). A pass over a march's 65,536 samples
+# streamed each layer's (N, width) activations through memory, once per elementwise op; in passes that stay in
+# the core's cache the same values came 1.5x faster in the naive baseline's job at one thread, 1.2x at two, and
+# 4x for 32 SIRENs at 16,384 points (docs/performance.md, "SIREN inference in passes"). A GPU takes one pass.
+CPU_PASS_ELEMENTS = 1 << 17
+MIN_PASS_ROWS = 64  # MKL's batched product of 12 rows or fewer took another kernel, with other bits
+
+
+def passes(n: int, size: int, least: int | None = None) -> list[slice]:
+    """`n` rows in slices of `size`; a last slice shorter than `least` (default `size`) joins the one before it, so
+    that none is shorter unless `n` is."""
+    starts = list(range(0, n, size))
+    if len(starts) > 1 and n - starts[-1] < (size if least is None else least):
+        starts.pop()
+    return [slice(a, b) for a, b in zip(starts, [*starts[1:], n], strict=False)]  # n = 0: none
+
+
 class FoldedSiren:
     """A SIREN for inference from `fold`'s or `fold_flat`'s layers, folded once: the same float32 operations as
     `_forward`, so the same values, and two fewer kernels per layer and call. (N, 3) → (N,), or (K, N, 3) →
     (K, N) for K weight sets. `compiled`: through torch.compile, which fuses each layer's bias, sine and
     residual into one pass (one compile per process and network shape, ~7 s on 2 CPU cores; the weights are
-    arguments, so a new SIREN of the same shape does not compile again)."""
+    arguments, so a new SIREN of the same shape does not compile again).
+
+    On a CPU the points go through in passes of about `CPU_PASS_ELEMENTS` activations (`passes`), each row's
+    values those of one pass over all (MKL's products give a row the same bits whatever the rows beside it, under
+    the jobs' `MKL_CBWR=AUTO,STRICT`)."""
 
     def __init__(self, layers: list[tuple[torch.Tensor, torch.Tensor]], compiled: bool = False):
         self.layers = [(w.detach(), b.detach()) for w, b in layers]
         self.forward = _compiled_forward() if compiled else forward_folded
+        w = self.layers[0][0]  # (width, 3) or (K, width, 3)
+        self.elements = CPU_PASS_ELEMENTS // w.shape[-2] if w.device.type == "cpu" else None
 
     def __call__(self, x: torch.Tensor) -> torch.Tensor:
+        if self.elements is None:
+            return self._pass(x)
+        rows = max(MIN_PASS_ROWS, self.elements // (x.shape[0] if x.ndim == 3 else 1))
+        slices = passes(x.shape[-2], rows)
+        if len(slices) == 1:
+            return self._pass(x)
+        out = x.new_empty(x.shape[:-1])
+        for sl in slices:
+            out[..., sl] = self._pass(x[..., sl, :])
+        return out
+
+    def _pass(self, x: torch.Tensor) -> torch.Tensor:
         key = (len(self.layers), x.ndim, x.device.type)
         if self.forward is forward_folded or key in _COMPILED:
             return self.forward(self.layers, x)
@@ -181,7 +216,10 @@ class BatchedSiren:
     def __call__(self, x: torch.Tensor) -> torch.Tensor:
         if x.ndim != 3 or x.shape[0] != self.weights.shape[0]:
             raise ValueError(f"BatchedSiren: points must be (K={self.weights.shape[0]}, N, 3), got {tuple(x.shape)}")
-        return forward_folded(fold_flat(self.weights, self.layout, self.blocks), x)
+        layers = fold_flat(self.weights, self.layout, self.blocks)
+        if torch.is_grad_enabled() and (self.weights.requires_grad or x.requires_grad):
+            return forward_folded(layers, x)  # training: one pass, so that the gradients sum as they always did
+        return FoldedSiren(layers)(x)
 
 
 def box_to_siren(points: torch.Tensor, extent: torch.Tensor) -> torch.Tensor:

@@ -15,7 +15,7 @@ from diffshadow.metrics import psnr
 from diffshadow.progress import eta
 from diffshadow.sampling import PointSampler, Stream, seeded
 from diffshadow.shadow import ShadowField, transmittance_per_light
-from diffshadow.siren import BatchedSiren, SirenConfig, WeightLayout, box_to_siren
+from diffshadow.siren import BatchedSiren, SirenConfig, WeightLayout, box_to_siren, passes
 from diffshadow.volume import Volume
 
 
@@ -150,11 +150,7 @@ def light_chunks(n: int, per_light: int) -> list[slice]:
     single SIREN unless `n` is 1: a batched product of one matrix takes another kernel than a batch of several and
     rounds differently, while chunks of two or more gave every SIREN the bits of one batch of all in every case
     measured (tests/test_evaluate.py)."""
-    step = max(2, CHUNK_FLOATS // max(1, per_light))
-    starts = list(range(0, n, step))
-    if len(starts) > 1 and n - starts[-1] == 1:
-        starts.pop()  # the last SIREN joins the chunk before it
-    return [slice(a, b) for a, b in zip(starts, [*starts[1:], n], strict=True)]
+    return passes(n, max(2, CHUNK_FLOATS // max(1, per_light)), least=2)  # a last single SIREN joins the chunk before
 
 
 def _siren_values(sets: dict, extent: torch.Tensor, weights, layout: WeightLayout, siren: SirenConfig, *,

@@ -109,3 +109,63 @@ def test_folding_once_gives_the_same_values_and_gradients():
     model = Siren.from_flat(w[1].detach(), layout)
     with torch.no_grad():
         assert torch.equal(FoldedSiren(fold(model.named_tensors(), cfg.blocks))(x[1]), model(x[1]))
+
+
+def test_passes_cover_every_row_once_and_none_is_short():
+    from diffshadow.siren import passes
+
+    for n in (0, 1, 5, 63, 64, 65, 127, 128, 129, 1000, 4096):
+        for size, least in ((64, None), (64, 2), (7, None)):
+            slices = passes(n, size, least)
+            assert [i for s in slices for i in range(n)[s]] == list(range(n))
+            if len(slices) > 1:
+                assert all(s.stop - s.start >= (least or size) for s in slices)
+                assert all(s.stop - s.start < size + (least or size) for s in slices)
+
+
+
+def _spied(monkeypatch, elements: int) -> list:
+    """Passes of `elements` activations, and the row count of every pass the SIREN's forward is given."""
+    from diffshadow import siren as S
+
+    rows, forward = [], S.forward_folded
+    monkeypatch.setattr(S, "CPU_PASS_ELEMENTS", elements)
+    monkeypatch.setattr(S, "forward_folded", lambda layers, h: rows.append(h.shape[-2]) or forward(layers, h))
+    return rows
+
+
+@pytest.mark.parametrize("k", [None, 1, 4])
+def test_inference_in_passes_gives_each_point_the_bits_of_one_pass(monkeypatch, k):
+    """On a CPU a SIREN's inference goes through in passes that fit the cache; a point's value must not depend on
+    the points beside it in its pass (under the jobs' MKL_CBWR=AUTO,STRICT, which conftest.py sets), so images and
+    PSNRs are the bytes of one pass over all. No pass holds much more than its share of activations."""
+    from diffshadow.siren import MIN_PASS_ROWS, FoldedSiren, fold, fold_flat, forward_folded
+
+    cfg = SirenConfig(64, 2)
+    gen = torch.Generator().manual_seed(5)
+    layout = WeightLayout.for_siren(cfg)
+    if k is None:
+        layers, x = fold(init_siren(cfg, gen), cfg.blocks), torch.rand(5000, 3, generator=gen) * 2 - 1
+    else:
+        w = torch.stack([layout.flatten(init_siren(cfg, gen)) for _ in range(k)])
+        layers, x = fold_flat(w, layout, cfg.blocks), torch.rand(k, 5000, 3, generator=gen) * 2 - 1
+    whole = forward_folded(layers, x)
+    rows = _spied(monkeypatch, 64 * 300)
+    assert torch.equal(FoldedSiren(layers)(x), whole)
+    share = max(300 // (k or 1), MIN_PASS_ROWS)
+    assert len(rows) > 1 and sum(rows) == 5000 and all(share <= r < 2 * share for r in rows)
+
+
+def test_training_evaluates_in_one_pass_so_its_gradients_sum_as_before(monkeypatch):
+    cfg = SirenConfig(32, 1)
+    gen = torch.Generator().manual_seed(6)
+    layout = WeightLayout.for_siren(cfg)
+    w = torch.stack([layout.flatten(init_siren(cfg, gen)) for _ in range(2)])
+    x = torch.rand(2, 3000, 3, generator=gen) * 2 - 1
+    rows = _spied(monkeypatch, 32 * 1000)
+    with torch.no_grad():
+        BatchedSiren(w, layout, cfg.blocks)(x)
+    assert rows == [500] * 6  # inference: in passes of 1,000 activations per SIREN
+    rows.clear()
+    BatchedSiren(w.requires_grad_(), layout, cfg.blocks)(x).sum().backward()
+    assert rows == [3000]

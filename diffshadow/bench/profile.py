@@ -38,6 +38,7 @@ from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 
 import torch
+from torch._C._profiler import _EventType  # the event tree's tags; torch.profiler's own memory tools read it
 from torch.profiler import ProfilerActivity, profile
 
 from diffshadow.render.fused import LAUNCH
@@ -68,7 +69,7 @@ def op_counts(fn: Callable[[], object], host_scopes: tuple[str, ...] = (),
     the call's tensors added on its allocator."""
     prof, peak = _profiled(fn, shapes=True, memory=memory)
     ops = syncs = host_reads = host_tensors = 0
-    for e in prof.events():
+    for e in _ops(prof):
         if e.name == LAUNCH:
             ops += 1
         if not e.name.startswith("aten::") or _inside(e, (LAUNCH,)):  # Triton's interpreter runs aten ops there
@@ -85,9 +86,10 @@ def op_counts(fn: Callable[[], object], host_scopes: tuple[str, ...] = (),
         if e.name.startswith(MULTI_TENSOR):
             ops += 1
             continue
-        if e.name in NO_WORK or any(c.name.startswith("aten::") and c.name not in NO_WORK for c in e.cpu_children):
+        if e.name in NO_WORK or any(c.tag == _EventType.TorchOp and c.name.startswith("aten::")
+                                    and c.name not in NO_WORK for c in e.children):
             continue
-        if e.name == "aten::copy_" and e.input_shapes and e.input_shapes[0] == []:
+        if e.name == "aten::copy_" and e.extra_fields.inputs and getattr(e.extra_fields.inputs[0], "sizes", 0) == []:
             continue  # a Python number wrapped and converted on the host (`x * 0.5`): no kernel on a GPU
         ops += 1
     return {"ops": ops, "syncs": syncs, "host_tensors": host_tensors,
@@ -156,18 +158,27 @@ def _without_kineto_chatter() -> Iterator[None]:
         os.close(saved)
 
 
-def _allocated_peak(prof: profile, device: torch.device) -> int:
-    """The running sum's maximum over the profiled call's allocation events on `device`, in time order."""
-    from torch._C._profiler import _EventType  # the event tree's tags; torch.profiler's own memory tools read it
-
-    events, stack = [], list(prof.profiler.kineto_results.experimental_event_tree())
+def _nodes(prof: profile) -> Iterator:
+    """Every node of the profiled call's event tree (ops, scopes, allocations), in no particular order. Read from
+    the tree, not through `prof.events()`, whose Python objects for every event took 50x longer to build: 19 s for
+    a naive 64² frame's 312,000 events, where the tree is walked in 0.4 s (PyTorch 2.13, 2 CPU cores)."""
+    stack = list(prof.profiler.kineto_results.experimental_event_tree())
     while stack:
         e = stack.pop()
         stack.extend(e.children)
-        if e.tag == _EventType.Allocation and e.extra_fields.device.type == device.type:
-            events.append((e.start_time_ns, e.extra_fields.alloc_size))
+        yield e
+
+
+def _ops(prof: profile) -> Iterator:
+    return (e for e in _nodes(prof) if e.tag == _EventType.TorchOp)
+
+
+def _allocated_peak(prof: profile, device: torch.device) -> int:
+    """The running sum's maximum over the profiled call's allocation events on `device`, in time order."""
+    events = sorted((e.start_time_ns, e.extra_fields.alloc_size) for e in _nodes(prof)
+                    if e.tag == _EventType.Allocation and e.extra_fields.device.type == device.type)
     live = peak = 0
-    for _, size in sorted(events):
+    for _, size in events:
         live += size
         peak = max(peak, live)
     return peak
@@ -175,9 +186,9 @@ def _allocated_peak(prof: profile, device: torch.device) -> int:
 
 def _inside(event, prefixes: tuple[str, ...]) -> bool:
     """Whether a profiler scope above `event` has a name starting with one of `prefixes`."""
-    parent = event.cpu_parent
+    parent = event.parent
     while parent is not None:
         if parent.name.startswith(prefixes):
             return True
-        parent = parent.cpu_parent
+        parent = parent.parent
     return False
