@@ -96,11 +96,6 @@ def forward_folded(layers: list[tuple[torch.Tensor, torch.Tensor]], x: torch.Ten
     return (0.5 * _linear(h, *layers[-1]) + 0.5).squeeze(-1)
 
 
-def _forward(p: dict[str, torch.Tensor], x: torch.Tensor, blocks: int) -> torch.Tensor:
-    """Shared maths for one SIREN (weights (out, in)) or K of them (weights (K, out, in), x (K, N, 3))."""
-    return forward_folded(fold(p, blocks), x)
-
-
 # Activations per pass of a SIREN's inference on a CPU (512 KiB of float32). A pass over a march's 65,536 samples
 # streamed each layer's (N, width) activations through memory, once per elementwise op; in passes that stay in
 # the core's cache the same values came 1.5x faster in the naive baseline's job at one thread, 1.2x at two, and
@@ -119,9 +114,9 @@ def passes(n: int, size: int, least: int | None = None) -> list[slice]:
 
 
 class FoldedSiren:
-    """A SIREN for inference from `fold`'s or `fold_flat`'s layers, folded once: the same float32 operations as
-    `_forward`, so the same values, and two fewer kernels per layer and call. (N, 3) → (N,), or (K, N, 3) →
-    (K, N) for K weight sets. `compiled`: through torch.compile, which fuses each layer's bias, sine and
+    """A SIREN for inference from `fold`'s or `fold_flat`'s layers, folded once: the same float32 operations as a
+    training forward (`forward_folded`), so the same values. (N, 3) → (N,), or (K, N, 3) → (K, N) for K weight
+    sets. `compiled`: through torch.compile, which fuses each layer's bias, sine and
     residual into one pass (one compile per process and network shape, ~7 s on 2 CPU cores; the weights are
     arguments, so a new SIREN of the same shape does not compile again).
 
@@ -197,7 +192,15 @@ class Siren(nn.Module):
         return model
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
-        return _forward(self.named_tensors(), x, self.cfg.blocks)
+        return _evaluate(fold(self.named_tensors(), self.cfg.blocks), x, list(self.params.values()))
+
+
+def _evaluate(layers: list[tuple[torch.Tensor, torch.Tensor]], x: torch.Tensor, weights: list[torch.Tensor]):
+    """`layers` at `x`: in one pass where autograd records it (training: the gradients sum as they always did), else
+    as inference (`FoldedSiren`: in passes on a CPU)."""
+    if torch.is_grad_enabled() and (x.requires_grad or any(w.requires_grad for w in weights)):
+        return forward_folded(layers, x)
+    return FoldedSiren(layers)(x)
 
 
 class BatchedSiren:
@@ -216,10 +219,7 @@ class BatchedSiren:
     def __call__(self, x: torch.Tensor) -> torch.Tensor:
         if x.ndim != 3 or x.shape[0] != self.weights.shape[0]:
             raise ValueError(f"BatchedSiren: points must be (K={self.weights.shape[0]}, N, 3), got {tuple(x.shape)}")
-        layers = fold_flat(self.weights, self.layout, self.blocks)
-        if torch.is_grad_enabled() and (self.weights.requires_grad or x.requires_grad):
-            return forward_folded(layers, x)  # training: one pass, so that the gradients sum as they always did
-        return FoldedSiren(layers)(x)
+        return _evaluate(fold_flat(self.weights, self.layout, self.blocks), x, [self.weights])
 
 
 def box_to_siren(points: torch.Tensor, extent: torch.Tensor) -> torch.Tensor:

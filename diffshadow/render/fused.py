@@ -111,8 +111,8 @@ def _launch(name: str, n: int, block: int, warps: int, *args, registers: int | N
 
 class FusedSiren:
     """One SIREN (`named` tensors as `Siren.named_tensors()` or `WeightLayout.unflatten` give them, for one
-    SIREN) as a callable (N, 3) → (N,), the same as `siren._forward` up to the inputs' TF32 rounding and float32
-    summation order."""
+    SIREN) as a callable (N, 3) → (N,), the same as `siren.forward_folded` up to the inputs' TF32 rounding and
+    float32 summation order."""
 
     def __init__(self, named: dict[str, torch.Tensor], blocks: int):
         if importlib.util.find_spec("triton") is None:

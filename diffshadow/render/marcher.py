@@ -74,7 +74,8 @@ class Counters:
 
 @dataclass(frozen=True)
 class MarchPlan:
-    """How the marcher sizes its work on one device (the images do not depend on it).
+    """How the marcher sizes its work on one device. A ray stops at the end of an iteration, so the images of two
+    plans differ by less than the stopping threshold (`min_transmittance`).
 
     Each iteration sends about `batch` samples to the network: every live ray takes the same number of
     samples, `batch` / live rays, at least `min_samples`. Every iteration drops finished rays and evaluates
