@@ -179,10 +179,15 @@ def test_a_preview_takes_the_quick_sweep_until_the_light_is_marched(viewer, mode
     scene.forget_gt(light)
 
 
-def test_a_frames_cost_per_pixel_leaves_out_the_exact_shadows_grid(viewer, tmp_path):
+def test_a_frames_cost_per_pixel_leaves_out_the_exact_shadows_grid(viewer, tmp_path, monkeypatch):
     """The grid is paid once per light: what predicts the next frame's size (`Session.per_pixel`) is the frame's
     seconds less the grid's, and a preview drawn with the sweep says so in the status. The still frame of the same
-    view is drawn from the preview's kept samples, which predict no other view: the cost stays the preview's."""
+    view is drawn from the preview's kept samples, which predict no other view: the cost stays the preview's. A
+    preview is drawn on one of PyTorch's threads, a still frame on all."""
+    threads, frame = [], viewer.frame
+    monkeypatch.setattr(viewer, "frame", lambda *a, **k: threads.append(torch.get_num_threads()) or frame(*a, **k))
+    before = torch.get_num_threads()
+    torch.set_num_threads(2)
     light = direction(-33, 52)
     viewer.scene.forget_gt(light)
     browser = SimpleNamespace(position=np.array([2.0, 1.0, 1.5]), look_at=np.full(3, 0.5),
@@ -191,9 +196,10 @@ def test_a_frames_cost_per_pixel_leaves_out_the_exact_shadows_grid(viewer, tmp_p
     tab = SimpleNamespace(mode=SimpleNamespace(value="gt"), step=SimpleNamespace(value=1.0), light=light,
                           client=SimpleNamespace(camera=browser, scene=SimpleNamespace(
                               set_background_image=lambda *a, **k: None)),
-                          viewer=viewer, gt_light=None, version=1, per_pixel={}, still_per_pixel={}, frames=0,
-                          gizmo=None, charted=light, record=tmp_path, status=SimpleNamespace(content=""),
-                          light_note=SimpleNamespace(content=""), command=SimpleNamespace(content=""))
+                          viewer=viewer, run=lambda fn, *a, **k: fn(*a, **k), gt_light=None, version=1,
+                          per_pixel={}, still_per_pixel={}, frames=0, gizmo=None, charted=light, record=tmp_path,
+                          status=SimpleNamespace(content=""), light_note=SimpleNamespace(content=""),
+                          command=SimpleNamespace(content=""))
     for name in ("_log_frame", "_notes", "_record"):
         setattr(tab, name, getattr(Session, name).__get__(tab))
     for kind in ("preview", "full"):
@@ -206,6 +212,8 @@ def test_a_frames_cost_per_pixel_leaves_out_the_exact_shadows_grid(viewer, tmp_p
         assert tab.per_pixel["gt"] * 20 * 16 == pytest.approx(marched["seconds"] - marched["grid_s"], rel=1e-6)
         assert "gt" not in tab.still_per_pixel  # neither a preview's cost nor one from kept samples
         assert ("exact shadow by the quick sweep while moving" in tab.status.content) == (kind == "preview")
+    assert threads == [1, 2] and torch.get_num_threads() == 2
+    torch.set_num_threads(before)
     viewer.scene.forget_gt(light)
 
 
@@ -405,3 +413,41 @@ def test_the_light_gizmo_marks_the_region_and_the_light(regional):
     assert shape == (160, 160, 3) and red > 20 and green > 500 and blue > 10
     _, red_out, green_out, _ = marks(direction(0, -20))  # outside: a black cross, no red dot; the cap shrinks
     assert red_out == 0 and green_out < green
+
+
+def test_the_viewers_pytorch_work_runs_on_one_thread(monkeypatch):
+    """GNU OpenMP stops spinning between PyTorch's ops once several threads have teams (the scene loaded on the main
+    thread and the frames drawn on a tab's: 3.9x slower frames on 2 cores), so the viewer loads its scene and draws
+    every frame on one thread of its own; a call's error reaches its caller, and the thread ends when closed."""
+    import threading
+
+    from diffshadow.viewer import app
+
+    worker = app.TorchThread()
+    ran_on = {worker.run(threading.get_ident) for _ in range(3)}
+    assert len(ran_on) == 1 and threading.get_ident() not in ran_on
+
+    def fails():
+        raise ViewerError("no such scene")
+
+    with pytest.raises(ViewerError, match="no such scene"):
+        worker.run(fails)
+    worker.close()
+    worker._thread.join(10)
+    assert not worker._thread.is_alive()
+
+    loaded_on = []
+
+    def load(*args):
+        loaded_on.append(threading.current_thread())
+        raise ViewerError("loaded")
+
+    monkeypatch.setattr(app.ViewerScene, "from_scene_config", staticmethod(load))
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]
+    with pytest.raises(ViewerError, match="loaded"):
+        app.serve(results=None, scene_config=Path("scene.yaml"), device=torch.device("cpu"), port=port)
+    assert loaded_on and loaded_on[0] is not threading.main_thread() and loaded_on[0].name == "viewer-torch"
+    loaded_on[0].join(10)
+    assert not loaded_on[0].is_alive()  # serve closed it

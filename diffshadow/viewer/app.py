@@ -13,9 +13,12 @@ import io
 import json
 import logging
 import math
+import queue
 import socket
 import threading
 import time
+from collections.abc import Callable
+from concurrent.futures import Future
 from pathlib import Path
 
 import numpy as np
@@ -31,6 +34,11 @@ PREVIEW_BUDGET_S = 0.25  # ... or more, so that a moving frame takes about this 
 PREVIEW_MIN = 32
 STEP_UP_S = 2.0  # a still frame predicted to take longer is drawn at a quarter of its height first (and so on)
 STEP_UP = 4  # ... a quarter: 1/16 of the pixels, so the still frame costs 6 % more (a half: 25 % more)
+# A preview, and its new light's SIREN, on one of PyTorch's threads. On more, each of their hundreds of small ops kept
+# the other cores spinning in OpenMP's wait for the next, and the browser and the server's thread waited: in Chromium
+# on the same 2 cores, dragging the light 3.0 fps (a SIREN generated in 0.19 s) against 6.6 fps (0.08 s)
+# (docs/performance.md, "The viewer"). Still frames take every thread.
+PREVIEW_THREADS = 1
 FREE = "(azimuth / elevation)"
 
 
@@ -51,12 +59,56 @@ def camera_of(cam, height: int) -> Camera:
                           fov=math.degrees(cam.fov), size=(width, height))
 
 
+class TorchThread:
+    """The one thread that runs the viewer's PyTorch work: the scene's loading and every tab's frames (`run` waits for
+    the call's result there). PyTorch's CPU ops run on an OpenMP thread team of the thread that calls them, and GNU
+    OpenMP stops spinning between parallel regions once its teams hold more threads than there are cores: every op
+    then waits for its team to wake. With the scene loaded on the main thread and the frames drawn on a tab's thread,
+    a 256² `inr` frame of nucleon took 5.4 s against 1.4 s with both on one thread (2 CPU cores, 2 threads;
+    docs/performance.md, "The viewer")."""
+
+    def __init__(self):
+        self._calls: queue.SimpleQueue = queue.SimpleQueue()
+        self._thread = threading.Thread(target=self._serve, name="viewer-torch", daemon=True)
+        self._thread.start()
+
+    def _serve(self) -> None:
+        while (call := self._calls.get()) is not None:
+            fn, args, kwargs, result = call
+            try:
+                result.set_result(fn(*args, **kwargs))
+            except BaseException as e:  # noqa: BLE001 - handed to the caller, who raises it
+                result.set_exception(e)
+
+    def run(self, fn: Callable, /, *args, **kwargs):
+        result: Future = Future()
+        self._calls.put((fn, args, kwargs, result))
+        return result.result()
+
+    def close(self) -> None:
+        """End the thread once the calls already asked for are done (its OpenMP team ends with it)."""
+        self._calls.put(None)
+
+
+def _on_threads(threads: int | None, fn: Callable, *args, **kwargs):
+    """`fn` on `threads` of PyTorch's CPU threads (None: as set)."""
+    if threads is None:
+        return fn(*args, **kwargs)
+    before = torch.get_num_threads()
+    torch.set_num_threads(threads)
+    try:
+        return fn(*args, **kwargs)
+    finally:
+        torch.set_num_threads(before)
+
+
 class Session:
-    """One browser tab: its panel, its light, and the thread that renders for it."""
+    """One browser tab: its panel, its light, and the thread that decides what to draw for it (and has `run`, the
+    viewer's `TorchThread`, draw it)."""
 
     def __init__(self, viewer: ViewerScene, client, *, size: int, step: float, record: Path | None,
-                 start: Camera):
-        self.viewer, self.client, self.start = viewer, client, start
+                 start: Camera, run: Callable):
+        self.viewer, self.client, self.start, self.run = viewer, client, start, run
         # each tab records into its own folder: a second tab numbers its frames from 1 without overwriting
         self.record = None if record is None else record / f"client_{client.client_id}"
         if self.record is not None:
@@ -231,7 +283,7 @@ class Session:
         light = self.light
         if self.viewer.needs_gt(mode, light):
             if self.gt_light is not None and not np.array_equal(self.gt_light, light):
-                self.viewer.scene.forget_gt(self.gt_light)  # one light's exact shadow kept, not every light's
+                self.run(self.viewer.scene.forget_gt, self.gt_light)  # one light's exact shadow kept, not all
             self.gt_light = light
             if kind != "preview" and self.viewer.marches(mode, light):
                 self.status.content = "computing the exact shadow for this light (once per light) ..."
@@ -240,8 +292,9 @@ class Session:
         # is short, and while the light is dragged the view changes every few milliseconds, so none would be shown.
         interrupt = None if kind == "preview" else (lambda: self.version != version)
         try:
-            image, notes = self.viewer.frame(mode, camera, light, step=step, interrupt=interrupt,
-                                             preview=kind == "preview")
+            threads = PREVIEW_THREADS if kind == "preview" else None
+            image, notes = self.run(_on_threads, threads, self.viewer.frame, mode, camera, light, step=step,
+                                    interrupt=interrupt, preview=kind == "preview")
         except Interrupted:
             self._log_frame({"kind": kind, "view": version, "mode": mode, "width": camera.width,
                              "height": camera.height, "seconds": time.perf_counter() - t0, "interrupted": True})
@@ -323,14 +376,23 @@ def serve(*, results: Path | None, scene_config: Path | None, device: torch.devi
           port: int = 8080, size: int = 128, step: float = 0.5, render: dict | None = None,
           record: Path | None = None, stop: threading.Event | None = None) -> None:
     """Serve the viewer until Ctrl-C (or `stop` is set)."""
-    import viser
-
     if not 1 <= port <= 65535:
         raise ViewerError(f"--port {port}: expected a TCP port, 1 to 65535")
     if not port_free(host, port):
         raise ViewerError(f"port {port} on {host} is in use (another viewer?); choose another with --port")
-    viewer = (ViewerScene.from_results(results, device, render) if results is not None
-              else ViewerScene.from_scene_config(scene_config, device, render))
+    torch_thread = TorchThread()
+    try:
+        viewer = (torch_thread.run(ViewerScene.from_results, results, device, render) if results is not None
+                  else torch_thread.run(ViewerScene.from_scene_config, scene_config, device, render))
+        _serve(viewer, torch_thread.run, host=host, port=port, size=size, step=step, record=record, stop=stop)
+    finally:
+        torch_thread.close()
+
+
+def _serve(viewer: ViewerScene, run: Callable, *, host: str, port: int, size: int, step: float,
+           record: Path | None, stop: threading.Event | None) -> None:
+    import viser
+
     if record is not None:
         record.mkdir(parents=True, exist_ok=True)
     logging.getLogger("websockets").setLevel(logging.CRITICAL)  # a browser's aborted probe is no error of ours
@@ -341,14 +403,15 @@ def serve(*, results: Path | None, scene_config: Path | None, device: torch.devi
         raise ViewerError(f"port {port} on {host} was taken while the viewer started; choose another with --port")
     server.gui.configure_theme(control_layout="fixed", show_share_button=False, show_logo=False)
     server.scene.set_up_direction("+z")
-    start = viewer.scene.framed(azimuth=30.0, elevation=25.0, fov=60.0)  # what `diffshadow render` shows
+    start = run(viewer.scene.framed, azimuth=30.0, elevation=25.0, fov=60.0)  # what `diffshadow render` shows
     server.initial_camera.position, server.initial_camera.look_at = start.eye, start.target
     server.initial_camera.up_direction, server.initial_camera.fov = start.up, math.radians(start.fov)
     sessions: dict[int, Session] = {}
 
     @server.on_client_connect
     def _(client) -> None:
-        sessions[client.client_id] = Session(viewer, client, size=size, step=step, record=record, start=start)
+        sessions[client.client_id] = Session(viewer, client, size=size, step=step, record=record, start=start,
+                                             run=run)
 
     @server.on_client_disconnect
     def _(client) -> None:
