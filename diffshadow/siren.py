@@ -99,7 +99,7 @@ def forward_folded(layers: list[tuple[torch.Tensor, torch.Tensor]], x: torch.Ten
 # Activations per pass of a SIREN's inference on a CPU (512 KiB of float32). A pass over a march's 65,536 samples
 # streamed each layer's (N, width) activations through memory, once per elementwise op; in passes that stay in
 # the core's cache the same values came 1.5x faster in the naive baseline's job at one thread, 1.2x at two, and
-# 4x for 32 SIRENs at 16,384 points (docs/performance.md, "SIREN inference in passes"). A GPU takes one pass.
+# 4x for 32 SIRENs at 16,384 points (docs/performance.md, the renderer's section). A GPU takes one pass.
 CPU_PASS_ELEMENTS = 1 << 17
 MIN_PASS_ROWS = 64  # MKL's batched product of 12 rows or fewer took another kernel, with other bits
 
