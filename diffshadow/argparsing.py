@@ -27,7 +27,7 @@ def device_of(args: argparse.Namespace):
 
 def add_networks(p: argparse.ArgumentParser) -> None:
     """--kernel: how the renderer evaluates its SIRENs (default: the config's `render.kernel`)."""
-    p.add_argument("--kernel", choices=["auto", "eager", "compile", "fused"],
+    p.add_argument("--kernel", choices=["auto", "eager", "fused"],
                    help="default: render.kernel (auto: fused on CUDA, else eager)")
 
 

@@ -20,7 +20,6 @@ import torch
 from torch import nn
 
 from diffshadow.layout import SirenConfig, WeightLayout
-from diffshadow.phases import phase
 
 OMEGA = 30.0  # sine frequency ω0 (SIREN)
 RES_WEIGHT = 0.5  # NeurComp's averaging weight on residual blocks
@@ -116,48 +115,28 @@ def passes(n: int, size: int, least: int | None = None) -> list[slice]:
 class FoldedSiren:
     """A SIREN for inference from `fold`'s or `fold_flat`'s layers, folded once: the same float32 operations as a
     training forward (`forward_folded`), so the same values. (N, 3) → (N,), or (K, N, 3) → (K, N) for K weight
-    sets. `compiled`: through torch.compile, which fuses each layer's bias, sine and
-    residual into one pass (one compile per process and network shape, ~7 s on 2 CPU cores; the weights are
-    arguments, so a new SIREN of the same shape does not compile again).
+    sets.
 
     On a CPU the points go through in passes of about `CPU_PASS_ELEMENTS` activations (`passes`), each row's
     values those of one pass over all (MKL's products give a row the same bits whatever the rows beside it, under
     the jobs' `MKL_CBWR=AUTO,STRICT`)."""
 
-    def __init__(self, layers: list[tuple[torch.Tensor, torch.Tensor]], compiled: bool = False):
+    def __init__(self, layers: list[tuple[torch.Tensor, torch.Tensor]]):
         self.layers = [(w.detach(), b.detach()) for w, b in layers]
-        self.forward = _compiled_forward() if compiled else forward_folded
         w = self.layers[0][0]  # (width, 3) or (K, width, 3)
         self.elements = CPU_PASS_ELEMENTS // w.shape[-2] if w.device.type == "cpu" else None
 
     def __call__(self, x: torch.Tensor) -> torch.Tensor:
         if self.elements is None:
-            return self._pass(x)
+            return forward_folded(self.layers, x)
         rows = max(MIN_PASS_ROWS, self.elements // (x.shape[0] if x.ndim == 3 else 1))
         slices = passes(x.shape[-2], rows)
         if len(slices) == 1:
-            return self._pass(x)
+            return forward_folded(self.layers, x)
         out = x.new_empty(x.shape[:-1])
         for sl in slices:
-            out[..., sl] = self._pass(x[..., sl, :])
+            out[..., sl] = forward_folded(self.layers, x[..., sl, :])
         return out
-
-    def _pass(self, x: torch.Tensor) -> torch.Tensor:
-        key = (len(self.layers), x.ndim, x.device.type)
-        if self.forward is forward_folded or key in _COMPILED:
-            return self.forward(self.layers, x)
-        with phase("compile"):  # the first call of a shape compiles: counted in the job's phases
-            out = self.forward(self.layers, x)
-        _COMPILED.add(key)
-        return out
-
-
-_COMPILED: set[tuple] = set()  # (layers, ndim, device type) that torch.compile has compiled in this process
-
-
-@functools.cache
-def _compiled_forward():
-    return torch.compile(forward_folded, dynamic=True)
 
 
 class Siren(nn.Module):

@@ -37,7 +37,7 @@ from diffshadow.siren import SirenConfig, WeightLayout, init_siren
 class Variant:
     batch: int | None = None  # None: the device's default
     tf32: bool = False  # TF32 matmuls (the eager SIREN)
-    kernel: str | None = None  # the scene's kernel (render.Networks.setting(): "compile" or "fused")
+    kernel: str | None = None  # the scene's kernel (render.Networks.setting(): "fused")
 
 
 def variants(device: torch.device) -> dict[str, Variant]:
@@ -48,7 +48,6 @@ def variants(device: torch.device) -> dict[str, Variant]:
     for lb in (20, 21, 22) if device.type == "cuda" else (16, 20, 22):
         out[f"batch 2^{lb}"] = Variant(batch=1 << lb)
     out["tf32 matmuls"] = Variant(tf32=True)
-    out["compiled SIREN"] = Variant(kernel="compile")
     if fused_available(device):
         out["fused"] = Variant(kernel="fused")
     return out

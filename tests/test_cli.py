@@ -325,7 +325,7 @@ def test_view_takes_the_runs_render_section_under_its_flags(tmp_path, capsys):
         (tmp_path / "results" / scene).mkdir(parents=True)
     got = render(str(tmp_path / "results" / "nucleon"))
     assert (got["kernel"], got["step"]) == ("eager", 0.25)
-    assert render(str(tmp_path / "results" / "nucleon"), "--kernel", "compile")["kernel"] == "compile"
+    assert render(str(tmp_path / "results" / "nucleon"), "--kernel", "fused")["kernel"] == "fused"
     assert render(str(tmp_path / "results" / "elsewhere")) == {}
     assert "no run config for scene 'elsewhere'" in capsys.readouterr().err
     # a folder that is not there: the viewer's error alone says so, not a line about its config first

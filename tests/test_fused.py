@@ -158,12 +158,12 @@ def test_whole_ray_programs_take_rays_most_samples_first(monkeypatch):
 
 def test_setting_and_bad_input(monkeypatch):
     cpu, cuda = torch.device("cpu"), torch.device("cuda")
-    for kernel, device, expected in (("eager", cuda, None), ("fused", cpu, "fused"), ("compile", cuda, "compile"),
+    for kernel, device, expected in (("eager", cuda, None), ("fused", cpu, "fused"), ("fused", cuda, "fused"),
                                      ("auto", cpu, None), ("auto", cuda, "fused")):
         assert Networks(kernel).setting(device) == expected, (kernel, device)
     assert Networks.from_config({"kernel": "fused", "step": 0.5}) == Networks("fused")
     assert Networks.from_config({"step": 0.5}) == Networks("auto")
-    with pytest.raises(RenderError, match="render.kernel: expected one of auto, eager, compile, fused, got 'triton'"):
+    with pytest.raises(RenderError, match="render.kernel: expected one of auto, eager, fused, got 'triton'"):
         Networks("triton")
     named = Siren(SirenConfig(24, 1)).named_tensors()
     with pytest.raises(FusedSirenError, match=r"power-of-two width >= 16 and 3 inputs, got weights \(24, 3\)"):

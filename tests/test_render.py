@@ -2,12 +2,11 @@
 bounded batches, analytic shadow values, extremes and bad input."""
 
 import math
-import shutil
 
 import numpy as np
 import pytest
 import torch
-from conftest import Asker, data_inr_stub, default_device_meta
+from conftest import Asker, default_device_meta
 
 from diffshadow.analytic import gaussian_blob
 from diffshadow.render import (
@@ -449,27 +448,3 @@ def test_rendering_makes_no_tensor_on_the_implicit_default_device(blob, mode):
         b = RenderScene(blob, TF, cell=8, device="cpu").render(mode, cam, light=light, siren=siren,
                                                                 phong=mode == "gt")
     assert torch.equal(a.rgb, b.rgb)
-
-
-@pytest.mark.skipif(not (shutil.which("g++") or shutil.which("c++") or shutil.which("clang++")),
-                    reason="torch.compile's CPU code needs a C++ compiler")
-def test_compiled_sirens_render_the_same_images(blob, monkeypatch):
-    """`render.kernel: compile`: the data and shadow SIRENs through torch.compile (the CPU's fast path,
-    docs/performance.md) give the eager images, for ours and for the naive baseline's secondary rays."""
-    from diffshadow.render import Networks, RenderScene
-
-    data_inr = data_inr_stub(16, 1)
-
-    siren = SirenConfig(16, 1)
-    layout = WeightLayout.for_siren(siren)
-    weights = layout.flatten(init_siren(siren, torch.Generator().manual_seed(4))).numpy()
-    images = {}
-    for setting in ("0", "compile"):
-        scene = RenderScene(blob, TF, data_inr, networks=Networks("compile") if setting == "compile" else None)
-        assert scene.kernel_used == (None if setting == "0" else "compile")
-        for mode, size in (("inr", 24), ("naive", 12)):
-            cam = Camera.orbit(blob.extent, azimuth=30.0, elevation=25.0, size=size)
-            images[setting, mode] = scene.render(mode, cam, light=(0.3, -0.5, 0.8),
-                                                 siren=(weights, layout, siren.blocks)).rgb
-    for mode in ("inr", "naive"):
-        assert float((images["0", mode] - images["compile", mode]).abs().max()) <= 1e-5, mode

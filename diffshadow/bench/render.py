@@ -70,7 +70,7 @@ def bench_render(scene: RenderScene, siren, light, *, sizes=(64, 128), step: flo
                  "repeats": repeats, "light": [float(v) for v in light], "sizes": {}}
     cams = {n: Camera.orbit(scene.volume.extent, azimuth=azimuth, elevation=elevation, size=n) for n in sizes}
     kwargs = {"light": light, "siren": siren, "step": step}
-    # every mode once before timing: Triton kernels and torch.compile compile on first use, and a slow mode
+    # every mode once before timing: Triton kernels compile on first use, and a slow mode
     # (naive) is timed once per size; `inr`'s shadow INR is built then, and the timed frames of its light reuse it,
     # as the viewer's frames do (making one is timed apart: evaluate_voxels' seconds_per_inr)
     tiny = Camera.orbit(scene.volume.extent, azimuth=azimuth, elevation=elevation, size=8)

@@ -1,5 +1,5 @@
 """What the marcher samples: the scalar field (raw grid or data INR) and the shadow source (a shadow grid or a
-shadow INR), each evaluated by the kernel `Networks` chose (eager, compiled or fused)."""
+shadow INR), each evaluated by the kernel `Networks` chose (eager or fused)."""
 
 from __future__ import annotations
 
@@ -10,7 +10,7 @@ import torch
 import torch.nn.functional as F
 
 from diffshadow.grid import box, trilinear
-from diffshadow.render.fused import COMPILE, FUSED, FusedSiren, FusedSirenError
+from diffshadow.render.fused import FUSED, FusedSiren, FusedSirenError
 from diffshadow.siren import FoldedSiren, Siren, WeightLayout, box_to_siren, fold, fold_flat
 from diffshadow.volume import Volume
 
@@ -40,8 +40,7 @@ class GridScalar:
 
 class InrScalar:
     """The data INR (a SIREN of the scalar field); gradients by autograd through the network. `kernel`: "fused" for
-    the fused kernel for values (`diffshadow.render.fused`), "compile" for the eager SIREN through torch.compile, None
-    for the eager SIREN."""
+    the fused kernel for values (`diffshadow.render.fused`), None for the eager SIREN."""
 
     def __init__(self, model: Siren, extent, device: torch.device | str = "cpu", kernel: str | None = None):
         self.model = model.to(device).eval()
@@ -65,7 +64,7 @@ class InrScalar:
 
 def _fast_siren(named: dict, blocks: int, kernel: str | None, layers) -> FusedSiren | FoldedSiren:
     """A SIREN for inference: the fused kernel for `kernel` = "fused", else the folded eager SIREN
-    (`layers()`: its folded layers), through torch.compile for "compile". A SIREN the kernel cannot take (a width
+    (`layers()`: its folded layers). A SIREN the kernel cannot take (a width
     that is not a power of two >= 16) falls back to the eager one, with a warning: the setting is a speed-up, not
     a result."""
     if kernel == FUSED:
@@ -73,7 +72,7 @@ def _fast_siren(named: dict, blocks: int, kernel: str | None, layers) -> FusedSi
             return FusedSiren(named, blocks)
         except FusedSirenError as e:
             warnings.warn(f"render.kernel=fused: {e}; using the eager SIREN", stacklevel=3)
-    return FoldedSiren(layers(), compiled=kernel == COMPILE)
+    return FoldedSiren(layers())
 
 
 class GridShadow:

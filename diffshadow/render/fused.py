@@ -44,7 +44,6 @@ def block_points(width: int) -> int:
 
 
 FUSED = "fused"  # the scene's setting for these kernels (`render.Networks`)
-COMPILE = "compile"  # the eager SIREN through torch.compile (siren.FoldedSiren), not these kernels
 LAUNCH = "diffshadow::fused"  # the profiler range around each launch: bench.profile counts it as one op
 
 
@@ -63,10 +62,7 @@ class FusedKernelWarning(UserWarning):
 
 
 def available(device: torch.device, setting: str = FUSED) -> bool:
-    """Whether `setting` runs on `device`: torch.compile anywhere; the kernels on CUDA with Triton, or in
-    Triton's interpreter on the CPU."""
-    if setting == COMPILE:
-        return True
+    """Whether `setting` runs on `device`: the kernels on CUDA with Triton, or in Triton's interpreter on the CPU."""
     if importlib.util.find_spec("triton") is None:  # Triton ships with CUDA builds of PyTorch, not CPU ones
         return False
     return device.type == "cuda" or (device.type == "cpu" and os.environ.get("TRITON_INTERPRET") == "1")

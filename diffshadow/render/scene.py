@@ -21,7 +21,7 @@ from diffshadow.lights import as_direction
 from diffshadow.render.camera import Camera, RenderError, visible_sphere
 from diffshadow.render.cells import RENDER_CELL, MacroGrid
 from diffshadow.render.fields import GridScalar, GridShadow, InrScalar, SirenShadow
-from diffshadow.render.fused import COMPILE, FUSED, FusedKernelError, FusedKernelWarning
+from diffshadow.render.fused import FUSED, FusedKernelError, FusedKernelWarning
 from diffshadow.render.fused import available as fused_available
 from diffshadow.render.marcher import (
     BACKGROUND,
@@ -38,7 +38,9 @@ from diffshadow.transfer import TransferFunction
 from diffshadow.volume import Volume, refine
 
 MODES = ("noshadow", "gt", "inr", "naive")
-KERNELS = ("auto", "eager", COMPILE, FUSED)
+# torch.compile of the eager SIRENs was a third: it tied with eager on 2 CPU cores once eager went in passes, and was
+# 4 % slower on an H200, for ~7 s of compiling per process (docs/performance.md, the renderer's section)
+KERNELS = ("auto", "eager", FUSED)
 # The samples a scene keeps to draw a view again under another light (`RenderScene(keep_samples=)`): ~26 bytes a
 # sample, so a 256² frame of nucleon (3.5M samples) takes 85 MiB and a 480² one about 300 MiB
 KEEP_SAMPLES_BYTES = 512 << 20
@@ -49,10 +51,10 @@ class Networks:
     """How the renderer evaluates its SIRENs: the one place that chooses (config `render.kernel`; recorded in
     bench.json and image_metrics.json).
 
-    `kernel`: "eager" (folded PyTorch SIRENs: every device, the reference), "compile" (the same through
-    torch.compile), "fused" (Triton kernels: whole rays per kernel, TF32 matrix products, the special-function
-    unit's sine; CUDA, or Triton's interpreter on a CPU; elsewhere the scene renders eagerly and records so), or
-    "auto": "fused" on CUDA where Triton is installed, else "eager" (the interpreter is for tests, not speed).
+    `kernel`: "eager" (folded PyTorch SIRENs: every device, the reference), "fused" (Triton kernels: whole rays
+    per kernel, TF32 matrix products, the special-function unit's sine; CUDA, or Triton's interpreter on a CPU;
+    elsewhere the scene renders eagerly and records so), or "auto": "fused" on CUDA where Triton is installed, else
+    "eager" (the interpreter is for tests, not speed).
     On an H200 "fused" gave 3.4-3.9x the eager fps at 512²-1024², images within 78 dB of the eager fp32 ones
     (docs/performance.md).
     """
@@ -69,7 +71,7 @@ class Networks:
         return cls(render_cfg["kernel"]) if "kernel" in render_cfg else cls()
 
     def setting(self, device: torch.device) -> str | None:
-        """What the fields take on `device`: None (eager), "compile" or "fused"."""
+        """What the fields take on `device`: None (eager) or "fused"."""
         if self.kernel == "auto":
             return FUSED if device.type == "cuda" and fused_available(device) else None
         return None if self.kernel == "eager" else self.kernel
