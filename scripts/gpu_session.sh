@@ -107,7 +107,7 @@ render)
     ;;
 plans)
     sizes=(--sizes 128 512 1024); [ "$quick" = 1 ] && sizes=(--sizes 24 --inr-steps 200 --repeats 1)
-    variants=("tf32 matmuls" "compiled SIREN")  # the fused kernels run on CUDA (on a CPU only interpreted, slowly)
+    variants=("tf32 matmuls")  # the fused kernels run on CUDA (on a CPU only interpreted, slowly)
     [ "$device" = cuda ] && variants+=("fused")
     step render_plans python scripts/render_plans.py --device "$device" "${sizes[@]}" --profile \
         --variants "${variants[@]}"
