@@ -61,8 +61,8 @@ class FusedKernelWarning(UserWarning):
     """The renderer fell back to the eager SIREN after a `FusedKernelError` (the tests make it an error)."""
 
 
-def available(device: torch.device, setting: str = FUSED) -> bool:
-    """Whether `setting` runs on `device`: the kernels on CUDA with Triton, or in Triton's interpreter on the CPU."""
+def available(device: torch.device) -> bool:
+    """Whether the kernels run on `device`: on CUDA with Triton, or in Triton's interpreter on the CPU."""
     if importlib.util.find_spec("triton") is None:  # Triton ships with CUDA builds of PyTorch, not CPU ones
         return False
     return device.type == "cuda" or (device.type == "cpu" and os.environ.get("TRITON_INTERPRET") == "1")

@@ -361,8 +361,7 @@ def render(
                                                                                     march, interrupt)
         return _image(camera, color, trans, shading, start, counters)
 
-    kept = [] if keep > 0 and not shading.phong else None
-    arena = _Arena(trans.device)
+    kept, arena = ([], _Arena(trans.device)) if keep > 0 and not shading.phong else (None, None)
 
     def composite(rows, t, valid):
         nonlocal kept

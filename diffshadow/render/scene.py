@@ -4,7 +4,6 @@ choice of how its networks are evaluated (`Networks`: config `render.kernel`).""
 from __future__ import annotations
 
 import hashlib
-import threading
 import warnings
 from collections import OrderedDict
 from collections.abc import Callable
@@ -84,6 +83,7 @@ class RenderScene:
     refined `gt_upsample` times); `inr`
     (shadow INR co-rendered with the scalar field: ours); `naive` (secondary rays through the scalar
     field). `scalar="inr"` renders the data INR, `"grid"` the raw volume (to isolate the shadow's error).
+    Not for frames from several threads at once: the viewer draws on one (`viewer.app.TorchThread`).
     """
 
     def __init__(self, volume: Volume, tf: TransferFunction, data_inr=None, *, device: torch.device | str = "cpu",
@@ -95,7 +95,7 @@ class RenderScene:
         # the kernel the SIRENs' values take where it runs on this device, else None: eager (`networks_used`
         # records which)
         setting = self.networks.setting(self.device)
-        self.kernel_used = setting if setting and fused_available(self.device, setting) else None
+        self.kernel_used = setting if setting and fused_available(self.device) else None
         self.gt_method, self.gt_upsample, self.cell = gt_method, gt_upsample, cell
         self.voxel = float(np.min(volume.voxel_size))
         self._cache: dict = {}
@@ -103,7 +103,6 @@ class RenderScene:
         # a view drawn again under another light takes its kept samples: up to this many bytes, the last views first
         self.keep_samples = keep_samples
         self._samples: OrderedDict[tuple, Samples] = OrderedDict()
-        self._samples_lock = threading.Lock()  # the viewer renders from its own thread
 
     def networks_used(self) -> dict:
         """The choice as configured and what this scene renders with now (after any fallback), for the
@@ -121,7 +120,7 @@ class RenderScene:
         anew it copied the weights from the host and laid them out for the kernel at every frame."""
         w = np.ascontiguousarray(weights, dtype=np.float32)
         key = (hashlib.blake2b(w.tobytes(), digest_size=16).digest(), layout, blocks, self.kernel_used)
-        last = self._last_shadow  # one tuple, replaced whole: frames rendered from two threads see a matching pair
+        last = self._last_shadow
         if last is None or last[0] != key:
             last = (key, SirenShadow(w, layout, blocks, self.volume.extent, self.device, self.kernel_used))
             self._last_shadow = last
@@ -236,12 +235,11 @@ class RenderScene:
         # what the samples of a view depend on (a light changes only the shadow at them; unlit shading)
         key = None if phong or self.keep_samples <= 0 else (
             camera, scalar, self.kernel_used, step, skip, batch, samples_per_iter, min_transmittance)
-        with self._samples_lock:
-            kept = self._samples.get(key) if key is not None else None
-            if kept is not None:
-                self._samples.move_to_end(key)
-            elif key is not None:
-                self._make_room(camera.width * camera.height)
+        kept = self._samples.get(key) if key is not None else None
+        if kept is not None:
+            self._samples.move_to_end(key)
+        elif key is not None:
+            self._make_room(camera.width * camera.height)
         with torch.no_grad():
             img = render(camera, field_, self.tf, self.volume.extent, self.voxel, light=light, shadow=shadow,
                          shading=Shading(phong=phong, background=background), step=step, macro=macro,
@@ -255,9 +253,8 @@ class RenderScene:
 
     def keep_views(self, nbytes: int) -> None:
         """Keep up to `nbytes` of views' samples from now on, the last views first (0: none, and drop those kept)."""
-        with self._samples_lock:
-            self.keep_samples = nbytes
-            self._evict(0.0)
+        self.keep_samples = nbytes
+        self._evict(0.0)
 
     def _make_room(self, pixels: int) -> None:
         """Before a view is marched to be kept: room for its samples, estimated from the last kept view's bytes per
@@ -267,12 +264,11 @@ class RenderScene:
             self._evict(last.nbytes / (camera.width * camera.height) * pixels)
 
     def _keep(self, key: tuple, samples: Samples) -> None:
-        with self._samples_lock:
-            self._samples[key] = samples
-            self._evict(0.0)
+        self._samples[key] = samples
+        self._evict(0.0)
 
     def _evict(self, room: float) -> None:
-        """The oldest kept views go until `room` more bytes fit beside the rest within the budget (lock held)."""
+        """The oldest kept views go until `room` more bytes fit beside the rest within the budget."""
         total = sum(s.nbytes for s in self._samples.values())
         while self._samples and total + room > self.keep_samples:
             total -= self._samples.popitem(last=False)[1].nbytes
