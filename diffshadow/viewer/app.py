@@ -382,8 +382,9 @@ def serve(*, results: Path | None, scene_config: Path | None, device: torch.devi
         raise ViewerError(f"port {port} on {host} is in use (another viewer?); choose another with --port")
     torch_thread = TorchThread()
     try:
-        viewer = (torch_thread.run(ViewerScene.from_results, results, device, render) if results is not None
-                  else torch_thread.run(ViewerScene.from_scene_config, scene_config, device, render))
+        load, source = ((ViewerScene.from_results, results) if results is not None
+                        else (ViewerScene.from_scene_config, scene_config))
+        viewer = torch_thread.run(load, source, device, render)
         _serve(viewer, torch_thread.run, host=host, port=port, size=size, step=step, record=record, stop=stop)
     finally:
         torch_thread.close()
