@@ -40,7 +40,11 @@ MACRO_CELL = 8  # voxels per macro-cell edge for empty-space skipping
 # a gain from 90 % (hydrogen_atom 2.8x, bi2o3 4x). `skip_empty=None` turns it on from this fraction.
 AUTO_SKIP_FRACTION = 0.5
 SAMPLES_PER_ITER = 4  # lattice samples per point per marching iteration (amortises Python overhead)
-CHUNK = 1 << 20  # samples held in memory at once
+CHUNK = 1 << 20  # samples held in memory at once on a GPU: fewer, larger launches
+# On a CPU, samples per chunk: an iteration's (rays, S, 3) positions and gathers go through memory once per op, and
+# in chunks this size the exact march took 0.78x the time of CHUNK at one thread, 0.80x at two (the same values;
+# docs/performance.md, "The exact march"). Smaller chunks lose it again to the per-iteration ops.
+CPU_CHUNK = 1 << 18
 
 
 @dataclass
@@ -97,7 +101,7 @@ def transmittance(
     skip_empty: bool | None = None,
     tau_max: float = TAU_MAX,
     samples_per_iter: int = SAMPLES_PER_ITER,
-    chunk: int = CHUNK,
+    chunk: int | None = None,
     device: torch.device | str = "cpu",
     interrupt: Callable[[], bool] | None = None,
 ) -> torch.Tensor:
@@ -106,7 +110,8 @@ def transmittance(
     `step` is in voxels (of the finest axis). Points outside the box are marched from where their ray
     enters it. `skip_empty` jumps over macro-cells whose μ is 0 under `tf` (None: when at least
     `AUTO_SKIP_FRACTION` of the cells are empty). `interrupt`, if given, is asked before every iteration; once
-    it returns True the march ends with `grid.Interrupted` (the viewer gives up a light it has left).
+    it returns True the march ends with `grid.Interrupted` (the viewer gives up a light it has left). `chunk` is the
+    samples held at once (None: `CPU_CHUNK` on a CPU, `CHUNK` elsewhere); it changes no value.
     """
     check_step(step)
     w64 = as_direction(light_dir)
@@ -131,7 +136,7 @@ def transmittance_per_light(
     skip_empty: bool | None = None,
     tau_max: float = TAU_MAX,
     samples_per_iter: int = SAMPLES_PER_ITER,
-    chunk: int = CHUNK,
+    chunk: int | None = None,
     device: torch.device | str = "cpu",
 ) -> torch.Tensor:
     """The shadow of each light (L, 3) at its own points (L, P, 3), or at shared points (P, 3) → (L, P), on the
@@ -168,7 +173,7 @@ def transmittance_per_light(
 
 
 def _transmittance_rays(field: ShadowField, w: torch.Tensor, pts: torch.Tensor, step: float, skip_empty,
-                        tau_max: float, samples_per_iter: int, chunk: int,
+                        tau_max: float, samples_per_iter: int, chunk: int | None,
                         interrupt: Callable[[], bool] | None = None) -> torch.Tensor:
     """exp(-optical depth) from each point (R, 3) toward its light, w (R, 3) or one for all (3,)."""
     t0, t1 = ray_box(pts, w, field.extent)
@@ -183,6 +188,7 @@ def _transmittance_rays(field: ShadowField, w: torch.Tensor, pts: torch.Tensor, 
     exit_vox = torch.where((n > 0)[:, None], (pts + t1.clamp(max=1e30)[:, None] * w) / field.voxel_size,
                            torch.zeros_like(pts))
     dq = (-w / field.voxel_size * dt).expand(len(pts), 3)  # voxel displacement per sample
+    chunk = chunk or (CPU_CHUNK if pts.device.type == "cpu" else CHUNK)
 
     if skip_empty is None:
         skip_empty = float(field.empty.float().mean()) >= AUTO_SKIP_FRACTION
@@ -206,7 +212,7 @@ def _march_chunk(field: ShadowField, q0, dq, dt: float, last, n, skip: bool, tau
     offsets = torch.arange(S, device=device)
     # Rows are gathered by index (index_select, index_copy_), not by boolean masks: on a CPU aten::index gathers
     # 3-5x slower (the same values), and on a GPU every mask is a nonzero that waits for the device. An iteration
-    # reads the host twice (the occupied samples, the rays still live), three times skipping empty cells.
+    # reads the host once (the rays still live), three times skipping empty cells (the occupied samples, the jumps).
     last_cell, _, cell_stride = lattice(tuple(field.empty.shape), torch.int64, device)
     empty_flat = field.empty.reshape(-1)
     live = torch.nonzero(n > 0).squeeze(1)
@@ -222,12 +228,12 @@ def _march_chunk(field: ShadowField, q0, dq, dt: float, last, n, skip: bool, tau
             cidx = torch.minimum(torch.div(pos, field.cell, rounding_mode="floor").long().clamp_min(0), last_cell)
             empty = empty_flat.index_select(0, (cidx * cell_stride).sum(dim=-1).view(-1)).view(kk.shape)
             occupied = in_range & ~empty
-        else:
-            occupied = in_range
-        mu = torch.zeros(kk.shape, dtype=torch.float32, device=device)
-        at = torch.nonzero(occupied.view(-1)).squeeze(1)
-        if at.numel():
-            mu.view(-1).index_copy_(0, at, field.mu(pos.view(-1, 3).index_select(0, at)))
+            mu = torch.zeros(kk.shape, dtype=torch.float32, device=device)
+            at = torch.nonzero(occupied.view(-1)).squeeze(1)
+            if at.numel():
+                mu.view(-1).index_copy_(0, at, field.mu(pos.view(-1, 3).index_select(0, at)))
+        else:  # every sample in range is occupied: μ at all, masked (clamped to the grid, finite past a ray's end)
+            mu = torch.where(in_range, field.mu(pos.view(-1, 3)).view(kk.shape), 0.0)
         weight = torch.where(kk == n_live[:, None] - 1, last.index_select(0, live)[:, None], dt)
         tau_live = tau.index_select(0, live) + (mu * weight).sum(dim=1)
         tau.index_copy_(0, live, tau_live)

@@ -195,6 +195,27 @@ def test_shared_points_make_a_lights_siren_independent_of_its_subset(scene):
     assert (pair[1] - apart[0]).abs().max() > 1e-4
 
 
+def test_sweep_targets_at_shared_points_are_each_lights_own_grid_lookup(scene):
+    """On a CPU with shared points the targets' grids are stored channels last and read as channels of one grid:
+    each light's values are those of its grid looked up alone, bit for bit, at points inside and outside the box."""
+    from diffshadow.fit import Targets
+    from diffshadow.grid import lookup_grids
+
+    vol, tf, lights = scene
+    lights = np.concatenate([lights, [[0.0, 1.0, 0.0]]])
+    cpu = torch.device("cpu")
+    targets = Targets(vol, tf, lights, FitConfig.from_config(dict(shared_points=True)), cpu)
+    assert targets.grids.stride(0) == 1
+    pts = torch.rand(1, 500, 3, generator=torch.Generator().manual_seed(1)) * 1.4 - 0.2  # some outside [0, 1]³
+    shared = targets(pts.expand(len(lights), -1, -1))
+    for k in range(len(lights)):
+        alone = Targets(vol, tf, lights[k:k + 1], FitConfig.from_config(dict(shared_points=True)), cpu)
+        assert torch.equal(shared[k], alone(pts)[0]), k
+        assert torch.equal(shared[k], lookup_grids(targets.grids[k:k + 1].contiguous(), pts, targets.extent)[0]), k
+    own = Targets(vol, tf, lights, FitConfig.from_config(dict(shared_points=False)), cpu)
+    assert own.grids.is_contiguous()  # per-light points read each grid alone, which its own layout serves best
+
+
 def _cap_lights():
     # four training lights around +z, about 15 degrees apart, and the cap's centre
     d = np.array([[0.26, 0.0, 1.0], [-0.26, 0.0, 1.0], [0.0, 0.26, 1.0], [0.0, -0.26, 1.0]])
