@@ -43,11 +43,9 @@ JOB_ENVIRONMENT = {"MKL_CBWR": "AUTO,STRICT"}
 
 def kernel_cache_environment(root: str | os.PathLike) -> dict[str, str]:
     """Where a run's jobs keep compiled kernels, so that no job recompiles what an earlier one compiled: Triton's
-    cache (the fused renderer kernels) and inductor's (torch.compile), both under `root` (the workflow passes
-    `results/.kernel-cache`, an absolute path on the file system every node of a PBS run shares; inductor's own
-    default is node-local /tmp). A user's own TRITON_CACHE_DIR or TORCHINDUCTOR_CACHE_DIR wins."""
-    root = os.path.abspath(root)
-    return {"TRITON_CACHE_DIR": os.path.join(root, "triton"), "TORCHINDUCTOR_CACHE_DIR": os.path.join(root, "inductor")}
+    cache (the fused renderer kernels) under `root` (the workflow passes `results/.kernel-cache`, an absolute path on
+    the file system every node of a PBS run shares). A user's own TRITON_CACHE_DIR wins."""
+    return {"TRITON_CACHE_DIR": os.path.join(os.path.abspath(root), "triton")}
 
 
 def device_setting(flag: str | None = None, config: str | None = None) -> tuple[str, str]:

@@ -21,7 +21,7 @@ os.environ.update(DIFFSHADOW_CONFIG_DEVICE=config.get("device", "auto"),
 # MKL in strict reproducible mode, so a job's bytes do not depend on its thread count (a user's own setting wins)
 for _key, _value in _JOB_ENVIRONMENT.items():
     os.environ.setdefault(_key, _value)
-# one compiled-kernel cache for the run's jobs (Triton's, inductor's): results/.kernel-cache/ (a user's own wins)
+# one compiled-kernel cache for the run's jobs (Triton's): results/.kernel-cache/ (a user's own wins)
 for _key, _value in _kernel_cache_environment("results/.kernel-cache").items():
     os.environ.setdefault(_key, _value)
 # and `deterministic`, which changes no byte on a CPU and only float summation order on a GPU; a user's own wins
