@@ -7,7 +7,9 @@
 
 from __future__ import annotations
 
+import io
 import json
+import zipfile
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -75,13 +77,21 @@ def write_subset(path, *, weights, light_index, lights, psnr, psnr_visible, layo
     """One `fit_siren` job's result, written atomically."""
     meta = json.dumps({"layout": layout.to_config(), "siren": siren.to_config(), "config": config})
 
-    def save(tmp: Path) -> None:
-        with open(tmp, "wb") as f:
-            np.savez(f, weights=np.asarray(weights, np.float32), light_index=np.asarray(light_index, np.int64),
-                     lights=np.asarray(lights, np.float64), psnr=np.asarray(psnr, np.float64),
-                     psnr_visible=np.asarray(psnr_visible, np.float64), meta=np.array(meta))
+    arrays = {"weights": np.asarray(weights, np.float32), "light_index": np.asarray(light_index, np.int64),
+              "lights": np.asarray(lights, np.float64), "psnr": np.asarray(psnr, np.float64),
+              "psnr_visible": np.asarray(psnr_visible, np.float64), "meta": np.array(meta)}
+    atomic_save(path, lambda tmp: write_npz(tmp, arrays), suffix=".npz")
 
-    atomic_save(path, save, suffix=".npz")
+
+def write_npz(path: Path, arrays: dict[str, np.ndarray]) -> None:
+    """An .npz that `np.load` reads, its bytes those of the arrays alone: each member stored whole with a fixed date
+    and no zip64 field. `np.savez` streams its members with zip64 headers that CPython's zipfile writes differently
+    from one patch release to the next (3.11.2 and 3.11.7: the same arrays, other file bytes)."""
+    with zipfile.ZipFile(path, "w", zipfile.ZIP_STORED) as z:
+        for name, array in arrays.items():
+            member = io.BytesIO()
+            np.lib.format.write_array(member, array, allow_pickle=False)
+            z.writestr(zipfile.ZipInfo(f"{name}.npy", date_time=(1980, 1, 1, 0, 0, 0)), member.getvalue())
 
 
 @timed("io")
