@@ -372,8 +372,9 @@ class RunResults:
                                 "in which at least one job ran. A job's CPU seconds and peak memory are the larger "
                                 "of Snakemake's polls and its process's own count. Where the wall time went, per "
                                 "job's process: interpreter start and imports, device start (CUDA's context), "
-                                "compilation (Triton, torch.compile), reading and writing files (checksums "
-                                "included), compute (the rest), and launch: the job's time outside its diffshadow "
+                                "compilation (Triton's, of the fused renderer kernels), reading and writing "
+                                "files (checksums included), compute (the rest), and launch: the job's time "
+                                "outside its diffshadow "
                                 "process (shell, torchrun and its helper)."))
         return "".join(parts)
 
