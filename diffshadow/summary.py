@@ -374,8 +374,7 @@ class RunResults:
                                 "job's process: interpreter start and imports, device start (CUDA's context), "
                                 "compilation (Triton's, of the fused renderer kernels), reading and writing "
                                 "files (checksums included), compute (the rest), and launch: the job's time "
-                                "outside its diffshadow "
-                                "process (shell, torchrun and its helper)."))
+                                "outside its diffshadow process (shell, torchrun and its helper)."))
         return "".join(parts)
 
 
