@@ -42,7 +42,7 @@ AUTO_SKIP_FRACTION = 0.5
 SAMPLES_PER_ITER = 4  # lattice samples per point per marching iteration (amortises Python overhead)
 CHUNK = 1 << 20  # samples held in memory at once on a GPU: fewer, larger launches
 # On a CPU, samples per chunk: an iteration's (rays, S, 3) positions and gathers go through memory once per op, and
-# in chunks this size the exact march took 0.78x the time of CHUNK at one thread, 0.80x at two (the same values;
+# in chunks this size the exact march took 0.78x the time of CHUNK at one thread, 0.76x at two (the same values;
 # docs/performance.md, "The exact march"). Smaller chunks lose it again to the per-iteration ops.
 CPU_CHUNK = 1 << 18
 
