@@ -20,7 +20,7 @@ import torch
 from diffshadow.capacity import Choice, Rung, climb, ladder
 from diffshadow.config import changed_settings, section
 from diffshadow.graphs import StepGraphs, adam, requested, set_lr
-from diffshadow.grid import channels_last, lookup_grids
+from diffshadow.grid import lookup_grids, stack_channels_last
 from diffshadow.io import atomic_torch_save, resume
 from diffshadow.lights import BLEND_K, PoolLights, blend_weights, check_weighting, training_pool
 from diffshadow.metrics import psnr
@@ -177,9 +177,10 @@ class Targets:
             self.field = ShadowField.build(volume, tf, device=device)
         elif cfg.target in ("sweep", "march"):
             fine = refine(volume, cfg.grid_upsample)
-            self.grids = torch.stack([shadow_grid(fine, tf, w, method=cfg.target, device=device) for w in lights])
-            if cfg.shared_points and device.type == "cpu":  # a fit step's lookup 0.26x; not yet timed on a GPU
-                self.grids = channels_last(self.grids)
+            grids = [shadow_grid(fine, tf, w, method=cfg.target, device=device) for w in lights]
+            # channels last where a CPU reads them at shared points: a fit step's lookup 0.26x; not timed on a GPU
+            channels = cfg.shared_points and device.type == "cpu"
+            self.grids = stack_channels_last(grids) if channels else torch.stack(grids)
         else:
             raise ValueError(f"fit.target: expected 'sweep', 'march' or 'transmittance', got {cfg.target!r}")
 

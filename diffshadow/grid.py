@@ -141,7 +141,7 @@ def voxel_points(volume: Volume, device: torch.device | str = "cpu") -> torch.Te
 
 def lookup_grids(grids: torch.Tensor, points: torch.Tensor, extent: torch.Tensor) -> torch.Tensor:
     """Trilinear values of K grids (K, Z, Y, X) at (K, N, 3) box points → (K, N). Grids stored channels last
-    (`channels_last`) at points they share (one (N, 3) set expanded, stride 0) are read as K channels of one grid:
+    (`stack_channels_last`) at points they share (one (N, 3) set expanded, stride 0) are read as K channels of one:
     each point's corners and weights once, a corner's K values from adjacent memory (0.26x the time for 32 grids of
     81³ at 1,024 points on a CPU), each value the same, as grid_sample weighs every channel alike."""
     g = box_to_siren(points, extent)
@@ -153,9 +153,10 @@ def lookup_grids(grids: torch.Tensor, points: torch.Tensor, extent: torch.Tensor
     return out[:, 0, 0, 0]
 
 
-def channels_last(grids: torch.Tensor) -> torch.Tensor:
-    """(K, Z, Y, X) grids, the same shape and values, stored with K innermost (for `lookup_grids` at shared points)."""
-    return grids.permute(1, 2, 3, 0).contiguous().permute(3, 0, 1, 2)
+def stack_channels_last(grids: list[torch.Tensor]) -> torch.Tensor:
+    """K (Z, Y, X) grids as one (K, Z, Y, X) tensor stored with K innermost (for `lookup_grids` at shared points),
+    in one copy."""
+    return torch.stack(grids, dim=-1).permute(3, 0, 1, 2)
 
 
 def ray_span(o: torch.Tensor, d: torch.Tensor, extent: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:

@@ -124,12 +124,12 @@ class FoldedSiren:
     def __init__(self, layers: list[tuple[torch.Tensor, torch.Tensor]]):
         self.layers = [(w.detach(), b.detach()) for w, b in layers]
         w = self.layers[0][0]  # (width, 3) or (K, width, 3)
-        self.elements = CPU_PASS_ELEMENTS // w.shape[-2] if w.device.type == "cpu" else None
+        self.rows = CPU_PASS_ELEMENTS // w.shape[-2] if w.device.type == "cpu" else None  # a pass's rows, one SIREN
 
     def __call__(self, x: torch.Tensor) -> torch.Tensor:
-        if self.elements is None:
+        if self.rows is None:
             return forward_folded(self.layers, x)
-        rows = max(MIN_PASS_ROWS, self.elements // (x.shape[0] if x.ndim == 3 else 1))
+        rows = max(MIN_PASS_ROWS, self.rows // (x.shape[0] if x.ndim == 3 else 1))
         slices = passes(x.shape[-2], rows)
         if len(slices) == 1:
             return forward_folded(self.layers, x)
