@@ -120,19 +120,20 @@ def cache_table(stage1, truth: EvalTruth, light_sets: dict, *, blend_k: int, wei
             out["unseen_psnr"] = truth.median_psnr(unseen_weights, layout, siren, unseen)
         return out
 
-    def blend_time(decode_one) -> float:
-        """Seconds to make one new light's SIREN: the nearest search, the blend, the decoding."""
+    def blend_time(decode_one) -> dict:
+        """`answer_s`, the seconds to make one new light's SIREN (the nearest search, the blend, the decoding),
+        timed on the unseen lights; none where there are none (`lights.unseen: 0`)."""
         if not len(unseen):
-            return float("nan")
+            return {}
         t0 = time.perf_counter()
         for w in unseen:
             decode_one(*find(w[None]))
-        return (time.perf_counter() - t0) / len(unseen)
+        return {"answer_s": (time.perf_counter() - t0) / len(unseen)}
 
     def stored_rows() -> list[dict]:
         plain = blend_rows(weights, idx, mix).astype(np.float32) if len(unseen) else None
         return [{"cache": "stored SIRENs fp32", "kind": "stored", "bytes": int(weights.nbytes),
-                 **scored(weights, plain), "answer_s": blend_time(lambda i, m: blend_rows(weights, i, m))}]
+                 **scored(weights, plain), **blend_time(lambda i, m: blend_rows(weights, i, m))}]
 
     def codec_rows(codec) -> list[dict]:
         enc = codec.encode(weights, layout)
@@ -145,7 +146,7 @@ def cache_table(stage1, truth: EvalTruth, light_sets: dict, *, blend_k: int, wei
             blended = blend_rows(decoded, idx, mix).astype(np.float32) if len(unseen) else None
             answer = blend_time(lambda i, m: (codec.decode(enc, rows=i[0]) * m[0][:, None]).sum(0))
         return [{"cache": f"stored SIRENs {codec.name}", "kind": "codec", "bytes": enc.nbytes,
-                 **scored(decoded, blended), "answer_s": answer}]
+                 **scored(decoded, blended), **answer}]
 
     codecs = [codec_named(n) for n in ("fp16", "bf16", *(f"basis-{k}" for k in BASIS_K if k < len(train)))]
     work: list[tuple[str, Callable[[], list[dict]]]] = [("stored SIRENs fp32", stored_rows)]

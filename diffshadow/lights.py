@@ -110,7 +110,9 @@ def pick(n_total: int, n: int) -> list[int]:
 
 
 def nearest(train: np.ndarray, query: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray]:
-    """Indices (Q, k) of the k training directions closest in angle, and their angles (Q, k)."""
+    """Indices (Q, k) of the k training directions closest in angle, and their angles (Q, k); all of them, nearest
+    first, where there are fewer than k (a run of 3 training lights blends its pool lights' targets from 3)."""
+    k = min(k, len(train))
     # elementwise products summed x, y, z in order, not `@`: a BLAS product sums in an order the library picks
     # at run time (threads, code path), and a last-bit difference in an angle moved the blend baseline's PSNR
     # between two runs. (The same sums as `(q[:, None] * train[None]).sum(-1)`, without its (Q, N, 3) array.)

@@ -81,8 +81,8 @@ def generated_figure(stage1, generated, out_png: Path, out_csv: Path) -> None:
     from matplotlib.ticker import MaxNLocator
 
     ax[1].yaxis.set_major_locator(MaxNLocator(integer=True))  # counts of lights
-    unseen = np.median(generated.psnr[~seen]) if (~seen).any() else float("nan")
-    ax[1].set_title(f"unseen lights (median {unseen:.2f} dB)")
+    ax[1].set_title(f"unseen lights (median {np.median(generated.psnr[~seen]):.2f} dB)" if (~seen).any()
+                    else "no unseen lights (lights.unseen: 0)")
     fig.tight_layout()
     save_figure(out_png, fig)
     rows = ["set,light,x,y,z,stage1_psnr,generated_psnr"]

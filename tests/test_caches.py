@@ -75,6 +75,17 @@ def test_a_stopped_table_resumes_at_its_first_group_not_done(tmp_path):
     assert not ckpt.exists()
 
 
+def test_without_unseen_lights_no_row_has_an_unseen_figure():
+    """`lights.unseen: 0`: the rows state the seen lights' PSNR alone, no unseen PSNR and no answer time (the
+    blends' answers were once timed as NaN, which reached caches.json as the string "nan")."""
+    store, truth, sets = _inputs(unseen=0)
+    table = _table(store, truth, sets)
+    assert table["lights"] == {"train": 12, "unseen": 0}
+    for row in table["caches"]:
+        assert "unseen_psnr" not in row and "answer_s" not in row, row
+        assert np.isfinite(row["seen_psnr"]), row
+
+
 @pytest.mark.parametrize("change", ["weights", "weighting"])
 def test_a_checkpoint_of_other_inputs_is_not_resumed(tmp_path, change):
     store, truth, sets = _inputs()

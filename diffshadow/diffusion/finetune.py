@@ -135,9 +135,6 @@ def step_loss(model, std: Standardizer, data: FinetuneData, z_all: torch.Tensor,
     """The geometry stage's loss of the `local` lights (`train.batch_loss`: x0, pool prior, geometry) plus the
     rendering loss, summed over the lights and times `scale`; and the parts (x0, geometry, rendering) summed."""
     device = z_all.device
-    if not local:  # a rank with no light this step still joins the gradient all-reduce
-        zero = sum(p.sum() for p in model.parameters()) * 0.0
-        return zero, torch.zeros(3, dtype=torch.float64, device=device)
     tr = data.train
     b = data.bundle
     nv, p, n_light = len(b.count), cfg.pixels, len(local)
@@ -270,8 +267,13 @@ def train_step(model, base, opt: torch.optim.Optimizer, std: Standardizer, data:
     """One optimiser step on this rank's share of the global `batch`; returns the loss parts (summed). The loss's
     finiteness is recorded in `nonfinite` on the device, read once an epoch: the step reads nothing back to the
     host (tests/test_syncs.py)."""
-    loss, parts = step_loss(model, std, data, z_all, batch[rank::world], epoch, cfg, dcfg, schedule,
-                            scale=world / len(batch))
+    local = batch[rank::world]
+    # A rank with no light in this batch (a last batch shorter than the ranks) still runs the model forward and
+    # backward, where DDP all-reduces the gradients: on the batch's first light, weighed by zero
+    loss, parts = step_loss(model, std, data, z_all, local or batch[:1], epoch, cfg, dcfg, schedule,
+                            scale=world / len(batch) if local else 0.0)
+    if not local:
+        parts = torch.zeros_like(parts)
     nonfinite.record(loss.detach(), epoch)
     opt.zero_grad(set_to_none=True)
     loss.backward()

@@ -203,8 +203,13 @@ def sample_shadows(checkpoint: Path, truth_path: Path, lights_path: Path, out: P
                         psnr_visible=scores.get("visible", scores["box"]), layout=layout, siren=siren,
                         config=config, seen=seen, region=region.to_dict())
     write_store(out, store, made_by="sample_shadows")
-    print(f"wrote {out}: PSNR median seen {np.median(store.psnr[seen]):.2f} dB, "
-          f"unseen {np.median(store.psnr[~seen]) if (~seen).any() else float('nan'):.2f} dB")
+    print(f"wrote {out}: PSNR median {_seen_unseen(store.psnr, seen)}")
+
+
+def _seen_unseen(psnr: np.ndarray, seen: np.ndarray) -> str:
+    """"seen X dB, unseen Y dB" for a log line; "no unseen lights" where the run holds none out (`lights.unseen: 0`)."""
+    unseen = f"unseen {np.median(psnr[~seen]):.2f} dB" if (~seen).any() else "no unseen lights"
+    return f"seen {np.median(psnr[seen]):.2f} dB, {unseen}"
 
 
 def scored_on(device: torch.device | str) -> dict:
@@ -262,8 +267,9 @@ def _check_region(region, unseen: np.ndarray, source: Path) -> None:
     if outside:
         raise ValueError(f"{source}: unseen light {outside[0]} ({len(outside)} in all) lies outside the cache's region "
                          f"({region.describe()}); rerun the lights rule and everything after it")
-    print(f"light region of the cache: {region.describe()}; the unseen test lights lie up to {region.far_deg:.1f}° "
-          f"from the nearest training light", flush=True)
+    far = (f"the unseen test lights lie up to {region.far_deg:.1f}° from the nearest training light" if len(unseen)
+           else f"no unseen test lights: a light {region.far_deg:.1f}° (the spacing) past the nearest is flagged")
+    print(f"light region of the cache: {region.describe()}; {far}", flush=True)
 
 
 def choose_cache(weights_path: Path, truth_path: Path, volume_path: Path, lights_path: Path, out: Path, *,
@@ -339,8 +345,7 @@ def blend_shadows(weights_path: Path, truth_path: Path, lights_path: Path, out: 
                         seen=seen,
                         region=blend.region.to_dict())
     write_store(out, store, made_by="sample_shadows")
-    print(f"wrote {out}: PSNR median seen {np.median(store.psnr[seen]):.2f} dB, "
-          f"unseen {np.median(store.psnr[~seen]) if (~seen).any() else float('nan'):.2f} dB")
+    print(f"wrote {out}: PSNR median {_seen_unseen(store.psnr, seen)}")
 
 
 def evaluate_voxels(checkpoint: Path | None, weights_path: Path, generated_path: Path, truth_path: Path,
@@ -408,8 +413,10 @@ def caches(weights_path: Path, generated_path: Path, truth_path: Path, lights_pa
     atomic_write_text(out, json.dumps(finite_json(table), indent=1) + "\n")
     caches_figure(table, figure)
     for row in table["caches"]:
-        print(f"{row['cache']:28s} {row['bytes'] / 2**20:9.3f} MiB  seen {row['seen_psnr']:6.2f} dB  unseen "
-              f"{row.get('unseen_psnr', float('nan')):6.2f} dB  {row.get('answer_s', float('nan')) * 1e3:8.2f} ms")
+        unseen = f"{row['unseen_psnr']:6.2f} dB" if "unseen_psnr" in row else "     - dB"
+        answer = f"{row['answer_s'] * 1e3:8.2f} ms" if "answer_s" in row else "       - ms"
+        print(f"{row['cache']:28s} {row['bytes'] / 2**20:9.3f} MiB  seen {row['seen_psnr']:6.2f} dB  unseen {unseen}  "
+              f"{answer}")
     print(f"wrote {out} and {figure}")
 
 
