@@ -207,6 +207,14 @@ def voxel_metrics(state: dict | None, stage1, generated, truth: EvalTruth, light
     # time per INR alone; the report's DDIM curve plots these rows (one measurement, not two)
     ddim_steps = int(cfg["ddim_steps"])
     sel = pick(len(train), ddpm_lights)
+    if not sel:  # evaluate.ddpm_lights: 0, no curve: the run's own sampler is timed alone
+        log("[evaluate voxels] no sampler curve (evaluate.ddpm_lights: 0): DDIM's time per INR alone")
+        t_ddim = seconds_per_inr(model, std, train[0], method="ddim", steps=ddim_steps, repeats=3,
+                                 temperature=cfg["temperature"], device=device)
+        result["sampling"] = {"ddim_steps": ddim_steps, "lights": 0, "device": device_name(device),
+                              "threads": torch.get_num_threads()}
+        result["seconds_per_inr"] = {"ddim": t_ddim}
+        return _with_model(result, model, std, cfg, siren, stored, geometry_state or state)
     truth_sel = {k: v[sel] for k, v in truth_train.items()}
     t0 = time.perf_counter()
     steps = sorted({5, 10, 20, 50, ddim_steps})
@@ -242,10 +250,15 @@ def voxel_metrics(state: dict | None, stage1, generated, truth: EvalTruth, light
                           "ddim_psnr_median": ddim_row["psnr_median"],
                           "ddpm_psnr_median": curve[-1]["psnr_median"], "speedup": t_ddpm / t_ddim, "curve": curve}
     result["seconds_per_inr"] = {"ddim": t_ddim, "ddpm": t_ddpm}
+    return _with_model(result, model, std, cfg, siren, stored, geometry_state or state)
+
+
+def _with_model(result: dict, model, std, cfg: dict, siren, stored: dict, state: dict) -> dict:
+    """`result` with the diffusion model's size, how long its geometry stage trained, and the cache's bytes."""
     mc = model.cfg
     result["diffusion_model"] = {"preset": cfg["preset"], "layers": mc.n_layer, "width": mc.n_embd,
                                  "parameters": model.n_params(), "siren_width": siren.width}
-    growth = (geometry_state or state).get("growth")
+    growth = state.get("growth")
     if growth:  # how long the geometry stage trained and why it stopped (diffusion.target_gap)
         result["diffusion_model"].update(epochs=growth.get("epochs"), stopped=growth.get("reason"),
                                          kept_epoch=growth.get("kept_epoch", growth.get("epochs")),

@@ -163,12 +163,18 @@ def ddim_curve_figure(sampling: dict | None, out: Path) -> None:
     """Time per INR against median voxel PSNR for DDIM step counts, and 500-step DDPM: the rows that
     evaluate_voxels measured (`voxel_metrics.json` → sampling.curve; quality over `sampling.lights` training
     lights generated in one batch, time that of one INR alone, best of 3; DDPM once). None (`cache: blend`):
-    a figure that says there is no sampler."""
+    a figure that says there is no sampler; no `curve` (`evaluate.ddpm_lights: 0`): one that says there is none."""
     plt = pyplot()
     fig, ax = plt.subplots(figsize=(6, 4))
     if sampling is None:
         ax.text(0.5, 0.5, "cache: blend\nno diffusion model: a light's SIREN is the weight blend\n"
                 "of the stored SIRENs nearest to it (no sampler to time)", ha="center", va="center")
+        ax.set_axis_off()
+        save_figure(out, fig)
+        return
+    if "curve" not in sampling:
+        ax.text(0.5, 0.5, f"evaluate.ddpm_lights: 0\nno sampler curve (the run samples with DDIM, "
+                f"{sampling['ddim_steps']} steps)", ha="center", va="center")
         ax.set_axis_off()
         save_figure(out, fig)
         return

@@ -296,7 +296,7 @@ class RunResults:
         parts.append(_table("Shadow INRs: voxel PSNR against the marched ground truth (median over lights, dB)",
                             ["lights", "shadow INR", "box", "visible region", ""], rows,
                             f"{v['eval_points']:,} fresh points per light and region that no fit used."))
-        if "sampling" in v:  # not with cache: blend
+        if "curve" in v.get("sampling", {}):  # not with cache: blend, nor evaluate.ddpm_lights: 0
             s = v["sampling"]
             t = v["seconds_per_inr"]
             parts.append(_table(f"Sampling: DDIM against 500-step DDPM ({s['lights']} training lights)",

@@ -486,6 +486,44 @@ def test_the_sampler_curve_resumes_where_an_interrupted_evaluation_stopped(finis
     assert f"ignoring {ckpt}: it belongs to other inputs or settings" in said and not ckpt.exists()
 
 
+def test_evaluate_ddpm_lights_0_drops_the_sampler_curve_alone(finished, tmp_path):
+    """`evaluate.ddpm_lights: 0` (the schema's least) once failed evaluate_voxels in numpy ("need at least one array
+    to stack"). It leaves out the sampler curve and DDPM and keeps everything else: the same figures as with a
+    curve but for the samplers' rows, DDIM's time per INR still timed; the report's figure and front page say so."""
+    import json
+    import shutil
+
+    from diffshadow import artifacts
+    from diffshadow.evaluate import voxel_metrics
+    from diffshadow.report import ddim_curve_figure
+    from diffshadow.stages.stage2 import prepared_voxels
+    from diffshadow.summary import RunResults
+
+    res = finished / "results/nucleon"
+    state, geometry = (artifacts.load_checkpoint(res / name) for name in ("diffusion.ckpt", "diffusion_geometry.ckpt"))
+
+    def evaluate(ddpm_lights: int) -> dict:
+        return voxel_metrics(state, open_store(res / "weights.zarr"), open_store(res / "generated.zarr"),
+                             artifacts.read_eval_truth(res / "eval_truth.zarr"), read_lights(res / "lights.json"),
+                             blend_k=2, weighting="triangle", ddpm_lights=ddpm_lights, geometry_state=geometry,
+                             grid_voxels=prepared_voxels(res / "volume.zarr"), log=lambda m: None)
+
+    none, some = evaluate(0), evaluate(2)
+    assert set(none["sampling"]) == {"ddim_steps", "lights", "device", "threads"} and none["sampling"]["lights"] == 0
+    assert set(none["seconds_per_inr"]) == {"ddim"} and none["seconds_per_inr"]["ddim"] > 0
+    assert {k: v for k, v in none.items() if k not in ("sampling", "seconds_per_inr")} == \
+        {k: v for k, v in some.items() if k not in ("sampling", "seconds_per_inr")}
+    ddim_curve_figure(none["sampling"], tmp_path / "ddim_curve.png")
+    assert (tmp_path / "ddim_curve.png").stat().st_size > 0
+    for name in ("image_metrics.json", "bench.json", "finetune_metrics.json"):
+        shutil.copy(res / name, tmp_path / name)
+    (tmp_path / "voxel_metrics.json").write_text(json.dumps(none))
+    run = RunResults(tmp_path, "nucleon")
+    assert "Sampling: DDIM against" not in run.tables()
+    timed = f"{none['seconds_per_inr']['ddim']:.3f} s on cpu"
+    assert dict(run.headline())["time per shadow INR (DDIM)"].startswith(timed)
+
+
 def test_the_evaluation_runs_on_the_cpu_unless_evaluate_device_is_run(finished):
     """evaluate.device: cpu (the default) keeps one truth, one sampler curve and one score of each SIREN on every
     machine: eval_truth, evaluate_voxels and caches get --device cpu, and sample_shadows (on the run's device)
