@@ -145,6 +145,10 @@ def scene_config(run: dict, scene: str, *, scenes_dir: str | Path) -> dict:
     if lights["count"] > lights["sphere"]:  # found at plan time, not when the `lights` job runs
         raise ConfigError(f"{path} over the run's config: lights.count {lights['count']} is more than the "
                           f"{lights['sphere']} directions of lights.sphere; raise lights.sphere or lower lights.count")
+    ev = merged["evaluate"]
+    if ev["blend_weights"] == "inverse-angle" and ev["blend_k"] > lights["count"]:
+        raise ConfigError(f"{path} over the run's config: evaluate.blend_k {ev['blend_k']} is more than the "
+                          f"{lights['count']} training lights (lights.count) a blend can take; lower evaluate.blend_k")
     return merged
 
 

@@ -57,7 +57,7 @@ class BlendSampler:
     config). The same interface as the diffusion model's `ShadowSampler`: call it with a direction."""
 
     def __init__(self, store: WeightStore, k: int, weighting: str):
-        if not 1 <= k <= len(store.lights):
+        if weighting == "inverse-angle" and not 1 <= k <= len(store.lights):  # a triangle's corners take no k
             raise ValueError(f"blend k: expected 1 to {len(store.lights)} (the stored SIRENs), got {k}")
         self.store, self.k, self.weighting = store, k, weighting
         self.layout, self.siren = store.layout, store.siren

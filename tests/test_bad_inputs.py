@@ -127,6 +127,19 @@ def test_more_lights_than_the_sphere_is_refused_at_plan_time(tmp_path):
         scene_config(run, "nucleon", scenes_dir=tmp_path)
 
 
+def test_an_inverse_angle_blend_of_more_lights_than_trained_is_refused_at_plan_time(tmp_path):
+    """evaluate.blend_k past lights.count: refused before any job with inverse-angle weights; the triangle blend
+    (the default) takes no k, so 3 lights and blend_k 4 run (tests/stress/test_edges.py runs them)."""
+    from diffshadow.config import ConfigError, load_run, merge, scene_config
+
+    (tmp_path / "nucleon.yaml").write_text(json.dumps({"volume": "bundled:nucleon", "transfer_function": TF}))
+    run = merge(load_run(), {"lights": {**load_run()["lights"], "count": 3, "unseen": 0}})
+    assert scene_config(run, "nucleon", scenes_dir=tmp_path)["evaluate"]["blend_k"] == 4
+    run = merge(run, {"evaluate": {**run["evaluate"], "blend_weights": "inverse-angle"}})
+    with pytest.raises(ConfigError, match="evaluate.blend_k 4 is more than the 3 training lights"):
+        scene_config(run, "nucleon", scenes_dir=tmp_path)
+
+
 def test_an_invisible_scene_is_refused_at_plan_time(tmp_path):
     from diffshadow.config import ConfigError, load_run, scene_config
 

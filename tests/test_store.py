@@ -225,7 +225,8 @@ def test_checksums_are_written_in_name_order(tmp_path):
 
 
 def test_a_blend_takes_between_one_and_every_stored_siren(tmp_path):
-    """k = 1 gives the nearest stored SIREN itself; k outside 1..N is named in one line (render --blend-k)."""
+    """k = 1 gives the nearest stored SIREN itself; k outside 1..N is named in one line (render --blend-k), where
+    the blend takes k (inverse-angle weights)."""
     from diffshadow.store import BlendSampler
 
     store = open_store(stored(tmp_path))
@@ -233,6 +234,8 @@ def test_a_blend_takes_between_one_and_every_stored_siren(tmp_path):
     for k in (0, 5):
         with pytest.raises(ValueError, match=rf"^blend k: expected 1 to 4 \(the stored SIRENs\), got {k}$"):
             BlendSampler(store, k, "inverse-angle")
+        # the triangle's corners take no k: a run's evaluate.blend_k past its few lights is not an error there
+        assert np.array_equal(BlendSampler(store, k, "triangle")(LIGHTS[2]), store.weights[2])
 
 
 def test_a_loaded_checkpoint_outlives_the_next_one_written_over_it(tmp_path):
