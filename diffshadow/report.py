@@ -244,6 +244,11 @@ def caches_figure(table: dict, out: Path) -> None:
                 label = f"mix {row['share']:g}, {label.rsplit(' ', 1)[-1]}"
             points.append((row["bytes"] / 2**20, row[key]))
             labels.append(label)
+        if not points:  # lights.unseen: 0
+            ax.text(0.5, 0.5, "no unseen lights (lights.unseen: 0)", ha="center", va="center", transform=ax.transAxes)
+            ax.set_axis_off()
+            ax.set_title(title, fontsize=10)
+            continue
         ax.set_xscale("log")
         lo, hi = ax.get_xlim()
         ax.set_xlim(lo / 3, hi * 4)  # room for the labels on both sides, and above the best caches
