@@ -75,14 +75,17 @@ def generated_figure(stage1, generated, out_png: Path, out_csv: Path) -> None:
     ax[0].set_xlabel("stage-1 SIREN PSNR (dB)")
     ax[0].set_ylabel("generated SIREN PSNR (dB)")
     ax[0].set_title(f"seen lights (median {np.median(generated.psnr[seen]):.2f} dB)")
-    ax[1].hist(generated.psnr[~seen], bins=20)
-    ax[1].set_xlabel("generated SIREN PSNR (dB)")
-    ax[1].set_ylabel("unseen lights")
-    from matplotlib.ticker import MaxNLocator
+    if (~seen).any():
+        from matplotlib.ticker import MaxNLocator
 
-    ax[1].yaxis.set_major_locator(MaxNLocator(integer=True))  # counts of lights
-    ax[1].set_title(f"unseen lights (median {np.median(generated.psnr[~seen]):.2f} dB)" if (~seen).any()
-                    else "no unseen lights (lights.unseen: 0)")
+        ax[1].hist(generated.psnr[~seen], bins=20)
+        ax[1].set_xlabel("generated SIREN PSNR (dB)")
+        ax[1].set_ylabel("unseen lights")
+        ax[1].yaxis.set_major_locator(MaxNLocator(integer=True))  # counts of lights
+        ax[1].set_title(f"unseen lights (median {np.median(generated.psnr[~seen]):.2f} dB)")
+    else:
+        ax[1].text(0.5, 0.5, "no unseen lights (lights.unseen: 0)", ha="center", va="center")
+        ax[1].set_axis_off()
     fig.tight_layout()
     save_figure(out_png, fig)
     rows = ["set,light,x,y,z,stage1_psnr,generated_psnr"]
