@@ -539,6 +539,23 @@ _NO_TORCH = {"lights", "prepare-volume", "collect-weights", "stage-costs", "summ
              "install-profiles", "ddp-processes", "report-figures"}
 
 
+def _unchecked(e: BaseException) -> str:
+    """"" where `e` was raised in this package's own code (an input checked and named there); else where in this
+    package the library that raised it was called, for a report: numpy's "kth(=3) out of bounds (3)" once reached
+    the user as if it were their error, with nothing to say where it came from."""
+    package = Path(__file__).resolve().parent
+    ours, tb = None, e.__traceback__
+    while tb is not None:
+        if Path(tb.tb_frame.f_code.co_filename).resolve().is_relative_to(package):
+            ours = tb
+        last, tb = tb, tb.tb_next
+    if ours is None or ours is last:
+        return ""
+    where = Path(ours.tb_frame.f_code.co_filename).resolve().relative_to(package.parent)
+    return (f" (raised inside {last.tb_frame.f_globals.get('__name__', '?').split('.')[0]}, called at "
+            f"{where.as_posix()}:{ours.tb_lineno}: an input diffshadow does not check yet; please report it)")
+
+
 def main(argv: list[str] | None = None) -> None:
     from diffshadow import phases
 
@@ -562,7 +579,7 @@ def main(argv: list[str] | None = None) -> None:
         phases.mark_imports_done()
         args.func(args)
     except ValueError as e:  # the library's input errors: one line, no traceback
-        print(f"diffshadow {args.command}: error: {e}", file=sys.stderr)
+        print(f"diffshadow {args.command}: error: {e}{_unchecked(e)}", file=sys.stderr)
         raise SystemExit(2) from None
     except OSError as e:  # a path given that cannot be read or written: the path and why, in one line
         if e.filename is None:

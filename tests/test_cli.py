@@ -49,6 +49,28 @@ def test_bad_input_is_one_line_without_traceback(tmp_path, capsys):
     assert not (tmp_path / "v.zarr").exists()
 
 
+def test_a_libraries_error_says_where_diffshadow_called_it(tmp_path, capsys, monkeypatch):
+    """A ValueError from numpy or torch, not from a check of diffshadow's, is still one line, and says so: where in
+    the package the library was called, to report (numpy's bare "kth(=3) out of bounds (3)" once looked like the
+    user's mistake). A check of diffshadow's own says nothing more."""
+    from diffshadow.stages import stage1
+
+    monkeypatch.setattr(stage1, "make_light_sets", lambda *a, **k: np.argpartition(np.zeros((2, 3)), 3, axis=1))
+    argv = ["lights", "--sphere", "40", "--count", "4", "--unseen", "2", "--center", "0", "0", "1",
+            "--out", str(tmp_path / "l.json")]
+    with pytest.raises(SystemExit) as exit_info:
+        main(argv)
+    err = capsys.readouterr().err
+    assert exit_info.value.code == 2 and err.strip().count("\n") == 0, err
+    assert err.startswith("diffshadow lights: error: kth(=3) out of bounds (3) (raised inside numpy, called at "
+                          "diffshadow/stages/stage1.py:"), err
+    assert "please report it" in err
+    monkeypatch.undo()
+    with pytest.raises(SystemExit):
+        main([*argv[:-6], "--center", "0", "0", "0", *argv[-2:]])
+    assert capsys.readouterr().err == "diffshadow lights: error: center: must be non-zero, got [0.0, 0.0, 0.0]\n"
+
+
 def test_a_config_json_without_the_stage_section_is_one_line(tmp_path, capsys):
     # the diffusion section itself instead of {"diffusion": {...}}: named, not a KeyError from deep inside
     with pytest.raises(SystemExit) as exit_info:
