@@ -44,9 +44,13 @@ def as_direction(light_dir, *, name: str = "light_dir") -> np.ndarray:
         raise LightError(f"{name}: expected 3 numbers (x, y, z), got {w.size}")
     if not np.all(np.isfinite(w)):
         raise LightError(f"{name}: must be finite, got {w.tolist()}")
-    norm = float(np.linalg.norm(w))
+    with np.errstate(over="ignore"):
+        norm = float(np.linalg.norm(w))
     if norm < 1e-12:
         raise LightError(f"{name}: must be non-zero, got {w.tolist()}")
+    if not np.isfinite(norm):  # components near float64's largest, whose squares overflow: scaled down first
+        w = w / np.abs(w).max()
+        norm = float(np.linalg.norm(w))
     w = w / norm
     w = np.where(np.abs(w) < TINY_COMPONENT, 0.0, w)
     return w / np.linalg.norm(w)

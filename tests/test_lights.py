@@ -1,4 +1,5 @@
 import json
+import warnings
 
 import numpy as np
 import pytest
@@ -55,6 +56,20 @@ def test_unseen_in_region_and_disjoint():
     unseen = unseen_directions(train, CAP_CENTER, 50, seed=3)
     assert_in_cap_apart(unseen, train)
     np.testing.assert_array_equal(unseen, unseen_directions(train, CAP_CENTER, 50, seed=3))
+
+
+def test_a_direction_is_its_normalised_self_at_any_finite_scale():
+    """Components near float64's largest (whose squares overflow the norm) give the direction of (1, 1, 1) or
+    (1, 0, 0), without a warning; the usual scale is untouched (the same bytes as plain division by the norm)."""
+    from diffshadow.lights import as_direction
+
+    ones = np.ones(3) / np.linalg.norm(np.ones(3))
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        for scale in (1e308, 1.7e308, 1e150, 1.0, 1e-3):
+            np.testing.assert_allclose(as_direction([scale] * 3), ones, rtol=1e-15)
+    assert np.array_equal(as_direction([1e308, 0, 0]), [1.0, 0.0, 0.0])
+    assert np.array_equal(as_direction([0.3, -0.5, 0.8]), np.array([0.3, -0.5, 0.8]) / np.linalg.norm([0.3, -0.5, 0.8]))
 
 
 def test_bad_center_and_count():
