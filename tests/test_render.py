@@ -331,6 +331,14 @@ def test_render_rejects_bad_input(blob):
         render(cam, scalar, TF, blob.extent, vox, step=0.0)
     with pytest.raises(RenderError, match="step: 1e-09 voxels is finer than the finest step marched"):
         render(cam, scalar, TF, blob.extent, vox, step=1e-9)
+    # a camera so far from its target that float32 rays cannot resolve a step (a 1e-6° field of view, framed,
+    # once gave an empty image silently); 0.1° still frames the volume from close enough
+    sphere = ((0.5, 0.5, 0.5), 0.5)
+    for far in (lambda: Camera.framed(sphere, fov=1e-6),
+                lambda: Camera.orbit(blob.extent, azimuth=0, elevation=0, distance=1e308)):
+        with pytest.raises(RenderError, match=r"^camera: the eye is (\d\.\d+e\+07|over 1e308) box lengths from its"):
+            far()
+    assert Camera.framed(sphere, fov=0.1).fov == 0.1
 
 
 def test_a_frame_is_given_up_when_its_interrupt_says_so_and_is_the_same_image_when_it_does_not(blob):
