@@ -331,6 +331,10 @@ def test_render_rejects_bad_input(blob):
         render(cam, scalar, TF, blob.extent, vox, step=0.0)
     with pytest.raises(RenderError, match="step: 1e-09 voxels is finer than the finest step marched"):
         render(cam, scalar, TF, blob.extent, vox, step=1e-9)
+    diagonal = float(np.linalg.norm(blob.extent)) / vox  # voxels
+    with pytest.raises(RenderError, match=r"longer than the volume's diagonal \(\d+ voxels\): a ray would take one"):
+        render(cam, scalar, TF, blob.extent, vox, step=diagonal * 1.01)
+    render(cam, scalar, TF, blob.extent, vox, step=diagonal * 0.99)  # one sample a ray, at most: still allowed
     # a camera so far from its target that float32 rays cannot resolve a step (a 1e-6° field of view, framed,
     # once gave an empty image silently); 0.1° still frames the volume from close enough
     sphere = ((0.5, 0.5, 0.5), 0.5)

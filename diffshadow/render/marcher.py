@@ -329,6 +329,9 @@ def render(
     """
     shading = shading or Shading()
     check_step(step, RenderError)
+    if step * voxel > (diagonal := float(np.linalg.norm(np.asarray(extent, dtype=np.float64)))):
+        raise RenderError(f"step: {step:g} voxels is longer than the volume's diagonal ({diagonal / voxel:.0f} "
+                          f"voxels): a ray would take one sample at most")
     if batch is not None and batch < (samples_per_iter or SAMPLES_PER_ITER):
         raise RenderError(f"batch: expected at least samples_per_iter ({samples_per_iter or SAMPLES_PER_ITER}), "
                           f"got {batch}")
