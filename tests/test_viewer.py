@@ -22,7 +22,7 @@ from diffshadow.siren import SirenConfig, WeightLayout, init_siren
 from diffshadow.store import WeightStore
 from diffshadow.transfer import TransferFunction
 from diffshadow.viewer import ViewerError, ViewerScene, azimuth_elevation, direction
-from diffshadow.viewer.app import STEP_UP_S, Session, camera_of, port_free
+from diffshadow.viewer.app import STEP_UP_S, Session, camera_of, port_problem
 from diffshadow.viewer.scene import GENERATED_KEEP
 from diffshadow.volume import Volume
 
@@ -312,12 +312,25 @@ def test_port_in_use_is_one_line(tmp_path):
         s.bind(("127.0.0.1", 0))
         s.listen()
         port = s.getsockname()[1]
-        assert not port_free("127.0.0.1", port)
+        assert port_problem("127.0.0.1", port).startswith(f"port {port} on 127.0.0.1 is in use")
         proc = subprocess.run([sys.executable, "-m", "diffshadow.cli", "view", "--scene-config", "no.yaml",
                                "--port", str(port)], capture_output=True, text=True, timeout=120)
     assert proc.returncode != 0
     lines = proc.stderr.strip().splitlines()
     assert len(lines) == 1 and f"port {port} on 127.0.0.1 is in use" in lines[0], proc.stderr
+
+
+@pytest.mark.parametrize("args, said", [(["--host", "999.1.1.1"], "--host 999.1.1.1: cannot listen there"),
+                                        (["--size", "-1"], "--size -1: expected a still frame's height in pixels"),
+                                        (["--size", "100000"], "--size 100000: expected")])
+def test_a_host_it_cannot_listen_on_and_a_size_out_of_range_are_one_line(args, said):
+    """Said before the scene loads; the host once read "port 8080 on 999.1.1.1 is in use", and a size of -1 or
+    100000 started the viewer."""
+    proc = subprocess.run([sys.executable, "-m", "diffshadow.cli", "view", "--scene-config", "no.yaml", *args],
+                          capture_output=True, text=True, timeout=120)
+    lines = proc.stderr.strip().splitlines()
+    assert proc.returncode == 2 and len(lines) == 1 and said in lines[0], proc.stderr
+    assert port_problem("127.0.0.1", 0) is None
 
 
 def test_view_needs_one_scene(tmp_path):

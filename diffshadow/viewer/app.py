@@ -9,6 +9,7 @@ sweep's grid. Outside the cache's light region the cache's modes draw the exact 
 from __future__ import annotations
 
 import contextlib
+import errno
 import io
 import json
 import logging
@@ -39,16 +40,20 @@ STEP_UP = 4  # ... a quarter: 1/16 of the pixels, so the still frame costs 6 % m
 # on the same 2 cores, dragging the light 3.0 fps (a SIREN generated in 0.19 s) against 6.6 fps (0.08 s)
 # (docs/performance.md, "The viewer"). Still frames take every thread.
 PREVIEW_THREADS = 1
+MAX_SIZE = 2048  # the still frame's height at most (--size and the panel's slider)
 FREE = "(azimuth / elevation)"
 
 
-def port_free(host: str, port: int) -> bool:
-    with socket.socket(socket.AF_INET6 if ":" in host else socket.AF_INET, socket.SOCK_STREAM) as s:
-        try:
+def port_problem(host: str, port: int) -> str | None:
+    """Why the viewer cannot listen on `host`:`port`, in words for `--port` or `--host`; None if it can."""
+    try:
+        with socket.socket(socket.AF_INET6 if ":" in host else socket.AF_INET, socket.SOCK_STREAM) as s:
             s.bind((host, port))
-        except OSError:
-            return False
-    return True
+    except OSError as e:
+        if e.errno == errno.EADDRINUSE:
+            return f"port {port} on {host} is in use (another viewer?); choose another with --port"
+        return f"--host {host}: cannot listen there ({e.strerror or e}); 127.0.0.1 serves this machine, 0.0.0.0 all"
+    return None
 
 
 def camera_of(cam, height: int) -> Camera:
@@ -139,7 +144,7 @@ class Session:
                           if viewer.region is not None else None)
         with gui.add_folder("image"):
             # 0: the canvas's own height (sharp at any window size); else a fixed height at the canvas's aspect
-            self.size = gui.add_slider("height (px, 0: canvas)", 0, 2048, 16, int(size))
+            self.size = gui.add_slider("height (px, 0: canvas)", 0, MAX_SIZE, 16, int(size))
             self.step = gui.add_slider("step (voxels)", 0.125, 2.0, 0.125, float(step))
         self.status = gui.add_markdown("starting")
         self.command = gui.add_markdown("")
@@ -378,8 +383,10 @@ def serve(*, results: Path | None, scene_config: Path | None, device: torch.devi
     """Serve the viewer until Ctrl-C (or `stop` is set)."""
     if not 1 <= port <= 65535:
         raise ViewerError(f"--port {port}: expected a TCP port, 1 to 65535")
-    if not port_free(host, port):
-        raise ViewerError(f"port {port} on {host} is in use (another viewer?); choose another with --port")
+    if not 0 <= size <= MAX_SIZE:
+        raise ViewerError(f"--size {size}: expected a still frame's height in pixels, 0 (the canvas's) to {MAX_SIZE}")
+    if (problem := port_problem(host, port)) is not None:
+        raise ViewerError(problem)
     torch_thread = TorchThread()
     try:
         load, source = ((ViewerScene.from_results, results) if results is not None
