@@ -97,6 +97,11 @@ def test_bench_out_takes_a_folder_and_refuses_an_unwritable_name_before_timing(t
     with pytest.raises(SystemExit):
         main(["bench", "siren", "--out", str(tmp_path / "notes")])
     assert "expected a folder for the bench's files, found a file" in capsys.readouterr().err
+    # a missing volume: named before the analytic case is timed (it was named after)
+    with pytest.raises(SystemExit):
+        main(["bench", "shadow", "--volumes", str(tmp_path / "none.zarr"), "--out", str(tmp_path / "shadow")])
+    said = capsys.readouterr()
+    assert f"{tmp_path / 'none.zarr'}: no such file" in said.err and "[bench shadow]" not in said.out
     # sizes that would time nothing: named, not a NaN per step or a ZeroDivisionError
     for argv, message in ((["stages", "--max-steps", "0"], "--max-steps: expected at least 1 timed step, got 0"),
                           (["siren", "--k", "0"], "--k: expected positive integers, got 0"),

@@ -58,11 +58,10 @@ def bench_shadow(
     """Time and error of every method and step on each volume; writes JSON and a log-log plot. A scene's
     prepared volume (`results/<scene>/volume.zarr`) is timed with its own transfer function."""
     default_tf = TransferFunction.from_config(tf_config or BENCH_TF)
-    tf = default_tf
-    results: dict = {"light": list(light), "tf": tf.to_config(), "reference_step": REFERENCE_STEP,
+    loaded = [_load(Path(path), default_tf) for path in volumes]  # a missing volume is said before any timing
+    results: dict = {"light": list(light), "tf": default_tf.to_config(), "reference_step": REFERENCE_STEP,
                      "torch_threads": torch.get_num_threads(), "analytic_blob": bench_analytic(), "volumes": {}}
-    for path in volumes:
-        vol, tf = _load(Path(path), default_tf)
+    for vol, tf in loaded:
         print(f"[bench shadow] {vol.name} {vol.dims}: reference march at {REFERENCE_STEP} voxel ...", flush=True)
         ref, t_ref = timed(lambda v=vol, f=tf: shadow_grid(v, f, light, method="march", step=REFERENCE_STEP,
                                                       device=device))
