@@ -282,6 +282,25 @@ def test_the_cache_region_travels_with_the_stores_and_checkpoints_and_render_kee
     assert far.returncode == 0 and far.stdout.startswith("warning: the light is inside the cache's region but")
 
 
+def test_a_stored_rows_shadow_is_drawn_only_under_its_own_light(finished, tmp_path, capsys):
+    """`render --weights S --light-index N --mode inr` draws row N's shadow SIREN: with --light its own direction
+    (as the viewer's panel commands give it) it renders, with another it is refused in one line (it rendered row N's
+    shadow as if it were that light's); --mode gt takes --light whatever the row."""
+    from diffshadow.cli import main
+
+    res = finished / "results/nucleon"
+    own = open_store(res / "generated.zarr").lights[1]
+    base = ["render", "--volume", str(res / "volume.zarr"), "--data-inr", str(res / "data_inr.pt"), "--weights",
+            str(res / "generated.zarr"), "--light-index", "1", "--size", "16"]
+    main([*base, "--mode", "inr", "--light", *map(repr, own.tolist()), "--out", str(tmp_path / "own.png")])
+    main([*base, "--mode", "gt", "--light", "0", "0.3", "1", "--out", str(tmp_path / "gt.png")])
+    with pytest.raises(SystemExit) as exit_info:
+        main([*base, "--mode", "inr", "--light", "0", "0.3", "1", "--out", str(tmp_path / "other.png")])
+    err = capsys.readouterr().err
+    assert exit_info.value.code == 2 and err.count("\n") == 1 and "is not light 1 of" in err, err
+    assert (tmp_path / "own.png").exists() and (tmp_path / "gt.png").exists() and not (tmp_path / "other.png").exists()
+
+
 def test_render_outputs(finished):
     import json
     res = finished / "results/nucleon"

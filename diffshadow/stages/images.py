@@ -4,6 +4,7 @@ against `gt`, single renders, the renderer benchmark, and the report's figures."
 from __future__ import annotations
 
 import json
+import math
 from pathlib import Path
 
 import torch
@@ -14,7 +15,7 @@ from diffshadow.diffusion.finetune import FinetuneConfig
 from diffshadow.evaluate import image_evaluation
 from diffshadow.evaluate import naive_images as render_naive
 from diffshadow.io import atomic_write_text, finite_json
-from diffshadow.lights import read_lights
+from diffshadow.lights import as_direction, read_lights
 from diffshadow.metrics import lpips_model, ms_ssim_status
 from diffshadow.render import Camera, RenderScene, default_views, fibonacci_views, write_png
 from diffshadow.render.bundle import build_bundle
@@ -95,6 +96,12 @@ def render_image(scene: RenderScene, out: Path, *, mode: str, camera: Camera, li
             raise ValueError(f"--light-index: {weights_path} holds lights 0..{len(store.weights) - 1}, "
                              f"got {light_index}")
         siren = (store.weights[light_index], store.layout, store.siren.blocks)
+        own = as_direction(store.lights[light_index])
+        if mode == "inr" and light is not None and float(as_direction(light) @ own) < math.cos(1e-6):
+            # the row's SIREN is its own light's shadow, whatever --light says: the image would be labelled wrongly
+            raise ValueError(f"--light {as_direction(light).round(4).tolist()} is not light {light_index} of "
+                             f"{weights_path} ({own.round(4).tolist()}), whose shadow SIREN --mode inr draws; drop "
+                             f"--light, or give --diffusion or --blend to make a SIREN for that direction")
         light = light or store.lights[light_index].tolist()
     if mode == "inr" and siren is None:
         raise ValueError("--mode inr needs --weights (a weight store) and --light-index, or --diffusion or --blend "
