@@ -9,6 +9,7 @@ quantity, not the resident set (which glibc's kept blocks make wander by tens of
 from __future__ import annotations
 
 import json
+import math
 import statistics
 from pathlib import Path
 from typing import TYPE_CHECKING
@@ -133,9 +134,10 @@ def bench_render(scene: RenderScene, siren, light, *, sizes=(64, 128), step: flo
         "samples_skip": images[True].counters.primary_samples,
         "samples_noskip": images[False].counters.primary_samples,
     }
+    same = out["macro_cells"]["psnr_skip_vs_noskip"]
     log(f"[bench render] macro-cells ({out['macro_cells']['empty_fraction']:.0%} empty): "
-        f"{out['macro_cells']['speedup']:.2f}x faster, images equal to "
-        f"{out['macro_cells']['psnr_skip_vs_noskip']:.1f} dB")
+        f"{out['macro_cells']['speedup']:.2f}x faster, images "
+        + (f"equal to {same:.1f} dB" if math.isfinite(same) else "identical"))
 
     # the renderer's time-versus-error curve: inr mode against itself at a tiny step
     curve_size = curve_size or min(64, max(sizes))
