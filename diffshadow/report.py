@@ -64,6 +64,15 @@ def siren_psnr_figure(stage1, out: Path) -> None:
     save_figure(out, fig)
 
 
+NO_UNSEEN = "no unseen lights (lights.unseen: 0)"
+
+
+def _say(ax, text: str) -> None:
+    """A panel with nothing to plot: `text` in its middle, no axes."""
+    ax.text(0.5, 0.5, text, ha="center", va="center", transform=ax.transAxes)
+    ax.set_axis_off()
+
+
 def generated_figure(stage1, generated, out_png: Path, out_csv: Path) -> None:
     """Generated vs stage-1 PSNR on seen lights; generated PSNR on unseen lights (plot and table)."""
     plt = pyplot()
@@ -84,8 +93,7 @@ def generated_figure(stage1, generated, out_png: Path, out_csv: Path) -> None:
         ax[1].yaxis.set_major_locator(MaxNLocator(integer=True))  # counts of lights
         ax[1].set_title(f"unseen lights (median {np.median(generated.psnr[~seen]):.2f} dB)")
     else:
-        ax[1].text(0.5, 0.5, "no unseen lights (lights.unseen: 0)", ha="center", va="center")
-        ax[1].set_axis_off()
+        _say(ax[1], NO_UNSEEN)
     fig.tight_layout()
     save_figure(out_png, fig)
     rows = ["set,light,x,y,z,stage1_psnr,generated_psnr"]
@@ -169,16 +177,10 @@ def ddim_curve_figure(sampling: dict | None, out: Path) -> None:
     a figure that says there is no sampler; no `curve` (`evaluate.ddpm_lights: 0`): one that says there is none."""
     plt = pyplot()
     fig, ax = plt.subplots(figsize=(6, 4))
-    if sampling is None:
-        ax.text(0.5, 0.5, "cache: blend\nno diffusion model: a light's SIREN is the weight blend\n"
-                "of the stored SIRENs nearest to it (no sampler to time)", ha="center", va="center")
-        ax.set_axis_off()
-        save_figure(out, fig)
-        return
-    if "curve" not in sampling:
-        ax.text(0.5, 0.5, f"evaluate.ddpm_lights: 0\nno sampler curve (the run samples with DDIM, "
-                f"{sampling['ddim_steps']} steps)", ha="center", va="center")
-        ax.set_axis_off()
+    if sampling is None or "curve" not in sampling:
+        _say(ax, "cache: blend\nno diffusion model: a light's SIREN is the weight blend\nof the stored SIRENs "
+             "nearest to it (no sampler to time)" if sampling is None else
+             f"evaluate.ddpm_lights: 0\nno sampler curve (the run samples with DDIM, {sampling['ddim_steps']} steps)")
         save_figure(out, fig)
         return
     rows = sampling["curve"]
@@ -247,9 +249,8 @@ def caches_figure(table: dict, out: Path) -> None:
                 label = f"mix {row['share']:g}, {label.rsplit(' ', 1)[-1]}"
             points.append((row["bytes"] / 2**20, row[key]))
             labels.append(label)
-        if not points:  # lights.unseen: 0
-            ax.text(0.5, 0.5, "no unseen lights (lights.unseen: 0)", ha="center", va="center", transform=ax.transAxes)
-            ax.set_axis_off()
+        if not points:
+            _say(ax, NO_UNSEEN)
             ax.set_title(title, fontsize=10)
             continue
         ax.set_xscale("log")

@@ -96,9 +96,9 @@ def render_image(scene: RenderScene, out: Path, *, mode: str, camera: Camera, li
             raise ValueError(f"--light-index: {weights_path} holds lights 0..{len(store.weights) - 1}, "
                              f"got {light_index}")
         siren = (store.weights[light_index], store.layout, store.siren.blocks)
-        own = as_direction(store.lights[light_index])
-        if mode == "inr" and light is not None and float(as_direction(light) @ own) < math.cos(1e-6):
-            # the row's SIREN is its own light's shadow, whatever --light says: the image would be labelled wrongly
+        # the row's SIREN is its own light's shadow, whatever --light says: the image would be labelled wrongly
+        if mode == "inr" and light is not None and float(
+                as_direction(light) @ (own := as_direction(store.lights[light_index]))) < math.cos(1e-6):
             raise ValueError(f"--light {as_direction(light).round(4).tolist()} is not light {light_index} of "
                              f"{weights_path} ({own.round(4).tolist()}), whose shadow SIREN --mode inr draws; drop "
                              f"--light, or give --diffusion or --blend to make a SIREN for that direction")
