@@ -9,7 +9,7 @@
 | `eval_truth.zarr` | eval_truth | `write_eval_truth` / `read_eval_truth`: evaluation points, exact shadows |
 | `diffusion_geometry.ckpt`, `diffusion.ckpt` | train_diffusion, finetune_render | `load_checkpoint` |
 | `targets.zarr` | render_targets | `write_targets` / `read_targets` |
-| `data_inr.pt` | train_data_inr | `save_data_inr` / `load_data_inr`; with a volume: `load_render_scene` |
+| `data_inr.pt` | train_data_inr | `save_data_inr` / `load_data_inr`; with a volume: `data_inr_of` |
 | `naive_images.zarr` | naive_images | `write_naive_images` / `read_naive_images`: the naive baseline's images |
 """
 
@@ -35,7 +35,7 @@ from diffshadow.siren import Siren, SirenConfig, WeightLayout
 from diffshadow.store import WeightStore, open_store
 from diffshadow.transfer import TransferFunction
 from diffshadow.truth import EvalTruth
-from diffshadow.volume import is_prepared, load_prepared, load_volume, scene_volume
+from diffshadow.volume import Volume, is_prepared, load_prepared, load_volume, scene_volume
 
 
 class ArtifactError(ValueError):
@@ -142,7 +142,7 @@ def read_training_data(weights_path: str | Path, points_path: str | Path) -> tup
     data = TrainingData(weights=torch.as_tensor(store.weights), lights=torch.as_tensor(store.lights),
                         points=torch.as_tensor(points), values=torch.as_tensor(values),
                         extent=torch.as_tensor(extent, dtype=torch.float32), layout=store.layout, siren=store.siren,
-                        pool=pool, check=check, region=store.light_region().to_dict())
+                        pool=pool, check=check, region=store.light_region().to_dict(), extinction=store.extinction)
     return data, store
 
 
@@ -264,7 +264,7 @@ def save_data_inr(path, inr: DataInr) -> None:
     state = {"weights": inr.model.flat().detach().cpu(), "layout": inr.model.layout.to_config(),
              "siren": inr.model.cfg.to_config(), "extent": np.asarray(inr.extent).tolist(), "psnr": inr.psnr,
              "max_error": inr.max_error, "config": inr.config,
-             "cell_lo": torch.as_tensor(inr.cell_lo), "cell_hi": torch.as_tensor(inr.cell_hi)}
+             "cell_lo": torch.as_tensor(inr.cell_lo), "cell_hi": torch.as_tensor(inr.cell_hi), "volume": inr.volume}
     atomic_torch_save(path, state)
 
 
@@ -275,7 +275,7 @@ def load_data_inr(path) -> DataInr:
         layout = WeightLayout.from_config(state["layout"])
         model = Siren.from_flat(state["weights"], layout, SirenConfig.from_config(state["siren"]))
         return DataInr(model, np.asarray(state["extent"]), float(state["psnr"]), float(state["max_error"]),
-                       dict(state["config"]), state["cell_lo"].numpy(), state["cell_hi"].numpy())
+                       dict(state["config"]), state["cell_lo"].numpy(), state["cell_hi"].numpy(), state.get("volume"))
     except KeyError as e:
         raise ArtifactError(f"{path}: not {what}: no key {e}") from None
     except (AttributeError, RuntimeError, TypeError, ValueError) as e:
@@ -283,6 +283,18 @@ def load_data_inr(path) -> DataInr:
 
 
 # ------------------------------------------------------------------------------------------ render scene
+
+
+def data_inr_of(path: Path, volume: Volume, source: str) -> DataInr:
+    """The data INR in `path`, refused in one line where it was fitted to another box or grid than `volume`'s
+    (`source` names the volume): it would draw another scene's scalar field."""
+    inr = load_data_inr(path)
+    if not np.allclose(inr.extent, volume.extent):
+        raise ValueError(f"{path}: fitted to a box of {inr.extent.tolist()}, the volume's is {volume.extent.tolist()}")
+    if inr.volume is not None and inr.volume != volume.checksum:  # None: a file from before the checksum was kept
+        raise ValueError(f"{path}: fitted to another volume than {source} (its grid's checksum differs); give the "
+                         f"data INR of this volume's run (train_data_inr)")
+    return inr
 
 
 def load_scene_file(scene_file: Path, device: torch.device, render: dict | None = None) -> RenderScene:
@@ -305,9 +317,6 @@ def load_render_scene(volume_path: Path, data_inr: Path | None, device: torch.de
                              f"\"density_scale\": K}}')")
         volume = load_volume(volume_path)
         tf = TransferFunction.from_config(tf_config)
-    inr = load_data_inr(data_inr) if data_inr else None
-    if inr is not None and not np.allclose(inr.extent, volume.extent):
-        raise ValueError(f"{data_inr}: fitted to a box of {inr.extent.tolist()}, the volume's is "
-                         f"{volume.extent.tolist()}")
+    inr = data_inr_of(data_inr, volume, str(volume_path)) if data_inr else None
     networks = Networks.from_config(render or {})
     return RenderScene(volume, tf, inr, device=device, networks=networks)

@@ -71,6 +71,7 @@ class DataInr:
     config: dict
     cell_lo: np.ndarray | None = None  # the INR's own range per RENDER_CELL macro-cell (renderer skipping)
     cell_hi: np.ndarray | None = None
+    volume: str | None = None  # the grid it was fitted to (Volume.checksum); None: a file from before it was kept
 
     @property
     def n_params(self) -> int:
@@ -265,7 +266,7 @@ def fit_data_inr_once(volume: Volume, tf: TransferFunction, cfg: DataInrConfig, 
     value, worst = voxel_errors(model, volume, device=device)
     lo, hi = inr_cell_ranges(model, volume, device=device)
     log(f"data INR: {model.layout.n_params} parameters, voxel PSNR {value:.2f} dB, max error {worst:.4f}")
-    return DataInr(model.cpu(), np.asarray(volume.extent), value, worst, asdict(cfg), lo, hi)
+    return DataInr(model.cpu(), np.asarray(volume.extent), value, worst, asdict(cfg), lo, hi, volume.checksum)
 
 
 def inr_cell_ranges(model: Siren, volume: Volume, *, cell: int = 16, refine: int = 2, margin: float = 0.01,

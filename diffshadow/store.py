@@ -19,6 +19,7 @@ from diffshadow.io import StoreError, VerifiedGroup, atomic_save, write_zarr_gro
 from diffshadow.layout import SirenConfig, WeightLayout
 from diffshadow.lights import LightRegion, as_direction, blend_finder
 from diffshadow.phases import timed
+from diffshadow.volume import check_extinction
 
 
 @dataclass
@@ -32,6 +33,7 @@ class WeightStore:
     config: dict
     seen: np.ndarray | None = None  # generated stores: True for training lights, False for unseen ones
     region: dict | None = None  # the light region of the cache (lights.LightRegion.to_dict)
+    extinction: str | None = None  # the scene's extinction field the SIRENs shade (volume.extinction_id)
 
     @property
     def codec(self) -> str:
@@ -61,7 +63,7 @@ class BlendSampler:
             raise ValueError(f"blend k: expected 1 to {len(store.lights)} (the stored SIRENs), got {k}")
         self.store, self.k, self.weighting = store, k, weighting
         self.layout, self.siren = store.layout, store.siren
-        self.region = store.light_region()
+        self.region, self.extinction = store.light_region(), store.extinction
         self._find = blend_finder(np.asarray(store.lights, dtype=np.float64), k, weighting)
 
     def many(self, lights: np.ndarray) -> np.ndarray:
@@ -73,9 +75,10 @@ class BlendSampler:
 
 
 def write_subset(path, *, weights, light_index, lights, psnr, psnr_visible, layout: WeightLayout,
-                 siren: SirenConfig, config: dict) -> None:
-    """One `fit_siren` job's result, written atomically."""
-    meta = json.dumps({"layout": layout.to_config(), "siren": siren.to_config(), "config": config})
+                 siren: SirenConfig, config: dict, extinction: str) -> None:
+    """One `fit_siren` job's result, written atomically; `extinction`: the scene's `volume.extinction_id`."""
+    meta = json.dumps({"layout": layout.to_config(), "siren": siren.to_config(), "config": config,
+                       "extinction": extinction})
 
     arrays = {"weights": np.asarray(weights, np.float32), "light_index": np.asarray(light_index, np.int64),
               "lights": np.asarray(lights, np.float64), "psnr": np.asarray(psnr, np.float64),
@@ -106,6 +109,7 @@ def read_subset(path) -> dict:
     out["layout"] = WeightLayout.from_config(meta["layout"])
     out["siren"] = SirenConfig.from_config(meta["siren"])
     out["config"] = meta["config"]
+    out["extinction"] = meta.get("extinction")
     return out
 
 
@@ -124,6 +128,8 @@ def write_store(path, store: WeightStore, *, made_by: str) -> None:
                            "config": store.config, "n_lights": n, "n_params": p})
         if store.region is not None:
             root.attrs["region"] = store.region
+        if store.extinction is not None:
+            root.attrs["extinction"] = store.extinction
 
     write_zarr_group(path, fill, made_by=made_by)
 
@@ -144,6 +150,7 @@ def open_store(path) -> WeightStore:
             config=attrs.get("config", {}),
             seen=group.read("seen") if "seen" in group else None,
             region=attrs.get("region"),
+            extinction=attrs.get("extinction"),
         )
     except KeyError as e:
         raise StoreError(f"{path}: not a weight store (missing {e})") from None
@@ -162,6 +169,8 @@ def collect_subsets(subset_paths: list, n_lights: int, lights: np.ndarray) -> We
     for path, part in parts:
         if part["layout"] != layout:
             raise StoreError(f"{path}: its SIREN layout differs from {parts[0][0]}'s")
+        check_extinction(part["extinction"], parts[0][1]["extinction"], cache=str(path), scene=str(parts[0][0]),
+                         remedy="rerun fit_siren for every subset of this scene", error=StoreError)
         for row, idx in enumerate(part["light_index"].tolist()):
             if not 0 <= idx < n_lights:
                 raise StoreError(f"{path}: light index {idx} outside 0..{n_lights - 1}")
@@ -179,4 +188,4 @@ def collect_subsets(subset_paths: list, n_lights: int, lights: np.ndarray) -> We
         raise StoreError(f"collect_weights: lights {missing[:10]}{'...' if len(missing) > 10 else ''} are in "
                          f"no subset file; given: {[str(p) for p, _ in parts]}")
     return WeightStore(weights=weights, lights=np.asarray(lights), psnr=psnr, psnr_visible=psnr_vis,
-                       layout=layout, siren=siren, config=parts[0][1]["config"])
+                       layout=layout, siren=siren, config=parts[0][1]["config"], extinction=parts[0][1]["extinction"])

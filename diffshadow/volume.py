@@ -7,15 +7,18 @@ axis sits at `i / (n - 1) · extent`; values between voxels are trilinear; μ = 
 
 from __future__ import annotations
 
+import hashlib
+import json
 import re
 import warnings
 from dataclasses import dataclass
+from functools import cached_property
 from importlib import resources
 from pathlib import Path
 
 import numpy as np
 
-from diffshadow.io import VerifiedGroup, write_zarr_group
+from diffshadow.io import VerifiedGroup, array_checksum, write_zarr_group
 from diffshadow.transfer import TransferFunction
 
 RAW_NAME = re.compile(r"_(\d+)x(\d+)x(\d+)_([a-z]+\d*)\.raw$")
@@ -50,10 +53,35 @@ class Volume:
         z, y, x = self.data.shape
         return x, y, z
 
+    @cached_property
+    def checksum(self) -> str:
+        """`io.array_checksum` of the grid: what the files made from it record (hashed once per volume)."""
+        return array_checksum(self.data)
+
     @property
     def voxel_size(self) -> np.ndarray:
         """Distance between neighbouring voxels along (x, y, z), in box units."""
         return self.extent / (np.asarray(self.dims, dtype=np.float64) - 1)
+
+
+def extinction_id(volume: Volume, tf: TransferFunction) -> str:
+    """What every shadow of a scene is computed from, as 16 hex digits: the normalised grid's values, its box, the
+    opacity polyline and `density_scale` (the extinction field). The TF's colours are left out: they change the image,
+    not the shadow, so a cache stays valid under a recoloured TF. Shadow caches carry it (subset files, weight stores,
+    diffusion checkpoints) so that `render` and `view` refuse a cache made for another scene."""
+    field = {"volume": volume.checksum, "extent": np.asarray(volume.extent, np.float64).tolist(),
+             "opacity": np.asarray(tf.opacity_points, np.float64).tolist(), "density_scale": float(tf.density_scale)}
+    return hashlib.sha256(json.dumps(field, sort_keys=True).encode()).hexdigest()[:16]
+
+
+def check_extinction(made_for: str | None, here: str | None, *, cache: str, scene: str, remedy: str,
+                     error: type[ValueError] = ValueError) -> None:
+    """Refuse, in one line, shadows (`cache` names them) made for another extinction field (`made_for`,
+    `extinction_id`) than `scene`'s (`here`); `remedy` ends the line. Where either is unknown (a file written before
+    the field travelled with caches: None) nothing is checked."""
+    if None not in (made_for, here) and made_for != here:
+        raise error(f"{cache}: made for another volume or opacity than {scene} (extinction field {made_for} against "
+                    f"{here}); {remedy}")
 
 
 def refine(volume: Volume, factor: int) -> Volume:

@@ -311,7 +311,8 @@ def test_lights_prepare_volume_and_collect_weights_start_without_torch_and_recor
     for i, rows in enumerate(([0, 1], [2, 3])):
         write_subset(tmp_path / f"subset_{i}.npz", weights=np.full((2, layout.n_params), float(i), np.float32),
                      light_index=rows, lights=lights["train"][rows], psnr=np.full(2, 40.0),
-                     psnr_visible=np.full(2, 40.0), layout=layout, siren=siren, config={})
+                     psnr_visible=np.full(2, 40.0), layout=layout, siren=siren, config={},
+                     extinction="0" * 16)
     rec = run("collect-weights", "--lights", "lights.json", "--subsets", "subset_0.npz", "subset_1.npz",
               "--out", "weights.zarr")
     assert rec["io_s"] > 0 and (tmp_path / "weights.zarr").is_dir()

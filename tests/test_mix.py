@@ -79,10 +79,10 @@ def test_a_non_finite_score_is_refused_not_chosen():
 class Fixed:
     """A sampler that answers one row for every light."""
 
-    def __init__(self, row, n_params=None):
+    def __init__(self, row, n_params=None, extinction=None):
         self.row = np.asarray(row, dtype=np.float32)
         self.layout = SimpleNamespace(n_params=n_params or len(self.row))
-        self.siren, self.region = "siren", "region"
+        self.siren, self.region, self.extinction = "siren", "region", extinction
 
     def __call__(self, light):
         return self.row
@@ -96,12 +96,18 @@ def test_the_mixed_sampler_mixes_its_two_answers_and_keeps_the_models_region():
     assert (sampler.layout, sampler.region, sampler.share) == (model.layout, "region", 0.25)
     with pytest.raises(ValueError, match="the model makes SIRENs of 10 parameters, the stored ones have 9"):
         MixedSampler(model, Fixed(BLEND[0, :9]), 0.5)
+    # the two sides shade one scene: a model and stored SIRENs of two scenes are refused, an unknown side is not checked
+    with pytest.raises(ValueError, match="^mix: the stored SIRENs: made for another volume or opacity than the "
+                                         "model's \\(extinction field b against a\\)"):
+        MixedSampler(Fixed(MODEL[0], extinction="a"), Fixed(BLEND[0], extinction="b"), 0.5)
+    assert MixedSampler(Fixed(MODEL[0], extinction="a"), Fixed(BLEND[0]), 0.5).extinction == "a"
+    assert MixedSampler(Fixed(MODEL[0]), Fixed(BLEND[0], extinction="b"), 0.5).extinction == "b"
 
 
 class Refused:
     """A sampler that must not be asked."""
 
-    layout, siren, region = SimpleNamespace(n_params=MODEL.shape[1]), "siren", "region"
+    layout, siren, region, extinction = SimpleNamespace(n_params=MODEL.shape[1]), "siren", "region", None
 
     def __call__(self, light):
         raise AssertionError("asked for a light its share gives no weight")
@@ -135,14 +141,14 @@ def test_render_mixes_only_when_asked_with_both_sources(tmp_path):
 def test_sample_shadows_says_what_a_mix_needs(tmp_path):
     from diffshadow.stages.stage2 import _mix_inputs
 
-    assert _mix_inputs("1", None, None, None) is None and _mix_inputs("1.0", None, None, None) is None
+    assert _mix_inputs("1", None, None, None, None) is None and _mix_inputs("1.0", None, None, None, None) is None
     with pytest.raises(ValueError, match=r"mix.model_share auto: .* give --weights \(stage 1's weights.zarr\) and "
                                          r"--volume, or model share 1 for the model alone"):
-        _mix_inputs("auto", tmp_path / "w.zarr", None, None)
+        _mix_inputs("auto", tmp_path / "w.zarr", None, None, None)
     with pytest.raises(ValueError, match=r"mix.model_share 0.5: .* give --weights \(stage 1's weights.zarr\), or"):
-        _mix_inputs("0.5", None, None, None)
+        _mix_inputs("0.5", None, None, None, None)
     with pytest.raises(ValueError, match="expected a number from 0 to 1"):
-        _mix_inputs("3", tmp_path / "w.zarr", tmp_path / "v.zarr", None)
+        _mix_inputs("3", tmp_path / "w.zarr", tmp_path / "v.zarr", None, None)
 
 
 def test_model_alone_is_share_one_however_written():

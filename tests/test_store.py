@@ -10,10 +10,10 @@ LAYOUT = WeightLayout.for_siren(CFG)
 LIGHTS = np.eye(3)[[0, 1, 2, 0]] * np.array([[1], [1], [1], [-1]])
 
 
-def subset(path, idx, layout=LAYOUT):
+def subset(path, idx, layout=LAYOUT, extinction="0123456789abcdef"):
     write_subset(path, weights=np.full((len(idx), layout.n_params), idx[0], np.float32), light_index=idx,
                  lights=LIGHTS[idx], psnr=np.full(len(idx), 40.0), psnr_visible=np.full(len(idx), 42.0),
-                 layout=layout, siren=CFG, config={"fit": {"steps": 3}})
+                 layout=layout, siren=CFG, config={"fit": {"steps": 3}}, extinction=extinction)
 
 
 def test_collect_round_trip(tmp_path):
@@ -24,6 +24,7 @@ def test_collect_round_trip(tmp_path):
     back = open_store(tmp_path / "weights.zarr")
     np.testing.assert_array_equal(back.weights[:, 0], [0, 0, 2, 2])
     assert back.layout == LAYOUT and back.siren == CFG and back.config == {"fit": {"steps": 3}}
+    assert back.extinction == "0123456789abcdef"  # what the SIRENs shade travels with them
     np.testing.assert_array_equal(back.lights, LIGHTS)
     import zarr
     assert zarr.open_group(str(tmp_path / "weights.zarr"), mode="r")["weights"].chunks == (1, LAYOUT.n_params)
@@ -45,6 +46,16 @@ def test_duplicate_light_and_layout_mismatch(tmp_path):
     subset(tmp_path / "c.npz", [2, 3], layout=WeightLayout.for_siren(SirenConfig(5, 1)))
     with pytest.raises(StoreError, match=r"c.npz: its SIREN layout differs"):
         collect_subsets([tmp_path / "a.npz", tmp_path / "c.npz"], 4, LIGHTS)
+
+
+def test_subsets_fitted_to_another_scene_are_not_collected(tmp_path):
+    """A subset refitted after the volume or its opacity changed shades another scene: collected with the others,
+    the store would mix two scenes' shadows under one light set."""
+    subset(tmp_path / "a.npz", [0, 1])
+    subset(tmp_path / "b.npz", [2, 3], extinction="fedcba9876543210")
+    with pytest.raises(StoreError, match=r"^\S*b.npz: made for another volume or opacity than \S*a.npz \(extinction "
+                                         r"field fedcba9876543210 against 0123456789abcdef\); rerun fit_siren"):
+        collect_subsets([tmp_path / "a.npz", tmp_path / "b.npz"], 4, LIGHTS)
 
 
 def test_corrupt_subset_file_is_named(tmp_path):

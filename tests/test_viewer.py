@@ -260,7 +260,7 @@ def test_a_mixed_cache_names_its_share_and_its_render_command_mixes_the_same_way
     from diffshadow.store import BlendSampler
 
     class Model(CountingSampler):
-        layout, siren, region = LAYOUT, SIREN, None
+        layout, siren, region, extinction = LAYOUT, SIREN, None, None
 
     g = viewer.generated
     stored = WeightStore(weights=g.weights[:3], lights=viewer.train, psnr=np.zeros(3), psnr_visible=np.zeros(3),

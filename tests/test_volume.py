@@ -121,3 +121,28 @@ def test_shared_volumes_load(shared_data):
     assert vol.extent[2] == 1.0
     bi = load_volume(shared_data / "bi2o3_ch0_80x80x80_float32.raw")
     assert bi.data.max() == 1.0
+
+
+def test_the_extinction_field_id_follows_what_a_shadow_depends_on():
+    """A shadow depends on the grid's values, its box, the opacity and density_scale, not on the TF's colours: the id
+    changes with each of the first four alone, not with the colours, and is the same for an equal volume and TF."""
+    from dataclasses import replace
+
+    from diffshadow.transfer import TransferFunction
+    from diffshadow.volume import Volume, extinction_id
+
+    rng = np.random.default_rng(0)
+    data = rng.uniform(0, 1, (5, 6, 7)).astype(np.float32)
+    volume = Volume(data=data, extent=np.array([1.0, 5 / 6, 4 / 6]), name="v")
+    tf = {"opacity": [[0, 0], [1, 0.8]], "color": [[0, 1, 1, 1], [1, 1, 0, 0]], "density_scale": 10.0}
+    base = extinction_id(volume, TransferFunction.from_config(tf))
+    assert len(base) == 16 and base == extinction_id(Volume(data.copy(), volume.extent.copy(), "other name"),
+                                                     TransferFunction.from_config(dict(tf)))
+    assert base == extinction_id(volume, TransferFunction.from_config({**tf, "color": [[0, 0, 0, 1], [1, 0, 1, 0]]}))
+    nudged = data.copy()
+    nudged[2, 3, 4] = np.nextafter(nudged[2, 3, 4], np.float32(2))
+    changed = [replace(volume, data=nudged), replace(volume, extent=volume.extent * [1, 1, 0.5])]
+    ids = [extinction_id(v, TransferFunction.from_config(tf)) for v in changed]
+    ids += [extinction_id(volume, TransferFunction.from_config({**tf, **change}))
+            for change in ({"opacity": [[0, 0], [1, 0.81]]}, {"density_scale": 10.5})]
+    assert len({base, *ids}) == 5, ids

@@ -301,6 +301,64 @@ def test_a_stored_rows_shadow_is_drawn_only_under_its_own_light(finished, tmp_pa
     assert (tmp_path / "own.png").exists() and (tmp_path / "gt.png").exists() and not (tmp_path / "other.png").exists()
 
 
+def test_every_cache_names_the_scene_it_was_made_for(finished, tmp_path, capsys):
+    """Stage 1's SIRENs, the model and the generated store carry the extinction field they shade
+    (`volume.extinction_id`), the data INR its grid's checksum. `render` refuses them on another scene in one line
+    (a denser TF, another grid), and takes them under a recoloured TF, whose shadows are the same; `view` refuses a
+    results folder put together from two runs."""
+    import shutil
+
+    from diffshadow.artifacts import load_checkpoint, load_data_inr
+    from diffshadow.cli import main
+    from diffshadow.transfer import TransferFunction
+    from diffshadow.viewer.scene import ViewerError, ViewerScene
+    from diffshadow.volume import Volume, extinction_id, load_prepared, save_prepared
+
+    res = finished / "results/nucleon"
+    volume, tf = load_prepared(res / "volume.zarr")
+    here = extinction_id(volume, tf)
+    assert open_store(res / "weights.zarr").extinction == open_store(res / "generated.zarr").extinction == here
+    assert load_checkpoint(res / "diffusion.ckpt")["extinction"] == here
+    assert load_data_inr(res / "data_inr.pt").volume == volume.checksum
+    denser = TransferFunction.from_config({**tf.to_config(), "density_scale": 2 * tf.density_scale})
+    recoloured = TransferFunction.from_config({**tf.to_config(), "color": [[0, 1, 0, 0], [1, 0, 0, 1]]})
+    flipped = Volume(np.ascontiguousarray(volume.data[::-1]), volume.extent, volume.name)
+    for name, v, t in (("denser", volume, denser), ("recoloured", volume, recoloured), ("flipped", flipped, tf)):
+        save_prepared(tmp_path / f"{name}.zarr", v, t)
+
+    def render(scene: str, *args: str) -> tuple[int, str]:
+        out = tmp_path / f"{scene}.png"
+        try:
+            main(["render", "--volume", str(tmp_path / f"{scene}.zarr"), *args, "--size", "16", "--out", str(out)])
+        except SystemExit as e:
+            assert not out.exists()
+            return e.code, capsys.readouterr().err
+        return 0, ""
+
+    own = open_store(res / "generated.zarr").lights[0]
+    row = ["--weights", str(res / "generated.zarr"), "--light-index", "0", "--mode", "inr"]
+    model = ["--diffusion", str(res / "diffusion.ckpt"), "--light", *map(repr, own.tolist()), "--mode", "inr"]
+    assert render("recoloured", *row, "--data-inr", str(res / "data_inr.pt")) == (0, "")
+    for cache in (row, model):
+        code, err = render("denser", *cache)
+        assert code == 2 and err.count("\n") == 1, err
+        assert f"made for another volume or opacity than the volume rendered (extinction field {here} against" in err
+    code, err = render("flipped", "--data-inr", str(res / "data_inr.pt"), "--mode", "noshadow")
+    assert code == 2 and err.count("\n") == 1 and "data_inr.pt: fitted to another volume than" in err, err
+    for scene, why in (("denser", "weights.zarr: made for another volume or opacity"),
+                       ("flipped", "data_inr.pt: fitted to another volume than")):  # bench render: before any timing
+        with pytest.raises(SystemExit):
+            main(["bench", "render", "--volume", str(tmp_path / f"{scene}.zarr"), "--data-inr",
+                  str(res / "data_inr.pt"), "--weights", str(res / "weights.zarr"), "--out", str(tmp_path / "b.json")])
+        err = capsys.readouterr().err
+        assert err.count("\n") == 1 and why in err and not (tmp_path / "b.json").exists(), err
+    mixed = tmp_path / "nucleon"
+    shutil.copytree(res, mixed, ignore=shutil.ignore_patterns("logs", "images", "report", "benchmarks", "sirens"))
+    save_prepared(mixed / "volume.zarr", volume, denser)
+    with pytest.raises(ViewerError, match=r"generated.zarr: made for another volume or opacity than .*volume.zarr"):
+        ViewerScene.from_results(mixed, torch.device("cpu"))
+
+
 def test_render_outputs(finished):
     import json
     res = finished / "results/nucleon"

@@ -247,14 +247,14 @@ def run(out: Path, *, scene_config: Path | None = None, volume: Path | None = No
     INR and one shadow INR (given, or fitted here), then `bench_render`; writes JSON and a plot."""
     import dataclasses
 
-    from diffshadow.artifacts import load_data_inr, load_render_scene, load_scene_file
+    from diffshadow.artifacts import data_inr_of, load_render_scene, load_scene_file
     from diffshadow.bench import BENCH_LIGHT, BENCH_TF
     from diffshadow.data_inr import DataInrConfig, fit_data_inr
     from diffshadow.fit import FitConfig, fit_sirens
     from diffshadow.sampling import seeded
     from diffshadow.siren import SirenConfig, WeightLayout, init_siren
     from diffshadow.store import open_store
-    from diffshadow.volume import is_prepared
+    from diffshadow.volume import check_extinction, extinction_id, is_prepared
 
     if scene_config:
         scene = load_scene_file(Path(scene_config), device, render)
@@ -266,13 +266,16 @@ def run(out: Path, *, scene_config: Path | None = None, volume: Path | None = No
     else:
         raise ValueError("bench render: give --scene-config FILE or --volume PATH")
     if data_inr:
-        scene.data_inr = load_data_inr(data_inr)
+        scene.data_inr = data_inr_of(data_inr, scene.volume, str(scene_config or volume))
     else:
         inr_cfg = DataInrConfig.from_config({} if inr_steps is None else {"steps": inr_steps})
         print(f"[bench render] fitting a data INR ({inr_cfg.steps} steps; pass --data-inr to reuse one) ...")
         scene.data_inr = fit_data_inr(scene.volume, scene.tf, inr_cfg, device=device, log=lambda m: None)
     if weights:
         store = open_store(weights)
+        check_extinction(store.extinction, extinction_id(scene.volume, scene.tf), cache=str(weights),
+                         scene=str(scene_config or volume), remedy="the bench would time and score another scene's "
+                         "shadow; give the weights of this scene's run")
         siren = (store.weights[light_index], store.layout, store.siren.blocks)
         light = store.lights[light_index]
     else:

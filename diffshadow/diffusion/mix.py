@@ -20,6 +20,8 @@ from collections.abc import Callable
 
 import numpy as np
 
+from diffshadow.volume import check_extinction
+
 SHARES = tuple(round(0.1 * i, 1) for i in range(11))  # the model's shares tried by `choose_share`
 # Weights mixed per pass: the float64 sum of a whole paper-size set at once (2,500 SIRENs of 66,689 weights) made
 # three 1.3-GB temporaries, sample_shadows' peak (docs/performance.md, "The allocator"); each element's sum is the
@@ -93,8 +95,11 @@ class MixedSampler:
         if model.layout.n_params != blend.layout.n_params:
             raise ValueError(f"mix: the model makes SIRENs of {model.layout.n_params} parameters, the stored ones "
                              f"have {blend.layout.n_params}")
+        check_extinction(blend.extinction, model.extinction, cache="mix: the stored SIRENs", scene="the model's",
+                         remedy="mix the SIRENs the model was trained on")
         self.model, self.blend, self.share = model, blend, check_share(share)
         self.layout, self.siren, self.region = model.layout, model.siren, model.region
+        self.extinction = model.extinction or blend.extinction
 
     def __call__(self, light) -> np.ndarray:
         """(n_params,) float32 weights of the mixed shadow SIREN of one light direction. At share 0 (or 1) the side

@@ -91,7 +91,7 @@ class ShadowSampler:
     def __init__(self, state: dict, device: torch.device | str = "cpu"):
         self.model, self.std, self.layout, self.siren = load_sampler(state, device)
         self.config, self.device = state["config"], torch.device(device)
-        self.region = checkpoint_region(state)
+        self.region, self.extinction = checkpoint_region(state), state.get("extinction")
 
     def __call__(self, light) -> torch.Tensor:
         """(n_params,) float32 weights of the shadow SIREN of one light direction."""

@@ -60,6 +60,7 @@ class TrainingData:
     # where the seen-light gap is measured (diffusion.target_gap); never trained on
     check: tuple[torch.Tensor, torch.Tensor] | None = None
     region: dict | None = None  # the training lights' region (lights.LightRegion), saved with the checkpoint
+    extinction: str | None = None  # the scene's extinction field (volume.extinction_id), saved with the checkpoint
 
     def to(self, device) -> TrainingData:
         return dataclasses.replace(self, weights=self.weights.to(device), lights=self.lights.to(device),
@@ -350,7 +351,7 @@ def train_diffusion(data: TrainingData, cfg: DiffusionConfig, checkpoint: Path, 
                  "layout": data.layout.to_config(), "siren": data.siren.to_config(), "config": asdict(cfg),
                  "extent": data.extent.tolist(), "train_lights": data.lights.tolist(),
                  "pool_lights": pool.lights.tolist() if pool is not None else [], "growth": growth.state,
-                 "region": data.region,
+                 "region": data.region, "extinction": data.extinction,
                  "best": None if growth.finished else growth.best}
         atomic_torch_save(checkpoint, state)
         return state

@@ -23,7 +23,7 @@ from diffshadow.render.bundle import render_targets as targets
 from diffshadow.render.scene import KEEP_SAMPLES_BYTES
 from diffshadow.report import shading_name
 from diffshadow.store import BlendSampler, open_store
-from diffshadow.volume import load_prepared
+from diffshadow.volume import check_extinction, extinction_id, load_prepared
 
 
 def train_data_inr(volume_path: Path, out: Path, *, cfg: DataInrConfig, device: torch.device) -> None:
@@ -62,7 +62,8 @@ def render_image(scene: RenderScene, out: Path, *, mode: str, camera: Camera, li
     `model_share` of the model's (diffusion/mix.py). A light outside the cache's region (`lights.LightRegion`) is
     refused in one line naming the region and the light's angle to it, unless `outside_region` asks for the cache's
     answer anyway (then the line is a warning); one inside it but farther from the training lights than any unseen test
-    light was gets a one-line note."""
+    light was gets a one-line note. A cache made for another volume or opacity than `scene`'s is refused in one line
+    (`volume.extinction_id`)."""
     if Path(out).suffix.lower() != ".png":  # before any work: a PNG under another name opens wrongly, or not at all
         raise ValueError(f"--out {out}: the image is written as a PNG; give a name ending in .png")
     siren = None
@@ -83,6 +84,7 @@ def render_image(scene: RenderScene, out: Path, *, mode: str, camera: Camera, li
         model = ShadowSampler(artifacts.load_checkpoint(diffusion), scene.device) if diffusion else None
         stored = BlendSampler(open_store(blend), blend_k, weighting) if blend else None
         sampler = MixedSampler(model, stored, model_share) if mixed else model or stored
+        _same_scene(scene, sampler.extinction, f"--{'diffusion' if diffusion else 'blend'} {diffusion or blend}")
         check = sampler.region.where(light)
         if not check.inside and not outside_region:
             raise ValueError(f"{check.message()} (--mode gt draws the exact shadow; --outside-region draws the "
@@ -95,6 +97,7 @@ def render_image(scene: RenderScene, out: Path, *, mode: str, camera: Camera, li
         if not 0 <= light_index < len(store.weights):
             raise ValueError(f"--light-index: {weights_path} holds lights 0..{len(store.weights) - 1}, "
                              f"got {light_index}")
+        _same_scene(scene, store.extinction, f"--weights {weights_path}")
         siren = (store.weights[light_index], store.layout, store.siren.blocks)
         # the row's SIREN is its own light's shadow, whatever --light says: the image would be labelled wrongly
         if mode == "inr" and light is not None and float(
@@ -111,6 +114,13 @@ def render_image(scene: RenderScene, out: Path, *, mode: str, camera: Camera, li
     c = img.counters
     print(f"wrote {out}: {mode}, {camera.width}x{camera.height} in {img.seconds:.3f} s "
           f"({c.primary_samples:,} samples, {c.secondary_samples:,} on shadow rays)")
+
+
+def _same_scene(scene: RenderScene, made_for: str | None, cache: str) -> None:
+    """A shadow cache made for another scene shades this one wrongly, with nothing to see in the image: refused."""
+    check_extinction(made_for, extinction_id(scene.volume, scene.tf), cache=cache, scene="the volume rendered",
+                     remedy="its shadows would be wrong here; give the cache of this volume's run, or --mode gt for "
+                            "the exact shadow")
 
 
 def _views(scene: RenderScene, cfg: dict) -> list[Camera]:

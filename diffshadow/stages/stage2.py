@@ -33,7 +33,7 @@ from diffshadow.sampling import VALIDATION_POINTS_SEED, Stream
 from diffshadow.store import BlendSampler, WeightStore, blend_rows, open_store, write_store
 from diffshadow.truth import EvalTruth, check_points, psnr_per_light
 from diffshadow.truth import presample as presample_points
-from diffshadow.volume import load_prepared, prepared_voxels
+from diffshadow.volume import check_extinction, load_prepared, prepared_voxels
 
 # test lights further than this from a training light are helped by a denser sphere (tooth, docs/performance.md)
 SPARSE_LIGHTS_DEG = 2.0
@@ -164,7 +164,7 @@ def sample_shadows(checkpoint: Path, truth_path: Path, lights_path: Path, out: P
     region = checkpoint_region(state)
     _check_region(region, unseen, checkpoint)
     share = "1" if mix is None else str(mix["model_share"])
-    stage1 = _mix_inputs(share, weights_path, volume_path, layout)
+    stage1 = _mix_inputs(share, weights_path, volume_path, layout, state.get("extinction"))
     blend_k = min(blend_k, len(train))
     print(f"sampling {len(all_lights)} shadow SIRENs ({seen.sum()} seen, {(~seen).sum()} unseen) with "
           f"DDIM {cfg['ddim_steps']} steps", flush=True)
@@ -201,7 +201,7 @@ def sample_shadows(checkpoint: Path, truth_path: Path, lights_path: Path, out: P
     scores = psnr_per_light(truth.sirens(weights, layout, siren), truth_rows)
     store = WeightStore(weights=weights, lights=all_lights, psnr=scores["box"],
                         psnr_visible=scores.get("visible", scores["box"]), layout=layout, siren=siren,
-                        config=config, seen=seen, region=region.to_dict())
+                        config=config, seen=seen, region=region.to_dict(), extinction=state.get("extinction"))
     write_store(out, store, made_by="sample_shadows")
     print(f"wrote {out}: PSNR median {_seen_unseen(store.psnr, seen)}")
 
@@ -218,9 +218,10 @@ def scored_on(device: torch.device | str) -> dict:
     return {} if torch.device(device).type == "cpu" else {"scored_on": device_name(device)}
 
 
-def _mix_inputs(share: str, weights_path: Path | None, volume_path: Path | None, layout) -> WeightStore | None:
+def _mix_inputs(share: str, weights_path: Path | None, volume_path: Path | None, layout,
+                extinction: str | None) -> WeightStore | None:
     """The stored SIRENs a model share under 1 mixes in (None for share 1: the model alone), checked against the
-    model's SIREN layout; one ValueError naming what is missing or wrong."""
+    model's SIREN layout and extinction field; one ValueError naming what is missing or wrong."""
     from diffshadow.diffusion.mix import model_alone
 
     if model_alone(share):
@@ -233,6 +234,8 @@ def _mix_inputs(share: str, weights_path: Path | None, volume_path: Path | None,
     if stage1.layout.n_params != layout.n_params:
         raise ValueError(f"{weights_path}: SIRENs of {stage1.layout.n_params} parameters, but the model makes "
                          f"{layout.n_params}; rerun stage 2 on these SIRENs")
+    check_extinction(stage1.extinction, extinction, cache=str(weights_path), scene="the model's",
+                     remedy="rerun stage 2 on these SIRENs")
     return stage1
 
 
@@ -311,7 +314,8 @@ def encode_cache(weights_path: Path, truth_path: Path, lights_path: Path, out: P
     store = WeightStore(weights=weights, lights=stage1.lights, psnr=scores["box"],
                         psnr_visible=scores.get("visible", scores["box"]), layout=stage1.layout, siren=stage1.siren,
                         config={**(stage1.config or {}), "codec": codec, "encoded_bytes": nbytes,
-                                "source": str(weights_path), **scored_on(device)}, region=stage1.region)
+                                "source": str(weights_path), **scored_on(device)}, region=stage1.region,
+                        extinction=stage1.extinction)
     write_store(out, store, made_by="encode_cache")
     print(f"wrote {out}: {len(weights)} SIRENs through {codec}, {nbytes / 2**20:.3f} MiB encoded "
           f"(fp32 {stage1.weights.nbytes / 2**20:.3f} MiB), voxel PSNR median {np.median(store.psnr):.2f} dB")
@@ -342,8 +346,7 @@ def blend_shadows(weights_path: Path, truth_path: Path, lights_path: Path, out: 
                                 "weights": str(weights_path),
                                 **({"encoded_bytes": stage1.config["encoded_bytes"]} if codec != "fp32" else {}),
                                 **scored_on(device)},
-                        seen=seen,
-                        region=blend.region.to_dict())
+                        seen=seen, region=blend.region.to_dict(), extinction=stage1.extinction)
     write_store(out, store, made_by="sample_shadows")
     print(f"wrote {out}: PSNR median {_seen_unseen(store.psnr, seen)}")
 

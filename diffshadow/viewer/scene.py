@@ -22,6 +22,7 @@ from diffshadow.render import Camera, RenderScene
 from diffshadow.render.scene import KEEP_SAMPLES_BYTES
 from diffshadow.report import label_image as label
 from diffshadow.store import BlendSampler, WeightStore, open_store
+from diffshadow.volume import check_extinction, extinction_id
 
 # the files a finished scene needs, and the rule that makes each
 SCENE_FILES = {"volume.zarr": "prepare_volume", "lights.json": "lights", "data_inr.pt": "train_data_inr",
@@ -110,12 +111,20 @@ class ViewerScene:
                                   f"run snakemake to finish the scene)")
         generated = open_store(results / "generated.zarr")
         scene = load_render_scene(results / "volume.zarr", results / "data_inr.pt", device, render=render)
+        here = extinction_id(scene.volume, scene.tf)
+
+        def same_scene(made_for: str | None, cache: Path) -> None:  # a folder put together from two runs' files
+            check_extinction(made_for, here, cache=str(cache), scene=str(results / "volume.zarr"),
+                             remedy="rerun snakemake for this scene", error=ViewerError)
+
+        same_scene(generated.extinction, results / "generated.zarr")
         lights = read_lights(results / "lights.json")
         source = cache_source(results, generated)
         if generated.config.get("cache") == "blend":  # no model: new directions blend the stored SIRENs
-            return cls(scene, name=results.name, lights=lights, generated=generated,
-                       sampler=BlendSampler(open_store(source), int(generated.config["blend_k"]),
-                                            generated.config.get("blend_weights", OLD_WEIGHTING)), results=results,
+            blend = BlendSampler(open_store(source), int(generated.config["blend_k"]),
+                                 generated.config.get("blend_weights", OLD_WEIGHTING))
+            same_scene(blend.extinction, source)
+            return cls(scene, name=results.name, lights=lights, generated=generated, sampler=blend, results=results,
                        checkpoint=source)
         if not source.exists():
             raise ViewerError(f"{source}: missing, the diffusion checkpoint that generated.zarr was sampled from "
@@ -123,6 +132,7 @@ class ViewerScene:
         from diffshadow.diffusion.sample import ShadowSampler
 
         sampler, stored = ShadowSampler(load_checkpoint(source), device), None
+        same_scene(sampler.extinction, source)
         mix = generated.config.get("mix")
         if mix:  # sample_shadows mixed the model's SIRENs with the stored SIRENs' blend: so is a new direction's
             stored = Path(results) / Path(str(mix["weights"])).name
