@@ -13,10 +13,13 @@ from __future__ import annotations
 import copy
 import functools
 import json
+import re
 from pathlib import Path
 from typing import Any, TypeVar
 
 import yaml
+
+from diffshadow.transfer import TransferFunction, TransferFunctionError
 
 PACKAGE = Path(__file__).resolve().parent
 DEFAULTS_FILE = PACKAGE / "defaults.yaml"
@@ -32,12 +35,21 @@ class ConfigError(ValueError):
     """A configuration file or key that is missing or wrong; the message names the file and the key."""
 
 
+class YamlLoader(yaml.SafeLoader):
+    """PyYAML's safe loader (YAML 1.1), reading `1e-6` as the number it is in YAML 1.2 and JSON: 1.1 wants a dot
+    (`1.0e-6`), and `density_scale: 1e-6` failed the schema as the string '1e-06'."""
+
+
+YamlLoader.add_implicit_resolver("tag:yaml.org,2002:float", re.compile(r"^[-+]?(?:[0-9][0-9_]*\.?[0-9_]*|\.[0-9_]+)"
+                                                                       r"[eE][-+]?[0-9]+$"), list("-+0123456789."))
+
+
 def read_yaml(path: str | Path) -> dict:
     path = Path(path)
     if not path.is_file():
         raise ConfigError(f"{path}: no such file")
     try:
-        value = yaml.safe_load(path.read_text()) or {}
+        value = yaml.load(path.read_text(), Loader=YamlLoader) or {}
     except yaml.YAMLError as e:
         raise ConfigError(f"{path}: not valid YAML ({str(e).splitlines()[0]})") from None
     if not isinstance(value, dict):
@@ -138,9 +150,10 @@ def scene_config(run: dict, scene: str, *, scenes_dir: str | Path) -> dict:
                   f"{path} over the run's config")
     except KeyError as e:
         raise ConfigError(f"scene {scene!r}: section {e} is in neither {path} nor the run's config") from None
-    if not any(float(row[1]) > 0 for row in own["transfer_function"]["opacity"]):
-        raise ConfigError(f"{path}: transfer_function: opacity is 0 at every point, so nothing is visible and there "
-                          f"is no shadow to cache")
+    try:  # any grid's bound, before a job: prepare_volume checks again with the grid's own values and box
+        TransferFunction.from_config(own["transfer_function"]).require_visible(str(path))
+    except TransferFunctionError as e:
+        raise ConfigError(str(e)) from None
     lights = merged["lights"]
     if lights["count"] > lights["sphere"]:  # found at plan time, not when the `lights` job runs
         raise ConfigError(f"{path} over the run's config: lights.count {lights['count']} is more than the "
@@ -168,7 +181,7 @@ def _typed(run: dict, schema_file: str) -> dict:
         if not isinstance(error.instance, str) or not error.absolute_path:
             continue
         try:
-            value = yaml.safe_load(error.instance)
+            value = yaml.load(error.instance, Loader=YamlLoader)
         except yaml.YAMLError:
             continue
         if not isinstance(value, str):

@@ -7,6 +7,8 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from diffshadow.transfer import FOREGROUND_ALPHA  # a pixel is foreground where the reference's opacity shows
+
 
 def psnr(pred: torch.Tensor, target: torch.Tensor, *, dim=None, data_range: float = 1.0) -> torch.Tensor:
     """10·log10(range² / MSE), over all values or along `dim`; a perfect match gives +inf."""
@@ -16,9 +18,6 @@ def psnr(pred: torch.Tensor, target: torch.Tensor, *, dim=None, data_range: floa
 
 
 # --------------------------------------------------------------------------------------- image metrics
-
-FOREGROUND_ALPHA = 1.0 / 255.0  # a pixel is foreground when the reference's opacity shows in 8 bits
-
 
 def foreground(alpha: torch.Tensor, threshold: float = FOREGROUND_ALPHA) -> torch.Tensor:
     """(H, W) bool: the pixels the reference image covers."""

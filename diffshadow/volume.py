@@ -298,6 +298,10 @@ def is_prepared(path: str | Path) -> bool:
 
 
 def scene_volume(scene: dict) -> tuple[Volume, TransferFunction]:
-    """A scene's volume (its file and `load:` keys) and transfer function."""
-    tf = TransferFunction.from_config(scene["transfer_function"]).require_visible(f"scene {scene['volume']}")
-    return load_volume(scene["volume"], **scene.get("load", {})), tf
+    """A scene's volume (its file and `load:` keys) and transfer function, refused where nothing of it can show."""
+    where = f"scene {scene['volume']}"
+    tf = TransferFunction.from_config(scene["transfer_function"]).require_visible(where)  # before the grid is read
+    volume = load_volume(scene["volume"], **scene.get("load", {}))
+    tf.require_visible(where, values=(volume.data.min(), volume.data.max()), extent=volume.extent)  # this grid's
+    return volume, tf
+

@@ -145,5 +145,10 @@ def test_an_invisible_scene_is_refused_at_plan_time(tmp_path):
 
     clear = {**TF, "opacity": [[0, 0], [1, 0]]}
     (tmp_path / "clear.yaml").write_text(json.dumps({"volume": "bundled:nucleon", "transfer_function": clear}))
-    with pytest.raises(ConfigError, match=r"clear.yaml: transfer_function: opacity is 0 at every point"):
+    with pytest.raises(ConfigError, match=r"clear.yaml: transfer function: opacity is 0 at every point"):
         scene_config(load_run(), "clear", scenes_dir=tmp_path)
+    faint = {**TF, "density_scale": 1e-6}  # no grid in a box of longest side 1 shows one 8-bit level under it
+    (tmp_path / "faint.yaml").write_text(json.dumps({"volume": "bundled:nucleon", "transfer_function": faint}))
+    with pytest.raises(ConfigError, match=r"faint.yaml: transfer function: nothing can show: .* raise density_scale "
+                                          r"above 0.001134$"):
+        scene_config(load_run(), "faint", scenes_dir=tmp_path)

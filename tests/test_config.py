@@ -16,6 +16,17 @@ def test_command_line_strings_take_the_type_the_schema_asks_for():
         run_config({"lights": {"count": "[1, 2]"}}, "--config")  # read as a list: still not an integer
 
 
+def test_a_number_written_1e_minus_6_is_a_number(tmp_path):
+    """PyYAML reads YAML 1.1, where `1e-6` (no dot) is a string, and `density_scale: 1e-6` in a scene file failed the
+    schema as '1e-06'; as in YAML 1.2 and JSON it is the number, in a scene file, a run config or `--config`."""
+    from diffshadow.config import read_yaml
+
+    (tmp_path / "scene.yaml").write_text("transfer_function: {density_scale: 1e-6, other: [2E3, .5e1, 1.0e-2, 1e]}\n")
+    assert read_yaml(tmp_path / "scene.yaml") == {"transfer_function": {"density_scale": 1e-6,
+                                                                         "other": [2000.0, 5.0, 0.01, "1e"]}}
+    assert run_config({"finetune": {"lr": "3e-5"}}, "--config")["finetune"]["lr"] == 3e-5
+
+
 def test_a_setting_added_at_its_old_behaviour_stays_out_of_the_params_so_finished_runs_rerun_nothing():
     """diffusion.precision, diffusion.cuda_graph and fit.cuda_graph came after runs existed: at their defaults
     (float32; "auto", which on a CPU does what those runs did; False) and at what those runs did (no graph), a job's

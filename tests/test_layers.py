@@ -10,8 +10,9 @@ PACKAGE = Path(__file__).resolve().parents[1] / "diffshadow"
 # lowest first; a module's layer is that of its longest listed prefix
 LAYERS = [
     # foundations
-    ["diffshadow", "phases", "config", "io", "progress", "metrics", "capacity", "analytic", "hpc", "graphs"],
-    ["volume", "transfer", "layout", "siren", "lights", "sampling", "grid", "store", "codecs"],  # data
+    ["diffshadow", "phases", "config", "io", "progress", "transfer", "metrics", "capacity", "analytic", "hpc",
+     "graphs"],
+    ["volume", "layout", "siren", "lights", "sampling", "grid", "store", "codecs"],  # data
     ["shadow", "truth"],  # ground truth
     ["data_inr"],
     ["render"],  # the renderer, its fused kernels included

@@ -146,3 +146,44 @@ def test_the_extinction_field_id_follows_what_a_shadow_depends_on():
     ids += [extinction_id(volume, TransferFunction.from_config({**tf, **change}))
             for change in ({"opacity": [[0, 0], [1, 0.81]]}, {"density_scale": 10.5})]
     assert len({base, *ids}) == 5, ids
+
+
+def test_a_scene_that_can_show_nothing_is_refused_and_one_that_can_is_not(tmp_path):
+    """A TF under which no ray can gather one 8-bit level of opacity is refused (it failed at render_targets, after
+    stage 1's fits): for any grid at plan time, for the grid's own values and box by `scene_volume`. The test is an
+    upper bound: on a grid opaque everywhere (the worst case), a TF refused at 0.99 x the density it names draws no
+    pixel of even 1/255 in a view along the box's diagonal, while at 2.5 x the diagonal rays show; at 1.01 x it is
+    accepted."""
+    from diffshadow.render import Camera, RenderScene
+    from diffshadow.transfer import FOREGROUND_ALPHA, TransferFunction, TransferFunctionError
+    from diffshadow.volume import scene_volume
+
+    rng = np.random.default_rng(1)
+    np.save(tmp_path / "v.npy", rng.uniform(0.5, 1.0, (9, 12, 16)).astype(np.float32))
+    opaque = {"opacity": [[0, 1], [1, 1]], "color": [[0, 1, 1, 1], [1, 1, 1, 1]]}
+    volume, _ = scene_volume({"volume": str(tmp_path / "v.npy"), "transfer_function": {**opaque, "density_scale": 1}})
+
+    def tf(density: float) -> TransferFunction:
+        return TransferFunction.from_config({**opaque, "density_scale": density})
+
+    with pytest.raises(TransferFunctionError) as refused:
+        tf(1e-6).require_visible("scene v", values=(0, 1), extent=volume.extent)
+    message = str(refused.value)
+    assert "\n" not in message and message.startswith("scene v: transfer function: nothing can show: ")
+    need = float(message.rsplit("raise density_scale above ", 1)[1])
+    with pytest.raises(TransferFunctionError, match="nothing can show"):
+        tf(0.99 * need).require_visible("scene v", values=(0, 1), extent=volume.extent)
+    tf(1.01 * need).require_visible("scene v", values=(0, 1), extent=volume.extent)
+    diagonal = Camera.look_at(volume.extent * 2.0, volume.extent / 2, up=(0, 0, 1), fov=40.0, size=48)
+    for factor, shows in ((0.99, False), (2.5, True)):
+        alpha = RenderScene(volume, tf(factor * need)).render("noshadow", diagonal, step=0.25).alpha
+        assert bool((alpha >= FOREGROUND_ALPHA).any()) == shows, (factor, float(alpha.max()))
+    # a longer box can show what this one cannot: the bound for any grid (its largest box) passes it
+    tf(0.99 * need).require_visible("scene v")
+    with pytest.raises(TransferFunctionError, match=f"scene {tmp_path / 'v.npy'}: transfer function: nothing can"):
+        scene_volume({"volume": str(tmp_path / "v.npy"), "transfer_function": {**opaque, "density_scale": 1e-6}})
+    zero_here = {"opacity": [[0, 1], [0.4, 1], [0.5, 0], [1, 0]], "color": opaque["color"], "density_scale": 1e3}
+    np.save(tmp_path / "v.npy", np.linspace(0.6, 1.0, 27, dtype=np.float32).reshape(3, 3, 3))
+    with pytest.raises(TransferFunctionError, match=r"opacity is 0 over all of the grid's values \(0.6 to 1,"):
+        scene_volume({"volume": str(tmp_path / "v.npy"), "transfer_function": zero_here,
+                      "load": {"value_range": [0, 1]}})

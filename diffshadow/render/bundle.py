@@ -20,7 +20,7 @@ from diffshadow.render.camera import Camera
 from diffshadow.render.fields import GridScalar
 from diffshadow.render.marcher import BACKGROUND, front_to_back
 from diffshadow.render.scene import KEEP_SAMPLES_BYTES, RenderScene
-from diffshadow.transfer import TransferFunction
+from diffshadow.transfer import FOREGROUND_ALPHA, TransferFunction
 from diffshadow.volume import Volume
 
 TARGETS_CHECKPOINT_S = 300.0  # seconds of rendering between saves: a preempted job loses at most this much
@@ -71,7 +71,7 @@ def view_samples(volume: Volume, tf: TransferFunction, camera: Camera, *, step: 
         alpha[valid] = 1 - torch.exp(-tf.extinction(s) * dt)
         color[valid] = tf.color(s)
         w, trans = front_to_back(alpha)
-        fg = (1 - trans) >= 1.0 / 255.0
+        fg = (1 - trans) >= FOREGROUND_ALPHA
         for i in torch.nonzero(fg).flatten().tolist():
             keep = w[i] > min_weight
             pix_all.append(r0 + i)
