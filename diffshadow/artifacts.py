@@ -307,9 +307,13 @@ def load_scene_file(scene_file: Path, device: torch.device, render: dict | None 
 
 def load_render_scene(volume_path: Path, data_inr: Path | None, device: torch.device,
                       tf_config: dict | None = None, render: dict | None = None) -> RenderScene:
-    """A RenderScene from a prepared volume.zarr, or from a raw volume file with its transfer function."""
-    if is_prepared(volume_path) and tf_config is None:
+    """A RenderScene from a prepared volume.zarr (under its own transfer function, or `tf_config`), or from a raw
+    volume file with its transfer function."""
+    if is_prepared(volume_path):
+        # the prepared grid and box as they are: read as a raw volume, a grid normalised from a value_range or a box
+        # from a spacing were normalised again and lost its spacing
         volume, tf = load_prepared(volume_path)
+        tf = tf if tf_config is None else TransferFunction.from_config(tf_config)
     else:
         if tf_config is None:
             raise ValueError(f"{volume_path}: not a prepared volume.zarr, so it needs a transfer function "

@@ -449,7 +449,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--volume", help="results/<scene>/volume.zarr, or a raw volume file with --tf-json")
     p.add_argument("--scene-config", help="a scene file (config/scenes/<scene>.yaml): preview its volume and "
                    "transfer function before a run")
-    p.add_argument("--tf-json", help="transfer function when --volume is a raw file, not a volume.zarr")
+    p.add_argument("--tf-json", help="transfer function: needed with a raw --volume file; with a volume.zarr, in "
+                   "place of its own (a cache of the run still shades it where the opacity is the same)")
     p.add_argument("--mode", choices=["noshadow", "gt", "inr", "naive"], default="gt")
     p.add_argument("--scalar", choices=["grid", "inr"], default=None, help="default: inr when --data-inr")
     for name, helptext in (("data-inr", "data_inr.pt (needed for --scalar inr and mode naive)"),

@@ -460,3 +460,21 @@ def test_rendering_makes_no_tensor_on_the_implicit_default_device(blob, mode):
         b = RenderScene(blob, TF, cell=8, device="cpu").render(mode, cam, light=light, siren=siren,
                                                                 phong=mode == "gt")
     assert torch.equal(a.rgb, b.rgb)
+
+
+def test_a_prepared_volume_under_another_tf_keeps_its_grid_and_box(tmp_path):
+    """`render --volume results/<scene>/volume.zarr --tf-json ...` recolours a finished run: the prepared grid and
+    box as they were written, under the TF given. Read as a raw volume, a grid normalised from a value_range was
+    normalised again and a box made from a spacing became the voxel counts' box."""
+    from diffshadow.artifacts import load_render_scene
+    from diffshadow.volume import load_prepared, save_prepared
+
+    data = np.linspace(0.2, 0.7, 5 * 6 * 7, dtype=np.float32).reshape(5, 6, 7)  # a value_range's grid: not 0 to 1
+    volume = Volume(data=data, extent=np.array([1.0, 0.4, 0.2]), name="spaced")  # a spacing's box
+    tf = TransferFunction.from_config({"opacity": [[0, 0], [1, 1]], "color": [[0, 1, 1, 1], [1, 1, 1, 1]],
+                                       "density_scale": 5.0})
+    save_prepared(tmp_path / "volume.zarr", volume, tf)
+    recolour = {**tf.to_config(), "color": [[0, 1, 0, 0], [1, 0, 0, 1]]}
+    scene = load_render_scene(tmp_path / "volume.zarr", None, torch.device("cpu"), recolour)
+    assert np.array_equal(scene.volume.data, data) and np.array_equal(scene.volume.extent, volume.extent)
+    assert scene.tf.to_config() == recolour and load_prepared(tmp_path / "volume.zarr")[1].to_config() == tf.to_config()

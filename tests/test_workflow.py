@@ -339,6 +339,10 @@ def test_every_cache_names_the_scene_it_was_made_for(finished, tmp_path, capsys)
     row = ["--weights", str(res / "generated.zarr"), "--light-index", "0", "--mode", "inr"]
     model = ["--diffusion", str(res / "diffusion.ckpt"), "--light", *map(repr, own.tolist()), "--mode", "inr"]
     assert render("recoloured", *row, "--data-inr", str(res / "data_inr.pt")) == (0, "")
+    import json  # the run's own volume.zarr recoloured on the command line: its cache still shades it
+    main(["render", "--volume", str(res / "volume.zarr"), "--tf-json", json.dumps(recoloured.to_config()), *row,
+          "--data-inr", str(res / "data_inr.pt"), "--size", "16", "--out", str(tmp_path / "tf.png")])
+    assert (tmp_path / "tf.png").exists()
     for cache in (row, model):
         code, err = render("denser", *cache)
         assert code == 2 and err.count("\n") == 1, err
