@@ -221,22 +221,33 @@ class VerifiedGroup:
 
 def check_stores(paths: list[Path]):
     """Verify each store in `paths` (a .zarr store, or every store of a folder); yields one line per store:
-    its arrays, whether their checksums match (or that it predates checksums), its size and the time taken."""
-    stores = []
+    its arrays, whether their checksums match (or that it predates checksums), its size and the time taken. Then,
+    per folder, the stores that record the scene they were made for (the `extinction` attribute,
+    `volume.extinction_id`) must record one: else the folder was put together from two runs."""
+    folders = []
     for path in paths:
         if not path.exists():
             raise StoreError(f"check-store: {path}: no such store or results folder")
-        stores += sorted(path.glob("*.zarr")) if path.suffix != ".zarr" else [path]
-    if not stores:
+        folders.append((path, sorted(path.glob("*.zarr")) if path.suffix != ".zarr" else [path]))
+    if not any(stores for _, stores in folders):
         raise StoreError(f"check-store: no .zarr store in {', '.join(map(str, paths))}")
-    for store in stores:
-        t0 = time.perf_counter()
-        group = VerifiedGroup(store, "a Zarr store")
-        names = group.verify()
-        state = ("checksums match" if group.checksums is not None
-                 else "readable (written before checksums: rerun the step that writes it to make it verifiable)")
-        size = sum(f.stat().st_size for f in store.rglob("*") if f.is_file())
-        yield f"{store}: {', '.join(names)}: {state} ({size / 2 ** 20:.1f} MiB in {time.perf_counter() - t0:.2f} s)"
+    for folder, stores in folders:
+        scenes: dict[str, list[str]] = {}
+        for store in stores:
+            t0 = time.perf_counter()
+            group = VerifiedGroup(store, "a Zarr store")
+            names = group.verify()
+            state = ("checksums match" if group.checksums is not None
+                     else "readable (written before checksums: rerun the step that writes it to make it verifiable)")
+            size = sum(f.stat().st_size for f in store.rglob("*") if f.is_file())
+            if "extinction" in group.attrs:
+                scenes.setdefault(str(group.attrs["extinction"]), []).append(store.name)
+            yield f"{store}: {', '.join(names)}: {state} ({size / 2 ** 20:.1f} MiB in {time.perf_counter() - t0:.2f} s)"
+        if len(scenes) > 1:
+            made = "; ".join(f"{', '.join(names)} for {scene}" for scene, names in scenes.items())
+            raise StoreError(f"check-store: {folder}: its stores were made for {len(scenes)} different scenes "
+                             f"(extinction fields: {made}), a folder put together from two runs; rerun snakemake "
+                             f"for this scene")
 
 
 def file_in_the_way(path: str | Path) -> Path | None:

@@ -264,7 +264,7 @@ def save_prepared(path: str | Path, volume: Volume, tf: TransferFunction) -> Non
     def fill(root) -> None:
         root.create_array("scalar", data=volume.data)
         root.attrs.update({"extent": volume.extent.tolist(), "name": volume.name,
-                           "transfer_function": tf.to_config()})
+                           "transfer_function": tf.to_config(), "extinction": extinction_id(volume, tf)})
 
     write_zarr_group(path, fill, made_by="prepare_volume")
 

@@ -361,6 +361,14 @@ def test_every_cache_names_the_scene_it_was_made_for(finished, tmp_path, capsys)
     save_prepared(mixed / "volume.zarr", volume, denser)
     with pytest.raises(ViewerError, match=r"generated.zarr: made for another volume or opacity than .*volume.zarr"):
         ViewerScene.from_results(mixed, torch.device("cpu"))
+    main(["check-store", str(res)])  # one scene: every store that records it agrees
+    assert f"{res / 'volume.zarr'}: scalar: checksums match" in capsys.readouterr().out
+    with pytest.raises(SystemExit) as exit_info:
+        main(["check-store", str(mixed)])
+    err = capsys.readouterr().err
+    assert exit_info.value.code == 2 and err.count("\n") == 1, err
+    assert f"{mixed}: its stores were made for 2 different scenes (extinction fields: " in err
+    assert f"volume.zarr for {extinction_id(volume, denser)}" in err and f"weights.zarr for {here}" in err
 
 
 def test_render_outputs(finished):
