@@ -187,3 +187,32 @@ def test_a_scene_that_can_show_nothing_is_refused_and_one_that_can_is_not(tmp_pa
     with pytest.raises(TransferFunctionError, match=r"opacity is 0 over all of the grid's values \(0.6 to 1,"):
         scene_volume({"volume": str(tmp_path / "v.npy"), "transfer_function": zero_here,
                       "load": {"value_range": [0, 1]}})
+
+
+def test_a_prepared_volume_knows_the_extinction_field_it_was_made_from(tmp_path):
+    """`prepared_from`: the store holds the scene's field while the volume file (unchanged since), its load keys, the
+    opacity and density_scale are as the scene has them; the TF's colours may differ. Anything else, a store that
+    does not say what it was made from, or none at all, counts as changed (the workflow then reruns as for any
+    changed input)."""
+    import os
+
+    from diffshadow.stages.stage1 import prepare_volume
+    from diffshadow.volume import prepared_from, save_prepared, scene_volume
+
+    np.save(tmp_path / "v.npy", np.linspace(0, 1, 4 * 5 * 6, dtype=np.float32).reshape(4, 5, 6))
+    tf = {"opacity": [[0, 0], [1, 1]], "color": [[0, 1, 1, 1], [1, 1, 1, 1]], "density_scale": 20}
+    scene = {"volume": str(tmp_path / "v.npy"), "transfer_function": tf}
+    store = tmp_path / "volume.zarr"
+    assert not prepared_from(store, scene)  # none yet
+    prepare_volume(store, scene)
+    assert prepared_from(store, scene)
+    assert prepared_from(store, {**scene, "transfer_function": {**tf, "color": [[0, 1, 0, 0], [1, 0, 0, 1]]}})
+    for changed in ({**scene, "transfer_function": {**tf, "opacity": [[0, 0], [1, 0.9]]}},
+                    {**scene, "transfer_function": {**tf, "density_scale": 21}},
+                    {**scene, "load": {"value_range": [0, 2]}}):
+        assert not prepared_from(store, changed), changed
+    stat = os.stat(tmp_path / "v.npy")
+    os.utime(tmp_path / "v.npy", ns=(stat.st_atime_ns, stat.st_mtime_ns + 1_000_000_000))  # replaced in place
+    assert not prepared_from(store, scene)
+    save_prepared(store, *scene_volume(scene))  # a store from before it recorded its source
+    assert not prepared_from(store, scene)

@@ -43,9 +43,9 @@ TINY = {
 
 
 def snakemake(workdir: Path, *args: str, config: dict = TINY, check: bool = True,
-              runner: tuple[str, ...] = ("-m", "snakemake")) -> subprocess.CompletedProcess:
+              runner: tuple[str, ...] = ("-m", "snakemake"), repo: Path = REPO) -> subprocess.CompletedProcess:
     """Snakemake on the tiny config in `workdir`; `runner` is what follows the interpreter (a script that runs
-    Snakemake in its own process and inspects it, for one)."""
+    Snakemake in its own process and inspects it, for one); `repo`: where the Snakefile and its scene files are."""
     cfg = workdir / "tiny.yaml"
     cfg.write_text(yaml.safe_dump(config))
     env = {**os.environ, "PATH": f"{installed('diffshadow').parent}{os.pathsep}{os.environ['PATH']}"}
@@ -55,7 +55,7 @@ def snakemake(workdir: Path, *args: str, config: dict = TINY, check: bool = True
         env["DIFFSHADOW_DETERMINISTIC"] = "1"
     # a GPU machine's jobs wait mostly on starting PyTorch and CUDA (4-5 s each on the H200): four at a time there
     cores = "4" if CUDA and (os.cpu_count() or 1) >= 4 else "2"
-    cmd = [sys.executable, *runner, "-s", str(REPO / "Snakefile"), "--directory", str(workdir),
+    cmd = [sys.executable, *runner, "-s", str(repo / "Snakefile"), "--directory", str(workdir),
            "--configfile", str(cfg), "--cores", cores, *args]
     proc = subprocess.run(cmd, env=env, capture_output=True, text=True, timeout=600)
     if check and proc.returncode != 0:
@@ -492,6 +492,31 @@ def test_diffusion_settings_do_not_refit(finished):
     assert "fit_siren" not in planned(snakemake(finished, "-n", config=changed))
     refit = {**TINY, "fit": {**TINY["fit"], "steps": 7}}  # the control: a fit setting does refit
     assert planned(snakemake(finished, "-n", config=refit))["fit_siren"] == 2
+
+
+def test_a_colour_change_redraws_and_refits_nothing(finished, tmp_path):
+    """The TF's colours change the images, not a shadow: recoloured in its scene file, the scene is prepared again and
+    what draws images reruns, and nothing that reads only the extinction field (workflow/rules/common.smk,
+    `extinction_volume`); with another density_scale, all of it reruns. On a copy of the workflow, whose scene file
+    is changed, over the finished run."""
+    import shutil
+
+    copy = tmp_path / "repo"
+    for name in ("workflow", "config"):
+        shutil.copytree(REPO / name, copy / name)
+    shutil.copy2(REPO / "Snakefile", copy / "Snakefile")
+    scene = copy / "config/scenes/nucleon.yaml"
+    original = yaml.safe_load(scene.read_text())
+    assert planned(snakemake(finished, "-n", repo=copy)) == {}  # the copy is the same workflow
+    tf = original["transfer_function"]
+    field_only = {"preoptimize", "fit_siren", "collect_weights", "presample", "train_diffusion", "eval_truth",
+                  "train_data_inr", "shadow_bench"}
+    for change, refits in (({"color": [[0.0, 1.0, 0.0, 0.0], [1.0, 0.0, 0.0, 1.0]]}, False),
+                           ({"density_scale": 2 * tf["density_scale"]}, True)):
+        scene.write_text(yaml.safe_dump({**original, "transfer_function": {**tf, **change}}))
+        jobs = planned(snakemake(finished, "-n", repo=copy))
+        assert {"prepare_volume", "render_targets", "naive_images", "evaluate_images", "benchmark"} <= set(jobs), jobs
+        assert (field_only <= set(jobs)) if refits else not field_only & set(jobs), (change, jobs)
 
 
 def test_caches_table_every_cache_with_its_bytes_and_psnr(finished):

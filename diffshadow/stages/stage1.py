@@ -18,7 +18,7 @@ from diffshadow.layout import SirenConfig
 from diffshadow.lights import LightRegion, index_ranges, make_light_sets, read_lights, subset_indices, write_lights
 from diffshadow.sampling import SUBSET_HELD_OUT_SEED
 from diffshadow.store import collect_subsets, write_store, write_subset
-from diffshadow.volume import extinction_id, load_prepared, save_prepared, scene_volume
+from diffshadow.volume import extinction_id, load_prepared, save_prepared, scene_volume, volume_source
 
 if TYPE_CHECKING:
     import torch
@@ -42,7 +42,7 @@ def lights(out: Path, *, sphere: int, count: int, center, unseen: int, seed: int
 def prepare_volume(out: Path, scene: dict) -> None:
     """The scene's volume normalised to [0, 1] in its box, with its transfer function (without torch)."""
     volume, tf = scene_volume(scene)
-    save_prepared(out, volume, tf)
+    save_prepared(out, volume, tf, source=volume_source(scene))
     print(f"wrote {out}: {volume.name} {volume.dims}, extent {volume.extent.round(4).tolist()}")
 
 

@@ -10,6 +10,7 @@ from diffshadow.hpc import JOB_ENVIRONMENT as _JOB_ENVIRONMENT
 from diffshadow.hpc import kernel_cache_environment as _kernel_cache_environment
 from diffshadow.lights import n_subsets as _n_subsets
 from diffshadow.report import shading_name as _shading_name
+from diffshadow.volume import prepared_from as _prepared_from
 from diffshadow.volume import resolve_path as _resolve_path
 
 _SCENES = {}
@@ -33,6 +34,15 @@ def scene_config(scene):
     if scene not in _SCENES:
         _SCENES[scene] = _scene_config(config, scene, scenes_dir=os.path.join(workflow.basedir, "config", "scenes"))
     return _SCENES[scene]
+
+
+def extinction_volume(wildcards):
+    """volume.zarr for a rule that reads only its extinction field (the grid, its box, the opacity and density_scale:
+    all a shadow is computed from): `ancient`, its time ignored, where the volume.zarr on disk holds the field the
+    scene has now (`volume.prepared_from`), so that a change of the TF's colours alone, which makes prepare_volume
+    rewrite it, reruns only the rules that draw images and what follows them; else an input like any other."""
+    path = f"results/{wildcards.scene}/volume.zarr"
+    return ancient(path) if _prepared_from(path, scene_config(wildcards.scene)) else path
 
 
 def n_subsets(scene):
@@ -84,7 +94,7 @@ def shadow_source(wildcards):
             return model_checkpoint(wildcards)
         # the model's SIRENs mixed with the stored ones' blend; validation lights' exact shadows from the volume
         return {**model_checkpoint(wildcards), "stored": f"results/{wildcards.scene}/weights.zarr",
-                "volume": f"results/{wildcards.scene}/volume.zarr"}
+                "volume": extinction_volume(wildcards)}
     if cache == "blend":
         return {"weights": f"results/{wildcards.scene}/weights.zarr"}
     return {"weights": f"results/{wildcards.scene}/cache.zarr"}

@@ -3,7 +3,7 @@
 
 rule train_data_inr:
     input:
-        volume="results/{scene}/volume.zarr",
+        volume=extinction_volume,  # its colours alone changed: not rerun
     output:
         "results/{scene}/data_inr.pt",
     params:

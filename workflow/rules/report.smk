@@ -3,7 +3,7 @@
 
 rule shadow_bench:
     input:
-        "results/{scene}/volume.zarr",
+        extinction_volume,
     output:
         json="results/{scene}/bench_shadow.json",
         png="results/{scene}/bench_shadow.png",

@@ -22,7 +22,7 @@ rule prepare_volume:
 
 rule preoptimize:
     input:
-        volume="results/{scene}/volume.zarr",
+        volume=extinction_volume,  # its colours alone changed: not rerun
         lights="results/{scene}/lights.json",
     output:
         "results/{scene}/siren_init.pt",
@@ -43,7 +43,7 @@ rule preoptimize:
 
 rule fit_siren:
     input:
-        volume="results/{scene}/volume.zarr",
+        volume=extinction_volume,  # its colours alone changed: not rerun
         lights="results/{scene}/lights.json",
         init="results/{scene}/siren_init.pt",
     output:

@@ -3,7 +3,7 @@
 
 rule presample:
     input:
-        volume="results/{scene}/volume.zarr",
+        volume=extinction_volume,  # its colours alone changed: not rerun
         lights="results/{scene}/lights.json",
     output:
         directory("results/{scene}/geometry_points.zarr"),
@@ -46,7 +46,7 @@ rule train_diffusion:
 
 rule eval_truth:
     input:
-        volume="results/{scene}/volume.zarr",
+        volume=extinction_volume,  # its colours alone changed: not rerun
         lights="results/{scene}/lights.json",
     output:
         directory("results/{scene}/eval_truth.zarr"),
@@ -73,7 +73,7 @@ checkpoint choose_cache:
     input:
         weights="results/{scene}/weights.zarr",
         truth="results/{scene}/eval_truth.zarr",
-        volume="results/{scene}/volume.zarr",
+        volume=extinction_volume,  # its colours alone changed: not rerun
         lights="results/{scene}/lights.json",
     output:
         "results/{scene}/cache_choice.json",
@@ -160,7 +160,7 @@ rule evaluate_voxels:
         weights="results/{scene}/weights.zarr",
         generated="results/{scene}/generated.zarr",
         truth="results/{scene}/eval_truth.zarr",
-        volume="results/{scene}/volume.zarr",
+        volume=extinction_volume,  # its colours alone changed: not rerun
         lights="results/{scene}/lights.json",
     output:
         "results/{scene}/voxel_metrics.json",
@@ -199,7 +199,7 @@ rule caches:
         weights="results/{scene}/weights.zarr",
         generated="results/{scene}/generated.zarr",
         truth="results/{scene}/eval_truth.zarr",
-        volume="results/{scene}/volume.zarr",
+        volume=extinction_volume,  # its colours alone changed: not rerun
         lights="results/{scene}/lights.json",
     output:
         table="results/{scene}/caches.json",
