@@ -278,8 +278,11 @@ def load_prepared(path: str | Path) -> tuple[Volume, TransferFunction]:
     try:
         group = VerifiedGroup(path, "a prepared volume")
         attrs = group.attrs
-        volume = Volume(data=np.asarray(group.read("scalar"), dtype=np.float32),
+        scalar = group.read("scalar")  # hashed as it is read, against the checksum written with it
+        volume = Volume(data=np.asarray(scalar, dtype=np.float32),
                         extent=np.asarray(attrs["extent"], dtype=np.float64), name=attrs["name"])
+        if scalar.dtype == np.float32 and group.checksums:  # that hash is `Volume.checksum`'s: not taken twice
+            volume.__dict__["checksum"] = group.checksums["scalar"]
         return volume, TransferFunction.from_config(attrs["transfer_function"])
     except KeyError as e:
         raise VolumeError(f"{path}: not a prepared volume (missing {e})") from None
