@@ -321,6 +321,8 @@ def load_render_scene(volume_path: Path, data_inr: Path | None, device: torch.de
                              f"\"density_scale\": K}}')")
         volume = load_volume(volume_path)
         tf = TransferFunction.from_config(tf_config)
+    if tf_config is not None:  # a TF given here was checked nowhere: an image of nothing is refused as a scene is
+        tf.require_visible(str(volume_path), values=(volume.data.min(), volume.data.max()), extent=volume.extent)
     inr = data_inr_of(data_inr, volume, str(volume_path)) if data_inr else None
     networks = Networks.from_config(render or {})
     return RenderScene(volume, tf, inr, device=device, networks=networks)

@@ -478,3 +478,6 @@ def test_a_prepared_volume_under_another_tf_keeps_its_grid_and_box(tmp_path):
     scene = load_render_scene(tmp_path / "volume.zarr", None, torch.device("cpu"), recolour)
     assert np.array_equal(scene.volume.data, data) and np.array_equal(scene.volume.extent, volume.extent)
     assert scene.tf.to_config() == recolour and load_prepared(tmp_path / "volume.zarr")[1].to_config() == tf.to_config()
+    faint = {**recolour, "density_scale": 1e-6}  # a TF given on the command line is checked as a scene's is
+    with pytest.raises(ValueError, match=r"volume.zarr: transfer function: nothing can show: .* raise density_scale"):
+        load_render_scene(tmp_path / "volume.zarr", None, torch.device("cpu"), faint)
