@@ -289,18 +289,17 @@ def load_prepared(path: str | Path) -> tuple[Volume, TransferFunction]:
 
 
 def volume_source(scene: dict) -> dict:
-    """What a scene's grid is made from: its volume as named, the file's size and modification time (a file replaced
-    in place is another grid) and the load keys."""
-    stat = resolve_path(scene["volume"]).stat()
-    return json.loads(json.dumps({"volume": str(scene["volume"]), "load": scene.get("load", {}),
-                                  "size": stat.st_size, "mtime_ns": stat.st_mtime_ns}))
+    """What a scene's grid is made from: its volume as named and the load keys (a file replaced in place since is
+    found by its time, `prepared_from`; not recorded, so that two clones prepare the same bytes)."""
+    return json.loads(json.dumps({"volume": str(scene["volume"]), "load": scene.get("load", {})}))
 
 
 def prepared_from(path: str | Path, scene: dict) -> bool:
     """Whether the prepared volume at `path` holds `scene`'s extinction field as the scene has it now: made from the
-    same volume file, unchanged since, with the same load keys, opacity and density_scale. Its TF's colours may
-    differ: they change the images, not the field. False where there is no such store, or it does not say what it
-    was made from (one written before it did), or anything cannot be read: then it is taken as changed."""
+    same volume file, not modified after the store was written (the test Snakemake itself makes of a file), with
+    the same load keys, opacity and density_scale. Its TF's colours may differ: they change the images, not the
+    field. False where there is no such store, or it does not say what it was made from (one written before it
+    did), or anything cannot be read: then it is taken as changed."""
     if not is_prepared(path):
         return False
     import zarr
@@ -309,7 +308,8 @@ def prepared_from(path: str | Path, scene: dict) -> bool:
         attrs = dict(zarr.open_group(str(path), mode="r").attrs)
         made, now = TransferFunction.from_config(attrs["transfer_function"]), TransferFunction.from_config(
             scene["transfer_function"])
-        return (attrs.get("source") == volume_source(scene) and made.density_scale == now.density_scale
+        newer = resolve_path(scene["volume"]).stat().st_mtime_ns > (Path(path) / "zarr.json").stat().st_mtime_ns
+        return (attrs.get("source") == volume_source(scene) and not newer and made.density_scale == now.density_scale
                 and np.array_equal(made.opacity_points, now.opacity_points))
     except Exception:  # noqa: BLE001
         return False

@@ -211,9 +211,13 @@ def test_a_prepared_volume_knows_the_extinction_field_it_was_made_from(tmp_path)
                     {**scene, "transfer_function": {**tf, "density_scale": 21}},
                     {**scene, "load": {"value_range": [0, 2]}}):
         assert not prepared_from(store, changed), changed
-    stat = os.stat(tmp_path / "v.npy")
-    os.utime(tmp_path / "v.npy", ns=(stat.st_atime_ns, stat.st_mtime_ns + 1_000_000_000))  # replaced in place
+    written = os.stat(store / "zarr.json").st_mtime_ns
+    os.utime(tmp_path / "v.npy", ns=(written, written))  # not after the store: the same file
+    assert prepared_from(store, scene)
+    os.utime(tmp_path / "v.npy", ns=(written, written + 1_000_000_000))  # replaced in place after it
     assert not prepared_from(store, scene)
+    prepare_volume(tmp_path / "again.zarr", scene)  # the file's time is not recorded: two clones, the same bytes
+    assert (tmp_path / "again.zarr" / "zarr.json").read_bytes() == (store / "zarr.json").read_bytes()
     save_prepared(store, *scene_volume(scene))  # a store from before it recorded its source
     assert not prepared_from(store, scene)
 
