@@ -35,7 +35,7 @@ from diffshadow.siren import Siren, SirenConfig, WeightLayout
 from diffshadow.store import WeightStore, open_store
 from diffshadow.transfer import TransferFunction
 from diffshadow.truth import EvalTruth
-from diffshadow.volume import Volume, is_prepared, load_prepared, load_volume, scene_volume
+from diffshadow.volume import Volume, is_prepared, load_prepared, load_volume, require_visible, scene_volume
 
 
 class ArtifactError(ValueError):
@@ -322,7 +322,7 @@ def load_render_scene(volume_path: Path, data_inr: Path | None, device: torch.de
         volume = load_volume(volume_path)
         tf = TransferFunction.from_config(tf_config)
     if tf_config is not None:  # a TF given here was checked nowhere: an image of nothing is refused as a scene is
-        tf.require_visible(str(volume_path), values=(volume.data.min(), volume.data.max()), extent=volume.extent)
+        require_visible(volume, tf, str(volume_path))
     inr = data_inr_of(data_inr, volume, str(volume_path)) if data_inr else None
     networks = Networks.from_config(render or {})
     return RenderScene(volume, tf, inr, device=device, networks=networks)

@@ -302,10 +302,8 @@ def prepared_from(path: str | Path, scene: dict) -> bool:
     did), or anything cannot be read: then it is taken as changed."""
     if not is_prepared(path):
         return False
-    import zarr
-
     try:  # asked while a workflow is planned: anything unreadable is "changed", which reruns, never an error there
-        attrs = dict(zarr.open_group(str(path), mode="r").attrs)
+        attrs = VerifiedGroup(path, "a prepared volume").attrs
         made, now = TransferFunction.from_config(attrs["transfer_function"]), TransferFunction.from_config(
             scene["transfer_function"])
         newer = resolve_path(scene["volume"]).stat().st_mtime_ns > (Path(path) / "zarr.json").stat().st_mtime_ns
@@ -335,6 +333,11 @@ def scene_volume(scene: dict) -> tuple[Volume, TransferFunction]:
     where = f"scene {scene['volume']}"
     tf = TransferFunction.from_config(scene["transfer_function"]).require_visible(where)  # before the grid is read
     volume = load_volume(scene["volume"], **scene.get("load", {}))
-    tf.require_visible(where, values=(volume.data.min(), volume.data.max()), extent=volume.extent)  # this grid's
+    require_visible(volume, tf, where)  # this grid's
     return volume, tf
+
+
+def require_visible(volume: Volume, tf: TransferFunction, where: str) -> None:
+    """`tf.require_visible` over this grid's own values and box (tighter than the any-grid bound of a plan)."""
+    tf.require_visible(where, values=(volume.data.min(), volume.data.max()), extent=volume.extent)
 

@@ -254,7 +254,7 @@ def run(out: Path, *, scene_config: Path | None = None, volume: Path | None = No
     from diffshadow.sampling import seeded
     from diffshadow.siren import SirenConfig, WeightLayout, init_siren
     from diffshadow.store import open_store
-    from diffshadow.volume import check_extinction, extinction_id, is_prepared
+    from diffshadow.volume import check_extinction, is_prepared
 
     if scene_config:
         scene = load_scene_file(Path(scene_config), device, render)
@@ -273,7 +273,7 @@ def run(out: Path, *, scene_config: Path | None = None, volume: Path | None = No
         scene.data_inr = fit_data_inr(scene.volume, scene.tf, inr_cfg, device=device, log=lambda m: None)
     if weights:
         store = open_store(weights)
-        check_extinction(store.extinction, extinction_id(scene.volume, scene.tf), cache=str(weights),
+        check_extinction(store.extinction, scene.extinction, cache=str(weights),
                          scene=str(scene_config or volume), remedy="the bench would time and score another scene's "
                          "shadow; give the weights of this scene's run")
         siren = (store.weights[light_index], store.layout, store.siren.blocks)

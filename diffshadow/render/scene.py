@@ -34,7 +34,7 @@ from diffshadow.render.marcher import (
 )
 from diffshadow.shadow import seen_voxels, shadow_grid
 from diffshadow.transfer import TransferFunction
-from diffshadow.volume import Volume, refine
+from diffshadow.volume import Volume, extinction_id, refine
 
 MODES = ("noshadow", "gt", "inr", "naive")
 # torch.compile of the eager SIRENs was a third: it tied with eager on 2 CPU cores once eager went in passes, and was
@@ -103,6 +103,11 @@ class RenderScene:
         # a view drawn again under another light takes its kept samples: up to this many bytes, the last views first
         self.keep_samples = keep_samples
         self._samples: OrderedDict[tuple, Samples] = OrderedDict()
+
+    @property
+    def extinction(self) -> str:
+        """The extinction field this scene's shadows come from (`volume.extinction_id`), which a cache must match."""
+        return extinction_id(self.volume, self.tf)
 
     def networks_used(self) -> dict:
         """The choice as configured and what this scene renders with now (after any fallback), for the

@@ -23,7 +23,7 @@ from diffshadow.render.bundle import render_targets as targets
 from diffshadow.render.scene import KEEP_SAMPLES_BYTES
 from diffshadow.report import shading_name
 from diffshadow.store import BlendSampler, open_store
-from diffshadow.volume import check_extinction, extinction_id, load_prepared
+from diffshadow.volume import check_extinction, load_prepared
 
 
 def train_data_inr(volume_path: Path, out: Path, *, cfg: DataInrConfig, device: torch.device) -> None:
@@ -118,7 +118,7 @@ def render_image(scene: RenderScene, out: Path, *, mode: str, camera: Camera, li
 
 def _same_scene(scene: RenderScene, made_for: str | None, cache: str) -> None:
     """A shadow cache made for another scene shades this one wrongly, with nothing to see in the image: refused."""
-    check_extinction(made_for, extinction_id(scene.volume, scene.tf), cache=cache, scene="the volume rendered",
+    check_extinction(made_for, scene.extinction, cache=cache, scene="the volume rendered",
                      remedy="its shadows would be wrong here; give the cache of this volume's run, or --mode gt for "
                             "the exact shadow")
 

@@ -22,7 +22,7 @@ from diffshadow.render import Camera, RenderScene
 from diffshadow.render.scene import KEEP_SAMPLES_BYTES
 from diffshadow.report import label_image as label
 from diffshadow.store import BlendSampler, WeightStore, open_store
-from diffshadow.volume import check_extinction, extinction_id
+from diffshadow.volume import check_extinction
 
 # the files a finished scene needs, and the rule that makes each
 SCENE_FILES = {"volume.zarr": "prepare_volume", "lights.json": "lights", "data_inr.pt": "train_data_inr",
@@ -111,10 +111,8 @@ class ViewerScene:
                                   f"run snakemake to finish the scene)")
         generated = open_store(results / "generated.zarr")
         scene = load_render_scene(results / "volume.zarr", results / "data_inr.pt", device, render=render)
-        here = extinction_id(scene.volume, scene.tf)
-
         def same_scene(made_for: str | None, cache: Path) -> None:  # a folder put together from two runs' files
-            check_extinction(made_for, here, cache=str(cache), scene=str(results / "volume.zarr"),
+            check_extinction(made_for, scene.extinction, cache=str(cache), scene=str(results / "volume.zarr"),
                              remedy="rerun snakemake for this scene", error=ViewerError)
 
         same_scene(generated.extinction, results / "generated.zarr")
