@@ -33,12 +33,17 @@ def go_on(interrupt: Callable[[], bool] | None) -> None:
         raise Interrupted
 
 
-def check_step(step, error: type[ValueError] = ValueError) -> None:
-    """A marching step in voxels: finite, positive and not finer than MIN_STEP, else `error` naming it."""
+def check_step(step, error: type[ValueError] = ValueError, *, extent=None, voxel: float | None = None) -> None:
+    """A marching step in voxels: finite, positive and not finer than MIN_STEP, else `error` naming it. Given the
+    box's `extent` and its finest `voxel` (box units), also no longer than the box's diagonal: a ray would take
+    one sample at most, and its integral would be that sample times the whole ray."""
     if isinstance(step, bool) or not isinstance(step, numbers.Real) or not (math.isfinite(step) and step > 0):
         raise error(f"step: expected a positive number of voxels, got {step!r}")
     if step < MIN_STEP:
         raise error(f"step: {step!r} voxels is finer than the finest step marched ({MIN_STEP:g} voxels)")
+    if extent is not None and step * voxel > (diagonal := float(np.linalg.norm(np.asarray(extent, np.float64)))):
+        raise error(f"step: {step:g} voxels is longer than the volume's diagonal ({diagonal / voxel:.0f} voxels): "
+                    f"a ray would take one sample at most")
 
 
 def trilinear(grid: torch.Tensor, pos_vox: torch.Tensor) -> torch.Tensor:

@@ -58,6 +58,11 @@ class ShadowField:
     empty: torch.Tensor  # (cz, cy, cx) bool: macro-cell has μ = 0 everywhere
     cell: int
     tf: TransferFunction
+    # Host copies of what every march reads, taken once here: read from the device at each call they were two
+    # waits for it per call on a GPU.
+    box: np.ndarray  # (3,) float64 box size (x, y, z)
+    voxel: float  # the finest voxel edge in box units, as the float32 `voxel_size` holds it
+    empty_share: float  # the share of macro-cells that are empty
 
     @classmethod
     def build(
@@ -65,15 +70,19 @@ class ShadowField:
     ) -> ShadowField:
         device = torch.device(device)
         scalar = torch.as_tensor(volume.data, dtype=torch.float32, device=device)[None, None]
+        empty = (macro_cells(scalar[0, 0], tf, cell) if cell > 0
+                 else torch.zeros(1, 1, 1, dtype=torch.bool, device=device))
         return cls(
             scalar=scalar,
             extent=torch.as_tensor(volume.extent, dtype=torch.float32, device=device),
             voxel_size=torch.as_tensor(volume.voxel_size, dtype=torch.float32, device=device),
             dims=torch.as_tensor(volume.dims, dtype=torch.float32, device=device),
-            empty=(macro_cells(scalar[0, 0], tf, cell) if cell > 0
-                   else torch.zeros(1, 1, 1, dtype=torch.bool, device=device)),
+            empty=empty,
             cell=cell,
             tf=tf,
+            box=np.asarray(volume.extent, dtype=np.float64),
+            voxel=float(np.min(np.asarray(volume.voxel_size, dtype=np.float32))),
+            empty_share=float(empty.float().mean()),
         )
 
     def mu(self, pos_vox: torch.Tensor) -> torch.Tensor:
@@ -118,6 +127,7 @@ def transmittance(
     if device is None:
         device = points.device if isinstance(points, torch.Tensor) else "cpu"
     field = volume if isinstance(volume, ShadowField) else ShadowField.build(volume, tf, device=device)
+    check_step(step, extent=field.box, voxel=field.voxel)
     pts = _as_points(points, field.scalar.device)
     w = torch.as_tensor(w64, dtype=torch.float32, device=pts.device)  # one direction, broadcast: no (P, 3) copy
     return _transmittance_rays(field, w, pts, step, skip_empty, tau_max, samples_per_iter, chunk, interrupt)
@@ -150,6 +160,7 @@ def transmittance_per_light(
         raise LightError(f"lights: expected (L, 3) directions, got {np.shape(lights)}") from None
     dirs = np.stack([as_direction(w, name=f"lights[{i}]") for i, w in enumerate(rows)]) if len(rows) else rows
     field = volume if isinstance(volume, ShadowField) else ShadowField.build(volume, tf, device=device)
+    check_step(step, extent=field.box, voxel=field.voxel)
     if not isinstance(points, torch.Tensor):
         points = np.asarray(points, dtype=np.float32)
     shared = points.ndim != 3
@@ -179,7 +190,7 @@ def _transmittance_rays(field: ShadowField, w: torch.Tensor, pts: torch.Tensor, 
     t0, t1 = ray_box(pts, w, field.extent)
     t0 = t0.clamp_min(0.0)
     length = (t1 - t0).clamp_min(0.0)
-    dt = step * float(field.voxel_size.min())
+    dt = step * field.voxel
     # The lattice is anchored where the ray leaves the box and runs back toward the point, so every
     # point on one ray shares it: a nearer point's sum is a prefix of a farther one's, and shadows are
     # monotone along the light up to rounding. The last cell is partial and reuses its full cell's sample.
@@ -191,7 +202,7 @@ def _transmittance_rays(field: ShadowField, w: torch.Tensor, pts: torch.Tensor, 
     chunk = chunk or (CPU_CHUNK if pts.device.type == "cpu" else CHUNK)
 
     if skip_empty is None:
-        skip_empty = float(field.empty.float().mean()) >= AUTO_SKIP_FRACTION
+        skip_empty = field.empty_share >= AUTO_SKIP_FRACTION
     skip = bool(skip_empty) and field.cell > 0
     tau = torch.zeros(len(pts), dtype=torch.float32, device=pts.device)
     per_chunk = max(1, chunk // samples_per_iter)

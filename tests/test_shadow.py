@@ -14,7 +14,14 @@ from diffshadow.analytic import BLOB_SIGMA as SIGMA
 from diffshadow.analytic import blob_cases, blob_transmittance, gaussian_blob
 from diffshadow.grid import Interrupted, voxel_points
 from diffshadow.lights import LightError
-from diffshadow.shadow import ShadowField, seen_voxels, shadow_grid, transmittance, transmittance_per_light
+from diffshadow.shadow import (
+    AUTO_SKIP_FRACTION,
+    ShadowField,
+    seen_voxels,
+    shadow_grid,
+    transmittance,
+    transmittance_per_light,
+)
 from diffshadow.transfer import TransferFunction
 from diffshadow.volume import Volume, load_volume, refine
 
@@ -136,12 +143,14 @@ def test_a_march_is_given_up_when_its_interrupt_says_so_and_is_the_same_values_w
         assert stop.asked == stop_at
 
 
-@pytest.mark.parametrize("skip", [False, True])
+@pytest.mark.parametrize("skip", [False, True, None])
 def test_a_march_reads_the_host_once_an_iteration_and_three_times_skipping(blob, skip):
     """On a GPU every boolean mask and scalar read waits for the device: an iteration of the march reads the host
     for its live rays, and skipping empty cells for its occupied samples and the rays that jump (seven to eleven
-    reads before the rows were gathered by index); the trilinear lookup reads none. Nor does an iteration build a
-    tensor from host numbers, a copy a GPU waits for: the march builds a few per call, not two per iteration."""
+    reads before the rows were gathered by index); the trilinear lookup reads none. A call reads it twice more (the
+    points' finiteness, the rays that start live): the step's length and the share of empty cells (`skip_empty`
+    None) are the field's host numbers, not read at each call. Nor does an iteration build a tensor from host
+    numbers, a copy a GPU waits for: the march builds a few per call, not two per iteration."""
     from diffshadow.bench.profile import op_counts
     from diffshadow.grid import trilinear
     from diffshadow.volume import Volume
@@ -155,7 +164,9 @@ def test_a_march_reads_the_host_once_an_iteration_and_three_times_skipping(blob,
     march = functools.partial(transmittance, field, field.tf, (0.3, -0.5, 0.8), pts, skip_empty=skip)
     march()  # the first call on a grid shape builds its lattice's constants, once (`grid.lattice`)
     counts = op_counts(lambda: march(interrupt=asker))
-    assert asker.asked > 10 and counts["syncs"] <= (3 if skip else 1) * asker.asked + 3, (asker.asked, counts)
+    skipping = field.empty_share >= AUTO_SKIP_FRACTION if skip is None else skip
+    assert skip is not None or skipping  # the auto choice skips on this grid
+    assert asker.asked > 10 and counts["syncs"] <= (3 if skipping else 1) * asker.asked + 2, (asker.asked, counts)
     assert counts["host_tensors"] <= 4, (asker.asked, counts)
     lookup = op_counts(lambda: trilinear(field.scalar[0], pts / field.voxel_size))
     assert lookup["syncs"] == 0 and lookup["host_tensors"] == 0, lookup
@@ -226,6 +237,15 @@ def test_bad_step_method_and_points(blob):
     with pytest.raises(ValueError, match=r"step: 1e-09 voxels is finer than the finest step marched"):
         transmittance(blob, tf, (0, 0, 1), [[0.5, 0.5, 0.5]], step=1e-9)
     assert transmittance(blob, tf, (0, 0, 1), [[0.5, 0.5, 0.5]], step=2.0 ** -10).shape == (1,)
+    # one sample a ray at most, taken past the ray's far end and clamped to the grid's face: refused, as the
+    # renderer refuses it, by both marches and the march of a whole grid
+    diagonal = float(np.linalg.norm(blob.extent) / np.min(blob.voxel_size))
+    for march in (functools.partial(transmittance, blob, tf, (0, 0, 1), [[0.5, 0.5, 0.5]]),
+                  functools.partial(transmittance_per_light, blob, tf, [(0, 0, 1)], [[0.5, 0.5, 0.5]]),
+                  functools.partial(shadow_grid, blob, tf, (0, 0, 1), method="march")):
+        with pytest.raises(ValueError, match=r"step: [\d.]+ voxels is longer than the volume.s diagonal \(\d+ voxels"):
+            march(step=diagonal * 1.01)
+    assert transmittance(blob, tf, (0, 0, 1), [[0.5, 0.5, 0.5]], step=diagonal * 0.99).shape == (1,)
     with pytest.raises(ValueError, match="sweep needs 1/k voxels"):
         shadow_grid(blob, tf, (0, 0, 1), method="sweep", step=0.3)
     with pytest.raises(ValueError, match="method: expected 'march' or 'sweep'"):

@@ -328,10 +328,7 @@ def render(
     same bytes as marching it.
     """
     shading = shading or Shading()
-    check_step(step, RenderError)
-    if step * voxel > (diagonal := float(np.linalg.norm(np.asarray(extent, dtype=np.float64)))):
-        raise RenderError(f"step: {step:g} voxels is longer than the volume's diagonal ({diagonal / voxel:.0f} "
-                          f"voxels): a ray would take one sample at most")
+    check_step(step, RenderError, extent=extent, voxel=voxel)
     if batch is not None and batch < (samples_per_iter or SAMPLES_PER_ITER):
         raise RenderError(f"batch: expected at least samples_per_iter ({samples_per_iter or SAMPLES_PER_ITER}), "
                           f"got {batch}")
