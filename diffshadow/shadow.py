@@ -116,11 +116,12 @@ def transmittance(
 ) -> torch.Tensor:
     """Shadow coefficient at each point (P, 3) for a light in direction `light_dir` → (P,) in [0, 1].
 
-    `step` is in voxels (of the finest axis), no longer than the box's diagonal. Points outside the box are marched from where their ray
-    enters it. `skip_empty` jumps over macro-cells whose μ is 0 under `tf` (None: when at least
-    `AUTO_SKIP_FRACTION` of the cells are empty). `interrupt`, if given, is asked before every iteration; once
-    it returns True the march ends with `grid.Interrupted` (the viewer gives up a light it has left). `chunk` is the
-    samples held at once (None: `CPU_CHUNK` on a CPU, `CHUNK` elsewhere); it changes no value.
+    `step` is in voxels (of the finest axis), no longer than the box's diagonal. Points outside the box are
+    marched from where their ray enters it. `skip_empty` jumps over macro-cells whose μ is 0 under `tf` (None:
+    when at least `AUTO_SKIP_FRACTION` of the cells are empty). `interrupt`, if given, is asked before every
+    iteration; once it returns True the march ends with `grid.Interrupted` (the viewer gives up a light it has
+    left). `chunk` is the samples held at once (None: `CPU_CHUNK` on a CPU, `CHUNK` elsewhere); it changes no
+    value.
     """
     check_step(step)
     w64 = as_direction(light_dir)
