@@ -7,6 +7,7 @@ device is resolved once by `diffshadow.runtime`, configuration comes from `diffs
 from __future__ import annotations
 
 import argparse
+import errno
 import os
 import sys
 from pathlib import Path
@@ -557,6 +558,9 @@ def _unchecked(e: BaseException) -> str:
             f"{where.as_posix()}:{ours.tb_lineno}: an input diffshadow does not check yet; please report it)")
 
 
+_NO_ROOM = (errno.ENOSPC, errno.EDQUOT)  # a full disk, a full quota (an ALCF project's on /eagle)
+
+
 def main(argv: list[str] | None = None) -> None:
     from diffshadow import phases
 
@@ -592,6 +596,8 @@ def main(argv: list[str] | None = None) -> None:
             blocking = file_in_the_way(e.filename)
             if blocking is not None:
                 where, why = blocking, "a file, where a folder is needed"
+        if e.errno in _NO_ROOM:  # written beside its output and renamed over it only once whole (io.atomic_path)
+            why += ": free space (or quota) there and run it again; no earlier output was replaced"
         print(f"diffshadow {args.command}: error: {where}: {why}", file=sys.stderr)
         raise SystemExit(2) from None
     if args.phases and os.environ.get("RANK", "0") == "0":  # under torchrun: rank 0's clock

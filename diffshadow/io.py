@@ -70,7 +70,7 @@ def atomic_path(path: str | Path, *, suffix: str | None = None):
     os.close(fd)
     tmp_path = Path(tmp)
     try:
-        with phase("io"):  # the caller's writing and the flush
+        with phase("io"), naming_output(path):  # the caller's writing and the flush
             yield tmp_path
             _finish(tmp_path)
             os.replace(tmp_path, path)
@@ -78,6 +78,19 @@ def atomic_path(path: str | Path, *, suffix: str | None = None):
     finally:
         if tmp_path.exists():
             tmp_path.unlink()
+
+
+@contextmanager
+def naming_output(path: Path):
+    """A write that fails for want of room (a full disk, a quota; on a parallel file system often only at the
+    flush) raises an OSError that names no file: name the output it was for, so that the command's one-line error
+    says which file could not be written."""
+    try:
+        yield
+    except OSError as e:
+        if e.filename is not None or e.errno is None:
+            raise
+        raise OSError(e.errno, e.strerror, str(path)) from e
 
 
 def atomic_write_text(path: str | Path, text: str) -> None:
@@ -115,11 +128,12 @@ def write_zarr_group(path, fill, *, made_by: str) -> None:
     path.parent.mkdir(parents=True, exist_ok=True)
     tmp = Path(tempfile.mkdtemp(prefix=f".{path.name}.", dir=path.parent))
     try:
-        root = zarr.open_group(str(tmp), mode="w", zarr_format=3)
-        fill(root)
-        root.attrs.update({"checksums": {name: array_checksum(arr[...]) for name, arr in sorted(root.arrays())},
-                           "made_by": made_by})
-        _finish(tmp, directory=True)
+        with naming_output(path):
+            root = zarr.open_group(str(tmp), mode="w", zarr_format=3)
+            fill(root)
+            root.attrs.update({"checksums": {name: array_checksum(arr[...]) for name, arr in sorted(root.arrays())},
+                               "made_by": made_by})
+            _finish(tmp, directory=True)
         old = None
         if path.exists():
             old = path.with_name(f".{path.name}.old-{os.getpid()}")

@@ -301,3 +301,50 @@ def test_a_subset_files_bytes_are_its_arrays_alone(tmp_path):
     assert back["config"] == {"fit": {"steps": 3}}
     subset(tmp_path / "b.npz", [0, 1])
     assert raw == (tmp_path / "b.npz").read_bytes()
+
+
+@pytest.mark.parametrize("no_room", ["ENOSPC", "EDQUOT"])
+def test_a_full_disk_names_the_output_and_keeps_the_one_before(tmp_path, monkeypatch, capsys, no_room):
+    """A write that finds no room (a full disk, a project's quota; on a parallel file system often only at the
+    flush) raised an OSError naming no file, a traceback from the command. Each writer now names its output, the
+    command says it in one line, and the output already there is the one before."""
+    import errno
+    import os
+
+    import torch
+
+    from diffshadow import io
+    from diffshadow.cli import main
+
+    code = getattr(errno, no_room)
+    real_fsync = io._fsync
+
+    def full(path):  # a temporary file or folder beside an output finds no room; the rename's folder sync does
+        if "/." in str(path):
+            raise OSError(code, os.strerror(code))
+        real_fsync(path)
+
+    lights, ckpt, store = tmp_path / "lights.json", tmp_path / "a.ckpt", tmp_path / "a.zarr"
+    args = ["lights", "--out", str(lights), "--sphere", "400", "--count", "8", "--center", "0", "0", "1",
+            "--unseen", "2"]
+    main(args)
+    io.atomic_torch_save(ckpt, {"step": 1})
+    io.write_zarr_group(store, lambda root: root.create_array("a", data=np.arange(3)), made_by="test")
+    before = {p: p.read_bytes() for p in (lights, ckpt, store / "zarr.json")}
+    monkeypatch.setattr(io, "_fsync", full)
+    for write, out in ((lambda: io.atomic_torch_save(ckpt, {"step": 2}), ckpt),
+                       (lambda: io.write_zarr_group(store, lambda root: root.create_array("a", data=np.arange(4)),
+                                                    made_by="test"), store)):
+        with pytest.raises(OSError) as caught:
+            write()
+        assert caught.value.errno == code and caught.value.filename == str(out)
+    capsys.readouterr()
+    with pytest.raises(SystemExit) as exited:
+        main([*args[:-1], "3"])
+    assert exited.value.code == 2
+    err = capsys.readouterr().err
+    assert err == (f"diffshadow lights: error: {lights}: {os.strerror(code)}: free space (or quota) there and run it "
+                   f"again; no earlier output was replaced\n")
+    assert {p: p.read_bytes() for p in before} == before
+    assert torch.load(ckpt)["step"] == 1
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["a.ckpt", "a.zarr", "lights.json"]  # no temporary left
