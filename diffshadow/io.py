@@ -87,10 +87,12 @@ def naming_output(path: Path):
     says which file could not be written."""
     try:
         yield
-    except OSError as e:
-        if e.filename is not None or e.errno is None:
+    except (OSError, RuntimeError) as e:
+        # torch.save's archive writer raises its own RuntimeError on the way out of a write that failed
+        failed = e if isinstance(e, OSError) else e.__context__
+        if not isinstance(failed, OSError) or failed.filename is not None or failed.errno is None:
             raise
-        raise OSError(e.errno, e.strerror, str(path)) from e
+        raise OSError(failed.errno, failed.strerror, str(path)) from e
 
 
 def atomic_write_text(path: str | Path, text: str) -> None:

@@ -332,6 +332,32 @@ def test_a_full_disk_names_the_output_and_keeps_the_one_before(tmp_path, monkeyp
     io.write_zarr_group(store, lambda root: root.create_array("a", data=np.arange(3)), made_by="test")
     before = {p: p.read_bytes() for p in (lights, ckpt, store / "zarr.json")}
     monkeypatch.setattr(io, "_fsync", full)
+
+    class Filling:  # a file that takes 100 bytes, then has no room: torch.save's archive writer meets it mid-way
+        def __init__(self, f):
+            self.f, self.room = f, 100
+
+        def write(self, data):
+            if len(data) > self.room:
+                raise OSError(code, os.strerror(code))
+            self.room -= len(data)
+            return self.f.write(data)
+
+        def __getattr__(self, name):
+            return getattr(self.f, name)
+
+        def __enter__(self):
+            return self
+
+        def __exit__(self, *exc):
+            self.f.close()
+
+    real_open = open
+    with monkeypatch.context() as m:  # `open` in io's namespace: the writer's file, not every file
+        m.setattr(io, "open", lambda *a, **k: Filling(real_open(*a, **k)), raising=False)
+        with pytest.raises(OSError) as caught:
+            io.atomic_torch_save(ckpt, {"step": 2, "w": torch.zeros(1000)})
+        assert caught.value.errno == code and caught.value.filename == str(ckpt)
     for write, out in ((lambda: io.atomic_torch_save(ckpt, {"step": 2}), ckpt),
                        (lambda: io.write_zarr_group(store, lambda root: root.create_array("a", data=np.arange(4)),
                                                     made_by="test"), store)):
