@@ -9,6 +9,7 @@ zeros.
 from __future__ import annotations
 
 import hashlib
+import logging
 import os
 import shutil
 import tempfile
@@ -130,12 +131,19 @@ def write_zarr_group(path, fill, *, made_by: str) -> None:
     path.parent.mkdir(parents=True, exist_ok=True)
     tmp = Path(tempfile.mkdtemp(prefix=f".{path.name}.", dir=path.parent))
     try:
-        with naming_output(path):
-            root = zarr.open_group(str(tmp), mode="w", zarr_format=3)
-            fill(root)
-            root.attrs.update({"checksums": {name: array_checksum(arr[...]) for name, arr in sorted(root.arrays())},
-                               "made_by": made_by})
-            _finish(tmp, directory=True)
+        try:
+            with naming_output(path):
+                root = zarr.open_group(str(tmp), mode="w", zarr_format=3)
+                fill(root)
+                root.attrs.update({"checksums": {name: array_checksum(arr[...])
+                                                 for name, arr in sorted(root.arrays())}, "made_by": made_by})
+                _finish(tmp, directory=True)
+        except OSError:
+            # zarr writes an array's chunks concurrently: those still queued when one failed find the folder gone
+            # (removed below) and would be reported, as abandoned asyncio tasks, when the process ends, after the
+            # command's own one-line error
+            logging.getLogger("asyncio").disabled = True
+            raise
         old = None
         if path.exists():
             old = path.with_name(f".{path.name}.old-{os.getpid()}")

@@ -309,6 +309,7 @@ def test_a_full_disk_names_the_output_and_keeps_the_one_before(tmp_path, monkeyp
     flush) raised an OSError naming no file, a traceback from the command. Each writer now names its output, the
     command says it in one line, and the output already there is the one before."""
     import errno
+    import logging
     import os
 
     import torch
@@ -318,6 +319,7 @@ def test_a_full_disk_names_the_output_and_keeps_the_one_before(tmp_path, monkeyp
 
     code = getattr(errno, no_room)
     real_fsync = io._fsync
+    monkeypatch.setattr(logging.getLogger("asyncio"), "disabled", False)  # a failed store turns it off (io)
 
     def full(path):  # a temporary file or folder beside an output finds no room; the rename's folder sync does
         if "/." in str(path):
@@ -374,3 +376,4 @@ def test_a_full_disk_names_the_output_and_keeps_the_one_before(tmp_path, monkeyp
     assert {p: p.read_bytes() for p in before} == before
     assert torch.load(ckpt)["step"] == 1
     assert sorted(p.name for p in tmp_path.iterdir()) == ["a.ckpt", "a.zarr", "lights.json"]  # no temporary left
+
