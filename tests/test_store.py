@@ -376,4 +376,3 @@ def test_a_full_disk_names_the_output_and_keeps_the_one_before(tmp_path, monkeyp
     assert {p: p.read_bytes() for p in before} == before
     assert torch.load(ckpt)["step"] == 1
     assert sorted(p.name for p in tmp_path.iterdir()) == ["a.ckpt", "a.zarr", "lights.json"]  # no temporary left
-
