@@ -558,6 +558,20 @@ def _unchecked(e: BaseException) -> str:
             f"{where.as_posix()}:{ours.tb_lineno}: an input diffshadow does not check yet; please report it)")
 
 
+def _lost_a_peer(e: RuntimeError) -> bool:
+    """Whether `e` is a DDP collective's failure: a torch.distributed error, or (gloo's "Connection closed by peer"
+    is a plain RuntimeError) one raised inside torch.distributed."""
+    import traceback
+
+    dist = sys.modules.get("torch.distributed")
+    if dist is None:
+        return False
+    if isinstance(e, dist.DistError):
+        return True
+    frames = traceback.extract_tb(e.__traceback__)
+    return bool(frames) and f"{os.sep}torch{os.sep}distributed{os.sep}" in frames[-1].filename
+
+
 _NO_ROOM = (errno.ENOSPC, errno.EDQUOT)  # a full disk, a full quota (an ALCF project's on /eagle)
 
 
@@ -586,6 +600,15 @@ def main(argv: list[str] | None = None) -> None:
     except ValueError as e:  # the library's input errors: one line, no traceback
         print(f"diffshadow {args.command}: error: {e}{_unchecked(e)}", file=sys.stderr)
         raise SystemExit(2) from None
+    except RuntimeError as e:
+        # a process of a DDP job whose peer stopped: one line, not a traceback from the collective it waited in
+        # (each of a node's four ranks printed ~25 lines around the one line of the process that failed first)
+        if not _lost_a_peer(e):
+            raise
+        reason = str(e).strip().splitlines()[0] if str(e).strip() else type(e).__name__
+        print(f"diffshadow {args.command}: rank {os.environ.get('RANK', '0')}: error: the job's processes lost "
+              f"touch ({reason}); a process that stopped first says why", file=sys.stderr)
+        raise SystemExit(1) from None
     except OSError as e:  # a path given that cannot be read or written: the path and why, in one line
         if e.filename is None:
             raise

@@ -71,6 +71,49 @@ def test_a_libraries_error_says_where_diffshadow_called_it(tmp_path, capsys, mon
     assert capsys.readouterr().err == "diffshadow lights: error: center: must be non-zero, got [0.0, 0.0, 0.0]\n"
 
 
+def test_a_ddp_process_whose_peer_stopped_says_so_in_one_line(tmp_path):
+    """Under torchrun, a rank waiting in a collective when another process stops gets the backend's error (gloo's
+    "Connection closed by peer" is a plain RuntimeError from inside torch.distributed): one line naming the rank and
+    the backend's reason, not ~25 lines of traceback around the failing process's own line. Two real gloo
+    processes: rank 0 stops at once, rank 1 waits at a barrier. Any other RuntimeError keeps its traceback."""
+    import socket
+    import subprocess
+    import sys
+
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]
+    script = """
+import os, sys
+import torch, torch.distributed as dist
+from diffshadow import cli
+from diffshadow.stages import stage2
+
+def stage(*a, **k):
+    if sys.argv[1] == "bug":
+        return torch.zeros(2) @ torch.zeros(3)
+    dist.init_process_group("gloo")
+    if dist.get_rank() == 0:
+        os._exit(3)  # a process that stops
+    dist.barrier()
+
+stage2.finetune_render = stage
+cli.main(["finetune-render", "--checkpoint", "g.ckpt", "--weights", "w.zarr", "--points", "p.zarr", "--targets",
+          "t.zarr", "--config-json", '{"finetune": {}}', "--metrics", "m.json", "--out", "d.ckpt"])
+"""
+    env = {**os.environ, "WORLD_SIZE": "2", "MASTER_ADDR": "127.0.0.1", "MASTER_PORT": str(port)}
+    ranks = [subprocess.Popen([sys.executable, "-c", script, "peer"], cwd=tmp_path, env={**env, "RANK": str(r)},
+                              stderr=subprocess.PIPE, text=True) for r in (0, 1)]
+    (_, err0), (_, err1) = (p.communicate(timeout=120) for p in ranks)
+    assert ranks[0].returncode == 3, err0
+    assert ranks[1].returncode == 1 and err1.count("\n") == 1, err1
+    assert err1.startswith("diffshadow finetune-render: rank 1: error: the job's processes lost touch (") and \
+        err1.endswith("); a process that stopped first says why\n"), err1
+    bug = subprocess.run([sys.executable, "-c", script, "bug"], cwd=tmp_path, env={**env, "RANK": "0"},
+                         capture_output=True, text=True, timeout=120)
+    assert bug.returncode == 1 and "Traceback" in bug.stderr and "lost touch" not in bug.stderr
+
+
 def test_a_config_json_without_the_stage_section_is_one_line(tmp_path, capsys):
     # the diffusion section itself instead of {"diffusion": {...}}: named, not a KeyError from deep inside
     with pytest.raises(SystemExit) as exit_info:
