@@ -119,7 +119,8 @@ def _validate(value: dict, schema_file: str, where: str) -> None:
     error = jsonschema.exceptions.best_match(_validator(schema_file).iter_errors(value))
     if error is not None:
         key = ".".join(str(p) for p in error.absolute_path) or "(top level)"
-        raise ConfigError(f"{where}: key {key}: {error.message}")
+        said = error.schema.get("description") if error.validator == "pattern" else None  # a regex says little
+        raise ConfigError(f"{where}: key {key}: {error.message}" + (f" ({said})" if said else ""))
 
 
 def merge(base: dict, own: dict) -> dict:

@@ -152,3 +152,17 @@ def test_an_invisible_scene_is_refused_at_plan_time(tmp_path):
     with pytest.raises(ConfigError, match=r"faint.yaml: transfer function: nothing can show: .* raise density_scale "
                                           r"above 0.001134$"):
         scene_config(load_run(), "faint", scenes_dir=tmp_path)
+
+
+def test_a_scene_name_the_shell_would_split_is_refused_at_plan_time():
+    """A scene's name becomes results/<name>/ in every rule's shell command, unquoted: 'my scene' (from a file
+    config/scenes/my scene.yaml) failed each job with "invalid choice: 'scene/benchmarks/lights.phases.json'". It is
+    refused before any job, naming the key, the value and what a name may hold."""
+    from diffshadow.config import ConfigError, run_config
+
+    for name in ("my scene", "tooth;rm", "$HOME", ".hidden", "a/b"):
+        with pytest.raises(ConfigError, match=r"^x: key scenes\.0: .* does not match .*\(a scene's name: letters, "
+                                              r"digits, _, \. and -, since config/scenes/<name>\.yaml names"):
+            run_config({"scenes": [name]}, "x")
+    for name in ("nucleon", "hydrogen_atom", "bi2o3", "my-scene.v2", "_draft"):
+        assert run_config({"scenes": [name]}, "x")["scenes"] == [name]
