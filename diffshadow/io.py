@@ -8,6 +8,7 @@ zeros.
 
 from __future__ import annotations
 
+import errno
 import hashlib
 import logging
 import os
@@ -40,6 +41,13 @@ def _fsync(path: Path) -> None:
     fd = os.open(path, os.O_RDONLY)
     try:
         os.fsync(fd)
+    except OSError as e:
+        # Some network and shared-folder file systems (SMB, VirtualBox's, some FUSE mounts) refuse to flush a
+        # folder with EINVAL. The files in it are flushed, and the rename is still atomic; only a crash right
+        # after could lose the rename, which leaves the output missing, as if the job had not run. Any other
+        # error is a real one.
+        if e.errno != errno.EINVAL or not os.path.isdir(path):
+            raise
     finally:
         os.close(fd)
 

@@ -376,3 +376,44 @@ def test_a_full_disk_names_the_output_and_keeps_the_one_before(tmp_path, monkeyp
     assert {p: p.read_bytes() for p in before} == before
     assert torch.load(ckpt)["step"] == 1
     assert sorted(p.name for p in tmp_path.iterdir()) == ["a.ckpt", "a.zarr", "lights.json"]  # no temporary left
+
+
+@pytest.mark.parametrize("refused", ["EINVAL", "EIO"])
+def test_a_file_system_that_will_not_flush_a_folder_still_takes_outputs(tmp_path, monkeypatch, refused):
+    """Some network and shared-folder file systems (SMB, VirtualBox's shared folders, some FUSE mounts) refuse
+    fsync on a folder with EINVAL: every output failed there. A folder's EINVAL is passed over (its files are
+    flushed and the rename stays atomic); a file's EINVAL, and any other error, still fail the write."""
+    import errno
+    import os
+    import stat
+
+    from diffshadow import io
+
+    code, real_fsync = getattr(errno, refused), os.fsync
+    on_files = False
+
+    def fsync(fd):
+        if on_files or stat.S_ISDIR(os.fstat(fd).st_mode):
+            raise OSError(code, os.strerror(code))
+        real_fsync(fd)
+
+    monkeypatch.setattr(io.os, "fsync", fsync)
+    writes = {"a.json": lambda: io.atomic_write_text(tmp_path / "a.json", "{}"),
+              "a.zarr": lambda: io.write_zarr_group(tmp_path / "a.zarr",
+                                                    lambda root: root.create_array("a", data=np.arange(3)),
+                                                    made_by="test")}
+    for name, write in writes.items():
+        if refused == "EINVAL":
+            write()
+            assert (tmp_path / name).exists()
+        else:
+            with pytest.raises(OSError) as caught:
+                write()
+            assert caught.value.errno == code
+    if refused == "EINVAL":
+        assert io.VerifiedGroup(tmp_path / "a.zarr", "a test store").root["a"][...].tolist() == [0, 1, 2]
+        on_files = True
+        with pytest.raises(OSError, match="Invalid argument"):
+            io.atomic_write_text(tmp_path / "b.json", "{}")
+    # with EIO the file is whole and renamed before its folder's flush fails; the store's own folders fail first
+    assert sorted(p.name for p in tmp_path.iterdir()) == (["a.json", "a.zarr"] if refused == "EINVAL" else ["a.json"])
