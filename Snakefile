@@ -4,7 +4,7 @@ import os
 
 from snakemake.exceptions import WorkflowError
 
-from diffshadow.config import ConfigError, run_config
+from diffshadow.config import ConfigError, read_yaml, run_config
 
 
 configfile: os.path.join(workflow.basedir, "config", "config.yaml")
@@ -32,8 +32,11 @@ if _machine := _profile_machine():
     configfile: _machine_file
 
 
-# the run's own choices (config/config.yaml, --configfile, --config) over the package's defaults, validated
+# the run's own choices (config/config.yaml, --configfile, --config) over the package's defaults, validated; each
+# file read again by the package's reader too, which refuses a key given twice (Snakemake's keeps the last silently)
 try:
+    for _file in workflow.configfiles:
+        read_yaml(_file)
     _run = run_config(config, "config/config.yaml with --configfile/--config")
 except ConfigError as e:
     raise WorkflowError(str(e)) from None

@@ -37,7 +37,20 @@ class ConfigError(ValueError):
 
 class YamlLoader(yaml.SafeLoader):
     """PyYAML's safe loader (YAML 1.1), reading `1e-6` as the number it is in YAML 1.2 and JSON: 1.1 wants a dot
-    (`1.0e-6`), and `density_scale: 1e-6` failed the schema as the string '1e-06'."""
+    (`1.0e-6`), and `density_scale: 1e-6` failed the schema as the string '1e-06'. A key given twice in one
+    mapping is an error: PyYAML keeps the last silently, so of two `transfer_function:` blocks the one a user
+    edited could be the one ignored."""
+
+    def construct_mapping(self, node, deep=False):
+        if isinstance(node, yaml.MappingNode):
+            seen = {}
+            for key_node, _ in node.value:
+                key = self.construct_object(key_node, deep=True)
+                if isinstance(key, str | int | float | bool) and key in seen:
+                    raise yaml.constructor.ConstructorError(
+                        None, None, f"key {key!r} given twice (first at line {seen[key] + 1})", key_node.start_mark)
+                seen[key] = key_node.start_mark.line
+        return super().construct_mapping(node, deep=deep)
 
 
 YamlLoader.add_implicit_resolver("tag:yaml.org,2002:float", re.compile(r"^[-+]?(?:[0-9][0-9_]*\.?[0-9_]*|\.[0-9_]+)"
@@ -51,10 +64,19 @@ def read_yaml(path: str | Path) -> dict:
     try:
         value = yaml.load(path.read_text(), Loader=YamlLoader) or {}
     except yaml.YAMLError as e:
-        raise ConfigError(f"{path}: not valid YAML ({str(e).splitlines()[0]})") from None
+        raise ConfigError(f"{path}: not valid YAML{_where(e)}") from None
     if not isinstance(value, dict):
         raise ConfigError(f"{path}: expected a mapping of keys, got {type(value).__name__}")
     return value
+
+
+def _where(e: yaml.YAMLError) -> str:
+    """Where in the file a YAML error is and what it is: PyYAML's first line alone ("while scanning for the next
+    token") named neither the line nor the problem (a tab, an unclosed bracket)."""
+    mark, problem = getattr(e, "problem_mark", None), getattr(e, "problem", None)
+    if mark is None or problem is None:
+        return f" ({str(e).splitlines()[0]})"
+    return f" at line {mark.line + 1}, column {mark.column + 1}: {problem}"
 
 
 @functools.cache

@@ -166,3 +166,19 @@ def test_a_scene_name_the_shell_would_split_is_refused_at_plan_time():
             run_config({"scenes": [name]}, "x")
     for name in ("nucleon", "hydrogen_atom", "bi2o3", "my-scene.v2", "_draft"):
         assert run_config({"scenes": [name]}, "x")["scenes"] == [name]
+
+
+def test_a_run_file_with_a_key_given_twice_stops_the_plan(tmp_path):
+    """Snakemake reads a run's config files itself and keeps the last of two equal keys; the workflow reads each
+    again with the package's reader and stops before any job, naming the file, the line and the key."""
+    from pathlib import Path
+
+    repo = Path(__file__).resolve().parents[1]
+    (tmp_path / "run.yaml").write_text("lights: {count: 8}\nfit: {steps: 50}\nlights: {count: 16}\n")
+    proc = subprocess.run([sys.executable, "-m", "snakemake", "-s", str(repo / "Snakefile"), "--directory",
+                           str(tmp_path), "--configfile", str(tmp_path / "run.yaml"), "--cores", "1", "-n"],
+                          capture_output=True, text=True, timeout=300)
+    said = proc.stdout + proc.stderr  # Snakemake prints a parse error on stdout
+    assert proc.returncode != 0
+    assert f"{tmp_path / 'run.yaml'}: not valid YAML at line 3, column 1: key 'lights' given twice (first at line 1)" \
+        in said, said[-2000:]

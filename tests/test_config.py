@@ -27,6 +27,29 @@ def test_a_number_written_1e_minus_6_is_a_number(tmp_path):
     assert run_config({"finetune": {"lr": "3e-5"}}, "--config")["finetune"]["lr"] == 3e-5
 
 
+def test_a_key_given_twice_and_a_yaml_mistake_are_named_with_their_line(tmp_path):
+    """PyYAML keeps the last of two equal keys silently: of two `transfer_function:` blocks, the one a user edited
+    could be the one ignored. A key given twice, at any depth, is refused naming both lines; a syntax error names
+    its line and column and the problem (PyYAML's first line, "while scanning for the next token", said neither)."""
+    from diffshadow.config import read_yaml
+
+    cases = {
+        "volume: a.raw\nvolume: b.raw\n": "line 2, column 1: key 'volume' given twice (first at line 1)",
+        "transfer_function:\n  opacity: [[0, 0]]\n  color: []\n  opacity: [[1, 1]]\n":
+            "line 4, column 3: key 'opacity' given twice (first at line 2)",
+        "lights: {count: 8, count: 16}\n": "line 1, column 20: key 'count' given twice (first at line 1)",
+        "transfer_function:\n\topacity: []\n": "line 2, column 1: found character '\\t' that cannot start any token",
+        "lights: {count: 8\n": "line 2, column 1: expected ',' or '}', but got '<stream end>'",
+    }
+    for text, said in cases.items():
+        (tmp_path / "s.yaml").write_text(text)
+        with pytest.raises(ConfigError) as caught:
+            read_yaml(tmp_path / "s.yaml")
+        assert str(caught.value) == f"{tmp_path / 's.yaml'}: not valid YAML at {said}"
+    (tmp_path / "s.yaml").write_text("a: {x: 1}\nb: {x: 2}\nc: [{x: 1}, {x: 2}]\n")  # equal keys in other mappings
+    assert read_yaml(tmp_path / "s.yaml") == {"a": {"x": 1}, "b": {"x": 2}, "c": [{"x": 1}, {"x": 2}]}
+
+
 def test_a_setting_added_at_its_old_behaviour_stays_out_of_the_params_so_finished_runs_rerun_nothing():
     """diffusion.precision, diffusion.cuda_graph and fit.cuda_graph came after runs existed: at their defaults
     (float32; "auto", which on a CPU does what those runs did; False) and at what those runs did (no graph), a job's
