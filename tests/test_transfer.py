@@ -40,7 +40,11 @@ def test_round_trip_config():
 @pytest.mark.parametrize("change, message", [
     ({"opacity": [[0.0, 0.5]]}, "opacity needs at least 2 points"),
     ({"opacity": [[0.5, 0.0], [0.1, 1.0]]}, "opacity points must be sorted"),
-    ({"color": [[0.0, 1.0, 0.0, 2.0], [1.0, 0, 0, 0]]}, r"color values must lie in \[0, 1\]"),
+    ({"color": [[0.0, 1.0, 0.0, 2.0], [1.0, 0, 0, 0]]},
+     r"color values must lie in \[0, 1\], the position s as well as the r, g, b; point 0 is \[0.0, 1.0, 0.0, 2.0\]$"),
+    # a position past the grid's range, not an opacity: the point is named
+    ({"opacity": [[0.0, 0.0], [0.5, 0.2], [1.5, 1.0]]},
+     r"opacity values must lie in \[0, 1\], the position s as well as the opacity; point 2 is \[1.5, 1.0\]$"),
     ({"color": [[0.0, 1.0], [1.0, 0.0]]}, "color must be a list of"),
     ({"density_scale": -1}, "density_scale must be finite and >= 0"),
     ({"density_scale": "lots"}, "density_scale must be a number"),
