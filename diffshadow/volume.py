@@ -7,6 +7,7 @@ axis sits at `i / (n - 1) · extent`; values between voxels are trilinear; μ = 
 
 from __future__ import annotations
 
+import errno
 import hashlib
 import json
 import re
@@ -182,7 +183,18 @@ def _read_hdf5(path: Path, key: str | None) -> np.ndarray:
     try:
         f = h5py.File(path, "r")
     except OSError as e:  # h5py's "file signature not found" names no file
-        raise VolumeError(f"{path}: not an HDF5 file ({e})") from None
+        if "unable to lock file" not in str(e):
+            raise VolumeError(f"{path}: not an HDF5 file ({e})") from None
+        if e.errno in (errno.EAGAIN, errno.EWOULDBLOCK, errno.EACCES):
+            raise VolumeError(f"{path}: open for writing in another process (HDF5's file lock); read it once that "
+                              f"process has closed the file") from None
+        # A file system without locks (ENOSYS, ENOLCK, ENOTSUP: some Lustre and NFS mounts, where HDF5 1.10+
+        # fails every open): there is no lock to take against a writer, so the input is read without one, as
+        # HDF5_USE_FILE_LOCKING=FALSE would do for every file.
+        try:
+            f = h5py.File(path, "r", locking=False)
+        except OSError as again:
+            raise VolumeError(f"{path}: not readable as HDF5 ({again})") from None
     with f:
         names: list[str] = []
         f.visititems(lambda name, obj: names.append(name) if isinstance(obj, h5py.Dataset) else None)

@@ -34,6 +34,47 @@ def test_npy_h5_zarr_round_trip(tmp_path):
         assert vol.data.min() == 0.0 and vol.data.max() == 1.0
 
 
+def test_an_hdf5_file_behind_a_lock_is_named_or_read_where_locks_are_missing(tmp_path, monkeypatch):
+    """HDF5 locks a file as it opens it. A file another process holds for writing was refused as 'not an HDF5
+    file'; it is now named as such. On a file system without locks (errno 38, ENOSYS: some Lustre and NFS
+    mounts, where every open fails) the input is read without one, the same values."""
+    import errno
+    import subprocess
+    import sys
+
+    data = np.arange(27, dtype=np.float32).reshape(3, 3, 3)
+    with h5py.File(tmp_path / "v.h5", "w") as f:
+        f.create_dataset("d", data=data)
+    holder = subprocess.Popen([sys.executable, "-c", "import h5py, sys, time; f = h5py.File(sys.argv[1], 'a'); "
+                               "print('open', flush=True); time.sleep(60)", str(tmp_path / "v.h5")],
+                              stdout=subprocess.PIPE, text=True)
+    try:
+        assert holder.stdout.readline().strip() == "open"
+        with pytest.raises(VolumeError, match=r"^\S*v\.h5: open for writing in another process \(HDF5's file lock\); "
+                                              r"read it once that process has closed the file$"):
+            load_volume(tmp_path / "v.h5")
+    finally:
+        holder.kill()
+        holder.wait()
+    real_file, opened = h5py.File, []
+
+    def no_locks(path, mode="r", **kw):  # what h5py raises where the file system has no locks
+        opened.append(kw.get("locking"))
+        if kw.get("locking") is not False:
+            raise OSError(errno.ENOSYS, "Unable to synchronously open file (unable to lock file, errno = 38, error "
+                                        "message = 'Function not implemented')")
+        return real_file(path, mode, **kw)
+
+    reference = load_volume(tmp_path / "v.h5").data
+    with monkeypatch.context() as m:
+        m.setattr(h5py, "File", no_locks)
+        assert np.array_equal(load_volume(tmp_path / "v.h5").data, reference)
+    assert opened == [None, False]
+    (tmp_path / "not.h5").write_bytes(b"plain bytes")
+    with pytest.raises(VolumeError, match=r"not\.h5: not an HDF5 file"):
+        load_volume(tmp_path / "not.h5")
+
+
 def test_given_range_and_spacing(tmp_path):
     np.save(tmp_path / "v.npy", np.full((3, 3, 3), 5.0))
     np.save(tmp_path / "w.npy", np.linspace(0, 20, 27).reshape(3, 3, 3))
