@@ -75,7 +75,8 @@ def atomic_path(path: str | Path, *, suffix: str | None = None):
     `path`; on error remove it."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=suffix or ".tmp", dir=path.parent)
+    with naming_output(path, temporary=True):
+        fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=suffix or ".tmp", dir=path.parent)
     os.close(fd)
     tmp_path = Path(tmp)
     try:
@@ -90,16 +91,17 @@ def atomic_path(path: str | Path, *, suffix: str | None = None):
 
 
 @contextmanager
-def naming_output(path: Path):
+def naming_output(path: Path, *, temporary: bool = False):
     """A write that fails for want of room (a full disk, a quota; on a parallel file system often only at the
     flush) raises an OSError that names no file: name the output it was for, so that the command's one-line error
-    says which file could not be written."""
+    says which file could not be written. `temporary`: around making the temporary beside it, whose error names
+    that random name (`.out.json.k2j3.tmp` in a folder one may not write to): the output's name instead."""
     try:
         yield
     except (OSError, RuntimeError) as e:
         # torch.save's archive writer raises its own RuntimeError on the way out of a write that failed
         failed = e if isinstance(e, OSError) else e.__context__
-        if not isinstance(failed, OSError) or failed.filename is not None or failed.errno is None:
+        if not isinstance(failed, OSError) or failed.errno is None or (failed.filename is not None and not temporary):
             raise
         raise OSError(failed.errno, failed.strerror, str(path)) from e
 
@@ -137,7 +139,8 @@ def write_zarr_group(path, fill, *, made_by: str) -> None:
 
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = Path(tempfile.mkdtemp(prefix=f".{path.name}.", dir=path.parent))
+    with naming_output(path, temporary=True):
+        tmp = Path(tempfile.mkdtemp(prefix=f".{path.name}.", dir=path.parent))
     try:
         try:
             with naming_output(path):

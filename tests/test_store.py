@@ -417,3 +417,30 @@ def test_a_file_system_that_will_not_flush_a_folder_still_takes_outputs(tmp_path
             io.atomic_write_text(tmp_path / "b.json", "{}")
     # with EIO the file is whole and renamed before its folder's flush fails; the store's own folders fail first
     assert sorted(p.name for p in tmp_path.iterdir()) == (["a.json", "a.zarr"] if refused == "EINVAL" else ["a.json"])
+
+
+def test_a_folder_one_may_not_write_to_is_named_by_the_output_not_its_temporary(tmp_path, monkeypatch, capsys):
+    """Each output is written under a random temporary name beside it; in a folder one may not write to, the
+    error named that temporary ('.l.json.cje8v1u1.tmp: Operation not permitted', seen in an immutable folder). It
+    names the output now, for a file, a store and a checkpoint, and the command says so in one line."""
+    import errno
+    import os
+    import tempfile
+
+    from diffshadow import io
+    from diffshadow.cli import main
+
+    def refused(*, prefix, dir, suffix=""):
+        raise PermissionError(errno.EACCES, os.strerror(errno.EACCES), os.path.join(dir, f"{prefix}k2j3{suffix}"))
+
+    monkeypatch.setattr(tempfile, "mkstemp", refused)
+    monkeypatch.setattr(tempfile, "mkdtemp", refused)
+    for write, out in ((lambda: io.atomic_torch_save(tmp_path / "a.ckpt", {}), "a.ckpt"),
+                       (lambda: io.write_zarr_group(tmp_path / "a.zarr", lambda root: None, made_by="test"), "a.zarr")):
+        with pytest.raises(PermissionError) as caught:
+            write()
+        assert caught.value.filename == str(tmp_path / out)
+    with pytest.raises(SystemExit):
+        main(["lights", "--out", str(tmp_path / "l.json"), "--sphere", "400", "--count", "8", "--center", "0", "0",
+              "1", "--unseen", "2"])
+    assert capsys.readouterr().err == f"diffshadow lights: error: {tmp_path / 'l.json'}: {os.strerror(errno.EACCES)}\n"
