@@ -73,6 +73,12 @@ CASES = [
     ("a truncated diffusion checkpoint", lambda t: _render_inr(t, str(_write(t / "cut.ckpt", _torch_bytes()[:200]))),
      {}, r"cut.ckpt: unreadable \(RuntimeError: .*\); expected a diffusion checkpoint"),
     ("a folder for a diffusion checkpoint", lambda t: _render_inr(t, str(t)), {}, r": a folder; expected a diffusion"),
+    ("bench render with no timed frame", lambda t: ["bench", "render", "--volume", npy(t, "v.npy"), "--tf-json",
+                                                    json.dumps(TF), "--repeats", "0", "--out", "b.json"], {},
+     r"bench render: --repeats: expected at least 1 timed frame per mode, got 0"),  # was statistics' empty median
+    ("bench init-spread of one light", lambda t: ["bench", "init-spread", "--lights", "1", "--results", str(t),
+                                                  "--out", "b"], {},
+     r"bench init-spread: --lights: expected at least 2 \(a spread across lights\), got 1"),  # was a traceback
     ("a data INR that is not one", lambda t: _render_inr(t, str(_write(t / "d.ckpt", _torch_bytes())), "--scalar",
                                                          "inr", "--data-inr", str(t / "d.ckpt")), {},
      r"d.ckpt: not a data INR file \(train_data_inr's data_inr.pt\): no key 'layout'"),

@@ -256,6 +256,8 @@ def run(out: Path, *, scene_config: Path | None = None, volume: Path | None = No
     from diffshadow.store import open_store
     from diffshadow.volume import check_extinction, is_prepared
 
+    if repeats < 1:  # before any fit: with no timed frame there is no median to report
+        raise ValueError(f"bench render: --repeats: expected at least 1 timed frame per mode, got {repeats}")
     if scene_config:
         scene = load_scene_file(Path(scene_config), device, render)
         name = Path(scene_config).stem

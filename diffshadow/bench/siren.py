@@ -122,6 +122,8 @@ def bench_init_spread(results: Path, out_dir: Path, *, n_lights: int = 8) -> dic
     from diffshadow.sampling import Stream, seeded
     from diffshadow.siren import init_siren
 
+    if n_lights < 2:  # before reading the results: a spread needs two lights
+        raise ValueError(f"bench init-spread: --lights: expected at least 2 (a spread across lights), got {n_lights}")
     volume, tf, store, lights, fit = _scene_inputs(results)
     idx = np.linspace(0, len(lights) - 1, n_lights).round().astype(int)
     shared = torch.as_tensor(store.weights[idx])
