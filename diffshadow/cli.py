@@ -605,7 +605,7 @@ def main(argv: list[str] | None = None) -> None:
         # (each of a node's four ranks printed ~25 lines around the one line of the process that failed first)
         if not _lost_a_peer(e):
             raise
-        reason = str(e).strip().splitlines()[0] if str(e).strip() else type(e).__name__
+        reason = (str(e).strip().splitlines() or [type(e).__name__])[0]
         print(f"diffshadow {args.command}: rank {os.environ.get('RANK', '0')}: error: the job's processes lost "
               f"touch ({reason}); a process that stopped first says why", file=sys.stderr)
         raise SystemExit(1) from None

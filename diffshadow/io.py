@@ -75,7 +75,7 @@ def atomic_path(path: str | Path, *, suffix: str | None = None):
     `path`; on error remove it."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    with naming_output(path, temporary=True):
+    with naming_output(path):
         fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=suffix or ".tmp", dir=path.parent)
     os.close(fd)
     tmp_path = Path(tmp)
@@ -91,17 +91,19 @@ def atomic_path(path: str | Path, *, suffix: str | None = None):
 
 
 @contextmanager
-def naming_output(path: Path, *, temporary: bool = False):
-    """A write that fails for want of room (a full disk, a quota; on a parallel file system often only at the
-    flush) raises an OSError that names no file: name the output it was for, so that the command's one-line error
-    says which file could not be written. `temporary`: around making the temporary beside it, whose error names
-    that random name (`.out.json.k2j3.tmp` in a folder one may not write to): the output's name instead."""
+def naming_output(path: Path):
+    """An error writing `path` names the output, so that the command's one-line error says which file could not
+    be written: a write that fails for want of room (a full disk, a quota; on a parallel file system often only at
+    the flush) raises an OSError naming no file, and one in the temporary beside the output names that random name
+    (`.out.json.k2j3.tmp` in a folder one may not write to)."""
     try:
         yield
     except (OSError, RuntimeError) as e:
         # torch.save's archive writer raises its own RuntimeError on the way out of a write that failed
         failed = e if isinstance(e, OSError) else e.__context__
-        if not isinstance(failed, OSError) or failed.errno is None or (failed.filename is not None and not temporary):
+        temporary = str(path.parent / f".{path.name}.")  # the prefix of `atomic_path`'s and `write_zarr_group`'s
+        if (not isinstance(failed, OSError) or failed.errno is None
+                or not (failed.filename is None or str(failed.filename).startswith(temporary))):
             raise
         raise OSError(failed.errno, failed.strerror, str(path)) from e
 
@@ -139,22 +141,15 @@ def write_zarr_group(path, fill, *, made_by: str) -> None:
 
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    with naming_output(path, temporary=True):
+    with naming_output(path):
         tmp = Path(tempfile.mkdtemp(prefix=f".{path.name}.", dir=path.parent))
     try:
-        try:
-            with naming_output(path):
-                root = zarr.open_group(str(tmp), mode="w", zarr_format=3)
-                fill(root)
-                root.attrs.update({"checksums": {name: array_checksum(arr[...])
-                                                 for name, arr in sorted(root.arrays())}, "made_by": made_by})
-                _finish(tmp, directory=True)
-        except OSError:
-            # zarr writes an array's chunks concurrently: those still queued when one failed find the folder gone
-            # (removed below) and would be reported, as abandoned asyncio tasks, when the process ends, after the
-            # command's own one-line error
-            logging.getLogger("asyncio").disabled = True
-            raise
+        with naming_output(path):
+            root = zarr.open_group(str(tmp), mode="w", zarr_format=3)
+            fill(root)
+            root.attrs.update({"checksums": {name: array_checksum(arr[...]) for name, arr in sorted(root.arrays())},
+                               "made_by": made_by})
+            _finish(tmp, directory=True)
         old = None
         if path.exists():
             old = path.with_name(f".{path.name}.old-{os.getpid()}")
@@ -163,6 +158,12 @@ def write_zarr_group(path, fill, *, made_by: str) -> None:
         _fsync(path.parent)
         if old is not None:
             shutil.rmtree(old)
+    except OSError:
+        # zarr writes an array's chunks concurrently: those still queued when one failed find the folder gone
+        # (removed below) and would be reported, as abandoned asyncio tasks, when the process ends, after the
+        # command's own one-line error
+        logging.getLogger("asyncio").disabled = True
+        raise
     finally:
         if tmp.exists():
             shutil.rmtree(tmp)
