@@ -118,6 +118,10 @@ def cpu_flags(path: str = "/proc/cpuinfo") -> set[str]:
     return set()
 
 
+# what torch.backends.cpu.get_cpu_capability() says of the scalar kernels: "DEFAULT" since torch 2.4, "NO AVX" before
+SCALAR_KERNELS = ("DEFAULT", "NO AVX")
+
+
 def vector_unit_warning(capability: str | None = None, flags: set[str] | None = None,
                         forced: str | None = None) -> str | None:
     """A warning when PyTorch runs its scalar CPU kernels on an x86 CPU with AVX2 and FMA, unasked (no
@@ -126,7 +130,9 @@ def vector_unit_warning(capability: str | None = None, flags: set[str] | None = 
     that job's results differ in the last bits from the same job run again on the same machine. None otherwise."""
     capability = torch.backends.cpu.get_cpu_capability() if capability is None else capability
     forced = os.environ.get("ATEN_CPU_CAPABILITY") if forced is None else forced
-    if forced or capability.upper() != "DEFAULT" or not {"avx2", "fma"} <= (cpu_flags() if flags is None else flags):
+    if forced or capability.upper() not in SCALAR_KERNELS:
+        return None
+    if not {"avx2", "fma"} <= (cpu_flags() if flags is None else flags):
         return None
     return ("WARNING: PyTorch runs its scalar CPU kernels on a CPU with AVX2 (its CPU probe failed to start?): "
             "this job's results will differ in the last bits from the same job run again here")

@@ -23,6 +23,18 @@ for _key, _value in JOB_ENVIRONMENT.items():  # the workflow's job environment: 
 SHARED_DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
 
 
+def _fused_adamw_on_cpu() -> bool:
+    try:
+        torch.optim.AdamW([torch.nn.Parameter(torch.ones(1))], fused=True)
+        return True
+    except RuntimeError:  # torch 2.3: CUDA only
+        return False
+
+
+needs_cpu_fused_adamw = pytest.mark.skipif(not _fused_adamw_on_cpu(),
+                                           reason="this torch has no fused AdamW on the CPU (2.4 and later do)")
+
+
 def identity_tf(density_scale: float = 10.0) -> TransferFunction:
     return TransferFunction.from_config({
         "opacity": [[0.0, 0.0], [1.0, 1.0]],

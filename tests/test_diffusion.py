@@ -4,7 +4,7 @@ import itertools
 import numpy as np
 import pytest
 import torch
-from conftest import default_device_meta
+from conftest import default_device_meta, needs_cpu_fused_adamw
 
 from diffshadow.diffusion.config import DiffusionConfig, DiffusionError
 from diffshadow.diffusion.geometry import geometry_error
@@ -241,6 +241,7 @@ def test_cuda_graph_off_cuda_steps_eagerly_to_the_same_bytes_and_the_same_finger
         StepGraphs(torch.device("cpu"))
 
 
+@needs_cpu_fused_adamw
 def test_a_capturable_optimizer_reads_its_lr_from_one_tensor_that_steplr_lowers_in_place():
     """What a replayed CUDA graph relies on (`diffusion.cuda_graph`): `make_optimizer(capturable=True)` keeps the
     lr in one tensor on the parameters' device, StepLR lowers that very tensor (so a graph captured before reads

@@ -4,6 +4,7 @@ one op."""
 import os
 
 import torch
+from conftest import needs_cpu_fused_adamw
 
 from diffshadow.bench.profile import _without_kineto_chatter, op_counts, peak_bytes
 
@@ -32,6 +33,7 @@ def test_peak_bytes_is_what_the_call_added():
     assert peak_bytes(lambda: None, CPU) == 0
 
 
+@needs_cpu_fused_adamw
 def test_a_multi_tensor_op_counts_one_op_whatever_its_tensors():
     """A GPU runs `_foreach_lerp_` over ten tensors as one call (a few launches); a CPU as ten lerps underneath,
     which the count leaves out, so a CPU's count says what a GPU launches. The same lerps one by one are ten."""

@@ -54,14 +54,15 @@ def shadow_inr(seed: int = 0) -> tuple:
     return layout.flatten(init_siren(cfg, torch.Generator().manual_seed(seed))), layout, cfg.blocks
 
 
-def setup(vol, size=24):
+def scene_of(vol, size=24):
+    # not `setup`: pytest 8.0 calls a module-level `setup` as the module's xunit set-up, with the module
     cam = Camera.orbit(vol.extent, azimuth=40, elevation=20, size=size)
     return cam, GridScalar(vol), float(np.min(vol.voxel_size))
 
 
 @pytest.mark.parametrize("case", ["noshadow_phong", "gt", "naive"])
 def test_wavefront_equals_all_at_once(blob, case):
-    cam, scalar, vox = setup(blob)
+    cam, scalar, vox = scene_of(blob)
     phong = case == "noshadow_phong"
     shadow = None
     if case == "gt":
@@ -81,7 +82,7 @@ def test_wavefront_equals_all_at_once(blob, case):
 
 
 def test_gt_mode_uses_shadow_grid_and_agrees_with_exact_march(blob):
-    cam, scalar, vox = setup(blob)
+    cam, scalar, vox = scene_of(blob)
     scene = RenderScene(blob, TF)
     gt = scene.render("gt", cam, light=LIGHT, min_transmittance=1e-7)
     direct = GridShadow(shadow_grid(blob, TF, LIGHT, method="march"), blob.extent)
@@ -98,7 +99,7 @@ def test_gt_mode_uses_shadow_grid_and_agrees_with_exact_march(blob):
 
 
 def test_naive_through_the_grid_matches_gt(blob):
-    cam, _, _ = setup(blob)
+    cam, _, _ = scene_of(blob)
     scene = RenderScene(blob, TF)
     gt = scene.render("gt", cam, light=LIGHT)
     naive = scene.render("naive", cam, light=LIGHT, scalar="grid")
@@ -106,7 +107,7 @@ def test_naive_through_the_grid_matches_gt(blob):
 
 
 def test_skipping_drops_only_empty_samples(blob):
-    cam, _, _ = setup(blob, size=32)
+    cam, _, _ = scene_of(blob, size=32)
     scene = RenderScene(blob, TF, cell=8)
     a = scene.render("gt", cam, light=LIGHT, skip=True)
     b = scene.render("gt", cam, light=LIGHT, skip=False)
@@ -115,7 +116,7 @@ def test_skipping_drops_only_empty_samples(blob):
 
 
 def test_inference_batches_never_exceed_batch(blob):
-    cam, scalar, vox = setup(blob, size=32)
+    cam, scalar, vox = scene_of(blob, size=32)
     sizes = []
 
     class Spy:
@@ -142,7 +143,7 @@ def test_cuda_batch_follows_the_device_memory(monkeypatch, gib, batch):
 
 
 def test_constant_shadow_inr_scales_colour_by_the_authors_formula(blob):
-    cam, scalar, vox = setup(blob)
+    cam, scalar, vox = scene_of(blob)
     cfg = SirenConfig(16, 1)
     layout = WeightLayout.for_siren(cfg)
     p = init_siren(cfg, torch.Generator().manual_seed(0))
@@ -163,7 +164,7 @@ def test_an_inr_frame_reuses_the_last_frames_shadow_inr_only_for_the_same_weight
     before, and other weights, however given (an array, a tensor, float64), a new one whose image is theirs."""
     from diffshadow.render import scene as scene_module
 
-    cam = setup(blob)[0]
+    cam = scene_of(blob)[0]
     (a, layout, blocks), b = shadow_inr(0), shadow_inr(1)[0]
     built = []
     real = scene_module.SirenShadow
@@ -189,7 +190,7 @@ def test_an_inr_frame_reuses_the_last_frames_shadow_inr_only_for_the_same_weight
 def test_a_view_under_another_light_is_drawn_from_its_kept_samples_to_the_byte(blob):
     """A scene that keeps samples draws a view it has marched again under any light from them (only the shadow
     evaluated): every mode's image and counters are a fresh scene's, to the byte."""
-    cam = setup(blob, size=20)[0]
+    cam = scene_of(blob, size=20)[0]
     siren = shadow_inr()
     keeping, fresh = RenderScene(blob, TF, keep_samples=1 << 26), RenderScene(blob, TF)
     lights = [LIGHT, (-0.6, 0.2, 0.7), (0.1, 0.9, -0.3)]
@@ -206,7 +207,7 @@ def test_a_view_under_another_light_is_drawn_from_its_kept_samples_to_the_byte(b
 def test_kept_samples_stay_within_the_scenes_budget_and_only_serve_their_own_view(blob, monkeypatch):
     from diffshadow.render import scene as scene_module
 
-    cam, other = setup(blob, size=16)[0], Camera.orbit(blob.extent, azimuth=100, elevation=10, size=16)
+    cam, other = scene_of(blob, size=16)[0], Camera.orbit(blob.extent, azimuth=100, elevation=10, size=16)
     scene = RenderScene(blob, TF, keep_samples=1 << 26)
     held = []  # what the scene holds as each frame starts: a view to be kept is made room for before it marches
     real = scene_module.render
@@ -232,7 +233,7 @@ def test_kept_samples_stay_within_the_scenes_budget_and_only_serve_their_own_vie
 
 
 def test_a_replayed_frame_is_given_up_when_its_interrupt_says_so(blob):
-    cam = setup(blob, size=16)[0]
+    cam = scene_of(blob, size=16)[0]
     scene = RenderScene(blob, TF, keep_samples=1 << 26)
     first = scene.render("gt", cam, light=LIGHT, batch=256)
     never = Asker()
@@ -250,7 +251,7 @@ def test_a_repeated_frame_builds_from_host_numbers_only_its_camera_and_light(blo
     camera's vectors and one for the light (mode noshadow: no light), nothing per iteration or per sample."""
     from diffshadow.bench.profile import op_counts
 
-    cam = setup(blob, size=12)[0]
+    cam = scene_of(blob, size=12)[0]
     siren = shadow_inr()
     scene = RenderScene(blob, TF)
 
@@ -317,7 +318,7 @@ def test_the_framed_and_orbit_views_name_a_bad_fov_size_or_distance(kwargs, matc
 
 
 def test_render_rejects_bad_input(blob):
-    cam, scalar, vox = setup(blob, size=4)
+    cam, scalar, vox = scene_of(blob, size=4)
     scene = RenderScene(blob, TF)
     with pytest.raises(RenderError, match="mode"):
         scene.render("shadowy", cam, light=LIGHT)
@@ -349,7 +350,7 @@ def test_a_frame_is_given_up_when_its_interrupt_says_so_and_is_the_same_image_wh
     """`interrupt` (the viewer's "the view changed") is asked before every iteration of the primary rays, and of
     the naive baseline's secondary rays; a frame it never stops is the same image, and once it says stop the frame
     ends with `Interrupted` without asking again."""
-    cam, scalar, vox = setup(blob, size=32)
+    cam, scalar, vox = scene_of(blob, size=32)
     macro = MacroGrid.build(blob, TF, cell=8)
 
     def frame(shadowed: bool, interrupt=None):
@@ -398,7 +399,7 @@ def test_whole_ray_kernels_are_asked_before_every_tile():
 def test_a_gt_frame_is_given_up_while_its_shadow_grid_is_marched_and_caches_nothing(blob):
     """Mode `gt` marches its exact shadow grid first (10-16 s for a 128³ volume on 2 CPU cores): `interrupt` is
     asked there too, a grid given up is not cached, and the next frame is the same image as one never asked."""
-    cam, _, _ = setup(blob, size=16)
+    cam, _, _ = scene_of(blob, size=16)
     plain = RenderScene(blob, TF, cell=8).render("gt", cam, light=LIGHT)
     scene = RenderScene(blob, TF, cell=8)
     with pytest.raises(Interrupted):
@@ -415,7 +416,7 @@ def test_a_gt_frame_is_given_up_while_its_shadow_grid_is_marched_and_caches_noth
 def test_a_gt_frame_takes_its_grid_by_the_method_asked_and_caches_each_apart(blob):
     """`gt_method` picks the grid's method for one frame (the viewer's previews: the sweep) without touching the
     scene's own, and `forget_gt` drops both."""
-    cam, _, _ = setup(blob, size=16)
+    cam, _, _ = scene_of(blob, size=16)
     scene = RenderScene(blob, TF, cell=8)  # gt_method "march"
     swept = scene.render("gt", cam, light=LIGHT, gt_method="sweep")
     assert scene.has_gt(LIGHT, "sweep") and not scene.has_gt(LIGHT)
@@ -451,7 +452,7 @@ def test_a_gt_frame_marches_only_the_voxels_it_reads_and_is_the_same_image(blob,
 def test_rendering_makes_no_tensor_on_the_implicit_default_device(blob, mode):
     """Guard for the CUDA path (see conftest.default_device_meta): the same image with the default device
     "meta" as without."""
-    cam, _, _ = setup(blob, size=16)
+    cam, _, _ = scene_of(blob, size=16)
     layout = WeightLayout.for_siren(SirenConfig(8, 1))
     siren = (layout.flatten(init_siren(SirenConfig(8, 1), torch.Generator().manual_seed(0))), layout, 1)
     light = None if mode == "noshadow" else LIGHT
