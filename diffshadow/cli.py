@@ -280,11 +280,11 @@ def _report_figures(a):
 
 
 def _stage_costs(a):
-    from diffshadow.report import mixed_cpu_kernels, stage_costs
+    from diffshadow.report import mixed_runtimes, stage_costs
 
     benchmarks = [Path(b) for b in a.benchmarks]
     stage_costs(benchmarks, Path(a.out))
-    if warning := mixed_cpu_kernels(benchmarks):
+    for warning in mixed_runtimes(benchmarks):
         print(warning, file=sys.stderr)
 
 

@@ -103,14 +103,28 @@ def usage() -> dict[str, float]:
     return out
 
 
+# the libraries whose release can change a job's numbers, recorded where the job imported them
+NUMERIC_LIBRARIES = ("numpy", "scipy", "torch", "triton", "zarr")
+
+
+def versions() -> dict[str, str]:
+    """Python's version and each of `NUMERIC_LIBRARIES` this process imported (none is imported here)."""
+    found = {"python": ".".join(map(str, sys.version_info[:3]))}
+    for name in NUMERIC_LIBRARIES:
+        if name in sys.modules:
+            found[name] = str(getattr(sys.modules[name], "__version__", "?"))
+    return found
+
+
 def record(command: str) -> dict:
     """The clock as a JSON-able record (`<phase>_s`, and `process_s`, the process's life) of `command`, with the
-    process's `usage` (`cpu_s`, `max_rss_mib`) and, where it imported PyTorch, the CPU kernels PyTorch chose
-    (`cpu_capability`: DEFAULT, AVX2, AVX512, ...)."""
+    process's `usage` (`cpu_s`, `max_rss_mib`), the `versions` it ran under and, where it imported PyTorch, the
+    CPU kernels PyTorch chose (`cpu_capability`: DEFAULT, AVX2, AVX512, ...)."""
     out: dict = {f"{k}_s": round(v, 3) for k, v in totals().items()}
     out["process_s"] = round(sum(out.values()), 3)
     out.update({k: round(v, 3) for k, v in usage().items()})
     if "torch" in sys.modules:  # the CPU kernels it ran (its vector unit changes the last bits): no import here
         out["cpu_capability"] = sys.modules["torch"].backends.cpu.get_cpu_capability()
+    out["versions"] = versions()
     out["command"] = command
     return out

@@ -9,6 +9,7 @@ from pathlib import Path
 import numpy as np
 
 from diffshadow.io import atomic_path, atomic_write_text
+from diffshadow.phases import NUMERIC_LIBRARIES
 
 
 def shading_name(phong: bool) -> str:
@@ -468,21 +469,39 @@ def stage_costs(benchmarks: list[Path], out: Path) -> list[dict]:
     return [*table, total, elapsed]
 
 
-def mixed_cpu_kernels(benchmarks: list[Path]) -> str | None:
-    """A warning when a run's jobs ran on different PyTorch CPU kernels (`cpu_capability` in their phases files:
-    the vector unit changes the last bits, so such jobs' results are not comparable bit for bit), naming each
-    kind's jobs; None when they agree or none recorded them."""
+def _jobs_by(benchmarks: list[Path], value) -> dict[str, list[str]]:
+    """The jobs (their benchmark files' stems) by `value(phases record)`; jobs whose record gives None (no
+    record, an older run's, or a job without that library) are left out."""
     kinds: dict[str, list[str]] = {}
     for path in benchmarks:
-        kind = (_phases_record(path)[1] or {}).get("cpu_capability")
+        kind = value(_phases_record(path)[1] or {})
         if isinstance(kind, str):
             kinds.setdefault(kind, []).append(Path(path).stem)
-    if len(kinds) < 2:
-        return None
-    parts = "; ".join(f"{kind}: {', '.join(sorted(jobs)[:5])}{' ...' if len(jobs) > 5 else ''} "
-                      f"({len(jobs)} job{'s' if len(jobs) > 1 else ''})" for kind, jobs in sorted(kinds.items()))
-    return (f"WARNING: this run's jobs ran on different PyTorch CPU kernels ({parts}); their results differ in the "
-            "last bits")
+    return kinds
+
+
+def _named(kinds: dict[str, list[str]]) -> str:
+    return "; ".join(f"{kind}: {', '.join(sorted(jobs)[:5])}{' ...' if len(jobs) > 5 else ''} "
+                     f"({len(jobs)} job{'s' if len(jobs) > 1 else ''})" for kind, jobs in sorted(kinds.items()))
+
+
+def mixed_runtimes(benchmarks: list[Path]) -> list[str]:
+    """Warnings when a run's jobs ran on different PyTorch CPU kernels (`cpu_capability` in their phases files:
+    the vector unit changes the last bits) or under different releases of Python or a numeric library (their
+    `versions`: a run resumed after an upgrade), each naming the jobs of each kind; none when they agree. Such
+    jobs' results are not comparable bit for bit."""
+    said = []
+    kernels = _jobs_by(benchmarks, lambda r: r.get("cpu_capability"))
+    if len(kernels) > 1:
+        said.append(f"WARNING: this run's jobs ran on different PyTorch CPU kernels ({_named(kernels)}); their "
+                    "results differ in the last bits")
+    for name in ("python", *NUMERIC_LIBRARIES):
+        releases = _jobs_by(benchmarks, lambda r, name=name: r["versions"].get(name)
+                            if isinstance(r.get("versions"), dict) else None)
+        if len(releases) > 1:
+            said.append(f"WARNING: this run's jobs ran under different releases of {name} ({_named(releases)}); "
+                        "their results may differ")
+    return said
 
 
 ELAPSED_ROW = "elapsed (a job running)"

@@ -126,18 +126,42 @@ def test_a_jobs_cpu_seconds_and_peak_are_the_larger_of_snakemakes_polls_and_its_
         stage_costs([tmp_path / "lights.tsv"], tmp_path / "costs.tsv")
 
 
-def test_jobs_on_different_cpu_kernels_are_named(tmp_path):
-    """A run whose jobs ran on different PyTorch CPU kernels (their phases files' cpu_capability) is warned of, each
+def test_jobs_on_different_cpu_kernels_or_library_releases_are_named(tmp_path):
+    """A run whose jobs ran on different PyTorch CPU kernels (their phases files' cpu_capability), or under
+    different releases of a numeric library (their `versions`: a run resumed after an upgrade), is warned of, each
     kind with its jobs; jobs that agree, or recorded none (torch-free jobs, older runs), are not."""
-    from diffshadow.report import mixed_cpu_kernels
+    from diffshadow.report import mixed_runtimes
 
-    def job(name: str, kind: str | None):
-        (tmp_path / f"{name}.phases.json").write_text(json.dumps({"compute_s": 1.0, **({"cpu_capability": kind}
-                                                                                      if kind else {})}))
+    def job(name: str, kind: str | None, torch_release: str | None = "2.13.0"):
+        (tmp_path / f"{name}.phases.json").write_text(json.dumps({
+            "compute_s": 1.0, **({"cpu_capability": kind} if kind else {}),
+            "versions": {"python": "3.11.7", "numpy": "2.5.5", **({"torch": torch_release} if torch_release else {})}}))
         return tmp_path / f"{name}.tsv"
 
-    agree = [job("fit_siren_0", "AVX2"), job("fit_siren_1", "AVX2"), job("lights", None), tmp_path / "old.tsv"]
-    assert mixed_cpu_kernels(agree) is None and mixed_cpu_kernels([]) is None
-    said = mixed_cpu_kernels([*agree, job("fit_siren_2", "DEFAULT")])
-    assert said == ("WARNING: this run's jobs ran on different PyTorch CPU kernels (AVX2: fit_siren_0, fit_siren_1 "
-                    "(2 jobs); DEFAULT: fit_siren_2 (1 job)); their results differ in the last bits")
+    agree = [job("fit_siren_0", "AVX2"), job("fit_siren_1", "AVX2"), job("lights", None, None), tmp_path / "old.tsv"]
+    (tmp_path / "odd.phases.json").write_text(json.dumps({"compute_s": 1.0, "versions": "2.13"}))  # not ours
+    assert mixed_runtimes([*agree, tmp_path / "odd.tsv"]) == [] and mixed_runtimes([]) == []
+    said = mixed_runtimes([*agree, job("fit_siren_2", "DEFAULT")])
+    assert said == ["WARNING: this run's jobs ran on different PyTorch CPU kernels (AVX2: fit_siren_0, fit_siren_1 "
+                    "(2 jobs); DEFAULT: fit_siren_2 (1 job)); their results differ in the last bits"]
+    said = mixed_runtimes([*agree, job("fit_siren_2", "AVX2", "2.3.0+cu121")])
+    assert said == ["WARNING: this run's jobs ran under different releases of torch (2.13.0: fit_siren_0, "
+                    "fit_siren_1 (2 jobs); 2.3.0+cu121: fit_siren_2 (1 job)); their results may differ"]
+
+
+def test_a_jobs_record_names_the_releases_it_ran_under_without_importing_them():
+    import subprocess
+    import sys
+
+    code = ("import json, sys; from diffshadow.phases import record; r = record('x'); "
+            "print(json.dumps([r['versions'], sorted(m for m in ('torch', 'zarr', 'scipy') if m in sys.modules)]))")
+    found, imported = json.loads(subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                                                check=True).stdout)
+    assert found == {"python": ".".join(map(str, sys.version_info[:3]))} and imported == []
+    import numpy
+    import torch
+
+    from diffshadow.phases import record
+
+    versions = record("x")["versions"]
+    assert versions["torch"] == torch.__version__ and versions["numpy"] == numpy.__version__
