@@ -469,14 +469,14 @@ def stage_costs(benchmarks: list[Path], out: Path) -> list[dict]:
     return [*table, total, elapsed]
 
 
-def _jobs_by(benchmarks: list[Path], value) -> dict[str, list[str]]:
-    """The jobs (their benchmark files' stems) by `value(phases record)`; jobs whose record gives None (no
-    record, an older run's, or a job without that library) are left out."""
+def _jobs_by(records: list[tuple[str, dict]], value) -> dict[str, list[str]]:
+    """The jobs' names by `value(phases record)`; jobs whose record gives None (no record, an older run's, or a
+    job without that library) are left out."""
     kinds: dict[str, list[str]] = {}
-    for path in benchmarks:
-        kind = value(_phases_record(path)[1] or {})
+    for job, record in records:
+        kind = value(record)
         if isinstance(kind, str):
-            kinds.setdefault(kind, []).append(Path(path).stem)
+            kinds.setdefault(kind, []).append(job)
     return kinds
 
 
@@ -490,13 +490,14 @@ def mixed_runtimes(benchmarks: list[Path]) -> list[str]:
     the vector unit changes the last bits) or under different releases of Python or a numeric library (their
     `versions`: a run resumed after an upgrade), each naming the jobs of each kind; none when they agree. Such
     jobs' results are not comparable bit for bit."""
+    records = [(Path(path).stem, _phases_record(path)[1] or {}) for path in benchmarks]
     said = []
-    kernels = _jobs_by(benchmarks, lambda r: r.get("cpu_capability"))
+    kernels = _jobs_by(records, lambda r: r.get("cpu_capability"))
     if len(kernels) > 1:
         said.append(f"WARNING: this run's jobs ran on different PyTorch CPU kernels ({_named(kernels)}); their "
                     "results differ in the last bits")
     for name in ("python", *NUMERIC_LIBRARIES):
-        releases = _jobs_by(benchmarks, lambda r, name=name: r["versions"].get(name)
+        releases = _jobs_by(records, lambda r, name=name: r["versions"].get(name)
                             if isinstance(r.get("versions"), dict) else None)
         if len(releases) > 1:
             said.append(f"WARNING: this run's jobs ran under different releases of {name} ({_named(releases)}); "
