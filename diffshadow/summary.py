@@ -12,7 +12,7 @@ import numpy as np
 
 from diffshadow.io import atomic_write_text
 from diffshadow.lights import OLD_WEIGHTING, blend_label, describe_blend
-from diffshadow.report import ELAPSED_ROW, PHASE_COLUMNS, label_image
+from diffshadow.report import ELAPSED_ROW, PHASE_COLUMNS, label_image, mixed_runtimes
 
 MIB = 2**20
 
@@ -153,6 +153,8 @@ class RunResults:
         if total:
             rows.append(("run cost", (f"{float(elapsed['wall_s']) / 60:.1f} min elapsed, " if elapsed else "")
                          + f"{float(total['wall_s']) / 60:.1f} min summed over {int(total['jobs'])} jobs"))
+        if mixed := mixed_runtimes(sorted(self.results.glob("benchmarks/*.tsv"))):
+            rows.append(("WARNING: mixed runtimes", " ".join(w.removeprefix("WARNING: ") for w in mixed)))
         if self.choice:
             rows.append(("shadow cache chosen (cache: auto)", self.choice["why"]))
         if "seconds_per_inr" in v:

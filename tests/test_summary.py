@@ -178,6 +178,17 @@ def test_a_mixed_cache_counts_both_its_parts_and_says_how_it_answers(tmp_path):
     assert rows["generated, seen lights"] == "40.72 dB (-0.55 dB against stage 1; the model alone 40.23 dB)"
     assert rows["generated, unseen lights"].endswith("nearest training SIREN 23.80 dB; the model alone 35.74 dB)")
     assert rows["the cache's answer"] == mix_words(mixed["mix"])
+    assert not any(name.startswith("WARNING") for name in rows)
+    # a run resumed after an upgrade: its front page says so, naming the jobs
+    (tmp_path / "benchmarks").mkdir()
+    for job, release in (("fit_siren_0", "2.13.0"), ("fit_siren_1", "2.3.0"), ("lights", None)):
+        (tmp_path / "benchmarks" / f"{job}.tsv").write_text("s\n1\n")
+        (tmp_path / "benchmarks" / f"{job}.phases.json").write_text(json.dumps(
+            {"compute_s": 1.0, "versions": {"python": "3.11.7", **({"torch": release} if release else {})}}))
+    rows = dict(RunResults(tmp_path, "blob").headline())
+    assert rows["WARNING: mixed runtimes"] == ("this run's jobs ran under different releases of torch (2.13.0: "
+                                               "fit_siren_0 (1 job); 2.3.0: fit_siren_1 (1 job)); their results "
+                                               "may differ")
 
 
 def test_the_sampler_timings_name_their_device():
