@@ -470,7 +470,7 @@ def stage_costs(benchmarks: list[Path], out: Path) -> list[dict]:
 
 
 def _jobs_by(records: list[tuple[str, dict]], value) -> dict[str, list[str]]:
-    """The jobs' names by `value(phases record)`; jobs whose record gives None (no record, an older run's, or a
+    """The jobs' names by `value(record)`; jobs for which it gives None (no phases record, an older run's, or a
     job without that library) are left out."""
     kinds: dict[str, list[str]] = {}
     for job, record in records:
@@ -496,9 +496,9 @@ def mixed_runtimes(benchmarks: list[Path]) -> list[str]:
     if len(kernels) > 1:
         said.append(f"WARNING: this run's jobs ran on different PyTorch CPU kernels ({_named(kernels)}); their "
                     "results differ in the last bits")
+    versions = [(job, r["versions"] if isinstance(r.get("versions"), dict) else {}) for job, r in records]
     for name in ("python", *NUMERIC_LIBRARIES):
-        releases = _jobs_by(records, lambda r, name=name: r["versions"].get(name)
-                            if isinstance(r.get("versions"), dict) else None)
+        releases = _jobs_by(versions, lambda v, name=name: v.get(name))
         if len(releases) > 1:
             said.append(f"WARNING: this run's jobs ran under different releases of {name} ({_named(releases)}); "
                         "their results may differ")

@@ -118,6 +118,7 @@ class RunResults:
         costs = results / "stage_costs.tsv"
         lines = costs.read_text().splitlines() if costs.exists() else []
         self.costs = [dict(zip(lines[0].split("\t"), line.split("\t"), strict=True)) for line in lines[1:]]
+        self.mixed = mixed_runtimes(sorted(results.glob("benchmarks/*.tsv")))  # the jobs' phases files
 
     def headline(self) -> list[tuple[str, str]]:
         v, seen, unseen = self.voxel, self.voxel["seen"], self.voxel.get("unseen")
@@ -153,8 +154,8 @@ class RunResults:
         if total:
             rows.append(("run cost", (f"{float(elapsed['wall_s']) / 60:.1f} min elapsed, " if elapsed else "")
                          + f"{float(total['wall_s']) / 60:.1f} min summed over {int(total['jobs'])} jobs"))
-        if mixed := mixed_runtimes(sorted(self.results.glob("benchmarks/*.tsv"))):
-            rows.append(("WARNING: mixed runtimes", " ".join(w.removeprefix("WARNING: ") for w in mixed)))
+        if self.mixed:
+            rows.append(("WARNING: mixed runtimes", " ".join(w.removeprefix("WARNING: ") for w in self.mixed)))
         if self.choice:
             rows.append(("shadow cache chosen (cache: auto)", self.choice["why"]))
         if "seconds_per_inr" in v:

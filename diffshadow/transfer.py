@@ -224,8 +224,9 @@ def _points(key: str, value, width: int) -> np.ndarray:
         raise TransferFunctionError(f"transfer function: {key} needs at least 2 points, got {arr.shape[0]}")
     if not np.all(np.isfinite(arr)):
         raise TransferFunctionError(f"transfer function: {key} has non-finite values")
-    if np.any(arr < 0) or np.any(arr > 1):
-        i = int(np.flatnonzero(((arr < 0) | (arr > 1)).any(axis=1))[0])
+    outside = ((arr < 0) | (arr > 1)).any(axis=1)
+    if outside.any():
+        i = int(np.flatnonzero(outside)[0])
         raise TransferFunctionError(f"transfer function: {key} values must lie in [0, 1], the position s as well as "
                                     f"the {'opacity' if width == 2 else 'r, g, b'}; point {i} is {arr[i].tolist()}")
     if np.any(np.diff(arr[:, 0]) < 0):
