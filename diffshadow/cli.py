@@ -110,6 +110,13 @@ def _ddp_processes(a):
     print(n)
 
 
+def _torchrun(a):
+    from diffshadow.hpc import launch_ranks
+
+    if code := launch_ranks(a.torchrun_args):
+        raise SystemExit(code)
+
+
 def _eval_truth(a):
     from diffshadow.stages import stage2
 
@@ -373,6 +380,12 @@ def build_parser() -> argparse.ArgumentParser:
     p = _add(sub, "ddp-processes", _ddp_processes, "how many DDP processes to launch here (prints a number)",
              out=False)
     p.add_argument("--nproc", type=int, required=True, help="processes asked for (finetune.nproc)")
+    # torchrun's own options pass through untouched ("-" is not this parser's prefix)
+    p = sub.add_parser("torchrun", prefix_chars="+", add_help=False,
+                       help="torchrun with its own arguments, ending in one line where a rank fails (the workflow's "
+                       "DDP launcher; `diffshadow torchrun --help` is torchrun's)")
+    p.add_argument("torchrun_args", nargs=argparse.REMAINDER)
+    p.set_defaults(func=_torchrun)
     p = _add(sub, "eval-truth", _eval_truth, "evaluation points and the exact shadow of every light at them "
              "(the workflow passes --device cpu unless evaluate.device is run)", "volume", "lights")
     p.add_argument("--eval-points", type=int, default=evaluate["points"], help="points per set (box, visible; "
@@ -583,7 +596,7 @@ def main(argv: list[str] | None = None) -> None:
     if hasattr(sys.stdout, "reconfigure"):
         sys.stdout.reconfigure(line_buffering=True)
     try:
-        if args.command not in _NO_TORCH:
+        if args.command not in _NO_TORCH and args.command != "torchrun":  # the ranks set up their own
             import torch  # noqa: F401  (here, so that its import is timed as such, not as the stage's compute)
 
             from diffshadow.runtime import claim_gpu_lock, keep_freed_memory, set_threads, vector_unit_warning

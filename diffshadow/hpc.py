@@ -15,6 +15,7 @@ import filecmp
 import json
 import os
 import platform
+import signal
 import subprocess
 import sys
 import time
@@ -118,6 +119,51 @@ def ddp_processes(requested: int, gpus: int | None) -> tuple[int, str]:
     if requested > gpus:
         return gpus, f"finetune.nproc is {requested} but {gpus} GPU(s) are visible: running {gpus} process(es)"
     return requested, f"{requested} process(es), one GPU each (NCCL)"
+
+
+def launch_ranks(argv: list[str]) -> int:
+    """torchrun with its own arguments `argv`; its exit status. Where ranks fail, one line says which and how
+    (`ranks_failed`), in place of torchrun's traceback from inside its launcher (~40 lines that ended every
+    failed fine-tuning log, below the ranks' own one-line errors). Each rank is launched as torchrun launches
+    it, with OMP_NUM_THREADS 1 where torchrun would set it (here without its four-line banner in every log)."""
+    from torch.distributed.elastic.multiprocessing.errors import ChildFailedError
+    from torch.distributed.run import determine_local_world_size, parse_args, run
+
+    args = parse_args(argv)
+    if "OMP_NUM_THREADS" not in os.environ and determine_local_world_size(args.nproc_per_node) > 1:
+        os.environ["OMP_NUM_THREADS"] = "1"
+    try:
+        run(args)
+    except ChildFailedError as e:
+        line, code = ranks_failed({rank: failure.exitcode for rank, failure in e.failures.items()})
+        print(f"diffshadow torchrun: {line}", file=sys.stderr, flush=True)
+        return code
+    return 0
+
+
+def ranks_failed(exit_codes: dict[int, int]) -> tuple[str, int]:
+    """One line on a DDP job's failed ranks (rank: exit code, negative for a signal, as torchrun reports them) and
+    the job's exit status. torchrun counts the ranks it stopped itself (SIGTERM) among the failures and dates each
+    failure to the second, so its "first observed failure" could name a rank it stopped: the causes are the
+    others, a rank ended by a signal before one that exited with an error (a rank that loses its peer exits
+    with 1, a consequence); the status is the first cause's (128 + the signal's number, as a shell says it)."""
+    stopped = {r for r, c in exit_codes.items() if c == -signal.SIGTERM}
+    causes = sorted(set(exit_codes) - stopped or stopped, key=lambda r: (exit_codes[r] >= 0, r))
+
+    def how(code: int) -> str:
+        if code >= 0:
+            return f"exited with code {code}"
+        try:
+            return f"was ended by {signal.Signals(-code).name}"
+        except ValueError:
+            return f"was ended by signal {-code}"
+
+    line = "; ".join(f"rank {r} {how(exit_codes[r])}" for r in causes)
+    if rest := sorted(set(exit_codes) - set(causes)):
+        line += f"; torchrun then stopped rank(s) {', '.join(map(str, rest))}"
+    first = exit_codes[causes[0]]
+    return line + "; each rank's own error, where it printed one, is above", (128 - first if first < 0
+                                                                              else first or 1)
 
 
 def claim_gpu(n_gpus: int, *, lock_dir: str | Path | None = None, wait_s: float = 3600.0,

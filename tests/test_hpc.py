@@ -508,3 +508,44 @@ def test_the_ddp_helper_starts_without_torch_where_no_gpu_can_be():
     imported = imported_modules(done.stderr)
     assert "diffshadow.hpc" in imported and not [m for m in imported if m.split(".")[0] == "torch"]
     assert done.stdout.strip() == "3" and "3 CPU process(es) (gloo)" in done.stderr
+
+
+def _torchrun(*args: str) -> subprocess.CompletedProcess:
+    env = {k: v for k, v in os.environ.items() if k != "OMP_NUM_THREADS"}
+    return subprocess.run([str(DIFFSHADOW), "torchrun", "--standalone", "--nproc_per_node=2", "--no-python", *args],
+                          capture_output=True, text=True, env=env, timeout=120)
+
+
+def test_the_ddp_launcher_ends_a_failed_job_in_one_line_with_the_ranks_exit_code():
+    """finetune_render's launcher (`diffshadow torchrun`): where a rank fails, the log ends with one line naming
+    it, not torchrun's traceback, and the job exits with the rank's code; each rank gets OMP_NUM_THREADS 1 as
+    under torchrun, without torchrun's banner."""
+    ok = _torchrun("sh", "-c", 'test "$OMP_NUM_THREADS" = 1')
+    assert ok.returncode == 0, ok.stderr
+    assert "OMP_NUM_THREADS environment variable" not in ok.stderr
+    failed = _torchrun("sh", "-c", 'echo "rank $RANK: error: bad input" >&2; exit 3')
+    assert failed.returncode == 3
+    last = failed.stderr.strip().splitlines()[-1]
+    assert re.fullmatch(r"diffshadow torchrun: rank [01] exited with code 3(; rank [01] exited with code 3|; "
+                        r"torchrun then stopped rank\(s\) [01]); each rank's own error, where it printed one, is "
+                        r"above", last), last
+    assert "error: bad input" in failed.stderr and "Traceback" not in failed.stderr
+    # (torchrun reads "$$" in its arguments as an escaped "$")
+    kill = "import os; os.kill(os.getpid(), 9) if os.environ['RANK'] == '1' else __import__('time').sleep(60)"
+    killed = _torchrun(sys.executable, "-c", kill)
+    assert killed.returncode == 128 + 9, killed.stderr
+    assert killed.stderr.strip().splitlines()[-1].startswith("diffshadow torchrun: rank 1 was ended by SIGKILL; ")
+    assert "Traceback" not in killed.stderr
+
+
+def test_a_failed_ddp_jobs_line_names_the_causes_not_the_ranks_torchrun_stopped():
+    from diffshadow.hpc import ranks_failed
+
+    tail = "; each rank's own error, where it printed one, is above"
+    # rank 1 killed (the OOM killer), rank 0 then lost its peer (exit 1), both dated to the same second by torchrun
+    assert ranks_failed({0: 1, 1: -9}) == ("rank 1 was ended by SIGKILL; rank 0 exited with code 1" + tail, 137)
+    assert ranks_failed({0: -15, 1: 2, 2: -15}) == ("rank 1 exited with code 2; torchrun then stopped rank(s) 0, 2"
+                                                    + tail, 2)
+    # every rank ended by SIGTERM (the scheduler's walltime): each is a cause
+    assert ranks_failed({1: -15, 0: -15}) == ("rank 0 was ended by SIGTERM; rank 1 was ended by SIGTERM" + tail,
+                                              143)

@@ -18,7 +18,7 @@ _SCENES = {}
 # job): the run's `device` (the CLI's --config-device; --device and DIFFSHADOW_DEVICE win) and the launcher of
 # finetune_render's DDP processes. A PBS job parses this file again, so it gets them too.
 os.environ.update(DIFFSHADOW_CONFIG_DEVICE=config.get("device", "auto"),
-                  DIFFSHADOW_TORCHRUN=config.get("torchrun", "torchrun --standalone"))
+                  DIFFSHADOW_TORCHRUN=config.get("torchrun", "diffshadow torchrun --standalone"))
 # MKL in strict reproducible mode, so a job's bytes do not depend on its thread count (a user's own setting wins)
 for _key, _value in _JOB_ENVIRONMENT.items():
     os.environ.setdefault(_key, _value)
