@@ -130,7 +130,11 @@ def launch_ranks(argv: list[str]) -> int:
     from torch.distributed.run import determine_local_world_size, parse_args, run
 
     args = parse_args(argv)
-    if "OMP_NUM_THREADS" not in os.environ and determine_local_world_size(args.nproc_per_node) > 1:
+    try:
+        processes = determine_local_world_size(args.nproc_per_node)
+    except ValueError as e:  # torchrun's own check of its argument, named as ours
+        raise ValueError(f"--nproc_per_node: {e}") from None
+    if "OMP_NUM_THREADS" not in os.environ and processes > 1:
         os.environ["OMP_NUM_THREADS"] = "1"
     try:
         run(args)

@@ -533,6 +533,10 @@ def test_the_ddp_launcher_ends_a_failed_job_in_one_line_with_the_ranks_exit_code
     # (torchrun reads "$$" in its arguments as an escaped "$")
     kill = "import os; os.kill(os.getpid(), 9) if os.environ['RANK'] == '1' else __import__('time').sleep(60)"
     killed = _torchrun(sys.executable, "-c", kill)
+    bad = subprocess.run([str(DIFFSHADOW), "torchrun", "--nproc_per_node=two", "-m", "x"], capture_output=True,
+                         text=True)
+    assert bad.returncode == 2 and bad.stderr.count("\n") == 1, bad.stderr
+    assert bad.stderr.startswith("diffshadow torchrun: error: --nproc_per_node: ") and "two" in bad.stderr
     assert killed.returncode == 128 + 9, killed.stderr
     assert killed.stderr.strip().splitlines()[-1].startswith("diffshadow torchrun: rank 1 was ended by SIGKILL; ")
     assert "Traceback" not in killed.stderr
