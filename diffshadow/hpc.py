@@ -123,9 +123,11 @@ def ddp_processes(requested: int, gpus: int | None) -> tuple[int, str]:
 
 def launch_ranks(argv: list[str]) -> int:
     """torchrun with its own arguments `argv`; its exit status. Where ranks fail, one line says which and how
-    (`ranks_failed`), in place of torchrun's traceback from inside its launcher (~40 lines that ended every
-    failed fine-tuning log, below the ranks' own one-line errors). Each rank is launched as torchrun launches
-    it, with OMP_NUM_THREADS 1 where torchrun would set it (here without its four-line banner in every log)."""
+    (`ranks_failed`), and where the launcher is signalled, one line says so, in place of torchrun's traceback from
+    inside its launcher (~40 lines that ended every failed fine-tuning log, below the ranks' own one-line
+    errors). Each rank is launched as torchrun launches it, with OMP_NUM_THREADS 1 where torchrun would set it
+    (here without its four-line banner in every log)."""
+    from torch.distributed.elastic.multiprocessing.api import SignalException
     from torch.distributed.elastic.multiprocessing.errors import ChildFailedError
     from torch.distributed.run import determine_local_world_size, parse_args, run
 
@@ -142,6 +144,10 @@ def launch_ranks(argv: list[str]) -> int:
         line, code = ranks_failed({rank: failure.exitcode for rank, failure in e.failures.items()})
         print(f"diffshadow torchrun: {line}", file=sys.stderr, flush=True)
         return code
+    except SignalException as e:  # the launcher itself was signalled (a scheduler's walltime): it stops the ranks
+        name = signal.Signals(e.sigval).name
+        print(f"diffshadow torchrun: ended by {name}, and its ranks with it", file=sys.stderr, flush=True)
+        return 128 + int(e.sigval)
     return 0
 
 

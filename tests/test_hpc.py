@@ -553,3 +553,28 @@ def test_a_failed_ddp_jobs_line_names_the_causes_not_the_ranks_torchrun_stopped(
     # every rank ended by SIGTERM (the scheduler's walltime): each is a cause
     assert ranks_failed({1: -15, 0: -15}) == ("rank 0 was ended by SIGTERM; rank 1 was ended by SIGTERM" + tail,
                                               143)
+
+
+def test_the_ddp_launcher_signalled_stops_its_ranks_and_says_so_in_one_line():
+    """A scheduler's walltime signals the launcher: the ranks end with it, and the log ends in one line (torchrun:
+    a traceback from inside its agent)."""
+    import signal
+    import time
+
+    proc = subprocess.Popen([str(DIFFSHADOW), "torchrun", "--standalone", "--nproc_per_node=2", "--no-python",
+                             "sleep", "60"], stderr=subprocess.PIPE, text=True)
+    deadline = time.time() + 60
+    while time.time() < deadline:
+        ranks = subprocess.run(["pgrep", "-P", str(proc.pid)], capture_output=True, text=True).stdout.split()
+        if len(ranks) == 2:
+            break
+        time.sleep(0.1)
+    assert len(ranks) == 2, ranks
+    proc.send_signal(signal.SIGTERM)
+    err = proc.communicate(timeout=60)[1]
+    assert proc.returncode == 128 + signal.SIGTERM, err
+    assert err.strip().splitlines()[-1] == "diffshadow torchrun: ended by SIGTERM, and its ranks with it", err
+    assert "Traceback" not in err
+    for pid in ranks:
+        with pytest.raises(ProcessLookupError):
+            os.kill(int(pid), 0)
