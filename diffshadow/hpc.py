@@ -1,6 +1,7 @@
-"""Running on HPC systems: the environment every job runs in, a node-local GPU lock, the PBS job state for
-Snakemake, the profiles' install, the name of the device a figure was measured on. Nothing here imports PyTorch:
-the Snakefile imports this module in Snakemake's process and, on PBS, once more in every job's.
+"""Running on HPC systems: the environment every job runs in, a node-local GPU lock, the DDP launcher, the PBS
+job state for Snakemake, the profiles' install, the name of the device a figure was measured on. Nothing here
+imports PyTorch on import (the launcher and `device_name` import it when called): the Snakefile imports this
+module in Snakemake's process and, on PBS, once more in every job's.
 
 Snakemake does not assign GPU ids inside a node (snakemake issue #281). When several single-GPU jobs share
 a node (Polaris packs four `fit_siren` jobs per node), each job claims a GPU by taking an exclusive
@@ -172,8 +173,8 @@ def ranks_failed(exit_codes: dict[int, int]) -> tuple[str, int]:
     if rest := sorted(set(exit_codes) - set(causes)):
         line += f"; torchrun then stopped rank(s) {', '.join(map(str, rest))}"
     first = exit_codes[causes[0]]
-    return line + "; each rank's own error, where it printed one, is above", (128 - first if first < 0
-                                                                              else first or 1)
+    status = 128 - first if first < 0 else first or 1
+    return line + "; each rank's own error, where it printed one, is above", status
 
 
 def claim_gpu(n_gpus: int, *, lock_dir: str | Path | None = None, wait_s: float = 3600.0,
