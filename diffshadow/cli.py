@@ -587,6 +587,36 @@ def _lost_a_peer(e: RuntimeError) -> bool:
 
 _NO_ROOM = (errno.ENOSPC, errno.EDQUOT)  # a full disk, a full quota (an ALCF project's on /eagle)
 
+# the config keys that size each heavy command's largest allocations, named when it runs out of memory
+_MEMORY_KEYS = {
+    "preoptimize": "fit.points",
+    "fit-siren": "subset_size (SIRENs fitted together) or fit.points",
+    "train-data-inr": "data_inr.points",
+    "presample": "diffusion.presample_points",
+    "train-diffusion": "diffusion.batch_size or diffusion.geometry_points",
+    "finetune-render": "finetune.batch_size, finetune.pixels or finetune.val_points",
+    "eval-truth": "evaluate.points (--eval-points)",
+    "render-targets": "finetune.image_size",
+    "evaluate-images": "render.image_size",
+    "naive-images": "render.image_size",
+}
+
+
+def _out_of_memory(e: BaseException) -> str | None:
+    """torch's or numpy's message where `e` is an allocation that failed (a GPU's, the CPU allocator's, a numpy
+    array's), cut before CUDA's advice on its allocator's settings; else None."""
+    if isinstance(e, MemoryError):
+        return str(e) or "MemoryError"
+    text = str(e).strip()
+    if not (any(t.__name__ == "OutOfMemoryError" for t in type(e).__mro__)
+            or "can't allocate memory" in text or "out of memory" in text.lower()):
+        return None
+    text = text.splitlines()[0] if text else type(e).__name__
+    text = text.split("] err == 0. ")[-1]  # the CPU allocator's "[enforce fail at alloc_cpu.cpp:N]" prefix
+    for advice in (" Including non-PyTorch memory", " Of the allocated memory", " If reserved"):
+        text = text.split(advice)[0]
+    return text.strip()
+
 
 def main(argv: list[str] | None = None) -> None:
     from diffshadow import phases
@@ -613,7 +643,13 @@ def main(argv: list[str] | None = None) -> None:
     except ValueError as e:  # the library's input errors: one line, no traceback
         print(f"diffshadow {args.command}: error: {e}{_unchecked(e)}", file=sys.stderr)
         raise SystemExit(2) from None
-    except RuntimeError as e:
+    except (MemoryError, RuntimeError) as e:
+        if (reason := _out_of_memory(e)) is not None:  # a size too large for the machine: which keys set it
+            lower = _MEMORY_KEYS.get(args.command, "the sizes in this command's config section")
+            print(f"diffshadow {args.command}: error: out of memory ({reason}); lower {lower}, or run it where "
+                  f"there is more memory (a profile's mem_mb, a larger GPU); no earlier output was replaced",
+                  file=sys.stderr)
+            raise SystemExit(1) from None
         # a process of a DDP job whose peer stopped: one line, not a traceback from the collective it waited in
         # (each of a node's four ranks printed ~25 lines around the one line of the process that failed first)
         if not _lost_a_peer(e):

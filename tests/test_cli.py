@@ -71,6 +71,57 @@ def test_a_libraries_error_says_where_diffshadow_called_it(tmp_path, capsys, mon
     assert capsys.readouterr().err == "diffshadow lights: error: center: must be non-zero, got [0.0, 0.0, 0.0]\n"
 
 
+CUDA_OOM = ("CUDA out of memory. Tried to allocate 2.00 GiB. GPU 0 has a total capacity of 39.39 GiB of which 1.20 GiB "
+            "is free. Including non-PyTorch memory, this process has 38.17 GiB memory in use. Of the allocated memory "
+            "36.00 GiB is allocated by PyTorch. If reserved but unallocated memory is large try setting "
+            "PYTORCH_CUDA_ALLOC_CONF=expandable_segments:True to avoid fragmentation.")
+
+
+def _cpu_allocator():  # for real: the CPU allocator refuses at once
+    import torch
+
+    torch.empty(2**62, dtype=torch.uint8)
+
+
+def _numpy():  # for real
+    np.empty(2**62, dtype=np.uint8)
+
+
+def _cuda():  # as CUDA words it
+    import torch
+
+    raise torch.cuda.OutOfMemoryError(CUDA_OOM)
+
+
+def _not_memory():
+    raise RuntimeError("mat1 and mat2 shapes cannot be multiplied")
+
+
+@pytest.mark.parametrize("allocate, reason", [
+    (_cpu_allocator, "DefaultCPUAllocator: can't allocate memory: you tried to allocate 4611686018427387904 bytes."),
+    (_numpy, "Unable to allocate 4.00 EiB for an array"),
+    (_cuda, "CUDA out of memory. Tried to allocate 2.00 GiB. GPU 0 has a total capacity of 39.39 GiB of which 1.20 "
+     "GiB is free.);"),
+])
+def test_running_out_of_memory_is_one_line_naming_the_keys_that_size_the_stage(tmp_path, capsys, monkeypatch,
+                                                                                allocate, reason):
+    from diffshadow.stages import stage2
+
+    monkeypatch.setattr(stage2, "train_diffusion", lambda *a, **k: allocate())
+    argv = ["train-diffusion", "--weights", "w.zarr", "--points", "p.zarr", "--config-json", '{"diffusion": {}}',
+            "--out", str(tmp_path / "d.ckpt")]
+    with pytest.raises(SystemExit) as exit_info:
+        main(argv)
+    err = capsys.readouterr().err
+    assert exit_info.value.code == 1 and err.strip().count("\n") == 0, err
+    assert err.startswith("diffshadow train-diffusion: error: out of memory (") and reason in err, err
+    assert "lower diffusion.batch_size or diffusion.geometry_points" in err and "expandable_segments" not in err
+    # any other RuntimeError keeps its traceback (an unchecked case to report, not the user's size)
+    monkeypatch.setattr(stage2, "train_diffusion", lambda *a, **k: _not_memory())
+    with pytest.raises(RuntimeError, match="mat1 and mat2"):
+        main(argv)
+
+
 def test_a_ddp_process_whose_peer_stopped_says_so_in_one_line(tmp_path):
     """Under torchrun, a rank waiting in a collective when another process stops gets the backend's error (gloo's
     "Connection closed by peer" is a plain RuntimeError from inside torch.distributed): one line naming the rank and
