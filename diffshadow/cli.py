@@ -658,6 +658,10 @@ def main(argv: list[str] | None = None) -> None:
         print(f"diffshadow {args.command}: rank {os.environ.get('RANK', '0')}: error: the job's processes lost "
               f"touch ({reason}); a process that stopped first says why", file=sys.stderr)
         raise SystemExit(1) from None
+    except KeyboardInterrupt:  # Ctrl-C on a command typed by hand (under Snakemake, `tee` ends with the job)
+        print(f"diffshadow {args.command}: interrupted; no earlier output was replaced, and a long stage run again "
+              f"resumes from its last checkpoint", file=sys.stderr)
+        raise SystemExit(130) from None
     except OSError as e:  # a path given that cannot be read or written: the path and why, in one line
         if e.filename is None:
             raise

@@ -122,6 +122,23 @@ def test_running_out_of_memory_is_one_line_naming_the_keys_that_size_the_stage(t
         main(argv)
 
 
+def test_an_interrupted_command_says_so_in_one_line(tmp_path, capsys, monkeypatch):
+    """Ctrl-C on a command typed by hand: one line and the shell's status for SIGINT, not a traceback from wherever
+    the step was."""
+    from diffshadow.stages import stage2
+
+    def interrupted(*a, **k):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(stage2, "train_diffusion", interrupted)
+    with pytest.raises(SystemExit) as exit_info:
+        main(["train-diffusion", "--weights", "w.zarr", "--points", "p.zarr", "--config-json", '{"diffusion": {}}',
+              "--out", str(tmp_path / "d.ckpt")])
+    assert exit_info.value.code == 130
+    assert capsys.readouterr().err == ("diffshadow train-diffusion: interrupted; no earlier output was replaced, and "
+                                       "a long stage run again resumes from its last checkpoint\n")
+
+
 def test_a_ddp_process_whose_peer_stopped_says_so_in_one_line(tmp_path):
     """Under torchrun, a rank waiting in a collective when another process stops gets the backend's error (gloo's
     "Connection closed by peer" is a plain RuntimeError from inside torch.distributed): one line naming the rank and
