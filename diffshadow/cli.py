@@ -607,11 +607,10 @@ def _out_of_memory(e: BaseException) -> str | None:
     array's), cut before CUDA's advice on its allocator's settings; else None."""
     if isinstance(e, MemoryError):
         return str(e) or "MemoryError"
-    text = str(e).strip()
-    if not (any(t.__name__ == "OutOfMemoryError" for t in type(e).__mro__)
-            or "can't allocate memory" in text or "out of memory" in text.lower()):
+    text = str(e).strip()  # torch's OutOfMemoryError (CUDA, HIP, MPS) says "out of memory", its CPU allocator this
+    if "can't allocate memory" not in text and "out of memory" not in text.lower():
         return None
-    text = text.splitlines()[0] if text else type(e).__name__
+    text = text.splitlines()[0]
     text = text.split("] err == 0. ")[-1]  # the CPU allocator's "[enforce fail at alloc_cpu.cpp:N]" prefix
     for advice in (" Including non-PyTorch memory", " Of the allocated memory", " If reserved"):
         text = text.split(advice)[0]

@@ -126,19 +126,17 @@ def launch_ranks(argv: list[str]) -> int:
     """torchrun with its own arguments `argv`; its exit status. Where ranks fail, one line says which and how
     (`ranks_failed`), and where the launcher is signalled, one line says so, in place of torchrun's traceback from
     inside its launcher (~40 lines that ended every failed fine-tuning log, below the ranks' own one-line
-    errors). Each rank is launched as torchrun launches it, with OMP_NUM_THREADS 1 where torchrun would set it
-    (here without its four-line banner in every log)."""
+    errors). The ranks are launched as torchrun launches them: the environment is torchrun's to set (under
+    Snakemake a rule's job already has OMP_NUM_THREADS, its threads, so torchrun leaves it)."""
     from torch.distributed.elastic.multiprocessing.api import SignalException
     from torch.distributed.elastic.multiprocessing.errors import ChildFailedError
     from torch.distributed.run import determine_local_world_size, parse_args, run
 
     args = parse_args(argv)
-    try:
-        processes = determine_local_world_size(args.nproc_per_node)
-    except ValueError as e:  # torchrun's own check of its argument, named as ours
+    try:  # torchrun's own check of its argument, before the launch, named as ours
+        determine_local_world_size(args.nproc_per_node)
+    except ValueError as e:
         raise ValueError(f"--nproc_per_node: {e}") from None
-    if "OMP_NUM_THREADS" not in os.environ and processes > 1:
-        os.environ["OMP_NUM_THREADS"] = "1"
     try:
         run(args)
     except ChildFailedError as e:

@@ -518,11 +518,10 @@ def _torchrun(*args: str) -> subprocess.CompletedProcess:
 
 def test_the_ddp_launcher_ends_a_failed_job_in_one_line_with_the_ranks_exit_code():
     """finetune_render's launcher (`diffshadow torchrun`): where a rank fails, the log ends with one line naming
-    it, not torchrun's traceback, and the job exits with the rank's code; each rank gets OMP_NUM_THREADS 1 as
-    under torchrun, without torchrun's banner."""
+    it, not torchrun's traceback, and the job exits with the rank's code; the ranks get the environment torchrun
+    gives them (OMP_NUM_THREADS 1 where none was set)."""
     ok = _torchrun("sh", "-c", 'test "$OMP_NUM_THREADS" = 1')
     assert ok.returncode == 0, ok.stderr
-    assert "OMP_NUM_THREADS environment variable" not in ok.stderr
     failed = _torchrun("sh", "-c", 'echo "rank $RANK: error: bad input" >&2; exit 3')
     assert failed.returncode == 3
     last = failed.stderr.strip().splitlines()[-1]
