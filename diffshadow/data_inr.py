@@ -15,9 +15,10 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from diffshadow.adam import set_lr
 from diffshadow.capacity import Rung, climb, ladder
 from diffshadow.config import ConfigError, changed_settings, section
-from diffshadow.graphs import adam, requested, set_lr
+from diffshadow.graphs import adam, requested
 from diffshadow.grid import cell_ranges, lookup_grids, voxel_points
 from diffshadow.io import atomic_torch_save, resume
 from diffshadow.metrics import psnr

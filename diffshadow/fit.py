@@ -17,9 +17,10 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from diffshadow.adam import Adam, set_lr
 from diffshadow.capacity import Choice, Rung, climb, ladder
 from diffshadow.config import changed_settings, section
-from diffshadow.graphs import StepGraphs, adam, requested, set_lr
+from diffshadow.graphs import StepGraphs, adam, requested
 from diffshadow.grid import lookup_grids, stack_channels_last
 from diffshadow.io import atomic_torch_save, resume
 from diffshadow.lights import BLEND_K, PoolLights, blend_weights, check_weighting, training_pool
@@ -192,7 +193,7 @@ class Targets:
         return transmittance_per_light(self.field, self.tf, self.lights, pts)
 
 
-def fit_step(weights: torch.Tensor, opt: torch.optim.Optimizer, pts: torch.Tensor, target: torch.Tensor,
+def fit_step(weights: torch.Tensor, opt: Adam, pts: torch.Tensor, target: torch.Tensor,
              layout: WeightLayout, siren: SirenConfig, extent: torch.Tensor, cfg: FitConfig, *, chunk: int,
              autocast, pool: PoolLights | None = None, pool_draw: tuple[torch.Tensor, torch.Tensor] | None = None,
              keep_grads: bool = False) -> torch.Tensor:

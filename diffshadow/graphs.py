@@ -8,13 +8,13 @@ with one launch. What a replay needs from the step, and what the geometry stage'
 - no host reads inside and nothing copied from the host (the schedule's and standardizer's tables are moved to the
   device once; tests/test_syncs.py counts both, the copies on the "meta" device);
 - its inputs in tensors the graph owns: each call copies the batch into them, then replays;
-- the optimizer's state and learning rate on the device (AdamW `capturable`, a tensor lr that StepLR fills);
+- the optimizer's state and learning rate on the device (AdamW `capturable`, a tensor lr that `adam.step_lr` fills);
 - gradients that stay where they are (zeroed in place, not dropped: `keep_grads`).
 What varies per step outside the tensors (the EMA's warm-up, the epoch a non-finite loss is recorded at) stays
 outside the graph, in the caller. A fit's update (`fit.SubsetFit.update`) and the data INR's
 (`data_inr.DataInrFit.update`) follow the same rules: their step's points (and pool picks) are drawn on the host
 first and are the graph's inputs, their Adam `capturable` with the cosine learning rate a device tensor that each
-step fills (`adam`, `set_lr`).
+step fills (`adam`, `diffshadow.adam.set_lr`).
 """
 
 from __future__ import annotations
@@ -24,6 +24,8 @@ from collections.abc import Callable
 from typing import Any
 
 import torch
+
+from diffshadow.adam import Adam
 
 WARMUP_CALLS = 3  # eager calls before the first capture, on a side stream (as PyTorch's CUDA graph notes ask)
 
@@ -82,24 +84,14 @@ def requested(setting: bool | str, key: str, device: torch.device, log=print, *,
     return StepGraphs(device)
 
 
-def adam(params, lr: float, graphed: bool) -> torch.optim.Adam:
+def adam(params, lr: float, graphed: bool) -> Adam:
     """Adam for a step that `StepGraphs` may replay (`graphed`): `capturable`, its learning rate a tensor on the
     parameters' device that `set_lr` fills; else plain Adam. (A checkpoint's fingerprint holds whether its run was
     graphed, so an optimizer never resumes the other kind's state.)"""
     params = list(params)
     if not graphed:
-        return torch.optim.Adam(params, lr=lr)
-    return torch.optim.Adam(params, lr=torch.tensor(lr, device=params[0].device), capturable=True)
-
-
-def set_lr(opt: torch.optim.Optimizer, lr: float) -> None:
-    """Each parameter group's learning rate for the next step: a graphed optimizer's tensor filled in place (a
-    replay reads it there), a plain one's number replaced."""
-    for group in opt.param_groups:
-        if isinstance(group["lr"], torch.Tensor):
-            group["lr"].fill_(lr)
-        else:
-            group["lr"] = lr
+        return Adam(params, lr)
+    return Adam(params, torch.tensor(lr, device=params[0].device), capturable=True)
 
 
 def tensor_fields(inputs: Any) -> dict[str, torch.Tensor | None]:

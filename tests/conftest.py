@@ -98,21 +98,12 @@ def stop_at(prefix: str):
 def default_device_meta():
     """Guard for the CUDA path on a machine without CUDA: a tensor made without naming its device lands
     on "meta" and fails as soon as it meets real data, as a CPU tensor fails next to CUDA tensors.
-
-    An optimizer's step runs with the real default: torch before 2.13 makes Adam's step count with a bare
-    `torch.tensor(0.0)`, on the host by design, and under "meta" that failed here though nothing of ours was
-    at fault (seen with torch 2.11 on a GPU machine)."""
-    from torch.optim.optimizer import register_optimizer_step_post_hook, register_optimizer_step_pre_hook
-
-    hooks = [register_optimizer_step_pre_hook(lambda *_: torch.set_default_device(None)),
-             register_optimizer_step_post_hook(lambda *_: torch.set_default_device("meta"))]
+    (diffshadow.adam names the host for Adam's step count, which PyTorch's own Adam kept there by design.)"""
     torch.set_default_device("meta")
     try:
         yield
     finally:
         torch.set_default_device(None)
-        for hook in hooks:
-            hook.remove()
 
 
 def cores() -> int:

@@ -9,6 +9,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from diffshadow.adam import Adam
 from diffshadow.io import atomic_write_text
 
 
@@ -17,7 +18,7 @@ def _sequential_step(cfg, x, y):
     from diffshadow.siren import Siren
 
     models = [Siren(cfg).to(x.device) for _ in range(len(x))]
-    opts = [torch.optim.Adam(m.parameters(), lr=1e-4) for m in models]
+    opts = [Adam(m.parameters(), lr=1e-4) for m in models]
 
     def step():
         for i, (m, o) in enumerate(zip(models, opts, strict=True)):
@@ -34,7 +35,7 @@ def _joint_step(cfg, x, y, chunk):
     layout = WeightLayout.for_siren(cfg)
     k, points = y.shape
     w = layout.flatten(init_siren(cfg)).expand(k, -1).clone().to(x.device).requires_grad_(True)
-    opt = torch.optim.Adam([w], lr=1e-4)
+    opt = Adam([w], lr=1e-4)
     c = chunk or points
 
     def step():

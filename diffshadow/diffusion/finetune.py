@@ -27,6 +27,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from diffshadow.adam import Adam
 from diffshadow.config import section
 from diffshadow.diffusion.config import DiffusionConfig, build_model, make_optimizer
 from diffshadow.diffusion.sample import generate, load_sampler, sampler_weights
@@ -245,7 +246,7 @@ class FinetuneCheckpoint:
         self.path, self.geometry_state, self.cfg, self.fp = path, geometry_state, cfg, fp
         self.selection, self.validated, self.rank, self.world = selection, validated, rank, world
 
-    def save(self, epoch: int, model, opt: torch.optim.Optimizer, *, last: bool) -> dict:
+    def save(self, epoch: int, model, opt: Adam, *, last: bool) -> dict:
         final = self.validated and last
         kept = self.selection.kept
         state = {**self.geometry_state, "model": kept if final else model.state_dict(), "ema": None,
@@ -261,7 +262,7 @@ class FinetuneCheckpoint:
         return state
 
 
-def train_step(model, base, opt: torch.optim.Optimizer, std: Standardizer, data: FinetuneData, z_all: torch.Tensor,
+def train_step(model, base, opt: Adam, std: Standardizer, data: FinetuneData, z_all: torch.Tensor,
                batch: list[int], rank: int, world: int, epoch: int, cfg: FinetuneConfig, dcfg: DiffusionConfig,
                schedule: Schedule, nonfinite: FirstNonFinite) -> torch.Tensor:
     """One optimiser step on this rank's share of the global `batch`; returns the loss parts (summed). The loss's

@@ -15,6 +15,7 @@ from pathlib import Path
 
 import torch
 
+from diffshadow.adam import Adam, step_lr
 from diffshadow.config import changed_settings
 from diffshadow.diffusion.config import DiffusionConfig, DiffusionError, build_model, make_optimizer
 from diffshadow.diffusion.geometry import geometry_error
@@ -263,7 +264,7 @@ def batch_loss(model: WeightTransformer, std: Standardizer, data: TrainingData, 
     return loss, loss_x0, loss_geo, pred_all
 
 
-def optimizer_step(model: WeightTransformer, opt: torch.optim.Optimizer, std: Standardizer, data: TrainingData,
+def optimizer_step(model: WeightTransformer, opt: Adam, std: Standardizer, data: TrainingData,
                    z_all: torch.Tensor, pool: PoolLights | None, batch: Batch, cfg: DiffusionConfig,
                    schedule: Schedule, *, keep_grads: bool = False) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """Loss, backward, gradient clip and AdamW on one batch: the loss and its x0 and geometry parts, detached, on
@@ -277,7 +278,7 @@ def optimizer_step(model: WeightTransformer, opt: torch.optim.Optimizer, std: St
     return loss.detach(), loss_x0.detach(), loss_geo.detach()
 
 
-def train_batch(model: WeightTransformer, opt: torch.optim.Optimizer, ema: Ema | None, std: Standardizer,
+def train_batch(model: WeightTransformer, opt: Adam, ema: Ema | None, std: Standardizer,
                 data: TrainingData, z_all: torch.Tensor, pool: PoolLights | None, batch: Batch, cfg: DiffusionConfig,
                 schedule: Schedule, nonfinite: FirstNonFinite, epoch: int, step: int,
                 graphs: StepGraphs | None = None) -> torch.Tensor:
@@ -329,15 +330,13 @@ def train_diffusion(data: TrainingData, cfg: DiffusionConfig, checkpoint: Path, 
     # bytes whatever the setting, so a CPU run resumes a checkpoint whichever it was asked)
     cfg = dataclasses.replace(cfg, cuda_graph=graphs is not None)
     opt = make_optimizer(model.parameters(), cfg.lr, cfg.weight_decay, capturable=graphs is not None)
-    sched = torch.optim.lr_scheduler.StepLR(opt, step_size=cfg.lr_step_epochs, gamma=cfg.lr_gamma)
     ema = Ema(model, cfg.ema) if cfg.ema > 0 else None
     sampled = ema.model if ema is not None else model  # the weights that sampling uses: checked, and the best kept
     fingerprint = _fingerprint(data, cfg)
     start, good, growth = 0, None, Growth(cfg)  # good: the epoch of the checkpoint resumed from or last saved
     if state := resume(checkpoint, fingerprint, log=log, map_location=device):
         model.load_state_dict(state["model"])
-        opt.load_state_dict(state["optimizer"])
-        sched.load_state_dict(state["scheduler"])
+        opt.load_state_dict(state["optimizer"])  # its learning rate is StepLR's, reached at `epoch`
         if ema is not None:
             ema.model.load_state_dict(state["ema"])
         start = good = int(state["epoch"])
@@ -346,7 +345,7 @@ def train_diffusion(data: TrainingData, cfg: DiffusionConfig, checkpoint: Path, 
 
     def save(epoch: int) -> dict:
         state = {"fingerprint": fingerprint, "epoch": epoch, "model": model.state_dict(),
-                 "optimizer": opt.state_dict(), "scheduler": sched.state_dict(),
+                 "optimizer": opt.state_dict(),
                  "ema": ema.model.state_dict() if ema is not None else None, "standardizer": std.state(),
                  "layout": data.layout.to_config(), "siren": data.siren.to_config(), "config": asdict(cfg),
                  "extent": data.extent.tolist(), "train_lights": data.lights.tolist(),
@@ -377,16 +376,16 @@ def train_diffusion(data: TrainingData, cfg: DiffusionConfig, checkpoint: Path, 
                                schedule.steps, device)
             totals += train_batch(model, opt, ema, std, on_device, z_all, pool, batch, cfg, schedule,
                                   nonfinite, epoch, epoch * per_epoch + k, graphs)
-        if epoch < cfg.epochs:  # growth past `epochs` keeps the lr reached there (decayed on, tooth plateaued)
-            sched.step()
         done = epoch = epoch + 1
+        if done <= cfg.epochs:  # growth past `epochs` keeps the lr reached there (decayed on, tooth plateaued)
+            step_lr(opt, done, cfg.lr_step_epochs, cfg.lr_gamma)
         stopping = stop_after_epoch is not None and done >= stop_after_epoch
         logging = done % max(1, cfg.epochs // 20) == 0 or growth.due(done)
         saving = done % cfg.checkpoint_every == 0
         if logging or saving or stopping:
             raise_if_not_finite()
         if logging:
-            _log_epoch(log, done, (totals / n).cpu().tolist(), cfg, growth, sched.get_last_lr()[0], t0, start)
+            _log_epoch(log, done, (totals / n).cpu().tolist(), cfg, growth, float(opt.param_groups[0]["lr"]), t0, start)
         if growth.due(done):
             growth.check(done, sampled, lambda: seen_gap_db(sampled, std, on_device, cfg), log, last_good())
         if saving or growth.finished:
