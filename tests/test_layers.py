@@ -11,7 +11,7 @@ PACKAGE = Path(__file__).resolve().parents[1] / "diffshadow"
 LAYERS = [
     # foundations
     ["diffshadow", "phases", "config", "io", "progress", "transfer", "metrics", "capacity", "analytic", "hpc",
-     "graphs"],
+     "graphs", "adam"],
     ["volume", "layout", "siren", "lights", "sampling", "grid", "store", "codecs"],  # data
     ["shadow", "truth"],  # ground truth
     ["data_inr"],
