@@ -39,7 +39,7 @@ from contextlib import contextmanager
 
 import torch
 from torch._C._profiler import _EventType  # the event tree's tags; torch.profiler's own memory tools read it
-from torch.profiler import ProfilerActivity, profile
+from torch.autograd.profiler import profile  # torch.profiler's recorder (why not torch.profiler: `_profiled`)
 
 from diffshadow.render.fused import LAUNCH
 
@@ -114,17 +114,18 @@ def _profiled(fn: Callable[[], object], *, shapes: bool,
         torch.cuda.synchronize(memory)
         torch.cuda.reset_peak_memory_stats(memory)
         base = torch.cuda.memory_allocated(memory)
-    prof = profile(activities=[ProfilerActivity.CPU], record_shapes=shapes,
-                   profile_memory=memory is not None and not cuda)
+    # what torch.profiler.profile(activities=[CPU]) records, without its start's `hasattr(torch, "_inductor")`,
+    # which imported PyTorch's compiler (torch._inductor, torch._dynamo): 1.3 s of the benchmark job
+    prof = profile(use_kineto=True, record_shapes=shapes, profile_memory=memory is not None and not cuda)
     with _without_kineto_chatter():
-        prof.start()
+        prof.__enter__()
     try:
         fn()
         if cuda:
             torch.cuda.synchronize(memory)
     finally:
         with _without_kineto_chatter():
-            prof.stop()
+            prof.__exit__(None, None, None)
     if memory is None:
         return prof, None
     return prof, (torch.cuda.max_memory_allocated(memory) - base if cuda else _allocated_peak(prof, memory))
@@ -162,7 +163,7 @@ def _nodes(prof: profile) -> Iterator:
     """Every node of the profiled call's event tree (ops, scopes, allocations), in no particular order. Read from
     the tree, not through `prof.events()`, whose Python objects for every event took 50x longer to build: 19 s for
     a naive 64² frame's 312,000 events, where the tree is walked in 0.4 s (PyTorch 2.13, 2 CPU cores)."""
-    stack = list(prof.profiler.kineto_results.experimental_event_tree())
+    stack = list(prof.kineto_results.experimental_event_tree())
     while stack:
         e = stack.pop()
         stack.extend(e.children)
