@@ -119,12 +119,13 @@ def versions() -> dict[str, str]:
 def record(command: str) -> dict:
     """The clock as a JSON-able record (`<phase>_s`, and `process_s`, the process's life) of `command`, with the
     process's `usage` (`cpu_s`, `max_rss_mib`), the `versions` it ran under and, where it imported PyTorch, the
-    CPU kernels PyTorch chose (`cpu_capability`: DEFAULT, AVX2, AVX512, ...)."""
+    CPU kernels PyTorch chose (`cpu_capability`: DEFAULT, AVX2, AVX512, ...) and its CPU threads (`threads`)."""
     out: dict = {f"{k}_s": round(v, 3) for k, v in totals().items()}
     out["process_s"] = round(sum(out.values()), 3)
     out.update({k: round(v, 3) for k, v in usage().items()})
     if "torch" in sys.modules:  # the CPU kernels it ran (its vector unit changes the last bits): no import here
         out["cpu_capability"] = sys.modules["torch"].backends.cpu.get_cpu_capability()
+        out["threads"] = sys.modules["torch"].get_num_threads()  # its reductions split by thread: last bits too
     out["versions"] = versions()
     out["command"] = command
     return out

@@ -514,8 +514,9 @@ def test_scalar_cpu_kernels_on_an_avx2_cpu_are_warned_of(capability, flags, forc
 
 
 def test_a_torch_job_records_its_cpu_kernels_and_warns_only_when_unasked(tmp_path):
-    """Every job that imports torch records which CPU kernels PyTorch chose (`cpu_capability` in its phases file:
-    they change the last bits of its results); a job told to run the scalar ones records that and is not warned."""
+    """Every job that imports torch records which CPU kernels PyTorch chose (`cpu_capability` in its phases file)
+    and on how many threads (`threads`): both change the last bits of its results; a job told to run the scalar
+    ones records that and is not warned."""
     import json
     import subprocess
     import sys
@@ -528,7 +529,8 @@ def test_a_torch_job_records_its_cpu_kernels_and_warns_only_when_unasked(tmp_pat
     tf = json.dumps({"opacity": [[0.0, 0.0], [1.0, 1.0]], "color": [[0.0, 1.0, 1.0, 1.0], [1.0, 1.0, 1.0, 1.0]],
                      "density_scale": 10.0})
     records = {}
-    for name, extra in (("own", {}), ("scalar", {"ATEN_CPU_CAPABILITY": "default"})):
+    for name, extra in (("own", {"OMP_NUM_THREADS": "1"}), ("scalar", {"ATEN_CPU_CAPABILITY": "default",
+                                                                      "OMP_NUM_THREADS": "2"})):
         env = {k: v for k, v in os.environ.items() if k != "ATEN_CPU_CAPABILITY"} | extra
         done = subprocess.run([sys.executable, "-m", "diffshadow.cli", "--phases", f"{name}.json", "render",
                                "--volume", "blob.npy", "--tf-json", tf, "--mode", "noshadow", "--size", "8",
@@ -536,6 +538,7 @@ def test_a_torch_job_records_its_cpu_kernels_and_warns_only_when_unasked(tmp_pat
         assert done.returncode == 0 and "WARNING: PyTorch" not in done.stderr, done.stderr
         records[name] = json.loads((tmp_path / f"{name}.json").read_text())
     assert records["own"]["cpu_capability"] == torch.backends.cpu.get_cpu_capability()
+    assert (records["own"]["threads"], records["scalar"]["threads"]) == (1, 2)  # reductions split by thread
     from diffshadow.runtime import SCALAR_KERNELS
 
     assert records["scalar"]["cpu_capability"] in SCALAR_KERNELS
