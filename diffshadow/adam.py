@@ -82,8 +82,10 @@ class Adam:
         params = [p for p in self.params if p.grad is not None]
         if not params:
             return
-        states = [self.state[p] if p in self.state else self.state.setdefault(p, self._new_state(p))
-                  for p in params]
+        for p in params:
+            if p not in self.state:
+                self.state[p] = self._new_state(p)
+        states = [self.state[p] for p in params]
         update = _adamw if g["decoupled_weight_decay"] else _adam
         with torch.no_grad(), record_function(f"Optimizer.step#{self.name}.step"):
             update(params, [p.grad for p in params], [s["exp_avg"] for s in states],
