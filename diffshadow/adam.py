@@ -27,17 +27,18 @@ EPS = 1e-8
 
 
 class Adam:
-    """Adam over one group of parameters. `lr` is a number, or (`capturable`, for a CUDA graph) a 0-d tensor on
-    the parameters' device that `set_lr` and `step_lr` fill in place. `decoupled` weight decay is AdamW. `fused`
-    uses PyTorch's one-kernel update (`fused_supported` says where it has one)."""
+    """Adam over one group of parameters. `capturable` (for a step that a CUDA graph replays: `graphs.StepGraphs`)
+    keeps the learning rate in a 0-d float32 tensor on the parameters' device, which `set_lr` and `step_lr` fill in
+    place; else it is a number. `decoupled` weight decay is AdamW. `fused` uses PyTorch's one-kernel update
+    (`fused_supported` says where it has one)."""
 
-    def __init__(self, params: Iterable[torch.Tensor], lr: float | torch.Tensor, *, weight_decay: float = 0.0,
+    def __init__(self, params: Iterable[torch.Tensor], lr: float, *, weight_decay: float = 0.0,
                  decoupled: bool = False, fused: bool | None = None, capturable: bool = False):
         self.params = list(params)
         if not self.params:
             raise ValueError("Adam: no parameters to optimize")
-        if isinstance(lr, torch.Tensor) and not capturable:
-            raise ValueError("Adam: a tensor learning rate is for a capturable optimizer (a CUDA graph's)")
+        if capturable:
+            lr = torch.tensor(lr, dtype=torch.float32, device=self.params[0].device)
         self.name = "AdamW" if decoupled else "Adam"  # the profiler's scope, as PyTorch's classes name it
         self.param_groups = [{"lr": lr, "betas": BETAS, "eps": EPS, "weight_decay": weight_decay,
                               "amsgrad": False, "maximize": False, "foreach": None, "capturable": capturable,
@@ -112,9 +113,10 @@ class Adam:
                              f"{sizes}")
         g = self.param_groups[0]
         on_device = g["capturable"] or g["fused"]
+        position = {i: k for k, i in enumerate(groups[0]["params"])}  # saved ids, in the group's order
         self.state = {}
         for i, s in saved["state"].items():
-            p = self.params[groups[0]["params"].index(i)]
+            p = self.params[position[i]]
             if s["exp_avg"].shape != p.shape:
                 raise ValueError(f"optimizer state: parameter {i} has shape {tuple(s['exp_avg'].shape)}, expected "
                                  f"{tuple(p.shape)}")

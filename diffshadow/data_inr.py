@@ -15,10 +15,10 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from diffshadow.adam import set_lr
+from diffshadow.adam import Adam, set_lr
 from diffshadow.capacity import Rung, climb, ladder
 from diffshadow.config import ConfigError, changed_settings, section
-from diffshadow.graphs import adam, requested
+from diffshadow.graphs import requested
 from diffshadow.grid import cell_ranges, lookup_grids, voxel_points
 from diffshadow.io import atomic_torch_save, resume
 from diffshadow.metrics import psnr
@@ -183,7 +183,7 @@ class DataInrFit:
         self.cfg, self.device = cfg, device
         self.model = Siren(cfg.siren, seeded(cfg.seed, Stream.DATA_INR_INIT)).to(device)
         self.graphs = requested(cfg.cuda_graph, "data_inr.cuda_graph", device, log)
-        self.opt = adam(self.model.parameters(), cfg.lr, graphed=self.graphs is not None)
+        self.opt = Adam(self.model.parameters(), cfg.lr, capturable=self.graphs is not None)
         self.grid = torch.as_tensor(volume.data, device=device)[None]
         self.extent = torch.as_tensor(volume.extent, dtype=torch.float32, device=device)
         self.n_error = int(round(cfg.points * cfg.error_fraction))

@@ -20,7 +20,7 @@ import torch
 from diffshadow.adam import Adam, set_lr
 from diffshadow.capacity import Choice, Rung, climb, ladder
 from diffshadow.config import changed_settings, section
-from diffshadow.graphs import StepGraphs, adam, requested
+from diffshadow.graphs import StepGraphs, requested
 from diffshadow.grid import lookup_grids, stack_channels_last
 from diffshadow.io import atomic_torch_save, resume
 from diffshadow.lights import BLEND_K, PoolLights, blend_weights, check_weighting, training_pool
@@ -291,7 +291,8 @@ class SubsetFit:
         self.targets = Targets(volume, tf, lights, cfg, device)
         self.weights = init.to(device=device, dtype=torch.float32).expand(self.k, -1).clone().requires_grad_(True)
         self.graphs = fit_graphs(cfg, device, log)
-        self.opt = adam([self.weights], cfg.lr, graphed=self.graphs is not None)
+        # graphed or not is in a checkpoint's fingerprint: an optimizer never resumes the other kind's state
+        self.opt = Adam([self.weights], cfg.lr, capturable=self.graphs is not None)
         self.pool = pool.to(device) if pool is not None else None
         self.chunk = points_per_pass(cfg.chunk, cfg.points, device)
         self.autocast = forward_precision(cfg.precision, device)

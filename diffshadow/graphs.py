@@ -14,7 +14,7 @@ What varies per step outside the tensors (the EMA's warm-up, the epoch a non-fin
 outside the graph, in the caller. A fit's update (`fit.SubsetFit.update`) and the data INR's
 (`data_inr.DataInrFit.update`) follow the same rules: their step's points (and pool picks) are drawn on the host
 first and are the graph's inputs, their Adam `capturable` with the cosine learning rate a device tensor that each
-step fills (`adam`, `diffshadow.adam.set_lr`).
+step fills (`diffshadow.adam.Adam(capturable=True)`, `set_lr`).
 """
 
 from __future__ import annotations
@@ -24,8 +24,6 @@ from collections.abc import Callable
 from typing import Any
 
 import torch
-
-from diffshadow.adam import Adam
 
 WARMUP_CALLS = 3  # eager calls before the first capture, on a side stream (as PyTorch's CUDA graph notes ask)
 
@@ -82,16 +80,6 @@ def requested(setting: bool | str, key: str, device: torch.device, log=print, *,
             log(f"{key}: {why}")
         return None
     return StepGraphs(device)
-
-
-def adam(params, lr: float, graphed: bool) -> Adam:
-    """Adam for a step that `StepGraphs` may replay (`graphed`): `capturable`, its learning rate a tensor on the
-    parameters' device that `set_lr` fills; else plain Adam. (A checkpoint's fingerprint holds whether its run was
-    graphed, so an optimizer never resumes the other kind's state.)"""
-    params = list(params)
-    if not graphed:
-        return Adam(params, lr)
-    return Adam(params, torch.tensor(lr, device=params[0].device), capturable=True)
 
 
 def tensor_fields(inputs: Any) -> dict[str, torch.Tensor | None]:

@@ -24,11 +24,9 @@ SHARED_DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
 
 
 def _fused_adamw_on_cpu() -> bool:
-    try:
-        torch.optim.AdamW([torch.nn.Parameter(torch.ones(1))], fused=True)
-        return True
-    except RuntimeError:  # torch 2.3: CUDA only
-        return False
+    from diffshadow.adam import fused_supported
+
+    return fused_supported([torch.ones(1)])  # torch 2.3: CUDA only
 
 
 needs_cpu_fused_adamw = pytest.mark.skipif(not _fused_adamw_on_cpu(),

@@ -88,10 +88,8 @@ def make_optimizer(params, lr: float, weight_decay: float, *, capturable: bool =
     `capturable` (for a CUDA graph): the learning rate is a tensor on the parameters' device, which `step_lr`
     fills in place, so a replayed step reads the current one."""
     params = list(params)
-    if capturable:
-        lr = torch.tensor(lr, dtype=torch.float32, device=params[0].device)
-        return Adam(params, lr, weight_decay=weight_decay, decoupled=True, fused=True, capturable=True)
-    return Adam(params, lr, weight_decay=weight_decay, decoupled=True, fused=fused_supported(params) or None)
+    fused = True if capturable else fused_supported(params) or None
+    return Adam(params, lr, weight_decay=weight_decay, decoupled=True, fused=fused, capturable=capturable)
 
 
 def build_model(layout: WeightLayout, cfg: DiffusionConfig) -> WeightTransformer:
