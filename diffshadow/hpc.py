@@ -122,6 +122,32 @@ def ddp_processes(requested: int, gpus: int | None) -> tuple[int, str]:
     return requested, f"{requested} process(es), one GPU each (NCCL)"
 
 
+def run_gpus(config: str | None = None) -> int | None:
+    """How many NVIDIA GPUs the run's device setting (`config`, under DIFFSHADOW_DEVICE) reaches on this machine,
+    answered without PyTorch: None where it is the CPU, a GPU not visible here, or only PyTorch could tell
+    (`visible_nvidia_gpus`)."""
+    if not gpu_possible(None, config):
+        return None
+    gpus = visible_nvidia_gpus()
+    if not gpus:
+        return None
+    spec, _ = device_setting(None, config)
+    if spec.startswith("cuda:"):
+        index = spec.split(":", 1)[1]
+        return 1 if index.isdigit() and int(index) < gpus else None
+    return gpus if spec in ("auto", "cuda") else None
+
+
+def job_threads(threads: int, gpus: int | None, *, processes: bool = False) -> int:
+    """The CPU threads a job whose work runs on the run's device asks the scheduler for, given `run_gpus`: on a GPU
+    one (the GPU computes; a second thread would only keep the job beside it waiting: on the H200 the geometry
+    stage, asking two, waited 17 s for the data INR's fit), or with `processes` (finetune_render's DDP ranks, one
+    thread each) one per GPU it can use; elsewhere `threads`."""
+    if not gpus:
+        return threads
+    return max(1, min(threads, gpus)) if processes else 1
+
+
 def launch_ranks(argv: list[str]) -> int:
     """torchrun with its own arguments `argv`; its exit status. Where ranks fail, one line says which and how
     (`ranks_failed`), and where the launcher is signalled, one line says so, in place of torchrun's traceback from

@@ -477,6 +477,58 @@ def test_the_driver_count_is_none_where_only_torch_can_tell(tmp_path, monkeypatc
     assert hpc.visible_nvidia_gpus() is None
 
 
+def test_a_job_on_a_gpu_asks_one_cpu_thread_and_a_ddp_job_one_per_gpu(tmp_path, monkeypatch):
+    """`run_gpus` resolves the run's device setting against the driver, and `job_threads` asks for one CPU thread
+    where it is a GPU (DDP ranks: one per GPU they can use), and for the rule's threads on the CPU or where only
+    PyTorch could tell."""
+    import diffshadow.hpc as hpc
+
+    monkeypatch.delenv("CUDA_VISIBLE_DEVICES", raising=False)
+    monkeypatch.delenv("DIFFSHADOW_DEVICE", raising=False)
+    fake_nvidia_machine(tmp_path / "two", monkeypatch, gpus=2, nodes=2)
+    monkeypatch.setattr(hpc, "GPU_DRIVER_FILES", (str(tmp_path / "two" / "gpus"),))
+    resolved = {spec: hpc.run_gpus(spec) for spec in ("auto", "cuda", "cuda:1", "cuda:2", "cuda:x", "cpu", "mps")}
+    assert resolved == {"auto": 2, "cuda": 2, "cuda:1": 1, "cuda:2": None, "cuda:x": None, "cpu": None, "mps": None}
+    assert hpc.job_threads(2, 2) == 1 and hpc.job_threads(4, 2, processes=True) == 2
+    assert hpc.job_threads(1, 2, processes=True) == 1 and hpc.job_threads(2, None) == 2
+    assert hpc.job_threads(3, None, processes=True) == 3
+    monkeypatch.setenv("DIFFSHADOW_DEVICE", "cpu")  # the environment over the run's config, as every job reads it
+    assert hpc.run_gpus("auto") is None
+    monkeypatch.delenv("DIFFSHADOW_DEVICE")
+    fake_nvidia_machine(tmp_path / "cpu-build", monkeypatch, gpus=2, nodes=2, cuda_build=False)
+    assert hpc.run_gpus("auto") is None  # only PyTorch could tell: the CPU's threads, which never slow a CPU job
+
+
+def test_the_workflow_asks_one_thread_for_the_geometry_stage_on_a_gpu(tmp_path):
+    """On a machine whose driver shows a GPU (faked for Snakemake's process), train_diffusion asks one thread and
+    finetune_render one process, so that `-j2` runs a side job beside them; on this machine's CPU, two each."""
+    fake = tmp_path / "fake"
+    (fake / "gpus" / "0000:00:00.0").mkdir(parents=True)
+    (fake / "dev").mkdir()
+    (fake / "dev" / "nvidia0").touch()
+    (tmp_path / "site").mkdir()
+    (tmp_path / "site" / "sitecustomize.py").write_text(textwrap.dedent(f"""
+        import diffshadow.hpc as hpc
+        hpc.NVIDIA_GPUS, hpc.DEVICE_NODES = {str(fake / "gpus")!r}, {str(fake / "dev")!r}
+        hpc.GPU_DRIVER_FILES, hpc.ROCM_DRIVER = (hpc.NVIDIA_GPUS,), {str(fake / "no-kfd")!r}
+        hpc.torch_has_cuda = lambda: True
+        """))
+
+    def asked(env: dict) -> tuple[str, str]:
+        # --cores: a dry run under -j caps every job's threads at one
+        proc = subprocess.run([sys.executable, "-m", "snakemake", "-s", str(REPO / "Snakefile"), "--directory",
+                               str(tmp_path / "run"), "--cores", "4", "-n", "-p"], env=env, capture_output=True,
+                              text=True, timeout=300)
+        assert proc.returncode == 0, proc.stdout[-2000:] + proc.stderr[-2000:]
+        return (re.search(r"train-diffusion .* --threads (\d+)", proc.stdout)[1],
+                re.search(r"ddp-processes --nproc (\d+)", proc.stdout)[1])
+
+    env = {k: v for k, v in os.environ.items() if k not in ("DIFFSHADOW_DEVICE", "CUDA_VISIBLE_DEVICES")}
+    assert asked({**env, "PYTHONPATH": str(tmp_path / "site")}) == ("1", "1")
+    if not any(os.path.exists(f) for f in GPU_DRIVER_FILES):
+        assert asked(env) == ("2", "2")
+
+
 def test_the_ddp_helper_takes_the_drivers_count_without_asking_torch(tmp_path, monkeypatch, capsys):
     import diffshadow.cli as cli
 

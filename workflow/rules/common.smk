@@ -7,7 +7,9 @@ from diffshadow.config import as_json as _as_json
 from diffshadow.config import scene_config as _scene_config
 from diffshadow.diffusion.mix import model_alone as _model_alone
 from diffshadow.hpc import JOB_ENVIRONMENT as _JOB_ENVIRONMENT
+from diffshadow.hpc import job_threads as _job_threads
 from diffshadow.hpc import kernel_cache_environment as _kernel_cache_environment
+from diffshadow.hpc import run_gpus as _run_gpus
 from diffshadow.lights import n_subsets as _n_subsets
 from diffshadow.report import shading_name as _shading_name
 from diffshadow.volume import prepared_from as _prepared_from
@@ -27,6 +29,16 @@ for _key, _value in _kernel_cache_environment("results/.kernel-cache").items():
     os.environ.setdefault(_key, _value)
 # and `deterministic`, which changes no byte on a CPU and only float summation order on a GPU; a user's own wins
 os.environ.setdefault("DIFFSHADOW_DETERMINISTIC", "1" if config.get("deterministic") else "0")
+
+
+# the NVIDIA GPUs the run's device reaches here (None: the CPU, or only PyTorch could tell), read once without it
+_RUN_GPUS = _run_gpus(config.get("device", "auto"))
+
+
+def device_threads(threads, processes=False):
+    """A rule's CPU threads where its work runs on the run's device: one on a GPU (`hpc.job_threads`; with
+    `processes`, one per GPU it can use), `threads` on a CPU. The HPC profiles' set-threads override it."""
+    return _job_threads(threads, _RUN_GPUS, processes=processes)
 
 
 def scene_config(scene):

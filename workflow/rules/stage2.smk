@@ -31,7 +31,7 @@ rule train_diffusion:
         "results/{scene}/diffusion_geometry.ckpt",
     params:
         cfg=lambda wc: as_json(wc.scene, "diffusion"),
-    threads: 2
+    threads: device_threads(2)  # 1.68x one thread's speed on a CPU; on a GPU one, so a side job runs beside it
     priority: 10  # the longest job: it starts before the side jobs (targets, data INR, truth) take a core
     log:
         "results/{scene}/logs/train_diffusion.log",
@@ -262,7 +262,7 @@ rule finetune_render:
         # nproc and the launcher are left out: they change how the step runs, not its result (DDP equals
         # one process, tests/test_finetune.py), so a profile that sets them reruns nothing
         cfg=lambda wc: finetune_json(wc.scene),
-    threads: lambda wc: scene_config(wc.scene)["finetune"]["nproc"]
+    threads: lambda wc: device_threads(scene_config(wc.scene)["finetune"]["nproc"], processes=True)
     resources:
         gpu=lambda wc: scene_config(wc.scene)["finetune"]["nproc"],
     log:
