@@ -501,7 +501,8 @@ def test_a_job_on_a_gpu_asks_one_cpu_thread_and_a_ddp_job_one_per_gpu(tmp_path, 
 
 def test_the_workflow_asks_one_thread_for_the_geometry_stage_on_a_gpu(tmp_path):
     """On a machine whose driver shows a GPU (faked for Snakemake's process), train_diffusion asks one thread and
-    finetune_render one process, so that `-j2` runs a side job beside them; on this machine's CPU, two each."""
+    finetune_render one process, so that `-j2` runs a side job beside them, and so does sample_shadows where it
+    scores on the run's device too (evaluate.device: run); on this machine's CPU, two each."""
     fake = tmp_path / "fake"
     (fake / "gpus" / "0000:00:00.0").mkdir(parents=True)
     (fake / "dev").mkdir()
@@ -514,19 +515,22 @@ def test_the_workflow_asks_one_thread_for_the_geometry_stage_on_a_gpu(tmp_path):
         hpc.torch_has_cuda = lambda: True
         """))
 
-    def asked(env: dict) -> tuple[str, str]:
+    def asked(env: dict, *config: str) -> tuple[str, str, str]:
         # --cores: a dry run under -j caps every job's threads at one
         proc = subprocess.run([sys.executable, "-m", "snakemake", "-s", str(REPO / "Snakefile"), "--directory",
-                               str(tmp_path / "run"), "--cores", "4", "-n", "-p"], env=env, capture_output=True,
-                              text=True, timeout=300)
+                               str(tmp_path / "run"), "--cores", "4", "-n", "-p", *config], env=env,
+                              capture_output=True, text=True, timeout=300)
         assert proc.returncode == 0, proc.stdout[-2000:] + proc.stderr[-2000:]
         return (re.search(r"train-diffusion .* --threads (\d+)", proc.stdout)[1],
-                re.search(r"ddp-processes --nproc (\d+)", proc.stdout)[1])
+                re.search(r"ddp-processes --nproc (\d+)", proc.stdout)[1],
+                re.search(r"sample-shadows .* --threads (\d+)", proc.stdout)[1])
 
     env = {k: v for k, v in os.environ.items() if k not in ("DIFFSHADOW_DEVICE", "CUDA_VISIBLE_DEVICES")}
-    assert asked({**env, "PYTHONPATH": str(tmp_path / "site")}) == ("1", "1")
+    gpu = {**env, "PYTHONPATH": str(tmp_path / "site")}
+    assert asked(gpu) == ("1", "1", "2")  # sample_shadows scores its SIRENs on the CPU (evaluate.device: cpu)
+    assert asked(gpu, "--config", "evaluate={device: run}") == ("1", "1", "1")
     if not any(os.path.exists(f) for f in GPU_DRIVER_FILES):
-        assert asked(env) == ("2", "2")
+        assert asked(env) == asked(env, "--config", "evaluate={device: run}") == ("2", "2", "2")
 
 
 def test_the_ddp_helper_takes_the_drivers_count_without_asking_torch(tmp_path, monkeypatch, capsys):

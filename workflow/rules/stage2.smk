@@ -140,7 +140,8 @@ rule sample_shadows:
         # what the command's flags carry, as a param of the wildcards alone: Snakemake reruns the job when it
         # changes (a param that reads `input`, as `command` does, is not compared with the run's record)
         settings=lambda wc: mix_settings(wc.scene),
-    threads: 2
+    # the model samples on the run's device; the SIRENs are scored on the CPU unless evaluate.device is run
+    threads: lambda wc: device_threads(2) if scene_config(wc.scene)["evaluate"]["device"] == "run" else 2
     log:
         "results/{scene}/logs/sample_shadows.log",
     benchmark:
