@@ -287,10 +287,14 @@ def _report_figures(a):
 
 
 def _stage_costs(a):
-    from diffshadow.report import mixed_runtimes, stage_costs
+    from diffshadow.report import job_spans, mixed_runtimes, stage_costs, timeline_figure
 
     benchmarks = [Path(b) for b in a.benchmarks]
-    stage_costs(benchmarks, Path(a.out))
+    rows = stage_costs(benchmarks, Path(a.out))
+    if a.timeline:
+        jobs, gaps = job_spans(benchmarks)
+        timeline_figure(jobs, gaps, Path(a.timeline), f"{len(jobs)} jobs, {rows[-1]['wall_s']:.0f} s with a job "
+                                                      f"running, {rows[-2]['wall_s']:.0f} s summed over them")
     for warning in mixed_runtimes(benchmarks):
         print(warning, file=sys.stderr)
 
@@ -517,6 +521,7 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("stage-costs", help="a table of every rule's cost from Snakemake's benchmark files")
     p.add_argument("--benchmarks", nargs="+", required=True, help="results/<scene>/benchmarks/*.tsv")
     p.add_argument("--out", required=True)
+    p.add_argument("--timeline", help="also draw every job over the run's time as this PNG")
     p.set_defaults(func=_stage_costs)
     p = _add(sub, "summary", _summary, "one finished scene's headline numbers and tables (the report's front page)",
              "results", "scene", "out-dir", out=False, device=False)

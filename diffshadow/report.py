@@ -415,6 +415,24 @@ def _not_a_phases_file(path: Path) -> ValueError:
                       f"diffshadow --phases")
 
 
+def _benchmark(path: Path) -> tuple[str, float, float, float, float]:
+    """One job's Snakemake benchmark file: its rule (`<rule>_<n>.tsv` is job n of a fanned-out rule), wall and CPU
+    seconds, peak resident set (MiB) and when it ended (the file's mtime: Snakemake writes it as the job ends)."""
+    lines = Path(path).read_text().splitlines()
+    if len(lines) < 2:
+        raise ValueError(f"{path}: expected a Snakemake benchmark file (a header and one row)")
+    rec = dict(zip(lines[0].split("\t"), lines[1].split("\t"), strict=False))
+    try:
+        # Snakemake writes NA where it could not measure (e.g. a job shorter than its poll)
+        wall = float(rec["s"].replace("NA", "0"))
+        cpu, rss = (float(rec.get(k, "0").replace("NA", "0")) for k in ("cpu_time", "max_rss"))
+    except (KeyError, ValueError):
+        raise ValueError(f"{path}: expected numeric columns s, cpu_time, max_rss; got {lines[:2]}") from None
+    stem = Path(path).stem
+    stage = stem.rsplit("_", 1)[0] if stem.rsplit("_", 1)[-1].isdigit() else stem
+    return stage, wall, cpu, rss, Path(path).stat().st_mtime
+
+
 def stage_costs(benchmarks: list[Path], out: Path) -> list[dict]:
     """One row per rule from Snakemake's `benchmark:` files (`<rule>.tsv`, or `<rule>_<n>.tsv` per job of a
     fanned-out rule): jobs, summed wall and CPU seconds, the largest resident set (each job's CPU seconds and
@@ -427,20 +445,8 @@ def stage_costs(benchmarks: list[Path], out: Path) -> list[dict]:
     rows: dict[str, dict] = {}
     spans = []
     for path in benchmarks:
-        lines = Path(path).read_text().splitlines()
-        if len(lines) < 2:
-            raise ValueError(f"{path}: expected a Snakemake benchmark file (a header and one row)")
-        rec = dict(zip(lines[0].split("\t"), lines[1].split("\t"), strict=False))
-        try:
-            # Snakemake writes NA where it could not measure (e.g. a job shorter than its poll)
-            wall = float(rec["s"].replace("NA", "0"))
-            cpu, rss = (float(rec.get(k, "0").replace("NA", "0")) for k in ("cpu_time", "max_rss"))
-        except (KeyError, ValueError):
-            raise ValueError(f"{path}: expected numeric columns s, cpu_time, max_rss; got {lines[:2]}") from None
-        end = Path(path).stat().st_mtime
+        stage, wall, cpu, rss, end = _benchmark(path)
         spans.append((end - wall, end))
-        stem = Path(path).stem
-        stage = stem.rsplit("_", 1)[0] if stem.rsplit("_", 1)[-1].isdigit() else stem
         row = rows.setdefault(stage, {"stage": stage, "jobs": 0, "wall_s": 0.0, "cpu_s": 0.0, "max_rss_mib": 0.0,
                                       **dict.fromkeys(PHASE_COLUMNS, 0.0)})
         phases = job_phases(Path(path), wall)
@@ -467,6 +473,73 @@ def stage_costs(benchmarks: list[Path], out: Path) -> list[dict]:
 
     atomic_write_text(out, "\t".join(STAGE_COST_COLUMNS) + "\n" + "".join(cells(r) for r in [*table, total, elapsed]))
     return [*table, total, elapsed]
+
+
+IDLE_S = 60.0  # a stretch with no job running longer than this is not the run's (a rerun's jobs days later)
+
+
+def job_spans(benchmarks: list[Path]) -> tuple[list[dict], list[float]]:
+    """Every job on the run's clock, sorted by start: its rule, job (the benchmark file's stem), `start` and `end`
+    in seconds from the first job's start, its `startup` seconds (interpreter and imports, device start, and the
+    time outside its process: `job_phases`; 0 where it recorded none) and `compile` seconds; and the places on
+    that clock where a stretch of over `IDLE_S` with no job running was taken out (so a partial rerun days later
+    joins the run; shorter ones, Snakemake's own time between jobs, stay)."""
+    if not benchmarks:
+        raise ValueError("job_spans: no benchmark files given")
+    jobs = []
+    for path in benchmarks:
+        stage, wall, _, _, end = _benchmark(path)
+        phases = job_phases(Path(path), wall) or dict.fromkeys(PHASE_COLUMNS, 0.0)
+        jobs.append({"stage": stage, "job": Path(path).stem, "start": end - wall, "end": end,
+                     "startup": phases["import_s"] + phases["device_s"] + phases["launch_s"],
+                     "compile": phases["compile_s"]})
+    jobs.sort(key=lambda j: (j["start"], j["job"]))
+    origin = reach = jobs[0]["start"]
+    gaps = []
+    for j in jobs:  # in start order, so `reach` (the latest end so far) says whether this job starts after a gap
+        if j["start"] > reach + IDLE_S:  # no job ran from `reach` to this start: that stretch leaves the clock
+            gaps.append(reach - origin)
+            origin += j["start"] - reach
+        reach = max(reach, j["end"])
+        j["start"], j["end"] = j["start"] - origin, j["end"] - origin
+    return jobs, gaps
+
+
+def timeline_figure(jobs: list[dict], gaps: list[float], out: Path, title: str = "") -> None:
+    """`job_spans` as bars, one row per rule in the order the rules first started (a fanned-out rule's jobs share
+    its row): what ran when, what waited, and each job's start-up and compile beside its work."""
+    plt = pyplot()
+    rules = list(dict.fromkeys(j["stage"] for j in jobs))
+    fig, ax = plt.subplots(figsize=(9, 1.2 + 0.28 * len(rules)))
+    colours = {"start-up (imports, device, launch)": "#e08a2c", "compile": "#b04fb0",
+               "work (compute, files)": "#3b75af"}
+    for j in jobs:
+        y = rules.index(j["stage"])
+        startup = min(j["startup"], j["end"] - j["start"])
+        compile_s = min(j["compile"], j["end"] - j["start"] - startup)
+        parts = (startup, compile_s, j["end"] - j["start"] - startup - compile_s)
+        left = j["start"]
+        for width, colour in zip(parts, colours.values(), strict=True):
+            ax.barh(y, width, left=left, height=0.7, color=colour, edgecolor="none", alpha=0.85)
+            left += width
+    for y, rule in enumerate(rules):
+        own = [j for j in jobs if j["stage"] == rule]
+        wall = sum(j["end"] - j["start"] for j in own)
+        ax.text(max(j["end"] for j in own), y, f" {wall:.1f} s" + (f" ({len(own)} jobs)" if len(own) > 1 else ""),
+                va="center", fontsize=7)
+    for gap in gaps:
+        ax.axvline(gap, color="0.5", linestyle=":", linewidth=1)
+    ax.set_yticks(range(len(rules)), rules, fontsize=8)
+    ax.invert_yaxis()
+    end = max(j["end"] for j in jobs)
+    ax.set_xlim(0, end * 1.12)
+    ax.set_xlabel("seconds from the run's first job" + ("; dotted: a stretch with no job running, left out"
+                                                        if gaps else ""))
+    ax.set_title(title or f"{len(jobs)} jobs in {end:.0f} s", fontsize=10)
+    handles = [plt.Rectangle((0, 0), 1, 1, color=c, alpha=0.85) for c in colours.values()]
+    ax.legend(handles, list(colours), fontsize=7, loc="upper right")  # the first rules' bars end early
+    fig.tight_layout()
+    save_figure(out, fig)
 
 
 def _jobs_by(records: list[tuple[str, dict]], value) -> dict[str, list[str]]:

@@ -142,7 +142,8 @@ workflow)
     cp results/nucleon/*.json "$out/" 2>/dev/null
     cp -r results/nucleon/benchmarks results/nucleon/logs "$out/" 2>/dev/null
     cp results/nucleon/stage_costs.tsv "$out/run_stage_costs.tsv" 2>/dev/null
-    step stage_costs diffshadow stage-costs --out "$out/stage_costs.tsv" --benchmarks results/nucleon/benchmarks/*.tsv
+    step stage_costs diffshadow stage-costs --out "$out/stage_costs.tsv" --timeline "$out/timeline.png" \
+        --benchmarks results/nucleon/benchmarks/*.tsv
     cat "$out/stage_costs.tsv" 2>/dev/null
     ;;
 precision)

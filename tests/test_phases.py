@@ -5,6 +5,7 @@ import os
 import time
 
 import pytest
+from PIL import Image
 
 from diffshadow import phases
 from diffshadow.report import PHASE_COLUMNS, stage_costs
@@ -104,6 +105,42 @@ def test_stage_costs_sum_each_rules_phases_and_the_launch_outside_its_process(tm
     (tmp_path / "fit_siren_0.phases.json").write_text("{}")
     with pytest.raises(ValueError, match=r"fit_siren_0.phases.json: expected a phases file \(import_s"):
         stage_costs(benchmarks, tmp_path / "out" / "costs.tsv")
+
+
+def test_the_timeline_puts_each_job_on_the_runs_clock_without_a_reruns_idle_days(tmp_path):
+    """A job ran from its benchmark file's time back by its wall seconds. A stretch of over a minute with no job
+    running (a rerun the next day) leaves the clock, a shorter one (Snakemake between two jobs) stays; start-up is
+    imports, device start and the time outside the process; the figure and `stage-costs --timeline` draw it."""
+    from diffshadow.cli import main
+    from diffshadow.report import IDLE_S, job_spans
+
+    jobs = (("prepare_volume", 2.0, 102.0, None),  # an older run's job: no phases file, no start-up known
+            ("fit_siren_0", 10.0, 110.0, dict(import_s=1, device_s=0.5, compile_s=0, io_s=0.5, compute_s=6)),
+            ("fit_siren_1", 10.0, 115.0, dict(import_s=1, device_s=0.5, compile_s=2, io_s=0.5, compute_s=5)),
+            ("train_diffusion", 20.0, 145.0, dict(import_s=1, device_s=0, compile_s=0, io_s=0, compute_s=18)),
+            ("summary", 1.0, 145.0 + 86400 + 1.0, dict(import_s=0.2, device_s=0, compile_s=0, io_s=0,
+                                                          compute_s=0.5)))
+    for name, wall, end, rec in jobs:
+        path = tmp_path / f"{name}.tsv"
+        path.write_text(HEADER + f"{wall}\t0:00:10\t100\t0\t0\t0\t0\t0\t0\t{wall}\n")
+        if rec:
+            (tmp_path / f"{name}.phases.json").write_text(json.dumps({**rec, "process_s": sum(rec.values())}))
+        os.utime(path, (end, end))
+    benchmarks = [tmp_path / f"{name}.tsv" for name, *_ in reversed(jobs)]
+    spans, gaps = job_spans(benchmarks)
+    assert [(j["job"], j["start"], j["end"]) for j in spans] == [
+        ("fit_siren_0", 0, 10), ("prepare_volume", 0, 2), ("fit_siren_1", 5, 15),  # equal starts: by name
+        ("train_diffusion", 25, 45),  # 10 s after the fits with nothing running: kept, under IDLE_S
+        ("summary", 45, 46)]  # a day later: the day left out
+    assert gaps == [45] and 10 < IDLE_S < 86400
+    assert [j["stage"] for j in spans] == ["fit_siren", "prepare_volume", "fit_siren", "train_diffusion", "summary"]
+    assert (spans[1]["startup"], spans[2]["startup"], spans[2]["compile"]) == (0, 1 + 0.5 + 1.0, 2)
+    with pytest.raises(ValueError, match="no benchmark files"):
+        job_spans([])
+    main(["stage-costs", "--benchmarks", *map(str, benchmarks), "--out", str(tmp_path / "costs.tsv"),
+          "--timeline", str(tmp_path / "report" / "timeline.png")])
+    with Image.open(tmp_path / "report" / "timeline.png") as png:
+        assert png.format == "PNG" and png.width == 900  # 9 x 100 dpi
 
 
 def test_a_jobs_cpu_seconds_and_peak_are_the_larger_of_snakemakes_polls_and_its_own_record(tmp_path):

@@ -420,7 +420,7 @@ STAGE_OUTPUTS = {
                        "report/generated_psnr.csv", "report/image_grid.png", "report/storage.png"],
 }
 TIMED = {"bench.json", "bench.png", "bench_shadow.json", "bench_shadow.png", "report/ddim_curve.png",
-         "report/shadow_curve.png", "benchmarks", "stage_costs.tsv",
+         "report/shadow_curve.png", "benchmarks", "stage_costs.tsv", "report/timeline.png",
          "report/summary.html", "report/landing.rst"}  # measurements of time or memory by design (or tables of them)
 TIMING_KEY = re.compile(r"second|_s$|fps|speedup|peak_mem")
 

@@ -67,14 +67,16 @@ rule stage_costs:
     input:
         stage_benchmarks,
     output:
-        report("results/{scene}/stage_costs.tsv", caption="../report/stage_costs.rst", category="{scene}",
-               subcategory="run"),
+        costs=report("results/{scene}/stage_costs.tsv", caption="../report/stage_costs.rst", category="{scene}",
+                     subcategory="run"),
+        timeline=report("results/{scene}/report/timeline.png", caption="../report/timeline.rst",
+                        category="{scene}", subcategory="run"),
     log:
         "results/{scene}/logs/stage_costs.log",
     conda:
         "../envs/diffshadow.yaml"
     shell:
-        "diffshadow stage-costs --benchmarks {input} --out {output} 2>&1 | tee {log}"
+        "diffshadow stage-costs --benchmarks {input} --out {output.costs} --timeline {output.timeline} 2>&1 | tee {log}"
 
 
 rule summary:
