@@ -33,6 +33,27 @@ def test_peak_bytes_is_what_the_call_added():
     assert peak_bytes(lambda: None, CPU) == 0
 
 
+def test_a_call_recorded_in_pieces_counts_what_it_counts_whole():
+    """With `pieces` the record is cut where the call asks (a frame's `interrupt`) and each piece tallied alone;
+    a tensor made in one piece and freed in a later one still counts once, so ops, syncs, host tensors and the
+    peak are those of the whole record: here 1,000 + 3,000 floats at once, then a host read and a host tensor."""
+    cuts = []
+
+    def work(cut=lambda: False):
+        a = torch.ones(1000)
+        cuts.append(cut())  # as an interrupt: never "stop"
+        b = a + 1.0
+        b = torch.cat([b, b, b])  # 3,000 floats while `a` lives: 16,000 bytes with it
+        del a
+        cuts.append(cut())
+        return float(b.sum()), torch.tensor([2.0])
+
+    whole = op_counts(work, memory=CPU)
+    assert whole == op_counts(work, memory=CPU, pieces=True) and cuts == [False] * 4  # each call cut twice
+    assert whole["peak_bytes"] >= 16_000 and whole["syncs"] == 1 and whole["host_tensors"] == 1
+    assert peak_bytes(work, CPU) == peak_bytes(work, CPU, pieces=True) == whole["peak_bytes"]
+
+
 @needs_cpu_fused_adamw
 def test_a_multi_tensor_op_counts_one_op_whatever_its_tensors():
     """A GPU runs `_foreach_lerp_` over ten tensors as one call (a few launches); a CPU as ten lerps underneath,

@@ -39,7 +39,7 @@ from contextlib import contextmanager
 
 import torch
 from torch._C._profiler import _EventType  # the event tree's tags; torch.profiler's own memory tools read it
-from torch.autograd.profiler import profile  # torch.profiler's recorder (why not torch.profiler: `_profiled`)
+from torch.autograd.profiler import profile  # torch.profiler's recorder (why not torch.profiler: `_record`)
 
 from diffshadow.render.fused import LAUNCH
 
@@ -61,74 +61,105 @@ MULTI_TENSOR = ("aten::_foreach_", "aten::_fused_")
 OPTIMIZER_STEP = "Optimizer.step#"  # the profiler's scope of torch.optim's `step` (Optimizer.step#Adam.step)
 
 
-def op_counts(fn: Callable[[], object], host_scopes: tuple[str, ...] = (),
-              memory: torch.device | None = None) -> dict[str, int]:
+def op_counts(fn: Callable[..., object], host_scopes: tuple[str, ...] = (),
+              memory: torch.device | None = None, *, pieces: bool = False) -> dict[str, int]:
     """{"ops": kernel-launching ops, "syncs": host syncs, "host_tensors": tensors built from host data} of one
     call of `fn`; given `host_scopes` (scope-name prefixes, see the module docstring), also "host_reads": the
     scalar reads inside them, not counted as syncs; given `memory`, a device, also "peak_bytes": the peak bytes
-    the call's tensors added on its allocator."""
-    prof, peak = _profiled(fn, shapes=True, memory=memory)
-    ops = syncs = host_reads = host_tensors = 0
+    the call's tensors added on its allocator.
+
+    With `pieces`, `fn` is given a callback to call between pieces of its work (a frame's `interrupt`, asked
+    before every iteration of its marches; it returns False): the record is cut there and each piece tallied as
+    it ends, so the profiler holds one piece's events at a time, not the call's. The same counts and peak (a
+    running sum carried over the cuts); a naive 64² frame of tooth, 228,513 ops, had taken the benchmark job to
+    10 GB at once."""
+    counts = {"ops": 0, "syncs": 0, "host_reads": 0, "host_tensors": 0}
+    peak = _record(fn, shapes=True, memory=memory, pieces=pieces, tally=lambda p: _tally(p, host_scopes, counts))
+    return {"ops": counts["ops"], "syncs": counts["syncs"], "host_tensors": counts["host_tensors"],
+            **({"host_reads": counts["host_reads"]} if host_scopes else {}),
+            **({"peak_bytes": peak} if memory is not None else {})}
+
+
+def _tally(prof: profile, host_scopes: tuple[str, ...], counts: dict[str, int]) -> None:
+    """Add one record's ops, syncs, host reads and host tensors to `counts` (`op_counts`)."""
     for e in _ops(prof):
         if e.name == LAUNCH:
-            ops += 1
+            counts["ops"] += 1
         if not e.name.startswith("aten::") or _inside(e, (LAUNCH,)):  # Triton's interpreter runs aten ops there
             continue
         if e.name == "aten::lift_fresh":
-            host_tensors += 1
+            counts["host_tensors"] += 1
         if e.name in SYNCS:
             if e.name == "aten::_local_scalar_dense" and _inside(e, host_scopes):
-                host_reads += 1
+                counts["host_reads"] += 1
             else:
-                syncs += 1
+                counts["syncs"] += 1
         if _inside(e, MULTI_TENSOR):  # a CPU's per-tensor loop inside one multi-tensor op
             continue
         if e.name.startswith(MULTI_TENSOR):
-            ops += 1
+            counts["ops"] += 1
             continue
         if e.name in NO_WORK or any(c.tag == _EventType.TorchOp and c.name.startswith("aten::")
                                     and c.name not in NO_WORK for c in e.children):
             continue
         if e.name == "aten::copy_" and e.extra_fields.inputs and getattr(e.extra_fields.inputs[0], "sizes", 0) == []:
             continue  # a Python number wrapped and converted on the host (`x * 0.5`): no kernel on a GPU
-        ops += 1
-    return {"ops": ops, "syncs": syncs, "host_tensors": host_tensors,
-            **({"host_reads": host_reads} if host_scopes else {}),
-            **({"peak_bytes": peak} if memory is not None else {})}
+        counts["ops"] += 1
 
 
-def peak_bytes(fn: Callable[[], object], device: torch.device) -> int:
+def peak_bytes(fn: Callable[..., object], device: torch.device, *, pieces: bool = False) -> int:
     """Peak bytes one call of `fn` added on `device`'s allocator (as `op_counts(fn, memory=device)`, without
-    counting ops: no slower than the call itself)."""
-    return _profiled(fn, shapes=False, memory=device)[1]
+    counting ops: no slower than the call itself; `pieces` as there)."""
+    return _record(fn, shapes=False, memory=device, pieces=pieces)
 
 
-def _profiled(fn: Callable[[], object], *, shapes: bool,
-              memory: torch.device | None) -> tuple[profile, int | None]:
-    """The profiler's record of one call of `fn` (with input shapes) and, given `memory`, the peak bytes the call
-    added on that device's allocator. CUDA's allocator keeps its own peak, which is exact: the profiler's
-    allocation events missed a free on the H200 (PyTorch 2.11: 18 MiB summed where 16 MiB were ever held), so
-    they are summed only where no allocator counts (the CPU)."""
+def _record(fn: Callable[..., object], *, shapes: bool, memory: torch.device | None, pieces: bool,
+            tally: Callable[[profile], None] = lambda prof: None) -> int | None:
+    """Profile one call of `fn` (with input shapes), handing each record to `tally` as it ends: one record, or with
+    `pieces` one per piece (`op_counts`). Given `memory`, return the peak bytes the call added on that device's
+    allocator. CUDA's allocator keeps its own peak, which is exact: the profiler's allocation events missed a free
+    on the H200 (PyTorch 2.11: 18 MiB summed where 16 MiB were ever held), so they are summed only where no
+    allocator counts (the CPU)."""
     cuda = memory is not None and memory.type == "cuda"
     if cuda:
         torch.cuda.synchronize(memory)
         torch.cuda.reset_peak_memory_stats(memory)
         base = torch.cuda.memory_allocated(memory)
-    # what torch.profiler.profile(activities=[CPU]) records, without its start's `hasattr(torch, "_inductor")`,
-    # which imported PyTorch's compiler (torch._inductor, torch._dynamo): 1.3 s of the benchmark job
-    prof = profile(use_kineto=True, record_shapes=shapes, profile_memory=memory is not None and not cuda)
-    with _without_kineto_chatter():
-        prof.__enter__()
+    events = memory is not None and not cuda
+    live = peak = 0
+    prof = None
+
+    def start() -> None:
+        nonlocal prof
+        # what torch.profiler.profile(activities=[CPU]) records, without its start's `hasattr(torch, "_inductor")`,
+        # which imported PyTorch's compiler (torch._inductor, torch._dynamo): 1.3 s of the benchmark job
+        prof = profile(use_kineto=True, record_shapes=shapes, profile_memory=events)
+        with _without_kineto_chatter():
+            prof.__enter__()
+
+    def stop() -> None:
+        nonlocal live, peak
+        with _without_kineto_chatter():
+            prof.__exit__(None, None, None)
+        if events:
+            live, peak = _allocated_peak(prof, memory, live, peak)
+        tally(prof)
+
+    def cut() -> bool:
+        stop()
+        start()
+        return False  # as an `interrupt`: go on
+
+    start()
     try:
-        fn()
+        fn(cut) if pieces else fn()
         if cuda:
             torch.cuda.synchronize(memory)
     finally:
-        with _without_kineto_chatter():
-            prof.__exit__(None, None, None)
+        stop()
     if memory is None:
-        return prof, None
-    return prof, (torch.cuda.max_memory_allocated(memory) - base if cuda else _allocated_peak(prof, memory))
+        return None
+    return torch.cuda.max_memory_allocated(memory) - base if cuda else peak
 
 
 # Kineto's own log lines: "USDT:2026-11-29 03:24:31 30640:30640 SyncActivityProfilerHandler.cpp:52] profiler_start"
@@ -174,15 +205,15 @@ def _ops(prof: profile) -> Iterator:
     return (e for e in _nodes(prof) if e.tag == _EventType.TorchOp)
 
 
-def _allocated_peak(prof: profile, device: torch.device) -> int:
-    """The running sum's maximum over the profiled call's allocation events on `device`, in time order."""
+def _allocated_peak(prof: profile, device: torch.device, live: int = 0, peak: int = 0) -> tuple[int, int]:
+    """The running sum of the profiled call's allocation events on `device`, in time order, from `live` bytes
+    held before it: (bytes held at its end, the sum's maximum, at least `peak`)."""
     events = sorted((e.start_time_ns, e.extra_fields.alloc_size) for e in _nodes(prof)
                     if e.tag == _EventType.Allocation and e.extra_fields.device.type == device.type)
-    live = peak = 0
     for _, size in events:
         live += size
         peak = max(peak, live)
-    return peak
+    return live, peak
 
 
 def _inside(event, prefixes: tuple[str, ...]) -> bool:

@@ -96,8 +96,9 @@ def bench_render(scene: RenderScene, siren, light, *, sizes=(64, 128), step: flo
                 log(f"[bench render] {n}x{n} {mode:8s} run {rep + 1}/{repeats}: {img.seconds:.3f} s")
         # naive's count takes minutes past the smallest size: its secondary rays are the point anyway
         counted = BENCH_MODES if n == min(sizes) else ("noshadow", "inr")
-        row["counts"] = {m: op_counts(lambda m=m, n=n: scene.render(m, cams[n], **kwargs), memory=device)
-                         for m in counted}
+        # recorded a march iteration at a time (the frame's `interrupt`): a naive frame's events at once took GBs
+        row["counts"] = {m: op_counts(lambda cut, m=m, n=n: scene.render(m, cams[n], interrupt=cut, **kwargs),
+                                      memory=device, pieces=True) for m in counted}
         row["peak_mem_bytes"] = {m: c.pop("peak_bytes") for m, c in row["counts"].items()}
         log(f"[bench render] {n}x{n} per frame: " + ", ".join(
             f"{m} {c['ops']:,} ops {c['syncs']} host syncs {c['host_tensors']} host tensors"
@@ -165,7 +166,8 @@ def bench_render(scene: RenderScene, siren, light, *, sizes=(64, 128), step: flo
     for n in memory_sizes:
         cam = Camera.orbit(scene.volume.extent, azimuth=azimuth, elevation=elevation, size=n)
         for mode, row in scaling.items():
-            row[str(n)] = peak_bytes(lambda m=mode, c=cam: scene.render(m, c, **kwargs), device)
+            row[str(n)] = peak_bytes(lambda cut, m=mode, c=cam: scene.render(m, c, interrupt=cut, **kwargs), device,
+                                     pieces=True)
     for n in sizes:
         log(f"[bench render] memory {n}²: " + ", ".join(f"{m} +{b / 2**20:.1f} MiB"
                                                       for m, b in out["sizes"][str(n)]["peak_mem_bytes"].items()))
