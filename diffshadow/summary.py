@@ -378,6 +378,15 @@ class RunResults:
                                 "compilation (Triton's, of the fused renderer kernels), reading and writing "
                                 "files (checksums included), compute (the rest), and launch: the job's time "
                                 "outside its diffshadow process (shell, torchrun and its helper)."))
+        timeline = self.results / "report" / "timeline.png"
+        if timeline.exists():  # stage_costs draws it from the same benchmark files
+            import base64
+
+            uri = "data:image/png;base64," + base64.b64encode(timeline.read_bytes()).decode()
+            parts.append(f"<p><img src='{uri}' alt='every job of this run over its wall time' "
+                         "style='max-width:100%'></p>\n<p class='note'>Every job over the run's wall time, one row "
+                         "per rule: start-up (imports, device, launch), compilation and work. A row with no neighbour "
+                         "beside it left a core (or the GPU) waiting.</p>\n")
         return "".join(parts)
 
 

@@ -264,3 +264,7 @@ def test_a_codec_cache_has_no_model_rows_even_where_an_old_runs_files_remain(tmp
     names = [name for name, _ in run.headline()]
     assert not any("fine-tuning" in name for name in names)
     assert "blended, unseen lights" in names and not any(name.startswith("generated") for name in names)
+    assert "<img" not in tables  # no timeline drawn: none shown
+    (tmp_path / "report").mkdir()
+    (tmp_path / "report" / "timeline.png").write_bytes(b"\x89PNG timeline")
+    assert "<img src='data:image/png;base64,iVBORyB0aW1lbGluZQ==" in RunResults(tmp_path, "blob").tables()

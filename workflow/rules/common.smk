@@ -208,16 +208,17 @@ def check_scenes():
 
 
 def summary_inputs(wildcards):
-    """What the scene's summary tables read: the metrics, the bench, the stage costs (and fine-tuning's), and the
-    images (the landing page's picture)."""
+    """What the scene's summary tables read: the metrics, the bench, the stage costs and their timeline (and
+    fine-tuning's), and the images (the landing page's picture)."""
     files = {name: f"results/{wildcards.scene}/{name}" for name in
-             ("voxel_metrics.json", "image_metrics.json", "bench.json", "stage_costs.tsv", "images")}
+             ("voxel_metrics.json", "image_metrics.json", "bench.json", "stage_costs.tsv", "report/timeline.png",
+              "images")}
     cfg = scene_config(wildcards.scene)
     if cfg["finetune"]["enabled"] and cache_choice(wildcards.scene) == "diffusion":
         files["finetune_metrics.json"] = f"results/{wildcards.scene}/finetune_metrics.json"
     if cfg["cache"] == "auto":  # the summary says what auto chose and why
         files["cache_choice.json"] = f"results/{wildcards.scene}/cache_choice.json"
-    return {k.replace(".", "_"): v for k, v in files.items()}
+    return {k.replace(".", "_").replace("/", "_"): v for k, v in files.items()}
 
 
 def caption_values(scene):
