@@ -270,7 +270,7 @@ def test_a_mixed_cache_names_its_share_and_its_render_command_mixes_the_same_way
                         generated=g, sampler=MixedSampler(Model(), blend, 0.7), results=Path("results/blob"),
                         checkpoint=Path("results/blob/diffusion.ckpt"), stored=Path("results/blob/weights.zarr"))
     assert mixed.cache_name == "diffusion 0.7 + weight blend 0.3"
-    for share, name in ((0.0, "weight blend (model share 0)"), (1.0, "diffusion (model share 1)")):
+    for share, name in ((0.0, "weight blend, model share 0"), (1.0, "diffusion, model share 1")):
         mixed.sampler = MixedSampler(Model(), blend, share)  # one side alone: named as that side, not a mix
         assert mixed.cache_name == name
     for config, name in (({}, "weight blend"), ({"codec": "fp16"}, "weight blend, fp16")):  # a codec's store

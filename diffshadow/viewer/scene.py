@@ -300,9 +300,9 @@ def mix_name(share: float) -> str:
     """The viewer's name for a mixed cache at `share`; at 0 or 1 one side answers alone (and only it is asked), so
     it is named, not a mix."""
     if share == 0.0:
-        return "weight blend (model share 0)"
+        return "weight blend, model share 0"
     if share == 1.0:
-        return "diffusion (model share 1)"
+        return "diffusion, model share 1"
     return f"diffusion {share:g} + weight blend {1 - share:g}"
 
 
