@@ -76,6 +76,7 @@ rule all:
         expand("results/{scene}/image_metrics.json", scene=config["scenes"]),
         expand("results/{scene}/bench.json", scene=config["scenes"]),
         expand("results/{scene}/stage_costs.tsv", scene=config["scenes"]),
+        # by name too: a finished run's missing timeline, read only by summary, would not rerun stage_costs
         expand("results/{scene}/report/timeline.png", scene=config["scenes"]),
         expand("results/{scene}/report/image_grid.png", scene=config["scenes"]),
         expand("results/{scene}/report/landing.rst", scene=config["scenes"]),

@@ -126,16 +126,14 @@ def run_gpus(config: str | None = None) -> int | None:
     """How many NVIDIA GPUs the run's device setting (`config`, under DIFFSHADOW_DEVICE) reaches on this machine,
     answered without PyTorch: None where it is the CPU, a GPU not visible here, or only PyTorch could tell
     (`visible_nvidia_gpus`)."""
-    if not gpu_possible(None, config):
-        return None
-    gpus = visible_nvidia_gpus()
-    if not gpus:
-        return None
     spec, _ = device_setting(None, config)
-    if spec.startswith("cuda:"):
-        index = spec.split(":", 1)[1]
-        return 1 if index.isdigit() and int(index) < gpus else None
-    return gpus if spec in ("auto", "cuda") else None
+    if spec not in ("auto", "cuda") and not spec.startswith("cuda:"):
+        return None
+    gpus = visible_nvidia_gpus()  # None without NVIDIA's driver
+    if not gpus or spec in ("auto", "cuda"):
+        return gpus or None
+    index = spec.split(":", 1)[1]
+    return 1 if index.isdigit() and int(index) < gpus else None
 
 
 def job_threads(threads: int, gpus: int | None, *, processes: bool = False) -> int:
@@ -145,7 +143,7 @@ def job_threads(threads: int, gpus: int | None, *, processes: bool = False) -> i
     thread each) one per GPU it can use; elsewhere `threads`."""
     if not gpus:
         return threads
-    return max(1, min(threads, gpus)) if processes else 1
+    return min(threads, gpus) if processes else 1
 
 
 def launch_ranks(argv: list[str]) -> int:
