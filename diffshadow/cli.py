@@ -235,8 +235,10 @@ def _render(a):
     size = a.size[0] if len(a.size) == 1 else tuple(a.size)
     if (a.eye is None) != (a.target is None):
         raise ValueError("render: give --eye and --target together (or neither, for the orbit camera)")
+    if a.up is not None and a.eye is None:
+        raise ValueError("render: --up turns the free camera; give --eye and --target with it")
     if a.eye is not None:
-        cam = Camera.look_at(a.eye, a.target, up=a.up, fov=a.fov, size=size)
+        cam = Camera.look_at(a.eye, a.target, up=a.up or (0.0, 0.0, 1.0), fov=a.fov, size=size)
     elif a.distance is not None:
         cam = Camera.orbit(scene.volume.extent, azimuth=a.azimuth, elevation=a.elevation, distance=a.distance,
                            fov=a.fov, size=size)
@@ -467,8 +469,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--volume", help="results/<scene>/volume.zarr, or a raw volume file with --tf-json")
     p.add_argument("--scene-config", help="a scene file (config/scenes/<scene>.yaml): preview its volume and "
                    "transfer function before a run")
-    p.add_argument("--tf-json", help="transfer function: needed with a raw --volume file; with a volume.zarr, in "
-                   "place of its own (a cache of the run still shades it where the opacity is the same)")
+    p.add_argument("--tf-json", help="transfer function, as JSON or a JSON file: needed with a raw --volume file; "
+                   "with a volume.zarr, in place of its own (a cache of the run still shades it where the opacity "
+                   "is the same)")
     p.add_argument("--mode", choices=["noshadow", "gt", "inr", "naive"], default="gt")
     p.add_argument("--scalar", choices=["grid", "inr"], default=None, help="default: inr when --data-inr")
     for name, helptext in (("data-inr", "data_inr.pt (needed for --scalar inr and mode naive)"),
@@ -493,7 +496,8 @@ def build_parser() -> argparse.ArgumentParser:
     for name in ("eye", "target"):
         p.add_argument(f"--{name}", type=float, nargs=3, metavar=("X", "Y", "Z"),
                        help="a free camera in box coordinates (instead of --azimuth/--elevation/--distance)")
-    p.add_argument("--up", type=float, nargs=3, metavar=("X", "Y", "Z"), default=(0.0, 0.0, 1.0))
+    p.add_argument("--up", type=float, nargs=3, metavar=("X", "Y", "Z"),
+                   help="the free camera's up direction (default: +z)")
     p.add_argument("--size", type=int, nargs="+", default=[128], help="image size: N (square) or W H")
     p.add_argument("--no-skip", action="store_true", help="turn macro-cell skipping off")
     add_networks(p)

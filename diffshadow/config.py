@@ -259,10 +259,21 @@ class _Sections(dict):
 
 
 def parse_json(text: str, what: str = "--config-json") -> dict[str, Any]:
+    """A JSON object given inline or, where `text` is not an object's text, as the path of a file holding one."""
+    source = what
+    if not text.lstrip().startswith("{"):
+        path = Path(text)
+        if not path.is_file():
+            raise ConfigError(f"{what}: expected a JSON object or a file holding one, got {text!r} (no such file)")
+        source = f"{what} {path}"
+        try:
+            text = path.read_text()
+        except (OSError, UnicodeDecodeError) as e:
+            raise ConfigError(f"{source}: unreadable ({type(e).__name__}: {e})") from None
     try:
         value = json.loads(text)
     except json.JSONDecodeError as e:
-        raise ConfigError(f"{what}: not valid JSON ({e})") from None
+        raise ConfigError(f"{source}: not valid JSON ({e})") from None
     if not isinstance(value, dict):
-        raise ConfigError(f"{what}: expected a JSON object")
-    return _Sections(value, what)
+        raise ConfigError(f"{source}: expected a JSON object")
+    return _Sections(value, source)

@@ -92,3 +92,20 @@ def test_changing_one_run_config_leaves_the_defaults_of_the_next():
     run["fit"]["lr"] = 99.0
     assert defaults()["diffusion"]["epochs"] != -1 and defaults()["fit"]["lr"] != 99.0
     assert load_run(None)["diffusion"]["epochs"] == defaults()["diffusion"]["epochs"]
+
+
+def test_a_json_option_reads_inline_text_and_a_file_alike(tmp_path):
+    """`--tf-json` and `--config-json` take an object's text or a file's path: the same dict either way, and a
+    missing section's error names the file it came from."""
+    import pytest
+
+    from diffshadow.config import ConfigError, parse_json
+
+    text = '{"opacity": [[0, 0], [1, 1]], "density_scale": 5}'
+    (tmp_path / "tf.json").write_text(text)
+    inline, from_file = parse_json(text, "--tf-json"), parse_json(str(tmp_path / "tf.json"), "--tf-json")
+    assert inline == from_file == {"opacity": [[0, 0], [1, 1]], "density_scale": 5}
+    with pytest.raises(ConfigError, match=r"--tf-json .*tf.json: no 'color' section"):
+        from_file["color"]
+    with pytest.raises(ConfigError, match=r"expected a JSON object or a file holding one, got '\[1\]'"):
+        parse_json("[1]", "--tf-json")

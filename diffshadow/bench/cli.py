@@ -126,7 +126,7 @@ def add_bench_parsers(sub) -> None:
     for name, kind, default, helptext in (
             ("scene-config", str, None, "a scene YAML (volume, transfer_function)"),
             ("volume", str, None, "or prepare_volume's volume.zarr, or a raw file (--tf-json, else the bench TF)"),
-            ("tf-json", str, None, "transfer function for a raw --volume"),
+            ("tf-json", str, None, "transfer function for a raw --volume, as JSON or a JSON file"),
             ("data-inr", str, None, "train_data_inr's data_inr.pt (default: fit one)"),
             ("inr-steps", int, None, "steps when fitting the data INR here (default: config's data_inr.steps)"),
             ("weights", str, None, "a weight store whose SIREN --light-index is the shadow INR (default: fit one)"),
