@@ -260,10 +260,13 @@ def run_render(a) -> dict:
     from diffshadow.config import ConfigError, load_run, scene_config
 
     render = {}
+    if a.configfile is not None and not Path(a.configfile).is_file():  # named, not defaulted: a mistyped path
+        raise ConfigError(f"--configfile {a.configfile}: no such file (the run's config, e.g. config/config.yaml)")
     if a.results is not None and Path(a.results).is_dir():  # a missing folder gets the viewer's own error alone
         scene = Path(a.results).name
         try:
-            render = scene_config(load_run(a.configfile), scene, scenes_dir=Path(a.scenes_dir))["render"]
+            render = scene_config(load_run(a.configfile or "config/config.yaml"), scene,
+                                  scenes_dir=Path(a.scenes_dir))["render"]
         except ConfigError as e:
             print(f"view: no run config for scene {scene!r} ({e}): the package's render defaults", file=sys.stderr)
     return {**render, **network_flags(a)}
@@ -291,6 +294,8 @@ def _report_figures(a):
 def _stage_costs(a):
     from diffshadow.report import job_spans, mixed_runtimes, stage_costs, timeline_figure
 
+    if a.timeline and Path(a.timeline).suffix.lower() != ".png":  # before the table: it is drawn as a PNG
+        raise ValueError(f"--timeline {a.timeline}: the figure is written as a PNG; give a name ending in .png")
     benchmarks = [Path(b) for b in a.benchmarks]
     rows = stage_costs(benchmarks, Path(a.out))
     if a.timeline:
@@ -512,7 +517,7 @@ def build_parser() -> argparse.ArgumentParser:
                    "canvas's own, sharp at any window size; a panel control)")
     p.add_argument("--step", type=float, help="marching step in voxels (a panel control; default: the run's "
                    "render.step)")
-    p.add_argument("--configfile", default="config/config.yaml", help="the run's config, whose render section "
+    p.add_argument("--configfile", help="the run's config, whose render section "
                    "(the kernel, the step) the viewer uses for a results folder (default: config/config.yaml)")
     p.add_argument("--scenes-dir", default="config/scenes")
     p.add_argument("--record", help="a folder where every still frame is written (PNG, and JSON with its render "

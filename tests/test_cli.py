@@ -252,6 +252,10 @@ def test_a_path_that_cannot_be_read_and_a_port_out_of_range_are_one_line(tmp_pat
                            f"{gone}: No such file or directory"),
                           (["view", "--scene-config", str(REPO / "config/scenes/nucleon.yaml"), "--port", "99999"],
                            "--port 99999: expected a TCP port, 1 to 65535"),
+                          (["stage-costs", "--benchmarks", str(gone), "--out", str(gone), "--timeline", "t.jpg"],
+                           "--timeline t.jpg: the figure is written as a PNG"),
+                          (["view", "--scene-config", str(REPO / "config/scenes/nucleon.yaml"), "--step", "0"],
+                           "--step 0: expected a positive marching step in voxels"),
                           (["stage-costs", "--benchmarks", str(tmp_path / "c.tsv" / "b.tsv"), "--out", str(gone)],
                            f"{tmp_path / 'c.tsv'}: a file, where a folder is needed"),
                           (["install-profiles", "--target", str(tmp_path / "c.tsv")],
@@ -451,6 +455,7 @@ def test_view_takes_the_runs_render_section_under_its_flags(tmp_path, capsys):
     file's): the kernel and the step; --kernel wins; without a run config for the scene, the package defaults
     and one line saying so."""
     from diffshadow.cli import build_parser, run_render
+    from diffshadow.config import ConfigError
 
     cfg = tmp_path / "run.yaml"
     cfg.write_text("scenes: [nucleon]\nrender: {kernel: eager, step: 0.25}\n")
@@ -469,6 +474,10 @@ def test_view_takes_the_runs_render_section_under_its_flags(tmp_path, capsys):
     assert "no run config for scene 'elsewhere'" in capsys.readouterr().err
     # a folder that is not there: the viewer's error alone says so, not a line about its config first
     assert render(str(tmp_path / "results" / "missing")) == {} and capsys.readouterr().err == ""
+    # a config file named but not there is refused, not replaced by the defaults
+    with pytest.raises(ConfigError, match=r"--configfile .*nope.yaml: no such file"):
+        run_render(build_parser().parse_args(["view", str(tmp_path / "results" / "nucleon"), "--configfile",
+                                              str(tmp_path / "nope.yaml")]))
 
 
 def test_a_torch_command_ends_without_pythons_teardown_once_its_output_is_written(tmp_path):

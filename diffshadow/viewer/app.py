@@ -41,6 +41,7 @@ STEP_UP = 4  # ... a quarter: 1/16 of the pixels, so the still frame costs 6 % m
 # (docs/performance.md, "The viewer"). Still frames take every thread.
 PREVIEW_THREADS = 1
 MAX_SIZE = 2048  # the still frame's height at most (--size and the panel's slider)
+STEP_RANGE = (0.125, 2.0)  # the panel's slider of the marching step in voxels, widened to hold a run's own
 FREE = "(azimuth / elevation)"
 
 
@@ -145,7 +146,8 @@ class Session:
         with gui.add_folder("image"):
             # 0: the canvas's own height (sharp at any window size); else a fixed height at the canvas's aspect
             self.size = gui.add_slider("height (px, 0: canvas)", 0, MAX_SIZE, 16, int(size))
-            self.step = gui.add_slider("step (voxels)", 0.125, 2.0, 0.125, float(step))
+            self.step = gui.add_slider("step (voxels)", min(STEP_RANGE[0], step), max(STEP_RANGE[1], step), 0.125,
+                                       float(step))
         self.status = gui.add_markdown("starting")
         self.command = gui.add_markdown("")
         self.labels = dict(listed)
@@ -385,6 +387,8 @@ def serve(*, results: Path | None, scene_config: Path | None, device: torch.devi
         raise ViewerError(f"--port {port}: expected a TCP port, 1 to 65535")
     if not 0 <= size <= MAX_SIZE:
         raise ViewerError(f"--size {size}: expected a still frame's height in pixels, 0 (the canvas's) to {MAX_SIZE}")
+    if not (0 < step < math.inf):  # else every frame would fail in the renderer, after the viewer started
+        raise ViewerError(f"--step {step:g}: expected a positive marching step in voxels")
     if (problem := port_problem(host, port)) is not None:
         raise ViewerError(problem)
     torch_thread = TorchThread()
