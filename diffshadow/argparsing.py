@@ -7,6 +7,22 @@ import argparse
 import os
 
 
+def at_least(low: float, kind: type = int):
+    """An argparse type: a number of `kind` no less than `low`, refused in argparse's one line otherwise (a
+    negative --threads reached torch.set_num_threads and ended in its traceback)."""
+    def parse(text: str):
+        try:
+            value = kind(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"expected {'an integer' if kind is int else 'a number'}, "
+                                             f"got {text!r}") from None
+        if not value >= low:  # NaN too
+            raise argparse.ArgumentTypeError(f"expected at least {low:g}, got {text}")
+        return value
+
+    return parse
+
+
 def config_of(args: argparse.Namespace) -> dict:
     from diffshadow.config import parse_json
 
@@ -51,6 +67,6 @@ def add_subcommand(sub, name: str, func, helptext: str, *paths: str, out: bool =
                        "then --config-device, then auto)")
         p.add_argument("--config-device", default=os.environ.get("DIFFSHADOW_CONFIG_DEVICE"),
                        help="the run config's `device` (default: DIFFSHADOW_CONFIG_DEVICE, which the workflow sets)")
-    p.add_argument("--threads", type=int, default=0, help="torch threads (0: torch's default)")
+    p.add_argument("--threads", type=at_least(0), default=0, help="torch threads (0: torch's default)")
     p.set_defaults(func=func)
     return p

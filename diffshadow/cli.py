@@ -13,7 +13,7 @@ import sys
 from pathlib import Path
 
 from diffshadow import __version__
-from diffshadow.argparsing import add_networks, network_flags
+from diffshadow.argparsing import add_networks, at_least, network_flags
 from diffshadow.argparsing import add_subcommand as _add
 from diffshadow.argparsing import config_of as _cfg
 from diffshadow.argparsing import device_of as _device
@@ -541,7 +541,7 @@ def build_parser() -> argparse.ArgumentParser:
                                     ("results", "results", None)):
         p.add_argument(f"--{name}", default=default, help=helptext)
     p.add_argument("--scenes", nargs="*", help="default: the config's scenes")
-    p.add_argument("--threads", type=int, default=1, help="torch threads per worker")
+    p.add_argument("--threads", type=at_least(1), default=1, help="torch threads per worker")
     p.set_defaults(func=_parsl_fit)
     p = sub.add_parser("pbs-status", help="PBS job state for Snakemake's cluster-generic executor")
     p.add_argument("job", help="PBS job id")
