@@ -88,6 +88,8 @@ def fit_pending(parsl_config: Path, configfile: Path, scenes: list[str] | None, 
     from diffshadow.config import load_run, scene_config
     from diffshadow.lights import n_subsets
 
+    if not parsl_config.is_file():  # before any scene is read: with nothing pending it would go unnoticed
+        raise ValueError(f"--config {parsl_config}: no such Parsl config file (config/parsl/local.py or polaris.py)")
     run_cfg = load_run(configfile)
     jobs = []
     for scene in scenes or run_cfg["scenes"]:

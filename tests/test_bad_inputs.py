@@ -70,6 +70,8 @@ CASES = [
     ("--config-json: an unknown key", lambda t: _config_json(t, '{"data_inr": {"stepz": 3}}'), {},
      r"data_inr: unknown key\(s\) \['stepz'\]"),
     ("--config-json: not JSON", lambda t: _config_json(t, "{bad"), {}, "--config-json: not valid JSON"),
+    ("parsl-fit: a Parsl config that is not there", lambda t: ["parsl-fit", "--config", "nope.py"], {},
+     r"--config nope.py: no such Parsl config file"),
     ("a negative --threads", lambda t: _render(["--volume", npy(t, "v.npy"), "--tf-json", json.dumps(TF)],
                                                "--threads", "-3"), {}, r"--threads: expected at least 0, got -3"),
     ("--tf-json: a file that is not there", lambda t: _render(["--volume", npy(t, "v.npy"), "--tf-json", "tf.json"]),
