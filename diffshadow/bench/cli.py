@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from diffshadow.argparsing import add_networks, network_flags
+from diffshadow.argparsing import add_networks, at_least, network_flags
 from diffshadow.argparsing import add_subcommand as _add
 from diffshadow.argparsing import device_of as _device
 
@@ -134,8 +134,8 @@ def add_bench_parsers(sub) -> None:
             ("step", float, 0.5, "voxels"), ("repeats", int, 3, None), ("out", str, "bench/bench_render.json",
                                                      "a JSON file, or a folder for bench_render.json")):
         p.add_argument(f"--{name}", type=kind, default=default, help=helptext)
-    p.add_argument("--sizes", type=int, nargs="+", default=[64, 128])
-    p.add_argument("--memory-sizes", type=int, nargs="*", default=None,
+    p.add_argument("--sizes", type=at_least(1), nargs="+", default=[64, 128])  # refused before any fit or frame
+    p.add_argument("--memory-sizes", type=at_least(1), nargs="*", default=None,
                    help="larger sides measured for peak memory only (default: 2x and 4x the largest size)")
     add_networks(p)
     p = _add(bench, "stages", _bench_stages, "per-step cost (time, ops, host syncs, memory) of every heavy stage at "
