@@ -11,12 +11,15 @@ Needs Chromium on PATH (Debian: apt-get install chromium); WebGL runs on SwiftSh
 from __future__ import annotations
 
 import base64
+import contextlib
 import io
 import itertools
 import json
+import os
 import re
 import shlex
 import shutil
+import signal
 import subprocess
 import sys
 import tempfile
@@ -44,14 +47,16 @@ class Browser:
         exe = find_browser()
         if exe is None:
             raise RuntimeError(f"no Chromium on PATH (looked for {', '.join(BROWSERS)})")
-        self.profile = tempfile.TemporaryDirectory(prefix="diffshadow-chromium-")
+        # Chromium's helper processes can still write to the profile as it is removed (seen under load: "Directory
+        # not empty" failed a test whose checks had passed); they are stopped with it as one process group below
+        self.profile = tempfile.TemporaryDirectory(prefix="diffshadow-chromium-", ignore_cleanup_errors=True)
         self.proc = subprocess.Popen(
             [exe, "--headless=new", "--no-sandbox", "--no-first-run", "--no-default-browser-check",
              "--disable-background-networking", "--disable-extensions", "--disable-dev-shm-usage",
              "--use-gl=angle", "--use-angle=swiftshader", "--enable-unsafe-swiftshader",
              "--force-device-scale-factor=1", f"--window-size={width},{height}", "--remote-debugging-port=0",
              f"--user-data-dir={self.profile.name}", url],
-            stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+            stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True, start_new_session=True)
         port = None
         deadline = time.monotonic() + timeout
         while port is None and time.monotonic() < deadline:
@@ -177,11 +182,15 @@ class Browser:
         try:
             self.ws.close()
         finally:
+            group = os.getpgid(self.proc.pid) if self.proc.poll() is None else None
             self.proc.terminate()
             try:
                 self.proc.wait(10)
             except subprocess.TimeoutExpired:
                 self.proc.kill()
+            if group is not None:  # the renderer, GPU and crash-handler processes, which outlive the browser's
+                with contextlib.suppress(ProcessLookupError):
+                    os.killpg(group, signal.SIGKILL)
             self.profile.cleanup()
 
 
