@@ -25,7 +25,8 @@ from diffshadow.config import defaults
 def _lights(a):
     from diffshadow.stages import stage1
 
-    stage1.lights(Path(a.out), sphere=a.sphere, count=a.count, center=a.center, unseen=a.unseen, seed=a.seed)
+    stage1.lights(Path(a.out), sphere=a.sphere, count=a.count, center=a.center, unseen=a.unseen, seed=a.seed,
+                  layout=a.layout)
 
 
 def _prepare_volume(a):
@@ -370,6 +371,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--center", type=float, nargs=3, required=True, metavar=("X", "Y", "Z"))
     p.add_argument("--unseen", type=int, required=True, help="held-out directions (paper: 500)")
     p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--layout", choices=["rim", "cap"], default="rim", help="cap: the region of the Fibonacci "
+                   "sphere (the paper's); rim: its outer shell moved onto the region's edge (lights.layout)")
     _add(sub, "prepare-volume", _prepare_volume, "normalised grid + TF as Zarr", device=False,
          config='{"volume": PATH, "load": {...}, "transfer_function": {...}}')
     _add(sub, "preoptimize", _preoptimize, "fit the shared initial SIREN on light 0", "volume", "lights",

@@ -76,6 +76,32 @@ def select_region(directions, center, count: int) -> np.ndarray:
     return np.argsort(-(dirs @ c), kind="stable")[:count]
 
 
+LAYOUTS = ("rim", "cap")  # lights.layout; the first is the default
+
+
+def rim_layout(directions: np.ndarray, center) -> tuple[np.ndarray, int]:
+    """`directions` (the training region of a Fibonacci sphere, `select_region`'s: nearest the centre first) with
+    its outer shell
+    moved onto the region's edge: the directions within one spacing of the edge (the cap around `center` that holds
+    them all; spacing √(4π/sphere points), from the directions' own density) are replaced by as many spread evenly
+    on the edge's circle. The count and the cap stay, so unseen lights are drawn from the same cap; but the
+    training lights' hull now reaches the cap's edge, where a Fibonacci region's hull left a rim of lights to
+    extrapolate to (a fifth of the cap at 32 lights; docs/design.md, "The light layout"). Returns the directions
+    (interior first, then the edge's by azimuth) and how many lie on the edge."""
+    dirs = np.asarray(directions, dtype=np.float64)
+    c = as_direction(center, name="center")
+    angle = np.arccos(np.clip(dirs @ c, -1.0, 1.0))
+    edge = float(angle.max())
+    spacing = np.sqrt(4.0 * np.pi / len(dirs) * (1.0 - np.cos(edge)) / 2.0) if edge > 0 else 0.0
+    k = int((angle > edge - spacing).sum())  # the last k: `directions` are nearest first
+    if len(dirs) < 4 or k < 3:  # no hull to widen: a cap of 3 or fewer lights keeps them as they are
+        return dirs, 0
+    u, v = _orthonormal_basis(c)
+    phi = 2.0 * np.pi * (np.arange(k) + 0.5) / k
+    ring = np.sin(edge) * (np.cos(phi)[:, None] * u + np.sin(phi)[:, None] * v) + np.cos(edge) * c
+    return np.concatenate([dirs[:len(dirs) - k], ring / np.linalg.norm(ring, axis=1, keepdims=True)]), k
+
+
 def unseen_directions(train, center, count: int, *, seed: int | list[int] = 0, min_angle: float = 1e-3) -> np.ndarray:
     """`count` random directions from the training set's cap around `center`, none equal to a training one.
 
@@ -491,20 +517,27 @@ def to_spherical(directions) -> np.ndarray:
     return np.stack([theta, phi], axis=1)
 
 
-def make_light_sets(sphere: int, count: int, center, unseen: int, seed: int = 0) -> dict:
-    """Training directions (a region of a Fibonacci sphere) and held-out unseen ones, as a JSON-able dict."""
+def make_light_sets(sphere: int, count: int, center, unseen: int, seed: int = 0, layout: str = "rim") -> dict:
+    """Training directions (a region of a Fibonacci sphere; with `layout` "rim" its outer shell moved onto the
+    region's edge, `rim_layout`) and held-out unseen ones, as a JSON-able dict."""
     # the workflow's schema holds these; the `lights` command and the library get them here, by name
     for name, value, least in (("sphere", sphere, 1), ("count", count, 1), ("unseen", unseen, 0), ("seed", seed, 0)):
         if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < least:
             raise LightError(f"{name}: expected an integer >= {least}, got {value!r}")
+    if layout not in LAYOUTS:
+        raise LightError(f"layout: expected one of {', '.join(LAYOUTS)}, got {layout!r}")
     sphere_dirs = fibonacci_sphere(sphere)
     idx = select_region(sphere_dirs, center, count)
-    train = sphere_dirs[idx]
+    train, on_edge = sphere_dirs[idx], 0
+    if layout == "rim":
+        train, on_edge = rim_layout(train, center)
+        idx = np.concatenate([idx[:count - on_edge], np.full(on_edge, -1)])  # the edge's lights are no sphere point
     held = unseen_directions(train, center, unseen, seed=seed) if unseen > 0 else np.zeros((0, 3))
     return {
         "sphere": int(sphere),
         "center": as_direction(center, name="center").tolist(),
         "seed": int(seed),
+        **({"layout": layout, "on_edge": on_edge} if layout != "cap" else {}),
         "spherical_convention": "theta: polar angle from +z; phi: azimuth from +x toward +y; radians",
         "train": {
             "sphere_index": idx.tolist(),

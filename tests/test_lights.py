@@ -351,3 +351,60 @@ def test_triangle_weights_move_continuously_with_the_light():
     jump = np.abs(np.diff(dense(*Triangulation(train).weights(path)), axis=0)).max()
     assert jump < 20 * step
     assert np.abs(np.diff(dense(*blend_weights(train, path, 4, "inverse-angle")), axis=0)).max() > 20 * step
+
+
+@pytest.mark.parametrize("sphere, count", [(400, 32), (1600, 32), (512, 128), (8000, 2000)])
+def test_the_rim_layout_moves_the_outer_shell_onto_the_caps_edge_and_keeps_count_and_cap(sphere, count):
+    """lights.layout rim: as many lights as the Fibonacci region, the same cap (so unseen lights are drawn from
+    the same region), the interior the region's own nearest directions, and the outer shell evenly spaced on the
+    cap's edge, a spacing apart."""
+    from diffshadow.lights import rim_layout
+
+    c = np.array([0.0, 0.0, 1.0])
+    cap = make_light_sets(sphere, count, c, 8, layout="cap")
+    rim = make_light_sets(sphere, count, c, 8, layout="rim")
+    a, b = np.asarray(cap["train"]["cartesian"]), np.asarray(rim["train"]["cartesian"])
+    k = rim["on_edge"]
+    assert len(b) == count and "layout" not in cap and rim["layout"] == "rim" and 3 <= k < count
+    edge = np.arccos(a @ c).max()
+    np.testing.assert_allclose(np.arccos(np.clip(b[-k:] @ c, -1, 1)), edge, atol=1e-9)  # on the edge
+    np.testing.assert_array_equal(b[:-k], a[:-k])  # the interior: the region's own nearest directions
+    assert rim["train"]["sphere_index"][-k:] == [-1] * k and rim["train"]["sphere_index"][:-k] == \
+        cap["train"]["sphere_index"][:-k]
+    azimuth = np.sort(np.arctan2(b[-k:, 1], b[-k:, 0]))
+    np.testing.assert_allclose(np.diff(azimuth), 2 * np.pi / k, atol=1e-9)  # evenly spaced
+    spacing = np.sqrt(4 * np.pi / sphere)
+    assert 0.8 < 2 * np.pi * np.sin(edge) / k / spacing < 1.25  # the edge's lights a spacing apart, as inside
+    assert np.arccos(np.clip(rim_layout(a, c)[0] @ c, -1, 1)).max() == pytest.approx(edge)
+    held = np.asarray(rim["unseen"]["cartesian"])
+    assert np.arccos(np.clip(held @ c, -1, 1)).max() <= edge + 1e-12  # drawn from the same cap
+
+
+def test_the_rim_layouts_hull_holds_the_cap_to_its_polygons_incircle():
+    """Every direction nearer the centre than the edge's regular k-gon's inscribed circle (atan(tan R cos(pi/k))
+    on the sphere) lies inside the training lights' hull: the triangle blend takes three lights there. In the
+    Fibonacci region (cap layout) a fifth of the cap lies past the hull's rim, where it takes two."""
+    from diffshadow.lights import blend_weights
+
+    c = np.array([0.0, 0.0, 1.0])
+    past = {}
+    for layout in ("cap", "rim"):
+        sets = make_light_sets(400, 32, c, 0, layout=layout)
+        train = np.asarray(sets["train"]["cartesian"])
+        probe = unseen_directions(train, c, 2000, seed=5)
+        _, w = blend_weights(train, probe, 4, "triangle")
+        outside = (w > 1e-9).sum(axis=1) <= 2
+        past[layout] = outside.mean()
+        if layout == "rim":
+            edge, k = np.arccos(train[-1] @ c), sets["on_edge"]
+            incircle = np.arctan(np.tan(edge) * np.cos(np.pi / k))
+            assert not outside[np.arccos(np.clip(probe @ c, -1, 1)) < incircle - 1e-6].any()
+    assert past["cap"] > 0.15 and past["rim"] < 0.5 * past["cap"]
+
+
+def test_the_rim_layout_of_three_lights_or_fewer_is_the_region_and_a_bad_layout_is_named():
+    for count in (1, 3):
+        assert make_light_sets(100, count, (0, 0, 1), 2, layout="rim")["train"] == \
+            make_light_sets(100, count, (0, 0, 1), 2, layout="cap")["train"]
+    with pytest.raises(LightError, match=r"^layout: expected one of rim, cap, got 'ring'$"):
+        make_light_sets(100, 10, (0, 0, 1), 2, layout="ring")

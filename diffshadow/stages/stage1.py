@@ -32,11 +32,12 @@ def heldout_seed(fit: FitConfig, subset: int) -> int:
     return fit.seed + SUBSET_HELD_OUT_SEED * (subset + 1)
 
 
-def lights(out: Path, *, sphere: int, count: int, center, unseen: int, seed: int) -> None:
-    sets = make_light_sets(sphere, count, center, unseen, seed=seed)
+def lights(out: Path, *, sphere: int, count: int, center, unseen: int, seed: int, layout: str = "rim") -> None:
+    sets = make_light_sets(sphere, count, center, unseen, seed=seed, layout=layout)
     write_lights(out, sets)
+    edge = f", {sets['on_edge']} of them on its edge" if layout == "rim" else ""
     print(f"wrote {out}: {count} training and {unseen} unseen directions "
-          f"(region of a {sphere}-point Fibonacci sphere around {sets['center']})")
+          f"(region of a {sphere}-point Fibonacci sphere around {sets['center']}{edge})")
 
 
 def prepare_volume(out: Path, scene: dict) -> None:
