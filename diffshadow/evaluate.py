@@ -18,7 +18,7 @@ from diffshadow.io import atomic_torch_save, resume
 from diffshadow.lights import OLD_WEIGHTING, blend_weights, nearest, pick, wide_test_lights
 from diffshadow.sampling import Stream, seeded
 from diffshadow.store import blend_rows
-from diffshadow.truth import EvalTruth, median, psnr_per_light
+from diffshadow.truth import EvalTruth, median, p10, psnr_per_light
 
 
 def blend_baseline(train_values: dict, idx: np.ndarray, weights: np.ndarray) -> dict[str, torch.Tensor]:
@@ -96,6 +96,9 @@ def wide_comparison(state: dict | None, stage1, light_sets: dict, volume, tf, *,
     m = score.get("model_alone")
     out.update(blend_weights=weighting, blend_k=blend_k, generated_psnr_median=median(a),
                weight_blend_psnr_median=median(b), **({} if m is None else {"model_alone_psnr_median": median(m)}))
+    # the lower tail, which a median does not see: lights the training lights' hull does not hold (lights.layout)
+    out.update(generated_psnr_p10=p10(a), weight_blend_psnr_p10=p10(b),
+               **({} if m is None else {"model_alone_psnr_p10": p10(m)}))
     if "answer" in score:
         out.update(weight_blend_gap_interval95_db=median_gap_interval(a, b),
                    better_than_weight_blend=int((a > b).sum()))

@@ -453,6 +453,12 @@ def cache_verdict(voxel: dict) -> str:
     return f"{size}; {better}. {AGAINST_COUNT}"
 
 
+def _tail(wide: dict, name: str) -> str:
+    """The 10th percentile where evaluate_voxels recorded it (runs before it did not)."""
+    value = wide.get(f"{name}_psnr_p10")
+    return "" if value is None else f"; a tenth of the lights under {value:.2f} dB"
+
+
 def _further_rows(wide: dict, made: str) -> list[list[str]]:
     """The "further" rows of the voxel table: the cache's answer on evaluate_voxels' further test lights, the
     model alone where there is a model, and the weight blend of stage 1's SIRENs, which alone is the answer of
@@ -464,11 +470,13 @@ def _further_rows(wide: dict, made: str) -> list[list[str]]:
         lo, hi = wide["weight_blend_gap_interval95_db"]
         rows.append([further, made, _num(wide["generated_psnr_median"]), "",
                      f"better than the weight blend on {wide['better_than_weight_blend']:,}; 95 % interval of the "
-                     f"gap {lo:+.2f} to {hi:+.2f} dB"])
+                     f"gap {lo:+.2f} to {hi:+.2f} dB" + _tail(wide, "generated")])
     if "model_alone_psnr_median" in wide:
-        rows.append([further, "the model alone (the paper's cache)", _num(wide["model_alone_psnr_median"]), "", ""])
+        rows.append([further, "the model alone (the paper's cache)", _num(wide["model_alone_psnr_median"]), "",
+                     _tail(wide, "model_alone").lstrip("; ")])
     name = f"{blend_label(wide)} training SIRENs' weights" + (" (fp32)" if "codec" in wide else "")
-    rows.append([further, name if rows else made, _num(wide["weight_blend_psnr_median"]), "", drawn])
+    rows.append([further, name if rows else made, _num(wide["weight_blend_psnr_median"]), "",
+                 drawn + _tail(wide, "weight_blend")])
     return rows
 
 

@@ -177,3 +177,8 @@ def psnr_per_light(pred: dict, truth: dict) -> dict[str, np.ndarray]:
 
 def median(a) -> float:
     return float(np.median(a))
+
+
+def p10(a) -> float:
+    """The 10th percentile: the lights a median does not see."""
+    return float(np.percentile(a, 10))

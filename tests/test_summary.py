@@ -234,7 +234,11 @@ def test_the_further_rows_name_what_each_cache_answers_with():
                                      "triangle blend of the training SIRENs' weights (fp32)"]
     blend = _further_rows({**base, "generated_psnr_median": 39.49}, "blended (cache: blend)")
     assert [(r[0], r[1], r[2]) for r in blend] == [("further (256)", "blended (cache: blend)", "39.49")]
-    assert "1,024 points per light" in blend[0][4]
+    assert "1,024 points per light" in blend[0][4] and "a tenth" not in blend[0][4]  # a run before the tails
+    tails = _further_rows({**base, **compared, "model_alone_psnr_median": 36.2, "generated_psnr_p10": 37.91,
+                           "model_alone_psnr_p10": 33.0, "weight_blend_psnr_p10": 37.9}, "mixed")
+    assert [r[4].split("; ")[-1] for r in tails] == [f"a tenth of the lights under {v} dB"
+                                                    for v in ("37.91", "33.00", "37.90")]
 
 
 def test_a_codec_cache_has_no_model_rows_even_where_an_old_runs_files_remain(tmp_path):

@@ -140,6 +140,9 @@ def test_the_wide_comparison_at_share_0_is_the_blend_and_at_share_1_the_model(fi
     assert blend["better_than_weight_blend"] == 0 and blend["weight_blend_gap_interval95_db"] == [0.0, 0.0]
     assert model["generated_psnr_median"] == model["model_alone_psnr_median"] == blend["model_alone_psnr_median"]
     assert model["better_than_model_alone"] == 0 and model["model_alone_gap_interval95_db"] == [0.0, 0.0]
+    # the lower tail likewise, each under its median
+    assert blend["generated_psnr_p10"] == blend["weight_blend_psnr_p10"] < blend["weight_blend_psnr_median"]
+    assert model["generated_psnr_p10"] == model["model_alone_psnr_p10"] < model["model_alone_psnr_median"]
     wide = wide_test_lights(lights["train"], lights["center"], 12, seed=3)
     others = np.concatenate([lights["unseen"], validation_lights(lights["train"], lights["center"], 12, seed=3),
                              training_pool(lights["train"], lights["center"], 12, seed=3)])
