@@ -81,13 +81,12 @@ LAYOUTS = ("rim", "cap")  # lights.layout; the first is the default
 
 def rim_layout(directions: np.ndarray, center) -> tuple[np.ndarray, int]:
     """`directions` (the training region of a Fibonacci sphere, `select_region`'s: nearest the centre first) with
-    its outer shell
-    moved onto the region's edge: the directions within one spacing of the edge (the cap around `center` that holds
-    them all; spacing √(4π/sphere points), from the directions' own density) are replaced by as many spread evenly
-    on the edge's circle. The count and the cap stay, so unseen lights are drawn from the same cap; but the
-    training lights' hull now reaches the cap's edge, where a Fibonacci region's hull left a rim of lights to
-    extrapolate to (a fifth of the cap at 32 lights; docs/design.md, "The light layout"). Returns the directions
-    (interior first, then the edge's by azimuth) and how many lie on the edge."""
+    its outer shell moved onto the region's edge: the directions within one spacing of the edge (the cap around
+    `center` that holds them all; the spacing √(cap area / count), √(4π / sphere points) for a Fibonacci region)
+    are replaced by as many spread evenly on the edge's circle. The count and the cap stay, so unseen lights are
+    drawn from the same cap; but the training lights' hull now reaches the cap's edge, where a Fibonacci region's
+    hull left a rim of lights to extrapolate to (a fifth of the cap at 32 lights; docs/design.md, "The light
+    layout"). Returns the directions (interior first, then the edge's by azimuth) and how many lie on the edge."""
     dirs = np.asarray(directions, dtype=np.float64)
     c = as_direction(center, name="center")
     angle = np.arccos(np.clip(dirs @ c, -1.0, 1.0))
