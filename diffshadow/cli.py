@@ -18,6 +18,7 @@ from diffshadow.argparsing import add_subcommand as _add
 from diffshadow.argparsing import config_of as _cfg
 from diffshadow.argparsing import device_of as _device
 from diffshadow.config import defaults
+from diffshadow.lights import LAYOUTS
 
 # ------------------------------------------------------------------------------------------- stage 1
 
@@ -371,7 +372,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--center", type=float, nargs=3, required=True, metavar=("X", "Y", "Z"))
     p.add_argument("--unseen", type=int, required=True, help="held-out directions (paper: 500)")
     p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--layout", choices=["rim", "cap"], default="rim", help="cap: the region of the Fibonacci "
+    p.add_argument("--layout", choices=LAYOUTS, default=LAYOUTS[0], help="cap: the region of the Fibonacci "
                    "sphere (the paper's); rim: its outer shell moved onto the region's edge (lights.layout)")
     _add(sub, "prepare-volume", _prepare_volume, "normalised grid + TF as Zarr", device=False,
          config='{"volume": PATH, "load": {...}, "transfer_function": {...}}')
