@@ -294,10 +294,11 @@ def _report_figures(a):
 
 
 def _stage_costs(a):
+    from diffshadow.io import require_png
     from diffshadow.report import job_spans, mixed_runtimes, stage_costs, timeline_figure
 
-    if a.timeline and Path(a.timeline).suffix.lower() != ".png":  # before the table: it is drawn as a PNG
-        raise ValueError(f"--timeline {a.timeline}: the figure is written as a PNG; give a name ending in .png")
+    if a.timeline:  # before the table
+        require_png(a.timeline, "--timeline", "figure")
     benchmarks = [Path(b) for b in a.benchmarks]
     rows = stage_costs(benchmarks, Path(a.out))
     if a.timeline:

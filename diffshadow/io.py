@@ -108,6 +108,13 @@ def naming_output(path: Path):
         raise OSError(failed.errno, failed.strerror, str(path)) from e
 
 
+def require_png(path: str | Path, flag: str, what: str = "image") -> None:
+    """Refuse, before any work, an output name that does not end in .png for a file written as a PNG (under
+    another name it opens wrongly, or not at all)."""
+    if Path(path).suffix.lower() != ".png":
+        raise ValueError(f"{flag} {path}: the {what} is written as a PNG; give a name ending in .png")
+
+
 def atomic_write_text(path: str | Path, text: str) -> None:
     with atomic_path(path) as tmp:
         tmp.write_text(text)

@@ -239,14 +239,12 @@ class RunResults:
     def rst(self) -> str:
         """The scene's block of the landing page: a title, its picture (`front_picture`) and a two-column table of
         the headline numbers."""
-        import base64
-
         title = f"Scene {self.scene}"
         lines = [title, "-" * len(title), ""]
         if (picture := self.front_picture()) is not None:
             png, caption = picture
             # the URI on indented lines (docutils joins them): one line would pass its 10,000-character limit
-            uri = "data:image/png;base64," + base64.b64encode(png).decode()
+            uri = _png_uri(png)
             lines += [".. figure::", *(f"   {uri[i:i + 100]}" for i in range(0, len(uri), 100)),
                       "   :alt: " + caption, "", "   " + caption, ""]
         lines += [".. list-table::", "   :widths: 45 55", ""]
@@ -380,9 +378,7 @@ class RunResults:
                                 "outside its diffshadow process (shell, torchrun and its helper)."))
         timeline = self.results / "report" / "timeline.png"
         if timeline.exists():  # stage_costs draws it from the same benchmark files
-            import base64
-
-            uri = "data:image/png;base64," + base64.b64encode(timeline.read_bytes()).decode()
+            uri = _png_uri(timeline.read_bytes())
             parts.append(f"<p><img src='{uri}' alt='every job of this run over its wall time' "
                          "style='max-width:100%'></p>\n<p class='note'>Every job over the run's wall time, one row "
                          "per rule: start-up (imports, device, launch), compilation and work. A row with no neighbour "
@@ -451,6 +447,13 @@ def cache_verdict(voxel: dict) -> str:
         better = (f"their weight blend beats {who} on unseen lights by {-gap:.2f} dB{spread}: `cache: blend` would "
                   f"skip stage 2")
     return f"{size}; {better}. {AGAINST_COUNT}"
+
+
+def _png_uri(png: bytes) -> str:
+    """A PNG's bytes as a data URI, for a page that must stand alone."""
+    import base64
+
+    return "data:image/png;base64," + base64.b64encode(png).decode()
 
 
 def _tail(wide: dict, name: str) -> str:

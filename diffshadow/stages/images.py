@@ -14,7 +14,7 @@ from diffshadow.data_inr import DataInrConfig, fit_data_inr
 from diffshadow.diffusion.finetune import FinetuneConfig
 from diffshadow.evaluate import image_evaluation
 from diffshadow.evaluate import naive_images as render_naive
-from diffshadow.io import atomic_write_text, finite_json
+from diffshadow.io import atomic_write_text, finite_json, require_png
 from diffshadow.lights import as_direction, read_lights
 from diffshadow.metrics import lpips_model, ms_ssim_status
 from diffshadow.render import Camera, RenderScene, default_views, fibonacci_views, write_png
@@ -64,8 +64,7 @@ def render_image(scene: RenderScene, out: Path, *, mode: str, camera: Camera, li
     answer anyway (then the line is a warning); one inside it but farther from the training lights than any unseen test
     light was gets a one-line note. A cache made for another volume or opacity than `scene`'s is refused in one line
     (`volume.extinction_id`)."""
-    if Path(out).suffix.lower() != ".png":  # before any work: a PNG under another name opens wrongly, or not at all
-        raise ValueError(f"--out {out}: the image is written as a PNG; give a name ending in .png")
+    require_png(out, "--out")
     siren = None
     mixed = model_share is not None
     if mixed and (diffusion is None or blend is None):

@@ -25,6 +25,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from diffshadow.grid import check_step
 from diffshadow.io import atomic_save, atomic_write_text
 from diffshadow.render import Camera, Interrupted, RenderError
 from diffshadow.viewer.scene import ViewerError, ViewerScene, azimuth_elevation, direction, region_chart
@@ -387,8 +388,10 @@ def serve(*, results: Path | None, scene_config: Path | None, device: torch.devi
         raise ViewerError(f"--port {port}: expected a TCP port, 1 to 65535")
     if not 0 <= size <= MAX_SIZE:
         raise ViewerError(f"--size {size}: expected a still frame's height in pixels, 0 (the canvas's) to {MAX_SIZE}")
-    if not (0 < step < math.inf):  # else every frame would fail in the renderer, after the viewer started
-        raise ViewerError(f"--step {step:g}: expected a positive marching step in voxels")
+    try:  # the renderer's own check, now: else every frame would fail in it, after the viewer started
+        check_step(step)
+    except ValueError as e:
+        raise ViewerError(f"--step {step:g}: expected a positive marching step in voxels ({e})") from None
     if (problem := port_problem(host, port)) is not None:
         raise ViewerError(problem)
     torch_thread = TorchThread()
