@@ -17,8 +17,9 @@ STAGES = {"fit_siren": (2.0, 1.0), "train_diffusion": (10.0, 0.5), "preoptimize"
           "caches": (3.0, 0.8)}  # wall = a n^b
 
 
-def _point(root: Path, n: int, epochs: int | None = None) -> Path:
-    """A finished run's files as the sweep reads them, at `n` training lights."""
+def _point(root: Path, n: int, epochs: int | None = None, layout: str | None = None) -> Path:
+    """A finished run's files as the sweep reads them, at `n` training lights (a `layout` as lights.json records
+    it; None: none, as before the key)."""
     res = root / f"lights_{n}" / "results" / "nucleon"
     res.mkdir(parents=True)
     rows = ["stage\tjobs\twall_s\tcpu_s\tmax_rss_mib"]
@@ -34,7 +35,7 @@ def _point(root: Path, n: int, epochs: int | None = None) -> Path:
     if n >= 32:  # a run with the mix scores the model alone too; one from before it does not
         metrics["seen"]["model_alone_psnr_median"] = 39.0
     (res / "voxel_metrics.json").write_text(json.dumps(metrics))
-    (res / "lights.json").write_text(json.dumps({"sphere": 4 * n}))
+    (res / "lights.json").write_text(json.dumps({"sphere": 4 * n, **({"layout": layout} if layout else {})}))
     return res
 
 
@@ -55,6 +56,7 @@ def test_power_laws_crossover_and_files(tmp_path):
         assert (tmp_path / name).read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
     page = (tmp_path / "scaling.html").read_text()
     assert "scaling_costs.png" in page and "past 100 lights (fp32)" in page
+    assert "light layout <code>cap</code>" in page  # runs from before lights.layout: the paper's region
     # the model alone on seen lights: a number where the run measured it, nan where it did not
     assert [p["quality"]["seen"]["model_alone"] for p in data["points"]] == [None, 39.0]
     assert "<th>seen: the model alone (the paper)</th>" in page
@@ -142,6 +144,16 @@ def test_a_point_that_did_not_finish_is_named(tmp_path):
         scaling.sweep([res, _point(tmp_path, 16)])
     with pytest.raises(scaling.SweepError, match=r"two light counts at least, got \[16\]"):
         scaling.sweep([tmp_path / "lights_16" / "results" / "nucleon"])
+
+
+def test_a_sweep_records_its_light_layout_and_refuses_two(tmp_path):
+    """Each point records its runs' lights.layout (lights.json; none written: "cap", the layout before the key),
+    the page names it, and runs of two layouts do not make one quality curve."""
+    data = scaling.sweep([_point(tmp_path / "a", n, layout="rim") for n in (8, 32)])
+    assert [p["layout"] for p in data["points"]] == ["rim", "rim"]
+    assert "light layout <code>rim</code>" in scaling.page(data)
+    with pytest.raises(scaling.SweepError, match=r"share one lights.layout, got \{8: 'cap', 32: 'rim'\}"):
+        scaling.sweep([_point(tmp_path / "b", 8), _point(tmp_path / "b", 32, layout="rim")])
 
 
 def test_the_sweep_script_collects_finished_points(tmp_path):

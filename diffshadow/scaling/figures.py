@@ -11,7 +11,7 @@ import numpy as np
 from diffshadow.io import atomic_write_text, finite_json
 from diffshadow.report import pyplot, save_figure
 from diffshadow.scaling.projection import CPU_SOURCE
-from diffshadow.scaling.sweep import SEEN, UNSEEN
+from diffshadow.scaling.sweep import SEEN, UNSEEN, point_layout
 
 
 def write_sweep(data: dict, out: Path) -> None:
@@ -180,13 +180,14 @@ def page(data: dict) -> str:
     qhead = "".join(f"<th>unseen: {html.escape(label)}</th>" for _, label in UNSEEN)
     qhead += "".join(f"<th>seen: {html.escape(label)}</th>" for _, label in SEEN)
     c = data["crossover_lights"]
+    layout = html.escape(", ".join(sorted({point_layout(p) for p in pts})))
     return f"""<!doctype html><html><head><meta charset="utf-8"><title>diffshadow: scaling with the light count</title>
 <style>body{{font-family:sans-serif;max-width:1100px;margin:2em auto}}td,th{{padding:2px 8px;text-align:right}}
 td:first-child{{text-align:left}}table{{border-collapse:collapse}}tr:nth-child(even){{background:#f4f4f4}}</style>
 </head><body><h1>Scaling with the number of training lights</h1>
-<p>Runs at {", ".join(map(str, ns))} training lights (scripts/scaling_sweep.py). The model is smaller than the
-stored SIRENs past {c['sirens_fp32']:,.0f} lights (fp32) or {c['sirens_fp16']:,.0f} (fp16), at these runs' SIREN
-and model sizes.</p>
+<p>Runs at {", ".join(map(str, ns))} training lights (scripts/scaling_sweep.py), light layout <code>{layout}</code>
+(<code>lights.layout</code>). The model is smaller than the stored SIRENs past {c['sirens_fp32']:,.0f} lights (fp32)
+or {c['sirens_fp16']:,.0f} (fp16), at these runs' SIREN and model sizes.</p>
 {f"<ul>{notes}</ul>" if notes else ""}
 <h2>Cost per stage</h2><img src="scaling_costs.png" width="900">
 <table><tr><th>stage</th>{head}<th>exponent</th><th>peak RSS (MiB)</th></tr>{"".join(rows)}</table>
