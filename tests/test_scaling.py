@@ -243,6 +243,11 @@ def test_the_caches_study_keeps_a_full_runs_own_model_rows(tmp_path):
     old = [{**p, "quality": {"seen": {"generated": 39.5}, "unseen": {"generated": 36.5}}} for p in sweep_points]
     assert [r["unseen_psnr"] for r in collect(runs, old)["points"][1]["caches"] if r["kind"] == "model"] == [36.5] * 2
     assert "| 8 | model 0 + stored SIRENs 1, both fp16 |" in markdown(table)
+    # a run of another light layout than the sweep's (none recorded: cap) borrows no model rows
+    (runs[1] / "lights.json").write_text(json.dumps({"layout": "rim"}))
+    assert not [r for r in collect(runs, sweep_points)["points"][1]["caches"] if r["kind"] == "model"]
+    assert [r for r in collect(runs, [{**p, "layout": "rim"} for p in sweep_points])["points"][1]["caches"]
+            if r["kind"] == "model"]
 
 
 def test_work_factors_count_what_each_stage_computes():

@@ -14,13 +14,14 @@ import numpy as np
 
 from diffshadow.io import atomic_write_text, finite_json
 from diffshadow.report import label_points, pyplot, save_figure
+from diffshadow.scaling.sweep import point_layout
 
 
 def collect(runs: list[Path], model_points: list[dict], model_source: str = "the sweep's scaling.json") -> dict:
     """One entry per run (results/<scene>/ with caches.json): its rows. A full run's table holds the model's own
     rows (and the mix's), measured on the same points; a stage-1-only run's (`cache: blend`) gets the model's
-    rows from the sweep point of the same light count (`model_points`, read from `model_source`; none where the
-    sweep has no such point)."""
+    rows from the sweep point of the same light count and light layout (`model_points`, read from `model_source`;
+    none where the sweep has no such point)."""
     models = {p["lights"]: p for p in model_points}
     points = []
     for results in runs:
@@ -38,6 +39,8 @@ def collect(runs: list[Path], model_points: list[dict], model_source: str = "the
                 if r["kind"] in ("stored", "codec") and name in val:
                     r["val_psnr"] = val[name]
         m = models.get(n)
+        if m is not None and point_layout(m) != point_layout(_read(Path(results) / "lights.json") or {}):
+            m = None  # another region's model: its figures are not this run's to stand beside
         if m is not None and not any(r["kind"] == "model" for r in rows):
             # the model's own SIRENs: where the sweep mixed them with the blend, "generated" is the mix's answer
             seen, unseen = (m["quality"][k].get("model_alone") or m["quality"][k]["generated"]
