@@ -13,6 +13,7 @@ from __future__ import annotations
 import copy
 import functools
 import json
+import math
 import re
 from pathlib import Path
 from typing import Any, TypeVar
@@ -181,6 +182,10 @@ def scene_config(run: dict, scene: str, *, scenes_dir: str | Path) -> dict:
     if lights["count"] > lights["sphere"]:  # found at plan time, not when the `lights` job runs
         raise ConfigError(f"{path} over the run's config: lights.count {lights['count']} is more than the "
                           f"{lights['sphere']} directions of lights.sphere; raise lights.sphere or lower lights.count")
+    center = lights["center"]  # the schema holds three numbers; a direction needs them finite and not all zero
+    if not all(math.isfinite(v) for v in center) or not any(center):
+        raise ConfigError(f"{path} over the run's config: lights.center {center} is no direction; expected three "
+                          "finite numbers, not all zero")
     ev = merged["evaluate"]
     if ev["blend_weights"] == "inverse-angle" and ev["blend_k"] > lights["count"]:
         raise ConfigError(f"{path} over the run's config: evaluate.blend_k {ev['blend_k']} is more than the "

@@ -145,6 +145,20 @@ def test_more_lights_than_the_sphere_is_refused_at_plan_time(tmp_path):
         scene_config(run, "nucleon", scenes_dir=tmp_path)
 
 
+@pytest.mark.parametrize("center", [[0, 0, 0], [0.0, 0.0, float("nan")], [1, float("inf"), 0]])
+def test_a_center_that_is_no_direction_is_refused_at_plan_time(tmp_path, center):
+    """lights.center all zero or not finite: refused before any job (the lights job would refuse it only when it
+    ran), naming the key; a center of any length is a direction."""
+    from diffshadow.config import ConfigError, load_run, merge, scene_config
+
+    (tmp_path / "nucleon.yaml").write_text(json.dumps({"volume": "bundled:nucleon", "transfer_function": TF}))
+    run = merge(load_run(), {"lights": {**load_run()["lights"], "center": center}})
+    with pytest.raises(ConfigError, match=r"lights.center \[.*\] is no direction; expected three finite numbers"):
+        scene_config(run, "nucleon", scenes_dir=tmp_path)
+    ok = merge(load_run(), {"lights": {**load_run()["lights"], "center": [0, 0, 5]}})
+    assert scene_config(ok, "nucleon", scenes_dir=tmp_path)["lights"]["center"] == [0, 0, 5]
+
+
 def test_an_inverse_angle_blend_of_more_lights_than_trained_is_refused_at_plan_time(tmp_path):
     """evaluate.blend_k past lights.count: refused before any job with inverse-angle weights; the triangle blend
     (the default) takes no k, so 3 lights and blend_k 4 run (tests/stress/test_edges.py runs them)."""
