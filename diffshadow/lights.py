@@ -77,6 +77,12 @@ def select_region(directions, center, count: int) -> np.ndarray:
 
 
 LAYOUTS = ("rim", "cap")  # lights.layout; the first is the default
+OLD_LAYOUT = "cap"  # what a light-set file without a `layout` key holds: made before lights.layout, or with cap
+
+
+def layout_of(record: dict) -> str:
+    """The `lights.layout` a light-set file (or a record copied from one, a sweep's point) was made with."""
+    return record.get("layout", OLD_LAYOUT)
 
 
 def rim_layout(directions: np.ndarray, center) -> tuple[np.ndarray, int]:
@@ -536,7 +542,7 @@ def make_light_sets(sphere: int, count: int, center, unseen: int, seed: int = 0,
         "sphere": int(sphere),
         "center": as_direction(center, name="center").tolist(),
         "seed": int(seed),
-        **({"layout": layout, "on_edge": on_edge} if layout != "cap" else {}),
+        **({"layout": layout, "on_edge": on_edge} if layout != OLD_LAYOUT else {}),  # cap: the same bytes as before
         "spherical_convention": "theta: polar angle from +z; phi: azimuth from +x toward +y; radians",
         "train": {
             "sphere_index": idx.tolist(),

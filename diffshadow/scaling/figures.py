@@ -9,9 +9,10 @@ from pathlib import Path
 import numpy as np
 
 from diffshadow.io import atomic_write_text, finite_json
+from diffshadow.lights import layout_of
 from diffshadow.report import pyplot, save_figure
 from diffshadow.scaling.projection import CPU_SOURCE
-from diffshadow.scaling.sweep import SEEN, UNSEEN, point_layout
+from diffshadow.scaling.sweep import SEEN, UNSEEN
 
 
 def write_sweep(data: dict, out: Path) -> None:
@@ -180,7 +181,7 @@ def page(data: dict) -> str:
     qhead = "".join(f"<th>unseen: {html.escape(label)}</th>" for _, label in UNSEEN)
     qhead += "".join(f"<th>seen: {html.escape(label)}</th>" for _, label in SEEN)
     c = data["crossover_lights"]
-    layout = html.escape(", ".join(sorted({point_layout(p) for p in pts})))
+    layout = html.escape(", ".join(sorted({layout_of(p) for p in pts})))
     return f"""<!doctype html><html><head><meta charset="utf-8"><title>diffshadow: scaling with the light count</title>
 <style>body{{font-family:sans-serif;max-width:1100px;margin:2em auto}}td,th{{padding:2px 8px;text-align:right}}
 td:first-child{{text-align:left}}table{{border-collapse:collapse}}tr:nth-child(even){{background:#f4f4f4}}</style>

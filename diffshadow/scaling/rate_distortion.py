@@ -13,8 +13,8 @@ from pathlib import Path
 import numpy as np
 
 from diffshadow.io import atomic_write_text, finite_json
+from diffshadow.lights import layout_of
 from diffshadow.report import label_points, pyplot, save_figure
-from diffshadow.scaling.sweep import point_layout
 
 
 def collect(runs: list[Path], model_points: list[dict], model_source: str = "the sweep's scaling.json") -> dict:
@@ -39,7 +39,7 @@ def collect(runs: list[Path], model_points: list[dict], model_source: str = "the
                 if r["kind"] in ("stored", "codec") and name in val:
                     r["val_psnr"] = val[name]
         m = models.get(n)
-        if m is not None and point_layout(m) != point_layout(_read(Path(results) / "lights.json") or {}):
+        if m is not None and layout_of(m) != layout_of(_read(Path(results) / "lights.json") or {}):
             m = None  # another region's model: its figures are not this run's to stand beside
         if m is not None and not any(r["kind"] == "model" for r in rows):
             # the model's own SIRENs: where the sweep mixed them with the blend, "generated" is the mix's answer

@@ -9,6 +9,8 @@ from pathlib import Path
 
 import numpy as np
 
+from diffshadow.lights import layout_of
+
 # the quality rows of the figure and the JSON: (key in voxel_metrics.json's "unseen" section, label)
 # (the model alone only where the cache mixed it with the stored SIRENs' blend: diffusion/mix.py)
 UNSEEN = (("generated_psnr_median", "generated (the cache's answer)"),
@@ -39,7 +41,7 @@ def read_point(results: Path) -> dict:
     return {
         "note": note.read_text().strip() if note.is_file() else "",
         "lights": n, "sphere": lights.get("sphere"), "unseen_count": int(m["unseen"]["count"]),
-        "layout": point_layout(lights),
+        "layout": layout_of(lights),
         "stages": stages,
         "quality": {"seen": {key.removesuffix("_psnr_median"): m["seen"].get(key) for key, _ in SEEN},
                     "unseen": {key.removesuffix("_psnr_median"): m["unseen"].get(key) for key, _ in UNSEEN}},
@@ -49,11 +51,6 @@ def read_point(results: Path) -> dict:
         "model_parameters": (m.get("diffusion_model") or {}).get("parameters", 0),
         "diffusion_epochs": (m.get("diffusion_model") or {}).get("epochs"),  # past `epochs` by the gap check
     }
-
-
-def point_layout(point: dict) -> str:
-    """A sweep point's (or a light-set file's) `lights.layout`: "cap" where it names none (before the key)."""
-    return point.get("layout", "cap")
 
 
 def power_law(ns, ys) -> dict:
@@ -84,7 +81,7 @@ def sweep(runs: list[Path]) -> dict:
     ns = [p["lights"] for p in points]
     if len(set(ns)) < 2:
         raise SweepError(f"a sweep needs runs at two light counts at least, got {ns}")
-    layouts = {p["lights"]: point_layout(p) for p in points}
+    layouts = {p["lights"]: layout_of(p) for p in points}
     if len(set(layouts.values())) > 1:  # the quality curve would mix two regions' blends
         raise SweepError(f"a sweep's runs must share one lights.layout, got {layouts} by light count: rerun "
                          "the points of the other layout")
