@@ -216,6 +216,34 @@ def test_sweep_targets_at_shared_points_are_each_lights_own_grid_lookup(scene):
     assert own.grids.is_contiguous()  # per-light points read each grid alone, which its own layout serves best
 
 
+@pytest.mark.parametrize("channels_last", [False, True])
+def test_stack_grids_equals_torch_stack_and_holds_one_grid_at_a_time(channels_last):
+    """The fit's targets are stacked as they are made: the same tensor as torch.stack (K innermost or outermost),
+    built while the generator has never handed out more than one grid not yet copied in; a short or long
+    generator is refused naming both counts."""
+    from diffshadow.grid import stack_grids
+
+    grids = [torch.rand(3, 4, 5, generator=torch.Generator().manual_seed(k)) for k in range(6)]
+    made = []
+
+    def one_by_one():
+        for g in grids:
+            made.append(g.clone())
+            yield made[-1]
+            made[-1] = None  # the consumer is done with it: only then is the next one made
+
+    out = stack_grids(one_by_one(), len(grids), channels_last=channels_last)
+    assert torch.equal(out, torch.stack(grids))
+    assert (out.stride(0) == 1) == channels_last
+    assert made == [None] * len(grids)
+    with pytest.raises(ValueError, match="expected 7 grids, got 6"):
+        stack_grids(iter(grids), 7)
+    with pytest.raises(ValueError, match="expected 5 grids, got more"):
+        stack_grids(iter(grids), 5)
+    with pytest.raises(ValueError, match="expected 2 grids, got 0"):
+        stack_grids(iter([]), 2)
+
+
 def _cap_lights():
     # four training lights around +z, about 15 degrees apart, and the cap's centre
     d = np.array([[0.26, 0.0, 1.0], [-0.26, 0.0, 1.0], [0.0, 0.26, 1.0], [0.0, -0.26, 1.0]])
