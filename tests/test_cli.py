@@ -551,3 +551,21 @@ def test_a_torch_job_records_its_cpu_kernels_and_warns_only_when_unasked(tmp_pat
     from diffshadow.runtime import SCALAR_KERNELS
 
     assert records["scalar"]["cpu_capability"] in SCALAR_KERNELS
+
+
+def test_every_key_an_out_of_memory_error_names_is_a_config_key():
+    """The keys the out-of-memory line tells a user to lower exist in defaults.yaml (a renamed key would send them
+    looking for nothing)."""
+    import re
+
+    from diffshadow import cli, config
+
+    defaults = config.defaults()
+    named = {k for text in cli._MEMORY_KEYS.values() for k in re.findall(r"\b([a-z_]+(?:\.[a-z_]+)?)\b", text)
+             if "." in k or k == "subset_size"}
+    assert "fit.grid_upsample" in named and "subset_size" in named
+    for key in named:
+        node = defaults
+        for part in key.split("."):
+            assert isinstance(node, dict) and part in node, key
+            node = node[part]
