@@ -417,10 +417,7 @@ def _sweep_region(s, tf, delta, du, dv, jr, ur, vr, factor, block) -> torch.Tens
         return tf.extinction(val) * inside
 
     # depth of every line at slices jlo..jhi (0 at jlo: nothing lies between it and the light)
-    # filled in place, not concatenated from blocks: the lattice is wider than the slices (sheared), so depth is
-    # the sweep's largest array and a list of blocks plus their cat held it twice
-    depth = torch.empty(jhi - jlo + 1, len(c_u), len(c_v), device=device)
-    depth[0] = 0.0
+    depth = [torch.zeros(1, len(c_u), len(c_v), device=device)]
     mu_prev = mu_on_lines(torch.tensor([float(jlo)], device=device))[0]
     for j0 in range(jlo + 1, jhi + 1, block):
         j1 = min(jhi + 1, j0 + block)
@@ -429,8 +426,9 @@ def _sweep_region(s, tf, delta, du, dv, jr, ur, vr, factor, block) -> torch.Tens
         mus = torch.cat([mu_prev[None], mu_on_lines(sub)])  # (1 + G·factor, Cu, Cv)
         trap = (0.5 * delta * h) * (mus[:-1] + mus[1:])  # trapezoid between sub-samples
         gaps = trap.view(j1 - j0, factor, *trap.shape[1:]).sum(1)  # (G, Cu, Cv)
-        torch.add(depth[j0 - 1 - jlo], _cumsum_slices(gaps), out=depth[j0 - jlo:j1 - jlo])
+        depth.append(depth[-1][-1:] + _cumsum_slices(gaps))
         mu_prev = mus[-1]
+    depth = torch.cat(depth)  # (jhi - jlo + 1, Cu, Cv)
 
     # τ at voxel (j, u, v) is line (u + j·δu, v + j·δv) at slice min(j, jhi); slices up to jlo see none
     out = torch.ones_like(s)
