@@ -160,8 +160,8 @@ def lookup_grids(grids: torch.Tensor, points: torch.Tensor, extent: torch.Tensor
 
 def stack_grids(grids: Iterable[torch.Tensor], count: int, *, channels_last: bool = False) -> torch.Tensor:
     """`count` (Z, Y, X) grids as one (K, Z, Y, X) tensor, each copied in as it comes, so that a generator's grids
-    are never all held twice (torch.stack of a list peaks at twice the stack: tooth's 32 fitting grids at 2x,
-    1.5 GiB, took the fit's targets to 3.6 GiB). `channels_last`: stored with K innermost (for `lookup_grids` at
+    are never all held twice (torch.stack of a list holds them twice: with tooth's 32 fitting grids at 2x, 1.5
+    GiB, its fit-siren job peaked at 4.4 GiB, 2.9 stacked as they come; docs/performance.md). `channels_last`: stored with K innermost (for `lookup_grids` at
     shared points)."""
     out, k = None, -1
     for k, grid in enumerate(grids):
