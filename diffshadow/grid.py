@@ -159,20 +159,22 @@ def lookup_grids(grids: torch.Tensor, points: torch.Tensor, extent: torch.Tensor
 
 
 def stack_grids(grids: Iterable[torch.Tensor], count: int, *, channels_last: bool = False) -> torch.Tensor:
-    """`count` (Z, Y, X) grids as one (K, Z, Y, X) tensor, each copied in as it comes, so that a generator's grids
-    are never all held twice (torch.stack of a list holds them twice: with tooth's 32 fitting grids at 2x, 1.5
-    GiB, its fit-siren job peaked at 4.4 GiB, 2.9 stacked as they come; docs/performance.md). `channels_last`: stored with K innermost (for `lookup_grids` at
-    shared points)."""
-    out, k = None, -1
-    for k, grid in enumerate(grids):
+    """`count` (Z, Y, X) grids as one (K, Z, Y, X) tensor, each copied in as it comes and let go of before the
+    next is asked for, so that a generator's grids are never held twice (torch.stack of a list is: with tooth's 32
+    fitting grids at 2x, 1.5 GiB, its fit-siren job peaked at 4.4 GiB, 2.9 stacked as they come;
+    docs/performance.md). `channels_last`: stored with K innermost (for `lookup_grids` at shared points)."""
+    out, k = None, 0
+    for grid in grids:  # not enumerate: its reused result tuple would hold the last grid while the next is made
         if k == count:
-            break
+            raise ValueError(f"stack_grids: expected {count} grids, got more")
         if out is None:
             shape = (*grid.shape, count) if channels_last else (count, *grid.shape)
             out = torch.empty(shape, dtype=grid.dtype, device=grid.device)
         (out[..., k] if channels_last else out[k]).copy_(grid)
-    if k + 1 != count:
-        raise ValueError(f"stack_grids: expected {count} grids, got {'more' if k == count else k + 1}")
+        del grid
+        k += 1
+    if k != count:
+        raise ValueError(f"stack_grids: expected {count} grids, got {k}")
     return out.permute(3, 0, 1, 2) if channels_last else out
 
 

@@ -219,8 +219,9 @@ def test_sweep_targets_at_shared_points_are_each_lights_own_grid_lookup(scene):
 @pytest.mark.parametrize("channels_last", [False, True])
 def test_stack_grids_equals_torch_stack_and_holds_one_grid_at_a_time(channels_last):
     """The fit's targets are stacked as they are made: the same tensor as torch.stack (K innermost or outermost),
-    built while the generator has never handed out more than one grid not yet copied in; a short or long
-    generator is refused naming both counts."""
+    every grid let go of before the next is made; a short or long generator is refused naming both counts."""
+    import weakref
+
     from diffshadow.grid import stack_grids
 
     grids = [torch.rand(3, 4, 5, generator=torch.Generator().manual_seed(k)) for k in range(6)]
@@ -228,14 +229,16 @@ def test_stack_grids_equals_torch_stack_and_holds_one_grid_at_a_time(channels_la
 
     def one_by_one():
         for g in grids:
-            made.append(g.clone())
-            yield made[-1]
-            made[-1] = None  # the consumer is done with it: only then is the next one made
+            assert all(ref() is None for ref in made), "an earlier grid is still held"
+            grid = g.clone()
+            made.append(weakref.ref(grid))
+            yield grid
+            del grid
 
     out = stack_grids(one_by_one(), len(grids), channels_last=channels_last)
     assert torch.equal(out, torch.stack(grids))
     assert (out.stride(0) == 1) == channels_last
-    assert made == [None] * len(grids)
+    assert len(made) == len(grids)
     with pytest.raises(ValueError, match="expected 7 grids, got 6"):
         stack_grids(iter(grids), 7)
     with pytest.raises(ValueError, match="expected 5 grids, got more"):
