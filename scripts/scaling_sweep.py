@@ -3,7 +3,7 @@ three figures and a page (`diffshadow.scaling`).
 
     python scripts/scaling_sweep.py --lights 32 128 512 --out sweep          # every stage, on this machine
     python scripts/scaling_sweep.py --lights 32 128 --out sweep --collect    # only re-read finished runs
-    python scripts/scaling_sweep.py --from-json docs/scaling/triangle/scaling.json --out docs/scaling/triangle \
+    python scripts/scaling_sweep.py --from-json docs/scaling/rim/scaling.json --out docs/scaling/rim \
         --bench-stages docs/measurements/h200_bench_stages_paper.json --profile-out profiles/paper/config.yaml
                                                # the projection and profiles/paper again from a committed sweep
 
@@ -44,11 +44,11 @@ def main() -> None:
     ap.add_argument("--caches", action="store_true", help="stage 1 and the caches table only (`cache: blend`, target "
                     "caches.json): every codec's rate and distortion per light count, beside the model's figures "
                     "from --model-json; writes OUT/caches.json and OUT/scaling_caches.png")
-    ap.add_argument("--model-json", type=Path, default=ROOT / "docs" / "scaling" / "triangle" / "scaling.json",
+    ap.add_argument("--model-json", type=Path, default=ROOT / "docs" / "scaling" / "rim" / "scaling.json",
                     help="with --caches: the sweep whose diffusion model the codecs are set beside")
     ap.add_argument("--collect", action="store_true", help="run nothing: read the finished points under --out")
     ap.add_argument("--from-json", type=Path, help="run nothing: the points of an earlier sweep's scaling.json "
-                    "(e.g. docs/scaling/triangle/scaling.json), projected again")
+                    "(e.g. docs/scaling/rim/scaling.json), projected again")
     ap.add_argument("--paper", type=Path, default=ROOT / "config" / "paper.yaml",
                     help="the config overlay to project to (over config/config.yaml)")
     ap.add_argument("--gpu-costs", type=Path,
