@@ -15,7 +15,7 @@ from pathlib import Path
 
 import numpy as np
 
-from diffshadow.io import StoreError, VerifiedGroup, atomic_save, write_zarr_group
+from diffshadow.io import StoreError, VerifiedGroup, atomic_save, error_line, write_zarr_group
 from diffshadow.layout import SirenConfig, WeightLayout
 from diffshadow.lights import LightRegion, as_direction, blend_finder
 from diffshadow.phases import timed
@@ -104,8 +104,9 @@ def read_subset(path) -> dict:
         with np.load(path, allow_pickle=False) as z:
             out = {k: z[k] for k in ("weights", "light_index", "lights", "psnr", "psnr_visible")}
             meta = json.loads(str(z["meta"]))
-    except (OSError, ValueError, KeyError) as e:
-        raise StoreError(f"{path}: not a readable subset file ({e})") from None
+    except Exception as e:  # a truncated copy is zipfile's BadZipFile or an EOFError, neither OSError nor ValueError
+        raise StoreError(f"{path}: not a readable subset file ({error_line(e)}); rerun the fit_siren job "
+                         "that writes it") from None
     out["layout"] = WeightLayout.from_config(meta["layout"])
     out["siren"] = SirenConfig.from_config(meta["siren"])
     out["config"] = meta["config"]

@@ -58,10 +58,21 @@ def test_subsets_fitted_to_another_scene_are_not_collected(tmp_path):
         collect_subsets([tmp_path / "a.npz", tmp_path / "b.npz"], 4, LIGHTS)
 
 
-def test_corrupt_subset_file_is_named(tmp_path):
-    (tmp_path / "subset_1.npz").write_bytes(b"not a zip")
-    with pytest.raises(StoreError, match=r"subset_1.npz: not a readable subset file"):
-        read_subset(tmp_path / "subset_1.npz")
+@pytest.mark.parametrize("damage", ["foreign", "truncated", "folder"])
+def test_corrupt_subset_file_is_named(tmp_path, damage):
+    """Any damage, a truncated copy among them (a zip's head without its directory: zipfile's BadZipFile, which is
+    no OSError or ValueError), is one StoreError naming the file and the job that rewrites it."""
+    path = tmp_path / "subset_1.npz"
+    if damage == "foreign":
+        path.write_bytes(b"not a zip")
+    elif damage == "truncated":
+        subset(path, [2, 3])
+        path.write_bytes(path.read_bytes()[:1000])
+    else:
+        path.mkdir()
+    with pytest.raises(StoreError, match=r"^\S*subset_1.npz: not a readable subset file \(\w+: .*\); rerun the "
+                                         r"fit_siren job that writes it$"):
+        read_subset(path)
 
 
 def test_interrupted_write_leaves_nothing(tmp_path):
