@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import errno
 import hashlib
+import json
 import logging
 import os
 import shutil
@@ -328,6 +329,19 @@ def resume(checkpoint: str | Path | None, fingerprint: str, *, log=print, map_lo
         return state
     log(f"ignoring {checkpoint}: it belongs to other inputs or settings")
     return None
+
+
+def read_json(path: str | Path, what: str) -> dict:
+    """The JSON object a stage wrote at `path`, or a StoreError naming the file and `what` it should be: a
+    truncated or foreign file is one line, not a traceback from json."""
+    path = Path(path)
+    try:
+        value = json.loads(path.read_text())
+    except (OSError, ValueError) as e:  # a missing file, bad UTF-8, a cut-off object
+        raise StoreError(f"{path}: unreadable ({error_line(e)}); expected {what}") from None
+    if not isinstance(value, dict):
+        raise StoreError(f"{path}: holds a JSON {type(value).__name__}, not an object; expected {what}")
+    return value
 
 
 def finite_json(value):

@@ -8,7 +8,7 @@ from pathlib import Path
 
 import numpy as np
 
-from diffshadow.io import atomic_path, atomic_write_text
+from diffshadow.io import atomic_path, atomic_write_text, read_json
 from diffshadow.phases import NUMERIC_LIBRARIES
 
 
@@ -357,10 +357,10 @@ def scene_figures(weights: Path, generated: Path, lights_path: Path, images_dir:
     generated_figure(stage1, generated_store, out / "generated_psnr.png", out / "generated_psnr.csv")
     lights = read_lights(lights_path)
     image_grid_figure(images_dir, lights, out / "image_grid.png")
-    metrics = json.loads(voxel_metrics.read_text())
+    metrics = read_json(voxel_metrics, "evaluate_voxels' voxel_metrics.json")
     storage_figure(metrics, len(lights["train"]), out / "storage.png")
     ddim_curve_figure(metrics.get("sampling"), out / "ddim_curve.png")
-    shadow_curve_figure(json.loads(shadow_bench.read_text()), out / "shadow_curve.png")
+    shadow_curve_figure(read_json(shadow_bench, "shadow_bench's bench_shadow.json"), out / "shadow_curve.png")
     print(f"wrote the report figures in {out}")
 
 

@@ -5,12 +5,11 @@ mode, renderer speed, storage, stage costs), read from the results the rules wro
 from __future__ import annotations
 
 import html
-import json
 from pathlib import Path
 
 import numpy as np
 
-from diffshadow.io import atomic_write_text
+from diffshadow.io import atomic_write_text, read_json
 from diffshadow.lights import OLD_WEIGHTING, blend_label, describe_blend
 from diffshadow.report import ELAPSED_ROW, PHASE_COLUMNS, label_image, mixed_runtimes
 
@@ -54,8 +53,8 @@ def _kept(validation: dict | None) -> str:
                if validation.get("images_worse") else ""))
 
 
-def _read_json(path: Path) -> dict | None:
-    return json.loads(path.read_text()) if path.exists() else None
+def _read_json(path: Path, what: str) -> dict | None:
+    return read_json(path, what) if path.exists() else None
 
 
 def peak_memory(bench: dict) -> tuple[list[str], dict[str, dict[str, int]]]:
@@ -108,12 +107,13 @@ class RunResults:
 
     def __init__(self, results: Path, scene: str):
         self.scene = scene
-        self.voxel = json.loads((results / "voxel_metrics.json").read_text())
-        self.images = json.loads((results / "image_metrics.json").read_text())
-        self.bench = _read_json(results / "bench.json")
+        self.voxel = read_json(results / "voxel_metrics.json", "evaluate_voxels' voxel metrics")
+        self.images = read_json(results / "image_metrics.json", "evaluate_images' image metrics")
+        self.bench = _read_json(results / "bench.json", "the benchmark's bench.json")
         # no model, no fine-tuning: a finished run switched to a stored-SIREN cache keeps the old run's file
-        self.finetune = None if self.voxel.get("cache") == "blend" else _read_json(results / "finetune_metrics.json")
-        self.choice = _read_json(results / "cache_choice.json")  # cache: auto's decision
+        self.finetune = (None if self.voxel.get("cache") == "blend"
+                         else _read_json(results / "finetune_metrics.json", "finetune_render's metrics"))
+        self.choice = _read_json(results / "cache_choice.json", "choose_cache's choice")  # cache: auto's decision
         self.results = results
         costs = results / "stage_costs.tsv"
         lines = costs.read_text().splitlines() if costs.exists() else []

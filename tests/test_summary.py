@@ -272,3 +272,21 @@ def test_a_codec_cache_has_no_model_rows_even_where_an_old_runs_files_remain(tmp
     (tmp_path / "report").mkdir()
     (tmp_path / "report" / "timeline.png").write_bytes(b"\x89PNG timeline")
     assert "<img src='data:image/png;base64,iVBORyB0aW1lbGluZQ==" in RunResults(tmp_path, "blob").tables()
+
+
+@pytest.mark.parametrize("damage", ["truncated", "a list", "not UTF-8"])
+def test_a_damaged_metrics_file_is_named(tmp_path, damage):
+    """The front page reads the stages' JSON files: a cut-off, foreign or non-UTF-8 one is one StoreError naming
+    the file and what wrote it, not json's traceback (a truncated voxel_metrics.json reached report-figures as
+    "raised inside json ... an input diffshadow does not check yet")."""
+    import json
+
+    from diffshadow.io import StoreError
+    from diffshadow.summary import RunResults
+
+    (tmp_path / "voxel_metrics.json").write_text(json.dumps(voxel(model=1, generated=30.0, weight_blend=29.0)))
+    text = {"truncated": b'{"modes": {"inr"', "a list": b"[1, 2]", "not UTF-8": b'{"modes": "\xff"}'}[damage]
+    (tmp_path / "image_metrics.json").write_bytes(text)
+    with pytest.raises(StoreError, match=r"^\S*image_metrics.json: (unreadable \(\w+: .+\)|holds a JSON list, not an "
+                                         r"object); expected evaluate_images' image metrics$"):
+        RunResults(tmp_path, "blob")
