@@ -357,10 +357,10 @@ def scene_figures(weights: Path, generated: Path, lights_path: Path, images_dir:
     generated_figure(stage1, generated_store, out / "generated_psnr.png", out / "generated_psnr.csv")
     lights = read_lights(lights_path)
     image_grid_figure(images_dir, lights, out / "image_grid.png")
-    metrics = read_json(voxel_metrics, "evaluate_voxels' voxel_metrics.json")
+    metrics = read_json(voxel_metrics, "the voxel metrics of evaluate_voxels")
     storage_figure(metrics, len(lights["train"]), out / "storage.png")
     ddim_curve_figure(metrics.get("sampling"), out / "ddim_curve.png")
-    shadow_curve_figure(read_json(shadow_bench, "shadow_bench's bench_shadow.json"), out / "shadow_curve.png")
+    shadow_curve_figure(read_json(shadow_bench, "the shadow benchmark of shadow_bench"), out / "shadow_curve.png")
     print(f"wrote the report figures in {out}")
 
 

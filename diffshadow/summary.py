@@ -107,13 +107,13 @@ class RunResults:
 
     def __init__(self, results: Path, scene: str):
         self.scene = scene
-        self.voxel = read_json(results / "voxel_metrics.json", "evaluate_voxels' voxel metrics")
-        self.images = read_json(results / "image_metrics.json", "evaluate_images' image metrics")
-        self.bench = _read_json(results / "bench.json", "the benchmark's bench.json")
+        self.voxel = read_json(results / "voxel_metrics.json", "the voxel metrics of evaluate_voxels")
+        self.images = read_json(results / "image_metrics.json", "the image metrics of evaluate_images")
+        self.bench = _read_json(results / "bench.json", "the renderer benchmark's figures")
         # no model, no fine-tuning: a finished run switched to a stored-SIREN cache keeps the old run's file
         self.finetune = (None if self.voxel.get("cache") == "blend"
-                         else _read_json(results / "finetune_metrics.json", "finetune_render's metrics"))
-        self.choice = _read_json(results / "cache_choice.json", "choose_cache's choice")  # cache: auto's decision
+                         else _read_json(results / "finetune_metrics.json", "the metrics of finetune_render"))
+        self.choice = _read_json(results / "cache_choice.json", "the choice of choose_cache")  # cache: auto's decision
         self.results = results
         costs = results / "stage_costs.tsv"
         lines = costs.read_text().splitlines() if costs.exists() else []

@@ -288,5 +288,5 @@ def test_a_damaged_metrics_file_is_named(tmp_path, damage):
     text = {"truncated": b'{"modes": {"inr"', "a list": b"[1, 2]", "not UTF-8": b'{"modes": "\xff"}'}[damage]
     (tmp_path / "image_metrics.json").write_bytes(text)
     with pytest.raises(StoreError, match=r"^\S*image_metrics.json: (unreadable \(\w+: .+\)|holds a JSON list, not an "
-                                         r"object); expected evaluate_images' image metrics$"):
+                                         r"object); expected the image metrics of evaluate_images$"):
         RunResults(tmp_path, "blob")
