@@ -708,13 +708,28 @@ def run() -> None:
     After a command that imported PyTorch has succeeded, the process ends at once instead of through Python's
     teardown: every output is written, flushed and renamed into place by then, and the teardown (a last garbage
     collection over PyTorch's objects, its thread pools, CUDA's context) took 0.5-0.7 s a job on a 2-core machine,
-    in a run of 16 such jobs (docs/performance.md). A failed command exits the normal way, and so does a run
-    under coverage, which writes its data at exit. Tests call `main`, which returns."""
-    main()
-    if "torch" in sys.modules and "coverage" not in sys.modules:
-        sys.stdout.flush()
-        sys.stderr.flush()
-        os._exit(0)
+    in a run of 16 such jobs (docs/performance.md). A command that failed with its one line (`main`'s handlers,
+    argparse's usage) ends there too: the teardown would print the leftovers of what it was doing (zarr's chunk
+    reads still pending after one failed, ~35 lines of asyncio warnings and a traceback). An unexpected error
+    keeps its traceback, and a run under coverage, which writes its data at exit, exits the normal way. Tests call
+    `main`, which returns."""
+    fast = "coverage" not in sys.modules
+    try:
+        main()
+    except SystemExit as e:
+        if not fast:
+            raise
+        if isinstance(e.code, str):  # sys.exit("why"): Python would print it on the way out
+            print(e.code, file=sys.stderr)
+        _end(e.code if isinstance(e.code, int) else 0 if e.code is None else 1)
+    if "torch" in sys.modules and fast:
+        _end(0)
+
+
+def _end(code: int) -> None:
+    sys.stdout.flush()
+    sys.stderr.flush()
+    os._exit(code)
 
 
 if __name__ == "__main__":

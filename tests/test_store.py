@@ -455,3 +455,28 @@ def test_a_folder_one_may_not_write_to_is_named_by_the_output_not_its_temporary(
         main(["lights", "--out", str(tmp_path / "l.json"), "--sphere", "400", "--count", "8", "--center", "0", "0",
               "1", "--unseen", "2"])
     assert capsys.readouterr().err == f"diffshadow lights: error: {tmp_path / 'l.json'}: {os.strerror(errno.EACCES)}\n"
+
+
+def test_a_damaged_chunk_among_many_is_one_line(tmp_path):
+    """zarr reads a store's chunks concurrently: when one fails, the others are left pending in its event loop,
+    and Python's teardown printed each (~35 lines of "Task was destroyed but it is pending!" and a traceback after
+    the error line, on the README run's weights.zarr). A failed command ends at its one line."""
+    import subprocess
+    import sys
+
+    from diffshadow.store import WeightStore
+
+    n = 256
+    rng = np.random.default_rng(0)
+    lights = rng.normal(size=(n, 3))
+    store = WeightStore(weights=rng.normal(size=(n, LAYOUT.n_params)).astype(np.float32),
+                        lights=lights / np.linalg.norm(lights, axis=1, keepdims=True), psnr=np.full(n, 40.0),
+                        psnr_visible=np.full(n, 40.0), layout=LAYOUT, siren=CFG, config={})
+    path = tmp_path / "weights.zarr"
+    write_store(path, store, made_by="collect_weights")
+    chunk = path / "weights" / "c" / "17" / "0"
+    chunk.write_bytes(chunk.read_bytes()[:10])  # a cut-off copy: its codec fails before any checksum
+    bad = subprocess.run([sys.executable, "-m", "diffshadow.cli", "check-store", str(path)], capture_output=True,
+                         text=True)
+    assert bad.returncode == 2 and bad.stderr.count("\n") == 1, bad.stderr
+    assert bad.stderr.startswith(f"diffshadow check-store: error: {path}: array 'weights' cannot be read (")
