@@ -192,6 +192,31 @@ def test_without_a_model_the_wide_comparison_is_the_caches_blend(finished, tmp_p
     assert not (tmp_path / "v.json").exists()
 
 
+def test_a_damaged_volume_fails_evaluate_voxels_before_its_work(finished, tmp_path, monkeypatch):
+    """The further lights' volume is read, its checksum checked, before the metrics and the sampler curve (8 s on
+    the README run): a damaged chunk failed the job only after them."""
+    import shutil
+
+    from diffshadow.io import StoreError
+    from diffshadow.stages import stage2
+
+    res = finished / "results/nucleon"
+    volume = tmp_path / "volume.zarr"
+    shutil.copytree(res / "volume.zarr", volume)
+    chunk = max((p for p in (volume / "scalar").rglob("*") if p.is_file()), key=lambda p: p.stat().st_size)
+    chunk.write_bytes(chunk.read_bytes()[: chunk.stat().st_size // 2])
+
+    def work(*a, **k):
+        raise AssertionError("the metrics ran before the volume was read")
+
+    monkeypatch.setattr(stage2, "voxel_metrics", work)
+    with pytest.raises(StoreError, match=r"volume.zarr: array 'scalar' cannot be read .*rerun `prepare_volume`"):
+        stage2.evaluate_voxels(None, res / "weights.zarr", res / "generated.zarr", res / "eval_truth.zarr", volume,
+                               res / "lights.json", tmp_path / "v.json", blend_k=2, weighting="triangle",
+                               ddpm_lights=0, wide_lights=12)
+    assert not (tmp_path / "v.json").exists()
+
+
 def test_the_stored_sirens_are_the_models_mixed_with_the_blend_at_the_share_recorded(finished, tmp_path):
     """generated.zarr = share x (sample_shadows at share 1: the model alone) + (1 - share) x (at share 0: each
     training light's own stored SIREN, each unseen light's blend of its nearest stored SIRENs)."""

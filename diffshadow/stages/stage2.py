@@ -371,6 +371,8 @@ def evaluate_voxels(checkpoint: Path | None, weights_path: Path, generated_path:
         raise ValueError(f"--cache-weights {cache_path}: {len(cache.lights)} lights, not the {len(stage1.lights)} of "
                          f"--weights {weights_path} in their order (expected encode-cache's decoded copy of it)")
     truth = artifacts.read_eval_truth(truth_path).on(device)
+    # read (and its checksum checked) before the sampler curve, not after: a damaged volume fails the job at once
+    volume, tf = load_prepared(volume_path) if wide_lights != 0 else (None, None)
     result = voxel_metrics(state, stage1, open_store(generated_path), truth, light_sets, blend_k=blend_k,
                            weighting=weighting,
                            grid_voxels=prepared_voxels(volume_path), ddpm_lights=ddpm_lights,
@@ -378,7 +380,6 @@ def evaluate_voxels(checkpoint: Path | None, weights_path: Path, generated_path:
                            curve_checkpoint=out.with_name(out.name + ".ckpt"))
     if wide_lights != 0:  # negative: wide_comparison says what it expects
         t0 = time.perf_counter()
-        volume, tf = load_prepared(volume_path)
         share = float((result.get("mix") or {}).get("model_share", 1.0))
         result["wide"] = w = wide_comparison(state, stage1, light_sets, volume, tf, share=share, lights=wide_lights,
                                              points=wide_points, seed=wide_seed, blend_k=blend_k, weighting=weighting,
