@@ -719,9 +719,11 @@ def run() -> None:
     except SystemExit as e:
         if not fast:
             raise
-        if isinstance(e.code, str):  # sys.exit("why"): Python would print it on the way out
-            print(e.code, file=sys.stderr)
-        _end(e.code if isinstance(e.code, int) else 0 if e.code is None else 1)
+        code = e.code
+        if code is not None and not isinstance(code, int):  # sys.exit("why"): Python would print it, then exit 1
+            print(code, file=sys.stderr)
+            code = 1
+        _end(code or 0)
     if "torch" in sys.modules and fast:
         _end(0)
 
