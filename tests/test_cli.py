@@ -143,14 +143,20 @@ def test_a_ddp_process_whose_peer_stopped_says_so_in_one_line(tmp_path):
     """Under torchrun, a rank waiting in a collective when another process stops gets the backend's error (gloo's
     "Connection closed by peer" is a plain RuntimeError from inside torch.distributed): one line naming the rank and
     the backend's reason, not ~25 lines of traceback around the failing process's own line. Two real gloo
-    processes: rank 0 stops at once, rank 1 waits at a barrier. Any other RuntimeError keeps its traceback."""
+    processes: rank 0 stops after a first barrier, rank 1 waits at a second. Any other RuntimeError keeps its
+    traceback. The rendezvous store is this process's, as under torchrun, where its agent holds it: hosted by rank 0,
+    a rank 1 still setting up its process group when rank 0 stopped printed c10d's warning and a C++ stack first
+    (1 run in 20)."""
     import socket
     import subprocess
     import sys
 
+    from torch.distributed import TCPStore
+
     with socket.socket() as s:
         s.bind(("127.0.0.1", 0))
         port = s.getsockname()[1]
+    store = TCPStore("127.0.0.1", port, world_size=2, is_master=True, wait_for_workers=False)  # noqa: F841 (held)
     script = """
 import os, sys
 import torch, torch.distributed as dist
@@ -161,6 +167,7 @@ def stage(*a, **k):
     if sys.argv[1] == "bug":
         return torch.zeros(2) @ torch.zeros(3)
     dist.init_process_group("gloo")
+    dist.barrier()  # both ranks set up: rank 1 then waits in a collective, not in the rendezvous
     if dist.get_rank() == 0:
         os._exit(3)  # a process that stops
     dist.barrier()
@@ -169,7 +176,8 @@ stage2.finetune_render = stage
 cli.main(["finetune-render", "--checkpoint", "g.ckpt", "--weights", "w.zarr", "--points", "p.zarr", "--targets",
           "t.zarr", "--config-json", '{"finetune": {}}', "--metrics", "m.json", "--out", "d.ckpt"])
 """
-    env = {**os.environ, "WORLD_SIZE": "2", "MASTER_ADDR": "127.0.0.1", "MASTER_PORT": str(port)}
+    env = {**os.environ, "WORLD_SIZE": "2", "MASTER_ADDR": "127.0.0.1", "MASTER_PORT": str(port),
+           "TORCHELASTIC_USE_AGENT_STORE": "True"}
     ranks = [subprocess.Popen([sys.executable, "-c", script, "peer"], cwd=tmp_path, env={**env, "RANK": str(r)},
                               stderr=subprocess.PIPE, text=True) for r in (0, 1)]
     (_, err0), (_, err1) = (p.communicate(timeout=120) for p in ranks)

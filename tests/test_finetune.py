@@ -149,8 +149,11 @@ def test_target_images_resume_where_an_interrupted_job_stopped(volume, setup, tm
 def _ddp_worker(rank, world, port, data, state, out_dir, cfg=FT):
     # the production path (runtime.distributed, as under torchrun): it ends with a barrier before the
     # teardown; without one, gloo can abort a rank whose peer is still writing ("terminate called
-    # without an active exception")
+    # without an active exception"). The process then ends as a rank of `diffshadow torchrun` does (cli.run:
+    # os._exit once its outputs are written), not through Python's finalization with gloo's threads about,
+    # which aborted a rank the same way in 1 CI run of ~25, after its model was saved
     import os
+    import sys
     import warnings
 
     from diffshadow.runtime import CPU, distributed
@@ -165,6 +168,9 @@ def _ddp_worker(rank, world, port, data, state, out_dir, cfg=FT):
                           log=lambda m: None)
         if d.rank == 0:
             torch.save(result["model"], Path(out_dir) / "ddp_model.pt")
+    sys.stdout.flush()
+    sys.stderr.flush()
+    os._exit(0)
 
 
 def _free_port() -> int:
