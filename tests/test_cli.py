@@ -156,7 +156,7 @@ def test_a_ddp_process_whose_peer_stopped_says_so_in_one_line(tmp_path):
     with socket.socket() as s:
         s.bind(("127.0.0.1", 0))
         port = s.getsockname()[1]
-    store = TCPStore("127.0.0.1", port, world_size=2, is_master=True, wait_for_workers=False)  # noqa: F841 (held)
+    _store = TCPStore("127.0.0.1", port, world_size=2, is_master=True, wait_for_workers=False)  # held for the ranks
     script = """
 import os, sys
 import torch, torch.distributed as dist

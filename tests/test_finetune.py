@@ -153,9 +153,9 @@ def _ddp_worker(rank, world, port, data, state, out_dir, cfg=FT):
     # os._exit once its outputs are written), not through Python's finalization with gloo's threads about,
     # which aborted a rank the same way in 1 CI run of ~25, after its model was saved
     import os
-    import sys
     import warnings
 
+    from diffshadow.cli import _end
     from diffshadow.runtime import CPU, distributed
 
     # PyTorch's deprecations would reach every fine-tuning log (2.13 renamed DDP's buffer switch): here they fail
@@ -168,9 +168,7 @@ def _ddp_worker(rank, world, port, data, state, out_dir, cfg=FT):
                           log=lambda m: None)
         if d.rank == 0:
             torch.save(result["model"], Path(out_dir) / "ddp_model.pt")
-    sys.stdout.flush()
-    sys.stderr.flush()
-    os._exit(0)
+    _end(0)
 
 
 def _free_port() -> int:
