@@ -13,7 +13,7 @@ import sys
 from pathlib import Path
 
 from diffshadow import __version__
-from diffshadow.argparsing import add_networks, at_least, network_flags
+from diffshadow.argparsing import add_networks, at_least, network_flags, seed
 from diffshadow.argparsing import add_subcommand as _add
 from diffshadow.argparsing import config_of as _cfg
 from diffshadow.argparsing import device_of as _device
@@ -372,7 +372,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--count", type=int, required=True, help="training directions kept (paper: 2000)")
     p.add_argument("--center", type=float, nargs=3, required=True, metavar=("X", "Y", "Z"))
     p.add_argument("--unseen", type=int, required=True, help="held-out directions (paper: 500)")
-    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--seed", type=seed, default=0)
     p.add_argument("--layout", choices=LAYOUTS, default=LAYOUTS[0], help="cap: the region of the Fibonacci "
                    "sphere (the paper's); rim: its outer shell moved onto the region's edge (lights.layout)")
     _add(sub, "prepare-volume", _prepare_volume, "normalised grid + TF as Zarr", device=False,
@@ -406,7 +406,7 @@ def build_parser() -> argparse.ArgumentParser:
              "(the workflow passes --device cpu unless evaluate.device is run)", "volume", "lights")
     p.add_argument("--eval-points", type=int, default=evaluate["points"], help="points per set (box, visible; "
                    "evaluate.points)")
-    p.add_argument("--seed", type=int, default=evaluate["seed"], help="their random draw (evaluate.seed)")
+    p.add_argument("--seed", type=seed, default=evaluate["seed"], help="their random draw (evaluate.seed)")
     mix = defaults()["mix"]
     p = _add(sub, "sample-shadows", _sample_shadows, "generate SIRENs for every training and unseen light, mixed "
              "with the stored SIRENs' weight blend (mix.model_share)", "checkpoint", "truth", "lights")
@@ -418,7 +418,7 @@ def build_parser() -> argparse.ArgumentParser:
     _blend_args(p, evaluate)
     p.add_argument("--val-lights", type=int, default=mix["val_lights"], help="mix.val_lights")
     p.add_argument("--val-points", type=int, default=mix["val_points"], help="mix.val_points")
-    p.add_argument("--seed", type=int, default=mix["seed"], help="their random draw (mix.seed)")
+    p.add_argument("--seed", type=seed, default=mix["seed"], help="their random draw (mix.seed)")
     p.add_argument("--score-on", choices=("cpu", "run"), default="cpu",
                    help="where the SIRENs are evaluated for their PSNR: cpu (default), or run: --device (the workflow "
                    "passes run under evaluate.device: run)")
@@ -431,7 +431,7 @@ def build_parser() -> argparse.ArgumentParser:
                    help="dB, median voxel PSNR on the validation lights (cache_auto.target_psnr)")
     p.add_argument("--val-lights", type=int, default=auto["val_lights"], help="cache_auto.val_lights")
     p.add_argument("--val-points", type=int, default=auto["val_points"], help="cache_auto.val_points")
-    p.add_argument("--seed", type=int, default=auto["seed"], help="their random draw (cache_auto.seed)")
+    p.add_argument("--seed", type=seed, default=auto["seed"], help="their random draw (cache_auto.seed)")
     p.add_argument("--candidates", nargs="+", default=auto["candidates"],
                    help="blend, fp16, bf16, basis-<k> (cache_auto.candidates)")
     p = _add(sub, "encode-cache", _encode_cache, "a codec's cache: the stored SIRENs through fp16, bf16 or "
@@ -454,7 +454,7 @@ def build_parser() -> argparse.ArgumentParser:
                    "(evaluate.wide_lights; 0: none)")
     p.add_argument("--wide-points", type=int, default=evaluate["wide_points"],
                    help="box points per further test light (evaluate.wide_points)")
-    p.add_argument("--seed", type=int, default=evaluate["seed"], help="the further test lights' draw (evaluate.seed)")
+    p.add_argument("--seed", type=seed, default=evaluate["seed"], help="the further test lights' draw (evaluate.seed)")
     p.add_argument("--cache-weights", help="a codec's decoded store (encode-cache's cache.zarr) that --generated "
                    "blended: the further test lights' answer blends it (none: --weights)")
     p = _add(sub, "caches", _caches, "caches.json: every cache (stored SIRENs and their codecs, the model, dense "

@@ -74,6 +74,12 @@ CASES = [
      r"--config nope.py: no such Parsl config file"),
     ("a negative --threads", lambda t: _render(["--volume", npy(t, "v.npy"), "--tf-json", json.dumps(TF)],
                                                "--threads", "-3"), {}, r"--threads: expected at least 0, got -3"),
+    ("a negative --seed", lambda t: ["lights", "--sphere", "40", "--count", "8", "--center", "0", "0", "1",
+                                     "--unseen", "2", "--seed", "-1", "--out", "l.json"], {},
+     r"argument --seed: expected at least 0, got -1"),  # was numpy's traceback, once the job had started
+    ("a --seed past 64 bits", lambda t: ["lights", "--sphere", "40", "--count", "8", "--center", "0", "0", "1",
+                                         "--unseen", "2", "--seed", str(2**64), "--out", "l.json"], {},
+     r"argument --seed: expected at most 2\^63-1, got 18446744073709551616"),
     ("--tf-json: a file that is not there", lambda t: _render(["--volume", npy(t, "v.npy"), "--tf-json", "tf.json"]),
      {}, r"--tf-json: expected a JSON object or a file holding one, got 'tf.json' \(no such file\)"),
     ("--tf-json: a file of bad JSON", lambda t: _render(["--volume", npy(t, "v.npy"), "--tf-json",
@@ -198,6 +204,23 @@ def test_a_scene_name_the_shell_would_split_is_refused_at_plan_time():
             run_config({"scenes": [name]}, "x")
     for name in ("nucleon", "hydrogen_atom", "bi2o3", "my-scene.v2", "_draft"):
         assert run_config({"scenes": [name]}, "x")["scenes"] == [name]
+
+
+@pytest.mark.parametrize("section", ["lights", "fit", "diffusion", "finetune", "data_inr", "cache_auto", "mix",
+                                     "evaluate"])
+def test_a_seed_numpy_or_pytorch_would_refuse_stops_the_plan(section):
+    """Every section's seed is 0 to 2^63-1, refused at plan time otherwise: numpy refuses a negative seed (mix.seed
+    -1 ended sample_shadows in its traceback, after a DDIM sampling) and PyTorch one past 64 bits. Both bounds
+    pass, and a seed on the command line (`--config mix='{seed: 5}'`, a string) is read as the number."""
+    from diffshadow.config import ConfigError, run_config
+
+    for bad, said in ((-1, "-1 is less than the minimum of 0"),
+                      (2**64, "18446744073709551616 is greater than the maximum of 9223372036854775807")):
+        with pytest.raises(ConfigError, match=rf"^x: key {section}\.seed: {said}$"):
+            run_config({section: {"seed": bad}}, "x")
+    for good in (0, 2**63 - 1):
+        assert run_config({section: {"seed": good}}, "x")[section]["seed"] == good
+    assert run_config({section: {"seed": "5"}}, "x")[section]["seed"] == 5
 
 
 def test_a_run_file_with_a_key_given_twice_stops_the_plan(tmp_path):
