@@ -75,6 +75,40 @@ def test_corrupt_subset_file_is_named(tmp_path, damage):
         read_subset(path)
 
 
+def _rewrite(path, **change):
+    """The subset file at `path` written again with some arrays replaced (as another version or a hand edit)."""
+    from diffshadow.store import write_npz
+
+    with np.load(path) as z:
+        arrays = {k: z[k] for k in z.files}
+    write_npz(path, {**arrays, **change})
+
+
+@pytest.mark.parametrize("change, said", [
+    ({"meta": np.array("{}")}, r"not a readable subset file \(KeyError: 'layout'\)"),
+    ({"weights": np.zeros((2, LAYOUT.n_params + 1), np.float32)},
+     rf"weights has shape \(2, {LAYOUT.n_params + 1}\), expected \(2, {LAYOUT.n_params}\) \(its 2 light indices; "
+     rf"its SIREN layout's {LAYOUT.n_params} parameters\)"),
+    ({"weights": np.zeros((3, LAYOUT.n_params), np.float32)}, r"weights has shape \(3, \d+\), expected \(2, \d+\)"),
+    ({"lights": LIGHTS[:2, :2]}, r"lights has shape \(2, 2\), expected \(2, 3\)"),
+    ({"psnr": np.zeros(1)}, r"psnr has shape \(1,\), expected \(2,\)"),
+    ({"light_index": np.array(2)}, r"light_index has shape \(\), expected one index a light"),
+    ({"weights": np.where(np.arange(2)[:, None] == 1, np.nan, np.zeros((2, LAYOUT.n_params), np.float32))},
+     r"the weights of light\(s\) \[3\] are not finite"),
+])
+def test_a_subset_file_of_another_version_or_edited_is_named(tmp_path, change, said):
+    """A readable subset file whose arrays disagree with each other or with its layout, or whose weights are not
+    finite, is one StoreError naming the file, what is wrong and the job that rewrites it. Shapes that did not
+    match were a broadcast error naming no file (more weights than parameters), or went unseen (a row too many);
+    NaN weights were stored in weights.zarr."""
+    path = tmp_path / "subset_1.npz"
+    subset(path, [2, 3])
+    assert read_subset(path)["weights"].shape == (2, LAYOUT.n_params)
+    _rewrite(path, **change)
+    with pytest.raises(StoreError, match=rf"^\S*subset_1.npz: {said}.*; rerun the fit_siren job that writes it$"):
+        read_subset(path)
+
+
 def test_interrupted_write_leaves_nothing(tmp_path):
     target = tmp_path / "out.npz"
     with pytest.raises(KeyboardInterrupt), atomic_path(target) as tmp:
