@@ -563,10 +563,23 @@ def read_lights(path: str | Path) -> dict:
     path = Path(path)
     try:
         d = json.loads(path.read_text())
-        train = np.asarray(d["train"]["cartesian"], dtype=np.float64).reshape(-1, 3)
-        unseen = np.asarray(d["unseen"]["cartesian"], dtype=np.float64).reshape(-1, 3)
+        train = np.asarray(d["train"]["cartesian"], dtype=np.float64)
+        unseen = np.asarray(d["unseen"]["cartesian"], dtype=np.float64)
     except (OSError, ValueError, KeyError, TypeError) as e:
         raise LightError(f"{path}: not a light-set file ({e})") from None
+    # the `lights` job writes unit directions, one row each; a file edited by hand is named here, not as an
+    # unnamed lights[i] deep in a stage or, flat or of another length, read as other lights
+    train, unseen = (a.reshape(0, 3) if a.size == 0 else a for a in (train, unseen))
+    for key, dirs in (("train", train), ("unseen", unseen)):
+        if dirs.ndim != 2 or dirs.shape[1] != 3:
+            raise LightError(f"{path}: {key}.cartesian has shape {dirs.shape}, expected one [x, y, z] a light")
+        norms = np.linalg.norm(dirs, axis=1)
+        if not (np.abs(norms - 1) < 1e-6).all():  # NaN too
+            i = int(np.flatnonzero(~(np.abs(norms - 1) < 1e-6))[0])
+            raise LightError(f"{path}: {key}.cartesian[{i}] = {dirs[i].tolist()} is not a unit direction; "
+                             "rerun the lights job that writes it")
+    if len(train) == 0:
+        raise LightError(f"{path}: no training lights")
     return {**d, "train": train, "unseen": unseen}
 
 

@@ -92,6 +92,28 @@ def test_light_set_sizes_and_seed_are_named_when_bad(key, value, least):
         make_light_sets(**args)
 
 
+@pytest.mark.parametrize("key, rows, said", [
+    ("train", [[0.0, 0.0, 1.0, 1.0, 0.0, 0.0]],
+     r"train.cartesian has shape \(1, 6\), expected one \[x, y, z\] a light"),
+    ("train", [0.0, 0.0, 1.0], r"train.cartesian has shape \(3,\), expected one \[x, y, z\] a light"),
+    ("unseen", [[0.0, 0.0, 1.0], [2.0, 0.0, 0.0]],
+     r"unseen.cartesian\[1\] = \[2.0, 0.0, 0.0\] is not a unit direction"),
+    ("train", [[float("nan"), 0.0, 1.0]], r"train.cartesian\[0\] = \[nan, 0.0, 1.0\] is not a unit direction"),
+    ("train", [], r"no training lights"),
+])
+def test_a_light_file_edited_by_hand_is_named(tmp_path, key, rows, said):
+    """lights.json as the `lights` job writes it reads back; rows that are no unit directions, flat or of another
+    length (read as other lights before), or no training light at all, are one LightError naming the file."""
+    main(["lights", "--sphere", "60", "--count", "4", "--unseen", "2", "--center", "0", "0", "1", "--out",
+          str(tmp_path / "lights.json")])
+    assert read_lights(tmp_path / "lights.json")["unseen"].shape == (2, 3)
+    raw = json.loads((tmp_path / "lights.json").read_text())
+    raw[key]["cartesian"] = rows
+    (tmp_path / "edited.json").write_text(json.dumps(raw))
+    with pytest.raises(LightError, match=rf"^\S*edited.json: {said}"):
+        read_lights(tmp_path / "edited.json")
+
+
 def test_cli_writes_json(tmp_path):
     out = tmp_path / "lights.json"
     main(["lights", "--sphere", "300", "--count", "40", "--unseen", "7", "--center", "0", "1", "1",
