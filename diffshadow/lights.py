@@ -573,9 +573,9 @@ def read_lights(path: str | Path) -> dict:
     for key, dirs in (("train", train), ("unseen", unseen)):
         if dirs.ndim != 2 or dirs.shape[1] != 3:
             raise LightError(f"{path}: {key}.cartesian has shape {dirs.shape}, expected one [x, y, z] a light")
-        norms = np.linalg.norm(dirs, axis=1)
-        if not (np.abs(norms - 1) < 1e-6).all():  # NaN too
-            i = int(np.flatnonzero(~(np.abs(norms - 1) < 1e-6))[0])
+        off = ~(np.abs(np.linalg.norm(dirs, axis=1) - 1) < 1e-6)  # NaN too
+        if off.any():
+            i = int(np.flatnonzero(off)[0])
             raise LightError(f"{path}: {key}.cartesian[{i}] = {dirs[i].tolist()} is not a unit direction; "
                              "rerun the lights job that writes it")
     if len(train) == 0:
