@@ -35,9 +35,12 @@ def seed(text: str) -> int:
 
 
 def config_of(args: argparse.Namespace) -> dict:
-    from diffshadow.config import parse_json
+    """--config-json's sections, each held to the run schema's bounds."""
+    from diffshadow.config import check_sections, parse_json
 
-    return parse_json(args.config_json)
+    value = parse_json(args.config_json)
+    check_sections(value, value.what)
+    return value
 
 
 def device_of(args: argparse.Namespace):

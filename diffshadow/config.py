@@ -128,18 +128,22 @@ def section(cls: type[T], name: str, values: dict | None = None) -> T:
 
 
 @functools.cache
-def _validator(schema_file: str):
-    """The jsonschema validator of one of the package's schemas (read once per process)."""
+def _validator(schema_file: str, partial: bool = False):
+    """The jsonschema validator of one of the package's schemas (read once per process); `partial`: no top-level
+    key required."""
     import jsonschema
 
-    return jsonschema.Draft202012Validator(read_yaml(SCHEMAS / schema_file))
+    schema = read_yaml(SCHEMAS / schema_file)
+    if partial:
+        schema = {**schema, "required": []}
+    return jsonschema.Draft202012Validator(schema)
 
 
-def _validate(value: dict, schema_file: str, where: str) -> None:
+def _validate(value: dict, schema_file: str, where: str, *, partial: bool = False) -> None:
     """jsonschema validation with a one-line error naming `where` and the key path."""
     import jsonschema
 
-    error = jsonschema.exceptions.best_match(_validator(schema_file).iter_errors(value))
+    error = jsonschema.exceptions.best_match(_validator(schema_file, partial).iter_errors(value))
     if error is not None:
         key = ".".join(str(p) for p in error.absolute_path) or "(top level)"
         said = error.schema.get("description") if error.validator == "pattern" else None  # a regex says little
@@ -261,6 +265,16 @@ class _Sections(dict):
     def __missing__(self, key: str):
         raise ConfigError(f"{self.what}: no {key!r} section (it has {sorted(self) or 'none'}); the workflow passes "
                           f"the config's sections by name, e.g. {{\"{key}\": {{...}}}}")
+
+
+def check_sections(value: dict, where: str) -> None:
+    """The run config's sections among `value`'s keys (a command's --config-json: a few sections, some of their
+    keys), each within the bounds a run file's are held to: a job started by hand gets the same one line as a run
+    at plan time, not a stage's traceback or a NaN written (fit.eval_points 0 was stored as a NaN PSNR). Without
+    any, jsonschema is not imported (~30 ms a job: prepare_volume, which every other job waits for, passes none)."""
+    given = {key: value[key] for key in SECTIONS if key in value}
+    if given:
+        _validate(given, "config.schema.yaml", where, partial=True)
 
 
 def parse_json(text: str, what: str = "--config-json") -> dict[str, Any]:
