@@ -347,7 +347,7 @@ def _blend_args(p: argparse.ArgumentParser, evaluate: dict, *, used: str = "") -
     p.add_argument("--blend-weights", choices=["triangle", "inverse-angle"], default=evaluate["blend_weights"],
                    help=f"{used}how a light's stored SIRENs are blended: the corners of its Delaunay triangle, or the "
                    "--blend-k nearest (evaluate.blend_weights)")
-    p.add_argument("--blend-k", type=int, default=evaluate["blend_k"],
+    p.add_argument("--blend-k", type=at_least(1), default=evaluate["blend_k"],
                    help="with --blend-weights inverse-angle: stored SIRENs blended per light (evaluate.blend_k)")
 
 
@@ -395,7 +395,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--lights", help="the light sets (with --volume): validation lights are drawn in their cap")
     p = _add(sub, "ddp-processes", _ddp_processes, "how many DDP processes to launch here (prints a number)",
              out=False)
-    p.add_argument("--nproc", type=int, required=True, help="processes asked for (finetune.nproc)")
+    p.add_argument("--nproc", type=at_least(1), required=True, help="processes asked for (finetune.nproc)")
     # torchrun's own options pass through untouched ("-" is not this parser's prefix)
     p = sub.add_parser("torchrun", prefix_chars="+", add_help=False,
                        help="torchrun with its own arguments, ending in one line where a rank fails (the workflow's "
@@ -404,7 +404,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.set_defaults(func=_torchrun)
     p = _add(sub, "eval-truth", _eval_truth, "evaluation points and the exact shadow of every light at them "
              "(the workflow passes --device cpu unless evaluate.device is run)", "volume", "lights")
-    p.add_argument("--eval-points", type=int, default=evaluate["points"], help="points per set (box, visible; "
+    p.add_argument("--eval-points", type=at_least(1), default=evaluate["points"], help="points per set (box, visible; "
                    "evaluate.points)")
     p.add_argument("--seed", type=seed, default=evaluate["seed"], help="their random draw (evaluate.seed)")
     mix = defaults()["mix"]
@@ -416,8 +416,8 @@ def build_parser() -> argparse.ArgumentParser:
                    help="auto (chosen on validation lights, with --weights and --volume) or 0..1 (with --weights); "
                    "default 1: the model alone, as before the mix (the workflow passes mix.model_share)")
     _blend_args(p, evaluate)
-    p.add_argument("--val-lights", type=int, default=mix["val_lights"], help="mix.val_lights")
-    p.add_argument("--val-points", type=int, default=mix["val_points"], help="mix.val_points")
+    p.add_argument("--val-lights", type=at_least(1), default=mix["val_lights"], help="mix.val_lights")
+    p.add_argument("--val-points", type=at_least(1), default=mix["val_points"], help="mix.val_points")
     p.add_argument("--seed", type=seed, default=mix["seed"], help="their random draw (mix.seed)")
     p.add_argument("--score-on", choices=("cpu", "run"), default="cpu",
                    help="where the SIRENs are evaluated for their PSNR: cpu (default), or run: --device (the workflow "
@@ -429,8 +429,8 @@ def build_parser() -> argparse.ArgumentParser:
     _blend_args(p, evaluate)
     p.add_argument("--target-psnr", type=float, default=auto["target_psnr"],
                    help="dB, median voxel PSNR on the validation lights (cache_auto.target_psnr)")
-    p.add_argument("--val-lights", type=int, default=auto["val_lights"], help="cache_auto.val_lights")
-    p.add_argument("--val-points", type=int, default=auto["val_points"], help="cache_auto.val_points")
+    p.add_argument("--val-lights", type=at_least(1), default=auto["val_lights"], help="cache_auto.val_lights")
+    p.add_argument("--val-points", type=at_least(1), default=auto["val_points"], help="cache_auto.val_points")
     p.add_argument("--seed", type=seed, default=auto["seed"], help="their random draw (cache_auto.seed)")
     p.add_argument("--candidates", nargs="+", default=auto["candidates"],
                    help="blend, fp16, bf16, basis-<k> (cache_auto.candidates)")
@@ -446,13 +446,13 @@ def build_parser() -> argparse.ArgumentParser:
              "weights", "generated", "truth", "volume", "lights")
     p.add_argument("--checkpoint", help="the diffusion checkpoint that sampled --generated (none: cache: blend)")
     _blend_args(p, evaluate)
-    p.add_argument("--ddpm-lights", type=int, default=evaluate["ddpm_lights"],
+    p.add_argument("--ddpm-lights", type=at_least(0), default=evaluate["ddpm_lights"],
                    help="training lights sampled with 500-step DDPM too (evaluate.ddpm_lights)")
     p.add_argument("--geometry-checkpoint", help="the model before fine-tuning: unseen lights before and after")
-    p.add_argument("--wide-lights", type=int, default=evaluate["wide_lights"],
+    p.add_argument("--wide-lights", type=at_least(0), default=evaluate["wide_lights"],
                    help="further test lights the cache's answer, the weight blend and the model alone are compared on "
                    "(evaluate.wide_lights; 0: none)")
-    p.add_argument("--wide-points", type=int, default=evaluate["wide_points"],
+    p.add_argument("--wide-points", type=at_least(1), default=evaluate["wide_points"],
                    help="box points per further test light (evaluate.wide_points)")
     p.add_argument("--seed", type=seed, default=evaluate["seed"], help="the further test lights' draw (evaluate.seed)")
     p.add_argument("--cache-weights", help="a codec's decoded store (encode-cache's cache.zarr) that --generated "

@@ -241,3 +241,44 @@ def test_a_run_file_with_a_key_given_twice_stops_the_plan(tmp_path):
     assert proc.returncode != 0
     assert f"{tmp_path / 'run.yaml'}: not valid YAML at line 3, column 1: key 'lights' given twice (first at line 1)" \
         in said, said[-2000:]
+
+
+# (command and its required options, the option, the run config's key it carries)
+COUNTS = [
+    (["eval-truth", "--volume", "v", "--lights", "l", "--out", "o"], "--eval-points", "evaluate.points"),
+    (["sample-shadows", "--checkpoint", "c", "--truth", "t", "--lights", "l", "--out", "o"], "--val-lights",
+     "mix.val_lights"),
+    (["sample-shadows", "--checkpoint", "c", "--truth", "t", "--lights", "l", "--out", "o"], "--val-points",
+     "mix.val_points"),
+    (["sample-shadows", "--checkpoint", "c", "--truth", "t", "--lights", "l", "--out", "o"], "--blend-k",
+     "evaluate.blend_k"),
+    (["choose-cache", "--weights", "w", "--truth", "t", "--volume", "v", "--lights", "l", "--out", "o"],
+     "--val-lights", "cache_auto.val_lights"),
+    (["choose-cache", "--weights", "w", "--truth", "t", "--volume", "v", "--lights", "l", "--out", "o"],
+     "--val-points", "cache_auto.val_points"),
+    (["evaluate-voxels", "--weights", "w", "--generated", "g", "--truth", "t", "--volume", "v", "--lights", "l",
+      "--out", "o"], "--ddpm-lights", "evaluate.ddpm_lights"),
+    (["evaluate-voxels", "--weights", "w", "--generated", "g", "--truth", "t", "--volume", "v", "--lights", "l",
+      "--out", "o"], "--wide-lights", "evaluate.wide_lights"),
+    (["evaluate-voxels", "--weights", "w", "--generated", "g", "--truth", "t", "--volume", "v", "--lights", "l",
+      "--out", "o"], "--wide-points", "evaluate.wide_points"),
+    (["ddp-processes"], "--nproc", "finetune.nproc"),
+]
+
+
+@pytest.mark.parametrize("command, option, key", COUNTS, ids=[f"{c[0][0]} {c[1]}" for c in COUNTS])
+def test_a_count_option_takes_what_its_config_key_takes(command, option, key, capsys):
+    """A count given on the command line is held to its config key's minimum in the run schema: one below is
+    argparse's line naming the option (--eval-points -3 was a negative-dimension traceback from PyTorch, mix's
+    --val-points 0 'a validation light scored nan dB' blaming the model, --val-lights 0 numpy's 'need at least one
+    array to stack'), the minimum parses."""
+    from diffshadow.cli import build_parser
+    from diffshadow.config import SCHEMAS, read_yaml
+
+    section, name = key.split(".")
+    least = read_yaml(SCHEMAS / "config.schema.yaml")["$defs"][section]["properties"][name]["minimum"]
+    parser = build_parser()
+    assert getattr(parser.parse_args([*command, option, str(least)]), option[2:].replace("-", "_")) == least
+    with pytest.raises(SystemExit):
+        parser.parse_args([*command, option, str(least - 1)])
+    assert f"argument {option}: expected at least {least}, got {least - 1}" in capsys.readouterr().err
