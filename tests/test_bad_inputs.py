@@ -101,6 +101,11 @@ CASES = [
     ("bench init-spread of one light", lambda t: ["bench", "init-spread", "--lights", "1", "--results", str(t),
                                                   "--out", "b"], {},
      r"bench init-spread: --lights: expected at least 2 \(a spread across lights\), got 1"),  # was a traceback
+    ("bench render: a SIREN of width 0", lambda t: ["bench", "render", "--volume", npy(t, "v.npy"), "--siren-width",
+                                                    "0", "--out", "b.json"], {},
+     r"argument --siren-width: expected at least 1, got 0"),  # was a ZeroDivisionError's traceback
+    ("bench kernels for sm_70", lambda t: ["bench", "kernels", "--arch", "70"], {},
+     r"argument --arch: expected at least 75, got 70"),  # was an IndexError's traceback (sm_12: LLVM's abort)
     ("a data INR that is not one", lambda t: _render_inr(t, str(_write(t / "d.ckpt", _torch_bytes())), "--scalar",
                                                          "inr", "--data-inr", str(t / "d.ckpt")), {},
      r"d.ckpt: not a data INR file \(train_data_inr's data_inr.pt\): no key 'layout'"),

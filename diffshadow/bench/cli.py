@@ -128,9 +128,10 @@ def add_bench_parsers(sub) -> None:
             ("volume", str, None, "or prepare_volume's volume.zarr, or a raw file (--tf-json, else the bench TF)"),
             ("tf-json", str, None, "transfer function for a raw --volume, as JSON or a JSON file"),
             ("data-inr", str, None, "train_data_inr's data_inr.pt (default: fit one)"),
-            ("inr-steps", int, None, "steps when fitting the data INR here (default: config's data_inr.steps)"),
+            ("inr-steps", at_least(1), None, "steps when fitting the data INR here (default: config's data_inr.steps)"),
             ("weights", str, None, "a weight store whose SIREN --light-index is the shadow INR (default: fit one)"),
-            ("light-index", int, 0, None), ("siren-width", int, 32, None), ("siren-steps", int, 300, None),
+            ("light-index", at_least(0), 0, None), ("siren-width", at_least(1), 32, None),
+            ("siren-steps", at_least(1), 300, None),
             ("step", float, 0.5, "voxels"), ("repeats", int, 3, None), ("out", str, "bench/bench_render.json",
                                                      "a JSON file, or a folder for bench_render.json")):
         p.add_argument(f"--{name}", type=kind, default=default, help=helptext)
@@ -146,12 +147,14 @@ def add_bench_parsers(sub) -> None:
     p.add_argument("--scenes-dir", default="config/scenes")
     p.add_argument("--stages", nargs="+", help="default: all (fit_siren preoptimize train_data_inr train_diffusion "
                    "finetune_render sample_shadows eval_truth)")
-    p.add_argument("--budget", type=float, default=2.0, help="seconds of timed steps per stage (at least 2 steps)")
+    p.add_argument("--budget", type=at_least(0, float), default=2.0,
+                   help="seconds of timed steps per stage (at least 2 steps)")
     p.add_argument("--max-steps", type=int, default=50, help="timed steps per stage at most")
     p.add_argument("--out", default="bench/bench_stages.json", help="a JSON file, or a folder for bench_stages.json")
     p = _add(bench, "kernels", _bench_kernels, "registers, spills, programs per SM and machine-code counts of the "
              "fused kernels, compiled for a GPU without one", out=False, device=False)
-    p.add_argument("--arch", type=int, nargs="+", default=[80, 90], help="CUDA compute capabilities (80: A100)")
+    p.add_argument("--arch", type=at_least(75), nargs="+", default=[80, 90],
+                   help="CUDA compute capabilities, 75 and up (80: A100, 90: H100)")
     p.add_argument("--out", default="bench/bench_kernels.json", help="a JSON file, or a folder for bench_kernels.json")
 
     p = _add(sub, "check-store", _check_store, "verify Zarr stores against their checksums (a store, or every "
@@ -159,4 +162,4 @@ def add_bench_parsers(sub) -> None:
     p.add_argument("paths", nargs="+", help="a .zarr store or a results folder (results/<scene>)")
     p.add_argument("--psnr", action="store_true", help="results folders: re-evaluate weights.zarr's SIRENs against "
                    "their stored PSNR")
-    p.add_argument("--tolerance", type=float, default=0.5, help="dB")
+    p.add_argument("--tolerance", type=at_least(0, float), default=0.5, help="dB")
