@@ -277,6 +277,17 @@ def check_sections(value: dict, where: str) -> None:
         _validate(given, "config.schema.yaml", where, partial=True)
 
 
+def _unique_keys(source: str, pairs: list[tuple[str, Any]]) -> dict:
+    """A JSON object's members, a key given twice refused (json keeps the last silently, as the YAML reader does
+    not: a hand-typed '{"fit": {"lr": 1e-4, ..., "lr": 1e-3}}' ran at the second)."""
+    out: dict = {}
+    for key, value in pairs:
+        if key in out:
+            raise ConfigError(f"{source}: key {key!r} given twice in one object")
+        out[key] = value
+    return out
+
+
 def parse_json(text: str, what: str = "--config-json") -> dict[str, Any]:
     """A JSON object given inline or, where `text` is not an object's text, as the path of a file holding one."""
     source = what
@@ -290,7 +301,7 @@ def parse_json(text: str, what: str = "--config-json") -> dict[str, Any]:
         except (OSError, UnicodeDecodeError) as e:
             raise ConfigError(f"{source}: unreadable ({type(e).__name__}: {e})") from None
     try:
-        value = json.loads(text)
+        value = json.loads(text, object_pairs_hook=functools.partial(_unique_keys, source))
     except json.JSONDecodeError as e:
         raise ConfigError(f"{source}: not valid JSON ({e})") from None
     if not isinstance(value, dict):

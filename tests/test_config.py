@@ -109,3 +109,19 @@ def test_a_json_option_reads_inline_text_and_a_file_alike(tmp_path):
         from_file["color"]
     with pytest.raises(ConfigError, match=r"expected a JSON object or a file holding one, got '\[1\]'"):
         parse_json("[1]", "--tf-json")
+
+
+def test_a_json_key_given_twice_is_refused_at_any_depth(tmp_path):
+    """json keeps the last of two equal keys without a word; a hand-typed --config-json or --tf-json that repeats
+    one is refused naming the key and where it came from, as the YAML reader refuses one in a run file. Equal keys
+    in two objects are two keys."""
+    import pytest
+
+    from diffshadow.config import ConfigError, parse_json
+
+    assert parse_json('{"fit": {"lr": 1}, "data_inr": {"lr": 2}}') == {"fit": {"lr": 1}, "data_inr": {"lr": 2}}
+    with pytest.raises(ConfigError, match=r"^--config-json: key 'lr' given twice in one object$"):
+        parse_json('{"fit": {"lr": 1e-4, "steps": 3, "lr": 1e-3}}')
+    (tmp_path / "tf.json").write_text('{"opacity": [], "opacity": []}')
+    with pytest.raises(ConfigError, match=r"^--tf-json \S*tf.json: key 'opacity' given twice in one object$"):
+        parse_json(str(tmp_path / "tf.json"), "--tf-json")
