@@ -278,8 +278,8 @@ def check_sections(value: dict, where: str) -> None:
 
 
 def _unique_keys(source: str, pairs: list[tuple[str, Any]]) -> dict:
-    """A JSON object's members, a key given twice refused (json keeps the last silently, as the YAML reader does
-    not: a hand-typed '{"fit": {"lr": 1e-4, ..., "lr": 1e-3}}' ran at the second)."""
+    """A JSON object's members, a key given twice refused, as the YAML reader refuses one: json keeps the last
+    silently, so a hand-typed '{"fit": {"lr": 1e-4, ..., "lr": 1e-3}}' ran at the second."""
     out: dict = {}
     for key, value in pairs:
         if key in out:
