@@ -7,6 +7,7 @@ Parsl worker; the log goes where the rule's `tee` would put it. The caller names
 
 from __future__ import annotations
 
+import json
 import runpy
 from pathlib import Path
 
@@ -85,7 +86,7 @@ def run(parsl_config: Path, jobs: list[dict], log=print) -> list[str]:
 def fit_pending(parsl_config: Path, configfile: Path, scenes: list[str] | None, results: Path, *,
                 threads: int = 1, log=print) -> None:
     """Every subset of `scenes` (default: the config's) whose file under `results` is missing."""
-    from diffshadow.config import load_run, scene_config
+    from diffshadow.config import as_json, load_run, scene_config
     from diffshadow.lights import n_subsets
 
     if not parsl_config.is_file():  # before any scene is read: with nothing pending it would go unnoticed
@@ -103,7 +104,9 @@ def fit_pending(parsl_config: Path, configfile: Path, scenes: list[str] | None, 
         n = n_subsets(cfg["lights"]["count"], cfg["subset_size"])
         todo = pending(results, scene, n)
         log(f"[parsl-fit] {scene}: {len(todo)} of {n} subsets pending")
-        sel = {k: cfg[k] for k in ("siren", "fit", "subset_size")}
+        # the sections as the rule's --config-json gives them (keys sorted, settings at their old behaviour left
+        # out): the subset file records them, and should hold the same bytes whichever way it was fitted
+        sel = json.loads(as_json(cfg, "siren", "fit", "subset_size"))
         jobs += [{"paths": {**{k: str(v) for k, v in paths.items()}, "out": str(base / "sirens" / f"subset_{i}.npz"),
                             "benchmark": str(base / "benchmarks" / f"fit_siren_{i}.tsv")},
                   "subset": i, "cfg": sel, "device": run_cfg.get("device"), "threads": threads,

@@ -13,4 +13,5 @@ config = Config(
     executors=[HighThroughputExecutor(label="local", max_workers_per_node=2, cores_per_worker=1,
                                       provider=LocalProvider(init_blocks=1, max_blocks=1, worker_init=_exports))],
     strategy="none",
+    run_dir="results/parsl",  # its logs and submit scripts beside the results, not in ./runinfo in the checkout
 )

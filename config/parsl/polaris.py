@@ -33,4 +33,5 @@ config = Config(
         ),
     )],
     strategy="none",
+    run_dir="results/parsl",  # its logs and submit scripts beside the results, not in ./runinfo in the checkout
 )
