@@ -103,6 +103,7 @@ def read_subset(path) -> dict:
     its weights finite: a file of another version or edited by hand is named here, not met in a broadcast error
     or a NaN downstream."""
     path = Path(path)
+    again = "rerun the fit_siren job that writes it"
     try:
         with np.load(path, allow_pickle=False) as z:
             out = {k: z[k] for k in ("weights", "light_index", "lights", "psnr", "psnr_visible")}
@@ -111,23 +112,21 @@ def read_subset(path) -> dict:
         out["siren"] = SirenConfig.from_config(meta["siren"])
         out["config"] = meta["config"]
     except Exception as e:  # a truncated copy is zipfile's BadZipFile or an EOFError, neither OSError nor ValueError
-        raise StoreError(f"{path}: not a readable subset file ({error_line(e)}); rerun the fit_siren job "
-                         "that writes it") from None
+        raise StoreError(f"{path}: not a readable subset file ({error_line(e)}); {again}") from None
     out["extinction"] = meta.get("extinction")
     if out["light_index"].ndim != 1:
         raise StoreError(f"{path}: light_index has shape {out['light_index'].shape}, expected one index a light; "
-                         "rerun the fit_siren job that writes it")
+                         f"{again}")
     n = len(out["light_index"])
     expected = {"weights": (n, out["layout"].n_params), "lights": (n, 3), "psnr": (n,), "psnr_visible": (n,)}
     for key, shape in expected.items():
         if out[key].shape != shape:
             raise StoreError(f"{path}: {key} has shape {out[key].shape}, expected {shape} (its {n} light indices; "
-                             f"its SIREN layout's {out['layout'].n_params} parameters); rerun the fit_siren job "
-                             "that writes it")
+                             f"its SIREN layout's {out['layout'].n_params} parameters); {again}")
     bad = ~np.isfinite(out["weights"]).all(axis=1)
     if bad.any():
         raise StoreError(f"{path}: the weights of light(s) {out['light_index'][bad][:10].tolist()} are not finite; "
-                         "rerun the fit_siren job that writes it")
+                         f"{again}")
     return out
 
 
