@@ -3,7 +3,9 @@ user's umask gives any new file, then rename; Zarr stores carry a checksum of ev
 
 A killed job or a crashed node therefore never leaves a file that looks finished (docs/design.md §1), group members
 of a shared project folder can read what the umask lets them, and a damaged store is named, never read as
-zeros.
+zeros. A temporary is named after its output, its process and its host (`.weights.zarr.partial.<pid>.<host>.<random>`),
+so that the next write of that output can tell one whose writer was killed (SIGKILL at a PBS walltime, the OOM
+killer, a lost node) and remove it, instead of leaving a hidden copy per kill.
 """
 
 from __future__ import annotations
@@ -13,7 +15,10 @@ import hashlib
 import json
 import logging
 import os
+import re
 import shutil
+import socket
+import sys
 import tempfile
 import time
 from collections.abc import Callable
@@ -70,14 +75,82 @@ def _finish(tmp: Path, *, directory: bool = False) -> None:
         os.chmod(tmp, 0o666 & ~mask)
 
 
+# A temporary from another host cannot be asked whether its process lives: one untouched this long is taken as
+# left by a killed writer. Every write here lasts seconds to minutes and touches its temporary as it goes.
+STALE_AFTER_S = 3600.0
+
+
+def _host() -> str:
+    """This host's name as it appears in a temporary's name: no dots, so that the name parses back."""
+    return re.sub(r"[^A-Za-z0-9-]", "_", socket.gethostname()) or "_"
+
+
+def _temporary_prefix(path: Path) -> str:
+    return f".{path.name}.partial.{os.getpid()}.{_host()}."
+
+
+def _alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:  # another user's process
+        return True
+    return True
+
+
+def _untouched_for(path: Path) -> float:
+    """Seconds since anything in `path` (a file, or a folder and everything under it) last changed."""
+    newest = path.lstat().st_mtime
+    if path.is_dir():
+        for root, dirs, files in os.walk(path):
+            for name in dirs + files:
+                newest = max(newest, (Path(root) / name).lstat().st_mtime)
+    return time.time() - newest
+
+
+def remove_leftovers(path: Path) -> None:
+    """Remove the temporaries of earlier writes of `path` whose writer is gone: on this host, one whose process
+    no longer runs; from another host, one untouched for `STALE_AFTER_S`. A live writer's temporary is kept, so a
+    second writer of the same output does not break the first."""
+    prefix = f".{path.name}.partial."
+    try:
+        names = [e.name for e in os.scandir(path.parent) if e.name.startswith(prefix)]
+    except OSError:  # an unreadable folder: the write itself says why
+        return
+    for name in names:
+        match = re.fullmatch(r"(\d+)\.([A-Za-z0-9_-]+)\..+", name[len(prefix):])
+        if match is None:
+            continue
+        pid, host, leftover = int(match[1]), match[2], path.parent / name
+        try:
+            if host == _host():
+                if _alive(pid):
+                    continue
+                why = f"process {pid} no longer runs"
+            else:
+                idle = _untouched_for(leftover)
+                if idle < STALE_AFTER_S:
+                    continue
+                why = f"written on {host}, untouched for {idle / 3600:.1f} h"
+            if leftover.is_dir() and not leftover.is_symlink():
+                shutil.rmtree(leftover)
+            else:
+                leftover.unlink()
+        except FileNotFoundError:  # removed meanwhile by another writer of this output
+            continue
+        print(f"removed {leftover}: an unfinished write of {path.name} ({why})", file=sys.stderr)
+
+
 @contextmanager
 def atomic_path(path: str | Path, *, suffix: str | None = None):
     """Yield a temporary path beside `path`; on success flush it, give it the umask's mode and rename it to
-    `path`; on error remove it."""
+    `path`; on error remove it. An earlier write's temporary whose writer was killed is removed first."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
+    remove_leftovers(path)
     with naming_output(path):
-        fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=suffix or ".tmp", dir=path.parent)
+        fd, tmp = tempfile.mkstemp(prefix=_temporary_prefix(path), suffix=suffix or ".tmp", dir=path.parent)
     os.close(fd)
     tmp_path = Path(tmp)
     try:
@@ -149,8 +222,9 @@ def write_zarr_group(path, fill, *, made_by: str) -> None:
 
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
+    remove_leftovers(path)
     with naming_output(path):
-        tmp = Path(tempfile.mkdtemp(prefix=f".{path.name}.", dir=path.parent))
+        tmp = Path(tempfile.mkdtemp(prefix=_temporary_prefix(path), dir=path.parent))
     try:
         with naming_output(path):
             root = zarr.open_group(str(tmp), mode="w", zarr_format=3)
@@ -160,7 +234,7 @@ def write_zarr_group(path, fill, *, made_by: str) -> None:
             _finish(tmp, directory=True)
         old = None
         if path.exists():
-            old = path.with_name(f".{path.name}.old-{os.getpid()}")
+            old = path.with_name(f"{_temporary_prefix(path)}old")
             os.replace(path, old)
         os.replace(tmp, path)
         _fsync(path.parent)

@@ -1,3 +1,11 @@
+import os
+import re
+import signal
+import subprocess
+import sys
+import textwrap
+import time
+
 import numpy as np
 import pytest
 
@@ -514,3 +522,59 @@ def test_a_damaged_chunk_among_many_is_one_line(tmp_path):
                          text=True)
     assert bad.returncode == 2 and bad.stderr.count("\n") == 1, bad.stderr
     assert bad.stderr.startswith(f"diffshadow check-store: error: {path}: array 'weights' cannot be read (")
+
+
+def _dead_pid() -> int:
+    proc = subprocess.Popen([sys.executable, "-c", "pass"])
+    proc.wait()
+    return proc.pid
+
+
+def test_a_killed_writes_temporaries_are_removed_by_the_next_write(tmp_path, capsys):
+    from diffshadow import io
+
+    # a writer killed inside each kind of write (SIGKILL: no `finally` runs), as a PBS walltime or the OOM killer
+    # ends one; the zarr writer is killed after moving the old store aside, before swapping the new one in
+    io.write_zarr_group(tmp_path / "a.zarr", lambda root: root.create_array("a", data=np.arange(3)), made_by="test")
+    killed = textwrap.dedent(f"""
+        import os, signal, numpy as np
+        from diffshadow import io
+        with io.atomic_path({str(tmp_path / "a.json")!r}) as tmp:
+            tmp.write_text("half")
+            real = os.replace
+            def replace(src, dst):
+                if str(dst).endswith("a.zarr"):
+                    os.kill(os.getpid(), signal.SIGKILL)
+                real(src, dst)
+            os.replace = replace
+            io.write_zarr_group({str(tmp_path / "a.zarr")!r}, lambda root: root.create_array("a", data=np.arange(4)),
+                                made_by="test")
+        """)
+    assert subprocess.run([sys.executable, "-c", killed]).returncode == -signal.SIGKILL
+    left = sorted(p.name for p in tmp_path.iterdir() if p.name.startswith("."))
+    assert len(left) == 3 and all(".partial." in name for name in left), left  # a.json's, a.zarr's new and old
+    io.atomic_write_text(tmp_path / "a.json", "whole")
+    io.write_zarr_group(tmp_path / "a.zarr", lambda root: root.create_array("a", data=np.arange(5)), made_by="test")
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["a.json", "a.zarr"]
+    said = capsys.readouterr().err.splitlines()
+    assert len(said) == 3 and all(re.fullmatch(r"removed \S+/\.a\.(json|zarr)\.partial\.\S+: an unfinished write of "
+                                               r"a\.(json|zarr) \(process \d+ no longer runs\)", s) for s in said), said
+
+
+def test_a_live_writers_temporary_and_other_outputs_are_kept(tmp_path, capsys):
+    from diffshadow import io
+
+    host, dead = io._host(), _dead_pid()
+    kept = [f".a.npz.partial.{os.getpid()}.{host}.k2j3abcd.tmp",  # a live writer here (this process)
+            f".a.npz.ckpt.partial.{dead}.{host}.k2j3abcd.pt",  # another output's (the checkpoint beside it)
+            f".a.npz.{dead}.k2j3abcd.tmp",  # not named as a temporary is
+            f".a.npz.partial.{dead}.elsewhere.k2j3abcd.tmp"]  # another host's, touched a moment ago
+    stale = f".a.npz.partial.{dead}.elsewhere.x9y8z7w6.tmp"
+    for name in kept + [stale]:
+        (tmp_path / name).write_text("half")
+    hours_ago = time.time() - io.STALE_AFTER_S - 60
+    os.utime(tmp_path / stale, (hours_ago, hours_ago))
+    io.atomic_write_text(tmp_path / "a.npz", "whole")
+    assert sorted(p.name for p in tmp_path.iterdir()) == sorted(kept + ["a.npz"])
+    assert re.fullmatch(rf"removed \S+/{re.escape(stale)}: an unfinished write of a\.npz \(written on elsewhere, "
+                        r"untouched for 1\.0 h\)\n", capsys.readouterr().err)
