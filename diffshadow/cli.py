@@ -609,8 +609,9 @@ _NO_ROOM = (errno.ENOSPC, errno.EDQUOT)  # a full disk, a full quota (an ALCF pr
 # the config keys that size each heavy command's largest allocations, named when it runs out of memory
 _MEMORY_KEYS = {
     "preoptimize": "fit.points or fit.grid_upsample (its target grid has grid_upsample³ x the voxels)",
-    "fit-siren": "subset_size (SIRENs fitted together, a target grid each), fit.grid_upsample (a grid holds "
-                 "grid_upsample³ x the voxels) or fit.points",
+    "fit-siren": "subset_size (SIRENs fitted together, a target grid each, or fit.steps x fit.points values each "
+                 "with fit.target_store: table), fit.grid_upsample (a grid holds grid_upsample³ x the voxels) or "
+                 "fit.points",
     "train-data-inr": "data_inr.points",
     "presample": "diffusion.presample_points",
     "train-diffusion": "diffusion.batch_size or diffusion.geometry_points",

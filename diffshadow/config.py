@@ -236,9 +236,11 @@ def load_run(configfile: str | Path | None = None) -> dict:
 # them: a section missing a key takes defaults.yaml's (`section`). diffusion.cuda_graph: the geometry stage
 # records what it did (False: eager steps, as every run before the key), and "auto", its default since, leaves a
 # finished run as it is (on a CPU it does what False does; a CUDA run finished before it keeps its eager weights);
-# fit.cuda_graph and data_inr.cuda_graph are off by default until a GPU times them.
+# fit.cuda_graph and data_inr.cuda_graph are off by default until a GPU times them; fit.target_store changes where
+# the targets are kept, not their values.
 UNCHANGED_WHEN = {("diffusion", "precision"): ("float32",), ("diffusion", "cuda_graph"): ("auto", False),
-                  ("fit", "cuda_graph"): (False,), ("data_inr", "cuda_graph"): (False,)}
+                  ("fit", "cuda_graph"): (False,), ("data_inr", "cuda_graph"): (False,),
+                  ("fit", "target_store"): ("auto",)}
 
 
 def changed_settings(name: str, values: dict) -> dict:

@@ -40,7 +40,7 @@ from diffshadow.siren import (
 )
 from diffshadow.transfer import TransferFunction
 from diffshadow.truth import presample
-from diffshadow.volume import Volume, refine
+from diffshadow.volume import Volume, refine, refined_shape
 
 
 class FitError(ValueError):
@@ -107,6 +107,11 @@ class FitConfig:
     # where the device is CUDA, True also asked for elsewhere (the fit then steps eagerly, saying so), False never
     # (the default until a GPU times it). A fit's checkpoint records what was done (True or False)
     cuda_graph: bool | str = False
+    # where grid targets (sweep or march) are kept while the subset is fitted: "grids", one shadow grid per light
+    # (subset_size x grid_upsample³ x the voxels); "table", each light's grid made in turn and looked up at once at
+    # every step's shared points, then let go of (steps x points x the lights); "auto", the smaller. The same
+    # values either way, so the same weights (tests/test_fit.py); not in a checkpoint's fingerprint
+    target_store: str = "auto"
 
     @classmethod
     def from_config(cls, d: dict | None = None) -> FitConfig:
@@ -121,7 +126,48 @@ class FitConfig:
         if cfg.precision not in PRECISIONS:
             raise ValueError(f"fit.precision: expected 'float32' or 'bfloat16', got {cfg.precision!r}")
         check_weighting(cfg.blend_weights, "fit.blend_weights")
+        if cfg.target_store not in TARGET_STORES:
+            raise ValueError(f"fit.target_store: expected one of {', '.join(TARGET_STORES)}, got {cfg.target_store!r}")
+        if cfg.target_store == "table" and not cfg.shared_points:
+            raise ValueError("fit.target_store: 'table' looks the targets up at the points every light shares at a "
+                             "step; it needs fit.shared_points: true (or target_store: grids or auto)")
         return cfg
+
+
+TARGET_STORES = ("auto", "grids", "table")
+LOOKUP_STEPS = 64  # a table's steps looked up in one pass: bounded memory on the device (x points x 3 floats)
+
+
+def describe_targets(cfg: FitConfig, k: int, shape: tuple[int, ...],
+                     device: torch.device | None = None) -> str:
+    """One line on how a subset's targets are made and kept (a fit job's log)."""
+    if cfg.target == "transmittance":
+        return f"targets: exact transmittance marched at every step's points for {k} lights"
+    grid = refined_shape(shape, cfg.grid_upsample)
+    store, grids, table = target_store(cfg, k, grid, device)
+    mib = {name: f"{size / 2**20:,.0f} MiB" if size >= 2**20 else f"{size / 2**10:,.0f} KiB"
+           for name, size in (("grids", grids), ("table", table))}
+    kept = (f"kept as {k} grids ({mib['grids']}; a table at every step's points: {mib['table']})" if store == "grids"
+            else f"made one at a time and kept as their values at every step's points ({mib['table']}; as grids: "
+                 f"{mib['grids']})")
+    return f"targets: a {cfg.target} shadow grid of {'x'.join(map(str, grid))} per light, {kept}, fit.target_store: " \
+           f"{cfg.target_store}"
+
+
+def target_store(cfg: FitConfig, k: int, grid_shape: tuple[int, ...],
+                 device: torch.device | None = None) -> tuple[str, int, int]:
+    """Where `k` lights' grid targets of `grid_shape` are kept (`FitConfig.target_store`): ("grids" or "table",
+    the grids' bytes, the table's bytes, its points included). "auto" on a CPU: the smaller. On a GPU the table's
+    step (its targets copied from the host with the points) is not yet timed, so "auto" keeps the grids there
+    unless they would take more than half the card's memory, where they could not run at all."""
+    grids = 4 * k * int(np.prod(grid_shape))
+    table = 4 * cfg.steps * cfg.points * (k + 3)
+    if cfg.target_store != "auto":
+        return cfg.target_store, grids, table
+    smaller = table < grids
+    if device is not None and device.type == "cuda":
+        smaller = smaller and grids > torch.cuda.get_device_properties(device).total_memory // 2
+    return ("table" if cfg.shared_points and smaller else "grids"), grids, table
 
 
 # Points per SIREN per pass on the CPU: `bench siren` on 2 cores gave 1.2-1.9x over one SIREN at a time
@@ -168,16 +214,23 @@ def points_per_pass(chunk: int | str, points: int, device: torch.device) -> int:
 
 class Targets:
     """The shadow each SIREN is fitted to at any points: one `shadow_grid` per light looked up trilinearly
-    (`fit.target` "sweep" or "march"), or marched exactly per point ("transmittance")."""
+    (`fit.target` "sweep" or "march"), or marched exactly per point ("transmittance"). Grid targets are held as
+    the grids, or (`fit.target_store`) as a table of their values at every step's shared points (`table_from`),
+    each grid made, looked up and let go of in turn: a subset of large volumes then needs one grid, not K."""
 
     def __init__(self, volume: Volume, tf: TransferFunction, lights: np.ndarray, cfg: FitConfig,
                  device: torch.device):
         self.extent = torch.as_tensor(volume.extent, dtype=torch.float32, device=device)
-        self.tf, self.lights, self.grids, self.field = tf, lights, None, None
+        self.tf, self.lights, self.cfg, self.device = tf, lights, cfg, device
+        self.grids = self.field = self.fine = self.table = self.table_points = None
+        self.table_start = 0
         if cfg.target == "transmittance":
             self.field = ShadowField.build(volume, tf, device=device)
         elif cfg.target in ("sweep", "march"):
             fine = refine(volume, cfg.grid_upsample)
+            if target_store(cfg, len(lights), fine.data.shape, device)[0] == "table":
+                self.fine = fine  # the table is made when the first step's number is known (`table_from`)
+                return
             grids = (shadow_grid(fine, tf, w, method=cfg.target, device=device) for w in lights)
             # channels last where a CPU reads them at shared points: a fit step's lookup 0.26x; not timed on a GPU
             channels = cfg.shared_points and device.type == "cpu"
@@ -185,11 +238,43 @@ class Targets:
         else:
             raise ValueError(f"fit.target: expected 'sweep', 'march' or 'transmittance', got {cfg.target!r}")
 
+    @property
+    def tabled(self) -> bool:
+        return self.fine is not None or self.table is not None
+
+    @torch.no_grad()
+    def table_from(self, start: int, sampler: PointSampler) -> None:
+        """The table of every light's target at the shared points of steps `start` on (drawn as `SubsetFit.draw`
+        draws them), on the host: (steps, K, N), one step's (K, N) contiguous."""
+        cfg, k = self.cfg, len(self.lights)
+        steps = range(start, cfg.steps)
+        self.table_points = torch.cat([sampler.sample(1, cfg.points, seeded(cfg.seed, Stream.FIT_SHARED_POINTS, s))
+                                       for s in steps]) if len(steps) else torch.empty(0, cfg.points, 3, device="cpu")
+        self.table = torch.empty(len(steps), k, cfg.points, device="cpu")
+        for j, w in enumerate(self.lights):
+            grid = shadow_grid(self.fine, self.tf, w, method=cfg.target, device=self.device)[None]
+            for s0 in range(0, len(steps), LOOKUP_STEPS):
+                pts = self.table_points[s0:s0 + LOOKUP_STEPS].to(self.device)
+                values = lookup_grids(grid, pts.reshape(1, -1, 3), self.extent).reshape(len(pts), cfg.points)
+                self.table[s0:s0 + LOOKUP_STEPS, j] = values.cpu()
+            del grid
+        self.fine, self.table_start = None, start
+
+    def at_step(self, step: int) -> tuple[torch.Tensor, torch.Tensor]:
+        """The table's (N, 3) shared points and (K, N) targets of step `step`, on the host."""
+        i = step - self.table_start
+        if not 0 <= i < len(self.table):
+            raise ValueError(f"fit targets: step {step} is outside the table of steps {self.table_start} to "
+                             f"{self.table_start + len(self.table) - 1}")
+        return self.table_points[i], self.table[i]
+
     @torch.no_grad()
     def __call__(self, pts: torch.Tensor) -> torch.Tensor:
         """(K, N, 3) points in volume coordinates → (K, N) shadow of light k at its points."""
         if self.grids is not None:
             return lookup_grids(self.grids, pts, self.extent)
+        if self.tabled:
+            raise ValueError("fit targets: a table holds its steps' points only (Targets.at_step)")
         return transmittance_per_light(self.field, self.tf, self.lights, pts)
 
 
@@ -267,6 +352,7 @@ class FitDraw:
     pts: torch.Tensor  # (K, N, 3) points in volume coordinates
     pool_lights: torch.Tensor | None  # (K,) the pool lights the blend loss scores (with a pool)
     pool_points: torch.Tensor | None  # (K, M) their presampled points
+    target: torch.Tensor | None = None  # (K, N) the targets at `pts`, from a table (fit.target_store)
 
 
 def fit_graphs(cfg: FitConfig, device: torch.device, log=print) -> StepGraphs | None:
@@ -296,7 +382,7 @@ class SubsetFit:
         self.pool = pool.to(device) if pool is not None else None
         self.chunk = points_per_pass(cfg.chunk, cfg.points, device)
         self.autocast = forward_precision(cfg.precision, device)
-        self.device = device
+        self.device, self.log = device, log
 
     def step(self, step: int) -> torch.Tensor:
         """Optimiser step `step` (its points depend only on the seed, the subset's stream and `step`); each SIREN's
@@ -308,21 +394,31 @@ class SubsetFit:
     def draw(self, step: int) -> FitDraw:
         """Step `step`'s points (and pool picks), drawn on the host and on the device without waiting for it."""
         cfg, k = self.cfg, self.k
-        if cfg.shared_points:  # one draw, moved once, seen by every SIREN
+        target = None
+        if self.targets.tabled:  # the step's points and targets, drawn and looked up before the first step
+            if self.targets.table is None:
+                t0 = time.perf_counter()
+                self.targets.table_from(step, self.sampler)
+                self.log(f"targets: {self.k} shadow grids looked up at the points of steps {step} to "
+                         f"{self.cfg.steps - 1} ({time.perf_counter() - t0:.1f} s)")
+            shared, target = self.targets.at_step(step)
+            pts, target = to_device(shared[None], self.device).expand(k, -1, -1), to_device(target, self.device)
+        elif cfg.shared_points:  # one draw, moved once, seen by every SIREN
             shared = self.sampler.sample(1, cfg.points, seeded(cfg.seed, Stream.FIT_SHARED_POINTS, step))
             pts = to_device(shared, self.device).expand(k, -1, -1)
         else:
             pts = to_device(self.sampler.sample(k, cfg.points, seeded(cfg.seed, self.stream, step)), self.device)
         if self.pool is None:
-            return FitDraw(pts, None, None)
+            return FitDraw(pts, None, None, target)
         gen = seeded(cfg.seed, Stream.FIT_POOL_PICK - self.stream, step)
         j, pick = draw_pool(len(self.pool.lights), self.pool.points.shape[1], k, cfg, gen)
-        return FitDraw(pts, to_device(j, self.device), to_device(pick, self.device))
+        return FitDraw(pts, to_device(j, self.device), to_device(pick, self.device), target)
 
     def update(self, draw: FitDraw) -> torch.Tensor:
         """The optimiser step on `draw`: each SIREN's mean squared error before it (K,)."""
         pool_draw = None if self.pool is None else (draw.pool_lights, draw.pool_points)
-        return fit_step(self.weights, self.opt, draw.pts, self.targets(draw.pts), self.layout, self.siren,
+        target = self.targets(draw.pts) if draw.target is None else draw.target
+        return fit_step(self.weights, self.opt, draw.pts, target, self.layout, self.siren,
                         self.targets.extent, self.cfg, chunk=self.chunk, autocast=self.autocast, pool=self.pool,
                         pool_draw=pool_draw, keep_grads=self.graphs is not None)
 
@@ -413,7 +509,9 @@ def _fingerprint(init, lights, cfg, siren, stream, pool: PoolLights | None, volu
     h.update(np.asarray(lights, np.float64).tobytes())
     if pool is not None:
         h.update(pool.lights.cpu().numpy().astype(np.float64).tobytes())
-    h.update(json.dumps([changed_settings("fit", asdict(cfg)), siren.to_config(), stream], sort_keys=True).encode())
+    settings = changed_settings("fit", asdict(cfg))
+    settings.pop("target_store", None)  # where the targets are kept: the same values, so a resume may change it
+    h.update(json.dumps([settings, siren.to_config(), stream], sort_keys=True).encode())
     return h.hexdigest()
 
 

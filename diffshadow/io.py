@@ -169,7 +169,7 @@ def naming_output(path: Path):
     """An error writing `path` names the output, so that the command's one-line error says which file could not
     be written: a write that fails for want of room (a full disk, a quota; on a parallel file system often only at
     the flush) raises an OSError naming no file, and one in the temporary beside the output names that random name
-    (`.out.json.k2j3.tmp` in a folder one may not write to)."""
+    (`.out.json.partial.<pid>.<host>.k2j3abcd.tmp` in a folder one may not write to)."""
     try:
         yield
     except (OSError, RuntimeError) as e:

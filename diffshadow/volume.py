@@ -85,6 +85,11 @@ def check_extinction(made_for: str | None, here: str | None, *, cache: str, scen
                     f"{here}); {remedy}")
 
 
+def refined_shape(shape: tuple[int, ...], factor: int) -> tuple[int, ...]:
+    """The shape of a grid `refine`d `factor` times."""
+    return tuple((n - 1) * factor + 1 for n in shape)
+
+
 def refine(volume: Volume, factor: int) -> Volume:
     """The same trilinear field sampled `factor` times more finely (exact: a trilinear function
     restricted to a sub-cell is reproduced by trilinear interpolation of the sub-cell's corners)."""
@@ -93,7 +98,7 @@ def refine(volume: Volume, factor: int) -> Volume:
     import torch
     import torch.nn.functional as F
 
-    size = [(n - 1) * factor + 1 for n in volume.data.shape]
+    size = list(refined_shape(volume.data.shape, factor))
     data = F.interpolate(torch.from_numpy(np.ascontiguousarray(volume.data))[None, None], size=size, mode="trilinear",
                          align_corners=True)[0, 0]
     return Volume(data=data.numpy(), extent=volume.extent, name=volume.name)

@@ -23,7 +23,7 @@ def init():
     return LAYOUT.flatten(init_siren(CFG, torch.Generator().manual_seed(0)))
 
 
-def stop_after_six_log_lines(vol, tf, lights, cfg: FitConfig, ckpt) -> None:
+def stop_after_six_log_lines(vol, tf, lights, cfg: FitConfig, ckpt, pool=None) -> None:
     """A fit of init() killed after its sixth log line (step 6 where progress is logged every step), leaving the
     checkpoint it wrote before."""
     calls = []
@@ -34,7 +34,7 @@ def stop_after_six_log_lines(vol, tf, lights, cfg: FitConfig, ckpt) -> None:
             raise KeyboardInterrupt
 
     with pytest.raises(KeyboardInterrupt):
-        fit_sirens(init(), LAYOUT, CFG, vol, tf, lights, cfg, checkpoint=ckpt, log=interrupt)
+        fit_sirens(init(), LAYOUT, CFG, vol, tf, lights, cfg, checkpoint=ckpt, pool=pool, log=interrupt)
 
 
 def test_resume_gives_the_same_weights(scene, tmp_path):
@@ -331,3 +331,97 @@ def test_blend_loss_makes_no_tensor_on_the_implicit_default_device(scene):
 def test_a_negative_blend_weight_is_named():
     with pytest.raises(ValueError, match="fit.blend_weight"):
         FitConfig.from_config(dict(blend_weight=-1.0))
+
+
+def _stopped_then_resumed(vol, tf, lights, stopped: FitConfig, resumed: FitConfig, ckpt, pool=None):
+    stop_after_six_log_lines(vol, tf, lights, stopped, ckpt, pool=pool)
+    messages = []
+    out = fit_sirens(init(), LAYOUT, CFG, vol, tf, lights, resumed, checkpoint=ckpt, pool=pool, log=messages.append)
+    assert messages[0].startswith(f"resuming from {ckpt} at step 4"), messages
+    return out
+
+
+@pytest.mark.parametrize("with_pool", [False, True])
+def test_targets_kept_as_a_table_fit_the_same_weights_as_grids(scene, tmp_path, with_pool):
+    """`fit.target_store: table` keeps each light's grid values at every step's shared points instead of the
+    grids: the same targets, so the same weights bit for bit (with the blend loss too); and since it is not in a
+    checkpoint's fingerprint, a fit killed keeping grids resumes keeping a table, and the other way round."""
+    from dataclasses import replace
+
+    from diffshadow.fit import blend_pool
+
+    vol, tf, lights = scene
+    pool = None
+    if with_pool:
+        lights, center = _cap_lights()
+    grids = FitConfig.from_config(dict(steps=12, points=64, checkpoint_every=4, eval_points=16,
+                                       target_store="grids", blend_weight=0.5 if with_pool else 0.0,
+                                       blend_per_light=4, blend_points=16))
+    table = replace(grids, target_store="table")
+    if with_pool:
+        pool = blend_pool(vol, tf, lights, center, list(range(len(lights))), grids)
+    quiet = {"log": lambda *a: None, "pool": pool}
+    kept = fit_sirens(init(), LAYOUT, CFG, vol, tf, lights, grids, **quiet)
+    assert torch.equal(fit_sirens(init(), LAYOUT, CFG, vol, tf, lights, table, **quiet), kept)
+    assert torch.equal(_stopped_then_resumed(vol, tf, lights, grids, table, tmp_path / "a.ckpt", pool), kept)
+    assert torch.equal(_stopped_then_resumed(vol, tf, lights, table, grids, tmp_path / "b.ckpt", pool), kept)
+
+
+def test_a_table_of_targets_holds_one_grid_at_a_time(scene, monkeypatch):
+    """Kept as a table, the targets' grids are made one at a time, each let go of before the next (a subset of a
+    large volume needs one grid's memory, not K); kept as grids, all K are held."""
+    import weakref
+    from dataclasses import replace
+
+    from diffshadow import fit as fit_module
+
+    vol, tf, lights = scene
+    lights = np.concatenate([lights, [[0.0, 1.0, 0.0]]])
+    made, real = [], fit_module.shadow_grid
+
+    def tracked(*args, **kwargs):
+        assert all(ref() is None for ref in made), "an earlier grid is still held"
+        grid = real(*args, **kwargs)
+        made.append(weakref.ref(grid))
+        return grid
+
+    monkeypatch.setattr(fit_module, "shadow_grid", tracked)
+    cfg = FitConfig.from_config(dict(steps=3, points=32, target_store="table"))
+    run = fit_module.SubsetFit(init(), LAYOUT, CFG, vol, tf, lights, cfg, device=torch.device("cpu"))
+    for step in range(cfg.steps):
+        run.step(step)
+    assert len(made) == len(lights) and all(ref() is None for ref in made)
+    assert run.targets.grids is None and run.targets.table.shape == (cfg.steps, len(lights), cfg.points)
+    grids = fit_module.SubsetFit(init(), LAYOUT, CFG, vol, tf, lights, replace(cfg, target_store="grids"),
+                                 device=torch.device("cpu"))  # the control: the K grids, stacked
+    assert grids.targets.grids.shape == (len(lights), *vol.data.shape * np.array(2) - 1)
+
+
+def test_auto_keeps_the_smaller_of_grids_and_table(monkeypatch):
+    """"auto": the grids (4 bytes x K x the refined voxels) or the table (4 bytes x steps x points x (K values and
+    the point's 3 coordinates)), whichever is smaller; on a GPU (its table step not yet timed) the grids unless they
+    would take over half its memory; a table needs shared points; the fit job's log says which."""
+    from dataclasses import replace
+    from types import SimpleNamespace
+
+    from diffshadow.fit import describe_targets, target_store
+
+    cfg = FitConfig.from_config(dict(steps=1000, points=1024, grid_upsample=2))
+    table = 4 * 1000 * 1024 * (50 + 3)
+    assert target_store(cfg, 50, (81, 81, 81)) == ("grids", 4 * 50 * 81**3, table)  # nucleon: 106 MB against 217
+    assert target_store(cfg, 50, (321, 187, 205)) == ("table", 4 * 50 * 321 * 187 * 205, table)  # tooth: 2.5 GB
+    assert target_store(replace(cfg, shared_points=False), 50, (321, 187, 205))[0] == "grids"
+    assert target_store(replace(cfg, target_store="grids"), 50, (321, 187, 205))[0] == "grids"
+    cuda = torch.device("cuda")  # tooth's 2.29 GiB of grids on a 40 GiB card, and on a 4 GiB one
+    monkeypatch.setattr(torch.cuda, "get_device_properties", lambda d: SimpleNamespace(total_memory=40 * 2**30))
+    assert target_store(cfg, 50, (321, 187, 205), cuda)[0] == "grids"
+    monkeypatch.setattr(torch.cuda, "get_device_properties", lambda d: SimpleNamespace(total_memory=4 * 2**30))
+    assert target_store(cfg, 50, (321, 187, 205), cuda)[0] == "table"
+    assert target_store(cfg, 50, (81, 81, 81), cuda)[0] == "grids"
+    assert describe_targets(cfg, 50, (161, 94, 103)) == (
+        "targets: a sweep shadow grid of 321x187x205 per light, made one at a time and kept as their values at every "
+        "step's points (207 MiB; as grids: 2,347 MiB), fit.target_store: auto")
+    with pytest.raises(ValueError, match="^fit.target_store: 'table' .* needs fit.shared_points: true"):
+        FitConfig.from_config(dict(target_store="table", shared_points=False))
+    with pytest.raises(ValueError, match="^fit.target_store: expected one of auto, grids, table, got 'disk'$"):
+        FitConfig.from_config(dict(target_store="disk"))

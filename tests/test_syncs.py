@@ -190,20 +190,28 @@ class _NoOptimizer:
         pass
 
 
-def test_a_fit_update_copies_nothing_from_the_host_and_reads_nothing(tiny, scene):
+@pytest.mark.parametrize("store", ["grids", "table"])
+def test_a_fit_update_copies_nothing_from_the_host_and_reads_nothing(tiny, scene, store):
     """What `fit.cuda_graph` captures (`SubsetFit.update`: the targets' lookup, the SIRENs' forward and backward,
     the blend loss), run on the "meta" device: nothing copied from the host, nothing read back. The step's draws
-    (the shared points, the pool lights and their points) are copied before it, without blocking."""
-    run = BUILDERS["fit_siren"](tiny, torch.device("cpu"), *scene).step.__self__
-    assert run.pool is not None and run.targets.grids is not None and run.cfg.shared_points
+    (the shared points, the pool lights and their points; from a table, the targets too) are copied before it,
+    without blocking."""
+    cfg = merge(tiny, {"fit": {"target_store": store}})
+    run = BUILDERS["fit_siren"](cfg, torch.device("cpu"), *scene).step.__self__
+    assert run.pool is not None and (run.targets.grids is not None) == (store == "grids") and run.cfg.shared_points
+    if store == "table":
+        run.targets.table_from(1, run.sampler)  # made on the host, as on a GPU, before the device turns meta
     meta = torch.device("meta")
     run.weights = run.weights.detach().to(meta).requires_grad_(True)
-    run.targets.grids, run.targets.extent = run.targets.grids.to(meta), run.targets.extent.to(meta)
+    if store == "grids":
+        run.targets.grids = run.targets.grids.to(meta)
+    run.targets.extent = run.targets.extent.to(meta)
     run.pool, run.opt, run.device = run.pool.to(meta), _NoOptimizer(), meta
     with (drawn := HostTraffic()):
         draw = run.draw(1)
-    assert (drawn.copies, drawn.blocking) == (3, 0)
+    assert (drawn.copies, drawn.blocking) == (3 if store == "grids" else 4, 0)
     assert draw.pts.shape == (run.k, run.cfg.points, 3) and draw.pts.device == meta
+    run.update(draw)  # the first moves the SIREN layout's scales, once per device (`siren.layout_scales`)
     with (traffic := HostTraffic()):
         per_siren = run.update(draw)
     assert per_siren.shape == (run.k,)

@@ -67,7 +67,7 @@ def fit_subset(volume_path: Path, lights_path: Path, init_path: Path, subset: in
                siren: SirenConfig, fit: FitConfig, subset_size: int, config: dict, device: torch.device) -> None:
     """The SIRENs of one light subset, fitted jointly and checked on held-out points (resumable)."""
     from diffshadow import artifacts
-    from diffshadow.fit import FitError, blend_pool, check_psnr, evaluate_psnr, fit_sirens
+    from diffshadow.fit import FitError, blend_pool, check_psnr, describe_targets, evaluate_psnr, fit_sirens
 
     volume, tf = load_prepared(volume_path)
     sets = read_lights(lights_path)
@@ -79,6 +79,7 @@ def fit_subset(volume_path: Path, lights_path: Path, init_path: Path, subset: in
     out = Path(out)
     where = f"fit_siren subset {subset} ({volume_path}"
     print(f"subset {subset}: fitting {len(idx)} lights jointly ({index_ranges(idx)})", flush=True)
+    print(describe_targets(fit, len(idx), volume.data.shape, device), flush=True)
     t0 = time.perf_counter()
     pool = blend_pool(volume, tf, train, sets["center"], idx, fit, device=device)
     if pool is not None:
