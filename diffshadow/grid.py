@@ -96,6 +96,9 @@ def constant(values: tuple, dtype: torch.dtype, device: torch.device) -> torch.T
     return torch.tensor(values, dtype=dtype, device=device)
 
 
+MACRO_CELLS_PER_PASS = 1 << 22  # cells whose ranges `macro_cells` reads at once (~12 x 4 bytes each at its peak)
+
+
 def macro_cells(scalar: torch.Tensor, tf: TransferFunction, cell: int) -> torch.Tensor:
     """(cz, cy, cx) bool: True where every point of the cell has μ = 0.
 
@@ -103,11 +106,23 @@ def macro_cells(scalar: torch.Tensor, tf: TransferFunction, cell: int) -> torch.
     trilinear sample in the closed cell lies in [min, max] of the cell's voxels, and the TF's maximum
     opacity over that range bounds μ in the cell.
     """
-    lo, hi = cell_ranges(scalar, cell)
-    if tf.density_scale == 0:
-        return torch.ones_like(hi, dtype=torch.bool)
-    peak = tf.max_opacity(lo.cpu().double().numpy(), hi.cpu().double().numpy())
-    return torch.as_tensor(peak <= 0, device=scalar.device)
+    # A pass at a time over slabs of cells: the whole grid's ranges, read in float64 with their interpolated
+    # opacities, held ~12 grids' bytes at once (6.2 GiB over a sweep's 511³ grid). A cell's range is its own voxels',
+    # so each slab (with the voxel slice it shares with the next) gives the same cells as the whole.
+    n = scalar.shape[0]
+    cz = max(1, (n - 1 + cell - 1) // cell)
+    per_pass = max(1, MACRO_CELLS_PER_PASS // max(1, scalar[0].numel() // cell**2))
+    out = []
+    for c0 in range(0, cz, per_pass):
+        c1 = min(cz, c0 + per_pass)
+        lo, hi = cell_ranges(scalar[c0 * cell:min(n, c1 * cell + 1)], cell)
+        if tf.density_scale == 0:
+            out.append(torch.ones_like(hi, dtype=torch.bool))
+            continue
+        peak = tf.max_opacity(lo.cpu().double().numpy(), hi.cpu().double().numpy())
+        out.append(torch.as_tensor(peak <= 0, device=scalar.device))
+        del lo, hi, peak
+    return out[0] if len(out) == 1 else torch.cat(out)
 
 
 def cell_ranges(scalar: torch.Tensor, cell: int) -> tuple[torch.Tensor, torch.Tensor]:

@@ -356,15 +356,18 @@ def _sweep(volume: Volume, tf: TransferFunction, w: np.ndarray, step: float, dev
 
     # Only the bounding box of cells where μ can be non-zero casts shadows: sample lines there alone.
     occupied = ~macro_cells(s, tf, 1)  # (n_j-1, n_u-1, n_v-1): unit cells of 2×2×2 voxels
-    if not occupied.any():
-        out = torch.ones_like(s)
-    else:
-        idx = torch.nonzero(occupied)
-        (jlo, ulo, vlo), (jhi, uhi, vhi) = idx.min(0).values.tolist(), (idx.max(0).values + 1).tolist()
-        out = _sweep_region(s, tf, delta, du, dv, (jlo, jhi), (ulo, uhi), (vlo, vhi), factor, block)
-    if flip:
-        out = out.flip(0)
-    out = out.permute(np.argsort(order).tolist()).contiguous()
+    # written in the volume's own layout through a view in the sweep's (slices up to jlo see no depth: τ = 1), not
+    # made in the sweep's and then flipped and permuted into it: two grids fewer at the end
+    out = torch.ones(volume.data.shape, dtype=torch.float32, device=device)
+    if occupied.any():
+        # the occupied cells' bounding box, axis by axis (their index list was 24 bytes a cell: 3 GiB on 511³)
+        bounds = []
+        for axis in range(3):
+            hit = torch.nonzero(occupied.any(dim=[a for a in range(3) if a != axis])).flatten()
+            bounds.append((int(hit[0]), int(hit[-1]) + 1))
+        (jlo, jhi), (ulo, uhi), (vlo, vhi) = bounds
+        _sweep_region(s, tf, delta, du, dv, (jlo, jhi), (ulo, uhi), (vlo, vhi), factor, block,
+                      out.permute(order), flip)
     # A voxel on a face the light leaves through sees nothing (τ = 0 exactly); the bilinear lookup
     # would blend in the depth of lines just inside, where τ jumps.
     for axis_xyz, comp in enumerate(w):
@@ -392,7 +395,12 @@ def _sequential_cumsum(x: torch.Tensor) -> torch.Tensor:
     return out
 
 
-def _sweep_region(s, tf, delta, du, dv, jr, ur, vr, factor, block) -> torch.Tensor:
+SWEEP_SAMPLES_PER_CALL = 1 << 21  # μ samples along the sweep's lines looked up at once (bounds its temporaries)
+
+
+def _sweep_region(s, tf, delta, du, dv, jr, ur, vr, factor, block, out: torch.Tensor, flip: bool) -> None:
+    """Write τ into `out` (the output, seen in the sweep's axis order; its slices in reverse where `flip`) at the
+    slices past the region's first, jr[0]."""
     device = s.device
     n_j, n_u, n_v = s.shape
     jlo, jhi = jr
@@ -416,34 +424,40 @@ def _sweep_region(s, tf, delta, du, dv, jr, ur, vr, factor, block) -> torch.Tens
         inside = (u >= -1e-4) & (u <= n_u - 1 + 1e-4) & (v >= -1e-4) & (v <= n_v - 1 + 1e-4)
         return tf.extinction(val) * inside
 
-    # depth of every line at slices jlo..jhi (0 at jlo: nothing lies between it and the light)
-    depth = [torch.zeros(1, len(c_u), len(c_v), device=device)]
-    mu_prev = mu_on_lines(torch.tensor([float(jlo)], device=device))[0]
-    for j0 in range(jlo + 1, jhi + 1, block):
-        j1 = min(jhi + 1, j0 + block)
-        sub = torch.arange((j0 - 1) * factor + 1, (j1 - 1) * factor + 1, device=device,
-                           dtype=torch.float32) * h
-        mus = torch.cat([mu_prev[None], mu_on_lines(sub)])  # (1 + G·factor, Cu, Cv)
-        trap = (0.5 * delta * h) * (mus[:-1] + mus[1:])  # trapezoid between sub-samples
-        gaps = trap.view(j1 - j0, factor, *trap.shape[1:]).sum(1)  # (G, Cu, Cv)
-        depth.append(depth[-1][-1:] + _cumsum_slices(gaps))
-        mu_prev = mus[-1]
-    depth = torch.cat(depth)  # (jhi - jlo + 1, Cu, Cv)
-
-    # τ at voxel (j, u, v) is line (u + j·δu, v + j·δv) at slice min(j, jhi); slices up to jlo see none
-    out = torch.ones_like(s)
+    # τ at voxel (j, u, v) is line (u + j·δu, v + j·δv)'s depth at slice min(j, jhi); slices up to jlo see none.
+    # Each block's line depths are summed on from the last row of the block before and read at once, so only one
+    # block of them is held: keeping every slice's (on a slanted light up to 4x the grid, and as much again while
+    # joined) had set the sweep's peak memory. The same blocks and sums as that, so the same bits.
     uu = torch.arange(n_u, device=device, dtype=torch.float32)
     vv = torch.arange(n_v, device=device, dtype=torch.float32)
     line_size = torch.tensor([len(c_v) - 1, len(c_u) - 1], device=device, dtype=torch.float32)
+    last = torch.zeros(1, len(c_u), len(c_v), device=device)  # the lines' depth at the last slice summed: jlo's, 0
+    mu_prev = mu_on_lines(torch.tensor([float(jlo)], device=device))[0]
     for j0 in range(jlo + 1, n_j, block):
         j1 = min(n_j, j0 + block)
+        summed = min(jhi + 1, j1)  # slices j0..summed-1 lie in the region: their depths are summed here
+        rows = last[:0]
+        if j0 < summed:
+            sub = torch.arange((j0 - 1) * factor + 1, (summed - 1) * factor + 1, device=device,
+                               dtype=torch.float32) * h
+            # (1 + G·factor, Cu, Cv), sampled a few slices at a time: one call's temporaries (its sample
+            # coordinates, the trilinear lookup's corners) were ~2 grids' bytes on 511³; each sample is its own
+            per_call = max(1, SWEEP_SAMPLES_PER_CALL // (len(c_u) * len(c_v)))
+            mus = torch.cat([mu_prev[None], *(mu_on_lines(sub[i:i + per_call]) for i in range(0, len(sub), per_call))])
+            trap = (0.5 * delta * h) * (mus[:-1] + mus[1:])  # trapezoid between sub-samples
+            gaps = trap.view(summed - j0, factor, *trap.shape[1:]).sum(1)  # (G, Cu, Cv)
+            rows = last + _cumsum_slices(gaps)
+            last, mu_prev = rows[-1:], mus[-1]
+            del mus, trap, gaps
+        src = torch.cat([rows, last.expand(j1 - j0 - len(rows), -1, -1)])[:, None]  # past jhi: jhi's depth
         jb = torch.arange(j0, j1, device=device, dtype=torch.float32)
         cu = uu[None, :, None] + jb[:, None, None] * du - c_u[0]
         cv = vv[None, None, :] + jb[:, None, None] * dv - c_v[0]
         cu, cv = torch.broadcast_tensors(cu, cv)
         grid = torch.stack([cv, cu], dim=-1) / line_size * 2 - 1  # (B, U, V, 2)
-        src = depth[torch.arange(j0, j1, device=device).clamp(max=jhi) - jlo][:, None]
         # zero padding is exact: the lattice's margin lines miss the region, so their depth is 0
         tau = F.grid_sample(src, grid, mode="bilinear", padding_mode="zeros", align_corners=True)[:, 0]
-        out[j0:j1] = torch.exp(-tau)
-    return out
+        if flip:
+            out[n_j - j1:n_j - j0] = torch.exp(-tau).flip(0)
+        else:
+            out[j0:j1] = torch.exp(-tau)

@@ -427,3 +427,37 @@ def test_check_points_hold_the_exact_shadow_of_the_checked_lights(blob):
         assert np.abs(values[i].numpy() - exact).max() <= 3e-3
     again = check_points(blob, identity_tf(K), lights, 64, seed=0)
     assert torch.equal(again[0], pts) and torch.equal(again[1], values)
+
+
+@pytest.mark.parametrize("w", [(0.3, -0.5, 0.8), (-1.0, 0.2, 0.1), (0.0, 1.0, 0.0)])
+def test_a_sweep_looked_up_a_few_samples_at_a_time_gives_the_same_bits(monkeypatch, w):
+    """The sweep bounds its memory by sampling μ a few slices at a time, by reading each block's line depths as it
+    sums them, and by finding the empty cells a slab at a time (grid.MACRO_CELLS_PER_PASS): each sample, depth and
+    cell is its own, so the smallest passes give the bits of one pass, on a sparse volume (lines past the occupied
+    slices) and a light from below (its slices swept in reverse)."""
+    from diffshadow import grid as grid_module
+
+    rng = np.random.default_rng(3)
+    data = np.zeros((21, 18, 25), np.float32)
+    data[4:15, 2:16, 5:20] = rng.uniform(0, 1, (11, 14, 15))
+    vol = Volume(data=data, extent=np.array([25, 18, 21]) / 25, name="sparse")
+    tf = identity_tf(20.0)
+    whole = shadow_grid(vol, tf, w, method="sweep", step=0.5)
+    monkeypatch.setattr(shadow_module, "SWEEP_SAMPLES_PER_CALL", 1)
+    monkeypatch.setattr(grid_module, "MACRO_CELLS_PER_PASS", 1)
+    assert torch.equal(shadow_grid(vol, tf, w, method="sweep", step=0.5), whole)
+    assert whole.min() < 0.5 and whole.max() == 1.0
+
+
+def test_empty_cells_found_a_slab_at_a_time_are_those_found_at_once(monkeypatch):
+    from diffshadow import grid as grid_module
+
+    rng = np.random.default_rng(4)
+    scalar = torch.as_tensor(rng.uniform(0, 1, (37, 20, 23)).astype(np.float32) ** 4)
+    tf = TransferFunction.from_config({"opacity": [[0, 0], [0.5, 0], [1, 1]], "color": [[0, 1, 1, 1], [1, 1, 1, 1]],
+                                       "density_scale": 5.0})
+    whole = {cell: grid_module.macro_cells(scalar, tf, cell) for cell in (1, 3, 16)}
+    monkeypatch.setattr(grid_module, "MACRO_CELLS_PER_PASS", 1)
+    assert 0 < whole[1].sum() < whole[1].numel()  # some cells empty, some not
+    for cell, cells in whole.items():
+        assert torch.equal(grid_module.macro_cells(scalar, tf, cell), cells), cell
