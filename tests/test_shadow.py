@@ -461,3 +461,28 @@ def test_empty_cells_found_a_slab_at_a_time_are_those_found_at_once(monkeypatch)
     assert 0 < whole[1].sum() < whole[1].numel()  # some cells empty, some not
     for cell, cells in whole.items():
         assert torch.equal(grid_module.macro_cells(scalar, tf, cell), cells), cell
+
+
+def test_the_shadow_bench_marches_a_large_volume_at_every_kth_row(tmp_path, monkeypatch):
+    """Past `MARCHED_VOXELS` the bench marches whole rows of voxels, every k-th, about that many, and scales their
+    seconds to the grid; its errors are those of the whole grids read at those voxels, and it says how many."""
+    from diffshadow.bench import shadow as bench
+
+    assert bench.marched_voxels((10, 10, 10), 1000) is None
+    mask = bench.marched_voxels((20, 16, 24), 1000)  # 320 rows of 24: every 8th, 40 rows, 960 voxels
+    rows = mask.view(-1, 24)
+    assert int(mask.sum()) == 960 and bool(rows.all(1).sum() == 40) and not (rows.any(1) & ~rows.all(1)).any()
+    rng = np.random.default_rng(6)
+    data = np.zeros((20, 16, 24), np.float32)
+    data[3:17, 2:14, 4:20] = rng.uniform(0.2, 1, (14, 12, 16))
+    np.save(tmp_path / "v.npy", data)
+    monkeypatch.setattr(bench, "MARCHED_VOXELS", 1000)
+    monkeypatch.setattr(bench, "bench_analytic", lambda: {})
+    out = bench.bench_shadow([tmp_path / "v.npy"], tmp_path / "out", march_steps=(0.5,), sweep_steps=(1.0,))
+    got = out["volumes"]["v"]
+    assert (got["marched_voxels"], got["voxels"]) == (960, 20 * 16 * 24)
+    vol, tf = load_volume(tmp_path / "v.npy"), TransferFunction.from_config(bench.BENCH_TF)
+    ref = shadow_grid(vol, tf, bench.BENCH_LIGHT, method="march", step=bench.REFERENCE_STEP)[mask]
+    sweep = shadow_grid(vol, tf, bench.BENCH_LIGHT, method="sweep")[mask]
+    row = next(r for r in got["rows"] if r["method"] == "sweep")
+    assert row["max_err"] == float((sweep - ref).abs().max()) > 0
