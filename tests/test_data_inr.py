@@ -156,3 +156,29 @@ def test_error_points_fit_a_sharp_edge_better():
 def test_visible_and_error_shares_over_one_is_one_line():
     with pytest.raises(ConfigError, match=r"visible_fraction \(0.6\) \+ error_fraction \(0.5\) must be at most 1"):
         DataInrConfig.from_config({"visible_fraction": 0.6, "error_fraction": 0.5})
+
+
+def test_macro_cell_ranges_made_a_slab_at_a_time_are_those_of_the_whole_lattice(monkeypatch):
+    """inr_cell_ranges reduces each slab of macro-cells as soon as its lattice planes are evaluated (only a slab is
+    held): with one-cell slabs, the same ranges as one slab over the whole lattice (the same chunks of points: a
+    SIREN's products may round otherwise in other batch sizes), which are each cell's min and max of the INR at its
+    lattice points (against the lattice made whole)."""
+    from diffshadow import data_inr
+    from diffshadow.grid import cell_ranges
+    from diffshadow.siren import Siren, SirenConfig, box_to_siren
+
+    rng = np.random.default_rng(7)
+    vol = Volume(data=rng.uniform(0, 1, (19, 12, 26)).astype(np.float32), extent=np.array([1.3, 0.6, 0.9]),
+                 name="r")
+    model = Siren(SirenConfig(16, 1), torch.Generator().manual_seed(0))
+    whole = data_inr.inr_cell_ranges(model, vol, cell=4, refine=2, margin=0.0, chunk=101)
+    axes = [torch.linspace(0, float(e), (n - 1) * 2 + 1) for e, n in zip(vol.extent[::-1], vol.data.shape, strict=True)]
+    zz, yy, xx = torch.meshgrid(*axes, indexing="ij")
+    with torch.no_grad():
+        lattice = model(box_to_siren(torch.stack([xx, yy, zz], -1).reshape(-1, 3), torch.as_tensor(
+            vol.extent, dtype=torch.float32))).view(zz.shape)
+    lo, hi = cell_ranges(lattice, 8)
+    assert np.allclose(whole[0], lo.numpy(), atol=1e-6) and np.allclose(whole[1], hi.numpy(), atol=1e-6)
+    monkeypatch.setattr(data_inr, "RANGE_SLAB_POINTS", 1)
+    sliced = data_inr.inr_cell_ranges(model, vol, cell=4, refine=2, margin=0.0, chunk=101)
+    assert all(np.array_equal(a, b) for a, b in zip(whole, sliced, strict=True))
