@@ -159,6 +159,15 @@ def voxel_points(volume: Volume, device: torch.device | str = "cpu") -> torch.Te
     return torch.stack([x, y, z], dim=-1).reshape(-1, 3)
 
 
+def lattice_points(axes: list[torch.Tensor], start: int, stop: int) -> torch.Tensor:
+    """Box coordinates (x, y, z) of points `start`..`stop` - 1 of the lattice of `axes` (z, y, x), in (Z, Y, X)
+    order: those rows of `voxel_points` (whose axes are the voxels'), made alone, so that a lattice can be walked a
+    chunk at a time without holding every point's 12 bytes."""
+    rows, cols = len(axes[1]), len(axes[2])
+    i = torch.arange(start, stop, device=axes[0].device)
+    return torch.stack([axes[2][i % cols], axes[1][(i // cols) % rows], axes[0][i // (rows * cols)]], -1)
+
+
 def lookup_grids(grids: torch.Tensor, points: torch.Tensor, extent: torch.Tensor) -> torch.Tensor:
     """Trilinear values of K grids (K, Z, Y, X) at (K, N, 3) box points → (K, N). Grids stored channels last
     (`stack_grids`) at points they share (one (N, 3) set expanded, stride 0) are read as K channels of one:

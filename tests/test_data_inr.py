@@ -182,3 +182,15 @@ def test_macro_cell_ranges_made_a_slab_at_a_time_are_those_of_the_whole_lattice(
     monkeypatch.setattr(data_inr, "RANGE_SLAB_POINTS", 1)
     sliced = data_inr.inr_cell_ranges(model, vol, cell=4, refine=2, margin=0.0, chunk=101)
     assert all(np.array_equal(a, b) for a, b in zip(whole, sliced, strict=True))
+
+
+def test_lattice_points_are_voxel_points_rows_made_alone():
+    """voxel_errors and inr_cell_ranges walk a lattice a chunk at a time: the chunk's points are exactly those rows
+    of the whole lattice (`voxel_points`), so the INR sees the same inputs in the same batches."""
+    from diffshadow.grid import lattice_points, voxel_points
+
+    vol = Volume(data=np.zeros((7, 5, 9), np.float32), extent=np.array([1.3, 0.6, 0.9]), name="r")
+    axes = [torch.linspace(0, float(e), n) for e, n in zip(vol.extent[::-1], vol.data.shape, strict=True)]
+    whole = voxel_points(vol)
+    for start, stop in ((0, len(whole)), (5, 301), (44, 45)):
+        assert torch.equal(lattice_points(axes, start, stop), whole[start:stop])
