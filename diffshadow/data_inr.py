@@ -19,7 +19,7 @@ from diffshadow.adam import Adam, set_lr
 from diffshadow.capacity import Rung, climb, ladder
 from diffshadow.config import ConfigError, changed_settings, section
 from diffshadow.graphs import requested
-from diffshadow.grid import cell_ranges, lattice_points, lookup_grids
+from diffshadow.grid import cell_ranges, cell_slabs, lattice_axes, lattice_points, lookup_grids
 from diffshadow.io import atomic_torch_save, resume
 from diffshadow.metrics import psnr
 from diffshadow.progress import FirstNonFinite, eta
@@ -83,8 +83,7 @@ def voxel_errors(model: Siren, volume: Volume, *, chunk: int = 1 << 16,
                  device: torch.device | str = "cpu") -> tuple[float, float]:
     """(PSNR, max |error|) of the INR over every voxel of `volume`."""
     device = torch.device(device)
-    axes = [torch.linspace(0, float(e), int(m), device=device)
-            for e, m in zip(volume.extent[::-1], volume.data.shape, strict=True)]  # voxel_points' lattice
+    axes = lattice_axes(volume, device=device)
     extent = torch.as_tensor(volume.extent, dtype=torch.float32, device=device)
     truth = torch.as_tensor(volume.data, device=device).reshape(-1)
     with torch.no_grad():  # voxel_points' chunks, each made as it is evaluated (not 12 bytes a voxel at once)
@@ -291,20 +290,14 @@ def inr_cell_ranges(model: Siren, volume: Volume, *, cell: int = 16, refine: int
     ranges (a cell's range is its own points' min and max).
     """
     device = torch.device(device)
-    nz, ny, nx = volume.data.shape
-    axes = [torch.linspace(0, float(e), (n - 1) * refine + 1, device=device)
-            for e, n in zip(volume.extent[::-1], (nz, ny, nx), strict=True)]
+    axes = lattice_axes(volume, refine, device)
     depth, rows, cols = (len(a) for a in axes)
     plane, total, m = rows * cols, depth * rows * cols, cell * refine
     extent = torch.as_tensor(volume.extent, dtype=torch.float32, device=device)
-    cz = max(1, (depth - 1 + m - 1) // m)
-    per_slab = max(1, RANGE_SLAB_POINTS // (plane * m))
     held, start, made = [], 0, 0  # values of lattice points start.. made (flat, in (z, y, x) order)
     los, his = [], []
     with torch.no_grad():
-        for c0 in range(0, cz, per_slab):
-            c1 = min(cz, c0 + per_slab)
-            z0, z1 = c0 * m, min(depth, c1 * m + 1)  # its planes, the last shared with the next slab
+        for z0, z1 in cell_slabs(depth, m, max(1, RANGE_SLAB_POINTS // (plane * m))):
             while made < z1 * plane:
                 held.append(model(box_to_siren(lattice_points(axes, made, min(made + chunk, total)), extent)))
                 made = min(made + chunk, total)

@@ -223,13 +223,13 @@ class Targets:
         self.extent = torch.as_tensor(volume.extent, dtype=torch.float32, device=device)
         self.tf, self.lights, self.cfg, self.device = tf, lights, cfg, device
         self.grids = self.field = self.fine = self.table = self.table_points = None
-        self.table_start = 0
+        self.table_start, self.tabled = 0, False
         if cfg.target == "transmittance":
             self.field = ShadowField.build(volume, tf, device=device)
         elif cfg.target in ("sweep", "march"):
             fine = refine(volume, cfg.grid_upsample)
             if target_store(cfg, len(lights), fine.data.shape, device)[0] == "table":
-                self.fine = fine  # the table is made when the first step's number is known (`table_from`)
+                self.fine, self.tabled = fine, True  # the table is made at the first step's number (`table_from`)
                 return
             grids = (shadow_grid(fine, tf, w, method=cfg.target, device=device) for w in lights)
             # channels last where a CPU reads them at shared points: a fit step's lookup 0.26x; not timed on a GPU
@@ -237,10 +237,6 @@ class Targets:
             self.grids = stack_grids(grids, len(lights), channels_last=channels)
         else:
             raise ValueError(f"fit.target: expected 'sweep', 'march' or 'transmittance', got {cfg.target!r}")
-
-    @property
-    def tabled(self) -> bool:
-        return self.fine is not None or self.table is not None
 
     @torch.no_grad()
     def table_from(self, start: int, sampler: PointSampler) -> None:

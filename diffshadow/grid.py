@@ -107,15 +107,11 @@ def macro_cells(scalar: torch.Tensor, tf: TransferFunction, cell: int) -> torch.
     opacity over that range bounds μ in the cell.
     """
     # A pass at a time over slabs of cells: the whole grid's ranges, read in float64 with their interpolated
-    # opacities, held ~12 grids' bytes at once (6.2 GiB over a sweep's 511³ grid). A cell's range is its own voxels',
-    # so each slab (with the voxel slice it shares with the next) gives the same cells as the whole.
-    n = scalar.shape[0]
-    cz = max(1, (n - 1 + cell - 1) // cell)
+    # opacities, held ~12 grids' bytes at once (6.2 GiB over a sweep's 511³ grid)
     per_pass = max(1, MACRO_CELLS_PER_PASS // max(1, scalar[0].numel() // cell**2))
     out = []
-    for c0 in range(0, cz, per_pass):
-        c1 = min(cz, c0 + per_pass)
-        lo, hi = cell_ranges(scalar[c0 * cell:min(n, c1 * cell + 1)], cell)
+    for z0, z1 in cell_slabs(scalar.shape[0], cell, per_pass):
+        lo, hi = cell_ranges(scalar[z0:z1], cell)
         if tf.density_scale == 0:
             out.append(torch.ones_like(hi, dtype=torch.bool))
             continue
@@ -123,6 +119,14 @@ def macro_cells(scalar: torch.Tensor, tf: TransferFunction, cell: int) -> torch.
         out.append(torch.as_tensor(peak <= 0, device=scalar.device))
         del lo, hi, peak
     return out[0] if len(out) == 1 else torch.cat(out)
+
+
+def cell_slabs(n: int, cell: int, per_slab: int) -> list[tuple[int, int]]:
+    """The first axis's `n` voxel planes as slabs of `per_slab` vertex-centred cells each: (first, end) plane of
+    each, a slab's last plane shared with the next. A cell's range is its own voxels', so `cell_ranges` of the
+    slabs, joined, are those of the whole grid."""
+    cells = max(1, (n - 1 + cell - 1) // cell)
+    return [(c0 * cell, min(n, (c0 + per_slab) * cell + 1)) for c0 in range(0, cells, per_slab)]
 
 
 def cell_ranges(scalar: torch.Tensor, cell: int) -> tuple[torch.Tensor, torch.Tensor]:
@@ -150,12 +154,15 @@ def ray_box(p: torch.Tensor, w: torch.Tensor, extent: torch.Tensor):
     return lo.max(dim=-1).values, hi.min(dim=-1).values
 
 
+def lattice_axes(volume: Volume, refine: int = 1, device: torch.device | str = "cpu") -> list[torch.Tensor]:
+    """Box coordinates along z, y and x of the voxels' lattice, `refine` times finer (`volume.refine`'s)."""
+    return [torch.linspace(0, float(e), (n - 1) * refine + 1, device=device)
+            for e, n in zip(volume.extent[::-1], volume.data.shape, strict=True)]
+
+
 def voxel_points(volume: Volume, device: torch.device | str = "cpu") -> torch.Tensor:
     """Box coordinates (x, y, z) of every voxel, in (Z, Y, X) order → (Z·Y·X, 3)."""
-    nz, ny, nx = volume.data.shape
-    axes = [torch.linspace(0, float(e), int(m), device=device)
-            for e, m in zip(volume.extent[::-1], (nz, ny, nx), strict=True)]
-    z, y, x = torch.meshgrid(*axes, indexing="ij")
+    z, y, x = torch.meshgrid(*lattice_axes(volume, device=device), indexing="ij")
     return torch.stack([x, y, z], dim=-1).reshape(-1, 3)
 
 

@@ -118,13 +118,14 @@ def remove_leftovers(path: Path) -> None:
         names = [e.name for e in os.scandir(path.parent) if e.name.startswith(prefix)]
     except OSError:  # an unreadable folder: the write itself says why
         return
+    here = _host()
     for name in names:
         match = re.fullmatch(r"(\d+)\.([A-Za-z0-9_-]+)\..+", name[len(prefix):])
         if match is None:
             continue
         pid, host, leftover = int(match[1]), match[2], path.parent / name
         try:
-            if host == _host():
+            if host == here:
                 if _alive(pid):
                     continue
                 why = f"process {pid} no longer runs"
