@@ -11,6 +11,7 @@ from __future__ import annotations
 import hashlib
 import json
 import time
+from collections.abc import Iterator
 from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 
@@ -136,6 +137,7 @@ class FitConfig:
 
 TARGET_STORES = ("auto", "grids", "table")
 LOOKUP_STEPS = 64  # a table's steps looked up in one pass: bounded memory on the device (x points x 3 floats)
+GRIDS_QUIET_S = 5.0  # the target grids log their progress once they have taken this long
 
 
 def describe_targets(cfg: FitConfig, k: int, shape: tuple[int, ...],
@@ -219,9 +221,9 @@ class Targets:
     each grid made, looked up and let go of in turn: a subset of large volumes then needs one grid, not K."""
 
     def __init__(self, volume: Volume, tf: TransferFunction, lights: np.ndarray, cfg: FitConfig,
-                 device: torch.device):
+                 device: torch.device, log=None):
         self.extent = torch.as_tensor(volume.extent, dtype=torch.float32, device=device)
-        self.tf, self.lights, self.cfg, self.device = tf, lights, cfg, device
+        self.tf, self.lights, self.cfg, self.device, self.log = tf, lights, cfg, device, log
         self.grids = self.field = self.fine = self.table = self.table_points = None
         self.table_start, self.tabled = 0, False
         if cfg.target == "transmittance":
@@ -231,12 +233,23 @@ class Targets:
             if target_store(cfg, len(lights), fine.data.shape, device)[0] == "table":
                 self.fine, self.tabled = fine, True  # the table is made at the first step's number (`table_from`)
                 return
-            grids = (shadow_grid(fine, tf, w, method=cfg.target, device=device) for w in lights)
+            grids = self._grids(fine)
             # channels last where a CPU reads them at shared points: a fit step's lookup 0.26x; not timed on a GPU
             channels = cfg.shared_points and device.type == "cpu"
             self.grids = stack_grids(grids, len(lights), channels_last=channels)
         else:
             raise ValueError(f"fit.target: expected 'sweep', 'march' or 'transmittance', got {cfg.target!r}")
+
+    def _grids(self, fine: Volume) -> Iterator[torch.Tensor]:
+        """Each light's grid on `fine` in turn, none held here once the next is asked for; a log line every ~10%
+        of the lights once they have taken GRIDS_QUIET_S (a 256³ volume's 32 grids at 2x take 196 s; a small
+        volume's, a fraction of a second, need no word)."""
+        t0, k = time.perf_counter(), len(self.lights)
+        for j, w in enumerate(self.lights):
+            yield shadow_grid(fine, self.tf, w, method=self.cfg.target, device=self.device)
+            if (self.log is not None and ((j + 1) % max(1, k // 10) == 0 or j + 1 == k)
+                    and time.perf_counter() - t0 >= GRIDS_QUIET_S):
+                self.log(f"targets: {j + 1}/{k} grids ({eta(j + 1, k, t0)})")
 
     @torch.no_grad()
     def table_from(self, start: int, sampler: PointSampler) -> None:
@@ -247,13 +260,15 @@ class Targets:
         self.table_points = torch.cat([sampler.sample(1, cfg.points, seeded(cfg.seed, Stream.FIT_SHARED_POINTS, s))
                                        for s in steps]) if len(steps) else torch.empty(0, cfg.points, 3, device="cpu")
         self.table = torch.empty(len(steps), k, cfg.points, device="cpu")
-        for j, w in enumerate(self.lights):
-            grid = shadow_grid(self.fine, self.tf, w, method=cfg.target, device=self.device)[None]
+        j = 0
+        for grid in self._grids(self.fine):  # not enumerate: its reused tuple would hold a grid while the next is made
+            grid = grid[None]
             for s0 in range(0, len(steps), LOOKUP_STEPS):
                 pts = self.table_points[s0:s0 + LOOKUP_STEPS].to(self.device)
                 values = lookup_grids(grid, pts.reshape(1, -1, 3), self.extent).reshape(len(pts), cfg.points)
                 self.table[s0:s0 + LOOKUP_STEPS, j] = values.cpu()
             del grid
+            j += 1
         self.fine, self.table_start = None, start
 
     def at_step(self, step: int) -> tuple[torch.Tensor, torch.Tensor]:
@@ -370,7 +385,7 @@ class SubsetFit:
                  pool: PoolLights | None = None, device: torch.device, log=print):
         self.layout, self.siren, self.cfg, self.stream, self.k = layout, siren, cfg, stream, len(lights)
         self.sampler = PointSampler(volume, tf, cfg.visible_fraction)
-        self.targets = Targets(volume, tf, lights, cfg, device)
+        self.targets = Targets(volume, tf, lights, cfg, device, log)
         self.weights = init.to(device=device, dtype=torch.float32).expand(self.k, -1).clone().requires_grad_(True)
         self.graphs = fit_graphs(cfg, device, log)
         # graphed or not is in a checkpoint's fingerprint: an optimizer never resumes the other kind's state
@@ -387,16 +402,24 @@ class SubsetFit:
         draw = self.draw(step)
         return self.update(draw) if self.graphs is None else self.graphs(self.update, draw)
 
+    def prepare(self, start: int) -> None:
+        """Where the targets are a table (fit.target_store), make it for steps `start` on: each light's grid in
+        turn, looked up at every step's points. `draw` makes it if needed; the fit calls it first, so that the
+        loop's rate and time left are its steps' (on a 256³ volume the table took 196 s of a 308 s fit, and the
+        first log line said ~1,868 s left with 100 s to go)."""
+        if not self.targets.tabled or self.targets.table is not None:
+            return
+        t0 = time.perf_counter()
+        self.targets.table_from(start, self.sampler)
+        self.log(f"targets: {self.k} shadow grids looked up at the points of steps {start} to {self.cfg.steps - 1} "
+                 f"({time.perf_counter() - t0:.1f} s)")
+
     def draw(self, step: int) -> FitDraw:
         """Step `step`'s points (and pool picks), drawn on the host and on the device without waiting for it."""
         cfg, k = self.cfg, self.k
         target = None
         if self.targets.tabled:  # the step's points and targets, drawn and looked up before the first step
-            if self.targets.table is None:
-                t0 = time.perf_counter()
-                self.targets.table_from(step, self.sampler)
-                self.log(f"targets: {self.k} shadow grids looked up at the points of steps {step} to "
-                         f"{self.cfg.steps - 1} ({time.perf_counter() - t0:.1f} s)")
+            self.prepare(step)
             shared, target = self.targets.at_step(step)
             pts, target = to_device(shared[None], self.device).expand(k, -1, -1), to_device(target, self.device)
         elif cfg.shared_points:  # one draw, moved once, seen by every SIREN
@@ -459,6 +482,7 @@ def fit_sirens(
         start = int(state["step"])
         initial = state["initial_loss"].to(device) if start and "initial_loss" in state else None
         log(f"resuming from {checkpoint} at step {start}/{cfg.steps}")
+    run.prepare(start)
     watch = Watch(k, cfg, siren, light_index, start, initial, device, log)
     for step in range(start, cfg.steps):
         watch.record(run.step(step), step)

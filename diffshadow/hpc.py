@@ -1,7 +1,7 @@
 """Running on HPC systems: the environment every job runs in, a node-local GPU lock, the DDP launcher, the PBS
-job state for Snakemake, the profiles' install, the name of the device a figure was measured on. Nothing here
-imports PyTorch on import (the launcher and `device_name` import it when called): the Snakefile imports this
-module in Snakemake's process and, on PBS, once more in every job's.
+job state for Snakemake, the profiles' install, the name of the device a figure was measured on, the host's free
+memory before a large allocation. Nothing here imports PyTorch on import (the launcher and `device_name` import
+it when called): the Snakefile imports this module in Snakemake's process and, on PBS, once more in every job's.
 
 Snakemake does not assign GPU ids inside a node (snakemake issue #281). When several single-GPU jobs share
 a node (Polaris packs four `fit_siren` jobs per node), each job claims a GPU by taking an exclusive
@@ -327,3 +327,25 @@ def device_name(device: torch.device | str) -> str:
     if device.type == "cuda":
         return torch.cuda.get_device_name(device)
     return f"cpu ({platform.processor() or platform.machine()})"
+
+
+def free_host_bytes(meminfo: str | Path = "/proc/meminfo") -> int | None:
+    """The memory this host can still give a process without swapping (Linux's MemAvailable); None where unknown."""
+    try:
+        with open(meminfo) as f:
+            for line in f:
+                if line.startswith("MemAvailable:"):
+                    return int(line.split()[1]) * 1024
+    except (OSError, ValueError, IndexError):
+        return None
+    return None
+
+
+def check_host_room(need: int, what: str, meminfo: str | Path = "/proc/meminfo") -> None:
+    """MemoryError (one line: `what`, the bytes it needs, the bytes free) before an allocation of at least `need`
+    bytes on the host that cannot fit: Linux's out-of-memory killer ends a process without a word (exit 137 and
+    an empty log), so the CLI could not say which setting to lower. Where the free memory is unknown: nothing."""
+    free = free_host_bytes(meminfo)
+    if free is not None and need > free:
+        raise MemoryError(f"{what} needs at least {need / 2**30:.1f} GiB, and {free / 2**30:.1f} GiB are free on "
+                          f"this host")

@@ -28,6 +28,7 @@ import torch
 import torch.nn.functional as F
 
 from diffshadow.grid import check_step, go_on, lattice, macro_cells, ray_box, trilinear, voxel_points
+from diffshadow.hpc import check_host_room
 from diffshadow.lights import LightError, as_direction
 from diffshadow.transfer import TransferFunction
 from diffshadow.volume import Volume
@@ -339,6 +340,10 @@ def _sweep(volume: Volume, tf: TransferFunction, w: np.ndarray, step: float, dev
     if factor < 1 or abs(factor * step - 1.0) > 1e-9:
         raise ValueError(f"step: the sweep needs 1/k voxels for an integer k >= 1, got {step!r}")
     device = torch.device(device)
+    grid = 4 * int(np.prod(volume.data.shape))
+    if device.type == "cpu" and grid >= CHECKED_GRID_BYTES:  # a GPU's allocator raises an error the CLI names
+        check_host_room(int(SWEEP_GRIDS_AT_LEAST * grid), f"the sweep of a {'x'.join(map(str, volume.data.shape))} "
+                        f"shadow grid ({SWEEP_GRIDS_AT_LEAST:g} x its {grid / 2**30:.1f} GiB)")
     s = torch.as_tensor(volume.data, dtype=torch.float32, device=device)
     wv = w / volume.voxel_size  # voxels per box length along (x, y, z)
     a = int(np.argmax(np.abs(wv)))  # dominant axis (x=0, y=1, z=2)
@@ -395,6 +400,11 @@ def _sequential_cumsum(x: torch.Tensor) -> torch.Tensor:
     return out
 
 
+# The sweep's peak above its caller, in grids of its output (a copy of the volume in the sweep's order, τ, the lines'
+# depths): 3.49-3.82 on 511³ (axis-aligned and slanted lights; smaller grids add their chunks' fixed ~0.3-0.5 GiB).
+# A lower bound, so that the check before it refuses only what cannot fit.
+SWEEP_GRIDS_AT_LEAST = 3.5
+CHECKED_GRID_BYTES = 1 << 26  # grids under 64 MiB are not checked (the viewer sweeps small ones often)
 SWEEP_SAMPLES_PER_CALL = 1 << 21  # μ samples along the sweep's lines looked up at once (bounds its temporaries)
 
 

@@ -5,6 +5,7 @@ from conftest import default_device_meta, identity_tf
 
 from diffshadow.analytic import gaussian_blob
 from diffshadow.fit import FitConfig, FitError, diverged, fit_sirens
+from diffshadow.lights import fibonacci_sphere
 from diffshadow.siren import SirenConfig, WeightLayout, init_siren
 from diffshadow.volume import Volume
 
@@ -396,6 +397,36 @@ def test_a_table_of_targets_holds_one_grid_at_a_time(scene, monkeypatch):
                                  device=torch.device("cpu"))  # the control: the K grids, stacked
     assert grids.targets.grids.shape == (len(lights), *vol.data.shape * np.array(2) - 1)
 
+
+
+@pytest.mark.parametrize("store", ["grids", "table"])
+def test_slow_target_grids_say_how_far_they_are_and_the_steps_time_is_their_own(scene, monkeypatch, store):
+    """Target grids that take long (GRIDS_QUIET_S; 0 here) log every ~10% of the lights with the time left, and
+    the loop's time and rate start after them: a table's grids are made before the first step, not counted as
+    its time (a 256³ volume's 196 s of grids had its first step line say ~1,868 s left with 100 s to go)."""
+    import re
+    import time
+
+    from diffshadow import fit as fit_module
+
+    vol, tf, _ = scene
+    lights = fibonacci_sphere(20)
+    real = fit_module.shadow_grid
+
+    def slow(*args, **kwargs):
+        time.sleep(0.1)  # 20 grids: 2 s before the first step
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(fit_module, "shadow_grid", slow)
+    monkeypatch.setattr(fit_module, "GRIDS_QUIET_S", 0.0)
+    lines = []
+    cfg = FitConfig.from_config(dict(steps=10, points=32, target_store=store))
+    fit_sirens(init(), LAYOUT, CFG, vol, tf, lights, cfg, log=lines.append)
+    grids = [line for line in lines if line.startswith("targets: ") and " grids (" in line]
+    assert [line.split(" grids")[0] for line in grids] == [f"targets: {k}/20" for k in range(2, 21, 2)]
+    assert "s left" in grids[0] and "s left" not in grids[-1]
+    first_step = next(line for line in lines if line.startswith("step 1/10"))
+    assert float(re.search(r"(\d+) s, ~(\d+) s left", first_step).group(2)) < 1.0, first_step
 
 def test_auto_keeps_the_smaller_of_grids_and_table(monkeypatch):
     """"auto": the grids (4 bytes x K x the refined voxels) or the table (4 bytes x steps x points x (K values and

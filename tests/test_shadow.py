@@ -486,3 +486,35 @@ def test_the_shadow_bench_marches_a_large_volume_at_every_kth_row(tmp_path, monk
     sweep = shadow_grid(vol, tf, bench.BENCH_LIGHT, method="sweep")[mask]
     row = next(r for r in got["rows"] if r["method"] == "sweep")
     assert row["max_err"] == float((sweep - ref).abs().max()) > 0
+
+
+def test_a_grid_that_cannot_fit_the_hosts_free_memory_is_refused_before_it_is_made(tmp_path, monkeypatch):
+    """Linux's out-of-memory killer ends a job without a word; so a sweep (and a refined volume) that cannot fit
+    the host's free memory (MemAvailable) is refused first, in one line with its sizes (a MemoryError, which the
+    CLI turns into its out-of-memory line naming the keys to lower). With the room, the same grid as before."""
+    from diffshadow import hpc
+    from diffshadow import volume as volume_module
+
+    meminfo = tmp_path / "meminfo"
+    meminfo.write_text("MemTotal:       32000 kB\nMemFree:         1000 kB\nMemAvailable:    2048 kB\n")
+    assert hpc.free_host_bytes(meminfo) == 2048 * 1024
+    assert hpc.free_host_bytes(tmp_path / "missing") is None
+    vol = Volume(data=gaussian_blob(20, SIGMA), extent=np.ones(3), name="blob")
+    free = {"bytes": 10**12}
+    monkeypatch.setattr(hpc, "free_host_bytes", lambda meminfo="": free["bytes"])
+    monkeypatch.setattr(shadow_module, "CHECKED_GRID_BYTES", 0)
+    light = [0.3, 0.5, 0.81]
+    before = shadow_grid(vol, identity_tf(), light)
+    free["bytes"] = int(3.5 * 4 * 20**3) - 1  # one byte short of SWEEP_GRIDS_AT_LEAST grids
+    with pytest.raises(MemoryError, match=r"^the sweep of a 20x20x20 shadow grid \(3.5 x its 0.0 GiB\) needs at "
+                                          r"least 0.0 GiB, and 0.0 GiB are free on this host$"):
+        shadow_grid(vol, identity_tf(), light)
+    free["bytes"] += 1
+    assert torch.equal(shadow_grid(vol, identity_tf(), light), before)
+    # the refined volume: checked from 64 MiB (a 257³ grid of 4 bytes; 129³ refined twice)
+    free["bytes"] = 4 * 257**3 - 1
+    big = Volume(data=np.zeros((129, 129, 129), np.float32), extent=np.ones(3), name="zeros")
+    with pytest.raises(MemoryError, match=r"^the volume refined 2 times \(257x257x257 voxels\) needs at least"):
+        volume_module.refine(big, 2)
+    free["bytes"] += 1
+    assert volume_module.refine(big, 2).data.shape == (257, 257, 257)
