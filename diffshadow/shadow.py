@@ -27,7 +27,7 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-from diffshadow.grid import check_step, go_on, lattice, macro_cells, ray_box, trilinear, voxel_points
+from diffshadow.grid import check_step, go_on, lattice, macro_cells, occupied_bounds, ray_box, trilinear, voxel_points
 from diffshadow.hpc import check_host_room
 from diffshadow.lights import LightError, as_direction
 from diffshadow.transfer import TransferFunction
@@ -359,17 +359,12 @@ def _sweep(volume: Volume, tf: TransferFunction, w: np.ndarray, step: float, dev
     delta = 1.0 / abs(wv[a])  # box length between neighbouring slices along w
     du, dv = (float(wv[2 - o] * delta) for o in others)  # in-plane shift per slice toward the light
 
-    # Only the bounding box of cells where μ can be non-zero casts shadows: sample lines there alone.
-    occupied = ~macro_cells(s, tf, 1)  # (n_j-1, n_u-1, n_v-1): unit cells of 2×2×2 voxels
-    # written in the volume's own layout through a view in the sweep's (slices up to jlo see no depth: τ = 1), not
-    # made in the sweep's and then flipped and permuted into it: two grids fewer at the end
+    # Only the bounding box of the unit cells (2×2×2 voxels) where μ can be non-zero casts shadows: sample lines there
+    # alone. τ is written in the volume's own layout through a view in the sweep's (slices up to jlo see no depth:
+    # τ = 1), not made in the sweep's and then flipped and permuted into it: two grids fewer at the end
+    bounds = occupied_bounds(s, tf)
     out = torch.ones(volume.data.shape, dtype=torch.float32, device=device)
-    if occupied.any():
-        # the occupied cells' bounding box, axis by axis (their index list was 24 bytes a cell: 3 GiB on 511³)
-        bounds = []
-        for axis in range(3):
-            hit = torch.nonzero(occupied.any(dim=[a for a in range(3) if a != axis])).flatten()
-            bounds.append((int(hit[0]), int(hit[-1]) + 1))
+    if bounds is not None:
         (jlo, jhi), (ulo, uhi), (vlo, vhi) = bounds
         _sweep_region(s, tf, delta, du, dv, (jlo, jhi), (ulo, uhi), (vlo, vhi), factor, block,
                       out.permute(order), flip)
@@ -401,9 +396,9 @@ def _sequential_cumsum(x: torch.Tensor) -> torch.Tensor:
 
 
 # The sweep's peak above its caller, in grids of its output (a copy of the volume in the sweep's order, τ, the lines'
-# depths): 3.49-3.82 on 511³ (axis-aligned and slanted lights; smaller grids add their chunks' fixed ~0.3-0.5 GiB).
-# A lower bound, so that the check before it refuses only what cannot fit.
-SWEEP_GRIDS_AT_LEAST = 3.5
+# depths): 2.93-3.60 on 511³ over four lights (axis-aligned and slanted), 3.3-6.0 on 400³ (its chunks' fixed
+# ~0.3 GiB weigh more). A lower bound under all of them, so that the check before it refuses only what cannot fit.
+SWEEP_GRIDS_AT_LEAST = 2.75
 CHECKED_GRID_BYTES = 1 << 26  # grids under 64 MiB are not checked (the viewer sweeps small ones often)
 SWEEP_SAMPLES_PER_CALL = 1 << 21  # μ samples along the sweep's lines looked up at once (bounds its temporaries)
 

@@ -463,6 +463,43 @@ def test_empty_cells_found_a_slab_at_a_time_are_those_found_at_once(monkeypatch)
         assert torch.equal(grid_module.macro_cells(scalar, tf, cell), cells), cell
 
 
+
+def test_the_occupied_cells_box_read_from_coarse_cells_is_the_unit_cells_box():
+    """`grid.occupied_bounds` reads coarse cells first and unit cells only in the first and last occupied coarse
+    slab of each axis: the box is the one the whole unit-cell mask gives, for dense, sparse, single-voxel and empty
+    volumes of any shape (coarse cells cut at the edges), under ramps, narrow spikes (a coarse cell spanning a spike
+    that none of its unit cells would, were the union not one interval), steps and random TFs."""
+    from diffshadow.grid import macro_cells, occupied_bounds
+
+    def box(scalar, tf):
+        occupied = ~macro_cells(scalar, tf, 1)
+        if not occupied.any():
+            return None
+        return [(int(h[0]), int(h[-1]) + 1) for h in (torch.nonzero(occupied.any(dim=[a for a in range(3) if a != x]))
+                                                     .flatten() for x in range(3))]
+
+    rng = np.random.default_rng(5)
+    tfs = [[[0, 0], [0.1, 0], [1, 1]], [[0, 0], [0.49, 0], [0.5, 1], [0.51, 0], [1, 0]],
+           [[0, 0], [128 / 255, 0], [128 / 255, 0.8], [1, 0.8]],
+           [[0, 0], [0.2, 0.5], [0.4, 0], [0.7, 0], [0.9, 1], [1, 0]]]
+    kinds, partial = set(), 0
+    for case in range(240):
+        shape = tuple(int(n) for n in rng.integers(1, 30, 3))
+        data = [rng.random(shape), (rng.random(shape) < 0.01) * rng.random(shape),
+                np.round(rng.random(shape) * 255) / 255 * (rng.random(shape) < 0.05), np.zeros(shape)][case % 4]
+        if case % 4 == 3 and case % 8 == 3:
+            data[tuple(int(rng.integers(0, n)) for n in shape)] = 0.5
+        scalar = torch.as_tensor(data, dtype=torch.float32)
+        tf = TransferFunction.from_config({"opacity": tfs[case % 5 % 4] if case % 5 < 4 else
+                                           [[0, 0], *sorted(rng.random((4, 2)).tolist()), [1, 0]],
+                                           "color": [[0, 1, 1, 1], [1, 1, 1, 1]], "density_scale": 10.0})
+        expected = box(scalar, tf)
+        for coarse in (2, 3, 8):
+            assert occupied_bounds(scalar, tf, coarse) == expected, (case, shape, coarse)
+        kinds.add(expected is None)
+        partial += expected is not None and expected != [(0, max(1, n - 1)) for n in shape]
+    assert kinds == {True, False} and partial > 40
+
 def test_the_shadow_bench_marches_a_large_volume_at_every_kth_row(tmp_path, monkeypatch):
     """Past `MARCHED_VOXELS` the bench marches whole rows of voxels, every k-th, about that many, and scales their
     seconds to the grid; its errors are those of the whole grids read at those voxels, and it says how many."""
@@ -505,9 +542,10 @@ def test_a_grid_that_cannot_fit_the_hosts_free_memory_is_refused_before_it_is_ma
     monkeypatch.setattr(shadow_module, "CHECKED_GRID_BYTES", 0)
     light = [0.3, 0.5, 0.81]
     before = shadow_grid(vol, identity_tf(), light)
-    free["bytes"] = int(3.5 * 4 * 20**3) - 1  # one byte short of SWEEP_GRIDS_AT_LEAST grids
-    with pytest.raises(MemoryError, match=r"^the sweep of a 20x20x20 shadow grid \(3.5 x its 0.0 GiB\) needs at "
-                                          r"least 0.0 GiB, and 0.0 GiB are free on this host$"):
+    least = shadow_module.SWEEP_GRIDS_AT_LEAST
+    free["bytes"] = int(least * 4 * 20**3) - 1  # one byte short of SWEEP_GRIDS_AT_LEAST grids
+    with pytest.raises(MemoryError, match=rf"^the sweep of a 20x20x20 shadow grid \({least:g} x its 0.0 GiB\) needs "
+                                          r"at least 0.0 GiB, and 0.0 GiB are free on this host$"):
         shadow_grid(vol, identity_tf(), light)
     free["bytes"] += 1
     assert torch.equal(shadow_grid(vol, identity_tf(), light), before)
