@@ -617,7 +617,7 @@ _MEMORY_KEYS = {
     "train-diffusion": "diffusion.batch_size or diffusion.geometry_points",
     "finetune-render": "finetune.batch_size, finetune.pixels or finetune.val_points",
     "eval-truth": "evaluate.points (--eval-points)",
-    "render-targets": "finetune.image_size",
+    "render-targets": "finetune.image_size or fit.grid_upsample (its shadow grid has grid_upsample³ x the voxels)",
     "evaluate-images": "render.image_size",
     "naive-images": "render.image_size",
 }
