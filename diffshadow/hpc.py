@@ -329,23 +329,77 @@ def device_name(device: torch.device | str) -> str:
     return f"cpu ({platform.processor() or platform.machine()})"
 
 
-def free_host_bytes(meminfo: str | Path = "/proc/meminfo") -> int | None:
-    """The memory this host can still give a process without swapping (Linux's MemAvailable); None where unknown."""
+def free_host_bytes(meminfo: str | Path = "/proc/meminfo", cgroups: str | Path = "/proc/self/cgroup",
+                    cgroup_root: str | Path = "/sys/fs/cgroup") -> int | None:
+    """The memory this process can still take without swapping: Linux's MemAvailable, or less where a memory cgroup
+    (a PBS job's, a container's) is limited to less (`cgroup_room`); None where neither is known."""
+    free = None
     try:
         with open(meminfo) as f:
             for line in f:
                 if line.startswith("MemAvailable:"):
-                    return int(line.split()[1]) * 1024
+                    free = int(line.split()[1]) * 1024
+                    break
     except (OSError, ValueError, IndexError):
+        pass
+    room = cgroup_room(cgroups, cgroup_root)
+    return room if free is None else free if room is None else min(free, room)
+
+
+UNLIMITED = 1 << 60  # a cgroup limit at or above this is none (v1 writes 2^63 rounded down to a page)
+
+
+def cgroup_room(cgroups: str | Path = "/proc/self/cgroup", root: str | Path = "/sys/fs/cgroup") -> int | None:
+    """The least room left under the memory limits of this process's cgroup and its ancestors (v2: memory.max; v1:
+    memory.limit_in_bytes), each its limit less its usage but for inactive file pages, which the kernel reclaims
+    before it kills (container runtimes' "working set"); None where no limit is set or none can be read. A cgroup
+    namespace shows the process's own cgroup as "/", so the mount's top holds its files."""
+    try:
+        lines = Path(cgroups).read_text().splitlines()
+    except OSError:
         return None
-    return None
+    rooms = []
+    for line in lines:
+        hierarchy, controllers, path = (line.split(":", 2) + ["", ""])[:3]
+        if hierarchy == "0" and controllers == "":
+            base, files = Path(root), ("memory.max", "memory.current", "inactive_file")
+        elif "memory" in controllers.split(","):
+            base, files = Path(root) / "memory", ("memory.limit_in_bytes", "memory.usage_in_bytes",
+                                                  "total_inactive_file")
+        else:
+            continue
+        parts = [p for p in path.split("/") if p]
+        for depth in range(len(parts), -1, -1):  # the cgroup, then each ancestor up to the mount's top
+            room = _cgroup_level_room(base.joinpath(*parts[:depth]), *files)
+            if room is not None:
+                rooms.append(room)
+    return min(rooms) if rooms else None
 
 
-def check_host_room(need: int, what: str, meminfo: str | Path = "/proc/meminfo") -> None:
+def _cgroup_level_room(level: Path, limit_file: str, usage_file: str, inactive_key: str) -> int | None:
+    try:
+        text = (level / limit_file).read_text().strip()
+        if text == "max" or int(text) >= UNLIMITED:
+            return None
+        usage = int((level / usage_file).read_text())
+    except (OSError, ValueError):
+        return None
+    inactive = 0
+    try:
+        for line in (level / "memory.stat").read_text().splitlines():
+            key, _, value = line.partition(" ")
+            if key == inactive_key:
+                inactive = int(value)
+    except (OSError, ValueError):
+        pass
+    return max(0, int(text) - max(0, usage - inactive))
+
+
+def check_host_room(need: int, what: str) -> None:
     """MemoryError (one line: `what`, the bytes it needs, the bytes free) before an allocation of at least `need`
     bytes on the host that cannot fit: Linux's out-of-memory killer ends a process without a word (exit 137 and
     an empty log), so the CLI could not say which setting to lower. Where the free memory is unknown: nothing."""
-    free = free_host_bytes(meminfo)
+    free = free_host_bytes()
     if free is not None and need > free:
         raise MemoryError(f"{what} needs at least {need / 2**30:.1f} GiB, and {free / 2**30:.1f} GiB are free on "
                           f"this host")

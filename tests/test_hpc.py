@@ -640,3 +640,42 @@ def test_the_ddp_launcher_signalled_stops_its_ranks_and_says_so_in_one_line():
     for pid in ranks:
         with pytest.raises(ProcessLookupError):
             os.kill(int(pid), 0)
+
+
+def test_the_free_memory_is_the_least_of_the_hosts_and_its_memory_cgroups(tmp_path):
+    """MemAvailable, or less under a memory cgroup's limit: its own or an ancestor's (v2's memory.max, v1's
+    memory.limit_in_bytes), less its usage but for inactive file pages; a namespaced cgroup's files at the mount's
+    top; no limit ("max", v1's 2^63 rounded to a page) and unreadable files are none."""
+    from diffshadow.hpc import cgroup_room, free_host_bytes
+
+    def write(path, text):
+        path.parent.mkdir(parents=True, exist_ok=True)
+        path.write_text(text)
+
+    gib = 1 << 30
+    meminfo = tmp_path / "meminfo"
+    write(meminfo, f"MemTotal: {64 * gib // 1024} kB\nMemAvailable: {40 * gib // 1024} kB\n")
+    v2, v1 = tmp_path / "v2", tmp_path / "v1"
+    # v2: the job's cgroup limited to 16 GiB, 10 GiB used of which 3 GiB inactive file pages: 9 GiB of room
+    write(v2 / "pbs" / "job1" / "memory.max", f"{16 * gib}\n")
+    write(v2 / "pbs" / "job1" / "memory.current", f"{10 * gib}\n")
+    write(v2 / "pbs" / "job1" / "memory.stat", f"anon {7 * gib}\ninactive_file {3 * gib}\nactive_file 0\n")
+    write(v2 / "pbs" / "memory.max", "max\n")
+    cgroups = tmp_path / "cgroup"
+    write(cgroups, "0::/pbs/job1\n")
+    assert cgroup_room(cgroups, v2) == 9 * gib
+    assert free_host_bytes(meminfo, cgroups, v2) == 9 * gib
+    # an ancestor's tighter limit binds
+    write(v2 / "pbs" / "memory.max", f"{12 * gib}\n")
+    write(v2 / "pbs" / "memory.current", f"{11 * gib}\n")
+    assert cgroup_room(cgroups, v2) == 1 * gib
+    # v1 under a cgroup namespace: the process's cgroup reads "/", its files at the memory mount's top
+    write(v1 / "memory" / "memory.limit_in_bytes", f"{8 * gib}\n")
+    write(v1 / "memory" / "memory.usage_in_bytes", f"{2 * gib}\n")
+    write(v1 / "memory" / "memory.stat", f"inactive_file 5\ntotal_inactive_file {gib}\n")
+    write(cgroups, "9:name=systemd:/\n4:memory:/\n0::/\n")
+    assert cgroup_room(cgroups, v1) == 7 * gib
+    # no limit: MemAvailable alone; nothing readable: None
+    write(v1 / "memory" / "memory.limit_in_bytes", "9223372036854771712\n")
+    assert cgroup_room(cgroups, v1) is None and free_host_bytes(meminfo, cgroups, v1) == 40 * gib
+    assert free_host_bytes(tmp_path / "none", tmp_path / "none", v1) is None

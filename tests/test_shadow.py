@@ -534,11 +534,12 @@ def test_a_grid_that_cannot_fit_the_hosts_free_memory_is_refused_before_it_is_ma
 
     meminfo = tmp_path / "meminfo"
     meminfo.write_text("MemTotal:       32000 kB\nMemFree:         1000 kB\nMemAvailable:    2048 kB\n")
-    assert hpc.free_host_bytes(meminfo) == 2048 * 1024
-    assert hpc.free_host_bytes(tmp_path / "missing") is None
+    no_cgroup = tmp_path / "no-cgroup"  # this machine's own cgroup limit, if any, kept out
+    assert hpc.free_host_bytes(meminfo, no_cgroup) == 2048 * 1024
+    assert hpc.free_host_bytes(tmp_path / "missing", no_cgroup) is None
     vol = Volume(data=gaussian_blob(20, SIGMA), extent=np.ones(3), name="blob")
     free = {"bytes": 10**12}
-    monkeypatch.setattr(hpc, "free_host_bytes", lambda meminfo="": free["bytes"])
+    monkeypatch.setattr(hpc, "free_host_bytes", lambda: free["bytes"])
     monkeypatch.setattr(shadow_module, "CHECKED_GRID_BYTES", 0)
     light = [0.3, 0.5, 0.81]
     before = shadow_grid(vol, identity_tf(), light)
