@@ -123,7 +123,6 @@ def macro_cells(scalar: torch.Tensor, tf: TransferFunction, cell: int) -> torch.
     return out[0] if len(out) == 1 else torch.cat(out)
 
 
-
 BOUNDS_CELL = 8  # the coarse cells `occupied_bounds` reads first (each 8³ unit cells)
 
 
@@ -154,6 +153,7 @@ def occupied_bounds(scalar: torch.Tensor, tf: TransferFunction,
             ends.append(first + (int(found[-1]) + 1 if last else int(found[0])))
         bounds.append((ends[0], ends[1]))
     return bounds
+
 
 def cell_slabs(n: int, cell: int, per_slab: int) -> list[tuple[int, int]]:
     """The first axis's `n` voxel planes as slabs of `per_slab` vertex-centred cells each: (first, end) plane of

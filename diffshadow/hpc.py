@@ -395,10 +395,16 @@ def _cgroup_level_room(level: Path, limit_file: str, usage_file: str, inactive_k
     return max(0, int(text) - max(0, usage - inactive))
 
 
+CHECKED_FROM_BYTES = 1 << 26  # smaller allocations are not checked (the viewer sweeps small grids often)
+
+
 def check_host_room(need: int, what: str) -> None:
     """MemoryError (one line: `what`, the bytes it needs, the bytes free) before an allocation of at least `need`
     bytes on the host that cannot fit: Linux's out-of-memory killer ends a process without a word (exit 137 and
-    an empty log), so the CLI could not say which setting to lower. Where the free memory is unknown: nothing."""
+    an empty log), so the CLI could not say which setting to lower. Where the free memory is unknown, or `need` is
+    under CHECKED_FROM_BYTES: nothing."""
+    if need < CHECKED_FROM_BYTES:
+        return
     free = free_host_bytes()
     if free is not None and need > free:
         raise MemoryError(f"{what} needs at least {need / 2**30:.1f} GiB, and {free / 2**30:.1f} GiB are free on "

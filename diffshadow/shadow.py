@@ -340,10 +340,11 @@ def _sweep(volume: Volume, tf: TransferFunction, w: np.ndarray, step: float, dev
     if factor < 1 or abs(factor * step - 1.0) > 1e-9:
         raise ValueError(f"step: the sweep needs 1/k voxels for an integer k >= 1, got {step!r}")
     device = torch.device(device)
-    grid = 4 * int(np.prod(volume.data.shape))
-    if device.type == "cpu" and grid >= CHECKED_GRID_BYTES:  # a GPU's allocator raises an error the CLI names
-        check_host_room(int(SWEEP_GRIDS_AT_LEAST * grid), f"the sweep of a {'x'.join(map(str, volume.data.shape))} "
-                        f"shadow grid ({SWEEP_GRIDS_AT_LEAST:g} x its {grid / 2**30:.1f} GiB)")
+    if device.type == "cpu":  # a GPU's allocator raises an error of its own, which the CLI names
+        grid_bytes = 4 * int(np.prod(volume.data.shape))
+        check_host_room(int(SWEEP_GRIDS_AT_LEAST * grid_bytes), f"the sweep of a "
+                        f"{'x'.join(map(str, volume.data.shape))} shadow grid ({SWEEP_GRIDS_AT_LEAST:g} x its "
+                        f"{grid_bytes / 2**30:.1f} GiB)")
     s = torch.as_tensor(volume.data, dtype=torch.float32, device=device)
     wv = w / volume.voxel_size  # voxels per box length along (x, y, z)
     a = int(np.argmax(np.abs(wv)))  # dominant axis (x=0, y=1, z=2)
@@ -399,7 +400,6 @@ def _sequential_cumsum(x: torch.Tensor) -> torch.Tensor:
 # depths): 2.93-3.60 on 511³ over four lights (axis-aligned and slanted), 3.3-6.0 on 400³ (its chunks' fixed
 # ~0.3 GiB weigh more). A lower bound under all of them, so that the check before it refuses only what cannot fit.
 SWEEP_GRIDS_AT_LEAST = 2.75
-CHECKED_GRID_BYTES = 1 << 26  # grids under 64 MiB are not checked (the viewer sweeps small ones often)
 SWEEP_SAMPLES_PER_CALL = 1 << 21  # μ samples along the sweep's lines looked up at once (bounds its temporaries)
 
 

@@ -540,7 +540,7 @@ def test_a_grid_that_cannot_fit_the_hosts_free_memory_is_refused_before_it_is_ma
     vol = Volume(data=gaussian_blob(20, SIGMA), extent=np.ones(3), name="blob")
     free = {"bytes": 10**12}
     monkeypatch.setattr(hpc, "free_host_bytes", lambda: free["bytes"])
-    monkeypatch.setattr(shadow_module, "CHECKED_GRID_BYTES", 0)
+    monkeypatch.setattr(hpc, "CHECKED_FROM_BYTES", 0)
     light = [0.3, 0.5, 0.81]
     before = shadow_grid(vol, identity_tf(), light)
     least = shadow_module.SWEEP_GRIDS_AT_LEAST
@@ -550,10 +550,14 @@ def test_a_grid_that_cannot_fit_the_hosts_free_memory_is_refused_before_it_is_ma
         shadow_grid(vol, identity_tf(), light)
     free["bytes"] += 1
     assert torch.equal(shadow_grid(vol, identity_tf(), light), before)
-    # the refined volume: checked from 64 MiB (a 257³ grid of 4 bytes; 129³ refined twice)
-    free["bytes"] = 4 * 257**3 - 1
-    big = Volume(data=np.zeros((129, 129, 129), np.float32), extent=np.ones(3), name="zeros")
-    with pytest.raises(MemoryError, match=r"^the volume refined 2 times \(257x257x257 voxels\) needs at least"):
-        volume_module.refine(big, 2)
+    # the refined volume: its one grid
+    free["bytes"] = 4 * 17**3 - 1
+    small = Volume(data=np.zeros((9, 9, 9), np.float32), extent=np.ones(3), name="zeros")
+    with pytest.raises(MemoryError, match=r"^the volume refined 2 times \(17x17x17 voxels\) needs at least"):
+        volume_module.refine(small, 2)
     free["bytes"] += 1
-    assert volume_module.refine(big, 2).data.shape == (257, 257, 257)
+    assert volume_module.refine(small, 2).data.shape == (17, 17, 17)
+    # under CHECKED_FROM_BYTES (64 MiB), nothing is asked
+    monkeypatch.undo()
+    monkeypatch.setattr(hpc, "free_host_bytes", lambda: 0)
+    assert torch.equal(shadow_grid(vol, identity_tf(), light), before)
