@@ -89,6 +89,9 @@ def to_device(draw: torch.Tensor, device: torch.device) -> torch.Tensor:
     return draw.to(device, non_blocking=True)
 
 
+VISIBLE_SLAB_VOXELS = 1 << 22  # voxels whose opacity `PointSampler` reads at once
+
+
 class PointSampler:
     """Random box points; a share of them jittered around visible voxels. Drawn on the CPU (the same
     points on every device); the caller moves them."""
@@ -98,9 +101,15 @@ class PointSampler:
 
         self.extent = torch.as_tensor(volume.extent, dtype=torch.float32, device="cpu")
         self.voxel = torch.as_tensor(volume.voxel_size, dtype=torch.float32, device="cpu")
-        opacity = tf.opacity(torch.as_tensor(volume.data, device="cpu"))
-        zyx = torch.nonzero(opacity > 0)
-        self.visible = zyx.flip(1).float() * self.voxel  # (V, 3) box coordinates of visible voxels
+        # a slab of planes at a time: the TF over every voxel at once held ~10 grids' bytes (5 GiB on 512³)
+        data = torch.as_tensor(volume.data, device="cpu")
+        planes = max(1, VISIBLE_SLAB_VOXELS // max(1, data[0].numel()))
+        parts = []
+        for z0 in range(0, data.shape[0], planes):
+            zyx = torch.nonzero(tf.opacity(data[z0:z0 + planes]) > 0)
+            zyx[:, 0] += z0
+            parts.append(zyx.flip(1).float() * self.voxel)
+        self.visible = torch.cat(parts)  # (V, 3) box coordinates of visible voxels, in the voxels' order
         self.visible_fraction = visible_fraction if len(self.visible) else 0.0
 
     def sample(self, k: int, n: int, generator: torch.Generator) -> torch.Tensor:

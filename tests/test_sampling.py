@@ -42,3 +42,27 @@ def test_streams_and_derived_seeds_never_meet():
     # of fit.seed, apart from stage 1's negative members)
     members = {int(m) for m in sampling.Stream}
     assert not members & set(range(sampling.Stream.FIT_POOL_PICK - 1, sampling.Stream.FIT_POOL_PICK - 1000, -1))
+
+
+def test_the_visible_voxels_found_a_slab_at_a_time_are_those_found_at_once(monkeypatch):
+    """`PointSampler` reads the opacity a slab of planes at a time (the whole volume's held ~10 grids' bytes): the
+    same visible voxels in the same order, so the same points, whatever the slab (one plane here), on dense, sparse
+    and empty volumes."""
+    import numpy as np
+    import torch
+    from conftest import identity_tf
+
+    from diffshadow.volume import Volume
+
+    rng = np.random.default_rng(7)
+    for data in (rng.random((13, 9, 11)), rng.random((13, 9, 11)) * (rng.random((13, 9, 11)) < 0.05),
+                 np.zeros((5, 6, 7))):
+        vol = Volume(data=data.astype(np.float32), extent=np.array([1.0, 0.8, 1.2]), name="r")
+        whole = sampling.PointSampler(vol, identity_tf(), 0.5)
+        with monkeypatch.context() as m:
+            m.setattr(sampling, "VISIBLE_SLAB_VOXELS", 1)
+            slabs = sampling.PointSampler(vol, identity_tf(), 0.5)
+        expected = torch.nonzero(torch.as_tensor(data) > 0).flip(1).float() * whole.voxel
+        assert torch.equal(whole.visible, expected) and torch.equal(slabs.visible, expected)
+        g = [torch.Generator().manual_seed(3) for _ in range(2)]
+        assert torch.equal(whole.sample(2, 64, g[0]), slabs.sample(2, 64, g[1]))
