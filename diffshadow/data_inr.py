@@ -160,6 +160,11 @@ def fit_data_inr(volume: Volume, tf: TransferFunction, cfg: DataInrConfig, *, ch
         return inr, inr.psnr
 
     inr, choice = climb(rungs, cfg.target_psnr, attempt, log=log, what="data INR")
+    # the renderer's ranges for the size kept alone: 8 INR evaluations a voxel, once a rung they were most of a large
+    # volume's job (512³: ~13 min a rung on one thread)
+    model = inr.model.to(device)
+    inr.cell_lo, inr.cell_hi = inr_cell_ranges(model, volume, device=device)
+    inr.model = model.cpu()
     inr.config = {**inr.config, "capacity": choice.to_dict()}  # the stored size, and how it was chosen
     if warning := choice.warning("the data INR's voxel PSNR", "data_inr.max_width or data_inr.steps"):
         log(warning)
@@ -229,7 +234,7 @@ class DataInrFit:
 def fit_data_inr_once(volume: Volume, tf: TransferFunction, cfg: DataInrConfig, *, checkpoint: Path | None = None,
                       device: torch.device | str = "cpu", log=print) -> DataInr:
     """Fit a data INR of exactly cfg's size to trilinear samples of the volume (Adam, cosine decay,
-    resumable)."""
+    resumable); without its macro-cell ranges, which `fit_data_inr` makes for the size it keeps."""
     device = torch.device(device)
     run = DataInrFit(volume, tf, cfg, device=device, log=log)
     model, opt, hard = run.model, run.opt, run.hard
@@ -267,9 +272,8 @@ def fit_data_inr_once(volume: Volume, tf: TransferFunction, cfg: DataInrConfig, 
     if checkpoint is not None and checkpoint.exists():
         checkpoint.unlink()
     value, worst = voxel_errors(model, volume, device=device)
-    lo, hi = inr_cell_ranges(model, volume, device=device)
     log(f"data INR: {model.layout.n_params} parameters, voxel PSNR {value:.2f} dB, max error {worst:.4f}")
-    return DataInr(model.cpu(), np.asarray(volume.extent), value, worst, asdict(cfg), lo, hi, volume.checksum)
+    return DataInr(model.cpu(), np.asarray(volume.extent), value, worst, asdict(cfg), volume=volume.checksum)
 
 
 # lattice points of inr_cell_ranges' values held at once (a slab of macro-cells, ~4 bytes each and its max pools)

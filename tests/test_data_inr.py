@@ -194,3 +194,24 @@ def test_lattice_points_are_voxel_points_rows_made_alone():
     whole = voxel_points(vol)
     for start, stop in ((0, len(whole)), (5, 301), (44, 45)):
         assert torch.equal(lattice_points(axes, start, stop), whole[start:stop])
+
+
+def test_the_macro_cell_ranges_are_made_once_for_the_size_kept(blob, monkeypatch):
+    """A capacity climb fits several sizes; only the kept one's ranges are made (8 INR evaluations a voxel: on a
+    512³ volume ~13 min a rung), and they are the ranges of the INR kept."""
+    from dataclasses import replace
+
+    from diffshadow import data_inr as module
+
+    made, real = [], module.inr_cell_ranges
+
+    def counted(model, volume, **kwargs):
+        made.append(model.layout.n_params)
+        return real(model, volume, **kwargs)
+
+    monkeypatch.setattr(module, "inr_cell_ranges", counted)
+    cfg = replace(CFG, steps=20, width=8, max_width=16, target_psnr=99.0)  # unreachable: every rung is tried
+    inr = fit_data_inr(blob, TF, cfg, log=lambda m: None)
+    assert len(inr.config["capacity"]["rungs"]) == 3 and made == [inr.n_params]
+    lo, hi = real(inr.model, blob)
+    assert np.array_equal(inr.cell_lo, lo) and np.array_equal(inr.cell_hi, hi)
