@@ -9,6 +9,7 @@ import hashlib
 import json
 import math
 import time
+from collections.abc import Iterator
 from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 
@@ -86,10 +87,18 @@ def voxel_errors(model: Siren, volume: Volume, *, chunk: int = 1 << 16,
     axes = lattice_axes(volume, device=device)
     extent = torch.as_tensor(volume.extent, dtype=torch.float32, device=device)
     truth = torch.as_tensor(volume.data, device=device).reshape(-1)
-    with torch.no_grad():  # voxel_points' chunks, each made as it is evaluated (not 12 bytes a voxel at once)
-        pred = torch.cat([model(box_to_siren(lattice_points(axes, i, min(i + chunk, len(truth))), extent))
-                          for i in range(0, len(truth), chunk)])
+    with torch.no_grad():
+        pred = torch.cat(list(lattice_values(model, axes, extent, chunk)))
     return float(psnr(pred, truth)), float((pred - truth).abs().max())
+
+
+def lattice_values(model: Siren, axes: list[torch.Tensor], extent: torch.Tensor, chunk: int) -> Iterator[torch.Tensor]:
+    """The INR at every point of the lattice of `axes` (`grid.lattice_points`), in its (Z, Y, X) order, `chunk`
+    points at a time: each chunk's points made as it is evaluated, not 12 bytes a point at once (a caller that
+    wants no graph asks for none)."""
+    total = math.prod(len(a) for a in axes)
+    for i in range(0, total, chunk):
+        yield model(box_to_siren(lattice_points(axes, i, min(i + chunk, total)), extent))
 
 
 def values_at(model: Siren, pts: torch.Tensor, extent: torch.Tensor, chunk: int = 1 << 16) -> torch.Tensor:
@@ -300,10 +309,11 @@ def inr_cell_ranges(model: Siren, volume: Volume, *, cell: int = 16, refine: int
     extent = torch.as_tensor(volume.extent, dtype=torch.float32, device=device)
     held, start, made = [], 0, 0  # values of lattice points start.. made (flat, in (z, y, x) order)
     los, his = [], []
+    chunks = lattice_values(model, axes, extent, chunk)
     with torch.no_grad():
         for z0, z1 in cell_slabs(depth, m, max(1, RANGE_SLAB_POINTS // (plane * m))):
             while made < z1 * plane:
-                held.append(model(box_to_siren(lattice_points(axes, made, min(made + chunk, total)), extent)))
+                held.append(next(chunks))
                 made = min(made + chunk, total)
             values = torch.cat(held)
             lo, hi = cell_ranges(values[z0 * plane - start:z1 * plane - start].view(z1 - z0, rows, cols), m)

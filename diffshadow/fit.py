@@ -214,6 +214,12 @@ def points_per_pass(chunk: int | str, points: int, device: torch.device) -> int:
     return int(chunk) or points
 
 
+def shared_points(sampler: PointSampler, cfg: FitConfig, step: int) -> torch.Tensor:
+    """(1, N, 3): step `step`'s points where every SIREN of a subset shares them (`fit.shared_points`), on the host:
+    the fit's draw, and a table's targets (`fit.target_store`) looked up at the same points."""
+    return sampler.sample(1, cfg.points, seeded(cfg.seed, Stream.FIT_SHARED_POINTS, step))
+
+
 class Targets:
     """The shadow each SIREN is fitted to at any points: one `shadow_grid` per light looked up trilinearly
     (`fit.target` "sweep" or "march"), or marched exactly per point ("transmittance"). Grid targets are held as
@@ -257,8 +263,8 @@ class Targets:
         draws them), on the host: (steps, K, N), one step's (K, N) contiguous."""
         cfg, k = self.cfg, len(self.lights)
         steps = range(start, cfg.steps)
-        self.table_points = torch.cat([sampler.sample(1, cfg.points, seeded(cfg.seed, Stream.FIT_SHARED_POINTS, s))
-                                       for s in steps]) if len(steps) else torch.empty(0, cfg.points, 3, device="cpu")
+        self.table_points = torch.cat([shared_points(sampler, cfg, s) for s in steps]) if len(steps) else \
+            torch.empty(0, cfg.points, 3, device="cpu")
         self.table = torch.empty(len(steps), k, cfg.points, device="cpu")
         j = 0
         for grid in self._grids(self.fine):  # not enumerate: its reused tuple would hold a grid while the next is made
@@ -423,8 +429,7 @@ class SubsetFit:
             shared, target = self.targets.at_step(step)
             pts, target = to_device(shared[None], self.device).expand(k, -1, -1), to_device(target, self.device)
         elif cfg.shared_points:  # one draw, moved once, seen by every SIREN
-            shared = self.sampler.sample(1, cfg.points, seeded(cfg.seed, Stream.FIT_SHARED_POINTS, step))
-            pts = to_device(shared, self.device).expand(k, -1, -1)
+            pts = to_device(shared_points(self.sampler, cfg, step), self.device).expand(k, -1, -1)
         else:
             pts = to_device(self.sampler.sample(k, cfg.points, seeded(cfg.seed, self.stream, step)), self.device)
         if self.pool is None:
