@@ -236,10 +236,10 @@ def load_run(configfile: str | Path | None = None) -> dict:
 # them: a section missing a key takes defaults.yaml's (`section`). diffusion.cuda_graph: the geometry stage
 # records what it did (False: eager steps, as every run before the key), and "auto", its default since, leaves a
 # finished run as it is (on a CPU it does what False does; a CUDA run finished before it keeps its eager weights);
-# fit.cuda_graph and data_inr.cuda_graph are off by default until a GPU times them; fit.target_store changes where
-# the targets are kept, not their values.
+# fit.cuda_graph and data_inr.cuda_graph likewise (False before a GPU timed them, "auto" since); fit.target_store
+# changes where the targets are kept, not their values.
 UNCHANGED_WHEN = {("diffusion", "precision"): ("float32",), ("diffusion", "cuda_graph"): ("auto", False),
-                  ("fit", "cuda_graph"): (False,), ("data_inr", "cuda_graph"): (False,),
+                  ("fit", "cuda_graph"): ("auto", False), ("data_inr", "cuda_graph"): ("auto", False),
                   ("fit", "target_store"): ("auto",)}
 
 

@@ -47,7 +47,7 @@ class DataInrConfig:
     error_every: int = 300  # steps between scorings of the voxels
     # each optimiser step as a replayed CUDA graph (diffshadow.graphs): "auto" where the device is CUDA, True also
     # asked for elsewhere (the fit then steps eagerly, saying so), False never (the default until a GPU times it)
-    cuda_graph: bool | str = False
+    cuda_graph: bool | str = "auto"
 
     def __post_init__(self):
         if self.visible_fraction + self.error_fraction > 1:

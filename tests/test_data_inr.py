@@ -60,13 +60,13 @@ def test_resume_gives_the_same_bytes(blob, tmp_path):
 
 
 def test_cuda_graph_off_cuda_steps_eagerly_to_the_same_bytes_and_resumes_a_default_fit(blob, tmp_path):
-    """`data_inr.cuda_graph` on a CPU: True says that the fit steps eagerly and gives the same bytes; the
-    fingerprint holds what was done (no graph), so a default fit's checkpoint resumes under True, and the INR
-    records `cuda_graph: False`."""
+    """`data_inr.cuda_graph` on a CPU: "auto" (the default) steps eagerly; True says that the fit steps eagerly and
+    gives the same bytes; the fingerprint holds what was done (no graph), so a default fit's checkpoint resumes
+    under True, and the INR records `cuda_graph: False`."""
     from dataclasses import replace
 
     short = DataInrConfig(**{**CFG.__dict__, "steps": 60, "checkpoint_every": 20, "error_every": 30})
-    assert short.cuda_graph is False
+    assert short.cuda_graph == "auto"
     whole = fit_data_inr(blob, TF, short, log=lambda m: None)
 
     with pytest.raises(Stopped):

@@ -54,16 +54,16 @@ def test_resume_gives_the_same_weights(scene, tmp_path):
 
 
 def test_fit_cuda_graph_off_cuda_steps_eagerly_to_the_same_bytes_and_resumes_a_default_fit(scene, tmp_path):
-    """`fit.cuda_graph` on a CPU: False (the default) and "auto" step eagerly without a word; True says that the fit
+    """`fit.cuda_graph` on a CPU: "auto" (the default) and False step eagerly without a word; True says that the fit
     steps eagerly, and trains the same bytes. The fingerprint holds what was done (no graph), so a checkpoint of a
     default fit resumes under True."""
     from dataclasses import replace
 
     vol, tf, lights = scene
     cfg = FitConfig.from_config(dict(steps=12, points=64, checkpoint_every=4, eval_points=16))
-    assert cfg.cuda_graph is False
+    assert cfg.cuda_graph == "auto"
     quiet = []
-    plain = fit_sirens(init(), LAYOUT, CFG, vol, tf, lights, replace(cfg, cuda_graph="auto"), log=quiet.append)
+    plain = fit_sirens(init(), LAYOUT, CFG, vol, tf, lights, replace(cfg, cuda_graph=False), log=quiet.append)
     assert not any("cuda_graph" in m for m in quiet), quiet
     ckpt = tmp_path / "subset.ckpt"
     stop_after_six_log_lines(vol, tf, lights, cfg, ckpt)

@@ -409,7 +409,7 @@ def test_deterministic_mode_repeats_bytes(tmp_path):
         "import sys\nfrom pathlib import Path\nimport torch\n"
         "from diffshadow.runtime import set_deterministic_from_env\n"
         "assert set_deterministic_from_env()\n"
-        "sys.path.insert(0, sys.argv[1])\nimport test_cuda as T\n"
+        "sys.path[:0] = [sys.argv[1], str(Path(sys.argv[1]).parent)]\nimport test_cuda as T\n"
         "s = [T.train_diffusion(T._training_data(), T.DCFG, Path(sys.argv[2]) / f'{i}.ckpt', device=T.CUDA,\n"
         "                       log=lambda m: None)['model'] for i in range(2)]\n"
         "assert all(torch.equal(s[0][k], s[1][k]) for k in s[0])\n")
@@ -424,10 +424,10 @@ def test_deterministic_mode_renders_and_sweeps(tmp_path):
     for an op without a deterministic kernel, e.g. a floating-point cumsum) and repeat their bytes."""
     script = tmp_path / "render_twice.py"
     script.write_text(
-        "import sys\nimport torch\n"
+        "import sys\nfrom pathlib import Path\nimport torch\n"
         "from diffshadow.runtime import set_deterministic_from_env\n"
         "assert set_deterministic_from_env()\n"
-        "sys.path.insert(0, sys.argv[1])\nimport test_cuda as T\n"
+        "sys.path[:0] = [sys.argv[1], str(Path(sys.argv[1]).parent)]\nimport test_cuda as T\n"
         "from diffshadow.shadow import shadow_grid\n"
         "vol = T.Volume(data=T.gaussian_blob(33, 0.15), extent=T.np.ones(3), name='blob')\n"
         "cam = T.Camera.orbit(vol.extent, azimuth=40, elevation=20, size=32)\n"

@@ -72,6 +72,9 @@ rule collect_weights:
         subsets=subset_files,
     output:
         directory("results/{scene}/weights.zarr"),
+    # on the longest chain (fit_siren -> train_diffusion): where the fits take seconds (a GPU), the side jobs
+    # waiting with it took the free slot first and held train_diffusion back ~19 s on the H200
+    priority: 10
     log:
         "results/{scene}/logs/collect_weights.log",
     benchmark:
