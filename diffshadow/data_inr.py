@@ -46,7 +46,7 @@ class DataInrConfig:
     error_fraction: float = 0.0  # share of points near the voxels the INR gets most wrong (ErrorSampler)
     error_every: int = 300  # steps between scorings of the voxels
     # each optimiser step as a replayed CUDA graph (diffshadow.graphs): "auto" where the device is CUDA, True also
-    # asked for elsewhere (the fit then steps eagerly, saying so), False never (the default until a GPU times it)
+    # asked for elsewhere (the fit then steps eagerly, saying so), False never (docs/performance.md: H200 timings)
     cuda_graph: bool | str = "auto"
 
     def __post_init__(self):

@@ -106,7 +106,7 @@ class FitConfig:
     blend_points: int = 1024  # presampled points with exact shadows per pool light
     # each optimiser step as a replayed CUDA graph (diffshadow.graphs), with grid targets (sweep or march): "auto"
     # where the device is CUDA, True also asked for elsewhere (the fit then steps eagerly, saying so), False never
-    # (the default until a GPU times it). A fit's checkpoint records what was done (True or False)
+    # (docs/performance.md: H200 timings). A fit's checkpoint records what was done (True or False)
     cuda_graph: bool | str = "auto"
     # where grid targets (sweep or march) are kept while the subset is fitted: "grids", one shadow grid per light
     # (subset_size x grid_upsample³ x the voxels); "table", each light's grid made in turn and looked up at once at

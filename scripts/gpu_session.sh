@@ -58,6 +58,16 @@ device=${DIFFSHADOW_DEVICE:-cuda}
 quick=${QUICK:-0}
 failed=0
 
+compiled() {  # Python's bytecode for every module a job imports, as an installation leaves it: the GPU machine's
+    # image sets PYTHONDONTWRITEBYTECODE and ships PyTorch without it, so each job compiled ~1,000 modules from source
+    # (2 s of its ~3 s import there); a run timed that way would count what no user's installation pays
+    python -c "import sys; sys.exit(not sys.flags.dont_write_bytecode)" || return 0
+    local sp pp=${PYTHONPATH:-} t0=$SECONDS
+    sp=$(python -c "import os, torch; print(os.path.dirname(os.path.dirname(torch.__file__)))")
+    python -m compileall -q -j 0 diffshadow "$sp" ${pp//:/ } >"$out/compileall.log" 2>&1
+    echo "== bytecode compiled: $((SECONDS - t0)) s" | tee -a "$out/times.txt"
+}
+
 step() {  # step NAME CMD...: run, log to $out/NAME.log, time it, go on past a failure
     local name=$1; shift
     local t0=$SECONDS
@@ -124,7 +134,8 @@ all)
     ;;
 workflow)
     [ -L results ] && rm results  # a link to this machine's results elsewhere travels as a dangling link
-    rm -rf results/nucleon
+    rm -rf results/nucleon results/.kernel-cache  # a first run's kernels compile too
+    compiled
     t0=$SECONDS
     # the GPU's busy share through the run, every half second
     nvidia-smi --query-gpu=timestamp,utilization.gpu,memory.used --format=csv -lms 500 >"$out/gpu_util.csv" 2>/dev/null &
@@ -190,6 +201,7 @@ stage1)
     printf 'lights: {count: %d, sphere: %d, unseen: 32}\n' "$n" $((4 * n)) >"$out/lights.yaml"
     [ -L results ] && rm results
     rm -rf results/nucleon
+    compiled
     t0=$SECONDS
     step snakemake snakemake results/nucleon/weights.zarr --profile profiles/local -j2 \
         --configfile "$out/lights.yaml"

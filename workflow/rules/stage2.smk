@@ -237,6 +237,9 @@ rule render_targets:
                                    "fit": {"grid_upsample": scene_config(wc.scene)["fit"]["grid_upsample"]}},
                                   sort_keys=True),
     threads: 1  # a sweep and 64² images per light: small work (the march took a second thread at 1.0x)
+    # finetune_render waits for it: on the H200 the side jobs took the free slot first, and finetune_render waited
+    # 7.5-8.5 s for it after train_diffusion (on a CPU every side job ends beside fit_siren whatever the order)
+    priority: 5
     log:
         "results/{scene}/logs/render_targets.log",
     benchmark:
