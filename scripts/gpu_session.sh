@@ -153,6 +153,24 @@ workflow)
     cp results/nucleon/*.json "$out/" 2>/dev/null
     cp -r results/nucleon/benchmarks results/nucleon/logs "$out/" 2>/dev/null
     cp results/nucleon/stage_costs.tsv "$out/run_stage_costs.tsv" 2>/dev/null
+    # the run's compiled kernels, oldest first (each with what it was specialised on), beside the jobs' start
+    # times: naive_images, evaluate_images and benchmark each spent 3-4.7 s compiling though they share this cache
+    python - results/.kernel-cache/triton >"$out/kernel_cache.tsv" 2>&1 <<'PY'
+import json, os, sys
+rows = []
+for root, _, files in os.walk(sys.argv[1]):
+    for f in files:
+        if f.endswith(".json") and not f.startswith("__grp__"):
+            path = os.path.join(root, f)
+            try:
+                meta = json.load(open(path))
+            except (OSError, ValueError):
+                continue
+            rows.append((os.path.getmtime(path), meta.get("name", f), {k: v for k, v in meta.items() if k in (
+                "constants", "num_warps", "maxnreg", "signature", "attrs", "specialization")}))
+for t, name, meta in sorted(rows, key=lambda r: r[:2]):
+    print(f"{t:.1f}\t{name}\t{json.dumps(meta, sort_keys=True)}")
+PY
     step stage_costs diffshadow stage-costs --out "$out/stage_costs.tsv" --timeline "$out/timeline.png" \
         --benchmarks results/nucleon/benchmarks/*.tsv
     cat "$out/stage_costs.tsv" 2>/dev/null
