@@ -206,6 +206,27 @@ def test_an_array_read_a_few_rows_at_a_time_is_checked_as_a_whole(tmp_path, rows
         VerifiedGroup(path, "a weight store").read_rows("weights", lambda slab: slab, rows=rows)
 
 
+def test_a_written_arrays_checksum_is_taken_a_slab_at_a_time_as_of_the_whole(monkeypatch):
+    """write_zarr_group reads each array back in slabs along its first axis to take its checksum (a 512³ volume was
+    read back whole, then copied for hashing: 1 GiB more): for any slab size, the same sha256 as `array_checksum` of
+    the whole array, for arrays of any rank, dtype and an empty first axis."""
+    import zarr
+
+    import diffshadow.io as io
+
+    rng = np.random.default_rng(3)
+    root = zarr.open_group(store=zarr.storage.MemoryStore(), mode="w", zarr_format=3)
+    arrays = {"volume": rng.random((9, 5, 4), dtype=np.float32), "flat": rng.integers(0, 9, 17).astype(np.int16),
+              "mask": rng.random((6, 3)) > 0.5, "scalar": np.float64(2.5), "empty": np.zeros((0, 4), np.float32)}
+    for name, values in arrays.items():
+        shape = np.asarray(values).shape  # chunks of two rows: a slab spans chunks and cuts them
+        root.create_array(name, data=np.asarray(values), chunks=(2, *shape[1:]) if shape else "auto")
+    for slab_bytes in (1, 7, 40, 1 << 20):
+        monkeypatch.setattr(io, "CHECKSUM_SLAB_BYTES", slab_bytes)
+        for name, values in arrays.items():
+            assert io._stored_checksum(root[name]) == io.array_checksum(values), (name, slab_bytes)
+
+
 def test_check_store_verifies_every_array(tmp_path):
     import subprocess
     import sys

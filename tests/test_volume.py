@@ -128,6 +128,39 @@ def test_nan_voxels_counted_with_first_position(tmp_path):
         load_volume(tmp_path / "n.npy")
 
 
+@pytest.mark.parametrize("dtype", ["uint8", "int16", "int64", "float16", "float32", "float64"])
+def test_normalising_a_slab_at_a_time_gives_the_whole_volumes_bytes(monkeypatch, dtype):
+    """The volume is normalised a few z-planes at a time (a 512³ volume's float64 copy and its temporaries were
+    4.4 GiB at once): for any slab height, the bytes of the whole array's float64 formula, and the same NaN count
+    and first position; the value range found without a float64 copy is the float64 one."""
+    from pathlib import Path
+
+    import diffshadow.volume as V
+
+    rng = np.random.default_rng(7)
+    for trial in range(12):
+        shape = tuple(int(n) for n in rng.integers(2, 13, 3))
+        if dtype.startswith("float"):
+            raw = (rng.standard_normal(shape) * (1e4 if dtype != "float64" else 1e300)).astype(dtype)
+        else:
+            info = np.iinfo(dtype)
+            raw = rng.integers(info.min // 2, info.max // 2, shape, dtype=dtype)
+        value_range = None if trial % 3 else (float(raw.min()) / 2 - 1, float(raw.max()) / 2 + 1)
+        data = raw.astype(np.float64)  # the whole array's formula
+        lo, hi = value_range or (float(data.min()), float(data.max()))
+        scale = max(abs(lo), abs(hi))
+        expected = np.clip((data / scale - lo / scale) / (hi / scale - lo / scale), 0, 1).astype(np.float32)
+        monkeypatch.setattr(V, "NORMALISE_SLAB_VOXELS", int(rng.integers(1, 400)))
+        got = V._to_volume(Path("v.raw"), raw, value_range, None).data
+        assert got.dtype == np.float32 and got.tobytes() == expected.tobytes(), (dtype, trial)
+        if dtype.startswith("float"):
+            raw[-1, 0, 1] = np.nan  # in the last slab, after an infinity in another
+            raw[shape[0] // 2, 1, 0] = np.inf
+            with pytest.raises(VolumeError, match=rf"v.raw: 2 NaN/Inf voxels; first at \(x, y, z\) = "
+                                                  rf"\(0, 1, {shape[0] // 2}\)"):
+                V._to_volume(Path("v.raw"), raw, None, None)
+
+
 def test_missing_keys_list_those_present(tmp_path):
     with h5py.File(tmp_path / "v.h5", "w") as f:
         f["a"] = np.zeros((2, 2, 2))
