@@ -60,6 +60,27 @@ def scene_of(vol, size=24):
     return cam, GridScalar(vol), float(np.min(vol.voxel_size))
 
 
+def test_the_raw_grids_gradient_is_made_only_for_phong_and_is_exact_on_a_ramp():
+    """GridScalar's gradient channels (3 float32 grids, from float64 ones: 12 GiB at once on a 512³ volume) wait
+    for the first gradient asked for; values alone read the volume's own grid. On a linear ramp over an
+    anisotropic box, central differences are the ramp's slope exactly, and the value is the ramp's."""
+    nz, ny, nx = 6, 9, 12
+    extent = np.array([1.0, 0.5, 0.25])  # (x, y, z): voxel sizes 1/11, 1/16, 1/20
+    z, y, x = np.meshgrid(*(np.arange(n) * h for n, h in zip((nz, ny, nx), (0.25 / 5, 0.5 / 8, 1 / 11), strict=True)),
+                          indexing="ij")
+    vol = Volume(data=(0.5 * x - 0.25 * y + 2.0 * z).astype(np.float32) + 0.25, extent=extent, name="ramp")
+    scalar = GridScalar(vol)
+    p = torch.tensor([[0.3, 0.2, 0.1], [0.9, 0.45, 0.2], [0.05, 0.01, 0.24]])
+    value = scalar.value(p)
+    assert scalar._channels is None  # values alone made no gradient
+    torch.testing.assert_close(value, 0.5 * p[:, 0] - 0.25 * p[:, 1] + 2.0 * p[:, 2] + 0.25, rtol=0, atol=1e-6)
+    v, g = scalar.value_and_grad(p)
+    assert torch.equal(v, value)
+    torch.testing.assert_close(g, torch.tensor([[0.5, -0.25, 2.0]]).expand(3, 3), rtol=0, atol=1e-5)
+    gz, gy, gx = np.gradient(vol.data.astype(np.float64), *(vol.voxel_size[::-1]))
+    assert np.array_equal(scalar.channels[0].numpy(), np.stack([vol.data, gx, gy, gz]).astype(np.float32))
+
+
 @pytest.mark.parametrize("case", ["noshadow_phong", "gt", "naive"])
 def test_wavefront_equals_all_at_once(blob, case):
     cam, scalar, vox = scene_of(blob)

@@ -16,22 +16,41 @@ from diffshadow.volume import Volume
 
 
 class GridScalar:
-    """The raw volume: trilinear value and (central-difference) gradient from one 4-channel lookup."""
+    """The raw volume: trilinear value, and (central-difference) gradient from one 4-channel lookup. The gradient
+    channels are made on the first gradient asked for (Phong shading): a render without them (every `gt` target,
+    view and naive image) kept 4 float32 grids and made them from float64 ones, ~24 grids' bytes at once (12 GiB
+    in render_targets on a 512³ volume)."""
 
     def __init__(self, volume: Volume, device: torch.device | str = "cpu"):
         self.extent = box(volume.extent, device)
         self.voxel = torch.as_tensor(volume.voxel_size, dtype=torch.float32, device=device)
-        data = volume.data.astype(np.float64)
-        spacing = volume.voxel_size  # (x, y, z)
-        gz, gy, gx = np.gradient(data, spacing[2], spacing[1], spacing[0])
-        stack = np.stack([data, gx, gy, gz]).astype(np.float32)
-        self.channels = torch.as_tensor(stack, device=device)[None]  # (1, 4, Z, Y, X)
+        self.volume, self.device = volume, device
+        data = np.ascontiguousarray(volume.data, dtype=np.float32)
+        if not data.flags.writeable:  # torch warns on a read-only array; on a CPU it is shared otherwise
+            data = data.copy()
+        self.values = torch.as_tensor(data, device=device)[None]  # (1, Z, Y, X)
+        self._channels: torch.Tensor | None = None
+
+    @property
+    def channels(self) -> torch.Tensor:
+        """(1, 4, Z, Y, X): the value and its gradient (x, y, z), central differences in float64, one axis at a
+        time (the same values as `np.gradient` over all three at once, with one float64 gradient held)."""
+        if self._channels is None:
+            data = self.volume.data.astype(np.float64)
+            spacing = self.volume.voxel_size  # (x, y, z)
+            stack = np.empty((4, *data.shape), dtype=np.float32)
+            stack[0] = data
+            for channel, axis in ((1, 2), (2, 1), (3, 0)):  # gx along x (the last axis), gy, gz
+                stack[channel] = np.gradient(data, spacing[2 - axis], axis=axis)
+            del data
+            self._channels = torch.as_tensor(stack, device=self.device)[None]
+        return self._channels
 
     def _lookup(self, p: torch.Tensor, channels: slice) -> torch.Tensor:
         return trilinear(self.channels[0, channels], p / self.voxel)
 
     def value(self, p: torch.Tensor) -> torch.Tensor:
-        return self._lookup(p, slice(0, 1))[0]
+        return trilinear(self.values, p / self.voxel)[0]
 
     def value_and_grad(self, p: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         out = self._lookup(p, slice(0, 4))
