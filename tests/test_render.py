@@ -519,3 +519,25 @@ def test_a_prepared_volume_under_another_tf_keeps_its_grid_and_box(tmp_path):
     faint = {**recolour, "density_scale": 1e-6}  # a TF given on the command line is checked as a scene's is
     with pytest.raises(ValueError, match=r"volume.zarr: transfer function: nothing can show: .* raise density_scale"):
         load_render_scene(tmp_path / "volume.zarr", None, torch.device("cpu"), faint)
+
+
+def test_the_visible_sphere_read_a_slab_at_a_time_holds_the_visible_voxels(monkeypatch):
+    """`visible_sphere` (each evaluation view frames it) reads the TF a few planes at a time (every visible voxel's
+    coordinates at once were 9.3 GiB on a 512³ volume): two visible voxels give their midpoint and half their
+    distance plus a voxel's diagonal, whatever the slab height, and an invisible volume gives the box's sphere."""
+    import diffshadow.render.camera as camera
+
+    data = np.zeros((7, 5, 9), dtype=np.float32)  # (z, y, x)
+    data[1, 4, 2] = data[6, 0, 8] = 1.0
+    vol = Volume(data=data, extent=np.array([1.0, 0.5, 0.75]), name="two")  # voxel (1/8, 1/8, 1/8)
+    tf = TransferFunction.from_config({"opacity": [[0.0, 0.0], [0.5, 0.0], [1.0, 1.0]],
+                                       "color": [[0.0, 1, 1, 1], [1.0, 1, 1, 1]], "density_scale": 1.0})
+    a, b = np.array([2, 4, 1]) / 8, np.array([8, 0, 6]) / 8  # (x, y, z) box coordinates
+    for planes in (1, 2, 3, 7, 100):
+        monkeypatch.setattr(camera, "VISIBLE_SLAB_VOXELS", planes * 45)
+        center, radius = camera.visible_sphere(vol, tf)
+        np.testing.assert_allclose(center, (a + b) / 2, rtol=0, atol=1e-12)
+        assert radius == pytest.approx(np.linalg.norm(b - a) / 2 + np.sqrt(3) / 8, abs=1e-12)
+    center, radius = camera.visible_sphere(Volume(data=np.zeros_like(data), extent=vol.extent, name="none"), tf)
+    np.testing.assert_allclose(center, vol.extent / 2)
+    assert radius == pytest.approx(np.linalg.norm(vol.extent) / 2)
