@@ -14,6 +14,8 @@ from enum import IntEnum, unique
 from typing import TYPE_CHECKING
 
 if TYPE_CHECKING:
+    from collections.abc import Iterator
+
     import torch
 
     from diffshadow.transfer import TransferFunction
@@ -89,7 +91,18 @@ def to_device(draw: torch.Tensor, device: torch.device) -> torch.Tensor:
     return draw.to(device, non_blocking=True)
 
 
-VISIBLE_SLAB_VOXELS = 1 << 22  # voxels whose opacity `PointSampler` reads at once
+def visible_voxels(volume: Volume, tf: TransferFunction) -> Iterator[torch.Tensor]:
+    """(z, y, x) indices (V, 3) of the voxels the TF makes visible (opacity > 0), in the voxels' order, a slab of
+    planes at a time (`volume.plane_slabs`; a slab without any gives an empty array)."""
+    import torch
+
+    from diffshadow.volume import plane_slabs
+
+    data = torch.as_tensor(volume.data, device="cpu")
+    for sl in plane_slabs(data.shape):
+        zyx = torch.nonzero(tf.opacity(data[sl]) > 0)
+        zyx[:, 0] += sl.start
+        yield zyx
 
 
 class PointSampler:
@@ -101,15 +114,8 @@ class PointSampler:
 
         self.extent = torch.as_tensor(volume.extent, dtype=torch.float32, device="cpu")
         self.voxel = torch.as_tensor(volume.voxel_size, dtype=torch.float32, device="cpu")
-        # a slab of planes at a time: the TF over every voxel at once held ~10 grids' bytes (5 GiB on 512³)
-        data = torch.as_tensor(volume.data, device="cpu")
-        planes = max(1, VISIBLE_SLAB_VOXELS // max(1, data[0].numel()))
-        parts = []
-        for z0 in range(0, data.shape[0], planes):
-            zyx = torch.nonzero(tf.opacity(data[z0:z0 + planes]) > 0)
-            zyx[:, 0] += z0
-            parts.append(zyx.flip(1).float() * self.voxel)
-        self.visible = torch.cat(parts)  # (V, 3) box coordinates of visible voxels, in the voxels' order
+        # (V, 3) box coordinates of visible voxels, in the voxels' order
+        self.visible = torch.cat([zyx.flip(1).float() * self.voxel for zyx in visible_voxels(volume, tf)])
         self.visible_fraction = visible_fraction if len(self.visible) else 0.0
 
     def sample(self, k: int, n: int, generator: torch.Generator) -> torch.Tensor:

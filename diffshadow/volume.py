@@ -242,12 +242,15 @@ def _to_volume(path: Path, raw: np.ndarray, value_range, spacing) -> Volume:
         raise VolumeError(f"{path}: unsupported dtype {raw.dtype}; expected integers or floats")
     if min(raw.shape) < 2:
         raise VolumeError(f"{path}: every axis needs at least 2 voxels, got shape (z, y, x) = {raw.shape}")
-    floating = np.issubdtype(raw.dtype, np.floating)
-    if floating:  # integers are finite
-        bad = sum(int((~np.isfinite(raw[sl])).sum()) for sl in _slabs(raw))
+    if np.issubdtype(raw.dtype, np.floating):  # integers are finite
+        bad, first = 0, None
+        for sl in plane_slabs(raw.shape):
+            where = ~np.isfinite(raw[sl])
+            if where.any():
+                bad += int(where.sum())
+                first = np.argwhere(where)[0] + [sl.start, 0, 0] if first is None else first
         if bad:
-            z, y, x = next(np.argwhere(~np.isfinite(raw[sl])) + [sl.start, 0, 0] for sl in _slabs(raw)
-                           if not np.isfinite(raw[sl]).all())[0]
+            z, y, x = first
             raise VolumeError(f"{path}: {bad} NaN/Inf voxels; first at (x, y, z) = ({x}, {y}, {z})")
     if value_range is None:
         # float64's min and max are the raw values' (the conversion keeps order), without a float64 copy
@@ -263,7 +266,7 @@ def _to_volume(path: Path, raw: np.ndarray, value_range, spacing) -> Volume:
         # volume's float64 copy and its temporaries were 8.6 float32 grids at once (4.4 GiB on 512³)
         scale = max(abs(lo), abs(hi))
         lo_s, hi_s = lo / scale, hi / scale
-        for sl in _slabs(raw):
+        for sl in plane_slabs(raw.shape):
             d = raw[sl].astype(np.float64)
             d /= scale
             d -= lo_s
@@ -281,13 +284,16 @@ def _to_volume(path: Path, raw: np.ndarray, value_range, spacing) -> Volume:
     return Volume(data=data, extent=extent, name=name)
 
 
-NORMALISE_SLAB_VOXELS = 1 << 22  # voxels normalised at a time: 32 MiB of float64
+# voxels a whole-volume pass reads at once (the normalisation here, the visible voxels in `sampling`): 32 MiB of
+# float64; a pass over every voxel at once held 5-12 grids' bytes (GiB on a 512³ volume)
+SLAB_VOXELS = 1 << 22
 
 
-def _slabs(raw: np.ndarray) -> list[slice]:
-    """Slices along z of about NORMALISE_SLAB_VOXELS voxels each, covering `raw` in order."""
-    step = max(1, NORMALISE_SLAB_VOXELS // max(1, raw.shape[1] * raw.shape[2]))
-    return [slice(z, min(z + step, raw.shape[0])) for z in range(0, raw.shape[0], step)]
+def plane_slabs(shape: tuple[int, ...]) -> list[slice]:
+    """Slices along the first axis of a (Z, Y, X) grid, whole planes of about SLAB_VOXELS voxels each (at least
+    one plane), covering it in order."""
+    step = max(1, SLAB_VOXELS // max(1, shape[1] * shape[2]))
+    return [slice(z, min(z + step, shape[0])) for z in range(0, shape[0], step)]
 
 
 # ------------------------------------------------------------- the prepared volume (prepare_volume's store)

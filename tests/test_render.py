@@ -526,6 +526,7 @@ def test_the_visible_sphere_read_a_slab_at_a_time_holds_the_visible_voxels(monke
     coordinates at once were 9.3 GiB on a 512³ volume): two visible voxels give their midpoint and half their
     distance plus a voxel's diagonal, whatever the slab height, and an invisible volume gives the box's sphere."""
     import diffshadow.render.camera as camera
+    import diffshadow.volume as volume
 
     data = np.zeros((7, 5, 9), dtype=np.float32)  # (z, y, x)
     data[1, 4, 2] = data[6, 0, 8] = 1.0
@@ -534,7 +535,7 @@ def test_the_visible_sphere_read_a_slab_at_a_time_holds_the_visible_voxels(monke
                                        "color": [[0.0, 1, 1, 1], [1.0, 1, 1, 1]], "density_scale": 1.0})
     a, b = np.array([2, 4, 1]) / 8, np.array([8, 0, 6]) / 8  # (x, y, z) box coordinates
     for planes in (1, 2, 3, 7, 100):
-        monkeypatch.setattr(camera, "VISIBLE_SLAB_VOXELS", planes * 45)
+        monkeypatch.setattr(volume, "SLAB_VOXELS", planes * 45)
         center, radius = camera.visible_sphere(vol, tf)
         np.testing.assert_allclose(center, (a + b) / 2, rtol=0, atol=1e-12)
         assert radius == pytest.approx(np.linalg.norm(b - a) / 2 + np.sqrt(3) / 8, abs=1e-12)

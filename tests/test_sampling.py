@@ -60,7 +60,9 @@ def test_the_visible_voxels_found_a_slab_at_a_time_are_those_found_at_once(monke
         vol = Volume(data=data.astype(np.float32), extent=np.array([1.0, 0.8, 1.2]), name="r")
         whole = sampling.PointSampler(vol, identity_tf(), 0.5)
         with monkeypatch.context() as m:
-            m.setattr(sampling, "VISIBLE_SLAB_VOXELS", 1)
+            import diffshadow.volume as volume
+
+            m.setattr(volume, "SLAB_VOXELS", 1)
             slabs = sampling.PointSampler(vol, identity_tf(), 0.5)
         expected = torch.nonzero(torch.as_tensor(data) > 0).flip(1).float() * whole.voxel
         assert torch.equal(whole.visible, expected) and torch.equal(slabs.visible, expected)

@@ -150,7 +150,7 @@ def test_normalising_a_slab_at_a_time_gives_the_whole_volumes_bytes(monkeypatch,
         lo, hi = value_range or (float(data.min()), float(data.max()))
         scale = max(abs(lo), abs(hi))
         expected = np.clip((data / scale - lo / scale) / (hi / scale - lo / scale), 0, 1).astype(np.float32)
-        monkeypatch.setattr(V, "NORMALISE_SLAB_VOXELS", int(rng.integers(1, 400)))
+        monkeypatch.setattr(V, "SLAB_VOXELS", int(rng.integers(1, 400)))
         got = V._to_volume(Path("v.raw"), raw, value_range, None).data
         assert got.dtype == np.float32 and got.tobytes() == expected.tobytes(), (dtype, trial)
         if dtype.startswith("float"):

@@ -10,6 +10,7 @@ import numpy as np
 import torch
 
 from diffshadow.lights import fibonacci_sphere
+from diffshadow.sampling import visible_voxels
 
 
 class RenderError(ValueError):
@@ -123,35 +124,25 @@ def default_views(sphere: tuple, n: int, *, size: int = 128, elevation: float = 
             for i in range(n)]
 
 
-VISIBLE_SLAB_VOXELS = 1 << 22  # voxels whose opacity `visible_sphere` reads at once
-
-
 def visible_sphere(volume, tf) -> tuple[np.ndarray, float]:
     """(centre, radius) in box coordinates of the smallest sphere about the visible voxels' bounding-box centre
     that holds them all (opacity > 0), widened by a voxel; the box's own where none is visible."""
     extent, voxel = np.asarray(volume.extent, float), np.asarray(volume.voxel_size, float)
-    # two passes over slabs of planes (the box, then the farthest voxel from its centre): every visible voxel's
-    # coordinates at once, with the TF over the whole grid, were 9.3 GiB on a 512³ volume; the same numbers
+
+    def visible_xyz():  # box coordinates, a slab at a time (`sampling.visible_voxels`)
+        return (zyx.flip(1).numpy().astype(float) * voxel for zyx in visible_voxels(volume, tf) if len(zyx))
+
+    # two passes (the box, then the farthest voxel from its centre): every visible voxel's coordinates at once, with
+    # the TF over the whole grid, were 9.3 GiB on a 512³ volume; the same numbers
     lo = hi = None
-    for xyz in _visible_xyz(volume, tf, voxel):
+    for xyz in visible_xyz():
         lo = xyz.min(0) if lo is None else np.minimum(lo, xyz.min(0))
         hi = xyz.max(0) if hi is None else np.maximum(hi, xyz.max(0))
     if lo is None:
         return extent / 2, float(np.linalg.norm(extent)) / 2
     center = (lo + hi) / 2
-    farthest = max(((xyz - center) ** 2).sum(1).max() for xyz in _visible_xyz(volume, tf, voxel))
+    farthest = max(((xyz - center) ** 2).sum(1).max() for xyz in visible_xyz())
     return center, float(np.sqrt(farthest)) + float(np.linalg.norm(voxel))
-
-
-def _visible_xyz(volume, tf, voxel: np.ndarray):
-    """The visible voxels' box coordinates (V, 3) float64, a slab of planes at a time (slabs without any skipped)."""
-    data = torch.as_tensor(volume.data, device="cpu")
-    planes = max(1, VISIBLE_SLAB_VOXELS // max(1, data[0].numel()))
-    for z0 in range(0, data.shape[0], planes):
-        zyx = torch.nonzero(tf.opacity(data[z0:z0 + planes]) > 0)
-        if len(zyx):
-            zyx[:, 0] += z0
-            yield zyx.flip(1).numpy().astype(float) * voxel
 
 
 def fibonacci_views(extent, n: int, *, size: int, fov: float = 60.0, distance: float = 2.2) -> list[Camera]:
