@@ -1,6 +1,7 @@
 """Ground-truth shadows: an analytic case, convergence, invariances, extremes and bad input."""
 
 import functools
+import re
 import warnings
 
 import numpy as np
@@ -90,7 +91,8 @@ def test_sweep_exit_faces_are_unshadowed(blob):
     assert g[:, :, 0].min() < 0.5  # the face the light enters through is shadowed
 
 
-def test_skipping_changes_nothing():
+@pytest.mark.parametrize("cell", [1, 2, 8, 16])
+def test_skipping_changes_nothing(cell):
     rng = np.random.default_rng(2)
     data = np.zeros((30, 26, 23), np.float32)
     data[5:12, 14:20, 3:9] = rng.uniform(0.3, 1, size=(7, 6, 6))  # sparse blocks in an empty volume
@@ -99,13 +101,22 @@ def test_skipping_changes_nothing():
     vol = Volume(data=data, extent=np.array([22, 25, 29]) / 29, name="blocks")
     tf = TransferFunction.from_config({"opacity": [[0, 0], [0.2, 0], [1, 1]], "color": [[0, 1, 1, 1], [1, 1, 1, 1]],
                                        "density_scale": 30})
-    field = ShadowField.build(vol, tf)
+    field = ShadowField.build(vol, tf, cell=cell)
     assert 0.3 < field.empty.float().mean() < 1.0
+    voxels = voxel_points(vol)
     for w in [(0.2, 0.9, -0.3), (-1, 0, 0), (0.5, 0.5, 0.7)]:
-        a = shadow_grid(vol, tf, w, method="march", skip_empty=True)
-        b = shadow_grid(vol, tf, w, method="march", skip_empty=False)
+        a = transmittance(field, tf, w, voxels, skip_empty=True)
+        b = transmittance(field, tf, w, voxels, skip_empty=False)
         assert (a - b).abs().max() <= 1e-6
         assert a.min() < 0.5  # the blocks do cast shadows here
+
+
+@pytest.mark.parametrize("cell", [3, 6, -8, 8.0, True])
+def test_a_macro_cell_is_a_power_of_two_of_voxels(blob, cell):
+    # the march finds a sample's cell by a true division, exact only by a power of two
+    with pytest.raises(ValueError, match=rf"cell: expected 0 \(no skipping\) or a power of two of voxels, got "
+                                         rf"{re.escape(repr(cell))}"):
+        ShadowField.build(blob, identity_tf(), cell=cell)
 
 
 def test_chunking_and_samples_per_iteration_do_not_matter(blob):
