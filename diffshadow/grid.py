@@ -204,9 +204,14 @@ def lattice_points(axes: list[torch.Tensor], start: int, stop: int) -> torch.Ten
     """Box coordinates (x, y, z) of points `start`..`stop` - 1 of the lattice of `axes` (z, y, x), in (Z, Y, X)
     order: those rows of `voxel_points` (whose axes are the voxels'), made alone, so that a lattice can be walked a
     chunk at a time without holding every point's 12 bytes."""
+    return lattice_points_at(axes, torch.arange(start, stop, device=axes[0].device))
+
+
+def lattice_points_at(axes: list[torch.Tensor], index: torch.Tensor) -> torch.Tensor:
+    """Box coordinates (x, y, z) of the lattice points at flat (Z, Y, X)-order `index` (int64, on the axes'
+    device): those rows of `voxel_points`, made alone."""
     rows, cols = len(axes[1]), len(axes[2])
-    i = torch.arange(start, stop, device=axes[0].device)
-    return torch.stack([axes[2][i % cols], axes[1][(i // cols) % rows], axes[0][i // (rows * cols)]], -1)
+    return torch.stack([axes[2][index % cols], axes[1][(index // cols) % rows], axes[0][index // (rows * cols)]], -1)
 
 
 def lookup_grids(grids: torch.Tensor, points: torch.Tensor, extent: torch.Tensor) -> torch.Tensor:

@@ -187,13 +187,15 @@ def test_macro_cell_ranges_made_a_slab_at_a_time_are_those_of_the_whole_lattice(
 def test_lattice_points_are_voxel_points_rows_made_alone():
     """voxel_errors and inr_cell_ranges walk a lattice a chunk at a time: the chunk's points are exactly those rows
     of the whole lattice (`voxel_points`), so the INR sees the same inputs in the same batches."""
-    from diffshadow.grid import lattice_points, voxel_points
+    from diffshadow.grid import lattice_points, lattice_points_at, voxel_points
 
     vol = Volume(data=np.zeros((7, 5, 9), np.float32), extent=np.array([1.3, 0.6, 0.9]), name="r")
     axes = [torch.linspace(0, float(e), n) for e, n in zip(vol.extent[::-1], vol.data.shape, strict=True)]
     whole = voxel_points(vol)
     for start, stop in ((0, len(whole)), (5, 301), (44, 45)):
         assert torch.equal(lattice_points(axes, start, stop), whole[start:stop])
+    index = torch.randperm(len(whole), generator=torch.Generator().manual_seed(0))[:50]
+    assert torch.equal(lattice_points_at(axes, index), whole[index])
 
 
 def test_the_macro_cell_ranges_are_made_once_for_the_size_kept(blob, monkeypatch):

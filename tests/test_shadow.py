@@ -266,19 +266,19 @@ def test_bad_step_method_and_points(blob):
 
 
 @pytest.mark.parametrize("factor", [1, 2])
-def test_the_seen_voxels_of_one_visible_voxel_are_the_corners_of_its_cells(factor):
-    """A single voxel where μ > 0 makes the 8 unit cells it is a corner of visible; their corners, on the volume
-    refined `factor` times, are the (2·factor + 1)³ block around it."""
+@pytest.mark.parametrize("dot", [(2, 3, 4), (0, 0, 0), (5, 6, 7), (0, 6, 3)])
+def test_the_seen_voxels_of_one_visible_voxel_are_the_corners_of_its_cells(factor, dot):
+    """A single voxel where μ > 0 makes the (up to) 8 unit cells it is a corner of visible; their corners, on the
+    volume refined `factor` times, are the (2·factor + 1)³ block around it, cut by the volume's faces."""
     data = np.zeros((6, 7, 8), np.float32)
-    data[2, 3, 4] = 1.0
+    data[dot] = 1.0
     seen = seen_voxels(Volume(data=data, extent=np.ones(3), name="dot"), identity_tf(), factor)
     expect = torch.zeros([(n - 1) * factor + 1 for n in data.shape], dtype=torch.bool)
-    expect[(2 - 1) * factor:(2 + 1) * factor + 1, (3 - 1) * factor:(3 + 1) * factor + 1,
-           (4 - 1) * factor:(4 + 1) * factor + 1] = True
-    assert torch.equal(seen, expect)
+    expect[tuple(slice(max(0, (d - 1) * factor), (d + 1) * factor + 1) for d in dot)] = True
+    assert seen.dtype == torch.bool and torch.equal(seen, expect)
 
 
-def test_a_march_of_the_seen_voxels_alone_is_the_full_marchs_there_and_one_elsewhere():
+def test_a_march_of_the_seen_voxels_alone_is_the_full_marchs_there_and_one_elsewhere(monkeypatch):
     blob = Volume(data=gaussian_blob(33, SIGMA), extent=np.ones(3), name="blob")
     tf = TransferFunction.from_config({"opacity": [[0.0, 0.0], [0.2, 0.0], [1.0, 0.8]], "density_scale": 25.0,
                                        "color": [[0.0, 1.0, 1.0, 1.0], [1.0, 1.0, 1.0, 1.0]]})
@@ -290,6 +290,11 @@ def test_a_march_of_the_seen_voxels_alone_is_the_full_marchs_there_and_one_elsew
         full = shadow_grid(fine, tf, w, method="march")
         part = shadow_grid(fine, tf, w, method="march", voxels=seen)
         assert torch.equal(part[seen], full[seen]) and (part[~seen] == 1).all()
+        # marched a slab of voxels at a time (their coordinates made for the slab alone): the same bits
+        with monkeypatch.context() as m:
+            m.setattr(shadow_module, "MARCH_SLAB_POINTS", 4099)
+            assert torch.equal(shadow_grid(fine, tf, w, method="march"), full)
+            assert torch.equal(shadow_grid(fine, tf, w, method="march", voxels=seen), part)
     with pytest.raises(ValueError, match=r"voxels: expected a bool mask of shape \(33, 33, 33\), got torch.float32"):
         shadow_grid(blob, tf, w, method="march", voxels=seen.float())
     with pytest.raises(TypeError, match=r"shadow_grid\(method='sweep'\) takes no \['voxels'\]"):
