@@ -354,7 +354,7 @@ def seen_voxels(volume: Volume, tf: TransferFunction, factor: int = 1, device: t
     seen = padded[1:, 1:, 1:].clone()
     for dz, dy, dx in itertools.product((0, 1), repeat=3):
         if dz or dy or dx:
-            seen |= padded[1 - dz:len(padded) - dz, 1 - dy:padded.shape[1] - dy, 1 - dx:padded.shape[2] - dx]
+            seen |= padded[1 - dz:padded.shape[0] - dz, 1 - dy:padded.shape[1] - dy, 1 - dx:padded.shape[2] - dx]
     return seen
 
 
