@@ -10,6 +10,7 @@ import torch
 from conftest import Asker, cores, default_device_meta, identity_tf
 
 from diffshadow import shadow as shadow_module
+from diffshadow import volume as volume_module
 from diffshadow.analytic import BLOB_DENSITY as K
 from diffshadow.analytic import BLOB_SIGMA as SIGMA
 from diffshadow.analytic import blob_cases, blob_transmittance, gaussian_blob
@@ -290,9 +291,9 @@ def test_a_march_of_the_seen_voxels_alone_is_the_full_marchs_there_and_one_elsew
         full = shadow_grid(fine, tf, w, method="march")
         part = shadow_grid(fine, tf, w, method="march", voxels=seen)
         assert torch.equal(part[seen], full[seen]) and (part[~seen] == 1).all()
-        # marched a slab of voxels at a time (their coordinates made for the slab alone): the same bits
+        # marched a slab of planes at a time (their coordinates made for the slab alone): the same bits
         with monkeypatch.context() as m:
-            m.setattr(shadow_module, "MARCH_SLAB_POINTS", 4099)
+            m.setattr(volume_module, "SLAB_VOXELS", 4099)
             assert torch.equal(shadow_grid(fine, tf, w, method="march"), full)
             assert torch.equal(shadow_grid(fine, tf, w, method="march", voxels=seen), part)
     with pytest.raises(ValueError, match=r"voxels: expected a bool mask of shape \(33, 33, 33\), got torch.float32"):
