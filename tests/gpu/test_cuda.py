@@ -96,7 +96,8 @@ def test_graphed_fit_steps_fit_what_eager_steps_fit(volume, tmp_path, monkeypatc
 
     made = recorded_graphs(monkeypatch)
     cfg = FitConfig.from_config(dict(steps=24, points=1024, eval_points=512, grid_upsample=1, min_psnr=0.0,
-                                     checkpoint_every=8, blend_weight=1.0, blend_per_light=4, blend_points=256))
+                                     checkpoint_every=8, blend_weight=1.0, blend_per_light=4, blend_points=256,
+                                     cuda_graph=False))  # eager: `auto`, the default, graphs on CUDA
     pool = blend_pool(volume, TF, LIGHTS, np.array([0.0, 0.0, 1.0]), [0, 1, 2, 3], cfg)
     run = {"pool": pool, "device": CUDA, "log": lambda m: None}
     eager = fit_sirens(_init(), LAYOUT, SIREN, volume, TF, LIGHTS, cfg, **run)
@@ -144,7 +145,7 @@ def test_graphed_data_inr_steps_fit_what_eager_steps_fit(volume, tmp_path, monke
 
     made = recorded_graphs(monkeypatch)
     cfg = DataInrConfig.from_config(dict(width=16, blocks=1, steps=60, points=512, checkpoint_every=20,
-                                         error_every=30, target_psnr=0))
+                                         error_every=30, target_psnr=0, cuda_graph=False))  # eager, not `auto`
     eager = fit_data_inr(volume, TF, cfg, device=CUDA, log=lambda m: None)
     graphed_cfg = replace(cfg, cuda_graph=True)
     graphed = fit_data_inr(volume, TF, graphed_cfg, device=CUDA, log=lambda m: None)
