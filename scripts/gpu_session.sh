@@ -153,10 +153,12 @@ workflow)
     cp results/nucleon/*.json "$out/" 2>/dev/null
     cp -r results/nucleon/benchmarks results/nucleon/logs "$out/" 2>/dev/null
     cp results/nucleon/stage_costs.tsv "$out/run_stage_costs.tsv" 2>/dev/null
-    # the run's compiled kernels, oldest first (each with what it was specialised on), beside the jobs' start
-    # times: naive_images, evaluate_images and benchmark each spent 3-4.7 s compiling though they share this cache
-    python - results/.kernel-cache/triton >"$out/kernel_cache.tsv" 2>&1 <<'PY'
-import json, os, sys
+    # the run's compiled kernels, oldest first, beside the jobs' start times: naive_images, evaluate_images and
+    # benchmark each compiled their own (7 kernels at 6d4adc4, where one viewer process needs 4). Triton 3.6's
+    # metadata names no specialisation, so each kernel's Triton IR goes along (kernel_ir/): its signature holds the
+    # pointers' alignment, its body the constants
+    python - results/.kernel-cache/triton "$out/kernel_ir" >"$out/kernel_cache.tsv" 2>&1 <<'PY'
+import json, os, shutil, sys
 rows = []
 for root, _, files in os.walk(sys.argv[1]):
     for f in files:
@@ -166,10 +168,16 @@ for root, _, files in os.walk(sys.argv[1]):
                 meta = json.load(open(path))
             except (OSError, ValueError):
                 continue
-            rows.append((os.path.getmtime(path), meta.get("name", f), {k: v for k, v in meta.items() if k in (
-                "constants", "num_warps", "maxnreg", "signature", "attrs", "specialization")}))
-for t, name, meta in sorted(rows, key=lambda r: r[:2]):
-    print(f"{t:.1f}\t{name}\t{json.dumps(meta, sort_keys=True)}")
+            rows.append((os.path.getmtime(path), meta.get("name", f), root, meta))
+os.makedirs(sys.argv[2], exist_ok=True)
+for i, (t, name, root, meta) in enumerate(sorted(rows, key=lambda r: r[:2])):
+    ttir = os.path.join(root, f"{name}.ttir")
+    signature = ""
+    if os.path.exists(ttir):
+        shutil.copy(ttir, os.path.join(sys.argv[2], f"{i:02d}_{name}.ttir"))
+        signature = next((line.strip() for line in open(ttir) if "tt.func public" in line), "")
+    small = {k: v for k, v in meta.items() if not isinstance(v, (list, dict)) or len(json.dumps(v)) < 200}
+    print(f"{t:.1f}\t{name}\t{json.dumps(small, sort_keys=True)}\t{signature}")
 PY
     step stage_costs diffshadow stage-costs --out "$out/stage_costs.tsv" --timeline "$out/timeline.png" \
         --benchmarks results/nucleon/benchmarks/*.tsv

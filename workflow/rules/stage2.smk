@@ -142,6 +142,7 @@ rule sample_shadows:
         settings=lambda wc: mix_settings(wc.scene),
     # the model samples on the run's device; the SIRENs are scored on the CPU unless evaluate.device is run
     threads: lambda wc: device_threads(2) if scene_config(wc.scene)["evaluate"]["device"] == "run" else 2
+    priority: 10  # the chain's next job after finetune_render, before the side jobs still waiting
     log:
         "results/{scene}/logs/sample_shadows.log",
     benchmark:
@@ -267,6 +268,9 @@ rule finetune_render:
         # one process, tests/test_finetune.py), so a profile that sets them reruns nothing
         cfg=lambda wc: finetune_json(wc.scene),
     threads: lambda wc: device_threads(scene_config(wc.scene)["finetune"]["nproc"], processes=True)
+    # the chain after train_diffusion: on the H200 train_data_inr took the core train_diffusion freed, and this job
+    # waited 5.9 s (2.4 s under evaluate.device: run) though it needs nothing of it (docs/performance.md)
+    priority: 10
     resources:
         gpu=lambda wc: scene_config(wc.scene)["finetune"]["nproc"],
     log:
