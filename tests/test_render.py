@@ -542,3 +542,17 @@ def test_the_visible_sphere_read_a_slab_at_a_time_holds_the_visible_voxels(monke
     center, radius = camera.visible_sphere(Volume(data=np.zeros_like(data), extent=vol.extent, name="none"), tf)
     np.testing.assert_allclose(center, vol.extent / 2)
     assert radius == pytest.approx(np.linalg.norm(vol.extent) / 2)
+
+
+def test_an_image_becomes_bytes_rounded_to_the_nearest_level():
+    """`Image.to_uint8`: k/255 is level k, a value a hair under or over the midpoint between two levels goes to
+    the nearer, anything outside [0, 1] is 0 or 255, and the array is (H, W, 3) uint8 on the host."""
+    from diffshadow.render.marcher import Image
+
+    k = torch.arange(256, dtype=torch.float32)
+    values = torch.cat([k / 255, (k[:-1] + 0.49) / 255, (k[:-1] + 0.51) / 255, torch.tensor([-0.5, 1.5, 2.0])])
+    expect = torch.cat([k, k[:-1], k[:-1] + 1, torch.tensor([0.0, 255.0, 255.0])]).to(torch.uint8).numpy()
+    rgb = values[:, None, None].expand(-1, 1, 3)
+    out = Image(rgb=rgb, alpha=torch.ones(len(values), 1), seconds=0.0).to_uint8()
+    assert out.dtype == np.uint8 and out.shape == (len(values), 1, 3) and isinstance(out, np.ndarray)
+    assert np.array_equal(out[:, 0, 0], expect) and np.array_equal(out[..., 0], out[..., 2])
