@@ -466,6 +466,38 @@ def test_a_sweep_looked_up_a_few_samples_at_a_time_gives_the_same_bits(monkeypat
     assert whole.min() < 0.5 and whole.max() == 1.0
 
 
+def test_a_volumes_sweeps_find_its_occupied_box_once_and_turn_it_for_each_light(monkeypatch):
+    """The sweeps of one volume and TF find the box of its occupied cells once, in the volume's own axes, and
+    turn it for each light (axes permuted, the dominant one flipped where the light comes from its far end). The
+    box only spares work: a sweep over the whole volume draws the same grid to float32 rounding, for lights along
+    every axis both ways and oblique ones, so a box turned wrongly (cutting off occupied cells) would show.
+    Another TF, or another volume with the same values, finds its own."""
+    from diffshadow import grid as grid_module
+
+    found = []
+    real = grid_module.occupied_bounds
+    monkeypatch.setattr(shadow_module, "occupied_bounds", lambda s, tf: found.append(tuple(s.shape)) or real(s, tf))
+    rng = np.random.default_rng(5)
+    data = np.zeros((19, 23, 27), np.float32)
+    data[3:9, 12:20, 2:11] = rng.uniform(0, 1, (6, 8, 9))  # off centre: a box flipped or swapped misses it
+    vol = Volume(data=data, extent=np.array([27, 23, 19]) / 27, name="corner")
+    tf = identity_tf(20.0)
+    lights = [tuple(v) for v in np.eye(3)] + [tuple(-v) for v in np.eye(3)] + [(0.3, -0.5, 0.8), (-0.7, 0.6, -0.2)]
+    grids = [shadow_grid(vol, tf, w, method="sweep") for w in lights]
+    assert found == [data.shape]
+    monkeypatch.setattr(shadow_module, "_occupied_box", lambda volume, tf, s: [(0, n - 1) for n in s.shape])
+    for w, grid in zip(lights, grids, strict=True):
+        whole = shadow_grid(vol, tf, w, method="sweep")
+        # the lines' coordinates start at the box, so a few bits differ: a box turned wrongly differs by ~1
+        assert float((grid - whole).abs().max()) <= 1e-5 and grid.min() < 0.1, w
+    monkeypatch.undo()
+    monkeypatch.setattr(shadow_module, "occupied_bounds", lambda s, tf: found.append(tuple(s.shape)) or real(s, tf))
+    found.clear()
+    shadow_grid(vol, identity_tf(5.0), lights[0], method="sweep")
+    shadow_grid(Volume(data=data.copy(), extent=vol.extent, name="copy"), tf, lights[0], method="sweep")
+    assert len(found) == 2
+
+
 def test_empty_cells_found_a_slab_at_a_time_are_those_found_at_once(monkeypatch):
     from diffshadow import grid as grid_module
 
