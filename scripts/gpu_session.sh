@@ -40,13 +40,16 @@
 #           this.
 # stage1:   stage 1 alone (snakemake ... results/nucleon/weights.zarr) at 512 of 2,048 lights, wall time
 #           and each fit_siren job's benchmark (a job cut short still leaves the finished subsets' figures).
+# viewer:   `ViewerScene.frame` on a finished results/nucleon (after `workflow`) at 512² and 1024² from the framed
+#           view: each mode's first frame (its kernels compiled) and median, the light moved among training
+#           lights, and new directions (the SIREN generated, then its frame).
 #
 # On a CPU it runs too (DIFFSHADOW_DEVICE=cpu, QUICK=1 for small sizes): that is how the script is tested.
 set -uo pipefail
 case ${1:-} in
     -h|--help) sed -n '2,/^set -uo/p' "$0" | sed '$d;s/^# \{0,1\}//'; exit 0 ;;
 esac
-part=${1:?usage: scripts/gpu_session.sh all|plans|render|workflow|checks|stages|precision|graph|stage1}
+part=${1:?usage: scripts/gpu_session.sh all|plans|render|workflow|checks|stages|precision|graph|viewer|stage1}
 # Parts write under $root and are packed into $OUT/<part>.tgz at the end: a device call brings back at most 8
 # files, and one run writes dozens. `all` hands its root to the parts it runs (PART_ROOT) and packs once each.
 dest=${OUT:-gpu_session}
@@ -221,6 +224,38 @@ graph)
     done
     step pytest_graph pytest -q -n 0 -m gpu -rs -k graph
     ;;
+viewer)
+    sizes="512 1024"; [ "$quick" = 1 ] && sizes="24 32"
+    step viewer_frames python - "$out/viewer_frames.json" "$device" $sizes <<'PY'
+import json, statistics, sys, time
+from pathlib import Path
+import numpy as np, torch
+from diffshadow.viewer import ViewerScene, azimuth_elevation, direction
+device, sizes = torch.device(sys.argv[2]), [int(s) for s in sys.argv[3:]]
+t0 = time.perf_counter()
+viewer = ViewerScene.from_results(Path("results/nucleon"), device)
+out = {"open_s": time.perf_counter() - t0, "kernel": viewer.scene.kernel_used, "torch": torch.__version__}
+light = np.asarray(viewer.train[0])
+az, el = azimuth_elevation(light)
+def frame(mode, camera, w):
+    t = time.perf_counter()
+    _, notes = viewer.frame(mode, camera, w, step=0.5)
+    return time.perf_counter() - t, notes
+for size in sizes:
+    camera, row = viewer.scene.framed(size=size), {}
+    for mode, n in (("noshadow", 8), ("inr", 8), ("gt", 4), ("naive", 2)):
+        seconds = [frame(mode, camera, light)[0] for _ in range(n)]
+        row[mode] = {"first_s": seconds[0], "median_s": statistics.median(seconds[1:])}
+    row["inr_light_moved_s"] = statistics.median(frame("inr", camera, np.asarray(w))[0] for w in viewer.train[1:6])
+    row["new_direction"] = []
+    for i in range(3):  # near training light 0, listed nowhere: generated once, then drawn
+        s, notes = frame("inr", camera, direction(az + 2 + i + size / 1000, el))
+        row["new_direction"].append({"generate_s": notes["light"].generate_s, "frame_s": s})
+    out[str(size)] = row
+    print(size, json.dumps(row), flush=True)
+json.dump(out, open(sys.argv[1], "w"), indent=1, default=float)
+PY
+    ;;
 stage1)
     # stage 1 alone at 512 training lights, at the paper's cap fraction (a quarter of the sphere)
     n=512; [ "$quick" = 1 ] && n=40
@@ -235,7 +270,8 @@ stage1)
     cp -r results/nucleon/benchmarks results/nucleon/logs "$out/" 2>/dev/null
     ;;
 *)
-    echo "unknown part $part (all, plans, render, workflow, checks, stages, precision, graph or stage1)" >&2; exit 2
+    echo "unknown part $part (all, plans, render, workflow, checks, stages, precision, graph, viewer or stage1)" >&2
+    exit 2
     ;;
 esac
 pack
