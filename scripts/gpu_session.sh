@@ -24,7 +24,8 @@
 # workflow: the README's run (`snakemake --profile local -j2`, the profile from profiles/; SNAKEMAKE_ARGS added)
 #           on an empty results/, its wall time, each rule's phases (stage_costs.tsv), the GPU's busy share and
 #           the run's metrics. SWITCHES, YAML over config/config.yaml, times a config switch (e.g.
-#           "evaluate: {device: run}": eval_truth and evaluate_voxels on the GPU).
+#           "evaluate: {device: run}": eval_truth and evaluate_voxels on the GPU), and every process's Triton compile
+#           requests (triton_compiles.jsonl: kernel, specialisation, options).
 # checks:   pytest -m gpu (PYTEST_K narrows it with -k).
 # stages:   `bench stages` on the GPU at the paper's sizes (the JSON profiles/paper is generated from), at the
 #           defaults, and at the defaults with every training step's points and batch raised (STAGES_BIG, a YAML
@@ -43,13 +44,15 @@
 # viewer:   `ViewerScene.frame` on a finished results/nucleon (after `workflow`) at 512² and 1024² from the framed
 #           view: each mode's first frame (its kernels compiled) and median, the light moved among training
 #           lights, and new directions (the SIREN generated, then its frame).
+# sampler:  `generate` on a finished results/nucleon, its denoiser eager then as replayed CUDA graphs (the default on
+#           CUDA), alternating: the 500-step DDPM of evaluate_voxels, a new direction, sample_shadows' batch.
 #
 # On a CPU it runs too (DIFFSHADOW_DEVICE=cpu, QUICK=1 for small sizes): that is how the script is tested.
 set -uo pipefail
 case ${1:-} in
     -h|--help) sed -n '2,/^set -uo/p' "$0" | sed '$d;s/^# \{0,1\}//'; exit 0 ;;
 esac
-part=${1:?usage: scripts/gpu_session.sh all|plans|render|workflow|checks|stages|precision|graph|viewer|stage1}
+part=${1:?usage: scripts/gpu_session.sh all|plans|render|workflow|checks|stages|precision|graph|viewer|sampler|stage1}
 # Parts write under $root and are packed into $OUT/<part>.tgz at the end: a device call brings back at most 8
 # files, and one run writes dozens. `all` hands its root to the parts it runs (PART_ROOT) and packs once each.
 dest=${OUT:-gpu_session}
@@ -139,6 +142,32 @@ workflow)
     [ -L results ] && rm results  # a link to this machine's results elsewhere travels as a dangling link
     rm -rf results/nucleon results/.kernel-cache  # a first run's kernels compile too
     compiled
+    # every process's Triton compile requests (kernel, specialisation, options) into triton_compiles.jsonl, through
+    # Triton's jit_cache_hook, set by a sitecustomize when triton.knobs loads (a process that renders nothing
+    # imports no Triton for it): which launches of which jobs ask for kernels the run's cache lacks
+    mkdir -p "$out/hook"
+    cat >"$out/hook/sitecustomize.py" <<'PY'
+import importlib.abc, importlib.util, json, os, sys
+class _Knobs(importlib.abc.MetaPathFinder):
+    def find_spec(self, name, path, target=None):
+        if name != "triton.knobs":
+            return None
+        sys.meta_path.remove(self)
+        spec = importlib.util.find_spec(name)
+        run = spec.loader.exec_module
+        def exec_module(module):
+            run(module)
+            def hook(*, key, repr, fn, compile, is_manual_warmup, already_compiled):
+                with open(os.environ["DIFFSHADOW_TRITON_LOG"], "a") as f:
+                    f.write(json.dumps({"pid": os.getpid(), "job": sys.argv[1:5], "repr": repr, "key": str(key),
+                                        "spec": compile.get("specialization_data"),
+                                        "cache_dir": module.cache.dir}) + "\n")
+            module.runtime.jit_cache_hook = hook
+        spec.loader.exec_module = exec_module
+        return spec
+sys.meta_path.insert(0, _Knobs())
+PY
+    export DIFFSHADOW_TRITON_LOG=$out/triton_compiles.jsonl PYTHONPATH=$out/hook${PYTHONPATH:+:$PYTHONPATH}
     t0=$SECONDS
     # the GPU's busy share through the run, every half second
     nvidia-smi --query-gpu=timestamp,utilization.gpu,memory.used --format=csv -lms 500 >"$out/gpu_util.csv" 2>/dev/null &
@@ -256,6 +285,41 @@ for size in sizes:
 json.dump(out, open(sys.argv[1], "w"), indent=1, default=float)
 PY
     ;;
+sampler)
+    # generate() on a finished results/nucleon (after `workflow`), its denoiser eager and as replayed CUDA graphs,
+    # alternating: evaluate_voxels' 500-step DDPM of 8 lights, a viewer's new direction (DDIM, 1 light),
+    # sample_shadows' batch (DDIM, 64 lights); the first call of each (graphs captured) apart; the largest difference
+    step sampler_graphs python - "$out/sampler_graphs.json" "$device" "$quick" <<'PY'
+import json, statistics, sys, time
+from pathlib import Path
+import numpy as np, torch
+from diffshadow.artifacts import load_checkpoint
+from diffshadow.diffusion.sample import generate, load_sampler
+device, quick = torch.device(sys.argv[2]), sys.argv[3] == "1"
+model, std, _, _ = load_sampler(state := load_checkpoint(Path("results/nucleon/diffusion.ckpt")), device)
+train = np.asarray(state["train_lights"])
+cases = [("ddim", 5, 1, 2)] if quick else [("ddpm", 500, 8, 3), ("ddim", 10, 1, 10), ("ddim", 10, 64, 5)]
+def run(method, steps, n, graph):
+    if device.type == "cuda":
+        torch.cuda.synchronize(device)
+    t = time.perf_counter()
+    w = generate(model, std, np.resize(train, (n, 3)), method=method, steps=steps, device=device, cuda_graph=graph)
+    return time.perf_counter() - t, w
+out = {"torch": torch.__version__, "device": str(device), "cases": []}
+for method, steps, n, repeats in cases:
+    first = {g: run(method, steps, n, g) for g in (False, True)}
+    times = {False: [], True: []}
+    for _ in range(repeats):
+        for g in (False, True):
+            times[g].append(run(method, steps, n, g)[0])
+    row = {"method": method, "steps": steps, "lights": n, "first_s": {str(g): first[g][0] for g in first},
+           "median_s": {str(g): statistics.median(times[g]) for g in times},
+           "max_abs_diff": float((first[True][1] - first[False][1]).abs().max())}
+    out["cases"].append(row)
+    print(json.dumps(row), flush=True)
+json.dump(out, open(sys.argv[1], "w"), indent=1)
+PY
+    ;;
 stage1)
     # stage 1 alone at 512 training lights, at the paper's cap fraction (a quarter of the sphere)
     n=512; [ "$quick" = 1 ] && n=40
@@ -270,7 +334,7 @@ stage1)
     cp -r results/nucleon/benchmarks results/nucleon/logs "$out/" 2>/dev/null
     ;;
 *)
-    echo "unknown part $part (all, plans, render, workflow, checks, stages, precision, graph, viewer or stage1)" >&2
+    echo "unknown part $part (all, plans, render, workflow, checks, stages, precision, graph, viewer, sampler or stage1)" >&2
     exit 2
     ;;
 esac

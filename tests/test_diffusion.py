@@ -403,6 +403,12 @@ def test_sampling_is_deterministic_and_checks_directions(tmp_path):
         generate(model, std, [[0, 0, 1], [0, 0, 0]])
     with pytest.raises(LightError, match="light 0: must be finite"):
         generate(model, std, [[np.nan, 0, 1]])
+    # the denoiser's CUDA graphs (the default) are CUDA's alone: on a CPU none is made, and either setting gives the
+    # same bytes (tests/gpu/test_cuda.py holds the graphs to eager sampling on CUDA)
+    from diffshadow.diffusion import sample
+
+    assert torch.equal(a, generate(model, std, lights, steps=5, seed=3, cuda_graph=False))
+    assert model not in sample._GRAPHS
 
 
 def test_training_and_sampling_make_no_tensor_on_the_implicit_default_device(tmp_path):

@@ -187,6 +187,33 @@ def test_diffusion_training_and_sampling_agree_with_cpu(tmp_path):
     assert float((a - b).abs().max() / a.abs().max()) <= 1e-4
 
 
+def test_graphed_sampling_generates_what_eager_sampling_generates(tmp_path):
+    """`generate` on CUDA replays its denoiser as CUDA graphs (the default): DDIM and DDPM give eager sampling's
+    weights; the graphs stay with the model (a later call of the batch captures none); a model whose parameters
+    moved to new storage is captured again, not replayed on the freed old weights."""
+    from diffshadow.diffusion import sample
+
+    state = train_diffusion(_training_data(), DCFG, tmp_path / "m.ckpt", device="cpu", log=lambda m: None)
+    model, std, _, _ = load_sampler(state, CUDA)
+
+    def both(method, steps):
+        eager = generate(model, std, LIGHTS, method=method, steps=steps, seed=3, device=CUDA, cuda_graph=False)
+        graphed = generate(model, std, LIGHTS, method=method, steps=steps, seed=3, device=CUDA)
+        assert float((eager - graphed).abs().max() / eager.abs().max()) <= 1e-6, (method, steps)
+        return graphed
+
+    both("ddim", 10)
+    graphs = sample._GRAPHS[model][1]
+    both("ddpm", 500)
+    assert sample._GRAPHS[model][1] is graphs and len(graphs.graphs) == 1 and graphs.calls == 510
+    before = both("ddim", 10)
+    with torch.no_grad():
+        for p in model.parameters():
+            p.data = p.data * 1.01  # new storage: the old graph would read freed memory
+    after = both("ddim", 10)
+    assert sample._GRAPHS[model][1] is not graphs and not torch.equal(before, after)
+
+
 def test_caches_model_rows_on_cuda_are_the_cpus_to_float_rounding(tmp_path):
     """evaluate.device: run samples caches' fp16 model on the GPU; its PSNRs (taken on the CPU) are the CPU run's
     to float rounding, and its rows name the GPU."""
