@@ -300,7 +300,8 @@ def test_the_whole_ray_kernel_compiles_for_a100_and_h100():
     assert "FP_FUSION" not in res.stderr  # Triton >= 3.9 warns when a compile leaves FMA contraction unasked
     for r in json.loads(res.stdout.strip().splitlines()[-1]):
         assert 0 < r["registers"] <= 255 and r["programs_per_sm"] >= 1
-        assert r["local"] <= 32 and r["branches"] <= 3, r
+        # the loops over trips and over a ray's runs, not a branch per sine (~240)
+        assert r["local"] <= 32 and r["branches"] <= 12, r
         # each thread's share of a trip's sines: 64 rays x (64 + 32) activations x 5 layers / 128 threads = 240
         assert r["mufu"] >= 240, r
 

@@ -509,7 +509,7 @@ def test_a_job_on_a_gpu_asks_one_cpu_thread_and_a_ddp_job_one_per_gpu(tmp_path, 
 def test_the_workflow_asks_one_thread_for_the_geometry_stage_on_a_gpu(tmp_path):
     """On a machine whose driver shows a GPU (faked for Snakemake's process), train_diffusion asks one thread and
     finetune_render one process, so that `-j2` runs a side job beside them, and so does sample_shadows where it
-    scores on the run's device too (evaluate.device: run); on this machine's CPU, two each."""
+    scores on the run's device too (evaluate.device: run, the default); on this machine's CPU, two each."""
     fake = tmp_path / "fake"
     (fake / "gpus" / "0000:00:00.0").mkdir(parents=True)
     (fake / "dev").mkdir()
@@ -534,10 +534,10 @@ def test_the_workflow_asks_one_thread_for_the_geometry_stage_on_a_gpu(tmp_path):
 
     env = {k: v for k, v in os.environ.items() if k not in ("DIFFSHADOW_DEVICE", "CUDA_VISIBLE_DEVICES")}
     gpu = {**env, "PYTHONPATH": str(tmp_path / "site")}
-    assert asked(gpu) == ("1", "1", "2")  # sample_shadows scores its SIRENs on the CPU (evaluate.device: cpu)
-    assert asked(gpu, "--config", "evaluate={device: run}") == ("1", "1", "1")
+    assert asked(gpu) == ("1", "1", "1")  # sample_shadows scores its SIRENs on the GPU too (evaluate.device: run)
+    assert asked(gpu, "--config", "evaluate={device: cpu}") == ("1", "1", "2")  # on the CPU: two threads
     if not any(os.path.exists(f) for f in GPU_DRIVER_FILES):
-        assert asked(env) == asked(env, "--config", "evaluate={device: run}") == ("2", "2", "2")
+        assert asked(env) == asked(env, "--config", "evaluate={device: cpu}") == ("2", "2", "2")
 
 
 def test_the_ddp_helper_takes_the_drivers_count_without_asking_torch(tmp_path, monkeypatch, capsys):

@@ -666,30 +666,30 @@ def test_evaluate_ddpm_lights_0_drops_the_sampler_curve_alone(finished, tmp_path
     assert dict(run.headline())["time per shadow INR (DDIM)"].startswith(timed)
 
 
-def test_the_evaluation_runs_on_the_cpu_unless_evaluate_device_is_run(finished):
-    """evaluate.device: cpu (the default) keeps one truth, one sampler curve and one score of each SIREN on every
-    machine: eval_truth, evaluate_voxels and caches get --device cpu, and sample_shadows (on the run's device)
-    scores its SIRENs on the CPU; `run` gives them the run's device, which changes their bytes on a GPU, so all
-    four rerun."""
+def test_the_evaluation_runs_on_the_runs_device_unless_evaluate_device_is_cpu(finished):
+    """evaluate.device: run (the default) gives eval_truth, evaluate_voxels and caches the run's device and has
+    sample_shadows score its SIRENs there; `cpu` keeps one truth, one sampler curve and one score of each SIREN on
+    every machine: those rules get --device cpu and sample_shadows (on the run's device) scores on the CPU, which
+    changes their bytes on a GPU, so all four rerun."""
     targets = {"eval-truth": "results/nucleon/eval_truth.zarr", "evaluate-voxels": "results/nucleon/voxel_metrics.json",
                " caches --weights": "results/nucleon/caches.json"}
-    on_run = {**TINY, "evaluate": {**TINY["evaluate"], "device": "run"}}
+    on_cpu = {**TINY, "evaluate": {**TINY["evaluate"], "device": "cpu"}}
     assert {"eval_truth", "sample_shadows", "evaluate_voxels", "caches"} <= set(
-        planned(snakemake(finished, "-n", config=on_run)))
+        planned(snakemake(finished, "-n", config=on_cpu)))
     generated = "results/nucleon/generated.zarr"
     default = snakemake(finished, "-n", "-p", "-f", *targets.values(), generated).stdout.splitlines()
-    shell = snakemake(finished, "-n", "-p", "-f", *targets.values(), generated, config=on_run).stdout.splitlines()
+    shell = snakemake(finished, "-n", "-p", "-f", *targets.values(), generated, config=on_cpu).stdout.splitlines()
     for command in targets:
-        assert "--device cpu" in next(ln for ln in default if command in ln), command
-        assert "--device cpu" not in next(ln for ln in shell if command in ln), command
-    assert "--score-on" not in next(ln for ln in default if "sample-shadows" in ln)
-    assert "--score-on run" in next(ln for ln in shell if "sample-shadows" in ln)
+        assert "--device cpu" not in next(ln for ln in default if command in ln), command
+        assert "--device cpu" in next(ln for ln in shell if command in ln), command
+    assert "--score-on run" in next(ln for ln in default if "sample-shadows" in ln)
+    assert "--score-on" not in next(ln for ln in shell if "sample-shadows" in ln)
     # the stored-SIREN caches' rules score their SIRENs the same way: cache: auto's choice, a codec's store, the blend
     for cache, target, commands in (("auto", "results/nucleon/cache_choice.json", ["choose-cache"]),
                                     ("fp16", "results/nucleon/generated.zarr", ["encode-cache", "blend-shadows"])):
         config = {**TINY, "cache": cache}
         lines = {device: snakemake(finished, "-n", "-p", "--forceall", target, config=cfg).stdout.splitlines()
-                 for device, cfg in (("cpu", config), ("run", {**config, "evaluate": on_run["evaluate"]}))}
+                 for device, cfg in (("run", config), ("cpu", {**config, "evaluate": on_cpu["evaluate"]}))}
         for command in commands:
             assert "--device cpu" in next(ln for ln in lines["cpu"] if f" {command} " in ln), command
             assert "--device cpu" not in next(ln for ln in lines["run"] if f" {command} " in ln), command

@@ -46,12 +46,12 @@ def kernel_shapes() -> dict[str, tuple[str, dict]]:
     common = {"KNOTS": KNOTS, "RES": RES_WEIGHT}
     return {
         "siren (data INR)": ("siren_kernel", {"W": w, "BLOCKS": b, "BLOCK": block_points(w), "RES": RES_WEIGHT}),
-        "march (inr, whole rays)": ("march_kernel", {"J": RUNS, "W": w, "BLOCKS": b, "SW": sw, "SBLOCKS": sb,
+        "march (inr, whole rays)": ("march_kernel", {"W": w, "BLOCKS": b, "SW": sw, "SBLOCKS": sb,
                                                      "SHADOW": True, "ABSORB": False, "BLOCK": both, **common}),
-        "march (noshadow, whole rays)": ("march_kernel", {"J": RUNS, "W": w, "BLOCKS": b, "SW": w, "SBLOCKS": b,
+        "march (noshadow, whole rays)": ("march_kernel", {"W": w, "BLOCKS": b, "SW": w, "SBLOCKS": b,
                                                           "SHADOW": False, "ABSORB": False, "BLOCK": block_points(w),
                                                           **common}),
-        "march (naive's secondary rays)": ("march_kernel", {"J": RUNS, "W": w, "BLOCKS": b, "SW": w, "SBLOCKS": b,
+        "march (naive's secondary rays)": ("march_kernel", {"W": w, "BLOCKS": b, "SW": w, "SBLOCKS": b,
                                                             "SHADOW": False, "ABSORB": True,
                                                             "BLOCK": block_points(w), **common}),
     }

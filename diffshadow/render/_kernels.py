@@ -142,22 +142,26 @@ def channel(ys_ptr, lo, hi, w, CH: tl.constexpr):
 
 
 @triton.jit
-def lattice_t(m, rows, live, t0, dt, cum_ptr, off_ptr, J: tl.constexpr, BLOCK: tl.constexpr):
+def lattice_t(m, rows, live, t0, dt, cum_ptr, off_ptr, J, BLOCK: tl.constexpr):
     """Each ray's occupied sample number m as its parameter t, as `render.Runs.samples` finds it: run j is the
     number of runs that end at or before m (searchsorted, right=True), lattice index k = m + offset[j]."""
     j = tl.zeros([BLOCK], dtype=tl.int32)
-    for i in range(J):
+    # J, the runs per ray, is an argument and not a constant: a constant compiled a kernel per value (the README
+    # run's benchmark compiled one for J=1 beside J=7); `while`, not `range`, which the interpreter cannot bound
+    i = 0
+    while i < J:
         j += (tl.load(cum_ptr + rows * J + i, mask=live, other=0) <= m).to(tl.int32)
+        i += 1
     k = m + tl.load(off_ptr + rows * J + tl.minimum(j, J - 1), mask=live, other=0)
     return t0 + (k.to(tl.float32) + 0.5) * dt
 
 
-@triton.jit(do_not_specialize=["n"])
+@triton.jit(do_not_specialize=["J", "n"])
 def march_kernel(order_ptr, o_ptr, d_ptr, t0_ptr, t1_ptr, cum_ptr, off_ptr, total_ptr, extent_ptr,
                  w0_ptr, b0_ptr, wh_ptr, bh_ptr, wl_ptr, bl_ptr,
                  sw0_ptr, sb0_ptr, swh_ptr, sbh_ptr, swl_ptr, sbl_ptr,
-                 xs_ptr, ys_ptr, density, dt, stop, acc_ptr, rgb_ptr, count_ptr, trips_ptr, n,
-                 J: tl.constexpr, W: tl.constexpr, BLOCKS: tl.constexpr, SW: tl.constexpr, SBLOCKS: tl.constexpr,
+                 xs_ptr, ys_ptr, density, dt, stop, acc_ptr, rgb_ptr, count_ptr, trips_ptr, J, n,
+                 W: tl.constexpr, BLOCKS: tl.constexpr, SW: tl.constexpr, SBLOCKS: tl.constexpr,
                  SHADOW: tl.constexpr, ABSORB: tl.constexpr, KNOTS: tl.constexpr, BLOCK: tl.constexpr,
                  RES: tl.constexpr):
     """Whole rays, one sample of every ray of the tile per trip, until none is left: a ray stops after its

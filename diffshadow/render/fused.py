@@ -203,7 +203,7 @@ def _march(kernel, o, d, t0, t1, runs, stop: float, *, absorb: bool, dt: float, 
         shadow_tensors, constants = _shadow_inputs(scalar, shadow)
         _launch("march_kernel", n, kernel.block, kernel.warps, order, o, d, t0, t1, cum, offset, total,
                 kernel.extent, *scalar.tensors, *shadow_tensors, kernel.xs, kernel.ys, kernel.density, float(dt),
-                float(stop), acc, rgb, count, trips, registers=kernel.registers, J=cum.shape[1], W=scalar.width,
+                float(stop), acc, rgb, count, trips, cum.shape[1], registers=kernel.registers, W=scalar.width,
                 BLOCKS=scalar.blocks, ABSORB=absorb, KNOTS=len(kernel.xs), BLOCK=kernel.block, RES=RES_WEIGHT,
                 **constants)
     return acc, (None if absorb else rgb), count, trips
