@@ -15,7 +15,7 @@ from conftest import data_inr_stub
 from diffshadow.analytic import gaussian_blob
 from diffshadow.render import Camera, Networks, RenderError, RenderScene, fused
 from diffshadow.render.fused import FusedSiren, FusedSirenError
-from diffshadow.siren import Siren, SirenConfig, WeightLayout, init_siren
+from diffshadow.siren import Siren, SirenConfig, WeightLayout, box_to_siren, init_siren
 from diffshadow.transfer import TransferFunction
 from diffshadow.volume import Volume
 
@@ -154,6 +154,54 @@ def test_whole_ray_programs_take_rays_most_samples_first(monkeypatch):
     assert img.counters.primary_samples == int(total.sum())
     assert img.counters.slots == int(first.sum()) * block
     assert img.counters.slots < 2 * img.counters.primary_samples  # in image order: 4.2x here
+
+
+def test_one_march_kernel_serves_any_number_of_runs_per_ray(monkeypatch):
+    """The runs per ray (J) are a launch argument, not a kernel constant: a constant compiled a kernel per value (on
+    an H200 the README run's benchmark compiled J=1's beside J=7's, 2-3 s). The same samples of each ray given as
+    other runs march to the same bytes, through one first-launched (compiled) kernel for each kind of ray: one run,
+    or cut into three (one empty); three runs with gaps between them, or four (an empty one inserted, whose offset no
+    sample uses). And a ray's samples are where `Runs.samples` puts them."""
+    from diffshadow.render.cells import Runs
+
+    _, tf, data_inr, _ = _blob_scene()
+    extent = torch.tensor([1.0, 0.8, 1.25])
+    scalar = FusedSiren(data_inr.model.named_tensors(), data_inr.model.cfg.blocks)
+    kernel = fused.FusedSamples(scalar, None, extent, tf.optics_knots(torch.device("cpu")), tf.density_scale, 0.01)
+    g = torch.Generator().manual_seed(0)
+    n = 40
+    o = torch.rand(n, 3, generator=g) * extent
+    d = torch.nn.functional.normalize(torch.randn(n, 3, generator=g), dim=1)
+    t0, t1 = torch.zeros(n), torch.full((n,), 4.0)
+    size, gap = torch.randint(0, 20, (n, 3), generator=g), torch.randint(1, 30, (n, 3), generator=g)
+    cum, total = size.cumsum(1), size.sum(1)
+    offset = torch.cat([torch.zeros(n, 1, dtype=torch.long), gap[:, 1:].cumsum(1)], dim=1)
+
+    def runs(cum, offset):
+        return Runs(cum, offset, cum[:, -1])
+
+    zeros = torch.zeros(n, 3, dtype=torch.long)
+    cases = [(runs(total[:, None], zeros[:, :1]), runs(torch.stack([cum[:, 0], cum[:, 0], total], 1), zeros)),
+             (runs(cum, offset), runs(torch.cat([cum[:, :1], cum], 1),
+                                      torch.cat([offset[:, :1], torch.full((n, 1), 999), offset[:, 1:]], 1)))]
+    monkeypatch.setattr(fused, "_LAUNCHED", set())
+    for fewer, more in cases:
+        a, b = (fused._march(kernel, o, d, t0, t1, r, 0.0, absorb=False, dt=kernel.dt, shadow=None)
+                for r in (fewer, more))
+        for x, y in zip(a, b, strict=True):
+            assert torch.equal(x, y)
+        assert int(a[2].sum()) == int(total.sum())  # every sample taken: nothing stopped early
+    # and the gapped runs' samples are where `Runs.samples` puts them: the secondary-ray march's optical depth is
+    # the sum of μ dt over those samples (the data INR by the SIREN kernel, μ by the TF)
+    gapped = cases[1][0]
+    extinction = fused.FusedExtinction(scalar, extent, tf.optics_knots(torch.device("cpu")), tf.density_scale)
+    tau, count, _ = extinction.march(o, d, t0, t1, gapped, kernel.dt, float("inf"))
+    k, valid = gapped.samples(torch.arange(n), torch.zeros(n, dtype=torch.long), int(total.max()))
+    t = t0[:, None] + (k + 0.5) * kernel.dt
+    values = scalar(box_to_siren((o[:, None] + t[..., None] * d[:, None]).reshape(-1, 3), extent)).view(t.shape)
+    expected = (tf.extinction(values) * valid).sum(1) * kernel.dt
+    assert torch.equal(count, total.int()) and torch.allclose(tau, expected, rtol=1e-5, atol=1e-6)
+    assert sum(key[0] == "march_kernel" for key in fused._LAUNCHED) == 2  # primary rays, secondary rays
 
 
 def test_setting_and_bad_input(monkeypatch):

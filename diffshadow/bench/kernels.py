@@ -9,7 +9,7 @@ These are counts, not timings: the same on any machine with the same Triton. A k
 stack) or holds one program per SM is slow whatever the device.
 
 The shapes are those of `bench render`'s hydrogen_atom: a data INR of width 64 and 2 blocks, a shadow SIREN of
-width 32 and 2 blocks, 5 optics knots, 22 runs per ray (7 interior macro-cell planes per axis).
+width 32 and 2 blocks, 5 optics knots (the runs per ray are a launch argument, which no compile sees).
 """
 
 from __future__ import annotations
@@ -31,7 +31,7 @@ REGISTERS_PER_SM, MAX_WARPS_PER_SM = 65536, 64  # both architectures
 INT_POINTERS = {"order_ptr", "cum_ptr", "off_ptr", "total_ptr", "count_ptr", "trips_ptr"}
 FLOAT_SCALARS = {"density", "dt", "stop"}
 DATA, SHADOW = (64, 2), (32, 2)  # (width, blocks)
-KNOTS, RUNS = 5, 22
+KNOTS = 5
 SINE_BLOCK = 128  # sine_kernel: one sine per thread at 4 warps
 
 
@@ -184,7 +184,7 @@ def bench_kernels(out: Path, *, archs=ARCHS, log=print) -> dict:
         rows.append({"kernel": "one sine", "arch": arch, **sine})
     # the counts depend on the compiler: say which, and how it was asked to compile
     result = {"triton": triton.__version__, "fp_fusion": FP_FUSION,
-              "shapes": {"data": DATA, "shadow": SHADOW, "knots": KNOTS, "runs": RUNS}, "kernels": rows}
+              "shapes": {"data": DATA, "shadow": SHADOW, "knots": KNOTS}, "kernels": rows}
     out.parent.mkdir(parents=True, exist_ok=True)
     atomic_write_text(out, json.dumps(result, indent=1))
     log(f"[bench kernels] wrote {out}")
