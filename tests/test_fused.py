@@ -204,6 +204,28 @@ def test_one_march_kernel_serves_any_number_of_runs_per_ray(monkeypatch):
     assert sum(key[0] == "march_kernel" for key in fused._LAUNCHED) == 2  # primary rays, secondary rays
 
 
+def test_a_scene_knows_every_kernel_its_frames_launch(monkeypatch):
+    """`render.warm_kernels` compiles a scene's kernels at its first frame, all at once, from
+    `RenderScene.kernel_variants`: the kernels its frames launch in every mode and shading, no fewer (a kernel left
+    out compiles at its own first launch, as before) and no more (one compiled for nothing). Only CUDA compiles
+    ahead: on a CPU `warm` asks nothing of the interpreter."""
+    volume, tf, data_inr, siren = _blob_scene()
+    scene = RenderScene(volume, tf, data_inr, device="cpu", networks=FUSED)
+    cam = Camera.orbit(volume.extent, azimuth=30.0, elevation=25.0, size=8)
+    monkeypatch.setattr(fused, "_LAUNCHED", set())
+    assert fused.warm(scene.kernel_variants(siren), torch.device("cpu")) == 0 and not fused._WARMED
+    light = (0.3, -0.5, 0.8)
+    # unlit: whole-ray marches (noshadow, inr, naive's secondary rays); Phong: the wavefront loop's SIRENs alone
+    for mode, phong in (("noshadow", False), ("inr", False), ("naive", False), ("inr", True), ("gt", False)):
+        scene.render(mode, cam, light=light, siren=siren, phong=phong)
+    assert set(scene.kernel_variants(siren)) == fused._LAUNCHED
+    assert set(scene.kernel_variants()) < fused._LAUNCHED  # without a shadow INR: the data INR's three
+    assert RenderScene(volume, tf, None, device="cpu", networks=FUSED).kernel_variants(siren) == []
+    assert Networks.from_config({"warm_kernels": True}).warm and not Networks.from_config({}).warm
+    with pytest.raises(RenderError, match="render.warm_kernels: expected true or false, got 'yes'"):
+        Networks(warm="yes")
+
+
 def test_setting_and_bad_input(monkeypatch):
     cpu, cuda = torch.device("cpu"), torch.device("cuda")
     for kernel, device, expected in (("eager", cuda, None), ("fused", cpu, "fused"), ("fused", cuda, "fused"),

@@ -23,13 +23,11 @@ import tempfile
 from pathlib import Path
 
 from diffshadow.io import atomic_write_text
-from diffshadow.render.fused import FP_FUSION, WARPS, block_points
+from diffshadow.render.fused import FLOAT_SCALARS, FP_FUSION, INT_POINTERS, WARPS, block_points
 from diffshadow.siren import RES_WEIGHT
 
 ARCHS = (80, 90)  # A100 (Polaris, Sophia); H100/H200
 REGISTERS_PER_SM, MAX_WARPS_PER_SM = 65536, 64  # both architectures
-INT_POINTERS = {"order_ptr", "cum_ptr", "off_ptr", "total_ptr", "count_ptr", "trips_ptr"}
-FLOAT_SCALARS = {"density", "dt", "stop"}
 DATA, SHADOW = (64, 2), (32, 2)  # (width, blocks)
 KNOTS = 5
 SINE_BLOCK = 128  # sine_kernel: one sine per thread at 4 warps

@@ -78,6 +78,16 @@ def _kernels():
 
 
 _LAUNCHED: set[tuple] = set()  # kernels that launched once, with their constants: compiled
+_WARMED: set[tuple] = set()  # kernels compiled (or taken from the kernel cache) ahead of their first launch
+
+# the kernels' arguments that are int32 pointers and float scalars (the others: float32 pointers, int scalars)
+INT_POINTERS = frozenset({"order_ptr", "cum_ptr", "off_ptr", "total_ptr", "count_ptr", "trips_ptr"})
+FLOAT_SCALARS = frozenset({"density", "dt", "stop"})
+
+
+def variant(name: str, block: int, warps: int, registers: int | None, constants: dict) -> tuple:
+    """What makes Triton compile kernel `name` anew: its launch options and compile-time constants."""
+    return (name, block, warps, registers, tuple(sorted(constants.items())))
 
 
 def _launch(name: str, n: int, block: int, warps: int, *args, registers: int | None = None, **constants) -> None:
@@ -91,7 +101,9 @@ def _launch(name: str, n: int, block: int, warps: int, *args, registers: int | N
         getattr(_kernels(), name)[(triton.cdiv(n, block),)](*args, n, num_warps=warps, enable_fp_fusion=FP_FUSION,
                                                              maxnreg=registers, **constants)
 
-    key = (name, block, warps, registers, tuple(sorted(constants.items())))
+    key = variant(name, block, warps, registers, constants)
+    if key in _WARMED:  # its first launch is a launch: the kernel is compiled and loaded
+        _LAUNCHED.add(key)
     with record_function(LAUNCH):
         if key in _LAUNCHED:
             return launch()
@@ -103,6 +115,50 @@ def _launch(name: str, n: int, block: int, warps: int, *args, registers: int | N
             raise FusedKernelError(f"{name} failed on its first launch, compiling (Triton "
                                    f"{getattr(triton, '__version__', '?')}): {type(e).__name__}: {first}") from e
         _LAUNCHED.add(key)
+
+
+def warm(variants: list[tuple], device: torch.device) -> int:
+    """Compile the kernel `variants` (`variant`) that this process has not launched, ahead of their first launch
+    and all at once, on threads (Triton's compiler releases the GIL: four kernels for sm_90 took 3.5-3.7 s on two
+    CPU cores against 6.0-6.7 s one after another), or load them from the run's kernel cache, where a job before
+    compiled them (`render.warm_kernels`). Only on CUDA. A variant that fails here is left to its first launch,
+    which says why (`FusedKernelError`). Returns how many were asked for."""
+    todo = [v for v in dict.fromkeys(variants) if v not in _LAUNCHED and v not in _WARMED]
+    if device.type != "cuda" or not todo:
+        return 0
+    from concurrent.futures import ThreadPoolExecutor
+
+    try:
+        from triton.runtime._async_compile import AsyncCompileMode  # Triton 3.5 and later
+    except ImportError:
+        AsyncCompileMode = None  # older: one after another, still ahead of the first frame
+    with phase("compile"), torch.cuda.device(device):
+        if AsyncCompileMode is None:
+            done = [v for v in todo if _warmup(v)]
+        else:
+            with ThreadPoolExecutor(len(todo)) as pool, AsyncCompileMode(pool, ignore_errors=True):
+                done = [v for v in todo if _warmup(v)]
+    _WARMED.update(done)
+    return len(todo)
+
+
+def _warmup(v: tuple) -> bool:
+    """Triton's `warmup` of one variant: its arguments as the launches pass them (tensors by dtype, scalars by
+    type); False where it could not be asked for."""
+    name, _, warps, registers, constants = v
+    kernel = getattr(_kernels(), name)
+    named = dict(constants)
+
+    def placeholder(arg: str):
+        if arg.endswith("_ptr"):
+            return torch.int32 if arg in INT_POINTERS else torch.float32
+        return 1.0 if arg in FLOAT_SCALARS else 2  # J and n: not specialised on their values
+    try:
+        kernel.warmup(*(placeholder(p.name) for p in kernel.params if p.name not in named), grid=(1,),
+                      num_warps=warps, enable_fp_fusion=FP_FUSION, maxnreg=registers, **named)
+    except Exception:  # noqa: BLE001 - Triton's errors come in many types; the first launch reports them
+        return False
+    return True
 
 
 class FusedSiren:
@@ -138,25 +194,25 @@ class FusedSiren:
     def tensors(self) -> tuple[torch.Tensor, ...]:
         return self.w0, self.b0, self.wh, self.bh, self.wl, self.bl
 
+    def constants(self) -> dict:
+        """siren_kernel's compile-time constants for this SIREN."""
+        return {"W": self.width, "BLOCKS": self.blocks, "BLOCK": self.block, "RES": RES_WEIGHT}
+
+    def variant(self) -> tuple:
+        return variant("siren_kernel", self.block, self.warps, self.registers, self.constants())
+
     def __call__(self, x: torch.Tensor) -> torch.Tensor:
         x = x.float().contiguous()
         out = torch.empty(len(x), dtype=torch.float32, device=x.device)
         if len(x):
             _launch("siren_kernel", len(x), self.block, self.warps, x, *self.tensors, out,
-                    registers=self.registers, W=self.width, BLOCKS=self.blocks, BLOCK=self.block, RES=RES_WEIGHT)
+                    registers=self.registers, **self.constants())
         return out
 
 
 def _optics_inputs(extent: torch.Tensor, knots: tuple[torch.Tensor, torch.Tensor]) -> tuple[torch.Tensor, ...]:
     """The box extent and the optics table as the kernels read them: contiguous float32."""
     return tuple(t.float().contiguous() for t in (extent, *knots))
-
-
-def _shadow_inputs(scalar: FusedSiren, shadow: FusedSiren | None) -> tuple[tuple[torch.Tensor, ...], dict]:
-    """The shadow SIREN's weights and constants for a kernel that may evaluate one: without a shadow, the data
-    INR's weights stand in (SHADOW=False: never read)."""
-    net = shadow or scalar
-    return net.tensors, {"SW": net.width, "SBLOCKS": net.blocks, "SHADOW": shadow is not None}
 
 
 class FusedSamples:
@@ -181,6 +237,10 @@ class FusedSamples:
         trips of each program of `block` rays. A ray stops once its transmittance is below `min_transmittance`."""
         return _march(self, o, d, t0, t1, runs, min_transmittance, absorb=False, dt=self.dt, shadow=self.shadow)
 
+    def variant(self) -> tuple:
+        constants = _march_constants(self, self.shadow, False)
+        return variant("march_kernel", self.block, self.warps, self.registers, constants)
+
 
 def _march(kernel, o, d, t0, t1, runs, stop: float, *, absorb: bool, dt: float, shadow: FusedSiren | None):
     """Launch `march_kernel` for `kernel` (FusedSamples or FusedExtinction) with shadow SIREN `shadow` over rays
@@ -199,14 +259,20 @@ def _march(kernel, o, d, t0, t1, runs, stop: float, *, absorb: bool, dt: float, 
     count = torch.empty(n, dtype=torch.int32, device=device)
     trips = torch.empty(triton.cdiv(n, kernel.block), dtype=torch.int32, device=device)
     if n:
-        scalar = kernel.scalar
-        shadow_tensors, constants = _shadow_inputs(scalar, shadow)
         _launch("march_kernel", n, kernel.block, kernel.warps, order, o, d, t0, t1, cum, offset, total,
-                kernel.extent, *scalar.tensors, *shadow_tensors, kernel.xs, kernel.ys, kernel.density, float(dt),
-                float(stop), acc, rgb, count, trips, cum.shape[1], registers=kernel.registers, W=scalar.width,
-                BLOCKS=scalar.blocks, ABSORB=absorb, KNOTS=len(kernel.xs), BLOCK=kernel.block, RES=RES_WEIGHT,
-                **constants)
+                kernel.extent, *kernel.scalar.tensors, *(shadow or kernel.scalar).tensors, kernel.xs, kernel.ys,
+                kernel.density, float(dt), float(stop), acc, rgb, count, trips, cum.shape[1],
+                registers=kernel.registers, **_march_constants(kernel, shadow, absorb))
     return acc, (None if absorb else rgb), count, trips
+
+
+def _march_constants(kernel, shadow: FusedSiren | None, absorb: bool) -> dict:
+    """march_kernel's compile-time constants for `kernel` (FusedSamples or FusedExtinction) with shadow SIREN
+    `shadow`; without one the data INR's weights stand in (SHADOW=False: never read)."""
+    scalar, net = kernel.scalar, shadow or kernel.scalar
+    return {"W": scalar.width, "BLOCKS": scalar.blocks, "ABSORB": absorb, "KNOTS": len(kernel.xs),
+            "BLOCK": kernel.block, "RES": RES_WEIGHT, "SW": net.width, "SBLOCKS": net.blocks,
+            "SHADOW": shadow is not None}
 
 
 class FusedExtinction:
@@ -227,3 +293,6 @@ class FusedExtinction:
         optical depth (R,), stopped once it reaches `tau_max`, the samples it took (R,) and the programs' trips."""
         tau, _, count, trips = _march(self, o, d, t0, t1, runs, tau_max, absorb=True, dt=dt, shadow=None)
         return tau, count, trips
+
+    def variant(self) -> tuple:
+        return variant("march_kernel", self.block, self.warps, self.registers, _march_constants(self, None, True))

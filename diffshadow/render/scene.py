@@ -7,7 +7,7 @@ import hashlib
 import warnings
 from collections import OrderedDict
 from collections.abc import Callable
-from dataclasses import asdict, dataclass, field
+from dataclasses import dataclass, field
 
 import numpy as np
 import torch
@@ -20,7 +20,15 @@ from diffshadow.lights import as_direction
 from diffshadow.render.camera import Camera, RenderError, visible_sphere
 from diffshadow.render.cells import RENDER_CELL, MacroGrid
 from diffshadow.render.fields import GridScalar, GridShadow, InrScalar, SirenShadow
-from diffshadow.render.fused import FUSED, FusedKernelError, FusedKernelWarning
+from diffshadow.render.fused import (
+    FUSED,
+    FusedExtinction,
+    FusedKernelError,
+    FusedKernelWarning,
+    FusedSamples,
+    FusedSiren,
+    warm,
+)
 from diffshadow.render.fused import available as fused_available
 from diffshadow.render.marcher import (
     BACKGROUND,
@@ -59,15 +67,21 @@ class Networks:
     """
 
     kernel: str = field(default_factory=lambda: defaults()["render"]["kernel"])  # one home: defaults.yaml
+    # the fused kernels a scene can launch compiled at its first frame, all at once on threads, instead of each at
+    # its own first launch (`RenderScene.kernel_variants`); the same kernels, so the same images
+    warm: bool = field(default_factory=lambda: defaults()["render"]["warm_kernels"])
 
     def __post_init__(self):
         if self.kernel not in KERNELS:
             raise RenderError(f"render.kernel: expected one of {', '.join(KERNELS)}, got {self.kernel!r}")
+        if not isinstance(self.warm, bool):
+            raise RenderError(f"render.warm_kernels: expected true or false, got {self.warm!r}")
 
     @classmethod
     def from_config(cls, render_cfg: dict) -> Networks:
         """From a config's `render` section (a key it lacks: the package default)."""
-        return cls(render_cfg["kernel"]) if "kernel" in render_cfg else cls()
+        return cls(**{name: render_cfg[key] for name, key in (("kernel", "kernel"), ("warm", "warm_kernels"))
+                      if key in render_cfg})
 
     def setting(self, device: torch.device) -> str | None:
         """What the fields take on `device`: None (eager) or "fused"."""
@@ -112,7 +126,7 @@ class RenderScene:
     def networks_used(self) -> dict:
         """The choice as configured and what this scene renders with now (after any fallback), for the
         metrics files and the report."""
-        return {**asdict(self.networks), "used": self.kernel_used or "eager"}
+        return {"kernel": self.networks.kernel, "used": self.kernel_used or "eager"}
 
     def _cached(self, key, make):
         if key not in self._cache:
@@ -208,6 +222,8 @@ class RenderScene:
               "batch": batch, "samples_per_iter": samples_per_iter, "min_transmittance": min_transmittance,
               "background": background, "interrupt": interrupt, "gt_method": gt_method}
         try:
+            if self.networks.warm:
+                warm(self.kernel_variants(siren), self.device)
             return self._render(mode, camera, **kw)
         except FusedKernelError as e:
             warnings.warn(f"render.kernel={self.networks.kernel} ({self.kernel_used}): {e}; rendering with the eager "
@@ -255,6 +271,23 @@ class RenderScene:
             self._keep(key, img.samples)
             img.samples = None  # the scene holds them, within its budget; an image a caller keeps does not
         return img
+
+    def kernel_variants(self, siren=None) -> list[tuple]:
+        """The fused kernels (`fused.variant`) this scene's frames launch with its data INR, and with the shadow INR
+        `siren` ((weights, layout, blocks); None: none): the SIRENs alone and the whole-ray marches of `noshadow`,
+        `naive`'s secondary rays and `inr`. None where the scene renders eagerly."""
+        if not self.kernel_used or self.data_inr is None:
+            return []
+        scalar = self.scalar("inr")
+        if not isinstance(scalar.fast, FusedSiren):
+            return []
+        knots = self.tf.optics_knots(self.device)
+        nets = [scalar.fast.variant(), FusedExtinction(scalar.fast, scalar.extent, knots, 1.0).variant(),
+                FusedSamples(scalar.fast, None, scalar.extent, knots, 1.0, 1.0).variant()]
+        shadow = self._siren_shadow(*siren).fast if siren is not None else None
+        if isinstance(shadow, FusedSiren):
+            nets += [shadow.variant(), FusedSamples(scalar.fast, shadow, scalar.extent, knots, 1.0, 1.0).variant()]
+        return nets
 
     def keep_views(self, nbytes: int) -> None:
         """Keep up to `nbytes` of views' samples from now on, the last views first (0: none, and drop those kept)."""

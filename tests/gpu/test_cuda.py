@@ -430,6 +430,32 @@ def test_fused_images_agree_with_eager_on_cuda(volume):
         assert float((images[0] - images[1]).abs().max()) <= bound, mode
 
 
+def test_warmed_kernels_leave_the_frames_nothing_to_compile(volume, monkeypatch):
+    """render.warm_kernels: `fused.warm` compiles a scene's kernels ahead, all at once (Triton's `warmup` with the
+    arguments' dtypes), and the frames of every mode and shading then ask Triton to compile nothing (its
+    jit_cache_hook sees no request): the warm-up asked for the launches' own specialisations (pointer alignment,
+    integer arguments, constants)."""
+    pytest.importorskip("triton")
+    knobs = pytest.importorskip("triton.knobs")
+    from diffshadow.render import fused
+    from diffshadow.siren import Siren
+
+    class DataInr:  # a width no other test renders with, so its kernels are this test's own
+        model = Siren(SirenConfig(64, 1), torch.Generator().manual_seed(3))
+        cell_lo = cell_hi = None
+
+    requests = []
+    monkeypatch.setattr(knobs.runtime, "jit_cache_hook", lambda **kw: requests.append(kw["repr"]))
+    siren = (LAYOUT.flatten(init_siren(SIREN, torch.Generator().manual_seed(0))), LAYOUT, SIREN.blocks)
+    scene = RenderScene(volume, TF, DataInr(), device=CUDA, networks=Networks("fused", warm=True))
+    assert fused.warm(scene.kernel_variants(siren), CUDA) == 5
+    asked = len(requests)
+    cam = Camera.orbit(volume.extent, azimuth=40, elevation=20, size=32)
+    for mode, phong in (("noshadow", False), ("inr", False), ("naive", False), ("inr", True)):
+        scene.render(mode, cam, light=LIGHTS[1], siren=siren, phong=phong)
+    assert scene.kernel_used == "fused" and len(requests) == asked, requests[asked:]
+
+
 def test_deterministic_mode_repeats_bytes(tmp_path):
     """DIFFSHADOW_DETERMINISTIC=1 in a fresh process: two trainings on CUDA give the same bytes."""
     script = tmp_path / "twice.py"
