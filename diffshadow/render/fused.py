@@ -101,9 +101,9 @@ def _launch(name: str, n: int, block: int, warps: int, *args, registers: int | N
         getattr(_kernels(), name)[(triton.cdiv(n, block),)](*args, n, num_warps=warps, enable_fp_fusion=FP_FUSION,
                                                              maxnreg=registers, **constants)
 
+    # a kernel warmed ahead (`warm`) still has its first launch here: a compile that failed there, quietly, fails
+    # again here and is reported, and the scene goes on eagerly
     key = variant(name, block, warps, registers, constants)
-    if key in _WARMED:  # its first launch is a launch: the kernel is compiled and loaded
-        _LAUNCHED.add(key)
     with record_function(LAUNCH):
         if key in _LAUNCHED:
             return launch()
