@@ -56,16 +56,17 @@ def device_of(args: argparse.Namespace):
 
 
 def add_networks(p: argparse.ArgumentParser) -> None:
-    """--kernel: how the renderer evaluates its SIRENs (default: the config's `render.kernel`); --warm-kernels."""
+    """--kernel: how the renderer evaluates its SIRENs (default: the config's `render.kernel`);
+    --[no-]warm-kernels."""
     p.add_argument("--kernel", choices=["auto", "eager", "fused"],
                    help="default: render.kernel (auto: fused on CUDA, else eager)")
-    p.add_argument("--warm-kernels", action="store_const", const=True,
-                   help="compile every fused kernel the scene can launch at its first frame, at once "
-                   "(render.warm_kernels)")
+    p.add_argument("--warm-kernels", action=argparse.BooleanOptionalAction,
+                   help="compile every fused kernel the scene can launch at its first frame, at once (default: "
+                   "render.warm_kernels)")
 
 
 def network_flags(args: argparse.Namespace) -> dict:
-    """The --kernel and --warm-kernels given, as `render` config keys (to lay over a config's section)."""
+    """The --kernel and --[no-]warm-kernels given, as `render` config keys (to lay over a config's section)."""
     given = {"kernel": getattr(args, "kernel", None), "warm_kernels": getattr(args, "warm_kernels", None)}
     return {key: value for key, value in given.items() if value is not None}
 

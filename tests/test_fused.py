@@ -221,7 +221,7 @@ def test_a_scene_knows_every_kernel_its_frames_launch(monkeypatch):
     assert set(scene.kernel_variants(siren)) == fused._LAUNCHED
     assert set(scene.kernel_variants()) < fused._LAUNCHED  # without a shadow INR: the data INR's three
     assert RenderScene(volume, tf, None, device="cpu", networks=FUSED).kernel_variants(siren) == []
-    assert Networks.from_config({"warm_kernels": True}).warm and not Networks.from_config({}).warm
+    assert Networks.from_config({}).warm and not Networks.from_config({"warm_kernels": False}).warm
     with pytest.raises(RenderError, match="render.warm_kernels: expected true or false, got 'yes'"):
         Networks(warm="yes")
 

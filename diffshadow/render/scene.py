@@ -222,7 +222,7 @@ class RenderScene:
               "batch": batch, "samples_per_iter": samples_per_iter, "min_transmittance": min_transmittance,
               "background": background, "interrupt": interrupt, "gt_method": gt_method}
         try:
-            if self.networks.warm:
+            if self.networks.warm and self.device.type == "cuda":
                 warm(self.kernel_variants(siren), self.device)
             return self._render(mode, camera, **kw)
         except FusedKernelError as e:

@@ -448,7 +448,11 @@ def test_warmed_kernels_leave_the_frames_nothing_to_compile(volume, monkeypatch)
     monkeypatch.setattr(knobs.runtime, "jit_cache_hook", lambda **kw: requests.append(kw["repr"]))
     siren = (LAYOUT.flatten(init_siren(SIREN, torch.Generator().manual_seed(0))), LAYOUT, SIREN.blocks)
     scene = RenderScene(volume, TF, DataInr(), device=CUDA, networks=Networks("fused", warm=True))
-    assert fused.warm(scene.kernel_variants(siren), CUDA) == 5
+    variants = scene.kernel_variants(siren)
+    assert len(set(variants)) == 5  # the data INR's SIREN, noshadow, naive, inr and the shadow SIREN alone
+    # the shadow SIREN's kernel may have launched in a test before: warmed are the ones not yet launched
+    fresh = len(set(variants) - fused._LAUNCHED - fused._WARMED)
+    assert fresh >= 4 and fused.warm(variants, CUDA) == fresh
     asked = len(requests)
     cam = Camera.orbit(volume.extent, azimuth=40, elevation=20, size=32)
     for mode, phong in (("noshadow", False), ("inr", False), ("naive", False), ("inr", True)):

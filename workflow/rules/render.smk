@@ -86,10 +86,10 @@ rule benchmark:
         step=lambda wc: scene_config(wc.scene)["render"]["step"],
         repeats=lambda wc: scene_config(wc.scene)["render"]["bench_repeats"],
         memory=lambda wc: " ".join(str(n) for n in scene_config(wc.scene)["render"].get("bench_memory_sizes", [])),
-        # render.kernel, and --warm-kernels where asked: one param, so that a run finished before the setting keeps
-        # its record (a new param, even empty, reruns the job)
+        # render.kernel, and --no-warm-kernels where asked: one param, so that a run finished before the setting
+        # keeps its record (a new param, even empty, reruns the job)
         kernel=lambda wc: scene_config(wc.scene)["render"]["kernel"] + (
-            " --warm-kernels" if scene_config(wc.scene)["render"]["warm_kernels"] else ""),
+            "" if scene_config(wc.scene)["render"]["warm_kernels"] else " --no-warm-kernels"),
     threads: 2
     log:
         "results/{scene}/logs/benchmark.log",
