@@ -22,8 +22,10 @@ import subprocess
 import tempfile
 from pathlib import Path
 
+import torch
+
 from diffshadow.io import atomic_write_text
-from diffshadow.render.fused import FLOAT_SCALARS, FP_FUSION, INT_POINTERS, WARPS, block_points
+from diffshadow.render.fused import FP_FUSION, WARPS, block_points, placeholder
 from diffshadow.siren import RES_WEIGHT
 
 ARCHS = (80, 90)  # A100 (Polaris, Sophia); H100/H200
@@ -61,6 +63,12 @@ def _tools() -> Path:
     return Path(triton.__file__).parent / "backends" / "nvidia" / "bin"
 
 
+def _triton_type(value) -> str:
+    """Triton's signature type of a runtime argument, from what the renderer's warm-up passes for it."""
+    pointers = {torch.int32: "*i32", torch.float32: "*fp32"}
+    return pointers[value] if isinstance(value, torch.dtype) else "fp32" if isinstance(value, float) else "i32"
+
+
 def compile_kernel(name: str, constants: dict, arch: int, warps: int = WARPS, sass: bool = False,
                    fp_fusion: bool = FP_FUSION, registers: int | None = None) -> dict:
     """Compile `_kernels.<name>` for sm_<arch> with `constants`; its resources as ptxas assigned them.
@@ -75,16 +83,7 @@ def compile_kernel(name: str, constants: dict, arch: int, warps: int = WARPS, sa
     from diffshadow.render import _kernels
 
     fn = getattr(_kernels, name)
-    signature = {}
-    for p in fn.params:
-        if p.name in constants:
-            signature[p.name] = "constexpr"
-        elif p.name in INT_POINTERS:
-            signature[p.name] = "*i32"
-        elif p.name.endswith("_ptr"):
-            signature[p.name] = "*fp32"
-        else:
-            signature[p.name] = "fp32" if p.name in FLOAT_SCALARS else "i32"
+    signature = {p.name: "constexpr" if p.name in constants else _triton_type(placeholder(p.name)) for p in fn.params}
     try:
         compiled = triton.compile(ASTSource(fn=fn, signature=signature, constexprs=dict(constants)),
                                   target=GPUTarget("cuda", arch, 32),

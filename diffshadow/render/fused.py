@@ -85,6 +85,14 @@ INT_POINTERS = frozenset({"order_ptr", "cum_ptr", "off_ptr", "total_ptr", "count
 FLOAT_SCALARS = frozenset({"density", "dt", "stop"})
 
 
+def placeholder(arg: str) -> torch.dtype | float | int:
+    """What a kernel's runtime argument `arg` is, as Triton's `warmup` takes it: a pointer's dtype, or a scalar of its
+    type (J and n are not specialised on their values)."""
+    if arg.endswith("_ptr"):
+        return torch.int32 if arg in INT_POINTERS else torch.float32
+    return 1.0 if arg in FLOAT_SCALARS else 2
+
+
 def variant(name: str, block: int, warps: int, registers: int | None, constants: dict) -> tuple:
     """What makes Triton compile kernel `name` anew: its launch options and compile-time constants."""
     return (name, block, warps, registers, tuple(sorted(constants.items())))
@@ -148,11 +156,6 @@ def _warmup(v: tuple) -> bool:
     name, _, warps, registers, constants = v
     kernel = getattr(_kernels(), name)
     named = dict(constants)
-
-    def placeholder(arg: str):
-        if arg.endswith("_ptr"):
-            return torch.int32 if arg in INT_POINTERS else torch.float32
-        return 1.0 if arg in FLOAT_SCALARS else 2  # J and n: not specialised on their values
     try:
         kernel.warmup(*(placeholder(p.name) for p in kernel.params if p.name not in named), grid=(1,),
                       num_warps=warps, enable_fp_fusion=FP_FUSION, maxnreg=registers, **named)

@@ -114,6 +114,8 @@ class RenderScene:
         self.voxel = float(np.min(volume.voxel_size))
         self._cache: dict = {}
         self._last_shadow: tuple | None = None  # (key, SirenShadow) of the last `inr` frame
+        # (kernel, shadow layout and blocks) whose kernels `render.warm_kernels` compiled: once each, not every frame
+        self._warmed: set[tuple] = set()
         # a view drawn again under another light takes its kept samples: up to this many bytes, the last views first
         self.keep_samples = keep_samples
         self._samples: OrderedDict[tuple, Samples] = OrderedDict()
@@ -222,8 +224,10 @@ class RenderScene:
               "batch": batch, "samples_per_iter": samples_per_iter, "min_transmittance": min_transmittance,
               "background": background, "interrupt": interrupt, "gt_method": gt_method}
         try:
-            if self.networks.warm and self.device.type == "cuda":
+            warmed = (self.kernel_used, None if siren is None else tuple(siren[1:]))
+            if self.networks.warm and self.device.type == "cuda" and warmed not in self._warmed:
                 warm(self.kernel_variants(siren), self.device)
+                self._warmed.add(warmed)
             return self._render(mode, camera, **kw)
         except FusedKernelError as e:
             warnings.warn(f"render.kernel={self.networks.kernel} ({self.kernel_used}): {e}; rendering with the eager "
