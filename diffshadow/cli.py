@@ -19,6 +19,7 @@ from diffshadow.argparsing import config_of as _cfg
 from diffshadow.argparsing import device_of as _device
 from diffshadow.config import defaults
 from diffshadow.lights import LAYOUTS
+from diffshadow.stopping import Stopped
 
 # ------------------------------------------------------------------------------------------- stage 1
 
@@ -678,6 +679,10 @@ def main(argv: list[str] | None = None) -> None:
         print(f"diffshadow {args.command}: rank {os.environ.get('RANK', '0')}: error: the job's processes lost "
               f"touch ({reason}); a process that stopped first says why", file=sys.stderr)
         raise SystemExit(1) from None
+    except Stopped as e:  # a loop's signal (a PBS walltime or preemption, Ctrl-C) answered with its checkpoint
+        if os.environ.get("RANK", "0") == "0":  # a DDP job's ranks stop together: one line for them all
+            _say(f"diffshadow {args.command}: {e}")
+        raise SystemExit(128 + e.signum) from None
     except KeyboardInterrupt:  # Ctrl-C on a command typed by hand (under Snakemake, `tee` ends with the job)
         print(f"diffshadow {args.command}: interrupted; no earlier output was replaced, and a long stage run again "
               f"resumes from its last checkpoint", file=sys.stderr)
@@ -729,9 +734,21 @@ def run() -> None:
         _end(0)
 
 
+def _say(line: str) -> None:
+    """`line` on stderr, where it may no longer go: under Snakemake a job's output runs through `tee`, which the
+    same signal may have ended."""
+    try:
+        print(line, file=sys.stderr, flush=True)
+    except OSError:
+        pass
+
+
 def _end(code: int) -> None:
-    sys.stdout.flush()
-    sys.stderr.flush()
+    for stream in (sys.stdout, sys.stderr):
+        try:
+            stream.flush()
+        except OSError:  # a reader gone (`tee` ended by the signal that stopped this command)
+            pass
     os._exit(code)
 
 

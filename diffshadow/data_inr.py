@@ -26,6 +26,7 @@ from diffshadow.metrics import psnr
 from diffshadow.progress import FirstNonFinite, eta
 from diffshadow.sampling import PointSampler, Stream, seeded, to_device
 from diffshadow.siren import Siren, SirenConfig, box_to_siren, cosine_lr
+from diffshadow.stopping import stop_signals
 from diffshadow.transfer import TransferFunction
 from diffshadow.volume import Volume
 
@@ -259,25 +260,29 @@ def fit_data_inr_once(volume: Volume, tf: TransferFunction, cfg: DataInrConfig, 
         log(f"resuming from {checkpoint} at step {start}/{cfg.steps}")
     nonfinite = FirstNonFinite((), device)  # read where the host reads anyway: checkpoints and log lines
     t0 = time.perf_counter()
-    for step in range(start, cfg.steps):
-        loss = run.step(step)
-        nonfinite.record(loss, step)
-        done = step + 1
-        saving = checkpoint is not None and done % cfg.checkpoint_every == 0 and done < cfg.steps
-        logging = done % max(1, cfg.steps // 10) == 0 or done == cfg.steps
-        if (saving or logging) and (found := nonfinite.first()) is not None:
-            raise ValueError(f"data INR fit diverged at step {found[0]} (loss {float(found[2])}); lower "
-                             f"data_inr.lr (now {cfg.lr})")
-        if saving:
-            state = {"fingerprint": fingerprint, "step": done, "model": model.state_dict(),
-                     "optimizer": opt.state_dict()}
-            if hard is not None:
-                state["error_weights"] = hard.weights
-            atomic_torch_save(checkpoint, state)
-        if logging:
-            rate = (done - start) * cfg.points / (time.perf_counter() - t0)
-            log(f"step {done}/{cfg.steps}  PSNR(batch) {float(-10 * torch.log10(loss)):.1f} dB  {rate:,.0f} points/s  "
-                f"{eta(done, cfg.steps, t0, start=start)}")
+    with stop_signals(checkpoint is not None) as stop:
+        for step in range(start, cfg.steps):
+            loss = run.step(step)
+            nonfinite.record(loss, step)
+            done = step + 1
+            stopping = stop.requested and done < cfg.steps
+            saving = checkpoint is not None and (done % cfg.checkpoint_every == 0 and done < cfg.steps or stopping)
+            logging = done % max(1, cfg.steps // 10) == 0 or done == cfg.steps
+            if (saving or logging) and (found := nonfinite.first()) is not None:
+                raise ValueError(f"data INR fit diverged at step {found[0]} (loss {float(found[2])}); lower "
+                                 f"data_inr.lr (now {cfg.lr})")
+            if saving:
+                state = {"fingerprint": fingerprint, "step": done, "model": model.state_dict(),
+                         "optimizer": opt.state_dict()}
+                if hard is not None:
+                    state["error_weights"] = hard.weights
+                atomic_torch_save(checkpoint, state)
+            if stopping:
+                raise stop.stopped(f"at step {done}/{cfg.steps}", checkpoint)
+            if logging:
+                rate = (done - start) * cfg.points / (time.perf_counter() - t0)
+                log(f"step {done}/{cfg.steps}  PSNR(batch) {float(-10 * torch.log10(loss)):.1f} dB  "
+                    f"{rate:,.0f} points/s  {eta(done, cfg.steps, t0, start=start)}")
     if checkpoint is not None and checkpoint.exists():
         checkpoint.unlink()
     value, worst = voxel_errors(model, volume, device=device)

@@ -39,6 +39,7 @@ from diffshadow.siren import (
     forward_precision,
     init_siren,
 )
+from diffshadow.stopping import stop_signals
 from diffshadow.transfer import TransferFunction
 from diffshadow.truth import presample
 from diffshadow.volume import Volume, refine, refined_shape
@@ -489,18 +490,23 @@ def fit_sirens(
         log(f"resuming from {checkpoint} at step {start}/{cfg.steps}")
     run.prepare(start)
     watch = Watch(k, cfg, siren, light_index, start, initial, device, log)
-    for step in range(start, cfg.steps):
-        watch.record(run.step(step), step)
-        done = step + 1
-        saving = checkpoint is not None and done % cfg.checkpoint_every == 0 and done < cfg.steps
-        logging = done % max(1, cfg.steps // 10) == 0 or done == cfg.steps
-        if saving or logging:
-            watch.check()
-        if saving:
-            atomic_torch_save(checkpoint, {"fingerprint": fingerprint, "step": done, "weights": weights.detach().cpu(),
-                                           "optimizer": opt.state_dict(), "initial_loss": watch.initial.cpu()})
-        if logging:
-            watch.report(done)
+    with stop_signals(checkpoint is not None) as stop:
+        for step in range(start, cfg.steps):
+            watch.record(run.step(step), step)
+            done = step + 1
+            stopping = stop.requested and done < cfg.steps
+            saving = checkpoint is not None and (done % cfg.checkpoint_every == 0 and done < cfg.steps or stopping)
+            logging = done % max(1, cfg.steps // 10) == 0 or done == cfg.steps
+            if saving or logging:
+                watch.check()
+            if saving:
+                atomic_torch_save(checkpoint, {"fingerprint": fingerprint, "step": done,
+                                               "weights": weights.detach().cpu(), "optimizer": opt.state_dict(),
+                                               "initial_loss": watch.initial.cpu()})
+            if stopping:
+                raise stop.stopped(f"at step {done}/{cfg.steps}", checkpoint)
+            if logging:
+                watch.report(done)
     if checkpoint is not None and checkpoint.exists():
         checkpoint.unlink()
     return weights.detach().cpu()

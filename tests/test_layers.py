@@ -10,8 +10,8 @@ PACKAGE = Path(__file__).resolve().parents[1] / "diffshadow"
 # lowest first; a module's layer is that of its longest listed prefix
 LAYERS = [
     # foundations
-    ["diffshadow", "phases", "config", "io", "progress", "transfer", "metrics", "capacity", "analytic", "hpc",
-     "graphs", "adam"],
+    ["diffshadow", "phases", "config", "io", "stopping", "progress", "transfer", "metrics", "capacity", "analytic",
+     "hpc", "graphs", "adam"],
     ["volume", "layout", "siren", "lights", "sampling", "grid", "store", "codecs"],  # data
     ["shadow", "truth"],  # ground truth
     ["data_inr"],

@@ -839,6 +839,88 @@ def test_killed_fit_leaves_no_output_and_resumes(finished, tmp_path):
     assert "resuming from" in done.stdout and out.exists() and not ckpt.exists()
 
 
+def test_sigterm_stops_a_fit_at_its_next_step_with_a_checkpoint_and_the_rerun_resumes(finished, tmp_path):
+    """As PBS ends a job (walltime, preemption): SIGTERM to the job's processes, `tee` among them; the fit writes
+    its checkpoint at the step it is in and exits 143, and the rerun resumes there."""
+    import json
+    import signal
+    import time
+
+    cfg = json.dumps({"siren": TINY["siren"], "subset_size": 2,
+                      "fit": {**TINY["fit"], "steps": 3000, "checkpoint_every": 1000}})
+    res = finished / "results/nucleon"
+    out, ckpt, log = tmp_path / "subset_1.npz", tmp_path / "subset_1.npz.ckpt", tmp_path / "fit.log"
+    exe = str(installed("diffshadow"))
+    pre = json.dumps({**json.loads(cfg), "preoptimize": TINY["preoptimize"]})
+    init = tmp_path / "siren_init.pt"
+    subprocess.run([exe, "preoptimize", "--volume", str(res / "volume.zarr"), "--lights", str(res / "lights.json"),
+                    "--config-json", pre, "--out", str(init)], check=True, capture_output=True)
+    cmd = [exe, "fit-siren", "--volume", str(res / "volume.zarr"),
+           "--lights", str(res / "lights.json"), "--init", str(init), "--subset", "1",
+           "--config-json", cfg, "--threads", "1", "--out", str(out)]
+    proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, process_group=0)
+    tee = subprocess.Popen(["tee", str(log)], stdin=proc.stdout, stdout=subprocess.DEVNULL, process_group=proc.pid)
+    proc.stdout.close()
+    deadline = time.time() + 120
+    while "step 300/3000" not in (log.read_text() if log.exists() else "") and time.time() < deadline:
+        time.sleep(0.05)
+    os.killpg(proc.pid, signal.SIGTERM)
+    assert proc.wait(timeout=60) == 128 + signal.SIGTERM  # not 1 from a traceback on the pipe `tee` left
+    tee.wait(timeout=10)
+    step = torch.load(ckpt, weights_only=True)["step"]
+    assert 300 <= step < 3000 and step % 1000 != 0 and not out.exists()  # the step it was in, not the last periodic
+    done = subprocess.run(cmd, capture_output=True, text=True, timeout=600)
+    assert done.returncode == 0, done.stderr
+    assert f"resuming from {ckpt} at step {step}/3000" in done.stdout and out.exists() and not ckpt.exists()
+    # by hand, where the line can be read: SIGINT (Ctrl-C) says where it stopped
+    again = tmp_path / "again.npz.ckpt"
+    proc = subprocess.Popen([*cmd[:-1], str(tmp_path / "again.npz")], stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                            text=True)
+    while not proc.stdout.readline().startswith("step 300/3000") and proc.poll() is None:
+        pass
+    proc.send_signal(signal.SIGINT)
+    assert proc.wait(timeout=60) == 128 + signal.SIGINT
+    step = torch.load(again, weights_only=True)["step"]
+    assert proc.stderr.read().strip().splitlines()[-1] == (
+        f"diffshadow fit-siren: stopped by SIGINT at step {step}/3000; checkpoint {again} written, and the same "
+        f"command run again resumes from it")
+
+
+def test_sigterm_to_a_ddp_job_stops_its_ranks_at_one_epoch_and_the_rerun_resumes(finished, tmp_path):
+    """PBS signals every process of the job: the launcher (which passes SIGTERM on to its ranks) and both ranks.
+    The ranks agree on the epoch to stop at, rank 0 writes the checkpoint there, and the rerun resumes from it."""
+    import json
+    import signal
+
+    res = finished / "results/nucleon"
+    cfg = json.dumps({"finetune": {**TINY["finetune"], "epochs": 200, "checkpoint_every": 50, "timeout_s": 20}})
+    out, metrics = tmp_path / "diffusion.ckpt", tmp_path / "ft.json"
+    part = tmp_path / "diffusion.ckpt.part"
+    cmd = [sys.executable, "-m", "diffshadow.cli", "torchrun", "--standalone", "--nproc_per_node=2", "-m",
+           "diffshadow.cli", "finetune-render", "--checkpoint", str(res / "diffusion_geometry.ckpt"),
+           "--weights", str(res / "weights.zarr"), "--points", str(res / "geometry_points.zarr"),
+           "--targets", str(res / "targets.zarr"), "--config-json", cfg, "--threads", "1",
+           "--metrics", str(metrics), "--out", str(out)]
+    proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, start_new_session=True)
+    lines = []
+    while proc.poll() is None:
+        lines.append(proc.stdout.readline())
+        if lines[-1].startswith("epoch 20/200"):
+            break
+    os.killpg(proc.pid, signal.SIGTERM)
+    assert proc.wait(timeout=60) == 128 + signal.SIGTERM
+    text = "".join(lines) + proc.stdout.read()
+    epoch = torch.load(part, weights_only=False)["finetune_epoch"]
+    assert 20 <= epoch < 200 and epoch % 50 != 0 and not out.exists(), text[-2000:]
+    said = [line for line in text.splitlines() if "stopped by SIGTERM" in line]
+    assert said == [f"diffshadow finetune-render: stopped by SIGTERM at epoch {epoch}/200; checkpoint {part} "
+                    f"written, and the same command run again resumes from it"], text[-2000:]
+    assert text.strip().splitlines()[-1] == "diffshadow torchrun: ended by SIGTERM, and its ranks with it"
+    done = subprocess.run(cmd, capture_output=True, text=True, timeout=600)
+    assert done.returncode == 0, done.stdout[-2000:] + done.stderr[-2000:]
+    assert f"at epoch {epoch}/200" in done.stdout + done.stderr and out.exists() and not part.exists()
+
+
 def test_finetune_ran_under_ddp(finished):
     import json
     metrics = json.loads((finished / "results/nucleon/finetune_metrics.json").read_text())

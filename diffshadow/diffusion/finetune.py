@@ -39,6 +39,7 @@ from diffshadow.progress import FirstNonFinite, eta
 from diffshadow.render.bundle import RayBundle, bundle_colors
 from diffshadow.sampling import Stream, seeded, to_device
 from diffshadow.siren import BatchedSiren, SirenConfig, WeightLayout, box_to_siren
+from diffshadow.stopping import stop_signals
 from diffshadow.truth import EvalTruth, psnr_per_light
 
 
@@ -347,38 +348,47 @@ def finetune(geometry_state: dict, data: FinetuneData, cfg: FinetuneConfig, chec
     t_start = t_step = time.perf_counter()
     step_times: list[float] = []
     end = start if selection.stopped else cfg.epochs  # a run that stopped early has finished
-    for epoch in range(start, end):
-        gen = seeded(cfg.seed, Stream.FINETUNE_EPOCH, epoch)
-        order = torch.randperm(n, generator=gen, device=gen.device).tolist()
-        totals = torch.zeros(3, dtype=torch.float64, device=device)  # summed on the device: no sync per step
-        for b0 in range(0, n, cfg.batch_size):
-            totals += train_step(model, base, opt, std, data, z_all, order[b0:b0 + cfg.batch_size], rank, world,
-                                 epoch, cfg, dcfg, schedule, nonfinite)
-            step_times.append(time.perf_counter() - t_step)
-            t_step = time.perf_counter()
-        if (found := nonfinite.first()) is not None:
-            raise ValueError(f"finetune: loss became {float(found[2])} at epoch {found[0]} on rank {rank}; "
-                             f"lower finetune.lr (now {cfg.lr})")
-        if world > 1:
-            dist.all_reduce(totals)
-        done = epoch + 1
-        if done % cfg.checkpoint_every == 0 or done == cfg.epochs:
-            selection.score(done, base, psnr_of)
-            stop = done < cfg.epochs and selection.agreed_give_up(world, device)
-            if stop:
-                if rank == 0:
-                    log(f"validation: the last {cfg.patience} checkpoints scored under the geometry stage; "
-                        f"stopping at epoch {done}/{cfg.epochs} and keeping epoch {selection.record['kept_epoch']}")
-                selection.record["stopped_epoch"] = done
-            state = writer.save(done, base, opt, last=stop or done == cfg.epochs)
-            if stop:
-                break
-        if rank == 0 and (done % max(1, cfg.epochs // 10) == 0 or done == cfg.epochs):
-            lx, lg, lr_ = (totals.cpu() / n).tolist()
-            log(f"epoch {done}/{cfg.epochs}  x0 {lx:.3e}  geometry {lg:.3e}  render {lr_:.3e} "
-                f"(≈{-10 * math.log10(max(lr_, 1e-30)):.1f} dB)  {eta(done, end, t_start, start=start)}")
-        if stop_after_epoch is not None and done >= stop_after_epoch:
-            return state
+    with stop_signals() as signalled:
+        for epoch in range(start, end):
+            gen = seeded(cfg.seed, Stream.FINETUNE_EPOCH, epoch)
+            order = torch.randperm(n, generator=gen, device=gen.device).tolist()
+            totals = torch.zeros(3, dtype=torch.float64, device=device)  # summed on the device: no sync per step
+            for b0 in range(0, n, cfg.batch_size):
+                totals += train_step(model, base, opt, std, data, z_all, order[b0:b0 + cfg.batch_size], rank, world,
+                                     epoch, cfg, dcfg, schedule, nonfinite)
+                step_times.append(time.perf_counter() - t_step)
+                t_step = time.perf_counter()
+            if (found := nonfinite.first()) is not None:
+                raise ValueError(f"finetune: loss became {float(found[2])} at epoch {found[0]} on rank {rank}; "
+                                 f"lower finetune.lr (now {cfg.lr})")
+            halting = signalled.requested
+            if world > 1:  # the ranks halt at one epoch: each saw the signal (if at all) at its own time
+                both = torch.cat([totals, torch.tensor([float(halting)], dtype=totals.dtype, device=device)])
+                dist.all_reduce(both)
+                totals, halting = both[:3], bool(both[3] > 0)
+            done = epoch + 1
+            if done % cfg.checkpoint_every == 0 or done == cfg.epochs:
+                selection.score(done, base, psnr_of)
+                stop = done < cfg.epochs and selection.agreed_give_up(world, device)
+                if stop:
+                    if rank == 0:
+                        log(f"validation: the last {cfg.patience} checkpoints scored under the geometry stage; "
+                            f"stopping at epoch {done}/{cfg.epochs} and keeping epoch "
+                            f"{selection.record['kept_epoch']}")
+                    selection.record["stopped_epoch"] = done
+                state = writer.save(done, base, opt, last=stop or done == cfg.epochs)
+                if stop:
+                    break
+            elif halting:
+                state = writer.save(done, base, opt, last=False)
+            if halting and done < cfg.epochs:
+                raise signalled.stopped(f"at epoch {done}/{cfg.epochs}", checkpoint)
+            if rank == 0 and (done % max(1, cfg.epochs // 10) == 0 or done == cfg.epochs):
+                lx, lg, lr_ = (totals.cpu() / n).tolist()
+                log(f"epoch {done}/{cfg.epochs}  x0 {lx:.3e}  geometry {lg:.3e}  render {lr_:.3e} "
+                    f"(≈{-10 * math.log10(max(lr_, 1e-30)):.1f} dB)  {eta(done, end, t_start, start=start)}")
+            if stop_after_epoch is not None and done >= stop_after_epoch:
+                return state
     if state is None:
         state = torch.load(checkpoint, map_location="cpu", weights_only=False)
     # per-rank cost, gathered to every rank: median seconds per step and peak memory

@@ -30,6 +30,7 @@ from diffshadow.metrics import psnr
 from diffshadow.progress import FirstNonFinite, eta
 from diffshadow.sampling import Stream, seeded, to_device
 from diffshadow.siren import BatchedSiren, SirenConfig, WeightLayout, box_to_siren, forward_precision
+from diffshadow.stopping import stop_signals
 from diffshadow.truth import check_rows
 
 # (largest SIREN width, preset) for `preset: auto`: the model widens with the SIREN, so a scene whose stage 1
@@ -367,31 +368,35 @@ def train_diffusion(data: TrainingData, cfg: DiffusionConfig, checkpoint: Path, 
     n, t0, epoch, state = len(z_all), time.perf_counter(), start, None
     per_epoch = math.ceil(n / cfg.batch_size)  # optimizer steps, for the EMA's warm-up
     nonfinite = FirstNonFinite((), device)  # read at log lines, checks and checkpoints, not every step
-    while not growth.finished:
-        gen = seeded(cfg.seed, Stream.DIFFUSION_EPOCH, epoch)
-        order = torch.randperm(n, generator=gen, device=gen.device)
-        totals = torch.zeros(2, dtype=torch.float64, device=device)  # summed on the device: no sync per step
-        for k, b0 in enumerate(range(0, n, cfg.batch_size)):
-            batch = draw_batch(gen, to_device(order[b0:b0 + cfg.batch_size], device), on_device, pool, cfg,
-                               schedule.steps, device)
-            totals += train_batch(model, opt, ema, std, on_device, z_all, pool, batch, cfg, schedule,
-                                  nonfinite, epoch, epoch * per_epoch + k, graphs)
-        done = epoch = epoch + 1
-        if done <= cfg.epochs:  # growth past `epochs` keeps the lr reached there (decayed on, tooth plateaued)
-            step_lr(opt, done, cfg.lr_step_epochs, cfg.lr_gamma)
-        stopping = stop_after_epoch is not None and done >= stop_after_epoch
-        logging = done % max(1, cfg.epochs // 20) == 0 or growth.due(done)
-        saving = done % cfg.checkpoint_every == 0
-        if logging or saving or stopping:
-            raise_if_not_finite()
-        if logging:
-            _log_epoch(log, done, (totals / n).cpu().tolist(), cfg, growth, float(opt.param_groups[0]["lr"]), t0, start)
-        if growth.due(done):
-            growth.check(done, sampled, lambda: seen_gap_db(sampled, std, on_device, cfg), log, last_good())
-        if saving or growth.finished:
-            state, good = save(done), done
-        if stopping:
-            return state
+    with stop_signals() as stop:
+        while not growth.finished:
+            gen = seeded(cfg.seed, Stream.DIFFUSION_EPOCH, epoch)
+            order = torch.randperm(n, generator=gen, device=gen.device)
+            totals = torch.zeros(2, dtype=torch.float64, device=device)  # summed on the device: no sync per step
+            for k, b0 in enumerate(range(0, n, cfg.batch_size)):
+                batch = draw_batch(gen, to_device(order[b0:b0 + cfg.batch_size], device), on_device, pool, cfg,
+                                   schedule.steps, device)
+                totals += train_batch(model, opt, ema, std, on_device, z_all, pool, batch, cfg, schedule,
+                                      nonfinite, epoch, epoch * per_epoch + k, graphs)
+            done = epoch = epoch + 1
+            if done <= cfg.epochs:  # growth past `epochs` keeps the lr reached there (decayed on, tooth plateaued)
+                step_lr(opt, done, cfg.lr_step_epochs, cfg.lr_gamma)
+            stopping = stop_after_epoch is not None and done >= stop_after_epoch
+            logging = done % max(1, cfg.epochs // 20) == 0 or growth.due(done)
+            saving = done % cfg.checkpoint_every == 0 or stop.requested
+            if logging or saving or stopping:
+                raise_if_not_finite()
+            if logging:
+                _log_epoch(log, done, (totals / n).cpu().tolist(), cfg, growth, float(opt.param_groups[0]["lr"]),
+                           t0, start)
+            if growth.due(done):
+                growth.check(done, sampled, lambda: seen_gap_db(sampled, std, on_device, cfg), log, last_good())
+            if saving or growth.finished:
+                state, good = save(done), done
+            if stop.requested and not growth.finished:
+                raise stop.stopped(f"at epoch {done}", checkpoint)
+            if stopping:
+                return state
     if state is None:  # resumed from the final checkpoint: nothing left to train
         state = torch.load(checkpoint, map_location="cpu", weights_only=False)
     return state

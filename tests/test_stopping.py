@@ -1,0 +1,176 @@
+"""A signal (SIGTERM at a PBS walltime or preemption, Ctrl-C) stops a training loop at its next step with a
+checkpoint there, and the rerun resumes to the bytes of an uninterrupted run."""
+
+import os
+import signal
+import threading
+
+import numpy as np
+import pytest
+import torch
+
+from diffshadow import stopping
+from diffshadow.stopping import Stopped, stop_signals
+
+
+def signal_at(obj, name: str, call: int, sig=signal.SIGTERM):
+    """Wrap `obj.name` so that its `call`-th call (from 1) sends `sig` to this process first: a signal that
+    arrives in the middle of a step, as a scheduler's does."""
+    inner = getattr(obj, name)
+    calls = []
+
+    def wrapped(*args, **kwargs):
+        calls.append(1)
+        if len(calls) == call:
+            os.kill(os.getpid(), sig)
+        return inner(*args, **kwargs)
+
+    return wrapped
+
+
+def test_a_signal_sets_the_request_and_the_handlers_come_back():
+    before = {s: signal.getsignal(s) for s in stopping.SIGNALS}
+    with stop_signals() as stop:
+        assert not stop.requested
+        os.kill(os.getpid(), signal.SIGTERM)
+        assert stop.signum == signal.SIGTERM
+        os.kill(os.getpid(), signal.SIGTERM)  # PBS's and torchrun's: the same request
+        assert stop.signum == signal.SIGTERM
+        e = stop.stopped("at step 3/9", "x.ckpt")
+    assert {s: signal.getsignal(s) for s in stopping.SIGNALS} == before
+    assert isinstance(e, BaseException) and not isinstance(e, Exception) and e.signum == signal.SIGTERM
+    assert str(e) == ("stopped by SIGTERM at step 3/9; checkpoint x.ckpt written, and the same command run again "
+                      "resumes from it")
+
+
+def test_a_second_ctrl_c_stops_at_once():
+    with pytest.raises(KeyboardInterrupt), stop_signals() as stop:
+        os.kill(os.getpid(), signal.SIGINT)
+        assert stop.signum == signal.SIGINT
+        os.kill(os.getpid(), signal.SIGINT)
+        pytest.fail("the second SIGINT did not interrupt")
+
+
+def test_a_signal_the_loop_did_not_answer_is_sent_again_after_it():
+    with pytest.raises(KeyboardInterrupt), stop_signals() as stop:  # SIGINT's own handler: KeyboardInterrupt
+        os.kill(os.getpid(), signal.SIGINT)
+    assert stop.requested and not stop.honoured
+
+
+def test_off_the_main_thread_and_where_ignored_nothing_is_installed():
+    seen = {}
+
+    def worker():
+        with stop_signals() as stop:
+            seen["handler"] = signal.getsignal(signal.SIGTERM)
+            seen["stop"] = stop
+
+    before = signal.getsignal(signal.SIGTERM)
+    thread = threading.Thread(target=worker)
+    thread.start()
+    thread.join()
+    assert seen["handler"] is before and not seen["stop"].requested
+    previous = signal.signal(signal.SIGTERM, signal.SIG_IGN)
+    try:
+        with stop_signals():
+            assert signal.getsignal(signal.SIGTERM) is signal.SIG_IGN
+            assert signal.getsignal(signal.SIGINT) != signal.default_int_handler
+        with stop_signals(enabled=False):
+            assert signal.getsignal(signal.SIGINT) is signal.default_int_handler
+    finally:
+        signal.signal(signal.SIGTERM, previous)
+
+
+def test_the_subset_fit_stops_at_its_next_step_and_resumes_to_the_same_bytes(tmp_path, monkeypatch):
+    from conftest import identity_tf
+    from test_fit import CFG, LAYOUT, init
+
+    from diffshadow import fit
+    from diffshadow.fit import FitConfig, fit_sirens
+    from diffshadow.volume import Volume
+
+    vol = Volume(data=np.random.default_rng(0).uniform(0, 1, (9, 9, 9)).astype(np.float32), extent=np.ones(3),
+                 name="noise")
+    tf, lights = identity_tf(2.0), np.array([[0.0, 0.0, 1.0], [0.6, 0.0, 0.8]])
+    cfg = FitConfig.from_config(dict(steps=12, points=64, checkpoint_every=4, eval_points=16))
+    whole = fit_sirens(init(), LAYOUT, CFG, vol, tf, lights, cfg, log=lambda *a: None)
+    ckpt = tmp_path / "subset.ckpt"
+    with monkeypatch.context() as m:
+        m.setattr(fit.SubsetFit, "step", signal_at(fit.SubsetFit, "step", 7))
+        with pytest.raises(Stopped, match=r"^stopped by SIGTERM at step 7/12; checkpoint .*subset.ckpt written"):
+            fit_sirens(init(), LAYOUT, CFG, vol, tf, lights, cfg, checkpoint=ckpt, log=lambda *a: None)
+    assert torch.load(ckpt, weights_only=True)["step"] == 7  # not the periodic checkpoint's 4
+    messages = []
+    resumed = fit_sirens(init(), LAYOUT, CFG, vol, tf, lights, cfg, checkpoint=ckpt, log=messages.append)
+    assert messages[0].startswith(f"resuming from {ckpt} at step 7")
+    assert torch.equal(resumed, whole) and not ckpt.exists()
+
+
+def test_the_data_inr_stops_at_its_next_step_and_resumes_to_the_same_bytes(tmp_path, monkeypatch):
+    from test_data_inr import CFG, TF
+
+    from diffshadow import data_inr
+    from diffshadow.analytic import gaussian_blob
+    from diffshadow.data_inr import DataInrConfig, fit_data_inr
+    from diffshadow.volume import Volume
+
+    blob = Volume(data=gaussian_blob(17, 0.2), extent=np.ones(3), name="blob")
+    # a voxel scoring (every 30 steps) between the periodic checkpoint and the stop
+    short = DataInrConfig(**{**CFG.__dict__, "steps": 60, "checkpoint_every": 20, "error_every": 30})
+    whole = fit_data_inr(blob, TF, short, log=lambda m: None)
+    ckpt = tmp_path / "inr.ckpt"
+    with monkeypatch.context() as m:
+        m.setattr(data_inr.DataInrFit, "step", signal_at(data_inr.DataInrFit, "step", 37, signal.SIGINT))
+        with pytest.raises(Stopped, match="^stopped by SIGINT at step 37/60") as e:
+            fit_data_inr(blob, TF, short, checkpoint=ckpt, log=lambda m: None)
+    assert e.value.signum == signal.SIGINT
+    messages = []
+    resumed = fit_data_inr(blob, TF, short, checkpoint=ckpt, log=messages.append)
+    assert any("resuming" in m and "step 37/60" in m for m in messages)
+    assert torch.equal(resumed.model.flat(), whole.model.flat())
+
+
+def test_the_geometry_stage_stops_at_its_next_epoch_and_resumes_to_the_same_bytes(tmp_path, monkeypatch):
+    from test_diffusion import CFG, tiny_data
+
+    from diffshadow.diffusion import train
+    from diffshadow.diffusion.train import train_diffusion
+
+    data = tiny_data()  # 4 lights in batches of 2: 2 steps an epoch, checkpoints every 2 epochs
+    whole = train_diffusion(data, CFG, tmp_path / "a.ckpt", log=lambda *a: None)
+    ckpt = tmp_path / "b.ckpt"
+    with monkeypatch.context() as m:
+        m.setattr(train, "train_batch", signal_at(train, "train_batch", 6))  # in epoch 3
+        with pytest.raises(Stopped, match="^stopped by SIGTERM at epoch 3;"):
+            train_diffusion(data, CFG, ckpt, log=lambda *a: None)
+    assert torch.load(ckpt, weights_only=False)["epoch"] == 3
+    messages = []
+    resumed = train_diffusion(data, CFG, ckpt, log=messages.append)
+    assert any(m.startswith("resuming from") and "epoch 3/6" in m for m in messages)
+    for key in ("model", "ema", "optimizer"):
+        assert str(resumed[key]) == str(whole[key]) if key == "optimizer" else all(
+            torch.equal(v, resumed[key][k]) for k, v in whole[key].items()), key
+
+
+def test_fine_tuning_stops_at_its_next_epoch_and_resumes_to_the_same_bytes(tmp_path, monkeypatch):
+    from test_finetune import FT, make_setup
+
+    from diffshadow.analytic import gaussian_blob
+    from diffshadow.diffusion import finetune as ft
+    from diffshadow.volume import Volume
+
+    volume = Volume(data=gaussian_blob(17, 0.3), extent=np.ones(3), name="blob")
+    _, _, _, data, state = make_setup(volume, tmp_path)
+    cfg = ft.FinetuneConfig(**{**FT.__dict__, "epochs": 5, "checkpoint_every": 2})  # one step an epoch
+    whole = ft.finetune(state, data, cfg, tmp_path / "a.ckpt", log=lambda m: None)
+    ckpt = tmp_path / "b.ckpt"
+    with monkeypatch.context() as m:
+        m.setattr(ft, "train_step", signal_at(ft, "train_step", 3))
+        with pytest.raises(Stopped, match="^stopped by SIGTERM at epoch 3/5;"):
+            ft.finetune(state, data, cfg, ckpt, log=lambda m: None)
+    assert torch.load(ckpt, weights_only=False)["finetune_epoch"] == 3
+    messages = []
+    resumed = ft.finetune(state, data, cfg, ckpt, log=messages.append)
+    assert any("resuming from" in m and "epoch 3/5" in m for m in messages)
+    assert resumed["selection"] == whole["selection"]
+    assert all(torch.equal(v, resumed["model"][k]) for k, v in whole["model"].items())
