@@ -130,7 +130,12 @@ def test_the_data_inr_stops_at_its_next_step_and_resumes_to_the_same_bytes(tmp_p
     assert torch.equal(resumed.model.flat(), whole.model.flat())
 
 
-def test_the_geometry_stage_stops_at_its_next_epoch_and_resumes_to_the_same_bytes(tmp_path, monkeypatch):
+@pytest.mark.parametrize("call, where, resumed_at", [
+    (6, "at epoch 3;", "at epoch 3/6"),  # the last step of epoch 3: at the epoch's end
+    (7, "at step 1 of epoch 4;", "at epoch 3/6, step 1 of epoch 4"),  # inside an epoch, whose draws go on
+])
+def test_the_geometry_stage_stops_at_its_next_step_and_resumes_to_the_same_bytes(tmp_path, monkeypatch, call, where,
+                                                                                 resumed_at):
     from test_diffusion import CFG, tiny_data
 
     from diffshadow.diffusion import train
@@ -140,16 +145,17 @@ def test_the_geometry_stage_stops_at_its_next_epoch_and_resumes_to_the_same_byte
     whole = train_diffusion(data, CFG, tmp_path / "a.ckpt", log=lambda *a: None)
     ckpt = tmp_path / "b.ckpt"
     with monkeypatch.context() as m:
-        m.setattr(train, "train_batch", signal_at(train, "train_batch", 6))  # in epoch 3
-        with pytest.raises(Stopped, match="^stopped by SIGTERM at epoch 3;"):
+        m.setattr(train, "train_batch", signal_at(train, "train_batch", call))  # the signal comes inside the step
+        with pytest.raises(Stopped, match=f"^stopped by SIGTERM {where}"):
             train_diffusion(data, CFG, ckpt, log=lambda *a: None)
     assert torch.load(ckpt, weights_only=False)["epoch"] == 3
     messages = []
     resumed = train_diffusion(data, CFG, ckpt, log=messages.append)
-    assert any(m.startswith("resuming from") and "epoch 3/6" in m for m in messages)
-    for key in ("model", "ema", "optimizer"):
-        assert str(resumed[key]) == str(whole[key]) if key == "optimizer" else all(
-            torch.equal(v, resumed[key][k]) for k, v in whole[key].items()), key
+    assert any(m.startswith("resuming from") and m.endswith(resumed_at) for m in messages), messages
+    assert "within_epoch" not in resumed
+    for key in ("model", "ema"):
+        assert all(torch.equal(v, resumed[key][k]) for k, v in whole[key].items()), key
+    assert str(resumed["optimizer"]) == str(whole["optimizer"])
 
 
 def test_fine_tuning_stops_at_its_next_epoch_and_resumes_to_the_same_bytes(tmp_path, monkeypatch):

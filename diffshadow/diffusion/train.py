@@ -335,16 +335,19 @@ def train_diffusion(data: TrainingData, cfg: DiffusionConfig, checkpoint: Path, 
     sampled = ema.model if ema is not None else model  # the weights that sampling uses: checked, and the best kept
     fingerprint = _fingerprint(data, cfg)
     start, good, growth = 0, None, Growth(cfg)  # good: the epoch of the checkpoint resumed from or last saved
+    within = None  # where a stop inside an epoch left it: {"batches" done, the epoch's "generator", "totals"}
     if state := resume(checkpoint, fingerprint, log=log, map_location=device):
         model.load_state_dict(state["model"])
         opt.load_state_dict(state["optimizer"])  # its learning rate is StepLR's, reached at `epoch`
         if ema is not None:
             ema.model.load_state_dict(state["ema"])
         start = good = int(state["epoch"])
+        within = state.get("within_epoch")
         growth = Growth(cfg, state["growth"], state.get("best"))
-        log(f"resuming from {checkpoint} at epoch {start}/{cfg.epochs}")
+        inside = f", step {within['batches']} of epoch {start + 1}" if within else ""
+        log(f"resuming from {checkpoint} at epoch {start}/{cfg.epochs}{inside}")
 
-    def save(epoch: int) -> dict:
+    def save(epoch: int, inside: dict | None = None) -> dict:
         state = {"fingerprint": fingerprint, "epoch": epoch, "model": model.state_dict(),
                  "optimizer": opt.state_dict(),
                  "ema": ema.model.state_dict() if ema is not None else None, "standardizer": std.state(),
@@ -353,6 +356,8 @@ def train_diffusion(data: TrainingData, cfg: DiffusionConfig, checkpoint: Path, 
                  "pool_lights": pool.lights.tolist() if pool is not None else [], "growth": growth.state,
                  "region": data.region, "extinction": data.extinction,
                  "best": None if growth.finished else growth.best}
+        if inside is not None:
+            state["within_epoch"] = inside
         atomic_torch_save(checkpoint, state)
         return state
 
@@ -373,11 +378,20 @@ def train_diffusion(data: TrainingData, cfg: DiffusionConfig, checkpoint: Path, 
             gen = seeded(cfg.seed, Stream.DIFFUSION_EPOCH, epoch)
             order = torch.randperm(n, generator=gen, device=gen.device)
             totals = torch.zeros(2, dtype=torch.float64, device=device)  # summed on the device: no sync per step
-            for k, b0 in enumerate(range(0, n, cfg.batch_size)):
+            first = 0
+            if within is not None:  # resumed inside this epoch: its draws go on from where the stop left them
+                gen.set_state(within["generator"])
+                first, totals, within = within["batches"], within["totals"].to(device), None
+            for k in range(first, per_epoch):
+                b0 = k * cfg.batch_size
                 batch = draw_batch(gen, to_device(order[b0:b0 + cfg.batch_size], device), on_device, pool, cfg,
                                    schedule.steps, device)
                 totals += train_batch(model, opt, ema, std, on_device, z_all, pool, batch, cfg, schedule,
                                       nonfinite, epoch, epoch * per_epoch + k, graphs)
+                if stop.requested and k + 1 < per_epoch:  # an epoch at the paper's sizes outlasts a kill delay
+                    raise_if_not_finite()
+                    save(epoch, {"batches": k + 1, "generator": gen.get_state(), "totals": totals.cpu()})
+                    raise stop.stopped(f"at step {k + 1} of epoch {epoch + 1}", checkpoint)
             done = epoch = epoch + 1
             if done <= cfg.epochs:  # growth past `epochs` keeps the lr reached there (decayed on, tooth plateaued)
                 step_lr(opt, done, cfg.lr_step_epochs, cfg.lr_gamma)
