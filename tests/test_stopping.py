@@ -13,6 +13,18 @@ from diffshadow import stopping
 from diffshadow.stopping import Stopped, stop_signals
 
 
+@pytest.fixture(autouse=True)
+def python_signal_handlers():
+    """Python's own SIGINT handler and the default SIGTERM, as a command typed in a terminal has them: a test run
+    started in the background of a shell without job control inherits SIGINT ignored, which stop_signals keeps."""
+    before = {s: signal.getsignal(s) for s in stopping.SIGNALS}
+    signal.signal(signal.SIGINT, signal.default_int_handler)
+    signal.signal(signal.SIGTERM, signal.SIG_DFL)
+    yield
+    for sig, handler in before.items():
+        signal.signal(sig, handler)
+
+
 def signal_at(obj, name: str, call: int, sig=signal.SIGTERM):
     """Wrap `obj.name` so that its `call`-th call (from 1) sends `sig` to this process first: a signal that
     arrives in the middle of a step, as a scheduler's does."""
@@ -158,7 +170,12 @@ def test_the_geometry_stage_stops_at_its_next_step_and_resumes_to_the_same_bytes
     assert str(resumed["optimizer"]) == str(whole["optimizer"])
 
 
-def test_fine_tuning_stops_at_its_next_epoch_and_resumes_to_the_same_bytes(tmp_path, monkeypatch):
+@pytest.mark.parametrize("call, where, resumed_at", [
+    (6, "at epoch 3/5;", "at epoch 3/5"),
+    (7, "at step 1 of epoch 4/5;", "at epoch 3/5, step 1 of epoch 4"),
+])
+def test_fine_tuning_stops_at_its_next_step_and_resumes_to_the_same_bytes(tmp_path, monkeypatch, call, where,
+                                                                          resumed_at):
     from test_finetune import FT, make_setup
 
     from diffshadow.analytic import gaussian_blob
@@ -167,16 +184,16 @@ def test_fine_tuning_stops_at_its_next_epoch_and_resumes_to_the_same_bytes(tmp_p
 
     volume = Volume(data=gaussian_blob(17, 0.3), extent=np.ones(3), name="blob")
     _, _, _, data, state = make_setup(volume, tmp_path)
-    cfg = ft.FinetuneConfig(**{**FT.__dict__, "epochs": 5, "checkpoint_every": 2})  # one step an epoch
+    cfg = ft.FinetuneConfig(**{**FT.__dict__, "epochs": 5, "checkpoint_every": 2, "batch_size": 2})  # 2 steps an epoch
     whole = ft.finetune(state, data, cfg, tmp_path / "a.ckpt", log=lambda m: None)
     ckpt = tmp_path / "b.ckpt"
     with monkeypatch.context() as m:
-        m.setattr(ft, "train_step", signal_at(ft, "train_step", 3))
-        with pytest.raises(Stopped, match="^stopped by SIGTERM at epoch 3/5;"):
+        m.setattr(ft, "train_step", signal_at(ft, "train_step", call))
+        with pytest.raises(Stopped, match=f"^stopped by SIGTERM {where}"):
             ft.finetune(state, data, cfg, ckpt, log=lambda m: None)
     assert torch.load(ckpt, weights_only=False)["finetune_epoch"] == 3
     messages = []
     resumed = ft.finetune(state, data, cfg, ckpt, log=messages.append)
-    assert any("resuming from" in m and "epoch 3/5" in m for m in messages)
-    assert resumed["selection"] == whole["selection"]
+    assert any("resuming from" in m and m.endswith(resumed_at) for m in messages), messages
+    assert resumed["selection"] == whole["selection"] and "within_epoch" not in resumed
     assert all(torch.equal(v, resumed["model"][k]) for k, v in whole["model"].items())

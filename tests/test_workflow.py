@@ -875,7 +875,7 @@ def test_sigterm_stops_a_fit_at_its_next_step_with_a_checkpoint_and_the_rerun_re
     # by hand, where the line can be read: SIGINT (Ctrl-C) says where it stopped
     again = tmp_path / "again.npz.ckpt"
     proc = subprocess.Popen([*cmd[:-1], str(tmp_path / "again.npz")], stdout=subprocess.PIPE, stderr=subprocess.PIPE,
-                            text=True)
+                            text=True, preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))  # a terminal's
     while not proc.stdout.readline().startswith("step 300/3000") and proc.poll() is None:
         pass
     proc.send_signal(signal.SIGINT)
@@ -910,15 +910,19 @@ def test_sigterm_to_a_ddp_job_stops_its_ranks_at_one_epoch_and_the_rerun_resumes
     os.killpg(proc.pid, signal.SIGTERM)
     assert proc.wait(timeout=60) == 128 + signal.SIGTERM
     text = "".join(lines) + proc.stdout.read()
-    epoch = torch.load(part, weights_only=False)["finetune_epoch"]
-    assert 20 <= epoch < 200 and epoch % 50 != 0 and not out.exists(), text[-2000:]
+    saved = torch.load(part, weights_only=False)
+    epoch, inside = saved["finetune_epoch"], (saved.get("within_epoch") or {}).get("batches")
+    assert 20 <= epoch < 200 and (epoch % 50 != 0 or inside) and not out.exists(), text[-2000:]
+    where = f"at step {inside} of epoch {epoch + 1}/200" if inside else f"at epoch {epoch}/200"
     said = [line for line in text.splitlines() if "stopped by SIGTERM" in line]
-    assert said == [f"diffshadow finetune-render: stopped by SIGTERM at epoch {epoch}/200; checkpoint {part} "
+    assert said == [f"diffshadow finetune-render: stopped by SIGTERM {where}; checkpoint {part} "
                     f"written, and the same command run again resumes from it"], text[-2000:]
     assert text.strip().splitlines()[-1] == "diffshadow torchrun: ended by SIGTERM, and its ranks with it"
     done = subprocess.run(cmd, capture_output=True, text=True, timeout=600)
     assert done.returncode == 0, done.stdout[-2000:] + done.stderr[-2000:]
-    assert f"at epoch {epoch}/200" in done.stdout + done.stderr and out.exists() and not part.exists()
+    resumed = f"at epoch {epoch}/200" + (f", step {inside} of epoch {epoch + 1}" if inside else "")
+    assert resumed in done.stdout + done.stderr and out.exists() and not part.exists()
+    print(f"stopped {where}; resumed {resumed}")
 
 
 def test_finetune_ran_under_ddp(finished):

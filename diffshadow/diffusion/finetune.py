@@ -39,7 +39,7 @@ from diffshadow.progress import FirstNonFinite, eta
 from diffshadow.render.bundle import RayBundle, bundle_colors
 from diffshadow.sampling import Stream, seeded, to_device
 from diffshadow.siren import BatchedSiren, SirenConfig, WeightLayout, box_to_siren
-from diffshadow.stopping import stop_signals
+from diffshadow.stopping import StopRequest, stop_signals
 from diffshadow.truth import EvalTruth, psnr_per_light
 
 
@@ -237,6 +237,44 @@ class Selection:
         return bool(self.record.get("stopped_epoch"))
 
 
+class Halt:
+    """Where a stop signal ends fine-tuning: after a step, the same step on every rank. A process alone stops after
+    the step it was signalled in. The ranks of a DDP job each see the signal at their own moment and must stop at
+    one step (a rank's next all-reduce would wait for a peer that left): after each step a rank posts its flag to a
+    sum over the ranks on the host (its own gloo group: no wait on the GPU) and reads the sum it posted a step
+    before, so all read the same sums at the same steps and stop one step after the first of them was
+    signalled."""
+
+    def __init__(self, signalled: StopRequest, world: int):
+        self.signalled, self.world, self.posted = signalled, world, None
+        if world > 1:
+            import torch.distributed as dist
+
+            self.group = dist.new_group(backend="gloo")
+
+    def now(self) -> bool:
+        """Whether to stop after the step just taken (called once a step on every rank)."""
+        if self.world == 1:
+            return self.signalled.requested
+        import torch.distributed as dist
+
+        if self.posted is not None:
+            work, total = self.posted
+            work.wait()
+            self.posted = None
+            if int(total[0]) > 0:
+                return True
+        flag = torch.tensor([int(self.signalled.requested)], dtype=torch.int32)
+        self.posted = dist.all_reduce(flag, group=self.group, async_op=True), flag
+        return False
+
+    def close(self) -> None:
+        """The last sum waited for: every rank's, before the process group ends."""
+        if self.posted is not None:
+            self.posted[0].wait()
+            self.posted = None
+
+
 class FinetuneCheckpoint:
     """Fine-tuning's progress as one resumable checkpoint, written by rank 0 (every rank waits for it): before
     the end the running model and the one `Selection` keeps; at the end, with validation, the kept one as the
@@ -247,13 +285,17 @@ class FinetuneCheckpoint:
         self.path, self.geometry_state, self.cfg, self.fp = path, geometry_state, cfg, fp
         self.selection, self.validated, self.rank, self.world = selection, validated, rank, world
 
-    def save(self, epoch: int, model, opt: Adam, *, last: bool) -> dict:
+    def save(self, epoch: int, model, opt: Adam, *, last: bool, inside: dict | None = None) -> dict:
+        """The state after `epoch` epochs, and `inside` the next where a stop came in it ({"batches" done,
+        their loss "totals"})."""
         final = self.validated and last
         kept = self.selection.kept
         state = {**self.geometry_state, "model": kept if final else model.state_dict(), "ema": None,
                  "optimizer": opt.state_dict(), "finetune_fingerprint": self.fp, "finetune_epoch": epoch,
                  "finetune": asdict(self.cfg), "selection": self.selection.record,
                  "kept_model": kept if self.validated and not final else None}
+        if inside is not None:
+            state["within_epoch"] = inside
         if self.rank == 0:
             atomic_torch_save(self.path, state)
         if self.world > 1:
@@ -308,14 +350,15 @@ def finetune(geometry_state: dict, data: FinetuneData, cfg: FinetuneConfig, chec
     opt = make_optimizer(base.parameters(), cfg.lr, dcfg.weight_decay)
     fp = fingerprint(geometry_state, cfg, data)
     selection = Selection(data.val if rank == 0 else None, sampler, cfg.patience, log)
-    start = 0
+    start, within = 0, None  # within: where a stop inside an epoch left it ({"batches" done, "totals"})
     if state := resume(checkpoint, fp, log=lambda m: log(f"rank {rank}: {m}"), map_location=device,
                        key="finetune_fingerprint"):
         base.load_state_dict(state["model"])
         opt.load_state_dict(state["optimizer"])
-        start = int(state["finetune_epoch"])
+        start, within = int(state["finetune_epoch"]), state.get("within_epoch")
         selection.resume(state)
-        log(f"rank {rank}: resuming from {checkpoint} at epoch {start}/{cfg.epochs}")
+        inside = f", step {within['batches']} of epoch {start + 1}" if within else ""
+        log(f"rank {rank}: resuming from {checkpoint} at epoch {start}/{cfg.epochs}{inside}")
 
     def psnr_of(model) -> float:
         return validation_psnr(model, std, data.val, layout, dcfg, siren_cfg, device)
@@ -341,31 +384,43 @@ def finetune(geometry_state: dict, data: FinetuneData, cfg: FinetuneConfig, chec
         log(f"fine-tuning with the rendering loss: {world} process(es) on {device.type}, global batch "
             f"{cfg.batch_size} ({cfg.batch_size // world}+ per rank), lr {cfg.lr:g}, {cfg.pixels} pixels x "
             f"{len(data.bundle.count)} views per light, {cfg.epochs} epochs")
-    if start == 0:
+    if start == 0 and within is None:
         selection.score(0, floor_model() if selection.val is not None else None, psnr_of)
     state = None
     nonfinite = FirstNonFinite((), device)
     t_start = t_step = time.perf_counter()
     step_times: list[float] = []
     end = start if selection.stopped else cfg.epochs  # a run that stopped early has finished
+    per_epoch = math.ceil(n / cfg.batch_size)
+
+    def raise_if_not_finite() -> None:
+        if (found := nonfinite.first()) is not None:
+            raise ValueError(f"finetune: loss became {float(found[2])} at epoch {found[0]} on rank {rank}; "
+                             f"lower finetune.lr (now {cfg.lr})")
+
     with stop_signals() as signalled:
+        halt = Halt(signalled, world)
         for epoch in range(start, end):
             gen = seeded(cfg.seed, Stream.FINETUNE_EPOCH, epoch)
             order = torch.randperm(n, generator=gen, device=gen.device).tolist()
             totals = torch.zeros(3, dtype=torch.float64, device=device)  # summed on the device: no sync per step
-            for b0 in range(0, n, cfg.batch_size):
+            first, halting = 0, False
+            if within is not None:  # resumed inside this epoch (its steps' draws depend on the epoch and light)
+                first, totals, within = within["batches"], within["totals"].to(device), None
+            for k in range(first, per_epoch):
+                b0 = k * cfg.batch_size
                 totals += train_step(model, base, opt, std, data, z_all, order[b0:b0 + cfg.batch_size], rank, world,
                                      epoch, cfg, dcfg, schedule, nonfinite)
                 step_times.append(time.perf_counter() - t_step)
                 t_step = time.perf_counter()
-            if (found := nonfinite.first()) is not None:
-                raise ValueError(f"finetune: loss became {float(found[2])} at epoch {found[0]} on rank {rank}; "
-                                 f"lower finetune.lr (now {cfg.lr})")
-            halting = signalled.requested
-            if world > 1:  # the ranks halt at one epoch: each saw the signal (if at all) at its own time
-                both = torch.cat([totals, torch.tensor([float(halting)], dtype=totals.dtype, device=device)])
-                dist.all_reduce(both)
-                totals, halting = both[:3], bool(both[3] > 0)
+                halting = halt.now()
+                if halting and k + 1 < per_epoch:  # an epoch at the paper's sizes outlasts a kill delay
+                    raise_if_not_finite()
+                    writer.save(epoch, base, opt, last=False, inside={"batches": k + 1, "totals": totals.cpu()})
+                    raise signalled.stopped(f"at step {k + 1} of epoch {epoch + 1}/{cfg.epochs}", checkpoint)
+            raise_if_not_finite()
+            if world > 1:
+                dist.all_reduce(totals)
             done = epoch + 1
             if done % cfg.checkpoint_every == 0 or done == cfg.epochs:
                 selection.score(done, base, psnr_of)
@@ -388,7 +443,9 @@ def finetune(geometry_state: dict, data: FinetuneData, cfg: FinetuneConfig, chec
                 log(f"epoch {done}/{cfg.epochs}  x0 {lx:.3e}  geometry {lg:.3e}  render {lr_:.3e} "
                     f"(≈{-10 * math.log10(max(lr_, 1e-30)):.1f} dB)  {eta(done, end, t_start, start=start)}")
             if stop_after_epoch is not None and done >= stop_after_epoch:
+                halt.close()
                 return state
+        halt.close()
     if state is None:
         state = torch.load(checkpoint, map_location="cpu", weights_only=False)
     # per-rank cost, gathered to every rank: median seconds per step and peak memory
