@@ -197,3 +197,59 @@ def test_fine_tuning_stops_at_its_next_step_and_resumes_to_the_same_bytes(tmp_pa
     assert any("resuming from" in m and m.endswith(resumed_at) for m in messages), messages
     assert resumed["selection"] == whole["selection"] and "within_epoch" not in resumed
     assert all(torch.equal(v, resumed["model"][k]) for k, v in whole["model"].items())
+
+
+def _stopping_rank(rank, world, port, data, state, out_dir, cfg, signalled_rank, call):
+    """A rank of a 2-process fine-tuning job (test_finetune's `_ddp_worker`), of which `signalled_rank` alone gets
+    SIGTERM in its `call`-th step; what each rank ended with, in `rank<r>.json`."""
+    import json
+    from pathlib import Path
+
+    from test_finetune import _ddp_worker
+
+    from diffshadow.diffusion import finetune as ft
+
+    signal.signal(signal.SIGTERM, signal.SIG_DFL)
+    if rank == signalled_rank:
+        ft.train_step = signal_at(ft, "train_step", call)
+    try:
+        _ddp_worker(rank, world, port, data, state, out_dir, cfg)
+    except Stopped as e:
+        Path(out_dir, f"rank{rank}.json").write_text(json.dumps({"signum": e.signum, "said": str(e)}))
+        from diffshadow.cli import _end
+
+        _end(0)
+
+
+def test_the_ranks_of_a_ddp_job_stop_at_one_step_and_resume_to_the_same_bytes(tmp_path):
+    """Only rank 1 is signalled, in the last step of epoch 1: both ranks stop one step later, inside epoch 2, and
+    rank 0's checkpoint holds that step; the job run again ends with an uninterrupted job's weights."""
+    import json
+
+    import torch.multiprocessing as mp
+    from test_finetune import FT, _ddp_worker, _free_port, make_setup
+
+    from diffshadow.analytic import gaussian_blob
+    from diffshadow.volume import Volume
+
+    volume = Volume(data=gaussian_blob(17, 0.3), extent=np.ones(3), name="blob")
+    _, _, _, data, state = make_setup(volume, tmp_path)
+    cfg = dataclasses_replace(FT, epochs=3, checkpoint_every=2, batch_size=2)  # 2 steps an epoch, 1 light a rank
+    whole, stopped = tmp_path / "whole", tmp_path / "stopped"
+    whole.mkdir(), stopped.mkdir()
+    mp.spawn(_ddp_worker, args=(2, _free_port(), data, state, str(whole), cfg), nprocs=2, join=True)
+    mp.spawn(_stopping_rank, args=(2, _free_port(), data, state, str(stopped), cfg, 1, 2), nprocs=2, join=True)
+    said = [json.loads((stopped / f"rank{r}.json").read_text()) for r in (0, 1)]
+    assert [s["signum"] for s in said] == [signal.SIGTERM] * 2  # rank 0 stopped with its peer
+    assert all(s["said"].startswith("stopped by SIGTERM at step 1 of epoch 2/3;") for s in said), said
+    saved = torch.load(stopped / "ddp.ckpt", weights_only=False)
+    assert saved["finetune_epoch"] == 1 and saved["within_epoch"]["batches"] == 1
+    mp.spawn(_ddp_worker, args=(2, _free_port(), data, state, str(stopped), cfg), nprocs=2, join=True)
+    a, b = (torch.load(d / "ddp_model.pt", weights_only=True) for d in (whole, stopped))
+    assert all(torch.equal(a[k], b[k]) for k in a)
+
+
+def dataclasses_replace(obj, **changes):
+    import dataclasses
+
+    return dataclasses.replace(obj, **changes)
