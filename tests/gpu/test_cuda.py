@@ -264,6 +264,37 @@ def test_graphed_geometry_steps_train_what_eager_steps_train(tmp_path, monkeypat
             assert diff <= 1e-4, (key, diff)  # as CUDA against the CPU (above): Adam lifts tiny gradients
 
 
+def test_graphed_geometry_stage_stopped_inside_an_epoch_resumes_on_cuda(tmp_path, monkeypatch):
+    """SIGTERM inside an epoch of the graphed geometry stage: the checkpoint holds the step, the rerun recaptures its
+    graphs and goes on from the epoch generator's saved state to the uninterrupted run's weights."""
+    import dataclasses
+    import signal
+
+    from test_stopping import signal_at
+
+    from diffshadow.diffusion import train
+    from diffshadow.stopping import Stopped as SignalStopped
+
+    data = _training_data()
+    cfg = dataclasses.replace(DCFG, batch_size=3, epochs=6, lr_step_epochs=1, lr_gamma=0.5, checkpoint_every=3,
+                              cuda_graph=True)
+    whole = train_diffusion(data, cfg, tmp_path / "whole.ckpt", device=CUDA, log=lambda m: None)
+    previous = signal.signal(signal.SIGTERM, signal.SIG_DFL)
+    try:
+        with monkeypatch.context() as m:
+            m.setattr(train, "train_batch", signal_at(train, "train_batch", 5))  # step 1 of epoch 3
+            with pytest.raises(SignalStopped, match="at step 1 of epoch 3;"):
+                train_diffusion(data, cfg, tmp_path / "b.ckpt", device=CUDA, log=lambda m: None)
+    finally:
+        signal.signal(signal.SIGTERM, previous)
+    saved = torch.load(tmp_path / "b.ckpt", weights_only=False)
+    assert saved["epoch"] == 2 and saved["within_epoch"]["batches"] == 1
+    resumed = train_diffusion(data, cfg, tmp_path / "b.ckpt", device=CUDA, log=lambda m: None)
+    for key in ("model", "ema"):
+        diff = max(float((whole[key][k] - resumed[key][k]).abs().max()) for k in whole[key])
+        assert diff <= 1e-6, (key, diff)
+
+
 @pytest.mark.parametrize("stage", ["train_diffusion", "fit_siren", "preoptimize", "train_data_inr",
                                    "finetune_render"])
 def test_a_training_step_never_waits_for_the_gpu(stage):
