@@ -79,16 +79,16 @@ class Asker:
         return 0 < self.stop_at <= self.asked
 
 
-class Stopped(Exception):
+class Killed(Exception):
     """A run killed by `stop_at`'s log function."""
 
 
 def stop_at(prefix: str):
-    """A log function that kills the run (raises Stopped) at the first line starting with `prefix`: a job killed
+    """A log function that kills the run (raises Killed) at the first line starting with `prefix`: a job killed
     at a known step, its checkpoints as they were."""
     def log(message: str) -> None:
         if message.startswith(prefix):
-            raise Stopped(message)
+            raise Killed(message)
     return log
 
 

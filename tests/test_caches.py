@@ -18,7 +18,7 @@ SIREN = SirenConfig(8, 1)
 LAYOUT = WeightLayout.for_siren(SIREN)
 
 
-class Stopped(Exception):
+class Killed(Exception):
     pass
 
 
@@ -45,7 +45,7 @@ def _stop_at_group(k: int):
         if line.startswith("[caches] {"):
             seen.append(line)
             if len(seen) == k:
-                raise Stopped
+                raise Killed
     return log
 
 
@@ -60,7 +60,7 @@ def test_a_stopped_table_resumes_at_its_first_group_not_done(tmp_path):
                                                       "stored SIRENs bf16", "stored SIRENs basis-4",
                                                       "stored SIRENs basis-8"]
     ckpt = tmp_path / "caches.json.ckpt"
-    with pytest.raises(Stopped):
+    with pytest.raises(Killed):
         _table(store, truth, sets, log=_stop_at_group(3), checkpoint=ckpt)
     saved = torch.load(ckpt, weights_only=True)["groups"]
     assert [name for name, _ in saved] == ["stored SIRENs fp32", "stored SIRENs fp16", "stored SIRENs bf16"]
@@ -90,7 +90,7 @@ def test_without_unseen_lights_no_row_has_an_unseen_figure():
 def test_a_checkpoint_of_other_inputs_is_not_resumed(tmp_path, change):
     store, truth, sets = _inputs()
     ckpt = tmp_path / "caches.json.ckpt"
-    with pytest.raises(Stopped):
+    with pytest.raises(Killed):
         _table(store, truth, sets, log=_stop_at_group(2), checkpoint=ckpt)
     weighting = "triangle"
     if change == "weights":

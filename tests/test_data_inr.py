@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 import torch
-from conftest import Stopped, stop_at
+from conftest import Killed, stop_at
 
 from diffshadow.analytic import gaussian_blob
 from diffshadow.artifacts import load_data_inr, save_data_inr
@@ -49,7 +49,7 @@ def test_resume_gives_the_same_bytes(blob, tmp_path):
     short = DataInrConfig(**{**CFG.__dict__, "steps": 60, "checkpoint_every": 20, "error_every": 30})
     whole = fit_data_inr(blob, TF, short, log=lambda m: None)
 
-    with pytest.raises(Stopped):
+    with pytest.raises(Killed):
         fit_data_inr(blob, TF, short, checkpoint=ckpt, log=stop_at("step 42/"))
     assert list(tmp_path.glob("inr.ckpt*"))  # one checkpoint per size tried
     messages = []
@@ -69,7 +69,7 @@ def test_cuda_graph_off_cuda_steps_eagerly_to_the_same_bytes_and_resumes_a_defau
     assert short.cuda_graph == "auto"
     whole = fit_data_inr(blob, TF, short, log=lambda m: None)
 
-    with pytest.raises(Stopped):
+    with pytest.raises(Killed):
         fit_data_inr(blob, TF, short, checkpoint=tmp_path / "inr.ckpt", log=stop_at("step 42/"))
     messages = []
     graphed = fit_data_inr(blob, TF, replace(short, cuda_graph=True), checkpoint=tmp_path / "inr.ckpt",

@@ -588,7 +588,7 @@ def test_the_sampler_curve_resumes_where_an_interrupted_evaluation_stopped(finis
     """evaluate_voxels stopped after two of its five sampler rows resumes at the third: the same metrics as one
     uninterrupted evaluation, the first two rows' timings those measured before the stop, the checkpoint gone at
     the end; a checkpoint made for other lights is not resumed."""
-    from conftest import Stopped, stop_at
+    from conftest import Killed, stop_at
 
     from diffshadow import artifacts
     from diffshadow.evaluate import voxel_metrics
@@ -605,7 +605,7 @@ def test_the_sampler_curve_resumes_where_an_interrupted_evaluation_stopped(finis
                              geometry_state=geometry, curve_checkpoint=ckpt, log=log)
 
     whole = evaluate(log=lambda m: None)
-    with pytest.raises(Stopped):
+    with pytest.raises(Killed):
         evaluate(log=stop_at("[evaluate voxels] ddim 10 steps"))
     before = torch.load(ckpt, weights_only=True)["curve"]
     said = []
@@ -620,7 +620,7 @@ def test_the_sampler_curve_resumes_where_an_interrupted_evaluation_stopped(finis
     assert strip[0] == strip[1]
     assert {k: v for k, v in whole.items() if k not in ("sampling", *timed)} == \
         {k: v for k, v in resumed.items() if k not in ("sampling", *timed)}
-    with pytest.raises(Stopped):
+    with pytest.raises(Killed):
         evaluate(log=stop_at("[evaluate voxels] ddim 10 steps"))
     said.clear()
     other = {**lights, "train": lights["train"][::-1].copy()}

@@ -17,7 +17,7 @@ import numpy as np
 import pytest
 import torch
 import torch.multiprocessing as mp
-from conftest import Stopped, stop_at
+from conftest import Killed, stop_at
 
 from diffshadow.analytic import gaussian_blob
 from diffshadow.data_inr import DataInrConfig, fit_data_inr
@@ -127,7 +127,7 @@ def test_data_inr_with_error_points_resumes_on_cuda(volume, tmp_path):
     cfg = DataInrConfig.from_config(dict(width=16, blocks=1, steps=60, points=512, checkpoint_every=20,
                                          error_every=30, target_psnr=0))
 
-    with pytest.raises(Stopped):
+    with pytest.raises(Killed):
         fit_data_inr(volume, TF, cfg, checkpoint=tmp_path / "inr.ckpt", device=CUDA, log=stop_at("step 42/"))
     messages = []
     inr = fit_data_inr(volume, TF, cfg, checkpoint=tmp_path / "inr.ckpt", device=CUDA, log=messages.append)
@@ -152,7 +152,7 @@ def test_graphed_data_inr_steps_fit_what_eager_steps_fit(volume, tmp_path, monke
     assert len(made) == 1 and made[0].calls == 60 and len(made[0].graphs) == 1
     assert (eager.config["cuda_graph"], graphed.config["cuda_graph"]) == (False, True)
 
-    with pytest.raises(Stopped):
+    with pytest.raises(Killed):
         fit_data_inr(volume, TF, graphed_cfg, checkpoint=tmp_path / "inr.ckpt", device=CUDA,
                      log=stop_at("step 42/"))
     resumed = fit_data_inr(volume, TF, graphed_cfg, checkpoint=tmp_path / "inr.ckpt", device=CUDA,
@@ -273,7 +273,7 @@ def test_graphed_geometry_stage_stopped_inside_an_epoch_resumes_on_cuda(tmp_path
     from test_stopping import signal_at
 
     from diffshadow.diffusion import train
-    from diffshadow.stopping import Stopped as SignalStopped
+    from diffshadow.stopping import Stopped
 
     data = _training_data()
     cfg = dataclasses.replace(DCFG, batch_size=3, epochs=6, lr_step_epochs=1, lr_gamma=0.5, checkpoint_every=3,
@@ -283,7 +283,7 @@ def test_graphed_geometry_stage_stopped_inside_an_epoch_resumes_on_cuda(tmp_path
     try:
         with monkeypatch.context() as m:
             m.setattr(train, "train_batch", signal_at(train, "train_batch", 5))  # step 1 of epoch 3
-            with pytest.raises(SignalStopped, match="at step 1 of epoch 3;"):
+            with pytest.raises(Stopped, match="at step 1 of epoch 3;"):
                 train_diffusion(data, cfg, tmp_path / "b.ckpt", device=CUDA, log=lambda m: None)
     finally:
         signal.signal(signal.SIGTERM, previous)
