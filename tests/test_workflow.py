@@ -806,16 +806,15 @@ def test_config_typo_fails_before_any_job(tmp_path):
     assert not (tmp_path / "results").exists()
 
 
-def test_killed_fit_leaves_no_output_and_resumes(finished, tmp_path):
+def fit_subset_command(finished: Path, tmp_path: Path, checkpoint_every: int) -> tuple[list[str], Path, Path]:
+    """`diffshadow fit-siren` of the finished run's subset 1 for 3,000 steps into tmp_path, after the preoptimize it
+    needs; the command, its output and its checkpoint."""
     import json
-    import signal
-    import time
 
     cfg = json.dumps({"siren": TINY["siren"], "subset_size": 2,
-                      "fit": {**TINY["fit"], "steps": 3000, "checkpoint_every": 10}})
+                      "fit": {**TINY["fit"], "steps": 3000, "checkpoint_every": checkpoint_every}})
     res = finished / "results/nucleon"
     out = tmp_path / "subset_1.npz"
-    ckpt = tmp_path / "subset_1.npz.ckpt"
     exe = str(installed("diffshadow"))
     # an init made for these settings (preoptimize records the fit steps its size was chosen for)
     pre = json.dumps({**json.loads(cfg), "preoptimize": TINY["preoptimize"]})
@@ -825,6 +824,14 @@ def test_killed_fit_leaves_no_output_and_resumes(finished, tmp_path):
     cmd = [exe, "fit-siren", "--volume", str(res / "volume.zarr"),
            "--lights", str(res / "lights.json"), "--init", str(init), "--subset", "1",
            "--config-json", cfg, "--threads", "1", "--out", str(out)]
+    return cmd, out, tmp_path / "subset_1.npz.ckpt"
+
+
+def test_killed_fit_leaves_no_output_and_resumes(finished, tmp_path):
+    import signal
+    import time
+
+    cmd, out, ckpt = fit_subset_command(finished, tmp_path, checkpoint_every=10)
     proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
     deadline = time.time() + 120
     while not ckpt.exists() and time.time() < deadline and proc.poll() is None:
@@ -842,22 +849,11 @@ def test_killed_fit_leaves_no_output_and_resumes(finished, tmp_path):
 def test_sigterm_stops_a_fit_at_its_next_step_with_a_checkpoint_and_the_rerun_resumes(finished, tmp_path):
     """As PBS ends a job (walltime, preemption): SIGTERM to the job's processes, `tee` among them; the fit writes
     its checkpoint at the step it is in and exits 143, and the rerun resumes there."""
-    import json
     import signal
     import time
 
-    cfg = json.dumps({"siren": TINY["siren"], "subset_size": 2,
-                      "fit": {**TINY["fit"], "steps": 3000, "checkpoint_every": 1000}})
-    res = finished / "results/nucleon"
-    out, ckpt, log = tmp_path / "subset_1.npz", tmp_path / "subset_1.npz.ckpt", tmp_path / "fit.log"
-    exe = str(installed("diffshadow"))
-    pre = json.dumps({**json.loads(cfg), "preoptimize": TINY["preoptimize"]})
-    init = tmp_path / "siren_init.pt"
-    subprocess.run([exe, "preoptimize", "--volume", str(res / "volume.zarr"), "--lights", str(res / "lights.json"),
-                    "--config-json", pre, "--out", str(init)], check=True, capture_output=True)
-    cmd = [exe, "fit-siren", "--volume", str(res / "volume.zarr"),
-           "--lights", str(res / "lights.json"), "--init", str(init), "--subset", "1",
-           "--config-json", cfg, "--threads", "1", "--out", str(out)]
+    cmd, out, ckpt = fit_subset_command(finished, tmp_path, checkpoint_every=1000)
+    log = tmp_path / "fit.log"
     proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, process_group=0)
     tee = subprocess.Popen(["tee", str(log)], stdin=proc.stdout, stdout=subprocess.DEVNULL, process_group=proc.pid)
     proc.stdout.close()
@@ -886,21 +882,29 @@ def test_sigterm_stops_a_fit_at_its_next_step_with_a_checkpoint_and_the_rerun_re
         f"command run again resumes from it")
 
 
-def test_sigterm_to_a_ddp_job_stops_its_ranks_at_one_epoch_and_the_rerun_resumes(finished, tmp_path):
-    """PBS signals every process of the job: the launcher (which passes SIGTERM on to its ranks) and both ranks.
-    The ranks agree on the epoch to stop at, rank 0 writes the checkpoint there, and the rerun resumes from it."""
+def finetune_ddp_command(finished: Path, tmp_path: Path, **finetune) -> tuple[list[str], Path, Path]:
+    """`diffshadow torchrun` of 2 finetune-render ranks on the finished run's files, with these `finetune` settings,
+    into tmp_path; the command, its output and its checkpoint."""
     import json
-    import signal
 
     res = finished / "results/nucleon"
-    cfg = json.dumps({"finetune": {**TINY["finetune"], "epochs": 200, "checkpoint_every": 50, "timeout_s": 20}})
-    out, metrics = tmp_path / "diffusion.ckpt", tmp_path / "ft.json"
-    part = tmp_path / "diffusion.ckpt.part"
+    cfg = json.dumps({"finetune": {**TINY["finetune"], "timeout_s": 20, **finetune}})
+    out = tmp_path / "diffusion.ckpt"
     cmd = [sys.executable, "-m", "diffshadow.cli", "torchrun", "--standalone", "--nproc_per_node=2", "-m",
            "diffshadow.cli", "finetune-render", "--checkpoint", str(res / "diffusion_geometry.ckpt"),
            "--weights", str(res / "weights.zarr"), "--points", str(res / "geometry_points.zarr"),
            "--targets", str(res / "targets.zarr"), "--config-json", cfg, "--threads", "1",
-           "--metrics", str(metrics), "--out", str(out)]
+           "--metrics", str(tmp_path / "ft.json"), "--out", str(out)]
+    return cmd, out, tmp_path / "diffusion.ckpt.part"
+
+
+def test_sigterm_to_a_ddp_job_stops_its_ranks_at_one_step_and_the_rerun_resumes(finished, tmp_path):
+    """PBS signals every process of the job: the launcher (which passes SIGTERM on to its ranks) and both ranks.
+    The ranks agree on the step to stop at, rank 0 writes the checkpoint there, and the rerun resumes from it."""
+    import signal
+
+    # 2 steps an epoch (a light a rank): the stop may come inside an epoch or at its end
+    cmd, out, part = finetune_ddp_command(finished, tmp_path, epochs=200, checkpoint_every=50, batch_size=2)
     proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, start_new_session=True)
     lines = []
     while proc.poll() is None:
@@ -938,20 +942,11 @@ def test_finetune_ran_under_ddp(finished):
 
 
 def test_killed_rank_fails_the_job_and_rerun_resumes(finished, tmp_path):
-    import json
     import signal
     import time
 
-    res = finished / "results/nucleon"
     # 120 epochs of 0.055 s here: ~6 s still to go when the first checkpoint appears and the kill comes
-    cfg = json.dumps({"finetune": {**TINY["finetune"], "epochs": 120, "timeout_s": 20}})
-    out, metrics = tmp_path / "diffusion.ckpt", tmp_path / "ft.json"
-    part = tmp_path / "diffusion.ckpt.part"
-    cmd = [sys.executable, "-m", "diffshadow.cli", "torchrun", "--standalone", "--nproc_per_node=2", "-m",
-           "diffshadow.cli", "finetune-render", "--checkpoint", str(res / "diffusion_geometry.ckpt"),
-           "--weights", str(res / "weights.zarr"), "--points", str(res / "geometry_points.zarr"),
-           "--targets", str(res / "targets.zarr"), "--config-json", cfg, "--threads", "1",
-           "--metrics", str(metrics), "--out", str(out)]
+    cmd, out, part = finetune_ddp_command(finished, tmp_path, epochs=120)
     proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
     deadline = time.time() + 120
     while not part.exists() and time.time() < deadline and proc.poll() is None:
