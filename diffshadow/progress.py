@@ -22,6 +22,13 @@ def eta(done: int, total: int, t0: float, *, start: int = 0) -> str:
     return f"{spent:.0f} s, ~{spent / ran * (total - done):.0f} s left"
 
 
+def resumed_at(epoch: int, total: int, within: dict | None) -> str:
+    """`'epoch 3/6'`, or `'epoch 3/6, step 1 of epoch 4'` for a checkpoint written inside an epoch (`within`: its
+    record of the batches done there), as a resume's log line names it."""
+    inside = f", step {within['batches']} of epoch {epoch + 1}" if within else ""
+    return f"epoch {epoch}/{total}{inside}"
+
+
 class FirstNonFinite:
     """Where a training loss (one value, or one per model) first stopped being finite, kept on the device:
     `record` every step costs no host read (on a GPU one per step keeps the host from queueing the next step

@@ -1,6 +1,7 @@
 """A signal (SIGTERM at a PBS walltime or preemption, Ctrl-C) stops a training loop at its next step with a
 checkpoint there, and the rerun resumes to the bytes of an uninterrupted run."""
 
+import dataclasses
 import os
 import signal
 import threading
@@ -234,7 +235,7 @@ def test_the_ranks_of_a_ddp_job_stop_at_one_step_and_resume_to_the_same_bytes(tm
 
     volume = Volume(data=gaussian_blob(17, 0.3), extent=np.ones(3), name="blob")
     _, _, _, data, state = make_setup(volume, tmp_path)
-    cfg = dataclasses_replace(FT, epochs=3, checkpoint_every=2, batch_size=2)  # 2 steps an epoch, 1 light a rank
+    cfg = dataclasses.replace(FT, epochs=3, checkpoint_every=2, batch_size=2)  # 2 steps an epoch, 1 light a rank
     whole, stopped = tmp_path / "whole", tmp_path / "stopped"
     whole.mkdir(), stopped.mkdir()
     mp.spawn(_ddp_worker, args=(2, _free_port(), data, state, str(whole), cfg), nprocs=2, join=True)
@@ -248,8 +249,3 @@ def test_the_ranks_of_a_ddp_job_stop_at_one_step_and_resume_to_the_same_bytes(tm
     a, b = (torch.load(d / "ddp_model.pt", weights_only=True) for d in (whole, stopped))
     assert all(torch.equal(a[k], b[k]) for k in a)
 
-
-def dataclasses_replace(obj, **changes):
-    import dataclasses
-
-    return dataclasses.replace(obj, **changes)

@@ -35,7 +35,7 @@ from diffshadow.diffusion.schedule import Schedule
 from diffshadow.diffusion.standardize import Standardizer
 from diffshadow.diffusion.train import Batch, TrainingData, batch_loss
 from diffshadow.io import atomic_torch_save, resume
-from diffshadow.progress import FirstNonFinite, eta
+from diffshadow.progress import FirstNonFinite, eta, resumed_at
 from diffshadow.render.bundle import RayBundle, bundle_colors
 from diffshadow.sampling import Stream, seeded, to_device
 from diffshadow.siren import BatchedSiren, SirenConfig, WeightLayout, box_to_siren
@@ -357,8 +357,7 @@ def finetune(geometry_state: dict, data: FinetuneData, cfg: FinetuneConfig, chec
         opt.load_state_dict(state["optimizer"])
         start, within = int(state["finetune_epoch"]), state.get("within_epoch")
         selection.resume(state)
-        inside = f", step {within['batches']} of epoch {start + 1}" if within else ""
-        log(f"rank {rank}: resuming from {checkpoint} at epoch {start}/{cfg.epochs}{inside}")
+        log(f"rank {rank}: resuming from {checkpoint} at {resumed_at(start, cfg.epochs, within)}")
 
     def psnr_of(model) -> float:
         return validation_psnr(model, std, data.val, layout, dcfg, siren_cfg, device)

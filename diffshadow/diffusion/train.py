@@ -27,7 +27,7 @@ from diffshadow.graphs import StepGraphs, requested
 from diffshadow.io import atomic_torch_save, resume
 from diffshadow.lights import PoolLights
 from diffshadow.metrics import psnr
-from diffshadow.progress import FirstNonFinite, eta
+from diffshadow.progress import FirstNonFinite, eta, resumed_at
 from diffshadow.sampling import Stream, seeded, to_device
 from diffshadow.siren import BatchedSiren, SirenConfig, WeightLayout, box_to_siren, forward_precision
 from diffshadow.stopping import stop_signals
@@ -344,8 +344,7 @@ def train_diffusion(data: TrainingData, cfg: DiffusionConfig, checkpoint: Path, 
         start = good = int(state["epoch"])
         within = state.get("within_epoch")
         growth = Growth(cfg, state["growth"], state.get("best"))
-        inside = f", step {within['batches']} of epoch {start + 1}" if within else ""
-        log(f"resuming from {checkpoint} at epoch {start}/{cfg.epochs}{inside}")
+        log(f"resuming from {checkpoint} at {resumed_at(start, cfg.epochs, within)}")
 
     def save(epoch: int, inside: dict | None = None) -> dict:
         state = {"fingerprint": fingerprint, "epoch": epoch, "model": model.state_dict(),
