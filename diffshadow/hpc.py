@@ -42,6 +42,13 @@ GPU_DRIVER_FILES = ("/proc/driver/nvidia", "/dev/kfd", "/dev/dxg")
 # MKL reads it at its first call. A user's own MKL_CBWR wins.
 JOB_ENVIRONMENT = {"MKL_CBWR": "AUTO,STRICT"}
 
+# How every rule's command ends: its output to the terminal and to the rule's log. `tee` ignores SIGINT and SIGTERM,
+# which Ctrl-C and PBS (a walltime, a preemption) send to every process of a job, so that the job's last line, where
+# it says it stopped and which checkpoint it wrote (diffshadow.stopping), still reaches the log; tee ends when the job
+# closes the pipe, however the job ends. (The rules' text is Snakemake's `code` rerun trigger: changing this reruns
+# every finished job.)
+JOB_LOG = " 2>&1 | (trap '' INT TERM; exec tee {log})"
+
 
 def kernel_cache_environment(root: str | os.PathLike) -> dict[str, str]:
     """Where a run's jobs keep compiled kernels, so that no job recompiles what an earlier one compiled: Triton's

@@ -846,25 +846,41 @@ def test_killed_fit_leaves_no_output_and_resumes(finished, tmp_path):
     assert "resuming from" in done.stdout and out.exists() and not ckpt.exists()
 
 
+def test_every_rule_ends_its_command_in_the_log_that_survives_a_stop():
+    """One ending for every rule's shell (hpc.JOB_LOG), not a bare `tee`, which the signal that stops a job ends."""
+    rules = [p.read_text() for p in sorted((REPO / "workflow/rules").glob("*.smk"))]
+    shells = sum(text.count("    shell:") for text in rules)
+    assert shells >= 20 and sum(text.count("+ _JOB_LOG") for text in rules) == shells
+    assert not any("tee {log}" in text for text in rules)
+
+
 def test_sigterm_stops_a_fit_at_its_next_step_with_a_checkpoint_and_the_rerun_resumes(finished, tmp_path):
-    """As PBS ends a job (walltime, preemption): SIGTERM to the job's processes, `tee` among them; the fit writes
-    its checkpoint at the step it is in and exits 143, and the rerun resumes there."""
+    """As PBS ends a job (walltime, preemption): SIGTERM to every process of the job's shell, the rule's own command
+    line (Snakemake's strict bash, the rules' log ending); the fit writes its checkpoint at the step it is in, and
+    its last line, saying so, is in the log; the rerun resumes there."""
+    import shlex
     import signal
     import time
 
+    from diffshadow.hpc import JOB_LOG
+
     cmd, out, ckpt = fit_subset_command(finished, tmp_path, checkpoint_every=1000)
     log = tmp_path / "fit.log"
-    proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, process_group=0)
-    tee = subprocess.Popen(["tee", str(log)], stdin=proc.stdout, stdout=subprocess.DEVNULL, process_group=proc.pid)
-    proc.stdout.close()
+    shell = "set -euo pipefail; " + shlex.join(cmd) + JOB_LOG.format(log=shlex.quote(str(log)))
+    proc = subprocess.Popen(["bash", "-c", shell], stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
+                            start_new_session=True)
     deadline = time.time() + 120
     while "step 300/3000" not in (log.read_text() if log.exists() else "") and time.time() < deadline:
         time.sleep(0.05)
     os.killpg(proc.pid, signal.SIGTERM)
-    assert proc.wait(timeout=60) == 128 + signal.SIGTERM  # not 1 from a traceback on the pipe `tee` left
-    tee.wait(timeout=10)
+    proc.wait(timeout=60)  # the shell ends at once (as Snakemake's job does); its pipeline finishes on its own
+    while "stopped by" not in log.read_text() and time.time() < deadline + 60:
+        time.sleep(0.05)
     step = torch.load(ckpt, weights_only=True)["step"]
     assert 300 <= step < 3000 and step % 1000 != 0 and not out.exists()  # the step it was in, not the last periodic
+    assert log.read_text().splitlines()[-1] == (  # the last line, not a traceback on the pipe a dead `tee` left
+        f"diffshadow fit-siren: stopped by SIGTERM at step {step}/3000; checkpoint {ckpt} written, and the same "
+        f"command run again resumes from it")
     done = subprocess.run(cmd, capture_output=True, text=True, timeout=600)
     assert done.returncode == 0, done.stderr
     assert f"resuming from {ckpt} at step {step}/3000" in done.stdout and out.exists() and not ckpt.exists()

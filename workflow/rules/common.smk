@@ -7,6 +7,7 @@ from diffshadow.config import as_json as _as_json
 from diffshadow.config import scene_config as _scene_config
 from diffshadow.diffusion.mix import model_alone as _model_alone
 from diffshadow.hpc import JOB_ENVIRONMENT as _JOB_ENVIRONMENT
+from diffshadow.hpc import JOB_LOG as _JOB_LOG
 from diffshadow.hpc import job_threads as _job_threads
 from diffshadow.hpc import kernel_cache_environment as _kernel_cache_environment
 from diffshadow.hpc import run_gpus as _run_gpus

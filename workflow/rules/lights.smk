@@ -13,4 +13,4 @@ rule lights:
         "diffshadow --phases results/{wildcards.scene}/benchmarks/lights.phases.json lights --sphere {params.lights[sphere]} --count {params.lights[count]}"
         " --center {params.lights[center][0]} {params.lights[center][1]} {params.lights[center][2]}"
         " --unseen {params.lights[unseen]} --seed {params.lights[seed]} --layout {params.lights[layout]} --out {output}"
-        " 2>&1 | tee {log}"
+        + _JOB_LOG

@@ -17,7 +17,7 @@ rule train_data_inr:
         "../envs/diffshadow.yaml"
     shell:
         "diffshadow --phases results/{wildcards.scene}/benchmarks/train_data_inr.phases.json train-data-inr --volume {input.volume} --config-json {params.cfg:q} --threads {threads}"
-        " --out {output} 2>&1 | tee {log}"
+        " --out {output}" + _JOB_LOG
 
 
 rule naive_images:
@@ -40,7 +40,7 @@ rule naive_images:
         "../envs/diffshadow.yaml"
     shell:
         "diffshadow --phases results/{wildcards.scene}/benchmarks/naive_images.phases.json naive-images --volume {input.volume} --lights {input.lights} --data-inr {input.data_inr}"
-        " --config-json {params.cfg:q} --threads {threads} --out {output} 2>&1 | tee {log}"
+        " --config-json {params.cfg:q} --threads {threads} --out {output}" + _JOB_LOG
 
 
 rule evaluate_images:
@@ -68,7 +68,7 @@ rule evaluate_images:
     shell:
         "diffshadow --phases results/{wildcards.scene}/benchmarks/evaluate_images.phases.json evaluate-images --volume {input.volume} --lights {input.lights} --data-inr {input.data_inr}"
         " --weights {input.weights} --generated {input.generated} --naive {input.naive} --config-json {params.cfg:q}"
-        " --images {output.images} --threads {threads} --out {output.metrics} 2>&1 | tee {log}"
+        " --images {output.images} --threads {threads} --out {output.metrics}" + _JOB_LOG
 
 
 rule benchmark:
@@ -101,4 +101,4 @@ rule benchmark:
         "diffshadow --phases results/{wildcards.scene}/benchmarks/benchmark.phases.json bench render --volume {input.volume} --data-inr {input.data_inr} --weights {input.weights}"
         " --sizes {params.sizes} --memory-sizes {params.memory} --step {params.step} --repeats {params.repeats}"
         " --kernel {params.kernel} --threads {threads}"
-        " --out {output.bench} 2>&1 | tee {log}"
+        " --out {output.bench}" + _JOB_LOG

@@ -18,7 +18,7 @@ rule shadow_bench:
         "../envs/diffshadow.yaml"
     shell:
         "diffshadow --phases results/{wildcards.scene}/benchmarks/shadow_bench.phases.json bench shadow --volumes {input} --out results/{wildcards.scene} --threads {threads}"
-        " --device cpu 2>&1 | tee {log}"
+        " --device cpu" + _JOB_LOG
 
 
 rule report_figures:
@@ -60,7 +60,7 @@ rule report_figures:
         "diffshadow --phases results/{wildcards.scene}/benchmarks/report_figures.phases.json report-figures --weights {input.weights} --generated {input.generated} --lights {input.lights}"
         " --images {input.images} --voxel-metrics {input.voxel_metrics} --shadow-bench {input.shadow_bench}"
         " --config-json {params.cfg:q}"
-        " --threads {threads} --out-dir results/{wildcards.scene}/report 2>&1 | tee {log}"
+        " --threads {threads} --out-dir results/{wildcards.scene}/report" + _JOB_LOG
 
 
 rule stage_costs:
@@ -76,7 +76,7 @@ rule stage_costs:
     conda:
         "../envs/diffshadow.yaml"
     shell:
-        "diffshadow stage-costs --benchmarks {input} --out {output.costs} --timeline {output.timeline} 2>&1 | tee {log}"
+        "diffshadow stage-costs --benchmarks {input} --out {output.costs} --timeline {output.timeline}" + _JOB_LOG
 
 
 rule summary:
@@ -92,4 +92,4 @@ rule summary:
         "../envs/diffshadow.yaml"
     shell:
         "diffshadow summary --results results/{wildcards.scene} --scene {wildcards.scene}"
-        " --out-dir results/{wildcards.scene}/report 2>&1 | tee {log}"
+        " --out-dir results/{wildcards.scene}/report" + _JOB_LOG

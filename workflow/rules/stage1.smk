@@ -17,7 +17,7 @@ rule prepare_volume:
         "../envs/diffshadow.yaml"
     shell:
         "diffshadow --phases results/{wildcards.scene}/benchmarks/prepare_volume.phases.json prepare-volume --config-json {params.cfg:q} --out {output}"
-        " 2>&1 | tee {log}"
+        + _JOB_LOG
 
 
 rule preoptimize:
@@ -38,7 +38,7 @@ rule preoptimize:
         "../envs/diffshadow.yaml"
     shell:
         "diffshadow --phases results/{wildcards.scene}/benchmarks/preoptimize.phases.json preoptimize --volume {input.volume} --lights {input.lights} --config-json {params.cfg:q}"
-        " --threads {threads} --out {output} 2>&1 | tee {log}"
+        " --threads {threads} --out {output}" + _JOB_LOG
 
 
 rule fit_siren:
@@ -63,7 +63,7 @@ rule fit_siren:
     shell:
         "diffshadow --phases results/{wildcards.scene}/benchmarks/fit_siren_{wildcards.subset}.phases.json fit-siren --volume {input.volume} --lights {input.lights} --init {input.init}"
         " --subset {wildcards.subset} --config-json {params.cfg:q} --threads {threads} --out {output}"
-        " 2>&1 | tee {log}"
+        + _JOB_LOG
 
 
 rule collect_weights:
@@ -83,4 +83,4 @@ rule collect_weights:
         "../envs/diffshadow.yaml"
     shell:
         "diffshadow --phases results/{wildcards.scene}/benchmarks/collect_weights.phases.json collect-weights --lights {input.lights} --subsets {input.subsets} --out {output}"
-        " 2>&1 | tee {log}"
+        + _JOB_LOG

@@ -20,7 +20,7 @@ rule presample:
     shell:
         "diffshadow --phases results/{wildcards.scene}/benchmarks/presample.phases.json presample --volume {input.volume} --lights {input.lights} --config-json {params.cfg:q}"
         " --threads {threads} --out {output}"
-        " 2>&1 | tee {log}"
+        + _JOB_LOG
 
 
 rule train_diffusion:
@@ -41,7 +41,7 @@ rule train_diffusion:
         "../envs/diffshadow.yaml"
     shell:
         "diffshadow --phases results/{wildcards.scene}/benchmarks/train_diffusion.phases.json train-diffusion --weights {input.weights} --points {input.points}"
-        " --config-json {params.cfg:q} --threads {threads} --out {output} 2>&1 | tee {log}"
+        " --config-json {params.cfg:q} --threads {threads} --out {output}" + _JOB_LOG
 
 
 rule eval_truth:
@@ -64,7 +64,7 @@ rule eval_truth:
     shell:
         "diffshadow --phases results/{wildcards.scene}/benchmarks/eval_truth.phases.json eval-truth --volume {input.volume} --lights {input.lights} --seed {params.seed}"
         " --eval-points {params.points} {params.device}"
-        " --threads {threads} --out {output} 2>&1 | tee {log}"
+        " --threads {threads} --out {output}" + _JOB_LOG
 
 
 # cache: auto, right after stage 1: the smallest stored-SIREN cache whose blend reaches cache_auto.target_psnr
@@ -95,7 +95,7 @@ checkpoint choose_cache:
         "diffshadow --phases results/{wildcards.scene}/benchmarks/choose_cache.phases.json choose-cache --weights {input.weights}"
         " --truth {input.truth} --volume {input.volume} --lights {input.lights} {params.blend}"
         " --target-psnr {params.target} --candidates {params.candidates} {params.val} {params.device} --threads {threads}"
-        " --out {output} 2>&1 | tee {log}"
+        " --out {output}" + _JOB_LOG
 
 
 # a codec's cache (cache: fp16 | bf16 | basis-<k>, or auto's choice): the stored SIRENs through the codec, decoded
@@ -119,7 +119,7 @@ rule encode_cache:
     shell:
         "diffshadow --phases results/{wildcards.scene}/benchmarks/encode_cache.phases.json encode-cache --weights {input.weights}"
         " --truth {input.truth} --lights {input.lights} --codec {params.codec} {params.device} --threads {threads}"
-        " --out {output} 2>&1 | tee {log}"
+        " --out {output}" + _JOB_LOG
 
 
 # the generated SIRENs of every evaluation light: sampled by the diffusion model, or (cache: blend or a codec) the
@@ -151,7 +151,7 @@ rule sample_shadows:
         "../envs/diffshadow.yaml"
     shell:
         "diffshadow --phases results/{wildcards.scene}/benchmarks/sample_shadows.phases.json {params.command} --truth {input.truth} --lights {input.lights} --threads {threads}"
-        " --out {output} 2>&1 | tee {log}"
+        " --out {output}" + _JOB_LOG
 
 
 rule evaluate_voxels:
@@ -191,7 +191,7 @@ rule evaluate_voxels:
         " {params.geometry} {params.cache} {params.blend} --ddpm-lights {params.ddpm_lights} {params.wide}"
         " {params.device}"
         " --threads {threads}"
-        " --out {output} 2>&1 | tee {log}"
+        " --out {output}" + _JOB_LOG
 
 
 # every cache the run can serve a light from, as rate (bytes) against distortion (seen and unseen voxel PSNR)
@@ -223,7 +223,7 @@ rule caches:
         "diffshadow --phases results/{wildcards.scene}/benchmarks/caches.phases.json caches --weights {input.weights}"
         " --generated {input.generated} --truth {input.truth} --volume {input.volume} --lights {input.lights}"
         " {params.checkpoint} {params.blend} {params.device} --threads {threads} --figure {output.figure}"
-        " --out {output.table} 2>&1 | tee {log}"
+        " --out {output.table}" + _JOB_LOG
 
 
 rule render_targets:
@@ -249,7 +249,7 @@ rule render_targets:
         "../envs/diffshadow.yaml"
     shell:
         "diffshadow --phases results/{wildcards.scene}/benchmarks/render_targets.phases.json render-targets --volume {input.volume} --lights {input.lights} --config-json {params.cfg:q}"
-        " --threads {threads} --out {output} 2>&1 | tee {log}"
+        " --threads {threads} --out {output}" + _JOB_LOG
 
 
 rule finetune_render:
@@ -288,4 +288,4 @@ rule finetune_render:
         " $launch --phases results/{wildcards.scene}/benchmarks/finetune_render.phases.json finetune-render"
         " --checkpoint {input.checkpoint} --weights {input.weights} --points {input.points}"
         " --targets {input.targets} --volume {input.volume} --lights {input.lights} --config-json {params.cfg:q} --threads 1"
-        " --metrics {output.metrics} --out {output.checkpoint} 2>&1 | tee {log}"
+        " --metrics {output.metrics} --out {output.checkpoint}" + _JOB_LOG
