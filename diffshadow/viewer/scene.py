@@ -76,6 +76,12 @@ class LightInfo:
         return name
 
 
+def remake(results: Path, name: str) -> str:
+    """The command that makes a scene's missing file: named as a target, since a plain run, finding the files made
+    from it, has nothing to do."""
+    return f"`snakemake --profile <yours> results/{Path(results).name}/{name}` makes it again"
+
+
 class ViewerScene:
     """One scene to view: `scene` renders; `generated` (a generated store) and `sampler` (a diffusion
     checkpoint's `ShadowSampler`, or with `cache: blend` the stored SIRENs' `BlendSampler`, or the two mixed,
@@ -107,8 +113,8 @@ class ViewerScene:
             raise ViewerError(f"{results}: no such results folder (run `snakemake --profile local -j2` first)")
         for name, rule in SCENE_FILES.items():
             if not (results / name).exists():
-                raise ViewerError(f"{results}: not a finished scene, {name} is missing (made by the rule `{rule}`; "
-                                  f"run snakemake to finish the scene)")
+                raise ViewerError(f"{results}: not a finished scene, {name} is missing (made by the rule `{rule}`: "
+                                  f"{remake(results, name)})")
         generated = open_store(results / "generated.zarr")
         scene = load_render_scene(results / "volume.zarr", results / "data_inr.pt", device, render=render)
         def same_scene(made_for: str | None, cache: Path) -> None:  # a folder put together from two runs' files
@@ -126,7 +132,8 @@ class ViewerScene:
                        checkpoint=source)
         if not source.exists():
             raise ViewerError(f"{source}: missing, the diffusion checkpoint that generated.zarr was sampled from "
-                              f"(made by the rule `finetune_render` or `train_diffusion`)")
+                              f"(made by the rule `finetune_render` or `train_diffusion`: "
+                              f"{remake(results, source.name)})")
         from diffshadow.diffusion.sample import ShadowSampler
 
         sampler, stored = ShadowSampler(load_checkpoint(source), device), None
@@ -136,7 +143,7 @@ class ViewerScene:
             stored = Path(results) / Path(str(mix["weights"])).name
             if not stored.exists():
                 raise ViewerError(f"{stored}: missing, the stored SIRENs that generated.zarr's SIRENs were mixed "
-                                  f"with (made by the rule `collect_weights`)")
+                                  f"with (made by the rule `collect_weights`: {remake(results, stored.name)})")
             blend = BlendSampler(open_store(stored), int(mix["blend_k"]), mix.get("blend_weights", OLD_WEIGHTING))
             sampler = MixedSampler(sampler, blend,
                                    float(mix["model_share"]))
