@@ -23,7 +23,7 @@ from diffshadow.graphs import requested
 from diffshadow.grid import cell_ranges, cell_slabs, lattice_axes, lattice_points, lookup_grids
 from diffshadow.io import atomic_torch_save, resume
 from diffshadow.metrics import psnr
-from diffshadow.progress import FirstNonFinite, eta
+from diffshadow.progress import FirstNonFinite, Ticker, eta
 from diffshadow.sampling import PointSampler, Stream, seeded, to_device
 from diffshadow.siren import Siren, SirenConfig, box_to_siren, cosine_lr
 from diffshadow.stopping import stop_signals
@@ -82,23 +82,28 @@ class DataInr:
 
 
 def voxel_errors(model: Siren, volume: Volume, *, chunk: int = 1 << 16,
-                 device: torch.device | str = "cpu") -> tuple[float, float]:
-    """(PSNR, max |error|) of the INR over every voxel of `volume`."""
+                 device: torch.device | str = "cpu", log=None) -> tuple[float, float]:
+    """(PSNR, max |error|) of the INR over every voxel of `volume`; `log`: a line a minute while it runs."""
     device = torch.device(device)
     axes = lattice_axes(volume, device=device)
     extent = torch.as_tensor(volume.extent, dtype=torch.float32, device=device)
     truth = torch.as_tensor(volume.data, device=device).reshape(-1)
     with torch.no_grad():
-        pred = torch.cat(list(lattice_values(model, axes, extent, chunk)))
+        pred = torch.cat(list(lattice_values(model, axes, extent, chunk, log=log, what="data INR: voxel PSNR")))
     return float(psnr(pred, truth)), float((pred - truth).abs().max())
 
 
-def lattice_values(model: Siren, axes: list[torch.Tensor], extent: torch.Tensor, chunk: int) -> Iterator[torch.Tensor]:
+def lattice_values(model: Siren, axes: list[torch.Tensor], extent: torch.Tensor, chunk: int, *, log=None,
+                   what: str = "") -> Iterator[torch.Tensor]:
     """The INR at every point of the lattice of `axes` (`grid.lattice_points`), in its (Z, Y, X) order, `chunk`
     points at a time: each chunk's points made as it is evaluated, not 12 bytes a point at once (a caller that
-    wants no graph asks for none)."""
+    wants no graph asks for none). `log`: `what`, how far and how long is left, a line a minute (a 512³ volume's
+    renderer ranges are 1 G points: ~16 min on one CPU thread)."""
     total = math.prod(len(a) for a in axes)
+    tick = Ticker(f"{what} ({total:,} points)", total, log=log) if log is not None else None
     for i in range(0, total, chunk):
+        if tick is not None:
+            tick(i)
         yield model(box_to_siren(lattice_points(axes, i, min(i + chunk, total)), extent))
 
 
@@ -173,7 +178,7 @@ def fit_data_inr(volume: Volume, tf: TransferFunction, cfg: DataInrConfig, *, ch
     # the renderer's ranges for the size kept alone: 8 INR evaluations a voxel, once a rung they were most of a large
     # volume's job (512³: ~13 min a rung on one thread)
     model = inr.model.to(device)
-    inr.cell_lo, inr.cell_hi = inr_cell_ranges(model, volume, device=device)
+    inr.cell_lo, inr.cell_hi = inr_cell_ranges(model, volume, device=device, log=log)
     inr.model = model.cpu()
     inr.config = {**inr.config, "capacity": choice.to_dict()}  # the stored size, and how it was chosen
     if warning := choice.warning("the data INR's voxel PSNR", "data_inr.max_width or data_inr.steps"):
@@ -285,7 +290,7 @@ def fit_data_inr_once(volume: Volume, tf: TransferFunction, cfg: DataInrConfig, 
                     f"{rate:,.0f} points/s  {eta(done, cfg.steps, t0, start=start)}")
     if checkpoint is not None and checkpoint.exists():
         checkpoint.unlink()
-    value, worst = voxel_errors(model, volume, device=device)
+    value, worst = voxel_errors(model, volume, device=device, log=log)
     log(f"data INR: {model.layout.n_params} parameters, voxel PSNR {value:.2f} dB, max error {worst:.4f}")
     return DataInr(model.cpu(), np.asarray(volume.extent), value, worst, asdict(cfg), volume=volume.checksum)
 
@@ -295,7 +300,8 @@ RANGE_SLAB_POINTS = 1 << 24
 
 
 def inr_cell_ranges(model: Siren, volume: Volume, *, cell: int = 16, refine: int = 2, margin: float = 0.01,
-                    chunk: int = 1 << 16, device: torch.device | str = "cpu") -> tuple[np.ndarray, np.ndarray]:
+                    chunk: int = 1 << 16, device: torch.device | str = "cpu",
+                    log=None) -> tuple[np.ndarray, np.ndarray]:
     """The INR's (min, max) per `cell`³-voxel macro-cell, from the INR itself on a lattice `refine`× finer
     than the voxels, widened by `margin` for the values between lattice points.
 
@@ -305,7 +311,7 @@ def inr_cell_ranges(model: Siren, volume: Volume, *, cell: int = 16, refine: int
     The lattice is `refine`³ times the voxels: its points and values were made whole (~200 bytes a voxel, 3.9 GiB
     for a 256³ volume). They are made `chunk` points at a time in the lattice's order, as before, and each slab of
     macro-cells is reduced as soon as its lattice planes are in, so only a slab is held; the same values, the same
-    ranges (a cell's range is its own points' min and max).
+    ranges (a cell's range is its own points' min and max). `log`: a line a minute while it runs.
     """
     device = torch.device(device)
     axes = lattice_axes(volume, refine, device)
@@ -314,7 +320,7 @@ def inr_cell_ranges(model: Siren, volume: Volume, *, cell: int = 16, refine: int
     extent = torch.as_tensor(volume.extent, dtype=torch.float32, device=device)
     held, start, made = [], 0, 0  # values of lattice points start.. made (flat, in (z, y, x) order)
     los, his = [], []
-    chunks = lattice_values(model, axes, extent, chunk)
+    chunks = lattice_values(model, axes, extent, chunk, log=log, what="data INR: the renderer's macro-cell ranges")
     with torch.no_grad():
         for z0, z1 in cell_slabs(depth, m, max(1, RANGE_SLAB_POINTS // (plane * m))):
             while made < z1 * plane:

@@ -16,6 +16,7 @@ from diffshadow.diffusion.sample import generate, load_sampler
 from diffshadow.hpc import device_name
 from diffshadow.io import atomic_torch_save, resume
 from diffshadow.lights import OLD_WEIGHTING, blend_weights, nearest, pick, wide_test_lights
+from diffshadow.progress import Ticker
 from diffshadow.sampling import Stream, seeded
 from diffshadow.store import blend_rows
 from diffshadow.truth import EvalTruth, median, p10, psnr_per_light
@@ -307,31 +308,9 @@ def naive_images(scene, light_sets: dict, views: list, *, step: float, lights_pe
                       naive_lights=naive_lights)
     for n, (tag, i, v) in enumerate(tags, 1):
         out[tag] = scene.render("naive", views[v], light=light_sets["train"][i], scalar="inr", phong=phong,
-                                step=step, interrupt=Heartbeat(f"[naive images] {tag} ({n}/{len(tags)})", log))
+                                step=step, interrupt=Ticker(f"[naive images] {tag} ({n}/{len(tags)})", log=log))
         log(f"[naive images] {tag} {out[tag].seconds:.2f} s")
     return out
-
-
-HEARTBEAT_S = 60.0  # a slow frame's log line every minute
-
-
-class Heartbeat:
-    """A frame's `interrupt` that never interrupts: a log line every `every_s` seconds (default HEARTBEAT_S) while a
-    slow frame renders (a naive frame of a 64³ volume at 128² took 6 min on 2 CPU cores), so a job's log does not
-    go silent. The marcher asks it before each iteration, on the host: the frame does not depend on it."""
-
-    def __init__(self, what: str, log=print, every_s: float | None = None, clock=time.perf_counter):
-        self.what, self.log, self.clock = what, log, clock
-        self.every_s = HEARTBEAT_S if every_s is None else every_s
-        self.start = clock()
-        self.next = self.start + self.every_s
-
-    def __call__(self) -> bool:
-        now = self.clock()
-        if now >= self.next:
-            self.log(f"{self.what}: {now - self.start:.0f} s so far")
-            self.next = now + self.every_s
-        return False
 
 
 def image_evaluation(scene, light_sets: dict, stage1, generated, views: list, *, step: float, out_dir,

@@ -29,6 +29,36 @@ def resumed_at(epoch: int, total: int, within: dict | None) -> str:
     return f"epoch {epoch}/{total}{inside}"
 
 
+TICK_S = 60.0  # a long piece of work's log line at most every minute
+
+
+class Ticker:
+    """Log lines for a piece of work that may be long (a naive frame, the data INR's lattice on a large volume), at
+    most one every `every_s` seconds (default TICK_S): none for work that ends sooner, so a small scene's log stays
+    short, and a large one's does not go silent for many minutes. Called with the units done of `total`, it says
+    how far and how long is left; called with nothing, how long so far. It returns False, so that a frame can take
+    it as its `interrupt` (asked on the host before each iteration: the frame does not depend on it)."""
+
+    def __init__(self, what: str, total: int | None = None, *, log=print, every_s: float | None = None,
+                 clock=time.perf_counter):
+        self.what, self.total, self.log, self.clock = what, total, log, clock
+        self.every_s = TICK_S if every_s is None else every_s
+        self.start = clock()
+        self.next = self.start + self.every_s
+
+    def __call__(self, done: int | None = None) -> bool:
+        now = self.clock()
+        if now >= self.next:
+            spent = now - self.start
+            if done is None or not self.total:
+                self.log(f"{self.what}: {spent:.0f} s so far")
+            else:
+                left = f", ~{spent / done * (self.total - done):.0f} s left" if 0 < done < self.total else ""
+                self.log(f"{self.what}: {done / self.total:.0%}, {spent:.0f} s{left}")
+            self.next = now + self.every_s
+        return False
+
+
 class FirstNonFinite:
     """Where a training loss (one value, or one per model) first stopped being finite, kept on the device:
     `record` every step costs no host read (on a GPU one per step keeps the host from queueing the next step

@@ -8,7 +8,7 @@ from conftest import Killed, stop_at
 from diffshadow.analytic import gaussian_blob
 from diffshadow.artifacts import load_data_inr, save_data_inr
 from diffshadow.config import ConfigError
-from diffshadow.data_inr import ERROR_VOXELS, DataInrConfig, ErrorSampler, fit_data_inr, inr_cell_ranges
+from diffshadow.data_inr import ERROR_VOXELS, DataInrConfig, ErrorSampler, fit_data_inr, inr_cell_ranges, voxel_errors
 from diffshadow.transfer import TransferFunction
 from diffshadow.volume import Volume
 
@@ -217,3 +217,24 @@ def test_the_macro_cell_ranges_are_made_once_for_the_size_kept(blob, monkeypatch
     assert len(inr.config["capacity"]["rungs"]) == 3 and made == [inr.n_params]
     lo, hi = real(inr.model, blob)
     assert np.array_equal(inr.cell_lo, lo) and np.array_equal(inr.cell_hi, hi)
+
+
+def test_a_long_lattice_walk_says_how_far_it_is_and_gives_the_same_values(monkeypatch):
+    """voxel_errors and inr_cell_ranges log their progress (here at every chunk) and return what they return
+    without a log."""
+    import diffshadow.progress as progress
+    from diffshadow.siren import Siren, SirenConfig
+
+    vol = Volume(data=np.random.default_rng(0).random((20, 18, 17), dtype=np.float32), extent=np.ones(3), name="r")
+    model = Siren(SirenConfig(8, 1))
+    quiet = voxel_errors(model, vol, chunk=512), inr_cell_ranges(model, vol, cell=4, chunk=512)
+    monkeypatch.setattr(progress, "TICK_S", 0.0)
+    said = []
+    told = voxel_errors(model, vol, chunk=512, log=said.append), inr_cell_ranges(model, vol, cell=4, chunk=512,
+                                                                                  log=said.append)
+    assert told[0] == quiet[0] and all(np.array_equal(a, b) for a, b in zip(told[1], quiet[1], strict=True))
+    errors = [m for m in said if m.startswith("data INR: voxel PSNR (6,120 points): ")]
+    ranges = [m for m in said if m.startswith("data INR: the renderer's macro-cell ranges (45,045 points): ")]
+    # a line before each chunk of 512 points: the voxels' 20 x 18 x 17, the ranges' lattice twice as fine (39 x 35 x 33)
+    assert len(errors) == 12 and len(ranges) == 88 and len(said) == len(errors) + len(ranges)
+    assert errors[1].startswith("data INR: voxel PSNR (6,120 points): 8%, ")  # 512 of 6,120 points done
