@@ -167,7 +167,8 @@ def test_a_deleted_chunk_is_named_not_read_as_zeros(tmp_path):
     assert chunk.is_file()
     chunk.unlink()
     with pytest.raises(StoreError, match=r"weights.zarr: array 'weights' does not match its checksum \(a chunk is "
-                       r"missing or was changed\); it is damaged, rerun `collect_weights` to rewrite it"):
+                       r"missing or was changed\); it is damaged, rerun `collect_weights` to rewrite it "
+                       r"\(`snakemake --profile <yours> -f .*weights.zarr`\)$"):
         open_store(path)
 
 
