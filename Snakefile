@@ -83,3 +83,18 @@ rule all:
         # cache: auto's decision asked for by name: a finished run switched to auto decides too (Snakemake does
         # not run a checkpoint whose dependants' outputs already exist)
         [f"results/{scene}/cache_choice.json" for scene in config["scenes"] if scene_config(scene)["cache"] == "auto"],
+
+
+# a job killed by SIGKILL (exit 137) leaves no word in its own log: most often the out-of-memory killer, so say
+# which keys size its memory (diffshadow.hpc.killed_lines)
+onerror:
+    from diffshadow.hpc import killed_lines as _killed_lines
+
+    for _path in [log] if isinstance(log, str) else log or ():
+        try:
+            with open(_path) as _f:
+                _text = _f.read()
+        except OSError:  # no log to read: Snakemake's own error stands alone
+            continue
+        for _line in _killed_lines(_text):
+            print(_line)

@@ -17,7 +17,7 @@ from diffshadow.argparsing import add_networks, at_least, network_flags, seed
 from diffshadow.argparsing import add_subcommand as _add
 from diffshadow.argparsing import config_of as _cfg
 from diffshadow.argparsing import device_of as _device
-from diffshadow.config import defaults
+from diffshadow.config import defaults, memory_keys
 from diffshadow.lights import LAYOUTS
 from diffshadow.stopping import Stopped
 
@@ -607,23 +607,6 @@ def _lost_a_peer(e: RuntimeError) -> bool:
 
 _NO_ROOM = (errno.ENOSPC, errno.EDQUOT)  # a full disk, a full quota (an ALCF project's on /eagle)
 
-# the config keys that size each heavy command's largest allocations, named when it runs out of memory
-_MEMORY_KEYS = {
-    "preoptimize": "fit.points or fit.grid_upsample (its target grid has grid_upsample³ x the voxels)",
-    "fit-siren": "subset_size (SIRENs fitted together, a target grid each, or fit.steps x fit.points values each "
-                 "with fit.target_store: table), fit.grid_upsample (a grid holds grid_upsample³ x the voxels) or "
-                 "fit.points",
-    "train-data-inr": "data_inr.points",
-    "presample": "diffusion.presample_points",
-    "train-diffusion": "diffusion.batch_size or diffusion.geometry_points",
-    "finetune-render": "finetune.batch_size, finetune.pixels or finetune.val_points",
-    "eval-truth": "evaluate.points (--eval-points)",
-    "render-targets": "finetune.image_size or fit.grid_upsample (its shadow grid has grid_upsample³ x the voxels)",
-    "evaluate-images": "render.image_size",
-    "naive-images": "render.image_size",
-}
-
-
 def _out_of_memory(e: BaseException) -> str | None:
     """torch's or numpy's message where `e` is an allocation that failed (a GPU's, the CPU allocator's, a numpy
     array's), cut before CUDA's advice on its allocator's settings; else None."""
@@ -666,7 +649,7 @@ def main(argv: list[str] | None = None) -> None:
         raise SystemExit(2) from None
     except (MemoryError, RuntimeError) as e:
         if (reason := _out_of_memory(e)) is not None:  # a size too large for the machine: which keys set it
-            lower = _MEMORY_KEYS.get(args.command, "the sizes in this command's config section")
+            lower = memory_keys(args.command)
             print(f"diffshadow {args.command}: error: out of memory ({reason}); lower {lower}, or run it where "
                   f"there is more memory (a profile's mem_mb, a larger GPU); no earlier output was replaced",
                   file=sys.stderr)
@@ -683,7 +666,7 @@ def main(argv: list[str] | None = None) -> None:
         if os.environ.get("RANK", "0") == "0":  # a DDP job's ranks stop together: one line for them all
             _say(f"diffshadow {args.command}: {e}")
         raise SystemExit(128 + e.signum) from None
-    except KeyboardInterrupt:  # Ctrl-C on a command typed by hand (under Snakemake, `tee` ends with the job)
+    except KeyboardInterrupt:  # Ctrl-C outside a training loop (a rule's `tee` ignores it: the line reaches its log)
         print(f"diffshadow {args.command}: interrupted; no earlier output was replaced, and a long stage run again "
               f"resumes from its last checkpoint", file=sys.stderr)
         raise SystemExit(130) from None
@@ -735,8 +718,8 @@ def run() -> None:
 
 
 def _say(line: str) -> None:
-    """`line` on stderr, where it may no longer go: under Snakemake a job's output runs through `tee`, which the
-    same signal may have ended."""
+    """`line` on stderr, where it may no longer go: a pipe's reader (a `tee` of one's own; the rules' ignores the
+    signal, hpc.JOB_LOG) that the same signal ended."""
     try:
         print(line, file=sys.stderr, flush=True)
     except OSError:

@@ -310,3 +310,26 @@ def parse_json(text: str, what: str = "--config-json") -> dict[str, Any]:
     if not isinstance(value, dict):
         raise ConfigError(f"{source}: expected a JSON object")
     return _Sections(value, source)
+
+
+# the config keys that size each heavy command's largest allocations, named when it runs out of memory (the CLI's
+# line) or is killed for it (hpc.killed_lines)
+MEMORY_KEYS = {
+    "preoptimize": "fit.points or fit.grid_upsample (its target grid has grid_upsample³ x the voxels)",
+    "fit-siren": "subset_size (SIRENs fitted together, a target grid each, or fit.steps x fit.points values each "
+                 "with fit.target_store: table), fit.grid_upsample (a grid holds grid_upsample³ x the voxels) or "
+                 "fit.points",
+    "train-data-inr": "data_inr.points",
+    "presample": "diffusion.presample_points",
+    "train-diffusion": "diffusion.batch_size or diffusion.geometry_points",
+    "finetune-render": "finetune.batch_size, finetune.pixels or finetune.val_points",
+    "eval-truth": "evaluate.points (--eval-points)",
+    "render-targets": "finetune.image_size or fit.grid_upsample (its shadow grid has grid_upsample³ x the voxels)",
+    "evaluate-images": "render.image_size",
+    "naive-images": "render.image_size",
+}
+
+
+def memory_keys(command: str) -> str:
+    """The config keys to lower where `command` (a `diffshadow` subcommand) runs out of memory."""
+    return MEMORY_KEYS.get(command, "the sizes in this command's config section")

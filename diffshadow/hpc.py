@@ -16,6 +16,7 @@ import filecmp
 import json
 import os
 import platform
+import re
 import signal
 import subprocess
 import sys
@@ -416,3 +417,34 @@ def check_host_room(need: int, what: str) -> None:
     if free is not None and need > free:
         raise MemoryError(f"{what} needs at least {need / 2**30:.1f} GiB, and {free / 2**30:.1f} GiB are free on "
                           f"this host")
+
+
+# how Snakemake's log says a job's command was killed by SIGKILL: its shell's status (137), or the shell's own death
+_KILLED = re.compile(r"died with <Signals\.SIGKILL: 9>|returned non-zero exit status 137\b")
+_FAILED_RULE = re.compile(r"^Error in rule (\w+):")
+_JOB_LOG_LINE = re.compile(r"^\s+log: (\S+)")
+
+
+def killed_lines(snakemake_log: str) -> list[str]:
+    """A line for each job that a run's Snakemake log says was killed by SIGKILL (exit 137): nothing in the job's
+    own log says so, and on a workstation it is most often Linux's out-of-memory killer, which ends a process
+    without a word. The line names the job's log, where to confirm it, the config keys that size the job's memory
+    (`config.MEMORY_KEYS`) and that a rerun resumes. Snakemake's `onerror` prints them (the Snakefile)."""
+    from diffshadow.config import memory_keys
+
+    out, killed, rule = [], False, None
+    for line in snakemake_log.splitlines():
+        if _KILLED.search(line):
+            killed = True
+        elif (found := _FAILED_RULE.match(line)) and killed:
+            rule, killed = found.group(1), False
+            out.append(f"{rule} was killed by SIGKILL (exit 137; its log ends without a word): most often by the "
+                       f"out-of-memory killer (`journalctl -k | grep -i oom` or `dmesg` names it), and then lower "
+                       f"{memory_keys(rule.replace('_', '-'))}, or run it where there is more memory; else by a "
+                       f"scheduler. A rerun resumes from its last checkpoint")
+        elif rule is not None and (found := _JOB_LOG_LINE.match(line)):
+            out[-1] = out[-1].replace("its log ends", f"its log, {found.group(1)}, ends", 1)
+            rule = None
+        elif line and not line[0].isspace():
+            rule = None  # the rule's block ended without a log line
+    return out

@@ -568,10 +568,10 @@ def test_every_key_an_out_of_memory_error_names_is_a_config_key():
     looking for nothing)."""
     import re
 
-    from diffshadow import cli, config
+    from diffshadow import config
 
     defaults = config.defaults()
-    named = {k for text in cli._MEMORY_KEYS.values() for k in re.findall(r"\b([a-z_]+(?:\.[a-z_]+)?)\b", text)
+    named = {k for text in config.MEMORY_KEYS.values() for k in re.findall(r"\b([a-z_]+(?:\.[a-z_]+)?)\b", text)
              if "." in k or k == "subset_size"}
     assert "fit.grid_upsample" in named and "subset_size" in named
     for key in named:

@@ -679,3 +679,28 @@ def test_the_free_memory_is_the_least_of_the_hosts_and_its_memory_cgroups(tmp_pa
     write(v1 / "memory" / "memory.limit_in_bytes", "9223372036854771712\n")
     assert cgroup_room(cgroups, v1) is None and free_host_bytes(meminfo, cgroups, v1) == 40 * gib
     assert free_host_bytes(tmp_path / "none", tmp_path / "none", v1) is None
+
+
+def test_only_jobs_killed_by_sigkill_are_explained_in_either_way_snakemake_says_it():
+    """Snakemake says a job's shell died of SIGKILL, or that it returned 137 (its pipeline's status); a job that
+    failed on its own (exit 1, its error in its log) gets no line; a block without a log line names none."""
+    from diffshadow.hpc import killed_lines
+
+    def failed(rule: str, how: str, log: bool = True) -> str:
+        return (f"RuleException:\nCalledProcessError in file \"x.smk\", line 4:\nCommand 'set -euo pipefail; "
+                f"diffshadow ...' {how}.\n[Fri Dec  4 23:28:29 2026]\nError in rule {rule}:\n    message: None\n"
+                f"    jobid: 3\n" + (f"    log: results/s/logs/{rule}.log (check log file(s) for error details)\n"
+                                     if log else "") + "    shell:\n        diffshadow ...\n")
+
+    text = "".join([failed("fit_siren", "died with <Signals.SIGKILL: 9>"),
+                    failed("eval_truth", "returned non-zero exit status 1"),
+                    failed("train_diffusion", "returned non-zero exit status 137"),
+                    failed("summary", "died with <Signals.SIGKILL: 9>", log=False),
+                    "Shutting down, this might take some time.\n"])
+    said = killed_lines(text)
+    assert [line.split()[0] for line in said] == ["fit_siren", "train_diffusion", "summary"]
+    assert "(exit 137; its log, results/s/logs/fit_siren.log, ends without a word)" in said[0]
+    assert "lower subset_size (SIRENs fitted together" in said[0]
+    assert "lower diffusion.batch_size or diffusion.geometry_points," in said[1]
+    assert "(exit 137; its log ends without a word)" in said[2] and "the sizes in this command's config" in said[2]
+    assert killed_lines(failed("eval_truth", "returned non-zero exit status 1")) == []

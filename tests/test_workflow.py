@@ -13,6 +13,7 @@ import yaml
 from conftest import installed
 
 from diffshadow.config import defaults
+from diffshadow.config import memory_keys as config_memory_keys
 from diffshadow.diffusion.mix import SHARES
 from diffshadow.lights import read_lights, subset_indices
 from diffshadow.store import open_store
@@ -46,6 +47,16 @@ def snakemake(workdir: Path, *args: str, config: dict = TINY, check: bool = True
               runner: tuple[str, ...] = ("-m", "snakemake"), repo: Path = REPO) -> subprocess.CompletedProcess:
     """Snakemake on the tiny config in `workdir`; `runner` is what follows the interpreter (a script that runs
     Snakemake in its own process and inspects it, for one); `repo`: where the Snakefile and its scene files are."""
+    cmd, env = snakemake_command(workdir, *args, config=config, runner=runner, repo=repo)
+    proc = subprocess.run(cmd, env=env, capture_output=True, text=True, timeout=600)
+    if check and proc.returncode != 0:
+        raise AssertionError(f"snakemake failed:\n{proc.stdout[-3000:]}\n{proc.stderr[-3000:]}")
+    return proc
+
+
+def snakemake_command(workdir: Path, *args: str, config: dict = TINY, runner: tuple[str, ...] = ("-m", "snakemake"),
+                      repo: Path = REPO) -> tuple[list[str], dict[str, str]]:
+    """`snakemake`'s command line and environment, its config file written."""
     cfg = workdir / "tiny.yaml"
     cfg.write_text(yaml.safe_dump(config))
     env = {**os.environ, "PATH": f"{installed('diffshadow').parent}{os.pathsep}{os.environ['PATH']}"}
@@ -57,10 +68,7 @@ def snakemake(workdir: Path, *args: str, config: dict = TINY, check: bool = True
     cores = "4" if CUDA and (os.cpu_count() or 1) >= 4 else "2"
     cmd = [sys.executable, *runner, "-s", str(repo / "Snakefile"), "--directory", str(workdir),
            "--configfile", str(cfg), "--cores", cores, *args]
-    proc = subprocess.run(cmd, env=env, capture_output=True, text=True, timeout=600)
-    if check and proc.returncode != 0:
-        raise AssertionError(f"snakemake failed:\n{proc.stdout[-3000:]}\n{proc.stderr[-3000:]}")
-    return proc
+    return cmd, env
 
 
 def planned(proc: subprocess.CompletedProcess) -> dict[str, int]:
@@ -852,6 +860,35 @@ def test_every_rule_ends_its_command_in_the_log_that_survives_a_stop():
     shells = sum(text.count("    shell:") for text in rules)
     assert shells >= 20 and sum(text.count("+ _JOB_LOG") for text in rules) == shells
     assert not any("tee {log}" in text for text in rules)
+
+
+def test_a_job_killed_by_sigkill_is_named_with_its_log_and_the_keys_that_size_its_memory(tmp_path):
+    """As Linux's out-of-memory killer ends a job: SIGKILL, and the job's log ends without a word. The workflow's
+    `onerror` says which job, where its log is, and which keys to lower if memory was the cause."""
+    import signal
+    import time
+
+    steps = 99991  # a preoptimize long enough to be killed, its command told apart from any other test's by this
+    cmd, env = snakemake_command(tmp_path, "results/nucleon/siren_init.pt",
+                                 config={**TINY, "preoptimize": {"steps": steps, "lr": 1.0e-3}})
+    proc = subprocess.Popen(cmd, env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    log = tmp_path / "results/nucleon/logs/preoptimize.log"
+    deadline = time.time() + 300
+    while "step " not in (log.read_text() if log.exists() else "") and time.time() < deadline:
+        time.sleep(0.1)
+    job = subprocess.run(["pgrep", "-f", f"preoptimize .*\"steps\": {steps}"], capture_output=True, text=True)
+    pids = [int(p) for p in job.stdout.split() if int(p) != proc.pid]
+    assert pids, f"no preoptimize job to kill: {log.read_text() if log.exists() else 'no log'}"
+    for pid in pids:
+        os.kill(pid, signal.SIGKILL)
+    out, _ = proc.communicate(timeout=120)
+    assert proc.returncode != 0
+    said = [line for line in out.splitlines() if "killed by SIGKILL" in line]
+    assert said == [
+        f"preoptimize was killed by SIGKILL (exit 137; its log, results/nucleon/logs/preoptimize.log, ends without "
+        f"a word): most often by the out-of-memory killer (`journalctl -k | grep -i oom` or `dmesg` names it), and "
+        f"then lower {config_memory_keys('preoptimize')}, or run it where there is more memory; else by a "
+        f"scheduler. A rerun resumes from its last checkpoint"], out[-3000:]
 
 
 def test_sigterm_stops_a_fit_at_its_next_step_with_a_checkpoint_and_the_rerun_resumes(finished, tmp_path):
