@@ -291,6 +291,21 @@ def test_bookkeeping_subcommands_do_not_import_torch(tmp_path, argv):
     assert run.returncode == 0, run.stderr
 
 
+def test_a_rendered_image_says_how_long_so_far_while_it_renders(tmp_path, capsys, monkeypatch):
+    """`diffshadow render` gives its frame a ticker (here one that speaks at every march iteration): a naive or gt
+    frame of a large view takes minutes on a CPU."""
+    import re
+
+    import diffshadow.progress as progress
+
+    monkeypatch.setattr(progress, "TICK_S", 0.0)
+    main(["render", "--scene-config", str(REPO / "config/scenes/nucleon.yaml"), "--mode", "gt", "--light", "0", "0",
+          "1", "--size", "16", "--out", str(tmp_path / "gt.png")])
+    lines = capsys.readouterr().out.splitlines()
+    assert sum(bool(re.fullmatch(r"render: gt at 16x16: \d+ s so far", line)) for line in lines) > 1, lines
+    assert lines[-1].startswith(f"wrote {tmp_path / 'gt.png'}: gt, 16x16 in ")
+
+
 def test_render_previews_a_scene_file_and_names_its_typo(tmp_path, capsys):
     from PIL import Image
 

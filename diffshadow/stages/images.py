@@ -17,6 +17,7 @@ from diffshadow.evaluate import naive_images as render_naive
 from diffshadow.io import atomic_write_text, finite_json, require_png
 from diffshadow.lights import as_direction, read_lights
 from diffshadow.metrics import lpips_model, ms_ssim_status
+from diffshadow.progress import Ticker
 from diffshadow.render import Camera, RenderScene, default_views, fibonacci_views, write_png
 from diffshadow.render.bundle import build_bundle
 from diffshadow.render.bundle import render_targets as targets
@@ -108,7 +109,9 @@ def render_image(scene: RenderScene, out: Path, *, mode: str, camera: Camera, li
     if mode == "inr" and siren is None:
         raise ValueError("--mode inr needs --weights (a weight store) and --light-index, or --diffusion or --blend "
                          "and --light")
-    img = scene.render(mode, camera, light=light, siren=siren, scalar=scalar, phong=phong, step=step, skip=skip)
+    # a naive or gt frame of a large view can take minutes on a CPU: a line a minute meanwhile
+    img = scene.render(mode, camera, light=light, siren=siren, scalar=scalar, phong=phong, step=step, skip=skip,
+                       interrupt=Ticker(f"render: {mode} at {camera.width}x{camera.height}"))
     write_png(out, img)
     c = img.counters
     print(f"wrote {out}: {mode}, {camera.width}x{camera.height} in {img.seconds:.3f} s "
