@@ -876,12 +876,17 @@ def test_a_job_killed_by_sigkill_is_named_with_its_log_and_the_keys_that_size_it
     deadline = time.time() + 300
     while "step " not in (log.read_text() if log.exists() else "") and time.time() < deadline:
         time.sleep(0.1)
-    job = subprocess.run(["pgrep", "-f", f"preoptimize .*\"steps\": {steps}"], capture_output=True, text=True)
-    pids = [int(p) for p in job.stdout.split() if int(p) != proc.pid]
-    assert pids, f"no preoptimize job to kill: {log.read_text() if log.exists() else 'no log'}"
-    for pid in pids:
-        os.kill(pid, signal.SIGKILL)
-    out, _ = proc.communicate(timeout=120)
+    pattern = f"preoptimize .*\"steps\": {steps}"  # the job's shell and its command, as the OOM killer takes both
+    try:
+        job = subprocess.run(["pgrep", "-f", pattern], capture_output=True, text=True)
+        pids = [int(p) for p in job.stdout.split() if int(p) != proc.pid]
+        assert pids, f"no preoptimize job to kill: {log.read_text() if log.exists() else 'no log'}"
+        for pid in pids:
+            os.kill(pid, signal.SIGKILL)
+        out, _ = proc.communicate(timeout=120)
+    finally:  # nothing of it left running, whatever failed
+        subprocess.run(["pkill", "-KILL", "-f", pattern])
+        proc.kill()
     assert proc.returncode != 0
     said = [line for line in out.splitlines() if "killed by SIGKILL" in line]
     assert said == [
