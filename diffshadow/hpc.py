@@ -432,19 +432,19 @@ def killed_lines(snakemake_log: str) -> list[str]:
     (`config.MEMORY_KEYS`) and that a rerun resumes. Snakemake's `onerror` prints them (the Snakefile)."""
     from diffshadow.config import memory_keys
 
-    out, killed, rule = [], False, None
+    jobs: list[list] = []  # [rule, its log or None] of each killed job, in the order Snakemake reported them
+    killed, block = False, None
     for line in snakemake_log.splitlines():
         if _KILLED.search(line):
             killed = True
         elif (found := _FAILED_RULE.match(line)) and killed:
-            rule, killed = found.group(1), False
-            out.append(f"{rule} was killed by SIGKILL (exit 137; its log ends without a word): most often by the "
-                       f"out-of-memory killer (`journalctl -k | grep -i oom` or `dmesg` names it), and then lower "
-                       f"{memory_keys(rule.replace('_', '-'))}, or run it where there is more memory; else by a "
-                       f"scheduler. A rerun resumes from its last checkpoint")
-        elif rule is not None and (found := _JOB_LOG_LINE.match(line)):
-            out[-1] = out[-1].replace("its log ends", f"its log, {found.group(1)}, ends", 1)
-            rule = None
+            block, killed = [found.group(1), None], False
+            jobs.append(block)
+        elif block is not None and (found := _JOB_LOG_LINE.match(line)):
+            block[1], block = found.group(1), None
         elif line and not line[0].isspace():
-            rule = None  # the rule's block ended without a log line
-    return out
+            block = None  # the rule's block ended without a log line
+    return [f"{rule} was killed by SIGKILL (exit 137; its log{f', {log},' if log else ''} ends without a word): most "
+            f"often by the out-of-memory killer (`journalctl -k | grep -i oom` or `dmesg` names it), and then lower "
+            f"{memory_keys(rule.replace('_', '-'))}, or run it where there is more memory; else by a scheduler. A "
+            f"rerun resumes from its last checkpoint" for rule, log in jobs]

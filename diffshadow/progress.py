@@ -13,9 +13,10 @@ import time
 import torch
 
 
-def eta(done: int, total: int, t0: float, *, start: int = 0) -> str:
-    """`'12 s, ~40 s left'` after `done` of `total` units, `start` of them done before `t0` (a resume)."""
-    spent = time.perf_counter() - t0
+def eta(done: int, total: int, t0: float, *, start: int = 0, now: float | None = None) -> str:
+    """`'12 s, ~40 s left'` after `done` of `total` units, `start` of them done before `t0` (a resume); `now`: the
+    clock's reading (default: read now)."""
+    spent = (time.perf_counter() if now is None else now) - t0
     ran = done - start
     if ran <= 0 or done >= total:
         return f"{spent:.0f} s"
@@ -49,12 +50,10 @@ class Ticker:
     def __call__(self, done: int | None = None) -> bool:
         now = self.clock()
         if now >= self.next:
-            spent = now - self.start
             if done is None or not self.total:
-                self.log(f"{self.what}: {spent:.0f} s so far")
+                self.log(f"{self.what}: {now - self.start:.0f} s so far")
             else:
-                left = f", ~{spent / done * (self.total - done):.0f} s left" if 0 < done < self.total else ""
-                self.log(f"{self.what}: {done / self.total:.0%}, {spent:.0f} s{left}")
+                self.log(f"{self.what}: {done / self.total:.0%}, {eta(done, self.total, self.start, now=now)}")
             self.next = now + self.every_s
         return False
 
