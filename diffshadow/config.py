@@ -162,6 +162,10 @@ def read_scene_file(path: str | Path) -> dict:
     """One scene file on its own (volume, load, transfer function, overrides), validated."""
     own = read_yaml(path)
     _validate(own, "scene.schema.yaml", str(path))
+    try:  # beyond the schema: sorted knots, values in [0, 1]; named here, where the file is known
+        TransferFunction.from_config(own["transfer_function"])
+    except TransferFunctionError as e:
+        raise ConfigError(f"{path}: key transfer_function: {str(e).removeprefix('transfer function: ')}") from None
     return own
 
 

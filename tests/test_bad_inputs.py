@@ -38,11 +38,11 @@ def _config_json(tmp_path, settings: str):
 # (name, arguments from tmp_path, environment, what the line must say)
 CASES = [
     ("opacity above 1", lambda t: _render(["--scene-config", scene_file(t, "a", opacity=[[0, 0], [1, 1.5]])]), {},
-     r"transfer function: opacity values must lie in \[0, 1\]"),
+     r"a.yaml: key transfer_function: opacity values must lie in \[0, 1\]"),
     ("colour below 0", lambda t: _render(["--scene-config", scene_file(t, "b", color=[[0, -1, 1, 1], [1, 1, 1, 1]])]),
-     {}, r"transfer function: color values must lie in \[0, 1\]"),
+     {}, r"b.yaml: key transfer_function: color values must lie in \[0, 1\]"),
     ("unsorted TF points", lambda t: _render(["--scene-config", scene_file(t, "c", opacity=[[0.5, 0], [0.1, 1]])]),
-     {}, "opacity points must be sorted by s"),
+     {}, r"c.yaml: key transfer_function: opacity points must be sorted by s"),
     ("opacity 0 everywhere", lambda t: _render(["--scene-config", scene_file(t, "d", opacity=[[0, 0], [1, 0]])]), {},
      "opacity is 0 at every point"),
     ("an unknown bundled volume", lambda t: _render(["--scene-config", scene_file(t, "e", volume="bundled:nucleus")]),
