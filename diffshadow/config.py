@@ -147,6 +147,8 @@ def _validate(value: dict, schema_file: str, where: str, *, partial: bool = Fals
     if error is not None:
         key = ".".join(str(p) for p in error.absolute_path) or "(top level)"
         said = error.schema.get("description") if error.validator == "pattern" else None  # a regex says little
+        if error.validator == "type" and error.validator_value == "array" and isinstance(error.instance, str):
+            said = f"a list: [{error.instance}]"  # snakemake --config scenes=tooth, for scenes=[tooth]
         raise ConfigError(f"{where}: key {key}: {error.message}" + (f" ({said})" if said else ""))
 
 

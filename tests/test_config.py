@@ -14,6 +14,9 @@ def test_command_line_strings_take_the_type_the_schema_asks_for():
         run_config({"diffusion": {"epochs": "sixty"}}, "--config")
     with pytest.raises(ConfigError, match=r"key lights.count"):
         run_config({"lights": {"count": "[1, 2]"}}, "--config")  # read as a list: still not an integer
+    with pytest.raises(ConfigError, match=r"^--config: key scenes: 'tooth' is not of type 'array' "
+                                          r"\(a list: \[tooth]\)$"):
+        run_config({"scenes": "tooth"}, "--config")  # `--config scenes=tooth`: the line says how to write it
 
 
 def test_a_number_written_1e_minus_6_is_a_number(tmp_path):
