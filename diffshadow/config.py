@@ -149,6 +149,11 @@ def _validate(value: dict, schema_file: str, where: str, *, partial: bool = Fals
         said = error.schema.get("description") if error.validator == "pattern" else None  # a regex says little
         if error.validator == "type" and error.validator_value == "array" and isinstance(error.instance, str):
             said = f"a list: [{error.instance}]"  # snakemake --config scenes=tooth, for scenes=[tooth]
+        if error.validator == "additionalProperties" and isinstance(error.instance, dict):
+            glued = [k for k in error.instance if ":" in str(k) and k not in error.schema.get("properties", {})]
+            if glued:  # YAML reads `{count:5}` as the key 'count:5': snakemake --config lights={count:5}
+                key_, _, value = str(glued[0]).partition(":")
+                said = f"YAML wants a space after the colon: {{{key_}: {value}}}"
         raise ConfigError(f"{where}: key {key}: {error.message}" + (f" ({said})" if said else ""))
 
 

@@ -17,6 +17,9 @@ def test_command_line_strings_take_the_type_the_schema_asks_for():
     with pytest.raises(ConfigError, match=r"^--config: key scenes: 'tooth' is not of type 'array' "
                                           r"\(a list: \[tooth]\)$"):
         run_config({"scenes": "tooth"}, "--config")  # `--config scenes=tooth`: the line says how to write it
+    with pytest.raises(ConfigError, match=r"key lights: .*'count:5' was unexpected.*\(YAML wants a space after the "
+                                          r"colon: \{count: 5}\)$"):
+        run_config({"lights": {"count:5": None}}, "--config")  # how YAML reads `--config lights={count:5}`
 
 
 def test_a_number_written_1e_minus_6_is_a_number(tmp_path):
