@@ -338,6 +338,7 @@ MEMORY_KEYS = {
     "render-targets": "finetune.image_size or fit.grid_upsample (its shadow grid has grid_upsample³ x the voxels)",
     "evaluate-images": "render.image_size",
     "naive-images": "render.image_size",
+    "render": "--size (the image's pixels)",  # a flag, not a config key: the command has none
 }
 
 

@@ -578,6 +578,21 @@ def test_a_torch_job_records_its_cpu_kernels_and_warns_only_when_unasked(tmp_pat
     assert records["scalar"]["cpu_capability"] in SCALAR_KERNELS
 
 
+def test_render_out_of_memory_names_its_size_flag(tmp_path, capsys, monkeypatch):
+    """`diffshadow render` has no config section: a frame too large for the machine names --size, not "the sizes in
+    this command's config section" (`render --size 100000` said that)."""
+    from diffshadow.stages import images
+
+    np.save(tmp_path / "v.npy", np.random.default_rng(0).random((6, 6, 6), dtype=np.float32))
+    tf = '{"opacity": [[0, 0], [1, 1]], "color": [[0, 1, 1, 1], [1, 1, 1, 1]], "density_scale": 1}'
+    monkeypatch.setattr(images, "render_image", lambda *a, **k: _cpu_allocator())
+    with pytest.raises(SystemExit) as exit_info:
+        main(["render", "--volume", str(tmp_path / "v.npy"), "--tf-json", tf, "--out", str(tmp_path / "x.png")])
+    err = capsys.readouterr().err
+    assert exit_info.value.code == 1 and "error: out of memory (" in err, err
+    assert "; lower --size (the image's pixels), or run it where there is more memory" in err, err
+
+
 def test_every_key_an_out_of_memory_error_names_is_a_config_key():
     """The keys the out-of-memory line tells a user to lower exist in defaults.yaml (a renamed key would send them
     looking for nothing)."""
