@@ -25,6 +25,7 @@ import sys
 import tempfile
 import time
 import urllib.request
+from collections.abc import Callable
 from contextlib import contextmanager
 from pathlib import Path
 
@@ -36,6 +37,27 @@ DIFFSHADOW = Path(sys.executable).parent / "diffshadow"  # this environment's co
 
 def find_browser() -> str | None:
     return next((path for name in BROWSERS if (path := shutil.which(name))), None)
+
+
+def _dies_with_driver(*, no_priority: bool = False) -> Callable[[], None] | None:
+    """What a process this script starts runs before its exec, on Linux: it is killed with the thread that started
+    it (a killed driver left Chromium, in its own session, drawing at 80 % of a core, and the viewer serving), and
+    with `no_priority` it cannot raise its own priority: as root Chromium puts its GPU process, SwiftShader drawing
+    the page, at nice -8, ahead of the viewer it drives on the same cores, where a user's Chromium (not root)
+    stays at the user's priority. None elsewhere."""
+    if not sys.platform.startswith("linux"):
+        return None
+    import ctypes
+
+    prctl = ctypes.CDLL(None, use_errno=True).prctl  # looked up here: the child only calls it
+    pr_set_pdeathsig, pr_capbset_drop, cap_sys_nice = 1, 24, 23  # <linux/prctl.h>, <linux/capability.h>
+
+    def child() -> None:
+        prctl(pr_set_pdeathsig, signal.SIGKILL)
+        if no_priority:
+            prctl(pr_capbset_drop, cap_sys_nice)  # fails without CAP_SETPCAP: then it had no such right to drop
+
+    return child
 
 
 class Browser:
@@ -56,7 +78,8 @@ class Browser:
              "--use-gl=angle", "--use-angle=swiftshader", "--enable-unsafe-swiftshader",
              "--force-device-scale-factor=1", f"--window-size={width},{height}", "--remote-debugging-port=0",
              f"--user-data-dir={self.profile.name}", url],
-            stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True, start_new_session=True)
+            stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True, start_new_session=True,
+            preexec_fn=_dies_with_driver(no_priority=True))
         port = None
         deadline = time.monotonic() + timeout
         while port is None and time.monotonic() < deadline:
@@ -436,7 +459,7 @@ def viewer(results: Path, record: Path, *, size: int, log: Path):
     with open(log, "w") as f:
         proc = subprocess.Popen([str(DIFFSHADOW), "view", *source, "--port",
                                  str(port), "--size", str(size), "--record", str(record)], stdout=f,
-                                stderr=subprocess.STDOUT, text=True)
+                                stderr=subprocess.STDOUT, text=True, preexec_fn=_dies_with_driver())
     try:
         while "http://" not in log.read_text():
             if proc.poll() is not None:

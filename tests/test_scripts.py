@@ -71,3 +71,31 @@ def test_every_dependency_reaches_the_gpu_machine():
     project = tomllib.loads((SCRIPTS.parent / "pyproject.toml").read_text())["project"]
     missing = {name(req) for req in project["dependencies"]} - GPU_IMAGE - shared - added - NOT_ON_DEVICE
     assert not missing, f"not carried to the GPU machine: {sorted(missing)} (add to scripts/gpu_prepare.sh's extra)"
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="prctl is Linux's")
+def test_what_browser_py_starts_dies_with_it(tmp_path):
+    """A driver killed without its cleanup (SIGKILL; a `timeout` signals its own group, and Chromium runs in a
+    session of its own) takes the processes it started with it: an orphaned Chromium drew at 80 % of a core."""
+    import os
+    import signal
+    import time
+
+    driver = (f"import subprocess, sys; sys.path.insert(0, {str(SCRIPTS)!r}); from browser import _dies_with_driver\n"
+              "p = subprocess.Popen(['sleep', '300'], start_new_session=True, preexec_fn=_dies_with_driver("
+              "no_priority=True))\nprint(p.pid, flush=True)\nimport time; time.sleep(300)\n")
+    proc = subprocess.Popen([sys.executable, "-c", driver], stdout=subprocess.PIPE, text=True)
+    child = int(proc.stdout.readline())
+    os.kill(child, 0)  # alive while the driver is
+    proc.send_signal(signal.SIGKILL)
+    proc.wait(10)
+    deadline = time.monotonic() + 10
+    while time.monotonic() < deadline:
+        try:  # gone, or dead and not yet reaped by whoever adopted it
+            if Path(f"/proc/{child}/stat").read_text().rsplit(")", 1)[1].split()[0] == "Z":
+                return
+        except (FileNotFoundError, ProcessLookupError):
+            return
+        time.sleep(0.05)
+    os.kill(child, signal.SIGKILL)
+    pytest.fail(f"process {child} outlived its driver")
