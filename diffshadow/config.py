@@ -146,15 +146,23 @@ def _validate(value: dict, schema_file: str, where: str, *, partial: bool = Fals
     error = jsonschema.exceptions.best_match(_validator(schema_file, partial).iter_errors(value))
     if error is not None:
         key = ".".join(str(p) for p in error.absolute_path) or "(top level)"
-        said = error.schema.get("description") if error.validator == "pattern" else None  # a regex says little
-        if error.validator == "type" and error.validator_value == "array" and isinstance(error.instance, str):
-            said = f"a list: [{error.instance}]"  # snakemake --config scenes=tooth, for scenes=[tooth]
-        if error.validator == "additionalProperties" and isinstance(error.instance, dict):
-            glued = [k for k in error.instance if ":" in str(k) and k not in error.schema.get("properties", {})]
-            if glued:  # YAML reads `{count:5}` as the key 'count:5': snakemake --config lights={count:5}
-                key_, _, value = str(glued[0]).partition(":")
-                said = f"YAML wants a space after the colon: {{{key_}: {value}}}"
+        said = _hint(error)
         raise ConfigError(f"{where}: key {key}: {error.message}" + (f" ({said})" if said else ""))
+
+
+def _hint(error) -> str | None:
+    """What to write instead, where the schema's message alone leaves it to guess."""
+    if error.validator == "pattern":  # a regex says little; its description says what it wants
+        return error.schema.get("description")
+    if error.validator == "type" and error.validator_value == "array" and isinstance(error.instance, str):
+        return f"a list: [{error.instance}]"  # snakemake --config scenes=tooth, for scenes=[tooth]
+    if error.validator == "additionalProperties" and isinstance(error.instance, dict):
+        known = error.schema.get("properties", {})
+        glued = [str(k) for k in error.instance if ":" in str(k) and k not in known]
+        if glued:  # YAML reads `{count:5}` as the key 'count:5': snakemake --config lights={count:5}
+            name, _, value = glued[0].partition(":")
+            return f"YAML wants a space after the colon: {{{name}: {value}}}"
+    return None
 
 
 def merge(base: dict, own: dict) -> dict:
