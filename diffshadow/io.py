@@ -305,8 +305,8 @@ class VerifiedGroup:
         """What rewrites this store: its rule, and the command that forces it (a plain run, finding the store and
         the files made from it, has nothing to do)."""
         step = self.attrs.get("made_by")
-        force = f"`snakemake --profile <yours> -f {self.path}`"
-        return f"rerun `{step}` to rewrite it ({force})" if step else f"rerun the step that writes it ({force})"
+        rerun = f"rerun `{step}` to rewrite it" if step else "rerun the step that writes it"
+        return f"{rerun} (`snakemake --profile <yours> -f {self.path}`)"
 
     def _array(self, name: str):
         try:
