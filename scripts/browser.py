@@ -232,6 +232,9 @@ def psnr(a: np.ndarray, b: np.ndarray) -> float:
     return float(10 * np.log10(255.0 ** 2 / max(err, 1e-12)))
 
 
+PANEL_SHADOW_PX = 24  # the canvas's right columns that viser's control panel shadows (15 px measured with viser 1.1)
+
+
 def free_port() -> int:
     import socket
 
@@ -324,12 +327,20 @@ def drive_viewer(results, workdir, *, screenshot=None) -> dict:
             from diffshadow.viewer.scene import cache_source
 
             n_train = len(read_lights(results / "lights.json")["train"])
-            # what makes a new direction's SIREN: the diffusion checkpoint, or with cache: blend the stored SIRENs
+            # what makes a new direction's SIREN: the diffusion checkpoint, with cache: blend the stored SIRENs, or
+            # the two mixed at the share sample-shadows chose (read from the store, not from the viewer)
             generated = open_store(results / "generated.zarr")
             made, source = generated.config, str(cache_source(results, generated))
-            new_source = (["--blend", source, "--blend-k", str(made["blend_k"]),
-                           "--blend-weights", made.get("blend_weights", OLD_WEIGHTING)]
-                          if made.get("cache") == "blend" else ["--diffusion", source])
+            if made.get("cache") == "blend":
+                new_source = ["--blend", source, "--blend-k", str(made["blend_k"]),
+                              "--blend-weights", made.get("blend_weights", OLD_WEIGHTING)]
+            else:
+                new_source = ["--diffusion", source]
+                mix = made.get("mix")
+                if mix is not None and 0 < mix["model_share"] < 1:
+                    new_source += ["--blend", str(results / Path(mix["weights"]).name), "--blend-k",
+                                   str(mix["blend_k"]), "--blend-weights", mix["blend_weights"],
+                                   "--model-share", repr(mix["model_share"])]
 
             renders = []  # (name, `diffshadow render` arguments, the image to compare with), rendered at the end
 
@@ -424,6 +435,11 @@ def drive_viewer(results, workdir, *, screenshot=None) -> dict:
                         np.abs(seen.astype(int) - images[name].astype(int)).max())
                 else:
                     out[f"{name}_psnr_vs_render"] = psnr(seen, images[name])
+                    # the panel's drop shadow darkens the canvas's right edge (~15 px, up to 12 levels): the same
+                    # 47.5 dB whatever the frame; left of it the canvas is the frame pixel for pixel
+                    left = slice(0, seen.shape[1] - PANEL_SHADOW_PX)
+                    out[f"{name}_max_diff_vs_render"] = int(
+                        np.abs(seen[:, left].astype(int) - images[name][:, left].astype(int)).max())
             return out
         except Exception as e:
             raise AssertionError(f"{e}\n--- the viewer's output:\n{log.read_text()[-3000:]}") from e
