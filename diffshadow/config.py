@@ -11,6 +11,7 @@ fills them from `defaults.yaml` and rejects unknown keys, naming the section.
 from __future__ import annotations
 
 import copy
+import difflib
 import functools
 import json
 import math
@@ -189,7 +190,10 @@ def scene_config(run: dict, scene: str, *, scenes_dir: str | Path) -> dict:
     runs with."""
     path = Path(scenes_dir) / f"{scene}.yaml"
     if not path.is_file():
-        raise ConfigError(f"scene {scene!r}: no file {path}")
+        there = sorted(p.stem for p in Path(scenes_dir).glob("*.yaml"))
+        near = difflib.get_close_matches(scene, there, n=1)
+        raise ConfigError(f"scene {scene!r}: no file {path}" + (f"; did you mean {near[0]}?" if near else "")
+                          + (f" (the scenes there: {', '.join(there)})" if there else ""))
     own = read_scene_file(path)
     merged = merge({k: run[k] for k in SECTIONS if k in run}, own)
     try:

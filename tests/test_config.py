@@ -132,3 +132,17 @@ def test_a_json_key_given_twice_is_refused_at_any_depth(tmp_path):
     (tmp_path / "tf.json").write_text('{"opacity": [], "opacity": []}')
     with pytest.raises(ConfigError, match=r"^--tf-json \S*tf.json: key 'opacity' given twice in one object$"):
         parse_json(str(tmp_path / "tf.json"), "--tf-json")
+
+
+def test_a_scene_without_a_file_lists_the_scenes_there_and_the_nearest_name(tmp_path):
+    from diffshadow.config import scene_config
+
+    for name in ("nucleon", "hydrogen_atom"):
+        (tmp_path / f"{name}.yaml").write_text("{}\n")
+    with pytest.raises(ConfigError, match=r"no file .*nucleonn\.yaml; did you mean nucleon\? \(the scenes there: "
+                                          r"hydrogen_atom, nucleon\)$"):
+        scene_config({}, "nucleonn", scenes_dir=tmp_path)
+    with pytest.raises(ConfigError, match=r"no file .*foo\.yaml \(the scenes there: hydrogen_atom, nucleon\)$"):
+        scene_config({}, "foo", scenes_dir=tmp_path)
+    with pytest.raises(ConfigError, match=r"no file .*foo\.yaml$"):
+        scene_config({}, "foo", scenes_dir=tmp_path / "empty")
