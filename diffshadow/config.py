@@ -163,6 +163,9 @@ def _hint(error) -> str | None:
         if glued:  # YAML reads `{count:5}` as the key 'count:5': snakemake --config lights={count:5}
             name, _, value = glued[0].partition(":")
             return f"YAML wants a space after the colon: {{{name}: {value}}}"
+        for key in error.instance:  # a typo: fit.stpes for fit.steps
+            if key not in known and (near := difflib.get_close_matches(str(key), list(known), n=1)):
+                return f"did you mean {near[0]}?"
     return None
 
 

@@ -146,3 +146,12 @@ def test_a_scene_without_a_file_lists_the_scenes_there_and_the_nearest_name(tmp_
         scene_config({}, "foo", scenes_dir=tmp_path)
     with pytest.raises(ConfigError, match=r"no file .*foo\.yaml$"):
         scene_config({}, "foo", scenes_dir=tmp_path / "empty")
+
+
+def test_an_unknown_key_near_a_known_one_is_named_with_it():
+    with pytest.raises(ConfigError, match=r"key fit: .*'stpes' was unexpected\) \(did you mean steps\?\)$"):
+        run_config({"fit": {"stpes": 5}}, "config/config.yaml")
+    with pytest.raises(ConfigError, match=r"key \(top level\): .*'lihgts' was unexpected\) \(did you mean lights\?\)$"):
+        run_config({"lihgts": {"count": 4}}, "config/config.yaml")
+    with pytest.raises(ConfigError, match=r"'zzz' was unexpected\)$"):  # nothing near: no guess
+        run_config({"diffusion": {"zzz": 3}}, "config/config.yaml")
