@@ -265,7 +265,7 @@ def run_render(a) -> dict:
     render = {}
     if a.configfile is not None and not Path(a.configfile).is_file():  # named, not defaulted: a mistyped path
         raise ConfigError(f"--configfile {a.configfile}: no such file (the run's config, e.g. config/config.yaml)")
-    if a.results is not None and Path(a.results).is_dir():  # a missing folder gets the viewer's own error alone
+    if a.results is not None and (Path(a.results) / "volume.zarr").exists():  # else the viewer's error alone
         scene = Path(a.results).name
         try:
             render = scene_config(load_run(a.configfile or "config/config.yaml"), scene,

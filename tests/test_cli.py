@@ -489,14 +489,16 @@ def test_view_takes_the_runs_render_section_under_its_flags(tmp_path, capsys):
                                                      str(scenes)]))
 
     for scene in ("nucleon", "elsewhere"):
-        (tmp_path / "results" / scene).mkdir(parents=True)
+        (tmp_path / "results" / scene / "volume.zarr").mkdir(parents=True)
     got = render(str(tmp_path / "results" / "nucleon"))
     assert (got["kernel"], got["step"]) == ("eager", 0.25)
     assert render(str(tmp_path / "results" / "nucleon"), "--kernel", "fused")["kernel"] == "fused"
     assert render(str(tmp_path / "results" / "elsewhere")) == {}
     assert "no run config for scene 'elsewhere'" in capsys.readouterr().err
-    # a folder that is not there: the viewer's error alone says so, not a line about its config first
+    # a folder that is not there, or no scene's (results/ itself): the viewer's error alone says so, not a line
+    # about its config first
     assert render(str(tmp_path / "results" / "missing")) == {} and capsys.readouterr().err == ""
+    assert render(str(tmp_path / "results")) == {} and capsys.readouterr().err == ""
     # a config file named but not there is refused, not replaced by the defaults
     with pytest.raises(ConfigError, match=r"--configfile .*nope.yaml: no such file"):
         run_render(build_parser().parse_args(["view", str(tmp_path / "results" / "nucleon"), "--configfile",

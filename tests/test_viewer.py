@@ -308,6 +308,15 @@ def test_missing_results_name_the_file_and_the_rule(tmp_path):
         ViewerScene.from_results(tmp_path, torch.device("cpu"))
 
 
+def test_a_results_folder_mistyped_or_one_level_up_names_the_scene_to_give(tmp_path):
+    (tmp_path / "results/nucleon/volume.zarr").mkdir(parents=True)
+    with pytest.raises(ViewerError, match=r"nucleonn: no such results folder; did you mean .*results/nucleon\?$"):
+        ViewerScene.from_results(tmp_path / "results/nucleonn", torch.device("cpu"))
+    with pytest.raises(ViewerError, match=r"results: a folder of scenes \(nucleon\), not one scene's results; give "
+                                          r"one: diffshadow view .*results/nucleon$"):
+        ViewerScene.from_results(tmp_path / "results", torch.device("cpu"))
+
+
 def test_port_in_use_is_one_line(tmp_path):
     with socket.socket() as s:
         s.bind(("127.0.0.1", 0))

@@ -4,6 +4,7 @@ kept per direction). The files are read by the readers the stages use."""
 
 from __future__ import annotations
 
+import difflib
 import math
 import shlex
 import time
@@ -110,7 +111,12 @@ class ViewerScene:
         """A finished scene's results folder (`results/<scene>`)."""
         results = Path(results)
         if not results.is_dir():
-            raise ViewerError(f"{results}: no such results folder (run `snakemake --profile local -j2` first)")
+            near = difflib.get_close_matches(results.name, scenes_in(results.parent), n=1)
+            raise ViewerError(f"{results}: no such results folder" + (f"; did you mean {results.parent / near[0]}?"
+                              if near else " (run `snakemake --profile local -j2` first)"))
+        if not (results / "volume.zarr").exists() and (inside := scenes_in(results)):
+            raise ViewerError(f"{results}: a folder of scenes ({', '.join(inside)}), not one scene's results; give "
+                              f"one: diffshadow view {results / inside[0]}")
         for name, rule in SCENE_FILES.items():
             if not (results / name).exists():
                 raise ViewerError(f"{results}: not a finished scene, {name} is missing (made by the rule `{rule}`: "
@@ -301,6 +307,11 @@ class ViewerScene:
                 else:
                     args += ["--diffusion", str(self.checkpoint)]
         return shlex.join(args)
+
+
+def scenes_in(folder: Path) -> list[str]:
+    """The scenes whose results are in `folder` (the workflow's `results/`): its folders with a volume.zarr."""
+    return sorted(p.parent.name for p in Path(folder).glob("*/volume.zarr"))
 
 
 def mix_name(share: float) -> str:
