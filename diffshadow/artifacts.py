@@ -309,6 +309,9 @@ def load_render_scene(volume_path: Path, data_inr: Path | None, device: torch.de
                       tf_config: dict | None = None, render: dict | None = None) -> RenderScene:
     """A RenderScene from a prepared volume.zarr (under its own transfer function, or `tf_config`), or from a raw
     volume file with its transfer function."""
+    if not Path(volume_path).exists():  # not "needs a transfer function": a mistyped path is the likelier mistake
+        raise ValueError(f"{volume_path}: no such file; expected a prepared volume.zarr (results/<scene>/) or "
+                         "a raw volume with --tf-json")
     if is_prepared(volume_path):
         # the prepared grid and box as they are: read as a raw volume, a grid normalised from a value_range or a box
         # from a spacing were normalised again and lost its spacing

@@ -291,6 +291,9 @@ class VerifiedGroup:
         import zarr
 
         self.path, self.what = Path(path), what
+        if not self.path.is_dir():  # zarr's own words for these are "No group found in store ... at path ''"
+            raise StoreError(f"{self.path}: " + ("a file" if self.path.exists() else "no such store")
+                             + f"; expected {what} (a .zarr folder)")
         try:
             self.root = zarr.open_group(str(self.path), mode="r")
             self.attrs = dict(self.root.attrs)

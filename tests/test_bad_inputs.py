@@ -109,6 +109,20 @@ CASES = [
     ("a data INR that is not one", lambda t: _render_inr(t, str(_write(t / "d.ckpt", _torch_bytes())), "--scalar",
                                                          "inr", "--data-inr", str(t / "d.ckpt")), {},
      r"d.ckpt: not a data INR file \(train_data_inr's data_inr.pt\): no key 'layout'"),
+    # a mistyped path: it said the volume "needs a transfer function (--tf-json ...)", as for a raw volume
+    ("a volume that is not there", lambda t: _render(["--volume", "results/nucleonn/volume.zarr"]), {},
+     r"results/nucleonn/volume.zarr: no such file; expected a prepared volume.zarr"),
+    ("a zero --light", lambda t: _render(["--volume", npy(t, "v.npy"), "--tf-json", json.dumps(TF)], "--mode", "gt",
+                                         "--light", "0", "0", "0"), {},
+     r"error: --light: must be non-zero, got \[0.0, 0.0, 0.0\]$"),  # it named the library's "light_dir"
+    # zarr's words were "No group found in store 'diffusion.ckpt' at path ''"
+    ("a checkpoint for --blend", lambda t: _render(["--volume", npy(t, "v.npy"), "--tf-json", json.dumps(TF)], "--mode",
+                                                   "inr", "--light", "1", "0", "0", "--blend",
+                                                   str(_write(t / "d.ckpt", _torch_bytes()))), {},
+     r"d.ckpt: a file; expected a weight store \(a .zarr folder\)$"),
+    ("a store that is not there", lambda t: _render(["--volume", npy(t, "v.npy"), "--tf-json", json.dumps(TF)],
+                                                    "--mode", "inr", "--weights", "generatd.zarr"), {},
+     r"generatd.zarr: no such store; expected a weight store \(a .zarr folder\)$"),
 ]
 
 

@@ -66,6 +66,8 @@ def render_image(scene: RenderScene, out: Path, *, mode: str, camera: Camera, li
     light was gets a one-line note. A cache made for another volume or opacity than `scene`'s is refused in one line
     (`volume.extinction_id`)."""
     require_png(out, "--out")
+    if light is not None:  # checked here, to be named as the flag it came from (the value is used as given)
+        as_direction(light, name="--light")
     siren = None
     mixed = model_share is not None
     if mixed and (diffusion is None or blend is None):
