@@ -163,12 +163,14 @@ def _read_raw(path: Path, dims, dtype) -> np.ndarray:
     if dims is None:
         if match is None:
             raise VolumeError(
-                f"{path}: cannot tell the dimensions: the name is not 'name_XxYxZ_dtype.raw' and no dims= given"
+                f"{path}: cannot tell the dimensions: the name is not 'name_XxYxZ_dtype.raw' and no dims are given "
+                f"(a scene file's load: {{dims: [X, Y, Z], dtype: uint8}})"
             )
         dims = tuple(int(v) for v in match.group(1, 2, 3))
     if dtype is None:
         if match is None:
-            raise VolumeError(f"{path}: cannot tell the dtype: the name has none and no dtype= given")
+            raise VolumeError(f"{path}: cannot tell the dtype: the name has none and no dtype is given (a scene "
+                              f"file's load: {{dtype: ...}}, one of {', '.join(RAW_DTYPES)})")
         dtype = match.group(4)
     if dtype not in RAW_DTYPES:
         raise VolumeError(f"{path}: unsupported dtype {dtype!r}; supported: {', '.join(RAW_DTYPES)}")

@@ -106,8 +106,12 @@ def test_size_mismatch_names_both_numbers(tmp_path):
 def test_raw_without_dims(tmp_path):
     path = tmp_path / "nodims.raw"
     path.write_bytes(b"\0" * 8)
-    with pytest.raises(VolumeError, match=r"nodims.raw.*dims"):
+    # what to write, in a scene file's words (it said "no dims= given", a Python keyword no user types)
+    with pytest.raises(VolumeError, match=r"nodims.raw.*no dims are given \(a scene file's load: \{dims: \[X, Y, Z\]"):
         load_volume(path)
+    with pytest.raises(VolumeError, match=r"nodims.raw: cannot tell the dtype.*\(a scene file's load: "
+                                          r"\{dtype: \.\.\.\}, one of .*uint8"):
+        load_volume(path, dims=(2, 2, 2))
     with pytest.warns(UserWarning, match="constant"):  # the file is all zeros
         assert load_volume(path, dims=(2, 2, 2), dtype="uint8").data.shape == (2, 2, 2)
 
