@@ -361,18 +361,31 @@ class VerifiedGroup:
         return names
 
 
-def check_stores(paths: list[Path]):
-    """Verify each store in `paths` (a .zarr store, or every store of a folder); yields one line per store:
-    its arrays, whether their checksums match (or that it predates checksums), its size and the time taken. Then,
-    per folder, the stores that record the scene they were made for (the `extinction` attribute,
-    `volume.extinction_id`) must record one: else the folder was put together from two runs."""
+def store_folders(paths: list[Path]) -> list[tuple[Path, list[Path]]]:
+    """(folder, its .zarr stores) for each of `paths`: a store alone, a results folder (results/<scene>), or each
+    scene folder of a folder of scenes (results/)."""
     folders = []
     for path in paths:
         if not path.exists():
             raise StoreError(f"check-store: {path}: no such store or results folder")
-        folders.append((path, sorted(path.glob("*.zarr")) if path.suffix != ".zarr" else [path]))
-    if not any(stores for _, stores in folders):
+        if path.suffix == ".zarr":
+            folders.append((path, [path]))
+        elif stores := sorted(path.glob("*.zarr")):
+            folders.append((path, stores))
+        else:
+            folders += [(sub, stores) for sub in sorted(p for p in path.iterdir() if p.is_dir())
+                        if (stores := sorted(sub.glob("*.zarr")))]
+    if not folders:
         raise StoreError(f"check-store: no .zarr store in {', '.join(map(str, paths))}")
+    return folders
+
+
+def check_stores(paths: list[Path]):
+    """Verify each store in `paths` (as `store_folders` finds them); yields one line per store: its arrays,
+    whether their checksums match (or that it predates checksums), its size and the time taken. Then, per folder,
+    the stores that record the scene they were made for (the `extinction` attribute, `volume.extinction_id`) must
+    record one: else the folder was put together from two runs."""
+    folders = store_folders(paths)
     for folder, stores in folders:
         scenes: dict[str, list[str]] = {}
         for store in stores:

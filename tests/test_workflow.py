@@ -407,6 +407,15 @@ def test_every_cache_names_the_scene_it_was_made_for(finished, tmp_path, capsys)
     assert exit_info.value.code == 2 and err.count("\n") == 1, err
     assert f"{mixed}: its stores were made for 2 different scenes (extinction fields: " in err
     assert f"volume.zarr for {extinction_id(volume, denser)}" in err and f"weights.zarr for {here}" in err
+    # a folder of scenes (results/): each scene's folder checked on its own
+    runs = tmp_path / "runs"
+    runs.mkdir()
+    (runs / "a").symlink_to(res)
+    (runs / "b").symlink_to(mixed)
+    with pytest.raises(SystemExit):
+        main(["check-store", str(runs)])
+    out, err = capsys.readouterr()
+    assert f"{runs / 'a' / 'weights.zarr'}: " in out and f"{runs / 'b'}: its stores were made for 2 different" in err
 
 
 def test_render_outputs(finished):

@@ -90,14 +90,15 @@ def _bench_stages(a):
 
 
 def _check_store(a):
-    from diffshadow.io import check_stores
+    from diffshadow.io import check_stores, store_folders
 
-    for store in check_stores([Path(p) for p in a.paths]):
+    paths = [Path(p) for p in a.paths]
+    for store in check_stores(paths):
         print(store)
     if a.psnr:
         from diffshadow.bench.siren import check_store
 
-        for path in map(Path, a.paths):
+        for path, _ in store_folders(paths):
             if path.suffix != ".zarr":
                 result = check_store(path)
                 if result["max_abs_diff_db"] > a.tolerance:
@@ -157,9 +158,11 @@ def add_bench_parsers(sub) -> None:
                    help="CUDA compute capabilities, 75 and up (80: A100, 90: H100)")
     p.add_argument("--out", default="bench/bench_kernels.json", help="a JSON file, or a folder for bench_kernels.json")
 
-    p = _add(sub, "check-store", _check_store, "verify Zarr stores against their checksums (a store, or every "
-             "store of a results folder); --psnr also re-evaluates every stored SIREN", out=False, device=False)
-    p.add_argument("paths", nargs="+", help="a .zarr store or a results folder (results/<scene>)")
+    p = _add(sub, "check-store", _check_store, "verify Zarr stores against their checksums (a store, every "
+             "store of a results folder, or of every scene in results/); --psnr also re-evaluates every stored SIREN",
+             out=False, device=False)
+    p.add_argument("paths", nargs="+", help="a .zarr store, a results folder (results/<scene>) or "
+                   "results/ (every scene)")
     p.add_argument("--psnr", action="store_true", help="results folders: re-evaluate weights.zarr's SIRENs against "
                    "their stored PSNR")
     p.add_argument("--tolerance", type=at_least(0, float), default=0.5, help="dB")
