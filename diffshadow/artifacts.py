@@ -26,7 +26,7 @@ from diffshadow.config import read_scene_file
 from diffshadow.data_inr import DataInr
 from diffshadow.diffusion.train import TrainingData
 from diffshadow.fit import Stage1Layout
-from diffshadow.io import VerifiedGroup, atomic_torch_save, error_line, write_zarr_group
+from diffshadow.io import VerifiedGroup, atomic_torch_save, did_you_mean, error_line, write_zarr_group
 from diffshadow.lights import BLEND_K, POOL_X0_WEIGHTING, PoolLights, blend_weights
 from diffshadow.phases import timed
 from diffshadow.render import Camera, Image, Networks, RenderScene
@@ -47,7 +47,7 @@ def _torch_file(path: str | Path, what: str, *, weights_only: bool) -> object:
     """torch.load of `path`, or an ArtifactError naming it and `what` it should be: torch raises many kinds for
     a folder, a truncated or foreign file (a miniz RuntimeError, EOFError, UnpicklingError, IsADirectoryError)."""
     if not Path(path).exists():
-        raise ArtifactError(f"{path}: no such file; expected {what}")
+        raise ArtifactError(f"{path}: no such file; expected {what}{did_you_mean(path)}")
     if Path(path).is_dir():
         raise ArtifactError(f"{path}: a folder; expected {what}")
     try:
@@ -311,7 +311,7 @@ def load_render_scene(volume_path: Path, data_inr: Path | None, device: torch.de
     volume file with its transfer function."""
     if not Path(volume_path).exists():  # not "needs a transfer function": a mistyped path is the likelier mistake
         raise ValueError(f"{volume_path}: no such file; expected a prepared volume.zarr (results/<scene>/) or "
-                         "a raw volume with --tf-json")
+                         f"a raw volume with --tf-json{did_you_mean(volume_path)}")
     if is_prepared(volume_path):
         # the prepared grid and box as they are: read as a raw volume, a grid normalised from a value_range or a box
         # from a spacing were normalised again and lost its spacing

@@ -62,7 +62,9 @@ YamlLoader.add_implicit_resolver("tag:yaml.org,2002:float", re.compile(r"^[-+]?(
 def read_yaml(path: str | Path) -> dict:
     path = Path(path)
     if not path.is_file():
-        raise ConfigError(f"{path}: no such file")
+        from diffshadow.io import did_you_mean
+
+        raise ConfigError(f"{path}: no such file{did_you_mean(path)}")
     try:
         value = yaml.load(path.read_text(), Loader=YamlLoader) or {}
     except yaml.YAMLError as e:

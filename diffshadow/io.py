@@ -293,7 +293,7 @@ class VerifiedGroup:
         self.path, self.what = Path(path), what
         if not self.path.is_dir():  # zarr's own words for these are "No group found in store ... at path ''"
             raise StoreError(f"{self.path}: " + ("a file" if self.path.exists() else "no such store")
-                             + f"; expected {what} (a .zarr folder)")
+                             + f"; expected {what} (a .zarr folder){did_you_mean(self.path)}")
         try:
             self.root = zarr.open_group(str(self.path), mode="r")
             self.attrs = dict(self.root.attrs)
@@ -367,7 +367,7 @@ def store_folders(paths: list[Path]) -> list[tuple[Path, list[Path]]]:
     folders = []
     for path in paths:
         if not path.exists():
-            raise StoreError(f"check-store: {path}: no such store or results folder")
+            raise StoreError(f"check-store: {path}: no such store or results folder{did_you_mean(path)}")
         if path.suffix == ".zarr":
             folders.append((path, [path]))
         elif stores := sorted(path.glob("*.zarr")):
@@ -403,6 +403,27 @@ def check_stores(paths: list[Path]):
             raise StoreError(f"check-store: {folder}: its stores were made for {len(scenes)} different scenes "
                              f"(extinction fields: {made}), a folder put together from two runs; rerun snakemake "
                              f"for this scene")
+
+
+def did_you_mean(path: str | Path) -> str:
+    """"; did you mean <path>?" where a path that exists differs from the missing `path` by a typo in one or more of
+    its names (results/nucleonn/volume.zarr: results/nucleon/volume.zarr), else "" (nothing near enough)."""
+    import difflib
+
+    path = Path(path)
+    near = Path(path.anchor) if path.is_absolute() else Path()
+    for name in path.parts[len(near.parts):]:
+        if not (near / name).exists():
+            try:
+                names = [p.name for p in near.iterdir()]
+            except OSError:
+                return ""
+            found = difflib.get_close_matches(name, names, n=1, cutoff=0.8)
+            if not found:
+                return ""
+            name = found[0]
+        near = near / name
+    return f"; did you mean {near}?" if near != path else ""
 
 
 def file_in_the_way(path: str | Path) -> Path | None:

@@ -20,7 +20,7 @@ from pathlib import Path
 
 import numpy as np
 
-from diffshadow.io import VerifiedGroup, array_checksum, write_zarr_group
+from diffshadow.io import VerifiedGroup, array_checksum, did_you_mean, write_zarr_group
 from diffshadow.transfer import TransferFunction
 
 RAW_NAME = re.compile(r"_(\d+)x(\d+)x(\d+)_([a-z]+\d*)\.raw$")
@@ -140,7 +140,7 @@ def load_volume(
     """
     path = resolve_path(path)
     if not path.exists():
-        raise VolumeError(f"{path}: no such file")
+        raise VolumeError(f"{path}: no such file{did_you_mean(path)}")
     suffix = path.suffix.lower()
     if suffix == ".raw":
         raw = _read_raw(path, dims, dtype)

@@ -111,7 +111,11 @@ CASES = [
      r"d.ckpt: not a data INR file \(train_data_inr's data_inr.pt\): no key 'layout'"),
     # a mistyped path: it said the volume "needs a transfer function (--tf-json ...)", as for a raw volume
     ("a volume that is not there", lambda t: _render(["--volume", "results/nucleonn/volume.zarr"]), {},
-     r"results/nucleonn/volume.zarr: no such file; expected a prepared volume.zarr"),
+     r"results/nucleonn/volume.zarr: no such file; expected a prepared volume.zarr.*--tf-json$"),
+    ("a mistyped --data-inr", lambda t: _render(["--volume", npy(t, "v.npy"), "--tf-json", json.dumps(TF)],
+                                                "--data-inr", f"{_write(t / 'data_inr.pt', b'')}h",
+                                                "--scalar", "inr"), {},
+     r"data_inr.pth: no such file; expected a data INR file .*; did you mean .*data_inr.pt\?$"),
     ("a zero --light", lambda t: _render(["--volume", npy(t, "v.npy"), "--tf-json", json.dumps(TF)], "--mode", "gt",
                                          "--light", "0", "0", "0"), {},
      r"error: --light: must be non-zero, got \[0.0, 0.0, 0.0\]$"),  # it named the library's "light_dir"

@@ -600,3 +600,17 @@ def test_a_live_writers_temporary_and_other_outputs_are_kept(tmp_path, capsys):
     assert sorted(p.name for p in tmp_path.iterdir()) == sorted(kept + ["a.npz"])
     assert re.fullmatch(rf"removed \S+/{re.escape(stale)}: an unfinished write of a\.npz \(written on elsewhere, "
                         r"untouched for 1\.0 h\)\n", capsys.readouterr().err)
+
+
+def test_a_missing_path_gets_the_existing_one_a_typo_away(tmp_path, monkeypatch):
+    from diffshadow.io import did_you_mean
+
+    (tmp_path / "results/nucleon/volume.zarr").mkdir(parents=True)
+    (tmp_path / "results/nucleon/data_inr.pt").write_bytes(b"")
+    near = tmp_path / "results/nucleon/volume.zarr"
+    assert did_you_mean(tmp_path / "results/nucleonn/volume.zarr") == f"; did you mean {near}?"  # a folder's typo
+    assert did_you_mean(tmp_path / "results/nuclon/volume.zar") == f"; did you mean {near}?"  # two names' typos
+    monkeypatch.chdir(tmp_path)
+    assert did_you_mean("results/nucleon/data_inr.pth") == "; did you mean results/nucleon/data_inr.pt?"
+    assert did_you_mean("results/xyz/volume.zarr") == ""  # nothing near
+    assert did_you_mean("results/nucleon/volume.zarr") == ""  # there: no guess
