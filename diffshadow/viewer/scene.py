@@ -4,7 +4,6 @@ kept per direction). The files are read by the readers the stages use."""
 
 from __future__ import annotations
 
-import difflib
 import math
 import shlex
 import time
@@ -18,6 +17,7 @@ import torch
 
 from diffshadow.artifacts import load_checkpoint, load_render_scene, load_scene_file
 from diffshadow.diffusion.mix import MixedSampler
+from diffshadow.io import did_you_mean
 from diffshadow.lights import OLD_WEIGHTING, RegionCheck, as_direction, nearest, read_lights
 from diffshadow.render import Camera, RenderScene
 from diffshadow.render.scene import KEEP_SAMPLES_BYTES
@@ -111,9 +111,8 @@ class ViewerScene:
         """A finished scene's results folder (`results/<scene>`)."""
         results = Path(results)
         if not results.is_dir():
-            near = difflib.get_close_matches(results.name, scenes_in(results.parent), n=1)
-            raise ViewerError(f"{results}: no such results folder" + (f"; did you mean {results.parent / near[0]}?"
-                              if near else " (run `snakemake --profile local -j2` first)"))
+            raise ViewerError(f"{results}: no such results folder" + (did_you_mean(results) or
+                                                                      " (run `snakemake --profile local -j2` first)"))
         if not (results / "volume.zarr").exists() and (inside := scenes_in(results)):
             raise ViewerError(f"{results}: a folder of scenes ({', '.join(inside)}), not one scene's results; give "
                               f"one: diffshadow view {results / inside[0]}")
