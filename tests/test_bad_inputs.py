@@ -124,6 +124,9 @@ CASES = [
                                                    "inr", "--light", "1", "0", "0", "--blend",
                                                    str(_write(t / "d.ckpt", _torch_bytes()))), {},
      r"d.ckpt: a file; expected a weight store \(a .zarr folder\)$"),
+    ("bench stages outside the repository", lambda t: ["bench", "stages", "--out", "b"], {},
+     r"--configfile config/config.yaml: no such file \(a run config; its scenes are read from --scenes-dir "
+     r"config/scenes: run it in the repository's folder, or give both\)$"),
     ("a store that is not there", lambda t: _render(["--volume", npy(t, "v.npy"), "--tf-json", json.dumps(TF)],
                                                     "--mode", "inr", "--weights", "generatd.zarr"), {},
      r"generatd.zarr: no such store; expected a weight store \(a .zarr folder\)$"),

@@ -79,6 +79,9 @@ def _bench_stages(a):
     from diffshadow.config import ConfigError, load_run, scene_config
 
     out = _out_file(a.out, "bench_stages.json")
+    if not Path(a.configfile).is_file():  # the default is relative: outside the repository it is not there
+        raise ValueError(f"--configfile {a.configfile}: no such file (a run config; its scenes are read from "
+                         f"--scenes-dir {a.scenes_dir}: run it in the repository's folder, or give both)")
     try:
         run = load_run(a.configfile)
         scene = a.scene or run["scenes"][0]
