@@ -171,6 +171,29 @@ def test_the_geometry_stage_stops_at_its_next_step_and_resumes_to_the_same_bytes
     assert str(resumed["optimizer"]) == str(whole["optimizer"])
 
 
+def test_the_geometry_stage_stopped_after_an_epochs_steps_saves_that_epoch(tmp_path):
+    """A signal during an epoch's log line or its growth check (sampling the seen lights: minutes at the paper's
+    sizes), after the epoch's steps: the message says the epoch's checkpoint is written, and it is (it said so
+    while the checkpoint held the last periodic one, up to `checkpoint_every` epochs before)."""
+    from test_diffusion import CFG, tiny_data
+
+    from diffshadow.diffusion.train import train_diffusion
+
+    data = tiny_data()
+    whole = train_diffusion(data, CFG, tmp_path / "a.ckpt", log=lambda *a: None)
+    ckpt = tmp_path / "b.ckpt"
+
+    def log(line: str) -> None:
+        if line.startswith("epoch 3/6"):  # checkpoints every 2 epochs: none due at 3
+            os.kill(os.getpid(), signal.SIGTERM)
+
+    with pytest.raises(Stopped, match="^stopped by SIGTERM at epoch 3;"):
+        train_diffusion(data, CFG, ckpt, log=log)
+    assert torch.load(ckpt, weights_only=False)["epoch"] == 3
+    resumed = train_diffusion(data, CFG, ckpt, log=lambda *a: None)
+    assert all(torch.equal(v, resumed["ema"][k]) for k, v in whole["ema"].items())
+
+
 @pytest.mark.parametrize("call, where, resumed_at", [
     (6, "at epoch 3/5;", "at epoch 3/5"),
     (7, "at step 1 of epoch 4/5;", "at epoch 3/5, step 1 of epoch 4"),

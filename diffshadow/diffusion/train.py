@@ -404,6 +404,9 @@ def train_diffusion(data: TrainingData, cfg: DiffusionConfig, checkpoint: Path, 
                            t0, start)
             if growth.due(done):
                 growth.check(done, sampled, lambda: seen_gap_db(sampled, std, on_device, cfg), log, last_good())
+            if stop.requested and not saving:  # it came during the log line or the check: this epoch is saved too
+                raise_if_not_finite()
+                saving = True
             if saving or growth.finished:
                 state, good = save(done), done
             if stop.requested and not growth.finished:
