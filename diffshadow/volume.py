@@ -210,8 +210,11 @@ def _read_hdf5(path: Path, key: str | None) -> np.ndarray:
         names: list[str] = []
         f.visititems(lambda name, obj: names.append(name) if isinstance(obj, h5py.Dataset) else None)
         if key is None:
+            if not names:
+                raise VolumeError(f"{path}: no dataset in it; expected a 3-D one (the volume)")
             if len(names) != 1:
-                raise VolumeError(f"{path}: give key= to choose a dataset; present: {names}")
+                raise VolumeError(f"{path}: {len(names)} datasets ({', '.join(names)}); say which is the volume with "
+                                  f"a scene file's load: {{key: {names[0]}}}")
             key = names[0]
         if key not in f or not isinstance(f[key], h5py.Dataset):
             raise VolumeError(f"{path}: no dataset {key!r}; present: {names}")
@@ -224,12 +227,15 @@ def _read_zarr(path: Path, key: str | None) -> np.ndarray:
     node = zarr.open(str(path), mode="r")
     if isinstance(node, zarr.Array):
         if key is not None:
-            raise VolumeError(f"{path}: is a single array, but key={key!r} was given")
+            raise VolumeError(f"{path}: is a single array, but load: {{key: {key}}} was given; drop the key")
         return node[...]
     names = sorted(name for name, _ in node.arrays())
     if key is None:
+        if not names:
+            raise VolumeError(f"{path}: no array in it; expected a 3-D one (the volume)")
         if len(names) != 1:
-            raise VolumeError(f"{path}: give key= to choose an array; present: {names}")
+            raise VolumeError(f"{path}: {len(names)} arrays ({', '.join(names)}); say which is the volume with a "
+                              f"scene file's load: {{key: {names[0]}}}")
         key = names[0]
     if key not in names:
         raise VolumeError(f"{path}: no array {key!r}; present: {names}")

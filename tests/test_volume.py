@@ -171,12 +171,22 @@ def test_missing_keys_list_those_present(tmp_path):
         f["b"] = np.zeros((2, 2, 2))
     with pytest.raises(VolumeError, match=r"v.h5: no dataset 'c'; present: \['a', 'b'\]"):
         load_volume(tmp_path / "v.h5", key="c")
-    with pytest.raises(VolumeError, match=r"v.h5: give key="):
+    # which to write, in a scene file's words (it said "give key=", a Python keyword)
+    with pytest.raises(VolumeError, match=r"v.h5: 2 datasets \(a, b\); say which is the volume with a scene "
+                                          r"file's load: \{key: a\}$"):
         load_volume(tmp_path / "v.h5")
+    with h5py.File(tmp_path / "empty.h5", "w"):
+        pass
+    with pytest.raises(VolumeError, match=r"empty.h5: no dataset in it; expected a 3-D one"):  # was "present: []"
+        load_volume(tmp_path / "empty.h5")
     root = zarr.open_group(str(tmp_path / "v.zarr"), mode="w")
     root.create_array("x", data=np.zeros((2, 2, 2)))
     with pytest.raises(VolumeError, match=r"v.zarr: no array 'y'; present: \['x'\]"):
         load_volume(tmp_path / "v.zarr", key="y")
+    root.create_array("z", data=np.zeros((2, 2, 2)))
+    with pytest.raises(VolumeError, match=r"v.zarr: 2 arrays \(x, z\); say which is the volume with a scene "
+                                          r"file's load: \{key: x\}$"):
+        load_volume(tmp_path / "v.zarr")
 
 
 def test_not_3d(tmp_path):
