@@ -359,6 +359,12 @@ MEMORY_KEYS = {
 }
 
 
+# the commands that keep a checkpoint beside their output (`<out>.ckpt`) while they run, and resume from it when run
+# again after a kill; the others start again (hpc.killed_lines says which)
+RESUMABLE = frozenset({"fit-siren", "train-data-inr", "render-targets", "train-diffusion", "finetune-render",
+                       "evaluate-voxels", "caches"})
+
+
 def memory_keys(command: str) -> str:
     """The config keys to lower where `command` (a `diffshadow` subcommand) runs out of memory."""
     return MEMORY_KEYS.get(command, "the sizes in this command's config section")

@@ -429,8 +429,9 @@ def killed_lines(snakemake_log: str) -> list[str]:
     """A line for each job that a run's Snakemake log says was killed by SIGKILL (exit 137): nothing in the job's
     own log says so, and on a workstation it is most often Linux's out-of-memory killer, which ends a process
     without a word. The line names the job's log, where to confirm it, the config keys that size the job's memory
-    (`config.MEMORY_KEYS`) and that a rerun resumes. Snakemake's `onerror` prints them (the Snakefile)."""
-    from diffshadow.config import memory_keys
+    (`config.MEMORY_KEYS`) and whether a rerun resumes (`config.RESUMABLE`) or starts the job again. Snakemake's
+    `onerror` prints them (the Snakefile)."""
+    from diffshadow.config import RESUMABLE, memory_keys
 
     jobs: list[list] = []  # [rule, its log or None] of each killed job, in the order Snakemake reported them
     killed, block = False, None
@@ -446,5 +447,6 @@ def killed_lines(snakemake_log: str) -> list[str]:
             block = None  # the rule's block ended without a log line
     return [f"{rule} was killed by SIGKILL (exit 137; its log{f', {log},' if log else ''} ends without a word): most "
             f"often by the out-of-memory killer (`journalctl -k | grep -i oom` or `dmesg` names it), and then lower "
-            f"{memory_keys(rule.replace('_', '-'))}, or run it where there is more memory; else by a scheduler. A "
-            f"rerun resumes from its last checkpoint" for rule, log in jobs]
+            f"{memory_keys(rule.replace('_', '-'))}, or run it where there is more memory; else by a scheduler. "
+            + ("A rerun resumes from its last checkpoint" if rule.replace("_", "-") in RESUMABLE else
+               "A rerun starts it again (it keeps no checkpoint)") for rule, log in jobs]

@@ -611,3 +611,12 @@ def test_every_key_an_out_of_memory_error_names_is_a_config_key():
         for part in key.split("."):
             assert isinstance(node, dict) and part in node, key
             node = node[part]
+
+
+def test_the_commands_said_to_resume_are_commands():
+    """`config.RESUMABLE` names subcommands (a renamed one would make a killed job's line say it starts again)."""
+    from diffshadow import config
+    from diffshadow.cli import build_parser
+
+    sub = next(a for a in build_parser()._actions if a.dest == "command")
+    assert config.RESUMABLE <= set(sub.choices), config.RESUMABLE - set(sub.choices)

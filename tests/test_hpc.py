@@ -703,4 +703,7 @@ def test_only_jobs_killed_by_sigkill_are_explained_in_either_way_snakemake_says_
     assert "lower subset_size (SIRENs fitted together" in said[0]
     assert "lower diffusion.batch_size or diffusion.geometry_points," in said[1]
     assert "(exit 137; its log ends without a word)" in said[2] and "the sizes in this command's config" in said[2]
+    # resumed where a checkpoint is kept (it said "resumes" of every job, the summary's too)
+    assert [line.rsplit(". ", 1)[1] for line in said] == ["A rerun resumes from its last checkpoint"] * 2 + [
+        "A rerun starts it again (it keeps no checkpoint)"]
     assert killed_lines(failed("eval_truth", "returned non-zero exit status 1")) == []

@@ -904,7 +904,7 @@ def test_a_job_killed_by_sigkill_is_named_with_its_log_and_the_keys_that_size_it
         f"preoptimize was killed by SIGKILL (exit 137; its log, results/nucleon/logs/preoptimize.log, ends without "
         f"a word): most often by the out-of-memory killer (`journalctl -k | grep -i oom` or `dmesg` names it), and "
         f"then lower {config_memory_keys('preoptimize')}, or run it where there is more memory; else by a "
-        f"scheduler. A rerun resumes from its last checkpoint"], out[-3000:]
+        f"scheduler. A rerun starts it again (it keeps no checkpoint)"], out[-3000:]
 
 
 def test_sigterm_stops_a_fit_at_its_next_step_with_a_checkpoint_and_the_rerun_resumes(finished, tmp_path):
