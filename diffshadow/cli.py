@@ -17,7 +17,7 @@ from diffshadow.argparsing import add_networks, at_least, network_flags, seed
 from diffshadow.argparsing import add_subcommand as _add
 from diffshadow.argparsing import config_of as _cfg
 from diffshadow.argparsing import device_of as _device
-from diffshadow.config import defaults, memory_keys
+from diffshadow.config import RESUMABLE, defaults, memory_keys
 from diffshadow.lights import LAYOUTS
 from diffshadow.stopping import Stopped
 
@@ -667,8 +667,10 @@ def main(argv: list[str] | None = None) -> None:
             _say(f"diffshadow {args.command}: {e}")
         raise SystemExit(128 + e.signum) from None
     except KeyboardInterrupt:  # Ctrl-C outside a training loop (a rule's `tee` ignores it: the line reaches its log)
-        print(f"diffshadow {args.command}: interrupted; no earlier output was replaced, and a long stage run again "
-              f"resumes from its last checkpoint", file=sys.stderr)
+        again = ("resumes from its last checkpoint" if args.command in RESUMABLE else
+                 "starts from the beginning (it keeps no checkpoint)")
+        print(f"diffshadow {args.command}: interrupted; no earlier output was replaced, and run again it {again}",
+              file=sys.stderr)
         raise SystemExit(130) from None
     except OSError as e:  # a path given that cannot be read or written: the path and why, in one line
         if e.filename is None:

@@ -136,7 +136,12 @@ def test_an_interrupted_command_says_so_in_one_line(tmp_path, capsys, monkeypatc
               "--out", str(tmp_path / "d.ckpt")])
     assert exit_info.value.code == 130
     assert capsys.readouterr().err == ("diffshadow train-diffusion: interrupted; no earlier output was replaced, and "
-                                       "a long stage run again resumes from its last checkpoint\n")
+                                       "run again it resumes from its last checkpoint\n")
+    monkeypatch.setattr(stage2, "presample", interrupted)  # a stage that keeps no checkpoint says so
+    with pytest.raises(SystemExit):
+        main(["presample", "--volume", "v.zarr", "--lights", "l.json", "--config-json", '{"diffusion": {}}',
+              "--out", str(tmp_path / "p.zarr")])
+    assert capsys.readouterr().err.endswith("and run again it starts from the beginning (it keeps no checkpoint)\n")
 
 
 def test_a_ddp_process_whose_peer_stopped_says_so_in_one_line(tmp_path):
