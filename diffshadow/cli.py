@@ -241,7 +241,7 @@ def _render(a):
     if a.up is not None and a.eye is None:
         raise ValueError("render: --up turns the free camera; give --eye and --target with it")
     if a.eye is not None:
-        cam = Camera.look_at(a.eye, a.target, up=a.up or (0.0, 0.0, 1.0), fov=a.fov, size=size)
+        cam = Camera.look_at(a.eye, a.target, up=a.up, fov=a.fov, size=size)
     elif a.distance is not None:
         cam = Camera.orbit(scene.volume.extent, azimuth=a.azimuth, elevation=a.elevation, distance=a.distance,
                            fov=a.fov, size=size)
@@ -508,7 +508,7 @@ def build_parser() -> argparse.ArgumentParser:
         p.add_argument(f"--{name}", type=float, nargs=3, metavar=("X", "Y", "Z"),
                        help="a free camera in box coordinates (instead of --azimuth/--elevation/--distance)")
     p.add_argument("--up", type=float, nargs=3, metavar=("X", "Y", "Z"),
-                   help="the free camera's up direction (default: +z)")
+                   help="the free camera's up direction (default: +z; +y looking along z)")
     p.add_argument("--size", type=int, nargs="+", default=[128], help="image size: N (square) or W H")
     p.add_argument("--no-skip", action="store_true", help="turn macro-cell skipping off")
     add_networks(p)

@@ -330,6 +330,18 @@ def test_camera_geometry():
     assert om.device.type == dm.device.type == "meta" and dm.shape == (15, 3) and dm.dtype == torch.float32
 
 
+def test_a_camera_looking_along_z_takes_y_up_unless_told():
+    """`render --eye --target` straight down or up: +y up, as the orbit camera takes it (it was an error: the
+    default +z up is parallel to the view); an up given is kept, and one parallel to the view is refused."""
+    down = Camera.look_at((0.5, 0.5, 2.0), (0.5, 0.5, 0.5), size=8)
+    assert down.up == (0.0, 1.0, 0.0) and down.rays()[1].isfinite().all()
+    assert Camera.look_at((2.0, 0.5, 0.5), (0.5, 0.5, 0.5)).up == (0.0, 0.0, 1.0)
+    assert Camera.orbit([1.0, 1.0, 1.0], azimuth=0, elevation=90).up == (0.0, 1.0, 0.0)
+    assert Camera.look_at((0.5, 0.5, 2.0), (0.5, 0.5, 0.5), up=(1.0, 0.0, 0.0)).up == (1.0, 0.0, 0.0)
+    with pytest.raises(RenderError, match=r"up \(0.0, 0.0, 1.0\) is parallel to the view direction"):
+        Camera.look_at((0.5, 0.5, 2.0), (0.5, 0.5, 0.5), up=(0.0, 0.0, 1.0)).rays()
+
+
 @pytest.mark.parametrize("kwargs, match", [
     ({"fov": 0.0}, "fov"),
     ({"fov": 180.0}, "fov"),

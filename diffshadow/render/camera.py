@@ -55,8 +55,11 @@ class Camera:
                               f"default view: widen the field of view, {self.fov:g}° now)")
 
     @classmethod
-    def look_at(cls, eye, target, *, up=(0.0, 0.0, 1.0), fov: float = 60.0, size: int | tuple[int, int] = 128):
+    def look_at(cls, eye, target, *, up=None, fov: float = 60.0, size: int | tuple[int, int] = 128):
+        """From `eye` toward `target`; `up` None: `default_up` of the view direction."""
         w, h = (size, size) if isinstance(size, int) else size
+        if up is None:
+            up = default_up(np.subtract(np.asarray(eye, float), np.asarray(target, float)))
         return cls(tuple(map(float, eye)), tuple(map(float, target)), tuple(map(float, up)), float(fov), w, h)
 
     @classmethod
@@ -88,8 +91,7 @@ class Camera:
         """Looking at `center` from `distance` away toward (azimuth, elevation) in degrees, z up."""
         az, el = math.radians(azimuth), math.radians(elevation)
         direction = np.array([math.cos(el) * math.cos(az), math.cos(el) * math.sin(az), math.sin(el)])
-        up = (0.0, 0.0, 1.0) if abs(direction[2]) < 0.999 else (0.0, 1.0, 0.0)
-        return cls.look_at(center + distance * direction, center, up=up, fov=fov, size=size)
+        return cls.look_at(center + distance * direction, center, up=default_up(direction), fov=fov, size=size)
 
     def rays(self, device: torch.device | str = "cpu") -> tuple[torch.Tensor, torch.Tensor]:
         """Origins and unit directions (H·W, 3), row 0 at the top of the image."""
@@ -145,12 +147,19 @@ def visible_sphere(volume, tf) -> tuple[np.ndarray, float]:
     return center, float(np.sqrt(farthest)) + float(np.linalg.norm(voxel))
 
 
+def default_up(direction) -> tuple[float, float, float]:
+    """+z, unless `direction` (from the target to the eye, any length) is within ~2.6° of the z axis: then +y."""
+    d = np.asarray(direction, float)
+    n = np.linalg.norm(d)
+    return (0.0, 0.0, 1.0) if n == 0 or abs(d[2]) < 0.999 * n else (0.0, 1.0, 0.0)
+
+
 def fibonacci_views(extent, n: int, *, size: int, fov: float = 60.0, distance: float = 2.2) -> list[Camera]:
     """`n` cameras on a Fibonacci sphere around the box, looking at its centre (the authors' views)."""
     extent = np.asarray(extent, dtype=float)
     center = extent / 2
     out = []
     for d in fibonacci_sphere(n) if n > 1 else np.array([[0.6, 0.6, 0.52915026]]):
-        up = (0.0, 0.0, 1.0) if abs(d[2]) < 0.999 else (0.0, 1.0, 0.0)
-        out.append(Camera.look_at(center + distance * np.linalg.norm(center) * d, center, up=up, fov=fov, size=size))
+        out.append(Camera.look_at(center + distance * np.linalg.norm(center) * d, center, up=default_up(d), fov=fov,
+                                  size=size))
     return out
