@@ -83,8 +83,15 @@ def planned(proc: subprocess.CompletedProcess) -> dict[str, int]:
 @pytest.fixture(scope="module")
 def finished(tmp_path_factory):
     workdir = tmp_path_factory.mktemp("workflow")
-    snakemake(workdir)
+    proc = snakemake(workdir)
+    (workdir / "snakemake.out").write_text(proc.stdout + proc.stderr)
     return workdir
+
+
+def test_a_finished_run_says_what_to_open(finished):
+    """The run's last words: the report's command and the viewer's, for each scene that is whole."""
+    assert ("results/nucleon is complete: `snakemake --profile <yours> --report report.html` writes the report, "
+            "`diffshadow view results/nucleon` opens the viewer") in (finished / "snakemake.out").read_text()
 
 
 def test_builds_the_weight_store(finished):
