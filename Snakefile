@@ -88,9 +88,9 @@ rule all:
 # what to open once a scene is whole (a stranger's next step after the README's run)
 onsuccess:
     for _scene in config["scenes"]:
-        if os.path.exists(f"results/{_scene}/report/summary.html"):
-            print(f"results/{_scene} is complete: `snakemake --profile <yours> --report report.html` writes the "
-                  f"report, `diffshadow view results/{_scene}` opens the viewer")
+        if os.path.exists(f"results/{_scene}/report/summary.html"):  # the PBS profiles name their system
+            print(f"results/{_scene} is complete: `snakemake --profile {config.get('pbs_system') or 'local'} --report "
+                  f"report.html` writes the report, `diffshadow view results/{_scene}` opens the viewer")
 
 
 # a job killed by SIGKILL (exit 137) leaves no word in its own log: most often the out-of-memory killer, so say

@@ -90,7 +90,7 @@ def finished(tmp_path_factory):
 
 def test_a_finished_run_says_what_to_open(finished):
     """The run's last words: the report's command and the viewer's, for each scene that is whole."""
-    assert ("results/nucleon is complete: `snakemake --profile <yours> --report report.html` writes the report, "
+    assert ("results/nucleon is complete: `snakemake --profile local --report report.html` writes the report, "
             "`diffshadow view results/nucleon` opens the viewer") in (finished / "snakemake.out").read_text()
 
 
