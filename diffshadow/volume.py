@@ -209,13 +209,7 @@ def _read_hdf5(path: Path, key: str | None) -> np.ndarray:
     with f:
         names: list[str] = []
         f.visititems(lambda name, obj: names.append(name) if isinstance(obj, h5py.Dataset) else None)
-        if key is None:
-            if not names:
-                raise VolumeError(f"{path}: no dataset in it; expected a 3-D one (the volume)")
-            if len(names) != 1:
-                raise VolumeError(f"{path}: {len(names)} datasets ({', '.join(names)}); say which is the volume with "
-                                  f"a scene file's load: {{key: {names[0]}}}")
-            key = names[0]
+        key = _only_one(path, names, "dataset") if key is None else key
         if key not in f or not isinstance(f[key], h5py.Dataset):
             raise VolumeError(f"{path}: no dataset {key!r}; present: {names}")
         return f[key][()]
@@ -230,16 +224,20 @@ def _read_zarr(path: Path, key: str | None) -> np.ndarray:
             raise VolumeError(f"{path}: is a single array, but load: {{key: {key}}} was given; drop the key")
         return node[...]
     names = sorted(name for name, _ in node.arrays())
-    if key is None:
-        if not names:
-            raise VolumeError(f"{path}: no array in it; expected a 3-D one (the volume)")
-        if len(names) != 1:
-            raise VolumeError(f"{path}: {len(names)} arrays ({', '.join(names)}); say which is the volume with a "
-                              f"scene file's load: {{key: {names[0]}}}")
-        key = names[0]
+    key = _only_one(path, names, "array") if key is None else key
     if key not in names:
         raise VolumeError(f"{path}: no array {key!r}; present: {names}")
     return node[key][...]
+
+
+def _only_one(path: Path, names: list[str], kind: str) -> str:
+    """The file's one `kind` ("dataset", "array"), where no key was given; else what to write in a scene file."""
+    if not names:
+        raise VolumeError(f"{path}: no {kind} in it; expected a 3-D one (the volume)")
+    if len(names) != 1:
+        raise VolumeError(f"{path}: {len(names)} {kind}s ({', '.join(names)}); say which is the volume with a scene "
+                          f"file's load: {{key: {names[0]}}}")
+    return names[0]
 
 
 def _to_volume(path: Path, raw: np.ndarray, value_range, spacing) -> Volume:
