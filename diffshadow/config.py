@@ -21,6 +21,7 @@ from typing import Any, TypeVar
 
 import yaml
 
+from diffshadow.io import did_you_mean
 from diffshadow.transfer import TransferFunction, TransferFunctionError
 
 PACKAGE = Path(__file__).resolve().parent
@@ -62,8 +63,6 @@ YamlLoader.add_implicit_resolver("tag:yaml.org,2002:float", re.compile(r"^[-+]?(
 def read_yaml(path: str | Path) -> dict:
     path = Path(path)
     if not path.is_file():
-        from diffshadow.io import did_you_mean
-
         raise ConfigError(f"{path}: no such file{did_you_mean(path)}")
     try:
         value = yaml.load(path.read_text(), Loader=YamlLoader) or {}

@@ -380,12 +380,11 @@ def store_folders(paths: list[Path]) -> list[tuple[Path, list[Path]]]:
     return folders
 
 
-def check_stores(paths: list[Path]):
-    """Verify each store in `paths` (as `store_folders` finds them); yields one line per store: its arrays,
-    whether their checksums match (or that it predates checksums), its size and the time taken. Then, per folder,
-    the stores that record the scene they were made for (the `extinction` attribute, `volume.extinction_id`) must
-    record one: else the folder was put together from two runs."""
-    folders = store_folders(paths)
+def check_stores(folders: list[tuple[Path, list[Path]]]):
+    """Verify each store of `folders` (`store_folders`' list); yields one line per store: its arrays, whether their
+    checksums match (or that it predates checksums), its size and the time taken. Then, per folder, the stores that
+    record the scene they were made for (the `extinction` attribute, `volume.extinction_id`) must record one: else
+    the folder was put together from two runs."""
     for folder, stores in folders:
         scenes: dict[str, list[str]] = {}
         for store in stores:

@@ -95,13 +95,13 @@ def _bench_stages(a):
 def _check_store(a):
     from diffshadow.io import check_stores, store_folders
 
-    paths = [Path(p) for p in a.paths]
-    for store in check_stores(paths):
+    folders = store_folders([Path(p) for p in a.paths])
+    for store in check_stores(folders):
         print(store)
     if a.psnr:
         from diffshadow.bench.siren import check_store
 
-        for path, _ in store_folders(paths):
+        for path, _ in folders:
             if path.suffix != ".zarr":
                 result = check_store(path)
                 if result["max_abs_diff_db"] > a.tolerance:
