@@ -445,8 +445,13 @@ def killed_lines(snakemake_log: str) -> list[str]:
             block[1], block = found.group(1), None
         elif line and not line[0].isspace():
             block = None  # the rule's block ended without a log line
-    return [f"{rule} was killed by SIGKILL (exit 137; its log{f', {log},' if log else ''} ends without a word): most "
-            f"often by the out-of-memory killer (`journalctl -k | grep -i oom` or `dmesg` names it), and then lower "
-            f"{memory_keys(rule.replace('_', '-'))}, or run it where there is more memory; else by a scheduler. "
-            + ("A rerun resumes from its last checkpoint" if rule.replace("_", "-") in RESUMABLE else
-               "A rerun starts it again (it keeps no checkpoint)") for rule, log in jobs]
+    lines = []
+    for rule, log in jobs:
+        command = rule.replace("_", "-")
+        rerun = ("A rerun resumes from its last checkpoint" if command in RESUMABLE else
+                 "A rerun starts it again (it keeps no checkpoint)")
+        lines.append(f"{rule} was killed by SIGKILL (exit 137; its log{f', {log},' if log else ''} ends without a "
+                     f"word): most often by the out-of-memory killer (`journalctl -k | grep -i oom` or `dmesg` names "
+                     f"it), and then lower {memory_keys(command)}, or run it where there is more memory; else by a "
+                     f"scheduler. {rerun}")
+    return lines
