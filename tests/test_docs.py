@@ -49,3 +49,37 @@ def test_architecture_names_only_modules_that_exist():
 
 def test_the_table_check_can_fail():
     assert table_modules("| `diffshadow.nothing` | x |\n") == {"diffshadow.nothing"}
+
+
+PERFORMANCE = REPO / "docs" / "performance.md"
+CITED = re.compile(r'performance\.md[,:]?\s*\(?\s*"([^"]+)"')
+CITING = ("diffshadow", "tests", "scripts", "workflow", "config", "profiles", "docs")
+
+
+def cited_sections(text: str) -> set[str]:
+    """The names quoted after `docs/performance.md` in a file, a comment's continuation lines joined."""
+    return set(CITED.findall(re.sub(r"\n\s*(?:#|\*)?\s*", " ", text)))
+
+
+def performance_anchors(text: str) -> list[str]:
+    """What a citation can name: each heading, and each bold lead of a paragraph or a bullet."""
+    heads = [line.lstrip("#").strip() for line in text.splitlines() if line.startswith("#")]
+    leads = re.findall(r"^\s*(?:- )?\*\*(.+?)\*\*", text, flags=re.MULTILINE)
+    return [a.replace("`", "").lower() for a in heads + leads]
+
+
+def test_sections_cited_in_the_tree_exist_in_performance_md():
+    anchors = performance_anchors(PERFORMANCE.read_text())
+    files = [REPO / "README.md", REPO / "Snakefile"]
+    files += [p for d in CITING for p in (REPO / d).rglob("*") if p.suffix in {".py", ".yaml", ".md", ".smk", ".sh"}]
+    missing = [f"{p.relative_to(REPO)}: {name!r}" for p in files if p not in (PERFORMANCE, Path(__file__))
+               for name in sorted(cited_sections(p.read_text())) if not any(a.startswith(name.replace("`", "").lower())
+                                                                           for a in anchors)]
+    assert missing == [], f"cited sections docs/performance.md lacks: {missing}"
+
+
+def test_the_citation_check_can_fail():
+    cited = cited_sections('# x (docs/performance.md, "The\n# allocator")\n')
+    assert cited == {"The allocator"}
+    assert not any(a.startswith("no such section") for a in performance_anchors("## The allocator\n- **Lead** x\n"))
+    assert performance_anchors("## `cache: auto`\n- **Lead** x\n") == ["cache: auto", "lead"]

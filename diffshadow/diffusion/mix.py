@@ -7,7 +7,9 @@ lights, barycentric weights).
 Every stored SIREN is fitted from the same shared initial SIREN (`preoptimize`), so weight-space blends of them
 are SIRENs that work, and so is a blend of the model's sample (which regenerates those SIRENs) with theirs. The two
 answers err in different ways: the blend's error grows with the distance to the stored lights, the model's is its
-capacity's. Their mix beats both on the lights between the stored ones (docs/performance.md, "The mix").
+capacity's. Their mix beat both on the lights between the stored ones while the blend was the 4 nearest by inverse
+angle; against the triangle blend of SIRENs fitted for it, the validation lights give the model a share of 0-0.2 and
+the mix ties with the blend (docs/performance.md, "The mix").
 `share` 1 is the paper's model alone; 0 the stored SIRENs' blend alone (what `cache: blend` answers).
 
 `mix.model_share: auto` chooses the share on validation lights (`lights.validation_lights`: random in the training
