@@ -618,12 +618,17 @@ def light_subsets(train, subset_size: int) -> list[list[int]]:
 
 def subset_indices(train, subset_size: int, subset: int) -> list[int]:
     """Lights of subset `subset` (0..S-1, S = ceil(n / size)): its patch of `light_subsets`."""
-    n = len(np.asarray(train).reshape(-1, 3))
-    count = n_subsets(n, _check_size(subset_size))
-    if not 0 <= subset < count:
-        raise ValueError(f"subset {subset} does not exist: {n} lights in subsets of {subset_size} "
-                         f"give subsets 0..{count - 1}")
+    check_subset(len(np.asarray(train).reshape(-1, 3)), subset_size, subset)
     return light_subsets(train, subset_size)[subset]
+
+
+def check_subset(n_lights: int, subset_size: int, subset: int) -> None:
+    """ValueError unless `n_lights` in subsets of `subset_size` have a subset `subset` (the fit's check, and the
+    workflow's before it plans a job for one)."""
+    count = n_subsets(n_lights, _check_size(subset_size))
+    if not 0 <= subset < count:
+        raise ValueError(f"subset {subset} does not exist: {n_lights} lights in subsets of {subset_size} "
+                         f"give subsets 0..{count - 1}")
 
 
 def _check_size(subset_size: int) -> int:

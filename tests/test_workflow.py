@@ -735,6 +735,11 @@ def test_rerun_one_subset(finished):
                   "sample_shadows": 1, "evaluate_voxels": 1, "caches": 1, "evaluate_images": 1, "benchmark": 1,
                   "report_figures": 1, "stage_costs": 1, "summary": 1, "all": 1}
     assert planned(snakemake(finished, "-n", "-R", target)) == downstream
+    # a subset the scene does not have stops the plan (on a PBS system its job would have queued, then failed)
+    none = snakemake(finished, "-n", "-R", "results/nucleon/sirens/subset_2.npz", check=False)
+    assert none.returncode != 0 and ("results/nucleon/sirens/subset_2.npz: subset 2 does not exist: 4 lights in "
+                                     "subsets of 2 give subsets 0..1") in none.stdout + none.stderr
+    assert "Job stats" not in none.stdout + none.stderr
     # a corrupted subset is newer than the store: collecting again fails and names the file
     (sirens / "subset_1.npz").write_bytes(b"garbage")
     proc = snakemake(finished, check=False)

@@ -11,6 +11,7 @@ from diffshadow.hpc import JOB_LOG as _JOB_LOG
 from diffshadow.hpc import job_threads as _job_threads
 from diffshadow.hpc import kernel_cache_environment as _kernel_cache_environment
 from diffshadow.hpc import run_gpus as _run_gpus
+from diffshadow.lights import check_subset as _check_subset
 from diffshadow.lights import n_subsets as _n_subsets
 from diffshadow.report import shading_name as _shading_name
 from diffshadow.volume import prepared_from as _prepared_from
@@ -61,6 +62,17 @@ def extinction_volume(wildcards):
 def n_subsets(scene):
     cfg = scene_config(scene)
     return _n_subsets(cfg["lights"]["count"], cfg["subset_size"])
+
+
+def subset_lights(wildcards):
+    """fit_siren's lights.json, once its subset is one the scene has: `-R results/<scene>/sirens/subset_5.npz` of a
+    one-subset run then stops the plan, where its job failed after it started (on a PBS system, after its queue)."""
+    cfg = scene_config(wildcards.scene)
+    try:
+        _check_subset(cfg["lights"]["count"], cfg["subset_size"], int(wildcards.subset))
+    except ValueError as e:
+        raise WorkflowError(f"results/{wildcards.scene}/sirens/subset_{wildcards.subset}.npz: {e}") from None
+    return f"results/{wildcards.scene}/lights.json"
 
 
 def subset_files(wildcards):

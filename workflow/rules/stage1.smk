@@ -44,7 +44,7 @@ rule preoptimize:
 rule fit_siren:
     input:
         volume=extinction_volume,  # its colours alone changed: not rerun
-        lights="results/{scene}/lights.json",
+        lights=subset_lights,  # a subset the scene's lights do not have stops the plan
         init="results/{scene}/siren_init.pt",
     output:
         "results/{scene}/sirens/subset_{subset}.npz",
