@@ -145,6 +145,26 @@ def test_the_models_rows_sample_on_the_device_they_are_given(tmp_path, monkeypat
     assert rows["diffusion model fp32"]["seen_psnr"] == pytest.approx(np.median(generated.psnr[generated.seen]))
 
 
+@pytest.mark.parametrize("share", [0.0, 0.5, 1.0])
+def test_a_mix_rows_answer_is_timed_as_its_sampler_answers(tmp_path, share):
+    """A mix row's time to answer is the model's DDIM where the model has a share and the stored SIRENs' blend (in
+    the row's precision) where they have one: at share 0 the blend's alone, which is all `MixedSampler` asks."""
+    store, truth, sets = _inputs()
+    state = _model_state(store, sets, tmp_path)
+    n = len(sets["train"]) + len(sets["unseen"])
+    mix = {"model_share": share, "blend_k": 4, "blend_weights": "triangle", "model_alone_psnr": np.linspace(30, 40, n)}
+    generated = SimpleNamespace(psnr=np.linspace(31, 41, n), seen=np.arange(n) < len(sets["train"]),
+                                config={"mix": mix})
+    table = caches.cache_table(store, truth, sets, blend_k=4, weighting="triangle", log=lambda m: None,
+                               model_state=state, generated=generated, device=torch.device("cpu"))
+    rows = {r["cache"]: r for r in table["caches"]}
+    model = rows["diffusion model fp32"]["answer_s"]
+    for precision in ("fp32", "fp16"):
+        blend = rows[f"stored SIRENs {precision}"]["answer_s"]
+        mixed = rows[f"model {share:g} + stored SIRENs {1 - share:g}, both {precision}"]["answer_s"]
+        assert mixed == pytest.approx({0.0: blend, 0.5: model + blend, 1.0: model}[share], rel=1e-12)
+
+
 def test_the_dense_grids_row_scores_stored_grids_and_times_an_answer_on_its_neighbours_alone(monkeypatch):
     """The dense grids' seen lights are their own grids read at the points: the exact shadow but for the grid's
     trilinear reading and fp16 (a Gaussian blob: within a fraction of its range); an unseen light is their blend.
