@@ -59,7 +59,7 @@ class Camera:
         """From `eye` toward `target`; `up` None: `default_up` of the view direction."""
         w, h = (size, size) if isinstance(size, int) else size
         if up is None:
-            up = default_up(np.subtract(np.asarray(eye, float), np.asarray(target, float)))
+            up = default_up(np.subtract(eye, target, dtype=float))
         return cls(tuple(map(float, eye)), tuple(map(float, target)), tuple(map(float, up)), float(fov), w, h)
 
     @classmethod
