@@ -263,12 +263,14 @@ def load_run(configfile: str | Path | None = None) -> dict:
 # them: a section missing a key takes defaults.yaml's (`section`). diffusion.cuda_graph: the geometry stage
 # records what it did (False: eager steps, as every run before the key), and "auto", its default since, leaves a
 # finished run as it is (on a CPU it does what False does; a CUDA run finished before it keeps its eager weights);
-# fit.cuda_graph and data_inr.cuda_graph likewise (False before a GPU timed them, "auto" since); fit.target_store
+# fit.cuda_graph and data_inr.cuda_graph likewise (False before a GPU timed them, "auto" since), and
+# finetune.cuda_graph (False, untimed on a GPU: its step records False off CUDA whatever was asked); fit.target_store
 # changes where the targets are kept, not their values; render.warm_kernels (true, its default) when the kernels
 # compile, not what they draw (false is passed on: the jobs must receive it).
 UNCHANGED_WHEN = {("diffusion", "precision"): ("float32",), ("diffusion", "cuda_graph"): ("auto", False),
                   ("fit", "cuda_graph"): ("auto", False), ("data_inr", "cuda_graph"): ("auto", False),
-                  ("fit", "target_store"): ("auto",), ("render", "warm_kernels"): (True,)}
+                  ("finetune", "cuda_graph"): (False,), ("fit", "target_store"): ("auto",),
+                  ("render", "warm_kernels"): (True,)}
 
 
 def changed_settings(name: str, values: dict) -> dict:

@@ -33,12 +33,11 @@
 # precision: `bench stages` of the two training stages at the paper's sizes (where the products, not the launches,
 #           take the time), diffusion.precision float32 then bfloat16 then both again: what bfloat16 autocast saves
 #           a step (its quality was measured on a CPU: docs/performance.md, stage 2).
-# graph:    `bench stages --stages fit_siren preoptimize train_data_inr train_diffusion` at the README's config and
-#           at the paper's, fit.cuda_graph, data_inr.cuda_graph and diffusion.cuda_graph all false then all true,
+# graph:    `bench stages` of the five training stages (GRAPH_STAGES names fewer) at the README's config and at
+#           the paper's, every stage's cuda_graph false then true (fine-tuning in one process: DDP steps eagerly),
 #           twice (ROUNDS="1" once), then `pytest -m gpu -k graph` (graphed steps train what eager steps train):
-#           what one replayed graph a step saves the fits and the data INR (~100-250 launches a step) and the
-#           geometry stage (~420); the geometry stage's graph is the CUDA default since 4cf72ee, the others wait on
-#           this.
+#           what one replayed graph a step saves. The fits', the data INR's and the geometry stage's graphs are the
+#           CUDA default since a GPU timed them; finetune.cuda_graph (false) waits on this.
 # stage1:   stage 1 alone (snakemake ... results/nucleon/weights.zarr) at 512 of 2,048 lights, wall time
 #           and each fit_siren job's benchmark (a job cut short still leaves the finished subsets' figures).
 # viewer:   `ViewerScene.frame` on a finished results/nucleon (after `workflow`) at 512² and 1024² from the framed
@@ -230,17 +229,19 @@ precision)
     done
     ;;
 graph)
-    stages=(--stages fit_siren preoptimize train_data_inr train_diffusion)
+    stages=(--stages ${GRAPH_STAGES:-fit_siren preoptimize train_data_inr train_diffusion finetune_render})
     args=("${stages[@]}" --budget 3 --max-steps 30)
     [ "$quick" = 1 ] && args=("${stages[@]}" --budget 0 --max-steps 2)
     for c in config paper; do
-        for g in false true; do  # the config with every stage's cuda_graph set
-            cp "config/$c.yaml" "$out/${c}_graph_$g.yaml"
-            for section in fit data_inr diffusion; do
+        for g in false true; do  # the config with every stage's cuda_graph set; fine-tuning in one process, which
+            cp "config/$c.yaml" "$out/${c}_graph_$g.yaml"  # alone graphs (DDP steps eagerly)
+            for section in fit data_inr diffusion finetune; do
                 with_setting "$out/${c}_graph_$g.yaml" "$section" cuda_graph "$g" "$out/${c}_graph_$g.yaml"
             done
+            with_setting "$out/${c}_graph_$g.yaml" finetune nproc 1 "$out/${c}_graph_$g.yaml"
             [ "$quick" = 1 ] && [ "$c" = paper ] && printf '%s\n' "diffusion: {preset: tiny, cuda_graph: $g}" \
-                "fit: {cuda_graph: $g}" "data_inr: {cuda_graph: $g}" >"$out/${c}_graph_$g.yaml"
+                "fit: {cuda_graph: $g}" "data_inr: {cuda_graph: $g}" "finetune: {cuda_graph: $g, nproc: 1}" \
+                >"$out/${c}_graph_$g.yaml"
         done
     done
     for round in ${ROUNDS:-1 2}; do

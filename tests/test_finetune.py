@@ -19,6 +19,7 @@ from diffshadow.diffusion.finetune import (
     Schedule,
     Standardizer,
     build_model,
+    draw_step,
     finetune,
     step_loss,
 )
@@ -211,6 +212,108 @@ def test_resume_skips_finished_epochs(setup, tmp_path):
     assert all(torch.equal(resumed[k], whole[k]) for k in whole)
 
 
+def test_cuda_graph_off_cuda_steps_eagerly_to_the_same_bytes_and_the_same_fingerprint(setup, tmp_path):
+    """`finetune.cuda_graph` on a CPU: False (the default) and "auto" step eagerly without a word; True says that
+    the steps run eagerly, and all three train the same bytes. The checkpoint records what was done (no graph),
+    and its fingerprint leaves that out: it is the one computed before the key existed, so a checkpoint resumes
+    across the setting and the upgrade."""
+    import hashlib
+    import json
+    from dataclasses import asdict
+
+    _, _, _, data, state = setup
+    assert FT.cuda_graph is False
+    quiet, told = [], []
+    plain = finetune(state, data, FT, tmp_path / "a.ckpt", log=quiet.append)
+    auto = finetune(state, data, replace(FT, cuda_graph="auto"), tmp_path / "b.ckpt", log=quiet.append)
+    assert not any("cuda_graph" in m for m in quiet), quiet
+    graphed = finetune(state, data, replace(FT, cuda_graph=True), tmp_path / "c.ckpt", log=told.append)
+    assert "finetune.cuda_graph: CUDA graphs need a CUDA device; stepping eagerly on cpu" in told
+    for other in (auto, graphed):
+        assert all(torch.equal(plain["model"][k], other["model"][k]) for k in plain["model"])
+        assert other["finetune"]["cuda_graph"] is False
+        assert other["finetune_fingerprint"] == plain["finetune_fingerprint"]
+    before = hashlib.sha256(str(state.get("fingerprint")).encode())
+    before.update(json.dumps({k: v for k, v in asdict(FT).items() if k != "cuda_graph"}, sort_keys=True).encode())
+    before.update(np.ascontiguousarray(data.targets.numpy()).reshape(-1).view(np.uint8)[:1 << 20])
+    before.update(str(tuple(data.targets.shape)).encode())
+    assert plain["finetune_fingerprint"] == before.hexdigest()
+
+
+class ReplayedOnTheCpu:
+    """A CUDA graph's contract without CUDA (`graphs.StepGraphs`): after the warm-up calls, each input shape's step
+    is "captured" once (that call's closure kept, with copies of its inputs), and every later call of the shape
+    copies its inputs into those copies, runs the kept closure and writes its results into the captured ones."""
+
+    def __init__(self, warmup: int = 3):
+        self.warmup, self.calls, self.graphs = warmup, 0, {}
+
+    def __call__(self, step, inputs):
+        from diffshadow.graphs import shapes, tensor_fields
+
+        self.calls += 1
+        if self.calls <= self.warmup:
+            return step(inputs)
+        fields = tensor_fields(inputs)
+        key = shapes(inputs)
+        if key not in self.graphs:
+            static = replace(inputs, **{k: None if v is None else v.clone() for k, v in fields.items()})
+            self.graphs[key] = (step, static, step(static))
+            return self.graphs[key][2]
+        kept, static, out = self.graphs[key]
+        for name, value in fields.items():
+            if value is not None:
+                getattr(static, name).copy_(value)
+        for mine, new in zip(out, kept(static), strict=True):
+            mine.copy_(new)
+        return out
+
+
+def test_a_replayed_step_trains_what_eager_steps_train(setup, tmp_path, monkeypatch):
+    """What `finetune.cuda_graph` relies on, checked on the CPU: a step replayed as captured (the closure of the
+    first call of its shape, on inputs copied in; `ReplayedOnTheCpu`) trains the bytes of the same steps run each
+    time (the optimizer's rate a tensor, the gradients zeroed in place), and those are the eager steps' to float32
+    rounding (the rate's tensor). Four lights in batches of 3: two shapes, each with its own loss scale. A step
+    that read anything but its inputs from its own call (an epoch, a light index, the other batch's scale) would
+    train other weights."""
+    from diffshadow.diffusion import finetune as ft
+
+    class EachTime:
+        def __call__(self, step, inputs):
+            return step(inputs)
+
+    _, _, _, data, state = setup
+    cfg = replace(FT, batch_size=3, epochs=4)
+    eager = finetune(state, data, cfg, tmp_path / "eager.ckpt", log=lambda m: None)
+    monkeypatch.setattr(ft, "step_graphs", lambda *a, **k: EachTime())
+    stepped = finetune(state, data, cfg, tmp_path / "stepped.ckpt", log=lambda m: None)
+    made = []
+    monkeypatch.setattr(ft, "step_graphs", lambda *a, **k: made.append(ReplayedOnTheCpu()) or made[-1])
+    replayed = finetune(state, data, cfg, tmp_path / "replayed.ckpt", log=lambda m: None)
+    assert len(made) == 1 and made[0].calls == 8 and len(made[0].graphs) == 2
+    assert replayed["finetune"]["cuda_graph"] is True  # what was done
+    assert isinstance(replayed["optimizer"]["param_groups"][0]["lr"], torch.Tensor)
+    assert all(torch.equal(stepped["model"][k], replayed["model"][k]) for k in eager["model"])
+    moved = max(float((eager["model"][k] - state["model"][k]).abs().max()) for k in eager["model"])
+    diff = max(float((eager["model"][k] - replayed["model"][k]).abs().max()) for k in eager["model"])
+    assert moved > 1e-3 and diff <= 1e-6, (moved, diff)
+
+
+def test_cuda_graph_says_that_ddp_steps_eagerly():
+    """DDP all-reduces the gradients from hooks inside the backward, which a captured step would not replay: with
+    more than one process fine-tuning steps eagerly, and says so where graphs were asked for ("auto" stays silent).
+    One process on CUDA gets graphs. (Decided before any CUDA call: this runs on a CPU.)"""
+    from diffshadow.diffusion.finetune import step_graphs
+    from diffshadow.graphs import StepGraphs
+
+    cuda, messages = torch.device("cuda"), []
+    assert step_graphs(replace(FT, cuda_graph=True), 2, cuda, messages.append) is None
+    assert step_graphs(replace(FT, cuda_graph="auto"), 4, cuda, messages.append) is None
+    assert messages == ["finetune.cuda_graph: DDP over 2 processes is not captured; stepping eagerly"]
+    assert isinstance(step_graphs(replace(FT, cuda_graph="auto"), 1, cuda, messages.append), StepGraphs)
+    assert step_graphs(FT, 1, cuda, messages.append) is None and len(messages) == 1
+
+
 def test_bad_config_is_named():
     with pytest.raises(ValueError, match="unknown key"):
         FinetuneConfig.from_config({"epoch": 3})
@@ -219,19 +322,36 @@ def test_bad_config_is_named():
 # Two guards for the CUDA path, which CI cannot run. The stages' rule: a tensor is made on the device that
 # uses it, or on the CPU by name (random draws, module initialisation) and then moved.
 
-def test_a_finetune_step_runs_on_a_second_device(setup):
+def test_a_finetune_step_runs_on_a_second_device_and_its_update_copies_nothing_from_the_host(setup):
     """Everything the step touches must have been moved to the working device: "meta" plays the GPU and
-    the CPU the host, so a tensor left on the host (the training lights once were) fails here."""
+    the CPU the host, so a tensor left on the host (the training lights once were) fails here. Its nine draws
+    (lights, timesteps, noise, points, pixels; the pool's four) are copied without blocking, and the update, what
+    `finetune.cuda_graph` captures (loss, backward, gradient clip), copies nothing from the host after its first
+    (which moves the schedule's and standardizer's tables once) and reads nothing back."""
+    from test_syncs import HostTraffic
+
     _, _, _, data, state = setup
     dcfg = DiffusionConfig.from_config(state["config"])
     layout = WeightLayout.from_config(state["layout"])
-    meta = torch.device("meta")
+    meta, schedule = torch.device("meta"), Schedule()
     model = build_model(layout, dcfg).to(meta)
     std = Standardizer(layout, state["standardizer"]["mean"], state["standardizer"]["std"])
     z_all = std.standardize(data.train.weights).float().to(meta)
-    loss, parts = step_loss(model, std, data.to(meta), z_all, [0, 2], 0, FT, dcfg, Schedule(), scale=0.5)
-    loss.backward()
-    assert loss.device == meta and loss.shape == () and parts.shape == (3,)
+    on_meta = data.to(meta)
+
+    def update(epoch: int) -> tuple[int, int]:
+        with (drawn := HostTraffic()):
+            batch = draw_step(on_meta, [0, 2], epoch, FT, dcfg, schedule.steps, meta)
+        assert (drawn.copies, drawn.blocking) == (9, 0)
+        with (traffic := HostTraffic()):
+            loss, parts = step_loss(model, std, on_meta, z_all, batch, FT, dcfg, schedule, scale=0.5)
+            loss.backward()
+            torch.nn.utils.clip_grad_norm_(model.parameters(), dcfg.grad_clip)
+        assert loss.device == meta and loss.shape == () and parts.shape == (3,)
+        return traffic.copies, traffic.reads
+
+    assert update(0)[0] > 0
+    assert update(1) == (0, 0)
 
 
 def test_finetune_makes_no_tensor_on_the_implicit_default_device(setup, tmp_path):
@@ -342,9 +462,11 @@ def test_pool_lights_add_their_loss_to_a_fine_tuning_step(setup):
     model = build_model(layout, dcfg)
     model.load_state_dict(state["model"])
     z_all = std.standardize(data.train.weights).float()
-    with_pool, parts = step_loss(model, std, data, z_all, [0, 2], 0, FT, dcfg, Schedule(), scale=1.0)
-    without, parts0 = step_loss(model, std, data, z_all, [0, 2], 0, FT, replace(dcfg, pool_lights=0), Schedule(),
-                                scale=1.0)
+    cpu, no_pool, schedule = torch.device("cpu"), replace(dcfg, pool_lights=0), Schedule()
+    with_pool, parts = step_loss(model, std, data, z_all, draw_step(data, [0, 2], 0, FT, dcfg, schedule.steps, cpu),
+                                 FT, dcfg, schedule, scale=1.0)
+    without, parts0 = step_loss(model, std, data, z_all, draw_step(data, [0, 2], 0, FT, no_pool, schedule.steps, cpu),
+                                FT, no_pool, schedule, scale=1.0)
     assert float(with_pool.detach()) > float(without.detach()) > 0 and torch.allclose(parts, parts0)
 
 

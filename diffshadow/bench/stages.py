@@ -254,7 +254,7 @@ def _products(dcfg) -> str:
 
 def finetune_render(cfg: dict, device: torch.device, volume, tf) -> Timed:
     from diffshadow.diffusion.config import build_model, make_optimizer
-    from diffshadow.diffusion.finetune import FinetuneConfig, FinetuneData, train_step
+    from diffshadow.diffusion.finetune import FinetuneConfig, FinetuneData, step_graphs, train_step
     from diffshadow.diffusion.schedule import Schedule
     from diffshadow.diffusion.standardize import Standardizer
     from diffshadow.progress import FirstNonFinite
@@ -272,18 +272,19 @@ def finetune_render(cfg: dict, device: torch.device, volume, tf) -> Timed:
     model = build_model(data.layout, dcfg).to(device)
     std = Standardizer.fit(data.layout, data.weights, dcfg.standardize)
     z_all = std.standardize(data.weights).float().to(device)
-    opt = make_optimizer(model.parameters(), fcfg.lr, dcfg.weight_decay)
+    graphs = step_graphs(fcfg, fcfg.nproc, device, log=lambda message: None)  # as the run: one process only
+    opt = make_optimizer(model.parameters(), fcfg.lr, dcfg.weight_decay, capturable=graphs is not None)
     schedule, nonfinite = Schedule(), FirstNonFinite((), device)
     per_rank = math.ceil(fcfg.batch_size / fcfg.nproc)
 
     def step(i: int):
         batch = [(i * fcfg.batch_size + j) % n for j in range(fcfg.batch_size)]
         return train_step(model, model, opt, std, fdata, z_all, batch, 0, fcfg.nproc, i, fcfg, dcfg, schedule,
-                          nonfinite)
+                          nonfinite, graphs)
 
     per_epoch = math.ceil(n / fcfg.batch_size)
     return Timed(step, f"step of one process ({per_rank} of {fcfg.batch_size} lights; {fcfg.nproc} processes"
-                 f"{_products(dcfg)})",
+                 f"{_products(dcfg)}{_captured(graphs, step)})",
                  per_epoch * fcfg.epochs, f"{per_epoch} steps per epoch x {fcfg.epochs} epochs, each process in "
                  f"parallel (DDP's all-reduce not counted)")
 

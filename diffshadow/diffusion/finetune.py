@@ -16,6 +16,7 @@ DDP's gradient average equals the single-process gradient of the same global bat
 
 from __future__ import annotations
 
+import dataclasses
 import hashlib
 import inspect
 import json
@@ -28,12 +29,13 @@ import numpy as np
 import torch
 
 from diffshadow.adam import Adam
-from diffshadow.config import section
+from diffshadow.config import changed_settings, section
 from diffshadow.diffusion.config import DiffusionConfig, build_model, make_optimizer
 from diffshadow.diffusion.sample import generate, load_sampler, sampler_weights
 from diffshadow.diffusion.schedule import Schedule
 from diffshadow.diffusion.standardize import Standardizer
 from diffshadow.diffusion.train import Batch, TrainingData, batch_loss
+from diffshadow.graphs import StepGraphs, requested
 from diffshadow.io import atomic_torch_save, resume
 from diffshadow.progress import FirstNonFinite, eta, resumed_at
 from diffshadow.render.bundle import RayBundle, bundle_colors
@@ -69,6 +71,9 @@ class FinetuneConfig:
     # fits to) or "march" (the renderer's gt). Foreground pixels agree to 50-53 dB (nucleon, tooth); the
     # sweep is 3-5x faster (docs/performance.md)
     targets: str = "sweep"
+    # each step (one process) a replayed CUDA graph where the device is CUDA: "auto" / True; False steps eagerly,
+    # the default until a GPU has timed it (docs/performance.md)
+    cuda_graph: bool | str = False
 
     @classmethod
     def from_config(cls, d: dict | None = None) -> FinetuneConfig:
@@ -132,20 +137,24 @@ def _draws(cfg: FinetuneConfig, dcfg: DiffusionConfig, epoch: int, light: int, n
     return t, noise, pick, u, (j, tp, noise_p, pick_p)
 
 
-def step_loss(model, std: Standardizer, data: FinetuneData, z_all: torch.Tensor, local: list[int], epoch: int,
-              cfg: FinetuneConfig, dcfg: DiffusionConfig, schedule: Schedule, scale: float):
-    """The geometry stage's loss of the `local` lights (`train.batch_loss`: x0, pool prior, geometry) plus the
-    rendering loss, summed over the lights and times `scale`; and the parts (x0, geometry, rendering) summed."""
-    device = z_all.device
+@dataclass
+class FinetuneBatch(Batch):
+    """One step's draws for this rank's lights (`draw_step`): the geometry stage's (`train.Batch`) and `u`, the
+    pixels' positions in [0, 1) per view, scaled to each view's foreground count inside the step. On the device:
+    a CUDA graph's inputs (`finetune.cuda_graph`)."""
+
+    u: torch.Tensor | None = None  # (B, V, P)
+
+
+def draw_step(data: FinetuneData, local: list[int], epoch: int, cfg: FinetuneConfig, dcfg: DiffusionConfig,
+              steps: int, device: torch.device) -> FinetuneBatch:
+    """Every random draw of the `local` lights' step, made on the host (rank-independent: `_draws`) and copied
+    to `device` without blocking."""
     tr = data.train
-    b = data.bundle
-    nv, p, n_light = len(b.count), cfg.pixels, len(local)
-    # pool lights (no fitted SIREN, exact shadows) keep their geometry loss here too: the rendering loss sees
-    # training lights only and, alone, lowered the lights between them (nucleon: 32.46 -> 31.87 dB)
     pool = tr.pool if dcfg.pool_lights > 0 and tr.pool is not None else None
     sizes = (len(pool.lights), pool.points.shape[1]) if pool is not None else (0, 0)
-    draws = [_draws(cfg, dcfg, epoch, i, z_all.shape[1], tr.points.shape[1], nv, schedule.steps, sizes)
-             for i in local]
+    draws = [_draws(cfg, dcfg, epoch, i, tr.weights.shape[1], tr.points.shape[1], len(data.bundle.count), steps,
+                    sizes) for i in local]
 
     def stacked(i: int, cat=torch.cat) -> torch.Tensor:
         return to_device(cat([d[i] for d in draws]), device)
@@ -153,19 +162,33 @@ def step_loss(model, std: Standardizer, data: FinetuneData, z_all: torch.Tensor,
     def pooled(i: int, cat=torch.cat) -> torch.Tensor:
         return to_device(cat([d[4][i] for d in draws]), device)
 
-    batch = Batch(to_device(torch.tensor(local, device="cpu"), device), stacked(0), stacked(1), stacked(2, torch.stack))
+    batch = FinetuneBatch(to_device(torch.tensor(local, device="cpu"), device), stacked(0), stacked(1),
+                          stacked(2, torch.stack), u=stacked(3, torch.stack))
     if pool is not None:
         batch.j, batch.tp, batch.noise_p, batch.pick_p = pooled(0), pooled(1), pooled(2), pooled(3, torch.stack)
+    return batch
+
+
+def step_loss(model, std: Standardizer, data: FinetuneData, z_all: torch.Tensor, batch: FinetuneBatch,
+              cfg: FinetuneConfig, dcfg: DiffusionConfig, schedule: Schedule, scale: float):
+    """The geometry stage's loss of the batch's lights (`train.batch_loss`: x0, pool prior, geometry) plus the
+    rendering loss, summed over the lights and times `scale`; and the parts (x0, geometry, rendering) summed.
+    `data` is on the device; nothing is read back or copied from the host (a CUDA graph replays it)."""
+    device = z_all.device
+    tr = data.train
+    b = data.bundle
+    nv, p, n_light = len(b.count), cfg.pixels, len(batch.idx)
+    # pool lights (no fitted SIREN, exact shadows) keep their geometry loss here too: the rendering loss sees
+    # training lights only and, alone, lowered the lights between them (nucleon: 32.46 -> 31.87 dB)
+    pool = tr.pool if dcfg.pool_lights > 0 and tr.pool is not None else None
     loss, l_x0, l_geo, pred_all = batch_loss(model, std, tr, z_all, pool, batch, dcfg, schedule)
     siren = BatchedSiren(std.destandardize(pred_all[:n_light]), tr.layout, tr.siren.blocks)
-    extent = tr.extent.to(device)
-    u = stacked(3, torch.stack)
     count = b.count[None, :, None]
-    pix = (u * count.float()).long().clamp(max=(count - 1).clamp_min(0))  # (B, V, P) rows of the bundle
+    pix = (batch.u * count.float()).long().clamp(max=(count - 1).clamp_min(0))  # (B, V, P) rows of the bundle
     views = torch.arange(nv, device=device)[None, :, None].expand_as(pix)
     spts = b.pts[views, pix]  # (B, V, P, N, 3)
     n = spts.shape[-2]
-    g = siren(box_to_siren(spts.reshape(n_light, -1, 3), extent)).view(n_light, nv, p, n)
+    g = siren(box_to_siren(spts.reshape(n_light, -1, 3), tr.extent)).view(n_light, nv, p, n)
     color = bundle_colors(b, g, views, pix)
     target = data.targets[batch.idx[:, None, None], views, pix]
     l_render = ((color - target) ** 2).mean((1, 2, 3))
@@ -177,7 +200,7 @@ def step_loss(model, std: Standardizer, data: FinetuneData, z_all: torch.Tensor,
 
 def fingerprint(state: dict, cfg: FinetuneConfig, data: FinetuneData) -> str:
     h = hashlib.sha256(str(state.get("fingerprint")).encode())
-    h.update(json.dumps(asdict(cfg), sort_keys=True).encode())
+    h.update(json.dumps(changed_settings("finetune", asdict(cfg)), sort_keys=True).encode())
     # the first MiB of the targets' bytes, without copying all of them first
     h.update(np.ascontiguousarray(data.targets.numpy()).reshape(-1).view(np.uint8)[:1 << 20])
     h.update(str(tuple(data.targets.shape)).encode())
@@ -307,23 +330,37 @@ class FinetuneCheckpoint:
 
 def train_step(model, base, opt: Adam, std: Standardizer, data: FinetuneData, z_all: torch.Tensor,
                batch: list[int], rank: int, world: int, epoch: int, cfg: FinetuneConfig, dcfg: DiffusionConfig,
-               schedule: Schedule, nonfinite: FirstNonFinite) -> torch.Tensor:
+               schedule: Schedule, nonfinite: FirstNonFinite, graphs: StepGraphs | None = None) -> torch.Tensor:
     """One optimiser step on this rank's share of the global `batch`; returns the loss parts (summed). The loss's
     finiteness is recorded in `nonfinite` on the device, read once an epoch: the step reads nothing back to the
-    host (tests/test_syncs.py)."""
+    host (tests/test_syncs.py). With `graphs` (`finetune.cuda_graph`, one process) the update — loss, backward,
+    gradient clip, AdamW — is a CUDA graph's replay, its draws the graph's inputs."""
     local = batch[rank::world]
     # A rank with no light in this batch (a last batch shorter than the ranks) still runs the model forward and
-    # backward, where DDP all-reduces the gradients: on the batch's first light, weighed by zero
-    loss, parts = step_loss(model, std, data, z_all, local or batch[:1], epoch, cfg, dcfg, schedule,
-                            scale=world / len(batch) if local else 0.0)
-    if not local:
-        parts = torch.zeros_like(parts)
-    nonfinite.record(loss.detach(), epoch)
-    opt.zero_grad(set_to_none=True)
-    loss.backward()
-    torch.nn.utils.clip_grad_norm_(base.parameters(), dcfg.grad_clip)
-    opt.step()
-    return parts
+    # backward, where DDP all-reduces the gradients: on the batch's first light, weighed by zero. One process
+    # always has lights, so its scale follows from the batch's shape, for which a graph is captured.
+    scale = world / len(batch) if local else 0.0
+    drawn = draw_step(data, local or batch[:1], epoch, cfg, dcfg, schedule.steps, z_all.device)
+
+    def update(b: FinetuneBatch) -> tuple[torch.Tensor, torch.Tensor]:
+        loss, parts = step_loss(model, std, data, z_all, b, cfg, dcfg, schedule, scale)
+        opt.zero_grad(set_to_none=graphs is None)  # a graph's replays write the gradients where they are
+        loss.backward()
+        torch.nn.utils.clip_grad_norm_(base.parameters(), dcfg.grad_clip)
+        opt.step()
+        return loss.detach(), parts
+
+    loss, parts = update(drawn) if graphs is None else graphs(update, drawn)
+    nonfinite.record(loss, epoch)
+    return parts if local else torch.zeros_like(parts)
+
+
+def step_graphs(cfg: FinetuneConfig, world: int, device: torch.device, log=print) -> StepGraphs | None:
+    """Fine-tuning's CUDA graphs where `finetune.cuda_graph` asks for them ("auto" or True), the device is CUDA
+    and one process trains: DDP all-reduces the gradients from hooks inside the backward, which these graphs do
+    not capture."""
+    return requested(cfg.cuda_graph, "finetune.cuda_graph", device, log,
+                     unsupported=f"DDP over {world} processes is not captured" if world > 1 else "")
 
 
 def finetune(geometry_state: dict, data: FinetuneData, cfg: FinetuneConfig, checkpoint: Path, *,
@@ -347,7 +384,11 @@ def finetune(geometry_state: dict, data: FinetuneData, cfg: FinetuneConfig, chec
     base.load_state_dict(geometry_state["model"])
     base.to(device)
     std = Standardizer(layout, geometry_state["standardizer"]["mean"], geometry_state["standardizer"]["std"])
-    opt = make_optimizer(base.parameters(), cfg.lr, dcfg.weight_decay)
+    graphs = step_graphs(cfg, world, device, log if rank == 0 else lambda message: None)
+    # what was done, not what was asked: the checkpoint's config and fingerprint (eager steps train the same bytes
+    # whatever the setting, so a CPU run resumes a checkpoint whichever it was asked)
+    cfg = dataclasses.replace(cfg, cuda_graph=graphs is not None)
+    opt = make_optimizer(base.parameters(), cfg.lr, dcfg.weight_decay, capturable=graphs is not None)
     fp = fingerprint(geometry_state, cfg, data)
     selection = Selection(data.val if rank == 0 else None, sampler, cfg.patience, log)
     start, within = 0, None  # within: where a stop inside an epoch left it ({"batches" done, "totals"})
@@ -409,7 +450,7 @@ def finetune(geometry_state: dict, data: FinetuneData, cfg: FinetuneConfig, chec
             for k in range(first, per_epoch):
                 b0 = k * cfg.batch_size
                 totals += train_step(model, base, opt, std, data, z_all, order[b0:b0 + cfg.batch_size], rank, world,
-                                     epoch, cfg, dcfg, schedule, nonfinite)
+                                     epoch, cfg, dcfg, schedule, nonfinite, graphs)
                 step_times.append(time.perf_counter() - t_step)
                 t_step = time.perf_counter()
                 halting = halt.now()

@@ -295,6 +295,34 @@ def test_graphed_geometry_stage_stopped_inside_an_epoch_resumes_on_cuda(tmp_path
         assert diff <= 1e-6, (key, diff)
 
 
+def test_graphed_finetune_steps_train_what_eager_steps_train(tmp_path, monkeypatch):
+    """finetune.cuda_graph: one process's steps replayed as CUDA graphs give eager steps' weights. Four lights in
+    batches of 3: an epoch's short last batch (its own loss scale) gets a graph of its own; a run resumed from a
+    checkpoint (its optimizer state and tensor lr) graphs on to the same weights."""
+    import dataclasses
+
+    sys.path.insert(0, str(REPO / "tests"))
+    import test_finetune as T
+
+    vol = Volume(data=gaussian_blob(17, 0.3), extent=np.ones(3), name="blob")
+    _, _, _, data, state = T.make_setup(vol, tmp_path)
+    made = recorded_graphs(monkeypatch)
+    cfg = dataclasses.replace(T.FT, batch_size=3, epochs=4, checkpoint_every=2)
+    graphed_cfg = dataclasses.replace(cfg, cuda_graph=True)
+    eager = T.finetune(state, data, cfg, tmp_path / "eager.ckpt", device=CUDA, log=lambda m: None)
+    graphed = T.finetune(state, data, graphed_cfg, tmp_path / "graph.ckpt", device=CUDA, log=lambda m: None)
+    assert len(made) == 1 and made[0].calls == 8 and len(made[0].graphs) == 2  # batches of 3 and of 1
+    assert (eager["finetune"]["cuda_graph"], graphed["finetune"]["cuda_graph"]) == (False, True)
+    T.finetune(state, data, graphed_cfg, tmp_path / "resumed.ckpt", device=CUDA, log=lambda m: None,
+               stop_after_epoch=2)
+    resumed = T.finetune(state, data, graphed_cfg, tmp_path / "resumed.ckpt", device=CUDA, log=lambda m: None)
+    moved = max(float((eager["model"][k].cpu() - state["model"][k]).abs().max()) for k in state["model"])
+    assert moved > 1e-4  # the steps did something
+    for other in (graphed, resumed):
+        diff = max(float((eager["model"][k] - other["model"][k]).abs().max()) for k in eager["model"])
+        assert diff <= 1e-4, diff  # as the geometry stage's graphs (above)
+
+
 @pytest.mark.parametrize("stage", ["train_diffusion", "fit_siren", "preoptimize", "train_data_inr",
                                    "finetune_render"])
 def test_a_training_step_never_waits_for_the_gpu(stage):

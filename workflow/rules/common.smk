@@ -174,9 +174,11 @@ def geometry_checkpoint(wildcards):
 
 
 def finetune_json(scene):
-    """finetune_render's settings without `nproc` (how many processes, not what they compute)."""
-    return json.dumps({"finetune": {k: v for k, v in scene_config(scene)["finetune"].items() if k != "nproc"}},
-                      sort_keys=True)
+    """finetune_render's settings (as `as_json` gives them) without `nproc` (how many processes, not what they
+    compute)."""
+    cfg = json.loads(as_json(scene, "finetune"))
+    del cfg["finetune"]["nproc"]
+    return json.dumps(cfg, sort_keys=True)
 
 
 def stage_benchmarks(wildcards):
