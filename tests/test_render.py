@@ -366,6 +366,20 @@ def test_the_framed_and_orbit_views_name_a_bad_fov_size_or_distance(kwargs, matc
         Camera.orbit((1.0, 1.0, 1.0), azimuth=30, elevation=20, distance=-1)
 
 
+@pytest.mark.parametrize("elevation", [95.0, -90.5, math.nan])
+def test_an_orbit_past_a_pole_is_named_not_drawn_from_the_other_side(elevation):
+    """An elevation past ±90° orbits over the pole: the image of azimuth + 180° upside down, not the view asked for
+    (`render --elevation 95` drew it). Named, as a non-finite azimuth; the pole itself looks straight down."""
+    with pytest.raises(RenderError, match=rf"camera elevation: expected degrees in \[-90, 90\], got {elevation}"):
+        Camera.orbit((1.0, 1.0, 1.0), azimuth=30, elevation=elevation)
+    with pytest.raises(RenderError, match=rf"camera elevation: expected degrees in \[-90, 90\], got {elevation}"):
+        Camera.framed(((0.5, 0.5, 0.5), 0.3), elevation=elevation)
+    with pytest.raises(RenderError, match="camera azimuth: expected finite degrees, got inf"):
+        Camera.orbit((1.0, 1.0, 1.0), azimuth=math.inf, elevation=20)
+    top = Camera.orbit((1.0, 1.0, 1.0), azimuth=30, elevation=90)
+    assert np.allclose(np.subtract(top.target, top.eye)[:2], 0) and top.target[2] < top.eye[2]
+
+
 def test_render_rejects_bad_input(blob):
     cam, scalar, vox = scene_of(blob, size=4)
     scene = RenderScene(blob, TF)

@@ -89,6 +89,10 @@ class Camera:
     def _from_direction(cls, center: np.ndarray, distance: float, azimuth: float, elevation: float, fov: float,
                         size: int | tuple[int, int]) -> Camera:
         """Looking at `center` from `distance` away toward (azimuth, elevation) in degrees, z up."""
+        if not math.isfinite(azimuth):
+            raise RenderError(f"camera azimuth: expected finite degrees, got {azimuth}")
+        if not -90 <= elevation <= 90:  # past a pole the orbit would look from azimuth + 180, upside down
+            raise RenderError(f"camera elevation: expected degrees in [-90, 90], got {elevation}")
         az, el = math.radians(azimuth), math.radians(elevation)
         direction = np.array([math.cos(el) * math.cos(az), math.cos(el) * math.sin(az), math.sin(el)])
         return cls.look_at(center + distance * direction, center, up=default_up(direction), fov=fov, size=size)
