@@ -283,7 +283,8 @@ def finetune_render(cfg: dict, device: torch.device, volume, tf) -> Timed:
                           nonfinite, graphs)
 
     per_epoch = math.ceil(n / fcfg.batch_size)
-    return Timed(step, f"step of one process ({per_rank} of {fcfg.batch_size} lights; {fcfg.nproc} processes"
+    return Timed(step, f"step of one process ({per_rank} of {fcfg.batch_size} lights; {fcfg.nproc} process"
+                 f"{'es' if fcfg.nproc > 1 else ''}"
                  f"{_products(dcfg)}{_captured(graphs, step)})",
                  per_epoch * fcfg.epochs, f"{per_epoch} steps per epoch x {fcfg.epochs} epochs, each process in "
                  f"parallel (DDP's all-reduce not counted)")
