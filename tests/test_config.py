@@ -57,8 +57,8 @@ def test_a_key_given_twice_and_a_yaml_mistake_are_named_with_their_line(tmp_path
 
 
 def test_a_setting_added_at_its_old_behaviour_stays_out_of_the_params_so_finished_runs_rerun_nothing():
-    """diffusion.precision and the three cuda_graph settings came after runs existed: at their defaults (float32;
-    "auto", which on a CPU does what those runs did) and at what those runs did (no graph), a job's
+    """diffusion.precision and the four cuda_graph settings came after runs existed: at their defaults (float32;
+    "auto", which on a CPU does what those runs did; finetune's False) and at what those runs did (no graph), a job's
     params are the JSON they had before them, and the job still reads those values; another value is in the params
     (a changed param reruns the job)."""
     import json
@@ -86,6 +86,8 @@ def test_a_setting_added_at_its_old_behaviour_stays_out_of_the_params_so_finishe
     assert changed_settings("data_inr", {"cuda_graph": "auto"}) == {}  # and "auto" since a GPU timed it
     assert changed_settings("fit", {"precision": "float32"}) == {"precision": "float32"}  # another section's key
     assert "cuda_graph" not in json.loads(as_json(load_run(None), "fit"))["fit"]
+    assert "cuda_graph" not in json.loads(as_json(load_run(None), "finetune"))["finetune"]  # False until timed
+    assert changed_settings("finetune", {"cuda_graph": "auto"}) == {"cuda_graph": "auto"}  # graphs on CUDA: asked
     assert load_run(None)["diffusion"]["precision"] == "float32"  # a run's change stays in that run
 
 
