@@ -3,7 +3,7 @@ reached — more steps first, then a wider SIREN — and records every size it t
 what the scene cost and a missed target is named, not silently delivered.
 
 The ladder from a configured (width, steps) is (w, s), (w, 2s), (2w, 2s), (4w, 2s), … up to `max_width`.
-Measured on four volumes (docs/performance.md): a SIREN's PSNR rises 4.5–6 dB per width doubling on the
+Measured on four volumes (c2d5d55): a SIREN's PSNR rises 4.5–6 dB per width doubling on the
 shared volumes, while doubling the steps gives 0.5–2 dB, so the ladder spends at most one step-doubling
 before it widens. A width doubling that gains less than MIN_WIDTH_GAIN_DB ends the climb: the volume is then
 limited by something width does not buy (tooth's data INR: 39.6 → 40.4 → 40.6 dB at widths 64, 128, 256, the

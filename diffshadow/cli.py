@@ -699,9 +699,10 @@ def run() -> None:
     After a command that imported PyTorch has succeeded, the process ends at once instead of through Python's
     teardown: every output is written, flushed and renamed into place by then, and the teardown (a last garbage
     collection over PyTorch's objects, its thread pools, CUDA's context) took 0.5-0.7 s a job on a 2-core machine,
-    in a run of 16 such jobs (docs/performance.md). A command that failed with its one line (`main`'s handlers,
-    argparse's usage) ends there too: the teardown would print the leftovers of what it was doing (zarr's chunk
-    reads still pending after one failed, ~35 lines of asyncio warnings and a traceback). An unexpected error
+    in a run of 16 such jobs (b27925d; docs/performance.md, "The default run": the run's launch 19.3 → 5.4 s). A
+    command that failed with its one line (`main`'s handlers, argparse's usage) ends there too: the teardown would
+    print the leftovers of what it was doing (zarr's chunk reads still pending after one failed, ~35 lines of
+    asyncio warnings and a traceback). An unexpected error
     keeps its traceback, and a run under coverage, which writes its data at exit, exits the normal way. Tests call
     `main`, which returns."""
     fast = "coverage" not in sys.modules

@@ -175,7 +175,7 @@ def target_store(cfg: FitConfig, k: int, grid_shape: tuple[int, ...],
 
 # Points per SIREN per pass on the CPU: `bench siren` on 2 cores gave 1.2-1.9x over one SIREN at a time
 # at 512 (larger passes fall out of cache). A GPU wants every point in one pass (0.26x at 512, 2.1-5.0x at
-# 32,768 on an H100; docs/performance.md).
+# 32,768 on an H100; b35accb).
 CPU_CHUNK = 512
 
 

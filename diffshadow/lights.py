@@ -651,7 +651,7 @@ def index_ranges(idx: list[int]) -> str:
 BLEND_K = 4  # training SIRENs blended into a pool light's x0 target (the evaluation's blend baseline: 4 too)
 # the diffusion model's pool lights' x0 targets: the triangle blend's lost (the model alone -0.69 / -0.50 dB, the mix
 # -0.32 / -0.29 on validation lights, seeds 0 / 1) and, over SIRENs fitted toward it, tied (-0.01, the mix -0.06;
-# docs/performance.md), while stage 1's blend loss gains by it
+# e1cc08b; docs/performance.md, "Whole runs with it"), while stage 1's blend loss gains by it
 POOL_X0_WEIGHTING = "inverse-angle"
 
 

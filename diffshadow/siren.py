@@ -98,7 +98,7 @@ def forward_folded(layers: list[tuple[torch.Tensor, torch.Tensor]], x: torch.Ten
 # Activations per pass of a SIREN's inference on a CPU (512 KiB of float32). A pass over a march's 65,536 samples
 # streamed each layer's (N, width) activations through memory, once per elementwise op; in passes that stay in
 # the core's cache the same values came 1.5x faster in the naive baseline's job at one thread, 1.2x at two, and
-# 4x for 32 SIRENs at 16,384 points (docs/performance.md, the renderer's section). A GPU takes one pass.
+# 4x for 32 SIRENs at 16,384 points (e2b8699). A GPU takes one pass.
 CPU_PASS_ELEMENTS = 1 << 17
 MIN_PASS_ROWS = 64  # MKL's batched product of 12 rows or fewer took another kernel, with other bits
 
@@ -226,7 +226,7 @@ def cosine_lr(step: int, cfg, width: int) -> float:
     scaled by LR_WIDTH / width above LR_WIDTH: Adam's step is the same size for every weight, while the
     initial weights shrink as 1/√fan-in, so a wider SIREN takes relatively larger steps. At lr 1e-3 the
     tooth's data INR collapsed at width 128 (32 → 18 dB batch PSNR at step 1800) and never trained at 256;
-    width 128 at 5e-4 reached 40.4 dB (docs/performance.md)."""
+    width 128 at 5e-4 reached 40.4 dB (f52f9af)."""
     lr = cfg.lr * min(1.0, LR_WIDTH / width)
     final = lr * cfg.lr_final
     return final + 0.5 * (lr - final) * (1 + math.cos(math.pi * step / max(1, cfg.steps)))

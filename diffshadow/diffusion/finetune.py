@@ -63,7 +63,7 @@ class FinetuneConfig:
     seed: int
     # random lights in the training cap (lights.validation_lights), scored at every checkpoint: the model
     # kept is the last one whose median voxel PSNR there is not below the geometry stage's (0: no check)
-    val_lights: int = 64  # medians over 16 lights drew 0.5-1.2 dB apart between draws (docs/performance.md)
+    val_lights: int = 64  # medians over 16 lights drew 0.5-1.2 dB apart between draws (eebef00)
     val_points: int = 4096
     # validated checkpoints in a row under the geometry stage's before fine-tuning stops (0: never stops early)
     patience: int = 2

@@ -26,7 +26,7 @@ from diffshadow.volume import check_extinction
 
 SHARES = tuple(round(0.1 * i, 1) for i in range(11))  # the model's shares tried by `choose_share`
 # Weights mixed per pass: the float64 sum of a whole paper-size set at once (2,500 SIRENs of 66,689 weights) made
-# three 1.3-GB temporaries, sample_shadows' peak (docs/performance.md, "The allocator"); each element's sum is the
+# three 1.3-GB temporaries, sample_shadows' peak (c2b03fd); each element's sum is the
 # same in any pass, so the bytes are too
 MIX_CHUNK = 1 << 22
 

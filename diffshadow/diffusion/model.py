@@ -40,7 +40,7 @@ def token_sizes(sizes: list[int], tensor_tokens: int, width: int) -> list[int]:
 PRESETS = {
     "paper": TransformerConfig(n_layer=12, n_embd=720, n_head=16),  # paper §3.4
     # SIRENs wider than 32 want a wider model, not a deeper one (tooth, width-64 SIRENs, geometry stage:
-    # small 35.78 / 22.53 dB seen / unseen, 8 x 192 35.61 / 22.68, 4 x 384 36.84 / 23.78; docs/performance.md)
+    # small 35.78 / 22.53 dB seen / unseen, 8 x 192 35.61 / 22.68, 4 x 384 36.84 / 23.78; a84b9d4)
     "medium": TransformerConfig(n_layer=4, n_embd=384, n_head=6),
     "small": TransformerConfig(n_layer=4, n_embd=192, n_head=4),  # CPU default for the tiny scene
     "tiny": TransformerConfig(n_layer=2, n_embd=64, n_head=2),  # tests

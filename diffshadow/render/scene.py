@@ -63,7 +63,7 @@ class Networks:
     elsewhere the scene renders eagerly and records so), or "auto": "fused" on CUDA where Triton is installed, else
     "eager" (the interpreter is for tests, not speed).
     On an H200 "fused" gave 3.4-3.9x the eager fps at 512²-1024², images within 78 dB of the eager fp32 ones
-    (docs/performance.md).
+    (d19920d; docs/performance.md, "The renderer", has the fused kernels' figures since).
     """
 
     kernel: str = field(default_factory=lambda: defaults()["render"]["kernel"])  # one home: defaults.yaml

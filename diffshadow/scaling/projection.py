@@ -190,7 +190,7 @@ PAPER_CPU_S = {"caches": 3125.0, "choose_cache": 1086.0, "encode_cache": 255.0, 
 # Peak RSS (MiB, the kernel's: `/usr/bin/time -v` or the job's getrusage) of a job at the paper's sizes on a CPU,
 # the memory request (x MARGIN) of the rules in PAPER_CPU_S. For a rule timed on a GPU it bounds the job's host
 # memory from above, since on a GPU the model, its gradients, Adam's moments and the activations live on the device:
-# train_diffusion (one epoch, 2,256 lights with the pool) from the paper-size run, and sample_shadows from that
+# train_diffusion (one epoch, 2,256 lights with the pool; a7851f7) from the paper-size run, and sample_shadows from that
 # run's command after the mix in passes and apart (docs/performance.md, "Measured at the paper's sizes" and "The
 # allocator");
 # finetune_render per process, from `bench stages --device cpu --threads 1 --configfile config/paper.yaml --stages

@@ -225,7 +225,7 @@ class ViewerScene:
         """(H, W, 3) uint8 image of `mode` and what the panel says about it (light, timings, PSNR). `interrupt`:
         the renderer's (`render.Interrupted` once it returns True), asked while the exact shadow is marched too.
         `preview`: a light whose exact shadow grid is not cached gets the shear sweep's (`exact_by`: "sweep"; under
-        a second where the march takes 10-16 s on a 128³ volume, 2 CPU cores: docs/performance.md)."""
+        a second where the march takes 10-16 s on a 128³ volume, 2 CPU cores: 25b0baf)."""
         if mode not in self.modes:
             raise ViewerError(f"mode: expected one of {', '.join(self.modes)}, got {mode!r}")
         if (shown := self.shown_mode(mode, light)) != mode:
