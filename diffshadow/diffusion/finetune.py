@@ -137,6 +137,13 @@ def _draws(cfg: FinetuneConfig, dcfg: DiffusionConfig, epoch: int, light: int, n
     return t, noise, pick, u, (j, tp, noise_p, pick_p)
 
 
+def _pool(tr: TrainingData, dcfg: DiffusionConfig):
+    """The pool lights a step draws and scores, if the geometry stage had them. Pool lights (no fitted SIREN, exact
+    shadows) keep their geometry loss here too: the rendering loss sees training lights only and, alone, lowered
+    the lights between them (nucleon: 32.46 -> 31.87 dB)."""
+    return tr.pool if dcfg.pool_lights > 0 and tr.pool is not None else None
+
+
 @dataclass
 class FinetuneBatch(Batch):
     """One step's draws for this rank's lights (`draw_step`): the geometry stage's (`train.Batch`) and `u`, the
@@ -151,7 +158,7 @@ def draw_step(data: FinetuneData, local: list[int], epoch: int, cfg: FinetuneCon
     """Every random draw of the `local` lights' step, made on the host (rank-independent: `_draws`) and copied
     to `device` without blocking."""
     tr = data.train
-    pool = tr.pool if dcfg.pool_lights > 0 and tr.pool is not None else None
+    pool = _pool(tr, dcfg)
     sizes = (len(pool.lights), pool.points.shape[1]) if pool is not None else (0, 0)
     draws = [_draws(cfg, dcfg, epoch, i, tr.weights.shape[1], tr.points.shape[1], len(data.bundle.count), steps,
                     sizes) for i in local]
@@ -178,10 +185,7 @@ def step_loss(model, std: Standardizer, data: FinetuneData, z_all: torch.Tensor,
     tr = data.train
     b = data.bundle
     nv, p, n_light = len(b.count), cfg.pixels, len(batch.idx)
-    # pool lights (no fitted SIREN, exact shadows) keep their geometry loss here too: the rendering loss sees
-    # training lights only and, alone, lowered the lights between them (nucleon: 32.46 -> 31.87 dB)
-    pool = tr.pool if dcfg.pool_lights > 0 and tr.pool is not None else None
-    loss, l_x0, l_geo, pred_all = batch_loss(model, std, tr, z_all, pool, batch, dcfg, schedule)
+    loss, l_x0, l_geo, pred_all = batch_loss(model, std, tr, z_all, _pool(tr, dcfg), batch, dcfg, schedule)
     siren = BatchedSiren(std.destandardize(pred_all[:n_light]), tr.layout, tr.siren.blocks)
     count = b.count[None, :, None]
     pix = (batch.u * count.float()).long().clamp(max=(count - 1).clamp_min(0))  # (B, V, P) rows of the bundle
