@@ -4,7 +4,6 @@ import json
 
 from diffshadow.config import ConfigError as _ConfigError
 from diffshadow.config import as_json as _as_json
-from diffshadow.config import changed_settings as _changed_settings
 from diffshadow.config import scene_config as _scene_config
 from diffshadow.diffusion.mix import model_alone as _model_alone
 from diffshadow.hpc import JOB_ENVIRONMENT as _JOB_ENVIRONMENT
@@ -175,10 +174,10 @@ def geometry_checkpoint(wildcards):
 
 
 def finetune_json(scene):
-    """finetune_render's settings (those `changed_settings` keeps) without `nproc` (how many processes, not what
-    they compute)."""
-    kept = _changed_settings("finetune", scene_config(scene)["finetune"])
-    return json.dumps({"finetune": {k: v for k, v in kept.items() if k != "nproc"}}, sort_keys=True)
+    """finetune_render's settings, as `as_json` gives them, without `nproc` (how many processes, not what they
+    compute)."""
+    section = {k: v for k, v in scene_config(scene)["finetune"].items() if k != "nproc"}
+    return _as_json({"finetune": section}, "finetune")
 
 
 def stage_benchmarks(wildcards):
