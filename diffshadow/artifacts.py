@@ -65,12 +65,15 @@ def _torch_file(path: str | Path, what: str, *, weights_only: bool) -> object:
 def save_siren_init(path: str | Path, chosen: Stage1Layout) -> None:
     atomic_torch_save(path, {"weights": chosen.init, "layout": chosen.layout.to_config(),
                              "siren": chosen.siren.to_config(), "fit_steps": chosen.steps,
+                             "fit_points": chosen.points,
                              "capacity": chosen.choice.to_dict()})
 
 
-def load_siren_init(path: str | Path, siren: SirenConfig, steps: int | None = None) -> Stage1Layout:
-    """preoptimize's init, SIREN size and fit steps; refused when made from other settings than `siren` and
-    `steps` (the configured start of the ladder): the size it chose answers those settings, not others."""
+def load_siren_init(path: str | Path, siren: SirenConfig, steps: int | None = None,
+                    points: int | None = None) -> Stage1Layout:
+    """preoptimize's init, SIREN size, fit steps and points a step; refused when made from other settings than
+    `siren`, `steps` and `points` (the configured start of the ladder): the size it chose answers those settings,
+    not others."""
     state = _torch_file(path, "preoptimize's siren_init.pt", weights_only=True)
     try:
         chosen = SirenConfig.from_config(state["siren"])
@@ -78,6 +81,8 @@ def load_siren_init(path: str | Path, siren: SirenConfig, steps: int | None = No
         choice = Choice.from_dict(capacity)
         start = SirenConfig(int(choice.rungs[0]["width"]), chosen.blocks)
         fit_steps = int(state["fit_steps"])
+        fit_points = int(state["fit_points"])
+        start_points = int(choice.rungs[0]["points"])
     except (KeyError, IndexError, TypeError, ValueError) as e:
         raise ArtifactError(f"{path}: not a siren_init.pt of this version ({e!r} missing); rerun preoptimize") from None
     if start != siren:
@@ -86,9 +91,12 @@ def load_siren_init(path: str | Path, siren: SirenConfig, steps: int | None = No
     if steps is not None and int(choice.rungs[0]["steps"]) != int(steps):
         raise ArtifactError(f"{path}: made for fit.steps = {choice.rungs[0]['steps']}, the config says {steps}; "
                             f"rerun preoptimize")
+    if points is not None and start_points != int(points):
+        raise ArtifactError(f"{path}: made for fit.points = {start_points}, the config says {points}; "
+                            f"rerun preoptimize")
     if state.get("layout") != WeightLayout.for_siren(chosen).to_config():
         raise ArtifactError(f"{path}: its weight layout does not match its SIREN size; rerun preoptimize")
-    return Stage1Layout(state["weights"], chosen, fit_steps, choice)
+    return Stage1Layout(state["weights"], chosen, fit_steps, fit_points, choice)
 
 
 def write_geometry_points(path: str | Path, points: torch.Tensor, values: torch.Tensor, lights: np.ndarray,

@@ -2,7 +2,12 @@
 reached — more steps first, then a wider SIREN — and records every size it tried, so the report can say
 what the scene cost and a missed target is named, not silently delivered.
 
-The ladder from a configured (width, steps) is (w, s), (w, 2s), (2w, 2s), (4w, 2s), … up to `max_width`.
+The ladder from a configured (width, steps) is (w, s), (w, 2s), (2w, 2s), (4w, 2s), … up to `max_width`. Stage 1
+gives it the points a step too (p): its wider rungs then keep the second rung's points in all (2s x p) but take
+them in larger steps, (2w, s, 2p), (4w, s/2, 4p), …: the batch in proportion to the width. Measured on stage 1
+(docs/performance.md): at width 32 nucleon's new lights gain 2.8 dB from 256-point steps over 512-point ones (the
+same points), while tooth at width 64 loses 2.0 dB from them (and 0.96 from 1,024-point ones): a wider SIREN
+needs the less noisy gradient.
 Measured on four volumes (c2d5d55): a SIREN's PSNR rises 4.5–6 dB per width doubling on the
 shared volumes, while doubling the steps gives 0.5–2 dB, so the ladder spends at most one step-doubling
 before it widens. A width doubling that gains less than MIN_WIDTH_GAIN_DB ends the climb: the volume is then
@@ -26,16 +31,31 @@ MIN_WIDTH_GAIN_DB = 1.0
 class Rung:
     width: int
     steps: int
+    points: int | None = None  # a step's points, where the ladder sizes them (stage 1)
+
+    def describe(self) -> str:
+        return size_text({"width": self.width, "steps": self.steps, "points": self.points})
 
 
-def ladder(width: int, steps: int, max_width: int) -> list[Rung]:
-    """The sizes to try in order: (w, s), (w, 2s), then the width doubled with 2s steps up to `max_width`."""
-    if width < 1 or steps < 1:
-        raise ValueError(f"ladder: width and steps must be >= 1, got width {width}, steps {steps}")
-    rungs = [Rung(width, steps), Rung(width, 2 * steps)]
+def size_text(size: dict) -> str:
+    """A rung as the logs and warnings name it: its width and steps, and its points where it has them."""
+    points = size.get("points")
+    return f"width {size['width']}, {size['steps']} steps" + (f" of {points} points" if points else "")
+
+
+def ladder(width: int, steps: int, max_width: int, points: int | None = None) -> list[Rung]:
+    """The sizes to try in order: (w, s), (w, 2s), then the width doubled up to `max_width`, with 2s steps — or,
+    given a step's `points`, with the points doubled and the steps halved each time (2s x p points in all)."""
+    if width < 1 or steps < 1 or (points is not None and points < 1):
+        raise ValueError(f"ladder: width, steps and points must be >= 1, got width {width}, steps {steps}, "
+                         f"points {points}")
+    rungs = [Rung(width, steps, points), Rung(width, 2 * steps, points)]
     w = 2 * width
     while w <= max_width:
-        rungs.append(Rung(w, 2 * steps))
+        if points is None:
+            rungs.append(Rung(w, 2 * steps))
+        else:
+            rungs.append(Rung(w, max(1, round(2 * steps * width / w)), points * w // width))
         w *= 2
     return rungs
 
@@ -60,8 +80,7 @@ class Choice:
         return self.target <= 0 or self.chosen["psnr"] >= self.target
 
     def to_dict(self) -> dict:
-        return {"target_psnr": self.target, "met": self.met, "width": self.chosen["width"],
-                "steps": self.chosen["steps"], "psnr": self.chosen["psnr"], "rungs": self.rungs,
+        return {"target_psnr": self.target, "met": self.met, **self.chosen, "rungs": self.rungs,
                 "kept": self.kept % len(self.rungs), "plateau": self.plateau}
 
     @classmethod
@@ -75,11 +94,10 @@ class Choice:
         c = self.chosen
         if self.plateau:
             return (f"WARNING: {what} reached {c['psnr']:.2f} dB, below its target {self.target:g} dB; widening "
-                    f"gained < {MIN_WIDTH_GAIN_DB:g} dB, so width is not what limits it (kept width {c['width']}, "
-                    f"{c['steps']} steps); lower the target")
+                    f"gained < {MIN_WIDTH_GAIN_DB:g} dB, so width is not what limits it (kept {size_text(c)}); lower "
+                    f"the target")
         return (f"WARNING: {what} reached {c['psnr']:.2f} dB, below its target {self.target:g} dB, the best of "
-                f"{len(self.rungs)} sizes tried (kept width {c['width']}, {c['steps']} steps); raise {knobs}, or lower "
-                f"the target")
+                f"{len(self.rungs)} sizes tried (kept {size_text(c)}); raise {knobs}, or lower the target")
 
 
 def climb(rungs: list[Rung], target: float, attempt: Callable[[Rung], tuple[T, float]],
@@ -94,9 +112,10 @@ def climb(rungs: list[Rung], target: float, attempt: Callable[[Rung], tuple[T, f
         t0 = time.perf_counter()
         result, value = attempt(rung)
         value = float(value)  # NaN: not measured (no target)
-        choice.rungs.append({"width": rung.width, "steps": rung.steps, "psnr": value if value == value else None})
+        size = {"width": rung.width, "steps": rung.steps} | ({"points": rung.points} if rung.points else {})
+        choice.rungs.append(size | {"psnr": value if value == value else None})
         if value == value:
-            log(f"{what}: width {rung.width}, {rung.steps} steps: {value:.2f} dB ({time.perf_counter() - t0:.0f} s)")
+            log(f"{what}: {rung.describe()}: {value:.2f} dB ({time.perf_counter() - t0:.0f} s)")
         gain = value - best
         if kept is None or value > best:  # a rung that meets the target is always the best so far
             kept, best, choice.kept = result, value, i
@@ -109,6 +128,6 @@ def climb(rungs: list[Rung], target: float, attempt: Callable[[Rung], tuple[T, f
             break
         if i + 1 < len(rungs):
             nxt = rungs[i + 1]
-            log(f"{what}: {value:.2f} dB at width {rung.width}, {rung.steps} steps is below the target "
-                f"{target:g} dB; trying width {nxt.width}, {nxt.steps} steps")
+            log(f"{what}: {value:.2f} dB at {rung.describe()} is below the target {target:g} dB; trying "
+                f"{nxt.describe()}")
     return kept, choice

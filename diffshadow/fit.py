@@ -581,12 +581,13 @@ def evaluate_psnr(
 
 @dataclass
 class Stage1Layout:
-    """preoptimize's result: the shared initial weights, the SIREN size and the fit steps every subset uses,
-    and the record of the sizes tried (`capacity.Choice`)."""
+    """preoptimize's result: the shared initial weights, the SIREN size, the fit steps and points a step every
+    subset uses, and the record of the sizes tried (`capacity.Choice`)."""
 
     init: torch.Tensor
     siren: SirenConfig
     steps: int
+    points: int
     choice: Choice
 
     @property
@@ -607,43 +608,47 @@ def choose_layout(volume: Volume, tf: TransferFunction, lights: np.ndarray, sire
 
     With `cfg.target_psnr` > 0, a probe fits the light farthest from light 0 from the init as a subset would,
     but alone (a one-light subset has no blend loss, which costs a light ~1 dB in its subset: docs/performance.md,
-    stage 1), and its held-out PSNR decides: below the target, the fit steps double, then the width does
-    (capacity.ladder). Without a target, the configured size is kept and nothing is probed.
+    stage 1), and its held-out PSNR decides: below the target, the fit steps double, then the width does, its
+    steps' points with it (capacity.ladder). Without a target, the configured size is kept and nothing is probed.
     """
     lights = np.asarray(lights, dtype=np.float64)
     pre = replace(cfg, steps=int(preoptimize_steps), lr=float(preoptimize_lr))
     probe = probe_light(lights)
     inits: dict[int, torch.Tensor] = {}
 
-    def init_for(width: int) -> torch.Tensor:
+    def init_for(rung: Rung) -> torch.Tensor:
+        width = rung.width
         if width not in inits:
             s = SirenConfig(width, siren.blocks)
             layout = WeightLayout.for_siren(s)
             init = layout.flatten(init_siren(s, seeded(cfg.seed, Stream.PREOPTIMIZE)))
             if pre.steps > 0:
-                log(f"pre-optimising one SIREN of width {width} on light 0 for {pre.steps} steps")
-                init = fit_sirens(init, layout, s, volume, tf, lights[:1], pre, stream=Stream.PREOPTIMIZE,
-                                  light_index=[0], device=device, log=log)[0]
+                # in steps of the rung's points: the batch that width's fits take
+                log(f"pre-optimising one SIREN of width {width} on light 0 for {pre.steps} steps of {rung.points} "
+                    f"points")
+                init = fit_sirens(init, layout, s, volume, tf, lights[:1], replace(pre, points=rung.points),
+                                  stream=Stream.PREOPTIMIZE, light_index=[0], device=device, log=log)[0]
             inits[width] = init
         return inits[width]
 
     def attempt(rung: Rung) -> tuple[Rung, float]:
         if cfg.target_psnr <= 0:
-            init_for(rung.width)
+            init_for(rung)
             return rung, float("nan")
         s = SirenConfig(rung.width, siren.blocks)
-        init = init_for(rung.width)
+        init = init_for(rung)
         layout = WeightLayout.for_siren(s)
-        log(f"probe: fitting light {probe} (the farthest from light 0) at width {rung.width} for {rung.steps} steps")
-        w = fit_sirens(init, layout, s, volume, tf, lights[probe:probe + 1], replace(cfg, steps=rung.steps),
+        log(f"probe: fitting light {probe} (the farthest from light 0) at {rung.describe()}")
+        w = fit_sirens(init, layout, s, volume, tf, lights[probe:probe + 1],
+                       replace(cfg, steps=rung.steps, points=rung.points),
                        stream=Stream.PROBE, light_index=[probe], device=device, log=lambda m: None)
         box, _ = evaluate_psnr(w, layout, s, volume, tf, lights[probe:probe + 1], n_points=cfg.eval_points,
                                seed=cfg.seed + PROBE_HELD_OUT_SEED, device=device)
         log(f"probe: light {probe} held-out PSNR {float(box[0]):.2f} dB (target {cfg.target_psnr:g} dB)")
         return rung, float(box[0])
 
-    rungs = ladder(siren.width, cfg.steps, max(cfg.max_width, siren.width))
+    rungs = ladder(siren.width, cfg.steps, max(cfg.max_width, siren.width), cfg.points)
     rung, choice = climb(rungs, cfg.target_psnr, attempt, log=log, what="stage-1 probe")
     if warning := choice.warning(f"stage 1's probe light {probe}", "fit.max_width or fit.steps"):
         log(warning)
-    return Stage1Layout(inits[rung.width], SirenConfig(rung.width, siren.blocks), rung.steps, choice)
+    return Stage1Layout(inits[rung.width], SirenConfig(rung.width, siren.blocks), rung.steps, rung.points, choice)

@@ -9,6 +9,7 @@ from pathlib import Path
 
 import numpy as np
 
+from diffshadow.capacity import size_text
 from diffshadow.io import atomic_write_text, read_json
 from diffshadow.lights import OLD_WEIGHTING, blend_label, describe_blend
 from diffshadow.report import ELAPSED_ROW, PHASE_COLUMNS, label_image, mixed_runtimes
@@ -168,7 +169,7 @@ class RunResults:
             rows.append(("shadow cache", "cache: blend (the stored SIRENs' weight blend; no diffusion model)"))
         sizes = self.sizes()
         if sizes:
-            rows.append(("SIREN sizes chosen", ", ".join(f"{r[0]} width {r[1]} ({r[4]} steps)" for r in sizes)))
+            rows.append(("SIREN sizes chosen", ", ".join(f"{r[0]} width {r[1]} ({r[4]})" for r in sizes)))
         dm = v.get("diffusion_model")
         if dm:
             rows.append(("diffusion model", f"'{dm['preset']}': {dm['layers']} blocks of width {dm['width']}, "
@@ -196,14 +197,15 @@ class RunResults:
             if not size:
                 continue
             cap = size.get("capacity") or {}
-            tried = "; ".join(f"width {r['width']}, {r['steps']} steps: {_num(r['psnr'])} dB"
-                              for r in cap.get("rungs", []))
+            tried = "; ".join(f"{size_text(r)}: {_num(r['psnr'])} dB" for r in cap.get("rungs", []))
+            steps = (f"{cap['steps']} steps" + (f" of {cap['points']} points" if cap.get("points") else "")
+                     if "steps" in cap else "n/a")
             target = cap.get("target_psnr") or None
             reached = _num(cap.get("psnr")) + ("" if cap.get("met", True) else " (missed)")
             if target and median is not None:
                 reached += f"; every training light's median {_num(median)}" + (" (below it)" if median < target
                                                                                 else "")
-            rows.append([name, size["width"], size["blocks"], f"{size['parameters']:,}", cap.get("steps", "n/a"),
+            rows.append([name, size["width"], size["blocks"], f"{size['parameters']:,}", steps,
                          _num(target, "g"), reached, tried or "n/a"])
         return rows
 
@@ -344,9 +346,10 @@ class RunResults:
         sizes = self.sizes()
         if sizes:
             parts.append(_table("SIREN sizes chosen for this scene", ["network", "width", "blocks", "parameters",
-                                                                     "steps", "target (dB)", "reached (dB)", "tried"],
+                                                                     "fit", "target (dB)", "reached (dB)", "tried"],
                                 sizes, "A stage with a target grows its SIREN until the target is reached: steps "
-                                "x2 first, then width x2 (capacity.ladder). Stage 1's PSNR is preoptimize's "
+                                "x2 first, then width x2 (capacity.ladder; in stage 1 each width x2 also doubles a "
+                                "step's points and halves the steps). Stage 1's PSNR is preoptimize's "
                                 "probe light (held-out points), beside the median the subsets' fits reached; the "
                                 "data INR's is over every voxel."))
         sb = v["storage_bytes"]

@@ -38,7 +38,7 @@ def fit(results: Path, spec: dict) -> str:
     chosen = artifacts.load_siren_init(results / "siren_init.pt", SirenConfig(32, 2))
     siren, init = chosen.siren, chosen.init
     layout = WeightLayout.for_siren(siren)
-    cfg = FitConfig.from_config({"steps": chosen.steps, **spec})
+    cfg = FitConfig.from_config({"steps": chosen.steps, "points": chosen.points, **spec})
     t = time.perf_counter()
     w = fit_sirens(init, layout, siren, volume, tf, lights, cfg, stream=0, log=lambda m: None)
     seconds = time.perf_counter() - t

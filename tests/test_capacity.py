@@ -17,8 +17,19 @@ from diffshadow.volume import Volume
 def test_ladder_doubles_steps_once_then_width():
     assert ladder(32, 700, 128) == [Rung(32, 700), Rung(32, 1400), Rung(64, 1400), Rung(128, 1400)]
     assert ladder(64, 10, 32) == [Rung(64, 10), Rung(64, 20)]  # max_width below the start: steps only
-    with pytest.raises(ValueError, match="width and steps"):
+    with pytest.raises(ValueError, match="width, steps and points"):
         ladder(0, 10, 32)
+    with pytest.raises(ValueError, match="points 0"):
+        ladder(32, 10, 64, points=0)
+
+
+def test_stage1_ladder_widens_the_batch_at_the_second_rungs_points():
+    rungs = ladder(32, 8000, 256, points=256)
+    assert rungs == [Rung(32, 8000, 256), Rung(32, 16000, 256), Rung(64, 8000, 512), Rung(128, 4000, 1024),
+                     Rung(256, 2000, 2048)]
+    assert {r.steps * r.points for r in rungs[1:]} == {16000 * 256}  # the same points in all past the first rung
+    assert rungs[2].describe() == "width 64, 8000 steps of 512 points"
+    assert ladder(16, 3, 64, points=10)[-1] == Rung(64, 2, 40)  # steps rounded, never below 1
 
 
 def test_climb_stops_at_the_first_rung_that_reaches_the_target():
@@ -102,23 +113,31 @@ def test_stage1_layout_is_probed_grown_and_round_trips(blob, tmp_path):
     lines = []
     chosen = choose_layout(blob, tf, lights, siren, fit, preoptimize_steps=3, preoptimize_lr=1e-3, log=lines.append)
     rungs = chosen.choice.rungs
-    assert [(r["width"], r["steps"]) for r in rungs] == [(8, 6), (8, 12), (16, 12)]
+    assert [(r["width"], r["steps"], r["points"]) for r in rungs] == [(8, 6, 64), (8, 12, 64), (16, 6, 128)]
     kept = rungs[max(range(3), key=lambda i: rungs[i]["psnr"])]  # target missed: the best size
-    assert chosen.siren == SirenConfig(kept["width"], 1) and chosen.steps == kept["steps"] == 12
+    assert chosen.siren == SirenConfig(kept["width"], 1)
+    assert (chosen.steps, chosen.points) == (kept["steps"], kept["points"])
     assert len(chosen.init) == chosen.layout.n_params
     assert any(m.startswith("WARNING") and "stage 1's probe light 2" in m and "target 200 dB" in m for m in lines)
+    # each width's init is pre-optimised in the steps its fits take
+    assert [m for m in lines if m.startswith("pre-optimising")] == [
+        "pre-optimising one SIREN of width 8 on light 0 for 3 steps of 64 points",
+        "pre-optimising one SIREN of width 16 on light 0 for 3 steps of 128 points"]
 
     save_siren_init(tmp_path / "init.pt", chosen)
-    back = load_siren_init(tmp_path / "init.pt", siren)
-    assert back.siren == chosen.siren and back.steps == 12 and back.choice.to_dict() == chosen.choice.to_dict()
+    back = load_siren_init(tmp_path / "init.pt", siren, 6, 64)
+    assert (back.siren, back.steps, back.points) == (chosen.siren, chosen.steps, chosen.points)
+    assert back.choice.to_dict() == chosen.choice.to_dict()
     with pytest.raises(ArtifactError, match="made for siren .*'width': 8.* the config says .*'width': 32"):
         load_siren_init(tmp_path / "init.pt", SirenConfig(32, 1))
     with pytest.raises(ArtifactError, match="made for fit.steps = 6, the config says 700; rerun preoptimize"):
         load_siren_init(tmp_path / "init.pt", siren, 700)
+    with pytest.raises(ArtifactError, match="made for fit.points = 64, the config says 512; rerun preoptimize"):
+        load_siren_init(tmp_path / "init.pt", siren, 6, 512)
 
     fixed = choose_layout(blob, tf, lights, siren, FitConfig.from_config({**fit.__dict__, "target_psnr": 0.0}),
                           preoptimize_steps=3, preoptimize_lr=1e-3, log=lambda m: None)
-    assert fixed.siren == siren and fixed.steps == 6 and fixed.choice.rungs[0]["psnr"] is None
+    assert (fixed.siren, fixed.steps, fixed.points) == (siren, 6, 64) and fixed.choice.rungs[0]["psnr"] is None
 
 
 def test_a_subset_below_the_target_its_probe_met_is_named():

@@ -426,7 +426,9 @@ def test_slow_target_grids_say_how_far_they_are_and_the_steps_time_is_their_own(
     assert [line.split(" grids")[0] for line in grids] == [f"targets: {k}/20" for k in range(2, 21, 2)]
     assert "s left" in grids[0] and "s left" not in grids[-1]
     first_step = next(line for line in lines if line.startswith("step 1/10"))
-    assert float(re.search(r"(\d+) s, ~(\d+) s left", first_step).group(2)) < 1.0, first_step
+    # the grids' 2 s counted as the first step's would say ~18 s left for the other nine; a busy machine's real
+    # steps stay far under that (a bound at 1 s failed beside a running fit)
+    assert float(re.search(r"(\d+) s, ~(\d+) s left", first_step).group(2)) < 9.0, first_step
 
 def test_auto_keeps_the_smaller_of_grids_and_table(monkeypatch):
     """"auto": the grids (4 bytes x K x the refined voxels) or the table (4 bytes x steps x points x (K values and

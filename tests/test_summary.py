@@ -214,7 +214,11 @@ def test_the_sizes_table_sets_every_training_lights_median_beside_the_probe_ligh
                      "seen": {"stage1_psnr_median": median}}
         assert run.sizes()[0][6] == said
     run.voxel["stage1"]["capacity"] = {**cap, "target_psnr": 0}  # no target: the configured size, no probe
-    assert run.sizes()[0][6] == "39.33"
+    assert run.sizes()[0][6] == "39.33" and run.sizes()[0][4] == "2000 steps"
+    rung = {"width": 64, "steps": 8000, "points": 512, "psnr": 43.7}  # stage 1's rungs name their points
+    run.voxel["stage1"]["capacity"] = {**cap, **rung, "rungs": [rung]}
+    assert run.sizes()[0][4] == "8000 steps of 512 points"
+    assert run.sizes()[0][7] == "width 64, 8000 steps of 512 points: 43.70 dB"
 
 
 def test_the_further_rows_name_what_each_cache_answers_with():

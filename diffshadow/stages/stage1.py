@@ -14,6 +14,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
+from diffshadow.capacity import size_text
 from diffshadow.layout import SirenConfig
 from diffshadow.lights import LightRegion, index_ranges, make_light_sets, read_lights, subset_indices, write_lights
 from diffshadow.sampling import SUBSET_HELD_OUT_SEED
@@ -49,8 +50,8 @@ def prepare_volume(out: Path, scene: dict) -> None:
 
 def preoptimize(volume_path: Path, lights_path: Path, out: Path, *, siren: SirenConfig, fit: FitConfig,
                 steps: int, lr: float, device: torch.device) -> None:
-    """One SIREN fitted to light 0 (the initial weights of every other SIREN), and the SIREN size and fit
-    steps of every subset: grown until a probe light reaches `fit.target_psnr`."""
+    """One SIREN fitted to light 0 (the initial weights of every other SIREN), and the SIREN size, fit steps and
+    points a step of every subset: grown until a probe light reaches `fit.target_psnr`."""
     from diffshadow import artifacts
     from diffshadow.fit import choose_layout
 
@@ -60,7 +61,7 @@ def preoptimize(volume_path: Path, lights_path: Path, out: Path, *, siren: Siren
                            log=lambda m: print(m, flush=True))
     artifacts.save_siren_init(out, chosen)
     print(f"wrote {out}: SIREN width {chosen.siren.width}, {chosen.siren.blocks} blocks "
-          f"({chosen.layout.n_params} parameters), {chosen.steps} fit steps per subset")
+          f"({chosen.layout.n_params} parameters), {chosen.steps} fit steps of {chosen.points} points per subset")
 
 
 def fit_subset(volume_path: Path, lights_path: Path, init_path: Path, subset: int, out: Path, *,
@@ -73,9 +74,10 @@ def fit_subset(volume_path: Path, lights_path: Path, init_path: Path, subset: in
     sets = read_lights(lights_path)
     train = sets["train"]
     idx = subset_indices(train, subset_size, subset)
-    chosen = artifacts.load_siren_init(init_path, siren, fit.steps)
+    chosen = artifacts.load_siren_init(init_path, siren, fit.steps, fit.points)
     init, layout, siren = chosen.init, chosen.layout, chosen.siren
-    fit = dataclasses.replace(fit, steps=chosen.steps)  # preoptimize's choice: one layout for every subset
+    # preoptimize's choice: one layout for every subset
+    fit = dataclasses.replace(fit, steps=chosen.steps, points=chosen.points)
     out = Path(out)
     where = f"fit_siren subset {subset} ({volume_path}"
     print(f"subset {subset}: fitting {len(idx)} lights jointly ({index_ranges(idx)})", flush=True)
@@ -111,8 +113,8 @@ def below_probe_target(choice: Choice, box: np.ndarray, subset: int) -> str | No
         return None
     c = choice.chosen
     return (f"WARNING: subset {subset}: held-out median {median:.2f} dB is below fit.target_psnr {choice.target:g} dB, "
-            f"which preoptimize's probe light reached alone ({c['psnr']:.2f} dB at width {c['width']}, {c['steps']} "
-            f"steps); raising fit.target_psnr by the gap makes the probe choose a larger size")
+            f"which preoptimize's probe light reached alone ({c['psnr']:.2f} dB at {size_text(c)}); "
+            f"raising fit.target_psnr by the gap makes the probe choose a larger size")
 
 
 def collect_weights(lights_path: Path, subset_paths: list[Path], out: Path) -> None:
