@@ -5,9 +5,9 @@ what the scene cost and a missed target is named, not silently delivered.
 The ladder from a configured (width, steps) is (w, s), (w, 2s), (2w, 2s), (4w, 2s), … up to `max_width`. Stage 1
 gives it the points a step too (p): its wider rungs then keep the second rung's points in all (2s x p) but take
 them in larger steps, (2w, s, 2p), (4w, s/2, 4p), …: the batch in proportion to the width. Measured on stage 1
-(docs/performance.md): at width 32 nucleon's new lights gain 2.8 dB from 256-point steps over 512-point ones (the
-same points), while tooth at width 64 loses 2.0 dB from them (and 0.96 from 1,024-point ones): a wider SIREN
-needs the less noisy gradient.
+(docs/performance.md): at width 32 nucleon's new lights gain 2.8 dB from 8000 steps of 256 points over 4000 of
+512 (the same points), while at width 64 tooth's lose 6 dB from 16000 steps of 256 points against 8000 of 512, and
+1 dB from 4000 of 1,024: a wider SIREN needs the less noisy gradient.
 Measured on four volumes (c2d5d55): a SIREN's PSNR rises 4.5–6 dB per width doubling on the
 shared volumes, while doubling the steps gives 0.5–2 dB, so the ladder spends at most one step-doubling
 before it widens. A width doubling that gains less than MIN_WIDTH_GAIN_DB ends the climb: the volume is then
