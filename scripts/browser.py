@@ -337,7 +337,7 @@ def drive_viewer(results, workdir, *, screenshot=None) -> dict:
             else:
                 new_source = ["--diffusion", source]
                 mix = made.get("mix")
-                if mix is not None and 0 < mix["model_share"] < 1:
+                if mix is not None and mix["model_share"] < 1:  # at share 0 the blend alone answers
                     new_source += ["--blend", str(results / Path(mix["weights"]).name), "--blend-k",
                                    str(mix["blend_k"]), "--blend-weights", mix["blend_weights"],
                                    "--model-share", repr(mix["model_share"])]
