@@ -39,8 +39,13 @@ class Rung:
 
 def size_text(size: dict) -> str:
     """A rung as the logs and warnings name it: its width and steps, and its points where it has them."""
+    return f"width {size['width']}, {steps_text(size)}"
+
+
+def steps_text(size: dict) -> str:
+    """A rung's steps, and their points where it has them."""
     points = size.get("points")
-    return f"width {size['width']}, {size['steps']} steps" + (f" of {points} points" if points else "")
+    return f"{size['steps']} steps" + (f" of {points} points" if points else "")
 
 
 def ladder(width: int, steps: int, max_width: int, points: int | None = None) -> list[Rung]:

@@ -9,7 +9,7 @@ from pathlib import Path
 
 import numpy as np
 
-from diffshadow.capacity import size_text
+from diffshadow.capacity import size_text, steps_text
 from diffshadow.io import atomic_write_text, read_json
 from diffshadow.lights import OLD_WEIGHTING, blend_label, describe_blend
 from diffshadow.report import ELAPSED_ROW, PHASE_COLUMNS, label_image, mixed_runtimes
@@ -198,8 +198,7 @@ class RunResults:
                 continue
             cap = size.get("capacity") or {}
             tried = "; ".join(f"{size_text(r)}: {_num(r['psnr'])} dB" for r in cap.get("rungs", []))
-            steps = (f"{cap['steps']} steps" + (f" of {cap['points']} points" if cap.get("points") else "")
-                     if "steps" in cap else "n/a")
+            steps = steps_text(cap) if "steps" in cap else "n/a"
             target = cap.get("target_psnr") or None
             reached = _num(cap.get("psnr")) + ("" if cap.get("met", True) else " (missed)")
             if target and median is not None:
