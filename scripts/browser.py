@@ -297,6 +297,23 @@ def panel_text(browser: Browser) -> str:
     return browser.js("document.body.innerText")
 
 
+def new_direction_source(results: Path, made: dict, source: str) -> list[str]:
+    """`diffshadow render`'s flags that make a new direction's SIREN as the run's cache does (`made`: generated.zarr's
+    config, read from the store, not from the viewer): with cache: blend the stored SIRENs' blend; else the diffusion
+    checkpoint, mixed with that blend at the share sample-shadows chose below 1 (at 0 the blend alone answers)."""
+    from diffshadow.lights import OLD_WEIGHTING
+
+    if made.get("cache") == "blend":
+        return ["--blend", source, "--blend-k", str(made["blend_k"]),
+                "--blend-weights", made.get("blend_weights", OLD_WEIGHTING)]
+    flags = ["--diffusion", source]
+    mix = made.get("mix")
+    if mix is not None and mix["model_share"] < 1:
+        flags += ["--blend", str(results / Path(mix["weights"]).name), "--blend-k", str(mix["blend_k"]),
+                  "--blend-weights", mix["blend_weights"], "--model-share", repr(mix["model_share"])]
+    return flags
+
+
 def drive_viewer(results, workdir, *, screenshot=None) -> dict:
     """Open `diffshadow view results` in headless Chromium as a user would and measure what it shows: the first
     still frame (drawn at the canvas's own size); an unseen test light picked from the list; a new direction
@@ -322,25 +339,13 @@ def drive_viewer(results, workdir, *, screenshot=None) -> dict:
             out["still_size"], out["canvas_size"] = [first["width"], first["height"]], browser.canvas_size()
             before = shown(browser, first)
 
-            from diffshadow.lights import OLD_WEIGHTING, read_lights
+            from diffshadow.lights import read_lights
             from diffshadow.store import open_store
             from diffshadow.viewer.scene import cache_source
 
             n_train = len(read_lights(results / "lights.json")["train"])
-            # what makes a new direction's SIREN: the diffusion checkpoint, with cache: blend the stored SIRENs, or
-            # the two mixed at the share sample-shadows chose (read from the store, not from the viewer)
             generated = open_store(results / "generated.zarr")
-            made, source = generated.config, str(cache_source(results, generated))
-            if made.get("cache") == "blend":
-                new_source = ["--blend", source, "--blend-k", str(made["blend_k"]),
-                              "--blend-weights", made.get("blend_weights", OLD_WEIGHTING)]
-            else:
-                new_source = ["--diffusion", source]
-                mix = made.get("mix")
-                if mix is not None and mix["model_share"] < 1:  # at share 0 the blend alone answers
-                    new_source += ["--blend", str(results / Path(mix["weights"]).name), "--blend-k",
-                                   str(mix["blend_k"]), "--blend-weights", mix["blend_weights"],
-                                   "--model-share", repr(mix["model_share"])]
+            new_source = new_direction_source(results, generated.config, str(cache_source(results, generated)))
 
             renders = []  # (name, `diffshadow render` arguments, the image to compare with), rendered at the end
 

@@ -99,3 +99,25 @@ def test_what_browser_py_starts_dies_with_it(tmp_path):
         time.sleep(0.05)
     os.kill(child, signal.SIGKILL)
     pytest.fail(f"process {child} outlived its driver")
+
+
+def test_the_viewer_check_makes_a_new_direction_as_the_cache_answers_it(tmp_path):
+    """browser.py renders a new direction's SIREN with the run's cache to compare with the viewer's canvas: at model
+    share 0 the blend answers (it had rendered the model alone: 45.7 dB, 5 levels off in a README run), at 1 the
+    model alone, between them both at the share; cache: blend, the stored SIRENs only."""
+    sys.path.insert(0, str(SCRIPTS))
+    from browser import new_direction_source
+
+    mix = {"weights": "results/nucleon/weights.zarr", "blend_k": 4, "blend_weights": "triangle"}
+    blend = ["--blend", str(tmp_path / "weights.zarr"), "--blend-k", "4", "--blend-weights", "triangle"]
+    for share in (0.0, 0.7):
+        made = {"cache": "diffusion", "mix": {**mix, "model_share": share}}
+        assert new_direction_source(tmp_path, made, "d.ckpt") == ["--diffusion", "d.ckpt", *blend, "--model-share",
+                                                                  repr(share)]
+    model_alone = ["--diffusion", "d.ckpt"]
+    assert new_direction_source(tmp_path, {"cache": "diffusion", "mix": {**mix, "model_share": 1.0}}, "d.ckpt") == \
+        model_alone
+    assert new_direction_source(tmp_path, {"cache": "diffusion"}, "d.ckpt") == model_alone  # before the mix
+    made = {"cache": "blend", "blend_k": 3, "blend_weights": "inverse-angle"}
+    assert new_direction_source(tmp_path, made, "w.zarr") == ["--blend", "w.zarr", "--blend-k", "3",
+                                                              "--blend-weights", "inverse-angle"]
