@@ -33,8 +33,12 @@ class Rung:
     steps: int
     points: int | None = None  # a step's points, where the ladder sizes them (stage 1)
 
+    def size(self) -> dict:
+        """The rung as a Choice records it: width and steps, and points where the ladder sized them."""
+        return {"width": self.width, "steps": self.steps} | ({"points": self.points} if self.points else {})
+
     def describe(self) -> str:
-        return size_text({"width": self.width, "steps": self.steps, "points": self.points})
+        return size_text(self.size())
 
 
 def size_text(size: dict) -> str:
@@ -117,8 +121,7 @@ def climb(rungs: list[Rung], target: float, attempt: Callable[[Rung], tuple[T, f
         t0 = time.perf_counter()
         result, value = attempt(rung)
         value = float(value)  # NaN: not measured (no target)
-        size = {"width": rung.width, "steps": rung.steps} | ({"points": rung.points} if rung.points else {})
-        choice.rungs.append(size | {"psnr": value if value == value else None})
+        choice.rungs.append(rung.size() | {"psnr": value if value == value else None})
         if value == value:
             log(f"{what}: {rung.describe()}: {value:.2f} dB ({time.perf_counter() - t0:.0f} s)")
         gain = value - best
