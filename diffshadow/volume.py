@@ -123,6 +123,20 @@ def resolve_path(spec: str | Path) -> Path:
     return Path(text)
 
 
+def run_path(spec: str | Path, run_dir: str | Path = ".") -> str:
+    """The volume file as a workflow names it as an input: relative to the run's directory where it lies inside
+    it, else as resolved. Snakemake reruns a job whose input set changed, and a bundled volume's resolved path is
+    absolute inside the checkout (an editable install, or a virtual environment in the checkout): a moved or
+    copied checkout would rerun its finished scene from the volume on."""
+    path = resolve_path(spec)
+    if not path.is_absolute():  # as the user wrote it: already moves with the run
+        return str(path)
+    for base, inside in ((Path(run_dir).absolute(), path), (Path(run_dir).resolve(), path.resolve())):
+        if inside.is_relative_to(base):
+            return str(inside.relative_to(base))
+    return str(path)  # outside the run's directory: a move of the run does not move it
+
+
 def load_volume(
     path: str | Path,
     *,

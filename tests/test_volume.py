@@ -3,7 +3,7 @@ import numpy as np
 import pytest
 import zarr
 
-from diffshadow.volume import VolumeError, bundled_path, load_volume
+from diffshadow.volume import VolumeError, bundled_path, load_volume, run_path
 
 
 def test_raw_name_gives_dims_and_dtype(tmp_path):
@@ -94,6 +94,21 @@ def test_bundled_nucleon():
     vol = load_volume(bundled_path("nucleon"))
     assert vol.data.shape == (41, 41, 41) and vol.name == "nucleon"
     assert load_volume("bundled:nucleon").data.shape == (41, 41, 41)
+
+
+def test_run_path_moves_with_the_run(tmp_path):
+    # a volume inside the run's directory is named relative to it (so a moved checkout plans nothing again);
+    # one outside, or a relative path as written, is left as it is
+    run = tmp_path / "checkout"
+    (run / "data").mkdir(parents=True)
+    inside = run / "data" / "v.npy"
+    assert run_path(str(inside), run) == "data/v.npy"
+    assert run_path(str(tmp_path / "elsewhere.npy"), run) == str(tmp_path / "elsewhere.npy")
+    assert run_path("data/v.npy", run) == "data/v.npy"
+    (tmp_path / "link").symlink_to(run)  # the run entered through a symlink: the same file, still relative
+    assert run_path(str(inside), tmp_path / "link") == "data/v.npy"
+    package = bundled_path("nucleon")
+    assert run_path("bundled:nucleon", package.parent.parent) == f"data/{package.name}"
 
 
 def test_size_mismatch_names_both_numbers(tmp_path):

@@ -15,7 +15,7 @@ from diffshadow.lights import check_subset as _check_subset
 from diffshadow.lights import n_subsets as _n_subsets
 from diffshadow.report import shading_name as _shading_name
 from diffshadow.volume import prepared_from as _prepared_from
-from diffshadow.volume import resolve_path as _resolve_path
+from diffshadow.volume import run_path as _run_path
 
 _SCENES = {}
 # Result-neutral settings reach the jobs through their environment, not `params` (a changed param reruns the
@@ -200,8 +200,9 @@ def stage_benchmarks(wildcards):
 
 
 def volume_file(wildcards):
-    """The scene's volume file (`bundled:<name>` is the copy inside the package)."""
-    return str(_resolve_path(scene_config(wildcards.scene)["volume"]))
+    """The scene's volume file (`bundled:<name>` is the copy inside the package), relative to the run's directory
+    where it lies inside it, so that a moved checkout keeps its finished run (`volume.run_path`)."""
+    return _run_path(scene_config(wildcards.scene)["volume"])
 
 
 def evaluate_device(wildcards):
