@@ -272,7 +272,7 @@ def shown(browser: Browser, frame: dict, timeout: float = 60.0) -> np.ndarray:
         shot = browser.screenshot(rect)
         if shot.shape == frame["image"].shape:
             best = max(best, psnr(shot, frame["image"]))
-            diff = int(np.abs(left_of_panel(shot).astype(int) - left_of_panel(frame["image"]).astype(int)).max())
+            diff = max_diff(left_of_panel(shot), left_of_panel(frame["image"]))
             closest = diff if closest is None else min(closest, diff)
             if diff <= 1:
                 return shot
@@ -280,6 +280,11 @@ def shown(browser: Browser, frame: dict, timeout: float = 60.0) -> np.ndarray:
     raise AssertionError(f"the browser never showed {frame['path'].name} ({frame['width']}x{frame['height']}): "
                          f"best PSNR {best:.1f} dB, least largest difference left of the panel {closest}, "
                          f"canvas {browser.canvas_rect()}")
+
+
+def max_diff(a: np.ndarray, b: np.ndarray) -> int:
+    """The largest difference between two images' pixels, in levels."""
+    return int(np.abs(a.astype(int) - b.astype(int)).max())
 
 
 def left_of_panel(image: np.ndarray) -> np.ndarray:
@@ -447,12 +452,10 @@ def drive_viewer(results, workdir, *, screenshot=None) -> dict:
             images = render_all([(name, args) for name, args, _ in renders], workdir)
             for name, _, seen in renders:
                 if name.endswith("_panel"):
-                    out[f"{name.removesuffix('_panel')}_frame_vs_panel_max_diff"] = int(
-                        np.abs(seen.astype(int) - images[name].astype(int)).max())
+                    out[f"{name.removesuffix('_panel')}_frame_vs_panel_max_diff"] = max_diff(seen, images[name])
                 else:
                     out[f"{name}_psnr_vs_render"] = psnr(seen, images[name])
-                    out[f"{name}_max_diff_vs_render"] = int(
-                        np.abs(left_of_panel(seen).astype(int) - left_of_panel(images[name]).astype(int)).max())
+                    out[f"{name}_max_diff_vs_render"] = max_diff(left_of_panel(seen), left_of_panel(images[name]))
             return out
         except Exception as e:
             raise AssertionError(f"{e}\n--- the viewer's output:\n{log.read_text()[-3000:]}") from e
