@@ -15,7 +15,7 @@ from diffshadow.diffusion.mix import mix_weights
 from diffshadow.diffusion.sample import generate, load_sampler
 from diffshadow.hpc import device_name
 from diffshadow.io import atomic_torch_save, resume
-from diffshadow.lights import OLD_WEIGHTING, blend_weights, nearest, pick, wide_test_lights
+from diffshadow.lights import OLD_WEIGHTING, across_subsets, blend_weights, n_subsets, nearest, pick, wide_test_lights
 from diffshadow.progress import Ticker
 from diffshadow.sampling import Stream, seeded
 from diffshadow.store import blend_rows
@@ -105,7 +105,24 @@ def wide_comparison(state: dict | None, stage1, light_sets: dict, volume, tf, *,
                    better_than_weight_blend=int((a > b).sum()))
     if m is not None:
         out.update(model_alone_gap_interval95_db=median_gap_interval(a, m), better_than_model_alone=int((a > m).sum()))
+    if seams := seam_split(a, train, idx, w, stage1.config):
+        out["seams"] = seams
     return out
+
+
+def seam_split(score: np.ndarray, train: np.ndarray, idx: np.ndarray, mix: np.ndarray, config: dict | None) -> dict:
+    """The cache's answer on the further lights whose blend spans two fit_siren subsets (`lights.across_subsets`)
+    against those inside one: stage 1's seams, which its median hides (128 lights in subsets of 50 without a halo:
+    47 of 256 lights, median 38.69 against 48.14 dB; docs/performance.md). {} with one subset, or for a store that
+    does not record its subset size."""
+    size = (config or {}).get("subset_size")
+    if not size or n_subsets(len(train), int(size)) < 2:
+        return {}
+    across = across_subsets(train, idx, mix, int(size))
+    halo = int((config.get("fit") or {}).get("halo", 0))
+    return {"subset_size": int(size), "halo": halo, "lights": int(across.sum()),
+            "answer_median_across": median(score[across]) if across.any() else None,
+            "answer_median_within": median(score[~across]) if (~across).any() else None}
 
 
 def voxel_metrics(state: dict | None, stage1, generated, truth: EvalTruth, light_sets: dict, *, blend_k: int,

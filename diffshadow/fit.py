@@ -105,6 +105,9 @@ class FitConfig:
     # over the cap thinned the pool as lights were added (200 lights: 1 per light -1.8 dB blend, docs/performance.md)
     blend_per_light: int = 64
     blend_points: int = 1024  # presampled points with exact shadows per pool light
+    # a subset also fits the lights of other subsets that blends across its border take (`subset_halo`), and
+    # discards them: the blend loss then couples the lights on either side of a seam (docs/performance.md)
+    halo: int = 0  # rings of other subsets' lights (0: none)
     # each optimiser step as a replayed CUDA graph (diffshadow.graphs), with grid targets (sweep or march): "auto"
     # where the device is CUDA, True also asked for elsewhere (the fit then steps eagerly, saying so), False never
     # (docs/performance.md: H200 timings). A fit's checkpoint records what was done (True or False)
@@ -125,6 +128,8 @@ class FitConfig:
             raise ValueError(f"fit.blend_weight, blend_per_light, blend_points: expected a weight >= 0 and, when it "
                              f"is above 0, counts >= 1; got {cfg.blend_weight}, {cfg.blend_per_light}, "
                              f"{cfg.blend_points}")
+        if cfg.halo < 0:
+            raise ValueError(f"fit.halo: expected a count of rings >= 0, got {cfg.halo!r}")
         if cfg.precision not in PRECISIONS:
             raise ValueError(f"fit.precision: expected 'float32' or 'bfloat16', got {cfg.precision!r}")
         check_weighting(cfg.blend_weights, "fit.blend_weights")
@@ -179,14 +184,41 @@ def target_store(cfg: FitConfig, k: int, grid_shape: tuple[int, ...],
 CPU_CHUNK = 512
 
 
+def _pool_blends(train: np.ndarray, center, k: int, cfg: FitConfig) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Every subset's candidate pool lights (`cfg.blend_per_light` per training light in their cap, the same for
+    every subset), the training lights each one's blend takes and their weights."""
+    lights = training_pool(train, center, cfg.blend_per_light * len(train), seed=cfg.seed + FIT_BLEND_POOL_SEED)
+    idx, mix = blend_weights(train, lights, min(BLEND_K, k), cfg.blend_weights)
+    return lights, idx, mix
+
+
+def subset_halo(train: np.ndarray, center, subset: list[int], cfg: FitConfig) -> list[list[int]]:
+    """The rings (`fit.halo` of them) of other subsets' lights that the blends across this subset's border take,
+    each sorted: ring 1 those of the blends that take a light of the subset, ring 2 those of the blends that take
+    one of ring 1, and so on. Fitted with the subset and discarded, so that the pool lights on its seams are in
+    its blend loss; [] when the halo or the blend loss is off or the subset is every light."""
+    train = np.asarray(train, dtype=np.float64)
+    if not cfg.halo or cfg.blend_weight <= 0 or len(subset) < 2 or len(subset) == len(train):
+        return []
+    _, idx, _ = _pool_blends(train, center, len(subset), cfg)
+    inner, rings = set(subset), []
+    for _ in range(cfg.halo):
+        touching = np.isin(idx, sorted(inner)).any(axis=1)
+        rings.append(sorted(set(np.unique(idx[touching]).tolist()) - inner))
+        inner |= set(rings[-1])
+    return rings
+
+
 def blend_pool(volume: Volume, tf: TransferFunction, train: np.ndarray, center, subset: list[int], cfg: FitConfig,
-               *, device: torch.device | str = "cpu") -> PoolLights | None:
+               *, halo: list[list[int]] = (), device: torch.device | str = "cpu") -> PoolLights | None:
     """Pool lights for the blend loss: `cfg.blend_per_light` directions per training light drawn in the training
     lights' cap (the same for every subset), of which this subset takes those whose blend (`cfg.blend_weights`:
     the corners of their triangle among all the training lights, or their k = min(BLEND_K, len(subset)) nearest)
     takes only its own lights, with their exact shadow at `cfg.blend_points` points (`neighbours` are rows of the
     subset); None when the blend loss is off or the subset has fewer than 2 lights. Coupling stays inside a
-    subset, so subsets are still fitted as independent jobs.
+    subset, so subsets are still fitted as independent jobs. With a `halo` (`subset_halo`'s rings, fitted after the
+    subset's lights in that order), a pool light whose blend takes the halo's lights counts where it takes one of
+    the subset's too, or of a ring inside the outermost.
 
     A pool light at a subset's border is left out, not blended from the subset's own nearest lights: that
     blend is not the one the diffusion model's pool prior and the weight-blend baseline use, and fitting
@@ -194,15 +226,18 @@ def blend_pool(volume: Volume, tf: TransferFunction, train: np.ndarray, center, 
     if cfg.blend_weight <= 0 or len(subset) < 2:
         return None
     train = np.asarray(train, dtype=np.float64)
-    lights = training_pool(train, center, cfg.blend_per_light * len(train), seed=cfg.seed + FIT_BLEND_POOL_SEED)
-    idx, mix = blend_weights(train, lights, min(BLEND_K, len(subset)), cfg.blend_weights)
-    rows = np.flatnonzero(np.isin(idx, subset).all(axis=1))
+    lights, idx, mix = _pool_blends(train, center, len(subset), cfg)
+    fitted = list(subset) + [i for ring in halo for i in ring]
+    # a pool light counts where its blend takes a light of the subset or of a ring inside the outermost, whose
+    # lights then have blends on every side, as in their own subset
+    inner = list(subset) + [i for ring in halo[:-1] for i in ring]
+    rows = np.flatnonzero(np.isin(idx, fitted).all(axis=1) & np.isin(idx, inner).any(axis=1))
     if len(rows) == 0:
         return None
     points, values = presample(volume, tf, lights[rows], cfg.blend_points, seed=cfg.seed, stream=Stream.FIT_BLEND_POOL,
                                device=device)
     row_of = np.full(len(train), -1)
-    row_of[subset] = np.arange(len(subset))  # light index -> row of the subset
+    row_of[fitted] = np.arange(len(fitted))  # light index -> row of the fit
     return PoolLights(lights=torch.as_tensor(lights[rows], device="cpu"), points=points, values=values,
                       neighbours=torch.as_tensor(row_of[idx[rows]], device="cpu"),
                       blend=torch.as_tensor(mix[rows], dtype=torch.float32, device="cpu"))

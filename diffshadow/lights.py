@@ -616,6 +616,18 @@ def light_subsets(train, subset_size: int) -> list[list[int]]:
     return split(np.arange(len(dirs)))
 
 
+def across_subsets(train, idx: np.ndarray, mix: np.ndarray, subset_size: int) -> np.ndarray:
+    """(Q,) bool: whether each query's blend (`blend_weights`' `idx`, `mix`) takes lights with weight from more
+    than one of `light_subsets(train, subset_size)`: a seam, where the blend loss of separate fit_siren jobs
+    coupled its SIRENs only through a halo (`fit.halo`), or not at all."""
+    label = np.empty(len(np.asarray(train).reshape(-1, 3)), dtype=np.int64)
+    for s, lights in enumerate(light_subsets(train, subset_size)):
+        label[lights] = s
+    sub = np.where(np.asarray(mix) > 1e-6, label[np.asarray(idx)], -1)
+    first = sub[np.arange(len(sub)), np.argmax(sub >= 0, axis=1)]
+    return ((sub != first[:, None]) & (sub >= 0)).any(axis=1)
+
+
 def subset_indices(train, subset_size: int, subset: int) -> list[int]:
     """Lights of subset `subset` (0..S-1, S = ceil(n / size)): its patch of `light_subsets`."""
     check_subset(len(np.asarray(train).reshape(-1, 3)), subset_size, subset)

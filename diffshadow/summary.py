@@ -482,7 +482,22 @@ def _further_rows(wide: dict, made: str) -> list[list[str]]:
     name = f"{blend_label(wide)} training SIRENs' weights" + (" (fp32)" if "codec" in wide else "")
     rows.append([further, name if rows else made, _num(wide["weight_blend_psnr_median"]), "",
                  drawn + _tail(wide, "weight_blend")])
+    rows[0][-1] += _seams(wide.get("seams"))
     return rows
+
+
+def _rings(halo: int) -> str:
+    return "no halo" if not halo else f"a halo of {halo} ring{'s' if halo > 1 else ''}"
+
+
+def _seams(seams: dict | None) -> str:
+    """Where the further lights' blends span two fit_siren subsets: the answer's median there and inside one."""
+    if not seams or not seams["lights"]:
+        return ""
+    inside = seams["answer_median_within"]
+    return (f"; {seams['lights']:,} of them blend lights of two fit_siren subsets (subset_size {seams['subset_size']}, "
+            f"{_rings(seams['halo'])}): median {seams['answer_median_across']:.2f} dB there"
+            + ("" if inside is None else f", {inside:.2f} inside one"))
 
 
 def _share_zero(unseen: dict, wide: dict | None) -> str:

@@ -1,3 +1,5 @@
+from dataclasses import replace
+
 import numpy as np
 import pytest
 import torch
@@ -280,6 +282,40 @@ def test_blend_pool_holds_the_lights_whose_blend_is_the_subsets_blended_as_the_c
     assert 0 < len(taken) < 64 and len(torch.unique(taken, dim=0)) == len(taken)  # border lights: no subset's
     assert blend_pool(vol, tf, train, center, [0, 1], FitConfig.from_config(dict(blend_weight=0.0))) is None
     assert blend_pool(vol, tf, train, center, [2], cfg) is None  # nothing to blend
+
+
+@pytest.mark.parametrize("rings", [1, 2])
+def test_with_a_halo_every_pool_light_is_in_some_subsets_blend_loss_blended_as_the_cache_blends(scene, rings):
+    """fit.halo: a subset fits, besides its own lights, rings of the other subsets' lights that blends across its
+    border take; then every pool light's blend, seams included, is in the blend loss of each subset it touches, and
+    its neighbours are rows of the subset's lights followed by the rings'. With two rings, ring 1's lights also
+    get the blends on their far side, as in their own subset."""
+    from diffshadow.fit import blend_pool, subset_halo
+    from diffshadow.lights import blend_weights, fibonacci_sphere, light_subsets, select_region
+
+    vol, tf, _ = scene
+    sphere = fibonacci_sphere(400)
+    train, center = sphere[select_region(sphere, [0, 0, 1], 48)], np.array([0.0, 0.0, 1.0])
+    cfg = FitConfig.from_config(dict(blend_weight=0.5, blend_per_light=2, blend_points=8, halo=rings))
+    taken = []
+    for subset in light_subsets(train, 16):
+        halo = subset_halo(train, center, subset, cfg)
+        flat = [i for ring in halo for i in ring]
+        assert len(halo) == rings and all(ring == sorted(ring) for ring in halo)
+        assert len(set(flat)) == len(flat) and not set(flat) & set(subset)
+        pool = blend_pool(vol, tf, train, center, subset, cfg, halo=halo)
+        idx, mix = blend_weights(train, pool.lights.numpy(), 4, "triangle")
+        assert (np.asarray(subset + flat)[pool.neighbours.numpy()] == idx).all()
+        inner = subset + flat[:len(flat) - len(halo[-1])]
+        assert np.isin(idx, inner).any(axis=1).all()  # blends of the outermost ring alone are not fitted here
+        assert (np.isin(idx, subset).any(axis=1).sum() < len(idx)) == (rings > 1)
+        assert torch.allclose(pool.blend, torch.as_tensor(mix, dtype=torch.float32))
+        taken.append(pool.lights)
+    assert len(torch.unique(torch.cat(taken), dim=0)) == 96  # no pool light left out at a seam
+    assert subset_halo(train, center, light_subsets(train, 16)[0], replace(cfg, halo=0)) == []
+    assert subset_halo(train, center, list(range(48)), cfg) == []  # one subset: no seam
+    with pytest.raises(ValueError, match=r"^fit.halo: expected a count of rings >= 0, got -1$"):
+        FitConfig.from_config(dict(halo=-1))
 
 
 def test_an_unknown_blend_weighting_for_the_blend_loss_is_named():

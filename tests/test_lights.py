@@ -199,6 +199,25 @@ def test_light_subsets_keep_a_pool_lights_neighbours_together():
     assert together(light_subsets(train, 50)) > 0.6
 
 
+def test_a_blend_across_subsets_is_one_whose_weighted_lights_lie_in_two():
+    from diffshadow.lights import across_subsets, blend_weights, light_subsets, training_pool
+
+    sphere = fibonacci_sphere(1600)
+    train = sphere[select_region(sphere, [0, 0, 1], 100)]
+    owner = np.empty(100, dtype=int)
+    for s, g in enumerate(light_subsets(train, 50)):
+        owner[g] = s
+    query = training_pool(train, [0, 0, 1], 500, seed=3)
+    idx, mix = blend_weights(train, query, 4, "triangle")
+    across = across_subsets(train, idx, mix, 50)
+    owners = [{owner[i] for i, w in zip(r, m, strict=True) if w > 1e-6} for r, m in zip(idx, mix, strict=True)]
+    assert across.tolist() == [len(o) > 1 for o in owners]
+    assert 0 < across.sum() < len(query) / 2  # the seam is a line through the cap
+    assert not across_subsets(train, idx, mix, 100).any()  # one subset
+    on_lights = blend_weights(train, train, 4, "triangle")  # a training light's blend: itself alone
+    assert not across_subsets(train, *on_lights, 50).any()
+
+
 def test_subset_out_of_range_and_bad_size_are_named():
     from diffshadow.lights import index_ranges, subset_indices
 

@@ -243,6 +243,14 @@ def test_the_further_rows_name_what_each_cache_answers_with():
                            "model_alone_psnr_p10": 33.0, "weight_blend_psnr_p10": 37.9}, "mixed")
     assert [r[4].split("; ")[-1] for r in tails] == [f"a tenth of the lights under {v} dB"
                                                     for v in ("37.91", "33.00", "37.90")]
+    seams = {"subset_size": 50, "halo": 0, "lights": 47, "answer_median_across": 38.69,
+             "answer_median_within": 48.14}
+    seamed = _further_rows({**base, "generated_psnr_median": 39.49, "seams": seams}, "blended (cache: blend)")
+    assert seamed[0][4].endswith("; 47 of them blend lights of two fit_siren subsets (subset_size 50, no halo): "
+                                 "median 38.69 dB there, 48.14 inside one")
+    assert seamed[0][4].startswith(blend[0][4])
+    ringed = _further_rows({**base, "seams": {**seams, "halo": 2}}, "blended (cache: blend)")
+    assert "(subset_size 50, a halo of 2 rings)" in ringed[0][4]
 
 
 def test_a_codec_cache_has_no_model_rows_even_where_an_old_runs_files_remain(tmp_path):

@@ -68,7 +68,15 @@ def fit_subset(volume_path: Path, lights_path: Path, init_path: Path, subset: in
                siren: SirenConfig, fit: FitConfig, subset_size: int, config: dict, device: torch.device) -> None:
     """The SIRENs of one light subset, fitted jointly and checked on held-out points (resumable)."""
     from diffshadow import artifacts
-    from diffshadow.fit import FitError, blend_pool, check_psnr, describe_targets, evaluate_psnr, fit_sirens
+    from diffshadow.fit import (
+        FitError,
+        blend_pool,
+        check_psnr,
+        describe_targets,
+        evaluate_psnr,
+        fit_sirens,
+        subset_halo,
+    )
 
     volume, tf = load_prepared(volume_path)
     sets = read_lights(lights_path)
@@ -80,16 +88,21 @@ def fit_subset(volume_path: Path, lights_path: Path, init_path: Path, subset: in
     fit = dataclasses.replace(fit, steps=chosen.steps, points=chosen.points)
     out = Path(out)
     where = f"fit_siren subset {subset} ({volume_path}"
+    halo = subset_halo(train, sets["center"], idx, fit)
+    fitted = idx + [i for ring in halo for i in ring]
     print(f"subset {subset}: fitting {len(idx)} lights jointly ({index_ranges(idx)})", flush=True)
-    print(describe_targets(fit, len(idx), volume.data.shape, device), flush=True)
+    for r, ring in enumerate(halo, 1):
+        print(f"halo ring {r}: {len(ring)} lights of other subsets fitted with them, not kept ({index_ranges(ring)})",
+              flush=True)
+    print(describe_targets(fit, len(fitted), volume.data.shape, device), flush=True)
     t0 = time.perf_counter()
-    pool = blend_pool(volume, tf, train, sets["center"], idx, fit, device=device)
+    pool = blend_pool(volume, tf, train, sets["center"], idx, fit, halo=halo, device=device)
     if pool is not None:
         print(f"blend loss: {len(pool.lights)} pool lights with exact shadows at {fit.blend_points} points each "
               f"({time.perf_counter() - t0:.0f} s), weight {fit.blend_weight:g}", flush=True)
     try:
-        weights = fit_sirens(init, layout, siren, volume, tf, train[idx], fit, stream=subset, light_index=idx,
-                             checkpoint=out.with_name(out.name + ".ckpt"), pool=pool, device=device)
+        weights = fit_sirens(init, layout, siren, volume, tf, train[fitted], fit, stream=subset, light_index=fitted,
+                             checkpoint=out.with_name(out.name + ".ckpt"), pool=pool, device=device)[:len(idx)]
     except FitError as e:
         raise FitError(f"{where}, lights {lights_path}): {e}") from None
     box, vis = evaluate_psnr(weights, layout, siren, volume, tf, train[idx], n_points=fit.eval_points,

@@ -85,6 +85,15 @@ def as_json(scene, *keys):
     return _as_json(scene_config(scene), *keys)
 
 
+def fit_json(scene, *keys, halo=True):
+    """as_json for stage 1's jobs, without `fit.halo` where it changes nothing (preoptimize, `halo` False; a scene
+    of one subset, which has no seam), so that a run made before it was a setting is not rerun for it."""
+    cfg = scene_config(scene)
+    if not halo or n_subsets(scene) == 1:
+        cfg = {**cfg, "fit": {k: v for k, v in cfg["fit"].items() if k != "halo"}}
+    return _as_json(cfg, *keys)
+
+
 def sampler_checkpoint(wildcards):
     """The diffusion model that samples: fine-tuned with the rendering loss when the scene enables it."""
     if scene_config(wildcards.scene)["finetune"]["enabled"]:

@@ -27,7 +27,7 @@ rule preoptimize:
     output:
         "results/{scene}/siren_init.pt",
     params:
-        cfg=lambda wc: as_json(wc.scene, "siren", "fit", "preoptimize"),
+        cfg=lambda wc: fit_json(wc.scene, "siren", "fit", "preoptimize", halo=False),
     threads: 1
     priority: 10  # the head of the longest chain: the side jobs (targets, data INR, truth) fill the other core
     log:
@@ -49,7 +49,7 @@ rule fit_siren:
     output:
         "results/{scene}/sirens/subset_{subset}.npz",
     params:
-        cfg=lambda wc: as_json(wc.scene, "siren", "fit", "subset_size"),
+        cfg=lambda wc: fit_json(wc.scene, "siren", "fit", "subset_size"),
     wildcard_constraints:
         subset=r"\d+",
     threads: 1
