@@ -287,6 +287,16 @@ def as_json(cfg: dict, *keys: str) -> str:
     return json.dumps(sections, sort_keys=True)
 
 
+def stage1_json(cfg: dict, *keys: str, halo: bool = True) -> str:
+    """as_json for stage 1's jobs, without `fit.halo` where it changes nothing: `halo` False (preoptimize) or a
+    scene of one subset, which has no seam; so a run made before it was a setting is not rerun for it, and a
+    subset fitted by Snakemake or by Parsl records the same settings."""
+    one_subset = -(-int(cfg["lights"]["count"]) // int(cfg["subset_size"])) == 1
+    if not halo or one_subset:
+        cfg = {**cfg, "fit": {k: v for k, v in cfg["fit"].items() if k != "halo"}}
+    return as_json(cfg, *keys)
+
+
 class _Sections(dict):
     """A parsed --config-json whose missing section is a one-line ConfigError, not a KeyError traceback."""
 

@@ -86,7 +86,7 @@ def run(parsl_config: Path, jobs: list[dict], log=print) -> list[str]:
 def fit_pending(parsl_config: Path, configfile: Path, scenes: list[str] | None, results: Path, *,
                 threads: int = 1, log=print) -> None:
     """Every subset of `scenes` (default: the config's) whose file under `results` is missing."""
-    from diffshadow.config import as_json, load_run, scene_config
+    from diffshadow.config import load_run, scene_config, stage1_json
     from diffshadow.lights import n_subsets
 
     if not parsl_config.is_file():  # before any scene is read: with nothing pending it would go unnoticed
@@ -106,7 +106,7 @@ def fit_pending(parsl_config: Path, configfile: Path, scenes: list[str] | None, 
         log(f"[parsl-fit] {scene}: {len(todo)} of {n} subsets pending")
         # the sections as the rule's --config-json gives them (keys sorted, settings at their old behaviour left
         # out): the subset file records them, and should hold the same bytes whichever way it was fitted
-        sel = json.loads(as_json(cfg, "siren", "fit", "subset_size"))
+        sel = json.loads(stage1_json(cfg, "siren", "fit", "subset_size"))
         jobs += [{"paths": {**{k: str(v) for k, v in paths.items()}, "out": str(base / "sirens" / f"subset_{i}.npz"),
                             "benchmark": str(base / "benchmarks" / f"fit_siren_{i}.tsv")},
                   "subset": i, "cfg": sel, "device": run_cfg.get("device"), "threads": threads,

@@ -239,3 +239,22 @@ def test_a_data_inr_step_never_blocks_on_its_points_and_its_update_copies_nothin
     with (traffic := HostTraffic()):
         run.update(draw)
     assert (drawn.copies, drawn.blocking, traffic.copies, traffic.reads) == (1, 0, 0, 0)
+
+
+def test_the_fit_bench_times_a_subset_with_the_halo_it_fits(tiny, scene):
+    """With several subsets, a fit job fits its halo too (`fit.halo`): the bench's step covers the subset's lights
+    and the mean halo of the config's own light set, and counts only the subset's as its SIRENs."""
+    import numpy as np
+
+    from diffshadow.fit import FitConfig, halo_size
+    from diffshadow.lights import make_light_sets
+
+    cfg = merge(tiny, {"lights": {"count": 24, "sphere": 96}, "subset_size": 8})
+    timed = BUILDERS["fit_siren"](cfg, torch.device("cpu"), *scene)
+    sets = make_light_sets(96, 24, cfg["lights"]["center"], 2, cfg["lights"]["seed"], cfg["lights"]["layout"])
+    train = np.asarray(sets["train"]["cartesian"])
+    halo = round(halo_size(train, sets["center"], 8, FitConfig.from_config(cfg["fit"])))
+    assert halo > 0 and timed.step.__self__.k == 8 + halo and timed.units == 8
+    assert f"3 jobs of up to 8 lights and a halo of {halo}" in timed.note
+    off = BUILDERS["fit_siren"](merge(cfg, {"fit": {"halo": 0}}), torch.device("cpu"), *scene)
+    assert off.step.__self__.k == 8 and "halo" not in off.note

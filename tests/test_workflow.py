@@ -721,6 +721,29 @@ def test_the_evaluation_runs_on_the_runs_device_unless_evaluate_device_is_cpu(fi
             assert "--device cpu" not in next(ln for ln in lines["run"] if f" {command} " in ln), command
 
 
+def test_the_halo_is_a_fit_setting_only_where_the_scene_has_seams(finished):
+    """fit.halo changes the fits of a scene of several subsets (their params rerun them) and nothing else:
+    preoptimize's command never carries it, nor a one-subset scene's fit (no seam), so a run made before it was a
+    setting reruns nothing for it. The finished run's subsets fitted the other subset's lights as their halo and
+    kept their own (the store: 4 lights, tests above)."""
+    import json
+
+    log = (finished / "results/nucleon/logs/fit_siren_0.log").read_text()
+    assert "halo ring 1: 2 lights of other subsets fitted with them, not kept" in log
+    no_halo = planned(snakemake(finished, "-n", config={**TINY, "fit": {**TINY["fit"], "halo": 0}}))
+    assert no_halo["fit_siren"] == 2 and "preoptimize" not in no_halo
+
+    def fit_settings(config: dict) -> dict[str, dict]:
+        shell = snakemake(finished, "-n", "-p", "-f", "results/nucleon/siren_init.pt",
+                          "results/nucleon/sirens/subset_0.npz", config=config).stdout
+        found = re.findall(r"diffshadow .*?\b(preoptimize|fit-siren)\b.*?--config-json '(\{.*?\})'", shell)
+        return {command: json.loads(cfg)["fit"] for command, cfg in found}
+
+    assert {k: "halo" in v for k, v in fit_settings(TINY).items()} == {"preoptimize": False, "fit-siren": True}
+    one = fit_settings({**TINY, "subset_size": 4})
+    assert set(one) == {"preoptimize", "fit-siren"} and not any("halo" in v for v in one.values())
+
+
 def test_rerun_one_subset(finished):
     """Forcing one subset plans it alone (-f) or with everything downstream of it (-R); a corrupted subset file
     fails the collection, naming it; rerunning the subset refits it alone, to the same bytes (same seed), and

@@ -5,6 +5,7 @@ import json
 from diffshadow.config import ConfigError as _ConfigError
 from diffshadow.config import as_json as _as_json
 from diffshadow.config import scene_config as _scene_config
+from diffshadow.config import stage1_json as _stage1_json
 from diffshadow.diffusion.mix import model_alone as _model_alone
 from diffshadow.hpc import JOB_ENVIRONMENT as _JOB_ENVIRONMENT
 from diffshadow.hpc import JOB_LOG as _JOB_LOG
@@ -86,12 +87,8 @@ def as_json(scene, *keys):
 
 
 def fit_json(scene, *keys, halo=True):
-    """as_json for stage 1's jobs, without `fit.halo` where it changes nothing (preoptimize, `halo` False; a scene
-    of one subset, which has no seam), so that a run made before it was a setting is not rerun for it."""
-    cfg = scene_config(scene)
-    if not halo or n_subsets(scene) == 1:
-        cfg = {**cfg, "fit": {k: v for k, v in cfg["fit"].items() if k != "halo"}}
-    return _as_json(cfg, *keys)
+    """as_json for stage 1's jobs (`config.stage1_json`: without `fit.halo` where it changes nothing)."""
+    return _stage1_json(scene_config(scene), *keys, halo=halo)
 
 
 def sampler_checkpoint(wildcards):
