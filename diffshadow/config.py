@@ -287,14 +287,19 @@ def as_json(cfg: dict, *keys: str) -> str:
     return json.dumps(sections, sort_keys=True)
 
 
-def stage1_json(cfg: dict, *keys: str, halo: bool = True) -> str:
-    """as_json for stage 1's jobs, without `fit.halo` where it changes nothing: `halo` False (preoptimize) or a
-    scene of one subset, which has no seam; so a run made before it was a setting is not rerun for it, and a
-    subset fitted by Snakemake or by Parsl records the same settings."""
+def halo_where_used(cfg: dict, *, halo: bool = True) -> dict:
+    """`cfg` without `fit.halo` where it changes nothing: `halo` False (preoptimize's job) or a scene of one subset,
+    which has no seam. Rule params built from it do not rerun a run made before the halo was a setting."""
     one_subset = -(-int(cfg["lights"]["count"]) // int(cfg["subset_size"])) == 1
-    if not halo or one_subset:
-        cfg = {**cfg, "fit": {k: v for k, v in cfg["fit"].items() if k != "halo"}}
-    return as_json(cfg, *keys)
+    if halo and not one_subset:
+        return cfg
+    return {**cfg, "fit": {k: v for k, v in cfg["fit"].items() if k != "halo"}}
+
+
+def stage1_json(cfg: dict, *keys: str, halo: bool = True) -> str:
+    """as_json for stage 1's jobs, `fit.halo` only where it is used (`halo_where_used`): a subset fitted by
+    Snakemake or by Parsl then records the same settings."""
+    return as_json(halo_where_used(cfg, halo=halo), *keys)
 
 
 class _Sections(dict):

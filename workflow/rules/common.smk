@@ -5,6 +5,7 @@ import json
 from diffshadow.config import ConfigError as _ConfigError
 from diffshadow.config import as_json as _as_json
 from diffshadow.config import scene_config as _scene_config
+from diffshadow.config import halo_where_used as _halo_where_used
 from diffshadow.config import stage1_json as _stage1_json
 from diffshadow.diffusion.mix import model_alone as _model_alone
 from diffshadow.hpc import JOB_ENVIRONMENT as _JOB_ENVIRONMENT
@@ -89,6 +90,11 @@ def as_json(scene, *keys):
 def fit_json(scene, *keys, halo=True):
     """as_json for stage 1's jobs (`config.stage1_json`: without `fit.halo` where it changes nothing)."""
     return _stage1_json(scene_config(scene), *keys, halo=halo)
+
+
+def report_json(scene):
+    """The scene's whole config for the report, `fit.halo` only where it is used (`config.halo_where_used`)."""
+    return json.dumps(_halo_where_used(scene_config(scene)), sort_keys=True)
 
 
 def sampler_checkpoint(wildcards):

@@ -47,7 +47,7 @@ rule report_figures:
         storage=report("results/{scene}/report/storage.png", caption="../report/storage.rst",
                        category="{scene}", subcategory="storage"),
     params:
-        cfg=lambda wc: json.dumps(scene_config(wc.scene), sort_keys=True),
+        cfg=lambda wc: report_json(wc.scene),
         run=lambda wc: caption_values(wc.scene),  # for the captions
     threads: 1  # figures only (matplotlib, no torch): it starts beside `caches` when evaluate_images is done
     log:
