@@ -360,9 +360,9 @@ def parse_json(text: str, what: str = "--config-json") -> dict[str, Any]:
 # line) or is killed for it (hpc.killed_lines)
 MEMORY_KEYS = {
     "preoptimize": "fit.points or fit.grid_upsample (its target grid has grid_upsample³ x the voxels)",
-    "fit-siren": "subset_size (SIRENs fitted together, a target grid each, or fit.steps x fit.points values each "
-                 "with fit.target_store: table), fit.grid_upsample (a grid holds grid_upsample³ x the voxels) or "
-                 "fit.points",
+    "fit-siren": "subset_size or fit.halo (SIRENs fitted together, a subset's and its halo's, a target grid each, "
+                 "or fit.steps x fit.points values each with fit.target_store: table), fit.grid_upsample (a grid "
+                 "holds grid_upsample³ x the voxels) or fit.points",
     "train-data-inr": "data_inr.points",
     "presample": "diffusion.presample_points",
     "train-diffusion": "diffusion.batch_size or diffusion.geometry_points",

@@ -235,8 +235,8 @@ def blend_pool(volume: Volume, tf: TransferFunction, train: np.ndarray, center, 
     subset's lights in that order), a pool light whose blend takes the halo's lights counts where it takes one of
     the subset's too, or of a ring inside the outermost.
 
-    A pool light at a subset's border is left out, not blended from the subset's own nearest lights: that
-    blend is not the one the diffusion model's pool prior and the weight-blend baseline use, and fitting
+    Without a halo, a pool light at a subset's border is left out, not blended from the subset's own nearest lights:
+    that blend is not the one the diffusion model's pool prior and the weight-blend baseline use, and fitting
     towards it cost nucleon's weight blend 2.7 dB and tooth's 2.6 dB in two subsets of 16 (docs/performance.md)."""
     if cfg.blend_weight <= 0 or len(subset) < 2:
         return None

@@ -700,7 +700,7 @@ def test_only_jobs_killed_by_sigkill_are_explained_in_either_way_snakemake_says_
     said = killed_lines(text)
     assert [line.split()[0] for line in said] == ["fit_siren", "train_diffusion", "summary"]
     assert "(exit 137; its log, results/s/logs/fit_siren.log, ends without a word)" in said[0]
-    assert "lower subset_size (SIRENs fitted together" in said[0]
+    assert "lower subset_size or fit.halo (SIRENs fitted together" in said[0]
     assert "lower diffusion.batch_size or diffusion.geometry_points," in said[1]
     assert "(exit 137; its log ends without a word)" in said[2] and "the sizes in this command's config" in said[2]
     # resumed where a checkpoint is kept (it said "resumes" of every job, the summary's too)
