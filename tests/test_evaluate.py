@@ -264,3 +264,25 @@ def test_the_median_gap_interval_is_paired_fixed_and_says_when_a_gap_is_the_draw
     assert median_gap_interval(noise, b) == [lo, hi] and lo < 0 < hi
     assert median_gap_interval(b, noise) == pytest.approx([-hi, -lo])
     assert median_gap_interval(noise + 3.0, b)[0] > 0
+
+
+def test_the_seam_split_sets_the_answer_across_subsets_beside_the_answer_inside_one():
+    """`wide.seams`: the answer's median on the lights whose blend spans two fit_siren subsets and on the rest, with
+    the subset size and halo the store records; nothing for one subset or a store that records no subset size."""
+    from diffshadow.evaluate import seam_split
+    from diffshadow.lights import across_subsets, blend_weights, fibonacci_sphere, select_region, training_pool
+
+    sphere = fibonacci_sphere(1600)
+    train = sphere[select_region(sphere, [0, 0, 1], 100)]
+    query = training_pool(train, [0, 0, 1], 256, seed=2)
+    idx, mix = blend_weights(train, query, 4, "triangle")
+    score = np.random.default_rng(0).normal(45.0, 3.0, len(query))
+    across = across_subsets(train, idx, mix, 50)
+    split = seam_split(score, train, idx, mix, {"subset_size": 50, "fit": {"halo": 1}})
+    assert split == {"subset_size": 50, "halo": 1, "lights": int(across.sum()),
+                     "answer_median_across": pytest.approx(float(np.median(score[across]))),
+                     "answer_median_within": pytest.approx(float(np.median(score[~across])))}
+    assert 0 < split["lights"] < len(query)
+    assert seam_split(score, train, idx, mix, {"subset_size": 100, "fit": {"halo": 1}}) == {}
+    assert seam_split(score, train, idx, mix, {"fit": {}}) == {} == seam_split(score, train, idx, mix, None)
+    assert seam_split(score, train, idx, mix, {"subset_size": 50, "fit": {}})["halo"] == 0  # a store before it
