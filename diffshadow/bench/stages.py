@@ -115,12 +115,10 @@ def _halo(cfg: dict, fit) -> int:
     from diffshadow.fit import halo_size
     from diffshadow.lights import make_light_sets
 
-    n, size = int(cfg["lights"]["count"]), int(cfg["subset_size"])
-    if not fit.halo or fit.blend_weight <= 0 or n <= size:
-        return 0
     lc = cfg["lights"]
-    sets = make_light_sets(int(lc["sphere"]), n, lc["center"], int(lc["unseen"]), int(lc["seed"]), lc["layout"])
-    return round(halo_size(np.asarray(sets["train"]["cartesian"]), sets["center"], size, fit))
+    sets = make_light_sets(int(lc["sphere"]), int(lc["count"]), lc["center"], int(lc["unseen"]), int(lc["seed"]),
+                           lc["layout"])
+    return round(halo_size(np.asarray(sets["train"]["cartesian"]), sets["center"], int(cfg["subset_size"]), fit))
 
 
 def _pool(m: int, points: int, n_train: int, cfg: dict, volume, *, seed: int):
