@@ -190,7 +190,7 @@ _POOL_BLENDS: dict[str, tuple[np.ndarray, np.ndarray, np.ndarray]] = {}
 def _pool_blends(train: np.ndarray, center, k: int, cfg: FitConfig) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Every subset's candidate pool lights (`cfg.blend_per_light` per training light in their cap, the same for
     every subset), the training lights each one's blend takes and their weights. Kept for the process's next call
-    with the same arguments (the halo's and the pool's): at the paper's 2,000 lights it takes ~45 s on a CPU."""
+    with the same arguments (the halo's and the pool's, and the fit bench's halo of every subset)."""
     key = hashlib.sha256(np.ascontiguousarray(train, dtype=np.float64).tobytes() + json.dumps(
         [np.asarray(center, np.float64).tolist(), min(BLEND_K, k), cfg.blend_per_light, cfg.seed,
          cfg.blend_weights]).encode()).hexdigest()

@@ -274,25 +274,41 @@ class Triangulation:
         # q = la a + lb b + lc c by Cramer's rule: la = det(q, b, c) / det(a, b, c), and so on
         self.cross = np.stack([np.cross(b, c), np.cross(c, a), np.cross(a, b)], axis=1)  # (F, 3 corners, 3)
         self.det = _dot3(a, self.cross[:, 0])
+        # each face's circumscribed cap {x: n . x >= cos}, cut by the face's plane: it holds the face's part of the
+        # sphere where the origin lies inside the hull (cos > 0), and no other light (the faces are Delaunay)
+        normal = np.cross(b - a, c - a)
+        normal /= np.linalg.norm(normal, axis=1, keepdims=True)
+        cos = _dot3(normal, a)
+        self.cap_normal, self.cap_cos = np.where(cos[:, None] < 0, -normal, normal), np.abs(cos)
+        self._index_caps()
+
+    def _index_caps(self) -> None:
+        """A k-d tree over the centres of the faces' caps of about the lights' spacing, searched as far as the
+        widest of them reaches; the wide ones (the fan past a region's rim, ~60 degrees) are tested directly,
+        and a face whose plane does not leave the origin inside (no cap) everywhere."""
+        from scipy.spatial import cKDTree
+
+        capped = self.cap_cos > CAP_SLACK
+        radius = np.arccos(np.clip(self.cap_cos, -1.0, 1.0))
+        small = capped & (radius <= WIDE_CAP * np.median(radius[capped])) if capped.any() else capped
+        self._small, self._wide, self._everywhere = (np.flatnonzero(m) for m in (small, capped & ~small, ~capped))
+        self._tree = cKDTree(self.cap_normal[self._small])
+        # |x - n|^2 = 2 - 2 n . x for unit x and n: the chord to the rim of the widest small cap
+        self._reach = float(np.sqrt(2.0 - 2.0 * (self.cap_cos[self._small].min() - CAP_SLACK))) if small.any() else 0.0
 
     def weights(self, query: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Corners (Q, 3) and barycentric weights (Q, 3) summing to 1 (the nearest lights with inverse-angle
         weights where there are no triangles: fewer than three lights, or lights on one great circle)."""
         query = np.asarray(query, dtype=np.float64).reshape(-1, 3)
+        norm = np.linalg.norm(query, axis=1)
+        if not np.all(np.isfinite(norm) & (norm > 0)):
+            bad = int(np.flatnonzero(~(np.isfinite(norm) & (norm > 0)))[0])
+            raise LightError(f"blend query {bad}: expected a finite nonzero direction, got {query[bad].tolist()}")
         if self.faces is None:
             idx, angles = nearest(self.points[:self.n], query, min(3, self.n))
             return idx, inverse_angle_weights(angles)
-        idx = np.empty((len(query), 3), dtype=np.int64)
-        lam = np.empty((len(query), 3))
-        step = max(1, BLOCK_PAIRS // 8 // len(self.faces))  # (query, face) pairs per block: ~40 MB at a time
-        for start in range(0, len(query), step):
-            q = query[start:start + step]
-            coords = _dot3(q[:, None, None, :], self.cross[None]) / self.det[None, :, None]  # (q, F, 3)
-            # the face that holds the light: the faces' cones tile the sphere, so every other face has a negative
-            # coordinate. On a shared edge both give the same weights; ties go to the first (faces are sorted).
-            face = np.argmax(coords.min(axis=2), axis=1)
-            idx[start:start + len(q)] = self.faces[face]
-            lam[start:start + len(q)] = coords[np.arange(len(q)), face]
+        face, lam = self.holding(query, query / norm[:, None])
+        idx = self.faces[face]
         lam = np.clip(lam, 0.0, None)
         real = idx < self.n
         lam = np.where(real, lam, 0.0)  # the antipode's share: a light past the rim takes the rim edge's lights
@@ -300,6 +316,40 @@ class Triangulation:
         total = lam.sum(axis=1, keepdims=True)
         lam = np.where(total > 0, lam / np.where(total > 0, total, 1.0), real / real.sum(axis=1, keepdims=True))
         return idx, lam
+
+    def holding(self, query: np.ndarray, unit: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The face (Q,) that holds each query (Q, 3) and the query's barycentric coordinates in it (Q, 3); `unit`:
+        the queries as unit vectors. The faces' cones tile the sphere, so every other face has a negative
+        coordinate; on a shared edge both give the same weights, and ties go to the first (faces are sorted)."""
+        pair_query, pair_face = self._candidates(unit)
+        coords = _dot3(query[pair_query, None, :], self.cross[pair_face]) / self.det[pair_face, None]  # (P, 3)
+        order = np.lexsort((pair_face, -coords.min(axis=1), pair_query))
+        first = order[np.r_[True, pair_query[order][1:] != pair_query[order][:-1]]]
+        return pair_face[first], coords[first]
+
+    def _candidates(self, unit: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(query, face) pairs sorted by query, among them each query's face and every face that could tie with
+        it: the faces whose circumscribed cap holds the query, widened by CAP_SLACK (a face that does not hold a
+        direction lies outside its cap by far more than rounding), and the faces without a cap. Testing every
+        face instead cost 25 s for the 128,000 pool lights of 2,000 training lights (docs/performance.md, "The
+        pool's blends")."""
+        near = self._tree.query_ball_point(unit, self._reach) if len(self._small) else [[]] * len(unit)
+        counts = np.fromiter(map(len, near), dtype=np.int64, count=len(unit))
+        near_query = np.repeat(np.arange(len(unit)), counts)
+        near_face = self._small[np.concatenate([np.asarray(n, dtype=np.int64) for n in near] + [np.zeros(0, np.int64)])]
+        held = _dot3(unit[near_query], self.cap_normal[near_face]) >= self.cap_cos[near_face] - CAP_SLACK
+        wide_query, wide = np.nonzero(unit @ self.cap_normal[self._wide].T >= self.cap_cos[self._wide] - CAP_SLACK)
+        every_query = np.repeat(np.arange(len(unit)), len(self._everywhere))
+        pair_query = np.concatenate([near_query[held], wide_query, every_query])
+        pair_face = np.concatenate([near_face[held], self._wide[wide], np.tile(self._everywhere, len(unit))])
+        if len(np.unique(pair_query)) < len(unit):
+            raise AssertionError("a blend query outside every face's cap: the triangulation does not cover it")
+        order = np.lexsort((pair_face, pair_query))
+        return pair_query[order], pair_face[order]
+
+
+CAP_SLACK = 1e-7  # a face's circumscribed cap widened by this much cosine: rounding is ~1e-16
+WIDE_CAP = 4.0  # a face's cap wider than this many times the median is tested directly, not through the tree
 
 
 RIM_SLIVER_DEG = 135.0  # a rim triangle whose angle opposite the rim is wider is a sliver: its corner joins the rim

@@ -311,6 +311,44 @@ def test_triangle_weights_on_the_whole_sphere_and_with_too_few_lights():
         assert np.array_equal(idx, near) and np.array_equal(w, nw)
 
 
+def _every_face(tri, query: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The face that holds each query found by testing every face (the first with the largest smallest barycentric
+    coordinate), and the query's coordinates in it, summed x, y, z in order as the class sums them."""
+    coords = sum(query[:, None, None, i] * tri.cross[None, ..., i] for i in range(3)) / tri.det[None, :, None]
+    face = np.argmax(coords.min(axis=2), axis=1)
+    return face, coords[np.arange(len(query)), face]
+
+
+@pytest.mark.parametrize("lights", ["sphere", "cap", "rim", "hemisphere", "ring"])
+def test_triangle_weights_take_the_face_that_testing_every_face_takes(lights):
+    """`Triangulation.holding` tests only the faces whose circumscribed cap holds the query, yet picks the face
+    (ties: the first) and the coordinates that testing every face picks, to the bit: for directions all over the
+    sphere, on the training lights, on their edges' midpoints, at faces' centres, and for a query not of length 1."""
+    from diffshadow.lights import Triangulation
+
+    train = {"sphere": lambda: fibonacci_sphere(300), "cap": lambda: cap_lights(200),
+             "rim": lambda: np.asarray(make_light_sets(1600, 400, CAP_CENTER, 0)["train"]["cartesian"]),
+             "hemisphere": lambda: fibonacci_sphere(600)[select_region(fibonacci_sphere(600), [0.0, 0.0, 1.0], 300)],
+             "ring": lambda: _ring_with_a_light_near_the_rim(0.3)}[lights]()
+    tri = Triangulation(train)
+    corners = tri.points[tri.faces]
+    query = np.vstack([fibonacci_sphere(20000), train, (corners + np.roll(corners, 1, axis=1)).reshape(-1, 3),
+                       corners.sum(axis=1)])
+    query /= np.linalg.norm(query, axis=1, keepdims=True)
+    query[-1] *= 7.5
+    face, coords = tri.holding(query, query / np.linalg.norm(query, axis=1, keepdims=True))
+    want_face, want_coords = _every_face(tri, query)
+    assert np.array_equal(face, want_face)
+    assert coords.tobytes() == want_coords.tobytes()
+
+
+def test_a_blend_query_that_is_no_direction_is_named():
+    from diffshadow.lights import Triangulation
+
+    with pytest.raises(LightError, match=r"^blend query 1: expected a finite nonzero direction, got \[0.0, 0.0, 0.0\]"):
+        Triangulation(cap_lights(20)).weights(np.array([[0.0, 0.0, 1.0], [0.0, 0.0, 0.0]]))
+
+
 def _ring_with_a_light_near_the_rim(inset_deg: float) -> np.ndarray:
     """A centre light, 8 lights 20 degrees around it, and one more on the rim chord between two of them, `inset_deg`
     inside it (the way a cap's outermost Fibonacci lights sit nearly on a circle)."""
