@@ -287,13 +287,17 @@ def as_json(cfg: dict, *keys: str) -> str:
     return json.dumps(sections, sort_keys=True)
 
 
+SEAM_SETTINGS = ("halo", "rounds")  # fit settings that act only across the seams between subsets
+
+
 def halo_where_used(cfg: dict, *, halo: bool = True) -> dict:
-    """`cfg` without `fit.halo` where it changes nothing: `halo` False (preoptimize's job) or a scene of one subset,
-    which has no seam. Rule params built from it do not rerun a run made before the halo was a setting."""
+    """`cfg` without `fit.halo` and `fit.rounds` where they change nothing: `halo` False (preoptimize's job) or a
+    scene of one subset, which has no seam. Rule params built from it do not rerun a run made before they were
+    settings."""
     # lights.n_subsets' count: config is the bottom layer and imports nothing of the package's (tests/test_layers.py)
     if halo and -(-int(cfg["lights"]["count"]) // int(cfg["subset_size"])) > 1:
         return cfg
-    return {**cfg, "fit": {k: v for k, v in cfg["fit"].items() if k != "halo"}}
+    return {**cfg, "fit": {k: v for k, v in cfg["fit"].items() if k not in SEAM_SETTINGS}}
 
 
 def stage1_json(cfg: dict, *keys: str, halo: bool = True) -> str:

@@ -108,6 +108,9 @@ class FitConfig:
     # a subset also fits the lights of other subsets that blends across its border take (`subset_halo`), and
     # discards them: the blend loss then couples the lights on either side of a seam (docs/performance.md)
     halo: int = 0  # rings of other subsets' lights (0: none)
+    # subsets fitted in rounds (`subset_rounds`): a halo light of a subset of an earlier round is held at its stored
+    # SIREN, not fitted as a copy, so the blends across that seam are fitted with the SIRENs they will blend
+    rounds: bool = False
     # each optimiser step as a replayed CUDA graph (diffshadow.graphs), with grid targets (sweep or march): "auto"
     # where the device is CUDA, True also asked for elsewhere (the fit then steps eagerly, saying so), False never
     # (docs/performance.md: H200 timings). A fit's checkpoint records what was done (True or False)
@@ -224,8 +227,48 @@ def subset_halo(train: np.ndarray, center, subset: list[int], cfg: FitConfig) ->
     return rings
 
 
+def subset_rounds(train: np.ndarray, center, subset_size: int, cfg: FitConfig) -> list[int]:
+    """Each subset's round (`fit.rounds`; all 0 without it, or without a halo): the subsets whose lights are in
+    one another's halo get different rounds, each subset in index order the first round none of them has."""
+    subsets = light_subsets(train, subset_size)
+    if not cfg.rounds or not cfg.halo or cfg.blend_weight <= 0 or len(subsets) < 2:
+        return [0] * len(subsets)
+    owner = np.empty(len(train), dtype=np.int64)
+    for s, idx in enumerate(subsets):
+        owner[idx] = s
+    meets: list[set[int]] = [set() for _ in subsets]
+    for s, idx in enumerate(subsets):
+        for ring in subset_halo(train, center, idx, cfg):
+            for other in set(owner[ring].tolist()):
+                meets[s].add(other)
+                meets[other].add(s)
+    rounds: list[int] = []
+    for s in range(len(subsets)):
+        taken = {rounds[o] for o in meets[s] if o < s}
+        rounds.append(next(r for r in range(len(subsets)) if r not in taken))
+    return rounds
+
+
+def held_subsets(train: np.ndarray, center, subset_size: int, subset: int, cfg: FitConfig,
+                 rounds: list[int] | None = None) -> list[int]:
+    """The subsets of earlier rounds (`subset_rounds`, or `rounds` made by it) with lights in this subset's halo:
+    the fit's inputs, their stored SIRENs held where their lights are in its halo (`held_lights`)."""
+    rounds = subset_rounds(train, center, subset_size, cfg) if rounds is None else rounds
+    subsets = light_subsets(train, subset_size)
+    halo = {i for ring in subset_halo(train, center, subsets[subset], cfg) for i in ring}
+    return [s for s, idx in enumerate(subsets) if rounds[s] < rounds[subset] and halo.intersection(idx)]
+
+
+def held_lights(train: np.ndarray, center, subset_size: int, subset: int, cfg: FitConfig) -> list[int]:
+    """This subset's halo lights that belong to `held_subsets`, sorted: held at their stored SIRENs."""
+    subsets = light_subsets(train, subset_size)
+    held = {i for s in held_subsets(train, center, subset_size, subset, cfg) for i in subsets[s]}
+    return sorted(held.intersection(i for ring in subset_halo(train, center, subsets[subset], cfg) for i in ring))
+
+
 def blend_pool(volume: Volume, tf: TransferFunction, train: np.ndarray, center, subset: list[int], cfg: FitConfig,
-               *, halo: list[list[int]] = (), device: torch.device | str = "cpu") -> PoolLights | None:
+               *, halo: list[list[int]] = (), held: list[int] = (),
+               device: torch.device | str = "cpu") -> PoolLights | None:
     """Pool lights for the blend loss: `cfg.blend_per_light` directions per training light drawn in the training
     lights' cap (the same for every subset), of which this subset takes those whose blend (`cfg.blend_weights`:
     the corners of their triangle among all the training lights, or their k = min(BLEND_K, len(subset)) nearest)
@@ -233,7 +276,8 @@ def blend_pool(volume: Volume, tf: TransferFunction, train: np.ndarray, center, 
     subset); None when the blend loss is off or the subset has fewer than 2 lights. Coupling stays inside a
     subset, so subsets are still fitted as independent jobs. With a `halo` (`subset_halo`'s rings, fitted after the
     subset's lights in that order), a pool light whose blend takes the halo's lights counts where it takes one of
-    the subset's too, or of a ring inside the outermost.
+    the subset's too, or of a ring inside the outermost. `held` (halo lights held at their stored SIRENs,
+    `held_lights`) are the last rows, after the fitted ones in order.
 
     Without a halo, a pool light at a subset's border is left out, not blended from the subset's own nearest lights:
     that blend is not the one the diffusion model's pool prior and the weight-blend baseline use, and fitting
@@ -242,7 +286,7 @@ def blend_pool(volume: Volume, tf: TransferFunction, train: np.ndarray, center, 
         return None
     train = np.asarray(train, dtype=np.float64)
     lights, idx, mix = _pool_blends(train, center, len(subset), cfg)
-    fitted = list(subset) + [i for ring in halo for i in ring]
+    fitted = list(subset) + [i for ring in halo for i in ring if i not in set(held)] + list(held)
     # a pool light counts where its blend takes a light of the subset or of a ring inside the outermost, whose
     # lights then have blends on every side, as in their own subset
     inner = list(subset) + [i for ring in halo[:-1] for i in ring]
@@ -349,9 +393,10 @@ class Targets:
 def fit_step(weights: torch.Tensor, opt: Adam, pts: torch.Tensor, target: torch.Tensor,
              layout: WeightLayout, siren: SirenConfig, extent: torch.Tensor, cfg: FitConfig, *, chunk: int,
              autocast, pool: PoolLights | None = None, pool_draw: tuple[torch.Tensor, torch.Tensor] | None = None,
-             keep_grads: bool = False) -> torch.Tensor:
+             held: torch.Tensor | None = None, keep_grads: bool = False) -> torch.Tensor:
     """One Adam step of all K SIRENs on their points; returns each SIREN's mean squared error (K,) before it.
-    With `pool`, `pool_draw` is `draw_pool`'s (lights, points) on the device. `keep_grads` zeroes the gradient in
+    With `pool`, `pool_draw` is `draw_pool`'s (lights, points) on the device; `held` (H, n_params): SIRENs the pool's
+    blends take after the K (rows K.., `blend_pool`'s `held`), not fitted. `keep_grads` zeroes the gradient in
     place instead of dropping it (what a replayed CUDA graph needs: its kernels write to fixed addresses)."""
     k = len(weights)
     opt.zero_grad(set_to_none=not keep_grads)
@@ -365,7 +410,8 @@ def fit_step(weights: torch.Tensor, opt: Adam, pts: torch.Tensor, target: torch.
         sq.sum().backward()
         per_siren += sq.detach()
     if pool is not None:
-        _blend_loss(weights, pool, layout, siren, extent, cfg, k, *pool_draw)
+        rows = weights if held is None else torch.cat([weights, held])
+        _blend_loss(rows, pool, layout, siren, extent, cfg, k, *pool_draw)
     opt.step()
     return per_siren
 
@@ -439,7 +485,7 @@ class SubsetFit:
 
     def __init__(self, init: torch.Tensor, layout: WeightLayout, siren: SirenConfig, volume: Volume,
                  tf: TransferFunction, lights: np.ndarray, cfg: FitConfig, *, stream: int = 0,
-                 pool: PoolLights | None = None, device: torch.device, log=print):
+                 pool: PoolLights | None = None, held: torch.Tensor | None = None, device: torch.device, log=print):
         self.layout, self.siren, self.cfg, self.stream, self.k = layout, siren, cfg, stream, len(lights)
         self.sampler = PointSampler(volume, tf, cfg.visible_fraction)
         self.targets = Targets(volume, tf, lights, cfg, device, log)
@@ -448,6 +494,7 @@ class SubsetFit:
         # graphed or not is in a checkpoint's fingerprint: an optimizer never resumes the other kind's state
         self.opt = Adam([self.weights], cfg.lr, capturable=self.graphs is not None)
         self.pool = pool.to(device) if pool is not None else None
+        self.held = held.to(device=device, dtype=torch.float32) if held is not None and len(held) else None
         self.chunk = points_per_pass(cfg.chunk, cfg.points, device)
         self.autocast = forward_precision(cfg.precision, device)
         self.device, self.log = device, log
@@ -495,7 +542,7 @@ class SubsetFit:
         target = self.targets(draw.pts) if draw.target is None else draw.target
         return fit_step(self.weights, self.opt, draw.pts, target, self.layout, self.siren,
                         self.targets.extent, self.cfg, chunk=self.chunk, autocast=self.autocast, pool=self.pool,
-                        pool_draw=pool_draw, keep_grads=self.graphs is not None)
+                        pool_draw=pool_draw, held=self.held, keep_grads=self.graphs is not None)
 
 
 def fit_sirens(
@@ -511,6 +558,7 @@ def fit_sirens(
     light_index: list[int] | None = None,
     checkpoint: Path | None = None,
     pool: PoolLights | None = None,
+    held: torch.Tensor | None = None,
     device: torch.device | str = "cpu",
     log=print,
 ) -> torch.Tensor:
@@ -520,16 +568,17 @@ def fit_sirens(
     every `cfg.checkpoint_every` steps and a rerun resumes from it (same result as an uninterrupted run:
     the points of step s depend only on (seed, stream, s)). With `pool` (`blend_pool`), each step also
     scores K of its lights, at half as many points as a SIREN gets, with their blends of these SIRENs'
-    weights, weighted by `cfg.blend_weight`.
+    weights, weighted by `cfg.blend_weight`; its blends' rows past K are `held` (H, n_params), not fitted.
     """
     device = torch.device(device)
     lights = np.asarray(lights, dtype=np.float64)
     k = len(lights)
     light_index = list(range(k)) if light_index is None else list(light_index)
-    run = SubsetFit(init, layout, siren, volume, tf, lights, cfg, stream=stream, pool=pool, device=device, log=log)
+    run = SubsetFit(init, layout, siren, volume, tf, lights, cfg, stream=stream, pool=pool, held=held, device=device,
+                    log=log)
     weights, opt = run.weights, run.opt
     cfg = replace(cfg, cuda_graph=run.graphs is not None)  # what was done: the checkpoint's fingerprint
-    fingerprint = _fingerprint(init, lights, cfg, siren, stream, pool, volume, tf)
+    fingerprint = _fingerprint(init, lights, cfg, siren, stream, pool, volume, tf, held)
     start, initial = 0, None
     if state := resume(checkpoint, fingerprint, log=log, map_location=device, weights_only=True):
         with torch.no_grad():
@@ -580,7 +629,7 @@ def _blend_loss(weights: torch.Tensor, pool: PoolLights, layout: WeightLayout, s
 
 
 def _fingerprint(init, lights, cfg, siren, stream, pool: PoolLights | None, volume: Volume,
-                 tf: TransferFunction) -> str:
+                 tf: TransferFunction, held: torch.Tensor | None = None) -> str:
     """What a checkpoint must have been written for to be resumed: the targets (volume, TF) as well as the
     init, lights and settings (a fit resumed onto a changed volume would mix two scenes' shadows)."""
     h = hashlib.sha256()
@@ -590,6 +639,8 @@ def _fingerprint(init, lights, cfg, siren, stream, pool: PoolLights | None, volu
     h.update(np.asarray(lights, np.float64).tobytes())
     if pool is not None:
         h.update(pool.lights.cpu().numpy().astype(np.float64).tobytes())
+    if held is not None and len(held):  # the earlier rounds' SIRENs, refitted since: start again
+        h.update(held.detach().cpu().numpy().astype(np.float32).tobytes())
     settings = changed_settings("fit", asdict(cfg))
     settings.pop("target_store", None)  # where the targets are kept: the same values, so a resume may change it
     h.update(json.dumps([settings, siren.to_config(), stream], sort_keys=True).encode())

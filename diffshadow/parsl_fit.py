@@ -31,7 +31,8 @@ def fit_task(paths: dict[str, str], subset: int, cfg: dict, device: str | None, 
         set_threads(threads)
         fit_subset(Path(paths["volume"]), Path(paths["lights"]), Path(paths["init"]), subset, Path(paths["out"]),
                    siren=SirenConfig.from_config(cfg["siren"]), fit=FitConfig.from_config(cfg["fit"]),
-                   subset_size=int(cfg["subset_size"]), config=cfg, device=resolve_device(None, device))
+                   subset_size=int(cfg["subset_size"]), config=cfg, device=resolve_device(None, device),
+                   held=[Path(p) for p in paths.get("held", [])])
     if paths.get("benchmark"):
         after = usage()
         write_benchmark(Path(paths["benchmark"]), time.perf_counter() - start, after["cpu_s"] - before["cpu_s"],
@@ -54,8 +55,27 @@ def pending(results: Path, scene: str, n_subsets: int) -> list[int]:
     return [i for i in range(n_subsets) if not (results / scene / "sirens" / f"subset_{i}.npz").exists()]
 
 
+def waves(jobs: list[dict]) -> list[list[dict]]:
+    """The jobs in waves: a job whose held subsets (`fit.rounds`, `paths["held"]`) are written by other jobs runs in
+    a wave after theirs; the rest in the first."""
+    by_out = {job["paths"]["out"]: job for job in jobs}
+    wave: dict[str, int] = {}
+
+    def of(job: dict) -> int:
+        out = job["paths"]["out"]
+        if out not in wave:
+            wave[out] = 1 + max((of(by_out[p]) for p in job["paths"].get("held", []) if p in by_out), default=-1)
+        return wave[out]
+
+    out = [[] for _ in range(1 + max(map(of, jobs), default=-1))]
+    for job in jobs:
+        out[of(job)].append(job)
+    return out
+
+
 def run(parsl_config: Path, jobs: list[dict], log=print) -> list[str]:
-    """Submit every job (`fit_task`'s keyword arguments) through the Parsl config file; return the files."""
+    """Submit every job (`fit_task`'s keyword arguments) through the Parsl config file, wave by wave (`waves`);
+    return the files."""
     import parsl
     from parsl import python_app
 
@@ -65,16 +85,19 @@ def run(parsl_config: Path, jobs: list[dict], log=print) -> list[str]:
     app = python_app(fit_task)
     parsl.load(cfg)
     try:
-        futures = [(job, app(**job)) for job in jobs]
         done, failed = [], []
-        for job, fut in futures:
-            subset = job["subset"]
-            try:
-                done.append(fut.result())
-                log(f"[parsl-fit] subset {subset}: wrote {done[-1]}")
-            except Exception as e:  # noqa: BLE001 - report every failed subset, then fail once
-                failed.append(subset)
-                log(f"[parsl-fit] subset {subset}: FAILED ({type(e).__name__}: {e})")
+        for wave in waves(jobs):
+            futures = [(job, app(**job)) for job in wave]
+            for job, fut in futures:
+                subset = job["subset"]
+                try:
+                    done.append(fut.result())
+                    log(f"[parsl-fit] subset {subset}: wrote {done[-1]}")
+                except Exception as e:  # noqa: BLE001 - report every failed subset, then fail once
+                    failed.append(subset)
+                    log(f"[parsl-fit] subset {subset}: FAILED ({type(e).__name__}: {e})")
+            if failed:  # a later wave holds some of these subsets' SIRENs
+                break
         if failed:
             raise RuntimeError(f"parsl-fit: subsets {failed} failed; rerun `diffshadow parsl-fit` (finished subsets "
                                f"are skipped) or `snakemake -f results/<scene>/sirens/subset_N.npz`")
@@ -88,6 +111,7 @@ def fit_pending(parsl_config: Path, configfile: Path, scenes: list[str] | None, 
     """Every subset of `scenes` (default: the config's) whose file under `results` is missing."""
     from diffshadow.config import load_run, scene_config, stage1_json
     from diffshadow.lights import n_subsets
+    from diffshadow.stages.stage1 import subset_inputs
 
     if not parsl_config.is_file():  # before any scene is read: with nothing pending it would go unnoticed
         raise ValueError(f"--config {parsl_config}: no such Parsl config file (config/parsl/local.py or polaris.py)")
@@ -107,8 +131,10 @@ def fit_pending(parsl_config: Path, configfile: Path, scenes: list[str] | None, 
         # the sections as the rule's --config-json gives them (keys sorted, settings at their old behaviour left
         # out): the subset file records them, and should hold the same bytes whichever way it was fitted
         sel = json.loads(stage1_json(cfg, "siren", "fit", "subset_size"))
+        held = subset_inputs(cfg)
         jobs += [{"paths": {**{k: str(v) for k, v in paths.items()}, "out": str(base / "sirens" / f"subset_{i}.npz"),
-                            "benchmark": str(base / "benchmarks" / f"fit_siren_{i}.tsv")},
+                            "benchmark": str(base / "benchmarks" / f"fit_siren_{i}.tsv"),
+                            "held": [str(base / "sirens" / f"subset_{s}.npz") for s in held[i]]},
                   "subset": i, "cfg": sel, "device": run_cfg.get("device"), "threads": threads,
                   "log_path": str(base / "logs" / f"fit_siren_{i}.log")} for i in todo]
     if jobs:

@@ -318,6 +318,63 @@ def test_with_a_halo_every_pool_light_is_in_some_subsets_blend_loss_blended_as_t
         FitConfig.from_config(dict(halo=-1))
 
 
+def test_in_rounds_a_subset_holds_the_halo_lights_of_earlier_rounds_at_their_stored_sirens(scene, tmp_path):
+    """fit.rounds: subsets in one another's halo get different rounds; a subset holds the halo lights of its
+    earlier-round neighbours (their blends' rows after its fitted ones), fits the rest of its halo, and its fit
+    leaves the held SIRENs as they were; a checkpoint made with other held SIRENs is not resumed. Without rounds (or
+    a halo, or with one subset) nothing is held."""
+    from diffshadow.fit import _fingerprint, blend_pool, held_lights, held_subsets, subset_halo, subset_rounds
+    from diffshadow.lights import blend_weights, fibonacci_sphere, light_subsets, select_region
+
+    vol, tf, _ = scene
+    sphere = fibonacci_sphere(400)
+    train, center = sphere[select_region(sphere, [0, 0, 1], 48)], np.array([0.0, 0.0, 1.0])
+    cfg = FitConfig.from_config(dict(blend_weight=0.5, blend_per_light=2, blend_points=8, halo=1, rounds=True))
+    subsets = light_subsets(train, 16)
+    rounds = subset_rounds(train, center, 16, cfg)
+    assert rounds[0] == 0 and max(rounds) >= 1
+    for s, subset in enumerate(subsets):
+        halo = [i for ring in subset_halo(train, center, subset, cfg) for i in ring]
+        for other in {o for o, idx in enumerate(subsets) if set(idx) & set(halo)}:
+            assert rounds[other] != rounds[s]  # neighbours never fit in the same round
+        earlier = held_subsets(train, center, 16, s, cfg)
+        assert earlier == sorted(o for o, idx in enumerate(subsets) if set(idx) & set(halo) and rounds[o] < rounds[s])
+        hold = held_lights(train, center, 16, s, cfg)
+        assert hold == sorted(i for i in halo if any(i in subsets[o] for o in earlier))
+        pool = blend_pool(vol, tf, train, center, subset, cfg, halo=[halo], held=hold)
+        rows = subset + [i for i in halo if i not in hold] + hold
+        idx, _ = blend_weights(train, pool.lights.numpy(), 4, "triangle")
+        assert (np.asarray(rows)[pool.neighbours.numpy()] == idx).all()
+    last = int(np.argmax(rounds))
+    assert held_lights(train, center, 16, last, cfg)  # the last round holds some of its halo
+    for off in (replace(cfg, rounds=False), replace(cfg, halo=0)):
+        assert subset_rounds(train, center, 16, off) == [0, 0, 0] and held_subsets(train, center, 16, last, off) == []
+    assert subset_rounds(train, center, 48, cfg) == [0]
+    # a fit with held SIRENs: they stay as they were, and resuming needs the same ones
+    lights, _ = _cap_lights()
+    held = init()[None].repeat(2, 1) + 0.01
+    small = FitConfig.from_config(dict(steps=3, points=32, blend_weight=1.0, blend_per_light=4, blend_points=16))
+    pool = blend_pool(vol, tf, lights, [0.0, 0.0, 1.0], [0, 1, 2, 3], small)
+    pool.neighbours[:, 1:3] = torch.tensor([4, 5])  # rows after the four fitted: the held ones
+    before = held.clone()
+    fitted = fit_sirens(init(), LAYOUT, CFG, vol, tf, lights, small, pool=pool, held=held, log=lambda *a: None)
+    assert torch.equal(held, before) and fitted.shape == (4, LAYOUT.n_params)
+    other = fit_sirens(init(), LAYOUT, CFG, vol, tf, lights, small, pool=pool, held=held + 0.05, log=lambda *a: None)
+    assert not torch.equal(fitted, other)  # the blend loss pulls the fitted SIRENs towards what they blend with
+    prints = {_fingerprint(init(), lights, small, CFG, 0, pool, vol, tf, h) for h in (None, held, held + 1)}
+    assert len(prints) == 3
+    # the held SIRENs come from the earlier rounds' subset files: a light none of them has is named
+    from diffshadow.stages.stage1 import _held_weights
+
+    path = tmp_path / "subset_0.npz"
+    np.savez(path, weights=np.stack([init().numpy()] * 2), light_index=np.array([7, 9]))
+    got = _held_weights([path], [9, 7], 3, LAYOUT)
+    assert torch.equal(got, torch.stack([init()] * 2))
+    with pytest.raises(ValueError, match=r"^fit_siren subset 3: holds the stored SIRENs of lights 8 \(fit.rounds\), "
+                       r"which none of .*subset_0.npz has: give the files of the subsets of earlier rounds$"):
+        _held_weights([path], [7, 8], 3, LAYOUT)
+
+
 def test_an_unknown_blend_weighting_for_the_blend_loss_is_named():
     with pytest.raises(ValueError, match=r"^fit.blend_weights: expected one of triangle, inverse-angle, got "
                        r"'nearest'$"):

@@ -281,6 +281,19 @@ def test_sophia_profile_through_stage_1(tmp_path):
     assert (tmp_path / "results/nucleon/weights.zarr").is_dir()
 
 
+def test_parsl_fit_runs_a_subset_after_the_pending_subsets_it_holds():
+    """fit.rounds through Parsl: a job waits for the jobs that write the subset files it holds (a wave after
+    theirs); a held file already written waits for nothing."""
+    from diffshadow.parsl_fit import waves
+
+    def job(i: int, held: list[int]) -> dict:
+        return {"subset": i, "paths": {"out": f"s{i}.npz", "held": [f"s{h}.npz" for h in held]}}
+
+    jobs = [job(0, []), job(1, [0]), job(2, [0, 1]), job(3, [9]), job(4, [1])]
+    assert [[j["subset"] for j in wave] for wave in waves(jobs)] == [[0, 3], [1], [2, 4]]
+    assert waves([]) == []
+
+
 def test_parsl_fit_writes_what_the_rule_would(tmp_path):
     from test_workflow import planned
 

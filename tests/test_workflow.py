@@ -722,7 +722,7 @@ def test_the_evaluation_runs_on_the_runs_device_unless_evaluate_device_is_cpu(fi
 
 
 def test_the_halo_is_a_fit_setting_only_where_the_scene_has_seams(finished):
-    """fit.halo changes the fits of a scene of several subsets (their params rerun them) and nothing else:
+    """fit.halo and fit.rounds change the fits of a scene of several subsets (their params rerun them) and nothing else:
     preoptimize's command never carries it, nor a one-subset scene's fit (no seam), so a run made before it was a
     setting reruns nothing for it. The finished run's subsets fitted the other subset's lights as their halo and
     kept their own (the store: 4 lights, tests above)."""
@@ -730,6 +730,12 @@ def test_the_halo_is_a_fit_setting_only_where_the_scene_has_seams(finished):
 
     log = (finished / "results/nucleon/logs/fit_siren_0.log").read_text()
     assert "halo ring 1: 2 lights of other subsets fitted with them, not kept" in log
+    # fit.rounds: subset 1 fits after subset 0 and holds subset 0's lights in its halo at their stored SIRENs
+    log = (finished / "results/nucleon/logs/fit_siren_1.log").read_text()
+    assert "of them held at the stored SIRENs of earlier rounds' subsets (fit.rounds): 2" in log
+    shell = snakemake(finished, "-n", "-p", "-f", "results/nucleon/sirens/subset_1.npz").stdout
+    assert "--subset 1 --held results/nucleon/sirens/subset_0.npz --config-json" in shell
+    assert planned(snakemake(finished, "-n", "-R", "results/nucleon/sirens/subset_0.npz"))["fit_siren"] == 2
     no_halo = planned(snakemake(finished, "-n", config={**TINY, "fit": {**TINY["fit"], "halo": 0}}))
     assert no_halo["fit_siren"] == 2 and "preoptimize" not in no_halo
 
@@ -739,9 +745,10 @@ def test_the_halo_is_a_fit_setting_only_where_the_scene_has_seams(finished):
         found = re.findall(r"diffshadow .*?\b(preoptimize|fit-siren)\b.*?--config-json '(\{.*?\})'", shell)
         return {command: json.loads(cfg)["fit"] for command, cfg in found}
 
-    assert {k: "halo" in v for k, v in fit_settings(TINY).items()} == {"preoptimize": False, "fit-siren": True}
+    for key in ("halo", "rounds"):
+        assert {k: key in v for k, v in fit_settings(TINY).items()} == {"preoptimize": False, "fit-siren": True}
     one = fit_settings({**TINY, "subset_size": 4})
-    assert set(one) == {"preoptimize", "fit-siren"} and not any("halo" in v for v in one.values())
+    assert set(one) == {"preoptimize", "fit-siren"} and not any("halo" in v or "rounds" in v for v in one.values())
 
 
 def test_rerun_one_subset(finished):

@@ -41,6 +41,22 @@ def lights(out: Path, *, sphere: int, count: int, center, unseen: int, seed: int
           f"(region of a {sphere}-point Fibonacci sphere around {sets['center']}{edge})")
 
 
+def subset_inputs(cfg: dict) -> list[list[int]]:
+    """For a scene's config, the subsets whose files each subset's fit reads (`fit.held_subsets`: earlier rounds'
+    neighbours; none without `fit.rounds`), its lights made as `lights` makes them: the workflow's inputs."""
+    from diffshadow.fit import FitConfig, held_subsets, subset_rounds
+
+    lc, size = cfg["lights"], int(cfg["subset_size"])
+    fit = FitConfig.from_config(cfg["fit"])
+    n = -(-int(lc["count"]) // size)
+    if not fit.rounds or n < 2:
+        return [[] for _ in range(n)]
+    sets = make_light_sets(lc["sphere"], lc["count"], lc["center"], lc["unseen"], seed=lc["seed"], layout=lc["layout"])
+    train = np.asarray(sets["train"]["cartesian"], dtype=np.float64)
+    rounds = subset_rounds(train, sets["center"], size, fit)
+    return [held_subsets(train, sets["center"], size, s, fit, rounds) for s in range(n)]
+
+
 def prepare_volume(out: Path, scene: dict) -> None:
     """The scene's volume normalised to [0, 1] in its box, with its transfer function (without torch)."""
     volume, tf = scene_volume(scene)
@@ -65,8 +81,10 @@ def preoptimize(volume_path: Path, lights_path: Path, out: Path, *, siren: Siren
 
 
 def fit_subset(volume_path: Path, lights_path: Path, init_path: Path, subset: int, out: Path, *,
-               siren: SirenConfig, fit: FitConfig, subset_size: int, config: dict, device: torch.device) -> None:
-    """The SIRENs of one light subset, fitted jointly and checked on held-out points (resumable)."""
+               siren: SirenConfig, fit: FitConfig, subset_size: int, config: dict, device: torch.device,
+               held: list[Path] = ()) -> None:
+    """The SIRENs of one light subset, fitted jointly and checked on held-out points (resumable); `held`: the
+    files of the subsets of earlier rounds it needs (`fit.held_subsets`), their SIRENs held in its blend loss."""
     from diffshadow import artifacts
     from diffshadow.fit import (
         FitError,
@@ -75,6 +93,7 @@ def fit_subset(volume_path: Path, lights_path: Path, init_path: Path, subset: in
         describe_targets,
         evaluate_psnr,
         fit_sirens,
+        held_lights,
         subset_halo,
     )
 
@@ -89,20 +108,26 @@ def fit_subset(volume_path: Path, lights_path: Path, init_path: Path, subset: in
     out = Path(out)
     where = f"fit_siren subset {subset} ({volume_path}"
     halo = subset_halo(train, sets["center"], idx, fit)
-    fitted = idx + [i for ring in halo for i in ring]
+    hold = held_lights(train, sets["center"], subset_size, subset, fit)
+    held_weights = _held_weights(held, hold, subset, layout)
+    fitted = idx + [i for ring in halo for i in ring if i not in set(hold)]
     print(f"subset {subset}: fitting {len(idx)} lights jointly ({index_ranges(idx)})", flush=True)
     for r, ring in enumerate(halo, 1):
         print(f"halo ring {r}: {len(ring)} lights of other subsets fitted with them, not kept ({index_ranges(ring)})",
               flush=True)
+    if hold:
+        print(f"of them held at the stored SIRENs of earlier rounds' subsets (fit.rounds): {len(hold)} "
+              f"({index_ranges(hold)})", flush=True)
     print(describe_targets(fit, len(fitted), volume.data.shape, device), flush=True)
     t0 = time.perf_counter()
-    pool = blend_pool(volume, tf, train, sets["center"], idx, fit, halo=halo, device=device)
+    pool = blend_pool(volume, tf, train, sets["center"], idx, fit, halo=halo, held=hold, device=device)
     if pool is not None:
         print(f"blend loss: {len(pool.lights)} pool lights with exact shadows at {fit.blend_points} points each "
               f"({time.perf_counter() - t0:.0f} s), weight {fit.blend_weight:g}", flush=True)
     try:
         weights = fit_sirens(init, layout, siren, volume, tf, train[fitted], fit, stream=subset, light_index=fitted,
-                             checkpoint=out.with_name(out.name + ".ckpt"), pool=pool, device=device)[:len(idx)]
+                             checkpoint=out.with_name(out.name + ".ckpt"), pool=pool, held=held_weights,
+                             device=device)[:len(idx)]
     except FitError as e:
         raise FitError(f"{where}, lights {lights_path}): {e}") from None
     box, vis = evaluate_psnr(weights, layout, siren, volume, tf, train[idx], n_points=fit.eval_points,
@@ -116,6 +141,29 @@ def fit_subset(volume_path: Path, lights_path: Path, init_path: Path, subset: in
                  extinction=extinction_id(volume, tf))
     print(f"wrote {out}: PSNR box median {float(np.median(box)):.2f} dB (min {box.min():.2f}), "
           f"visible median {float(np.median(vis)):.2f} dB")
+
+
+def _held_weights(paths: list[Path], lights: list[int], subset: int, layout) -> torch.Tensor | None:
+    """The stored SIRENs (H, n_params) of `lights`, from the earlier rounds' subset files `paths`; a light none of
+    them has, or a file of another layout, is named."""
+    import torch
+
+    if not lights:
+        return None
+    found: dict[int, np.ndarray] = {}
+    for path in paths:
+        with np.load(path) as z:
+            weights, index = z["weights"], z["light_index"]
+        if weights.shape[1] != layout.n_params:
+            raise ValueError(f"{path}: SIRENs of {weights.shape[1]} parameters, expected {layout.n_params} (this "
+                             f"run's layout): refit that subset first")
+        found.update(zip(index.tolist(), weights, strict=True))
+    missing = [i for i in lights if i not in found]
+    if missing:
+        raise ValueError(f"fit_siren subset {subset}: holds the stored SIRENs of lights {index_ranges(missing)} "
+                         f"(fit.rounds), which none of {', '.join(map(str, paths)) or 'no --held files'} has: "
+                         f"give the files of the subsets of earlier rounds")
+    return torch.as_tensor(np.stack([found[i] for i in lights]), dtype=torch.float32)
 
 
 def below_probe_target(choice: Choice, box: np.ndarray, subset: int) -> str | None:

@@ -15,6 +15,7 @@ from diffshadow.hpc import kernel_cache_environment as _kernel_cache_environment
 from diffshadow.hpc import run_gpus as _run_gpus
 from diffshadow.lights import check_subset as _check_subset
 from diffshadow.lights import n_subsets as _n_subsets
+from diffshadow.stages.stage1 import subset_inputs as _subset_inputs
 from diffshadow.report import shading_name as _shading_name
 from diffshadow.volume import prepared_from as _prepared_from
 from diffshadow.volume import run_path as _run_path
@@ -75,6 +76,19 @@ def subset_lights(wildcards):
     except ValueError as e:
         raise WorkflowError(f"results/{wildcards.scene}/sirens/subset_{wildcards.subset}.npz: {e}") from None
     return f"results/{wildcards.scene}/lights.json"
+
+
+_HELD = {}
+
+
+def held_subset_files(wildcards):
+    """fit_siren's inputs under `fit.rounds`: the files of the earlier rounds' subsets in its halo
+    (`stage1.subset_inputs`, computed once per scene from its config); none without it or with one subset."""
+    if wildcards.scene not in _HELD:
+        _HELD[wildcards.scene] = _subset_inputs(scene_config(wildcards.scene))
+    held = _HELD[wildcards.scene]
+    subset = int(wildcards.subset)
+    return [f"results/{wildcards.scene}/sirens/subset_{s}.npz" for s in (held[subset] if subset < len(held) else [])]
 
 
 def subset_files(wildcards):
