@@ -57,8 +57,7 @@ def _fit_siren(a):
 
     cfg = _cfg(a)
     stage1.fit_subset(Path(a.volume), Path(a.lights), Path(a.init), a.subset, Path(a.out), **_stage1_configs(cfg),
-                      subset_size=int(cfg["subset_size"]), config=cfg, device=_device(a),
-                      held=[Path(p) for p in a.held])
+                      subset_size=int(cfg["subset_size"]), config=cfg, device=_device(a))
 
 
 def _collect_weights(a):
@@ -384,8 +383,6 @@ def build_parser() -> argparse.ArgumentParser:
     p = _add(sub, "fit-siren", _fit_siren, "fit one subset of SIRENs jointly", "volume", "lights", "init",
              config='{"siren": ..., "fit": ..., "subset_size": N}')
     p.add_argument("--subset", type=int, required=True)
-    p.add_argument("--held", nargs="*", default=[], help="the subset files of earlier rounds whose SIRENs its blend "
-                   "loss holds (fit.rounds; the workflow gives them)")
     p = _add(sub, "collect-weights", _collect_weights, "merge subset files into the Zarr weight store", "lights",
              device=False)
     p.add_argument("--subsets", nargs="+", required=True)

@@ -31,8 +31,7 @@ def fit_task(paths: dict[str, str], subset: int, cfg: dict, device: str | None, 
         set_threads(threads)
         fit_subset(Path(paths["volume"]), Path(paths["lights"]), Path(paths["init"]), subset, Path(paths["out"]),
                    siren=SirenConfig.from_config(cfg["siren"]), fit=FitConfig.from_config(cfg["fit"]),
-                   subset_size=int(cfg["subset_size"]), config=cfg, device=resolve_device(None, device),
-                   held=[Path(p) for p in paths.get("held", [])])
+                   subset_size=int(cfg["subset_size"]), config=cfg, device=resolve_device(None, device))
     if paths.get("benchmark"):
         after = usage()
         write_benchmark(Path(paths["benchmark"]), time.perf_counter() - start, after["cpu_s"] - before["cpu_s"],

@@ -371,8 +371,11 @@ def test_in_rounds_a_subset_holds_the_halo_lights_of_earlier_rounds_at_their_sto
     got = _held_weights([path], [9, 7], 3, LAYOUT)
     assert torch.equal(got, torch.stack([init()] * 2))
     with pytest.raises(ValueError, match=r"^fit_siren subset 3: holds the stored SIRENs of lights 8 \(fit.rounds\), "
-                       r"which none of .*subset_0.npz has: give the files of the subsets of earlier rounds$"):
+                       r"which none of .*subset_0.npz has: refit the subsets of earlier rounds$"):
         _held_weights([path], [7, 8], 3, LAYOUT)
+    with pytest.raises(ValueError, match=r"^fit_siren subset 3: holds SIRENs of .*subset_1.npz \(fit.rounds: a subset "
+                       r"of an earlier round beside it\), which is missing: fit that subset first$"):
+        _held_weights([path, tmp_path / "subset_1.npz"], [7], 3, LAYOUT)
 
 
 def test_an_unknown_blend_weighting_for_the_blend_loss_is_named():

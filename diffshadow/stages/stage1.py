@@ -81,10 +81,9 @@ def preoptimize(volume_path: Path, lights_path: Path, out: Path, *, siren: Siren
 
 
 def fit_subset(volume_path: Path, lights_path: Path, init_path: Path, subset: int, out: Path, *,
-               siren: SirenConfig, fit: FitConfig, subset_size: int, config: dict, device: torch.device,
-               held: list[Path] = ()) -> None:
-    """The SIRENs of one light subset, fitted jointly and checked on held-out points (resumable); `held`: the
-    files of the subsets of earlier rounds it needs (`fit.held_subsets`), their SIRENs held in its blend loss."""
+               siren: SirenConfig, fit: FitConfig, subset_size: int, config: dict, device: torch.device) -> None:
+    """The SIRENs of one light subset, fitted jointly and checked on held-out points (resumable). Under
+    `fit.rounds` it reads the files of the earlier rounds' subsets it holds (`fit.held_subsets`) beside `out`."""
     from diffshadow import artifacts
     from diffshadow.fit import (
         FitError,
@@ -94,6 +93,7 @@ def fit_subset(volume_path: Path, lights_path: Path, init_path: Path, subset: in
         evaluate_psnr,
         fit_sirens,
         held_lights,
+        held_subsets,
         subset_halo,
     )
 
@@ -109,6 +109,7 @@ def fit_subset(volume_path: Path, lights_path: Path, init_path: Path, subset: in
     where = f"fit_siren subset {subset} ({volume_path}"
     halo = subset_halo(train, sets["center"], idx, fit)
     hold = held_lights(train, sets["center"], subset_size, subset, fit)
+    held = [out.parent / f"subset_{s}.npz" for s in held_subsets(train, sets["center"], subset_size, subset, fit)]
     held_weights = _held_weights(held, hold, subset, layout)
     fitted = idx + [i for ring in halo for i in ring if i not in set(hold)]
     print(f"subset {subset}: fitting {len(idx)} lights jointly ({index_ranges(idx)})", flush=True)
@@ -152,6 +153,9 @@ def _held_weights(paths: list[Path], lights: list[int], subset: int, layout) -> 
         return None
     found: dict[int, np.ndarray] = {}
     for path in paths:
+        if not path.is_file():
+            raise ValueError(f"fit_siren subset {subset}: holds SIRENs of {path} (fit.rounds: a subset of an earlier "
+                             f"round beside it), which is missing: fit that subset first")
         with np.load(path) as z:
             weights, index = z["weights"], z["light_index"]
         if weights.shape[1] != layout.n_params:
@@ -161,8 +165,8 @@ def _held_weights(paths: list[Path], lights: list[int], subset: int, layout) -> 
     missing = [i for i in lights if i not in found]
     if missing:
         raise ValueError(f"fit_siren subset {subset}: holds the stored SIRENs of lights {index_ranges(missing)} "
-                         f"(fit.rounds), which none of {', '.join(map(str, paths)) or 'no --held files'} has: "
-                         f"give the files of the subsets of earlier rounds")
+                         f"(fit.rounds), which none of {', '.join(map(str, paths)) or 'no files'} has: refit "
+                         f"the subsets of earlier rounds")
     return torch.as_tensor(np.stack([found[i] for i in lights]), dtype=torch.float32)
 
 

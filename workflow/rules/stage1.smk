@@ -46,7 +46,7 @@ rule fit_siren:
         volume=extinction_volume,  # its colours alone changed: not rerun
         lights=subset_lights,  # a subset the scene's lights do not have stops the plan
         init="results/{scene}/siren_init.pt",
-        held=held_subset_files,  # fit.rounds: the earlier rounds' subsets whose SIRENs its blend loss holds
+        held=held_subset_files,  # fit.rounds: the earlier rounds' subsets whose SIRENs it holds (read beside its output)
     output:
         "results/{scene}/sirens/subset_{subset}.npz",
     params:
@@ -63,7 +63,7 @@ rule fit_siren:
         "../envs/diffshadow.yaml"
     shell:
         "diffshadow --phases results/{wildcards.scene}/benchmarks/fit_siren_{wildcards.subset}.phases.json fit-siren --volume {input.volume} --lights {input.lights} --init {input.init}"
-        " --subset {wildcards.subset} --held {input.held} --config-json {params.cfg:q} --threads {threads} --out {output}"
+        " --subset {wildcards.subset} --config-json {params.cfg:q} --threads {threads} --out {output}"
         + _JOB_LOG
 
 
