@@ -274,9 +274,9 @@ def blend_pool(volume: Volume, tf: TransferFunction, train: np.ndarray, center, 
     the corners of their triangle among all the training lights, or their k = min(BLEND_K, len(subset)) nearest)
     takes only its own lights, with their exact shadow at `cfg.blend_points` points (`neighbours` are rows of the
     subset); None when the blend loss is off or the subset has fewer than 2 lights. Coupling stays inside a
-    subset, so subsets are still fitted as independent jobs. With a `halo` (`subset_halo`'s rings, fitted after the
-    subset's lights in that order), a pool light whose blend takes the halo's lights counts where it takes one of
-    the subset's too, or of a ring inside the outermost. `held` (halo lights held at their stored SIRENs,
+    subset's job (with `fit.rounds`, its earlier rounds' SIRENs held). With a `halo` (`subset_halo`'s rings, fitted
+    after the subset's lights in that order), a pool light whose blend takes the halo's lights counts where it takes
+    one of the subset's too, or of a ring inside the outermost. `held` (halo lights held at their stored SIRENs,
     `held_lights`) are the last rows, after the fitted ones in order.
 
     Without a halo, a pool light at a subset's border is left out, not blended from the subset's own nearest lights:
@@ -411,7 +411,7 @@ def fit_step(weights: torch.Tensor, opt: Adam, pts: torch.Tensor, target: torch.
         per_siren += sq.detach()
     if pool is not None:
         rows = weights if held is None else torch.cat([weights, held])
-        _blend_loss(rows, pool, layout, siren, extent, cfg, k, *pool_draw)
+        _blend_loss(rows, pool, layout, siren, extent, cfg, len(rows), *pool_draw)
     opt.step()
     return per_siren
 
@@ -533,7 +533,10 @@ class SubsetFit:
         if self.pool is None:
             return FitDraw(pts, None, None, target)
         gen = seeded(cfg.seed, Stream.FIT_POOL_PICK - self.stream, step)
-        j, pick = draw_pool(len(self.pool.lights), self.pool.points.shape[1], k, cfg, gen)
+        # as many pool lights as the blends have rows, held ones too: holding a light changes how it is treated,
+        # not how much of the pool a step scores (scoring only the fitted rows' share cost 0.3 dB inside subsets)
+        rows = k + (0 if self.held is None else len(self.held))
+        j, pick = draw_pool(len(self.pool.lights), self.pool.points.shape[1], rows, cfg, gen)
         return FitDraw(pts, to_device(j, self.device), to_device(pick, self.device), target)
 
     def update(self, draw: FitDraw) -> torch.Tensor:

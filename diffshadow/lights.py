@@ -332,7 +332,7 @@ class Triangulation:
         it: the faces whose circumscribed cap holds the query, widened by CAP_SLACK (a face that does not hold a
         direction lies outside its cap by far more than rounding), and the faces without a cap. Testing every
         face instead cost 25 s for the 128,000 pool lights of 2,000 training lights (docs/performance.md, "The
-        pool's blends")."""
+        weight blend: the triangle around the light")."""
         near = self._tree.query_ball_point(unit, self._reach) if len(self._small) else [[]] * len(unit)
         counts = np.fromiter(map(len, near), dtype=np.int64, count=len(unit))
         near_query = np.repeat(np.arange(len(unit)), counts)

@@ -2,7 +2,8 @@
 `prod` job), writing exactly the files the rule writes, so Snakemake then counts them as done.
 
 The work per subset is the stage function the rule's command calls (`stages.stage1.fit_subset`), in a
-Parsl worker; the log goes where the rule's `tee` would put it. The caller names every path.
+Parsl worker; the log goes where the rule's `tee` would put it. The caller names every path. Under `fit.rounds`
+a subset runs after the pending subsets whose SIRENs it holds (`waves`), as Snakemake orders them.
 """
 
 from __future__ import annotations
