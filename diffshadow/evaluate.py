@@ -113,14 +113,17 @@ def wide_comparison(state: dict | None, stage1, light_sets: dict, volume, tf, *,
 def seam_split(score: np.ndarray, train: np.ndarray, idx: np.ndarray, mix: np.ndarray, config: dict | None) -> dict:
     """The cache's answer on the further lights whose blend spans two fit_siren subsets (`lights.across_subsets`)
     against those inside one: stage 1's seams, which its median hides (128 lights in subsets of 50 without a halo:
-    47 of 256 lights, median 38.69 against 48.14 dB; docs/performance.md). {} with one subset, or for a store that
+    47 of 256 lights, median 38.69 against 48.14 dB; with a halo fitted in rounds 48.88 against 48.08;
+    docs/performance.md). {} with one subset, or for a store that
     does not record its subset size."""
     size = (config or {}).get("subset_size")
     if not size or n_subsets(len(train), int(size)) < 2:
         return {}
     across = across_subsets(train, idx, mix, int(size))
-    halo = int((config.get("fit") or {}).get("halo", 0))
-    return {"subset_size": int(size), "halo": halo, "lights": int(across.sum()),
+    fit = config.get("fit") or {}
+    halo = int(fit.get("halo", 0))
+    return {"subset_size": int(size), "halo": halo, "rounds": bool(halo and fit.get("rounds", False)),
+            "lights": int(across.sum()),
             "answer_median_across": median(score[across]) if across.any() else None,
             "answer_median_within": median(score[~across]) if (~across).any() else None}
 

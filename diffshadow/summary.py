@@ -495,8 +495,9 @@ def _seams(seams: dict | None) -> str:
     if not seams or not seams["lights"]:
         return ""
     inside = seams["answer_median_within"]
+    rounds = ", in rounds" if seams.get("rounds") else ""  # fit.rounds; a record before the key: none
     return (f"; {seams['lights']:,} of them blend lights of two fit_siren subsets (subset_size {seams['subset_size']}, "
-            f"{_rings(seams['halo'])}): median {seams['answer_median_across']:.2f} dB there"
+            f"{_rings(seams['halo'])}{rounds}): median {seams['answer_median_across']:.2f} dB there"
             + ("" if inside is None else f", {inside:.2f} inside one"))
 
 

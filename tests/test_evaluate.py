@@ -278,11 +278,13 @@ def test_the_seam_split_sets_the_answer_across_subsets_beside_the_answer_inside_
     idx, mix = blend_weights(train, query, 4, "triangle")
     score = np.random.default_rng(0).normal(45.0, 3.0, len(query))
     across = across_subsets(train, idx, mix, 50)
-    split = seam_split(score, train, idx, mix, {"subset_size": 50, "fit": {"halo": 1}})
-    assert split == {"subset_size": 50, "halo": 1, "lights": int(across.sum()),
+    split = seam_split(score, train, idx, mix, {"subset_size": 50, "fit": {"halo": 1, "rounds": True}})
+    assert split == {"subset_size": 50, "halo": 1, "rounds": True, "lights": int(across.sum()),
                      "answer_median_across": pytest.approx(float(np.median(score[across]))),
                      "answer_median_within": pytest.approx(float(np.median(score[~across])))}
     assert 0 < split["lights"] < len(query)
     assert seam_split(score, train, idx, mix, {"subset_size": 100, "fit": {"halo": 1}}) == {}
     assert seam_split(score, train, idx, mix, {"fit": {}}) == {} == seam_split(score, train, idx, mix, None)
-    assert seam_split(score, train, idx, mix, {"subset_size": 50, "fit": {}})["halo"] == 0  # a store before it
+    before = seam_split(score, train, idx, mix, {"subset_size": 50, "fit": {}})  # a store before the keys
+    assert (before["halo"], before["rounds"]) == (0, False)
+    assert not seam_split(score, train, idx, mix, {"subset_size": 50, "fit": {"halo": 0, "rounds": True}})["rounds"]

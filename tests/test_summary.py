@@ -251,6 +251,8 @@ def test_the_further_rows_name_what_each_cache_answers_with():
     assert seamed[0][4].startswith(blend[0][4])
     ringed = _further_rows({**base, "seams": {**seams, "halo": 2}}, "blended (cache: blend)")
     assert "(subset_size 50, a halo of 2 rings)" in ringed[0][4]
+    rounds = _further_rows({**base, "seams": {**seams, "halo": 1, "rounds": True}}, "blended (cache: blend)")
+    assert "(subset_size 50, a halo of 1 ring, in rounds)" in rounds[0][4]
 
 
 def test_a_codec_cache_has_no_model_rows_even_where_an_old_runs_files_remain(tmp_path):
