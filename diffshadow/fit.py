@@ -24,10 +24,11 @@ from diffshadow.config import changed_settings, section
 from diffshadow.graphs import StepGraphs, requested
 from diffshadow.grid import lookup_grids, stack_grids
 from diffshadow.io import atomic_torch_save, resume
-from diffshadow.lights import BLEND_K, PoolLights, blend_weights, check_weighting, light_subsets, training_pool
+from diffshadow.lights import PoolLights, check_weighting
 from diffshadow.metrics import psnr
 from diffshadow.progress import FirstNonFinite, eta
-from diffshadow.sampling import FIT_BLEND_POOL_SEED, PROBE_HELD_OUT_SEED, PointSampler, Stream, seeded, to_device
+from diffshadow.sampling import PROBE_HELD_OUT_SEED, PointSampler, Stream, seeded, to_device
+from diffshadow.seams import pool_blends
 from diffshadow.shadow import ShadowField, shadow_grid, transmittance_per_light
 from diffshadow.siren import (
     PRECISIONS,
@@ -187,85 +188,6 @@ def target_store(cfg: FitConfig, k: int, grid_shape: tuple[int, ...],
 CPU_CHUNK = 512
 
 
-_POOL_BLENDS: dict[str, tuple[np.ndarray, np.ndarray, np.ndarray]] = {}
-
-
-def _pool_blends(train: np.ndarray, center, k: int, cfg: FitConfig) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Every subset's candidate pool lights (`cfg.blend_per_light` per training light in their cap, the same for
-    every subset), the training lights each one's blend takes and their weights. Kept for the process's next call
-    with the same arguments (the halo's and the pool's, and the fit bench's halo of every subset)."""
-    key = hashlib.sha256(np.ascontiguousarray(train, dtype=np.float64).tobytes() + json.dumps(
-        [np.asarray(center, np.float64).tolist(), min(BLEND_K, k), cfg.blend_per_light, cfg.seed,
-         cfg.blend_weights]).encode()).hexdigest()
-    if key not in _POOL_BLENDS:
-        lights = training_pool(train, center, cfg.blend_per_light * len(train), seed=cfg.seed + FIT_BLEND_POOL_SEED)
-        _POOL_BLENDS.clear()
-        _POOL_BLENDS[key] = (lights, *blend_weights(train, lights, min(BLEND_K, k), cfg.blend_weights))
-    return _POOL_BLENDS[key]
-
-
-def halo_size(train: np.ndarray, center, subset_size: int, cfg: FitConfig) -> float:
-    """The mean count of halo lights (`subset_halo`, all rings) a subset of these lights fits beside its own."""
-    subsets = light_subsets(train, subset_size)
-    return float(np.mean([sum(map(len, subset_halo(train, center, s, cfg))) for s in subsets]))
-
-
-def subset_halo(train: np.ndarray, center, subset: list[int], cfg: FitConfig) -> list[list[int]]:
-    """The rings (`fit.halo` of them) of other subsets' lights that the blends across this subset's border take,
-    each sorted: ring 1 those of the blends that take a light of the subset, ring 2 those of the blends that take
-    one of ring 1, and so on. Fitted with the subset and discarded, so that the pool lights on its seams are in
-    its blend loss; [] when the halo or the blend loss is off or the subset is every light."""
-    train = np.asarray(train, dtype=np.float64)
-    if not cfg.halo or cfg.blend_weight <= 0 or len(subset) < 2 or len(subset) == len(train):
-        return []
-    _, idx, _ = _pool_blends(train, center, len(subset), cfg)
-    inner, rings = set(subset), []
-    for _ in range(cfg.halo):
-        touching = np.isin(idx, sorted(inner)).any(axis=1)
-        rings.append(sorted(set(np.unique(idx[touching]).tolist()) - inner))
-        inner |= set(rings[-1])
-    return rings
-
-
-def subset_rounds(train: np.ndarray, center, subset_size: int, cfg: FitConfig) -> list[int]:
-    """Each subset's round (`fit.rounds`; all 0 without it, or without a halo): the subsets whose lights are in
-    one another's halo get different rounds, each subset in index order the first round none of them has."""
-    subsets = light_subsets(train, subset_size)
-    if not cfg.rounds or not cfg.halo or cfg.blend_weight <= 0 or len(subsets) < 2:
-        return [0] * len(subsets)
-    owner = np.empty(len(train), dtype=np.int64)
-    for s, idx in enumerate(subsets):
-        owner[idx] = s
-    meets: list[set[int]] = [set() for _ in subsets]
-    for s, idx in enumerate(subsets):
-        for ring in subset_halo(train, center, idx, cfg):
-            for other in set(owner[ring].tolist()):
-                meets[s].add(other)
-                meets[other].add(s)
-    rounds: list[int] = []
-    for s in range(len(subsets)):
-        taken = {rounds[o] for o in meets[s] if o < s}
-        rounds.append(next(r for r in range(len(subsets)) if r not in taken))
-    return rounds
-
-
-def held_subsets(train: np.ndarray, center, subset_size: int, subset: int, cfg: FitConfig,
-                 rounds: list[int] | None = None) -> list[int]:
-    """The subsets of earlier rounds (`subset_rounds`, or `rounds` made by it) with lights in this subset's halo:
-    the fit's inputs, their stored SIRENs held where their lights are in its halo (`held_lights`)."""
-    rounds = subset_rounds(train, center, subset_size, cfg) if rounds is None else rounds
-    subsets = light_subsets(train, subset_size)
-    halo = {i for ring in subset_halo(train, center, subsets[subset], cfg) for i in ring}
-    return [s for s, idx in enumerate(subsets) if rounds[s] < rounds[subset] and halo.intersection(idx)]
-
-
-def held_lights(train: np.ndarray, center, subset_size: int, subset: int, cfg: FitConfig) -> list[int]:
-    """This subset's halo lights that belong to `held_subsets`, sorted: held at their stored SIRENs."""
-    subsets = light_subsets(train, subset_size)
-    held = {i for s in held_subsets(train, center, subset_size, subset, cfg) for i in subsets[s]}
-    return sorted(held.intersection(i for ring in subset_halo(train, center, subsets[subset], cfg) for i in ring))
-
-
 def blend_pool(volume: Volume, tf: TransferFunction, train: np.ndarray, center, subset: list[int], cfg: FitConfig,
                *, halo: list[list[int]] = (), held: list[int] = (),
                device: torch.device | str = "cpu") -> PoolLights | None:
@@ -285,7 +207,7 @@ def blend_pool(volume: Volume, tf: TransferFunction, train: np.ndarray, center, 
     if cfg.blend_weight <= 0 or len(subset) < 2:
         return None
     train = np.asarray(train, dtype=np.float64)
-    lights, idx, mix = _pool_blends(train, center, len(subset), cfg)
+    lights, idx, mix = pool_blends(train, center, len(subset), cfg)
     fitted = list(subset) + [i for ring in halo for i in ring if i not in set(held)] + list(held)
     # a pool light counts where its blend takes a light of the subset or of a ring inside the outermost, whose
     # lights then have blends on every side, as in their own subset

@@ -307,6 +307,8 @@ class Triangulation:
         if self.faces is None:
             idx, angles = nearest(self.points[:self.n], query, min(3, self.n))
             return idx, inverse_angle_weights(angles)
+        if not len(query):  # `lights.unseen: 0`
+            return np.zeros((0, 3), dtype=np.int64), np.zeros((0, 3))
         face, lam = self.holding(query, query / norm[:, None])
         idx = self.faces[face]
         lam = np.clip(lam, 0.0, None)

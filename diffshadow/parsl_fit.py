@@ -131,7 +131,7 @@ def fit_pending(parsl_config: Path, configfile: Path, scenes: list[str] | None, 
         # the sections as the rule's --config-json gives them (keys sorted, settings at their old behaviour left
         # out): the subset file records them, and should hold the same bytes whichever way it was fitted
         sel = json.loads(stage1_json(cfg, "siren", "fit", "subset_size"))
-        held = subset_inputs(cfg)
+        _, held = subset_inputs(cfg)
         jobs += [{"paths": {**{k: str(v) for k, v in paths.items()}, "out": str(base / "sirens" / f"subset_{i}.npz"),
                             "benchmark": str(base / "benchmarks" / f"fit_siren_{i}.tsv"),
                             "held": [str(base / "sirens" / f"subset_{s}.npz") for s in held[i]]},

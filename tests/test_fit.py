@@ -290,8 +290,9 @@ def test_with_a_halo_every_pool_light_is_in_some_subsets_blend_loss_blended_as_t
     border take; then every pool light's blend, seams included, is in the blend loss of each subset it touches, and
     its neighbours are rows of the subset's lights followed by the rings'. With two rings, ring 1's lights also
     get the blends on their far side, as in their own subset."""
-    from diffshadow.fit import blend_pool, subset_halo
+    from diffshadow.fit import blend_pool
     from diffshadow.lights import blend_weights, fibonacci_sphere, light_subsets, select_region
+    from diffshadow.seams import subset_halo
 
     vol, tf, _ = scene
     sphere = fibonacci_sphere(400)
@@ -323,8 +324,9 @@ def test_in_rounds_a_subset_holds_the_halo_lights_of_earlier_rounds_at_their_sto
     earlier-round neighbours (their blends' rows after its fitted ones), fits the rest of its halo, and its fit
     leaves the held SIRENs as they were; a checkpoint made with other held SIRENs is not resumed. Without rounds (or
     a halo, or with one subset) nothing is held."""
-    from diffshadow.fit import _fingerprint, blend_pool, held_lights, held_subsets, subset_halo, subset_rounds
+    from diffshadow.fit import _fingerprint, blend_pool
     from diffshadow.lights import blend_weights, fibonacci_sphere, light_subsets, select_region
+    from diffshadow.seams import held_lights, held_subsets, subset_halo, subset_rounds
 
     vol, tf, _ = scene
     sphere = fibonacci_sphere(400)

@@ -206,7 +206,10 @@ def test_polaris_profile_end_to_end_with_packing_and_a_failed_subset(tmp_path):
     # one thread per fit so packed jobs run side by side even on a 2-core test machine (a Polaris node
     # runs all four at once: 4 x 8 threads of its 32 cores)
     one = ("--set-threads", "fit_siren=1")
-    first = run_profile(tmp_path, "polaris", *one)
+    # four fits of one round (`fit.rounds` off: with it the tiny scene's subsets meet, and each round packs alone;
+    # the paper config's rounds are packed in tests/test_hpc.py::test_paper_scale_config_plans_forty_subsets_...)
+    apart = {"rounds": False}
+    first = run_profile(tmp_path, "polaris", *one, fit=apart)
     assert first.returncode == 0, first.stderr[-3000:]
     subs = submissions(tmp_path)
     packed = [s for s in subs if s["script"].count("fit_siren:") == 4]
@@ -229,13 +232,14 @@ def test_polaris_profile_end_to_end_with_packing_and_a_failed_subset(tmp_path):
     sirens = tmp_path / "results/nucleon/sirens"
     before = {p.name: p.stat().st_mtime_ns for p in sirens.glob("*.npz") if p.name != "subset_3.npz"}
     subset_3 = (sirens / "subset_3.npz").read_bytes()
-    failed = run_profile(tmp_path, "polaris", *one, "-f", "results/nucleon/sirens/subset_3.npz", fail_subset=3)
+    failed = run_profile(tmp_path, "polaris", *one, "-f", "results/nucleon/sirens/subset_3.npz", fail_subset=3,
+                         fit=apart)
     assert failed.returncode != 0 and "subset_3" in failed.stderr
-    rerun = run_profile(tmp_path, "polaris", *one, "-f", "results/nucleon/sirens/subset_3.npz")
+    rerun = run_profile(tmp_path, "polaris", *one, "-f", "results/nucleon/sirens/subset_3.npz", fit=apart)
     assert rerun.returncode == 0, rerun.stderr[-3000:]
     assert (sirens / "subset_3.npz").exists()
     assert {p.name: p.stat().st_mtime_ns for p in sirens.glob("*.npz") if p.name in before} == before
-    done = run_profile(tmp_path, "polaris", *one)
+    done = run_profile(tmp_path, "polaris", *one, fit=apart)
     assert done.returncode == 0, done.stderr[-3000:]
     # same seed, same bytes: the refitted subset equals the old one, so nothing downstream is stale
     assert (sirens / "subset_3.npz").read_bytes() == subset_3
@@ -246,7 +250,7 @@ def test_a_preempted_node_is_requeued_and_its_fits_resume_to_the_same_bytes(tmp_
     """Polaris' preemptable queue: the node job running the four packed fit_siren jobs is killed as soon as a
     fit has checkpointed, PBS requeues it (-r y), the rerun resumes from the checkpoints, and stage 1's store is
     byte-identical to one from fits that ran uninterrupted."""
-    fit = {"steps": 120, "checkpoint_every": 10}
+    fit = {"steps": 120, "checkpoint_every": 10, "rounds": False}  # four fits of one round, packed
     preempt = {"STANDIN_PBS_PREEMPT": "fit_siren=results/nucleon/sirens/subset_*.npz.ckpt"}
     one = ("--set-threads", "fit_siren=1")  # two fits at a time on a 2-core machine, not one (8 threads each)
     proc = run_profile(tmp_path, "polaris", "results/nucleon/weights.zarr", *one, fit=fit, env=preempt)
@@ -347,7 +351,8 @@ rule job{i}:
 
 def test_paper_scale_config_plans_forty_subsets_four_to_a_node(tmp_path):
     """config/paper.yaml on the Polaris profile with the sweep's workflow profile (profiles/paper): the whole DAG
-    planned, 2,000 lights in 40 fit_siren jobs packed into 10 node jobs, each rule asking for the walltime the
+    planned, 2,000 lights in 40 fit_siren jobs packed four to a node within each of their 4 rounds (`fit.rounds`:
+    15, 11, 8 and 6 fits, 11 node jobs; one group for all would be one job), each rule asking for the walltime the
     sweep projected instead of the Polaris profile's guess (a dry run: nothing is submitted)."""
     env = {**os.environ, "PBS_ACCOUNT": "testproj"}
     proc = subprocess.run([sys.executable, "-m", "snakemake", "-s", str(REPO / "Snakefile"), "--directory",
@@ -356,7 +361,8 @@ def test_paper_scale_config_plans_forty_subsets_four_to_a_node(tmp_path):
                            "-n"], env=env, capture_output=True, text=True, timeout=300)
     assert proc.returncode == 0, proc.stderr[-3000:]
     out = proc.stdout + proc.stderr
-    assert re.search(r"^fit_siren\s+40$", out, re.M) and out.count("Group job siren") == 10, out[-3000:]
+    assert re.search(r"^fit_siren\s+40$", out, re.M) and out.count("Group job siren") == 11, out[-3000:]
+    assert [out.count(f"Group job siren{r} ") for r in range(4)] == [4, 3, 2, 2]
     projected = yaml.safe_load((REPO / "profiles" / "paper" / "config.yaml").read_text())["set-resources"]
     for rule in ("train_diffusion", "eval_truth"):
         job = out.split(f"rule {rule}:")[1].split("\n\n")[0]

@@ -340,6 +340,8 @@ def test_triangle_weights_take_the_face_that_testing_every_face_takes(lights):
     want_face, want_coords = _every_face(tri, query)
     assert np.array_equal(face, want_face)
     assert coords.tobytes() == want_coords.tobytes()
+    none = tri.weights(np.zeros((0, 3)))  # no query (`lights.unseen: 0`)
+    assert none[0].shape == none[1].shape == (0, 3) and none[0].dtype == np.int64
 
 
 def test_a_blend_query_that_is_no_direction_is_named():

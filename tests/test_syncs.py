@@ -246,8 +246,9 @@ def test_the_fit_bench_times_a_subset_with_the_halo_it_fits(tiny, scene):
     and the mean halo of the config's own light set, and counts only the subset's as its SIRENs."""
     import numpy as np
 
-    from diffshadow.fit import FitConfig, halo_size
+    from diffshadow.fit import FitConfig
     from diffshadow.lights import make_light_sets
+    from diffshadow.seams import halo_size
 
     cfg = merge(tiny, {"lights": {"count": 24, "sphere": 96}, "subset_size": 8})
     timed = BUILDERS["fit_siren"](cfg, torch.device("cpu"), *scene)

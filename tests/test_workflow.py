@@ -867,13 +867,16 @@ def test_config_typo_fails_before_any_job(tmp_path):
 
 def fit_subset_command(finished: Path, tmp_path: Path, checkpoint_every: int) -> tuple[list[str], Path, Path]:
     """`diffshadow fit-siren` of the finished run's subset 1 for 3,000 steps into tmp_path, after the preoptimize it
-    needs; the command, its output and its checkpoint."""
+    needs, beside a copy of subset 0's file (fit.rounds: it holds subset 0's SIRENs); the command, its output and
+    its checkpoint."""
     import json
+    import shutil
 
     cfg = json.dumps({"siren": TINY["siren"], "subset_size": 2,
                       "fit": {**TINY["fit"], "steps": 3000, "checkpoint_every": checkpoint_every}})
     res = finished / "results/nucleon"
     out = tmp_path / "subset_1.npz"
+    shutil.copy(res / "sirens/subset_0.npz", tmp_path / "subset_0.npz")
     exe = str(installed("diffshadow"))
     # an init made for these settings (preoptimize records the fit steps its size was chosen for)
     pre = json.dumps({**json.loads(cfg), "preoptimize": TINY["preoptimize"]})

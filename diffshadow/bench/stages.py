@@ -112,8 +112,8 @@ def _lights(n: int, center, gen: np.random.Generator) -> np.ndarray:
 
 def _halo(cfg: dict, fit) -> int:
     """The mean halo a subset of the config's lights fits (`fit.halo`), rounded: 0 for one subset, or no halo."""
-    from diffshadow.fit import halo_size
     from diffshadow.lights import make_light_sets
+    from diffshadow.seams import halo_size
 
     lc = cfg["lights"]
     sets = make_light_sets(int(lc["sphere"]), int(lc["count"]), lc["center"], int(lc["unseen"]), int(lc["seed"]),

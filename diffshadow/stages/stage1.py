@@ -41,20 +41,21 @@ def lights(out: Path, *, sphere: int, count: int, center, unseen: int, seed: int
           f"(region of a {sphere}-point Fibonacci sphere around {sets['center']}{edge})")
 
 
-def subset_inputs(cfg: dict) -> list[list[int]]:
-    """For a scene's config, the subsets whose files each subset's fit reads (`fit.held_subsets`: earlier rounds'
-    neighbours; none without `fit.rounds`), its lights made as `lights` makes them: the workflow's inputs."""
-    from diffshadow.fit import FitConfig, held_subsets, subset_rounds
+def subset_inputs(cfg: dict) -> tuple[list[int], list[list[int]]]:
+    """For a scene's config, each subset's round (`seams.subset_rounds`) and the subsets whose files its fit reads
+    (`seams.held_subsets`: earlier rounds' neighbours; none without `fit.rounds`), its lights made as `lights` makes
+    them: the workflow's job groups and inputs."""
+    from diffshadow.seams import SeamSettings, held_subsets, subset_rounds
 
     lc, size = cfg["lights"], int(cfg["subset_size"])
-    fit = FitConfig.from_config(cfg["fit"])
+    fit = SeamSettings.of(cfg["fit"])
     n = -(-int(lc["count"]) // size)
     if not fit.rounds or n < 2:
-        return [[] for _ in range(n)]
+        return [0] * n, [[] for _ in range(n)]
     sets = make_light_sets(lc["sphere"], lc["count"], lc["center"], lc["unseen"], seed=lc["seed"], layout=lc["layout"])
     train = np.asarray(sets["train"]["cartesian"], dtype=np.float64)
     rounds = subset_rounds(train, sets["center"], size, fit)
-    return [held_subsets(train, sets["center"], size, s, fit, rounds) for s in range(n)]
+    return rounds, [held_subsets(train, sets["center"], size, s, fit, rounds) for s in range(n)]
 
 
 def prepare_volume(out: Path, scene: dict) -> None:
@@ -83,7 +84,7 @@ def preoptimize(volume_path: Path, lights_path: Path, out: Path, *, siren: Siren
 def fit_subset(volume_path: Path, lights_path: Path, init_path: Path, subset: int, out: Path, *,
                siren: SirenConfig, fit: FitConfig, subset_size: int, config: dict, device: torch.device) -> None:
     """The SIRENs of one light subset, fitted jointly and checked on held-out points (resumable). Under
-    `fit.rounds` it reads the files of the earlier rounds' subsets it holds (`fit.held_subsets`) beside `out`."""
+    `fit.rounds` it reads the files of the earlier rounds' subsets it holds (`seams.held_subsets`) beside `out`."""
     from diffshadow import artifacts
     from diffshadow.fit import (
         FitError,
@@ -92,10 +93,8 @@ def fit_subset(volume_path: Path, lights_path: Path, init_path: Path, subset: in
         describe_targets,
         evaluate_psnr,
         fit_sirens,
-        held_lights,
-        held_subsets,
-        subset_halo,
     )
+    from diffshadow.seams import held_lights, held_subsets, subset_halo
 
     volume, tf = load_prepared(volume_path)
     sets = read_lights(lights_path)

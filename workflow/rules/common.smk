@@ -81,14 +81,28 @@ def subset_lights(wildcards):
 _HELD = {}
 
 
+def _rounds(scene):
+    """Each subset's round and held subsets (`stage1.subset_inputs`), computed once per scene from its config."""
+    if scene not in _HELD:
+        _HELD[scene] = _subset_inputs(scene_config(scene))
+    return _HELD[scene]
+
+
 def held_subset_files(wildcards):
-    """fit_siren's inputs under `fit.rounds`: the files of the earlier rounds' subsets in its halo
-    (`stage1.subset_inputs`, computed once per scene from its config); none without it or with one subset."""
-    if wildcards.scene not in _HELD:
-        _HELD[wildcards.scene] = _subset_inputs(scene_config(wildcards.scene))
-    held = _HELD[wildcards.scene]
+    """fit_siren's inputs under `fit.rounds`: the files of the earlier rounds' subsets in its halo; none without it
+    or with one subset."""
+    held = _rounds(wildcards.scene)[1]
     subset = int(wildcards.subset)
     return [f"results/{wildcards.scene}/sirens/subset_{s}.npz" for s in (held[subset] if subset < len(held) else [])]
+
+
+def fit_group(wildcards):
+    """fit_siren's job group where a profile packs jobs (`group-components`): `siren<round>`, one per round, whose
+    jobs do not wait on one another. One group for all would be one job: Snakemake joins a group's jobs that
+    depend on each other, and under `fit.rounds` every subset's fit waits on its earlier-round neighbours'."""
+    rounds = _rounds(wildcards.scene)[0]
+    subset = int(wildcards.subset)
+    return f"siren{rounds[subset] if subset < len(rounds) else 0}"
 
 
 def subset_files(wildcards):

@@ -53,6 +53,8 @@ rule fit_siren:
         cfg=lambda wc: fit_json(wc.scene, "siren", "fit", "subset_size"),
     wildcard_constraints:
         subset=r"\d+",
+    group:
+        fit_group  # on a cluster only; Polaris packs four of a round to a node
     threads: 1
     priority: 10
     log:
