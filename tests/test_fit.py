@@ -367,9 +367,11 @@ def test_in_rounds_a_subset_holds_the_halo_lights_of_earlier_rounds_at_their_sto
     assert len(prints) == 3
     # the held SIRENs come from the earlier rounds' subset files: a light none of them has is named
     from diffshadow.stages.stage1 import _held_weights
+    from diffshadow.store import write_subset
 
     path = tmp_path / "subset_0.npz"
-    np.savez(path, weights=np.stack([init().numpy()] * 2), light_index=np.array([7, 9]))
+    write_subset(path, weights=np.stack([init().numpy()] * 2), light_index=[7, 9], lights=lights[:2],
+                 psnr=np.zeros(2), psnr_visible=np.zeros(2), layout=LAYOUT, siren=CFG, config={}, extinction="x")
     got = _held_weights([path], [9, 7], 3, LAYOUT)
     assert torch.equal(got, torch.stack([init()] * 2))
     with pytest.raises(ValueError, match=r"^fit_siren subset 3: holds the stored SIRENs of lights 8 \(fit.rounds\), "
@@ -378,6 +380,10 @@ def test_in_rounds_a_subset_holds_the_halo_lights_of_earlier_rounds_at_their_sto
     with pytest.raises(ValueError, match=r"^fit_siren subset 3: holds SIRENs of .*subset_1.npz \(fit.rounds: a subset "
                        r"of an earlier round beside it\), which is missing: fit that subset first$"):
         _held_weights([path, tmp_path / "subset_1.npz"], [7], 3, LAYOUT)
+    wider = WeightLayout.for_siren(SirenConfig(16, 1))
+    with pytest.raises(ValueError, match=r"subset_0.npz: SIRENs of another layout \(\d+ parameters\) than this fit's "
+                       r"\(\d+\): refit that subset first$"):
+        _held_weights([path], [7], 3, wider)
 
 
 def test_an_unknown_blend_weighting_for_the_blend_loss_is_named():

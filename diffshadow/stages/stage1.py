@@ -144,9 +144,11 @@ def fit_subset(volume_path: Path, lights_path: Path, init_path: Path, subset: in
 
 
 def _held_weights(paths: list[Path], lights: list[int], subset: int, layout) -> torch.Tensor | None:
-    """The stored SIRENs (H, n_params) of `lights`, from the earlier rounds' subset files `paths`; a light none of
-    them has, or a file of another layout, is named."""
+    """The stored SIRENs (H, n_params) of `lights`, from the earlier rounds' subset files `paths` (`store.read_subset`:
+    checked); a light none of them has, or a file of another layout, is named."""
     import torch
+
+    from diffshadow.store import read_subset
 
     if not lights:
         return None
@@ -155,12 +157,11 @@ def _held_weights(paths: list[Path], lights: list[int], subset: int, layout) -> 
         if not path.is_file():
             raise ValueError(f"fit_siren subset {subset}: holds SIRENs of {path} (fit.rounds: a subset of an earlier "
                              f"round beside it), which is missing: fit that subset first")
-        with np.load(path) as z:
-            weights, index = z["weights"], z["light_index"]
-        if weights.shape[1] != layout.n_params:
-            raise ValueError(f"{path}: SIRENs of {weights.shape[1]} parameters, expected {layout.n_params} (this "
-                             f"run's layout): refit that subset first")
-        found.update(zip(index.tolist(), weights, strict=True))
+        stored = read_subset(path)
+        if stored["layout"] != layout:
+            raise ValueError(f"{path}: SIRENs of another layout ({stored['layout'].n_params} parameters) than this "
+                             f"fit's ({layout.n_params}): refit that subset first")
+        found.update(zip(stored["light_index"].tolist(), stored["weights"], strict=True))
     missing = [i for i in lights if i not in found]
     if missing:
         raise ValueError(f"fit_siren subset {subset}: holds the stored SIRENs of lights {index_ranges(missing)} "
