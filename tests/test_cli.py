@@ -422,8 +422,11 @@ def test_lights_prepare_volume_and_collect_weights_start_without_torch_and_recor
 
     def run(*argv: str) -> dict:
         phases = tmp_path / f"{argv[0]}.phases.json"
-        done = subprocess.run([sys.executable, "-X", "importtime", "-m", "diffshadow.cli", "--phases", str(phases),
-                               *argv], capture_output=True, text=True, cwd=tmp_path)
+        # forked by a shell (not exec'd by it), as a workflow job is: Linux starts a process's peak RSS at its forking
+        # parent's, and this test's process may hold over a GiB after the tests before it (1,462 MiB once)
+        shell = ["bash", "-c", '"$@"; exit $?', "job"]
+        done = subprocess.run([*shell, sys.executable, "-X", "importtime", "-m", "diffshadow.cli", "--phases",
+                               str(phases), *argv], capture_output=True, text=True, cwd=tmp_path)
         assert done.returncode == 0, done.stderr
         imported = imported_modules(done.stderr)
         assert "diffshadow.argparsing" in imported and not [m for m in imported if m.split(".")[0] == "torch"]
