@@ -57,8 +57,9 @@ def halo_size(train: np.ndarray, center, subset_size: int, cfg: SeamSettings) ->
 def subset_halo(train: np.ndarray, center, subset: list[int], cfg: SeamSettings) -> list[list[int]]:
     """The rings (`fit.halo` of them) of other subsets' lights that the blends across this subset's border take,
     each sorted: ring 1 those of the blends that take a light of the subset, ring 2 those of the blends that take
-    one of ring 1, and so on. Fitted with the subset and discarded, so that the pool lights on its seams are in
-    its blend loss; [] when the halo or the blend loss is off or the subset is every light."""
+    one of ring 1, and so on. Fitted with the subset and discarded (those of earlier rounds held instead,
+    `held_lights`), so that the pool lights on its seams are in its blend loss; [] when the halo or the blend loss
+    is off or the subset is every light."""
     train = np.asarray(train, dtype=np.float64)
     if not cfg.halo or cfg.blend_weight <= 0 or len(subset) < 2 or len(subset) == len(train):
         return []
