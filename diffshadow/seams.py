@@ -48,10 +48,14 @@ def pool_blends(train: np.ndarray, center, k: int, cfg: SeamSettings) -> tuple[n
     return _POOL_BLENDS[key]
 
 
-def halo_size(train: np.ndarray, center, subset_size: int, cfg: SeamSettings) -> float:
-    """The mean count of halo lights (`subset_halo`, all rings) a subset of these lights fits beside its own."""
+def halo_size(train: np.ndarray, center, subset_size: int, cfg: SeamSettings) -> tuple[float, float]:
+    """The mean counts of halo lights (`subset_halo`, all rings) a subset of these lights fits beside its own, and
+    of those it holds at their stored SIRENs instead (`held_lights`, `fit.rounds`)."""
     subsets = light_subsets(train, subset_size)
-    return float(np.mean([sum(map(len, subset_halo(train, center, s, cfg))) for s in subsets]))
+    rounds = subset_rounds(train, center, subset_size, cfg)
+    halo = [sum(map(len, subset_halo(train, center, s, cfg))) for s in subsets]
+    held = [len(held_lights(train, center, subset_size, i, cfg, rounds)) for i in range(len(subsets))]
+    return float(np.mean(halo) - np.mean(held)), float(np.mean(held))
 
 
 def subset_halo(train: np.ndarray, center, subset: list[int], cfg: SeamSettings) -> list[list[int]]:
@@ -104,8 +108,10 @@ def held_subsets(train: np.ndarray, center, subset_size: int, subset: int, cfg: 
     return [s for s, idx in enumerate(subsets) if rounds[s] < rounds[subset] and halo.intersection(idx)]
 
 
-def held_lights(train: np.ndarray, center, subset_size: int, subset: int, cfg: SeamSettings) -> list[int]:
-    """This subset's halo lights that belong to `held_subsets`, sorted: held at their stored SIRENs."""
+def held_lights(train: np.ndarray, center, subset_size: int, subset: int, cfg: SeamSettings,
+                rounds: list[int] | None = None) -> list[int]:
+    """This subset's halo lights that belong to `held_subsets` (`rounds` as there), sorted: held at their stored
+    SIRENs."""
     subsets = light_subsets(train, subset_size)
-    held = {i for s in held_subsets(train, center, subset_size, subset, cfg) for i in subsets[s]}
+    held = {i for s in held_subsets(train, center, subset_size, subset, cfg, rounds) for i in subsets[s]}
     return sorted(held.intersection(i for ring in subset_halo(train, center, subsets[subset], cfg) for i in ring))

@@ -243,7 +243,8 @@ def test_a_data_inr_step_never_blocks_on_its_points_and_its_update_copies_nothin
 
 def test_the_fit_bench_times_a_subset_with_the_halo_it_fits(tiny, scene):
     """With several subsets, a fit job fits its halo too (`fit.halo`): the bench's step covers the subset's lights
-    and the mean halo of the config's own light set, and counts only the subset's as its SIRENs."""
+    and the mean halo of the config's own light set, the part of it held at stored SIRENs (`fit.rounds`) in the
+    blend loss only, and counts only the subset's as its SIRENs."""
     import numpy as np
 
     from diffshadow.fit import FitConfig
@@ -254,8 +255,14 @@ def test_the_fit_bench_times_a_subset_with_the_halo_it_fits(tiny, scene):
     timed = BUILDERS["fit_siren"](cfg, torch.device("cpu"), *scene)
     sets = make_light_sets(96, 24, cfg["lights"]["center"], 2, cfg["lights"]["seed"], cfg["lights"]["layout"])
     train = np.asarray(sets["train"]["cartesian"])
-    halo = round(halo_size(train, sets["center"], 8, FitConfig.from_config(cfg["fit"])))
-    assert halo > 0 and timed.step.__self__.k == 8 + halo and timed.units == 8
-    assert f"3 jobs of up to 8 lights and a halo of {halo}" in timed.note
+    fitted, held = (round(n) for n in halo_size(train, sets["center"], 8, FitConfig.from_config(cfg["fit"])))
+    run = timed.step.__self__
+    assert fitted > 0 and held > 0 and run.k == 8 + fitted and len(run.held) == held and timed.units == 8
+    assert f"3 jobs of up to 8 lights and a halo of {fitted} fitted and {held} held" in timed.note
+    off = FitConfig.from_config({**cfg["fit"], "rounds": False})
+    assert halo_size(train, sets["center"], 8, off)[1] == 0  # without rounds the whole halo is fitted
+    apart = BUILDERS["fit_siren"](merge(cfg, {"fit": {"rounds": False}}), torch.device("cpu"), *scene)
+    assert apart.step.__self__.k == 8 + round(halo_size(train, sets["center"], 8, off)[0])
+    assert apart.step.__self__.held is None
     off = BUILDERS["fit_siren"](merge(cfg, {"fit": {"halo": 0}}), torch.device("cpu"), *scene)
     assert off.step.__self__.k == 8 and "halo" not in off.note

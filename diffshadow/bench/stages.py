@@ -110,15 +110,17 @@ def _lights(n: int, center, gen: np.random.Generator) -> np.ndarray:
     return v / np.linalg.norm(v, axis=1, keepdims=True)
 
 
-def _halo(cfg: dict, fit) -> int:
-    """The mean halo a subset of the config's lights fits (`fit.halo`), rounded: 0 for one subset, or no halo."""
+def _halo(cfg: dict, fit) -> tuple[int, int]:
+    """The mean halo a subset of the config's lights fits (`fit.halo`) and the mean it holds (`fit.rounds`),
+    rounded: 0 for one subset, or no halo."""
     from diffshadow.lights import make_light_sets
     from diffshadow.seams import halo_size
 
     lc = cfg["lights"]
     sets = make_light_sets(int(lc["sphere"]), int(lc["count"]), lc["center"], int(lc["unseen"]), int(lc["seed"]),
                            lc["layout"])
-    return round(halo_size(np.asarray(sets["train"]["cartesian"]), sets["center"], int(cfg["subset_size"]), fit))
+    fitted, held = halo_size(np.asarray(sets["train"]["cartesian"]), sets["center"], int(cfg["subset_size"]), fit)
+    return round(fitted), round(held)
 
 
 def _pool(m: int, points: int, n_train: int, cfg: dict, volume, *, seed: int):
@@ -159,20 +161,24 @@ def fit_siren(cfg: dict, device: torch.device, volume, tf, *, subset: bool = Tru
     layout = WeightLayout.for_siren(siren)
     n_lights = int(cfg["lights"]["count"])
     k = min(int(cfg["subset_size"]), n_lights) if subset else 1
-    halo = _halo(cfg, fit) if subset else 0  # fitted beside the subset's lights, and discarded
+    # fitted beside the subset's lights and discarded; held at stored SIRENs in the blend loss (here: any weights)
+    halo, held = _halo(cfg, fit) if subset else (0, 0)
     lights = _lights(k + halo, cfg["lights"]["center"], np.random.default_rng(0))
     init = layout.flatten(init_siren(siren, torch.Generator().manual_seed(0)))
     pool = None
     if subset and fit.blend_weight > 0 and k >= 2:
         # a pool of the size one subset takes (blend_per_light pool lights per training light, ~all of them its own)
-        pool = _pool(fit.blend_per_light * k, fit.blend_points, k + halo, cfg, volume, seed=1)
+        pool = _pool(fit.blend_per_light * k, fit.blend_points, k + halo + held, cfg, volume, seed=1)
     if not subset:
         fit = replace(fit, lr=float(cfg["preoptimize"]["lr"]))
-    run = SubsetFit(init, layout, siren, volume, tf, lights, fit, pool=pool, device=device, log=lambda m: None)
+    stored = init.expand(held, -1).clone() if held and pool is not None else None
+    run = SubsetFit(init, layout, siren, volume, tf, lights, fit, pool=pool, held=stored, device=device,
+                    log=lambda m: None)
     graphed = _captured(run.graphs, run.step)
     if subset:
         jobs = math.ceil(n_lights / int(cfg["subset_size"]))
         with_halo = f" and a halo of {halo}" if halo else ""
+        with_halo += f" fitted and {held} held" if held else ""
         return Timed(run.step, f"step of {k + halo} SIRENs{graphed}", fit.steps,
                      f"{fit.steps} steps per job ({jobs} jobs of up to {cfg['subset_size']} lights{with_halo}, one GPU "
                      f"each)", k)
