@@ -208,7 +208,8 @@ def blend_pool(volume: Volume, tf: TransferFunction, train: np.ndarray, center, 
         return None
     train = np.asarray(train, dtype=np.float64)
     lights, idx, mix = pool_blends(train, center, len(subset), cfg)
-    fitted = list(subset) + [i for ring in halo for i in ring if i not in set(held)] + list(held)
+    held_set = set(held)
+    fitted = list(subset) + [i for ring in halo for i in ring if i not in held_set] + list(held)
     # a pool light counts where its blend takes a light of the subset or of a ring inside the outermost, whose
     # lights then have blends on every side, as in their own subset
     inner = list(subset) + [i for ring in halo[:-1] for i in ring]

@@ -309,7 +309,7 @@ class Triangulation:
             return idx, inverse_angle_weights(angles)
         if not len(query):  # `lights.unseen: 0`
             return np.zeros((0, 3), dtype=np.int64), np.zeros((0, 3))
-        face, lam = self.holding(query, query / norm[:, None])
+        face, lam = self.holding(query)
         idx = self.faces[face]
         lam = np.clip(lam, 0.0, None)
         real = idx < self.n
@@ -319,11 +319,11 @@ class Triangulation:
         lam = np.where(total > 0, lam / np.where(total > 0, total, 1.0), real / real.sum(axis=1, keepdims=True))
         return idx, lam
 
-    def holding(self, query: np.ndarray, unit: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """The face (Q,) that holds each query (Q, 3) and the query's barycentric coordinates in it (Q, 3); `unit`:
-        the queries as unit vectors. The faces' cones tile the sphere, so every other face has a negative
-        coordinate; on a shared edge both give the same weights, and ties go to the first (faces are sorted)."""
-        pair_query, pair_face = self._candidates(unit)
+    def holding(self, query: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The face (Q,) that holds each query (Q, 3) (nonzero directions) and the query's barycentric coordinates
+        in it (Q, 3). The faces' cones tile the sphere, so every other face has a negative coordinate; on a shared
+        edge both give the same weights, and ties go to the first (faces are sorted)."""
+        pair_query, pair_face = self._candidates(query / np.linalg.norm(query, axis=1, keepdims=True))
         coords = _dot3(query[pair_query, None, :], self.cross[pair_face]) / self.det[pair_face, None]  # (P, 3)
         order = np.lexsort((pair_face, -coords.min(axis=1), pair_query))
         first = order[np.r_[True, pair_query[order][1:] != pair_query[order][:-1]]]
@@ -603,6 +603,13 @@ def make_light_sets(sphere: int, count: int, center, unseen: int, seed: int = 0,
         },
         "unseen": {"cartesian": held.tolist(), "spherical": to_spherical(held).tolist()},
     }
+
+
+def configured_light_sets(lights: dict) -> dict:
+    """`make_light_sets` for a config's `lights` section (sphere, count, center, unseen, seed, layout): the sets the
+    workflow's `lights` job writes, for code that needs them before that file exists."""
+    return make_light_sets(int(lights["sphere"]), int(lights["count"]), lights["center"], int(lights["unseen"]),
+                           seed=int(lights["seed"]), layout=lights["layout"])
 
 
 def write_lights(path: str | Path, lights: dict) -> None:

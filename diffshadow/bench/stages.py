@@ -113,12 +113,10 @@ def _lights(n: int, center, gen: np.random.Generator) -> np.ndarray:
 def _halo(cfg: dict, fit) -> tuple[int, int]:
     """The mean halo a subset of the config's lights fits (`fit.halo`) and the mean it holds (`fit.rounds`),
     rounded: 0 for one subset, or no halo."""
-    from diffshadow.lights import make_light_sets
+    from diffshadow.lights import configured_light_sets
     from diffshadow.seams import halo_size
 
-    lc = cfg["lights"]
-    sets = make_light_sets(int(lc["sphere"]), int(lc["count"]), lc["center"], int(lc["unseen"]), int(lc["seed"]),
-                           lc["layout"])
+    sets = configured_light_sets(cfg["lights"])
     fitted, held = halo_size(np.asarray(sets["train"]["cartesian"]), sets["center"], int(cfg["subset_size"]), fit)
     return round(fitted), round(held)
 

@@ -16,7 +16,16 @@ import numpy as np
 
 from diffshadow.capacity import size_text
 from diffshadow.layout import SirenConfig
-from diffshadow.lights import LightRegion, index_ranges, make_light_sets, read_lights, subset_indices, write_lights
+from diffshadow.lights import (
+    LightRegion,
+    configured_light_sets,
+    index_ranges,
+    make_light_sets,
+    n_subsets,
+    read_lights,
+    subset_indices,
+    write_lights,
+)
 from diffshadow.sampling import SUBSET_HELD_OUT_SEED
 from diffshadow.store import collect_subsets, write_store, write_subset
 from diffshadow.volume import extinction_id, load_prepared, save_prepared, scene_volume, volume_source
@@ -47,12 +56,12 @@ def subset_inputs(cfg: dict) -> tuple[list[int], list[list[int]]]:
     them: the workflow's job groups and inputs."""
     from diffshadow.seams import SeamSettings, held_subsets, subset_rounds
 
-    lc, size = cfg["lights"], int(cfg["subset_size"])
+    size = int(cfg["subset_size"])
     fit = SeamSettings.of(cfg["fit"])
-    n = -(-int(lc["count"]) // size)
+    n = n_subsets(int(cfg["lights"]["count"]), size)
     if not fit.rounds or n < 2:
         return [0] * n, [[] for _ in range(n)]
-    sets = make_light_sets(lc["sphere"], lc["count"], lc["center"], lc["unseen"], seed=lc["seed"], layout=lc["layout"])
+    sets = configured_light_sets(cfg["lights"])
     train = np.asarray(sets["train"]["cartesian"], dtype=np.float64)
     rounds = subset_rounds(train, sets["center"], size, fit)
     return rounds, [held_subsets(train, sets["center"], size, s, fit, rounds) for s in range(n)]
@@ -94,7 +103,7 @@ def fit_subset(volume_path: Path, lights_path: Path, init_path: Path, subset: in
         evaluate_psnr,
         fit_sirens,
     )
-    from diffshadow.seams import held_lights, held_subsets, subset_halo
+    from diffshadow.seams import held_lights, held_subsets, subset_halo, subset_rounds
 
     volume, tf = load_prepared(volume_path)
     sets = read_lights(lights_path)
@@ -107,10 +116,13 @@ def fit_subset(volume_path: Path, lights_path: Path, init_path: Path, subset: in
     out = Path(out)
     where = f"fit_siren subset {subset} ({volume_path}"
     halo = subset_halo(train, sets["center"], idx, fit)
-    hold = held_lights(train, sets["center"], subset_size, subset, fit)
-    held = [out.parent / f"subset_{s}.npz" for s in held_subsets(train, sets["center"], subset_size, subset, fit)]
+    rounds = subset_rounds(train, sets["center"], subset_size, fit)
+    hold = held_lights(train, sets["center"], subset_size, subset, fit, rounds)
+    held = [out.parent / f"subset_{s}.npz"
+            for s in held_subsets(train, sets["center"], subset_size, subset, fit, rounds)]
     held_weights = _held_weights(held, hold, subset, layout)
-    fitted = idx + [i for ring in halo for i in ring if i not in set(hold)]
+    held_set = set(hold)
+    fitted = idx + [i for ring in halo for i in ring if i not in held_set]
     print(f"subset {subset}: fitting {len(idx)} lights jointly ({index_ranges(idx)})", flush=True)
     for r, ring in enumerate(halo, 1):
         print(f"halo ring {r}: {len(ring)} lights of other subsets fitted with them, not kept ({index_ranges(ring)})",
