@@ -13,7 +13,9 @@ and the same number of unseen test lights everywhere; `--sphere 8000` instead fi
 the training region grows with N. A point that is already finished is not rerun (Snakemake
 sees its outputs); one cut short resumes. Writes OUT/scaling.json, OUT/scaling_{costs,quality,storage}.png and
 OUT/scaling.html, with the projection of every stage to the paper's scale on Polaris (`scaling.project`: this
-sweep's exponents, the H200's speed over this machine's from `--gpu-costs`, the paper config's work per light).
+sweep's exponents, the H200's speed over this machine's from `--gpu-costs`, the paper config's work per light over
+the run config's). scaling.json records that run config (`run_config`: config/config.yaml when the points are
+collected), and `--from-json` counts against the record, not against config/config.yaml as it has become.
 """
 
 from __future__ import annotations
@@ -100,14 +102,20 @@ def main() -> None:
         print(rate_distortion.markdown(table))
         print(f"[sweep] wrote {out / 'caches.json'} and {out / 'scaling_caches.png'}")
         return
+    run_cfg = config.run_config(config.read_yaml(ROOT / "config" / "config.yaml"), "config/config.yaml")
     if a.from_json:
         data = {k: v for k, v in json.loads(a.from_json.read_text()).items() if k != "projection"}
+        if "run_config" in data:  # the work per light is counted against the config the points ran at
+            run_cfg = {**run_cfg, **data["run_config"]}
+        else:
+            print(f"[sweep] {a.from_json} does not record the config its points ran at: counting the paper's work "
+                  f"per light against config/config.yaml as it is now", flush=True)
     else:
         try:
             data = scaling.sweep(runs)
         except scaling.SweepError as e:  # e.g. one new point run alone: its results stand; collect with the others
             sys.exit(f"[sweep] {e}; collect finished points together (--collect --lights N1 N2 ...)")
-    run_cfg = config.run_config(config.read_yaml(ROOT / "config" / "config.yaml"), "config/config.yaml")
+    data["run_config"] = {k: run_cfg[k] for k in scaling.RUN_CONFIG_SECTIONS}
     paper = config.run_config(config.merge(config.read_yaml(ROOT / "config" / "config.yaml"),
                                            config.read_yaml(a.paper)), str(a.paper))
     data["projection"] = scaling.project(data, run_cfg, paper, scaling.read_costs(a.gpu_costs))

@@ -89,9 +89,11 @@ def test_projection_and_its_workflow_profile(tmp_path):
     # the same config: work factor 1 for every stage
     assert fit["work_factor"] == diff["work_factor"] == 1.0
     assert fit["a100_s_total"] == pytest.approx(2.0 * 200 / 4 * scaling.A100_PER_H200)
-    # 4 jobs of 50 lights on one node of four GPUs: one round
-    assert fit["wall_s"] == pytest.approx(fit["a100_s_total"] / 4) and fit["node_hours"] == pytest.approx(
-        fit["a100_s_total"] / 4 / 3600)
+    # 4 jobs of 50 lights in 3 rounds (2, 1, 1: fit.rounds), a node job each on one node: 3 jobs' time, and each
+    # node job holds its node for a job's time
+    per_job = fit["a100_s_total"] / 4
+    assert proj["fit_rounds"] == [2, 1, 1] and proj["stage1_nodes"] == 1
+    assert fit["wall_s"] == pytest.approx(3 * per_job) and fit["node_hours"] == pytest.approx(3 * per_job / 3600)
     assert diff["a100_s_total"] == pytest.approx(10.0 * math.sqrt(200) * scaling.A100_PER_H200)
     text = scaling.polaris_profile(proj)
     assert f'walltime: "{scaling.walltime(diff["walltime_request_h"])}"' in text
@@ -104,6 +106,25 @@ def test_projection_and_its_workflow_profile(tmp_path):
     total = (sum(r["node_hours"] for r in proj["stages"].values())
              + (scaling.PAPER_CPU_S["evaluate_voxels"] + scaling.PAPER_CPU_S["caches"]) / 3600)
     assert f"<td>total</td><td></td><td></td><td></td><td></td>\n<td>{total:,.1f}</td>" in table
+
+
+def test_stage_one_is_projected_in_its_rounds():
+    """Under fit.rounds the paper's 40 fit jobs run in 4 rounds (15, 11, 8, 6): four to a node job, 11 node jobs,
+    each round one wave on 10 nodes, so stage 1's wall is 4 jobs' time (one without rounds: 40 jobs, 10 node
+    jobs, one wave); a round wider than the nodes takes more waves."""
+    from diffshadow.scaling.projection import _schedule, fit_rounds
+
+    paper = config.run_config(config.merge(config.read_yaml(REPO / "config" / "config.yaml"),
+                                           config.read_yaml(REPO / "config" / "paper.yaml")), "paper")
+    assert fit_rounds(paper, 2000, 50) == [15, 11, 8, 6]
+    assert fit_rounds({**paper, "fit": {**paper["fit"], "rounds": False}}, 2000, 50) == [40]
+    total = 40 * 600.0  # 10 minutes a job
+    rounds = _schedule("fit_siren", total, [15, 11, 8, 6], 10)
+    assert rounds["wall_s"] == pytest.approx(4 * 600) and rounds["node_hours"] == pytest.approx(11 * 600 / 3600)
+    assert rounds["walltime_request_h"] == pytest.approx(600 * scaling.MARGIN / 3600)  # a job's, as before
+    one = _schedule("fit_siren", total, [40], 10)
+    assert one["wall_s"] == pytest.approx(600) and one["node_hours"] == pytest.approx(10 * 600 / 3600)
+    assert _schedule("fit_siren", total, [15, 11, 8, 6], 2)["wall_s"] == pytest.approx((2 + 2 + 1 + 1) * 600)
 
 
 def test_train_diffusion_projects_its_cost_per_epoch(tmp_path):
@@ -166,6 +187,18 @@ def test_the_sweep_script_collects_finished_points(tmp_path):
     data = json.loads((tmp_path / "scaling.json").read_text())
     assert data["projection"]["lights"] == 2000 and "fit_siren" in data["projection"]["stages"]
     assert "set-resources:" in (tmp_path / "p" / "config.yaml").read_text()
+    # the sweep records the run config its points ran at; projected again later, the work per light is counted
+    # against that record, not against config/config.yaml as it has become
+    assert data["run_config"]["fit"]["steps"] == config.load_run(REPO / "config" / "config.yaml")["fit"]["steps"]
+    factor = data["projection"]["stages"]["fit_siren"]["work_factor"]
+    data["run_config"]["fit"]["steps"] *= 2
+    (tmp_path / "old.json").write_text(json.dumps(data))
+    again = subprocess.run([sys.executable, str(REPO / "scripts" / "scaling_sweep.py"), "--from-json",
+                            str(tmp_path / "old.json"), "--out", str(tmp_path / "again")],
+                           capture_output=True, text=True, timeout=300)
+    assert again.returncode == 0, again.stderr[-2000:]
+    data = json.loads((tmp_path / "again" / "scaling.json").read_text())
+    assert data["projection"]["stages"]["fit_siren"]["work_factor"] == pytest.approx(factor / 2)
 
 
 def test_a_gpu_bench_of_the_paper_config_replaces_the_cpu_upper_bounds(tmp_path):
@@ -181,12 +214,14 @@ def test_a_gpu_bench_of_the_paper_config_replaces_the_cpu_upper_bounds(tmp_path)
              "stages": {"fit_siren": {"projected_s": 3600.0, "units": 50},
                         "finetune_render": {"projected_s": 7200.0, "units": 1},
                         "eval_truth": {"projected_s": 60.0, "units": 32}}}
-    out = scaling.measured_projection(proj, bench, stage1_nodes=1)
+    out = scaling.measured_projection(proj, bench)
     # a benched stage of a minute still asks the floor: the bench times steps, not a job's start-up and checks
     assert out["stages"]["eval_truth"]["walltime_request_h"] == scaling.BENCH_FLOOR_H
     fit, ft, diff = (out["stages"][s] for s in ("fit_siren", "finetune_render", "train_diffusion"))
     assert fit["walltime_request_h"] == pytest.approx(1.0 * scaling.A100_PER_H200 * scaling.MARGIN)
-    assert fit["node_hours"] == pytest.approx(3600 * scaling.A100_PER_H200 * 4 / 4 / 3600)  # 4 jobs, one node
+    # 4 jobs in the projection's 3 rounds on one node: 3 node jobs of an hour each (x the A100 factor)
+    assert fit["node_hours"] == pytest.approx(3 * scaling.A100_PER_H200)
+    assert fit["wall_s"] == pytest.approx(3 * 3600 * scaling.A100_PER_H200)
     assert ft["wall_s"] == pytest.approx(7200 * scaling.A100_PER_H200) and ft["rss_mib"] is None
     assert diff == {**proj["stages"]["train_diffusion"], "source": scaling.CPU_SOURCE}
     text = scaling.polaris_profile(out)

@@ -23,6 +23,8 @@ from diffshadow.scaling.projection import (
     PAPER_CPU_S,
     PAPER_CPU_SOURCE,
     QUEUE_MAX_H,
+    RUN_CONFIG_SECTIONS,
+    fit_rounds,
     measured_projection,
     model_cost,
     model_size,
@@ -37,7 +39,8 @@ from diffshadow.scaling.sweep import UNSEEN, SweepError, crossover, power_law, p
 
 __all__ = ["A100_PER_H200", "BENCH_FLOOR_H", "CPU_SOURCE", "GPUS_PER_NODE", "MARGIN",
            "PAPER_CPU_RSS_MIB", "PAPER_CPU_S", "PAPER_CPU_SOURCE", "QUEUE_MAX_H",
-           "UNSEEN", "SweepError", "cost_figure", "crossover", "measured_projection", "model_cost", "model_size",
+           "RUN_CONFIG_SECTIONS", "UNSEEN", "SweepError", "cost_figure", "crossover", "fit_rounds",
+           "measured_projection", "model_cost", "model_size",
            "page", "paper_cpu_rss_mib", "polaris_profile", "power_law", "predict", "project", "projection_html",
            "quality_figure", "read_costs", "read_point", "storage_at", "storage_figure", "sweep", "walltime",
            "work_factors", "write_sweep"]

@@ -139,6 +139,10 @@ def projection_html(proj: dict | None, points: list[dict]) -> str:
     rows = "".join(row(s, r) for s, r in sorted(stages.items(), key=lambda kv: -kv[1]["node_hours"]))
     total = sum(r["node_hours"] for r in stages.values() if not r.get("only_with"))
     bench = f" ({html.escape(proj['bench_stages'])})" if proj.get("bench_stages") else ""
+    fits = proj.get("fit_rounds") or []
+    rounds = (f"{sum(fits)} subsets in {len(fits)} rounds of {', '.join(map(str, fits))} (<code>fit.rounds</code>: "
+              f"a subset waits for the earlier-round neighbours whose SIRENs it holds)" if len(fits) > 1
+              else f"{sum(fits)} subsets in one round" if fits else "subsets of 50")
     store = "".join(f"<tr><td>{n}</td>" + "".join(f"<td>{v / 2**20:,.0f}</td>" for v in b.values()) + "</tr>"
                     for n, b in proj["storage_bytes"].items())
     return f"""<h2>Projection: the paper's scale on Polaris</h2>
@@ -146,9 +150,10 @@ def projection_html(proj: dict | None, points: list[dict]) -> str:
 measured speed over this machine's per stage, the paper config's work per light over this run's, and an A100 taking
 {proj['a100_per_h200']}x an H200's time (an assumption); a stage timed by `bench stages` at the paper's sizes on a
 GPU{bench} instead takes that measurement's steps (the same A100 factor), and a CPU rule timed at the paper's sizes on
-one thread of this machine takes that time, on one node. Stage 1: subsets of 50, four to a node,
-10 nodes. Upper bounds where a small run leaves a GPU idle. train_diffusion's exponent is its cost per epoch,
-carried at the configured epochs (its gap check chose the epochs each point trained: {epochs}). Host memory: the
+one thread of this machine takes that time, on one node. Stage 1: {rounds}, four to a
+node job, {proj.get('stage1_nodes', 10)} nodes. Upper bounds where a small run leaves a GPU idle. train_diffusion's
+exponent is its cost per epoch, carried at the configured epochs (its gap check chose the epochs each point
+trained: {epochs}). The work per light is counted against the config the sweep's points ran at. Host memory: the
 largest of the peak RSS carried to this light count, the same job's RSS on the H200 (CUDA's host context) and, where
 measured, its peak on a CPU at the paper's sizes (scaling.PAPER_CPU_RSS_MIB: an upper bound for a GPU job, whose
 model lives on the device; fine-tuning's per process, x its processes).</p>

@@ -38,6 +38,11 @@ def model_cost(cfg: dict) -> float:
     return float(params * tokens)
 
 
+# The run config's sections that `work_factors` reads: a sweep records them (scaling.json's `run_config`), since
+# config/config.yaml moves on after its points ran
+RUN_CONFIG_SECTIONS = ("fit", "siren", "diffusion", "finetune")
+
+
 def work_factors(run: dict, paper: dict) -> dict[str, float]:
     """Per stage, the paper config's work per light (or per job) over the run config's, from what each stage
     computes (the light count is the sweep's exponent's business): fitting costs steps x points x width² per
@@ -69,6 +74,18 @@ MARGIN = 1.5  # requests are the projection times this
 BENCH_FLOOR_H = 0.5
 
 
+def fit_rounds(paper: dict, lights: int, subset: int) -> list[int]:
+    """Stage 1's fit jobs per round (`fit.rounds`: a subset waits for the earlier-round neighbours it holds) for
+    the paper config at `lights` training lights in subsets of `subset`, its sphere grown with the light count (the
+    same cap fraction): [15, 11, 8, 6] at the paper's 2,000 in 40 subsets; one round without `fit.rounds`."""
+    from diffshadow.stages.stage1 import subset_inputs
+
+    ls = paper["lights"]
+    sphere = max(int(ls["sphere"]), round(int(ls["sphere"]) * lights / int(ls["count"])))
+    rounds, _ = subset_inputs({**paper, "subset_size": subset, "lights": {**ls, "count": lights, "sphere": sphere}})
+    return [rounds.count(r) for r in range(max(rounds) + 1)]
+
+
 def project(data: dict, run: dict, paper: dict, gpu_costs: dict[str, dict], *, lights: int | None = None,
             subset: int | None = None, stage1_nodes: int = 10) -> dict:
     """Each stage's wall time, node-hours and peak memory for `paper` at `lights` (default: the paper config's
@@ -84,9 +101,11 @@ def project(data: dict, run: dict, paper: dict, gpu_costs: dict[str, dict], *, l
     it is taken as fast as the CPU (1x); preoptimize, one fit, takes fit_siren's speed-up. Stage 1 runs
     lights / subset jobs four to a node on `stage1_nodes` nodes; fine-tuning on one node of four GPUs; every
     other stage on one node. Requests: MARGIN x the projection, at most QUEUE_MAX_H; a stage that needs more
-    resumes from its checkpoint in further jobs (`resubmits`)."""
+    resumes from its checkpoint in further jobs (`resubmits`). Under `fit.rounds` stage 1's jobs run in rounds
+    (`fit_rounds`, recorded as `fit_rounds`): its wall is a job's time per wave of each round."""
     lights = lights or paper["lights"]["count"]
     subset = subset or paper["subset_size"]
+    rounds = fit_rounds(paper, lights, subset)
     n0 = data["points"][0]["lights"]
     factors = work_factors(run, paper)
 
@@ -116,7 +135,7 @@ def project(data: dict, run: dict, paper: dict, gpu_costs: dict[str, dict], *, l
         paper_rss = paper_cpu_rss_mib(stage, paper)
         rows[stage] = {"exponent": exponent, "cpu_s_run_config": cpu_total,
                        "h200_over_cpu": ratio, "speedup_used": used, "work_factor": factors.get(stage, 1.0),
-                       **_schedule(stage, a100_total, -(-lights // subset), stage1_nodes),
+                       **_schedule(stage, a100_total, rounds, stage1_nodes),
                        "rss_mib_run_config": rss, "rss_mib_gpu_run": gpu_rss, "rss_mib_paper_cpu": paper_rss,
                        "rss_mib": max(rss, gpu_rss, paper_rss)}
     # the CPU rules timed at the paper's sizes: one node each for the time measured
@@ -125,18 +144,18 @@ def project(data: dict, run: dict, paper: dict, gpu_costs: dict[str, dict], *, l
                         "rss_mib": paper_cpu_rss_mib(stage, paper) or None, "source": PAPER_CPU_SOURCE,
                         "only_with": PAPER_CPU_ONLY_WITH.get(stage)} for stage, cpu_s in sorted(PAPER_CPU_S.items())}
     return {"lights": lights, "a100_per_h200": A100_PER_H200, "margin": MARGIN, "queue_max_h": QUEUE_MAX_H,
-            "stages": rows, "measured": measured,
+            "fit_rounds": rounds, "stage1_nodes": stage1_nodes, "stages": rows, "measured": measured,
             "storage_bytes": storage_at(paper, [lights, paper["lights"]["sphere"]])}
 
 
 CPU_SOURCE = "CPU sweep x the tiny run's H200 speed-up (upper bound)"
 
 
-def measured_projection(proj: dict, bench: dict, *, stage1_nodes: int = 10) -> dict:
+def measured_projection(proj: dict, bench: dict) -> dict:
     """`proj` (`project`) with each stage that `bench stages` measured at the paper config on a GPU (`bench`, its
     JSON) timed from that measurement instead: its seconds per step times the paper's steps, times A100_PER_H200
     (the same stated assumption) for Polaris' A100s, asking at least BENCH_FLOOR_H. Host memory stays the
-    sweep's (the bench measures the GPU's).
+    sweep's (the bench measures the GPU's). Stage 1's rounds and nodes are the projection's.
     Every row names its `source`; stages the bench did not time keep the CPU-based upper bound."""
     if bench.get("device_type") != "cuda":
         raise ValueError(f"bench stages JSON measured on {bench.get('device')!r}: the paper-scale plan needs one "
@@ -144,9 +163,9 @@ def measured_projection(proj: dict, bench: dict, *, stage1_nodes: int = 10) -> d
     out = {**proj, "stages": {k: {**v, "source": CPU_SOURCE} for k, v in proj["stages"].items()},
            "bench": {k: bench.get(k) for k in ("device", "torch", "cuda", "config")}}
     for stage, row in bench["stages"].items():
-        jobs = -(-proj["lights"] // int(row["units"]))  # fit_siren: the bench times one job of `units` SIRENs
+        jobs = sum(proj["fit_rounds"])  # fit_siren: the bench times one job of a subset (`units` SIRENs)
         total = row["projected_s"] * A100_PER_H200 * (jobs if stage == "fit_siren" else 1)
-        plan = _schedule(stage, total, jobs, stage1_nodes)
+        plan = _schedule(stage, total, proj["fit_rounds"], proj["stage1_nodes"])
         plan["walltime_request_h"] = min(max(plan["walltime_request_h"], BENCH_FLOOR_H), QUEUE_MAX_H)
         out["stages"].setdefault(stage, {"rss_mib": None}).update(
             **plan, source=f"bench stages on {bench.get('device')} x "
@@ -154,14 +173,17 @@ def measured_projection(proj: dict, bench: dict, *, stage1_nodes: int = 10) -> d
     return out
 
 
-def _schedule(stage: str, a100_total: float, jobs: int, stage1_nodes: int) -> dict:
-    """A stage's A100 seconds (all its jobs) as Polaris runs them: fit_siren's `jobs` four to a node on
-    `stage1_nodes` nodes, any other stage one job on one node; its wall time, node-hours, and a job's walltime
-    request (MARGIN x its time, at most QUEUE_MAX_H, `resubmits` more jobs resuming from the checkpoint)."""
+def _schedule(stage: str, a100_total: float, rounds: list[int], stage1_nodes: int) -> dict:
+    """A stage's A100 seconds (all its jobs) as Polaris runs them: fit_siren's jobs (`rounds`: so many per round)
+    four to a node job (the polaris profile's group-components), a round's node jobs on `stage1_nodes` nodes and
+    the rounds one after another, any other stage one job on one node; its wall time, node-hours (a node job holds
+    its node for a fit's time, however many of its four GPUs its round filled), and a job's walltime request
+    (MARGIN x its time, at most QUEUE_MAX_H, `resubmits` more jobs resuming from the checkpoint)."""
     if stage == "fit_siren":
-        per_job = a100_total / jobs
-        wall = a100_total / jobs * -(-jobs // (stage1_nodes * GPUS_PER_NODE))
-        node_hours = a100_total / GPUS_PER_NODE / 3600
+        per_job = a100_total / sum(rounds)
+        node_jobs = [-(-n // GPUS_PER_NODE) for n in rounds]
+        wall = per_job * sum(-(-n // stage1_nodes) for n in node_jobs)
+        node_hours = per_job * sum(node_jobs) / 3600
     else:
         wall = per_job = a100_total
         node_hours = a100_total / 3600
