@@ -668,7 +668,8 @@ def choose_layout(volume: Volume, tf: TransferFunction, lights: np.ndarray, sire
         log(f"probe: fitting light {probe} (the farthest from light 0) at {rung.describe()}")
         w = fit_sirens(init, layout, s, volume, tf, lights[probe:probe + 1],
                        replace(cfg, steps=rung.steps, points=rung.points),
-                       stream=Stream.PROBE, light_index=[probe], device=device, log=lambda m: None)
+                       stream=Stream.PROBE, light_index=[probe], device=device,
+                       log=lambda m: log(f"probe: {m}"))  # at the paper's sizes minutes on a CPU: not silent
         box, _ = evaluate_psnr(w, layout, s, volume, tf, lights[probe:probe + 1], n_points=cfg.eval_points,
                                seed=cfg.seed + PROBE_HELD_OUT_SEED, device=device)
         log(f"probe: light {probe} held-out PSNR {float(box[0]):.2f} dB (target {cfg.target_psnr:g} dB)")

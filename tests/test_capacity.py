@@ -123,6 +123,9 @@ def test_stage1_layout_is_probed_grown_and_round_trips(blob, tmp_path):
     assert [m for m in lines if m.startswith("pre-optimising")] == [
         "pre-optimising one SIREN of width 8 on light 0 for 3 steps of 64 points",
         "pre-optimising one SIREN of width 16 on light 0 for 3 steps of 128 points"]
+    # each probe fit reports its progress (minutes at the paper's sizes on a CPU), marked as the probe's
+    assert sum(m.startswith("probe: step 6/6 ") for m in lines) == 2 and any(
+        m.startswith("probe: step 12/12 ") for m in lines)
 
     save_siren_init(tmp_path / "init.pt", chosen)
     back = load_siren_init(tmp_path / "init.pt", siren, 6, 64)
