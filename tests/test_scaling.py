@@ -199,6 +199,9 @@ def test_the_sweep_script_collects_finished_points(tmp_path):
     assert again.returncode == 0, again.stderr[-2000:]
     data = json.loads((tmp_path / "again" / "scaling.json").read_text())
     assert data["projection"]["stages"]["fit_siren"]["work_factor"] == pytest.approx(factor / 2)
+    fit = data["run_config"]["fit"]  # and the page says what the points ran at
+    assert f"stage 1 at {fit['steps']:,} steps of {fit['points']:,} points" in (tmp_path / "again" / "scaling.html"
+                                                                                ).read_text()
 
 
 def test_a_gpu_bench_of_the_paper_config_replaces_the_cpu_upper_bounds(tmp_path):

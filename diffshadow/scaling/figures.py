@@ -165,6 +165,17 @@ model lives on the device; fine-tuning's per process, x its processes).</p>
 """
 
 
+def ran_at(data: dict) -> str:
+    """The run config's sizes that the sweep's points ran at (scaling.json's `run_config`), as the page says them."""
+    run = data.get("run_config")
+    if not run:
+        return ""
+    fit, diffusion = run["fit"], run["diffusion"]
+    return html.escape(f", stage 1 at {fit['steps']:,} steps of {fit['points']:,} points, SIREN width "
+                       f"{run['siren']['width']}; the diffusion model's preset {diffusion['preset']}, "
+                       f"{diffusion['epochs']:,} epochs")
+
+
 def page(data: dict) -> str:
     """scaling.html: the three figures, the fitted exponents with their points, the storage crossover."""
     pts = data["points"]
@@ -192,8 +203,9 @@ def page(data: dict) -> str:
 td:first-child{{text-align:left}}table{{border-collapse:collapse}}tr:nth-child(even){{background:#f4f4f4}}</style>
 </head><body><h1>Scaling with the number of training lights</h1>
 <p>Runs at {", ".join(map(str, ns))} training lights (scripts/scaling_sweep.py), light layout <code>{layout}</code>
-(<code>lights.layout</code>). The model is smaller than the stored SIRENs past {c['sirens_fp32']:,.0f} lights (fp32)
-or {c['sirens_fp16']:,.0f} (fp16), at these runs' SIREN and model sizes.</p>
+(<code>lights.layout</code>){ran_at(data)}. The model is smaller than the stored
+SIRENs past {c['sirens_fp32']:,.0f} lights (fp32) or {c['sirens_fp16']:,.0f} (fp16), at these runs' SIREN and model
+sizes.</p>
 {f"<ul>{notes}</ul>" if notes else ""}
 <h2>Cost per stage</h2><img src="scaling_costs.png" width="900">
 <table><tr><th>stage</th>{head}<th>exponent</th><th>peak RSS (MiB)</th></tr>{"".join(rows)}</table>
