@@ -14,8 +14,9 @@ the training region grows with N. A point that is already finished is not rerun 
 sees its outputs); one cut short resumes. Writes OUT/scaling.json, OUT/scaling_{costs,quality,storage}.png and
 OUT/scaling.html, with the projection of every stage to the paper's scale on Polaris (`scaling.project`: this
 sweep's exponents, the H200's speed over this machine's from `--gpu-costs`, the paper config's work per light over
-the run config's). scaling.json records that run config (`run_config`: config/config.yaml when the points are
-collected), and `--from-json` counts against the record, not against config/config.yaml as it has become.
+the run config's). scaling.json records that run config (`run_config`: config/config.yaml and any --configfile
+when the points are collected), and `--from-json` counts against the record, not against config/config.yaml as it
+has become.
 """
 
 from __future__ import annotations
@@ -102,7 +103,11 @@ def main() -> None:
         print(rate_distortion.markdown(table))
         print(f"[sweep] wrote {out / 'caches.json'} and {out / 'scaling_caches.png'}")
         return
-    run_cfg = config.run_config(config.read_yaml(ROOT / "config" / "config.yaml"), "config/config.yaml")
+    # what the points ran with: config/config.yaml and the --configfile overlay (the sweep's own lights and gap
+    # check change no work per light)
+    own = config.read_yaml(ROOT / "config" / "config.yaml")
+    run_cfg = config.run_config(config.merge(own, config.read_yaml(a.configfile)) if a.configfile else own,
+                                str(a.configfile or "config/config.yaml"))
     if a.from_json:
         data = {k: v for k, v in json.loads(a.from_json.read_text()).items() if k != "projection"}
         if "run_config" in data:  # the work per light is counted against the config the points ran at

@@ -202,6 +202,13 @@ def test_the_sweep_script_collects_finished_points(tmp_path):
     fit = data["run_config"]["fit"]  # and the page says what the points ran at
     assert f"stage 1 at {fit['steps']:,} steps of {fit['points']:,} points" in (tmp_path / "again" / "scaling.html"
                                                                                 ).read_text()
+    # points run under a --configfile overlay ran at its settings: the record says so
+    (tmp_path / "o.yaml").write_text("fit: {steps: 123}\n")
+    over = subprocess.run([sys.executable, str(REPO / "scripts" / "scaling_sweep.py"), "--lights", "8", "32",
+                           "--out", str(tmp_path), "--collect", "--configfile", str(tmp_path / "o.yaml")],
+                          capture_output=True, text=True, timeout=300)
+    assert over.returncode == 0, over.stderr[-2000:]
+    assert json.loads((tmp_path / "scaling.json").read_text())["run_config"]["fit"]["steps"] == 123
 
 
 def test_a_gpu_bench_of_the_paper_config_replaces_the_cpu_upper_bounds(tmp_path):
