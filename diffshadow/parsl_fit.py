@@ -111,7 +111,7 @@ def fit_pending(parsl_config: Path, configfile: Path, scenes: list[str] | None, 
     """Every subset of `scenes` (default: the config's) whose file under `results` is missing."""
     from diffshadow.config import load_run, scene_config, stage1_json
     from diffshadow.lights import n_subsets
-    from diffshadow.stages.stage1 import subset_inputs
+    from diffshadow.seams import subset_inputs
 
     if not parsl_config.is_file():  # before any scene is read: with nothing pending it would go unnoticed
         raise ValueError(f"--config {parsl_config}: no such Parsl config file (config/parsl/local.py or polaris.py)")

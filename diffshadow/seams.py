@@ -10,7 +10,7 @@ from dataclasses import dataclass, fields
 
 import numpy as np
 
-from diffshadow.lights import BLEND_K, blend_weights, light_subsets, training_pool
+from diffshadow.lights import BLEND_K, blend_weights, configured_light_sets, light_subsets, n_subsets, training_pool
 from diffshadow.sampling import FIT_BLEND_POOL_SEED
 
 
@@ -115,3 +115,18 @@ def held_lights(train: np.ndarray, center, subset_size: int, subset: int, cfg: S
     subsets = light_subsets(train, subset_size)
     held = {i for s in held_subsets(train, center, subset_size, subset, cfg, rounds) for i in subsets[s]}
     return sorted(held.intersection(i for ring in subset_halo(train, center, subsets[subset], cfg) for i in ring))
+
+
+def subset_inputs(cfg: dict) -> tuple[list[int], list[list[int]]]:
+    """For a scene's config, each subset's round (`subset_rounds`) and the subsets whose files its fit reads
+    (`held_subsets`: earlier rounds' neighbours; none without `fit.rounds`), its lights made as `lights` makes
+    them: the workflow's job groups and inputs, Parsl's waves, the paper plan's rounds."""
+    size = int(cfg["subset_size"])
+    fit = SeamSettings.of(cfg["fit"])
+    n = n_subsets(int(cfg["lights"]["count"]), size)
+    if not fit.rounds or n < 2:
+        return [0] * n, [[] for _ in range(n)]
+    sets = configured_light_sets(cfg["lights"])
+    train = np.asarray(sets["train"]["cartesian"], dtype=np.float64)
+    rounds = subset_rounds(train, sets["center"], size, fit)
+    return rounds, [held_subsets(train, sets["center"], size, s, fit, rounds) for s in range(n)]

@@ -78,16 +78,11 @@ def fit_rounds(paper: dict, lights: int, subset: int) -> list[int]:
     """Stage 1's fit jobs per round (`fit.rounds`: a subset waits for the earlier-round neighbours it holds) for
     the paper config at `lights` training lights in subsets of `subset`, its sphere grown with the light count (the
     same cap fraction): [15, 11, 8, 6] at the paper's 2,000 in 40 subsets; one round without `fit.rounds`."""
-    import numpy as np
-
-    from diffshadow.lights import configured_light_sets
-    from diffshadow.seams import SeamSettings, subset_rounds
+    from diffshadow.seams import subset_inputs
 
     ls = paper["lights"]
     sphere = max(int(ls["sphere"]), round(int(ls["sphere"]) * lights / int(ls["count"])))
-    sets = configured_light_sets({**ls, "count": lights, "sphere": sphere})
-    rounds = subset_rounds(np.asarray(sets["train"]["cartesian"], dtype=np.float64), sets["center"], subset,
-                           SeamSettings.of(paper["fit"]))
+    rounds, _ = subset_inputs({**paper, "subset_size": subset, "lights": {**ls, "count": lights, "sphere": sphere}})
     return [rounds.count(r) for r in range(max(rounds) + 1)]
 
 

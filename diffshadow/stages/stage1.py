@@ -18,10 +18,8 @@ from diffshadow.capacity import size_text
 from diffshadow.layout import SirenConfig
 from diffshadow.lights import (
     LightRegion,
-    configured_light_sets,
     index_ranges,
     make_light_sets,
-    n_subsets,
     read_lights,
     subset_indices,
     write_lights,
@@ -48,23 +46,6 @@ def lights(out: Path, *, sphere: int, count: int, center, unseen: int, seed: int
     edge = f", {sets['on_edge']} of them on its edge" if layout == "rim" else ""
     print(f"wrote {out}: {count} training and {unseen} unseen directions "
           f"(region of a {sphere}-point Fibonacci sphere around {sets['center']}{edge})")
-
-
-def subset_inputs(cfg: dict) -> tuple[list[int], list[list[int]]]:
-    """For a scene's config, each subset's round (`seams.subset_rounds`) and the subsets whose files its fit reads
-    (`seams.held_subsets`: earlier rounds' neighbours; none without `fit.rounds`), its lights made as `lights` makes
-    them: the workflow's job groups and inputs."""
-    from diffshadow.seams import SeamSettings, held_subsets, subset_rounds
-
-    size = int(cfg["subset_size"])
-    fit = SeamSettings.of(cfg["fit"])
-    n = n_subsets(int(cfg["lights"]["count"]), size)
-    if not fit.rounds or n < 2:
-        return [0] * n, [[] for _ in range(n)]
-    sets = configured_light_sets(cfg["lights"])
-    train = np.asarray(sets["train"]["cartesian"], dtype=np.float64)
-    rounds = subset_rounds(train, sets["center"], size, fit)
-    return rounds, [held_subsets(train, sets["center"], size, s, fit, rounds) for s in range(n)]
 
 
 def prepare_volume(out: Path, scene: dict) -> None:

@@ -15,7 +15,7 @@ from diffshadow.hpc import kernel_cache_environment as _kernel_cache_environment
 from diffshadow.hpc import run_gpus as _run_gpus
 from diffshadow.lights import check_subset as _check_subset
 from diffshadow.lights import n_subsets as _n_subsets
-from diffshadow.stages.stage1 import subset_inputs as _subset_inputs
+from diffshadow.seams import subset_inputs as _subset_inputs
 from diffshadow.report import shading_name as _shading_name
 from diffshadow.volume import prepared_from as _prepared_from
 from diffshadow.volume import run_path as _run_path
@@ -82,7 +82,7 @@ _HELD = {}
 
 
 def _rounds(scene):
-    """Each subset's round and held subsets (`stage1.subset_inputs`), computed once per scene from its config."""
+    """Each subset's round and held subsets (`seams.subset_inputs`), computed once per scene from its config."""
     if scene not in _HELD:
         _HELD[scene] = _subset_inputs(scene_config(scene))
     return _HELD[scene]
