@@ -5,6 +5,7 @@ from __future__ import annotations
 import math
 
 import numpy as np
+from numpy.typing import ArrayLike
 
 BLOB_SIGMA = 0.12
 BLOB_DENSITY = 10.0
@@ -18,7 +19,8 @@ def gaussian_blob(n: int = 65, sigma: float = BLOB_SIGMA) -> np.ndarray:
     return np.exp(-((x - 0.5) ** 2 + (y - 0.5) ** 2 + (z - 0.5) ** 2) / (2 * sigma**2)).astype(np.float32)
 
 
-def blob_transmittance(p, w, *, sigma: float = BLOB_SIGMA, density: float = BLOB_DENSITY) -> float:
+def blob_transmittance(p: ArrayLike, w: ArrayLike, *, sigma: float = BLOB_SIGMA,
+                       density: float = BLOB_DENSITY) -> float:
     """exp(-∫ density·exp(-|p + tw - c|²/2σ²) dt) from t = 0 to where the ray leaves the unit box.
 
     With identity opacity μ = density · blob (the blob's minimum, ~5e-12 at the corners, is neglected).

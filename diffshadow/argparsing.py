@@ -5,9 +5,14 @@ from __future__ import annotations
 
 import argparse
 import os
+from collections.abc import Callable
+from typing import TYPE_CHECKING
+
+if TYPE_CHECKING:
+    import torch
 
 
-def at_least(low: float, kind: type = int):
+def at_least(low: float, kind: type = int) -> Callable[[str], float]:
     """An argparse type: a number of `kind` no less than `low`, refused in argparse's one line otherwise (a
     negative --threads reached torch.set_num_threads and ended in its traceback)."""
     def parse(text: str):
@@ -43,7 +48,7 @@ def config_of(args: argparse.Namespace) -> dict:
     return value
 
 
-def device_of(args: argparse.Namespace):
+def device_of(args: argparse.Namespace) -> torch.device:
     """The job's device, resolved and started once (later calls return the same device; its start is timed)."""
     if getattr(args, "_device", None) is None:
         from diffshadow.phases import phase
@@ -71,7 +76,8 @@ def network_flags(args: argparse.Namespace) -> dict:
     return {key: value for key, value in given.items() if value is not None}
 
 
-def add_subcommand(sub, name: str, func, helptext: str, *paths: str, out: bool = True, device: bool = True,
+def add_subcommand(sub: argparse._SubParsersAction, name: str, func: Callable[[argparse.Namespace], object],
+                   helptext: str, *paths: str, out: bool = True, device: bool = True,
                    config: str | None = None) -> argparse.ArgumentParser:
     """A subcommand with required path options, --out, --device/--config-device, --threads, --config-json."""
     p = sub.add_parser(name, help=helptext)

@@ -20,6 +20,7 @@ from pathlib import Path
 
 import numpy as np
 import torch
+from numpy.typing import ArrayLike
 
 from diffshadow.capacity import Choice
 from diffshadow.config import read_scene_file
@@ -100,7 +101,7 @@ def load_siren_init(path: str | Path, siren: SirenConfig, steps: int | None = No
 
 
 def write_geometry_points(path: str | Path, points: torch.Tensor, values: torch.Tensor, lights: np.ndarray,
-                          extent, pool: tuple[np.ndarray, torch.Tensor, torch.Tensor] | None = None,
+                          extent: ArrayLike, pool: tuple[np.ndarray, torch.Tensor, torch.Tensor] | None = None,
                           check: tuple[torch.Tensor, torch.Tensor] | None = None) -> None:
     """`presample`'s points (N, M, 3) and true shadow (N, M) per training light, one light per chunk;
     `pool` (lights, points, values) for the lights trained on exact shadows only, when there are any; and
@@ -233,8 +234,8 @@ def load_checkpoint(path: str | Path) -> dict:
 # ---------------------------------------------------------------------------------------- rendering targets
 
 
-def write_targets(path, images: torch.Tensor, bundle: RayBundle, cameras: list[Camera], lights: np.ndarray,
-                  *, step: float, extent) -> None:
+def write_targets(path: str | Path, images: torch.Tensor, bundle: RayBundle, cameras: list[Camera], lights: np.ndarray,
+                  *, step: float, extent: ArrayLike) -> None:
     """`render_targets`' gt images per light × view, and each view's light-independent ray samples."""
 
     def fill(root) -> None:
@@ -249,7 +250,7 @@ def write_targets(path, images: torch.Tensor, bundle: RayBundle, cameras: list[C
     write_zarr_group(path, fill, made_by="render_targets")
 
 
-def read_targets(path) -> tuple[torch.Tensor, RayBundle, np.ndarray]:
+def read_targets(path: str | Path) -> tuple[torch.Tensor, RayBundle, np.ndarray]:
     """(targets (L, V, F, 3), bundle, lights) from `render_targets`' targets.zarr: the target images at each view's
     foreground pixels, in the bundle's row order (`bundle.foreground`), read a few lights at a time, so that the
     whole images (2.6 GiB at the paper's sizes, of which fine-tuning reads about one pixel in eight) are never
@@ -268,7 +269,7 @@ def read_targets(path) -> tuple[torch.Tensor, RayBundle, np.ndarray]:
     return targets, bundle, lights
 
 
-def save_data_inr(path, inr: DataInr) -> None:
+def save_data_inr(path: str | Path, inr: DataInr) -> None:
     state = {"weights": inr.model.flat().detach().cpu(), "layout": inr.model.layout.to_config(),
              "siren": inr.model.cfg.to_config(), "extent": np.asarray(inr.extent).tolist(), "psnr": inr.psnr,
              "max_error": inr.max_error, "config": inr.config,
@@ -276,7 +277,7 @@ def save_data_inr(path, inr: DataInr) -> None:
     atomic_torch_save(path, state)
 
 
-def load_data_inr(path) -> DataInr:
+def load_data_inr(path: str | Path) -> DataInr:
     path, what = Path(path), "a data INR file (train_data_inr's data_inr.pt)"
     state = _torch_file(path, what, weights_only=True)
     try:

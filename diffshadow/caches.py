@@ -16,6 +16,7 @@ import json
 import time
 from collections.abc import Callable
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 import torch
@@ -31,10 +32,16 @@ from diffshadow.shadow import shadow_grid
 from diffshadow.store import blend_rows
 from diffshadow.truth import EvalTruth, median
 
+if TYPE_CHECKING:
+    from diffshadow.layout import SirenConfig, WeightLayout
+    from diffshadow.store import WeightStore
+    from diffshadow.transfer import TransferFunction
+    from diffshadow.volume import Volume
+
 BASIS_K = (4, 8, 16, 32, 64, 128, 256)  # the basis codec's sizes measured (those below the light count)
 
 
-def encoded(weights: np.ndarray, layout, name: str) -> tuple[np.ndarray, int]:
+def encoded(weights: np.ndarray, layout: WeightLayout, name: str) -> tuple[np.ndarray, int]:
     """The stored SIRENs as the cache `name` serves them: (decoded weights (N, P) fp32, the store's bytes)."""
     weights = np.asarray(weights, dtype=np.float32)
     if name == "blend":
@@ -44,8 +51,8 @@ def encoded(weights: np.ndarray, layout, name: str) -> tuple[np.ndarray, int]:
     return codec.decode(enc, layout), enc.nbytes
 
 
-def validation_psnr(weights: np.ndarray, layout, siren, train: np.ndarray, val: EvalTruth, k: int,
-                    weighting: str) -> float:
+def validation_psnr(weights: np.ndarray, layout: WeightLayout, siren: SirenConfig, train: np.ndarray, val: EvalTruth,
+                    k: int, weighting: str) -> float:
     """Median voxel PSNR (box points) at validation lights (`val`: drawn in the training cap like the unseen test
     set, but not from it) of each one's weight blend of the stored SIRENs (`weighting`, `k`): a blend cache's
     answer for lights it never stored, the figure `cache: auto` decides on."""
@@ -54,8 +61,8 @@ def validation_psnr(weights: np.ndarray, layout, siren, train: np.ndarray, val: 
     return val.median_psnr(blended.astype(np.float32), layout, siren, val.lights)
 
 
-def choose_cache(stage1, truth: EvalTruth, val: EvalTruth, train: np.ndarray, *, blend_k: int, weighting: str,
-                 target_psnr: float, candidates: list[str], log=print) -> dict:
+def choose_cache(stage1: WeightStore, truth: EvalTruth, val: EvalTruth, train: np.ndarray, *, blend_k: int,
+                 weighting: str, target_psnr: float, candidates: list[str], log: Callable[[str], None] = print) -> dict:
     """`cache: auto`: the smallest of `candidates` (blend and codecs of the stored SIRENs) whose median voxel PSNR
     reaches `target_psnr` both on the training lights (`truth`: its decoded SIRENs, what it answers for a stored
     light) and on the validation lights `val` (its blend, what it answers for a new one); `diffusion` (train the
@@ -96,9 +103,10 @@ def choose_cache(stage1, truth: EvalTruth, val: EvalTruth, train: np.ndarray, *,
             "lights": len(train), "validation_lights": len(val.lights), "candidates": rows}
 
 
-def cache_table(stage1, truth: EvalTruth, light_sets: dict, *, blend_k: int, weighting: str, volume=None, tf=None,
-                model_state: dict | None = None, generated=None, log=print, checkpoint: Path | None = None,
-                device: torch.device | str = "cpu") -> dict:
+def cache_table(stage1: WeightStore, truth: EvalTruth, light_sets: dict, *, blend_k: int, weighting: str,
+                volume: Volume | None = None, tf: TransferFunction | None = None, model_state: dict | None = None,
+                generated: WeightStore | None = None, log: Callable[[str], None] = print,
+                checkpoint: Path | None = None, device: torch.device | str = "cpu") -> dict:
     """One row per cache: bytes, seen and unseen median voxel PSNR (box points), seconds to answer a new light.
 
     The model's fp16 rows sample (and time) its DDIM on `device`; the SIRENs are evaluated where `truth` says
@@ -190,8 +198,8 @@ def _mix_answers(rows: list[dict]) -> list[dict]:
 
 
 def _fingerprint(weights: np.ndarray, truth: EvalTruth, light_sets: dict, groups: list[str], *, blend_k: int,
-                 weighting: str, model_state: dict | None, generated, volume, tf,
-                 device: torch.device | str = "cpu") -> str:
+                 weighting: str, model_state: dict | None, generated: WeightStore | None, volume: Volume | None,
+                 tf: TransferFunction | None, device: torch.device | str = "cpu") -> str:
     """What the table's rows depend on: the stored SIRENs, the truth and its points, the lights, the blend, the
     groups of rows, the sampler's weights and settings, `generated`'s figures and mix, the volume and TF, the
     threads (a product's sums split by thread: the same bytes need the same count) and the kinds of device that
@@ -223,7 +231,7 @@ def _fingerprint(weights: np.ndarray, truth: EvalTruth, light_sets: dict, groups
     return h.hexdigest()
 
 
-def _model_rows(state: dict, generated, train, unseen, scored, *, stored: np.ndarray,
+def _model_rows(state: dict, generated: WeightStore | None, train, unseen, scored, *, stored: np.ndarray,
                 device: torch.device | str = "cpu") -> list[dict]:
     """The diffusion model with its parameters stored in fp32 (its samples: sample_shadows' `generated` store, or,
     where that store mixed them with the stored SIRENs, their PSNRs as it scored them before the mix) and in fp16
@@ -282,7 +290,7 @@ def _model_rows(state: dict, generated, train, unseen, scored, *, stored: np.nda
     return rows
 
 
-def _grid_row(volume, tf, truth: EvalTruth, train, unseen, idx, mix) -> dict:
+def _grid_row(volume: Volume | None, tf: TransferFunction | None, truth: EvalTruth, train, unseen, idx, mix) -> dict:
     """Dense shadow grids at the volume's resolution (fp16, as voxel_metrics' storage counts them), read
     trilinearly at the evaluation points; an unseen light's answer is the blend of its nearest lights' grids."""
     points = truth.points["box"]

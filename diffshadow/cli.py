@@ -24,14 +24,14 @@ from diffshadow.stopping import Stopped
 # ------------------------------------------------------------------------------------------- stage 1
 
 
-def _lights(a):
+def _lights(a: argparse.Namespace):
     from diffshadow.stages import stage1
 
     stage1.lights(Path(a.out), sphere=a.sphere, count=a.count, center=a.center, unseen=a.unseen, seed=a.seed,
                   layout=a.layout)
 
 
-def _prepare_volume(a):
+def _prepare_volume(a: argparse.Namespace):
     from diffshadow.stages import stage1
 
     stage1.prepare_volume(Path(a.out), _cfg(a))
@@ -44,7 +44,7 @@ def _stage1_configs(cfg: dict) -> dict:
     return {"siren": SirenConfig.from_config(cfg["siren"]), "fit": FitConfig.from_config(cfg["fit"])}
 
 
-def _preoptimize(a):
+def _preoptimize(a: argparse.Namespace):
     from diffshadow.stages import stage1
 
     cfg = _cfg(a)
@@ -52,7 +52,7 @@ def _preoptimize(a):
                        steps=cfg["preoptimize"]["steps"], lr=cfg["preoptimize"]["lr"], device=_device(a))
 
 
-def _fit_siren(a):
+def _fit_siren(a: argparse.Namespace):
     from diffshadow.stages import stage1
 
     cfg = _cfg(a)
@@ -60,7 +60,7 @@ def _fit_siren(a):
                       subset_size=int(cfg["subset_size"]), config=cfg, device=_device(a))
 
 
-def _collect_weights(a):
+def _collect_weights(a: argparse.Namespace):
     from diffshadow.stages import stage1
 
     stage1.collect_weights(Path(a.lights), [Path(p) for p in a.subsets], Path(a.out))
@@ -69,25 +69,25 @@ def _collect_weights(a):
 # ------------------------------------------------------------------------------------------- stage 2
 
 
-def _diffusion(a):
+def _diffusion(a: argparse.Namespace):
     from diffshadow.diffusion.config import DiffusionConfig
 
     return DiffusionConfig.from_config(_cfg(a)["diffusion"])
 
 
-def _presample(a):
+def _presample(a: argparse.Namespace):
     from diffshadow.stages import stage2
 
     stage2.presample(Path(a.volume), Path(a.lights), Path(a.out), cfg=_diffusion(a), device=_device(a))
 
 
-def _train_diffusion(a):
+def _train_diffusion(a: argparse.Namespace):
     from diffshadow.stages import stage2
 
     stage2.train_diffusion(Path(a.weights), Path(a.points), Path(a.out), cfg=_diffusion(a), device=_device(a))
 
 
-def _finetune_render(a):
+def _finetune_render(a: argparse.Namespace):
     from diffshadow.diffusion.finetune import FinetuneConfig
     from diffshadow.stages import stage2
 
@@ -97,7 +97,7 @@ def _finetune_render(a):
                            lights_path=Path(a.lights) if a.lights else None)
 
 
-def _ddp_processes(a):
+def _ddp_processes(a: argparse.Namespace):
     from diffshadow.hpc import ddp_processes, gpu_possible, visible_nvidia_gpus
 
     gpus = None
@@ -113,21 +113,21 @@ def _ddp_processes(a):
     print(n)
 
 
-def _torchrun(a):
+def _torchrun(a: argparse.Namespace):
     from diffshadow.hpc import launch_ranks
 
     if code := launch_ranks(a.torchrun_args):
         raise SystemExit(code)
 
 
-def _eval_truth(a):
+def _eval_truth(a: argparse.Namespace):
     from diffshadow.stages import stage2
 
     stage2.eval_truth(Path(a.volume), Path(a.lights), Path(a.out), eval_points=a.eval_points, seed=a.seed,
                       device=_device(a))
 
 
-def _caches(a):
+def _caches(a: argparse.Namespace):
     from diffshadow.stages import stage2
 
     stage2.caches(Path(a.weights), Path(a.generated), Path(a.truth), Path(a.lights), Path(a.volume),
@@ -135,7 +135,7 @@ def _caches(a):
                   weighting=a.blend_weights, device=_device(a))
 
 
-def _sample_shadows(a):
+def _sample_shadows(a: argparse.Namespace):
     from diffshadow.stages import stage2
 
     mix = {"model_share": a.model_share, "val_lights": a.val_lights, "val_points": a.val_points, "seed": a.seed}
@@ -146,7 +146,7 @@ def _sample_shadows(a):
                           score_device=device if a.score_on == "run" else "cpu")
 
 
-def _choose_cache(a):
+def _choose_cache(a: argparse.Namespace):
     from diffshadow.stages import stage2
 
     stage2.choose_cache(Path(a.weights), Path(a.truth), Path(a.volume), Path(a.lights), Path(a.out),
@@ -155,21 +155,21 @@ def _choose_cache(a):
                         device=_device(a))
 
 
-def _encode_cache(a):
+def _encode_cache(a: argparse.Namespace):
     from diffshadow.stages import stage2
 
     stage2.encode_cache(Path(a.weights), Path(a.truth), Path(a.lights), Path(a.out), codec=a.codec,
                         device=_device(a))
 
 
-def _blend_shadows(a):
+def _blend_shadows(a: argparse.Namespace):
     from diffshadow.stages import stage2
 
     stage2.blend_shadows(Path(a.weights), Path(a.truth), Path(a.lights), Path(a.out), blend_k=a.blend_k,
                          weighting=a.blend_weights, device=_device(a))
 
 
-def _evaluate_voxels(a):
+def _evaluate_voxels(a: argparse.Namespace):
     from diffshadow.stages import stage2
 
     checkpoint = Path(a.checkpoint) if a.checkpoint else None
@@ -184,7 +184,7 @@ def _evaluate_voxels(a):
 # ------------------------------------------------------------------------------------- images, report
 
 
-def _train_data_inr(a):
+def _train_data_inr(a: argparse.Namespace):
     from diffshadow.data_inr import DataInrConfig
     from diffshadow.stages import images
 
@@ -192,7 +192,7 @@ def _train_data_inr(a):
                           device=_device(a))
 
 
-def _render_targets(a):
+def _render_targets(a: argparse.Namespace):
     from diffshadow.diffusion.finetune import FinetuneConfig
     from diffshadow.fit import FitConfig
     from diffshadow.stages import images
@@ -202,7 +202,7 @@ def _render_targets(a):
                           upsample=FitConfig.from_config(cfg.get("fit")).grid_upsample, device=_device(a))
 
 
-def _evaluate_images(a):
+def _evaluate_images(a: argparse.Namespace):
     from diffshadow.stages import images
 
     images.evaluate_images(Path(a.volume), Path(a.lights), Path(a.data_inr), Path(a.weights),
@@ -210,14 +210,14 @@ def _evaluate_images(a):
                            cfg=_cfg(a)["render"], device=_device(a), naive_path=Path(a.naive) if a.naive else None)
 
 
-def _naive_images(a):
+def _naive_images(a: argparse.Namespace):
     from diffshadow.stages import images
 
     images.naive_images(Path(a.volume), Path(a.lights), Path(a.data_inr), Path(a.out), cfg=_cfg(a)["render"],
                         device=_device(a))
 
 
-def _render(a):
+def _render(a: argparse.Namespace):
     from diffshadow.artifacts import load_render_scene, load_scene_file
     from diffshadow.config import parse_json
     from diffshadow.render import Camera
@@ -256,7 +256,7 @@ def _render(a):
                         scalar=a.scalar, phong=a.phong, step=a.step, skip=not a.no_skip)
 
 
-def run_render(a) -> dict:
+def run_render(a: argparse.Namespace) -> dict:
     """`view`'s render settings: the run's `render` section for the results folder's scene (`--configfile` and
     the scene file, as the workflow merges them), under --kernel; the package defaults where there is no run
     config for it (said in one line)."""
@@ -275,7 +275,7 @@ def run_render(a) -> dict:
     return {**render, **network_flags(a)}
 
 
-def _view(a):
+def _view(a: argparse.Namespace):
     from diffshadow.viewer import serve
 
     if (a.results is None) == (a.scene_config is None):
@@ -287,14 +287,14 @@ def _view(a):
           record=Path(a.record) if a.record else None)
 
 
-def _report_figures(a):
+def _report_figures(a: argparse.Namespace):
     from diffshadow.report import scene_figures
 
     scene_figures(Path(a.weights), Path(a.generated), Path(a.lights), Path(a.images), Path(a.voxel_metrics),
                   Path(a.shadow_bench), _cfg(a), Path(a.out_dir))
 
 
-def _stage_costs(a):
+def _stage_costs(a: argparse.Namespace):
     from diffshadow.io import require_png
     from diffshadow.report import job_spans, mixed_runtimes, stage_costs, timeline_figure
 
@@ -310,7 +310,7 @@ def _stage_costs(a):
         print(warning, file=sys.stderr)
 
 
-def _summary(a):
+def _summary(a: argparse.Namespace):
     from diffshadow.summary import write_summary
 
     out = Path(a.out_dir)
@@ -321,19 +321,19 @@ def _summary(a):
 # ------------------------------------------------------------------------------------------- tools
 
 
-def _parsl_fit(a):
+def _parsl_fit(a: argparse.Namespace):
     from diffshadow.parsl_fit import fit_pending
 
     fit_pending(Path(a.config), Path(a.configfile), a.scenes, Path(a.results), threads=a.threads)
 
 
-def _pbs_status(a):
+def _pbs_status(a: argparse.Namespace):
     from diffshadow.hpc import pbs_status
 
     print(pbs_status(a.job))  # Snakemake's cluster-generic status command: always exit 0
 
 
-def _install_profiles(a):
+def _install_profiles(a: argparse.Namespace):
     from diffshadow.hpc import config_home, install_profiles
 
     root = Path(a.target) if a.target else config_home() / "snakemake"

@@ -13,6 +13,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 import numpy as np
+from numpy.typing import ArrayLike
 
 from diffshadow.layout import WeightLayout
 
@@ -50,7 +51,7 @@ class HalfCodec:
         rounded = ((bits + 0x7FFF + ((bits >> 16) & 1)) >> 16).astype(np.uint16)
         return Encoded(self.name, len(w), {"w": rounded})
 
-    def decode(self, enc: Encoded, layout: WeightLayout | None = None, rows=None) -> np.ndarray:
+    def decode(self, enc: Encoded, layout: WeightLayout | None = None, rows: ArrayLike | None = None) -> np.ndarray:
         """The SIRENs' weights (N, P) in fp32, or those of `rows` only."""
         w = enc.arrays["w"] if rows is None else enc.arrays["w"][rows]
         if self.dtype == "float16":

@@ -44,7 +44,7 @@ class YamlLoader(yaml.SafeLoader):
     mapping is an error: PyYAML keeps the last silently, so of two `transfer_function:` blocks the one a user
     edited could be the one ignored."""
 
-    def construct_mapping(self, node, deep=False):
+    def construct_mapping(self, node: yaml.Node, deep: bool = False) -> dict:
         if isinstance(node, yaml.MappingNode):
             seen = {}
             for key_node, _ in node.value:

@@ -9,7 +9,7 @@ import hashlib
 import json
 import math
 import time
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 
@@ -82,7 +82,7 @@ class DataInr:
 
 
 def voxel_errors(model: Siren, volume: Volume, *, chunk: int = 1 << 16,
-                 device: torch.device | str = "cpu", log=None) -> tuple[float, float]:
+                 device: torch.device | str = "cpu", log: Callable[[str], None] | None = None) -> tuple[float, float]:
     """(PSNR, max |error|) of the INR over every voxel of `volume`; `log`: a line a minute while it runs."""
     device = torch.device(device)
     axes = lattice_axes(volume, device=device)
@@ -93,8 +93,8 @@ def voxel_errors(model: Siren, volume: Volume, *, chunk: int = 1 << 16,
     return float(psnr(pred, truth)), float((pred - truth).abs().max())
 
 
-def lattice_values(model: Siren, axes: list[torch.Tensor], extent: torch.Tensor, chunk: int, *, log=None,
-                   what: str = "") -> Iterator[torch.Tensor]:
+def lattice_values(model: Siren, axes: list[torch.Tensor], extent: torch.Tensor, chunk: int, *,
+                   log: Callable[[str], None] | None = None, what: str = "") -> Iterator[torch.Tensor]:
     """The INR at every point of the lattice of `axes` (`grid.lattice_points`), in its (Z, Y, X) order, `chunk`
     points at a time: each chunk's points made as it is evaluated, not 12 bytes a point at once (a caller that
     wants no graph asks for none). `log`: `what`, how far and how long is left, a line a minute (a 512³ volume's
@@ -163,7 +163,7 @@ class ErrorSampler:
 
 
 def fit_data_inr(volume: Volume, tf: TransferFunction, cfg: DataInrConfig, *, checkpoint: Path | None = None,
-                 device: torch.device | str = "cpu", log=print) -> DataInr:
+                 device: torch.device | str = "cpu", log: Callable[[str], None] = print) -> DataInr:
     """The data INR of the configured size, grown (steps, then width) until its voxel PSNR reaches
     `cfg.target_psnr`; `config["capacity"]` records every size tried."""
     rungs = ladder(cfg.width, cfg.steps, max(cfg.max_width, cfg.width))
@@ -201,7 +201,7 @@ class DataInrFit:
     that it can be one replayed CUDA graph (`data_inr.cuda_graph`)."""
 
     def __init__(self, volume: Volume, tf: TransferFunction, cfg: DataInrConfig, *, device: torch.device,
-                 log=print):
+                 log: Callable[[str], None] = print):
         self.cfg, self.device = cfg, device
         self.model = Siren(cfg.siren, seeded(cfg.seed, Stream.DATA_INR_INIT)).to(device)
         self.graphs = requested(cfg.cuda_graph, "data_inr.cuda_graph", device, log)
@@ -247,7 +247,7 @@ class DataInrFit:
 
 
 def fit_data_inr_once(volume: Volume, tf: TransferFunction, cfg: DataInrConfig, *, checkpoint: Path | None = None,
-                      device: torch.device | str = "cpu", log=print) -> DataInr:
+                      device: torch.device | str = "cpu", log: Callable[[str], None] = print) -> DataInr:
     """Fit a data INR of exactly cfg's size to trilinear samples of the volume (Adam, cosine decay,
     resumable); without its macro-cell ranges, which `fit_data_inr` makes for the size it keeps."""
     device = torch.device(device)
@@ -301,7 +301,7 @@ RANGE_SLAB_POINTS = 1 << 24
 
 def inr_cell_ranges(model: Siren, volume: Volume, *, cell: int = 16, refine: int = 2, margin: float = 0.01,
                     chunk: int = 1 << 16, device: torch.device | str = "cpu",
-                    log=None) -> tuple[np.ndarray, np.ndarray]:
+                    log: Callable[[str], None] | None = None) -> tuple[np.ndarray, np.ndarray]:
     """The INR's (min, max) per `cell`³-voxel macro-cell, from the INR itself on a lattice `refine`× finer
     than the voxels, widened by `margin` for the values between lattice points.
 

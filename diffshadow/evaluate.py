@@ -6,10 +6,13 @@ from __future__ import annotations
 import hashlib
 import json
 import time
+from collections.abc import Callable
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 import torch
+from numpy.typing import ArrayLike
 
 from diffshadow.diffusion.mix import mix_weights
 from diffshadow.diffusion.sample import generate, load_sampler
@@ -21,6 +24,14 @@ from diffshadow.sampling import Stream, seeded
 from diffshadow.store import blend_rows
 from diffshadow.truth import EvalTruth, median, p10, psnr_per_light
 
+if TYPE_CHECKING:
+    from diffshadow.diffusion.model import WeightTransformer
+    from diffshadow.diffusion.standardize import Standardizer
+    from diffshadow.render import RenderScene
+    from diffshadow.store import WeightStore
+    from diffshadow.transfer import TransferFunction
+    from diffshadow.volume import Volume
+
 
 def blend_baseline(train_values: dict, idx: np.ndarray, weights: np.ndarray) -> dict[str, torch.Tensor]:
     """Per set, the rows (L, P) of the k nearest training lights `idx` (Q, k) blended with
@@ -29,8 +40,8 @@ def blend_baseline(train_values: dict, idx: np.ndarray, weights: np.ndarray) -> 
     return {key: (vals[torch.as_tensor(idx)] * w[..., None]).sum(dim=1) for key, vals in train_values.items()}
 
 
-def seconds_per_inr(model, std, light, *, method: str, steps: int, repeats: int = 3,
-                    temperature: float = 1.0, device: torch.device | str = "cpu") -> float:
+def seconds_per_inr(model: WeightTransformer, std: Standardizer, light: ArrayLike, *, method: str, steps: int,
+                    repeats: int = 3, temperature: float = 1.0, device: torch.device | str = "cpu") -> float:
     """Wall time to generate one shadow INR (batch of one) on `device`, best of `repeats` (generate returns the
     weights on the host, so a GPU's queue is drained inside each timing)."""
 
@@ -52,9 +63,9 @@ def median_gap_interval(a: np.ndarray, b: np.ndarray, *, resamples: int = 2000) 
     return [float(x) for x in np.percentile(gaps, [2.5, 97.5])]
 
 
-def wide_comparison(state: dict | None, stage1, light_sets: dict, volume, tf, *, share: float, lights: int,
-                    points: int, seed: int, blend_k: int, weighting: str, device: torch.device | str = "cpu",
-                    cache=None) -> dict:
+def wide_comparison(state: dict | None, stage1: WeightStore, light_sets: dict, volume: Volume, tf: TransferFunction, *,
+                    share: float, lights: int, points: int, seed: int, blend_k: int, weighting: str,
+                    device: torch.device | str = "cpu", cache: WeightStore | None = None) -> dict:
     """The cache's answer (`share` x the model's SIREN + the rest x the weight blend of the stored SIRENs,
     `lights.blend_weights` by `weighting` and `blend_k`; share 1: the model alone), the weight blend and the model
     alone on `lights` further test lights (`lights.wide_test_lights`), exact shadows at `points` box points each:
@@ -128,10 +139,10 @@ def seam_split(score: np.ndarray, train: np.ndarray, idx: np.ndarray, mix: np.nd
             "answer_median_within": median(score[~across]) if (~across).any() else None}
 
 
-def voxel_metrics(state: dict | None, stage1, generated, truth: EvalTruth, light_sets: dict, *, blend_k: int,
-                  weighting: str, grid_voxels: int, ddpm_lights: int = 8, geometry_state: dict | None = None,
-                  device: torch.device | str = "cpu", curve_checkpoint: Path | None = None,
-                  log=print) -> dict:
+def voxel_metrics(state: dict | None, stage1: WeightStore, generated: WeightStore, truth: EvalTruth, light_sets: dict,
+                  *, blend_k: int, weighting: str, grid_voxels: int, ddpm_lights: int = 8,
+                  geometry_state: dict | None = None, device: torch.device | str = "cpu",
+                  curve_checkpoint: Path | None = None, log: Callable[[str], None] = print) -> dict:
     """`voxel_metrics.json`: generated SIRENs (seen and unseen) against the ground truth, beside the stage-1
     SIRENs, the nearest and blend baselines, DDIM vs DDPM on `ddpm_lights` training lights, and storage.
     With `geometry_state` (the model before rendering-loss fine-tuning), the unseen lights are also sampled
@@ -277,7 +288,8 @@ def voxel_metrics(state: dict | None, stage1, generated, truth: EvalTruth, light
     return _with_model(result, model, std, cfg, siren, stored, geometry_state or state)
 
 
-def _with_model(result: dict, model, std, cfg: dict, siren, stored: dict, state: dict) -> dict:
+def _with_model(result: dict, model: WeightTransformer, std: Standardizer, cfg: dict, siren, stored: dict,
+                state: dict) -> dict:
     """`result` with the diffusion model's size, how long its geometry stage trained, and the cache's bytes."""
     mc = model.cfg
     result["diffusion_model"] = {"preset": cfg["preset"], "layers": mc.n_layer, "width": mc.n_embd,
@@ -293,7 +305,8 @@ def _with_model(result: dict, model, std, cfg: dict, siren, stored: dict, state:
     return result
 
 
-def _curve_fingerprint(model, std, lights: np.ndarray, truth: dict, cfg: dict, rows: list, device) -> str:
+def _curve_fingerprint(model: WeightTransformer, std: Standardizer, lights: np.ndarray, truth: dict, cfg: dict,
+                       rows: list, device) -> str:
     """What the sampler curve's rows depend on: the model's weights and standardiser, the lights and their truth,
     the sampler settings and rows, and the kind of device (a GPU samples other bits, and times otherwise)."""
     h = hashlib.sha256(np.ascontiguousarray(lights, dtype=np.float64).tobytes())
@@ -317,9 +330,9 @@ def naive_tags(light_sets: dict, views: list, *, lights_per_set: int = 2, naive_
             for v in range(len(views)) if naive_views is None or v < naive_views]
 
 
-def naive_images(scene, light_sets: dict, views: list, *, step: float, lights_per_set: int = 2,
+def naive_images(scene: RenderScene, light_sets: dict, views: list, *, step: float, lights_per_set: int = 2,
                  naive_views: int | None = None, naive_lights: int | None = None, phong: bool = False,
-                 log=print) -> dict:
+                 log: Callable[[str], None] = print) -> dict:
     """The naive baseline's images (secondary rays through the data INR) by tag, for `image_evaluation`. They
     need only the volume, the data INR and the lights, so the workflow renders them in a job of their own
     (`naive_images`) while stage 1 and 2 run, not after them."""
@@ -333,9 +346,10 @@ def naive_images(scene, light_sets: dict, views: list, *, step: float, lights_pe
     return out
 
 
-def image_evaluation(scene, light_sets: dict, stage1, generated, views: list, *, step: float, out_dir,
-                     lights_per_set: int = 2, naive_views: int | None = None, naive_lights: int | None = None,
-                     lpips=None, phong: bool = False, naive: dict | None = None, log=print) -> dict:
+def image_evaluation(scene: RenderScene, light_sets: dict, stage1: WeightStore, generated: WeightStore, views: list, *,
+                     step: float, out_dir: Path, lights_per_set: int = 2, naive_views: int | None = None,
+                     naive_lights: int | None = None, lpips: torch.nn.Module | None = None, phong: bool = False,
+                     naive: dict | None = None, log: Callable[[str], None] = print) -> dict:
     """`image_metrics.json`: every mode against `gt` over a few training and unseen lights and views.
 
     Modes: `inr_stage1` / `inr_generated` (shadow INR on the raw scalar field, so only the shadow's error

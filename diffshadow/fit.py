@@ -8,15 +8,17 @@ voxel PSNR on fresh random points (never used for training) against `transmittan
 
 from __future__ import annotations
 
+import contextlib
 import hashlib
 import json
 import time
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 
 import numpy as np
 import torch
+from numpy.typing import ArrayLike
 
 from diffshadow.adam import Adam, set_lr
 from diffshadow.capacity import Choice, Rung, climb, ladder
@@ -188,8 +190,8 @@ def target_store(cfg: FitConfig, k: int, grid_shape: tuple[int, ...],
 CPU_CHUNK = 512
 
 
-def blend_pool(volume: Volume, tf: TransferFunction, train: np.ndarray, center, subset: list[int], cfg: FitConfig,
-               *, halo: list[list[int]] = (), held: list[int] = (),
+def blend_pool(volume: Volume, tf: TransferFunction, train: np.ndarray, center: ArrayLike, subset: list[int],
+               cfg: FitConfig, *, halo: list[list[int]] = (), held: list[int] = (),
                device: torch.device | str = "cpu") -> PoolLights | None:
     """Pool lights for the blend loss: `cfg.blend_per_light` directions per training light drawn in the training
     lights' cap (the same for every subset), of which this subset takes those whose blend (`cfg.blend_weights`:
@@ -245,7 +247,7 @@ class Targets:
     each grid made, looked up and let go of in turn: a subset of large volumes then needs one grid, not K."""
 
     def __init__(self, volume: Volume, tf: TransferFunction, lights: np.ndarray, cfg: FitConfig,
-                 device: torch.device, log=None):
+                 device: torch.device, log: Callable[[str], None] | None = None):
         self.extent = torch.as_tensor(volume.extent, dtype=torch.float32, device=device)
         self.tf, self.lights, self.cfg, self.device, self.log = tf, lights, cfg, device, log
         self.grids = self.field = self.fine = self.table = self.table_points = None
@@ -313,10 +315,11 @@ class Targets:
         return transmittance_per_light(self.field, self.tf, self.lights, pts)
 
 
-def fit_step(weights: torch.Tensor, opt: Adam, pts: torch.Tensor, target: torch.Tensor,
-             layout: WeightLayout, siren: SirenConfig, extent: torch.Tensor, cfg: FitConfig, *, chunk: int,
-             autocast, pool: PoolLights | None = None, pool_draw: tuple[torch.Tensor, torch.Tensor] | None = None,
-             held: torch.Tensor | None = None, keep_grads: bool = False) -> torch.Tensor:
+def fit_step(weights: torch.Tensor, opt: Adam, pts: torch.Tensor, target: torch.Tensor, layout: WeightLayout,
+             siren: SirenConfig, extent: torch.Tensor, cfg: FitConfig, *, chunk: int,
+             autocast: contextlib.AbstractContextManager, pool: PoolLights | None = None,
+             pool_draw: tuple[torch.Tensor, torch.Tensor] | None = None, held: torch.Tensor | None = None,
+             keep_grads: bool = False) -> torch.Tensor:
     """One Adam step of all K SIRENs on their points; returns each SIREN's mean squared error (K,) before it.
     With `pool`, `pool_draw` is `draw_pool`'s (lights, points) on the device; `held` (H, n_params): SIRENs the pool's
     blends take after the K (rows K.., `blend_pool`'s `held`), not fitted. `keep_grads` zeroes the gradient in
@@ -344,7 +347,7 @@ class Watch:
     checkpoints), divergence judged once at the end against the init's loss, and the log line every tenth."""
 
     def __init__(self, k: int, cfg: FitConfig, siren: SirenConfig, light_index: list[int], start: int,
-                 initial: torch.Tensor | None, device: torch.device, log):
+                 initial: torch.Tensor | None, device: torch.device, log: Callable[[str], None]):
         self.k, self.cfg, self.width, self.light_index = k, cfg, siren.width, light_index
         self.start, self.log = start, log
         self.initial = initial  # each SIREN's loss at the init, before any update
@@ -392,7 +395,7 @@ class FitDraw:
     target: torch.Tensor | None = None  # (K, N) the targets at `pts`, from a table (fit.target_store)
 
 
-def fit_graphs(cfg: FitConfig, device: torch.device, log=print) -> StepGraphs | None:
+def fit_graphs(cfg: FitConfig, device: torch.device, log: Callable[[str], None] = print) -> StepGraphs | None:
     """The fit's CUDA graphs where `fit.cuda_graph` asks for them ("auto" or True) and the device and targets allow
     them (exact transmittance targets march with host reads)."""
     unsupported = "fit.target transmittance marches with host reads" if cfg.target == "transmittance" else ""
@@ -408,7 +411,8 @@ class SubsetFit:
 
     def __init__(self, init: torch.Tensor, layout: WeightLayout, siren: SirenConfig, volume: Volume,
                  tf: TransferFunction, lights: np.ndarray, cfg: FitConfig, *, stream: int = 0,
-                 pool: PoolLights | None = None, held: torch.Tensor | None = None, device: torch.device, log=print):
+                 pool: PoolLights | None = None, held: torch.Tensor | None = None, device: torch.device,
+                 log: Callable[[str], None] = print):
         self.layout, self.siren, self.cfg, self.stream, self.k = layout, siren, cfg, stream, len(lights)
         self.sampler = PointSampler(volume, tf, cfg.visible_fraction)
         self.targets = Targets(volume, tf, lights, cfg, device, log)
@@ -486,7 +490,7 @@ def fit_sirens(
     pool: PoolLights | None = None,
     held: torch.Tensor | None = None,
     device: torch.device | str = "cpu",
-    log=print,
+    log: Callable[[str], None] = print,
 ) -> torch.Tensor:
     """Fit K = len(lights) SIRENs jointly from `init` (n_params,) → (K, n_params) float32.
 
@@ -630,7 +634,7 @@ def probe_light(lights: np.ndarray) -> int:
 
 def choose_layout(volume: Volume, tf: TransferFunction, lights: np.ndarray, siren: SirenConfig, cfg: FitConfig, *,
                   preoptimize_steps: int, preoptimize_lr: float, device: torch.device | str = "cpu",
-                  log=print) -> Stage1Layout:
+                  log: Callable[[str], None] = print) -> Stage1Layout:
     """The shared init (one SIREN fitted to light 0) and one SIREN size for every subset of the scene.
 
     With `cfg.target_psnr` > 0, a probe fits the light farthest from light 0 from the init as a subset would,

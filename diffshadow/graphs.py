@@ -66,7 +66,7 @@ class StepGraphs:
         return out
 
 
-def requested(setting: bool | str, key: str, device: torch.device, log=print, *,
+def requested(setting: bool | str, key: str, device: torch.device, log: Callable[[str], None] = print, *,
               unsupported: str = "") -> StepGraphs | None:
     """A stage's graphs where its `cuda_graph` setting (`key`) asks for them ("auto" or True) and the device (and
     the stage's other settings: `unsupported` says why they cannot be captured) allows them. True where they

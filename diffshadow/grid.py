@@ -13,6 +13,7 @@ from collections.abc import Callable, Iterable
 import numpy as np
 import torch
 import torch.nn.functional as F
+from numpy.typing import ArrayLike
 
 from diffshadow.siren import box_to_siren
 from diffshadow.transfer import TransferFunction
@@ -33,7 +34,8 @@ def go_on(interrupt: Callable[[], bool] | None) -> None:
         raise Interrupted
 
 
-def check_step(step, error: type[ValueError] = ValueError, *, extent=None, voxel: float | None = None) -> None:
+def check_step(step: float, error: type[ValueError] = ValueError, *, extent: ArrayLike | None = None,
+               voxel: float | None = None) -> None:
     """A marching step in voxels: finite, positive and not finer than MIN_STEP, else `error` naming it. Given the
     box's `extent` and its finest `voxel` (box units), also no longer than the box's diagonal: a ray would take
     one sample at most, and its integral would be that sample times the whole ray."""
@@ -82,7 +84,7 @@ def lattice(shape: tuple[int, int, int], dtype: torch.dtype, device: torch.devic
             constant((1, nx, nx * ny), torch.int64, device))
 
 
-def box(extent, device: torch.device | str) -> torch.Tensor:
+def box(extent: ArrayLike, device: torch.device | str) -> torch.Tensor:
     """A volume's extent (x, y, z) as a float32 `constant` on `device`."""
     return constant(tuple(float(v) for v in np.asarray(extent, dtype=np.float64).reshape(-1)), torch.float32,
                     torch.device(device))
@@ -176,7 +178,7 @@ def cell_ranges(scalar: torch.Tensor, cell: int) -> tuple[torch.Tensor, torch.Te
     return lo, hi
 
 
-def ray_box(p: torch.Tensor, w: torch.Tensor, extent: torch.Tensor):
+def ray_box(p: torch.Tensor, w: torch.Tensor, extent: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     """Entry and exit t of rays p + t w against the box [0, extent] (slab method)."""
     inv = torch.where(w != 0, 1.0 / w, torch.full_like(w, math.inf))
     t_a = (0 - p) * inv

@@ -22,13 +22,19 @@ import socket
 import sys
 import tempfile
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from pathlib import Path
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
+from numpy.typing import ArrayLike
 
 from diffshadow.phases import phase, timed
+
+if TYPE_CHECKING:
+    import torch
+    import zarr
 
 
 def umask() -> int:
@@ -145,7 +151,7 @@ def remove_leftovers(path: Path) -> None:
 
 
 @contextmanager
-def atomic_path(path: str | Path, *, suffix: str | None = None):
+def atomic_path(path: str | Path, *, suffix: str | None = None) -> Iterator[Path]:
     """Yield a temporary path beside `path`; on success flush it, give it the umask's mode and rename it to
     `path`; on error remove it. An earlier write's temporary whose writer was killed is removed first."""
     path = Path(path)
@@ -167,7 +173,7 @@ def atomic_path(path: str | Path, *, suffix: str | None = None):
 
 
 @contextmanager
-def naming_output(path: Path):
+def naming_output(path: Path) -> Iterator[None]:
     """An error writing `path` names the output, so that the command's one-line error says which file could not
     be written: a write that fails for want of room (a full disk, a quota; on a parallel file system often only at
     the flush) raises an OSError naming no file, and one in the temporary beside the output names that random name
@@ -202,7 +208,7 @@ def atomic_save(path: str | Path, save: Callable[[Path], None], *, suffix: str |
         save(tmp)
 
 
-def atomic_torch_save(path: str | Path, obj) -> None:
+def atomic_torch_save(path: str | Path, obj: object) -> None:
     """`torch.save` atomically, through a file object: given a path, torch names the archive's folder after
     the (random) temporary name, so two identical runs wrote different bytes (stress suite)."""
     import torch
@@ -216,7 +222,7 @@ class StoreError(ValueError):
 
 
 @timed("io")
-def write_zarr_group(path, fill, *, made_by: str) -> None:
+def write_zarr_group(path: str | Path, fill: Callable[[zarr.Group], None], *, made_by: str) -> None:
     """Build a Zarr v3 group with `fill(root)` beside `path`, record a checksum of every array and `made_by`
     (the step that writes it, named when a reader finds it damaged), flush it, then swap it in (atomic for
     readers)."""
@@ -253,7 +259,7 @@ def write_zarr_group(path, fill, *, made_by: str) -> None:
             shutil.rmtree(tmp)
 
 
-def array_checksum(values) -> str:
+def array_checksum(values: ArrayLike) -> str:
     """sha256 of an array's values, shape and dtype (what a reader gets, whatever the chunks and codecs)."""
     values = np.ascontiguousarray(values)
     h = _checksum_of(values.dtype, values.shape)
@@ -336,7 +342,7 @@ class VerifiedGroup:
         return values
 
     @timed("io")
-    def read_rows(self, name: str, keep, rows: int = 64) -> np.ndarray:
+    def read_rows(self, name: str, keep: Callable[[np.ndarray], np.ndarray], rows: int = 64) -> np.ndarray:
         """What `keep` makes of the array `name`, read `rows` rows (along its first axis) at a time and joined:
         the whole array is never held (its checksum is taken over the slabs in order, the same sha256 as `read`'s).
         `keep` maps a slab (r, ...) to an array whose first axis is r."""
@@ -380,7 +386,7 @@ def store_folders(paths: list[Path]) -> list[tuple[Path, list[Path]]]:
     return folders
 
 
-def check_stores(folders: list[tuple[Path, list[Path]]]):
+def check_stores(folders: list[tuple[Path, list[Path]]]) -> Iterator[str]:
     """Verify each store of `folders` (`store_folders`' list); yields one line per store: its arrays, whether their
     checksums match (or that it predates checksums), its size and the time taken. Then, per folder, the stores that
     record the scene they were made for (the `extinction` attribute, `volume.extinction_id`) must record one: else
@@ -438,7 +444,8 @@ def error_line(e: BaseException) -> str:
 
 
 @timed("io")
-def resume(checkpoint: str | Path | None, fingerprint: str, *, log=print, map_location="cpu",
+def resume(checkpoint: str | Path | None, fingerprint: str, *, log: Callable[[str], None] = print,
+           map_location: str | torch.device = "cpu",
            weights_only: bool = False, key: str = "fingerprint") -> dict | None:
     """The state saved in `checkpoint` when it was written for this `fingerprint` (same inputs and
     settings), else None; a checkpoint of other inputs is left alone and said so, and one that cannot be read
@@ -475,7 +482,7 @@ def read_json(path: str | Path, what: str) -> dict:
     return value
 
 
-def finite_json(value):
+def finite_json(value: Any) -> Any:
     """JSON has no infinity: an exact match (PSNR +inf) is written as the string "inf"."""
     if isinstance(value, dict):
         return {k: finite_json(v) for k, v in value.items()}

@@ -6,6 +6,7 @@ rows. Kept apart from `siren` and free of torch at import, so the jobs that only
 from __future__ import annotations
 
 import math
+from collections.abc import Iterable
 from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
@@ -49,7 +50,7 @@ class WeightLayout:
         return cls(tuple(entries))
 
     @classmethod
-    def from_config(cls, rows) -> WeightLayout:
+    def from_config(cls, rows: Iterable[tuple[str, Iterable[int]]]) -> WeightLayout:
         return cls(tuple((str(name), tuple(int(s) for s in shape)) for name, shape in rows))
 
     def to_config(self) -> list:

@@ -8,11 +8,13 @@ from __future__ import annotations
 
 import heapq
 import json
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING
 
 import numpy as np
+from numpy.typing import ArrayLike
 
 from diffshadow.io import atomic_write_text
 from diffshadow.sampling import LightStream
@@ -30,7 +32,7 @@ class LightError(ValueError):
 TINY_COMPONENT = 1e-9  # below this a unit direction's component is flushed to 0 (float32 would underflow it)
 
 
-def as_direction(light_dir, *, name: str = "light_dir") -> np.ndarray:
+def as_direction(light_dir: ArrayLike, *, name: str = "light_dir") -> np.ndarray:
     """Validate and normalise one direction; rejects zero, non-finite and wrong-length input.
 
     Components below `TINY_COMPONENT` become exactly 0, so float32 and float64 code paths agree on
@@ -67,7 +69,7 @@ def fibonacci_sphere(n: int) -> np.ndarray:
     return np.stack([r * np.cos(phi), r * np.sin(phi), z], axis=1)
 
 
-def select_region(directions, center, count: int) -> np.ndarray:
+def select_region(directions: ArrayLike, center: ArrayLike, count: int) -> np.ndarray:
     """Indices of the `count` directions closest in angle to `center` (ties by index)."""
     dirs = np.asarray(directions, dtype=np.float64)
     c = as_direction(center, name="center")
@@ -85,7 +87,7 @@ def layout_of(record: dict) -> str:
     return record.get("layout", OLD_LAYOUT)
 
 
-def rim_layout(directions: np.ndarray, center) -> tuple[np.ndarray, int]:
+def rim_layout(directions: np.ndarray, center: ArrayLike) -> tuple[np.ndarray, int]:
     """`directions` (the training region of a Fibonacci sphere, `select_region`'s: nearest the centre first) with
     its outer shell moved onto the region's edge: the directions within one spacing of the edge (the cap around
     `center` that holds them all; the spacing √(cap area / count), √(4π / sphere points) for a Fibonacci region)
@@ -107,7 +109,8 @@ def rim_layout(directions: np.ndarray, center) -> tuple[np.ndarray, int]:
     return np.concatenate([dirs[:len(dirs) - k], ring / np.linalg.norm(ring, axis=1, keepdims=True)]), k
 
 
-def unseen_directions(train, center, count: int, *, seed: int | list[int] = 0, min_angle: float = 1e-3) -> np.ndarray:
+def unseen_directions(train: ArrayLike, center: ArrayLike, count: int, *, seed: int | list[int] = 0,
+                      min_angle: float = 1e-3) -> np.ndarray:
     """`count` random directions from the training set's cap around `center`, none equal to a training one.
 
     The cap is the smallest around `center` that holds every training direction; a candidate closer than
@@ -208,7 +211,8 @@ def blend_weights(train: np.ndarray, query: np.ndarray, k: int, weighting: str) 
     return blend_finder(train, k, weighting)(query)
 
 
-def blend_finder(train: np.ndarray, k: int, weighting: str):
+def blend_finder(train: np.ndarray, k: int,
+                 weighting: str) -> Callable[[np.ndarray], tuple[np.ndarray, np.ndarray]]:
     """`blend_weights` for these training lights as a function of the queries, its triangulation made once (a
     viewer or a timing loop asks for one light at a time)."""
     if weighting == "triangle":
@@ -460,7 +464,7 @@ class LightRegion:
     train: np.ndarray  # (N, 3) the training lights, to measure a light's distance to the nearest
 
     @classmethod
-    def of(cls, train: np.ndarray, unseen: np.ndarray | None = None, center=None) -> LightRegion:
+    def of(cls, train: np.ndarray, unseen: np.ndarray | None = None, center: ArrayLike | None = None) -> LightRegion:
         """The region of training lights `train` (N, 3) (centre: `center`, else their mean direction)."""
         train = np.asarray(train, dtype=np.float64).reshape(-1, 3)
         if not len(train):
@@ -488,7 +492,7 @@ class LightRegion:
         return {"center": list(self.center), "radius_deg": self.radius_deg, "spacing_deg": self.spacing_deg,
                 "far_deg": self.far_deg}
 
-    def angle_to_center(self, light) -> float:
+    def angle_to_center(self, light: ArrayLike) -> float:
         """Degrees between `light` and the cap's centre."""
         cos = float(as_direction(light) @ np.asarray(self.center))
         return float(np.degrees(np.arccos(np.clip(cos, -1.0, 1.0))))
@@ -497,11 +501,11 @@ class LightRegion:
         """Whether a light this far from the centre lies in the cap (a training light on its edge does)."""
         return angle_to_center_deg <= self.radius_deg + INSIDE_TOLERANCE_DEG
 
-    def contains(self, light) -> bool:
+    def contains(self, light: ArrayLike) -> bool:
         """Whether `light` lies in the cap (its angle to the centre only: no search of the training lights)."""
         return self.holds(self.angle_to_center(light))
 
-    def where(self, light) -> RegionCheck:
+    def where(self, light: ArrayLike) -> RegionCheck:
         """Where `light` stands: its angle to the centre and to the nearest training light, inside or not."""
         w = as_direction(light)
         return RegionCheck(self, self.angle_to_center(w), float(np.degrees(nearest(self.train, w[None], 1)[1][0, 0])))
@@ -539,13 +543,13 @@ class RegionCheck:
                 f"that far out")
 
 
-def training_pool(train, center, n: int, *, seed: int) -> np.ndarray:
+def training_pool(train: ArrayLike, center: ArrayLike, n: int, *, seed: int) -> np.ndarray:
     """`n` random directions in the training lights' cap for diffusion training on exact shadows only (no
     fitted SIREN): drawn like the unseen test set but from another random stream, so never the same lights."""
     return unseen_directions(train, center, n, seed=[seed, LightStream.POOL])
 
 
-def validation_lights(train, center, n: int, *, seed: int) -> np.ndarray:
+def validation_lights(train: ArrayLike, center: ArrayLike, n: int, *, seed: int) -> np.ndarray:
     """`n` random directions in the training lights' cap for choosing the fine-tuned model: drawn like the
     unseen test set, so they stand for it, but from a third random stream (never a test or pool light).
     Halfway points between neighbouring training lights had stood in before; they disagreed with the test
@@ -553,7 +557,7 @@ def validation_lights(train, center, n: int, *, seed: int) -> np.ndarray:
     return unseen_directions(train, center, n, seed=[seed, LightStream.VALIDATION])
 
 
-def wide_test_lights(train, center, n: int, *, seed: int) -> np.ndarray:
+def wide_test_lights(train: ArrayLike, center: ArrayLike, n: int, *, seed: int) -> np.ndarray:
     """`n` further test lights for evaluate_voxels' wide comparison: drawn like the unseen test set, from a fourth
     random stream (never a test, pool or validation light, so never one the mix's share was chosen on)."""
     return unseen_directions(train, center, n, seed=[seed, LightStream.WIDE])
@@ -566,7 +570,7 @@ def _orthonormal_basis(c: np.ndarray) -> np.ndarray:
     return np.stack([u, np.cross(c, u)])
 
 
-def to_spherical(directions) -> np.ndarray:
+def to_spherical(directions: ArrayLike) -> np.ndarray:
     """(n, 3) unit vectors → (n, 2) of (theta, phi) in radians."""
     d = np.asarray(directions, dtype=np.float64)
     theta = np.arccos(np.clip(d[:, 2], -1.0, 1.0))
@@ -574,7 +578,8 @@ def to_spherical(directions) -> np.ndarray:
     return np.stack([theta, phi], axis=1)
 
 
-def make_light_sets(sphere: int, count: int, center, unseen: int, seed: int = 0, layout: str = "rim") -> dict:
+def make_light_sets(sphere: int, count: int, center: ArrayLike, unseen: int, seed: int = 0,
+                    layout: str = "rim") -> dict:
     """Training directions (a region of a Fibonacci sphere; with `layout` "rim" its outer shell moved onto the
     region's edge, `rim_layout`) and held-out unseen ones, as a JSON-able dict."""
     # the workflow's schema holds these; the `lights` command and the library get them here, by name
@@ -647,7 +652,7 @@ def n_subsets(n_lights: int, subset_size: int) -> int:
     return -(-n_lights // subset_size)
 
 
-def light_subsets(train, subset_size: int) -> list[list[int]]:
+def light_subsets(train: ArrayLike, subset_size: int) -> list[list[int]]:
     """The training lights split into S = ceil(n / size) compact patches of the sphere, each `subset_size`
     lights (the last one fewer), as sorted light indices; subset s is the s-th list.
 
@@ -675,7 +680,7 @@ def light_subsets(train, subset_size: int) -> list[list[int]]:
     return split(np.arange(len(dirs)))
 
 
-def across_subsets(train, idx: np.ndarray, mix: np.ndarray, subset_size: int) -> np.ndarray:
+def across_subsets(train: ArrayLike, idx: np.ndarray, mix: np.ndarray, subset_size: int) -> np.ndarray:
     """(Q,) bool: whether each query's blend (`blend_weights`' `idx`, `mix`) takes lights with weight from more
     than one of `light_subsets(train, subset_size)`: a seam, where the blend loss of separate fit_siren jobs
     coupled its SIRENs only through a halo (`fit.halo`), or not at all."""
@@ -687,7 +692,7 @@ def across_subsets(train, idx: np.ndarray, mix: np.ndarray, subset_size: int) ->
     return ((sub != first[:, None]) & (sub >= 0)).any(axis=1)
 
 
-def subset_indices(train, subset_size: int, subset: int) -> list[int]:
+def subset_indices(train: ArrayLike, subset_size: int, subset: int) -> list[int]:
     """Lights of subset `subset` (0..S-1, S = ceil(n / size)): its patch of `light_subsets`."""
     check_subset(len(np.asarray(train).reshape(-1, 3)), subset_size, subset)
     return light_subsets(train, subset_size)[subset]
@@ -741,7 +746,7 @@ class PoolLights:
     neighbours: torch.Tensor  # (M, k) rows of the training set
     blend: torch.Tensor  # (M, k), rows sum to 1
 
-    def to(self, device) -> PoolLights:
+    def to(self, device: torch.device | str) -> PoolLights:
         return PoolLights(*(t.to(device) for t in (self.lights, self.points, self.values, self.neighbours,
                                                     self.blend)))
 

@@ -10,7 +10,8 @@ import torch
 from diffshadow.transfer import FOREGROUND_ALPHA  # a pixel is foreground where the reference's opacity shows
 
 
-def psnr(pred: torch.Tensor, target: torch.Tensor, *, dim=None, data_range: float = 1.0) -> torch.Tensor:
+def psnr(pred: torch.Tensor, target: torch.Tensor, *, dim: int | tuple[int, ...] | None = None,
+         data_range: float = 1.0) -> torch.Tensor:
     """10·log10(range² / MSE), over all values or along `dim`; a perfect match gives +inf."""
     mse = ((pred.double() - target.double()) ** 2).mean(dim=dim) if dim is not None else \
         ((pred.double() - target.double()) ** 2).mean()
@@ -73,7 +74,7 @@ def ms_ssim_status(side: int) -> str:
            "standard window need"
 
 
-def lpips_model():
+def lpips_model() -> tuple[torch.nn.Module | None, str | None]:
     """(model, None) when LPIPS with VGG weights can be built from files on this machine, else
     (None, reason). Never downloads: these machines are offline, and a fake score would be worse than none."""
     try:
@@ -88,7 +89,8 @@ def lpips_model():
     return lpips.LPIPS(net="vgg", verbose=False), None
 
 
-def image_metrics(pred: torch.Tensor, target: torch.Tensor, target_alpha: torch.Tensor, lpips=None) -> dict:
+def image_metrics(pred: torch.Tensor, target: torch.Tensor, target_alpha: torch.Tensor,
+                  lpips: torch.nn.Module | None = None) -> dict:
     """Foreground PSNR, SSIM, MS-SSIM (and LPIPS when a model is given) of one image against a reference, on the
     reference's device (a stored image, e.g. a naive one read back, is on the CPU)."""
     pred = pred.to(target.device)

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import json
 import runpy
+from collections.abc import Callable
 from pathlib import Path
 
 
@@ -73,7 +74,7 @@ def waves(jobs: list[dict]) -> list[list[dict]]:
     return out
 
 
-def run(parsl_config: Path, jobs: list[dict], log=print) -> list[str]:
+def run(parsl_config: Path, jobs: list[dict], log: Callable[[str], None] = print) -> list[str]:
     """Submit every job (`fit_task`'s keyword arguments) through the Parsl config file, wave by wave (`waves`);
     return the files."""
     import parsl
@@ -107,7 +108,7 @@ def run(parsl_config: Path, jobs: list[dict], log=print) -> list[str]:
 
 
 def fit_pending(parsl_config: Path, configfile: Path, scenes: list[str] | None, results: Path, *,
-                threads: int = 1, log=print) -> None:
+                threads: int = 1, log: Callable[[str], None] = print) -> None:
     """Every subset of `scenes` (default: the config's) whose file under `results` is missing."""
     from diffshadow.config import load_run, scene_config, stage1_json
     from diffshadow.lights import n_subsets

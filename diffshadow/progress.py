@@ -9,6 +9,7 @@ a log mid-run sees where a long job is. A resumed stage counts its rate from the
 from __future__ import annotations
 
 import time
+from collections.abc import Callable
 
 import torch
 
@@ -40,8 +41,8 @@ class Ticker:
     how far and how long is left; called with nothing, how long so far. It returns False, so that a frame can take
     it as its `interrupt` (asked on the host before each iteration: the frame does not depend on it)."""
 
-    def __init__(self, what: str, total: int | None = None, *, log=print, every_s: float | None = None,
-                 clock=time.perf_counter):
+    def __init__(self, what: str, total: int | None = None, *, log: Callable[[str], None] = print,
+                 every_s: float | None = None, clock: Callable[[], float] = time.perf_counter):
         self.what, self.total, self.log, self.clock = what, total, log, clock
         self.every_s = TICK_S if every_s is None else every_s
         self.start = clock()

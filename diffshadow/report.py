@@ -5,11 +5,21 @@ from __future__ import annotations
 
 import json
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from diffshadow.io import atomic_path, atomic_write_text, read_json
 from diffshadow.phases import NUMERIC_LIBRARIES
+
+if TYPE_CHECKING:  # matplotlib and the stores are imported where a figure is drawn
+    from types import ModuleType
+
+    from matplotlib.axes import Axes
+    from matplotlib.axis import Axis
+    from matplotlib.figure import Figure
+
+    from diffshadow.store import WeightStore
 
 
 def shading_name(phong: bool) -> str:
@@ -17,7 +27,7 @@ def shading_name(phong: bool) -> str:
     return "Blinn-Phong" if phong else "unlit (colour x (0.1 + 0.9 g))"
 
 
-def save_figure(path: Path, fig) -> None:
+def save_figure(path: Path, fig: Figure) -> None:
     """A figure as a PNG, written atomically, then closed."""
     with atomic_path(path, suffix=".png") as tmp:
         fig.savefig(tmp, format="png", dpi=100)
@@ -26,7 +36,7 @@ def save_figure(path: Path, fig) -> None:
     plt.close(fig)
 
 
-def pyplot():
+def pyplot() -> ModuleType:
     """matplotlib.pyplot on the file-only Agg backend (no display on compute nodes)."""
     import matplotlib
 
@@ -36,7 +46,7 @@ def pyplot():
     return plt
 
 
-def decade_labels(axis) -> None:
+def decade_labels(axis: Axis) -> None:
     """Label a log axis at its decades only (the minor labels overlap); an axis that spans less than two
     decades (one that would show one label or none) at 1, 2 and 5 of each decade, and at every digit below a
     factor of 3. Call it once the data are plotted."""
@@ -50,7 +60,7 @@ def decade_labels(axis) -> None:
     axis.set_minor_formatter(NullFormatter())
 
 
-def siren_psnr_figure(stage1, out: Path) -> None:
+def siren_psnr_figure(stage1: WeightStore, out: Path) -> None:
     """Stage-1 voxel PSNR of every light's SIREN (over the box and in the visible region)."""
     plt = pyplot()
     fig, ax = plt.subplots(figsize=(8, 3.5))
@@ -74,7 +84,7 @@ def _say(ax, text: str) -> None:
     ax.set_axis_off()
 
 
-def generated_figure(stage1, generated, out_png: Path, out_csv: Path) -> None:
+def generated_figure(stage1: WeightStore, generated: WeightStore, out_png: Path, out_csv: Path) -> None:
     """Generated vs stage-1 PSNR on seen lights; generated PSNR on unseen lights (plot and table)."""
     plt = pyplot()
     seen = generated.seen
@@ -117,7 +127,7 @@ def diff_range(diffs: list[np.ndarray]) -> float:
 
 
 def image_grid_figure(images_dir: Path, lights: dict, out: Path,
-                      modes=("gt", "inr_generated", "naive", "noshadow")) -> None:
+                      modes: tuple[str, ...] = ("gt", "inr_generated", "naive", "noshadow")) -> None:
     """Rows: (light, view) pairs with every mode rendered, labelled with the light's direction; columns:
     gt / ours / naive / no shadow, then |ours - gt| and |no shadow - gt| (what the shadow term adds)."""
     import re
@@ -283,7 +293,7 @@ LABEL_PLACES = tuple((sx * dx, sy * dy, "left" if sx * dx > 0 else "right" if sx
 LEADER_FROM = 10  # points: a label this far from its point is drawn with a line to it
 
 
-def label_points(ax, points: list[tuple[float, float]], labels: list[str], *, fontsize: float = 7) -> list:
+def label_points(ax: Axes, points: list[tuple[float, float]], labels: list[str], *, fontsize: float = 7) -> list:
     """Each point's label beside it, at the first of `LABEL_PLACES` where it overlaps no label placed before it
     and no other point and stays inside the axes; where none is free, where it overlaps least (a label over a
     label counts double). The axes' limits and the figure's layout must be final: boxes are measured as drawn.

@@ -9,6 +9,7 @@ import json
 from dataclasses import dataclass, fields
 
 import numpy as np
+from numpy.typing import ArrayLike
 
 from diffshadow.lights import BLEND_K, blend_weights, configured_light_sets, light_subsets, n_subsets, training_pool
 from diffshadow.sampling import FIT_BLEND_POOL_SEED
@@ -34,7 +35,8 @@ class SeamSettings:
 _POOL_BLENDS: dict[str, tuple[np.ndarray, np.ndarray, np.ndarray]] = {}
 
 
-def pool_blends(train: np.ndarray, center, k: int, cfg: SeamSettings) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def pool_blends(train: np.ndarray, center: ArrayLike, k: int,
+                cfg: SeamSettings) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Every subset's candidate pool lights (`cfg.blend_per_light` per training light in their cap, the same for
     every subset), the training lights each one's blend takes and their weights. Kept for the process's next call
     with the same arguments (the halo's and the pool's, and the fit bench's halo of every subset)."""
@@ -48,7 +50,7 @@ def pool_blends(train: np.ndarray, center, k: int, cfg: SeamSettings) -> tuple[n
     return _POOL_BLENDS[key]
 
 
-def halo_size(train: np.ndarray, center, subset_size: int, cfg: SeamSettings) -> tuple[float, float]:
+def halo_size(train: np.ndarray, center: ArrayLike, subset_size: int, cfg: SeamSettings) -> tuple[float, float]:
     """The mean counts of halo lights (`subset_halo`, all rings) a subset of these lights fits beside its own, and
     of those it holds at their stored SIRENs instead (`held_lights`, `fit.rounds`)."""
     subsets = light_subsets(train, subset_size)
@@ -58,7 +60,7 @@ def halo_size(train: np.ndarray, center, subset_size: int, cfg: SeamSettings) ->
     return float(np.mean(halo) - np.mean(held)), float(np.mean(held))
 
 
-def subset_halo(train: np.ndarray, center, subset: list[int], cfg: SeamSettings) -> list[list[int]]:
+def subset_halo(train: np.ndarray, center: ArrayLike, subset: list[int], cfg: SeamSettings) -> list[list[int]]:
     """The rings (`fit.halo` of them) of other subsets' lights that the blends across this subset's border take,
     each sorted: ring 1 those of the blends that take a light of the subset, ring 2 those of the blends that take
     one of ring 1, and so on. Fitted with the subset and discarded (those of earlier rounds held instead,
@@ -76,7 +78,7 @@ def subset_halo(train: np.ndarray, center, subset: list[int], cfg: SeamSettings)
     return rings
 
 
-def subset_rounds(train: np.ndarray, center, subset_size: int, cfg: SeamSettings) -> list[int]:
+def subset_rounds(train: np.ndarray, center: ArrayLike, subset_size: int, cfg: SeamSettings) -> list[int]:
     """Each subset's round (`fit.rounds`; all 0 without it, or without a halo): the subsets whose lights are in
     one another's halo get different rounds, each subset in index order the first round none of them has."""
     subsets = light_subsets(train, subset_size)
@@ -98,7 +100,7 @@ def subset_rounds(train: np.ndarray, center, subset_size: int, cfg: SeamSettings
     return rounds
 
 
-def held_subsets(train: np.ndarray, center, subset_size: int, subset: int, cfg: SeamSettings,
+def held_subsets(train: np.ndarray, center: ArrayLike, subset_size: int, subset: int, cfg: SeamSettings,
                  rounds: list[int] | None = None) -> list[int]:
     """The subsets of earlier rounds (`subset_rounds`, or `rounds` made by it) with lights in this subset's halo:
     the fit's inputs, their stored SIRENs held where their lights are in its halo (`held_lights`)."""
@@ -108,7 +110,7 @@ def held_subsets(train: np.ndarray, center, subset_size: int, subset: int, cfg: 
     return [s for s, idx in enumerate(subsets) if rounds[s] < rounds[subset] and halo.intersection(idx)]
 
 
-def held_lights(train: np.ndarray, center, subset_size: int, subset: int, cfg: SeamSettings,
+def held_lights(train: np.ndarray, center: ArrayLike, subset_size: int, subset: int, cfg: SeamSettings,
                 rounds: list[int] | None = None) -> list[int]:
     """This subset's halo lights that belong to `held_subsets` (`rounds` as there), sorted: held at their stored
     SIRENs."""

@@ -24,10 +24,12 @@ import math
 import weakref
 from collections.abc import Callable
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 import torch
 import torch.nn.functional as F
+from numpy.typing import ArrayLike
 
 from diffshadow.grid import (
     check_step,
@@ -106,7 +108,7 @@ class ShadowField:
         return self.tf.extinction(trilinear(self.scalar[0], pos_vox)[0])
 
 
-def _as_points(points, device) -> torch.Tensor:
+def _as_points(points: torch.Tensor | ArrayLike, device) -> torch.Tensor:
     host = points.device if isinstance(points, torch.Tensor) else "cpu"
     pts = torch.as_tensor(points, dtype=torch.float32, device=host)
     if pts.ndim != 2 or pts.shape[1] != 3:
@@ -119,8 +121,8 @@ def _as_points(points, device) -> torch.Tensor:
 def transmittance(
     volume: Volume | ShadowField,
     tf: TransferFunction,
-    light_dir,
-    points,
+    light_dir: ArrayLike,
+    points: torch.Tensor | ArrayLike,
     *,
     step: float = DEFAULT_STEP,
     skip_empty: bool | None = None,
@@ -156,8 +158,8 @@ RAYS_PER_MARCH = 1 << 21  # rays marched together by transmittance_per_light (~1
 def transmittance_per_light(
     volume: Volume | ShadowField,
     tf: TransferFunction,
-    lights,
-    points,
+    lights: ArrayLike,
+    points: torch.Tensor | ArrayLike,
     *,
     step: float = DEFAULT_STEP,
     skip_empty: bool | None = None,
@@ -292,13 +294,13 @@ def _march_chunk(field: ShadowField, q0, dq, dt: float, last, n, skip: bool, tau
 def shadow_grid(
     volume: Volume,
     tf: TransferFunction,
-    light_dir,
+    light_dir: ArrayLike,
     *,
     method: str = "sweep",
     step: float | None = None,
     device: torch.device | str = "cpu",
     voxels: torch.Tensor | None = None,
-    **march_options,
+    **march_options: Any,
 ) -> torch.Tensor:
     """Shadow coefficient at every voxel → (Z, Y, X) float32.
 

@@ -15,11 +15,22 @@ from __future__ import annotations
 import contextlib
 import functools
 import math
+from typing import Protocol
 
 import torch
+from numpy.typing import ArrayLike
 from torch import nn
 
 from diffshadow.layout import SirenConfig, WeightLayout
+
+
+class CosineSchedule(Protocol):
+    """What `cosine_lr` reads of a stage's settings (`fit.FitConfig`, `data_inr.DataInrConfig`)."""
+
+    lr: float
+    lr_final: float
+    steps: int
+
 
 OMEGA = 30.0  # sine frequency ω0 (SIREN)
 RES_WEIGHT = 0.5  # NeurComp's averaging weight on residual blocks
@@ -156,7 +167,7 @@ class Siren(nn.Module):
         return self.layout.flatten(self.named_tensors())
 
     @classmethod
-    def from_flat(cls, vector, layout: WeightLayout, cfg: SirenConfig | None = None) -> Siren:
+    def from_flat(cls, vector: torch.Tensor | ArrayLike, layout: WeightLayout, cfg: SirenConfig | None = None) -> Siren:
         """A SIREN whose weights are `vector` in `layout` (the store's format)."""
         vector = torch.as_tensor(vector, dtype=torch.float32,
                                  device=vector.device if isinstance(vector, torch.Tensor) else "cpu")
@@ -221,7 +232,7 @@ def forward_precision(precision: str, device: torch.device) -> contextlib.Abstra
     return torch.autocast(device.type, dtype=torch.bfloat16, cache_enabled=False)
 
 
-def cosine_lr(step: int, cfg, width: int) -> float:
+def cosine_lr(step: int, cfg: CosineSchedule, width: int) -> float:
     """Cosine decay from lr to lr · cfg.lr_final over cfg.steps (the authors' schedule), where lr is cfg.lr
     scaled by LR_WIDTH / width above LR_WIDTH: Adam's step is the same size for every weight, while the
     initial weights shrink as 1/√fan-in, so a wider SIREN takes relatively larger steps. At lr 1e-3 the

@@ -14,6 +14,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
+from numpy.typing import ArrayLike
 
 from diffshadow.io import StoreError, VerifiedGroup, atomic_save, error_line, write_zarr_group
 from diffshadow.layout import SirenConfig, WeightLayout
@@ -70,11 +71,12 @@ class BlendSampler:
         """The blended SIRENs (Q, P) float32 of `lights` (Q, 3)."""
         return blend_rows(self.store.weights, *self._find(np.asarray(lights, dtype=np.float64))).astype(np.float32)
 
-    def __call__(self, light) -> np.ndarray:
+    def __call__(self, light: ArrayLike) -> np.ndarray:
         return self.many(as_direction(light)[None])[0]
 
 
-def write_subset(path, *, weights, light_index, lights, psnr, psnr_visible, layout: WeightLayout,
+def write_subset(path: str | Path, *, weights: ArrayLike, light_index: ArrayLike, lights: ArrayLike, psnr: ArrayLike,
+                 psnr_visible: ArrayLike, layout: WeightLayout,
                  siren: SirenConfig, config: dict, extinction: str) -> None:
     """One `fit_siren` job's result, written atomically; `extinction`: the scene's `volume.extinction_id`."""
     meta = json.dumps({"layout": layout.to_config(), "siren": siren.to_config(), "config": config,
@@ -98,7 +100,7 @@ def write_npz(path: Path, arrays: dict[str, np.ndarray]) -> None:
 
 
 @timed("io")
-def read_subset(path) -> dict:
+def read_subset(path: str | Path) -> dict:
     """One `fit_siren` job's subset file, its arrays' shapes checked against each other and its SIREN layout, and
     its weights finite: a file of another version or edited by hand is named here, not met in a broadcast error
     or a NaN downstream."""
@@ -130,7 +132,7 @@ def read_subset(path) -> dict:
     return out
 
 
-def write_store(path, store: WeightStore, *, made_by: str) -> None:
+def write_store(path: str | Path, store: WeightStore, *, made_by: str) -> None:
     """Write a weight store (Zarr v3) atomically; `made_by`: the step that writes it (named if it is damaged)."""
 
     def fill(root) -> None:
@@ -151,7 +153,7 @@ def write_store(path, store: WeightStore, *, made_by: str) -> None:
     write_zarr_group(path, fill, made_by=made_by)
 
 
-def open_store(path) -> WeightStore:
+def open_store(path: str | Path) -> WeightStore:
     """Read a weight store (stage 1's `weights.zarr` or a generated one), its arrays checked against their
     checksums."""
     group = VerifiedGroup(path, "a weight store")

@@ -11,6 +11,7 @@ from dataclasses import dataclass, field
 from typing import TYPE_CHECKING
 
 import numpy as np
+from numpy.typing import ArrayLike
 
 if TYPE_CHECKING:
     import torch
@@ -88,7 +89,7 @@ class TransferFunction:
         return cls(opacity, color, k)
 
     def require_visible(self, where: str, *, values: tuple[float, float] = (0.0, 1.0),
-                        extent=(1.0, 1.0, 1.0)) -> TransferFunction:
+                        extent: ArrayLike = (1.0, 1.0, 1.0)) -> TransferFunction:
         """This TF, for a scene whose normalised grid spans `values` in a box of `extent` (by default any grid: the
         largest box, its longest side 1): refused where no ray can gather one 8-bit level of opacity
         (`FOREGROUND_ALPHA`). The renderer and the shadow math take such a TF, but a scene made of it has no visible
@@ -149,16 +150,16 @@ class TransferFunction:
             rows += [[x, *left]] if np.array_equal(left, right) else [[x, *left], [x, *right]]
         return np.asarray(rows)
 
-    def opacity(self, s) -> torch.Tensor:
+    def opacity(self, s: torch.Tensor | ArrayLike) -> torch.Tensor:
         """Opacity in [0, 1] at scalar values `s` (any shape)."""
         s = _as_tensor(s)
         return _piecewise_linear(s, *self._control("opacity", s.device)).squeeze(-1)
 
-    def extinction(self, s) -> torch.Tensor:
+    def extinction(self, s: torch.Tensor | ArrayLike) -> torch.Tensor:
         """μ(s) = density_scale · opacity(s), in 1 / box-length."""
         return self.density_scale * self.opacity(s)
 
-    def color(self, s) -> torch.Tensor:
+    def color(self, s: torch.Tensor | ArrayLike) -> torch.Tensor:
         """RGB in [0, 1]; returns s.shape + (3,)."""
         s = _as_tensor(s)
         return _piecewise_linear(s, *self._control("color", s.device))
@@ -167,7 +168,7 @@ class TransferFunction:
         """`optics`' table on `device`: knots s (M,) and opacity, r, g, b at each (M, 4) (cached)."""
         return self._control("optics", device)
 
-    def optics(self, s) -> tuple[torch.Tensor, torch.Tensor]:
+    def optics(self, s: torch.Tensor | ArrayLike) -> tuple[torch.Tensor, torch.Tensor]:
         """(extinction, colour) at `s` from one search of both polylines' knots: what a renderer needs per
         sample, equal to (`extinction`, `color`) up to float32 rounding."""
         s = _as_tensor(s)

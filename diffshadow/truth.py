@@ -6,21 +6,25 @@ from __future__ import annotations
 
 import dataclasses
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
 import torch
+from numpy.typing import ArrayLike
 
 from diffshadow.metrics import psnr
 from diffshadow.progress import eta
 from diffshadow.sampling import PointSampler, Stream, seeded
 from diffshadow.shadow import ShadowField, transmittance_per_light
 from diffshadow.siren import BatchedSiren, SirenConfig, WeightLayout, box_to_siren, passes
+from diffshadow.transfer import TransferFunction
 from diffshadow.volume import Volume
 
 
-def presample(volume: Volume, tf, lights: np.ndarray, n_points: int, *, seed: int, stream: int = Stream.TRAIN_POINTS,
-              visible_fraction: float = 0.5, device: torch.device | str = "cpu") -> tuple[torch.Tensor, torch.Tensor]:
+def presample(volume: Volume, tf: TransferFunction, lights: np.ndarray, n_points: int, *, seed: int,
+              stream: int = Stream.TRAIN_POINTS, visible_fraction: float = 0.5,
+              device: torch.device | str = "cpu") -> tuple[torch.Tensor, torch.Tensor]:
     """Points (N, M, 3) and their true shadow (N, M) per light, for the geometry loss (paper §3.3); on the
     CPU, whatever device marched them (the points are drawn on the CPU: the same on every device)."""
     field = ShadowField.build(volume, tf, device=device)
@@ -38,7 +42,7 @@ def check_rows(n: int) -> torch.Tensor:
     return torch.unique(torch.linspace(0, n - 1, min(n, CHECK_LIGHTS), device="cpu").round().long())
 
 
-def check_points(volume: Volume, tf, lights: np.ndarray, n_points: int = CHECK_POINTS, *, seed: int,
+def check_points(volume: Volume, tf: TransferFunction, lights: np.ndarray, n_points: int = CHECK_POINTS, *, seed: int,
                  device: torch.device | str = "cpu") -> tuple[torch.Tensor, torch.Tensor]:
     """Points (C, 3) uniform in the box — how evaluate_voxels' "box" set is drawn, but other draws — and the
     true shadow (R, C) there of the lights `check_rows` picks. The geometry stage never trains on them, so the
@@ -56,7 +60,8 @@ def check_points(volume: Volume, tf, lights: np.ndarray, n_points: int = CHECK_P
 class TruthPoints:
     """Fixed evaluation points (box and visible) with the true shadow of every light that is asked for."""
 
-    def __init__(self, volume: Volume, tf, n_points: int, seed: int, device: torch.device | str = "cpu"):
+    def __init__(self, volume: Volume, tf: TransferFunction, n_points: int, seed: int,
+                 device: torch.device | str = "cpu"):
         self.volume, self.tf = volume, tf
         self.field = ShadowField.build(volume, tf, device=device)  # points are drawn on the CPU, truth kept there
         self.extent = torch.as_tensor(volume.extent, dtype=torch.float32)
@@ -66,7 +71,8 @@ class TruthPoints:
         if vis.visible_fraction:
             self.sets["visible"] = vis.sample(1, n_points, gen)[0]
 
-    def truth(self, lights: np.ndarray, log=None, what: str = "lights") -> dict[str, torch.Tensor]:
+    def truth(self, lights: np.ndarray, log: Callable[[str], None] | None = None,
+              what: str = "lights") -> dict[str, torch.Tensor]:
         """True shadow (L, P) per point set, by the exact march; progress every ~10% when `log` is given."""
         out = {k: [] for k in self.sets}
         start, every, n = time.perf_counter(), max(1, len(lights) // 10), len(lights)
@@ -102,7 +108,8 @@ class EvalTruth:
         return dataclasses.replace(self, device=torch.device(device))
 
     @classmethod
-    def compute(cls, volume: Volume, tf, lights: np.ndarray, n_points: int, seed: int, log=None,
+    def compute(cls, volume: Volume, tf: TransferFunction, lights: np.ndarray, n_points: int, seed: int,
+                log: Callable[[str], None] | None = None,
                 device: torch.device | str = "cpu", sets: tuple[str, ...] | None = None) -> EvalTruth:
         """The exact shadow of every light at `n_points` points per set; `sets` keeps only those named (None: box
         and visible), the same points as the whole truth's (each set is drawn whether kept or not)."""
@@ -175,10 +182,10 @@ def psnr_per_light(pred: dict, truth: dict) -> dict[str, np.ndarray]:
     return {k: psnr(pred[k], truth[k], dim=1).numpy() for k in truth}
 
 
-def median(a) -> float:
+def median(a: ArrayLike) -> float:
     return float(np.median(a))
 
 
-def p10(a) -> float:
+def p10(a: ArrayLike) -> float:
     """The 10th percentile: the lights a median does not see."""
     return float(np.percentile(a, 10))

@@ -13,9 +13,13 @@ A leaf: the stage layer and the CLI import it, no concept module does.
 from __future__ import annotations
 
 import time
+from collections.abc import Callable
 from pathlib import Path
+from typing import TypeVar
 
 from diffshadow.volume import bundled_path
+
+T = TypeVar("T")
 
 SHARED_DATA = Path(__file__).resolve().parents[2].parent / "shared" / "data"
 # Opacity 0 below s = 0.1 leaves most of a sparse volume empty (hydrogen_atom: 97 % of voxels).
@@ -36,7 +40,7 @@ def default_volumes() -> list[Path]:
     return paths
 
 
-def timed(fn):
+def timed(fn: Callable[[], T]) -> tuple[T, float]:
     t = time.perf_counter()
     out = fn()
     return out, time.perf_counter() - t

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import argparse
 from pathlib import Path
 
 from diffshadow.argparsing import add_networks, at_least, network_flags
@@ -109,7 +110,7 @@ def _check_store(a):
                                      f"{result['max_abs_diff_db']:.2f} dB (> {a.tolerance} dB)")
 
 
-def add_bench_parsers(sub) -> None:
+def add_bench_parsers(sub: argparse._SubParsersAction) -> None:
     bench = sub.add_parser("bench", help="benchmarks that print and save figures").add_subparsers(
         dest="bench", required=True)
     p = _add(bench, "shadow", _bench_shadow, "time vs error of the ground-truth shadow methods", out=False)

@@ -20,6 +20,7 @@ import os
 import re
 import subprocess
 import tempfile
+from collections.abc import Callable, Sequence
 from pathlib import Path
 
 import torch
@@ -162,7 +163,7 @@ def _fast_path(sass: str) -> int:
     raise KernelCompileError("no path to EXIT in the kernel's SASS")
 
 
-def bench_kernels(out: Path, *, archs=ARCHS, log=print) -> dict:
+def bench_kernels(out: Path, *, archs: Sequence[int] = ARCHS, log: Callable[[str], None] = print) -> dict:
     """Every fused kernel at the hydrogen_atom shapes, per architecture; printed and saved."""
     import triton
 

@@ -11,17 +11,19 @@ from __future__ import annotations
 import json
 import math
 import statistics
+from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING
 
 import numpy as np
 import torch
+from numpy.typing import ArrayLike
 
 from diffshadow.bench.profile import op_counts, peak_bytes
 from diffshadow.io import atomic_path, atomic_write_text, finite_json
 from diffshadow.metrics import foreground, image_psnr
 from diffshadow.render import DEFAULT_STEP, Camera, RenderScene
-from diffshadow.render.scene import KEEP_SAMPLES_BYTES
+from diffshadow.render.scene import KEEP_SAMPLES_BYTES, ShadowSirenSpec
 
 if TYPE_CHECKING:
     from matplotlib.figure import Figure
@@ -58,9 +60,10 @@ def _light_moved_fps(scene: RenderScene, camera: Camera, kwargs: dict, repeats: 
     return 1.0 / statistics.median(seconds)
 
 
-def bench_render(scene: RenderScene, siren, light, *, sizes=(64, 128), step: float = DEFAULT_STEP,
-                 repeats: int = 3, memory_sizes=None, azimuth: float = 30.0, elevation: float = 25.0,
-                 curve_steps=(2.0, 1.0, 0.5, 0.25), curve_size: int | None = None, log=print) -> dict:
+def bench_render(scene: RenderScene, siren: ShadowSirenSpec, light: ArrayLike, *, sizes: Sequence[int] = (64, 128),
+                 step: float = DEFAULT_STEP, repeats: int = 3, memory_sizes: Sequence[int] | None = None,
+                 azimuth: float = 30.0, elevation: float = 25.0, curve_steps: Sequence[float] = (2.0, 1.0, 0.5, 0.25),
+                 curve_size: int | None = None, log: Callable[[str], None] = print) -> dict:
     """All measurements for one scene; `siren` = (weights, layout, blocks) of a shadow INR for `light`.
 
     `memory_sizes`: larger sides where only the peak memory of noshadow and inr is measured (default 2x and 4x
@@ -243,8 +246,9 @@ def figure(results: dict) -> Figure:
 
 def run(out: Path, *, scene_config: Path | None = None, volume: Path | None = None, tf_config: dict | None = None,
         data_inr: Path | None = None, inr_steps: int | None = None, weights: Path | None = None, light_index: int = 0,
-        siren_width: int = 32, siren_steps: int = 300, sizes=(64, 128), step: float = 0.5, repeats: int = 3,
-        memory_sizes=None, render: dict | None = None, device: torch.device | str = "cpu") -> dict:
+        siren_width: int = 32, siren_steps: int = 300, sizes: Sequence[int] = (64, 128), step: float = 0.5,
+        repeats: int = 3, memory_sizes: Sequence[int] | None = None, render: dict | None = None,
+        device: torch.device | str = "cpu") -> dict:
     """`diffshadow bench render`: a scene (scene file, prepared volume, or raw file with the bench TF), its data
     INR and one shadow INR (given, or fitted here), then `bench_render`; writes JSON and a plot."""
     import dataclasses

@@ -3,10 +3,12 @@
 from __future__ import annotations
 
 import json
+from collections.abc import Sequence
 from pathlib import Path
 
 import numpy as np
 import torch
+from numpy.typing import ArrayLike
 
 from diffshadow.bench import BENCH_LIGHT, BENCH_TF, REFERENCE_STEP, timed
 from diffshadow.io import atomic_save, atomic_write_text
@@ -15,7 +17,7 @@ from diffshadow.transfer import TransferFunction
 from diffshadow.volume import Volume, load_volume
 
 
-def bench_analytic(steps=(2.0, 1.0, 0.5, 0.25)) -> dict:
+def bench_analytic(steps: Sequence[float] = (2.0, 1.0, 0.5, 0.25)) -> dict:
     """`transmittance` against the closed form on the 65³ Gaussian blob (1,000 points and directions)."""
     import tempfile
 
@@ -69,10 +71,10 @@ def bench_shadow(
     volumes: list[Path],
     out_dir: Path,
     *,
-    light=BENCH_LIGHT,
+    light: ArrayLike = BENCH_LIGHT,
     tf_config: dict | None = None,
-    march_steps=(2.0, 1.0, 0.5, 0.25),
-    sweep_steps=(1.0, 0.5, 0.25),
+    march_steps: Sequence[float] = (2.0, 1.0, 0.5, 0.25),
+    sweep_steps: Sequence[float] = (1.0, 0.5, 0.25),
     device: torch.device | str = "cpu",
 ) -> dict:
     """Time and error of every method and step on each volume; writes JSON and a log-log plot. A scene's

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import time
+from collections.abc import Sequence
 from pathlib import Path
 
 import numpy as np
@@ -47,8 +48,9 @@ def _joint_step(cfg, x, y, chunk):
     return step
 
 
-def bench_siren(out_dir: Path, *, k: int = 16, points: int = 4096, widths=(32, 64, 128), blocks: int = 2,
-                chunks=(0, 1024, 512, 256), steps: int = 20, device: torch.device | str = "cpu") -> dict:
+def bench_siren(out_dir: Path, *, k: int = 16, points: int = 4096, widths: Sequence[int] = (32, 64, 128),
+                blocks: int = 2, chunks: Sequence[int] = (0, 1024, 512, 256), steps: int = 20,
+                device: torch.device | str = "cpu") -> dict:
     """Training throughput (points/s, forward + backward + Adam) of K SIRENs fitted jointly with
     `BatchedSiren` (optionally in point chunks with gradient accumulation) vs K `Siren`s one after another."""
     from diffshadow.fit import FitConfig, points_per_pass

@@ -26,6 +26,7 @@ import time
 from collections.abc import Callable
 from dataclasses import dataclass, replace
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 import torch
@@ -34,6 +35,10 @@ from diffshadow.bench.profile import OPTIMIZER_STEP, op_counts
 from diffshadow.bench.render import _sync
 from diffshadow.hpc import device_name
 from diffshadow.io import atomic_write_text
+
+if TYPE_CHECKING:  # the stages import what they time inside themselves
+    from diffshadow.transfer import TransferFunction
+    from diffshadow.volume import Volume
 
 STAGES = ("fit_siren", "preoptimize", "train_data_inr", "train_diffusion", "finetune_render", "sample_shadows",
           "eval_truth")
@@ -78,7 +83,7 @@ class PeakMemory:
         self._thread.start()
         return self
 
-    def __exit__(self, *exc):
+    def __exit__(self, *exc: object) -> bool:
         if self.device.type == "cuda":
             torch.cuda.synchronize(self.device)
             self.peak = torch.cuda.max_memory_allocated(self.device) - self.base
@@ -149,7 +154,7 @@ def _captured(graphs, step: Callable[[int], object]) -> str:
     return "; CUDA graph"
 
 
-def fit_siren(cfg: dict, device: torch.device, volume, tf, *, subset: bool = True) -> Timed:
+def fit_siren(cfg: dict, device: torch.device, volume: Volume, tf: TransferFunction, *, subset: bool = True) -> Timed:
     """A fit step of one subset (K SIRENs jointly), or (`subset` False) preoptimize's single-light step."""
     from diffshadow.fit import FitConfig, SubsetFit
     from diffshadow.siren import SirenConfig, WeightLayout, init_siren
@@ -185,7 +190,7 @@ def fit_siren(cfg: dict, device: torch.device, volume, tf, *, subset: bool = Tru
                  f"{steps} steps at siren.width (capacity growth not counted)")
 
 
-def train_data_inr(cfg: dict, device: torch.device, volume, tf) -> Timed:
+def train_data_inr(cfg: dict, device: torch.device, volume: Volume, tf: TransferFunction) -> Timed:
     from diffshadow.data_inr import DataInrConfig, DataInrFit
 
     dcfg = DataInrConfig.from_config(cfg["data_inr"])
@@ -228,7 +233,7 @@ def _training_data(cfg: dict, volume, device: torch.device):
     return dcfg, data
 
 
-def train_diffusion(cfg: dict, device: torch.device, volume, tf) -> Timed:
+def train_diffusion(cfg: dict, device: torch.device, volume: Volume, tf: TransferFunction) -> Timed:
     from diffshadow.diffusion.config import build_model, make_optimizer
     from diffshadow.diffusion.schedule import Schedule
     from diffshadow.diffusion.standardize import Standardizer
@@ -270,7 +275,7 @@ def _products(dcfg) -> str:
     return "" if dcfg.precision == "float32" else f"; {dcfg.precision} products"
 
 
-def finetune_render(cfg: dict, device: torch.device, volume, tf) -> Timed:
+def finetune_render(cfg: dict, device: torch.device, volume: Volume, tf: TransferFunction) -> Timed:
     from diffshadow.diffusion.config import build_model, make_optimizer
     from diffshadow.diffusion.finetune import FinetuneConfig, FinetuneData, step_graphs, train_step
     from diffshadow.diffusion.schedule import Schedule
@@ -308,7 +313,7 @@ def finetune_render(cfg: dict, device: torch.device, volume, tf) -> Timed:
                  f"parallel (DDP's all-reduce not counted)")
 
 
-def sample_shadows(cfg: dict, device: torch.device, volume, tf) -> Timed:
+def sample_shadows(cfg: dict, device: torch.device, volume: Volume, tf: TransferFunction) -> Timed:
     from diffshadow.diffusion.config import build_model
     from diffshadow.diffusion.sample import generate
     from diffshadow.diffusion.standardize import Standardizer
@@ -334,7 +339,7 @@ def sample_shadows(cfg: dict, device: torch.device, volume, tf) -> Timed:
                  + f" in batches of {batch}", batch)
 
 
-def eval_truth(cfg: dict, device: torch.device, volume, tf) -> Timed:
+def eval_truth(cfg: dict, device: torch.device, volume: Volume, tf: TransferFunction) -> Timed:
     from diffshadow.shadow import ShadowField, transmittance_per_light
 
     points = int(cfg.get("evaluate", {}).get("points", 16384))
@@ -374,7 +379,7 @@ def measure(timed: Timed, device: torch.device, *, warmup: int, budget_s: float,
 
 def bench_stages(cfg: dict, out: Path, *, device: torch.device, stages: list[str] | None = None,
                  budget_s: float = 2.0, warmup: int = 2, max_steps: int = 50, config_name: str = "",
-                 log=print) -> dict:
+                 log: Callable[[str], None] = print) -> dict:
     """Measure each stage of `stages` (default all) at `cfg`'s sizes; write `out` (JSON) and print a table."""
     if max_steps < 1:  # no timed step: a NaN time per step, projected to a NaN
         raise ValueError(f"bench stages: --max-steps: expected at least 1 timed step, got {max_steps}")

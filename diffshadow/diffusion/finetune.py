@@ -22,6 +22,7 @@ import inspect
 import json
 import math
 import time
+from collections.abc import Callable
 from dataclasses import asdict, dataclass
 from pathlib import Path
 
@@ -31,6 +32,7 @@ import torch
 from diffshadow.adam import Adam
 from diffshadow.config import changed_settings, section
 from diffshadow.diffusion.config import DiffusionConfig, build_model, make_optimizer
+from diffshadow.diffusion.model import WeightTransformer
 from diffshadow.diffusion.sample import generate, load_sampler, sampler_weights
 from diffshadow.diffusion.schedule import Schedule
 from diffshadow.diffusion.standardize import Standardizer
@@ -98,14 +100,14 @@ class FinetuneData:
     targets: torch.Tensor  # (L, V, F, 3): the target images' `render.bundle.foreground`, in its row order
     val: EvalTruth | None = None  # exact shadows at validation lights (random in the training cap)
 
-    def to(self, device) -> FinetuneData:
+    def to(self, device: torch.device | str) -> FinetuneData:
         # the validation set stays on the CPU: it is scored there, between epochs
         return FinetuneData(self.train.to(device), self.bundle.to(device), self.targets.to(device), self.val)
 
 
 @torch.no_grad()
-def validation_psnr(model, std: Standardizer, val: EvalTruth, layout: WeightLayout, dcfg: DiffusionConfig,
-                    siren_cfg, device) -> float:
+def validation_psnr(model: torch.nn.Module, std: Standardizer, val: EvalTruth, layout: WeightLayout,
+                    dcfg: DiffusionConfig, siren_cfg: SirenConfig, device: torch.device) -> float:
     """Median voxel PSNR (box points) of DDIM-generated SIRENs at the validation lights."""
     was_training = model.training
     model.eval()
@@ -176,8 +178,9 @@ def draw_step(data: FinetuneData, local: list[int], epoch: int, cfg: FinetuneCon
     return batch
 
 
-def step_loss(model, std: Standardizer, data: FinetuneData, z_all: torch.Tensor, batch: FinetuneBatch,
-              cfg: FinetuneConfig, dcfg: DiffusionConfig, schedule: Schedule, scale: float):
+def step_loss(model: torch.nn.Module, std: Standardizer, data: FinetuneData, z_all: torch.Tensor,
+              batch: FinetuneBatch, cfg: FinetuneConfig, dcfg: DiffusionConfig, schedule: Schedule,
+              scale: float) -> tuple[torch.Tensor, torch.Tensor]:
     """The geometry stage's loss of the batch's lights (`train.batch_loss`: x0, pool prior, geometry) plus the
     rendering loss, summed over the lights and times `scale`; and the parts (x0, geometry, rendering) summed.
     `data` is on the device; nothing is read back or copied from the host (a CUDA graph replays it)."""
@@ -220,7 +223,7 @@ class Selection:
     kept and nothing stops early. `record` ({history: [[epoch, PSNR]], kept_epoch, stopped_epoch}) is saved
     with each checkpoint and in the final one."""
 
-    def __init__(self, val: EvalTruth | None, sampler: dict, patience: int, log):
+    def __init__(self, val: EvalTruth | None, sampler: dict, patience: int, log: Callable[[str], None]):
         self.val, self.patience, self.log = val, patience, log
         self.record: dict = {"history": [], "kept_epoch": 0}
         self.kept = {k: v.detach().cpu().clone() for k, v in sampler.items()}
@@ -229,7 +232,8 @@ class Selection:
         self.record = state.get("selection") or self.record
         self.kept = state.get("kept_model") or self.kept
 
-    def score(self, epoch: int, model, psnr_of) -> None:
+    def score(self, epoch: int, model: torch.nn.Module | None,
+              psnr_of: Callable[[torch.nn.Module | None], float]) -> None:
         """`psnr_of(model)`: the validation PSNR; epoch 0 is the floor."""
         if self.val is None:
             return
@@ -312,7 +316,7 @@ class FinetuneCheckpoint:
         self.path, self.geometry_state, self.cfg, self.fp = path, geometry_state, cfg, fp
         self.selection, self.validated, self.rank, self.world = selection, validated, rank, world
 
-    def save(self, epoch: int, model, opt: Adam, *, last: bool, inside: dict | None = None) -> dict:
+    def save(self, epoch: int, model: WeightTransformer, opt: Adam, *, last: bool, inside: dict | None = None) -> dict:
         """The state after `epoch` epochs, and `inside` the next where a stop came in it ({"batches" done,
         their loss "totals"})."""
         final = self.validated and last
@@ -332,9 +336,10 @@ class FinetuneCheckpoint:
         return state
 
 
-def train_step(model, base, opt: Adam, std: Standardizer, data: FinetuneData, z_all: torch.Tensor,
-               batch: list[int], rank: int, world: int, epoch: int, cfg: FinetuneConfig, dcfg: DiffusionConfig,
-               schedule: Schedule, nonfinite: FirstNonFinite, graphs: StepGraphs | None = None) -> torch.Tensor:
+def train_step(model: torch.nn.Module, base: WeightTransformer, opt: Adam, std: Standardizer, data: FinetuneData,
+               z_all: torch.Tensor, batch: list[int], rank: int, world: int, epoch: int, cfg: FinetuneConfig,
+               dcfg: DiffusionConfig, schedule: Schedule, nonfinite: FirstNonFinite,
+               graphs: StepGraphs | None = None) -> torch.Tensor:
     """One optimiser step on this rank's share of the global `batch`; returns the loss parts (summed). The loss's
     finiteness is recorded in `nonfinite` on the device, read once an epoch: the step reads nothing back to the
     host (tests/test_syncs.py). With `graphs` (`finetune.cuda_graph`, one process) the update — loss, backward,
@@ -359,7 +364,8 @@ def train_step(model, base, opt: Adam, std: Standardizer, data: FinetuneData, z_
     return parts if local else torch.zeros_like(parts)
 
 
-def step_graphs(cfg: FinetuneConfig, world: int, device: torch.device, log=print) -> StepGraphs | None:
+def step_graphs(cfg: FinetuneConfig, world: int, device: torch.device,
+                log: Callable[[str], None] = print) -> StepGraphs | None:
     """Fine-tuning's CUDA graphs where `finetune.cuda_graph` asks for them ("auto" or True), the device is CUDA
     and one process trains: DDP all-reduces the gradients from hooks inside the backward, which these graphs do
     not capture."""
@@ -369,7 +375,7 @@ def step_graphs(cfg: FinetuneConfig, world: int, device: torch.device, log=print
 
 def finetune(geometry_state: dict, data: FinetuneData, cfg: FinetuneConfig, checkpoint: Path, *,
              rank: int = 0, world: int = 1, device: torch.device | str = "cpu",
-             log=print, stop_after_epoch: int | None = None) -> dict:
+             log: Callable[[str], None] = print, stop_after_epoch: int | None = None) -> dict:
     """Fine-tune from the geometry-stage checkpoint state; resumable; only rank 0 writes. `Selection` decides
     which model is kept and when to stop, `FinetuneCheckpoint` what is written; this loop runs the steps."""
     import torch.distributed as dist

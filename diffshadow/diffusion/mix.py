@@ -19,10 +19,16 @@ score the highest mean voxel PSNR there."""
 from __future__ import annotations
 
 from collections.abc import Callable
+from typing import TYPE_CHECKING
 
 import numpy as np
+from numpy.typing import ArrayLike
 
 from diffshadow.volume import check_extinction
+
+if TYPE_CHECKING:  # the mix imports no PyTorch itself: a blend alone needs none
+    from diffshadow.diffusion.sample import ShadowSampler
+    from diffshadow.store import BlendSampler
 
 SHARES = tuple(round(0.1 * i, 1) for i in range(11))  # the model's shares tried by `choose_share`
 # Weights mixed per pass: the float64 sum of a whole paper-size set at once (2,500 SIRENs of 66,689 weights) made
@@ -42,7 +48,7 @@ def check_share(share: float, where: str = "mix.model_share") -> float:
     return value
 
 
-def model_alone(share) -> bool:
+def model_alone(share: float | str) -> bool:
     """Whether `mix.model_share` (auto or a number) is 1: the model's SIRENs answer alone, nothing is mixed in and
     no stored SIREN is read. A bad share raises `check_share`'s error."""
     return str(share) != "auto" and check_share(share) == 1.0
@@ -93,7 +99,7 @@ class MixedSampler:
     blend (`store.BlendSampler`): the answer `sample_shadows` stored for its lights, made for any other. The
     same interface as the two it mixes; its light region is the model's."""
 
-    def __init__(self, model, blend, share: float):
+    def __init__(self, model: ShadowSampler, blend: BlendSampler, share: float):
         if model.layout.n_params != blend.layout.n_params:
             raise ValueError(f"mix: the model makes SIRENs of {model.layout.n_params} parameters, the stored ones "
                              f"have {blend.layout.n_params}")
@@ -103,7 +109,7 @@ class MixedSampler:
         self.layout, self.siren, self.region = model.layout, model.siren, model.region
         self.extinction = model.extinction or blend.extinction
 
-    def __call__(self, light) -> np.ndarray:
+    def __call__(self, light: ArrayLike) -> np.ndarray:
         """(n_params,) float32 weights of the mixed shadow SIREN of one light direction. At share 0 (or 1) the side
         with no weight is not asked: the answer is the same bytes, and the model's DDIM is ~30 ms a light on one
         CPU thread against the blend's 0.3 ms (the validation lights chose share 0 on tooth and at 128 and 512

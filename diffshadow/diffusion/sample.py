@@ -9,6 +9,7 @@ import weakref
 
 import numpy as np
 import torch
+from numpy.typing import ArrayLike
 
 from diffshadow.diffusion.config import DiffusionConfig, DiffusionError, build_model
 from diffshadow.diffusion.model import WeightTransformer
@@ -25,7 +26,8 @@ def sampler_weights(state: dict) -> dict:
     return state["ema"] if state.get("ema") else state["model"]
 
 
-def load_sampler(state: dict, device: torch.device | str = "cpu"):
+def load_sampler(state: dict, device: torch.device | str = "cpu"
+                 ) -> tuple[WeightTransformer, Standardizer, WeightLayout, SirenConfig]:
     """(model for sampling, standardizer, layout, siren) from a checkpoint state."""
     layout = WeightLayout.from_config(state["layout"])
     cfg = DiffusionConfig.of_checkpoint(state)
@@ -58,7 +60,7 @@ def _graphs(model: torch.nn.Module, device: torch.device) -> StepGraphs:
 
 
 @torch.no_grad()
-def generate(model: WeightTransformer, std: Standardizer, lights, *, method: str = "ddim", steps: int = 50,
+def generate(model: WeightTransformer, std: Standardizer, lights: ArrayLike, *, method: str = "ddim", steps: int = 50,
              seed: int = 0, batch: int = 64, temperature: float = 1.0, device: torch.device | str = "cpu",
              dtype: torch.dtype = torch.float32, cuda_graph: bool = True) -> torch.Tensor:
     """SIREN weights (N, n_params) for light directions (N, 3) (any direction, seen or not).
@@ -124,7 +126,7 @@ class ShadowSampler:
         self.config, self.device = state["config"], torch.device(device)
         self.region, self.extinction = checkpoint_region(state), state.get("extinction")
 
-    def __call__(self, light) -> torch.Tensor:
+    def __call__(self, light: ArrayLike) -> torch.Tensor:
         """(n_params,) float32 weights of the shadow SIREN of one light direction."""
         return generate(self.model, self.std, [as_direction(light)], method="ddim", steps=self.config["ddim_steps"],
                         seed=self.config["seed"], temperature=self.config["temperature"], device=self.device)[0]

@@ -43,7 +43,8 @@ class Schedule:
         shape = (-1, *([1] * (x0.ndim - 1)))
         return root_ab[t].view(shape) * x0 + root_rest[t].view(shape) * noise
 
-    def ddpm_sample(self, model: Denoiser, shape, *, generator: torch.Generator, device=None) -> torch.Tensor:
+    def ddpm_sample(self, model: Denoiser, shape: tuple[int, ...], *, generator: torch.Generator,
+                    device: torch.device | str | None = None) -> torch.Tensor:
         """Ancestral sampling over all T steps with the posterior q(x_{t-1} | x_t, x0̂)."""
         x = _noise(shape, generator, device)
         ab, betas = self.alpha_bar.tolist(), self.betas.tolist()  # Python floats: no tensor read per step
@@ -64,8 +65,9 @@ class Schedule:
             raise ValueError(f"DDIM steps: expected 1..{self.steps}, got {n}")
         return torch.linspace(self.steps - 1, 0, n, device="cpu").round().long().unique_consecutive().tolist()
 
-    def ddim_sample(self, model: Denoiser, shape, *, steps: int, generator: torch.Generator, eta: float = 0.0,
-                    temperature: float = 1.0, device=None) -> torch.Tensor:
+    def ddim_sample(self, model: Denoiser, shape: tuple[int, ...], *, steps: int, generator: torch.Generator,
+                    eta: float = 0.0, temperature: float = 1.0,
+                    device: torch.device | str | None = None) -> torch.Tensor:
         """DDIM (Song et al.) on a subsequence of timesteps; deterministic given the start noise when eta = 0.
         `temperature` scales the start noise (0: start from the mean, one path per light)."""
         x = temperature * _noise(shape, generator, device)
@@ -86,7 +88,7 @@ class Schedule:
         return x0
 
 
-def _noise(shape, generator: torch.Generator, device) -> torch.Tensor:
+def _noise(shape: tuple[int, ...], generator: torch.Generator, device: torch.device | str | None) -> torch.Tensor:
     """Standard normal noise drawn on the generator's device (the same numbers on every device), on `device`
     without waiting for it (`sampling.to_device`): a blocking copy at every one of DDPM's 500 steps made the host
     wait for the GPU each time."""

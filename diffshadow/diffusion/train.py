@@ -10,6 +10,7 @@ import hashlib
 import json
 import math
 import time
+from collections.abc import Callable
 from dataclasses import asdict, dataclass
 from pathlib import Path
 
@@ -64,7 +65,7 @@ class TrainingData:
     region: dict | None = None  # the training lights' region (lights.LightRegion), saved with the checkpoint
     extinction: str | None = None  # the scene's extinction field (volume.extinction_id), saved with the checkpoint
 
-    def to(self, device) -> TrainingData:
+    def to(self, device: torch.device | str) -> TrainingData:
         return dataclasses.replace(self, weights=self.weights.to(device), lights=self.lights.to(device),
                                    points=self.points.to(device), values=self.values.to(device),
                                    extent=self.extent.to(device),
@@ -158,7 +159,8 @@ class Growth:
     def due(self, done: int) -> bool:
         return done >= self.cfg.epochs and (done - self.cfg.epochs) % self.cfg.checkpoint_every == 0
 
-    def check(self, done: int, sampled: WeightTransformer, gap_db, log, last_good: str) -> None:
+    def check(self, done: int, sampled: WeightTransformer, gap_db: Callable[[], float], log: Callable[[str], None],
+              last_good: str) -> None:
         """At epoch `done`: measure the gap (`gap_db()`) and decide whether to train on."""
         cfg, growth = self.cfg, self.state
         if cfg.target_gap <= 0 or self.max_epochs <= cfg.epochs:
@@ -298,14 +300,14 @@ def train_batch(model: WeightTransformer, opt: Adam, ema: Ema | None, std: Stand
     return torch.stack([loss_x0, loss_geo]).double() * len(batch.idx)
 
 
-def step_graphs(cfg: DiffusionConfig, device: torch.device, log=print) -> StepGraphs | None:
+def step_graphs(cfg: DiffusionConfig, device: torch.device, log: Callable[[str], None] = print) -> StepGraphs | None:
     """The geometry stage's CUDA graphs where `diffusion.cuda_graph` asks for them ("auto" or True) and the device
     has them."""
     return requested(cfg.cuda_graph, "diffusion.cuda_graph", device, log)
 
 
 def train_diffusion(data: TrainingData, cfg: DiffusionConfig, checkpoint: Path, *,
-                    device: torch.device | str = "cpu", log=print,
+                    device: torch.device | str = "cpu", log: Callable[[str], None] = print,
                     stop_after_epoch: int | None = None) -> dict:
     """Train (or resume) and return the final state; the checkpoint file holds it when done.
 
@@ -418,8 +420,8 @@ def train_diffusion(data: TrainingData, cfg: DiffusionConfig, checkpoint: Path, 
     return state
 
 
-def _log_epoch(log, done: int, losses: list[float], cfg: DiffusionConfig, growth: Growth, lr: float, t0: float,
-               start: int) -> None:
+def _log_epoch(log: Callable[[str], None], done: int, losses: list[float], cfg: DiffusionConfig, growth: Growth,
+               lr: float, t0: float, start: int) -> None:
     lx, lg = losses
     # past `epochs` the stage grows towards max_epochs, which is then an upper bound, not a forecast
     total = cfg.epochs if done <= cfg.epochs else growth.max_epochs

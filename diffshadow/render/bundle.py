@@ -7,6 +7,7 @@ from __future__ import annotations
 import hashlib
 import json
 import time
+from collections.abc import Callable
 from dataclasses import asdict, dataclass
 from pathlib import Path
 
@@ -37,7 +38,7 @@ class RayBundle:
     base: torch.Tensor
     count: torch.Tensor
 
-    def to(self, device) -> RayBundle:
+    def to(self, device: torch.device | str) -> RayBundle:
         return RayBundle(*(t.to(device) for t in (self.pix, self.pts, self.wc, self.base, self.count)))
 
 
@@ -51,7 +52,8 @@ def foreground(images: torch.Tensor, bundle: RayBundle) -> torch.Tensor:
 
 
 def view_samples(volume: Volume, tf: TransferFunction, camera: Camera, *, step: float,
-                 background: float = BACKGROUND, min_weight: float = 1e-6, chunk: int = 4096):
+                 background: float = BACKGROUND, min_weight: float = 1e-6,
+                 chunk: int = 4096) -> tuple[list[int], list[torch.Tensor], list[torch.Tensor], list[torch.Tensor]]:
     """One view's foreground pixels and their light-independent samples (see the module docstring)."""
     scalar = GridScalar(volume)
     extent = torch.as_tensor(volume.extent, dtype=torch.float32)
@@ -115,7 +117,7 @@ def bundle_colors(bundle: RayBundle, g: torch.Tensor, view_idx: torch.Tensor, pi
 def render_targets(volume: Volume, tf: TransferFunction, lights: np.ndarray, cameras: list[Camera], *,
                    step: float, method: str = "sweep", upsample: int = 1, device: torch.device | str = "cpu",
                    checkpoint: Path | None = None, checkpoint_s: float = TARGETS_CHECKPOINT_S,
-                   log=print) -> torch.Tensor:
+                   log: Callable[[str], None] = print) -> torch.Tensor:
     """Ground-truth images (L, V, H, W, 3) on the CPU, rendered on `device` by the renderer's `gt` mode
     (early termination far below 8 bits) with shadow grids by `method` ("sweep" or "march") on the volume
     refined `upsample` times.

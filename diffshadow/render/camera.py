@@ -8,9 +8,12 @@ from dataclasses import dataclass
 
 import numpy as np
 import torch
+from numpy.typing import ArrayLike
 
 from diffshadow.lights import fibonacci_sphere
 from diffshadow.sampling import visible_voxels
+from diffshadow.transfer import TransferFunction
+from diffshadow.volume import Volume
 
 
 class RenderError(ValueError):
@@ -55,7 +58,8 @@ class Camera:
                               f"default view: widen the field of view, {self.fov:g}° now)")
 
     @classmethod
-    def look_at(cls, eye, target, *, up=None, fov: float = 60.0, size: int | tuple[int, int] = 128):
+    def look_at(cls, eye: ArrayLike, target: ArrayLike, *, up: ArrayLike | None = None, fov: float = 60.0,
+                size: int | tuple[int, int] = 128) -> Camera:
         """From `eye` toward `target`; `up` None: `default_up` of the view direction."""
         w, h = (size, size) if isinstance(size, int) else size
         if up is None:
@@ -63,7 +67,7 @@ class Camera:
         return cls(tuple(map(float, eye)), tuple(map(float, target)), tuple(map(float, up)), float(fov), w, h)
 
     @classmethod
-    def orbit(cls, extent, *, azimuth: float, elevation: float, distance: float = 2.2, fov: float = 60.0,
+    def orbit(cls, extent: ArrayLike, *, azimuth: float, elevation: float, distance: float = 2.2, fov: float = 60.0,
               size: int | tuple[int, int] = 128) -> Camera:
         """Looking at the box centre from (azimuth, elevation) in degrees; `distance` in box half-diagonals."""
         if not distance > 0:  # a negative one would look from the opposite side, not the azimuth asked for
@@ -130,7 +134,7 @@ def default_views(sphere: tuple, n: int, *, size: int = 128, elevation: float = 
             for i in range(n)]
 
 
-def visible_sphere(volume, tf) -> tuple[np.ndarray, float]:
+def visible_sphere(volume: Volume, tf: TransferFunction) -> tuple[np.ndarray, float]:
     """(centre, radius) in box coordinates of the smallest sphere about the visible voxels' bounding-box centre
     that holds them all (opacity > 0), widened by a voxel; the box's own where none is visible."""
     extent, voxel = np.asarray(volume.extent, float), np.asarray(volume.voxel_size, float)
@@ -151,14 +155,14 @@ def visible_sphere(volume, tf) -> tuple[np.ndarray, float]:
     return center, float(np.sqrt(farthest)) + float(np.linalg.norm(voxel))
 
 
-def default_up(direction) -> tuple[float, float, float]:
+def default_up(direction: ArrayLike) -> tuple[float, float, float]:
     """+z, unless `direction` (from the target to the eye, any length) is within ~2.6° of the z axis: then +y."""
     d = np.asarray(direction, float)
     n = np.linalg.norm(d)
     return (0.0, 0.0, 1.0) if n == 0 or abs(d[2]) < 0.999 * n else (0.0, 1.0, 0.0)
 
 
-def fibonacci_views(extent, n: int, *, size: int, fov: float = 60.0, distance: float = 2.2) -> list[Camera]:
+def fibonacci_views(extent: ArrayLike, n: int, *, size: int, fov: float = 60.0, distance: float = 2.2) -> list[Camera]:
     """`n` cameras on a Fibonacci sphere around the box, looking at its centre (the authors' views)."""
     extent = np.asarray(extent, dtype=float)
     center = extent / 2

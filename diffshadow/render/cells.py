@@ -7,6 +7,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 import torch
+from numpy.typing import ArrayLike
 
 from diffshadow.grid import cell_ranges
 from diffshadow.transfer import TransferFunction
@@ -45,8 +46,8 @@ class MacroGrid:
         self.planes, self.plane_axis = torch.cat(planes), torch.cat(axes)
 
     @classmethod
-    def build(cls, volume: Volume, tf: TransferFunction, *, cell: int = RENDER_CELL, ranges=None,
-              device: torch.device | str = "cpu") -> MacroGrid:
+    def build(cls, volume: Volume, tf: TransferFunction, *, cell: int = RENDER_CELL,
+              ranges: tuple[ArrayLike, ArrayLike] | None = None, device: torch.device | str = "cpu") -> MacroGrid:
         if ranges is None:
             lo, hi = (r.double().numpy() for r in cell_ranges(torch.from_numpy(volume.data), cell))
         else:
@@ -87,7 +88,8 @@ class Runs:
     total: torch.Tensor  # (R,) occupied samples of each ray
 
     @classmethod
-    def build(cls, o, d, t0, t1, dt: float, macro: MacroGrid | None) -> Runs:
+    def build(cls, o: torch.Tensor, d: torch.Tensor, t0: torch.Tensor, t1: torch.Tensor, dt: float,
+              macro: MacroGrid | None) -> Runs:
         def lattice(t):  # first lattice index whose sample lies at or after t; integers, so that the running
             # counts below are an integer cumsum (CUDA has no deterministic floating-point one)
             return torch.ceil((t - t0[:, None]) / dt - 0.5).clamp_min(0).to(torch.int32)

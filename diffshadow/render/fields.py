@@ -8,6 +8,7 @@ import warnings
 import numpy as np
 import torch
 import torch.nn.functional as F
+from numpy.typing import ArrayLike
 
 from diffshadow.grid import box, trilinear
 from diffshadow.render.fused import FUSED, FusedSiren, FusedSirenError
@@ -61,7 +62,7 @@ class InrScalar:
     """The data INR (a SIREN of the scalar field); gradients by autograd through the network. `kernel`: "fused" for
     the fused kernel for values (`diffshadow.render.fused`), None for the eager SIREN."""
 
-    def __init__(self, model: Siren, extent, device: torch.device | str = "cpu", kernel: str | None = None):
+    def __init__(self, model: Siren, extent: ArrayLike, device: torch.device | str = "cpu", kernel: str | None = None):
         self.model = model.to(device).eval()
         for q in self.model.parameters():
             q.requires_grad_(False)
@@ -97,7 +98,7 @@ def _fast_siren(named: dict, blocks: int, kernel: str | None, layers) -> FusedSi
 class GridShadow:
     """Shadow coefficients looked up trilinearly in a (Z, Y, X) grid (`shadow_grid`'s output)."""
 
-    def __init__(self, grid, extent, device: torch.device | str = "cpu"):
+    def __init__(self, grid: torch.Tensor, extent: ArrayLike, device: torch.device | str = "cpu"):
         self.grid = torch.as_tensor(grid, dtype=torch.float32, device=device)[None, None]
         self.extent = box(extent, device)
 
@@ -109,8 +110,8 @@ class GridShadow:
 class SirenShadow:
     """A shadow INR (one flat weight vector in `layout`), evaluated in the same pass as the data INR."""
 
-    def __init__(self, weights, layout: WeightLayout, blocks: int, extent, device: torch.device | str = "cpu",
-                 kernel: str | None = None):
+    def __init__(self, weights: ArrayLike, layout: WeightLayout, blocks: int, extent: ArrayLike,
+                 device: torch.device | str = "cpu", kernel: str | None = None):
         w = torch.as_tensor(np.asarray(weights), dtype=torch.float32, device=device).reshape(1, -1)
         # eager: one SIREN with a leading K = 1, the batched matmuls of fitting, so the same values
         self.fast = _fast_siren({k: v[0] for k, v in layout.unflatten(w).items()}, blocks, kernel,

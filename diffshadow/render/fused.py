@@ -24,12 +24,16 @@ from __future__ import annotations
 import functools
 import importlib.util
 import os
+from typing import TYPE_CHECKING
 
 import torch
 from torch.profiler import record_function
 
 from diffshadow.phases import phase
 from diffshadow.siren import RES_WEIGHT, fold
+
+if TYPE_CHECKING:
+    from diffshadow.render.cells import Runs
 
 WARPS = 4  # Triton's default
 # Multiply-adds contract to FMAs (Triton's default up to 3.9; 3.10 turns it off unless asked). The kernels are
@@ -233,7 +237,7 @@ class FusedSamples:
         self.block = min(scalar.block, shadow.block) if shadow is not None else scalar.block
         self.warps, self.registers = scalar.warps, scalar.registers
 
-    def march(self, o: torch.Tensor, d: torch.Tensor, t0: torch.Tensor, t1: torch.Tensor, runs,
+    def march(self, o: torch.Tensor, d: torch.Tensor, t0: torch.Tensor, t1: torch.Tensor, runs: Runs,
               min_transmittance: float) -> tuple[torch.Tensor, ...]:
         """Whole primary rays o + t d, t in [t0, t1), through their occupied samples `runs` (`render.Runs`), in
         one kernel: each ray's transmittance (R,) and composited colour (R, 3), the samples it took (R,) and the
@@ -245,7 +249,7 @@ class FusedSamples:
         return variant("march_kernel", self.block, self.warps, self.registers, constants)
 
 
-def _march(kernel, o, d, t0, t1, runs, stop: float, *, absorb: bool, dt: float, shadow: FusedSiren | None):
+def _march(kernel, o, d, t0, t1, runs: Runs, stop: float, *, absorb: bool, dt: float, shadow: FusedSiren | None):
     """Launch `march_kernel` for `kernel` (FusedSamples or FusedExtinction) with shadow SIREN `shadow` over rays
     (R,): (acc, rgb or None, count, trips)."""
     import triton
@@ -290,7 +294,7 @@ class FusedExtinction:
         self.density = float(density_scale)
         self.block, self.warps, self.registers = scalar.block, scalar.warps, scalar.registers
 
-    def march(self, o: torch.Tensor, d: torch.Tensor, t0: torch.Tensor, t1: torch.Tensor, runs, dt: float,
+    def march(self, o: torch.Tensor, d: torch.Tensor, t0: torch.Tensor, t1: torch.Tensor, runs: Runs, dt: float,
               tau_max: float) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         """Whole secondary rays through their occupied samples `runs` in one kernel, step `dt`: each ray's
         optical depth (R,), stopped once it reaches `tau_max`, the samples it took (R,) and the programs' trips."""

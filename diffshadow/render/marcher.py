@@ -36,12 +36,13 @@ from dataclasses import dataclass, field
 
 import numpy as np
 import torch
+from numpy.typing import ArrayLike
 
 from diffshadow.grid import box, check_step, go_on, ray_span
 from diffshadow.lights import as_direction
 from diffshadow.render.camera import Camera, RenderError
 from diffshadow.render.cells import MacroGrid, Runs
-from diffshadow.render.fields import InrScalar, SirenShadow
+from diffshadow.render.fields import GridScalar, GridShadow, InrScalar, SirenShadow
 from diffshadow.render.fused import FusedExtinction, FusedSamples, FusedSiren
 from diffshadow.transfer import TransferFunction
 
@@ -228,10 +229,9 @@ class MarchedShadow:
     """The naive baseline: a secondary ray toward the light from every sample, marched through `scalar`
     by the same marcher as the primary rays (empty cells skipped, stopped at optical depth `tau_max`)."""
 
-    def __init__(self, scalar, tf: TransferFunction, extent, voxel: float, *, step: float = DEFAULT_STEP,
-                 macro: MacroGrid | None = None, tau_max: float | None = None,
-                 samples_per_iter: int | None = None, batch: int | None = None,
-                 device: torch.device | str = "cpu"):
+    def __init__(self, scalar: GridScalar | InrScalar, tf: TransferFunction, extent: ArrayLike, voxel: float, *,
+                 step: float = DEFAULT_STEP, macro: MacroGrid | None = None, tau_max: float | None = None,
+                 samples_per_iter: int | None = None, batch: int | None = None, device: torch.device | str = "cpu"):
         self.scalar, self.tf, self.macro = scalar, tf, macro
         # on the device once per scene (a frame makes its own MarchedShadow): copied anew, it made a GPU wait
         self.extent = box(extent, device)
@@ -291,13 +291,13 @@ class Image:
 
 def render(
     camera: Camera,
-    scalar,
+    scalar: GridScalar | InrScalar,
     tf: TransferFunction,
-    extent,
+    extent: ArrayLike,
     voxel: float,
     *,
-    light=None,
-    shadow=None,
+    light: ArrayLike | None = None,
+    shadow: GridShadow | SirenShadow | MarchedShadow | None = None,
     shading: Shading | None = None,
     step: float = DEFAULT_STEP,
     macro: MacroGrid | None = None,
@@ -404,8 +404,8 @@ def _composited(tw: torch.Tensor, idx: torch.Tensor, c: torch.Tensor) -> torch.T
     return (tw[..., None] * rgb.view(*tw.shape, 3)).sum(1)
 
 
-def _replay(samples: Samples, tf: TransferFunction, shadow, w, shading: Shading, counters: Counters,
-            interrupt: Callable[[], bool] | None) -> torch.Tensor:
+def _replay(samples: Samples, tf: TransferFunction, shadow: GridShadow | SirenShadow | MarchedShadow | None, w,
+            shading: Shading, counters: Counters, interrupt: Callable[[], bool] | None) -> torch.Tensor:
     """The colour of a kept frame's rays under the light `w`: each iteration's colour, shadow and shading again
     (the colour from the scalar, a third of its bytes to keep), composited as the march did."""
     color = torch.zeros(len(samples.trans), 3, device=samples.trans.device)
@@ -425,7 +425,8 @@ def _image(camera: Camera, color, trans, shading: Shading, start: float, counter
                  replayed=replayed)
 
 
-def _fused_samples(scalar, shadow, tf: TransferFunction, dt: float, shading: Shading) -> FusedSamples | None:
+def _fused_samples(scalar: GridScalar | InrScalar, shadow: GridShadow | SirenShadow | MarchedShadow | None,
+                   tf: TransferFunction, dt: float, shading: Shading) -> FusedSamples | None:
     """Whole primary rays in one kernel where both fields are fused SIRENs on one box and shading is unlit (Phong
     needs the field's gradient, by autograd); None: the wavefront loop's eager step."""
     if shading.phong or not (isinstance(scalar, InrScalar) and isinstance(scalar.fast, FusedSiren)):
@@ -437,9 +438,10 @@ def _fused_samples(scalar, shadow, tf: TransferFunction, dt: float, shading: Sha
                         tf.optics_knots(scalar.extent.device), tf.density_scale, dt)
 
 
-def render_all_at_once(camera: Camera, scalar, tf: TransferFunction, extent, voxel: float, *, light=None,
-                       shadow=None, shading: Shading | None = None, step: float = DEFAULT_STEP,
-                       device: torch.device | str = "cpu") -> Image:
+def render_all_at_once(camera: Camera, scalar: GridScalar | InrScalar, tf: TransferFunction, extent: ArrayLike,
+                       voxel: float, *, light: ArrayLike | None = None,
+                       shadow: GridShadow | SirenShadow | MarchedShadow | None = None, shading: Shading | None = None,
+                       step: float = DEFAULT_STEP, device: torch.device | str = "cpu") -> Image:
     """The straightforward reference: every lattice sample of every ray at once, no skipping, no early
     termination. Memory grows with pixels × samples: for tests on small images only."""
     shading = shading or Shading()

@@ -8,12 +8,14 @@ import warnings
 from collections import OrderedDict
 from collections.abc import Callable
 from dataclasses import dataclass, field
+from pathlib import Path
 
 import numpy as np
 import torch
+from numpy.typing import ArrayLike
 
 from diffshadow.config import defaults
-from diffshadow.data_inr import inr_cell_ranges
+from diffshadow.data_inr import DataInr, inr_cell_ranges
 from diffshadow.io import atomic_save
 from diffshadow.layout import WeightLayout
 from diffshadow.lights import as_direction
@@ -43,6 +45,9 @@ from diffshadow.render.marcher import (
 from diffshadow.shadow import seen_voxels, shadow_grid
 from diffshadow.transfer import TransferFunction
 from diffshadow.volume import Volume, extinction_id, refine
+
+# a shadow SIREN as the renderer takes it: its flat weights (n_params,), their layout and its block count
+ShadowSirenSpec = tuple[ArrayLike, WeightLayout, int]
 
 MODES = ("noshadow", "gt", "inr", "naive")
 # torch.compile of the eager SIRENs was a third: it tied with eager on 2 CPU cores once eager went in passes, and was
@@ -100,9 +105,9 @@ class RenderScene:
     Not for frames from several threads at once: the viewer draws on one (`viewer.app.TorchThread`).
     """
 
-    def __init__(self, volume: Volume, tf: TransferFunction, data_inr=None, *, device: torch.device | str = "cpu",
-                 gt_method: str = "march", gt_upsample: int = 1, cell: int = RENDER_CELL,
-                 networks: Networks | None = None, keep_samples: int = 0):
+    def __init__(self, volume: Volume, tf: TransferFunction, data_inr: DataInr | None = None, *,
+                 device: torch.device | str = "cpu", gt_method: str = "march", gt_upsample: int = 1,
+                 cell: int = RENDER_CELL, networks: Networks | None = None, keep_samples: int = 0):
         self.volume, self.tf, self.data_inr = volume, tf, data_inr
         self.device = torch.device(device)
         self.networks = networks or Networks()
@@ -156,7 +161,7 @@ class RenderScene:
         """The default view of this scene: `Camera.framed` on its visible part."""
         return Camera.framed(self.visible_sphere(), azimuth=azimuth, elevation=elevation, fov=fov, size=size)
 
-    def scalar(self, source: str):
+    def scalar(self, source: str) -> GridScalar | InrScalar:
         if source == "grid":
             return self._cached("grid", lambda: GridScalar(self.volume, self.device))
         if source == "inr":
@@ -182,18 +187,18 @@ class RenderScene:
     def _gt_key(light, method: str) -> tuple:
         return ("gt", method, tuple(np.round(as_direction(light), 12).tolist()))
 
-    def has_gt(self, light, method: str | None = None) -> bool:
+    def has_gt(self, light: ArrayLike, method: str | None = None) -> bool:
         """Whether the exact shadow of `light` by `method` (None: the scene's `gt_method`) is cached (else the
         next `gt` frame computes it)."""
         return self._gt_key(light, method or self.gt_method) in self._cache
 
-    def forget_gt(self, light) -> None:
+    def forget_gt(self, light: ArrayLike) -> None:
         """Drop the cached shadow grids of `light`, by either method (a loop over many lights need not keep
         them all)."""
         for method in ("march", "sweep"):
             self._cache.pop(self._gt_key(light, method), None)
 
-    def gt_shadow(self, light, *, method: str | None = None,
+    def gt_shadow(self, light: ArrayLike, *, method: str | None = None,
                   interrupt: Callable[[], bool] | None = None) -> GridShadow:
         """The exact shadow grid of `light` (cached), by `method` (None: the scene's `gt_method`). `interrupt`:
         asked between the march's iterations (`Interrupted`; nothing is cached); the sweep is not asked (under a
@@ -211,7 +216,8 @@ class RenderScene:
         self._cache[key] = GridShadow(grid, self.volume.extent, self.device)
         return self._cache[key]
 
-    def render(self, mode: str, camera: Camera, *, light=None, siren=None, scalar: str | None = None,
+    def render(self, mode: str, camera: Camera, *, light: ArrayLike | None = None,
+               siren: ShadowSirenSpec | None = None, scalar: str | None = None,
                phong: bool = False, step: float = DEFAULT_STEP, skip: bool = True, batch: int | None = None,
                samples_per_iter: int | None = None, min_transmittance: float = MIN_TRANSMITTANCE,
                background: float = BACKGROUND, interrupt: Callable[[], bool] | None = None,
@@ -276,7 +282,7 @@ class RenderScene:
             img.samples = None  # the scene holds them, within its budget; an image a caller keeps does not
         return img
 
-    def kernel_variants(self, siren=None) -> list[tuple]:
+    def kernel_variants(self, siren: ShadowSirenSpec | None = None) -> list[tuple]:
         """The fused kernels (`fused.variant`) this scene's frames launch with its data INR, and with the shadow INR
         `siren` ((weights, layout, blocks); None: none): the SIRENs alone and the whole-ray marches of `noshadow`,
         `naive`'s secondary rays and `inr`. None where the scene renders eagerly."""
@@ -316,7 +322,7 @@ class RenderScene:
             total -= self._samples.popitem(last=False)[1].nbytes
 
 
-def write_png(path, image: Image) -> None:
+def write_png(path: str | Path, image: Image) -> None:
     """An 8-bit RGB PNG, written atomically."""
     from PIL import Image as PILImage  # only where a PNG is written
 

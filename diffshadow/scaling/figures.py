@@ -5,6 +5,7 @@ from __future__ import annotations
 import html
 import json
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -13,6 +14,9 @@ from diffshadow.lights import layout_of
 from diffshadow.report import pyplot, save_figure
 from diffshadow.scaling.projection import CPU_SOURCE
 from diffshadow.scaling.sweep import SEEN, UNSEEN
+
+if TYPE_CHECKING:  # matplotlib is imported where a figure is drawn
+    from matplotlib.figure import Figure
 
 
 def write_sweep(data: dict, out: Path) -> None:
@@ -35,7 +39,7 @@ def _no_ticks():
     return NullLocator()
 
 
-def cost_figure(data: dict):
+def cost_figure(data: dict) -> Figure:
     """Wall time per stage against lights, log-log, each stage's fitted exponent in its legend."""
     fig, ax = _axes(width=10.0)
     ns = [p["lights"] for p in data["points"]]
@@ -65,7 +69,7 @@ def _quality(point: dict, section: str, key: str) -> float | None:
     return point["quality"][section].get(key.removesuffix("_psnr_median"))
 
 
-def quality_figure(data: dict):
+def quality_figure(data: dict) -> Figure:
     """Median voxel PSNR on unseen lights (generated, the model alone, blends, nearest) and on seen lights
     (generated, the model alone, stage 1); a row no point measured is left out."""
     fig, ax = _axes(2, 6.0)
@@ -87,7 +91,7 @@ def quality_figure(data: dict):
     return fig
 
 
-def storage_figure(data: dict):
+def storage_figure(data: dict) -> Figure:
     """Bytes stored against lights, the measured points and their lines carried to 8,000 lights, the
     crossovers (model = stored SIRENs) marked."""
     fig, ax = _axes(width=8.0)

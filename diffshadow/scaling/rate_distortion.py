@@ -9,12 +9,16 @@ from __future__ import annotations
 
 import json
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from diffshadow.io import atomic_write_text, finite_json
 from diffshadow.lights import layout_of
 from diffshadow.report import label_points, pyplot, save_figure
+
+if TYPE_CHECKING:  # matplotlib is imported where a figure is drawn
+    from matplotlib.figure import Figure
 
 
 def collect(runs: list[Path], model_points: list[dict], model_source: str = "the sweep's scaling.json") -> dict:
@@ -84,7 +88,7 @@ def write(data: dict, out: Path) -> None:
 COLOURS = {"stored": "tab:blue", "codec": "tab:green", "model": "tab:red", "mix": "tab:purple", "grids": "tab:gray"}
 
 
-def figure(data: dict):
+def figure(data: dict) -> Figure:
     """One panel per light count: bytes (log) against unseen median voxel PSNR, one point per cache, seen PSNR
     as a faint marker above or below it."""
     pts = data["points"]

@@ -8,6 +8,7 @@ import math
 from pathlib import Path
 
 import numpy as np
+from numpy.typing import ArrayLike
 
 from diffshadow.lights import layout_of
 
@@ -53,7 +54,7 @@ def read_point(results: Path) -> dict:
     }
 
 
-def power_law(ns, ys) -> dict:
+def power_law(ns: ArrayLike, ys: ArrayLike) -> dict:
     """y = a · n^b by least squares in log-log: the exponent b, the factor a and the points it came from."""
     ns, ys = np.asarray(ns, float), np.asarray(ys, float)
     keep = ys > 0

@@ -8,6 +8,7 @@ import math
 from pathlib import Path
 
 import torch
+from numpy.typing import ArrayLike
 
 from diffshadow import artifacts
 from diffshadow.data_inr import DataInrConfig, fit_data_inr
@@ -52,7 +53,7 @@ def render_targets(volume_path: Path, lights_path: Path, out: Path, *, cfg: Fine
     print(f"wrote {out}: {len(train)} lights x {cfg.views} views")
 
 
-def render_image(scene: RenderScene, out: Path, *, mode: str, camera: Camera, light=None,
+def render_image(scene: RenderScene, out: Path, *, mode: str, camera: Camera, light: ArrayLike | None = None,
                  weights_path: Path | None = None, light_index: int = 0, diffusion: Path | None = None,
                  blend: Path | None = None, blend_k: int, weighting: str = "triangle",
                  model_share: float | None = None, scalar: str | None = None,

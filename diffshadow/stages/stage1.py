@@ -13,6 +13,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING
 
 import numpy as np
+from numpy.typing import ArrayLike
 
 from diffshadow.capacity import size_text
 from diffshadow.layout import SirenConfig
@@ -40,7 +41,8 @@ def heldout_seed(fit: FitConfig, subset: int) -> int:
     return fit.seed + SUBSET_HELD_OUT_SEED * (subset + 1)
 
 
-def lights(out: Path, *, sphere: int, count: int, center, unseen: int, seed: int, layout: str = "rim") -> None:
+def lights(out: Path, *, sphere: int, count: int, center: ArrayLike, unseen: int, seed: int,
+           layout: str = "rim") -> None:
     sets = make_light_sets(sphere, count, center, unseen, seed=seed, layout=layout)
     write_lights(out, sets)
     edge = f", {sets['on_edge']} of them on its edge" if layout == "rim" else ""

@@ -21,6 +21,7 @@ import time
 from collections.abc import Callable
 from concurrent.futures import Future
 from pathlib import Path
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 import torch
@@ -29,6 +30,9 @@ from diffshadow.grid import check_step
 from diffshadow.io import atomic_save, atomic_write_text
 from diffshadow.render import Camera, Interrupted, RenderError
 from diffshadow.viewer.scene import ViewerError, ViewerScene, azimuth_elevation, direction, region_chart
+
+if TYPE_CHECKING:  # viser is imported where the viewer serves
+    import viser
 
 STILL_S = 0.3  # no change for this long: draw at full size
 PREVIEW = 2  # while moving, the image height is divided by this ...
@@ -58,7 +62,7 @@ def port_problem(host: str, port: int) -> str | None:
     return None
 
 
-def camera_of(cam, height: int) -> Camera:
+def camera_of(cam: viser.CameraHandle, height: int) -> Camera:
     """The renderer's camera for a viser client camera (box coordinates are the viewer's world), `height`
     pixels high at the browser canvas' aspect."""
     width = max(1, round(height * cam.aspect))
@@ -87,7 +91,7 @@ class TorchThread:
             except BaseException as e:  # noqa: BLE001 - handed to the caller, who raises it
                 result.set_exception(e)
 
-    def run(self, fn: Callable, /, *args, **kwargs):
+    def run(self, fn: Callable, /, *args: Any, **kwargs: Any) -> Any:
         result: Future = Future()
         self._calls.put((fn, args, kwargs, result))
         return result.result()
@@ -97,7 +101,7 @@ class TorchThread:
         self._calls.put(None)
 
 
-def _on_threads(threads: int | None, fn: Callable, *args, **kwargs):
+def _on_threads(threads: int | None, fn: Callable, *args: Any, **kwargs: Any):
     """`fn` on `threads` of PyTorch's CPU threads (None: as set)."""
     if threads is None:
         return fn(*args, **kwargs)
@@ -113,7 +117,7 @@ class Session:
     """One browser tab: its panel, its light, and the thread that decides what to draw for it (and has `run`, the
     viewer's `TorchThread`, draw it)."""
 
-    def __init__(self, viewer: ViewerScene, client, *, size: int, step: float, record: Path | None,
+    def __init__(self, viewer: ViewerScene, client: viser.ClientHandle, *, size: int, step: float, record: Path | None,
                  start: Camera, run: Callable):
         self.viewer, self.client, self.start, self.run = viewer, client, start, run
         # each tab records into its own folder: a second tab numbers its frames from 1 without overwriting
@@ -424,12 +428,12 @@ def _serve(viewer: ViewerScene, run: Callable, *, host: str, port: int, size: in
     sessions: dict[int, Session] = {}
 
     @server.on_client_connect
-    def _(client) -> None:
+    def _(client: viser.ClientHandle) -> None:
         sessions[client.client_id] = Session(viewer, client, size=size, step=step, record=record, start=start,
                                              run=run)
 
     @server.on_client_disconnect
-    def _(client) -> None:
+    def _(client: viser.ClientHandle) -> None:
         if (s := sessions.pop(client.client_id, None)) is not None:
             s.close()
 

@@ -14,11 +14,12 @@ from pathlib import Path
 
 import numpy as np
 import torch
+from numpy.typing import ArrayLike
 
 from diffshadow.artifacts import load_checkpoint, load_render_scene, load_scene_file
 from diffshadow.diffusion.mix import MixedSampler
 from diffshadow.io import did_you_mean
-from diffshadow.lights import OLD_WEIGHTING, RegionCheck, as_direction, nearest, read_lights
+from diffshadow.lights import OLD_WEIGHTING, LightRegion, RegionCheck, as_direction, nearest, read_lights
 from diffshadow.render import Camera, RenderScene
 from diffshadow.render.scene import KEEP_SAMPLES_BYTES
 from diffshadow.report import label_image as label
@@ -45,7 +46,7 @@ def direction(azimuth: float, elevation: float) -> np.ndarray:
     return np.array([math.cos(el) * math.cos(az), math.cos(el) * math.sin(az), math.sin(el)])
 
 
-def azimuth_elevation(light) -> tuple[float, float]:
+def azimuth_elevation(light: ArrayLike) -> tuple[float, float]:
     """Degrees, the inverse of `direction`."""
     w = as_direction(light)
     return math.degrees(math.atan2(w[1], w[0])), math.degrees(math.asin(float(np.clip(w[2], -1, 1))))
@@ -90,7 +91,8 @@ class ViewerScene:
     `checkpoint`: the file the sampler reads; `stored`: the stored SIRENs a mixed sampler blends."""
 
     def __init__(self, scene: RenderScene, *, name: str, lights: dict | None = None,
-                 generated: WeightStore | None = None, sampler=None, results: Path | None = None,
+                 generated: WeightStore | None = None,
+                 sampler: Callable[[np.ndarray], torch.Tensor | np.ndarray] | None = None, results: Path | None = None,
                  checkpoint: Path | None = None, scene_file: Path | None = None, stored: Path | None = None):
         self.scene, self.name, self.generated, self.sampler = scene, name, generated, sampler
         # a light moved over a still view draws it from the samples kept of it: 5-6x faster on a CPU, the same bytes
@@ -171,7 +173,7 @@ class ViewerScene:
     def _stored_row(self, light: np.ndarray) -> int | None:
         return None if self.generated is None else _index(self.generated.lights, light)
 
-    def light_info(self, light) -> LightInfo:
+    def light_info(self, light: ArrayLike) -> LightInfo:
         w = as_direction(light)
         # the cache's training lights are the scene's: its region check has measured the nearest one already
         region = self.region.where(w) if self.region is not None else None
@@ -183,7 +185,7 @@ class ViewerScene:
                 return LightInfo(kind, i, nearest_deg, region=region)
         return LightInfo("new", None, nearest_deg, region=region)
 
-    def shadow_weights(self, light) -> tuple[torch.Tensor, LightInfo]:
+    def shadow_weights(self, light: ArrayLike) -> tuple[torch.Tensor, LightInfo]:
         """The cached shadow SIREN's weights for `light`: its row of generated.zarr, else generated now by the
         diffusion model (and kept for the next frames)."""
         if self.generated is None:
@@ -205,23 +207,23 @@ class ViewerScene:
 
     # ------------------------------------------------------------------------------------------ frames
 
-    def shown_mode(self, mode: str, light) -> str:
+    def shown_mode(self, mode: str, light: ArrayLike) -> str:
         """The mode drawn for `mode` at `light`: a mode of the cache at a light outside the cache's region draws
         the exact shadow instead (the cache holds nothing there; the panel says so)."""
         if mode in CACHE_MODES and self.region is not None and not self.region.contains(light):
             return "gt"
         return mode
 
-    def needs_gt(self, mode: str, light) -> bool:
+    def needs_gt(self, mode: str, light: ArrayLike) -> bool:
         """Whether a frame of `mode` at `light` draws the light's exact shadow grid."""
         return self.shown_mode(mode, light) in ("gt", "inr | gt", DIFF)
 
-    def marches(self, mode: str, light) -> bool:
+    def marches(self, mode: str, light: ArrayLike) -> bool:
         """Whether a still frame of `mode` at `light` must first march the light's exact shadow grid (not cached)."""
         return self.needs_gt(mode, light) and not self.scene.has_gt(light)
 
-    def frame(self, mode: str, camera: Camera, light, *, step: float, interrupt: Callable[[], bool] | None = None,
-              preview: bool = False) -> tuple[np.ndarray, dict]:
+    def frame(self, mode: str, camera: Camera, light: ArrayLike, *, step: float,
+              interrupt: Callable[[], bool] | None = None, preview: bool = False) -> tuple[np.ndarray, dict]:
         """(H, W, 3) uint8 image of `mode` and what the panel says about it (light, timings, PSNR). `interrupt`:
         the renderer's (`render.Interrupted` once it returns True), asked while the exact shadow is marched too.
         `preview`: a light whose exact shadow grid is not cached gets the shear sweep's (`exact_by`: "sweep"; under
@@ -274,7 +276,7 @@ class ViewerScene:
             return mix_name(self.sampler.share)
         return "diffusion"
 
-    def render_commands(self, mode: str, camera: Camera, light, *, step: float) -> list[str]:
+    def render_commands(self, mode: str, camera: Camera, light: ArrayLike, *, step: float) -> list[str]:
         """The `diffshadow render` commands that write this frame: one for a single mode (the exact shadow's where
         a cache mode falls outside the region), the inr and gt frames that the composite modes show side by side
         or as their difference."""
@@ -283,7 +285,7 @@ class ViewerScene:
             return [self.render_command(m, camera, light, step=step, out=f"{m}.png") for m in ("inr", "gt")]
         return [self.render_command(mode, camera, light, step=step)]
 
-    def render_command(self, mode: str, camera: Camera, light, *, step: float, out: str = "view.png") -> str:
+    def render_command(self, mode: str, camera: Camera, light: ArrayLike, *, step: float, out: str = "view.png") -> str:
         """The `diffshadow render` command that writes this frame (modes inr, noshadow, gt, naive)."""
         source = (["--scene-config", str(self.scene_file)] if self.results is None else
                   ["--volume", str(self.results / "volume.zarr"), "--data-inr", str(self.results / "data_inr.pt")])
@@ -375,7 +377,8 @@ def diff_scale(diff: np.ndarray) -> int:
     return int(min(64, max(1, 2 ** math.floor(math.log2(255.0 / max(top, 1.0))))))
 
 
-def region_chart(region, train: np.ndarray, unseen: np.ndarray, light, *, size: int = 220) -> np.ndarray:
+def region_chart(region: LightRegion, train: np.ndarray, unseen: np.ndarray, light: ArrayLike, *,
+                 size: int = 220) -> np.ndarray:
     """(size, size, 3) uint8: the light gizmo. Directions drawn by their angle from the region's centre (the
     chart's centre) and their bearing around it (an azimuthal equidistant map): the cache's region (green cap),
     its training lights (blue), the unseen test lights (orange), and the current light (red dot inside the
