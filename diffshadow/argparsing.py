@@ -33,7 +33,7 @@ SEED_MAX = 2**63 - 1  # as the config schema's seed ($defs/seed in config.schema
 
 def seed(text: str) -> int:
     """An argparse type: a random draw's seed, 0 to SEED_MAX (numpy refuses a negative one in a traceback)."""
-    value = at_least(0)(text)
+    value = int(at_least(0)(text))
     if value > SEED_MAX:
         raise argparse.ArgumentTypeError(f"expected at most 2^63-1, got {text}")
     return value

@@ -27,9 +27,14 @@ from diffshadow.layout import SirenConfig, WeightLayout
 class CosineSchedule(Protocol):
     """What `cosine_lr` reads of a stage's settings (`fit.FitConfig`, `data_inr.DataInrConfig`)."""
 
-    lr: float
-    lr_final: float
-    steps: int
+    @property
+    def lr(self) -> float: ...
+
+    @property
+    def lr_final(self) -> float: ...
+
+    @property
+    def steps(self) -> int: ...
 
 
 OMEGA = 30.0  # sine frequency ω0 (SIREN)

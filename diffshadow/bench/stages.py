@@ -83,7 +83,7 @@ class PeakMemory:
         self._thread.start()
         return self
 
-    def __exit__(self, *exc: object) -> bool:
+    def __exit__(self, *exc: object) -> None:
         if self.device.type == "cuda":
             torch.cuda.synchronize(self.device)
             self.peak = torch.cuda.max_memory_allocated(self.device) - self.base
@@ -92,7 +92,6 @@ class PeakMemory:
             self._stop.set()
             self._thread.join()
             self.peak = self._max - self.base
-        return False
 
 
 @dataclass
