@@ -10,7 +10,10 @@ import argparse
 import errno
 import os
 import sys
+import warnings
+from collections.abc import Callable
 from pathlib import Path
+from typing import TextIO
 
 from diffshadow import __version__
 from diffshadow.argparsing import add_networks, at_least, network_flags, seed
@@ -574,6 +577,21 @@ _NO_TORCH = {"lights", "prepare-volume", "collect-weights", "stage-costs", "summ
              "install-profiles", "ddp-processes", "report-figures"}
 
 
+def _warning_line(command: str) -> Callable[..., None]:
+    """`warnings.showwarning` for a command: one line, `diffshadow <command>: warning: <message>`, like its errors
+    (Python's own format adds the source line that warned, which reads as a fragment of a traceback). A warning
+    from outside the package keeps its category and origin, for whoever reports it."""
+    package = str(Path(__file__).resolve().parent)
+
+    def show(message: Warning | str, category: type[Warning], filename: str, lineno: int,
+             file: TextIO | None = None, line: str | None = None) -> None:
+        origin = "" if str(Path(filename).resolve()).startswith(package) else \
+            f" ({category.__name__} at {filename}:{lineno})"
+        print(f"diffshadow {command}: warning: {message}{origin}", file=file or sys.stderr)
+
+    return show
+
+
 def _unchecked(e: BaseException) -> str:
     """"" where `e` was raised in this package's own code (an input checked and named there); else where in this
     package the library that raised it was called, for a report: numpy's "kth(=3) out of bounds (3)" once reached
@@ -629,6 +647,7 @@ def main(argv: list[str] | None = None) -> None:
     # a rule pipes the output through `tee`: without line buffering its progress would arrive at the end
     if hasattr(sys.stdout, "reconfigure"):
         sys.stdout.reconfigure(line_buffering=True)
+    warnings.showwarning = _warning_line(args.command)
     try:
         if args.command not in _NO_TORCH and args.command != "torchrun":  # the ranks set up their own
             import torch  # noqa: F401  (here, so that its import is timed as such, not as the stage's compute)

@@ -308,3 +308,21 @@ def test_a_count_option_takes_what_its_config_key_takes(command, option, key, ca
     with pytest.raises(SystemExit):
         parser.parse_args([*command, option, str(least - 1)])
     assert f"argument {option}: expected at least {least}, got {least - 1}" in capsys.readouterr().err
+
+
+def test_a_warning_is_one_line_naming_the_command(tmp_path):
+    """A constant volume renders (its one scalar has an opacity) with the loader's warning as the command's errors
+    read: one line, `diffshadow render: warning: ...`, not Python's format with the source line that warned."""
+    import numpy as np
+
+    np.save(tmp_path / "flat.npy", np.zeros((8, 8, 8), np.float32))
+    (tmp_path / "flat.yaml").write_text(
+        "volume: flat.npy\ntransfer_function:\n  opacity: [[0.0, 0.3], [1.0, 0.3]]\n"
+        "  color: [[0.0, 1, 1, 1], [1.0, 1, 1, 1]]\n  density_scale: 10\n")
+    proc = subprocess.run([sys.executable, "-m", "diffshadow.cli", "render", "--scene-config", "flat.yaml",
+                           "--mode", "noshadow", "--size", "16", "--out", "flat.png"], cwd=tmp_path,
+                          capture_output=True, text=True, timeout=300)
+    assert proc.returncode == 0, proc.stderr
+    lines = [line for line in proc.stderr.splitlines() if line.strip()]
+    assert len(lines) == 1 and lines[0].startswith("diffshadow render: warning: "), proc.stderr
+    assert "the volume is constant (0.0)" in lines[0] and "UserWarning" not in lines[0], lines[0]
