@@ -34,6 +34,7 @@ RAW_DTYPES = {
     "float32": np.float32,
     "float64": np.float64,
 }
+NPY_MAGIC = b"\x93NUMPY"  # the first bytes of every .npy file (NEP 1)
 BUNDLED = {"nucleon": "nucleon_41x41x41_uint8.raw"}
 
 
@@ -159,6 +160,10 @@ def load_volume(
     if suffix == ".raw":
         raw = _read_raw(path, dims, dtype)
     elif suffix == ".npy":
+        with open(path, "rb") as f:
+            if f.read(6) != NPY_MAGIC:  # else NumPy reads the bytes as a pickle, and its error suggests pickles
+                raise VolumeError(f"{path}: not a .npy file (it does not begin with NumPy's header; "
+                                  f"write it with numpy.save)")
         try:
             raw = np.load(path, mmap_mode="r", allow_pickle=False)
         except (OSError, ValueError) as e:  # a truncated file: "mmap length is greater than file size"
@@ -232,7 +237,10 @@ def _read_hdf5(path: Path, key: str | None) -> np.ndarray:
 def _read_zarr(path: Path, key: str | None) -> np.ndarray:
     import zarr
 
-    node = zarr.open(str(path), mode="r")
+    try:
+        node = zarr.open(str(path), mode="r")
+    except zarr.errors.NodeNotFoundError:  # a folder (or file) of other things: zarr's message names a StorePath
+        raise VolumeError(f"{path}: not a Zarr store (no Zarr group or array metadata in it)") from None
     if isinstance(node, zarr.Array):
         if key is not None:
             raise VolumeError(f"{path}: is a single array, but load: {{key: {key}}} was given; drop the key")

@@ -210,6 +210,19 @@ def test_not_3d(tmp_path):
         load_volume(tmp_path / "flat.npy")
 
 
+def test_a_file_that_is_not_its_format_says_so(tmp_path):
+    """A file of other bytes named .npy, and a folder named .zarr that is no store: named as what they are not, not
+    in NumPy's words about pickles or zarr's about a StorePath."""
+    (tmp_path / "v.npy").write_bytes(b"\x00" * 256)
+    with pytest.raises(VolumeError, match=r"v.npy: not a \.npy file \(it does not begin with NumPy's header; write "
+                                          r"it with numpy.save\)$"):
+        load_volume(tmp_path / "v.npy")
+    (tmp_path / "v.zarr").mkdir()
+    (tmp_path / "v.zarr" / "notes.txt").write_text("x")
+    with pytest.raises(VolumeError, match=r"v.zarr: not a Zarr store \(no Zarr group or array metadata in it\)$"):
+        load_volume(tmp_path / "v.zarr")
+
+
 def test_missing_file_and_unknown_suffix(tmp_path):
     with pytest.raises(VolumeError, match="no such file"):
         load_volume(tmp_path / "nothing.npy")
