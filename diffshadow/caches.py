@@ -231,7 +231,7 @@ def _fingerprint(weights: np.ndarray, truth: EvalTruth, light_sets: dict, groups
     return h.hexdigest()
 
 
-def _model_rows(state: dict, generated: WeightStore | None, train, unseen, scored, *, stored: np.ndarray,
+def _model_rows(state: dict, generated: WeightStore, train, unseen, scored, *, stored: np.ndarray,
                 device: torch.device | str = "cpu") -> list[dict]:
     """The diffusion model with its parameters stored in fp32 (its samples: sample_shadows' `generated` store, or,
     where that store mixed them with the stored SIRENs, their PSNRs as it scored them before the mix) and in fp16
@@ -290,7 +290,7 @@ def _model_rows(state: dict, generated: WeightStore | None, train, unseen, score
     return rows
 
 
-def _grid_row(volume: Volume | None, tf: TransferFunction | None, truth: EvalTruth, train, unseen, idx, mix) -> dict:
+def _grid_row(volume: Volume, tf: TransferFunction, truth: EvalTruth, train, unseen, idx, mix) -> dict:
     """Dense shadow grids at the volume's resolution (fp16, as voxel_metrics' storage counts them), read
     trilinearly at the evaluation points; an unseen light's answer is the blend of its nearest lights' grids."""
     points = truth.points["box"]
