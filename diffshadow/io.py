@@ -303,6 +303,8 @@ class VerifiedGroup:
         try:
             self.root = zarr.open_group(str(self.path), mode="r")
             self.attrs = dict(self.root.attrs)
+        except zarr.errors.NodeNotFoundError:  # zarr names a StorePath and "path ''"
+            raise StoreError(f"{self.path}: not {what} (no Zarr group metadata in it)") from None
         except (FileNotFoundError, KeyError, ValueError) as e:
             raise StoreError(f"{self.path}: not {what} ({type(e).__name__}: {e})") from None
         self.checksums = self.attrs.get("checksums")  # None: written before checksums (not verifiable)

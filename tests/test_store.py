@@ -180,6 +180,15 @@ def test_a_truncated_chunk_is_one_line_naming_the_store(tmp_path):
         open_store(path)
 
 
+def test_a_store_without_its_metadata_says_so(tmp_path):
+    """A folder that lost its zarr.json (or never had one) is named as no store, not in zarr's words (a StorePath
+    and "path ''")."""
+    path = stored(tmp_path)
+    (path / "zarr.json").unlink()
+    with pytest.raises(StoreError, match=r"weights.zarr: not a weight store \(no Zarr group metadata in it\)"):
+        open_store(path)
+
+
 def test_a_changed_value_is_found(tmp_path):
     import zarr
 
