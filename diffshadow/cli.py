@@ -581,11 +581,11 @@ def _warning_line(command: str) -> Callable[..., None]:
     """`warnings.showwarning` for a command: one line, `diffshadow <command>: warning: <message>`, like its errors
     (Python's own format adds the source line that warned, which reads as a fragment of a traceback). A warning
     from outside the package keeps its category and origin, for whoever reports it."""
-    package = str(Path(__file__).resolve().parent)
+    package = Path(__file__).resolve().parent
 
     def show(message: Warning | str, category: type[Warning], filename: str, lineno: int,
              file: TextIO | None = None, line: str | None = None) -> None:
-        origin = "" if str(Path(filename).resolve()).startswith(package) else \
+        origin = "" if Path(filename).resolve().is_relative_to(package) else \
             f" ({category.__name__} at {filename}:{lineno})"
         print(f"diffshadow {command}: warning: {message}{origin}", file=file or sys.stderr)
 

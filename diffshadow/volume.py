@@ -34,7 +34,7 @@ RAW_DTYPES = {
     "float32": np.float32,
     "float64": np.float64,
 }
-NPY_MAGIC = b"\x93NUMPY"  # the first bytes of every .npy file (NEP 1)
+
 BUNDLED = {"nucleon": "nucleon_41x41x41_uint8.raw"}
 
 
@@ -161,7 +161,8 @@ def load_volume(
         raw = _read_raw(path, dims, dtype)
     elif suffix == ".npy":
         with open(path, "rb") as f:
-            if f.read(6) != NPY_MAGIC:  # else NumPy reads the bytes as a pickle, and its error suggests pickles
+            magic = np.lib.format.MAGIC_PREFIX
+            if f.read(len(magic)) != magic:  # else NumPy reads the bytes as a pickle, and its error suggests pickles
                 raise VolumeError(f"{path}: not a .npy file (it does not begin with NumPy's header; "
                                   f"write it with numpy.save)")
         try:
