@@ -46,6 +46,8 @@ from diffshadow.render.fields import GridScalar, GridShadow, InrScalar, SirenSha
 from diffshadow.render.fused import FusedExtinction, FusedSamples, FusedSiren
 from diffshadow.transfer import TransferFunction
 
+Scalar = GridScalar | InrScalar  # what the rays sample the scalar field from
+
 DEFAULT_STEP = 0.5  # primary and secondary step, in voxels of the finest axis
 MIN_TRANSMITTANCE = 1e-3  # early ray termination
 SHADOW_TAU_MAX = 10.0  # secondary rays stop here: g < 5e-5, below an 8-bit pixel's resolution
@@ -229,7 +231,7 @@ class MarchedShadow:
     """The naive baseline: a secondary ray toward the light from every sample, marched through `scalar`
     by the same marcher as the primary rays (empty cells skipped, stopped at optical depth `tau_max`)."""
 
-    def __init__(self, scalar: GridScalar | InrScalar, tf: TransferFunction, extent: ArrayLike, voxel: float, *,
+    def __init__(self, scalar: Scalar, tf: TransferFunction, extent: ArrayLike, voxel: float, *,
                  step: float = DEFAULT_STEP, macro: MacroGrid | None = None, tau_max: float | None = None,
                  samples_per_iter: int | None = None, batch: int | None = None, device: torch.device | str = "cpu"):
         self.scalar, self.tf, self.macro = scalar, tf, macro
@@ -276,6 +278,10 @@ class MarchedShadow:
         return torch.exp(-tau)
 
 
+# what a sample's shadow coefficient comes from
+Shadow = GridShadow | SirenShadow | MarchedShadow
+
+
 @dataclass
 class Image:
     rgb: torch.Tensor  # (H, W, 3) composited over the background
@@ -291,13 +297,13 @@ class Image:
 
 def render(
     camera: Camera,
-    scalar: GridScalar | InrScalar,
+    scalar: Scalar,
     tf: TransferFunction,
     extent: ArrayLike,
     voxel: float,
     *,
     light: ArrayLike | None = None,
-    shadow: GridShadow | SirenShadow | MarchedShadow | None = None,
+    shadow: Shadow | None = None,
     shading: Shading | None = None,
     step: float = DEFAULT_STEP,
     macro: MacroGrid | None = None,
@@ -404,7 +410,7 @@ def _composited(tw: torch.Tensor, idx: torch.Tensor, c: torch.Tensor) -> torch.T
     return (tw[..., None] * rgb.view(*tw.shape, 3)).sum(1)
 
 
-def _replay(samples: Samples, tf: TransferFunction, shadow: GridShadow | SirenShadow | MarchedShadow | None, w,
+def _replay(samples: Samples, tf: TransferFunction, shadow: Shadow | None, w,
             shading: Shading, counters: Counters, interrupt: Callable[[], bool] | None) -> torch.Tensor:
     """The colour of a kept frame's rays under the light `w`: each iteration's colour, shadow and shading again
     (the colour from the scalar, a third of its bytes to keep), composited as the march did."""
@@ -425,7 +431,7 @@ def _image(camera: Camera, color, trans, shading: Shading, start: float, counter
                  replayed=replayed)
 
 
-def _fused_samples(scalar: GridScalar | InrScalar, shadow: GridShadow | SirenShadow | MarchedShadow | None,
+def _fused_samples(scalar: Scalar, shadow: Shadow | None,
                    tf: TransferFunction, dt: float, shading: Shading) -> FusedSamples | None:
     """Whole primary rays in one kernel where both fields are fused SIRENs on one box and shading is unlit (Phong
     needs the field's gradient, by autograd); None: the wavefront loop's eager step."""
@@ -438,9 +444,9 @@ def _fused_samples(scalar: GridScalar | InrScalar, shadow: GridShadow | SirenSha
                         tf.optics_knots(scalar.extent.device), tf.density_scale, dt)
 
 
-def render_all_at_once(camera: Camera, scalar: GridScalar | InrScalar, tf: TransferFunction, extent: ArrayLike,
+def render_all_at_once(camera: Camera, scalar: Scalar, tf: TransferFunction, extent: ArrayLike,
                        voxel: float, *, light: ArrayLike | None = None,
-                       shadow: GridShadow | SirenShadow | MarchedShadow | None = None, shading: Shading | None = None,
+                       shadow: Shadow | None = None, shading: Shading | None = None,
                        step: float = DEFAULT_STEP, device: torch.device | str = "cpu") -> Image:
     """The straightforward reference: every lattice sample of every ray at once, no skipping, no early
     termination. Memory grows with pixels × samples: for tests on small images only."""

@@ -39,6 +39,7 @@ from diffshadow.render.marcher import (
     Image,
     MarchedShadow,
     Samples,
+    Scalar,
     Shading,
     render,
 )
@@ -161,7 +162,7 @@ class RenderScene:
         """The default view of this scene: `Camera.framed` on its visible part."""
         return Camera.framed(self.visible_sphere(), azimuth=azimuth, elevation=elevation, fov=fov, size=size)
 
-    def scalar(self, source: str) -> GridScalar | InrScalar:
+    def scalar(self, source: str) -> Scalar:
         if source == "grid":
             return self._cached("grid", lambda: GridScalar(self.volume, self.device))
         if source == "inr":
