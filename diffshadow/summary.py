@@ -43,15 +43,21 @@ def _kept(validation: dict | None) -> str:
         return ""
     history = validation["history"]
     last, floor = history[-1], history[0][1]
-    return (f" Kept: epoch {validation['kept_epoch']} of {last[0]}, the last whose median voxel PSNR at "
-            f"validation lights (random in the training cap, not the test set) is not below the geometry "
-            f"stage's {floor:.2f} dB (last epoch "
-            f"{last[1]:.2f} dB); epoch 0 means the geometry-stage model is used."
-            + (f" Stopped early at epoch {validation['stopped_epoch']}: the last checkpoints all scored under it."
+    where = "validation lights (random in the training cap, not the test set)"
+    stopped = (f" Stopped early at epoch {validation['stopped_epoch']}: the last checkpoints all scored under it."
                if validation.get("stopped_epoch") else "")
-            + (f" Validation had picked epoch {validation.get('validated_epoch')}, which rendered the training "
-               "lights worse than the geometry stage (table), so the geometry-stage model is used."
-               if validation.get("images_worse") else ""))
+    if validation.get("images_worse"):
+        picked = validation.get("validated_epoch")
+        score = dict((int(e), s) for e, s in history).get(picked)
+        scored = f" ({score:.2f} dB)" if score is not None else ""
+        # Kept the geometry stage although validation picked a later epoch: say that once, not as the rule's pick.
+        return (f" Kept: epoch 0 of {last[0]}, the geometry-stage model. The {where} had picked epoch {picked}, the "
+                f"last whose median voxel PSNR{scored} is not below the geometry stage's {floor:.2f} dB, but it "
+                "rendered the training lights worse than the geometry stage (table), so the geometry-stage model "
+                f"is used.{stopped}")
+    return (f" Kept: epoch {validation['kept_epoch']} of {last[0]}, the last whose median voxel PSNR at {where} is "
+            f"not below the geometry stage's {floor:.2f} dB (last epoch {last[1]:.2f} dB); epoch 0 means the "
+            f"geometry-stage model is used.{stopped}")
 
 
 def _read_json(path: Path, what: str) -> dict | None:

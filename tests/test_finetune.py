@@ -496,4 +496,6 @@ def test_the_summary_says_when_fine_tuning_gave_way():
     assert "Kept: epoch 10 of 20" in _kept(picked) and "Validation had picked" not in _kept(picked)
     gave_way = {**picked, "kept_epoch": 0, "images_worse": True, "validated_epoch": 10}
     text = _kept(gave_way)
-    assert "Validation had picked epoch 10" in text and text.endswith("so the geometry-stage model is used.")
+    assert text.startswith(" Kept: epoch 0 of 20, the geometry-stage model.")
+    assert "had picked epoch 10, the last whose median voxel PSNR (33.00 dB) is not below" in text
+    assert text.endswith("so the geometry-stage model is used.")
