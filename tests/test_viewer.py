@@ -22,7 +22,7 @@ from diffshadow.siren import SirenConfig, WeightLayout, init_siren
 from diffshadow.store import WeightStore
 from diffshadow.transfer import TransferFunction
 from diffshadow.viewer import ViewerError, ViewerScene, azimuth_elevation, direction
-from diffshadow.viewer.app import STEP_UP_S, Session, camera_of, port_problem
+from diffshadow.viewer.app import STEP_UP_S, Session, aim_initial_camera, camera_of, port_problem
 from diffshadow.viewer.scene import GENERATED_KEEP
 from diffshadow.volume import Volume
 
@@ -61,6 +61,22 @@ def viewer():
 
 
 CAM = Camera.orbit(np.ones(3), azimuth=30, elevation=25, size=(20, 16))
+
+
+def test_the_initial_camera_is_the_start_view_in_visers_own_fields():
+    """A new tab and "Reset View" get the start view, up vector and all, each sent to the browser: viser's
+    initial camera takes fields that a misnamed one would not set (a new attribute, silently)."""
+    import viser
+
+    sent = []
+    initial = viser.InitialCameraConfig(sent.append)
+    start = Camera.look_at((2.0, -1.0, 0.5), (0.5, 0.5, 0.5), up=(0.0, 1.0, 0.0), fov=50.0, size=16)
+    aim_initial_camera(initial, start)
+    assert np.allclose(initial.position, start.eye) and np.allclose(initial.look_at, start.target)
+    assert initial.up is not None and np.allclose(initial.up, (0.0, 1.0, 0.0))
+    assert initial.fov == pytest.approx(math.radians(50.0))
+    assert sorted(type(m).__name__ for m in sent) == ["SetCameraFovMessage", "SetCameraLookAtMessage",
+                                                       "SetCameraPositionMessage", "SetCameraUpDirectionMessage"]
 
 
 def test_azimuth_elevation_round_trip():

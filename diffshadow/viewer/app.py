@@ -408,6 +408,13 @@ def serve(*, results: Path | None, scene_config: Path | None, device: torch.devi
         torch_thread.close()
 
 
+def aim_initial_camera(initial: viser.InitialCameraConfig, start: Camera) -> None:
+    """Where a new tab starts and what "Reset View" returns to. viser names the up vector `up` here, where a
+    client's camera calls it `up_direction`: a misnamed field would be a silent new attribute, not an error."""
+    initial.position, initial.look_at = start.eye, start.target
+    initial.up, initial.fov = start.up, math.radians(start.fov)
+
+
 def _serve(viewer: ViewerScene, run: Callable, *, host: str, port: int, size: int, step: float,
            record: Path | None, stop: threading.Event | None) -> None:
     import viser
@@ -423,8 +430,7 @@ def _serve(viewer: ViewerScene, run: Callable, *, host: str, port: int, size: in
     server.gui.configure_theme(control_layout="fixed", show_share_button=False, show_logo=False)
     server.scene.set_up_direction("+z")
     start = run(viewer.scene.framed, azimuth=30.0, elevation=25.0, fov=60.0)  # what `diffshadow render` shows
-    server.initial_camera.position, server.initial_camera.look_at = start.eye, start.target
-    server.initial_camera.up_direction, server.initial_camera.fov = start.up, math.radians(start.fov)
+    aim_initial_camera(server.initial_camera, start)
     sessions: dict[int, Session] = {}
 
     @server.on_client_connect
