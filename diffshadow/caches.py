@@ -62,11 +62,15 @@ def validation_psnr(weights: np.ndarray, layout: WeightLayout, siren: SirenConfi
 
 
 def choose_cache(stage1: WeightStore, truth: EvalTruth, val: EvalTruth, train: np.ndarray, *, blend_k: int,
-                 weighting: str, target_psnr: float, candidates: list[str], log: Callable[[str], None] = print) -> dict:
+                 weighting: str, target_psnr: float, candidates: list[str], tolerance: float = float("inf"),
+                 log: Callable[[str], None] = print) -> dict:
     """`cache: auto`: the smallest of `candidates` (blend and codecs of the stored SIRENs) whose median voxel PSNR
     reaches `target_psnr` both on the training lights (`truth`: its decoded SIRENs, what it answers for a stored
-    light) and on the validation lights `val` (its blend, what it answers for a new one); `diffusion` (train the
-    model) when none does. Every candidate's bytes and figures are kept, so the report can say why.
+    light) and on the validation lights `val` (its blend, what it answers for a new one), and whose worse figure
+    of the two lies within `tolerance` dB of the best candidate's; `diffusion` (train the model) when none does.
+    The target is a floor, the tolerance what auto may give up for bytes: a codec far under the stored SIRENs'
+    quality but over the floor does not serve. Every candidate's bytes and figures are kept, so the report can say
+    why.
 
     Validation lights, not each training light left out and blended from its neighbours: leaving one out doubles
     the gap to the nearest stored light, and on nucleon it read 7.7 dB under the unseen lights' figure at 32
@@ -84,22 +88,30 @@ def choose_cache(stage1: WeightStore, truth: EvalTruth, val: EvalTruth, train: n
         rows.append(row)
         log(f"[choose cache] {name}: {nbytes / 2**20:.3f} MiB, median {row['seen_psnr']:.2f} dB on the training "
             f"lights, {row['val_psnr']:.2f} dB on the validation lights")
-    passing = sorted((r for r in rows if r["psnr"] >= target_psnr), key=lambda r: (r["bytes"], -r["psnr"], r["cache"]))
+    top = max(rows, key=lambda r: r["psnr"], default=None)
+    floor = max(target_psnr, top["psnr"] - tolerance) if top else target_psnr
+    by_size = sorted(rows, key=lambda r: (r["bytes"], -r["psnr"], r["cache"]))
+    passing = [r for r in by_size if r["psnr"] >= floor]
     where = f"on the training lights and on {len(val.lights)} validation lights"
     if passing:
         best = passing[0]
+        within = (f" and lies within {tolerance:g} dB of the best ({top['cache']}, {top['psnr']:.2f} dB)"
+                  if floor > target_psnr else "")
+        given_up = [r for r in by_size[:by_size.index(best)] if r["psnr"] >= target_psnr]
+        smaller = (f"; smaller and over {target_psnr:g} dB but more than {tolerance:g} dB under the best: "
+                   + ", ".join(f"{r['cache']} ({r['psnr']:.2f} dB)" for r in given_up)) if given_up else ""
         why = (f"{best['cache']}: the smallest stored-SIREN cache (a new light: {describe_blend(weighting, k)}) "
-               f"that reaches {target_psnr:g} dB {where} ({best['seen_psnr']:.2f} and {best['val_psnr']:.2f} dB, "
-               f"{best['bytes'] / 2**20:.3f} MiB); no diffusion model trained")
+               f"that reaches {target_psnr:g} dB {where}{within} ({best['seen_psnr']:.2f} and "
+               f"{best['val_psnr']:.2f} dB, {best['bytes'] / 2**20:.3f} MiB){smaller}; no diffusion model trained")
         choice = best["cache"]
     else:
-        top = max(rows, key=lambda r: r["psnr"], default=None)
         why = (f"diffusion: no stored-SIREN cache reaches {target_psnr:g} dB {where}"
                + (f" (best {top['cache']}: {top['seen_psnr']:.2f} and {top['val_psnr']:.2f} dB)" if top else "")
                + "; the model is trained")
         choice = "diffusion"
     log(f"[choose cache] {why}")
-    return {"choice": choice, "why": why, "target_psnr": target_psnr, "blend_weights": weighting, "blend_k": k,
+    return {"choice": choice, "why": why, "target_psnr": target_psnr, "tolerance": tolerance,
+            "blend_weights": weighting, "blend_k": k,
             "lights": len(train), "validation_lights": len(val.lights), "candidates": rows}
 
 

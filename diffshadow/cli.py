@@ -154,8 +154,8 @@ def _choose_cache(a: argparse.Namespace):
 
     stage2.choose_cache(Path(a.weights), Path(a.truth), Path(a.volume), Path(a.lights), Path(a.out),
                         blend_k=a.blend_k, weighting=a.blend_weights, target_psnr=a.target_psnr,
-                        candidates=a.candidates, val_lights=a.val_lights, val_points=a.val_points, seed=a.seed,
-                        device=_device(a))
+                        tolerance=a.tolerance, candidates=a.candidates, val_lights=a.val_lights,
+                        val_points=a.val_points, seed=a.seed, device=_device(a))
 
 
 def _encode_cache(a: argparse.Namespace):
@@ -433,6 +433,8 @@ def build_parser() -> argparse.ArgumentParser:
     _blend_args(p, evaluate)
     p.add_argument("--target-psnr", type=float, default=auto["target_psnr"],
                    help="dB, median voxel PSNR on the validation lights (cache_auto.target_psnr)")
+    p.add_argument("--tolerance", type=at_least(0, float), default=auto["tolerance"],
+                   help="dB a cache may lie under the best candidate (cache_auto.tolerance)")
     p.add_argument("--val-lights", type=at_least(1), default=auto["val_lights"], help="cache_auto.val_lights")
     p.add_argument("--val-points", type=at_least(1), default=auto["val_points"], help="cache_auto.val_points")
     p.add_argument("--seed", type=seed, default=auto["seed"], help="their random draw (cache_auto.seed)")

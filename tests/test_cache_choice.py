@@ -1,6 +1,6 @@
 """`cache: auto` (`diffshadow.caches.choose_cache`): the figures it weighs (its stored SIRENs at the training
 lights, its blend at validation lights), and its rule: the smallest stored-SIREN cache that reaches the target on
-both, else the diffusion model."""
+both, within its tolerance of the best, else the diffusion model."""
 
 from types import SimpleNamespace
 
@@ -88,6 +88,34 @@ def test_auto_needs_the_target_on_the_training_lights_too(monkeypatch):
                               lights, blend_k=4, weighting="triangle", target_psnr=35.0,
                               candidates=["blend", "fp16", "basis-2"], log=lambda *a: None)
     assert out["choice"] == "blend" and "30.00 and 40.00" not in out["why"]
+
+
+def test_auto_gives_up_at_most_its_tolerance_under_the_best_cache(monkeypatch):
+    """The target is a floor: a codec over it but far under the stored SIRENs' quality does not serve, and the
+    reason names it; with no tolerance the smallest over the floor serves."""
+    store, lights = _store()
+    figures = {"blend": 48.0, "fp16": 47.8, "basis-2": 38.0}  # as nucleon: fp16 ~0.2 dB under, a basis ~10
+
+    def scored(w, *a):
+        for name in figures:  # each candidate's decoded weights, recognised by their codec's own encoding
+            if np.array_equal(w, caches.encoded(store.weights, LAYOUT, name)[0]):
+                return figures[name]
+        raise AssertionError("weights of no candidate")
+
+    monkeypatch.setattr(caches, "validation_psnr", scored)
+    seen = SimpleNamespace(median_psnr=scored)
+
+    def choose(tolerance):
+        return caches.choose_cache(store, seen, SimpleNamespace(lights=np.zeros((3, 3))), lights, blend_k=4,
+                                   weighting="triangle", target_psnr=36.0, tolerance=tolerance,
+                                   candidates=list(figures), log=lambda *a: None)
+
+    out = choose(1.0)
+    assert out["choice"] == "fp16" and out["tolerance"] == 1.0
+    assert "within 1 dB of the best (blend, 48.00 dB)" in out["why"]
+    assert "more than 1 dB under the best: basis-2 (38.00 dB)" in out["why"]
+    assert choose(float("inf"))["choice"] == "basis-2"  # the floor alone: the fewest bytes over 36 dB
+    assert choose(0.0)["choice"] == "blend"
 
 
 def test_codec_names_are_checked():

@@ -56,7 +56,8 @@ def collect(runs: list[Path], model_points: list[dict], model_source: str = "the
                                        "README run measured 0.01 dB apart)"})
         points.append({"lights": n, "unseen_lights": table["lights"]["unseen"], "caches": rows,
                        "equal_bytes": equal_bytes(rows),
-                       **({"auto": {k: choice[k] for k in ("choice", "why", "target_psnr")}} if choice else {})})
+                       **({"auto": {k: choice[k] for k in ("choice", "why", "target_psnr", "tolerance")
+                                          if k in choice}} if choice else {})})
     return {"points": sorted(points, key=lambda p: p["lights"])}
 
 

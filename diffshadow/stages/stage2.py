@@ -276,12 +276,12 @@ def _check_region(region, unseen: np.ndarray, source: Path) -> None:
 
 
 def choose_cache(weights_path: Path, truth_path: Path, volume_path: Path, lights_path: Path, out: Path, *,
-                 blend_k: int, weighting: str, target_psnr: float, candidates: list[str], val_lights: int,
-                 val_points: int, seed: int, device: torch.device | str = "cpu") -> None:
+                 blend_k: int, weighting: str, target_psnr: float, tolerance: float, candidates: list[str],
+                 val_lights: int, val_points: int, seed: int, device: torch.device | str = "cpu") -> None:
     """`cache: auto`, right after stage 1: `cache_choice.json`, the cache that serves this scene (the smallest
     stored-SIREN cache whose blend reaches `target_psnr` on `val_lights` validation lights, exact shadows at
-    `val_points` points each, else diffusion) with every candidate's bytes and figures; the workflow runs stage 2
-    only when it says diffusion."""
+    `val_points` points each, within `tolerance` dB of the best candidate, else diffusion) with every candidate's
+    bytes and figures; the workflow runs stage 2 only when it says diffusion."""
     from diffshadow.caches import choose_cache as choose
 
     stage1 = open_store(weights_path)
@@ -292,7 +292,7 @@ def choose_cache(weights_path: Path, truth_path: Path, volume_path: Path, lights
     # the box points alone, as the mix's choice: the medians are taken there, and the visible set doubled the march
     val = EvalTruth.compute(volume, tf, lights, val_points, seed + VALIDATION_POINTS_SEED, sets=("box",)).on(device)
     result = choose(stage1, artifacts.read_eval_truth(truth_path).on(device), val, train, blend_k=blend_k,
-                    weighting=weighting, target_psnr=target_psnr, candidates=candidates)
+                    weighting=weighting, target_psnr=target_psnr, tolerance=tolerance, candidates=candidates)
     result["validation"] = {"lights": val_lights, "points": val_points, "seed": seed}
     result.update(scored_on(device))
     atomic_write_text(out, json.dumps(finite_json(result), indent=1) + "\n")

@@ -68,7 +68,7 @@ rule eval_truth:
 
 
 # cache: auto, right after stage 1: the smallest stored-SIREN cache whose blend reaches cache_auto.target_psnr
-# on validation lights, else diffusion; a checkpoint, so stage 2's jobs enter the DAG only when it says diffusion
+# on validation lights, within cache_auto.tolerance of the best, else diffusion; a checkpoint, so stage 2's jobs enter the DAG only when it says diffusion
 checkpoint choose_cache:
     input:
         weights="results/{scene}/weights.zarr",
@@ -79,6 +79,7 @@ checkpoint choose_cache:
         "results/{scene}/cache_choice.json",
     params:
         target=lambda wc: scene_config(wc.scene)["cache_auto"]["target_psnr"],
+        tolerance=lambda wc: scene_config(wc.scene)["cache_auto"]["tolerance"],
         candidates=lambda wc: " ".join(scene_config(wc.scene)["cache_auto"]["candidates"]),
         blend=lambda wc: blend_args(wc.scene),
         val=lambda wc: "--val-lights {val_lights} --val-points {val_points} --seed {seed}".format(
@@ -94,7 +95,7 @@ checkpoint choose_cache:
     shell:
         "diffshadow --phases results/{wildcards.scene}/benchmarks/choose_cache.phases.json choose-cache --weights {input.weights}"
         " --truth {input.truth} --volume {input.volume} --lights {input.lights} {params.blend}"
-        " --target-psnr {params.target} --candidates {params.candidates} {params.val} {params.device} --threads {threads}"
+        " --target-psnr {params.target} --tolerance {params.tolerance} --candidates {params.candidates} {params.val} {params.device} --threads {threads}"
         " --out {output}" + _JOB_LOG
 
 
