@@ -48,7 +48,7 @@ def _kept(validation: dict | None) -> str:
                if validation.get("stopped_epoch") else "")
     if validation.get("images_worse"):
         picked = validation.get("validated_epoch")
-        score = dict((int(e), s) for e, s in history).get(picked)
+        score = {int(e): s for e, s in history}.get(picked)
         scored = f" ({score:.2f} dB)" if score is not None else ""
         # Kept the geometry stage although validation picked a later epoch: say that once, not as the rule's pick.
         return (f" Kept: epoch 0 of {last[0]}, the geometry-stage model. The {where} had picked epoch {picked}, the "
