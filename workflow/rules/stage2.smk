@@ -68,7 +68,8 @@ rule eval_truth:
 
 
 # cache: auto, right after stage 1: the smallest stored-SIREN cache whose blend reaches cache_auto.target_psnr
-# on validation lights, within cache_auto.tolerance of the best, else diffusion; a checkpoint, so stage 2's jobs enter the DAG only when it says diffusion
+# on validation lights, within cache_auto.tolerance of the best, else diffusion; a checkpoint, so stage 2's jobs
+# enter the DAG only when it says diffusion
 checkpoint choose_cache:
     input:
         weights="results/{scene}/weights.zarr",
