@@ -158,3 +158,23 @@ def test_a_subset_below_the_target_its_probe_met_is_named():
     assert below_probe_target(met, np.array([39.0, 41.0]), 3) is None
     assert below_probe_target(Choice(0.0, probe, 0), np.array([20.0]), 3) is None
     assert below_probe_target(Choice(40.0, probe, 0), np.array([20.0]), 3) is None  # missed by the probe too
+
+
+def test_the_collected_median_below_the_target_says_whether_the_probe_met_it():
+    """collect_weights' line on a stage-1 median under fit.target_psnr: it said the probe had met the target even
+    where the probe had missed it too (bi2o3: probe 35.73 dB at width 128, target 42, median 38.20)."""
+    from diffshadow.stages.stage1 import median_below_target
+
+    missed = Choice(42.0, [{"width": 64, "steps": 8000, "points": 512, "psnr": 35.4},
+                           {"width": 128, "steps": 4000, "points": 1024, "psnr": 35.73}], 1, plateau=True).to_dict()
+    assert median_below_target(missed, 38.2) == (
+        "WARNING: stage-1 SIRENs reached a median 38.20 dB, below fit.target_psnr = 42 dB, which preoptimize's probe "
+        "light missed too (35.73 dB at width 128, 4000 steps of 1024 points; its log says why); lower "
+        "fit.target_psnr")
+    met = Choice(42.0, [{"width": 32, "steps": 8000, "points": 256, "psnr": 46.11}], 0).to_dict()
+    assert median_below_target(met, 41.25) == (
+        "WARNING: stage-1 SIRENs reached a median 41.25 dB, below fit.target_psnr = 42 dB that preoptimize's probe "
+        "light met; raise fit.steps or siren.width, or lower fit.target_psnr")
+    assert median_below_target(met, 42.0) is None
+    assert median_below_target({**met, "target_psnr": 0.0}, 20.0) is None
+    assert median_below_target(None, 20.0) is None

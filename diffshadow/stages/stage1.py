@@ -15,7 +15,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 from numpy.typing import ArrayLike
 
-from diffshadow.capacity import size_text
+from diffshadow.capacity import Choice, size_text
 from diffshadow.layout import SirenConfig
 from diffshadow.lights import (
     LightRegion,
@@ -32,7 +32,6 @@ from diffshadow.volume import extinction_id, load_prepared, save_prepared, scene
 if TYPE_CHECKING:
     import torch
 
-    from diffshadow.capacity import Choice
     from diffshadow.fit import FitConfig
 
 
@@ -187,7 +186,18 @@ def collect_weights(lights_path: Path, subset_paths: list[Path], out: Path) -> N
     print(f"wrote {out}: {len(train)} SIRENs of {store.layout.n_params} parameters; voxel PSNR median "
           f"{float(np.median(store.psnr)):.2f} dB, min {store.psnr.min():.2f} dB "
           f"(visible: median {float(np.median(store.psnr_visible)):.2f} dB)")
-    target = float((store.config.get("capacity") or {}).get("target_psnr") or 0.0)
-    if target > 0 and (median := float(np.median(store.psnr))) < target:
-        print(f"WARNING: stage-1 SIRENs reached a median {median:.2f} dB, below fit.target_psnr = {target:g} dB that "
-              f"preoptimize's probe light met; raise fit.steps or siren.width, or lower fit.target_psnr", flush=True)
+    if (line := median_below_target(store.config.get("capacity"), float(np.median(store.psnr)))) is not None:
+        print(line, flush=True)
+
+
+def median_below_target(capacity: dict | None, median: float) -> str | None:
+    """One line when the collected SIRENs' held-out median misses the target of preoptimize's size choice
+    (`capacity`, `Choice.to_dict`), saying whether the probe light itself met it."""
+    if not capacity or float(capacity["target_psnr"]) <= 0 or median >= float(capacity["target_psnr"]):
+        return None
+    choice = Choice.from_dict(capacity)
+    head = f"WARNING: stage-1 SIRENs reached a median {median:.2f} dB, below fit.target_psnr = {choice.target:g} dB"
+    if choice.met:
+        return f"{head} that preoptimize's probe light met; raise fit.steps or siren.width, or lower fit.target_psnr"
+    return (f"{head}, which preoptimize's probe light missed too ({choice.chosen['psnr']:.2f} dB at "
+            f"{size_text(choice.chosen)}; its log says why); lower fit.target_psnr")
