@@ -193,7 +193,8 @@ def collect_weights(lights_path: Path, subset_paths: list[Path], out: Path) -> N
 def median_below_target(capacity: dict | None, median: float) -> str | None:
     """One line when the collected SIRENs' held-out median misses the target of preoptimize's size choice
     (`capacity`, `Choice.to_dict`), saying whether the probe light itself met it."""
-    if not capacity or float(capacity["target_psnr"]) <= 0 or median >= float(capacity["target_psnr"]):
+    target = float((capacity or {}).get("target_psnr") or 0.0)
+    if target <= 0 or median >= target:
         return None
     choice = Choice.from_dict(capacity)
     head = f"WARNING: stage-1 SIRENs reached a median {median:.2f} dB, below fit.target_psnr = {choice.target:g} dB"
