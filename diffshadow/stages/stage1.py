@@ -183,10 +183,11 @@ def collect_weights(lights_path: Path, subset_paths: list[Path], out: Path) -> N
     # the cache's light region travels with its SIRENs (and on, with the model trained on them)
     store.region = LightRegion.of(train, sets["unseen"], sets["center"]).to_dict()
     write_store(out, store, made_by="collect_weights")
+    median = float(np.median(store.psnr))
     print(f"wrote {out}: {len(train)} SIRENs of {store.layout.n_params} parameters; voxel PSNR median "
-          f"{float(np.median(store.psnr)):.2f} dB, min {store.psnr.min():.2f} dB "
+          f"{median:.2f} dB, min {store.psnr.min():.2f} dB "
           f"(visible: median {float(np.median(store.psnr_visible)):.2f} dB)")
-    if (line := median_below_target(store.config.get("capacity"), float(np.median(store.psnr)))) is not None:
+    if (line := median_below_target(store.config.get("capacity"), median)) is not None:
         print(line, flush=True)
 
 
