@@ -194,10 +194,11 @@ def collect_weights(lights_path: Path, subset_paths: list[Path], out: Path) -> N
 def median_below_target(capacity: dict | None, median: float) -> str | None:
     """One line when the collected SIRENs' held-out median misses the target of preoptimize's size choice
     (`capacity`, `Choice.to_dict`), saying whether the probe light itself met it."""
-    target = float((capacity or {}).get("target_psnr") or 0.0)
-    if target <= 0 or median >= target:
+    if not (capacity or {}).get("target_psnr"):  # a store without a size choice, or one without a target
         return None
     choice = Choice.from_dict(capacity)
+    if choice.target <= 0 or median >= choice.target:
+        return None
     head = f"WARNING: stage-1 SIRENs reached a median {median:.2f} dB, below fit.target_psnr = {choice.target:g} dB"
     if choice.met:
         return f"{head} that preoptimize's probe light met; raise fit.steps or siren.width, or lower fit.target_psnr"
