@@ -752,7 +752,10 @@ class PoolLights:
 
     def x0(self, z_all: torch.Tensor, j: torch.Tensor) -> torch.Tensor:
         """The x0 targets (B, n_params) of pool lights `j`: their blends of the standardised training weights."""
-        return (z_all[self.neighbours[j]] * self.blend[j][..., None]).sum(1)
+        # index_select, not z_all[index]: its backward (the fit's blend loss) adds the rows in index order at any
+        # thread count, where indexing's accumulating index_put differs between runs on two threads
+        rows = self.neighbours[j]
+        return (z_all.index_select(0, rows.reshape(-1)).view(*rows.shape, -1) * self.blend[j][..., None]).sum(1)
 
     def samples(self, j: torch.Tensor, pick: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """Points (B, G, 3) and exact shadow (B, G) of pool lights `j` at their presampled points `pick` (B, G)."""

@@ -562,3 +562,28 @@ def test_auto_keeps_the_smaller_of_grids_and_table(monkeypatch):
         FitConfig.from_config(dict(target_store="table", shared_points=False))
     with pytest.raises(ValueError, match="^fit.target_store: expected one of auto, grids, table, got 'disk'$"):
         FitConfig.from_config(dict(target_store="disk"))
+
+
+def test_a_fit_with_the_blend_loss_writes_the_same_bytes_on_one_thread_and_on_two(scene):
+    """The blend loss gathers each pool light's training SIRENs; the gather's backward adds their gradients in
+    index order on any number of threads, so a fit's threads (the workflow's choice) change no byte. (Indexing
+    instead added them from both threads at once: other bytes on two threads, and other bytes between runs.)"""
+    from diffshadow.fit import blend_pool
+
+    vol, tf, _ = scene
+    train, center = _cap_lights()
+    siren = SirenConfig(32, 2)  # a gradient large enough that PyTorch splits its scatter over threads
+    layout = WeightLayout.for_siren(siren)
+    start = layout.flatten(init_siren(siren, torch.Generator().manual_seed(0)))
+    fit = FitConfig.from_config(dict(steps=6, points=64, eval_points=16, blend_weight=1.0, blend_per_light=8,
+                                     blend_points=32))
+    pool = blend_pool(vol, tf, train, center, list(range(len(train))), fit)
+    threads = torch.get_num_threads()
+    try:
+        fitted = []
+        for n in (1, 2, 2):
+            torch.set_num_threads(n)
+            fitted.append(fit_sirens(start, layout, siren, vol, tf, train, fit, pool=pool, log=lambda *a: None))
+    finally:
+        torch.set_num_threads(threads)
+    assert torch.equal(fitted[0], fitted[1]) and torch.equal(fitted[1], fitted[2])

@@ -105,6 +105,16 @@ def fit_group(wildcards):
     return f"siren{rounds[subset] if subset < len(rounds) else 0}"
 
 
+def fit_threads(wildcards):
+    """fit_siren's threads: two (one on a GPU) where no other subset of its round can run beside it, as in a scene
+    of one subset, else one, so that a round's subsets fit side by side. Its bytes are the same on any number
+    (tests/test_fit.py -k one_thread_and_on_two)."""
+    rounds = _rounds(wildcards.scene)[0]
+    subset = int(wildcards.subset)
+    alone = subset >= len(rounds) or rounds.count(rounds[subset]) == 1
+    return device_threads(2) if alone else 1
+
+
 def subset_files(wildcards):
     return expand("results/{scene}/sirens/subset_{subset}.npz", scene=wildcards.scene,
                   subset=range(n_subsets(wildcards.scene)))

@@ -55,7 +55,7 @@ rule fit_siren:
         subset=r"\d+",
     group:
         fit_group  # on a cluster only; Polaris packs four of a round to a node
-    threads: 1
+    threads: fit_threads
     priority: 10
     log:
         "results/{scene}/logs/fit_siren_{subset}.log",
