@@ -491,6 +491,7 @@ def fit_sirens(
     held: torch.Tensor | None = None,
     device: torch.device | str = "cpu",
     log: Callable[[str], None] = print,
+    between_steps: Callable[[], object] | None = None,
 ) -> torch.Tensor:
     """Fit K = len(lights) SIRENs jointly from `init` (n_params,) → (K, n_params) float32.
 
@@ -499,6 +500,7 @@ def fit_sirens(
     the points of step s depend only on (seed, stream, s)). With `pool` (`blend_pool`), each step also
     scores K of its lights, at half as many points as a SIREN gets, with their blends of these SIRENs'
     weights, weighted by `cfg.blend_weight`; its blends' rows past K are `held` (H, n_params), not fitted.
+    `between_steps` is called after every step.
     """
     device = torch.device(device)
     lights = np.asarray(lights, dtype=np.float64)
@@ -522,6 +524,8 @@ def fit_sirens(
     with stop_signals(checkpoint is not None) as stop:
         for step in range(start, cfg.steps):
             watch.record(run.step(step), step)
+            if between_steps is not None:  # e.g. runtime.SpareThreads.poll: the step's threads change no byte
+                between_steps()
             done = step + 1
             stopping = stop.requested and done < cfg.steps
             saving = checkpoint is not None and (done % cfg.checkpoint_every == 0 and done < cfg.steps or stopping)

@@ -42,6 +42,9 @@ GPU_DRIVER_FILES = ("/proc/driver/nvidia", "/dev/kfd", "/dev/dxg")
 # Strict conditional numerical reproducibility fixes the split and keeps the fastest code path (docs/numerics.md);
 # MKL reads it at its first call. A user's own MKL_CBWR wins.
 JOB_ENVIRONMENT = {"MKL_CBWR": "AUTO,STRICT"}
+# the cores of the workflow's run (Snakemake's -jN), in its jobs' environment: what a job may borrow while they idle
+# (runtime.SpareThreads), where the scheduler counted it at fewer
+RUN_CORES_ENV = "DIFFSHADOW_RUN_CORES"
 
 # How every rule's command ends: its output to the terminal and to the rule's log. `tee` ignores SIGINT and SIGTERM,
 # which Ctrl-C and PBS (a walltime, a preemption) send to every process of a job, so that the job's last line, where

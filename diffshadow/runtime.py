@@ -12,6 +12,7 @@ import contextlib
 import ctypes
 import datetime
 import os
+import time
 from collections.abc import Iterator
 from dataclasses import dataclass
 
@@ -148,6 +149,66 @@ def set_threads(n: int) -> None:
     if n:
         torch.set_num_threads(n)
         threadpoolctl.threadpool_limits(n, user_api="blas")  # the loaded ones: numpy's is, imported above
+
+
+def _busy_seconds(cpus: set[int]) -> float | None:
+    """CPU seconds spent busy so far on `cpus`, from Linux's /proc/stat (None where it cannot be read)."""
+    try:
+        lines = open("/proc/stat").read().splitlines()
+    except OSError:
+        return None
+    ticks = 0
+    for line in lines:
+        name, *fields = line.split()
+        if name.startswith("cpu") and name[3:].isdigit() and int(name[3:]) in cpus:
+            # user nice system idle iowait irq softirq steal: all but idle and iowait
+            values = [int(v) for v in fields[:8]]
+            ticks += sum(values) - values[3] - values[4]
+    return ticks / os.sysconf("SC_CLK_TCK")
+
+
+class SpareThreads:
+    """A job's torch threads raised from `own`, what the scheduler gave it, up to `most` while this machine's other
+    cores idle, and lowered again once another process computes: for a job whose bytes do not depend on its threads
+    (fit_siren: tests/test_fit.py -k one_thread_and_on_two). Snakemake then starts it on one thread beside the side
+    jobs, and it takes the cores they leave. `poll` between steps reads /proc/stat at most every `interval_s`;
+    without it (not Linux) the job keeps `own`."""
+
+    def __init__(self, own: int, most: int, interval_s: float = 1.0):
+        self.own, self.most, self.interval_s = own, max(own, most), interval_s
+        self.threads = own
+        self.cpus = os.sched_getaffinity(0) if hasattr(os, "sched_getaffinity") else set(range(os.cpu_count() or 1))
+        self.raised_s = 0.0  # seconds spent above `own`, for the job's log
+        self._last = self._sample() if self.most > own else None
+
+    def _sample(self) -> tuple[float, float, float] | None:
+        busy = _busy_seconds(self.cpus)
+        return None if busy is None else (time.monotonic(), busy, time.process_time())
+
+    def poll(self) -> None:
+        if self._last is None or time.monotonic() - self._last[0] < self.interval_s:
+            return
+        now = self._sample()
+        if now is None:
+            self._last = None
+            return
+        wall = now[0] - self._last[0]
+        if self.threads > self.own:
+            self.raised_s += wall
+        # cores busy outside this process over the interval; a core is spare where it stayed (nearly) idle
+        others = max(0.0, (now[1] - self._last[1]) - (now[2] - self._last[2])) / wall
+        self._last = now
+        self._set(min(self.most, max(self.own, int(len(self.cpus) - others + 0.25))))
+
+    def release(self) -> None:
+        """Back to `own` threads, where the job's steps end."""
+        self._last = None
+        self._set(self.own)
+
+    def _set(self, threads: int) -> None:
+        if threads != self.threads:
+            self.threads = threads
+            torch.set_num_threads(threads)
 
 
 def claim_gpu_lock(command: str) -> None:

@@ -628,3 +628,39 @@ def test_the_commands_said_to_resume_are_commands():
 
     sub = next(a for a in build_parser()._actions if a.dest == "command")
     assert config.RESUMABLE <= set(sub.choices), config.RESUMABLE - set(sub.choices)
+
+
+def test_spare_threads_take_the_cores_other_processes_leave_idle_and_give_them_back(monkeypatch):
+    """fit_siren's threads follow the machine: raised to `most` while the other cores idle, back to its own as
+    soon as another process computes, and left alone where /proc/stat cannot be read."""
+    from diffshadow import runtime
+
+    clock = {"t": 0.0, "busy": 0.0, "own": 0.0}
+    monkeypatch.setattr(runtime.time, "monotonic", lambda: clock["t"])
+    monkeypatch.setattr(runtime.time, "process_time", lambda: clock["own"])
+    monkeypatch.setattr(runtime, "_busy_seconds", lambda cpus: clock["busy"])
+    monkeypatch.setattr(runtime.os, "sched_getaffinity", lambda pid: {0, 1}, raising=False)
+    set_to = []
+    monkeypatch.setattr(runtime.torch, "set_num_threads", set_to.append)
+
+    def second(own_cores: float, other_cores: float) -> int:
+        clock["t"] += 1.0
+        clock["own"] += own_cores
+        clock["busy"] += own_cores + other_cores
+        spare.poll()
+        return spare.threads
+
+    spare = runtime.SpareThreads(1, 2)
+    assert second(1.0, 1.0) == 1  # a side job on the other core
+    assert second(1.0, 0.05) == 2  # it ended: Snakemake's own polling is no job
+    clock["t"] += 0.5
+    spare.poll()  # polled twice a second: read once
+    assert second(1.6, 0.0) == 2 and spare.raised_s == 1.5  # raised since the last reading
+    assert second(1.3, 0.7) == 1  # another process started
+    assert set_to == [2, 1]
+    spare.release()
+    assert spare.threads == 1 and set_to == [2, 1]
+
+    monkeypatch.setattr(runtime, "_busy_seconds", lambda cpus: None)  # not Linux
+    spare = runtime.SpareThreads(1, 2)
+    assert second(1.0, 0.0) == 1 and set_to == [2, 1]

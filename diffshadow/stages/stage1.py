@@ -33,6 +33,7 @@ if TYPE_CHECKING:
     import torch
 
     from diffshadow.fit import FitConfig
+    from diffshadow.runtime import SpareThreads
 
 
 def heldout_seed(fit: FitConfig, subset: int) -> int:
@@ -73,9 +74,11 @@ def preoptimize(volume_path: Path, lights_path: Path, out: Path, *, siren: Siren
 
 
 def fit_subset(volume_path: Path, lights_path: Path, init_path: Path, subset: int, out: Path, *,
-               siren: SirenConfig, fit: FitConfig, subset_size: int, config: dict, device: torch.device) -> None:
+               siren: SirenConfig, fit: FitConfig, subset_size: int, config: dict, device: torch.device,
+               spare: SpareThreads | None = None) -> None:
     """The SIRENs of one light subset, fitted jointly and checked on held-out points (resumable). Under
-    `fit.rounds` it reads the files of the earlier rounds' subsets it holds (`seams.held_subsets`) beside `out`."""
+    `fit.rounds` it reads the files of the earlier rounds' subsets it holds (`seams.held_subsets`) beside `out`.
+    With `spare`, the fit's steps take the cores other jobs leave idle (the same bytes on any threads)."""
     from diffshadow import artifacts
     from diffshadow.fit import (
         FitError,
@@ -118,12 +121,19 @@ def fit_subset(volume_path: Path, lights_path: Path, init_path: Path, subset: in
     if pool is not None:
         print(f"blend loss: {len(pool.lights)} pool lights with exact shadows at {fit.blend_points} points each "
               f"({time.perf_counter() - t0:.0f} s), weight {fit.blend_weight:g}", flush=True)
+    t0 = time.perf_counter()
     try:
         weights = fit_sirens(init, layout, siren, volume, tf, train[fitted], fit, stream=subset, light_index=fitted,
                              checkpoint=out.with_name(out.name + ".ckpt"), pool=pool, held=held_weights,
-                             device=device)[:len(idx)]
+                             device=device, between_steps=spare.poll if spare is not None else None)[:len(idx)]
     except FitError as e:
         raise FitError(f"{where}, lights {lights_path}): {e}") from None
+    finally:
+        if spare is not None:
+            spare.release()
+    if spare is not None:
+        print(f"fitted on {spare.own} thread(s), {spare.most} for {spare.raised_s:.0f} s of its "
+              f"{time.perf_counter() - t0:.0f} s (while the run's other cores idled)", flush=True)
     box, vis = evaluate_psnr(weights, layout, siren, volume, tf, train[idx], n_points=fit.eval_points,
                              seed=heldout_seed(fit, subset), device=device)
     if fit.min_psnr > 0:

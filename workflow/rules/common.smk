@@ -10,6 +10,7 @@ from diffshadow.config import stage1_json as _stage1_json
 from diffshadow.diffusion.mix import model_alone as _model_alone
 from diffshadow.hpc import JOB_ENVIRONMENT as _JOB_ENVIRONMENT
 from diffshadow.hpc import JOB_LOG as _JOB_LOG
+from diffshadow.hpc import RUN_CORES_ENV as _RUN_CORES_ENV
 from diffshadow.hpc import job_threads as _job_threads
 from diffshadow.hpc import kernel_cache_environment as _kernel_cache_environment
 from diffshadow.hpc import run_gpus as _run_gpus
@@ -26,6 +27,11 @@ _SCENES = {}
 # finetune_render's DDP processes. A PBS job parses this file again, so it gets them too.
 os.environ.update(DIFFSHADOW_CONFIG_DEVICE=config.get("device", "auto"),
                   DIFFSHADOW_TORCHRUN=config.get("torchrun", "diffshadow torchrun --standalone"))
+# the run's cores, which fit_siren borrows while they idle (runtime.SpareThreads: the same bytes on any threads)
+try:
+    os.environ[_RUN_CORES_ENV] = str(workflow.cores)
+except WorkflowError:  # no core count given (a dry run, a cluster's jobs): nothing to borrow
+    os.environ.pop(_RUN_CORES_ENV, None)
 # MKL in strict reproducible mode, so a job's bytes do not depend on its thread count (a user's own setting wins)
 for _key, _value in _JOB_ENVIRONMENT.items():
     os.environ.setdefault(_key, _value)
@@ -103,16 +109,6 @@ def fit_group(wildcards):
     rounds = _rounds(wildcards.scene)[0]
     subset = int(wildcards.subset)
     return f"siren{rounds[subset] if subset < len(rounds) else 0}"
-
-
-def fit_threads(wildcards):
-    """fit_siren's threads: two (one on a GPU) where no other subset of its round can run beside it, as in a scene
-    of one subset, else one, so that a round's subsets fit side by side. Its bytes are the same on any number
-    (tests/test_fit.py -k one_thread_and_on_two)."""
-    rounds = _rounds(wildcards.scene)[0]
-    subset = int(wildcards.subset)
-    alone = subset >= len(rounds) or rounds.count(rounds[subset]) == 1
-    return device_threads(2) if alone else 1
 
 
 def subset_files(wildcards):

@@ -55,7 +55,7 @@ rule fit_siren:
         subset=r"\d+",
     group:
         fit_group  # on a cluster only; Polaris packs four of a round to a node
-    threads: fit_threads
+    threads: 1  # and up to two while the run's other core idles (runtime.SpareThreads; the same bytes)
     priority: 10
     log:
         "results/{scene}/logs/fit_siren_{subset}.log",
