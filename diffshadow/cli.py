@@ -65,7 +65,7 @@ def _fit_siren(a: argparse.Namespace):
     if device.type == "cpu" and cores.isdigit() and min(2, int(cores)) > a.threads:
         from diffshadow.runtime import SpareThreads
 
-        # two threads at most: what the fit's bytes were checked on and its step gains from (1.63x on the README run)
+        # two threads at most: what the fit's bytes were checked on, and 1.46x a step on the README run's sizes
         spare = SpareThreads(a.threads, min(2, int(cores)))
     stage1.fit_subset(Path(a.volume), Path(a.lights), Path(a.init), a.subset, Path(a.out), **_stage1_configs(cfg),
                       subset_size=int(cfg["subset_size"]), config=cfg, device=device, spare=spare)

@@ -154,15 +154,16 @@ def set_threads(n: int) -> None:
 def _busy_seconds(cpus: set[int]) -> float | None:
     """CPU seconds spent busy so far on `cpus`, from Linux's /proc/stat (None where it cannot be read)."""
     try:
-        lines = open("/proc/stat").read().splitlines()
+        with open("/proc/stat") as f:
+            lines = f.read().splitlines()
     except OSError:
         return None
     ticks = 0
     for line in lines:
-        name, *fields = line.split()
+        name, _, rest = line.partition(" ")
         if name.startswith("cpu") and name[3:].isdigit() and int(name[3:]) in cpus:
             # user nice system idle iowait irq softirq steal: all but idle and iowait
-            values = [int(v) for v in fields[:8]]
+            values = [int(v) for v in rest.split()[:8]]
             ticks += sum(values) - values[3] - values[4]
     return ticks / os.sysconf("SC_CLK_TCK")
 
@@ -170,8 +171,8 @@ def _busy_seconds(cpus: set[int]) -> float | None:
 class SpareThreads:
     """A job's torch threads raised from `own`, what the scheduler gave it, up to `most` while this machine's other
     cores idle, and lowered again once another process computes: for a job whose bytes do not depend on its threads
-    (fit_siren: tests/test_fit.py -k one_thread_and_on_two). Snakemake then starts it on one thread beside the side
-    jobs, and it takes the cores they leave. `poll` between steps reads /proc/stat at most every `interval_s`;
+    (fit_siren: tests/test_fit.py -k one_thread_and_on_two). A scheduler can then start it on `own` threads beside
+    other jobs, and it takes the cores they leave. `poll` between steps reads /proc/stat at most every `interval_s`;
     without it (not Linux) the job keeps `own`."""
 
     def __init__(self, own: int, most: int, interval_s: float = 1.0):
