@@ -62,11 +62,12 @@ def _fit_siren(a: argparse.Namespace):
     cfg = _cfg(a)
     device, spare = _device(a), None
     cores = os.environ.get(hpc.RUN_CORES_ENV, "")
-    if device.type == "cpu" and cores.isdigit() and min(2, int(cores)) > a.threads:
+    # two threads at most: what the fit's bytes were checked on, and 1.46x a step on the README run's sizes
+    most = min(2, int(cores)) if cores.isdigit() else 0
+    if device.type == "cpu" and most > a.threads:
         from diffshadow.runtime import SpareThreads
 
-        # two threads at most: what the fit's bytes were checked on, and 1.46x a step on the README run's sizes
-        spare = SpareThreads(a.threads, min(2, int(cores)))
+        spare = SpareThreads(a.threads, most)
     stage1.fit_subset(Path(a.volume), Path(a.lights), Path(a.init), a.subset, Path(a.out), **_stage1_configs(cfg),
                       subset_size=int(cfg["subset_size"]), config=cfg, device=device, spare=spare)
 

@@ -9,7 +9,7 @@ rule train_data_inr:
     params:
         cfg=lambda wc: as_json(wc.scene, "data_inr"),
     threads: 1  # small batches: a second thread sped it up 1.04x (23.9 -> 23.1 s); the core goes to a side job
-    # first of the side jobs, beside preoptimize: naive_images waits on it, and fit_siren, on two threads, on them
+    # first of the side jobs: naive_images, the longest, waits on it, and fit_siren borrows their core once they end
     priority: 6
     log:
         "results/{scene}/logs/train_data_inr.log",
@@ -31,9 +31,9 @@ rule naive_images:
         directory("results/{scene}/naive_images.zarr"),
     params:
         cfg=lambda wc: as_json(wc.scene, "render"),
-    # the slowest of evaluate_images' renders (48 of its 74 s on 2 cores), needing no SIREN: on a core that
-    # would idle while fit_siren runs, instead of after stage 2; the longest side job, so before the other side
-    # jobs that have no priority, and after presample and render_targets, which the chain reads (on a GPU in time)
+    # the slowest of evaluate_images' renders (48 of its 74 s on 2 cores), needing no SIREN: beside fit_siren,
+    # instead of after stage 2; the longest side job, so before the other side jobs that have no priority, and
+    # after presample and render_targets, which the chain reads (on a GPU in time)
     threads: 1
     priority: 1
     log:
