@@ -266,8 +266,9 @@ def load_run(configfile: str | Path | None = None) -> dict:
 # fit.cuda_graph and data_inr.cuda_graph likewise (False before a GPU timed them, "auto" since), and
 # finetune.cuda_graph (False, untimed on a GPU: its step records False off CUDA whatever was asked); fit.target_store
 # changes where the targets are kept, not their values; render.warm_kernels (true, its default) when the kernels
-# compile, not what they draw (false is passed on: the jobs must receive it).
-UNCHANGED_WHEN = {("diffusion", "precision"): ("float32",), ("diffusion", "cuda_graph"): ("auto", False),
+# compile, not what they draw (false is passed on: the jobs must receive it). diffusion.precision "auto" (its default
+# since 2026-12-06) as cuda_graph's: a run finished in float32 keeps its weights, whose checkpoint says float32.
+UNCHANGED_WHEN = {("diffusion", "precision"): ("auto", "float32"), ("diffusion", "cuda_graph"): ("auto", False),
                   ("fit", "cuda_graph"): ("auto", False), ("data_inr", "cuda_graph"): ("auto", False),
                   ("finetune", "cuda_graph"): (False,), ("fit", "target_store"): ("auto",),
                   ("render", "warm_kernels"): (True,)}

@@ -57,8 +57,9 @@ def test_a_key_given_twice_and_a_yaml_mistake_are_named_with_their_line(tmp_path
 
 
 def test_a_setting_added_at_its_old_behaviour_stays_out_of_the_params_so_finished_runs_rerun_nothing():
-    """diffusion.precision and the four cuda_graph settings came after runs existed: at their defaults (float32;
-    "auto", which on a CPU does what those runs did; finetune's False) and at what those runs did (no graph), a job's
+    """diffusion.precision and the four cuda_graph settings came after runs existed: at their defaults ("auto",
+    which leaves a finished run's float32 or eager weights as they are; finetune's False) and at what those runs did
+    (float32, no graph), a job's
     params are the JSON they had before them, and the job still reads those values; another value is in the params
     (a changed param reruns the job)."""
     import json
@@ -75,12 +76,13 @@ def test_a_setting_added_at_its_old_behaviour_stays_out_of_the_params_so_finishe
     assert not added & set(params["diffusion"]) and params["siren"] == run["siren"]
     assert {**params["diffusion"], **{key: run["diffusion"][key] for key in added}} == run["diffusion"]
     cfg = DiffusionConfig.from_config(params["diffusion"])
-    assert (cfg.precision, cfg.cuda_graph) == ("float32", "auto")
+    assert (cfg.precision, cfg.cuda_graph) == ("auto", "auto")
     run["diffusion"].update(precision="bfloat16", cuda_graph=True)
     assert {key: json.loads(as_json(run, "diffusion"))["diffusion"][key] for key in added} == {
         "precision": "bfloat16", "cuda_graph": True}
     assert changed_settings("diffusion", {"cuda_graph": False, "lr": 1.0}) == {"lr": 1.0}
     assert changed_settings("diffusion", {"cuda_graph": "auto", "precision": "float32"}) == {}
+    assert changed_settings("diffusion", {"precision": "auto"}) == {}
     assert changed_settings("diffusion", {"cuda_graph": 0}) == {"cuda_graph": 0}  # not False: the schema's error
     assert changed_settings("fit", {"cuda_graph": False}) == {}  # fit.cuda_graph came later: False before
     assert changed_settings("data_inr", {"cuda_graph": "auto"}) == {}  # and "auto" since a GPU timed it
@@ -88,7 +90,7 @@ def test_a_setting_added_at_its_old_behaviour_stays_out_of_the_params_so_finishe
     assert "cuda_graph" not in json.loads(as_json(load_run(None), "fit"))["fit"]
     assert "cuda_graph" not in json.loads(as_json(load_run(None), "finetune"))["finetune"]  # False until timed
     assert changed_settings("finetune", {"cuda_graph": "auto"}) == {"cuda_graph": "auto"}  # graphs on CUDA: asked
-    assert load_run(None)["diffusion"]["precision"] == "float32"  # a run's change stays in that run
+    assert load_run(None)["diffusion"]["precision"] == "auto"  # a run's change stays in that run
 
 
 def test_changing_one_run_config_leaves_the_defaults_of_the_next():

@@ -185,8 +185,9 @@ def tiny_data(n=4):
                         check=(torch.rand(48, 3, generator=gen), torch.rand(n, 48, generator=gen)))
 
 
+# float32 products on every CPU ("auto" is bfloat16 on some): the tests' exact values are float32's
 CFG = DiffusionConfig.from_config(dict(preset="tiny", epochs=6, batch_size=2, geometry_points=16, checkpoint_every=2,
-                      lr_step_epochs=2, ema=0.9, pool_lights=0, target_gap=0.0))
+                      lr_step_epochs=2, ema=0.9, pool_lights=0, target_gap=0.0, precision="float32"))
 
 
 def test_ema_decay_warms_up_to_its_target():
@@ -485,12 +486,22 @@ def test_bfloat16_precision_runs_the_products_in_bfloat16_and_keeps_the_rest_flo
     with torch.no_grad():  # the output maps start at zero (a new model predicts the mean): give them weights
         for p in model.token_out.parameters():
             p.copy_(torch.randn(p.shape, generator=gen) * 0.1)
-    seen = []
+    seen, attention = [], []
     model.blocks[0].mlp.fc.register_forward_hook(lambda m, i, out: seen.append(out.dtype))
+    sdpa = torch.nn.functional.scaled_dot_product_attention
+
+    def recorded(q, k, v, **kw):
+        attention.append((q.dtype, k.dtype, v.dtype))
+        return sdpa(q, k, v, **kw)
+
     batch = draw_batch(gen, torch.arange(2), data, None, CFG, Schedule().steps, torch.device("cpu"))
-    out = {p: batch_loss(model, std, data, z_all, None, batch, dataclasses.replace(CFG, precision=p), Schedule())
-           for p in ("float32", "bfloat16")}
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setattr(torch.nn.functional, "scaled_dot_product_attention", recorded)
+        out = {p: batch_loss(model, std, data, z_all, None, batch, dataclasses.replace(CFG, precision=p), Schedule())
+               for p in ("float32", "bfloat16")}
     assert seen == [torch.float32, torch.bfloat16]
+    # the attention itself stays float32 on a CPU (its bfloat16 backward there is 6x slower), in both blocks
+    assert attention == [(torch.float32,) * 3] * (2 * len(model.blocks))
     pred32, pred16 = out["float32"][3], out["bfloat16"][3]
     assert pred16.dtype == torch.float32 and out["bfloat16"][0].dtype == torch.float32
     apart = (pred16 - pred32).abs().max()
@@ -501,5 +512,25 @@ def test_bfloat16_precision_runs_the_products_in_bfloat16_and_keeps_the_rest_flo
     assert all(v.dtype == torch.float32 for v in state["model"].values())
     old = {**state, "config": {k: v for k, v in state["config"].items() if k != "precision"}}
     assert DiffusionConfig.of_checkpoint(old).precision == "float32"
-    with pytest.raises(ValueError, match=r"diffusion.precision: expected one of float32, bfloat16, got 'half'"):
+    with pytest.raises(ValueError, match=r"diffusion.precision: expected auto or one of float32, bfloat16, got 'half'"):
         DiffusionConfig.from_config({"precision": "half"})
+
+
+def test_precision_auto_is_bfloat16_only_on_a_cpu_that_multiplies_it_natively(tmp_path, monkeypatch):
+    """`diffusion.precision: auto` (the default): bfloat16 where `native_bfloat16` says the CPU has bfloat16
+    products, float32 on other CPUs and on CUDA; a set precision is kept; the checkpoint and the log say which ran."""
+    from diffshadow.diffusion import config as diffusion_config
+
+    auto = dataclasses.replace(CFG, precision="auto")
+    assert DiffusionConfig.from_config({}).precision == "auto"
+    for native, want in ((True, "bfloat16"), (False, "float32")):
+        monkeypatch.setattr(diffusion_config, "native_bfloat16", lambda native=native: native)
+        assert auto.for_device(torch.device("cpu")).precision == want
+        assert auto.for_device(torch.device("cuda")).precision == "float32"
+        assert CFG.for_device(torch.device("cpu")).precision == "float32"
+        assert dataclasses.replace(CFG, precision="bfloat16").for_device(torch.device("cuda")).precision == "bfloat16"
+        msgs = []
+        state = train_diffusion(tiny_data(), dataclasses.replace(auto, epochs=1), tmp_path / f"{native}.ckpt",
+                                log=msgs.append)
+        assert state["config"]["precision"] == want
+        assert ("; bfloat16 products" in msgs[0]) is native, msgs[0]

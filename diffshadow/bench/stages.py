@@ -215,7 +215,7 @@ def _training_data(cfg: dict, volume, device: torch.device):
 
     dcfg = DiffusionConfig.from_config(cfg["diffusion"])
     siren = SirenConfig.from_config(cfg["siren"])
-    dcfg = dcfg.for_siren(siren.width)
+    dcfg = dcfg.for_siren(siren.width).for_device(device)
     layout = WeightLayout.for_siren(siren)
     n, g = int(cfg["lights"]["count"]), torch.Generator().manual_seed(2)
     extent = torch.as_tensor(volume.extent, dtype=torch.float32)

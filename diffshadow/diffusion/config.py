@@ -51,7 +51,8 @@ class DiffusionConfig:
     target_gap: float
     max_epochs: int
     # the training forward's matrix products: "bfloat16" runs them under autocast (losses, SIRENs and the optimiser
-    # stay float32); sampling always runs float32
+    # stay float32); sampling always runs float32. "auto": bfloat16 on a CPU with native bfloat16 products, else
+    # float32 (for_device); a checkpoint records the precision its steps ran in
     precision: str
     # the optimizer step as a replayed CUDA graph (diffshadow.graphs): one launch for its ~420 kernels at the
     # README's sizes. "auto": where the device is CUDA; True: also asked for elsewhere (the step then runs eagerly,
@@ -64,9 +65,20 @@ class DiffusionConfig:
         cfg = section(cls, "diffusion", d)
         if cfg.preset not in PRESETS and cfg.preset != "auto":
             raise ValueError(f"diffusion.preset: expected auto or one of {sorted(PRESETS)}, got {cfg.preset!r}")
-        if cfg.precision not in PRECISIONS:
-            raise ValueError(f"diffusion.precision: expected one of {', '.join(PRECISIONS)}, got {cfg.precision!r}")
+        if cfg.precision not in (*PRECISIONS, "auto"):
+            raise ValueError(f"diffusion.precision: expected auto or one of {', '.join(PRECISIONS)}, "
+                             f"got {cfg.precision!r}")
         return cfg
+
+    def for_device(self, device: torch.device) -> DiffusionConfig:
+        """This config with `precision: auto` made concrete for `device`: bfloat16 on a CPU whose kernels have
+        native bfloat16 products (`native_bfloat16`), where the README's geometry stage took 0.8x float32's time
+        for the same quality (docs/performance.md); float32 on other CPUs, which emulate bfloat16, and on CUDA,
+        where bfloat16 is not yet the default (timed at the paper's sizes only). A set precision is kept."""
+        if self.precision != "auto":
+            return self
+        fast = device.type == "cpu" and native_bfloat16()
+        return dataclasses.replace(self, precision="bfloat16" if fast else "float32")
 
     def for_siren(self, width: int) -> DiffusionConfig:
         """This config with `preset: auto` made concrete for SIRENs of `width` (the smallest AUTO_PRESETS entry
@@ -79,8 +91,15 @@ class DiffusionConfig:
     @classmethod
     def of_checkpoint(cls, state: dict) -> DiffusionConfig:
         """The config a checkpoint was trained with; one written before `tensor_tokens` existed had one token
-        per tensor, whatever config.yaml says now."""
-        return cls.from_config({"tensor_tokens": 1, **state["config"]})
+        per tensor, and one before `precision` ran float32, whatever config.yaml says now."""
+        return cls.from_config({"tensor_tokens": 1, "precision": "float32", **state["config"]})
+
+
+def native_bfloat16() -> bool:
+    """Whether this CPU multiplies bfloat16 natively (AVX512-BF16 or AMX tiles): oneDNN's bfloat16 products there
+    took 0.47x float32's time at the small model's shapes; elsewhere it converts to float32 and gains nothing."""
+    cpu = torch.cpu
+    return any(getattr(cpu, name, lambda: False)() for name in ("_is_avx512_bf16_supported", "_is_amx_tile_supported"))
 
 
 def make_optimizer(params: Iterable[torch.Tensor], lr: float, weight_decay: float, *,

@@ -314,11 +314,12 @@ def train_diffusion(data: TrainingData, cfg: DiffusionConfig, checkpoint: Path, 
     `stop_after_epoch` ends the run early (as if killed after that epoch's checkpoint): tests use it.
     """
     device = torch.device(device)
-    cfg = cfg.for_siren(data.siren.width)
+    cfg = cfg.for_siren(data.siren.width).for_device(device)
     torch.manual_seed(cfg.seed)
     model = build_model(data.layout, cfg).to(device)
     log(f"weight-space transformer '{cfg.preset}': {model.n_params():,} parameters, "
-        f"{len(model.sizes)} weight tokens, {len(data.weights)} training lights")
+        f"{len(model.sizes)} weight tokens, {len(data.weights)} training lights"
+        + ("" if cfg.precision == "float32" else f"; {cfg.precision} products"))
     std = Standardizer.fit(data.layout, data.weights, cfg.standardize)
     z_all = std.standardize(data.weights).float().to(device)
     on_device = data.to(device)  # the training set moved once, not per step
