@@ -518,7 +518,8 @@ def test_bfloat16_precision_runs_the_products_in_bfloat16_and_keeps_the_rest_flo
 
 def test_precision_auto_is_bfloat16_only_on_a_cpu_that_multiplies_it_natively(tmp_path, monkeypatch):
     """`diffusion.precision: auto` (the default): bfloat16 where `native_bfloat16` says the CPU has bfloat16
-    products, float32 on other CPUs and on CUDA; a set precision is kept; the checkpoint and the log say which ran."""
+    products, float32 on other CPUs and on CUDA; a set precision is kept; the checkpoint and the log say which ran;
+    a second training writes the same weights."""
     from diffshadow.diffusion import config as diffusion_config
 
     auto = dataclasses.replace(CFG, precision="auto")
@@ -534,3 +535,6 @@ def test_precision_auto_is_bfloat16_only_on_a_cpu_that_multiplies_it_natively(tm
                                 log=msgs.append)
         assert state["config"]["precision"] == want
         assert ("; bfloat16 products" in msgs[0]) is native, msgs[0]
+        again = train_diffusion(tiny_data(), dataclasses.replace(auto, epochs=1), tmp_path / f"{native}2.ckpt",
+                                log=lambda *a: None)
+        assert all(torch.equal(state["model"][k], again["model"][k]) for k in state["model"])  # same seed, same bytes
