@@ -87,11 +87,13 @@ class SelfAttention(nn.Module):
         dropout = self.dropout if self.training else 0.0
         if q.dtype == torch.bfloat16 and q.device.type == "cpu":
             # PyTorch's CPU attention backward in bfloat16 took 5x its float32 time (6.2 against 1.2 ms a call at the
-            # README's sizes): the bfloat16 step took 0.89x float32's with it, 0.78x with the attention in float32
+            # README's sizes): the bfloat16 step took 0.89x float32's with it, 0.78x with the attention in float32.
+            # Back in bfloat16 after it, for a bfloat16 copy of the model (half-precision sampling)
             with torch.autocast("cpu", enabled=False):
-                y = nn.functional.scaled_dot_product_attention(q.float(), k.float(), v.float(), dropout_p=dropout)
-            return self.proj(y.transpose(1, 2).reshape(b, t, c))
-        y = nn.functional.scaled_dot_product_attention(q, k, v, dropout_p=dropout)
+                y = nn.functional.scaled_dot_product_attention(q.float(), k.float(), v.float(),
+                                                               dropout_p=dropout).to(q.dtype)
+        else:
+            y = nn.functional.scaled_dot_product_attention(q, k, v, dropout_p=dropout)
         return self.proj(y.transpose(1, 2).reshape(b, t, c))
 
 
