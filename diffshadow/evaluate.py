@@ -292,8 +292,10 @@ def _with_model(result: dict, model: WeightTransformer, std: Standardizer, cfg: 
                 state: dict) -> dict:
     """`result` with the diffusion model's size, how long its geometry stage trained, and the cache's bytes."""
     mc = model.cfg
+    # the training forward's precision as it ran (`diffusion.precision: auto` resolves per machine); float32 before
     result["diffusion_model"] = {"preset": cfg["preset"], "layers": mc.n_layer, "width": mc.n_embd,
-                                 "parameters": model.n_params(), "siren_width": siren.width}
+                                 "parameters": model.n_params(), "siren_width": siren.width,
+                                 "precision": cfg.get("precision", "float32")}
     growth = state.get("growth")
     if growth:  # how long the geometry stage trained and why it stopped (diffusion.target_gap)
         result["diffusion_model"].update(epochs=growth.get("epochs"), stopped=growth.get("reason"),

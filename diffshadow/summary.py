@@ -180,7 +180,9 @@ class RunResults:
         if dm:
             rows.append(("diffusion model", f"'{dm['preset']}': {dm['layers']} blocks of width {dm['width']}, "
                          f"{dm['parameters']:,} parameters (for SIRENs of width {dm['siren_width']})"
-                         + (f"; {dm['epochs']} epochs: {dm['stopped']}" if dm.get("epochs") else "")))
+                         + (f"; {dm['epochs']} epochs: {dm['stopped']}" if dm.get("epochs") else "")
+                         + (f"; trained with {dm['precision']} products" if dm.get("precision", "float32")
+                            != "float32" else "")))
         return rows
 
     def _fps(self) -> str:

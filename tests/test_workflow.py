@@ -122,6 +122,8 @@ def test_stage2_outputs(finished):
     assert metrics["diffusion_model"]["preset"] == "tiny" and metrics["diffusion_model"]["parameters"] > 0
     # the seen-light gap measured after three epochs, and every epoch after it that was trained (up to 5)
     dm = metrics["diffusion_model"]
+    from diffshadow.diffusion.config import native_bfloat16
+    assert dm["precision"] == ("bfloat16" if native_bfloat16() else "float32")  # `auto` as this CPU resolved it
     assert 3 <= dm["epochs"] <= 5 and [c["epoch"] for c in dm["gap_checks"]] == list(range(3, dm["epochs"] + 1))
     assert "within the target" in dm["stopped"] or "max_epochs" in dm["stopped"]
     generated = open_store(finished / "results/nucleon/generated.zarr")
@@ -1118,6 +1120,7 @@ def test_report_front_page_has_the_runs_numbers(finished):
     row = f"<td>unseen</td><td>{pool} pool lights (exact shadows, no fitted SIREN) in training</td><td></td><td></td>"
     assert row in tables
     assert f"{voxel['diffusion_model']['epochs']} epochs: {voxel['diffusion_model']['stopped']}" in page
+    assert ("trained with bfloat16 products" in page) is (voxel["diffusion_model"]["precision"] == "bfloat16")
     costs = {line.split("\t")[0]: line.split("\t") for line in (res / "stage_costs.tsv").read_text().splitlines()}
     assert f"{float(costs['elapsed (a job running)'][2]) / 60:.1f} min elapsed" in page  # the run's own wall time
     # two unseen lights: a median is their mean, so the median change is exactly the change of the medians (of the
