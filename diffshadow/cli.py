@@ -56,20 +56,14 @@ def _preoptimize(a: argparse.Namespace):
 
 
 def _fit_siren(a: argparse.Namespace):
-    from diffshadow import hpc
+    from diffshadow.runtime import SpareThreads
     from diffshadow.stages import stage1
 
     cfg = _cfg(a)
-    device, spare = _device(a), None
-    cores = os.environ.get(hpc.RUN_CORES_ENV, "")
-    # two threads at most: what the fit's bytes were checked on, and 1.46x a step on the README run's sizes
-    most = min(2, int(cores)) if cores.isdigit() else 0
-    if device.type == "cpu" and most > a.threads:
-        from diffshadow.runtime import SpareThreads
-
-        spare = SpareThreads(a.threads, most)
+    device = _device(a)
     stage1.fit_subset(Path(a.volume), Path(a.lights), Path(a.init), a.subset, Path(a.out), **_stage1_configs(cfg),
-                      subset_size=int(cfg["subset_size"]), config=cfg, device=device, spare=spare)
+                      subset_size=int(cfg["subset_size"]), config=cfg, device=device,
+                      spare=SpareThreads.for_run(a.threads, device))
 
 
 def _collect_weights(a: argparse.Namespace):

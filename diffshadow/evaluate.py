@@ -14,6 +14,7 @@ import numpy as np
 import torch
 from numpy.typing import ArrayLike
 
+from diffshadow.diffusion.config import DiffusionConfig
 from diffshadow.diffusion.mix import mix_weights
 from diffshadow.diffusion.sample import generate, load_sampler
 from diffshadow.hpc import device_name
@@ -292,10 +293,10 @@ def _with_model(result: dict, model: WeightTransformer, std: Standardizer, cfg: 
                 state: dict) -> dict:
     """`result` with the diffusion model's size, how long its geometry stage trained, and the cache's bytes."""
     mc = model.cfg
-    # the training forward's precision as it ran (`diffusion.precision: auto` resolves per machine); float32 before
+    # the training forward's precision as it ran (`diffusion.precision: auto` resolves per machine)
     result["diffusion_model"] = {"preset": cfg["preset"], "layers": mc.n_layer, "width": mc.n_embd,
                                  "parameters": model.n_params(), "siren_width": siren.width,
-                                 "precision": cfg.get("precision", "float32")}
+                                 "precision": DiffusionConfig.of_checkpoint(state).precision}
     growth = state.get("growth")
     if growth:  # how long the geometry stage trained and why it stopped (diffusion.target_gap)
         result["diffusion_model"].update(epochs=growth.get("epochs"), stopped=growth.get("reason"),

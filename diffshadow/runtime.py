@@ -182,6 +182,17 @@ class SpareThreads:
         self.raised_s = 0.0  # seconds spent above `own`, for the job's log
         self._last = self._sample() if self.most > own else None
 
+    @classmethod
+    def for_run(cls, own: int, device: torch.device, most: int = 2) -> SpareThreads | None:
+        """For a job on `own` threads of a workflow run whose cores (`hpc.RUN_CORES_ENV`, Snakemake's -jN) leave
+        it room: up to `most` of them (two: what fit_siren's bytes were checked on, 1.46x a step at the README
+        run's sizes); None on a GPU, outside a run, or with nothing to borrow."""
+        from diffshadow.hpc import RUN_CORES_ENV
+
+        cores = os.environ.get(RUN_CORES_ENV, "")
+        most = min(most, int(cores)) if cores.isdigit() else 0
+        return cls(own, most) if device.type == "cpu" and most > own else None
+
     def _sample(self) -> tuple[float, float, float] | None:
         busy = _busy_seconds(self.cpus)
         return None if busy is None else (time.monotonic(), busy, time.process_time())

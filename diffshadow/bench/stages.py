@@ -264,14 +264,9 @@ def train_diffusion(cfg: dict, device: torch.device, volume: Volume, tf: Transfe
     grows = dcfg.target_gap > 0 and dcfg.max_epochs > dcfg.epochs
     epochs = dcfg.max_epochs if grows else dcfg.epochs
     return Timed(step, f"step of {dcfg.batch_size} lights ({model.n_params():,}-parameter '{dcfg.preset}' model"
-                 f"{_products(dcfg)}{graphed})",
+                 f"{dcfg.products}{graphed})",
                  per_epoch * epochs, f"{per_epoch} steps per epoch x {epochs} epochs"
                  + (" (max_epochs: the gap check may stop sooner)" if grows else ""))
-
-
-def _products(dcfg) -> str:
-    """The training forward's precision where it is not float32, for a step's description."""
-    return "" if dcfg.precision == "float32" else f"; {dcfg.precision} products"
 
 
 def finetune_render(cfg: dict, device: torch.device, volume: Volume, tf: TransferFunction) -> Timed:
@@ -307,7 +302,7 @@ def finetune_render(cfg: dict, device: torch.device, volume: Volume, tf: Transfe
     per_epoch = math.ceil(n / fcfg.batch_size)
     return Timed(step, f"step of one process ({per_rank} of {fcfg.batch_size} lights; {fcfg.nproc} process"
                  f"{'es' if fcfg.nproc > 1 else ''}"
-                 f"{_products(dcfg)}{_captured(graphs, step)})",
+                 f"{dcfg.products}{_captured(graphs, step)})",
                  per_epoch * fcfg.epochs, f"{per_epoch} steps per epoch x {fcfg.epochs} epochs, each process in "
                  f"parallel (DDP's all-reduce not counted)")
 

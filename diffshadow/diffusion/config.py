@@ -70,6 +70,11 @@ class DiffusionConfig:
                              f"got {cfg.precision!r}")
         return cfg
 
+    @property
+    def products(self) -> str:
+        """The training forward's precision where it is not float32, as a description's tail ("" for float32)."""
+        return "" if self.precision == "float32" else f"; {self.precision} products"
+
     def for_device(self, device: torch.device) -> DiffusionConfig:
         """This config with `precision: auto` made concrete for `device`: bfloat16 on a CPU whose kernels have
         native bfloat16 products (`native_bfloat16`), where the README's geometry stage took 0.8x float32's time

@@ -318,8 +318,7 @@ def train_diffusion(data: TrainingData, cfg: DiffusionConfig, checkpoint: Path, 
     torch.manual_seed(cfg.seed)
     model = build_model(data.layout, cfg).to(device)
     log(f"weight-space transformer '{cfg.preset}': {model.n_params():,} parameters, "
-        f"{len(model.sizes)} weight tokens, {len(data.weights)} training lights"
-        + ("" if cfg.precision == "float32" else f"; {cfg.precision} products"))
+        f"{len(model.sizes)} weight tokens, {len(data.weights)} training lights{cfg.products}")
     std = Standardizer.fit(data.layout, data.weights, cfg.standardize)
     z_all = std.standardize(data.weights).float().to(device)
     on_device = data.to(device)  # the training set moved once, not per step
