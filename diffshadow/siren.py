@@ -17,11 +17,9 @@ import functools
 import math
 from typing import Protocol
 
-import numpy as np
 import torch
 from numpy.typing import ArrayLike
 from torch import nn
-from torch.autograd.function import once_differentiable
 
 from diffshadow.layout import SirenConfig, WeightLayout
 
@@ -104,48 +102,12 @@ def _linear(h: torch.Tensor, w: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
     return torch.baddbmm(b.unsqueeze(1), h, w.transpose(1, 2))  # (K, N, out)
 
 
-def _numpy_ufunc(f: np.ufunc, x: torch.Tensor) -> torch.Tensor:
-    """`f` of a float32 CPU tensor into a new one, on this thread (NumPy's loops are single-threaded)."""
-    x = x.detach().contiguous()
-    out = torch.empty_like(x)
-    with np.errstate(invalid="ignore"):  # inf in, NaN out, as torch.sin: the fit's divergence check reads it
-        f(x.numpy(), out=out.numpy())
-    return out
-
-
-class _NumpySine(torch.autograd.Function):
-    """sin with NumPy's sine forward and cosine backward; a second derivative raises (nothing here takes one)."""
-
-    @staticmethod
-    def forward(ctx, x: torch.Tensor) -> torch.Tensor:
-        ctx.save_for_backward(x)
-        return _numpy_ufunc(np.sin, x)
-
-    @staticmethod
-    @once_differentiable
-    def backward(ctx, grad: torch.Tensor) -> torch.Tensor:
-        (x,) = ctx.saved_tensors
-        return _numpy_ufunc(np.cos, x).mul_(grad)
-
-
-def sine(x: torch.Tensor) -> torch.Tensor:
-    """sin(x), the SIRENs' activation. A float32 tensor on a CPU takes NumPy's vectorised sine (and cosine for
-    the gradient): 2.4x PyTorch's speed per element on one thread here (0.55 against 1.3 ns), within 1.5 ULP where
-    PyTorch's is within 0.6, and on one thread whatever torch's count, so a value's bits depend on neither the
-    threads nor where it sits in the tensor. Elsewhere `torch.sin`. docs/performance.md, "The SIRENs' sine"."""
-    if x.device.type != "cpu" or x.dtype != torch.float32:
-        return torch.sin(x)
-    if x.requires_grad and torch.is_grad_enabled():
-        return _NumpySine.apply(x)
-    return _numpy_ufunc(np.sin, x)
-
-
 def forward_folded(layers: list[tuple[torch.Tensor, torch.Tensor]], x: torch.Tensor) -> torch.Tensor:
     """One SIREN (weights (out, in)) or K of them (weights (K, out, in), x (K, N, 3)) from `fold`'s layers."""
-    h = sine(_linear(x, *layers[0]))
+    h = torch.sin(_linear(x, *layers[0]))
     for i in range(1, len(layers) - 1, 2):
-        inner = sine(_linear(h, *layers[i]))
-        h = RES_WEIGHT * (h + sine(_linear(inner, *layers[i + 1])))
+        inner = torch.sin(_linear(h, *layers[i]))
+        h = RES_WEIGHT * (h + torch.sin(_linear(inner, *layers[i + 1])))
     return (0.5 * _linear(h, *layers[-1]) + 0.5).squeeze(-1)
 
 

@@ -1,4 +1,3 @@
-import numpy as np
 import pytest
 import torch
 
@@ -170,65 +169,3 @@ def test_training_evaluates_in_one_pass_so_its_gradients_sum_as_before(monkeypat
     rows.clear()
     BatchedSiren(w.requires_grad_(), layout, cfg.blocks)(x).sum().backward()
     assert rows == [3000]
-
-
-def _ulps(a: torch.Tensor, exact: torch.Tensor) -> float:
-    """Largest error of float32 `a` against float64 `exact`, in units of float32's spacing at `exact`."""
-    spacing = torch.from_numpy(np.spacing(exact.abs().float().numpy())).double()
-    return float(((a.double() - exact).abs() / spacing).max())
-
-
-@pytest.mark.parametrize("scale", [1.0, 30.0, 3000.0])
-def test_sine_is_sin_to_float32_rounding_and_its_gradient_is_cos(scale):
-    """`sine` (NumPy's sine on a CPU) against float64's sin and cos: within 2 ULP forward and in the gradient's
-    cosine, a strided input, the same values with and without autograd."""
-    from diffshadow.siren import sine
-
-    gen = torch.Generator().manual_seed(0)
-    x = torch.randn(64, 96, generator=gen) * scale
-    x64 = x.double()
-    assert _ulps(sine(x), torch.sin(x64)) <= 2.0
-    assert _ulps(sine(x.t()), torch.sin(x64.t())) <= 2.0  # not contiguous
-    leaf = x.clone().requires_grad_(True)
-    out = sine(leaf)
-    assert torch.equal(out.detach(), sine(x))
-    out.backward(torch.ones_like(out))
-    assert _ulps(leaf.grad, torch.cos(x64)) <= 2.0
-    g = torch.rand(64, 96, generator=gen) + 0.5
-    leaf.grad = None
-    sine(leaf).backward(g)
-    assert torch.allclose(leaf.grad.double(), torch.cos(x64) * g.double(), rtol=1e-6, atol=1e-7)
-
-
-def test_sine_passes_nan_on_silently_and_other_dtypes_to_torch():
-    """A diverged fit's inf gives NaN (read by the fit's divergence check) without a NumPy warning; float64 and
-    bfloat16 are torch.sin's; a second derivative is refused rather than silently wrong."""
-    import warnings
-
-    from diffshadow.siren import sine
-
-    with warnings.catch_warnings():
-        warnings.simplefilter("error")
-        out = sine(torch.tensor([0.0, float("inf"), float("nan")]))
-    assert out[0] == 0 and out[1:].isnan().all()
-    x64 = torch.linspace(-5, 5, 11, dtype=torch.float64)
-    assert torch.equal(sine(x64), torch.sin(x64))
-    xb = torch.linspace(-5, 5, 11, dtype=torch.bfloat16)
-    assert torch.equal(sine(xb), torch.sin(xb))
-    x = torch.linspace(-3, 3, 7, requires_grad=True)
-    (g,) = torch.autograd.grad(sine(x).sum(), x, create_graph=True)
-    assert not g.requires_grad  # no graph of the gradient: differentiating it again raises, not a wrong zero
-    with pytest.raises(RuntimeError, match="does not require grad"):
-        g.sum().backward()
-
-
-def test_sine_gives_each_value_the_same_bits_at_any_offset_and_length():
-    """NumPy's SIMD loop takes a masked tail and an unaligned head: a value's bits must not depend on where it
-    sits in the tensor (a pass's slice, the fit's borrowed thread), as PyTorch's sin's do not."""
-    from diffshadow.siren import sine
-
-    x = torch.randn(4096, generator=torch.Generator().manual_seed(1)) * 40
-    whole = sine(x)
-    for start in range(17):
-        for length in (1, 15, 17, 1000):
-            assert torch.equal(sine(x[start:start + length]), whole[start:start + length])
