@@ -538,3 +538,93 @@ def test_precision_auto_is_bfloat16_only_on_a_cpu_that_multiplies_it_natively(tm
         again = train_diffusion(tiny_data(), dataclasses.replace(auto, epochs=1), tmp_path / f"{native}2.ckpt",
                                 log=lambda *a: None)
         assert all(torch.equal(state["model"][k], again["model"][k]) for k in state["model"])  # same seed, same bytes
+
+
+def test_layer_norm_is_pytorchs_with_the_same_parameters():
+    """The model's LayerNorm applies its scale and shift outside PyTorch's fused kernel: the same function (to
+    float32 rounding), the same parameter names (older checkpoints load), the same gradients to rounding."""
+    from diffshadow.diffusion.model import LayerNorm
+
+    gen = torch.Generator().manual_seed(0)
+    ours, theirs = LayerNorm(24), torch.nn.LayerNorm(24)
+    with torch.no_grad():
+        for p in (ours.weight, ours.bias):
+            p.copy_(torch.randn(24, generator=gen))
+    theirs.load_state_dict(ours.state_dict())
+    x = torch.randn(5, 7, 24, generator=gen)
+    assert list(ours.state_dict()) == list(theirs.state_dict()) == ["weight", "bias"]
+    a, b = ours(x), theirs(x)
+    assert (a - b).abs().max() <= 1e-5
+    grad = torch.randn(5, 7, 24, generator=gen)
+    a.backward(grad)
+    b.backward(grad)
+    for p, q in ((ours.weight, theirs.weight), (ours.bias, theirs.bias)):
+        assert torch.allclose(p.grad, q.grad, rtol=1e-5, atol=1e-5)
+
+
+def test_off_a_cpu_the_layer_norm_and_the_loss_mean_are_pytorchs_own_kernels(monkeypatch):
+    """The thread-order fixes are a CPU's: elsewhere (CUDA; here the meta device) one fused LayerNorm and one
+    mean, as before."""
+    from diffshadow.diffusion.model import LayerNorm
+    from diffshadow.diffusion.train import mean
+
+    calls = []
+    fused = torch.nn.LayerNorm.forward
+    monkeypatch.setattr(torch.nn.LayerNorm, "forward", lambda self, x: calls.append(x.device.type) or fused(self, x))
+    norm = LayerNorm(8)
+    norm(torch.zeros(2, 8))
+    assert calls == []
+    norm.to("meta")(torch.zeros(2, 8, device="meta"))
+    assert calls == ["meta"]
+    with torch.device("meta"):
+        x = torch.zeros(4, 6)
+    monkeypatch.setattr(torch.Tensor, "sum", lambda *a, **k: pytest.fail("a CPU's row sums off a CPU"))
+    assert mean(x).shape == ()
+
+
+@pytest.mark.parametrize("precision", ["float32", "bfloat16"])
+def test_training_writes_the_same_bytes_on_one_thread_and_on_two(tmp_path, precision):
+    """PyTorch's CPU mean of a whole large tensor and its fused LayerNorm's scale and shift gradients add
+    per-thread parts; the x0 losses sum row by row and the model's LayerNorm applies its scale and shift outside
+    the kernel, so a stage-2 training's threads (the workflow's `-j`) change no byte of its checkpoint. (Before:
+    the loss values and every LayerNorm's gradients differed between one thread and two.)"""
+    siren = SirenConfig(32, 2)  # a batch of x0 errors (8 x 4,385) over PyTorch's grain: a mean in per-thread parts
+    layout = WeightLayout.for_siren(siren)
+    gen = torch.Generator().manual_seed(4)
+    base = layout.flatten(init_siren(siren, gen))
+    n = 16
+    data = TrainingData(weights=base + 0.01 * torch.randn(n, layout.n_params, generator=gen),
+                        lights=torch.nn.functional.normalize(torch.randn(n, 3, generator=gen)),
+                        points=torch.rand(n, 64, 3, generator=gen), values=torch.rand(n, 64, generator=gen),
+                        extent=torch.ones(3), layout=layout, siren=siren)
+    cfg = dataclasses.replace(CFG, epochs=2, batch_size=8, precision=precision)
+    threads = torch.get_num_threads()
+    try:
+        states = []
+        for count in (1, 2):
+            torch.set_num_threads(count)
+            states.append(train_diffusion(data, cfg, tmp_path / f"{count}.ckpt", log=lambda *a: None))
+    finally:
+        torch.set_num_threads(threads)
+    one, two = states
+    for key in ("model", "ema"):
+        assert all(torch.equal(one[key][k], two[key][k]) for k in one[key]), key
+    moments = [[s[m] for s in st["optimizer"]["state"].values() for m in ("exp_avg", "exp_avg_sq")] for st in states]
+    assert all(torch.equal(a, b) for a, b in zip(*moments, strict=True))
+
+
+def test_the_loss_mean_is_the_mean_and_its_bits_do_not_depend_on_the_threads():
+    from diffshadow.diffusion.train import mean
+
+    x = torch.rand(16, 4385, generator=torch.Generator().manual_seed(0)) ** 2
+    threads = torch.get_num_threads()
+    try:
+        got = []
+        for count in (1, 2, 3):
+            torch.set_num_threads(count)
+            got.append(mean(x))
+    finally:
+        torch.set_num_threads(threads)
+    assert got[0].item() == got[1].item() == got[2].item()
+    assert abs(got[0].item() - x.double().mean().item()) <= 1e-6 * x.double().mean().item()
+    assert mean(torch.full((3, 5), 2.0)).item() == 2.0

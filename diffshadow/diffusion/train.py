@@ -250,11 +250,11 @@ def batch_loss(model: WeightTransformer, std: Standardizer, data: TrainingData, 
     with forward_precision(cfg.precision, z_all.device):
         pred_all = model(x_t, t_in, light_in)
     pred_all = pred_all.float()  # the losses and the generated SIRENs' geometry error stay float32
-    loss_x0 = ((pred_all[:b] - x0) ** 2).mean()
+    loss_x0 = mean((pred_all[:b] - x0) ** 2)
     loss = loss_x0
     loss_geo = torch.zeros((), device=z_all.device)
     if pool is not None:
-        loss = loss + cfg.pool_x0_weight * ((pred_all[b:] - x0p) ** 2).mean()
+        loss = loss + cfg.pool_x0_weight * mean((pred_all[b:] - x0p) ** 2)
     if cfg.geometry_weight > 0:
         pts = torch.gather(data.points[batch.idx], 1, batch.pick[..., None].expand(-1, -1, 3))
         vals = torch.gather(data.values[batch.idx], 1, batch.pick)
@@ -265,6 +265,14 @@ def batch_loss(model: WeightTransformer, std: Standardizer, data: TrainingData, 
         loss_geo = err[:b].mean()
         loss = loss + cfg.geometry_weight * err.sum() / b  # training and pool lights, each a mean over b
     return loss, loss_x0, loss_geo, pred_all
+
+
+def mean(x: torch.Tensor) -> torch.Tensor:
+    """x.mean(); on a CPU summed row by row, then over the rows: PyTorch's CPU mean of a whole large tensor adds
+    per-thread parts, so its last bits depend on the thread count, where each row's sum is one thread's."""
+    if x.device.type != "cpu":
+        return x.mean()
+    return x.reshape(len(x), -1).sum(dim=1).sum() / x.numel()
 
 
 def optimizer_step(model: WeightTransformer, opt: Adam, std: Standardizer, data: TrainingData,
