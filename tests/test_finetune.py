@@ -194,11 +194,9 @@ def test_ddp_steps_equal_single_process_steps(setup, tmp_path, batch_size):
     ddp = torch.load(tmp_path / "ddp_model.pt", weights_only=True)
     start = state["model"]
     moved = max(float((single[k] - start[k]).abs().max()) for k in single)
-    diff = max(float((single[k] - ddp[k]).abs().max()) for k in single)
-    # float32 sums in another order differ by ~1e-7 relative; Adam's first step is lr·g/(|g| + eps), so
-    # near-zero gradient entries turn that into parameter differences of a fraction of lr
     assert moved > 1e-4  # the step did something
-    assert diff <= 1e-6, diff
+    # one process takes the two ranks' steps in turn and adds their gradients as gloo does: the same bytes
+    assert all(torch.equal(single[k], ddp[k]) for k in single)
 
 
 def test_resume_skips_finished_epochs(setup, tmp_path):

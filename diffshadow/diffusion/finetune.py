@@ -344,6 +344,8 @@ def train_step(model: torch.nn.Module, base: WeightTransformer, opt: Adam, std: 
     finiteness is recorded in `nonfinite` on the device, read once an epoch: the step reads nothing back to the
     host (tests/test_syncs.py). With `graphs` (`finetune.cuda_graph`, one process) the update — loss, backward,
     gradient clip, AdamW — is a CUDA graph's replay, its draws the graph's inputs."""
+    if world == 1 and cfg.nproc == 2 and z_all.device.type == "cpu" and graphs is None:
+        return _two_ranks_in_turn(model, opt, std, data, z_all, batch, epoch, cfg, dcfg, schedule, nonfinite)
     local = batch[rank::world]
     # A rank with no light in this batch (a last batch shorter than the ranks) still runs the model forward and
     # backward, where DDP all-reduces the gradients: on the batch's first light, weighed by zero. One process
@@ -362,6 +364,30 @@ def train_step(model: torch.nn.Module, base: WeightTransformer, opt: Adam, std: 
     loss, parts = update(drawn) if graphs is None else graphs(update, drawn)
     nonfinite.record(loss, epoch)
     return parts if local else torch.zeros_like(parts)
+
+
+def _two_ranks_in_turn(model: WeightTransformer, opt: Adam, std: Standardizer, data: FinetuneData,
+                       z_all: torch.Tensor, batch: list[int], epoch: int, cfg: FinetuneConfig, dcfg: DiffusionConfig,
+                       schedule: Schedule, nonfinite: FirstNonFinite) -> torch.Tensor:
+    """`train_step` of the two DDP ranks `finetune.nproc` asks for, taken in turn by one process on a CPU (where
+    `-j1` leaves one core): each rank's share of the batch, its loss and backward as the rank's, the gradients
+    added (as gloo adds two ranks' gradients, in either order) and halved (DDP's average; a power of two, so
+    exact). Two processes and one write the same bytes (tests/test_finetune.py), where one backward over the whole
+    batch summed the lights in another order."""
+    opt.zero_grad(set_to_none=True)
+    parts = torch.zeros(3, dtype=torch.float64, device=z_all.device)
+    for rank in range(2):
+        local = batch[rank::2]
+        drawn = draw_step(data, local or batch[:1], epoch, cfg, dcfg, schedule.steps, z_all.device)
+        loss, own = step_loss(model, std, data, z_all, drawn, cfg, dcfg, schedule, 2 / len(batch) if local else 0.0)
+        loss.backward()
+        nonfinite.record(loss.detach(), epoch)
+        if local:
+            parts += own
+    torch._foreach_div_([p.grad for p in model.parameters() if p.grad is not None], 2.0)
+    torch.nn.utils.clip_grad_norm_(model.parameters(), dcfg.grad_clip)
+    opt.step()
+    return parts
 
 
 def step_graphs(cfg: FinetuneConfig, world: int, device: torch.device,
