@@ -340,7 +340,8 @@ def train_step(model: torch.nn.Module, base: WeightTransformer, opt: Adam, std: 
                z_all: torch.Tensor, batch: list[int], rank: int, world: int, epoch: int, cfg: FinetuneConfig,
                dcfg: DiffusionConfig, schedule: Schedule, nonfinite: FirstNonFinite,
                graphs: StepGraphs | None = None) -> torch.Tensor:
-    """One optimiser step on this rank's share of the global `batch`; returns the loss parts (summed). The loss's
+    """One optimiser step on this rank's share of the global `batch` (one CPU process of `finetune.nproc` 2: both
+    ranks' shares in turn, `_two_ranks_in_turn`); returns the loss parts (summed). The loss's
     finiteness is recorded in `nonfinite` on the device, read once an epoch: the step reads nothing back to the
     host (tests/test_syncs.py). With `graphs` (`finetune.cuda_graph`, one process) the update — loss, backward,
     gradient clip, AdamW — is a CUDA graph's replay, its draws the graph's inputs."""
