@@ -346,28 +346,38 @@ def train_step(model: torch.nn.Module, base: WeightTransformer, opt: Adam, std: 
     host (tests/test_syncs.py). With `graphs` (`finetune.cuda_graph`, one process) the update — loss, backward,
     gradient clip, AdamW — is a CUDA graph's replay, its draws the graph's inputs."""
     if world == 1 and cfg.nproc == 2 and z_all.device.type == "cpu" and graphs is None:
-        return _two_ranks_in_turn(model, opt, std, data, z_all, batch, epoch, cfg, dcfg, schedule, nonfinite)
-    local = batch[rank::world]
-    # A rank with no light in this batch (a last batch shorter than the ranks) still runs the model forward and
-    # backward, where DDP all-reduces the gradients: on the batch's first light, weighed by zero. One process
-    # always has lights, so its scale follows from the batch's shape, for which a graph is captured.
-    scale = world / len(batch) if local else 0.0
-    drawn = draw_step(data, local or batch[:1], epoch, cfg, dcfg, schedule.steps, z_all.device)
+        return _two_ranks_in_turn(base, opt, std, data, z_all, batch, epoch, cfg, dcfg, schedule, nonfinite)
+    has_lights, drawn, scale = _share(data, batch, rank, world, epoch, cfg, dcfg, schedule, z_all.device)
 
     def update(b: FinetuneBatch) -> tuple[torch.Tensor, torch.Tensor]:
         loss, parts = step_loss(model, std, data, z_all, b, cfg, dcfg, schedule, scale)
         opt.zero_grad(set_to_none=graphs is None)  # a graph's replays write the gradients where they are
         loss.backward()
-        torch.nn.utils.clip_grad_norm_(base.parameters(), dcfg.grad_clip)
-        opt.step()
+        _clip_and_step(base, opt, dcfg)
         return loss.detach(), parts
 
     loss, parts = update(drawn) if graphs is None else graphs(update, drawn)
     nonfinite.record(loss, epoch)
-    return parts if local else torch.zeros_like(parts)
+    return parts if has_lights else torch.zeros_like(parts)
 
 
-def _two_ranks_in_turn(model: WeightTransformer, opt: Adam, std: Standardizer, data: FinetuneData,
+def _share(data: FinetuneData, batch: list[int], rank: int, world: int, epoch: int, cfg: FinetuneConfig,
+           dcfg: DiffusionConfig, schedule: Schedule, device: torch.device) -> tuple[bool, FinetuneBatch, float]:
+    """Rank `rank`'s share of the global `batch` among `world`: whether it has lights, its draws and its loss scale.
+    A rank with no light in this batch (a last batch shorter than the ranks) still runs the model forward and
+    backward, where DDP all-reduces the gradients: on the batch's first light, weighed by zero. One process always
+    has lights, so its scale follows from the batch's shape, for which a graph is captured."""
+    local = batch[rank::world]
+    drawn = draw_step(data, local or batch[:1], epoch, cfg, dcfg, schedule.steps, device)
+    return bool(local), drawn, world / len(batch) if local else 0.0
+
+
+def _clip_and_step(base: WeightTransformer, opt: Adam, dcfg: DiffusionConfig) -> None:
+    torch.nn.utils.clip_grad_norm_(base.parameters(), dcfg.grad_clip)
+    opt.step()
+
+
+def _two_ranks_in_turn(base: WeightTransformer, opt: Adam, std: Standardizer, data: FinetuneData,
                        z_all: torch.Tensor, batch: list[int], epoch: int, cfg: FinetuneConfig, dcfg: DiffusionConfig,
                        schedule: Schedule, nonfinite: FirstNonFinite) -> torch.Tensor:
     """`train_step` of the two DDP ranks `finetune.nproc` asks for, taken in turn by one process on a CPU (where
@@ -378,16 +388,14 @@ def _two_ranks_in_turn(model: WeightTransformer, opt: Adam, std: Standardizer, d
     opt.zero_grad(set_to_none=True)
     parts = torch.zeros(3, dtype=torch.float64, device=z_all.device)
     for rank in range(2):
-        local = batch[rank::2]
-        drawn = draw_step(data, local or batch[:1], epoch, cfg, dcfg, schedule.steps, z_all.device)
-        loss, own = step_loss(model, std, data, z_all, drawn, cfg, dcfg, schedule, 2 / len(batch) if local else 0.0)
+        has_lights, drawn, scale = _share(data, batch, rank, 2, epoch, cfg, dcfg, schedule, z_all.device)
+        loss, own = step_loss(base, std, data, z_all, drawn, cfg, dcfg, schedule, scale)
         loss.backward()
         nonfinite.record(loss.detach(), epoch)
-        if local:
+        if has_lights:
             parts += own
-    torch._foreach_div_([p.grad for p in model.parameters() if p.grad is not None], 2.0)
-    torch.nn.utils.clip_grad_norm_(model.parameters(), dcfg.grad_clip)
-    opt.step()
+    torch._foreach_div_([p.grad for p in base.parameters() if p.grad is not None], 2.0)
+    _clip_and_step(base, opt, dcfg)
     return parts
 
 
