@@ -302,14 +302,16 @@ def _report_figures(a: argparse.Namespace):
 
 def _stage_costs(a: argparse.Namespace):
     from diffshadow.io import require_png
-    from diffshadow.report import job_spans, mixed_runtimes, stage_costs, timeline_figure
+    from diffshadow.report import critical_path, job_spans, mixed_runtimes, stage_costs, timeline_figure
 
     if a.timeline:  # before the table
         require_png(a.timeline, "--timeline", "figure")
     benchmarks = [Path(b) for b in a.benchmarks]
     rows = stage_costs(benchmarks, Path(a.out))
+    jobs, gaps = job_spans(benchmarks)
+    print(f"critical path, {rows[-1]['critical_s']:.1f} s: "
+          + " -> ".join(f"{j['job']} {j['end'] - j['start']:.1f} s" for j in critical_path(jobs)))
     if a.timeline:
-        jobs, gaps = job_spans(benchmarks)
         timeline_figure(jobs, gaps, Path(a.timeline), f"{len(jobs)} jobs, {rows[-1]['wall_s']:.0f} s with a job "
                                                       f"running, {rows[-2]['wall_s']:.0f} s summed over them")
     for warning in mixed_runtimes(benchmarks):

@@ -381,7 +381,7 @@ def write_config(path: Path, cfg: dict) -> None:
 
 
 PHASE_COLUMNS = ("import_s", "device_s", "compile_s", "io_s", "compute_s", "launch_s")
-STAGE_COST_COLUMNS = ("stage", "jobs", "wall_s", "cpu_s", "max_rss_mib", *PHASE_COLUMNS)
+STAGE_COST_COLUMNS = ("stage", "jobs", "wall_s", "cpu_s", "max_rss_mib", *PHASE_COLUMNS, "critical_s")
 
 
 def job_phases(benchmark: Path, wall: float) -> dict[str, float] | None:
@@ -451,7 +451,10 @@ def stage_costs(benchmarks: list[Path], out: Path) -> list[dict]:
     jobs' wall times, which exceeds the run's wall time where jobs overlapped); and an elapsed row, the time
     in which at least one job ran. Snakemake writes a benchmark file as its job ends, so a job ran from the
     file's mtime minus its wall seconds to its mtime; the union of those spans is a whole run's elapsed time
-    and, after a partial rerun, still counts each job once rather than the days between. Written as TSV."""
+    and, after a partial rerun, still counts each job once rather than the days between. `critical_s`: the wall
+    seconds of the rule's jobs on the run's `critical_path`; in the total row the path's jobs' sum, in the elapsed
+    row the path from its first job's start to its last job's end (the difference: time between its jobs).
+    Written as TSV."""
     rows: dict[str, dict] = {}
     spans = []
     for path in benchmarks:
@@ -476,9 +479,14 @@ def stage_costs(benchmarks: list[Path], out: Path) -> list[dict]:
              "max_rss_mib": max((r["max_rss_mib"] for r in table), default=0.0),
              **{k: None if any(r[k] is None for r in table) else sum(r[k] for r in table) for k in PHASE_COLUMNS}}
     elapsed = {**total, "stage": ELAPSED_ROW, "wall_s": _union_length(spans), **dict.fromkeys(PHASE_COLUMNS)}
+    path = critical_path(job_spans(benchmarks)[0]) if benchmarks else []
+    for r in table:
+        r["critical_s"] = sum(j["end"] - j["start"] for j in path if j["stage"] == r["stage"])
+    total["critical_s"] = sum(j["end"] - j["start"] for j in path)
+    elapsed["critical_s"] = path[-1]["end"] - path[0]["start"] if path else 0.0
 
     def cells(r: dict) -> str:
-        phases = "\t".join("NA" if r[k] is None else f"{r[k]:.1f}" for k in PHASE_COLUMNS)
+        phases = "\t".join("NA" if r[k] is None else f"{r[k]:.1f}" for k in (*PHASE_COLUMNS, "critical_s"))
         return f"{r['stage']}\t{r['jobs']}\t{r['wall_s']:.1f}\t{r['cpu_s']:.1f}\t{r['max_rss_mib']:.0f}\t{phases}\n"
 
     atomic_write_text(out, "\t".join(STAGE_COST_COLUMNS) + "\n" + "".join(cells(r) for r in [*table, total, elapsed]))
@@ -515,6 +523,25 @@ def job_spans(benchmarks: list[Path]) -> tuple[list[dict], list[float]]:
     return jobs, gaps
 
 
+CHAIN_SLACK_S = 0.5  # a job's start and the end it waited for, both from file times, agree to ~0.1 s
+
+
+def critical_path(jobs: list[dict]) -> list[dict]:
+    """The run's critical path through `job_spans`' jobs, first to last: from the job that ended last, back through,
+    for each job, the job whose end came last before it started (to within `CHAIN_SLACK_S`): the job that made its
+    input, or the one whose slot it waited for. The run would have ended sooner only had one of these been
+    shorter; the time between two of them is Snakemake's own, or a batch queue's wait."""
+    if not jobs:
+        return []
+    chain = [max(jobs, key=lambda j: (j["end"], j["start"]))]
+    while True:
+        head = chain[-1]
+        before = [j for j in jobs if j["start"] < head["start"] and j["end"] <= head["start"] + CHAIN_SLACK_S]
+        if not before:
+            return chain[::-1]
+        chain.append(max(before, key=lambda j: (j["end"], j["start"])))
+
+
 def timeline_figure(jobs: list[dict], gaps: list[float], out: Path, title: str = "") -> None:
     """`job_spans` as bars, one row per rule in the order the rules first started (a fanned-out rule's jobs share
     its row): what ran when, what waited, and each job's start-up and compile beside its work."""
@@ -523,6 +550,7 @@ def timeline_figure(jobs: list[dict], gaps: list[float], out: Path, title: str =
     fig, ax = plt.subplots(figsize=(9, 1.2 + 0.28 * len(rules)))
     colours = {"start-up (imports, device, launch)": "#e08a2c", "compile": "#b04fb0",
                "work (compute, files)": "#3b75af"}
+    path = critical_path(jobs)
     for j in jobs:
         y = rules.index(j["stage"])
         startup = min(j["startup"], j["end"] - j["start"])
@@ -532,6 +560,9 @@ def timeline_figure(jobs: list[dict], gaps: list[float], out: Path, title: str =
         for width, colour in zip(parts, colours.values(), strict=True):
             ax.barh(y, width, left=left, height=0.7, color=colour, edgecolor="none", alpha=0.85)
             left += width
+    for j in path:
+        ax.barh(rules.index(j["stage"]), j["end"] - j["start"], left=j["start"], height=0.7, fill=False,
+                edgecolor="black", linewidth=1.2)
     for y, rule in enumerate(rules):
         own = [j for j in jobs if j["stage"] == rule]
         wall = sum(j["end"] - j["start"] for j in own)
@@ -547,7 +578,10 @@ def timeline_figure(jobs: list[dict], gaps: list[float], out: Path, title: str =
                                                         if gaps else ""))
     ax.set_title(title or f"{len(jobs)} jobs in {end:.0f} s", fontsize=10)
     handles = [plt.Rectangle((0, 0), 1, 1, color=c, alpha=0.85) for c in colours.values()]
-    ax.legend(handles, list(colours), fontsize=7, loc="upper right")  # the first rules' bars end early
+    handles.append(plt.Rectangle((0, 0), 1, 1, facecolor="white", edgecolor="black", linewidth=1.5))
+    labels = [*colours, f"framed: the critical path, {sum(j['end'] - j['start'] for j in path):.0f} s in "
+                        f"{len(path)} jobs"]
+    ax.legend(handles, labels, fontsize=7, loc="upper right")  # the first rules' bars end early
     fig.tight_layout()
     save_figure(out, fig)
 

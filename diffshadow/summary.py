@@ -160,7 +160,8 @@ class RunResults:
         elapsed = next((r for r in self.costs if r["stage"] == ELAPSED_ROW), None)
         if total:
             rows.append(("run cost", (f"{float(elapsed['wall_s']) / 60:.1f} min elapsed, " if elapsed else "")
-                         + f"{float(total['wall_s']) / 60:.1f} min summed over {int(total['jobs'])} jobs"))
+                         + f"{float(total['wall_s']) / 60:.1f} min summed over {int(total['jobs'])} jobs"
+                         + critical_words(self.costs)))
         if self.mixed:
             rows.append(("WARNING: mixed runtimes", " ".join(w.removeprefix("WARNING: ") for w in self.mixed)))
         if self.choice:
@@ -375,9 +376,9 @@ class RunResults:
         if self.costs:
             parts.append(_table("Stage costs (Snakemake benchmark files)",
                                 ["stage", "jobs", "wall s", "CPU s", "max RSS MiB", "import s", "device s",
-                                 "compile s", "io s", "compute s", "launch s"],
+                                 "compile s", "io s", "compute s", "launch s", "on the critical path s"],
                                 [[r["stage"], r["jobs"], r["wall_s"], r["cpu_s"], r["max_rss_mib"],
-                                  *(r.get(k, "NA") for k in PHASE_COLUMNS)] for r in self.costs],
+                                  *(r.get(k, "NA") for k in (*PHASE_COLUMNS, "critical_s"))] for r in self.costs],
                                 "Wall and CPU seconds summed over a stage's jobs; jobs that ran side by side "
                                 "overlap, so the total exceeds the run's wall time, which is the last row: the time "
                                 "in which at least one job ran. A job's CPU seconds and peak memory are the larger "
@@ -385,14 +386,19 @@ class RunResults:
                                 "job's process: interpreter start and imports, device start (CUDA's context), "
                                 "compilation (Triton's, of the fused renderer kernels), reading and writing "
                                 "files (checksums included), compute (the rest), and launch: the job's time "
-                                "outside its diffshadow process (shell, torchrun and its helper)."))
+                                "outside its diffshadow process (shell, torchrun and its helper). On the critical "
+                                "path: the seconds of a stage's jobs on the chain the run's end waited on (each "
+                                "job started as the one before it ended: its input's maker or the job whose slot "
+                                "it took); in the total row their sum, in the last row the chain from its first "
+                                "start to its last end."))
         timeline = self.results / "report" / "timeline.png"
         if timeline.exists():  # stage_costs draws it from the same benchmark files
             uri = _png_uri(timeline.read_bytes())
             parts.append(f"<p><img src='{uri}' alt='every job of this run over its wall time' "
                          "style='max-width:100%'></p>\n<p class='note'>Every job over the run's wall time, one row "
-                         "per rule: start-up (imports, device, launch), compilation and work. A row with no neighbour "
-                         "beside it left a core (or the GPU) waiting.</p>\n")
+                         "per rule: start-up (imports, device, launch), compilation and work; framed, the critical "
+                         "path (the jobs the run's end waited on: shortening any other job would not have ended it "
+                         "sooner). A row with no neighbour beside it left a core (or the GPU) waiting.</p>\n")
         return "".join(parts)
 
 
@@ -457,6 +463,24 @@ def cache_verdict(voxel: dict) -> str:
         better = (f"their weight blend beats {who} on unseen lights by {-gap:.2f} dB{spread}: `cache: blend` would "
                   f"skip stage 2")
     return f"{size}; {better}. {AGAINST_COUNT}"
+
+
+def critical_words(costs: list[dict]) -> str:
+    """The run's critical path from `stage_costs.tsv`'s `critical_s` column, its longest rules first, and the time
+    between its jobs where that is a minute or more (a batch queue's waits); empty for a file without the column
+    (a run before it)."""
+    total = next((r for r in costs if r["stage"].startswith("total")), {})
+    elapsed = next((r for r in costs if r["stage"] == ELAPSED_ROW), {})
+    if total.get("critical_s", "NA") == "NA" or elapsed.get("critical_s", "NA") == "NA":
+        return ""
+    rules = sorted(((float(r["critical_s"]), r["stage"]) for r in costs if r not in (total, elapsed)
+                    and float(r["critical_s"]) > 0), reverse=True)
+    named = ", ".join(f"{rule} {s:.0f} s" for s, rule in rules[:4]) + (
+        f" and {len(rules) - 4} more rule{'s' if len(rules) > 5 else ''}" if len(rules) > 4 else "")
+    between = float(elapsed["critical_s"]) - float(total["critical_s"])
+    return (f"; the critical path (the timeline's framed jobs) {float(elapsed['critical_s']) / 60:.1f} min: {named}"
+            + (f", and {between / 60:.1f} min between its jobs (Snakemake's own or a batch queue's)"
+               if between >= 60 else ""))
 
 
 def _png_uri(png: bytes) -> str:

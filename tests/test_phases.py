@@ -99,9 +99,9 @@ def test_stage_costs_sum_each_rules_phases_and_the_launch_outside_its_process(tm
     assert sum(fit[k] for k in PHASE_COLUMNS) == pytest.approx(fit["wall_s"])
     assert rows["lights"]["compute_s"] is None and rows["total (sum over jobs)"]["io_s"] is None
     lines = (tmp_path / "out" / "costs.tsv").read_text().splitlines()
-    assert lines[0].split("\t")[-len(PHASE_COLUMNS):] == list(PHASE_COLUMNS)
+    assert lines[0].split("\t")[-len(PHASE_COLUMNS) - 1:] == [*PHASE_COLUMNS, "critical_s"]
     lights = next(line for line in lines if line.startswith("lights\t")).split("\t")
-    assert lights[-len(PHASE_COLUMNS):] == ["NA"] * len(PHASE_COLUMNS)
+    assert lights[-len(PHASE_COLUMNS) - 1:-1] == ["NA"] * len(PHASE_COLUMNS)
     (tmp_path / "fit_siren_0.phases.json").write_text("{}")
     with pytest.raises(ValueError, match=r"fit_siren_0.phases.json: expected a phases file \(import_s"):
         stage_costs(benchmarks, tmp_path / "out" / "costs.tsv")
@@ -141,6 +141,39 @@ def test_the_timeline_puts_each_job_on_the_runs_clock_without_a_reruns_idle_days
           "--timeline", str(tmp_path / "report" / "timeline.png")])
     with Image.open(tmp_path / "report" / "timeline.png") as png:
         assert png.format == "PNG" and png.width == 900  # 9 x 100 dpi
+
+
+def test_the_critical_path_is_the_chain_of_jobs_the_runs_end_waited_on(tmp_path):
+    """From the job that ended last, back through the job whose end each one's start waited on (its input's
+    maker, or a slot's: train_diffusion waits for naive_images, not for collect_weights), to the first; a job
+    that started long after any end (a queue's wait) keeps the time between in the path's length, not its work.
+    stage_costs.tsv and the summary's run-cost row say it per rule."""
+    from diffshadow.report import critical_path, job_spans
+    from diffshadow.summary import critical_words
+
+    jobs = (("lights", 0, 1), ("prepare_volume", 0, 2), ("fit_siren_0", 2, 12), ("fit_siren_1", 2, 10),
+            ("naive_images", 3, 30), ("collect_weights", 12, 13), ("train_diffusion", 30, 50),
+            ("sample_shadows", 50.3, 55), ("benchmark", 50, 250), ("report_figures", 240, 260))
+    for name, start, end in jobs:
+        path = tmp_path / f"{name}.tsv"
+        path.write_text(HEADER + f"{end - start}\t0:00:10\t100\t0\t0\t0\t0\t0\t0\t1\n")
+        os.utime(path, (1000.0 + end, 1000.0 + end))
+    benchmarks = [tmp_path / f"{name}.tsv" for name, *_ in jobs]
+    path = critical_path(job_spans(benchmarks)[0])
+    assert [j["job"] for j in path] == ["prepare_volume", "naive_images", "train_diffusion", "sample_shadows",
+                                        "report_figures"]
+    assert critical_path([]) == []
+    rows = {r["stage"]: r for r in stage_costs(benchmarks, tmp_path / "costs.tsv")}
+    assert rows["naive_images"]["critical_s"] == 27 and rows["fit_siren"]["critical_s"] == 0
+    assert rows["total (sum over jobs)"]["critical_s"] == pytest.approx(2 + 27 + 20 + 4.7 + 20)
+    assert rows["elapsed (a job running)"]["critical_s"] == 260
+    lines = (tmp_path / "costs.tsv").read_text().splitlines()
+    costs = [dict(zip(lines[0].split("\t"), line.split("\t"), strict=True)) for line in lines[1:]]
+    assert critical_words(costs) == (
+        "; the critical path (the timeline's framed jobs) 4.3 min: naive_images 27 s, train_diffusion 20 s, "
+        "report_figures 20 s, sample_shadows 5 s and 1 more rule, and 3.1 min between its jobs (Snakemake's own "
+        "or a batch queue's)")
+    assert critical_words([{k: v for k, v in r.items() if k != "critical_s"} for r in costs]) == ""  # an older run
 
 
 def test_a_jobs_cpu_seconds_and_peak_are_the_larger_of_snakemakes_polls_and_its_own_record(tmp_path):

@@ -1144,7 +1144,7 @@ def test_stage_costs_come_from_snakemakes_benchmarks(finished):
     assert {"fit_siren_0", "fit_siren_1", "finetune_render", "benchmark", "report_figures"} <= rules
     lines = (res / "stage_costs.tsv").read_text().splitlines()
     assert lines[0].split("\t") == ["stage", "jobs", "wall_s", "cpu_s", "max_rss_mib", "import_s", "device_s",
-                                    "compile_s", "io_s", "compute_s", "launch_s"]
+                                    "compile_s", "io_s", "compute_s", "launch_s", "critical_s"]
     rows = {line.split("\t")[0]: line.split("\t") for line in lines[1:]}
     assert rows["fit_siren"][1] == "2" and "fit_siren_0" not in rows
     # every job recorded its phases; they add up to its wall time (launch_s: the rest, outside its process), up to
@@ -1153,14 +1153,21 @@ def test_stage_costs_come_from_snakemakes_benchmarks(finished):
     for stage, row in rows.items():
         if stage.startswith("elapsed"):
             continue
-        phases = [float(x) for x in row[5:]]
+        phases = [float(x) for x in row[5:11]]
         assert sum(phases) == pytest.approx(float(row[2]), abs=0.5 * int(row[1])), stage
     assert float(rows["train_diffusion"][5]) > 0 and float(rows["train_diffusion"][9]) > 0  # imports, compute
     assert float(rows["presample"][8]) > 0  # its store written
     assert int(rows["total (sum over jobs)"][1]) == len(rules)
     # the run's elapsed time: no shorter than its longest job, no longer than all jobs one after another
     longest = max(float(r[2]) for r in rows.values() if r[1] == "1")
-    assert longest <= float(rows["elapsed (a job running)"][2]) <= float(rows["total (sum over jobs)"][2])
+    elapsed = float(rows["elapsed (a job running)"][2])
+    assert longest <= elapsed <= float(rows["total (sum over jobs)"][2])
+    # the critical path's jobs follow one another (file times: each may start up to CHAIN_SLACK_S before the end it
+    # waited on) and span the run; the little between them is Snakemake's own
+    on_path, span = float(rows["total (sum over jobs)"][11]), float(rows["elapsed (a job running)"][11])
+    assert sum(float(r[11]) for s, r in rows.items() if not s.startswith(("total", "elapsed"))) == pytest.approx(
+        on_path, abs=0.1 * len(rows))
+    assert on_path == pytest.approx(span, rel=0.1) and span == pytest.approx(elapsed, rel=0.1)
 
 
 def test_cache_blend_skips_stage_two(finished, tmp_path):
