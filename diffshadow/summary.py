@@ -467,8 +467,8 @@ def cache_verdict(voxel: dict) -> str:
 
 def critical_words(costs: list[dict]) -> str:
     """The run's critical path from `stage_costs.tsv`'s `critical_s` column, its longest rules first, and the time
-    between its jobs where that is a minute or more (a batch queue's waits); empty for a file without the column
-    (a run before it)."""
+    between its jobs where that is a minute or more (a batch queue's waits while other jobs ran: `job_spans` leaves
+    out a stretch with no job running); empty for a file without the column (a run before it)."""
     total = next((r for r in costs if r["stage"].startswith("total")), {})
     elapsed = next((r for r in costs if r["stage"] == ELAPSED_ROW), {})
     if total.get("critical_s", "NA") == "NA" or elapsed.get("critical_s", "NA") == "NA":
@@ -479,7 +479,7 @@ def critical_words(costs: list[dict]) -> str:
         f" and {len(rules) - 4} more rule{'s' if len(rules) > 5 else ''}" if len(rules) > 4 else "")
     between = float(elapsed["critical_s"]) - float(total["critical_s"])
     return (f"; the critical path (the timeline's framed jobs) {float(elapsed['critical_s']) / 60:.1f} min: {named}"
-            + (f", and {between / 60:.1f} min between its jobs (Snakemake's own or a batch queue's)"
+            + (f", and {between / 60:.1f} min between its jobs while others ran (a batch queue's waits)"
                if between >= 60 else ""))
 
 

@@ -171,8 +171,8 @@ def test_the_critical_path_is_the_chain_of_jobs_the_runs_end_waited_on(tmp_path)
     costs = [dict(zip(lines[0].split("\t"), line.split("\t"), strict=True)) for line in lines[1:]]
     assert critical_words(costs) == (
         "; the critical path (the timeline's framed jobs) 4.3 min: naive_images 27 s, train_diffusion 20 s, "
-        "report_figures 20 s, sample_shadows 5 s and 1 more rule, and 3.1 min between its jobs (Snakemake's own "
-        "or a batch queue's)")
+        "report_figures 20 s, sample_shadows 5 s and 1 more rule, and 3.1 min between its jobs while others ran "
+        "(a batch queue's waits)")
     assert critical_words([{k: v for k, v in r.items() if k != "critical_s"} for r in costs]) == ""  # an older run
 
 
