@@ -307,8 +307,8 @@ def _stage_costs(a: argparse.Namespace):
     if a.timeline:  # before the table
         require_png(a.timeline, "--timeline", "figure")
     benchmarks = [Path(b) for b in a.benchmarks]
-    rows = stage_costs(benchmarks, Path(a.out))
-    jobs, gaps = job_spans(benchmarks)
+    jobs, gaps = job_spans(benchmarks)  # read once: the table's critical path, the chain printed, the timeline
+    rows = stage_costs(benchmarks, Path(a.out), jobs)
     print(f"critical path, {rows[-1]['critical_s']:.1f} s: "
           + " -> ".join(f"{j['job']} {j['end'] - j['start']:.1f} s" for j in critical_path(jobs)))
     if a.timeline:

@@ -443,7 +443,7 @@ def _benchmark(path: Path) -> tuple[str, float, float, float, float]:
     return stage, wall, cpu, rss, Path(path).stat().st_mtime
 
 
-def stage_costs(benchmarks: list[Path], out: Path) -> list[dict]:
+def stage_costs(benchmarks: list[Path], out: Path, jobs: list[dict] | None = None) -> list[dict]:
     """One row per rule from Snakemake's `benchmark:` files (`<rule>.tsv`, or `<rule>_<n>.tsv` per job of a
     fanned-out rule): jobs, summed wall and CPU seconds, the largest resident set (each job's CPU seconds and
     peak the larger of Snakemake's polls and the process's own record, `job_phases`), and where the wall time went
@@ -453,8 +453,8 @@ def stage_costs(benchmarks: list[Path], out: Path) -> list[dict]:
     file's mtime minus its wall seconds to its mtime; the union of those spans is a whole run's elapsed time
     and, after a partial rerun, still counts each job once rather than the days between. `critical_s`: the wall
     seconds of the rule's jobs on the run's `critical_path`; in the total row the path's jobs' sum, in the elapsed
-    row the path from its first job's start to its last job's end (the difference: time between its jobs).
-    Written as TSV."""
+    row the path from its first job's start to its last job's end (the difference: time between its jobs), from
+    `jobs` (`job_spans` of the same files, where the caller has them; else read here). Written as TSV."""
     rows: dict[str, dict] = {}
     spans = []
     for path in benchmarks:
@@ -479,7 +479,9 @@ def stage_costs(benchmarks: list[Path], out: Path) -> list[dict]:
              "max_rss_mib": max((r["max_rss_mib"] for r in table), default=0.0),
              **{k: None if any(r[k] is None for r in table) else sum(r[k] for r in table) for k in PHASE_COLUMNS}}
     elapsed = {**total, "stage": ELAPSED_ROW, "wall_s": _union_length(spans), **dict.fromkeys(PHASE_COLUMNS)}
-    path = critical_path(job_spans(benchmarks)[0]) if benchmarks else []
+    if jobs is None and benchmarks:
+        jobs = job_spans(benchmarks)[0]
+    path = critical_path(jobs or [])
     for r in table:
         r["critical_s"] = sum(j["end"] - j["start"] for j in path if j["stage"] == r["stage"])
     total["critical_s"] = sum(j["end"] - j["start"] for j in path)
