@@ -320,7 +320,7 @@ def test_missing_results_name_the_file_and_the_rule(tmp_path):
     (tmp_path / "volume.zarr").mkdir()
     (tmp_path / "lights.json").write_text("{}")
     with pytest.raises(ViewerError, match=r"data_inr.pt is missing \(made by the rule `train_data_inr`: "
-                       rf"`snakemake --profile <yours> results/{tmp_path.name}/data_inr.pt` makes it again\)"):
+                       rf"`snakemake --profile <yours> results/{tmp_path.name}/data_inr.pt` makes it\)"):
         ViewerScene.from_results(tmp_path, torch.device("cpu"))
 
 

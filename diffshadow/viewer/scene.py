@@ -81,7 +81,7 @@ class LightInfo:
 def remake(results: Path, name: str) -> str:
     """The command that makes a scene's missing file: named as a target, since a plain run, finding the files made
     from it, has nothing to do."""
-    return f"`snakemake --profile <yours> results/{Path(results).name}/{name}` makes it again"
+    return f"`snakemake --profile <yours> results/{Path(results).name}/{name}` makes it"
 
 
 class ViewerScene:
