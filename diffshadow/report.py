@@ -456,10 +456,8 @@ def stage_costs(benchmarks: list[Path], out: Path, jobs: list[dict] | None = Non
     row the path from its first job's start to its last job's end (the difference: time between its jobs), from
     `jobs` (`job_spans` of the same files, where the caller has them; else read here). Written as TSV."""
     rows: dict[str, dict] = {}
-    spans = []
     for path in benchmarks:
-        stage, wall, cpu, rss, end = _benchmark(path)
-        spans.append((end - wall, end))
+        stage, wall, cpu, rss, _ = _benchmark(path)
         row = rows.setdefault(stage, {"stage": stage, "jobs": 0, "wall_s": 0.0, "cpu_s": 0.0, "max_rss_mib": 0.0,
                                       **dict.fromkeys(PHASE_COLUMNS, 0.0)})
         phases = job_phases(Path(path), wall)
@@ -478,10 +476,12 @@ def stage_costs(benchmarks: list[Path], out: Path, jobs: list[dict] | None = Non
              "wall_s": sum(r["wall_s"] for r in table), "cpu_s": sum(r["cpu_s"] for r in table),
              "max_rss_mib": max((r["max_rss_mib"] for r in table), default=0.0),
              **{k: None if any(r[k] is None for r in table) else sum(r[k] for r in table) for k in PHASE_COLUMNS}}
-    elapsed = {**total, "stage": ELAPSED_ROW, "wall_s": _union_length(spans), **dict.fromkeys(PHASE_COLUMNS)}
-    if jobs is None and benchmarks:
-        jobs = job_spans(benchmarks)[0]
-    path = critical_path(jobs or [])
+    if jobs is None:
+        jobs = job_spans(benchmarks)[0] if benchmarks else []
+    # the union of the jobs' spans: job_spans took out only stretches with no job running, which add nothing to it
+    elapsed = {**total, "stage": ELAPSED_ROW, "wall_s": _union_length([(j["start"], j["end"]) for j in jobs]),
+               **dict.fromkeys(PHASE_COLUMNS)}
+    path = critical_path(jobs)
     for r in table:
         r["critical_s"] = sum(j["end"] - j["start"] for j in path if j["stage"] == r["stage"])
     total["critical_s"] = sum(j["end"] - j["start"] for j in path)
