@@ -106,7 +106,7 @@ class FitConfig:
     blend_weights: str = "triangle"  # "triangle" or "inverse-angle" (the 4 nearest): set it as evaluate.blend_weights
     # pool lights drawn in the training lights' cap per training light (each subset takes its own): a count
     # over the cap thinned the pool as lights were added (200 lights: 1 per light -1.8 dB blend, docs/performance.md)
-    blend_per_light: int = 64
+    blend_per_light: int = 128
     blend_points: int = 1024  # presampled points with exact shadows per pool light
     # a subset also fits the lights of other subsets that blends across its border take (`subset_halo`), and
     # discards them: the blend loss then couples the lights on either side of a seam (docs/performance.md)
