@@ -98,6 +98,11 @@ CASES = [
     ("bench render with no timed frame", lambda t: ["bench", "render", "--volume", npy(t, "v.npy"), "--tf-json",
                                                     json.dumps(TF), "--repeats", "0", "--out", "b.json"], {},
      r"bench render: --repeats: expected at least 1 timed frame per mode, got 0"),  # was statistics' empty median
+    ("bench render: --naive-counts not the naive counts' file",
+     lambda t: ["bench", "render", "--volume", npy(t, "v.npy"), "--tf-json", json.dumps(TF), "--naive-counts",
+                str(_write(t / "n.json", b'{"counts": {"ops": 3}}')), "--out", "b.json"], {},
+     r"--naive-counts .*n.json: expected the JSON of `diffshadow bench naive-counts` \(its counts: ops, syncs, "
+     r"host_tensors, peak_bytes\), could not read it"),  # before any frame or fit
     ("bench init-spread of one light", lambda t: ["bench", "init-spread", "--lights", "1", "--results", str(t),
                                                   "--out", "b"], {},
      r"bench init-spread: --lights: expected at least 2 \(a spread across lights\), got 1"),  # was a traceback

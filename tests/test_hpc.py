@@ -393,8 +393,9 @@ def test_a_pbs_profile_keeps_its_machine_under_the_runs_own_configfile(tmp_path,
     command lost the machine's settings. The profile names its machine in a default resource instead, and the
     Snakefile reads the machine's file under the run's: without PBS_ACCOUNT the run stops naming the profile;
     fine-tuning asks for and launches the machine's 4 GPUs' processes, or what the run's file says (a profile's
-    set-threads must not stand in for finetune.nproc); the benchmark waits for the scene's other jobs only where
-    jobs share a node (Sophia), not on Polaris's whole nodes. Under the paper's workflow profile, whose
+    set-threads must not stand in for finetune.nproc); the benchmark waits for the scene's other jobs, and takes
+    the naive frame's counts from a job of their own, only where jobs share a node (Sophia), not on Polaris's whole
+    nodes (there it counts them itself: no job more in the queue). Under the paper's workflow profile, whose
     set-resources replace the machine profile's whole, fine-tuning's qsub line still asks for its GPUs and caches
     for more than the default hour (dry runs)."""
     def plan(run: dict, *args: str, account: bool = True) -> subprocess.CompletedProcess:
@@ -421,6 +422,10 @@ def test_a_pbs_profile_keeps_its_machine_under_the_runs_own_configfile(tmp_path,
     tuning = job(planned.stdout, "finetune_render")
     assert "gpu=4" in tuning and "ddp-processes --nproc 4)" in tuning, tuning
     assert ("image_metrics.json" in job(planned.stdout, "benchmark")) == (profile == "sophia")
+    # where it waits, it takes the naive frame's counts from a job beside stage 1; on Polaris it counts them itself
+    assert ("--naive-counts results/nucleon/bench_naive.json" in job(planned.stdout, "benchmark")) == (
+        profile == "sophia")
+    assert ("rule bench_naive:" in planned.stdout) == (profile == "sophia")
     own = plan({"lights": {"count": 8}, "finetune": {"nproc": 3}}, "--cores", "64")  # the run's file wins
     assert own.returncode == 0, own.stderr[-2000:]
     assert "gpu=3" in job(own.stdout, "finetune_render") and "--nproc 3)" in job(own.stdout, "finetune_render")

@@ -2,6 +2,7 @@
 bounded batches, analytic shadow values, extremes and bad input."""
 
 import math
+import re
 
 import numpy as np
 import pytest
@@ -299,6 +300,29 @@ def test_a_frame_counted_a_march_iteration_at_a_time_counts_what_it_counts_whole
     whole = op_counts(lambda: scene.render(mode, cam, **kwargs), memory=cpu)
     pieces = op_counts(lambda cut: scene.render(mode, cam, interrupt=cut, **kwargs), memory=cpu, pieces=True)
     assert pieces == whole and whole["ops"] > 0, (pieces, whole)
+
+
+def test_the_naive_frame_counted_apart_is_the_frame_the_bench_counts(blob):
+    """The workflow counts the naive frame in a job of its own (`bench naive-counts`, beside stage 1) and the
+    benchmark takes its counts: the same ops, syncs, host tensors and peak bytes as counted in the bench's own
+    process, after its other frames; a record of another frame (size, step, light, kernel) is refused, naming it."""
+    from diffshadow.bench.render import bench_render, naive_counts
+
+    light = np.asarray(LIGHT) / np.linalg.norm(LIGHT)
+    kw = dict(sizes=(12, 16), repeats=1, memory_sizes=[], curve_steps=(1.0,), log=lambda m: None)
+    inline = bench_render(RenderScene(blob, TF), shadow_inr(), light, **kw)
+    apart = naive_counts(RenderScene(blob, TF), light, size=12)  # a fresh scene, as in a process of its own
+    taken = bench_render(RenderScene(blob, TF), shadow_inr(), light, naive=apart, **kw)
+    assert inline["naive_counted"] == "here" and taken["naive_counted"] == "apart (bench naive-counts)"
+    assert taken["sizes"]["12"]["counts"] == inline["sizes"]["12"]["counts"]
+    assert taken["sizes"]["12"]["peak_mem_bytes"] == inline["sizes"]["12"]["peak_mem_bytes"]
+    assert inline["sizes"]["12"]["counts"]["naive"]["ops"] > 0 and "naive" not in inline["sizes"]["16"]["counts"]
+    for key, value, named in (("size", 16, "size 16 (this bench: 12)"), ("step", 0.25, "step 0.25"),
+                              ("light", [0.0, 0.0, 1.0], "light [0.0, 0.0, 1.0]"),
+                              ("networks", {"kernel": "fused", "used": "eager"}, "networks")):
+        with pytest.raises(ValueError, match=re.escape(f"--naive-counts: counted another frame than this bench's "
+                                                       f"smallest: {named}")):
+            bench_render(RenderScene(blob, TF), shadow_inr(), light, naive={**apart, key: value}, **kw)
 
 
 def test_empty_and_opaque_extremes():

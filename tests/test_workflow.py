@@ -480,6 +480,7 @@ STAGE_OUTPUTS = {
     "caches": ["caches.json", "report/caches.png"],
     "train_data_inr": ["data_inr.pt"],
     "naive_images": ["naive_images.zarr"],
+    "bench_naive": ["bench_naive.json"],  # counts and peak bytes, which do not drift: why it runs beside stage 1
     "evaluate_images": ["image_metrics.json", "images"],
     "report_figures": ["report/config.yaml", "report/siren_psnr.png", "report/generated_psnr.png",
                        "report/generated_psnr.csv", "report/image_grid.png", "report/storage.png"],

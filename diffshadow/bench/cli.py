@@ -63,7 +63,15 @@ def _bench_render(a):
         inr_steps=a.inr_steps,
         tf_config=parse_json(a.tf_json, "--tf-json") if a.tf_json else None, weights=a.weights,
         light_index=a.light_index, siren_width=a.siren_width, siren_steps=a.siren_steps, sizes=a.sizes,
-        step=a.step, repeats=a.repeats, memory_sizes=a.memory_sizes, render=network_flags(a), device=_device(a))
+        step=a.step, repeats=a.repeats, memory_sizes=a.memory_sizes, render=network_flags(a),
+        naive_counts=a.naive_counts, device=_device(a))
+
+
+def _bench_naive_counts(a):
+    from diffshadow.bench.render import run_naive_counts
+
+    run_naive_counts(_out_file(a.out, "bench_naive.json"), volume=Path(a.volume), data_inr=Path(a.data_inr),
+                     lights=Path(a.lights), size=a.size, step=a.step, render=network_flags(a), device=_device(a))
 
 
 def _bench_kernels(a):
@@ -143,6 +151,18 @@ def add_bench_parsers(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--sizes", type=at_least(1), nargs="+", default=[64, 128])  # refused before any fit or frame
     p.add_argument("--memory-sizes", type=at_least(1), nargs="*", default=None,
                    help="larger sides measured for peak memory only (default: 2x and 4x the largest size)")
+    p.add_argument("--naive-counts", help="`bench naive-counts`' file: the naive frame's counts at the smallest "
+                   "size, taken apart (default: counted here)")
+    add_networks(p)
+    p = _add(bench, "naive-counts", _bench_naive_counts, "ops, host syncs and peak memory of the naive frame that "
+             "`bench render` counts at its smallest size, under the first training light (for --naive-counts)",
+             out=False)
+    p.add_argument("--volume", required=True, help="prepare_volume's volume.zarr")
+    p.add_argument("--data-inr", required=True, help="train_data_inr's data_inr.pt")
+    p.add_argument("--lights", required=True, help="lights.json")
+    p.add_argument("--size", type=at_least(1), default=64, help="the frame's side (bench render's smallest size)")
+    p.add_argument("--step", type=float, default=0.5, help="voxels")
+    p.add_argument("--out", default="bench/bench_naive.json", help="a JSON file, or a folder for bench_naive.json")
     add_networks(p)
     p = _add(bench, "stages", _bench_stages, "per-step cost (time, ops, host syncs, memory) of every heavy stage at "
              "a config's sizes on synthetic inputs, projected to the config's steps, epochs and lights", out=False)

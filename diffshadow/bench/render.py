@@ -60,14 +60,49 @@ def _light_moved_fps(scene: RenderScene, camera: Camera, kwargs: dict, repeats: 
     return 1.0 / statistics.median(seconds)
 
 
+def naive_counts(scene: RenderScene, light: ArrayLike, *, size: int, step: float = DEFAULT_STEP,
+                 azimuth: float = 30.0, elevation: float = 25.0) -> dict:
+    """The naive mode's ops, host syncs, host tensors and peak memory for one frame of `size`², as `bench_render`
+    counts them at its smallest size (`bench naive-counts`). The counts do not drift with the machine's load, so
+    they need not share the timed frames' cores: profiled, the frame took 3.4x its time (tooth's 64²: 33.5 s, a
+    third of the benchmark job), and the workflow takes it beside stage 1 (`bench_render`'s `naive`). The mode
+    reads no shadow SIREN, so it needs none."""
+    tiny = Camera.orbit(scene.volume.extent, azimuth=azimuth, elevation=elevation, size=8)
+    scene.render("naive", tiny, light=light, step=step)  # warmed as bench_render warms it
+    cam = Camera.orbit(scene.volume.extent, azimuth=azimuth, elevation=elevation, size=size)
+    counts = op_counts(lambda cut: scene.render("naive", cam, light=light, step=step, interrupt=cut),
+                       memory=scene.device, pieces=True)
+    return {"mode": "naive", "size": size, "step": step, "azimuth": azimuth, "elevation": elevation,
+            "light": [float(v) for v in light], "device": str(scene.device), "networks": scene.networks_used(),
+            "counts": counts}
+
+
+def _check_naive(naive: dict, *, size: int, step: float, light: ArrayLike, azimuth: float, elevation: float,
+                 kernel: str, device: str) -> None:
+    """`naive` (`naive_counts`' record) counted the frame this bench would count, or a ValueError naming the
+    difference."""
+    want = {"size": size, "step": step, "azimuth": azimuth, "elevation": elevation, "device": device}
+    want = {k: v for k, v in want.items() if naive.get(k) != v}
+    if (naive.get("networks") or {}).get("kernel") != kernel:
+        want["networks"] = {"kernel": kernel}
+    wrong = [f"{k} {naive.get(k)!r} (this bench: {v!r})" for k, v in want.items()]
+    if not np.allclose(np.asarray(naive.get("light", []), float).reshape(-1), np.asarray(light, float), atol=1e-9):
+        wrong.append(f"light {naive.get('light')} (this bench: {[float(v) for v in light]})")
+    if wrong:
+        raise ValueError(f"--naive-counts: counted another frame than this bench's smallest: {'; '.join(wrong)} "
+                         "(expected `bench naive-counts` of the same volume, data INR, first training light, size, "
+                         "step and --kernel)")
+
+
 def bench_render(scene: RenderScene, siren: ShadowSirenSpec, light: ArrayLike, *, sizes: Sequence[int] = (64, 128),
                  step: float = DEFAULT_STEP, repeats: int = 3, memory_sizes: Sequence[int] | None = None,
                  azimuth: float = 30.0, elevation: float = 25.0, curve_steps: Sequence[float] = (2.0, 1.0, 0.5, 0.25),
-                 curve_size: int | None = None, log: Callable[[str], None] = print) -> dict:
+                 curve_size: int | None = None, naive: dict | None = None, log: Callable[[str], None] = print) -> dict:
     """All measurements for one scene; `siren` = (weights, layout, blocks) of a shadow INR for `light`.
 
     `memory_sizes`: larger sides where only the peak memory of noshadow and inr is measured (default 2x and 4x
-    the largest of `sizes`).
+    the largest of `sizes`). `naive`: the naive frame's counts at the smallest size, taken apart (`naive_counts`),
+    checked to be this bench's frame; else counted here.
     """
     device = scene.device
     out: dict = {"device": str(device), "torch_threads": torch.get_num_threads(), "step": step,
@@ -83,6 +118,14 @@ def bench_render(scene: RenderScene, siren: ShadowSirenSpec, light: ArrayLike, *
     # the networks as configured and as this scene resolved them, after warming: a kernel that failed to compile
     # left it eager
     out["networks"] = scene.networks_used()
+    if naive is not None:
+        _check_naive(naive, size=min(sizes), step=step, light=light, azimuth=azimuth, elevation=elevation,
+                     kernel=out["networks"]["kernel"], device=str(device))
+        if naive["networks"] != out["networks"]:  # a fused kernel fell back in one process only: not this frame's
+            log(f"[bench render] --naive-counts rendered with {naive['networks']}, this bench with "
+                f"{out['networks']}: the naive frame counted here")
+            naive = None
+    out["naive_counted"] = "here" if naive is None else "apart (bench naive-counts)"
     for n in sizes:
         row: dict = {"seconds": {m: [] for m in BENCH_MODES}, "samples": {}}
         for rep in range(repeats):  # modes interleaved, so drift on a shared machine hits all alike
@@ -100,8 +143,9 @@ def bench_render(scene: RenderScene, siren: ShadowSirenSpec, light: ArrayLike, *
         # naive's count takes minutes past the smallest size: its secondary rays are the point anyway
         counted = BENCH_MODES if n == min(sizes) else ("noshadow", "inr")
         # recorded a march iteration at a time (the frame's `interrupt`): a naive frame's events at once took GBs
-        row["counts"] = {m: op_counts(lambda cut, m=m, n=n: scene.render(m, cams[n], interrupt=cut, **kwargs),
-                                      memory=device, pieces=True) for m in counted}
+        row["counts"] = {m: dict(naive["counts"]) if m == "naive" and naive is not None else
+                         op_counts(lambda cut, m=m, n=n: scene.render(m, cams[n], interrupt=cut, **kwargs),
+                                   memory=device, pieces=True) for m in counted}
         row["peak_mem_bytes"] = {m: c.pop("peak_bytes") for m, c in row["counts"].items()}
         log(f"[bench render] {n}x{n} per frame: " + ", ".join(
             f"{m} {c['ops']:,} ops {c['syncs']} host syncs {c['host_tensors']} host tensors"
@@ -248,9 +292,10 @@ def run(out: Path, *, scene_config: Path | None = None, volume: Path | None = No
         data_inr: Path | None = None, inr_steps: int | None = None, weights: Path | None = None, light_index: int = 0,
         siren_width: int = 32, siren_steps: int = 300, sizes: Sequence[int] = (64, 128), step: float = 0.5,
         repeats: int = 3, memory_sizes: Sequence[int] | None = None, render: dict | None = None,
-        device: torch.device | str = "cpu") -> dict:
+        naive_counts: Path | None = None, device: torch.device | str = "cpu") -> dict:
     """`diffshadow bench render`: a scene (scene file, prepared volume, or raw file with the bench TF), its data
-    INR and one shadow INR (given, or fitted here), then `bench_render`; writes JSON and a plot."""
+    INR and one shadow INR (given, or fitted here), then `bench_render`; writes JSON and a plot. `naive_counts`:
+    `run_naive_counts`' file, the naive frame's counts taken apart."""
     import dataclasses
 
     from diffshadow.artifacts import data_inr_of, load_render_scene, load_scene_file
@@ -264,6 +309,7 @@ def run(out: Path, *, scene_config: Path | None = None, volume: Path | None = No
 
     if repeats < 1:  # before any fit: with no timed frame there is no median to report
         raise ValueError(f"bench render: --repeats: expected at least 1 timed frame per mode, got {repeats}")
+    naive = _read_naive(Path(naive_counts)) if naive_counts else None
     if scene_config:
         scene = load_scene_file(Path(scene_config), device, render)
         name = Path(scene_config).stem
@@ -295,10 +341,44 @@ def run(out: Path, *, scene_config: Path | None = None, volume: Path | None = No
         w = fit_sirens(layout.flatten(init_siren(cfg, seeded(0))), layout, cfg, scene.volume, scene.tf,
                        light[None], fit, device=device, log=lambda m: None)[0]
         siren = (w, layout, cfg.blocks)
-    results = bench_render(scene, siren, light, sizes=sizes, step=step, repeats=repeats, memory_sizes=memory_sizes)
+    results = bench_render(scene, siren, light, sizes=sizes, step=step, repeats=repeats, memory_sizes=memory_sizes,
+                           naive=naive)
     results.update({"scene": name, "dims": list(scene.volume.dims),
                     "data_inr": {"params": scene.data_inr.n_params, "psnr": scene.data_inr.psnr},
                     "shadow_inr": {"params": int(siren[1].n_params)}})
     write_bench(Path(out), results)
     print(f"wrote {out} and {Path(out).with_suffix('.png')}")
     return results
+
+
+def run_naive_counts(out: Path, *, volume: Path, data_inr: Path, lights: Path, size: int, step: float = 0.5,
+                     render: dict | None = None, device: torch.device | str = "cpu") -> dict:
+    """`diffshadow bench naive-counts`: `naive_counts` under the first training light of `lights` (the light
+    `bench render --weights` takes at --light-index 0) of a prepared volume and its data INR, for `bench render
+    --naive-counts`."""
+    from diffshadow.artifacts import data_inr_of, load_render_scene
+    from diffshadow.lights import read_lights
+
+    if size < 1:
+        raise ValueError(f"bench naive-counts: --size: expected a side of at least 1 pixel, got {size}")
+    scene = load_render_scene(volume, None, device, None, render)
+    scene.data_inr = data_inr_of(data_inr, scene.volume, str(volume))
+    result = naive_counts(scene, read_lights(lights)["train"][0], size=size, step=step)
+    atomic_write_text(out, json.dumps(finite_json(result), indent=1) + "\n")
+    c = result["counts"]
+    print(f"[bench naive-counts] {size}x{size} naive: {c['ops']:,} ops, {c['syncs']} host syncs, {c['host_tensors']} "
+          f"host tensors, +{c['peak_bytes'] / 2**20:.1f} MiB; wrote {out}")
+    return result
+
+
+def _read_naive(path: Path) -> dict:
+    """`run_naive_counts`' file, or a one-line error naming it."""
+    try:
+        naive = json.loads(path.read_text())
+        counts = naive["counts"]
+        if not all(isinstance(counts.get(k), int) for k in ("ops", "syncs", "host_tensors", "peak_bytes")):
+            raise KeyError("counts")
+    except (OSError, ValueError, KeyError, TypeError, AttributeError) as e:
+        raise ValueError(f"--naive-counts {path}: expected the JSON of `diffshadow bench naive-counts` (its "
+                         f"counts: ops, syncs, host_tensors, peak_bytes), could not read it: {e}") from None
+    return naive

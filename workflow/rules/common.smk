@@ -232,6 +232,8 @@ def stage_benchmarks(wildcards):
     rules = ["lights", "prepare_volume", "preoptimize", "collect_weights", "eval_truth", "sample_shadows",
              "evaluate_voxels", "caches", "train_data_inr", "naive_images", "evaluate_images", "shadow_bench",
              "report_figures", "benchmark"]
+    if bench_naive(wildcards):
+        rules += ["bench_naive"]
     cache = cache_choice(wildcards.scene)
     if cfg["cache"] == "auto":
         rules += ["choose_cache"]
@@ -290,6 +292,22 @@ def caption_values(scene):
             "ddim_steps": cfg["diffusion"]["ddim_steps"], "image_size": render["image_size"], "views": render["views"],
             "lights_per_set": render["lights_per_set"], "step": render["step"],
             "shading": _shading_name(bool(render.get("phong")))}
+
+
+def bench_kernel(wildcards) -> str:
+    """render.kernel, and --no-warm-kernels where asked: one param, so that a run finished before the setting keeps
+    its record (a new param, even empty, reruns the job)."""
+    render = scene_config(wildcards.scene)["render"]
+    return render["kernel"] + ("" if render["warm_kernels"] else " --no-warm-kernels")
+
+
+def bench_naive(wildcards):
+    """The naive frame's counts, taken apart (rule bench_naive), where the benchmark runs after the scene's other
+    jobs; on Polaris it starts beside stage 2 with whole nodes (`benchmark_waits_for`) and counts the frame itself,
+    one queue wait fewer."""
+    if config.get("pbs_system") == "polaris":
+        return {}
+    return {"naive": f"results/{wildcards.scene}/bench_naive.json"}
 
 
 def benchmark_waits_for(wildcards):

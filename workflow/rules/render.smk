@@ -75,8 +75,36 @@ rule evaluate_images:
         " --images {output.images} --threads {threads} --out {output.metrics}" + _JOB_LOG
 
 
+# the naive frame's ops, host syncs and peak memory that the benchmark reports at its smallest size: counts that do
+# not drift with the load, so taken beside stage 1, not in the benchmark's cores of its own (profiled, that frame
+# takes 3.4x its time: on tooth 33.5 s of the benchmark's 106; docs/performance.md)
+rule bench_naive:
+    input:
+        volume="results/{scene}/volume.zarr",
+        data_inr="results/{scene}/data_inr.pt",
+        lights="results/{scene}/lights.json",
+    output:
+        "results/{scene}/bench_naive.json",
+    params:
+        size=lambda wc: min(scene_config(wc.scene)["render"]["bench_sizes"]),
+        step=lambda wc: scene_config(wc.scene)["render"]["step"],
+        kernel=bench_kernel,
+    threads: 1
+    log:
+        "results/{scene}/logs/bench_naive.log",
+    benchmark:
+        "results/{scene}/benchmarks/bench_naive.tsv",
+    conda:
+        "../envs/diffshadow.yaml"
+    shell:
+        "diffshadow --phases results/{wildcards.scene}/benchmarks/bench_naive.phases.json bench naive-counts --volume {input.volume} --data-inr {input.data_inr}"
+        " --lights {input.lights} --size {params.size} --step {params.step} --kernel {params.kernel}"
+        " --threads {threads} --out {output}" + _JOB_LOG
+
+
 rule benchmark:
     input:
+        unpack(bench_naive),
         volume="results/{scene}/volume.zarr",
         data_inr="results/{scene}/data_inr.pt",
         weights="results/{scene}/weights.zarr",
@@ -90,10 +118,8 @@ rule benchmark:
         step=lambda wc: scene_config(wc.scene)["render"]["step"],
         repeats=lambda wc: scene_config(wc.scene)["render"]["bench_repeats"],
         memory=lambda wc: " ".join(str(n) for n in scene_config(wc.scene)["render"].get("bench_memory_sizes", [])),
-        # render.kernel, and --no-warm-kernels where asked: one param, so that a run finished before the setting
-        # keeps its record (a new param, even empty, reruns the job)
-        kernel=lambda wc: scene_config(wc.scene)["render"]["kernel"] + (
-            "" if scene_config(wc.scene)["render"]["warm_kernels"] else " --no-warm-kernels"),
+        kernel=bench_kernel,
+        naive=lambda wc, input: f"--naive-counts {input.naive}" if "naive" in input.keys() else "",
     threads: 2
     log:
         "results/{scene}/logs/benchmark.log",
@@ -104,5 +130,5 @@ rule benchmark:
     shell:
         "diffshadow --phases results/{wildcards.scene}/benchmarks/benchmark.phases.json bench render --volume {input.volume} --data-inr {input.data_inr} --weights {input.weights}"
         " --sizes {params.sizes} --memory-sizes {params.memory} --step {params.step} --repeats {params.repeats}"
-        " --kernel {params.kernel} --threads {threads}"
+        " --kernel {params.kernel} {params.naive} --threads {threads}"
         " --out {output.bench}" + _JOB_LOG
