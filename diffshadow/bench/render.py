@@ -82,12 +82,12 @@ def _check_naive(naive: dict, *, size: int, step: float, light: ArrayLike, azimu
     """`naive` (`naive_counts`' record) counted the frame this bench would count, or a ValueError naming the
     difference."""
     want = {"size": size, "step": step, "azimuth": azimuth, "elevation": elevation, "device": device}
-    want = {k: v for k, v in want.items() if naive.get(k) != v}
     if (naive.get("networks") or {}).get("kernel") != kernel:
         want["networks"] = {"kernel": kernel}
-    wrong = [f"{k} {naive.get(k)!r} (this bench: {v!r})" for k, v in want.items()]
-    if not np.allclose(np.asarray(naive.get("light", []), float).reshape(-1), np.asarray(light, float), atol=1e-9):
-        wrong.append(f"light {naive.get('light')} (this bench: {[float(v) for v in light]})")
+    wrong = [f"{k} {naive.get(k)!r} (this bench: {v!r})" for k, v in want.items() if naive.get(k) != v]
+    theirs, ours = np.asarray(naive.get("light", []), float).reshape(-1), np.asarray(light, float).reshape(-1)
+    if theirs.shape != ours.shape or not np.allclose(theirs, ours, atol=1e-9):
+        wrong.append(f"light {naive.get('light')} (this bench: {ours.tolist()})")
     if wrong:
         raise ValueError(f"--naive-counts: counted another frame than this bench's smallest: {'; '.join(wrong)} "
                          "(expected `bench naive-counts` of the same volume, data INR, first training light, size, "
