@@ -140,12 +140,12 @@ def bench_render(scene: RenderScene, siren: ShadowSirenSpec, light: ArrayLike, *
                 row["samples"][mode] = {"primary": img.counters.primary_samples,
                                         "secondary": img.counters.secondary_samples, "slots": img.counters.slots}
                 log(f"[bench render] {n}x{n} {mode:8s} run {rep + 1}/{repeats}: {img.seconds:.3f} s")
-        # naive's count takes minutes past the smallest size: its secondary rays are the point anyway
-        counted = BENCH_MODES if n == min(sizes) else ("noshadow", "inr")
         # recorded a march iteration at a time (the frame's `interrupt`): a naive frame's events at once took GBs
-        row["counts"] = {m: dict(naive["counts"]) if m == "naive" and naive is not None else
-                         op_counts(lambda cut, m=m, n=n: scene.render(m, cams[n], interrupt=cut, **kwargs),
-                                   memory=device, pieces=True) for m in counted}
+        row["counts"] = {m: op_counts(lambda cut, m=m, n=n: scene.render(m, cams[n], interrupt=cut, **kwargs),
+                                      memory=device, pieces=True) for m in ("noshadow", "inr")}
+        if n == min(sizes):  # naive's count takes minutes past the smallest size: its secondary rays are the point
+            naive = naive or naive_counts(scene, light, size=n, step=step, azimuth=azimuth, elevation=elevation)
+            row["counts"]["naive"] = dict(naive["counts"])
         row["peak_mem_bytes"] = {m: c.pop("peak_bytes") for m, c in row["counts"].items()}
         log(f"[bench render] {n}x{n} per frame: " + ", ".join(
             f"{m} {c['ops']:,} ops {c['syncs']} host syncs {c['host_tensors']} host tensors"

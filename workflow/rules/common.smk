@@ -305,9 +305,12 @@ def bench_naive(wildcards):
     """The naive frame's counts, taken apart (rule bench_naive), where the benchmark runs after the scene's other
     jobs; on Polaris it starts beside stage 2 with whole nodes (`benchmark_waits_for`) and counts the frame itself,
     one queue wait fewer."""
-    if config.get("pbs_system") == "polaris":
-        return {}
-    return {"naive": f"results/{wildcards.scene}/bench_naive.json"}
+    return {} if _benchmark_has_whole_nodes() else {"naive": f"results/{wildcards.scene}/bench_naive.json"}
+
+
+def _benchmark_has_whole_nodes() -> bool:
+    """Polaris gives every job whole nodes: there the benchmark shares no cores with the scene's other jobs."""
+    return config.get("pbs_system") == "polaris"
 
 
 def benchmark_waits_for(wildcards):
@@ -316,7 +319,7 @@ def benchmark_waits_for(wildcards):
     -j2; Sophia's by-gpu queue shares a node between jobs). Polaris gives every job whole nodes, so there the
     benchmark starts as soon as its inputs exist, beside stage 2, and is no longer two queue waits on the run's
     last stretch (docs/performance.md, "Queue waits in a row")."""
-    if config.get("pbs_system") == "polaris":
+    if _benchmark_has_whole_nodes():
         return []
     return [f"results/{wildcards.scene}/{name}" for name in ("image_metrics.json", "voxel_metrics.json",
                                                               "report/image_grid.png")]
