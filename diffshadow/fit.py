@@ -45,7 +45,7 @@ from diffshadow.siren import (
 from diffshadow.stopping import stop_signals
 from diffshadow.transfer import TransferFunction
 from diffshadow.truth import presample
-from diffshadow.volume import Volume, refine, refined_shape
+from diffshadow.volume import Volume, refine, refined_shape, upsample_factor
 
 
 class FitError(ValueError):
@@ -87,7 +87,7 @@ class FitConfig:
     lr_final: float  # cosine decay to lr · lr_final (authors' code)
     visible_fraction: float  # share of points drawn in the visible region
     target: str  # "sweep" or "march" (a grid per light) or "transmittance" (exact per point)
-    grid_upsample: int  # target grids on a lattice this much finer than the voxels
+    grid_upsample: int | str  # target grids this much finer than the voxels; "auto": volume.upsample_factor
     eval_points: int  # held-out points per light for the stored PSNR
     chunk: int | str  # points per SIREN per forward/backward pass; 0: all at once; "auto": by device
     checkpoint_every: int
@@ -134,6 +134,8 @@ class FitConfig:
             raise ValueError(f"fit.blend_weight, blend_per_light, blend_points: expected a weight >= 0 and, when it "
                              f"is above 0, counts >= 1; got {cfg.blend_weight}, {cfg.blend_per_light}, "
                              f"{cfg.blend_points}")
+        if not (cfg.grid_upsample == "auto" or (isinstance(cfg.grid_upsample, int) and cfg.grid_upsample >= 1)):
+            raise ValueError(f"fit.grid_upsample: expected 'auto' or an integer >= 1, got {cfg.grid_upsample!r}")
         if cfg.halo < 0:
             raise ValueError(f"fit.halo: expected a count of rings >= 0, got {cfg.halo!r}")
         if cfg.precision not in PRECISIONS:
@@ -157,15 +159,16 @@ def describe_targets(cfg: FitConfig, k: int, shape: tuple[int, ...],
     """One line on how a subset's targets are made and kept (a fit job's log)."""
     if cfg.target == "transmittance":
         return f"targets: exact transmittance marched at every step's points for {k} lights"
-    grid = refined_shape(shape, cfg.grid_upsample)
+    factor = upsample_factor(cfg.grid_upsample, shape)
+    grid = refined_shape(shape, factor)
     store, grids, table = target_store(cfg, k, grid, device)
     mib = {name: f"{size / 2**20:,.0f} MiB" if size >= 2**20 else f"{size / 2**10:,.0f} KiB"
            for name, size in (("grids", grids), ("table", table))}
     kept = (f"kept as {k} grids ({mib['grids']}; a table at every step's points: {mib['table']})" if store == "grids"
             else f"made one at a time and kept as their values at every step's points ({mib['table']}; as grids: "
                  f"{mib['grids']})")
-    return f"targets: a {cfg.target} shadow grid of {'x'.join(map(str, grid))} per light, {kept}, fit.target_store: " \
-           f"{cfg.target_store}"
+    return f"targets: a {cfg.target} shadow grid of {'x'.join(map(str, grid))} per light (the voxels refined " \
+           f"{factor} times, fit.grid_upsample: {cfg.grid_upsample}), {kept}, fit.target_store: {cfg.target_store}"
 
 
 def target_store(cfg: FitConfig, k: int, grid_shape: tuple[int, ...],
@@ -255,7 +258,7 @@ class Targets:
         if cfg.target == "transmittance":
             self.field = ShadowField.build(volume, tf, device=device)
         elif cfg.target in ("sweep", "march"):
-            fine = refine(volume, cfg.grid_upsample)
+            fine = refine(volume, upsample_factor(cfg.grid_upsample, volume.data.shape))
             if target_store(cfg, len(lights), fine.data.shape, device)[0] == "table":
                 self.fine, self.tabled = fine, True  # the table is made at the first step's number (`table_from`)
                 return

@@ -92,6 +92,22 @@ def refined_shape(shape: tuple[int, ...], factor: int) -> tuple[int, ...]:
     return tuple((n - 1) * factor + 1 for n in shape)
 
 
+# `fit.grid_upsample: auto`: stage 1's target grids are refined 4 times where that grid has at most this many voxels,
+# else 3 times where that fits, else twice. A sweep's grid costs time in its voxels (bi2o3's 80³ at 4x, 317³: ~4.7 s
+# a light on one thread), while twice-refined grids missed the exact shadow by more than the SIRENs did on the small
+# volumes (nucleon's targets 48 dB, its stage 1 47.3; at 4x 59 and 52.0: docs/performance.md, `fit.grid_upsample`)
+AUTO_UPSAMPLE_VOXELS = 1 << 25
+AUTO_UPSAMPLES = (4, 3)
+
+
+def upsample_factor(setting: int | str, shape: tuple[int, ...]) -> int:
+    """`fit.grid_upsample` for a volume of `shape`: an integer as given; "auto" the largest of AUTO_UPSAMPLES whose
+    refined grid has at most AUTO_UPSAMPLE_VOXELS voxels, else 2."""
+    if setting != "auto":
+        return int(setting)
+    return next((f for f in AUTO_UPSAMPLES if math.prod(refined_shape(shape, f)) <= AUTO_UPSAMPLE_VOXELS), 2)
+
+
 def refine(volume: Volume, factor: int) -> Volume:
     """The same trilinear field sampled `factor` times more finely (exact: a trilinear function
     restricted to a sub-cell is reproduced by trilinear interpolation of the sub-cell's corners)."""

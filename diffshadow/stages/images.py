@@ -25,7 +25,7 @@ from diffshadow.render.bundle import render_targets as targets
 from diffshadow.render.scene import KEEP_SAMPLES_BYTES
 from diffshadow.report import shading_name
 from diffshadow.store import BlendSampler, open_store
-from diffshadow.volume import check_extinction, load_prepared
+from diffshadow.volume import check_extinction, load_prepared, upsample_factor
 
 
 def train_data_inr(volume_path: Path, out: Path, *, cfg: DataInrConfig, device: torch.device) -> None:
@@ -36,11 +36,12 @@ def train_data_inr(volume_path: Path, out: Path, *, cfg: DataInrConfig, device: 
     print(f"wrote {out}: {inr.n_params} parameters, voxel PSNR {inr.psnr:.2f} dB, max error {inr.max_error:.4f}")
 
 
-def render_targets(volume_path: Path, lights_path: Path, out: Path, *, cfg: FinetuneConfig, upsample: int,
+def render_targets(volume_path: Path, lights_path: Path, out: Path, *, cfg: FinetuneConfig, upsample: int | str,
                    device: torch.device) -> None:
     """`gt` images per training light × Fibonacci view, and each view's ray samples; a sweep's grid on the
-    volume refined `upsample` times (stage 1's fit.grid_upsample). Resumable from `<out>.ckpt`."""
+    volume refined as stage 1's targets are (`upsample`: fit.grid_upsample). Resumable from `<out>.ckpt`."""
     volume, tf = load_prepared(volume_path)
+    upsample = upsample_factor(upsample, volume.data.shape)
     train = read_lights(lights_path)["train"]
     cams = fibonacci_views(volume.extent, cfg.views, size=cfg.image_size, fov=cfg.fov)
     bundle = build_bundle(volume, tf, cams, step=cfg.step)  # one pass per view: CPU
@@ -153,7 +154,8 @@ def evaluate_images(volume_path: Path, lights_path: Path, data_inr: Path, weight
                     device: torch.device, naive_path: Path | None = None) -> None:
     """`image_metrics.json` and the PNGs: every shading mode against `gt`; the naive images from `naive_path`
     (`naive_images`) where given, else rendered here."""
-    scene = artifacts.load_render_scene(volume_path, data_inr, device, render=cfg)
+    scene = artifacts.load_render_scene(volume_path, data_inr, device, render=cfg,
+                                        gt_upsample=cfg.get("reference_upsample", 1))
     scene.keep_views(KEEP_SAMPLES_BYTES)  # a view's samples serve every light and shadow INR drawn of it
     light_sets = read_lights(lights_path)
     stage1 = open_store(weights_path)
@@ -166,7 +168,8 @@ def evaluate_images(volume_path: Path, lights_path: Path, data_inr: Path, weight
     result.update({"lpips": "available (VGG)" if lpips is not None else f"unavailable: {reason}",
                    "image_size": cfg["image_size"], "views": cfg["views"], "step": cfg["step"],
                    "shading": shading_name(bool(cfg.get("phong"))), "ms_ssim": ms_ssim_status(cfg["image_size"]),
-                   "reference": "gt: raw scalar field and shadow_grid (march), same step",
+                   "reference": f"gt: raw scalar field and shadow_grid (march, on the voxels refined "
+                                f"{scene.gt_upsample} times), same step",
                    "data_inr_psnr": scene.data_inr.psnr if scene.data_inr is not None else None,
                    "data_inr": _data_inr_size(scene.data_inr), "networks": scene.networks_used()})
     atomic_write_text(out, json.dumps(finite_json(result), indent=2) + "\n")

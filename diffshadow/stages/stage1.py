@@ -27,7 +27,7 @@ from diffshadow.lights import (
 )
 from diffshadow.sampling import SUBSET_HELD_OUT_SEED
 from diffshadow.store import collect_subsets, write_store, write_subset
-from diffshadow.volume import extinction_id, load_prepared, save_prepared, scene_volume, volume_source
+from diffshadow.volume import extinction_id, load_prepared, save_prepared, scene_volume, upsample_factor, volume_source
 
 if TYPE_CHECKING:
     import torch
@@ -141,7 +141,9 @@ def fit_subset(volume_path: Path, lights_path: Path, init_path: Path, subset: in
     if (warning := below_probe_target(chosen.choice, box, subset)) is not None:
         print(warning, flush=True)
     write_subset(out, weights=weights.numpy(), light_index=idx, lights=train[idx], psnr=box, psnr_visible=vis,
-                 layout=layout, siren=siren, config={**config, "capacity": chosen.choice.to_dict()},
+                 layout=layout, siren=siren,
+                 config={**config, "capacity": chosen.choice.to_dict(),
+                         "grid_upsample": upsample_factor(fit.grid_upsample, volume.data.shape)},
                  extinction=extinction_id(volume, tf))
     print(f"wrote {out}: PSNR box median {float(np.median(box)):.2f} dB (min {box.min():.2f}), "
           f"visible median {float(np.median(vis)):.2f} dB")
