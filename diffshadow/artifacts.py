@@ -43,7 +43,6 @@ from diffshadow.volume import (
     load_volume,
     require_visible,
     scene_volume,
-    upsample_factor,
 )
 
 
@@ -323,11 +322,9 @@ def load_scene_file(scene_file: Path, device: torch.device, render: dict | None 
 
 
 def load_render_scene(volume_path: Path, data_inr: Path | None, device: torch.device,
-                      tf_config: dict | None = None, render: dict | None = None,
-                      gt_upsample: int | str = 1) -> RenderScene:
+                      tf_config: dict | None = None, render: dict | None = None) -> RenderScene:
     """A RenderScene from a prepared volume.zarr (under its own transfer function, or `tf_config`), or from a raw
-    volume file with its transfer function; its `gt` shadow grids on the voxels refined `gt_upsample` times
-    (`volume.upsample_factor`)."""
+    volume file with its transfer function."""
     if not Path(volume_path).exists():  # not "needs a transfer function": a mistyped path is the likelier mistake
         raise ValueError(f"{volume_path}: no such file; expected a prepared volume.zarr (results/<scene>/) or "
                          f"a raw volume with --tf-json{did_you_mean(volume_path)}")
@@ -347,5 +344,4 @@ def load_render_scene(volume_path: Path, data_inr: Path | None, device: torch.de
         require_visible(volume, tf, str(volume_path))
     inr = data_inr_of(data_inr, volume, str(volume_path)) if data_inr else None
     networks = Networks.from_config(render or {})
-    return RenderScene(volume, tf, inr, device=device, networks=networks,
-                       gt_upsample=upsample_factor(gt_upsample, volume.data.shape))
+    return RenderScene(volume, tf, inr, device=device, networks=networks)

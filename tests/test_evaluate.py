@@ -288,3 +288,12 @@ def test_the_seam_split_sets_the_answer_across_subsets_beside_the_answer_inside_
     before = seam_split(score, train, idx, mix, {"subset_size": 50, "fit": {}})  # a store before the keys
     assert (before["halo"], before["rounds"]) == (0, False)
     assert not seam_split(score, train, idx, mix, {"subset_size": 50, "fit": {"halo": 0, "rounds": True}})["rounds"]
+
+
+def test_an_unknown_image_reference_is_refused_naming_the_key(tmp_path):
+    """`render.reference` is checked before any image is rendered (the CLI takes a --config-json the schema does not
+    see when called without the workflow)."""
+    from diffshadow.evaluate import image_evaluation
+
+    with pytest.raises(ValueError, match=r"^render.reference: expected one of exact, grid, got 'march'$"):
+        image_evaluation(None, {}, None, None, [], step=0.5, out_dir=tmp_path, reference="march")

@@ -13,7 +13,7 @@ from numpy.typing import ArrayLike
 from diffshadow import artifacts
 from diffshadow.data_inr import DataInrConfig, fit_data_inr
 from diffshadow.diffusion.finetune import FinetuneConfig
-from diffshadow.evaluate import image_evaluation
+from diffshadow.evaluate import REFERENCES, image_evaluation
 from diffshadow.evaluate import naive_images as render_naive
 from diffshadow.io import atomic_write_text, finite_json, require_png
 from diffshadow.lights import as_direction, read_lights
@@ -154,8 +154,7 @@ def evaluate_images(volume_path: Path, lights_path: Path, data_inr: Path, weight
                     device: torch.device, naive_path: Path | None = None) -> None:
     """`image_metrics.json` and the PNGs: every shading mode against `gt`; the naive images from `naive_path`
     (`naive_images`) where given, else rendered here."""
-    scene = artifacts.load_render_scene(volume_path, data_inr, device, render=cfg,
-                                        gt_upsample=cfg.get("reference_upsample", 1))
+    scene = artifacts.load_render_scene(volume_path, data_inr, device, render=cfg)
     scene.keep_views(KEEP_SAMPLES_BYTES)  # a view's samples serve every light and shadow INR drawn of it
     light_sets = read_lights(lights_path)
     stage1 = open_store(weights_path)
@@ -163,13 +162,13 @@ def evaluate_images(volume_path: Path, lights_path: Path, data_inr: Path, weight
     views = _views(scene, cfg)
     naive = artifacts.read_naive_images(naive_path, light_sets["train"], views) if naive_path else None
     lpips, reason = lpips_model()
+    reference = cfg.get("reference", "exact")
     result = image_evaluation(scene, light_sets, stage1, generated, views, out_dir=images_dir, lpips=lpips,
-                              naive=naive, **_naive_settings(cfg))
+                              naive=naive, reference=reference, **_naive_settings(cfg))
     result.update({"lpips": "available (VGG)" if lpips is not None else f"unavailable: {reason}",
                    "image_size": cfg["image_size"], "views": cfg["views"], "step": cfg["step"],
                    "shading": shading_name(bool(cfg.get("phong"))), "ms_ssim": ms_ssim_status(cfg["image_size"]),
-                   "reference": f"gt: raw scalar field and shadow_grid (march, on the voxels refined "
-                                f"{scene.gt_upsample} times), same step",
+                   "reference": REFERENCES[reference],
                    "data_inr_psnr": scene.data_inr.psnr if scene.data_inr is not None else None,
                    "data_inr": _data_inr_size(scene.data_inr), "networks": scene.networks_used()})
     atomic_write_text(out, json.dumps(finite_json(result), indent=2) + "\n")
