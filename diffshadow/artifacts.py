@@ -36,14 +36,7 @@ from diffshadow.siren import Siren, SirenConfig, WeightLayout
 from diffshadow.store import WeightStore, open_store
 from diffshadow.transfer import TransferFunction
 from diffshadow.truth import EvalTruth
-from diffshadow.volume import (
-    Volume,
-    is_prepared,
-    load_prepared,
-    load_volume,
-    require_visible,
-    scene_volume,
-)
+from diffshadow.volume import Volume, is_prepared, load_prepared, load_volume, require_visible, scene_volume
 
 
 class ArtifactError(ValueError):

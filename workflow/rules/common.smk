@@ -121,6 +121,12 @@ def as_json(scene, *keys):
     return _as_json(scene_config(scene), *keys)
 
 
+def render_json(scene, *omit):
+    """as_json(scene, "render") without the render settings `omit`, which the job does not read."""
+    cfg = scene_config(scene)
+    return _as_json({**cfg, "render": {k: v for k, v in cfg["render"].items() if k not in omit}}, "render")
+
+
 def fit_json(scene, *keys, halo=True):
     """as_json for stage 1's jobs (`config.stage1_json`: without `fit.halo` where it changes nothing)."""
     return _stage1_json(scene_config(scene), *keys, halo=halo)

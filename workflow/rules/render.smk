@@ -29,8 +29,8 @@ rule naive_images:
         data_inr="results/{scene}/data_inr.pt",
     output:
         directory("results/{scene}/naive_images.zarr"),
-    params:
-        cfg=lambda wc: as_json(wc.scene, "render"),
+    params:  # not render.reference: evaluate_images' reference is not a naive image, and this is the slow job
+        cfg=lambda wc: render_json(wc.scene, "reference"),
     # the slowest of evaluate_images' renders (48 of its 74 s on 2 cores), needing no SIREN: beside fit_siren,
     # instead of after stage 2; the longest side job, so before the other side jobs that have no priority, and
     # after presample and render_targets, which the chain reads (on a GPU in time)
