@@ -349,11 +349,12 @@ def naive_images(scene: RenderScene, light_sets: dict, views: list, *, step: flo
     return out
 
 
-# `render.reference`: what image_evaluation scores every mode against
+# `render.reference`: what image_evaluation scores every mode against (the renderer's mode drawing it on the raw
+# scalar field; image_metrics.json's description)
 REFERENCES = {
-    "exact": "gt: raw scalar field, the shadow marched from every sample through the raw volume (the naive method on "
-             "the voxels), same step",
-    "grid": "gt: raw scalar field and shadow_grid (march at the voxels), same step",
+    "exact": ("naive", "gt: raw scalar field, the shadow marched from every sample through the raw volume (the naive "
+                       "method on the voxels), same step"),
+    "grid": ("gt", "gt: raw scalar field and shadow_grid (march at the voxels), same step"),
 }
 
 
@@ -398,8 +399,7 @@ def image_evaluation(scene: RenderScene, light_sets: dict, stage1: WeightStore, 
             light = light_sets[set_name][i]
             for v, cam in enumerate(views):
                 tag = f"{set_name}{i}_view{v}"
-                gt = (scene.render("naive", cam, light=light, scalar="grid", phong=phong, step=step)
-                      if reference == "exact" else scene.render("gt", cam, light=light, phong=phong, step=step))
+                gt = scene.render(REFERENCES[reference][0], cam, light=light, scalar="grid", phong=phong, step=step)
                 write_png(out_dir / f"{tag}_gt.png", gt)
                 modes = {}
                 if set_name == "train":

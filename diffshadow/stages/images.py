@@ -162,13 +162,12 @@ def evaluate_images(volume_path: Path, lights_path: Path, data_inr: Path, weight
     views = _views(scene, cfg)
     naive = artifacts.read_naive_images(naive_path, light_sets["train"], views) if naive_path else None
     lpips, reason = lpips_model()
-    reference = cfg.get("reference", "exact")
     result = image_evaluation(scene, light_sets, stage1, generated, views, out_dir=images_dir, lpips=lpips,
-                              naive=naive, reference=reference, **_naive_settings(cfg))
+                              naive=naive, reference=cfg["reference"], **_naive_settings(cfg))
     result.update({"lpips": "available (VGG)" if lpips is not None else f"unavailable: {reason}",
                    "image_size": cfg["image_size"], "views": cfg["views"], "step": cfg["step"],
                    "shading": shading_name(bool(cfg.get("phong"))), "ms_ssim": ms_ssim_status(cfg["image_size"]),
-                   "reference": REFERENCES[reference],
+                   "reference": REFERENCES[cfg["reference"]][1],
                    "data_inr_psnr": scene.data_inr.psnr if scene.data_inr is not None else None,
                    "data_inr": _data_inr_size(scene.data_inr), "networks": scene.networks_used()})
     atomic_write_text(out, json.dumps(finite_json(result), indent=2) + "\n")
