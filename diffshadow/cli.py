@@ -88,9 +88,12 @@ def _presample(a: argparse.Namespace):
 
 
 def _train_diffusion(a: argparse.Namespace):
+    from diffshadow.runtime import SpareThreads
     from diffshadow.stages import stage2
 
-    stage2.train_diffusion(Path(a.weights), Path(a.points), Path(a.out), cfg=_diffusion(a), device=_device(a))
+    device = _device(a)
+    stage2.train_diffusion(Path(a.weights), Path(a.points), Path(a.out), cfg=_diffusion(a), device=device,
+                           spare=SpareThreads.for_run(a.threads, device))
 
 
 def _finetune_render(a: argparse.Namespace):
