@@ -88,12 +88,9 @@ def _presample(a: argparse.Namespace):
 
 
 def _train_diffusion(a: argparse.Namespace):
-    from diffshadow.runtime import SpareThreads
     from diffshadow.stages import stage2
 
-    device = _device(a)
-    stage2.train_diffusion(Path(a.weights), Path(a.points), Path(a.out), cfg=_diffusion(a), device=device,
-                           spare=SpareThreads.for_run(a.threads, device))
+    stage2.train_diffusion(Path(a.weights), Path(a.points), Path(a.out), cfg=_diffusion(a), device=_device(a))
 
 
 def _finetune_render(a: argparse.Namespace):

@@ -96,14 +96,11 @@ def test_a_finished_run_says_what_to_open(finished):
             "`diffshadow view results/nucleon` opens the viewer") in (finished / "snakemake.out").read_text()
 
 
-def test_a_fit_and_stage_2s_training_may_borrow_the_runs_idle_cores(finished):
-    """fit_siren and train_diffusion ask Snakemake for one thread and take the run's second core while it idles
-    (runtime.SpareThreads; their bytes are the same on any threads: tests/test_fit.py, tests/test_diffusion.py);
-    on a GPU they do not."""
+def test_a_fit_may_borrow_the_runs_idle_cores(finished):
+    """fit_siren asks Snakemake for one thread and takes the run's second core while it idles
+    (runtime.SpareThreads; its bytes are the same on any threads: tests/test_fit.py); on a GPU it does not."""
     logs = [(finished / f"results/nucleon/logs/fit_siren_{i}.log").read_text() for i in range(2)]
     assert all(("fitted on 1 thread(s), 2 for " in log) != CUDA for log in logs), logs
-    log = (finished / "results/nucleon/logs/train_diffusion.log").read_text()
-    assert ("trained on 1 thread(s), 2 for " in log) != CUDA, log
 
 
 def test_builds_the_weight_store(finished):

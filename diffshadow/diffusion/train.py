@@ -316,11 +316,10 @@ def step_graphs(cfg: DiffusionConfig, device: torch.device, log: Callable[[str],
 
 def train_diffusion(data: TrainingData, cfg: DiffusionConfig, checkpoint: Path, *,
                     device: torch.device | str = "cpu", log: Callable[[str], None] = print,
-                    stop_after_epoch: int | None = None, between_steps: Callable[[], object] | None = None) -> dict:
+                    stop_after_epoch: int | None = None) -> dict:
     """Train (or resume) and return the final state; the checkpoint file holds it when done.
 
     `stop_after_epoch` ends the run early (as if killed after that epoch's checkpoint): tests use it.
-    `between_steps` is called after every step (e.g. runtime.SpareThreads.poll: a step's threads change no byte).
     """
     device = torch.device(device)
     cfg = cfg.for_siren(data.siren.width).for_device(device)
@@ -398,8 +397,6 @@ def train_diffusion(data: TrainingData, cfg: DiffusionConfig, checkpoint: Path, 
                                    schedule.steps, device)
                 totals += train_batch(model, opt, ema, std, on_device, z_all, pool, batch, cfg, schedule,
                                       nonfinite, epoch, epoch * per_epoch + k, graphs)
-                if between_steps is not None:
-                    between_steps()
                 if stop.requested and k + 1 < per_epoch:  # an epoch at the paper's sizes outlasts a kill delay
                     raise_if_not_finite()
                     save(epoch, {"batches": k + 1, "generator": gen.get_state(), "totals": totals.cpu()})

@@ -28,7 +28,7 @@ from diffshadow.evaluate import voxel_metrics, wide_comparison
 from diffshadow.hpc import device_name
 from diffshadow.io import atomic_torch_save, atomic_write_text, finite_json
 from diffshadow.lights import blend_label, blend_weights, describe_blend, read_lights, training_pool, validation_lights
-from diffshadow.runtime import SpareThreads, distributed, set_threads
+from diffshadow.runtime import distributed, set_threads
 from diffshadow.sampling import VALIDATION_POINTS_SEED, Stream
 from diffshadow.store import BlendSampler, WeightStore, blend_rows, open_store, write_store
 from diffshadow.truth import EvalTruth, check_points, psnr_per_light
@@ -61,23 +61,15 @@ def presample(volume_path: Path, lights_path: Path, out: Path, *, cfg: Diffusion
 
 
 def train_diffusion(weights_path: Path, points_path: Path, out: Path, *, cfg: DiffusionConfig,
-                    device: torch.device, spare: SpareThreads | None = None) -> None:
-    """The geometry-stage model; resumable from `<out>.part`, renamed to `out` when complete. With `spare`, its
-    steps take the cores other jobs leave idle (the same bytes on any threads)."""
+                    device: torch.device) -> None:
+    """The geometry-stage model; resumable from `<out>.part`, renamed to `out` when complete."""
     data, _ = artifacts.read_training_data(weights_path, points_path)
     part = out.with_name(out.name + ".part")
-    t0 = time.perf_counter()
     try:
-        train(data, cfg, part, device=device, between_steps=spare.poll if spare is not None else None)
+        train(data, cfg, part, device=device)
     except DiffusionError as e:
         raise DiffusionError(f"train_diffusion ({weights_path}): {e}") from None
-    finally:
-        if spare is not None:
-            spare.release()
     os.replace(part, out)
-    if spare is not None:
-        print(f"trained on {spare.own} thread(s), {spare.most} for {spare.raised_s:.0f} s of its "
-              f"{time.perf_counter() - t0:.0f} s (while the run's other cores idled)", flush=True)
     print(f"wrote {out}")
 
 

@@ -31,9 +31,7 @@ rule train_diffusion:
         "results/{scene}/diffusion_geometry.ckpt",
     params:
         cfg=lambda wc: as_json(wc.scene, "diffusion"),
-    # one, and two while the run's other core idles (runtime.SpareThreads: 1.68x one thread's speed, the same bytes):
-    # asked for two, it waited for the side jobs still running when stage 1 ended (tooth: ~1 min)
-    threads: 1
+    threads: device_threads(2)  # 1.68x one thread's speed on a CPU; on a GPU one, so a side job runs beside it
     priority: 10  # the longest job: it starts before the side jobs (targets, data INR, truth) take a core
     log:
         "results/{scene}/logs/train_diffusion.log",
