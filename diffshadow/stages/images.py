@@ -185,8 +185,8 @@ def evaluate_images(volume_path: Path, lights_path: Path, data_inr: Path, weight
     stage1 = open_store(weights_path)
     generated = open_store(generated_path) if generated_path else None
     views = _views(scene, cfg)
-    naive = (artifacts.read_images(naive_path, light_sets["train"], views, made_by="naive_images")
-             if naive_path else None)
+    naive = artifacts.read_images(naive_path, light_sets["train"], views, made_by="naive_images") if naive_path \
+        else None
     references = artifacts.read_images(references_path, _all_lights(light_sets), views, made_by="reference_images",
                                        settings=_reference_settings(cfg)) if references_path else None
     lpips, reason = lpips_model()

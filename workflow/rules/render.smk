@@ -54,10 +54,9 @@ rule reference_images:
     output:
         directory("results/{scene}/reference_images.zarr"),
     params:
-        cfg=lambda wc: render_json(wc.scene, "naive_views", "naive_lights", "bench_sizes", "bench_repeats",
-                                   "bench_memory_sizes"),
-    # evaluate_images' gt (render.reference): with the exact reference (the shadow marched from every sample) most
-    # of its time (23 of 30 s on the README run), needing no SIREN and no data INR: a side job beside stage 1
+        cfg=lambda wc: render_json(wc.scene, "naive_views", "naive_lights"),
+    # evaluate_images' gt (render.reference): with the exact reference (the shadow marched from every sample) the
+    # most of its time (25 of 36 s on the README run), needing no SIREN and no data INR: a side job beside stage 1
     threads: 1
     priority: 1
     log:
