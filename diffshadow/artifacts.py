@@ -10,8 +10,7 @@
 | `diffusion_geometry.ckpt`, `diffusion.ckpt` | train_diffusion, finetune_render | `load_checkpoint` |
 | `targets.zarr` | render_targets | `write_targets` / `read_targets` |
 | `data_inr.pt` | train_data_inr | `save_data_inr` / `load_data_inr`; with a volume: `data_inr_of` |
-| `naive_images.zarr` | naive_images | `write_images` / `read_images`: the naive baseline's images |
-| `reference_images.zarr` | reference_images | `write_images` / `read_images`: evaluate_images' gt |
+| `naive_images.zarr` | naive_images | `write_naive_images` / `read_naive_images`: the naive baseline's images |
 """
 
 from __future__ import annotations
@@ -170,11 +169,9 @@ def write_eval_truth(path: str | Path, truth: EvalTruth) -> None:
     write_zarr_group(path, fill, made_by="eval_truth")
 
 
-def write_images(path: str | Path, images: dict[str, Image], lights: np.ndarray, cameras: list[Camera], *,
-                 made_by: str, settings: dict | None = None) -> None:
-    """Renders by tag for evaluate_images (`naive_images`' naive baseline, `reference_images`' gt): colour and
-    opacity as rendered, the seconds each took, and the lights, cameras and render `settings` they were made for
-    (`read_images` checks them)."""
+def write_naive_images(path: str | Path, images: dict[str, Image], lights: np.ndarray, cameras: list[Camera]) -> None:
+    """`naive_images`' renders by tag (`evaluate.naive_tags`): colour and opacity as rendered, the seconds each
+    took, and the lights and cameras of the run they were made for (evaluate_images checks them)."""
 
     def fill(root) -> None:
         for tag, img in images.items():
@@ -182,9 +179,9 @@ def write_images(path: str | Path, images: dict[str, Image], lights: np.ndarray,
             root.create_array(f"{tag}_alpha", data=img.alpha.cpu().numpy())
         root.create_array("lights", data=np.asarray(lights, dtype=np.float64))
         root.attrs.update({"tags": list(images), "seconds": {t: img.seconds for t, img in images.items()},
-                           "cameras": [_camera_row(c) for c in cameras], "settings": settings or {}})
+                           "cameras": [_camera_row(c) for c in cameras]})
 
-    write_zarr_group(path, fill, made_by=made_by)
+    write_zarr_group(path, fill, made_by="naive_images")
 
 
 def _camera_row(c: Camera) -> list[float]:
@@ -192,24 +189,20 @@ def _camera_row(c: Camera) -> list[float]:
     return [float(x) for x in (*c.eye, *c.target, *c.up, c.fov, c.width, c.height)]
 
 
-def read_images(path: str | Path, lights: np.ndarray, cameras: list[Camera], *, made_by: str,
-                settings: dict | None = None) -> dict[str, Image]:
-    """The images of `write_images`, refused in one line if they were made for other lights, cameras or render
-    settings than these (a changed render config or light set: rerun `made_by`)."""
+def read_naive_images(path: str | Path, lights: np.ndarray, cameras: list[Camera]) -> dict[str, Image]:
+    """The naive images of `write_naive_images`, refused in one line if they were made for other lights or
+    cameras than these (a changed render config or light set: rerun naive_images)."""
     try:
-        root = VerifiedGroup(path, f"{made_by}' renders")
+        root = VerifiedGroup(path, "naive_images' renders")
         tags, seconds = list(root.attrs["tags"]), root.attrs["seconds"]
-        made_for = (root.read("lights"), root.attrs["cameras"], root.attrs.get("settings", {}))
+        made_for = (root.read("lights"), root.attrs["cameras"])
         images = {t: Image(rgb=torch.from_numpy(root.read(f"{t}_rgb")), alpha=torch.from_numpy(root.read(f"{t}_alpha")),
                            seconds=float(seconds[t])) for t in tags}
     except KeyError as e:
-        raise ArtifactError(f"{path}: not {made_by}' renders (missing {e})") from None
+        raise ArtifactError(f"{path}: not naive_images' renders (missing {e})") from None
     if made_for[1] != [_camera_row(c) for c in cameras] or not np.array_equal(made_for[0], np.asarray(lights)):
-        raise ArtifactError(f"{path}: rendered for other lights or cameras than this evaluation's; rerun {made_by}")
-    for key, want in (settings or {}).items():
-        if made_for[2].get(key) != want:
-            raise ArtifactError(f"{path}: rendered with {key} {made_for[2].get(key)!r}, this evaluation asks "
-                                f"{want!r}; rerun {made_by}")
+        raise ArtifactError(f"{path}: rendered for other lights or cameras than this evaluation's; rerun "
+                            f"naive_images")
     return images
 
 

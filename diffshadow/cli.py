@@ -213,14 +213,7 @@ def _evaluate_images(a: argparse.Namespace):
 
     images.evaluate_images(Path(a.volume), Path(a.lights), Path(a.data_inr), Path(a.weights),
                            Path(a.generated) if a.generated else None, Path(a.images), Path(a.out),
-                           cfg=_cfg(a)["render"], device=_device(a), naive_path=Path(a.naive) if a.naive else None,
-                           references_path=Path(a.references) if a.references else None)
-
-
-def _reference_images(a: argparse.Namespace):
-    from diffshadow.stages import images
-
-    images.reference_images(Path(a.volume), Path(a.lights), Path(a.out), cfg=_cfg(a)["render"], device=_device(a))
+                           cfg=_cfg(a)["render"], device=_device(a), naive_path=Path(a.naive) if a.naive else None)
 
 
 def _naive_images(a: argparse.Namespace):
@@ -491,10 +484,6 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--generated", help="stage 2's generated.zarr (optional)")
     p.add_argument("--naive", help="naive-images' naive_images.zarr (optional: else the naive images are rendered "
                    "here)")
-    p.add_argument("--references", help="reference-images' reference_images.zarr (optional: else the gt images are "
-                   "rendered here)")
-    _add(sub, "reference-images", _reference_images, "evaluate-images' gt images (render.reference; "
-         "reference_images.zarr)", "volume", "lights", config='{"render": {...}}')
     _add(sub, "naive-images", _naive_images, "the naive baseline's images for evaluate-images (naive_images.zarr)",
          "volume", "lights", "data-inr", config='{"render": {...}}')
     p = _add(sub, "render", _render, "render one image (PNG) in a shading mode")

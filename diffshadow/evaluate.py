@@ -358,34 +358,10 @@ REFERENCES = {
 }
 
 
-def reference_tags(light_sets: dict, views: list, *, lights_per_set: int = 2) -> list[tuple[str, str, int, int]]:
-    """(tag, set, light row, view) of every image `image_evaluation` scores: a few lights of each set, every view."""
-    return [(f"{set_name}{i}_view{v}", set_name, int(i), v) for set_name in ("train", "unseen")
-            for i in pick(len(light_sets[set_name]), lights_per_set) for v in range(len(views))]
-
-
-def reference_images(scene: RenderScene, light_sets: dict, views: list, *, step: float, lights_per_set: int = 2,
-                     phong: bool = False, reference: str = "exact", log: Callable[[str], None] = print) -> dict:
-    """`image_evaluation`'s gt images by tag (`render.reference`, REFERENCES). They need only the volume and the
-    lights, so the workflow renders them in a job of their own (`reference_images`) while stage 1 and 2 run: the
-    exact reference marches the shadow from every sample, most of evaluate_images' time."""
-    if reference not in REFERENCES:
-        raise ValueError(f"render.reference: expected one of {', '.join(REFERENCES)}, got {reference!r}")
-    out = {}
-    tags = reference_tags(light_sets, views, lights_per_set=lights_per_set)
-    for n, (tag, set_name, i, v) in enumerate(tags, 1):
-        out[tag] = scene.render(REFERENCES[reference][0], views[v], light=light_sets[set_name][i], scalar="grid",
-                                phong=phong, step=step,
-                                interrupt=Ticker(f"[reference images] {tag} ({n}/{len(tags)})", log=log))
-        log(f"[reference images] {tag} {out[tag].seconds:.2f} s")
-    return out
-
-
 def image_evaluation(scene: RenderScene, light_sets: dict, stage1: WeightStore, generated: WeightStore, views: list, *,
                      step: float, out_dir: Path, lights_per_set: int = 2, naive_views: int | None = None,
                      naive_lights: int | None = None, lpips: torch.nn.Module | None = None, phong: bool = False,
-                     naive: dict | None = None, reference: str = "exact", references: dict | None = None,
-                     log: Callable[[str], None] = print) -> dict:
+                     naive: dict | None = None, reference: str = "exact", log: Callable[[str], None] = print) -> dict:
     """`image_metrics.json`: every mode against `gt` over a few training and unseen lights and views.
 
     `gt` (`reference`, REFERENCES): "exact", the shadow marched from every sample through the raw volume, or "grid",
@@ -397,8 +373,7 @@ def image_evaluation(scene: RenderScene, light_sets: dict, stage1: WeightStore, 
     (secondary rays through the data INR: it carries the data INR's error; training lights only, since it
     does not depend on which lights the model saw) and `noshadow` (the same shading
     without the shadow term, so its error is what the shadow adds). `phong` lights every mode, gt included.
-    `naive` / `references`: the naive / gt images by tag (`naive_images`, `reference_images`), rendered here when
-    not given.
+    `naive`: the naive images by tag (`naive_images`), rendered here when not given.
     """
     from pathlib import Path
 
@@ -414,38 +389,41 @@ def image_evaluation(scene: RenderScene, light_sets: dict, stage1: WeightStore, 
         naive = naive_images(scene, light_sets, views, step=step, lights_per_set=lights_per_set,
                              naive_views=naive_views, naive_lights=naive_lights, phong=phong,
                              log=log) if have_inr else {}
-    if references is None:
-        references = reference_images(scene, light_sets, views, step=step, lights_per_set=lights_per_set,
-                                      phong=phong, reference=reference, log=log)
     gen_rows = {}
     if generated is not None:
         seen = generated.seen
         gen_rows = {"train": np.flatnonzero(seen), "unseen": np.flatnonzero(~seen)}
     per_image, sums = [], {}
-    for tag, set_name, i, v in reference_tags(light_sets, views, lights_per_set=lights_per_set):
-        light, cam, gt = light_sets[set_name][i], views[v], references[tag]
-        write_png(out_dir / f"{tag}_gt.png", gt)
-        modes = {}
-        if set_name == "train":
-            modes["inr_stage1"] = {"mode": "inr", "scalar": "grid", "siren": (stage1.weights[i], layout, blocks)}
-        if gen_rows:
-            w = generated.weights[gen_rows[set_name][i]]
-            modes["inr_generated"] = {"mode": "inr", "scalar": "grid", "siren": (w, layout, blocks)}
-            if have_inr:
-                modes["inr_generated_data_inr"] = {"mode": "inr", "scalar": "inr", "siren": (w, layout, blocks)}
-        if tag in naive:
-            modes["naive"] = {"image": naive[tag]}
-        modes["noshadow"] = {"mode": "noshadow", "scalar": "grid"}
-        for name, spec in modes.items():
-            img = spec.get("image") or scene.render(spec["mode"], cam, light=light, siren=spec.get("siren"),
-                                                    scalar=spec["scalar"], phong=phong, step=step)
-            write_png(out_dir / f"{tag}_{name}.png", img)
-            m = image_metrics(img.rgb, gt.rgb, gt.alpha, lpips)
-            per_image.append({"set": set_name, "light": i, "view": v, "mode": name, **m,
-                              "seconds": img.seconds, "replayed": img.replayed})
-            sums.setdefault((set_name, name), []).append(m)
-            log(f"[evaluate images] {tag} {name:24s} PSNR {m['psnr']:6.2f} dB  SSIM {m['ssim']:.4f}  "
-                f"{img.seconds:.2f} s{' (kept samples)' if img.replayed else ''}")
+    for set_name in ("train", "unseen"):
+        for i in pick(len(light_sets[set_name]), lights_per_set):
+            light = light_sets[set_name][i]
+            for v, cam in enumerate(views):
+                tag = f"{set_name}{i}_view{v}"
+                gt = scene.render(REFERENCES[reference][0], cam, light=light, scalar="grid", phong=phong, step=step)
+                write_png(out_dir / f"{tag}_gt.png", gt)
+                modes = {}
+                if set_name == "train":
+                    modes["inr_stage1"] = {"mode": "inr", "scalar": "grid",
+                                           "siren": (stage1.weights[i], layout, blocks)}
+                if gen_rows:
+                    w = generated.weights[gen_rows[set_name][i]]
+                    modes["inr_generated"] = {"mode": "inr", "scalar": "grid", "siren": (w, layout, blocks)}
+                    if have_inr:
+                        modes["inr_generated_data_inr"] = {"mode": "inr", "scalar": "inr",
+                                                           "siren": (w, layout, blocks)}
+                if tag in naive:
+                    modes["naive"] = {"image": naive[tag]}
+                modes["noshadow"] = {"mode": "noshadow", "scalar": "grid"}
+                for name, spec in modes.items():
+                    img = spec.get("image") or scene.render(spec["mode"], cam, light=light, siren=spec.get("siren"),
+                                                            scalar=spec["scalar"], phong=phong, step=step)
+                    write_png(out_dir / f"{tag}_{name}.png", img)
+                    m = image_metrics(img.rgb, gt.rgb, gt.alpha, lpips)
+                    per_image.append({"set": set_name, "light": i, "view": v, "mode": name, **m,
+                                      "seconds": img.seconds, "replayed": img.replayed})
+                    sums.setdefault((set_name, name), []).append(m)
+                    log(f"[evaluate images] {tag} {name:24s} PSNR {m['psnr']:6.2f} dB  SSIM {m['ssim']:.4f}  "
+                        f"{img.seconds:.2f} s{' (kept samples)' if img.replayed else ''}")
     by_set: dict = {}
     overall: dict = {}
     for (set_name, name), rows in sums.items():

@@ -141,16 +141,15 @@ def test_quality_warnings_name_the_goal_missed_and_what_to_change():
     assert quality_warnings(result) == []
 
 
-def test_naive_and_reference_images_made_apart_give_evaluate_images_the_same_metrics_and_pngs(tmp_path):
-    """The naive and gt images rendered in jobs of their own (`naive_images`, `reference_images`) and read back are
-    the ones `image_evaluation` renders itself: the same metrics and PNG bytes; read for other cameras, or gt images
-    for another `render.reference`, they are refused in one line."""
+def test_naive_images_made_apart_give_evaluate_images_the_same_metrics_and_pngs(tmp_path):
+    """The naive images rendered in a job of their own (`naive_images`) and read back are the ones
+    `image_evaluation` renders itself: the same metrics and PNG bytes; read for other cameras, they are refused."""
     from types import SimpleNamespace
 
     from conftest import data_inr_stub
 
-    from diffshadow.artifacts import ArtifactError, read_images, write_images
-    from diffshadow.evaluate import image_evaluation, naive_images, naive_tags, reference_images, reference_tags
+    from diffshadow.artifacts import ArtifactError, read_naive_images, write_naive_images
+    from diffshadow.evaluate import image_evaluation, naive_images, naive_tags
     from diffshadow.render import Camera, RenderScene
 
     vol, siren = _blob(16), SirenConfig(8, 1)
@@ -158,37 +157,24 @@ def test_naive_and_reference_images_made_apart_give_evaluate_images_the_same_met
     scene = RenderScene(vol, identity_tf(), data_inr_stub(8, 1))
     views = [Camera.orbit(vol.extent, azimuth=a, elevation=20, size=12) for a in (30, 150)]
     lights = {"train": fibonacci_sphere(40)[:3], "unseen": fibonacci_sphere(40)[3:5]}
-    every = np.concatenate([lights["train"], lights["unseen"]])
     stage1 = SimpleNamespace(layout=layout, siren=siren,
                              weights=np.stack([layout.flatten(init_siren(siren, torch.Generator().manual_seed(i)))
                                                .numpy() for i in range(3)]))
     picks = dict(lights_per_set=2, naive_views=1, naive_lights=1)
     settings = dict(step=1.0, **picks)
     assert [t for t, _, _ in naive_tags(lights, views, **picks)] == ["train0_view0"]
-    assert [t for t, *_ in reference_tags(lights, views, lights_per_set=2)] == [
-        "train0_view0", "train0_view1", "train2_view0", "train2_view1",
-        "unseen0_view0", "unseen0_view1", "unseen1_view0", "unseen1_view1"]
     made = naive_images(scene, lights, views, log=lambda m: None, **settings)
-    write_images(tmp_path / "naive.zarr", made, lights["train"], views, made_by="naive_images")
-    read = read_images(tmp_path / "naive.zarr", lights["train"], views, made_by="naive_images")
-    gt_settings = {"reference": "exact", "step": 1.0, "phong": False, "lights_per_set": 2}
-    gts = reference_images(scene, lights, views, log=lambda m: None, **gt_settings)
-    write_images(tmp_path / "gt.zarr", gts, every, views, made_by="reference_images", settings=gt_settings)
-    read_gts = read_images(tmp_path / "gt.zarr", every, views, made_by="reference_images", settings=gt_settings)
+    write_naive_images(tmp_path / "naive.zarr", made, lights["train"], views)
+    read = read_naive_images(tmp_path / "naive.zarr", lights["train"], views)
     inline = image_evaluation(scene, lights, stage1, None, views, out_dir=tmp_path / "a", log=lambda m: None,
                               **settings)
     apart = image_evaluation(scene, lights, stage1, None, views, out_dir=tmp_path / "b", naive=read,
-                             references=read_gts, log=lambda m: None, **settings)
+                             log=lambda m: None, **settings)
     assert inline["modes"] == apart["modes"] and inline["modes"]["naive"]["count"] == 1
-    assert len(list((tmp_path / "a").glob("*_gt.png"))) == 8
     for png in sorted((tmp_path / "a").glob("*.png")):
         assert (tmp_path / "b" / png.name).read_bytes() == png.read_bytes(), png.name
     with pytest.raises(ArtifactError, match="naive.zarr: rendered for other lights or cameras.*rerun naive_images"):
-        read_images(tmp_path / "naive.zarr", lights["train"], views[::-1], made_by="naive_images")
-    with pytest.raises(ArtifactError, match="gt.zarr: rendered with reference 'exact', this evaluation asks 'grid'; "
-                                            "rerun reference_images"):
-        read_images(tmp_path / "gt.zarr", every, views, made_by="reference_images",
-                    settings={**gt_settings, "reference": "grid"})
+        read_naive_images(tmp_path / "naive.zarr", lights["train"], views[::-1])
 
 
 def test_a_slow_naive_frame_says_it_is_alive_and_is_the_same_frame(monkeypatch):

@@ -7,7 +7,6 @@ import json
 import math
 from pathlib import Path
 
-import numpy as np
 import torch
 from numpy.typing import ArrayLike
 
@@ -16,7 +15,6 @@ from diffshadow.data_inr import DataInrConfig, fit_data_inr
 from diffshadow.diffusion.finetune import FinetuneConfig
 from diffshadow.evaluate import REFERENCES, image_evaluation
 from diffshadow.evaluate import naive_images as render_naive
-from diffshadow.evaluate import reference_images as render_references
 from diffshadow.io import atomic_write_text, finite_json, require_png
 from diffshadow.lights import as_direction, read_lights
 from diffshadow.metrics import lpips_model, ms_ssim_status
@@ -147,52 +145,25 @@ def naive_images(volume_path: Path, lights_path: Path, data_inr: Path, out: Path
     scene = artifacts.load_render_scene(volume_path, data_inr, device, render=cfg)
     light_sets, views = read_lights(lights_path), _views(scene, cfg)
     images = render_naive(scene, light_sets, views, **_naive_settings(cfg))
-    artifacts.write_images(out, images, light_sets["train"], views, made_by="naive_images")
+    artifacts.write_naive_images(out, images, light_sets["train"], views)
     print(f"wrote {out}: {len(images)} naive images")
-
-
-def _reference_settings(cfg: dict) -> dict:
-    """What `reference_images.zarr` is checked against beside its lights and cameras."""
-    return {"reference": cfg["reference"], "step": cfg["step"], "phong": bool(cfg.get("phong", False)),
-            "lights_per_set": cfg["lights_per_set"]}
-
-
-def _all_lights(light_sets: dict) -> np.ndarray:
-    return np.concatenate([light_sets["train"], light_sets["unseen"]])
-
-
-def reference_images(volume_path: Path, lights_path: Path, out: Path, *, cfg: dict, device: torch.device) -> None:
-    """`reference_images.zarr`: evaluate_images' gt images (`render.reference`). They need no SIREN and no data INR,
-    so they are made while stage 1 and 2 train; the exact reference marches the shadow from every sample."""
-    scene = artifacts.load_render_scene(volume_path, None, device, render=cfg)
-    light_sets, views = read_lights(lights_path), _views(scene, cfg)
-    settings = _reference_settings(cfg)
-    images = render_references(scene, light_sets, views, **settings)
-    artifacts.write_images(out, images, _all_lights(light_sets), views, made_by="reference_images",
-                           settings=settings)
-    print(f"wrote {out}: {len(images)} reference images ({REFERENCES[cfg['reference']][1]})")
 
 
 def evaluate_images(volume_path: Path, lights_path: Path, data_inr: Path, weights_path: Path,
                     generated_path: Path | None, images_dir: Path, out: Path, *, cfg: dict,
-                    device: torch.device, naive_path: Path | None = None,
-                    references_path: Path | None = None) -> None:
-    """`image_metrics.json` and the PNGs: every shading mode against `gt`; the naive and gt images from
-    `naive_path` and `references_path` (`naive_images`, `reference_images`) where given, else rendered here."""
+                    device: torch.device, naive_path: Path | None = None) -> None:
+    """`image_metrics.json` and the PNGs: every shading mode against `gt`; the naive images from `naive_path`
+    (`naive_images`) where given, else rendered here."""
     scene = artifacts.load_render_scene(volume_path, data_inr, device, render=cfg)
     scene.keep_views(KEEP_SAMPLES_BYTES)  # a view's samples serve every light and shadow INR drawn of it
     light_sets = read_lights(lights_path)
     stage1 = open_store(weights_path)
     generated = open_store(generated_path) if generated_path else None
     views = _views(scene, cfg)
-    naive = artifacts.read_images(naive_path, light_sets["train"], views, made_by="naive_images") if naive_path \
-        else None
-    references = artifacts.read_images(references_path, _all_lights(light_sets), views, made_by="reference_images",
-                                       settings=_reference_settings(cfg)) if references_path else None
+    naive = artifacts.read_naive_images(naive_path, light_sets["train"], views) if naive_path else None
     lpips, reason = lpips_model()
     result = image_evaluation(scene, light_sets, stage1, generated, views, out_dir=images_dir, lpips=lpips,
-                              naive=naive, reference=cfg["reference"], references=references,
-                              **_naive_settings(cfg))
+                              naive=naive, reference=cfg["reference"], **_naive_settings(cfg))
     result.update({"lpips": "available (VGG)" if lpips is not None else f"unavailable: {reason}",
                    "image_size": cfg["image_size"], "views": cfg["views"], "step": cfg["step"],
                    "shading": shading_name(bool(cfg.get("phong"))), "ms_ssim": ms_ssim_status(cfg["image_size"]),

@@ -236,8 +236,8 @@ def stage_benchmarks(wildcards):
     """Snakemake's benchmark file of every job that this scene runs."""
     cfg = scene_config(wildcards.scene)
     rules = ["lights", "prepare_volume", "preoptimize", "collect_weights", "eval_truth", "sample_shadows",
-             "evaluate_voxels", "caches", "train_data_inr", "naive_images", "reference_images", "evaluate_images",
-             "shadow_bench", "report_figures", "benchmark"]
+             "evaluate_voxels", "caches", "train_data_inr", "naive_images", "evaluate_images", "shadow_bench",
+             "report_figures", "benchmark"]
     if bench_naive(wildcards):
         rules += ["bench_naive"]
     cache = cache_choice(wildcards.scene)

@@ -29,7 +29,7 @@ rule naive_images:
         data_inr="results/{scene}/data_inr.pt",
     output:
         directory("results/{scene}/naive_images.zarr"),
-    params:  # not render.reference: evaluate_images' reference (reference_images) is not a naive image
+    params:  # not render.reference: evaluate_images' reference is not a naive image, and this is the slow job
         cfg=lambda wc: render_json(wc.scene, "reference"),
     # the slowest of evaluate_images' renders (48 of its 74 s on 2 cores), needing no SIREN: beside fit_siren,
     # instead of after stage 2; the longest side job, so before the other side jobs that have no priority, and
@@ -47,29 +47,6 @@ rule naive_images:
         " --config-json {params.cfg:q} --threads {threads} --out {output}" + _JOB_LOG
 
 
-rule reference_images:
-    input:
-        volume="results/{scene}/volume.zarr",
-        lights="results/{scene}/lights.json",
-    output:
-        directory("results/{scene}/reference_images.zarr"),
-    params:
-        cfg=lambda wc: render_json(wc.scene, "naive_views", "naive_lights"),
-    # evaluate_images' gt (render.reference): with the exact reference (the shadow marched from every sample) the
-    # most of its time (25 of 36 s on the README run), needing no SIREN and no data INR: a side job beside stage 1
-    threads: 1
-    priority: 1
-    log:
-        "results/{scene}/logs/reference_images.log",
-    benchmark:
-        "results/{scene}/benchmarks/reference_images.tsv",
-    conda:
-        "../envs/diffshadow.yaml"
-    shell:
-        "diffshadow --phases results/{wildcards.scene}/benchmarks/reference_images.phases.json reference-images --volume {input.volume} --lights {input.lights}"
-        " --config-json {params.cfg:q} --threads {threads} --out {output}" + _JOB_LOG
-
-
 rule evaluate_images:
     input:
         volume="results/{scene}/volume.zarr",
@@ -78,7 +55,6 @@ rule evaluate_images:
         weights="results/{scene}/weights.zarr",
         generated="results/{scene}/generated.zarr",
         naive="results/{scene}/naive_images.zarr",
-        references="results/{scene}/reference_images.zarr",
     output:
         metrics="results/{scene}/image_metrics.json",
         images=directory("results/{scene}/images"),
@@ -95,8 +71,7 @@ rule evaluate_images:
         "../envs/diffshadow.yaml"
     shell:
         "diffshadow --phases results/{wildcards.scene}/benchmarks/evaluate_images.phases.json evaluate-images --volume {input.volume} --lights {input.lights} --data-inr {input.data_inr}"
-        " --weights {input.weights} --generated {input.generated} --naive {input.naive}"
-        " --references {input.references} --config-json {params.cfg:q}"
+        " --weights {input.weights} --generated {input.generated} --naive {input.naive} --config-json {params.cfg:q}"
         " --images {output.images} --threads {threads} --out {output.metrics}" + _JOB_LOG
 
 
