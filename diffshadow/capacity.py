@@ -1,5 +1,5 @@
 """Capacity that adapts to the volume: a stage with a quality target grows what it fits until the target is
-reached — more steps first, then a wider SIREN — and records every size it tried, so the report can say
+reached — a wider SIREN (in stage 1 more steps first) — and records every size it tried, so the report can say
 what the scene cost and a missed target is named, not silently delivered.
 
 The ladder from a configured (width, steps) is (w, s), (w, 2s), (2w, 2s), (4w, 2s), … up to `max_width`. Stage 1
@@ -8,6 +8,9 @@ them in larger steps, (2w, s, 2p), (4w, s/2, 4p), …: the batch in proportion t
 (docs/performance.md): at width 32 nucleon's new lights gain 2.8 dB from 8000 steps of 256 points over 4000 of
 512 (the same points), while at width 64 tooth's lose 6 dB from 16000 steps of 256 points against 8000 of 512, and
 1 dB from 4000 of 1,024: a wider SIREN needs the less noisy gradient.
+The data INR's ladder doubles only its width, (w, s), (2w, s), …: with s = 6000 that is the stepped ladder from
+s/2 without its first rung, which was kept only on the scenes whose data INR met the target there, and whose
+images the rung cost 0.9-1.3 dB against (w, s) (docs/performance.md, "The data INR").
 Measured on four volumes (c2d5d55): a SIREN's PSNR rises 4.5–6 dB per width doubling on the
 shared volumes, while doubling the steps gives 0.5–2 dB, so the ladder spends at most one step-doubling
 before it widens. A width doubling that gains less than MIN_WIDTH_GAIN_DB ends the climb: the volume is then
@@ -52,12 +55,22 @@ def steps_text(size: dict) -> str:
     return f"{size['steps']} steps" + (f" of {points} points" if points else "")
 
 
-def ladder(width: int, steps: int, max_width: int, points: int | None = None) -> list[Rung]:
+def ladder(width: int, steps: int, max_width: int, points: int | None = None, *,
+           double_steps: bool = True) -> list[Rung]:
     """The sizes to try in order: (w, s), (w, 2s), then the width doubled up to `max_width`, with 2s steps — or,
-    given a step's `points`, with the points doubled and the steps halved each time (2s x p points in all)."""
+    given a step's `points`, with the points doubled and the steps halved each time (2s x p points in all).
+    Without `double_steps` (the data INR): (w, s), (2w, s), (4w, s), …"""
     if width < 1 or steps < 1 or (points is not None and points < 1):
         raise ValueError(f"ladder: width, steps and points must be >= 1, got width {width}, steps {steps}, "
                          f"points {points}")
+    if not double_steps:
+        if points is not None:
+            raise ValueError("ladder: points are sized only on a ladder that doubles its steps (stage 1)")
+        rungs, w = [Rung(width, steps)], 2 * width
+        while w <= max_width:
+            rungs.append(Rung(w, steps))
+            w *= 2
+        return rungs
     rungs = [Rung(width, steps, points), Rung(width, 2 * steps, points)]
     w = 2 * width
     while w <= max_width:

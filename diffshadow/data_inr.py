@@ -42,7 +42,7 @@ class DataInrConfig:
     visible_fraction: float  # share of points near voxels the TF makes visible
     checkpoint_every: int
     seed: int
-    target_psnr: float = 0.0  # voxel PSNR to reach by growing steps, then width (capacity.ladder); 0: fixed size
+    target_psnr: float = 0.0  # voxel PSNR to reach by doubling the width (capacity.ladder); 0: fixed size
     max_width: int = 256
     error_fraction: float = 0.0  # share of points near the voxels the INR gets most wrong (ErrorSampler)
     error_every: int = 300  # steps between scorings of the voxels
@@ -164,9 +164,11 @@ class ErrorSampler:
 
 def fit_data_inr(volume: Volume, tf: TransferFunction, cfg: DataInrConfig, *, checkpoint: Path | None = None,
                  device: torch.device | str = "cpu", log: Callable[[str], None] = print) -> DataInr:
-    """The data INR of the configured size, grown (steps, then width) until its voxel PSNR reaches
+    """The data INR of the configured size, grown (its width doubled) until its voxel PSNR reaches
     `cfg.target_psnr`; `config["capacity"]` records every size tried."""
-    rungs = ladder(cfg.width, cfg.steps, max(cfg.max_width, cfg.width))
+    # widths only: the old ladder's (w, s/2) rung, kept only where it met the target, cost its images 0.9-1.3 dB
+    # (docs/performance.md, "The data INR"); everywhere else the same sizes are tried
+    rungs = ladder(cfg.width, cfg.steps, max(cfg.max_width, cfg.width), double_steps=False)
 
     def attempt(rung: Rung) -> tuple[DataInr, float]:
         sized = replace(cfg, width=rung.width, steps=rung.steps)
@@ -181,7 +183,7 @@ def fit_data_inr(volume: Volume, tf: TransferFunction, cfg: DataInrConfig, *, ch
     inr.cell_lo, inr.cell_hi = inr_cell_ranges(model, volume, device=device, log=log)
     inr.model = model.cpu()
     inr.config = {**inr.config, "capacity": choice.to_dict()}  # the stored size, and how it was chosen
-    if warning := choice.warning("the data INR's voxel PSNR", "data_inr.max_width or data_inr.steps"):
+    if warning := choice.warning("the data INR's voxel PSNR", "data_inr.steps or data_inr.max_width"):
         log(warning)
     return inr
 

@@ -355,11 +355,11 @@ class RunResults:
         if sizes:
             parts.append(_table("SIREN sizes chosen for this scene", ["network", "width", "blocks", "parameters",
                                                                      "fit", "target (dB)", "reached (dB)", "tried"],
-                                sizes, "A stage with a target grows its SIREN until the target is reached: steps "
-                                "x2 first, then width x2 (capacity.ladder; in stage 1 each width x2 also doubles a "
-                                "step's points and halves the steps). Stage 1's PSNR is preoptimize's "
-                                "probe light (held-out points), beside the median the subsets' fits reached; the "
-                                "data INR's is over every voxel."))
+                                sizes, "A stage with a target grows its SIREN until the target is reached: stage 1 "
+                                "steps x2 first, then width x2, each width x2 also doubling a step's points and "
+                                "halving the steps; the data INR width x2 alone (capacity.ladder). Stage 1's "
+                                "PSNR is preoptimize's probe light (held-out points), beside the median the "
+                                "subsets' fits reached; the data INR's is over every voxel."))
         sb = v["storage_bytes"]
         n = seen["count"]
         # a run without a model (cache: blend, or a codec's store) has no model row; a codec's cache its own

@@ -23,6 +23,13 @@ def test_ladder_doubles_steps_once_then_width():
         ladder(32, 10, 64, points=0)
 
 
+def test_the_data_inr_ladder_doubles_only_the_width():
+    assert ladder(64, 6000, 256, double_steps=False) == [Rung(64, 6000), Rung(128, 6000), Rung(256, 6000)]
+    assert ladder(64, 6000, 32, double_steps=False) == [Rung(64, 6000)]  # max_width below the start: that size
+    with pytest.raises(ValueError, match="only on a ladder that doubles its steps"):
+        ladder(32, 10, 64, points=16, double_steps=False)
+
+
 def test_stage1_ladder_widens_the_batch_at_the_second_rungs_points():
     rungs = ladder(32, 8000, 256, points=256)
     assert rungs == [Rung(32, 8000, 256), Rung(32, 16000, 256), Rung(64, 8000, 512), Rung(128, 4000, 1024),
@@ -96,8 +103,8 @@ def test_data_inr_grows_until_its_target(blob):
     hard = fit_data_inr(blob, tf, DataInrConfig.from_config({**base, "target_psnr": 200.0, "max_width": 16}),
                         log=lines.append)
     cap = hard.config["capacity"]
-    assert [(r["width"], r["steps"]) for r in cap["rungs"]] == [(8, 40), (8, 80), (16, 80)]
-    best = max(range(3), key=lambda i: cap["rungs"][i]["psnr"])
+    assert [(r["width"], r["steps"]) for r in cap["rungs"]] == [(8, 40), (16, 40)]  # the width alone grows
+    best = max(range(2), key=lambda i: cap["rungs"][i]["psnr"])
     assert cap["kept"] == best and hard.model.cfg.width == cap["rungs"][best]["width"] == hard.config["width"]
     assert hard.psnr == cap["psnr"] == cap["rungs"][best]["psnr"] and not cap["met"]
     assert sum(m.startswith("WARNING") for m in lines) == 1

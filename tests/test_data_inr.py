@@ -214,7 +214,7 @@ def test_the_macro_cell_ranges_are_made_once_for_the_size_kept(blob, monkeypatch
     monkeypatch.setattr(module, "inr_cell_ranges", counted)
     cfg = replace(CFG, steps=20, width=8, max_width=16, target_psnr=99.0)  # unreachable: every rung is tried
     inr = fit_data_inr(blob, TF, cfg, log=lambda m: None)
-    assert len(inr.config["capacity"]["rungs"]) == 3 and made == [inr.n_params]
+    assert len(inr.config["capacity"]["rungs"]) == 2 and made == [inr.n_params]
     lo, hi = real(inr.model, blob)
     assert np.array_equal(inr.cell_lo, lo) and np.array_equal(inr.cell_hi, hi)
 
