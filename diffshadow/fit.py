@@ -85,7 +85,7 @@ class FitConfig:
     points: int  # per SIREN per step (paper: 32,768)
     lr: float  # Adam, paper §3.4
     lr_final: float  # cosine decay to lr · lr_final (authors' code)
-    visible_fraction: float  # share of points drawn in the visible region
+    visible_fraction: float  # share of the training lights' points drawn in the visible region (pool lights': 0.5)
     target: str  # "sweep" or "march" (a grid per light) or "transmittance" (exact per point)
     grid_upsample: int | str  # target grids this much finer than the voxels; "auto": volume.upsample_factor
     eval_points: int  # held-out points per light for the stored PSNR
