@@ -8,14 +8,15 @@ them in larger steps, (2w, s, 2p), (4w, s/2, 4p), …: the batch in proportion t
 (docs/performance.md): at width 32 nucleon's new lights gain 2.8 dB from 8000 steps of 256 points over 4000 of
 512 (the same points), while at width 64 tooth's lose 6 dB from 16000 steps of 256 points against 8000 of 512, and
 1 dB from 4000 of 1,024: a wider SIREN needs the less noisy gradient.
-The data INR's ladder doubles only its width, (w, s), (2w, s), …: with s = 6000 that is the stepped ladder from
-s/2 without its first rung, which was kept only on the scenes whose data INR met the target there, and whose
-images the rung cost 0.9-1.3 dB against (w, s) (docs/performance.md, "The data INR").
 Measured on four volumes (c2d5d55): a SIREN's PSNR rises 4.5–6 dB per width doubling on the
 shared volumes, while doubling the steps gives 0.5–2 dB, so the ladder spends at most one step-doubling
 before it widens. A width doubling that gains less than MIN_WIDTH_GAIN_DB ends the climb: the volume is then
 limited by something width does not buy (tooth's data INR: 39.6 → 40.4 → 40.6 dB at widths 64, 128, 256, the
-ceiling of its voxel-scale CT noise), and each doubling costs 2-4x in fitting and rendering.
+ceiling of its voxel-scale CT noise), and each doubling costs 2-4x in fitting and rendering. The climb keeps its
+best size even so: tooth's data INR held at width 64 cost its images 1.2 dB against the 128 kept for 0.7 dB.
+The data INR's ladder doubles only its width, (w, s), (2w, s), …: with s = 6000 that is the stepped ladder from
+s/2 without its first rung, which was kept only on the scenes whose data INR met the target there, and whose
+images the rung cost 0.9-1.3 dB against (w, s) (docs/performance.md, "The data INR").
 """
 
 from __future__ import annotations
