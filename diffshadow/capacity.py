@@ -64,22 +64,20 @@ def ladder(width: int, steps: int, max_width: int, points: int | None = None, *,
     if width < 1 or steps < 1 or (points is not None and points < 1):
         raise ValueError(f"ladder: width, steps and points must be >= 1, got width {width}, steps {steps}, "
                          f"points {points}")
-    if not double_steps:
-        if points is not None:
-            raise ValueError("ladder: points are sized only on a ladder that doubles its steps (stage 1)")
-        rungs, w = [Rung(width, steps)], 2 * width
-        while w <= max_width:
-            rungs.append(Rung(w, steps))
-            w *= 2
-        return rungs
-    rungs = [Rung(width, steps, points), Rung(width, 2 * steps, points)]
-    w = 2 * width
+    if not double_steps and points is not None:
+        raise ValueError("ladder: points are sized only on a ladder that doubles its steps (stage 1)")
+    wider, w = [], 2 * width  # the widths past the first, each doubled, up to max_width
     while w <= max_width:
+        wider.append(w)
+        w *= 2
+    if not double_steps:
+        return [Rung(width, steps)] + [Rung(w, steps) for w in wider]
+    rungs = [Rung(width, steps, points), Rung(width, 2 * steps, points)]
+    for w in wider:
         if points is None:
             rungs.append(Rung(w, 2 * steps))
         else:
             rungs.append(Rung(w, max(1, round(2 * steps * width / w)), points * w // width))
-        w *= 2
     return rungs
 
 

@@ -168,7 +168,7 @@ def fit_data_inr(volume: Volume, tf: TransferFunction, cfg: DataInrConfig, *, ch
     `cfg.target_psnr`; `config["capacity"]` records every size tried."""
     # widths only: the old ladder's (w, s/2) rung, kept only where it met the target, cost its images 0.9-1.3 dB
     # (docs/performance.md, "The data INR"); everywhere else the same sizes are tried
-    rungs = ladder(cfg.width, cfg.steps, max(cfg.max_width, cfg.width), double_steps=False)
+    rungs = ladder(cfg.width, cfg.steps, cfg.max_width, double_steps=False)  # max_width below width: width
 
     def attempt(rung: Rung) -> tuple[DataInr, float]:
         sized = replace(cfg, width=rung.width, steps=rung.steps)
