@@ -118,7 +118,7 @@ def choose_cache(stage1: WeightStore, truth: EvalTruth, val: EvalTruth, train: n
 def cache_table(stage1: WeightStore, truth: EvalTruth, light_sets: dict, *, blend_k: int, weighting: str,
                 volume: Volume | None = None, tf: TransferFunction | None = None, model_state: dict | None = None,
                 generated: WeightStore | None = None, log: Callable[[str], None] = print,
-                checkpoint: Path | None = None, device: torch.device | str = "cpu") -> dict:
+                checkpoint: Path | None = None, device: torch.device | str = "cpu", correction=None) -> dict:
     """One row per cache: bytes, seen and unseen median voxel PSNR (box points), seconds to answer a new light.
 
     The model's fp16 rows sample (and time) its DDIM on `device`; the SIRENs are evaluated where `truth` says
@@ -126,7 +126,10 @@ def cache_table(stage1: WeightStore, truth: EvalTruth, light_sets: dict, *, blen
 
     Resumable: with `checkpoint`, each finished group of rows (a codec's; the model's, with its DDIM of every
     light; the grids') is saved there, and a rerun on the same inputs starts at the first group not done. At the
-    paper's sizes a group is ~3 min on one thread and the model's ~25, of 52 min (docs/performance.md)."""
+    paper's sizes a group is ~3 min on one thread and the model's ~25, of 52 min (docs/performance.md).
+
+    With `correction` (correction.BlendCorrection, the run's blend's) a row for the stored SIRENs with it, and the
+    mix rows' blends corrected as sample_shadows' were, its parameters counted in their bytes (fp32)."""
     train, unseen = light_sets["train"], light_sets["unseen"]
     layout, siren = stage1.layout, stage1.siren
     weights = np.asarray(stage1.weights, dtype=np.float32)
@@ -168,12 +171,21 @@ def cache_table(stage1: WeightStore, truth: EvalTruth, light_sets: dict, *, blen
         return [{"cache": f"stored SIRENs {codec.name}", "kind": "codec", "bytes": enc.nbytes,
                  **scored(decoded, blended), **answer}]
 
+    def corrected_rows() -> list[dict]:
+        fixed = (blend_rows(weights, idx, mix) + correction.delta(unseen, idx, mix)).astype(np.float32) \
+            if len(unseen) else None
+        return [{"cache": "stored SIRENs fp32, corrected", "kind": "corrected",
+                 "bytes": int(weights.nbytes + correction.nbytes), **scored(weights, fixed),
+                 **blend_time(lambda i, m: blend_rows(weights, i, m) + correction.delta(unseen[:1], i, m))}]
+
     codecs = [codec_named(n) for n in ("fp16", "bf16", *(f"basis-{k}" for k in BASIS_K if k < len(train)))]
     work: list[tuple[str, Callable[[], list[dict]]]] = [("stored SIRENs fp32", stored_rows)]
+    if correction is not None:
+        work.append(("stored SIRENs fp32, corrected", corrected_rows))
     work += [(f"stored SIRENs {c.name}", lambda c=c: codec_rows(c)) for c in codecs]
     if model_state is not None:
         work.append(("diffusion model", lambda: _model_rows(model_state, generated, train, unseen, scored,
-                                                            stored=weights, device=device)))
+                                                            stored=weights, device=device, correction=correction)))
     if volume is not None:
         work.append(("dense shadow grids", lambda: [_grid_row(volume, tf, truth, train, unseen, idx, mix)]))
     fingerprint = _fingerprint(weights, truth, light_sets, [name for name, _ in work], blend_k=blend_k,
@@ -201,10 +213,15 @@ def _mix_answers(rows: list[dict]) -> list[dict]:
     DDIM where the model's share is above 0 and the stored SIRENs' blend in the row's precision where it is below 1.
     At share 0 (the README run's) the answer is the blend's alone, ~0.06 ms, not the model's ~13 ms. In place."""
     blend = {row["cache"].rsplit(" ", 1)[-1]: row.get("answer_s") for row in rows if row["kind"] in ("stored", "codec")}
+    # the blend's correction (a mix row that says `corrected`): its time over the plain fp32 blend's, on top
+    fixed = next((row.get("answer_s") for row in rows if row["kind"] == "corrected"), None)
+    extra = fixed - blend["fp32"] if fixed is not None and blend.get("fp32") is not None else 0.0
     for row in rows:
         blend_s = blend.get(row["cache"].rsplit(" ", 1)[-1])
         if row["kind"] != "mix" or "answer_s" not in row or blend_s is None:
             continue
+        if row.get("corrected"):
+            blend_s += extra
         row["answer_s"] = (row["answer_s"] if row["share"] > 0 else 0.0) + (blend_s if row["share"] < 1 else 0.0)
     return rows
 
@@ -244,7 +261,7 @@ def _fingerprint(weights: np.ndarray, truth: EvalTruth, light_sets: dict, groups
 
 
 def _model_rows(state: dict, generated: WeightStore, train, unseen, scored, *, stored: np.ndarray,
-                device: torch.device | str = "cpu") -> list[dict]:
+                device: torch.device | str = "cpu", correction=None) -> list[dict]:
     """The diffusion model with its parameters stored in fp32 (its samples: sample_shadows' `generated` store, or,
     where that store mixed them with the stored SIRENs, their PSNRs as it scored them before the mix) and in fp16
     (rounded, then sampled in fp32 with the same DDIM steps and seed: what storing them in 16 bits costs). The time
@@ -290,15 +307,20 @@ def _model_rows(state: dict, generated: WeightStore, train, unseen, scored, *, s
         fp16 = codec_named("fp16")
         enc = fp16.encode(stored, layout)
         stored16 = fp16.decode(enc, layout)
-        blended16 = blend_rows(stored16, *blend_weights(train, unseen, k, weighting)).astype(np.float32)
+        idx, w = blend_weights(train, unseen, k, weighting)
+        blended16 = blend_rows(stored16, idx, w)
+        if correction is not None:
+            blended16 = blended16 + correction.delta(unseen, idx, w)
+        blended16 = blended16.astype(np.float32)
+        extra = 0 if correction is None else correction.nbytes
         blend16 = np.concatenate([stored16, blended16])
         w16_mix = mix_weights(w16, blend16, share)
-        for name, psnrs, nbytes in (("fp32", medians(generated.psnr), 4 * n_params + stored.nbytes),
+        for name, psnrs, nbytes in (("fp32", medians(generated.psnr), 4 * n_params + stored.nbytes + extra),
                                     ("fp16", scored(w16_mix[:n], w16_mix[n:] if len(unseen) else None),
-                                     2 * n_params + enc.nbytes)):
+                                     2 * n_params + enc.nbytes + extra)):
             rows.append({"cache": f"model {share:g} + stored SIRENs {1 - share:g}, both {name}", "kind": "mix",
-                         "share": share, "bytes": int(nbytes), **psnrs, "answer_s": answer,
-                         "device": device_name(device)})
+                         "share": share, **({"corrected": True} if correction is not None else {}),
+                         "bytes": int(nbytes), **psnrs, "answer_s": answer, "device": device_name(device)})
     return rows
 
 

@@ -138,7 +138,7 @@ def _caches(a: argparse.Namespace):
 
     stage2.caches(Path(a.weights), Path(a.generated), Path(a.truth), Path(a.lights), Path(a.volume),
                   Path(a.checkpoint) if a.checkpoint else None, Path(a.out), Path(a.figure), blend_k=a.blend_k,
-                  weighting=a.blend_weights, device=_device(a))
+                  weighting=a.blend_weights, device=_device(a), correction_path=a.correction and Path(a.correction))
 
 
 def _sample_shadows(a: argparse.Namespace):
@@ -149,7 +149,8 @@ def _sample_shadows(a: argparse.Namespace):
     stage2.sample_shadows(Path(a.checkpoint), Path(a.truth), Path(a.lights), Path(a.out), device=device, mix=mix,
                           weights_path=a.weights and Path(a.weights), volume_path=a.volume and Path(a.volume),
                           blend_k=a.blend_k, weighting=a.blend_weights,
-                          score_device=device if a.score_on == "run" else "cpu")
+                          score_device=device if a.score_on == "run" else "cpu",
+                          correction_path=a.correction and Path(a.correction))
 
 
 def _choose_cache(a: argparse.Namespace):
@@ -159,6 +160,15 @@ def _choose_cache(a: argparse.Namespace):
                         blend_k=a.blend_k, weighting=a.blend_weights, target_psnr=a.target_psnr,
                         tolerance=a.tolerance, candidates=a.candidates, val_lights=a.val_lights,
                         val_points=a.val_points, seed=a.seed, device=_device(a))
+
+
+def _fit_correction(a: argparse.Namespace):
+    from diffshadow.correction import CorrectionConfig
+    from diffshadow.stages import stage2
+
+    stage2.fit_correction(Path(a.weights), Path(a.volume), Path(a.lights), Path(a.out),
+                          cfg=CorrectionConfig.from_config(_cfg(a).get("correction")), blend_k=a.blend_k,
+                          weighting=a.blend_weights, device=_device(a))
 
 
 def _encode_cache(a: argparse.Namespace):
@@ -172,7 +182,8 @@ def _blend_shadows(a: argparse.Namespace):
     from diffshadow.stages import stage2
 
     stage2.blend_shadows(Path(a.weights), Path(a.truth), Path(a.lights), Path(a.out), blend_k=a.blend_k,
-                         weighting=a.blend_weights, device=_device(a))
+                         weighting=a.blend_weights, device=_device(a),
+                         correction_path=a.correction and Path(a.correction))
 
 
 def _evaluate_voxels(a: argparse.Namespace):
@@ -184,7 +195,8 @@ def _evaluate_voxels(a: argparse.Namespace):
                            ddpm_lights=a.ddpm_lights,
                            geometry_checkpoint=Path(a.geometry_checkpoint) if a.geometry_checkpoint else None,
                            device=_device(a), wide_lights=a.wide_lights, wide_points=a.wide_points, wide_seed=a.seed,
-                           cache_path=Path(a.cache_weights) if a.cache_weights else None)
+                           cache_path=Path(a.cache_weights) if a.cache_weights else None,
+                           correction_path=a.correction and Path(a.correction))
 
 
 # ------------------------------------------------------------------------------------- images, report
@@ -258,6 +270,7 @@ def _render(a: argparse.Namespace):
                         diffusion=Path(a.diffusion) if a.diffusion else None,
                         blend=Path(a.blend) if a.blend else None, blend_k=a.blend_k,
                         weighting=a.blend_weights, model_share=a.model_share,
+                        correction=Path(a.correction) if a.correction else None,
                         outside_region=a.outside_region,
                         scalar=a.scalar, phong=a.phong, step=a.step, skip=not a.no_skip)
 
@@ -360,6 +373,11 @@ def _blend_args(p: argparse.ArgumentParser, evaluate: dict, *, used: str = "") -
                    help="with --blend-weights inverse-angle: stored SIRENs blended per light (evaluate.blend_k)")
 
 
+def _correction_arg(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--correction", help="fit-correction's correction.pt: the blend is corrected by it (none: the "
+                   "plain blend)")
+
+
 # the commands that only score SIRENs: --device is where (evaluate.device)
 SCORED = ("the SIRENs evaluated for their PSNR on --device (the workflow passes --device cpu unless evaluate.device "
           "is run)")
@@ -421,6 +439,7 @@ def build_parser() -> argparse.ArgumentParser:
              "with the stored SIRENs' weight blend (mix.model_share)", "checkpoint", "truth", "lights")
     p.add_argument("--weights", help="stage 1's stored SIRENs (weights.zarr): the blend a model share under 1 mixes in")
     p.add_argument("--volume", help="the prepared volume: the validation lights' exact shadows (--model-share auto)")
+    _correction_arg(p)
     p.add_argument("--model-share", default="1",
                    help="auto (chosen on validation lights, with --weights and --volume) or 0..1 (with --weights); "
                    "default 1: the model alone, as before the mix (the workflow passes mix.model_share)")
@@ -445,12 +464,17 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--seed", type=seed, default=auto["seed"], help="their random draw (cache_auto.seed)")
     p.add_argument("--candidates", nargs="+", default=auto["candidates"],
                    help="blend, fp16, bf16, basis-<k> (cache_auto.candidates)")
+    p = _add(sub, "fit-correction", _fit_correction, "the blend's correction: an MLP of the light direction that "
+             "corrects the stored SIRENs' blend between the training lights (correction.pt)", "weights", "volume",
+             "lights", config='{"correction": {...}}')
+    _blend_args(p, evaluate)
     p = _add(sub, "encode-cache", _encode_cache, "a codec's cache: the stored SIRENs through fp16, bf16 or "
              "basis-<k>, written decoded as a weight store; " + SCORED, "weights", "truth", "lights", "codec")
     p = _add(sub, "blend-shadows", _blend_shadows, "cache: blend: every training light's stored SIREN and every "
              "unseen light's weight blend of the nearest, as sample-shadows' store; " + SCORED, "weights", "truth",
              "lights")
     _blend_args(p, evaluate)
+    _correction_arg(p)
     p = _add(sub, "evaluate-voxels", _evaluate_voxels, "voxel PSNR of generated SIRENs, baselines, storage, the "
              "samplers' timing; the samplers and the SIRENs' evaluation on --device (the workflow passes --device cpu "
              "unless evaluate.device is run), the PSNRs on the CPU",
@@ -468,6 +492,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--seed", type=seed, default=evaluate["seed"], help="the further test lights' draw (evaluate.seed)")
     p.add_argument("--cache-weights", help="a codec's decoded store (encode-cache's cache.zarr) that --generated "
                    "blended: the further test lights' answer blends it (none: --weights)")
+    _correction_arg(p)
     p = _add(sub, "caches", _caches, "caches.json: every cache (stored SIRENs and their codecs, the model, dense "
              "grids) as bytes against seen and unseen voxel PSNR; the model's fp16 DDIM (timed) and the SIRENs' "
              "evaluation on --device (the workflow passes --device cpu unless evaluate.device is run), the PSNRs on "
@@ -475,6 +500,7 @@ def build_parser() -> argparse.ArgumentParser:
              "weights", "generated", "truth", "lights", "volume", "figure")
     p.add_argument("--checkpoint", help="the diffusion checkpoint (none: cache: blend, no model rows)")
     _blend_args(p, evaluate)
+    _correction_arg(p)
     _add(sub, "train-data-inr", _train_data_inr, "fit the data INR (a SIREN of the scalar field)", "volume",
          config='{"data_inr": {...}}')
     _add(sub, "render-targets", _render_targets, "ground-truth images per training light and view", "volume",
@@ -504,6 +530,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--blend", help="mode inr, cache: blend: a weight store (results/<scene>/weights.zarr) whose "
                    "nearest SIRENs to --light are blended, as the viewer does for a new direction")
     _blend_args(p, evaluate, used="with --blend (the run's, in generated.zarr's config): ")
+    p.add_argument("--correction", help="with --blend: fit-correction's correction.pt, as the run corrected its blend "
+                   "(generated.zarr's config, correction)")
     p.add_argument("--model-share", type=float, help="with --diffusion and --blend: the model's share of the SIREN "
                    "beside the blend's, as the run mixed them (generated.zarr's config, mix.model_share)")
     p.add_argument("--light", type=float, nargs=3, metavar=("X", "Y", "Z"), help="toward the light")
@@ -572,7 +600,7 @@ def build_parser() -> argparse.ArgumentParser:
 
 # subcommands that use one GPU: on a node shared by several jobs each claims its own (DIFFSHADOW_GPU_LOCK)
 _ONE_GPU = {"preoptimize", "fit-siren", "train-data-inr", "presample", "train-diffusion", "sample-shadows",
-            "evaluate-voxels", "caches", "render-targets", "evaluate-images", "render"}
+            "fit-correction", "evaluate-voxels", "caches", "render-targets", "evaluate-images", "render"}
 
 
 # subcommands that never touch torch: importing it (~1 s on a CPU, seconds with a CUDA build) would be most of

@@ -28,8 +28,8 @@ PACKAGE = Path(__file__).resolve().parent
 DEFAULTS_FILE = PACKAGE / "defaults.yaml"
 SCHEMAS = PACKAGE / "schemas"
 # the sections a scene file may override (everything in defaults.yaml but the run-wide keys)
-SECTIONS = ("lights", "siren", "subset_size", "cache", "cache_auto", "mix", "preoptimize", "fit", "diffusion",
-            "finetune", "data_inr", "evaluate", "render")
+SECTIONS = ("lights", "siren", "subset_size", "cache", "cache_auto", "mix", "correction", "preoptimize", "fit",
+            "diffusion", "finetune", "data_inr", "evaluate", "render")
 
 T = TypeVar("T")
 

@@ -66,7 +66,7 @@ def median_gap_interval(a: np.ndarray, b: np.ndarray, *, resamples: int = 2000) 
 
 def wide_comparison(state: dict | None, stage1: WeightStore, light_sets: dict, volume: Volume, tf: TransferFunction, *,
                     share: float, lights: int, points: int, seed: int, blend_k: int, weighting: str,
-                    device: torch.device | str = "cpu", cache: WeightStore | None = None) -> dict:
+                    device: torch.device | str = "cpu", cache: WeightStore | None = None, correction=None) -> dict:
     """The cache's answer (`share` x the model's SIREN + the rest x the weight blend of the stored SIRENs,
     `lights.blend_weights` by `weighting` and `blend_k`; share 1: the model alone), the weight blend and the model
     alone on `lights` further test lights (`lights.wide_test_lights`), exact shadows at `points` box points each:
@@ -79,7 +79,8 @@ def wide_comparison(state: dict | None, stage1: WeightStore, light_sets: dict, v
     SIRENs (a codec's decoded store of stage 1's lights in their order, set beside stage 1's fp32 blend: what the
     codec costs), or, `cache` None, the
     weight blend itself; `share` is not read. Either way the lights are those a diffusion run draws at `seed`, so
-    the two runs' medians stand side by side."""
+    the two runs' medians stand side by side. With `correction` (correction.BlendCorrection) the answer's blend
+    is the corrected one; `weight_blend` stays the plain blend, so the two say what the correction gained."""
     if lights < 1 or points < 1:  # the schema holds the workflow's values; these are the command's own
         raise ValueError(f"--wide-lights and --wide-points (evaluate.wide_lights, evaluate.wide_points): expected at "
                          f"least 1 light and 1 point, got {lights} and {points} (wide_lights 0 skips the comparison)")
@@ -88,20 +89,25 @@ def wide_comparison(state: dict | None, stage1: WeightStore, light_sets: dict, v
     truth = EvalTruth.compute(volume, tf, wide, points, seed, sets=("box",)).on(device)
     rows = truth.of(wide)
     idx, w = blend_weights(train, wide, blend_k, weighting)
-    blend = blend_rows(stage1.weights, idx, w).astype(np.float32)
-    out = {"lights": lights, "points": points, "seed": seed}
+    plain = blend_rows(stage1.weights, idx, w)
+    blend = plain.astype(np.float32)
+    corrected = None if correction is None else (plain + correction.delta(wide, idx, w)).astype(np.float32)
+    out = {"lights": lights, "points": points, "seed": seed, **({"corrected": True} if correction is not None else {})}
     if state is None:
         layout, siren = stage1.layout, stage1.siren
         sides = {"weight_blend": blend}
         if cache is not None:
             sides["answer"] = blend_rows(cache.weights, idx, w).astype(np.float32)
             out["codec"] = cache.codec
+        elif corrected is not None:
+            sides["answer"] = corrected
     else:
         cfg = state["config"]
         model, std, layout, siren = load_sampler(state, device)
         sampled = generate(model, std, wide, method="ddim", steps=int(cfg["ddim_steps"]), seed=int(cfg["seed"]),
                            temperature=cfg["temperature"], device=device).numpy()
-        sides = {"answer": mix_weights(sampled, blend, share), "weight_blend": blend, "model_alone": sampled}
+        sides = {"answer": mix_weights(sampled, blend if corrected is None else corrected, share),
+                 "weight_blend": blend, "model_alone": sampled}
         out["model_share"] = share
     score = {name: psnr_per_light(truth.sirens(x, layout, siren), rows)["box"].astype(np.float64)
              for name, x in sides.items()}
@@ -186,6 +192,10 @@ def voxel_metrics(state: dict | None, stage1: WeightStore, generated: WeightStor
     if "visible" in gen_seen:
         result["seen"]["generated_psnr_visible_median"] = median(gen_seen["visible"])
         result["seen"]["stage1_psnr_visible_median"] = median(stage1_seen["visible"])
+    # the blend's correction (diffshadow/correction.py) where the answer's blend was corrected: the mix's, or a
+    # blend cache's; the "weight blend" baselines below stay plain, so the two side by side say what it adds
+    if (mixed or generated.config or {}).get("correction"):
+        result["corrected"] = True
     if mixed:
         result["mix"] = {k: mixed[k] for k in ("model_share", "chosen", "blend_k")}
         result["mix"]["blend_weights"] = mixed.get("blend_weights", OLD_WEIGHTING)

@@ -243,8 +243,9 @@ def caches_figure(table: dict, out: Path) -> None:
     lights (its own answer for a new light) and on the seen ones; up and to the left is better."""
     plt = pyplot()
     fig, axes = plt.subplots(1, 2, figsize=(11, 4.2), sharey=False)
-    colours = {"stored": "C1", "codec": "C1", "model": "C0", "mix": "C4", "grids": "C2"}
+    colours = {"stored": "C1", "codec": "C1", "corrected": "C3", "model": "C0", "mix": "C4", "grids": "C2"}
     mixed = any(row["kind"] == "mix" for row in table["caches"])
+    corrected = any(row["kind"] == "corrected" for row in table["caches"])
     panels = []
     for ax, key, title in ((axes[0], "unseen_psnr", "unseen lights (the cache's answer)"),
                            (axes[1], "seen_psnr", "seen (training) lights")):
@@ -275,8 +276,9 @@ def caches_figure(table: dict, out: Path) -> None:
         ax.grid(alpha=0.3)
         panels.append((ax, points, labels))
     n = table["lights"]
-    fig.suptitle(f"caches of {n['train']} training lights: orange stored SIRENs and their codecs, blue the "
-                 f"diffusion model, {'purple the two mixed (both kept), ' if mixed else ''}green dense shadow grids",
+    fig.suptitle(f"caches of {n['train']} training lights: orange stored SIRENs and their codecs, "
+                 f"{'red with the blend correction, ' if corrected else ''}blue the diffusion model, "
+                 f"{'purple the two mixed (both kept), ' if mixed else ''}green dense shadow grids",
                  fontsize=9)
     fig.tight_layout()
     for ax, points, labels in panels:  # after the layout: labels are placed where they will be drawn

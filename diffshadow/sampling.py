@@ -62,6 +62,7 @@ class LightStream(IntEnum):
     POOL = 1  # pool lights: stage 2's from diffusion.seed, stage 1's blend pool from fit.seed + FIT_BLEND_POOL_SEED
     VALIDATION = 2  # the validation lights of fine-tuning's model choice and of `cache: auto`
     WIDE = 3  # evaluate_voxels' further test lights (`evaluate.wide_lights`)
+    CORRECTION = 4  # the lights the blend's correction is fitted on, and its steps' draws (correction.seed)
 
 
 # Derived seeds: a draw that repeats another's stream with fresh values takes the config seed plus one of these.

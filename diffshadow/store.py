@@ -59,17 +59,25 @@ class BlendSampler:
     by `weighting`, `k`), the way `blend-shadows` makes generated.zarr's unseen rows (both recorded in that store's
     config). The same interface as the diffusion model's `ShadowSampler`: call it with a direction."""
 
-    def __init__(self, store: WeightStore, k: int, weighting: str):
+    def __init__(self, store: WeightStore, k: int, weighting: str, correction=None):
         if weighting == "inverse-angle" and not 1 <= k <= len(store.lights):  # a triangle's corners take no k
             raise ValueError(f"blend k: expected 1 to {len(store.lights)} (the stored SIRENs), got {k}")
         self.store, self.k, self.weighting = store, k, weighting
         self.layout, self.siren = store.layout, store.siren
         self.region, self.extinction = store.light_region(), store.extinction
         self._find = blend_finder(np.asarray(store.lights, dtype=np.float64), k, weighting)
+        self.correction = correction  # correction.BlendCorrection, or None: the plain blend
+
+    def rows(self, lights: np.ndarray) -> np.ndarray:
+        """The blended SIRENs (Q, P) in float64 of `lights` (Q, 3), corrected where a correction is given."""
+        lights = np.asarray(lights, dtype=np.float64)
+        idx, mix = self._find(lights)
+        out = blend_rows(self.store.weights, idx, mix)
+        return out if self.correction is None else out + self.correction.delta(lights, idx, mix)
 
     def many(self, lights: np.ndarray) -> np.ndarray:
         """The blended SIRENs (Q, P) float32 of `lights` (Q, 3)."""
-        return blend_rows(self.store.weights, *self._find(np.asarray(lights, dtype=np.float64))).astype(np.float32)
+        return self.rows(lights).astype(np.float32)
 
     def __call__(self, light: ArrayLike) -> np.ndarray:
         return self.many(as_direction(light)[None])[0]

@@ -140,7 +140,7 @@ class RunResults:
                          f"shadows {unseen['blend_psnr_median']:.2f} dB, nearest training SIREN "
                          f"{unseen['nearest_psnr_median']:.2f} dB{_alone(unseen)})"))
         if v.get("mix"):
-            rows.append(("the cache's answer", mix_words(v["mix"])))
+            rows.append(("the cache's answer", mix_words(v["mix"], v.get("corrected", False))))
         verdict = cache_verdict(self.voxel)
         if verdict:
             rows.append(("model or stored SIRENs?", verdict))
@@ -173,7 +173,8 @@ class RunResults:
             rows.append(("shadow cache", f"cache: {v['codec']} (the weight blend of the stored SIRENs kept in "
                          f"{v['codec']}, {v['storage_bytes']['cache'] / 2**20:.3f} MiB; no diffusion model)"))
         else:
-            rows.append(("shadow cache", "cache: blend (the stored SIRENs' weight blend; no diffusion model)"))
+            fixed = ", corrected by the blend's correction (correction.pt)" if v.get("corrected") else ""
+            rows.append(("shadow cache", f"cache: blend (the stored SIRENs' weight blend{fixed}; no diffusion model)"))
         sizes = self.sizes()
         if sizes:
             rows.append(("SIREN sizes chosen", ", ".join(f"{r[0]} width {r[1]} ({r[4]})" for r in sizes)))
@@ -413,11 +414,13 @@ def len_blend(record: dict) -> int:
     return 3 if record.get("blend_weights") == "triangle" else int(record["blend_k"])
 
 
-def mix_words(mix: dict) -> str:
-    """The cache's answer for a light in words (voxel_metrics.json's `mix`)."""
+def mix_words(mix: dict, corrected: bool = False) -> str:
+    """The cache's answer for a light in words (voxel_metrics.json's `mix`, and whether its blend was corrected)."""
     share = float(mix["model_share"])
     how = "chosen on validation lights" if mix.get("chosen") == "validation lights" else "set in the config"
     blend = describe_blend(mix.get("blend_weights", OLD_WEIGHTING), mix["blend_k"])
+    if corrected:
+        blend += ", corrected by the blend's correction (correction.pt)"
     return f"{share:g} x the diffusion model's SIREN + {1 - share:g} x {blend} (mix.model_share {how}; both are kept)"
 
 
@@ -438,7 +441,7 @@ def cache_verdict(voxel: dict) -> str:
     if voxel.get("mix"):  # the cache keeps both, so its bytes are their sum
         size += f"; mixing the two, the cache keeps both ({(sb['model'] + sb['sirens']) / MIB:.2f} MiB)"
         if float(voxel["mix"]["model_share"]) == 0:  # the mix is the blend: say what the model adds instead
-            return f"{size}; {_share_zero(unseen, voxel.get('wide'))}. {AGAINST_COUNT}"
+            return f"{size}; {_share_zero(unseen, voxel.get('wide'), voxel.get('corrected', False))}. {AGAINST_COUNT}"
     gap = unseen["generated_psnr_median"] - unseen["weight_blend_psnr_median"]
     lo, hi = unseen.get("weight_blend_gap_interval95_db") or (None, None)  # absent from an older voxel_metrics.json
     spread = ("" if lo is None else f" (better on {unseen['better_than_weight_blend']} of {unseen['count']} lights; "
@@ -533,14 +536,19 @@ def _seams(seams: dict | None) -> str:
             + ("" if inside is None else f", {inside:.2f} inside one"))
 
 
-def _share_zero(unseen: dict, wide: dict | None) -> str:
-    """The verdict where the validation lights chose model share 0: the answer is the weight blend alone."""
+def _share_zero(unseen: dict, wide: dict | None, corrected: bool = False) -> str:
+    """The verdict where the validation lights chose model share 0: the answer is the (corrected) weight blend
+    alone."""
     where = wide or unseen
     gap = where["generated_psnr_median"] - where["model_alone_psnr_median"]
     lo, hi = where.get("model_alone_gap_interval95_db") or (None, None)
     on = f"on {wide['lights']:,} further test lights" if wide else f"on the {unseen['count']} test lights"
     spread = "" if lo is None else f", 95 % interval {lo:+.2f} to {hi:+.2f} dB"
-    return (f"the validation lights chose model share 0: the cache's answer is their weight blend alone, "
+    blend = "weight blend"
+    if corrected and "weight_blend_psnr_median" in where:
+        blend = (f"corrected weight blend ({where['generated_psnr_median'] - where['weight_blend_psnr_median']:+.2f} "
+                 f"dB over the plain blend)")
+    return (f"the validation lights chose model share 0: the cache's answer is their {blend} alone, "
             f"{gap:+.2f} dB against the model alone {on}{spread}; the model adds nothing, and `cache: blend` (or a "
             f"codec of it, `cache: fp16`) would skip stage 2 and its bytes")
 

@@ -16,7 +16,7 @@ LAYERS = [
     ["shadow", "truth"],  # ground truth
     ["data_inr"],
     ["render"],  # the renderer, its fused kernels included
-    ["seams", "fit"],  # stage 1
+    ["seams", "fit", "correction"],  # stage 1, and the correction of its blend
     ["diffusion"],  # stage 2
     ["evaluate", "caches", "report", "summary", "scaling"],
     ["artifacts", "runtime", "argparsing", "stages", "bench", "parsl_fit", "viewer"],  # files, processes, stages

@@ -36,6 +36,7 @@ TINY = {
     "finetune": {"views": 1, "image_size": 16, "pixels": 4, "epochs": 2, "batch_size": 4, "nproc": 2,
                  "checkpoint_every": 1, "val_lights": 4, "val_points": 1024},
     "mix": {"val_lights": 8, "val_points": 128},
+    "correction": {"steps": 20, "lights": 64, "points": 64, "batch_lights": 8, "batch_points": 32, "hidden": 16},
     "evaluate": {"wide_lights": 16, "wide_points": 128},
     "data_inr": {"width": 8, "blocks": 1, "steps": 20, "points": 512, "target_psnr": 0.0},
     "render": {"image_size": 16, "views": 1, "lights_per_set": 1, "bench_sizes": [8], "bench_repeats": 1,
@@ -137,12 +138,15 @@ def test_stage2_outputs(finished):
     assert mix["model_share"] in SHARES and [r["share"] for r in mix["curve"]] == list(SHARES)
     assert metrics["mix"] == {"model_share": mix["model_share"], "chosen": "validation lights", "blend_k": 4,
                               "blend_weights": "triangle"}
+    # the blend it mixes in is corrected by fit_correction's correction.pt (TINY's 20 steps), and says so
+    assert mix["correction"] == {"path": "results/nucleon/correction.pt", "config": mix["correction"]["config"]}
+    assert mix["correction"]["config"]["steps"] == 20 and metrics["corrected"] is True
     assert np.isfinite(metrics["seen"]["model_alone_psnr_median"])
     assert np.isfinite(metrics["unseen"]["model_alone_psnr_median"])
     # the further test lights: the same comparison at the run's share, with its own draw and counts
     wide = metrics["wide"]
     assert (wide["lights"], wide["points"], wide["seed"], wide["model_share"], wide["blend_k"]) == \
-        (16, 128, 2, mix["model_share"], 4)
+        (16, 128, 2, mix["model_share"], 4) and wide["corrected"] is True
     assert 0 <= wide["better_than_weight_blend"] <= 16 and 0 <= wide["better_than_model_alone"] <= 16
     lo, hi = wide["weight_blend_gap_interval95_db"]
     assert lo <= hi and np.isfinite([lo, hi, wide["generated_psnr_median"], wide["model_alone_psnr_median"]]).all()
@@ -245,7 +249,9 @@ def test_a_damaged_volume_fails_evaluate_voxels_before_its_work(finished, tmp_pa
 
 def test_the_stored_sirens_are_the_models_mixed_with_the_blend_at_the_share_recorded(finished, tmp_path):
     """generated.zarr = share x (sample_shadows at share 1: the model alone) + (1 - share) x (at share 0: each
-    training light's own stored SIREN, each unseen light's blend of its nearest stored SIRENs)."""
+    training light's own stored SIREN, each unseen light's blend of its nearest stored SIRENs, corrected by the
+    run's correction.pt)."""
+    from diffshadow.correction import load_correction
     from diffshadow.diffusion.mix import mix_weights
     from diffshadow.stages.stage2 import sample_shadows
     from diffshadow.store import BlendSampler
@@ -257,14 +263,17 @@ def test_the_stored_sirens_are_the_models_mixed_with_the_blend_at_the_share_reco
         out = tmp_path / f"share{share}.zarr"
         sample_shadows(finished / generated.config["checkpoint"], results / "eval_truth.zarr",
                        results / "lights.json", out, device=torch.device("cuda" if CUDA else "cpu"),
-                       mix={"model_share": share}, weights_path=results / "weights.zarr", blend_k=4)
+                       mix={"model_share": share}, weights_path=results / "weights.zarr", blend_k=4,
+                       correction_path=results / "correction.pt")
         ends[share] = open_store(out)
         assert ("mix" in ends[share].config) == (share == 0)
     stored = open_store(results / "weights.zarr")
     assert np.array_equal(ends[0].weights[:4], stored.weights)
     unseen = read_lights(results / "lights.json")["unseen"]
-    blend = BlendSampler(stored, 4, "triangle")
+    blend = BlendSampler(stored, 4, "triangle", load_correction(results / "correction.pt", stored.lights))
     assert np.allclose(ends[0].weights[4:], np.stack([blend(w) for w in unseen]), atol=1e-7)
+    plain = BlendSampler(stored, 4, "triangle")
+    assert not np.allclose(ends[0].weights[4:], np.stack([plain(w) for w in unseen]), atol=1e-7)
     expected = mix_weights(ends[1].weights, ends[0].weights, generated.config["mix"]["model_share"])
     np.testing.assert_allclose(generated.weights, expected, rtol=0, atol=1e-5 if CUDA else 0)
 
@@ -475,6 +484,7 @@ STAGE_OUTPUTS = {
     "train_diffusion": ["diffusion_geometry.ckpt"],
     "render_targets": ["targets.zarr"],
     "finetune_render": ["diffusion.ckpt", "finetune_metrics.json"],
+    "fit_correction": ["correction.pt"],
     "sample_shadows": ["generated.zarr"],
     "evaluate_voxels": ["voxel_metrics.json"],
     "caches": ["caches.json", "report/caches.png"],
@@ -596,7 +606,7 @@ def test_caches_table_every_cache_with_its_bytes_and_psnr(finished):
     res = finished / "results/nucleon"
     table = json.loads((res / "caches.json").read_text())
     rows = {r["cache"]: r for r in table["caches"]}
-    assert {r["kind"] for r in rows.values()} == {"stored", "codec", "model", "mix", "grids"}
+    assert {r["kind"] for r in rows.values()} == {"stored", "codec", "corrected", "model", "mix", "grids"}
     for r in rows.values():
         assert r["bytes"] > 0 and np.isfinite(r["seen_psnr"]) and np.isfinite(r["unseen_psnr"]), r
     assert rows["diffusion model fp16"]["bytes"] * 2 == rows["diffusion model fp32"]["bytes"]
@@ -609,9 +619,12 @@ def test_caches_table_every_cache_with_its_bytes_and_psnr(finished):
     mixed = rows[f"model {share:g} + stored SIRENs {1 - share:g}, both fp32"]
     assert mixed["seen_psnr"] == pytest.approx(voxel["seen"]["generated_psnr_median"])
     assert mixed["unseen_psnr"] == pytest.approx(voxel["unseen"]["generated_psnr_median"])
-    assert mixed["bytes"] == rows["diffusion model fp32"]["bytes"] + rows["stored SIRENs fp32"]["bytes"]
+    # the stored SIRENs with the blend's correction: its bytes on top, in every cache that blends with it
+    fix = rows["stored SIRENs fp32, corrected"]["bytes"] - rows["stored SIRENs fp32"]["bytes"]
+    assert fix > 0 and rows["stored SIRENs fp32, corrected"]["seen_psnr"] == rows["stored SIRENs fp32"]["seen_psnr"]
+    assert mixed["bytes"] == rows["diffusion model fp32"]["bytes"] + rows["stored SIRENs fp32"]["bytes"] + fix
     half = rows[f"model {share:g} + stored SIRENs {1 - share:g}, both fp16"]
-    assert half["bytes"] == rows["diffusion model fp16"]["bytes"] + rows["stored SIRENs fp16"]["bytes"]
+    assert half["bytes"] == rows["diffusion model fp16"]["bytes"] + rows["stored SIRENs fp16"]["bytes"] + fix
 
 
 def test_the_model_alone_reads_no_stored_sirens_and_a_new_share_resamples_only(finished):
@@ -774,7 +787,7 @@ def test_rerun_one_subset(finished):
     store = open_store(finished / "results/nucleon/weights.zarr").weights.tobytes()
     target = "results/nucleon/sirens/subset_1.npz"
     assert planned(snakemake(finished, "-n", "-f", target)) == {"fit_siren": 1}
-    downstream = {"fit_siren": 1, "collect_weights": 1, "train_diffusion": 1, "finetune_render": 1,
+    downstream = {"fit_siren": 1, "collect_weights": 1, "train_diffusion": 1, "finetune_render": 1, "fit_correction": 1,
                   "sample_shadows": 1, "evaluate_voxels": 1, "caches": 1, "evaluate_images": 1, "benchmark": 1,
                   "report_figures": 1, "stage_costs": 1, "summary": 1, "all": 1}
     assert planned(snakemake(finished, "-n", "-R", target)) == downstream
@@ -837,7 +850,8 @@ def test_parsing_the_workflow_does_not_import_torch(tmp_path):
 
 
 # the longest chain of the default run: each stage's training, then the cache's sampling
-CHAIN = ("preoptimize", "fit_siren", "collect_weights", "train_diffusion", "finetune_render", "sample_shadows")
+CHAIN = ("preoptimize", "fit_siren", "collect_weights", "train_diffusion", "finetune_render", "fit_correction",
+         "sample_shadows")
 
 
 def rule_priorities() -> dict[str, int]:
@@ -1182,7 +1196,9 @@ def test_cache_blend_skips_stage_two(finished, tmp_path):
     from diffshadow.store import BlendSampler
 
     # a blend k other than the package's 4: the viewer and `render --blend` must take the run's
-    blend = {**TINY, "cache": "blend", "evaluate": {**TINY["evaluate"], "blend_k": 3}}
+    # the plain blend (correction.steps 0: no correction job; the corrected one below)
+    blend = {**TINY, "cache": "blend", "evaluate": {**TINY["evaluate"], "blend_k": 3},
+             "correction": {**TINY["correction"], "steps": 0}}
     (tmp_path / "fresh").mkdir()
     fresh = planned(snakemake(tmp_path / "fresh", "-n", config=blend))
     assert {"fit_siren", "eval_truth", "sample_shadows"} <= set(fresh), fresh
@@ -1233,6 +1249,40 @@ def test_cache_blend_skips_stage_two(finished, tmp_path):
     out = subprocess.run([str(installed("diffshadow")), *command.split()[1:]], capture_output=True, text=True,
                          timeout=300)
     assert out.returncode == 0 and (tmp_path / "x.png").is_file(), out.stderr[-2000:]
+
+
+def test_cache_blend_with_the_correction_blends_the_corrected_sirens(finished, tmp_path):
+    """`cache: blend` with the blend's correction (the finished run's correction.pt): each training light keeps its
+    stored SIREN, each unseen light gets its corrected blend, as `render --blend --correction` and the viewer make a
+    new direction's; the store's config names the correction, which voxel_metrics.json then says."""
+    from diffshadow.correction import load_correction
+    from diffshadow.stages.stage2 import blend_shadows
+    from diffshadow.store import BlendSampler
+
+    res = finished / "results/nucleon"
+    out = tmp_path / "generated.zarr"
+    blend_shadows(res / "weights.zarr", res / "eval_truth.zarr", res / "lights.json", out, blend_k=4,
+                  weighting="triangle", correction_path=res / "correction.pt")
+    stage1, generated = open_store(res / "weights.zarr"), open_store(out)
+    assert np.array_equal(generated.weights[generated.seen], stage1.weights)
+    fixed = BlendSampler(stage1, 4, "triangle", load_correction(res / "correction.pt", stage1.lights))
+    plain = BlendSampler(stage1, 4, "triangle")
+    unseen = generated.lights[~generated.seen]
+    assert np.array_equal(generated.weights[~generated.seen], fixed.many(unseen))
+    assert not np.array_equal(generated.weights[~generated.seen], plain.many(unseen))
+    assert generated.config["correction"]["path"] == str(res / "correction.pt")
+    with pytest.raises(ValueError, match="fitted for other training lights"):
+        blend_shadows(res / "weights.zarr", res / "eval_truth.zarr", res / "lights.json", tmp_path / "x.zarr",
+                      blend_k=4, weighting="triangle", correction_path=_other_lights_correction(res, tmp_path))
+
+
+def _other_lights_correction(res: Path, tmp_path: Path) -> Path:
+    """The finished run's correction.pt with one training light moved: a file made for other stored SIRENs."""
+    state = torch.load(res / "correction.pt", weights_only=False)
+    state["train_lights"][0] = [0.0, 1.0, 0.0]
+    path = tmp_path / "other.pt"
+    torch.save(state, path)
+    return path
 
 
 def test_cache_auto_plans_stage_two_only_when_no_stored_cache_reaches_the_target(finished):

@@ -58,7 +58,8 @@ def render_image(scene: RenderScene, out: Path, *, mode: str, camera: Camera, li
                  weights_path: Path | None = None, light_index: int = 0, diffusion: Path | None = None,
                  blend: Path | None = None, blend_k: int, weighting: str = "triangle",
                  model_share: float | None = None, scalar: str | None = None,
-                 phong: bool = False, step: float, skip: bool = True, outside_region: bool = False) -> None:
+                 phong: bool = False, step: float, skip: bool = True, outside_region: bool = False,
+                 correction: Path | None = None) -> None:
     """One image (a PNG, `out` named .png) in a shading mode; the shadow INR of mode `inr` is row `light_index` of a
     store, or made for `light` by the diffusion checkpoint `diffusion` or (`cache: blend`) as the weight blend of the
     SIRENs of the store `blend` (`weighting`, `blend_k`: the run's, in generated.zarr's config), or by both mixed,
@@ -86,7 +87,16 @@ def render_image(scene: RenderScene, out: Path, *, mode: str, camera: Camera, li
         from diffshadow.diffusion.sample import ShadowSampler
 
         model = ShadowSampler(artifacts.load_checkpoint(diffusion), scene.device) if diffusion else None
-        stored = BlendSampler(open_store(blend), blend_k, weighting) if blend else None
+        if correction is not None and blend is None:
+            raise ValueError("render: --correction corrects the stored SIRENs' blend; give --blend with it")
+        if blend:
+            from diffshadow.correction import load_correction
+
+            store = open_store(blend)
+            fix = load_correction(correction, store.lights, store.weights) if correction else None
+            stored = BlendSampler(store, blend_k, weighting, fix)
+        else:
+            stored = None
         sampler = MixedSampler(model, stored, model_share) if mixed else model or stored
         _same_scene(scene, sampler.extinction, f"--{'diffusion' if diffusion else 'blend'} {diffusion or blend}")
         check = sampler.region.where(light)

@@ -33,7 +33,7 @@ from diffshadow.sampling import VALIDATION_POINTS_SEED, Stream
 from diffshadow.store import BlendSampler, WeightStore, blend_rows, open_store, write_store
 from diffshadow.truth import EvalTruth, check_points, psnr_per_light
 from diffshadow.truth import presample as presample_points
-from diffshadow.volume import check_extinction, load_prepared, prepared_voxels
+from diffshadow.volume import check_extinction, extinction_id, load_prepared, prepared_voxels
 
 # test lights further than this from a training light are helped by a denser sphere (tooth, docs/performance.md)
 SPARSE_LIGHTS_DEG = 2.0
@@ -145,13 +145,15 @@ def eval_truth(volume_path: Path, lights_path: Path, out: Path, *, eval_points: 
 
 def sample_shadows(checkpoint: Path, truth_path: Path, lights_path: Path, out: Path, *, device: torch.device,
                    mix: dict | None = None, weights_path: Path | None = None, volume_path: Path | None = None,
-                   blend_k: int = 4, weighting: str = "triangle", score_device: torch.device | str = "cpu") -> None:
+                   blend_k: int = 4, weighting: str = "triangle", score_device: torch.device | str = "cpu",
+                   correction_path: Path | None = None) -> None:
     """SIRENs generated (on `device`) for every training and unseen light, with their voxel PSNR (the SIRENs
     evaluated on `score_device`: evaluate.device, the CPU by default). With `mix` (the config's section)
     and a model share under 1, each is mixed with the weight blend of the stored SIRENs of `weights_path`
     (`lights.blend_weights` by `weighting`, `blend_k`; a training light's blend is its own stored SIREN); share `auto`
-    is chosen on validation lights with exact shadows from `volume_path` (diffusion/mix.py). The share and its curve are
-    recorded in the store's config, where the viewer reads them."""
+    is chosen on validation lights with exact shadows from `volume_path` (diffusion/mix.py). With `correction_path`
+    (fit_correction's correction.pt) the blend is the corrected one (diffshadow/correction.py). The share, its curve
+    and the correction are recorded in the store's config, where the viewer reads them."""
     from diffshadow.diffusion.mix import mix_weights
 
     state = artifacts.load_checkpoint(checkpoint)
@@ -166,6 +168,7 @@ def sample_shadows(checkpoint: Path, truth_path: Path, lights_path: Path, out: P
     share = "1" if mix is None else str(mix["model_share"])
     stage1 = _mix_inputs(share, weights_path, volume_path, layout, state.get("extinction"))
     blend_k = min(blend_k, len(train))
+    correction = _correction(correction_path, stage1) if stage1 is not None else None
     print(f"sampling {len(all_lights)} shadow SIRENs ({seen.sum()} seen, {(~seen).sum()} unseen) with "
           f"DDIM {cfg['ddim_steps']} steps", flush=True)
 
@@ -179,10 +182,11 @@ def sample_shadows(checkpoint: Path, truth_path: Path, lights_path: Path, out: P
     config = {"diffusion": cfg, "checkpoint": str(checkpoint)}
     config.update(scored_on(score_device))
     if stage1 is not None:
-        record = {"blend_weights": weighting, "blend_k": blend_k, "weights": str(weights_path)}
+        record = {"blend_weights": weighting, "blend_k": blend_k, "weights": str(weights_path),
+                  **_correction_record(correction, correction_path)}
         if share == "auto":
             record.update(_choose_share(sample, stage1, volume_path, light_sets, mix, blend_k, weighting,
-                                        score_device))
+                                        score_device, correction))
             record["chosen"] = "validation lights"
         else:
             record.update(model_share=float(share), chosen="config")
@@ -192,18 +196,41 @@ def sample_shadows(checkpoint: Path, truth_path: Path, lights_path: Path, out: P
         record["model_alone_psnr"] = [float(x) for x in alone]
         # a training light's blend is its own stored SIREN, an unseen light's a float64 blend (blend_rows): mixed
         # apart, so that the stored SIRENs are not widened to float64 beside them (1.3 GB at the paper's sizes)
-        n, unseen_blend = len(train), blend_rows(stage1.weights, *blend_weights(train, unseen, blend_k, weighting))
+        n, unseen_blend = len(train), _blend(stage1, train, unseen, blend_k, weighting, correction)
         weights = np.concatenate([mix_weights(weights[:n], stage1.weights, record["model_share"]),
                                   mix_weights(weights[n:], unseen_blend, record["model_share"])])
         config["mix"] = record
+        corrected = ", corrected" if correction is not None else ""
         print(f"the cache's answer: {record['model_share']:g} x the model's SIREN + {1 - record['model_share']:g} x "
-              f"{describe_blend(weighting, blend_k)} ({record['chosen']})", flush=True)
+              f"{describe_blend(weighting, blend_k)}{corrected} ({record['chosen']})", flush=True)
     scores = psnr_per_light(truth.sirens(weights, layout, siren), truth_rows)
     store = WeightStore(weights=weights, lights=all_lights, psnr=scores["box"],
                         psnr_visible=scores.get("visible", scores["box"]), layout=layout, siren=siren,
                         config=config, seen=seen, region=region.to_dict(), extinction=state.get("extinction"))
     write_store(out, store, made_by="sample_shadows")
     print(f"wrote {out}: PSNR median {_seen_unseen(store.psnr, seen)}")
+
+
+def _correction(path: Path | None, stage1: WeightStore):
+    """fit_correction's correction of the blend, checked to be for these stored SIRENs; None without a path."""
+    from diffshadow.correction import load_correction
+
+    return None if path is None else load_correction(path, stage1.lights, stage1.weights)
+
+
+def _correction_record(correction, path: Path | None) -> dict:
+    """What a store's config says of the blend's correction: its file and settings (the viewer reads the file)."""
+    if correction is None:
+        return {}
+    return {"correction": {"path": str(path), "config": correction.record.get("config")}}
+
+
+def _blend(stage1: WeightStore, train: np.ndarray, lights: np.ndarray, blend_k: int, weighting: str,
+           correction=None) -> np.ndarray:
+    """The stored SIRENs' weight blends (Q, P) in float64 of `lights`, corrected where `correction` is given."""
+    idx, w = blend_weights(train, lights, blend_k, weighting)
+    blend = blend_rows(stage1.weights, idx, w)
+    return blend if correction is None else blend + correction.delta(lights, idx, w)
 
 
 def _seen_unseen(psnr: np.ndarray, seen: np.ndarray) -> str:
@@ -240,7 +267,7 @@ def _mix_inputs(share: str, weights_path: Path | None, volume_path: Path | None,
 
 
 def _choose_share(sample, stage1: WeightStore, volume_path: Path, light_sets: dict, mix: dict, blend_k: int,
-                  weighting: str, score_device: torch.device | str = "cpu") -> dict:
+                  weighting: str, score_device: torch.device | str = "cpu", correction=None) -> dict:
     """`mix.model_share: auto`: the share chosen on `mix.val_lights` validation lights (exact shadows at
     `mix.val_points` box points each, marched on the CPU as eval_truth's are; the SIRENs evaluated on
     `score_device`), with its curve."""
@@ -254,7 +281,7 @@ def _choose_share(sample, stage1: WeightStore, volume_path: Path, light_sets: di
     val = EvalTruth.compute(volume, tf, lights, int(mix["val_points"]), int(mix["seed"]) + VALIDATION_POINTS_SEED,
                             sets=("box",)).on(score_device)
     truth = val.of(lights)
-    blend = blend_rows(stage1.weights, *blend_weights(train, lights, blend_k, weighting))
+    blend = _blend(stage1, train, lights, blend_k, weighting, correction)
     share, curve = choose_share(sample(lights), blend,
                                 lambda w: psnr_per_light(val.sirens(w, stage1.layout, stage1.siren), truth)["box"])
     print("model share on the validation lights (mean / median voxel PSNR, dB): "
@@ -299,6 +326,26 @@ def choose_cache(weights_path: Path, truth_path: Path, volume_path: Path, lights
     print(f"wrote {out}: cache {result['choice']}")
 
 
+def fit_correction(weights_path: Path, volume_path: Path, lights_path: Path, out: Path, *, cfg,
+                   blend_k: int, weighting: str, device: torch.device | str = "cpu") -> None:
+    """`correction.pt`: the blend's correction of stage 1's stored SIRENs (diffshadow/correction.py), fitted on
+    exact-shadow lights of the training cap, with its validation figures beside the plain blend's."""
+    from diffshadow.correction import fit_correction as fit
+    from diffshadow.correction import save_correction
+
+    stage1 = open_store(weights_path)
+    light_sets = read_lights(lights_path)
+    train = light_sets["train"]
+    volume, tf = load_prepared(volume_path)
+    check_extinction(stage1.extinction, extinction_id(volume, tf), cache=str(weights_path), scene=str(volume_path),
+                     remedy="rerun stage 1 on this volume")
+    k = min(blend_k, len(train))
+    correction = fit(stage1, volume, tf, train, light_sets["center"], cfg, k=k, weighting=weighting,
+                     device=device, log=lambda m: print(m, flush=True))
+    save_correction(out, correction)
+    print(f"wrote {out}", flush=True)
+
+
 def encode_cache(weights_path: Path, truth_path: Path, lights_path: Path, out: Path, *, codec: str,
                  device: torch.device | str = "cpu") -> None:
     """A codec's cache (`cache: fp16 | bf16 | basis-<k>`): the stored SIRENs through the codec, written decoded
@@ -322,28 +369,31 @@ def encode_cache(weights_path: Path, truth_path: Path, lights_path: Path, out: P
 
 
 def blend_shadows(weights_path: Path, truth_path: Path, lights_path: Path, out: Path, *, blend_k: int,
-                  weighting: str, device: torch.device | str = "cpu") -> None:
+                  weighting: str, device: torch.device | str = "cpu", correction_path: Path | None = None) -> None:
     """`cache: blend`: the SIRENs of every training and unseen light without a model: a training light's own
     stored SIREN, an unseen light's weight blend of the stored ones (`lights.blend_weights` by `weighting`,
-    `blend_k`: the baseline evaluate_voxels scores), with their voxel PSNR; the same store as `sample_shadows`
-    writes."""
+    `blend_k`: the baseline evaluate_voxels scores; with `correction_path`, corrected), with their voxel PSNR; the
+    same store as `sample_shadows` writes."""
     stage1 = open_store(weights_path)
     light_sets = read_lights(lights_path)
     train, unseen = light_sets["train"], light_sets["unseen"]
-    blend = BlendSampler(stage1, blend_k, weighting)  # what the viewer and `render --blend` make of a new direction
+    correction = _correction(correction_path, stage1)
+    # what the viewer and `render --blend` make of a new direction
+    blend = BlendSampler(stage1, blend_k, weighting, correction)
     weights = np.concatenate([np.asarray(stage1.weights, dtype=np.float32), blend.many(unseen)])
     all_lights = np.concatenate([train, unseen])
     seen = np.arange(len(all_lights)) < len(train)
     _check_region(blend.region, unseen, weights_path)
     codec = stage1.codec  # cache: blend reads stage 1's own fp32 store
-    print(f"blending {(~seen).sum()} unseen shadow SIRENs, each {describe_blend(weighting, blend_k)} "
+    corrected = ", corrected" if correction is not None else ""
+    print(f"blending {(~seen).sum()} unseen shadow SIRENs, each {describe_blend(weighting, blend_k)}{corrected} "
           f"({len(train)} stored, {codec})", flush=True)
     truth = artifacts.read_eval_truth(truth_path).on(device)
     scores = psnr_per_light(truth.sirens(weights, stage1.layout, stage1.siren), truth.of(all_lights, str(truth_path)))
     store = WeightStore(weights=weights, lights=all_lights, psnr=scores["box"],
                         psnr_visible=scores.get("visible", scores["box"]), layout=stage1.layout, siren=stage1.siren,
                         config={"cache": "blend", "codec": codec, "blend_weights": weighting, "blend_k": blend_k,
-                                "weights": str(weights_path),
+                                "weights": str(weights_path), **_correction_record(correction, correction_path),
                                 **({"encoded_bytes": stage1.config["encoded_bytes"]} if codec != "fp32" else {}),
                                 **scored_on(device)},
                         seen=seen, region=blend.region.to_dict(), extinction=stage1.extinction)
@@ -356,17 +406,20 @@ def evaluate_voxels(checkpoint: Path | None, weights_path: Path, generated_path:
                     ddpm_lights: int,
                     geometry_checkpoint: Path | None = None, device: torch.device | str = "cpu",
                     wide_lights: int = 0, wide_points: int = 1024, wide_seed: int = 0,
-                    cache_path: Path | None = None) -> None:
+                    cache_path: Path | None = None, correction_path: Path | None = None) -> None:
     """`voxel_metrics.json`: generated against stage 1 and the baselines, storage, time per INR (the samplers
     run and are timed on `device`, and the SIRENs are evaluated there); with the geometry-stage checkpoint, unseen
     lights before and after fine-tuning. Without `checkpoint` (`cache: blend` or a codec) the generated SIRENs are
     the blended ones and there is no model to time. The sampler curve resumes from `<out>.ckpt`. With
     `wide_lights`, the cache's answer, the weight blend and (with a model) the model alone on that many further test
-    lights too (`evaluate.wide_comparison`); a codec's answer blends its decoded store, `cache_path`."""
+    lights too (`evaluate.wide_comparison`); a codec's answer blends its decoded store, `cache_path`, and the answer
+    of the blend or the mix is corrected by `correction_path` (fit_correction's correction.pt), as sample_shadows'
+    was."""
     geometry = artifacts.load_checkpoint(geometry_checkpoint) if geometry_checkpoint else None
     state = artifacts.load_checkpoint(checkpoint) if checkpoint else None
     stage1, light_sets = open_store(weights_path), read_lights(lights_path)  # read (and verified) once for both
     cache = open_store(cache_path) if cache_path else None
+    correction = _correction(correction_path, stage1)
     if cache is not None and not np.array_equal(cache.lights, stage1.lights):  # before the work, not after
         raise ValueError(f"--cache-weights {cache_path}: {len(cache.lights)} lights, not the {len(stage1.lights)} of "
                          f"--weights {weights_path} in their order (expected encode-cache's decoded copy of it)")
@@ -383,7 +436,7 @@ def evaluate_voxels(checkpoint: Path | None, weights_path: Path, generated_path:
         share = float((result.get("mix") or {}).get("model_share", 1.0))
         result["wide"] = w = wide_comparison(state, stage1, light_sets, volume, tf, share=share, lights=wide_lights,
                                              points=wide_points, seed=wide_seed, blend_k=blend_k, weighting=weighting,
-                                             device=device, cache=cache)
+                                             device=device, cache=cache, correction=correction)
         said = [f"the cache's answer {w['generated_psnr_median']:.2f} dB", f"weight blend "
                 f"{w['weight_blend_psnr_median']:.2f}"]
         if "model_alone_psnr_median" in w:
@@ -400,7 +453,7 @@ def evaluate_voxels(checkpoint: Path | None, weights_path: Path, generated_path:
 
 def caches(weights_path: Path, generated_path: Path, truth_path: Path, lights_path: Path, volume_path: Path,
            checkpoint: Path | None, out: Path, figure: Path, *, blend_k: int, weighting: str,
-           device: torch.device | str = "cpu") -> None:
+           device: torch.device | str = "cpu", correction_path: Path | None = None) -> None:
     """`caches.json` and its figure: every cache of this run as bytes against seen and unseen voxel PSNR
     (`diffshadow.caches`); the model's rows where the run trained one (`checkpoint`), its DDIM and every SIREN's
     evaluation on `device`."""
@@ -408,12 +461,12 @@ def caches(weights_path: Path, generated_path: Path, truth_path: Path, lights_pa
     from diffshadow.report import caches_figure
 
     volume, tf = load_prepared(volume_path)
-    table = cache_table(open_store(weights_path), artifacts.read_eval_truth(truth_path).on(device),
-                        read_lights(lights_path),
+    stage1 = open_store(weights_path)
+    table = cache_table(stage1, artifacts.read_eval_truth(truth_path).on(device), read_lights(lights_path),
                         blend_k=blend_k, weighting=weighting, volume=volume, tf=tf,
                         model_state=artifacts.load_checkpoint(checkpoint) if checkpoint else None,
                         generated=open_store(generated_path), checkpoint=out.with_name(out.name + ".ckpt"),
-                        device=device)
+                        device=device, correction=_correction(correction_path, stage1))
     atomic_write_text(out, json.dumps(finite_json(table), indent=1) + "\n")
     caches_figure(table, figure)
     for row in table["caches"]:

@@ -132,8 +132,10 @@ class ViewerScene:
         lights = read_lights(results / "lights.json")
         source = cache_source(results, generated)
         if generated.config.get("cache") == "blend":  # no model: new directions blend the stored SIRENs
-            blend = BlendSampler(open_store(source), int(generated.config["blend_k"]),
-                                 generated.config.get("blend_weights", OLD_WEIGHTING))
+            stored_store = open_store(source)
+            blend = BlendSampler(stored_store, int(generated.config["blend_k"]),
+                                 generated.config.get("blend_weights", OLD_WEIGHTING),
+                                 _correction(results, generated.config, stored_store))
             same_scene(blend.extinction, source)
             return cls(scene, name=results.name, lights=lights, generated=generated, sampler=blend, results=results,
                        checkpoint=source)
@@ -151,7 +153,9 @@ class ViewerScene:
             if not stored.exists():
                 raise ViewerError(f"{stored}: missing, the stored SIRENs that generated.zarr's SIRENs were mixed "
                                   f"with (made by the rule `collect_weights`: {remake(results, stored.name)})")
-            blend = BlendSampler(open_store(stored), int(mix["blend_k"]), mix.get("blend_weights", OLD_WEIGHTING))
+            stored_store = open_store(stored)
+            blend = BlendSampler(stored_store, int(mix["blend_k"]), mix.get("blend_weights", OLD_WEIGHTING),
+                                 _correction(results, mix, stored_store))
             sampler = MixedSampler(sampler, blend,
                                    float(mix["model_share"]))
         return cls(scene, name=results.name, lights=lights, generated=generated, sampler=sampler, results=results,
@@ -425,6 +429,22 @@ def region_chart(region: LightRegion, train: np.ndarray, unseen: np.ndarray, lig
     return np.asarray(img)
 
 
+def _correction(results: Path, record: dict, stored: WeightStore):
+    """The blend's correction that generated.zarr's blends were made with (its config's `correction`), from this
+    results folder; None where they were plain."""
+    said = record.get("correction")
+    if not said:
+        return None
+    from diffshadow.correction import CorrectionError, load_correction
+
+    path = Path(results) / Path(str(said["path"])).name
+    try:
+        return load_correction(path, stored.lights, stored.weights)
+    except CorrectionError as e:
+        raise ViewerError(f"{e} (generated.zarr's blends were corrected by it: {remake(results, path.name)})") from None
+
+
 def _blend_flags(blend: BlendSampler) -> list[str]:
     """`render`'s flags for the weight blend a viewer's sampler makes."""
-    return ["--blend-weights", blend.weighting, "--blend-k", str(blend.k)]
+    fix = [] if blend.correction is None else ["--correction", str(blend.correction.path)]
+    return ["--blend-weights", blend.weighting, "--blend-k", str(blend.k), *fix]

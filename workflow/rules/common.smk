@@ -162,19 +162,34 @@ def model_checkpoint(wildcards):
 
 
 def shadow_source(wildcards):
-    """What answers a light: the diffusion model's checkpoint (with stage 1's stored SIRENs and the volume when
-    `mix.model_share` mixes their blend in), the stored SIRENs (blend), or their codec's decoded store
-    (encode_cache's cache.zarr)."""
+    """What answers a light: the diffusion model's checkpoint (with stage 1's stored SIRENs, their blend's
+    correction and the volume when `mix.model_share` mixes their blend in), the stored SIRENs (blend, with its
+    correction), or their codec's decoded store (encode_cache's cache.zarr)."""
     cache = cache_choice(wildcards.scene)
     if cache == "diffusion":
         if model_alone(wildcards.scene):
             return model_checkpoint(wildcards)
         # the model's SIRENs mixed with the stored ones' blend; validation lights' exact shadows from the volume
         return {**model_checkpoint(wildcards), "stored": f"results/{wildcards.scene}/weights.zarr",
-                "volume": extinction_volume(wildcards)}
+                "volume": extinction_volume(wildcards), **blend_correction(wildcards)}
     if cache == "blend":
-        return {"weights": f"results/{wildcards.scene}/weights.zarr"}
+        return {"weights": f"results/{wildcards.scene}/weights.zarr", **blend_correction(wildcards)}
     return {"weights": f"results/{wildcards.scene}/cache.zarr"}
+
+
+def blend_correction(wildcards):
+    """fit_correction's correction.pt where the stored SIRENs' blend answers (cache: blend, or the mix) and
+    `correction.steps` is over 0; a codec's blend and the model alone take none."""
+    cache = cache_choice(wildcards.scene)
+    blended = cache == "blend" or (cache == "diffusion" and not model_alone(wildcards.scene))
+    if not blended or scene_config(wildcards.scene)["correction"]["steps"] <= 0:
+        return {}
+    return {"correction": f"results/{wildcards.scene}/correction.pt"}
+
+
+def correction_flag(input):
+    """--correction for a command whose input holds the blend's correction; "" without one."""
+    return f" --correction {input.correction}" if "correction" in input.keys() else ""
 
 
 def codec_store(wildcards):
@@ -200,7 +215,7 @@ def sample_command(scene, input):
         return f"sample-shadows --checkpoint {input.checkpoint}{score}"
     return (f"sample-shadows --checkpoint {input.checkpoint} --model-share {mix['model_share']} --weights "
             f"{input.stored} --volume {input.volume} {blend_args(scene)} --val-lights {mix['val_lights']} "
-            f"--val-points {mix['val_points']} --seed {mix['seed']}{score}")
+            f"--val-points {mix['val_points']} --seed {mix['seed']}{score}{correction_flag(input)}")
 
 
 def model_alone(scene):
@@ -249,6 +264,8 @@ def stage_benchmarks(wildcards):
             rules += ["render_targets", "finetune_render"]
     elif cache != "blend":
         rules += ["encode_cache"]
+    if blend_correction(wildcards):
+        rules += ["fit_correction"]
     fits = [f"fit_siren_{i}" for i in range(n_subsets(wildcards.scene))]
     return [f"results/{wildcards.scene}/benchmarks/{r}.tsv" for r in rules + fits]
 

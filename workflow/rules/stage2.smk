@@ -100,6 +100,34 @@ checkpoint choose_cache:
         " --out {output}" + _JOB_LOG
 
 
+# the blend's correction (correction.steps over 0): an MLP of the light direction fitted after stage 1 on
+# exact-shadow lights, which corrects the stored SIRENs' blend between the training lights (diffshadow/correction.py)
+rule fit_correction:
+    input:
+        weights="results/{scene}/weights.zarr",
+        volume=extinction_volume,  # its colours alone changed: not rerun
+        lights="results/{scene}/lights.json",
+    output:
+        "results/{scene}/correction.pt",
+    params:
+        cfg=lambda wc: as_json(wc.scene, "correction"),
+        blend=lambda wc: blend_args(wc.scene),
+    # on the chain to sample_shadows, after stage 2's jobs took both cores: 71 s on two threads against 106 on one
+    # (the README run); the same bytes on any threads (tests/test_correction.py)
+    threads: device_threads(2)
+    priority: 10
+    log:
+        "results/{scene}/logs/fit_correction.log",
+    benchmark:
+        "results/{scene}/benchmarks/fit_correction.tsv",
+    conda:
+        "../envs/diffshadow.yaml"
+    shell:
+        "diffshadow --phases results/{wildcards.scene}/benchmarks/fit_correction.phases.json fit-correction --weights {input.weights}"
+        " --volume {input.volume} --lights {input.lights} {params.blend} --config-json {params.cfg:q}"
+        " --threads {threads} --out {output}" + _JOB_LOG
+
+
 # a codec's cache (cache: fp16 | bf16 | basis-<k>, or auto's choice): the stored SIRENs through the codec, decoded
 rule encode_cache:
     input:
@@ -135,7 +163,7 @@ rule sample_shadows:
         directory("results/{scene}/generated.zarr"),
     params:
         command=lambda wc, input: (f"blend-shadows --weights {input.weights} {blend_args(wc.scene)} "
-                                   f"{evaluate_device(wc)}"
+                                   f"{evaluate_device(wc)}{correction_flag(input)}"
                                    if "weights" in input.keys()
                                    else sample_command(wc.scene, input)
                                    if "checkpoint" in input.keys() else ""),  # "": cache: auto, not yet chosen
@@ -161,6 +189,7 @@ rule evaluate_voxels:
         unpack(geometry_checkpoint),
         unpack(model_checkpoint),
         unpack(codec_store),
+        unpack(blend_correction),
         weights="results/{scene}/weights.zarr",
         generated="results/{scene}/generated.zarr",
         truth="results/{scene}/eval_truth.zarr",
@@ -172,6 +201,7 @@ rule evaluate_voxels:
         geometry=lambda wc, input: f"--geometry-checkpoint {input.geometry}" if "geometry" in input.keys() else "",
         checkpoint=lambda wc, input: f"--checkpoint {input.checkpoint}" if "checkpoint" in input.keys() else "",
         cache=lambda wc, input: f"--cache-weights {input.cache}" if "cache" in input.keys() else "",
+        correction=lambda wc, input: correction_flag(input),
         blend=lambda wc: blend_args(wc.scene),
         ddpm_lights=lambda wc: scene_config(wc.scene)["evaluate"]["ddpm_lights"],
         wide=lambda wc: "--wide-lights {wide_lights} --wide-points {wide_points} --seed {seed}".format(
@@ -191,7 +221,7 @@ rule evaluate_voxels:
         "diffshadow --phases results/{wildcards.scene}/benchmarks/evaluate_voxels.phases.json evaluate-voxels {params.checkpoint} --weights {input.weights}"
         " --generated {input.generated} --truth {input.truth} --volume {input.volume} --lights {input.lights}"
         " {params.geometry} {params.cache} {params.blend} --ddpm-lights {params.ddpm_lights} {params.wide}"
-        " {params.device}"
+        " {params.device}{params.correction}"
         " --threads {threads}"
         " --out {output}" + _JOB_LOG
 
@@ -200,6 +230,7 @@ rule evaluate_voxels:
 rule caches:
     input:
         unpack(model_checkpoint),
+        unpack(blend_correction),
         weights="results/{scene}/weights.zarr",
         generated="results/{scene}/generated.zarr",
         truth="results/{scene}/eval_truth.zarr",
@@ -211,6 +242,7 @@ rule caches:
                       subcategory="storage"),
     params:
         checkpoint=lambda wc, input: f"--checkpoint {input.checkpoint}" if "checkpoint" in input.keys() else "",
+        correction=lambda wc, input: correction_flag(input),
         blend=lambda wc: blend_args(wc.scene),
         device=evaluate_device,
         run=lambda wc: caption_values(wc.scene),  # for the caption
@@ -224,7 +256,7 @@ rule caches:
     shell:
         "diffshadow --phases results/{wildcards.scene}/benchmarks/caches.phases.json caches --weights {input.weights}"
         " --generated {input.generated} --truth {input.truth} --volume {input.volume} --lights {input.lights}"
-        " {params.checkpoint} {params.blend} {params.device} --threads {threads} --figure {output.figure}"
+        " {params.checkpoint} {params.blend} {params.device}{params.correction} --threads {threads} --figure {output.figure}"
         " --out {output.table}" + _JOB_LOG
 
 

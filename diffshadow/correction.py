@@ -1,0 +1,263 @@
+"""The blend's correction: a light-conditioned network that corrects the stored SIRENs' weight blend between the
+training lights (docs/design.md, "The blend's correction").
+
+A new light's SIREN is the triangle blend of the stored SIRENs (`lights.blend_weights`). Stage 1 fits the SIRENs so
+that such blends are good (its blend loss), but a blend of three SIRENs is linear in their weights and the shadow
+is not linear in the light: between the training lights the blend lies 3-7 dB under what a training light's own
+SIREN scores. The correction adds, for light l with blend weights w_i(l) at corners l_i,
+
+    delta(l) = sigma * (net(l) - sum_i w_i(l) net(l_i)),
+
+with `net` a small MLP of the light's NeRF encoding and `sigma` each weight's spread over the stored SIRENs. The
+second term is the correction's own blend at the corners, so delta vanishes at every training light (its answer
+stays its stored SIREN, to the bit) and moves continuously with the light, as the blend's weights do. The network
+is fitted by the geometry loss alone: the corrected SIRENs of random lights in the training cap against their
+exact shadows at random box points.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import math
+import time
+from collections.abc import Callable
+from dataclasses import asdict, dataclass
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from diffshadow.adam import Adam, set_lr
+from diffshadow.config import ConfigError, section
+from diffshadow.io import atomic_torch_save
+from diffshadow.lights import blend_weights, unseen_directions
+from diffshadow.progress import eta
+from diffshadow.sampling import LightStream, seeded, to_device
+from diffshadow.siren import BatchedSiren, box_to_siren
+
+CHUNK_LIGHTS = 64  # the exact shadows are marched this many lights at a time, each chunk at points of its own
+
+
+class CorrectionError(ValueError):
+    pass
+
+
+@dataclass(frozen=True)
+class CorrectionConfig:
+    steps: int  # 0: no correction (the plain blend answers)
+    lights: int  # exact-shadow lights in the training cap that the network is fitted on
+    points: int  # exact-shadow box points per light
+    batch_lights: int  # lights per step
+    batch_points: int  # points per light per step (of its `points`)
+    hidden: int  # the MLP's width (two hidden layers)
+    light_freqs: int  # NeRF encoding of the direction: sin/cos(2^k pi w), k < light_freqs
+    lr: float  # Adam, cosine decay to 0
+    seed: int
+
+    def __post_init__(self):
+        for key in ("steps", "lights", "points", "batch_lights", "batch_points", "hidden", "light_freqs"):
+            if getattr(self, key) < 0:
+                raise ConfigError(f"correction.{key}: expected 0 or more, got {getattr(self, key)}")
+        if self.steps and (self.lights < 1 or self.points < 1 or self.batch_lights < 1 or self.batch_points < 1
+                           or self.hidden < 1):
+            raise ConfigError("correction: lights, points, batch_lights, batch_points and hidden must be at least 1 "
+                              "when steps is over 0")
+        if self.steps and self.batch_points > self.points:
+            raise ConfigError(f"correction.batch_points ({self.batch_points}) is more than correction.points "
+                              f"({self.points}), the points each light has")
+
+    @classmethod
+    def from_config(cls, d: dict | None = None) -> CorrectionConfig:
+        """defaults.yaml's `correction` section overridden by `d`."""
+        return section(cls, "correction", d)
+
+
+def light_features(lights: torch.Tensor, n_freqs: int) -> torch.Tensor:
+    """(Q, 3) unit directions -> (Q, 3 + 6 n_freqs): the direction and sin/cos of 2^k pi times it."""
+    scales = (2.0 ** torch.arange(n_freqs, dtype=lights.dtype)) * math.pi
+    x = lights[:, :, None] * scales
+    return torch.cat([lights, torch.sin(x).flatten(1), torch.cos(x).flatten(1)], dim=-1)
+
+
+def corrected_delta(net: torch.nn.Sequential, features: torch.Tensor, corner_features: torch.Tensor,
+                    idx: torch.Tensor, mix: torch.Tensor, sigma: torch.Tensor) -> torch.Tensor:
+    """sigma * (net(l) - sum_i w_i net(l_i)) for lights of `features` (Q, F) whose blends take training lights
+    `idx` (Q, k) with weights `mix` (Q, k); `corner_features` (N, F) of every training light, of which only the
+    corners named are evaluated (at the paper's 2,000 lights all of them would be a 2,000-row output a call)."""
+    used, where = torch.unique(idx, return_inverse=True)
+    at = net(corner_features[used])
+    # index_select, not at[where]: its backward adds the rows in index order on any thread count, where indexing's
+    # accumulating index_put splits them between threads (docs/numerics.md, defect 12)
+    corners = at.index_select(0, where.reshape(-1)).view(*where.shape, -1)
+    return sigma * (net(features) - (corners * mix[..., None]).sum(1))
+
+
+def make_net(n_params: int, hidden: int, light_freqs: int) -> torch.nn.Sequential:
+    """The MLP, its last layer zero: an untrained correction is none."""
+    net = torch.nn.Sequential(torch.nn.Linear(3 + 6 * light_freqs, hidden), torch.nn.SiLU(),
+                              torch.nn.Linear(hidden, hidden), torch.nn.SiLU(), torch.nn.Linear(hidden, n_params))
+    torch.nn.init.zeros_(net[-1].weight)
+    torch.nn.init.zeros_(net[-1].bias)
+    return net
+
+
+class BlendCorrection:
+    """delta(l) for the stored SIRENs it was fitted to (module docstring): `net`, `sigma` (n_params,) and the
+    training lights (N, 3) whose corner terms it subtracts."""
+
+    def __init__(self, net: torch.nn.Sequential, sigma: torch.Tensor, train: np.ndarray, light_freqs: int,
+                 record: dict | None = None):
+        self.net, self.sigma, self.light_freqs = net.requires_grad_(False).eval(), sigma.float(), light_freqs
+        self.train = np.asarray(train, dtype=np.float64)
+        self.record = record or {}
+        self.path: Path | None = None  # the file it was read from (load_correction)
+
+    def _features(self, lights: np.ndarray) -> torch.Tensor:
+        return light_features(torch.as_tensor(np.asarray(lights, dtype=np.float64), dtype=torch.float32),
+                              self.light_freqs)
+
+    def delta(self, lights: np.ndarray, idx: np.ndarray, mix: np.ndarray) -> np.ndarray:
+        """(Q, n_params) float64: the correction of the blends (`idx`, `mix`: their corners and weights) of
+        `lights` (Q, 3)."""
+        if len(lights) == 0:
+            return np.zeros((0, len(self.sigma)))
+        with torch.no_grad():
+            d = corrected_delta(self.net, self._features(lights), self._features(self.train),
+                                torch.as_tensor(idx), torch.as_tensor(mix, dtype=torch.float32), self.sigma)
+            return d.double().numpy()
+
+    @property
+    def nbytes(self) -> int:
+        """What it adds to a cache: its network and scales in float32."""
+        return 4 * (sum(p.numel() for p in self.net.parameters()) + len(self.sigma))
+
+    def state(self) -> dict:
+        return {"net": self.net.state_dict(), "sigma": self.sigma, "train_lights": self.train.tolist(),
+                "light_freqs": self.light_freqs, "hidden": self.net[0].out_features, "record": self.record}
+
+    @classmethod
+    def from_state(cls, state: dict) -> BlendCorrection:
+        net = make_net(len(state["sigma"]), int(state["hidden"]), int(state["light_freqs"]))
+        net.load_state_dict(state["net"])
+        return cls(net, state["sigma"], np.asarray(state["train_lights"]), int(state["light_freqs"]),
+                   state.get("record"))
+
+
+def save_correction(path: str | Path, correction: BlendCorrection) -> None:
+    atomic_torch_save(path, correction.state())
+
+
+def weights_digest(weights: np.ndarray) -> str:
+    """What a correction was fitted to: the stored SIRENs' float32 bytes, hashed."""
+    return hashlib.sha256(np.ascontiguousarray(weights, dtype=np.float32).tobytes()).hexdigest()
+
+
+def load_correction(path: str | Path, train: np.ndarray | None = None,
+                    weights: np.ndarray | None = None) -> BlendCorrection:
+    """The correction in `path`; with `train` (and `weights`), checked to be fitted for those training lights (and
+    those stored SIRENs), one line if not."""
+    try:
+        state = torch.load(path, map_location="cpu", weights_only=False)
+        correction = BlendCorrection.from_state(state)
+    except FileNotFoundError:
+        raise CorrectionError(f"{path}: no such file (made by the rule `fit_correction`)") from None
+    except Exception as e:  # a truncated or foreign file: torch and the state dict raise many kinds
+        raise CorrectionError(f"{path}: not a blend correction ({type(e).__name__}: {e}); "
+                              f"rerun fit_correction") from None
+    correction.path = Path(path)
+    if train is not None:
+        train = np.asarray(train, dtype=np.float64)
+        if train.shape != correction.train.shape or not np.allclose(train, correction.train):
+            raise CorrectionError(f"{path}: fitted for other training lights ({len(correction.train)}) than the "
+                                  f"stored SIRENs' ({len(train)}); rerun fit_correction")
+    made_for = correction.record.get("weights_sha256")
+    if weights is not None and made_for is not None and made_for != weights_digest(weights):
+        raise CorrectionError(f"{path}: fitted for other stored SIRENs than these (stage 1 was refitted since); "
+                              f"rerun fit_correction")
+    return correction
+
+
+@dataclass
+class CorrectionLights:
+    """The lights the correction is fitted on: directions (L, 3), their blends' corners and weights, and exact
+    shadows (L, P) at box points (L, P, 3), each chunk of CHUNK_LIGHTS lights at points of its own."""
+    lights: np.ndarray
+    idx: torch.Tensor
+    mix: torch.Tensor
+    points: torch.Tensor
+    values: torch.Tensor
+    extent: torch.Tensor
+
+
+def correction_lights(volume, tf, train: np.ndarray, center: np.ndarray, cfg: CorrectionConfig, *, k: int,
+                      weighting: str, log: Callable[[str], None] = print) -> CorrectionLights:
+    """`cfg.lights` random lights in the training cap (their own stream: never a test, validation or pool light)
+    with exact shadows at `cfg.points` box points each (eval_truth's march)."""
+    from diffshadow.truth import EvalTruth
+
+    t0 = time.perf_counter()
+    lights = unseen_directions(train, center, cfg.lights, seed=[cfg.seed, LightStream.CORRECTION])
+    points, values = [], []
+    for c in range(0, len(lights), CHUNK_LIGHTS):
+        part = lights[c:c + CHUNK_LIGHTS]
+        truth = EvalTruth.compute(volume, tf, part, cfg.points, cfg.seed + c, sets=("box",))
+        points.append(truth.points["box"][None].expand(len(part), -1, -1))
+        values.append(truth.values["box"])
+    idx, mix = blend_weights(train, lights, k, weighting)
+    log(f"correction: exact shadows of {len(lights)} lights at {cfg.points} box points each "
+        f"({time.perf_counter() - t0:.1f} s)")
+    return CorrectionLights(lights, torch.as_tensor(idx), torch.as_tensor(mix, dtype=torch.float32),
+                            torch.cat(points).contiguous(), torch.cat(values), truth.extent)
+
+
+def fit_correction(store, volume, tf, train: np.ndarray, center: np.ndarray, cfg: CorrectionConfig, *, k: int,
+                   weighting: str, device: torch.device | str = "cpu",
+                   log: Callable[[str], None] = print) -> BlendCorrection:
+    """Fit the correction of `store`'s blends (`weighting`, `k`; its SIRENs at the training lights `train`) on
+    `cfg.lights` exact-shadow lights of the training cap (marched on the CPU), `cfg.steps` Adam steps with a
+    cosine decay on `device`; the correction comes back on the CPU."""
+    if cfg.steps < 1:
+        raise CorrectionError("correction.steps is 0: there is no correction to fit")
+    device = torch.device(device)
+    weights = torch.as_tensor(np.asarray(store.weights, dtype=np.float32))
+    layout, siren = store.layout, store.siren
+    data = correction_lights(volume, tf, train, center, cfg, k=k, weighting=weighting, log=log)
+    stored = weights.to(device)
+    sigma = (weights.std(0) + 1e-6).to(device)  # the correction's scale per weight: the stored SIRENs' spread there
+    idx, mix, points, values = (t.to(device) for t in (data.idx, data.mix, data.points, data.values))
+    extent = data.extent.to(device)
+    torch.manual_seed(cfg.seed)
+    net = make_net(weights.shape[1], cfg.hidden, cfg.light_freqs).to(device)
+    features = light_features(torch.as_tensor(data.lights, dtype=torch.float32), cfg.light_freqs).to(device)
+    corners = light_features(torch.as_tensor(np.asarray(train, dtype=np.float64), dtype=torch.float32),
+                             cfg.light_freqs).to(device)
+    opt = Adam(net.parameters(), cfg.lr)
+    gen = seeded(cfg.seed, LightStream.CORRECTION)
+    n, t0, window = len(data.lights), time.perf_counter(), []
+    log(f"correction: an MLP of {sum(p.numel() for p in net.parameters()):,} parameters (width {cfg.hidden}) "
+        f"fitted for {cfg.steps} steps of {cfg.batch_lights} lights x {cfg.batch_points} points on {device}")
+    for step in range(cfg.steps):
+        set_lr(opt, cfg.lr * 0.5 * (1 + math.cos(math.pi * step / cfg.steps)))
+        j = to_device(torch.randint(0, n, (cfg.batch_lights,), generator=gen), device)
+        pick = to_device(torch.randint(0, cfg.points, (cfg.batch_lights, cfg.batch_points), generator=gen), device)
+        delta = corrected_delta(net, features[j], corners, idx[j], mix[j], sigma)
+        # the step's blends made here, not all lights' at once (4,096 x the SIREN's weights: 1.1 GB at the paper's)
+        at = stored.index_select(0, idx[j].reshape(-1)).view(len(j), idx.shape[1], -1)
+        blends = (at * mix[j][..., None]).sum(1)
+        pred = BatchedSiren(blends + delta, layout, siren.blocks)(box_to_siren(points[j[:, None], pick], extent))
+        loss = ((pred - values[j[:, None], pick]) ** 2).mean()
+        opt.zero_grad(set_to_none=True)
+        loss.backward()
+        opt.step()
+        window.append(loss.detach())
+        if (step + 1) % max(1, cfg.steps // 10) == 0 or step + 1 == cfg.steps:
+            mse = float(torch.stack(window).mean())
+            window = []
+            if not math.isfinite(mse):
+                raise CorrectionError(f"correction: the loss became {mse} at step {step + 1}; lower correction.lr "
+                                      f"(now {cfg.lr})")
+            log(f"step {step + 1}/{cfg.steps}  geometry {mse:.3e} ({-10 * math.log10(max(mse, 1e-30)):.1f} dB)  "
+                f"{eta(step + 1, cfg.steps, t0)}")
+    return BlendCorrection(net.cpu(), sigma.cpu(), train, cfg.light_freqs,
+                           {"config": asdict(cfg), "blend_k": k, "blend_weights": weighting,
+                            "weights_sha256": weights_digest(store.weights), "extinction": store.extinction})

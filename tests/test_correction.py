@@ -1,0 +1,184 @@
+"""The blend's correction (diffshadow/correction.py): zero at every training light whatever its network, none until
+fitted, fitted it lowers the error of lights it never saw, a round trip through its file, and the one-line errors.
+The whole path (fit_correction, the corrected mix and blend, the viewer's and render's answer) runs in
+tests/test_workflow.py."""
+
+import sys
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+import torch
+
+from diffshadow import correction as corr
+from diffshadow.config import ConfigError
+from diffshadow.layout import SirenConfig, WeightLayout
+from diffshadow.lights import blend_weights, make_light_sets, unseen_directions
+from diffshadow.siren import BatchedSiren, box_to_siren, init_siren
+from diffshadow.store import BlendSampler, blend_rows
+
+SIREN = SirenConfig(8, 1)
+LAYOUT = WeightLayout.for_siren(SIREN)
+SETS = make_light_sets(64, 12, [0.0, 0.0, 1.0], 0)
+TRAIN, CENTER = np.asarray(SETS["train"]["cartesian"]), np.asarray(SETS["center"])
+EXTENT = torch.ones(3)
+INIT = LAYOUT.flatten(init_siren(SIREN, torch.Generator().manual_seed(0)))
+DIRECTION = torch.randn(LAYOUT.n_params, generator=torch.Generator().manual_seed(1))
+
+
+def truth_weights(lights: np.ndarray) -> torch.Tensor:
+    """A SIREN per light that moves non-linearly with the light: what the stored SIRENs' blend can only follow
+    linearly between them."""
+    d = torch.as_tensor(np.asarray(lights), dtype=torch.float32)
+    return INIT + 0.05 * torch.sin(6 * d[:, :1]) * torch.cos(5 * d[:, 1:2]) * DIRECTION
+
+
+def truth_at(lights: np.ndarray, points: torch.Tensor) -> torch.Tensor:
+    return BatchedSiren(truth_weights(lights), LAYOUT, SIREN.blocks)(box_to_siren(points, EXTENT))
+
+
+def config(**kw) -> corr.CorrectionConfig:
+    base = dict(steps=400, lights=256, points=64, batch_lights=16, batch_points=64, hidden=32, light_freqs=2,
+                lr=3e-3, seed=0)
+    return corr.CorrectionConfig(**{**base, **kw})
+
+
+def store() -> SimpleNamespace:
+    return SimpleNamespace(weights=truth_weights(TRAIN).numpy(), lights=TRAIN, layout=LAYOUT, siren=SIREN,
+                           extinction=None)
+
+
+def synthetic_lights(volume, tf, train, center, cfg, *, k, weighting, log=print) -> corr.CorrectionLights:
+    """correction_lights' stand-in: the truth SIRENs' values at random box points, not a marched shadow."""
+    lights = unseen_directions(train, center, cfg.lights, seed=[cfg.seed, 99])
+    points = torch.rand(len(lights), cfg.points, 3, generator=torch.Generator().manual_seed(2))
+    idx, mix = blend_weights(train, lights, k, weighting)
+    return corr.CorrectionLights(lights, torch.as_tensor(idx), torch.as_tensor(mix, dtype=torch.float32), points,
+                                 truth_at(lights, points).detach(), EXTENT)
+
+
+def random_correction(seed: int = 3) -> corr.BlendCorrection:
+    net = corr.make_net(LAYOUT.n_params, 16, 2)
+    with torch.no_grad():
+        for p in net.parameters():
+            p.copy_(torch.randn(p.shape, generator=torch.Generator().manual_seed(seed)))
+    return corr.BlendCorrection(net, torch.full((LAYOUT.n_params,), 0.1), TRAIN, 2,
+                                {"weights_sha256": corr.weights_digest(store().weights)})
+
+
+def test_the_correction_is_zero_at_every_training_light_whatever_its_network():
+    """A training light's blend is its own stored SIREN, and so is its corrected blend, to the bit."""
+    fix = random_correction()
+    idx, mix = blend_weights(TRAIN, TRAIN, 4, "triangle")
+    assert np.array_equal(fix.delta(TRAIN, idx, mix), np.zeros((len(TRAIN), LAYOUT.n_params)))
+    sampler = BlendSampler(SimpleNamespace(**vars(store()), light_region=lambda: None), 4, "triangle", fix)
+    assert np.array_equal(sampler.many(TRAIN), store().weights)
+    between = unseen_directions(TRAIN, CENTER, 8, seed=5)
+    assert np.abs(sampler.many(between) - BlendSampler(sampler.store, 4, "triangle").many(between)).max() > 1e-3
+
+
+def test_the_correction_moves_continuously_with_the_light():
+    """A light moved by a thousandth of a radian moves its correction by about as little: the blend's weights move
+    continuously, and so does the network's input."""
+    fix = random_correction()
+    a = unseen_directions(TRAIN, CENTER, 16, seed=6)
+    b = a + 1e-3 * np.cross(a, [0.0, 0.0, 1.0])
+    b /= np.linalg.norm(b, axis=1, keepdims=True)
+    da, db = (fix.delta(x, *blend_weights(TRAIN, x, 4, "triangle")) for x in (a, b))
+    far = fix.delta(a[::-1].copy(), *blend_weights(TRAIN, a[::-1].copy(), 4, "triangle"))
+    assert np.abs(da - db).max() < 0.02 * np.abs(da - far).max()
+
+
+def test_an_unfitted_correction_is_none():
+    net = corr.make_net(LAYOUT.n_params, 16, 2)
+    fix = corr.BlendCorrection(net, torch.ones(LAYOUT.n_params), TRAIN, 2)
+    q = unseen_directions(TRAIN, CENTER, 5, seed=1)
+    assert not fix.delta(q, *blend_weights(TRAIN, q, 4, "triangle")).any()
+
+
+def test_fitted_it_lowers_the_error_of_lights_it_never_saw(monkeypatch):
+    monkeypatch.setattr(corr, "correction_lights", synthetic_lights)
+    fix = corr.fit_correction(store(), None, None, TRAIN, CENTER, config(), k=4, weighting="triangle",
+                              log=lambda m: None)
+    held = unseen_directions(TRAIN, CENTER, 64, seed=[7, 7])
+    points = torch.rand(len(held), 128, 3, generator=torch.Generator().manual_seed(8))
+    want = truth_at(held, points)
+    idx, mix = blend_weights(TRAIN, held, 4, "triangle")
+    plain = blend_rows(store().weights, idx, mix)
+
+    def error(w: np.ndarray) -> float:
+        pred = BatchedSiren(torch.as_tensor(w, dtype=torch.float32), LAYOUT, SIREN.blocks)(box_to_siren(points, EXTENT))
+        return float(((pred - want) ** 2).mean())
+
+    before, after = error(plain), error(plain + fix.delta(held, idx, mix))
+    assert after < 0.6 * before, (before, after)  # 0.42 here
+    assert fix.record["config"]["steps"] == 400 and fix.record["blend_weights"] == "triangle"
+
+
+def test_the_same_seed_fits_the_same_bytes(monkeypatch):
+    monkeypatch.setattr(corr, "correction_lights", synthetic_lights)
+    fits = [corr.fit_correction(store(), None, None, TRAIN, CENTER, config(steps=30), k=4, weighting="triangle",
+                                log=lambda m: None) for _ in range(2)]
+    for a, b in zip(fits[0].net.parameters(), fits[1].net.parameters(), strict=True):
+        assert torch.equal(a, b)
+
+
+def test_a_fit_writes_the_same_bytes_on_one_thread_and_on_two(monkeypatch):
+    """The workflow's threads (capped by `-j`) change no byte: the corners' rows are gathered so that their
+    gradients add in index order on any thread count. A SIREN wide enough that PyTorch splits its work."""
+    here, wide = sys.modules[__name__], SirenConfig(32, 2)
+    layout = WeightLayout.for_siren(wide)
+    for name, value in (("SIREN", wide), ("LAYOUT", layout), ("DIRECTION", torch.randn(layout.n_params)),
+                        ("INIT", layout.flatten(init_siren(wide, torch.Generator().manual_seed(0))))):
+        monkeypatch.setattr(here, name, value)
+    monkeypatch.setattr(corr, "correction_lights", synthetic_lights)
+    threads = torch.get_num_threads()
+    try:
+        fits = []
+        for n in (1, 2, 2):
+            torch.set_num_threads(n)
+            fits.append(corr.fit_correction(store(), None, None, TRAIN, CENTER, config(steps=20, hidden=64,
+                                            batch_points=64), k=4, weighting="triangle", log=lambda m: None))
+    finally:
+        torch.set_num_threads(threads)
+    for other in fits[1:]:
+        for a, b in zip(fits[0].net.parameters(), other.net.parameters(), strict=True):
+            assert torch.equal(a, b)
+
+
+def test_a_round_trip_through_its_file(tmp_path):
+    fix = random_correction()
+    path = tmp_path / "correction.pt"
+    corr.save_correction(path, fix)
+    back = corr.load_correction(path, TRAIN)
+    q = unseen_directions(TRAIN, CENTER, 5, seed=2)
+    idx, mix = blend_weights(TRAIN, q, 4, "triangle")
+    assert np.array_equal(back.delta(q, idx, mix), fix.delta(q, idx, mix))
+    assert back.path == path and back.nbytes == 4 * (sum(p.numel() for p in fix.net.parameters()) + LAYOUT.n_params)
+
+
+def test_its_file_is_checked(tmp_path):
+    path = tmp_path / "correction.pt"
+    corr.save_correction(path, random_correction())
+    with pytest.raises(corr.CorrectionError, match=r"correction.pt: fitted for other training lights \(12\) than "
+                                                   r"the stored SIRENs' \(11\); rerun fit_correction"):
+        corr.load_correction(path, TRAIN[:11])
+    corr.load_correction(path, TRAIN, store().weights)  # the SIRENs it was fitted to
+    with pytest.raises(corr.CorrectionError, match=r"correction.pt: fitted for other stored SIRENs than these \(stage "
+                                                   r"1 was refitted since\); rerun fit_correction"):
+        corr.load_correction(path, TRAIN, store().weights + 1e-3)
+    path.write_bytes(b"not a checkpoint")
+    with pytest.raises(corr.CorrectionError, match=r"correction.pt: not a blend correction \(.*\); rerun"):
+        corr.load_correction(path)
+    with pytest.raises(corr.CorrectionError, match=r"missing.pt: no such file \(made by the rule `fit_correction`\)"):
+        corr.load_correction(tmp_path / "missing.pt")
+
+
+def test_bad_settings_are_named():
+    with pytest.raises(ConfigError, match=r"correction.batch_points \(128\) is more than correction.points \(64\)"):
+        config(batch_points=128)
+    with pytest.raises(ConfigError, match=r"correction.steps: expected 0 or more, got -1"):
+        config(steps=-1)
+    assert corr.CorrectionConfig.from_config({}).steps > 0  # the defaults fit one
+    with pytest.raises(corr.CorrectionError, match="correction.steps is 0"):
+        corr.fit_correction(store(), None, None, TRAIN, CENTER, config(steps=0), k=4, weighting="triangle")
