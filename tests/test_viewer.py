@@ -292,6 +292,11 @@ def test_a_mixed_cache_names_its_share_and_its_render_command_mixes_the_same_way
     for config, name in (({}, "weight blend"), ({"codec": "fp16"}, "weight blend, fp16")):  # a codec's store
         mixed.sampler = BlendSampler(WeightStore(**{**vars(stored), "config": config}), 2, "triangle")
         assert mixed.cache_name == name
+    from diffshadow.correction import BlendCorrection, make_net
+
+    fix = BlendCorrection(make_net(LAYOUT.n_params, 4, 1), torch.ones(LAYOUT.n_params), viewer.train, 1)
+    mixed.sampler = MixedSampler(Model(), BlendSampler(stored, 2, "triangle", fix), 0.0)
+    assert mixed.cache_name == "corrected blend, model share 0"  # the blend's correction is said
     mixed.sampler = MixedSampler(Model(), blend, 0.7)
     new = direction(21, 40)
     w, info = mixed.shadow_weights(new)

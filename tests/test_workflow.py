@@ -307,7 +307,7 @@ def test_viewer_in_a_browser(finished, tmp_path):
     assert "outside the cache: exact shadow" in figures["outside_status"], figures
     assert all(v is True for v in figures["commands_match"].values()), figures["commands_match"]
     share = open_store(finished / "results/nucleon/generated.zarr").config["mix"]["model_share"]
-    assert figures["side_by_side_labels"] == [f"cache ({mix_name(share)})", "exact (gt)"], figures
+    assert figures["side_by_side_labels"] == [f"cache ({mix_name(share, corrected=True)})", "exact (gt)"], figures
     assert figures["side_by_side_label_band"] > 0.3, figures  # the dark band behind the label is drawn
     assert figures["diff_scale"] in (1, 2, 4, 8, 16, 32, 64) and "white is a difference" in figures["diff_status"]
     assert figures["second_tab_folder"] and figures["first_tab_kept"], figures

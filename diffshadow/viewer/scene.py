@@ -274,10 +274,10 @@ class ViewerScene:
     @property
     def cache_name(self) -> str:
         if isinstance(self.sampler, BlendSampler):  # a codec's decoded store says which codec (cache: fp16, ...)
-            codec = self.sampler.store.codec
-            return "weight blend" if codec == "fp32" else f"weight blend, {codec}"
+            codec, blend = self.sampler.store.codec, _blend_name(self.sampler)
+            return blend if codec == "fp32" else f"{blend}, {codec}"
         if isinstance(self.sampler, MixedSampler):
-            return mix_name(self.sampler.share)
+            return mix_name(self.sampler.share, self.sampler.blend.correction is not None)
         return "diffusion"
 
     def render_commands(self, mode: str, camera: Camera, light: ArrayLike, *, step: float) -> list[str]:
@@ -319,14 +319,19 @@ def scenes_in(folder: Path) -> list[str]:
     return sorted(p.parent.name for p in Path(folder).glob("*/volume.zarr"))
 
 
-def mix_name(share: float) -> str:
-    """The viewer's name for a mixed cache at `share`; at 0 or 1 one side answers alone (and only it is asked), so
-    it is named, not a mix."""
+def mix_name(share: float, corrected: bool = False) -> str:
+    """The viewer's name for a mixed cache at `share` (its blend `corrected` by the blend's correction or not); at
+    0 or 1 one side answers alone (and only it is asked), so it is named, not a mix."""
+    blend = "corrected blend" if corrected else "weight blend"
     if share == 0.0:
-        return "weight blend, model share 0"
+        return f"{blend}, model share 0"
     if share == 1.0:
         return "diffusion, model share 1"
-    return f"diffusion {share:g} + weight blend {1 - share:g}"
+    return f"diffusion {share:g} + {blend} {1 - share:g}"
+
+
+def _blend_name(blend: BlendSampler) -> str:
+    return "weight blend" if blend.correction is None else "corrected blend"
 
 
 def cache_source(results: Path, generated: WeightStore) -> Path:
@@ -446,5 +451,5 @@ def _correction(results: Path, record: dict, stored: WeightStore):
 
 def _blend_flags(blend: BlendSampler) -> list[str]:
     """`render`'s flags for the weight blend a viewer's sampler makes."""
-    fix = [] if blend.correction is None else ["--correction", str(blend.correction.path)]
+    fix = [] if getattr(blend.correction, "path", None) is None else ["--correction", str(blend.correction.path)]
     return ["--blend-weights", blend.weighting, "--blend-k", str(blend.k), *fix]
