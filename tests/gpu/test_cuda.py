@@ -187,6 +187,20 @@ def test_diffusion_training_and_sampling_agree_with_cpu(tmp_path):
     assert float((a - b).abs().max() / a.abs().max()) <= 1e-4
 
 
+def test_the_blend_correction_fits_on_cuda_what_it_fits_on_the_cpu(monkeypatch):
+    """fit_correction's steps on CUDA: the same draws, the network within float rounding of the CPU's."""
+    from diffshadow import correction as corr
+
+    sys.path.insert(0, str(REPO / "tests"))
+    import test_correction as tc
+
+    monkeypatch.setattr(corr, "correction_lights", tc.synthetic_lights)
+    fits = [corr.fit_correction(tc.store(), None, None, tc.TRAIN, tc.CENTER, tc.config(steps=30), k=4,
+                                weighting="triangle", device=d, log=lambda m: None) for d in ("cpu", CUDA)]
+    for a, b in zip(fits[0].net.parameters(), fits[1].net.parameters(), strict=True):
+        assert b.device.type == "cpu" and torch.allclose(a, b, atol=1e-4), float((a - b).abs().max())
+
+
 def test_graphed_sampling_generates_what_eager_sampling_generates(tmp_path):
     """`generate` on CUDA replays its denoiser as CUDA graphs (the default): DDIM and DDPM give eager sampling's
     weights; the graphs stay with the model (a later call of the batch captures none); a model whose parameters
