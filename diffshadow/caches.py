@@ -176,6 +176,8 @@ def cache_table(stage1: WeightStore, truth: EvalTruth, light_sets: dict, *, blen
             if len(unseen) else None
         return [{"cache": "stored SIRENs fp32, corrected", "kind": "corrected",
                  "bytes": int(weights.nbytes + correction.nbytes), **scored(weights, fixed),
+                 # blend_time hands its lights' corners and weights, not their directions: the first unseen
+                 # light's direction stands in (the same work, a correct network input)
                  **blend_time(lambda i, m: blend_rows(weights, i, m) + correction.delta(unseen[:1], i, m))}]
 
     codecs = [codec_named(n) for n in ("fp16", "bf16", *(f"basis-{k}" for k in BASIS_K if k < len(train)))]
@@ -190,7 +192,7 @@ def cache_table(stage1: WeightStore, truth: EvalTruth, light_sets: dict, *, blen
         work.append(("dense shadow grids", lambda: [_grid_row(volume, tf, truth, train, unseen, idx, mix)]))
     fingerprint = _fingerprint(weights, truth, light_sets, [name for name, _ in work], blend_k=blend_k,
                                weighting=weighting, model_state=model_state, generated=generated, volume=volume,
-                               tf=tf, device=device)
+                               tf=tf, device=device, correction=correction)
     saved = resume(checkpoint, fingerprint, log=log, weights_only=True)
     groups = list(saved["groups"]) if saved else []
     if groups:
@@ -228,11 +230,12 @@ def _mix_answers(rows: list[dict]) -> list[dict]:
 
 def _fingerprint(weights: np.ndarray, truth: EvalTruth, light_sets: dict, groups: list[str], *, blend_k: int,
                  weighting: str, model_state: dict | None, generated: WeightStore | None, volume: Volume | None,
-                 tf: TransferFunction | None, device: torch.device | str = "cpu") -> str:
-    """What the table's rows depend on: the stored SIRENs, the truth and its points, the lights, the blend, the
-    groups of rows, the sampler's weights and settings, `generated`'s figures and mix, the volume and TF, the
-    threads (a product's sums split by thread: the same bytes need the same count) and the kinds of device that
-    sample and evaluate (a GPU computes other bits, and times otherwise). Arrays are hashed in place."""
+                 tf: TransferFunction | None, device: torch.device | str = "cpu", correction=None) -> str:
+    """What the table's rows depend on: the stored SIRENs, the truth and its points, the lights, the blend (and its
+    correction's network), the groups of rows, the sampler's weights and settings, `generated`'s figures and mix,
+    the volume and TF, the threads (a product's sums split by thread: the same bytes need the same count) and the
+    kinds of device that sample and evaluate (a GPU computes other bits, and times otherwise). Arrays are hashed in
+    place."""
     h = hashlib.sha256(np.ascontiguousarray(weights))
     for name in sorted(truth.values):
         h.update(truth.values[name].contiguous().numpy())
@@ -253,6 +256,9 @@ def _fingerprint(weights: np.ndarray, truth: EvalTruth, light_sets: dict, groups
         h.update(np.ascontiguousarray(generated.psnr, dtype=np.float64))
         h.update(np.ascontiguousarray(generated.seen, dtype=bool))
         meta.append(generated.config or {})
+    if correction is not None:
+        for tensor in correction.net.state_dict().values():
+            h.update(tensor.contiguous().reshape(-1).view(torch.uint8).numpy())
     if volume is not None:
         h.update(np.ascontiguousarray(volume.data, dtype=np.float32))
         meta += [np.asarray(volume.extent, np.float64).tolist(), tf.to_config()]

@@ -126,6 +126,13 @@ class BlendCorrection:
                                 torch.as_tensor(idx), torch.as_tensor(mix, dtype=torch.float32), self.sigma)
             return d.double().numpy()
 
+    def check_weighting(self, weighting: str) -> None:
+        """Refuse, in one line, blends weighted otherwise than those it was fitted to correct."""
+        fitted = self.record.get("blend_weights")
+        if fitted is not None and fitted != weighting:
+            raise CorrectionError(f"{self.path or 'the blend correction'}: fitted for {fitted} blends, asked to "
+                                  f"correct {weighting} ones; rerun fit_correction with this evaluate.blend_weights")
+
     @property
     def nbytes(self) -> int:
         """What it adds to a cache: its network and scales in float32."""

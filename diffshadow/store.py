@@ -67,6 +67,8 @@ class BlendSampler:
         self.region, self.extinction = store.light_region(), store.extinction
         self._find = blend_finder(np.asarray(store.lights, dtype=np.float64), k, weighting)
         self.correction = correction  # correction.BlendCorrection, or None: the plain blend
+        if correction is not None:
+            correction.check_weighting(weighting)
 
     def rows(self, lights: np.ndarray) -> np.ndarray:
         """The blended SIRENs (Q, P) in float64 of `lights` (Q, 3), corrected where a correction is given."""

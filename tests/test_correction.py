@@ -174,6 +174,14 @@ def test_its_file_is_checked(tmp_path):
         corr.load_correction(tmp_path / "missing.pt")
 
 
+def test_blends_of_another_weighting_are_refused():
+    fix = random_correction()
+    fix.record["blend_weights"] = "triangle"
+    stored = SimpleNamespace(**vars(store()), light_region=lambda: None)
+    with pytest.raises(corr.CorrectionError, match="fitted for triangle blends, asked to correct inverse-angle ones"):
+        BlendSampler(stored, 4, "inverse-angle", fix)
+
+
 def test_bad_settings_are_named():
     with pytest.raises(ConfigError, match=r"correction.batch_points \(128\) is more than correction.points \(64\)"):
         config(batch_points=128)

@@ -168,7 +168,7 @@ def sample_shadows(checkpoint: Path, truth_path: Path, lights_path: Path, out: P
     share = "1" if mix is None else str(mix["model_share"])
     stage1 = _mix_inputs(share, weights_path, volume_path, layout, state.get("extinction"))
     blend_k = min(blend_k, len(train))
-    correction = _correction(correction_path, stage1) if stage1 is not None else None
+    correction = _correction(correction_path, stage1, weighting) if stage1 is not None else None
     print(f"sampling {len(all_lights)} shadow SIRENs ({seen.sum()} seen, {(~seen).sum()} unseen) with "
           f"DDIM {cfg['ddim_steps']} steps", flush=True)
 
@@ -211,11 +211,16 @@ def sample_shadows(checkpoint: Path, truth_path: Path, lights_path: Path, out: P
     print(f"wrote {out}: PSNR median {_seen_unseen(store.psnr, seen)}")
 
 
-def _correction(path: Path | None, stage1: WeightStore):
-    """fit_correction's correction of the blend, checked to be for these stored SIRENs; None without a path."""
+def _correction(path: Path | None, stage1: WeightStore, weighting: str):
+    """fit_correction's correction of the blend, checked to be for these stored SIRENs and blends; None without a
+    path."""
     from diffshadow.correction import load_correction
 
-    return None if path is None else load_correction(path, stage1.lights, stage1.weights)
+    if path is None:
+        return None
+    correction = load_correction(path, stage1.lights, stage1.weights)
+    correction.check_weighting(weighting)
+    return correction
 
 
 def _correction_record(correction, path: Path | None) -> dict:
@@ -329,7 +334,7 @@ def choose_cache(weights_path: Path, truth_path: Path, volume_path: Path, lights
 def fit_correction(weights_path: Path, volume_path: Path, lights_path: Path, out: Path, *, cfg,
                    blend_k: int, weighting: str, device: torch.device | str = "cpu") -> None:
     """`correction.pt`: the blend's correction of stage 1's stored SIRENs (diffshadow/correction.py), fitted on
-    exact-shadow lights of the training cap, with its validation figures beside the plain blend's."""
+    exact-shadow lights of the training cap for blends by `weighting` (`blend_k`)."""
     from diffshadow.correction import fit_correction as fit
     from diffshadow.correction import save_correction
 
@@ -377,7 +382,7 @@ def blend_shadows(weights_path: Path, truth_path: Path, lights_path: Path, out: 
     stage1 = open_store(weights_path)
     light_sets = read_lights(lights_path)
     train, unseen = light_sets["train"], light_sets["unseen"]
-    correction = _correction(correction_path, stage1)
+    correction = _correction(correction_path, stage1, weighting)
     # what the viewer and `render --blend` make of a new direction
     blend = BlendSampler(stage1, blend_k, weighting, correction)
     weights = np.concatenate([np.asarray(stage1.weights, dtype=np.float32), blend.many(unseen)])
@@ -419,7 +424,7 @@ def evaluate_voxels(checkpoint: Path | None, weights_path: Path, generated_path:
     state = artifacts.load_checkpoint(checkpoint) if checkpoint else None
     stage1, light_sets = open_store(weights_path), read_lights(lights_path)  # read (and verified) once for both
     cache = open_store(cache_path) if cache_path else None
-    correction = _correction(correction_path, stage1)
+    correction = _correction(correction_path, stage1, weighting)
     if cache is not None and not np.array_equal(cache.lights, stage1.lights):  # before the work, not after
         raise ValueError(f"--cache-weights {cache_path}: {len(cache.lights)} lights, not the {len(stage1.lights)} of "
                          f"--weights {weights_path} in their order (expected encode-cache's decoded copy of it)")
@@ -466,7 +471,7 @@ def caches(weights_path: Path, generated_path: Path, truth_path: Path, lights_pa
                         blend_k=blend_k, weighting=weighting, volume=volume, tf=tf,
                         model_state=artifacts.load_checkpoint(checkpoint) if checkpoint else None,
                         generated=open_store(generated_path), checkpoint=out.with_name(out.name + ".ckpt"),
-                        device=device, correction=_correction(correction_path, stage1))
+                        device=device, correction=_correction(correction_path, stage1, weighting))
     atomic_write_text(out, json.dumps(finite_json(table), indent=1) + "\n")
     caches_figure(table, figure)
     for row in table["caches"]:
