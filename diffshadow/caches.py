@@ -33,6 +33,7 @@ from diffshadow.store import blend_rows
 from diffshadow.truth import EvalTruth, median
 
 if TYPE_CHECKING:
+    from diffshadow.correction import BlendCorrection
     from diffshadow.layout import SirenConfig, WeightLayout
     from diffshadow.store import WeightStore
     from diffshadow.transfer import TransferFunction
@@ -118,7 +119,8 @@ def choose_cache(stage1: WeightStore, truth: EvalTruth, val: EvalTruth, train: n
 def cache_table(stage1: WeightStore, truth: EvalTruth, light_sets: dict, *, blend_k: int, weighting: str,
                 volume: Volume | None = None, tf: TransferFunction | None = None, model_state: dict | None = None,
                 generated: WeightStore | None = None, log: Callable[[str], None] = print,
-                checkpoint: Path | None = None, device: torch.device | str = "cpu", correction=None) -> dict:
+                checkpoint: Path | None = None, device: torch.device | str = "cpu",
+                correction: BlendCorrection | None = None) -> dict:
     """One row per cache: bytes, seen and unseen median voxel PSNR (box points), seconds to answer a new light.
 
     The model's fp16 rows sample (and time) its DDIM on `device`; the SIRENs are evaluated where `truth` says

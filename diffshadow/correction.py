@@ -34,6 +34,9 @@ from diffshadow.lights import blend_weights, unseen_directions
 from diffshadow.progress import eta
 from diffshadow.sampling import LightStream, seeded, to_device
 from diffshadow.siren import BatchedSiren, box_to_siren
+from diffshadow.store import WeightStore
+from diffshadow.transfer import TransferFunction
+from diffshadow.volume import Volume
 
 CHUNK_LIGHTS = 64  # the exact shadows are marched this many lights at a time, each chunk at points of its own
 
@@ -196,8 +199,9 @@ class CorrectionLights:
     extent: torch.Tensor
 
 
-def correction_lights(volume, tf, train: np.ndarray, center: np.ndarray, cfg: CorrectionConfig, *, k: int,
-                      weighting: str, log: Callable[[str], None] = print) -> CorrectionLights:
+def correction_lights(volume: Volume, tf: TransferFunction, train: np.ndarray, center: np.ndarray,
+                      cfg: CorrectionConfig, *, k: int, weighting: str,
+                      log: Callable[[str], None] = print) -> CorrectionLights:
     """`cfg.lights` random lights in the training cap (their own stream: never a test, validation or pool light)
     with exact shadows at `cfg.points` box points each (eval_truth's march)."""
     from diffshadow.truth import EvalTruth
@@ -217,8 +221,8 @@ def correction_lights(volume, tf, train: np.ndarray, center: np.ndarray, cfg: Co
                             torch.cat(points).contiguous(), torch.cat(values), truth.extent)
 
 
-def fit_correction(store, volume, tf, train: np.ndarray, center: np.ndarray, cfg: CorrectionConfig, *, k: int,
-                   weighting: str, device: torch.device | str = "cpu",
+def fit_correction(store: WeightStore, volume: Volume, tf: TransferFunction, train: np.ndarray, center: np.ndarray,
+                   cfg: CorrectionConfig, *, k: int, weighting: str, device: torch.device | str = "cpu",
                    log: Callable[[str], None] = print) -> BlendCorrection:
     """Fit the correction of `store`'s blends (`weighting`, `k`; its SIRENs at the training lights `train`) on
     `cfg.lights` exact-shadow lights of the training cap (marched on the CPU), `cfg.steps` Adam steps with a

@@ -26,6 +26,7 @@ from diffshadow.store import blend_rows
 from diffshadow.truth import EvalTruth, median, p10, psnr_per_light
 
 if TYPE_CHECKING:
+    from diffshadow.correction import BlendCorrection
     from diffshadow.diffusion.model import WeightTransformer
     from diffshadow.diffusion.standardize import Standardizer
     from diffshadow.render import RenderScene
@@ -66,7 +67,8 @@ def median_gap_interval(a: np.ndarray, b: np.ndarray, *, resamples: int = 2000) 
 
 def wide_comparison(state: dict | None, stage1: WeightStore, light_sets: dict, volume: Volume, tf: TransferFunction, *,
                     share: float, lights: int, points: int, seed: int, blend_k: int, weighting: str,
-                    device: torch.device | str = "cpu", cache: WeightStore | None = None, correction=None) -> dict:
+                    device: torch.device | str = "cpu", cache: WeightStore | None = None,
+                    correction: BlendCorrection | None = None) -> dict:
     """The cache's answer (`share` x the model's SIREN + the rest x the weight blend of the stored SIRENs,
     `lights.blend_weights` by `weighting` and `blend_k`; share 1: the model alone), the weight blend and the model
     alone on `lights` further test lights (`lights.wide_test_lights`), exact shadows at `points` box points each:

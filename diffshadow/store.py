@@ -12,6 +12,7 @@ import json
 import zipfile
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Protocol
 
 import numpy as np
 from numpy.typing import ArrayLike
@@ -54,12 +55,21 @@ def blend_rows(weights: np.ndarray, idx: np.ndarray, mix: np.ndarray) -> np.ndar
     return (np.asarray(weights[idx], dtype=np.float64) * mix[..., None]).sum(1)
 
 
+class Correction(Protocol):
+    """What corrects a blend (`correction.BlendCorrection`, a layer above this module): the change of the blended
+    weights (Q, P) of lights (Q, 3) whose blends take corners `idx` with weights `mix`."""
+
+    def delta(self, lights: np.ndarray, idx: np.ndarray, mix: np.ndarray) -> np.ndarray: ...
+
+    def check_weighting(self, weighting: str) -> None: ...
+
+
 class BlendSampler:
     """`cache: blend`: the shadow SIREN of any light as a weight blend of the stored SIRENs (`lights.blend_weights`
     by `weighting`, `k`), the way `blend-shadows` makes generated.zarr's unseen rows (both recorded in that store's
     config). The same interface as the diffusion model's `ShadowSampler`: call it with a direction."""
 
-    def __init__(self, store: WeightStore, k: int, weighting: str, correction=None):
+    def __init__(self, store: WeightStore, k: int, weighting: str, correction: Correction | None = None):
         if weighting == "inverse-angle" and not 1 <= k <= len(store.lights):  # a triangle's corners take no k
             raise ValueError(f"blend k: expected 1 to {len(store.lights)} (the stored SIRENs), got {k}")
         self.store, self.k, self.weighting = store, k, weighting

@@ -12,6 +12,7 @@ import numpy as np
 import torch
 
 from diffshadow import artifacts
+from diffshadow.correction import CorrectionConfig
 from diffshadow.diffusion.config import DiffusionConfig, DiffusionError
 from diffshadow.diffusion.finetune import (
     FinetuneConfig,
@@ -331,7 +332,7 @@ def choose_cache(weights_path: Path, truth_path: Path, volume_path: Path, lights
     print(f"wrote {out}: cache {result['choice']}")
 
 
-def fit_correction(weights_path: Path, volume_path: Path, lights_path: Path, out: Path, *, cfg,
+def fit_correction(weights_path: Path, volume_path: Path, lights_path: Path, out: Path, *, cfg: CorrectionConfig,
                    blend_k: int, weighting: str, device: torch.device | str = "cpu") -> None:
     """`correction.pt`: the blend's correction of stage 1's stored SIRENs (diffshadow/correction.py), fitted on
     exact-shadow lights of the training cap for blends by `weighting` (`blend_k`)."""
