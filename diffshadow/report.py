@@ -276,8 +276,9 @@ def caches_figure(table: dict, out: Path) -> None:
         ax.grid(alpha=0.3)
         panels.append((ax, points, labels))
     n = table["lights"]
+    # two lines where every kind is there: one ran past the figure's edges
     fig.suptitle(f"caches of {n['train']} training lights: orange stored SIRENs and their codecs, "
-                 f"{'red with the blend correction, ' if corrected else ''}blue the diffusion model, "
+                 f"{'red with the blend correction,' + chr(10) if corrected else ''}blue the diffusion model, "
                  f"{'purple the two mixed (both kept), ' if mixed else ''}green dense shadow grids",
                  fontsize=9)
     fig.tight_layout()
