@@ -221,7 +221,8 @@ def storage_figure(voxel_metrics: dict, n_lights: int, out: Path) -> None:
     fig, ax = plt.subplots(figsize=(6.5, 3.8))
     names = ["model + SIRENs (the mix)" if mixed else "diffusion model" if sb["model"] else "no model (cache: blend)",
              f"{n_lights} SIRENs (fp32)", f"{n_lights} dense grids (fp16)"]
-    values = np.asarray([sb["model"] + (sb["sirens"] if mixed else 0), sb["sirens"], sb["grids"]]) / 2**20
+    kept = sb["model"] + (sb["sirens"] + sb.get("correction", 0) if mixed else 0)  # the blend's correction too
+    values = np.asarray([kept, sb["sirens"], sb["grids"]]) / 2**20
     ax.bar(names, values, color=["C0", "C1", "C2"])
     for i, v in enumerate(values):
         ax.annotate(f"{v:.2f} MiB", (i, v), ha="center", va="bottom")

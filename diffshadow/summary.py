@@ -366,8 +366,11 @@ class RunResults:
         # a run without a model (cache: blend, or a codec's store) has no model row; a codec's cache its own
         rows = [*([["diffusion model (weights and standardiser)", _num(sb["model"] / MIB)]] if sb["model"] else []),
                 [f"{n} stage-1 SIRENs (fp32)", _num(sb["sirens"] / MIB)],
-                *([["the cache: the model and the stored SIRENs it mixes in",
-                    _num((sb["model"] + sb["sirens"]) / MIB)]] if v.get("mix") else []),
+                *([["the blend's correction (its network, fp32)", _num(sb["correction"] / MIB)]]
+                  if "correction" in sb else []),
+                *([["the cache: the model and the stored SIRENs it mixes in" +
+                    (", with the blend's correction" if "correction" in sb else ""),
+                    _num((sb["model"] + sb["sirens"] + sb.get("correction", 0)) / MIB)]] if v.get("mix") else []),
                 *([[f"the cache: the {n} SIRENs in {v.get('codec')}", _num(sb["cache"] / MIB)]] if "cache" in sb
                   else []),
                 [f"{n} dense shadow grids (fp16)", _num(sb["grids"] / MIB)]]
@@ -439,7 +442,9 @@ def cache_verdict(voxel: dict) -> str:
             f"{sb['model'] / (sb['sirens'] / n):,.0f} lights at these sizes)" if sb["model"] > sb["sirens"]
             else f"the model is {sb['sirens'] / sb['model']:.1f}x smaller than the {n} stored SIRENs")
     if voxel.get("mix"):  # the cache keeps both, so its bytes are their sum
-        size += f"; mixing the two, the cache keeps both ({(sb['model'] + sb['sirens']) / MIB:.2f} MiB)"
+        fix = " and the blend's correction" if "correction" in sb else ""
+        size += (f"; mixing the two, the cache keeps both{fix} "
+                 f"({(sb['model'] + sb['sirens'] + sb.get('correction', 0)) / MIB:.2f} MiB)")
         if float(voxel["mix"]["model_share"]) == 0:  # the mix is the blend: say what the model adds instead
             return f"{size}; {_share_zero(unseen, voxel.get('wide'), voxel.get('corrected', False))}. {AGAINST_COUNT}"
     gap = unseen["generated_psnr_median"] - unseen["weight_blend_psnr_median"]

@@ -38,8 +38,8 @@ def truth_at(lights: np.ndarray, points: torch.Tensor) -> torch.Tensor:
 
 
 def config(**kw) -> corr.CorrectionConfig:
-    base = dict(steps=400, lights=256, points=64, batch_lights=16, batch_points=64, hidden=32, light_freqs=2,
-                lr=3e-3, seed=0)
+    base = dict(steps=400, lights=256, points=64, batch_lights=16, batch_points=64, visible_fraction=0.5, hidden=32,
+                light_freqs=2, lr=3e-3, seed=0)
     return corr.CorrectionConfig(**{**base, **kw})
 
 
@@ -49,12 +49,14 @@ def store() -> SimpleNamespace:
 
 
 def synthetic_lights(volume, tf, train, center, cfg, *, k, weighting, log=print) -> corr.CorrectionLights:
-    """correction_lights' stand-in: the truth SIRENs' values at random box points, not a marched shadow."""
+    """correction_lights' stand-in: the truth SIRENs' values at random points (the "visible" ones in a corner of
+    the box), not a marched shadow."""
     lights = unseen_directions(train, center, cfg.lights, seed=[cfg.seed, 99])
-    points = torch.rand(len(lights), cfg.points, 3, generator=torch.Generator().manual_seed(2))
+    points = torch.rand(len(lights), 2 * cfg.points, 3, generator=torch.Generator().manual_seed(2))
+    points[:, cfg.points:] *= 0.5
     idx, mix = blend_weights(train, lights, k, weighting)
     return corr.CorrectionLights(lights, torch.as_tensor(idx), torch.as_tensor(mix, dtype=torch.float32), points,
-                                 truth_at(lights, points).detach(), EXTENT)
+                                 truth_at(lights, points).detach(), EXTENT, cfg.points)
 
 
 def random_correction(seed: int = 3) -> corr.BlendCorrection:
@@ -146,6 +148,15 @@ def test_a_fit_writes_the_same_bytes_on_one_thread_and_on_two(monkeypatch):
             assert torch.equal(a, b)
 
 
+def test_a_step_draws_its_share_of_visible_points():
+    """Of a step's points, `visible_fraction` come from a light's visible set (rows past its box ones), the rest
+    from the box; a light with no visible points draws all from the box."""
+    cfg, gen = config(batch_points=40, visible_fraction=0.25), torch.Generator().manual_seed(0)
+    pick = corr.draw_points(64, 128, cfg, gen)
+    assert pick.shape == (16, 40) and (pick[:, :30] < 64).all() and (pick[:, 30:] >= 64).all()
+    assert (corr.draw_points(64, 64, cfg, gen) < 64).all()
+
+
 def test_a_round_trip_through_its_file(tmp_path):
     fix = random_correction()
     path = tmp_path / "correction.pt"
@@ -183,8 +194,11 @@ def test_blends_of_another_weighting_are_refused():
 
 
 def test_bad_settings_are_named():
-    with pytest.raises(ConfigError, match=r"correction.batch_points \(128\) is more than correction.points \(64\)"):
-        config(batch_points=128)
+    with pytest.raises(ConfigError, match=r"correction.batch_points \(129\) is more than twice correction.points "
+                                          r"\(64\)"):
+        config(batch_points=129)
+    with pytest.raises(ConfigError, match=r"correction.visible_fraction: expected 0 to 1, got 1.5"):
+        config(visible_fraction=1.5)
     with pytest.raises(ConfigError, match=r"correction.steps: expected 0 or more, got -1"):
         config(steps=-1)
     assert corr.CorrectionConfig.from_config({}).steps > 0  # the defaults fit one

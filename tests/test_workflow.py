@@ -36,7 +36,7 @@ TINY = {
     "finetune": {"views": 1, "image_size": 16, "pixels": 4, "epochs": 2, "batch_size": 4, "nproc": 2,
                  "checkpoint_every": 1, "val_lights": 4, "val_points": 1024},
     "mix": {"val_lights": 8, "val_points": 128},
-    "correction": {"steps": 20, "lights": 64, "points": 64, "batch_lights": 8, "batch_points": 32, "hidden": 16},
+    "correction": {"steps": 20, "lights": 64, "points": 32, "batch_lights": 8, "batch_points": 32, "hidden": 16},
     "evaluate": {"wide_lights": 16, "wide_points": 128},
     "data_inr": {"width": 8, "blocks": 1, "steps": 20, "points": 512, "target_psnr": 0.0},
     "render": {"image_size": 16, "views": 1, "lights_per_set": 1, "bench_sizes": [8], "bench_repeats": 1,
@@ -119,7 +119,7 @@ def test_stage2_outputs(finished):
         assert np.isfinite(metrics["seen"][key])
     for key in ("generated_psnr_median", "nearest_psnr_median", "blend_psnr_median", "siren_blend_psnr_median"):
         assert np.isfinite(metrics["unseen"][key])
-    assert set(metrics["storage_bytes"]) == {"model", "sirens", "grids"}
+    assert set(metrics["storage_bytes"]) == {"model", "sirens", "grids", "correction"}  # correction.pt's network
     assert set(metrics["seconds_per_inr"]) == {"ddim", "ddpm"}
     # the workflow tests' config names the tiny preset: a named preset is used as given, never 'auto'-resolved
     assert metrics["diffusion_model"]["preset"] == "tiny" and metrics["diffusion_model"]["parameters"] > 0

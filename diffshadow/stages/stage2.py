@@ -437,6 +437,8 @@ def evaluate_voxels(checkpoint: Path | None, weights_path: Path, generated_path:
                            grid_voxels=prepared_voxels(volume_path), ddpm_lights=ddpm_lights,
                            geometry_state=geometry, device=device,
                            curve_checkpoint=out.with_name(out.name + ".ckpt"))
+    if correction is not None:  # the cache keeps it beside the stored SIRENs (fp32)
+        result["storage_bytes"]["correction"] = correction.nbytes
     if wide_lights != 0:  # negative: wide_comparison says what it expects
         t0 = time.perf_counter()
         share = float((result.get("mix") or {}).get("model_share", 1.0))
