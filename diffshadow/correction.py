@@ -30,8 +30,9 @@ import torch
 
 from diffshadow.adam import Adam, set_lr
 from diffshadow.config import ConfigError, section
+from diffshadow.diffusion.model import light_encoding
 from diffshadow.io import atomic_torch_save
-from diffshadow.lights import blend_weights, unseen_directions
+from diffshadow.lights import PoolLights, blend_weights, unseen_directions
 from diffshadow.progress import eta
 from diffshadow.sampling import LightStream, seeded, to_device
 from diffshadow.siren import BatchedSiren, box_to_siren
@@ -79,13 +80,6 @@ class CorrectionConfig:
         return section(cls, "correction", d)
 
 
-def light_features(lights: torch.Tensor, n_freqs: int) -> torch.Tensor:
-    """(Q, 3) unit directions -> (Q, 3 + 6 n_freqs): the direction and sin/cos of 2^k pi times it."""
-    scales = (2.0 ** torch.arange(n_freqs, dtype=lights.dtype)) * math.pi
-    x = lights[:, :, None] * scales
-    return torch.cat([lights, torch.sin(x).flatten(1), torch.cos(x).flatten(1)], dim=-1)
-
-
 def corrected_delta(net: torch.nn.Sequential, features: torch.Tensor, corner_features: torch.Tensor,
                     idx: torch.Tensor, mix: torch.Tensor, sigma: torch.Tensor) -> torch.Tensor:
     """sigma * (net(l) - sum_i w_i net(l_i)) for lights of `features` (Q, F) whose blends take training lights
@@ -120,7 +114,7 @@ class BlendCorrection:
         self.path: Path | None = None  # the file it was read from (load_correction)
 
     def _features(self, lights: np.ndarray) -> torch.Tensor:
-        return light_features(torch.as_tensor(np.asarray(lights, dtype=np.float64), dtype=torch.float32),
+        return light_encoding(torch.as_tensor(np.asarray(lights, dtype=np.float64), dtype=torch.float32),
                               self.light_freqs)
 
     def delta(self, lights: np.ndarray, idx: np.ndarray, mix: np.ndarray) -> np.ndarray:
@@ -193,14 +187,11 @@ def load_correction(path: str | Path, train: np.ndarray | None = None,
 
 @dataclass
 class CorrectionLights:
-    """The lights the correction is fitted on: directions (L, 3), their blends' corners and weights, and exact
-    shadows (L, P) at points (L, P, 3), each chunk of CHUNK_LIGHTS lights at points of its own: its first `box`
-    points in the box, the rest around visible voxels (none where the transfer function shows nothing)."""
-    lights: np.ndarray
-    idx: torch.Tensor
-    mix: torch.Tensor
-    points: torch.Tensor
-    values: torch.Tensor
+    """The lights the correction is fitted on, as pool lights (`lights.PoolLights`: directions, exact shadows at
+    their points, their blends' corners and weights), each chunk of CHUNK_LIGHTS lights at points of its own: a
+    light's first `box` points in the box, the rest around visible voxels (none where the transfer function shows
+    nothing)."""
+    pool: PoolLights
     extent: torch.Tensor
     box: int
 
@@ -237,8 +228,9 @@ def correction_lights(volume: Volume, tf: TransferFunction, train: np.ndarray, c
     log(f"correction: exact shadows of {len(lights)} lights at {cfg.points} points each in the box and around "
         f"visible voxels "
         f"({time.perf_counter() - t0:.1f} s)")
-    return CorrectionLights(lights, torch.as_tensor(idx), torch.as_tensor(mix, dtype=torch.float32),
-                            torch.cat(points).contiguous(), torch.cat(values), truth.extent, cfg.points)
+    pool = PoolLights(torch.as_tensor(lights), torch.cat(points).contiguous(), torch.cat(values),
+                      torch.as_tensor(idx), torch.as_tensor(mix, dtype=torch.float32))
+    return CorrectionLights(pool, truth.extent, cfg.points)
 
 
 def fit_correction(store: WeightStore, volume: Volume, tf: TransferFunction, train: np.ndarray, center: np.ndarray,
@@ -255,28 +247,26 @@ def fit_correction(store: WeightStore, volume: Volume, tf: TransferFunction, tra
     data = correction_lights(volume, tf, train, center, cfg, k=k, weighting=weighting, log=log)
     stored = weights.to(device)
     sigma = (weights.std(0) + 1e-6).to(device)  # the correction's scale per weight: the stored SIRENs' spread there
-    idx, mix, points, values = (t.to(device) for t in (data.idx, data.mix, data.points, data.values))
-    extent = data.extent.to(device)
+    pool, extent = data.pool.to(device), data.extent.to(device)
     torch.manual_seed(cfg.seed)
     net = make_net(weights.shape[1], cfg.hidden, cfg.light_freqs).to(device)
-    features = light_features(torch.as_tensor(data.lights, dtype=torch.float32), cfg.light_freqs).to(device)
-    corners = light_features(torch.as_tensor(np.asarray(train, dtype=np.float64), dtype=torch.float32),
+    features = light_encoding(pool.lights.float(), cfg.light_freqs)
+    corners = light_encoding(torch.as_tensor(np.asarray(train, dtype=np.float64), dtype=torch.float32),
                              cfg.light_freqs).to(device)
     opt = Adam(net.parameters(), cfg.lr)
     gen = seeded(cfg.seed, LightStream.CORRECTION)
-    n, t0, window = len(data.lights), time.perf_counter(), []
+    n, t0, window = len(pool.lights), time.perf_counter(), []
     log(f"correction: an MLP of {sum(p.numel() for p in net.parameters()):,} parameters (width {cfg.hidden}) "
         f"fitted for {cfg.steps} steps of {cfg.batch_lights} lights x {cfg.batch_points} points on {device}")
     for step in range(cfg.steps):
         set_lr(opt, cfg.lr * 0.5 * (1 + math.cos(math.pi * step / cfg.steps)))
         j = to_device(torch.randint(0, n, (cfg.batch_lights,), generator=gen), device)
-        pick = to_device(draw_points(data.box, data.points.shape[1], cfg, gen), device)
-        delta = corrected_delta(net, features[j], corners, idx[j], mix[j], sigma)
+        pick = to_device(draw_points(data.box, pool.points.shape[1], cfg, gen), device)
+        delta = corrected_delta(net, features[j], corners, pool.neighbours[j], pool.blend[j], sigma)
         # the step's blends made here, not all lights' at once (4,096 x the SIREN's weights: 1.1 GB at the paper's)
-        at = stored.index_select(0, idx[j].reshape(-1)).view(len(j), idx.shape[1], -1)
-        blends = (at * mix[j][..., None]).sum(1)
-        pred = BatchedSiren(blends + delta, layout, siren.blocks)(box_to_siren(points[j[:, None], pick], extent))
-        loss = ((pred - values[j[:, None], pick]) ** 2).mean()
+        pts, truth = pool.samples(j, pick)
+        pred = BatchedSiren(pool.x0(stored, j) + delta, layout, siren.blocks)(box_to_siren(pts, extent))
+        loss = ((pred - truth) ** 2).mean()
         opt.zero_grad(set_to_none=True)
         loss.backward()
         opt.step()

@@ -13,7 +13,7 @@ import torch
 from diffshadow import correction as corr
 from diffshadow.config import ConfigError
 from diffshadow.layout import SirenConfig, WeightLayout
-from diffshadow.lights import blend_weights, make_light_sets, unseen_directions
+from diffshadow.lights import PoolLights, blend_weights, make_light_sets, unseen_directions
 from diffshadow.siren import BatchedSiren, box_to_siren, init_siren
 from diffshadow.store import BlendSampler, blend_rows
 
@@ -55,8 +55,9 @@ def synthetic_lights(volume, tf, train, center, cfg, *, k, weighting, log=print)
     points = torch.rand(len(lights), 2 * cfg.points, 3, generator=torch.Generator().manual_seed(2))
     points[:, cfg.points:] *= 0.5
     idx, mix = blend_weights(train, lights, k, weighting)
-    return corr.CorrectionLights(lights, torch.as_tensor(idx), torch.as_tensor(mix, dtype=torch.float32), points,
-                                 truth_at(lights, points).detach(), EXTENT, cfg.points)
+    pool = PoolLights(torch.as_tensor(lights), points, truth_at(lights, points).detach(), torch.as_tensor(idx),
+                      torch.as_tensor(mix, dtype=torch.float32))
+    return corr.CorrectionLights(pool, EXTENT, cfg.points)
 
 
 def random_correction(seed: int = 3) -> corr.BlendCorrection:

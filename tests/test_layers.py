@@ -16,8 +16,8 @@ LAYERS = [
     ["shadow", "truth"],  # ground truth
     ["data_inr"],
     ["render"],  # the renderer, its fused kernels included
-    ["seams", "fit", "correction"],  # stage 1, and the correction of its blend
-    ["diffusion"],  # stage 2
+    ["seams", "fit"],  # stage 1
+    ["diffusion", "correction"],  # stage 2, and the correction of stage 1's blend (the model's light encoding)
     ["evaluate", "caches", "report", "summary", "scaling"],
     ["artifacts", "runtime", "argparsing", "stages", "bench", "parsl_fit", "viewer"],  # files, processes, stages
     ["cli"],
