@@ -164,11 +164,13 @@ def _choose_cache(a: argparse.Namespace):
 
 def _fit_correction(a: argparse.Namespace):
     from diffshadow.correction import CorrectionConfig
+    from diffshadow.runtime import SpareThreads
     from diffshadow.stages import stage2
 
+    device = _device(a)
     stage2.fit_correction(Path(a.weights), Path(a.volume), Path(a.lights), Path(a.out),
                           cfg=CorrectionConfig.from_config(_cfg(a).get("correction")), blend_k=a.blend_k,
-                          weighting=a.blend_weights, device=_device(a))
+                          weighting=a.blend_weights, device=device, spare=SpareThreads.for_run(a.threads, device))
 
 
 def _encode_cache(a: argparse.Namespace):

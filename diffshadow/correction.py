@@ -209,7 +209,8 @@ def draw_points(box: int, total: int, cfg: CorrectionConfig, gen: torch.Generato
 
 def correction_lights(volume: Volume, tf: TransferFunction, train: np.ndarray, center: np.ndarray,
                       cfg: CorrectionConfig, *, k: int, weighting: str,
-                      log: Callable[[str], None] = print) -> CorrectionLights:
+                      log: Callable[[str], None] = print,
+                      between_steps: Callable[[], None] | None = None) -> CorrectionLights:
     """`cfg.lights` random lights in the training cap (their own stream: never a test, validation or pool light)
     with exact shadows at `cfg.points` box points and as many around visible voxels each (eval_truth's
     march)."""
@@ -224,6 +225,8 @@ def correction_lights(volume: Volume, tf: TransferFunction, train: np.ndarray, c
         sets = [k for k in ("box", "visible") if k in truth.points]
         points.append(torch.cat([truth.points[k] for k in sets])[None].expand(len(part), -1, -1))
         values.append(torch.cat([truth.values[k] for k in sets], dim=1))
+        if between_steps is not None:
+            between_steps()
     idx, mix = blend_weights(train, lights, k, weighting)
     log(f"correction: exact shadows of {len(lights)} lights at {cfg.points} points each in the box and around "
         f"visible voxels "
@@ -235,16 +238,19 @@ def correction_lights(volume: Volume, tf: TransferFunction, train: np.ndarray, c
 
 def fit_correction(store: WeightStore, volume: Volume, tf: TransferFunction, train: np.ndarray, center: np.ndarray,
                    cfg: CorrectionConfig, *, k: int, weighting: str, device: torch.device | str = "cpu",
-                   log: Callable[[str], None] = print) -> BlendCorrection:
+                   log: Callable[[str], None] = print,
+                   between_steps: Callable[[], None] | None = None) -> BlendCorrection:
     """Fit the correction of `store`'s blends (`weighting`, `k`; its SIRENs at the training lights `train`) on
     `cfg.lights` exact-shadow lights of the training cap (marched on the CPU), `cfg.steps` Adam steps with a
-    cosine decay on `device`; the correction comes back on the CPU."""
+    cosine decay on `device`; the correction comes back on the CPU. `between_steps` is called after each chunk
+    of the march and each step (runtime.SpareThreads.poll: the threads change no byte)."""
     if cfg.steps < 1:
         raise CorrectionError("correction.steps is 0: there is no correction to fit")
     device = torch.device(device)
     weights = torch.as_tensor(np.asarray(store.weights, dtype=np.float32))
     layout, siren = store.layout, store.siren
-    data = correction_lights(volume, tf, train, center, cfg, k=k, weighting=weighting, log=log)
+    data = correction_lights(volume, tf, train, center, cfg, k=k, weighting=weighting, log=log,
+                             between_steps=between_steps)
     stored = weights.to(device)
     sigma = (weights.std(0) + 1e-6).to(device)  # the correction's scale per weight: the stored SIRENs' spread there
     pool, extent = data.pool.to(device), data.extent.to(device)
@@ -270,6 +276,8 @@ def fit_correction(store: WeightStore, volume: Volume, tf: TransferFunction, tra
         opt.zero_grad(set_to_none=True)
         loss.backward()
         opt.step()
+        if between_steps is not None:
+            between_steps()
         window.append(loss.detach())
         if (step + 1) % max(1, cfg.steps // 10) == 0 or step + 1 == cfg.steps:
             mse = float(torch.stack(window).mean())

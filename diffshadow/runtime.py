@@ -13,7 +13,7 @@ import ctypes
 import datetime
 import os
 import time
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 
 import numpy  # noqa: F401  (loads its OpenBLAS, so that set_threads reaches it)
@@ -221,6 +221,22 @@ class SpareThreads:
         if threads != self.threads:
             self.threads = threads
             torch.set_num_threads(threads)
+
+
+@contextlib.contextmanager
+def borrowing(spare: SpareThreads | None, done: str) -> Iterator[Callable[[], None] | None]:
+    """A job's steps with `spare`: yields its `poll` for them to call (None without `spare`), returns to the job's
+    own threads after them, and on success prints how long it borrowed ("`done` on 1 thread(s), 2 for ...")."""
+    if spare is None:
+        yield None
+        return
+    t0 = time.perf_counter()
+    try:
+        yield spare.poll
+    finally:
+        spare.release()
+    print(f"{done} on {spare.own} thread(s), {spare.most} for {spare.raised_s:.0f} s of its "
+          f"{time.perf_counter() - t0:.0f} s (while the run's other cores idled)", flush=True)
 
 
 def claim_gpu_lock(command: str) -> None:

@@ -48,7 +48,8 @@ def store() -> SimpleNamespace:
                            extinction=None)
 
 
-def synthetic_lights(volume, tf, train, center, cfg, *, k, weighting, log=print) -> corr.CorrectionLights:
+def synthetic_lights(volume, tf, train, center, cfg, *, k, weighting, log=print,
+                     between_steps=None) -> corr.CorrectionLights:
     """correction_lights' stand-in: the truth SIRENs' values at random points (the "visible" ones in a corner of
     the box), not a marched shadow."""
     lights = unseen_directions(train, center, cfg.lights, seed=[cfg.seed, 99])
@@ -128,7 +129,8 @@ def test_the_same_seed_fits_the_same_bytes(monkeypatch):
 
 def test_a_fit_writes_the_same_bytes_on_one_thread_and_on_two(monkeypatch):
     """The workflow's threads (capped by `-j`) change no byte: the corners' rows are gathered so that their
-    gradients add in index order on any thread count. A SIREN wide enough that PyTorch splits its work."""
+    gradients add in index order on any thread count. A SIREN wide enough that PyTorch splits its work. The third
+    fit changes its threads between steps, as one borrowing the run's idle core does (runtime.SpareThreads)."""
     here, wide = sys.modules[__name__], SirenConfig(32, 2)
     layout = WeightLayout.for_siren(wide)
     for name, value in (("SIREN", wide), ("LAYOUT", layout), ("DIRECTION", torch.randn(layout.n_params)),
@@ -137,13 +139,20 @@ def test_a_fit_writes_the_same_bytes_on_one_thread_and_on_two(monkeypatch):
     monkeypatch.setattr(corr, "correction_lights", synthetic_lights)
     threads = torch.get_num_threads()
     try:
-        fits = []
-        for n in (1, 2, 2):
+        fits, switched = [], []
+
+        def switch() -> None:
+            switched.append(3 - torch.get_num_threads())
+            torch.set_num_threads(switched[-1])
+
+        for n, between in ((1, None), (2, None), (1, switch)):
             torch.set_num_threads(n)
             fits.append(corr.fit_correction(store(), None, None, TRAIN, CENTER, config(steps=20, hidden=64,
-                                            batch_points=64), k=4, weighting="triangle", log=lambda m: None))
+                                            batch_points=64), k=4, weighting="triangle", log=lambda m: None,
+                                            between_steps=between))
     finally:
         torch.set_num_threads(threads)
+    assert switched[:3] == [2, 1, 2] and len(switched) == 20
     for other in fits[1:]:
         for a, b in zip(fits[0].net.parameters(), other.net.parameters(), strict=True):
             assert torch.equal(a, b)

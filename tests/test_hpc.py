@@ -533,7 +533,8 @@ def test_a_job_on_a_gpu_asks_one_cpu_thread_and_a_ddp_job_one_per_gpu(tmp_path, 
 def test_the_workflow_asks_one_thread_for_the_geometry_stage_on_a_gpu(tmp_path):
     """On a machine whose driver shows a GPU (faked for Snakemake's process), train_diffusion asks one thread and
     finetune_render one process, so that `-j2` runs a side job beside them, and so does sample_shadows where it
-    scores on the run's device too (evaluate.device: run, the default); on this machine's CPU, two each."""
+    scores on the run's device too (evaluate.device: run, the default); on this machine's CPU, two each, but
+    train_diffusion asks one where fit_correction starts beside it (`correction.steps` over 0, the default)."""
     fake = tmp_path / "fake"
     (fake / "gpus" / "0000:00:00.0").mkdir(parents=True)
     (fake / "dev").mkdir()
@@ -561,7 +562,9 @@ def test_the_workflow_asks_one_thread_for_the_geometry_stage_on_a_gpu(tmp_path):
     assert asked(gpu) == ("1", "1", "1")  # sample_shadows scores its SIRENs on the GPU too (evaluate.device: run)
     assert asked(gpu, "--config", "evaluate={device: cpu}") == ("1", "1", "2")  # on the CPU: two threads
     if not any(os.path.exists(f) for f in GPU_DRIVER_FILES):
-        assert asked(env) == asked(env, "--config", "evaluate={device: cpu}") == ("2", "2", "2")
+        alone = ("--config", "correction={steps: 0}")
+        assert asked(env, *alone) == asked(env, *alone, "evaluate={device: cpu}") == ("2", "2", "2")
+        assert asked(env) == ("1", "2", "2")
 
 
 def test_the_ddp_helper_takes_the_drivers_count_without_asking_torch(tmp_path, monkeypatch, capsys):

@@ -88,6 +88,7 @@ def fit_subset(volume_path: Path, lights_path: Path, init_path: Path, subset: in
         evaluate_psnr,
         fit_sirens,
     )
+    from diffshadow.runtime import borrowing
     from diffshadow.seams import held_lights, held_subsets, subset_halo, subset_rounds
 
     volume, tf = load_prepared(volume_path)
@@ -121,19 +122,13 @@ def fit_subset(volume_path: Path, lights_path: Path, init_path: Path, subset: in
     if pool is not None:
         print(f"blend loss: {len(pool.lights)} pool lights with exact shadows at {fit.blend_points} points each "
               f"({time.perf_counter() - t0:.0f} s), weight {fit.blend_weight:g}", flush=True)
-    t0 = time.perf_counter()
     try:
-        weights = fit_sirens(init, layout, siren, volume, tf, train[fitted], fit, stream=subset, light_index=fitted,
-                             checkpoint=out.with_name(out.name + ".ckpt"), pool=pool, held=held_weights,
-                             device=device, between_steps=spare.poll if spare is not None else None)[:len(idx)]
+        with borrowing(spare, "fitted") as poll:
+            weights = fit_sirens(init, layout, siren, volume, tf, train[fitted], fit, stream=subset,
+                                 light_index=fitted, checkpoint=out.with_name(out.name + ".ckpt"), pool=pool,
+                                 held=held_weights, device=device, between_steps=poll)[:len(idx)]
     except FitError as e:
         raise FitError(f"{where}, lights {lights_path}): {e}") from None
-    finally:
-        if spare is not None:
-            spare.release()
-    if spare is not None:
-        print(f"fitted on {spare.own} thread(s), {spare.most} for {spare.raised_s:.0f} s of its "
-              f"{time.perf_counter() - t0:.0f} s (while the run's other cores idled)", flush=True)
     box, vis = evaluate_psnr(weights, layout, siren, volume, tf, train[idx], n_points=fit.eval_points,
                              seed=heldout_seed(fit, subset), device=device)
     if fit.min_psnr > 0:

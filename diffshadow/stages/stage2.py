@@ -29,7 +29,7 @@ from diffshadow.evaluate import voxel_metrics, wide_comparison
 from diffshadow.hpc import device_name
 from diffshadow.io import atomic_torch_save, atomic_write_text, finite_json
 from diffshadow.lights import blend_label, blend_weights, describe_blend, read_lights, training_pool, validation_lights
-from diffshadow.runtime import distributed, set_threads
+from diffshadow.runtime import SpareThreads, borrowing, distributed, set_threads
 from diffshadow.sampling import VALIDATION_POINTS_SEED, Stream
 from diffshadow.store import BlendSampler, WeightStore, blend_rows, open_store, write_store
 from diffshadow.truth import EvalTruth, check_points, psnr_per_light
@@ -333,9 +333,11 @@ def choose_cache(weights_path: Path, truth_path: Path, volume_path: Path, lights
 
 
 def fit_correction(weights_path: Path, volume_path: Path, lights_path: Path, out: Path, *, cfg: CorrectionConfig,
-                   blend_k: int, weighting: str, device: torch.device | str = "cpu") -> None:
+                   blend_k: int, weighting: str, device: torch.device | str = "cpu",
+                   spare: SpareThreads | None = None) -> None:
     """`correction.pt`: the blend's correction of stage 1's stored SIRENs (diffshadow/correction.py), fitted on
-    exact-shadow lights of the training cap for blends by `weighting` (`blend_k`)."""
+    exact-shadow lights of the training cap for blends by `weighting` (`blend_k`). With `spare`, its march and
+    steps take the cores other jobs leave idle (the same bytes on any threads)."""
     from diffshadow.correction import fit_correction as fit
     from diffshadow.correction import save_correction
 
@@ -346,8 +348,9 @@ def fit_correction(weights_path: Path, volume_path: Path, lights_path: Path, out
     check_extinction(stage1.extinction, extinction_id(volume, tf), cache=str(weights_path), scene=str(volume_path),
                      remedy="rerun stage 1 on this volume")
     k = min(blend_k, len(train))
-    correction = fit(stage1, volume, tf, train, light_sets["center"], cfg, k=k, weighting=weighting,
-                     device=device, log=lambda m: print(m, flush=True))
+    with borrowing(spare, "fitted") as poll:
+        correction = fit(stage1, volume, tf, train, light_sets["center"], cfg, k=k, weighting=weighting,
+                         device=device, log=lambda m: print(m, flush=True), between_steps=poll)
     save_correction(out, correction)
     print(f"wrote {out}", flush=True)
 

@@ -187,6 +187,13 @@ def blend_correction(wildcards):
     return {"correction": f"results/{wildcards.scene}/correction.pt"}
 
 
+def diffusion_threads(wildcards):
+    """train_diffusion's threads: one where fit_correction starts beside it when stage 1 ends (it has no thread to
+    borrow: its bfloat16 products' bytes depend on its threads, docs/numerics.md), else two on a CPU (1.68x one's
+    speed) and one on a GPU, so that a side job runs beside it."""
+    return 1 if blend_correction(wildcards) else device_threads(2)
+
+
 def correction_flag(input):
     """--correction for a command whose input holds the blend's correction; "" without one."""
     return f" --correction {input.correction}" if "correction" in input.keys() else ""

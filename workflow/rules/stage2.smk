@@ -31,7 +31,7 @@ rule train_diffusion:
         "results/{scene}/diffusion_geometry.ckpt",
     params:
         cfg=lambda wc: as_json(wc.scene, "diffusion"),
-    threads: device_threads(2)  # 1.68x one thread's speed on a CPU; on a GPU one, so a side job runs beside it
+    threads: diffusion_threads
     priority: 10  # the longest job: it starts before the side jobs (targets, data INR, truth) take a core
     log:
         "results/{scene}/logs/train_diffusion.log",
@@ -112,9 +112,9 @@ rule fit_correction:
     params:
         cfg=lambda wc: as_json(wc.scene, "correction"),
         blend=lambda wc: blend_args(wc.scene),
-    # on the chain to sample_shadows, after stage 2's jobs took both cores: 71 s on two threads against 106 on one
-    # (the README run); the same bytes on any threads (tests/test_correction.py)
-    threads: device_threads(2)
+    # one, beside train_diffusion, and up to two while the run's other core idles (runtime.SpareThreads; the same
+    # bytes on any threads, tests/test_correction.py): both start when stage 1 ends, off each other's chain
+    threads: 1
     priority: 10
     log:
         "results/{scene}/logs/fit_correction.log",
