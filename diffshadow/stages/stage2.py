@@ -28,10 +28,10 @@ from diffshadow.diffusion.train import train_diffusion as train
 from diffshadow.evaluate import voxel_metrics, wide_comparison
 from diffshadow.hpc import device_name
 from diffshadow.io import atomic_torch_save, atomic_write_text, finite_json
-from diffshadow.lights import blend_label, blend_weights, describe_blend, read_lights, training_pool, validation_lights
+from diffshadow.lights import blend_label, describe_blend, read_lights, training_pool, validation_lights
 from diffshadow.runtime import SpareThreads, borrowing, distributed, set_threads
 from diffshadow.sampling import VALIDATION_POINTS_SEED, Stream
-from diffshadow.store import BlendSampler, WeightStore, blend_rows, open_store, write_store
+from diffshadow.store import BlendSampler, WeightStore, open_store, write_store
 from diffshadow.truth import EvalTruth, check_points, psnr_per_light
 from diffshadow.truth import presample as presample_points
 from diffshadow.volume import check_extinction, extinction_id, load_prepared, prepared_voxels
@@ -170,6 +170,7 @@ def sample_shadows(checkpoint: Path, truth_path: Path, lights_path: Path, out: P
     stage1 = _mix_inputs(share, weights_path, volume_path, layout, state.get("extinction"))
     blend_k = min(blend_k, len(train))
     correction = _correction(correction_path, stage1, weighting) if stage1 is not None else None
+    blend = BlendSampler(stage1, blend_k, weighting, correction) if stage1 is not None else None
     print(f"sampling {len(all_lights)} shadow SIRENs ({seen.sum()} seen, {(~seen).sum()} unseen) with "
           f"DDIM {cfg['ddim_steps']} steps", flush=True)
 
@@ -186,8 +187,7 @@ def sample_shadows(checkpoint: Path, truth_path: Path, lights_path: Path, out: P
         record = {"blend_weights": weighting, "blend_k": blend_k, "weights": str(weights_path),
                   **_correction_record(correction, correction_path)}
         if share == "auto":
-            record.update(_choose_share(sample, stage1, volume_path, light_sets, mix, blend_k, weighting,
-                                        score_device, correction))
+            record.update(_choose_share(sample, blend, volume_path, light_sets, mix, score_device))
             record["chosen"] = "validation lights"
         else:
             record.update(model_share=float(share), chosen="config")
@@ -197,7 +197,7 @@ def sample_shadows(checkpoint: Path, truth_path: Path, lights_path: Path, out: P
         record["model_alone_psnr"] = [float(x) for x in alone]
         # a training light's blend is its own stored SIREN, an unseen light's a float64 blend (blend_rows): mixed
         # apart, so that the stored SIRENs are not widened to float64 beside them (1.3 GB at the paper's sizes)
-        n, unseen_blend = len(train), _blend(stage1, train, unseen, blend_k, weighting, correction)
+        n, unseen_blend = len(train), blend.rows(unseen)
         weights = np.concatenate([mix_weights(weights[:n], stage1.weights, record["model_share"]),
                                   mix_weights(weights[n:], unseen_blend, record["model_share"])])
         config["mix"] = record
@@ -229,14 +229,6 @@ def _correction_record(correction, path: Path | None) -> dict:
     if correction is None:
         return {}
     return {"correction": {"path": str(path), "config": correction.record.get("config")}}
-
-
-def _blend(stage1: WeightStore, train: np.ndarray, lights: np.ndarray, blend_k: int, weighting: str,
-           correction=None) -> np.ndarray:
-    """The stored SIRENs' weight blends (Q, P) in float64 of `lights`, corrected where `correction` is given."""
-    idx, w = blend_weights(train, lights, blend_k, weighting)
-    blend = blend_rows(stage1.weights, idx, w)
-    return blend if correction is None else blend + correction.delta(lights, idx, w)
 
 
 def _seen_unseen(psnr: np.ndarray, seen: np.ndarray) -> str:
@@ -272,11 +264,11 @@ def _mix_inputs(share: str, weights_path: Path | None, volume_path: Path | None,
     return stage1
 
 
-def _choose_share(sample, stage1: WeightStore, volume_path: Path, light_sets: dict, mix: dict, blend_k: int,
-                  weighting: str, score_device: torch.device | str = "cpu", correction=None) -> dict:
+def _choose_share(sample, blend: BlendSampler, volume_path: Path, light_sets: dict, mix: dict,
+                  score_device: torch.device | str = "cpu") -> dict:
     """`mix.model_share: auto`: the share chosen on `mix.val_lights` validation lights (exact shadows at
     `mix.val_points` box points each, marched on the CPU as eval_truth's are; the SIRENs evaluated on
-    `score_device`), with its curve."""
+    `score_device`) between the model's SIRENs and `blend`'s, with its curve."""
     from diffshadow.diffusion.mix import choose_share
 
     t0 = time.perf_counter()
@@ -287,9 +279,8 @@ def _choose_share(sample, stage1: WeightStore, volume_path: Path, light_sets: di
     val = EvalTruth.compute(volume, tf, lights, int(mix["val_points"]), int(mix["seed"]) + VALIDATION_POINTS_SEED,
                             sets=("box",)).on(score_device)
     truth = val.of(lights)
-    blend = _blend(stage1, train, lights, blend_k, weighting, correction)
-    share, curve = choose_share(sample(lights), blend,
-                                lambda w: psnr_per_light(val.sirens(w, stage1.layout, stage1.siren), truth)["box"])
+    share, curve = choose_share(sample(lights), blend.rows(lights),
+                                lambda w: psnr_per_light(val.sirens(w, blend.layout, blend.siren), truth)["box"])
     print("model share on the validation lights (mean / median voxel PSNR, dB): "
           + ", ".join(f"{r['share']:g}: {r['psnr_mean']:.2f} / {r['psnr_median']:.2f}" for r in curve)
           + f"; chose {share:g} ({time.perf_counter() - t0:.1f} s)", flush=True)
