@@ -664,3 +664,25 @@ def test_spare_threads_take_the_cores_other_processes_leave_idle_and_give_them_b
     monkeypatch.setattr(runtime, "_busy_seconds", lambda cpus: None)  # not Linux
     spare = runtime.SpareThreads(1, 2)
     assert second(1.0, 0.0) == 1 and set_to == [2, 1]
+
+
+def test_borrowing_gives_the_threads_back_however_the_steps_end(monkeypatch, capsys):
+    """A job's steps under `runtime.borrowing`: back on its own threads after them, also where they fail (the
+    stage's error then stands alone, with no line saying how long it borrowed); no poll without a spare."""
+    from diffshadow import runtime
+
+    monkeypatch.setattr(runtime, "_busy_seconds", lambda cpus: 0.0)
+    set_to = []
+    monkeypatch.setattr(runtime.torch, "set_num_threads", set_to.append)
+    with runtime.borrowing(None, "fitted") as poll:
+        assert poll is None
+    spare = runtime.SpareThreads(1, 2)
+    with runtime.borrowing(spare, "fitted") as poll:
+        spare._set(2)  # what a poll does while the other cores idle
+    assert set_to == [2, 1] and spare.threads == 1
+    assert capsys.readouterr().out.startswith("fitted on 1 thread(s), 2 for ")
+    spare = runtime.SpareThreads(1, 2)
+    with pytest.raises(ValueError, match="^a step failed$"), runtime.borrowing(spare, "fitted"):
+        spare._set(2)
+        raise ValueError("a step failed")
+    assert set_to == [2, 1, 2, 1] and capsys.readouterr().out == ""

@@ -98,9 +98,11 @@ def test_a_finished_run_says_what_to_open(finished):
 
 
 def test_a_fit_may_borrow_the_runs_idle_cores(finished):
-    """fit_siren asks Snakemake for one thread and takes the run's second core while it idles
-    (runtime.SpareThreads; its bytes are the same on any threads: tests/test_fit.py); on a GPU it does not."""
-    logs = [(finished / f"results/nucleon/logs/fit_siren_{i}.log").read_text() for i in range(2)]
+    """fit_siren and fit_correction ask Snakemake for one thread and take the run's second core while it idles
+    (runtime.SpareThreads; their bytes are the same on any threads: tests/test_fit.py, tests/test_correction.py);
+    on a GPU they do not."""
+    logs = [(finished / f"results/nucleon/logs/{job}.log").read_text()
+            for job in ("fit_siren_0", "fit_siren_1", "fit_correction")]
     assert all(("fitted on 1 thread(s), 2 for " in log) != CUDA for log in logs), logs
 
 
