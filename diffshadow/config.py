@@ -383,7 +383,7 @@ MEMORY_KEYS = {
 # the commands that keep a checkpoint while they run (beside their output, or their output is one) and resume from it
 # when run again after a kill (parsl-fit: its subsets' fits); the others start again (hpc.killed_lines, the Ctrl-C line)
 RESUMABLE = frozenset({"fit-siren", "parsl-fit", "train-data-inr", "render-targets", "train-diffusion",
-                       "finetune-render", "evaluate-voxels", "caches"})
+                       "fit-correction", "finetune-render", "evaluate-voxels", "caches"})
 
 
 def memory_keys(command: str) -> str:

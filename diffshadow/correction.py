@@ -19,6 +19,7 @@ empty box and left the visible shadows, which the images show, as they were: too
 from __future__ import annotations
 
 import hashlib
+import json
 import math
 import time
 from collections.abc import Callable
@@ -31,11 +32,12 @@ import torch
 from diffshadow.adam import Adam, set_lr
 from diffshadow.config import ConfigError, section
 from diffshadow.diffusion.model import light_encoding
-from diffshadow.io import atomic_torch_save
+from diffshadow.io import atomic_torch_save, resume
 from diffshadow.lights import PoolLights, blend_weights, unseen_directions
 from diffshadow.progress import eta
 from diffshadow.sampling import LightStream, seeded, to_device
 from diffshadow.siren import BatchedSiren, box_to_siren
+from diffshadow.stopping import stop_signals
 from diffshadow.store import WeightStore
 from diffshadow.transfer import TransferFunction
 from diffshadow.volume import Volume
@@ -238,17 +240,22 @@ def correction_lights(volume: Volume, tf: TransferFunction, train: np.ndarray, c
 
 def fit_correction(store: WeightStore, volume: Volume, tf: TransferFunction, train: np.ndarray, center: np.ndarray,
                    cfg: CorrectionConfig, *, k: int, weighting: str, device: torch.device | str = "cpu",
-                   log: Callable[[str], None] = print,
-                   between_steps: Callable[[], None] | None = None) -> BlendCorrection:
+                   log: Callable[[str], None] = print, between_steps: Callable[[], None] | None = None,
+                   checkpoint: Path | None = None, stop_after_step: int | None = None) -> BlendCorrection:
     """Fit the correction of `store`'s blends (`weighting`, `k`; its SIRENs at the training lights `train`) on
     `cfg.lights` exact-shadow lights of the training cap (marched on the CPU), `cfg.steps` Adam steps with a
     cosine decay on `device`; the correction comes back on the CPU. `between_steps` is called after each chunk
-    of the march and each step (runtime.SpareThreads.poll: the threads change no byte)."""
+    of the march and each step (runtime.SpareThreads.poll: the threads change no byte). With `checkpoint` it
+    saves there at every log line and on SIGTERM / SIGINT, and resumes from it (the march is made again: it is
+    deterministic); `stop_after_step` stops there as a kill would (tests use it)."""
     if cfg.steps < 1:
         raise CorrectionError("correction.steps is 0: there is no correction to fit")
     device = torch.device(device)
     weights = torch.as_tensor(np.asarray(store.weights, dtype=np.float32))
     layout, siren = store.layout, store.siren
+    digest = weights_digest(store.weights)
+    fingerprint = hashlib.sha256(json.dumps([asdict(cfg), k, weighting, digest, store.extinction,
+                                             np.asarray(train, dtype=np.float64).tolist()]).encode()).hexdigest()
     data = correction_lights(volume, tf, train, center, cfg, k=k, weighting=weighting, log=log,
                              between_steps=between_steps)
     stored = weights.to(device)
@@ -261,10 +268,18 @@ def fit_correction(store: WeightStore, volume: Volume, tf: TransferFunction, tra
                              cfg.light_freqs).to(device)
     opt = Adam(net.parameters(), cfg.lr)
     gen = seeded(cfg.seed, LightStream.CORRECTION)
-    n, t0, window = len(pool.lights), time.perf_counter(), []
+    n, t0, window, start = len(pool.lights), time.perf_counter(), [], 0
     log(f"correction: an MLP of {sum(p.numel() for p in net.parameters()):,} parameters (width {cfg.hidden}) "
         f"fitted for {cfg.steps} steps of {cfg.batch_lights} lights x {cfg.batch_points} points on {device}")
-    for step in range(cfg.steps):
+    if state := resume(checkpoint, fingerprint, log=log, map_location=device):
+        net.load_state_dict(state["net"])
+        opt.load_state_dict(state["optimizer"])
+        gen.set_state(state["generator"])
+        start = int(state["step"])
+        log(f"resuming from {checkpoint} at step {start}/{cfg.steps}")
+    every = max(1, cfg.steps // 10)
+
+    def _step(step: int) -> None:
         set_lr(opt, cfg.lr * 0.5 * (1 + math.cos(math.pi * step / cfg.steps)))
         j = to_device(torch.randint(0, n, (cfg.batch_lights,), generator=gen), device)
         pick = to_device(draw_points(data.box, pool.points.shape[1], cfg, gen), device)
@@ -279,14 +294,28 @@ def fit_correction(store: WeightStore, volume: Volume, tf: TransferFunction, tra
         if between_steps is not None:
             between_steps()
         window.append(loss.detach())
-        if (step + 1) % max(1, cfg.steps // 10) == 0 or step + 1 == cfg.steps:
+        if (step + 1) % every == 0 or step + 1 == cfg.steps:
             mse = float(torch.stack(window).mean())
-            window = []
+            window.clear()
             if not math.isfinite(mse):
                 raise CorrectionError(f"correction: the loss became {mse} at step {step + 1}; lower correction.lr "
                                       f"(now {cfg.lr})")
             log(f"step {step + 1}/{cfg.steps}  geometry {mse:.3e} ({-10 * math.log10(max(mse, 1e-30)):.1f} dB)  "
-                f"{eta(step + 1, cfg.steps, t0)}")
+                f"{eta(step + 1, cfg.steps, t0, start=start)}")
+
+    with stop_signals(checkpoint is not None) as stop:
+        for step in range(start, cfg.steps):
+            _step(step)
+            done = step + 1
+            stopping = (stop.requested or done == stop_after_step) and done < cfg.steps
+            if checkpoint is not None and (done % every == 0 and done < cfg.steps or stopping):
+                atomic_torch_save(checkpoint, {"fingerprint": fingerprint, "step": done, "net": net.state_dict(),
+                                               "optimizer": opt.state_dict(), "generator": gen.get_state()})
+            if stopping:
+                raise stop.stopped(f"at step {done}/{cfg.steps}", checkpoint)
+    if checkpoint is not None and checkpoint.exists():
+        checkpoint.unlink()
     return BlendCorrection(net.cpu(), sigma.cpu(), train, cfg.light_freqs,
                            {"config": asdict(cfg), "blend_k": k, "blend_weights": weighting,
-                            "weights_sha256": weights_digest(store.weights), "extinction": store.extinction})
+                            "weights_sha256": digest, "extinction": store.extinction})
+

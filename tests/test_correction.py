@@ -119,6 +119,40 @@ def test_fitted_it_lowers_the_error_of_lights_it_never_saw(monkeypatch):
     assert fix.record["config"]["steps"] == 400 and fix.record["blend_weights"] == "triangle"
 
 
+def test_a_stopped_fit_resumes_to_the_bytes_of_one_never_stopped(monkeypatch, tmp_path):
+    """A kill (here `stop_after_step`) leaves a checkpoint; the rerun takes the network, Adam's moments and the
+    draws' generator from it, and ends where a fit never stopped ends; the checkpoint is then removed. One written
+    for other settings is left alone and the fit starts again."""
+    from diffshadow.stopping import Stopped
+
+    monkeypatch.setattr(corr, "correction_lights", synthetic_lights)
+    ckpt = tmp_path / "correction.pt.ckpt"
+
+    def fit(**kw) -> corr.BlendCorrection:
+        return corr.fit_correction(store(), None, None, TRAIN, CENTER, config(steps=30, **kw), k=4,
+                                   weighting="triangle", log=said.append, checkpoint=ckpt)
+
+    said = []
+    whole = fit()
+    assert not ckpt.exists()
+    with pytest.raises(Stopped):
+        corr.fit_correction(store(), None, None, TRAIN, CENTER, config(steps=30), k=4, weighting="triangle",
+                            log=said.append, checkpoint=ckpt, stop_after_step=13)
+    assert ckpt.exists()
+    said.clear()
+    resumed = fit()
+    assert f"resuming from {ckpt} at step 13/30" in said and not ckpt.exists()
+    for a, b in zip(whole.net.parameters(), resumed.net.parameters(), strict=True):
+        assert torch.equal(a, b)
+    with pytest.raises(Stopped):
+        corr.fit_correction(store(), None, None, TRAIN, CENTER, config(steps=30), k=4, weighting="triangle",
+                            log=said.append, checkpoint=ckpt, stop_after_step=13)
+    said.clear()
+    other = fit(lr=1e-3)  # another config: not this checkpoint's fit
+    assert not any(m.startswith("resuming") for m in said)
+    assert not torch.equal(other.net[-1].weight, whole.net[-1].weight)
+
+
 def test_the_same_seed_fits_the_same_bytes(monkeypatch):
     monkeypatch.setattr(corr, "correction_lights", synthetic_lights)
     fits = [corr.fit_correction(store(), None, None, TRAIN, CENTER, config(steps=30), k=4, weighting="triangle",

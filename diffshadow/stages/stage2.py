@@ -327,8 +327,8 @@ def fit_correction(weights_path: Path, volume_path: Path, lights_path: Path, out
                    blend_k: int, weighting: str, device: torch.device | str = "cpu",
                    spare: SpareThreads | None = None) -> None:
     """`correction.pt`: the blend's correction of stage 1's stored SIRENs (diffshadow/correction.py), fitted on
-    exact-shadow lights of the training cap for blends by `weighting` (`blend_k`). With `spare`, its march and
-    steps take the cores other jobs leave idle (the same bytes on any threads)."""
+    exact-shadow lights of the training cap for blends by `weighting` (`blend_k`); resumable from `<out>.ckpt`.
+    With `spare`, its march and steps take the cores other jobs leave idle (the same bytes on any threads)."""
     from diffshadow.correction import fit_correction as fit
     from diffshadow.correction import save_correction
 
@@ -341,7 +341,8 @@ def fit_correction(weights_path: Path, volume_path: Path, lights_path: Path, out
     k = min(blend_k, len(train))
     with borrowing(spare, "fitted") as poll:
         correction = fit(stage1, volume, tf, train, light_sets["center"], cfg, k=k, weighting=weighting,
-                         device=device, log=lambda m: print(m, flush=True), between_steps=poll)
+                         device=device, log=lambda m: print(m, flush=True), between_steps=poll,
+                         checkpoint=out.with_name(out.name + ".ckpt"))
     save_correction(out, correction)
     print(f"wrote {out}", flush=True)
 
