@@ -29,7 +29,7 @@ from diffshadow.io import atomic_torch_save, resume
 from diffshadow.lights import OLD_WEIGHTING, blend_finder, blend_weights, describe_blend
 from diffshadow.metrics import psnr
 from diffshadow.shadow import shadow_grid
-from diffshadow.store import blend_rows
+from diffshadow.store import blend_rows, corrected_blend
 from diffshadow.truth import EvalTruth, median
 
 if TYPE_CHECKING:
@@ -174,13 +174,12 @@ def cache_table(stage1: WeightStore, truth: EvalTruth, light_sets: dict, *, blen
                  **scored(decoded, blended), **answer}]
 
     def corrected_rows() -> list[dict]:
-        fixed = (blend_rows(weights, idx, mix) + correction.delta(unseen, idx, mix)).astype(np.float32) \
-            if len(unseen) else None
+        fixed = corrected_blend(weights, idx, mix, unseen, correction).astype(np.float32) if len(unseen) else None
         return [{"cache": "stored SIRENs fp32, corrected", "kind": "corrected",
                  "bytes": int(weights.nbytes + correction.nbytes), **scored(weights, fixed),
                  # blend_time hands its lights' corners and weights, not their directions: the first unseen
                  # light's direction stands in (the same work, a correct network input)
-                 **blend_time(lambda i, m: blend_rows(weights, i, m) + correction.delta(unseen[:1], i, m))}]
+                 **blend_time(lambda i, m: corrected_blend(weights, i, m, unseen[:1], correction))}]
 
     codecs = [codec_named(n) for n in ("fp16", "bf16", *(f"basis-{k}" for k in BASIS_K if k < len(train)))]
     work: list[tuple[str, Callable[[], list[dict]]]] = [("stored SIRENs fp32", stored_rows)]
@@ -316,10 +315,7 @@ def _model_rows(state: dict, generated: WeightStore, train, unseen, scored, *, s
         enc = fp16.encode(stored, layout)
         stored16 = fp16.decode(enc, layout)
         idx, w = blend_weights(train, unseen, k, weighting)
-        blended16 = blend_rows(stored16, idx, w)
-        if correction is not None:
-            blended16 = blended16 + correction.delta(unseen, idx, w)
-        blended16 = blended16.astype(np.float32)
+        blended16 = corrected_blend(stored16, idx, w, unseen, correction).astype(np.float32)
         extra = 0 if correction is None else correction.nbytes
         blend16 = np.concatenate([stored16, blended16])
         w16_mix = mix_weights(w16, blend16, share)

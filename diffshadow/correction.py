@@ -112,6 +112,7 @@ class BlendCorrection:
                  record: dict | None = None):
         self.net, self.sigma, self.light_freqs = net.requires_grad_(False).eval(), sigma.float(), light_freqs
         self.train = np.asarray(train, dtype=np.float64)
+        self._corners = self._features(self.train)  # every call's corner terms read these rows
         self.record = record or {}
         self.path: Path | None = None  # the file it was read from (load_correction)
 
@@ -125,7 +126,7 @@ class BlendCorrection:
         if len(lights) == 0:
             return np.zeros((0, len(self.sigma)))
         with torch.no_grad():
-            d = corrected_delta(self.net, self._features(lights), self._features(self.train),
+            d = corrected_delta(self.net, self._features(lights), self._corners,
                                 torch.as_tensor(idx), torch.as_tensor(mix, dtype=torch.float32), self.sigma)
             return d.double().numpy()
 

@@ -64,6 +64,13 @@ class Correction(Protocol):
     def check_weighting(self, weighting: str) -> None: ...
 
 
+def corrected_blend(weights: np.ndarray, idx: np.ndarray, mix: np.ndarray, lights: np.ndarray,
+                    correction: Correction | None) -> np.ndarray:
+    """`blend_rows` (float64) of `lights` (Q, 3), with `correction`'s delta added where one is given."""
+    rows = blend_rows(weights, idx, mix)
+    return rows if correction is None else rows + correction.delta(lights, idx, mix)
+
+
 class BlendSampler:
     """`cache: blend`: the shadow SIREN of any light as a weight blend of the stored SIRENs (`lights.blend_weights`
     by `weighting`, `k`), the way `blend-shadows` makes generated.zarr's unseen rows (both recorded in that store's
@@ -83,9 +90,7 @@ class BlendSampler:
     def rows(self, lights: np.ndarray) -> np.ndarray:
         """The blended SIRENs (Q, P) in float64 of `lights` (Q, 3), corrected where a correction is given."""
         lights = np.asarray(lights, dtype=np.float64)
-        idx, mix = self._find(lights)
-        out = blend_rows(self.store.weights, idx, mix)
-        return out if self.correction is None else out + self.correction.delta(lights, idx, mix)
+        return corrected_blend(self.store.weights, *self._find(lights), lights, self.correction)
 
     def many(self, lights: np.ndarray) -> np.ndarray:
         """The blended SIRENs (Q, P) float32 of `lights` (Q, 3)."""
