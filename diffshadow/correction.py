@@ -14,6 +14,11 @@ stays its stored SIREN, to the bit) and moves continuously with the light, as th
 is fitted by the geometry loss alone: the corrected SIRENs of random lights in the training cap against their
 exact shadows at random points, half in the box and half around visible voxels (box points alone fitted the
 empty box and left the visible shadows, which the images show, as they were: tooth -0.47 dB there).
+
+The fit checks itself on `held_out` lights of its own stream, never fitted on: the plain and the corrected blend
+at their exact shadows, at each log line. Where at the end the corrected blend's median is not above the plain
+one's at either point set, the correction is declined: its file records the check, and the plain blend answers
+(`load_correction` gives None).
 """
 
 from __future__ import annotations
@@ -33,9 +38,11 @@ from diffshadow.adam import Adam, set_lr
 from diffshadow.config import ConfigError, section
 from diffshadow.diffusion.model import light_encoding
 from diffshadow.io import atomic_torch_save, resume
+from diffshadow.layout import SirenConfig, WeightLayout
 from diffshadow.lights import PoolLights, blend_weights, unseen_directions
+from diffshadow.metrics import psnr
 from diffshadow.progress import eta
-from diffshadow.sampling import LightStream, seeded, to_device
+from diffshadow.sampling import CORRECTION_HELD_OUT_SEED, LightStream, seeded, to_device
 from diffshadow.siren import BatchedSiren, box_to_siren
 from diffshadow.stopping import stop_signals
 from diffshadow.store import WeightStore
@@ -61,9 +68,11 @@ class CorrectionConfig:
     light_freqs: int  # NeRF encoding of the direction: sin/cos(2^k pi w), k < light_freqs
     lr: float  # Adam, cosine decay to 0
     seed: int
+    held_out: int  # lights of its own stream the fit is checked on (0: none, and the correction is always kept)
 
     def __post_init__(self):
-        for key in ("steps", "lights", "points", "batch_lights", "batch_points", "hidden", "light_freqs"):
+        for key in ("steps", "lights", "points", "batch_lights", "batch_points", "hidden", "light_freqs",
+                    "held_out"):
             if getattr(self, key) < 0:
                 raise ConfigError(f"correction.{key}: expected 0 or more, got {getattr(self, key)}")
         if self.steps and (self.lights < 1 or self.points < 1 or self.batch_lights < 1 or self.batch_points < 1
@@ -130,6 +139,11 @@ class BlendCorrection:
                                 torch.as_tensor(idx), torch.as_tensor(mix, dtype=torch.float32), self.sigma)
             return d.double().numpy()
 
+    @property
+    def declined(self) -> bool:
+        """Its fit's held-out check found it no better than the plain blend (module docstring)."""
+        return (self.record.get("held_out") or {}).get("kept") is False
+
     def check_weighting(self, weighting: str) -> None:
         """Refuse, in one line, blends weighted otherwise than those it was fitted to correct."""
         fitted = self.record.get("blend_weights")
@@ -164,9 +178,9 @@ def weights_digest(weights: np.ndarray) -> str:
 
 
 def load_correction(path: str | Path, train: np.ndarray | None = None,
-                    weights: np.ndarray | None = None) -> BlendCorrection:
-    """The correction in `path`; with `train` (and `weights`), checked to be fitted for those training lights (and
-    those stored SIRENs), one line if not."""
+                    weights: np.ndarray | None = None) -> BlendCorrection | None:
+    """The correction in `path`, or None where its fit declined it (the plain blend answers); with `train` (and
+    `weights`), checked to be fitted for those training lights (and those stored SIRENs), one line if not."""
     try:
         state = torch.load(path, map_location="cpu", weights_only=False)
         correction = BlendCorrection.from_state(state)
@@ -185,7 +199,15 @@ def load_correction(path: str | Path, train: np.ndarray | None = None,
     if weights is not None and made_for is not None and made_for != weights_digest(weights):
         raise CorrectionError(f"{path}: fitted for other stored SIRENs than these (stage 1 was refitted since); "
                               f"rerun fit_correction")
-    return correction
+    return None if correction.declined else correction
+
+
+def fit_check(path: str | Path) -> dict | None:
+    """The held-out check (`held_out_check`'s record) that the fit of the correction in `path` made, whether it
+    kept the correction or declined it; None where it made none (`correction.held_out: 0`). Read after
+    `load_correction`, which says in one line what is wrong with a file."""
+    state = torch.load(path, map_location="cpu", weights_only=False)
+    return (state.get("record") or {}).get("held_out")
 
 
 @dataclass
@@ -210,33 +232,57 @@ def draw_points(box: int, total: int, cfg: CorrectionConfig, gen: torch.Generato
     return torch.cat(picks, dim=1)
 
 
-def correction_lights(volume: Volume, tf: TransferFunction, train: np.ndarray, center: np.ndarray,
-                      cfg: CorrectionConfig, *, k: int, weighting: str,
-                      log: Callable[[str], None] = print,
+def correction_lights(volume: Volume, tf: TransferFunction, train: np.ndarray, lights: np.ndarray,
+                      cfg: CorrectionConfig, *, k: int, weighting: str, point_seed: int,
                       between_steps: Callable[[], None] | None = None) -> CorrectionLights:
-    """`cfg.lights` random lights in the training cap (their own stream: never a test, validation or pool light)
-    with exact shadows at `cfg.points` box points and as many around visible voxels each (eval_truth's
-    march)."""
+    """`lights` (L, 3) with exact shadows at `cfg.points` box points and as many around visible voxels each
+    (eval_truth's march), each chunk of CHUNK_LIGHTS at points of its own (seed `point_seed` + the chunk's first
+    row), and their blends of the training lights `train`."""
     from diffshadow.truth import EvalTruth
 
-    t0 = time.perf_counter()
-    lights = unseen_directions(train, center, cfg.lights, seed=[cfg.seed, LightStream.CORRECTION])
     points, values = [], []
     for c in range(0, len(lights), CHUNK_LIGHTS):
         part = lights[c:c + CHUNK_LIGHTS]
-        truth = EvalTruth.compute(volume, tf, part, cfg.points, cfg.seed + c)
+        truth = EvalTruth.compute(volume, tf, part, cfg.points, point_seed + c)
         sets = [k for k in ("box", "visible") if k in truth.points]
         points.append(torch.cat([truth.points[k] for k in sets])[None].expand(len(part), -1, -1))
         values.append(torch.cat([truth.values[k] for k in sets], dim=1))
         if between_steps is not None:
             between_steps()
     idx, mix = blend_weights(train, lights, k, weighting)
-    log(f"correction: exact shadows of {len(lights)} lights at {cfg.points} points each in the box and around "
-        f"visible voxels "
-        f"({time.perf_counter() - t0:.1f} s)")
     pool = PoolLights(torch.as_tensor(lights), torch.cat(points).contiguous(), torch.cat(values),
                       torch.as_tensor(idx), torch.as_tensor(mix, dtype=torch.float32))
     return CorrectionLights(pool, truth.extent, cfg.points)
+
+
+def held_out_psnr(lights: CorrectionLights, x: torch.Tensor, layout: WeightLayout,
+                  siren: SirenConfig) -> dict[str, torch.Tensor]:
+    """Per-light PSNR (float64) of the SIRENs `x` (L, n_params) at `lights`' exact shadows, per point set (box,
+    and visible where there is any)."""
+    with torch.no_grad():
+        pred = BatchedSiren(x, layout, siren.blocks)(box_to_siren(lights.pool.points, lights.extent))
+    sets = {"box": slice(0, lights.box)}
+    if lights.pool.points.shape[1] > lights.box:
+        sets["visible"] = slice(lights.box, None)
+    return {key: psnr(pred[:, at], lights.pool.values[:, at], dim=1) for key, at in sets.items()}
+
+
+def held_out_check(plain: dict[str, torch.Tensor], corrected: dict[str, torch.Tensor]) -> dict:
+    """The record of the check: per point set the plain and the corrected blend's median PSNR and on how many
+    lights the corrected one is better; `kept` where its median is above the plain one's at every set."""
+    out: dict = {"lights": len(next(iter(plain.values())))}
+    for key in plain:
+        out[key] = {"plain_psnr_median": float(plain[key].median()),
+                    "corrected_psnr_median": float(corrected[key].median()),
+                    "better": int((corrected[key] > plain[key]).sum())}
+    out["kept"] = all(out[key]["corrected_psnr_median"] > out[key]["plain_psnr_median"] for key in plain)
+    return out
+
+
+def check_words(check: dict) -> str:
+    """"box 50.12 dB (plain 49.03), visible ..." for a log line."""
+    return ", ".join(f"{key} {check[key]['corrected_psnr_median']:.2f} dB (plain {check[key]['plain_psnr_median']:.2f})"
+                     for key in ("box", "visible") if key in check)
 
 
 def fit_correction(store: WeightStore, volume: Volume, tf: TransferFunction, train: np.ndarray, center: np.ndarray,
@@ -257,8 +303,19 @@ def fit_correction(store: WeightStore, volume: Volume, tf: TransferFunction, tra
     digest = weights_digest(store.weights)
     fingerprint = hashlib.sha256(json.dumps([asdict(cfg), k, weighting, digest, store.extinction,
                                              np.asarray(train, dtype=np.float64).tolist()]).encode()).hexdigest()
-    data = correction_lights(volume, tf, train, center, cfg, k=k, weighting=weighting, log=log,
+    t0 = time.perf_counter()
+    # the fitted lights (never a test, validation or pool light) and the held-out ones, each from its own stream
+    fitted = unseen_directions(train, center, cfg.lights, seed=[cfg.seed, LightStream.CORRECTION])
+    data = correction_lights(volume, tf, train, fitted, cfg, k=k, weighting=weighting, point_seed=cfg.seed,
                              between_steps=between_steps)
+    held = None
+    if cfg.held_out:
+        extra = cfg.seed + CORRECTION_HELD_OUT_SEED
+        held = correction_lights(volume, tf, train, unseen_directions(train, center, cfg.held_out,
+                                                                      seed=[extra, LightStream.CORRECTION]),
+                                 cfg, k=k, weighting=weighting, point_seed=extra, between_steps=between_steps)
+    log(f"correction: exact shadows of {cfg.lights} lights (and {cfg.held_out} held out) at {cfg.points} points "
+        f"each in the box and around visible voxels ({time.perf_counter() - t0:.1f} s)")
     stored = weights.to(device)
     sigma = (weights.std(0) + 1e-6).to(device)  # the correction's scale per weight: the stored SIRENs' spread there
     pool, extent = data.pool.to(device), data.extent.to(device)
@@ -279,6 +336,19 @@ def fit_correction(store: WeightStore, volume: Volume, tf: TransferFunction, tra
         start = int(state["step"])
         log(f"resuming from {checkpoint} at step {start}/{cfg.steps}")
     every = max(1, cfg.steps // 10)
+    if held is not None:
+        held = CorrectionLights(held.pool.to(device), held.extent.to(device), held.box)
+        held_x0 = held.pool.x0(stored, torch.arange(cfg.held_out, device=device))
+        held_features = light_encoding(held.pool.lights.float(), cfg.light_freqs)
+        plain = held_out_psnr(held, held_x0, layout, siren)
+
+    def check() -> dict | None:
+        """The held-out check of the network as it stands (no gradient, no draw: it changes no byte of the fit)."""
+        if held is None:
+            return None
+        with torch.no_grad():
+            delta = corrected_delta(net, held_features, corners, held.pool.neighbours, held.pool.blend, sigma)
+        return held_out_check(plain, held_out_psnr(held, held_x0 + delta, layout, siren))
 
     def _step(step: int) -> None:
         set_lr(opt, cfg.lr * 0.5 * (1 + math.cos(math.pi * step / cfg.steps)))
@@ -301,8 +371,10 @@ def fit_correction(store: WeightStore, volume: Volume, tf: TransferFunction, tra
             if not math.isfinite(mse):
                 raise CorrectionError(f"correction: the loss became {mse} at step {step + 1}; lower correction.lr "
                                       f"(now {cfg.lr})")
-            log(f"step {step + 1}/{cfg.steps}  geometry {mse:.3e} ({-10 * math.log10(max(mse, 1e-30)):.1f} dB)  "
-                f"{eta(step + 1, cfg.steps, t0, start=start)}")
+            said = check()
+            held_words = f"  held out: {check_words(said)}" if said else ""
+            log(f"step {step + 1}/{cfg.steps}  geometry {mse:.3e} ({-10 * math.log10(max(mse, 1e-30)):.1f} dB)"
+                f"{held_words}  {eta(step + 1, cfg.steps, t0, start=start)}")
 
     with stop_signals(checkpoint is not None) as stop:
         for step in range(start, cfg.steps):
@@ -316,7 +388,12 @@ def fit_correction(store: WeightStore, volume: Volume, tf: TransferFunction, tra
                 raise stop.stopped(f"at step {done}/{cfg.steps}", checkpoint)
     if checkpoint is not None and checkpoint.exists():
         checkpoint.unlink()
-    return BlendCorrection(net.cpu(), sigma.cpu(), train, cfg.light_freqs,
-                           {"config": asdict(cfg), "blend_k": k, "blend_weights": weighting,
-                            "weights_sha256": digest, "extinction": store.extinction})
+    record = {"config": asdict(cfg), "blend_k": k, "blend_weights": weighting, "weights_sha256": digest,
+              "extinction": store.extinction}
+    if (said := check()) is not None:
+        record["held_out"] = said
+        log(f"held out, {cfg.held_out} lights: the corrected blend {check_words(said)}: "
+            + ("kept" if said["kept"] else "declined, not above the plain blend at every point set: the plain "
+               "blend answers"))
+    return BlendCorrection(net.cpu(), sigma.cpu(), train, cfg.light_freqs, record)
 

@@ -72,6 +72,9 @@ VALIDATION_POINTS_SEED = 1  # the validation lights' exact-shadow points (EvalTr
 FIT_BLEND_POOL_SEED = 7919  # stage 1's blend-pool lights (LightStream.POOL; stage 2's pool: the seed itself)
 SUBSET_HELD_OUT_SEED = 7919  # stage 1's held-out points of subset k: fit.seed + 7919 (k + 1) (Stream.HELD_OUT)
 PROBE_HELD_OUT_SEED = 104729  # the size probe's held-out points (Stream.HELD_OUT)
+# the blend correction's held-out lights (LightStream.CORRECTION) and their points: correction.seed + 7919, never
+# a chunk of its fitted lights' points (correction.seed + a multiple of 64)
+CORRECTION_HELD_OUT_SEED = 7919
 
 
 def seeded(*parts: int) -> torch.Generator:

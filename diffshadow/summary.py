@@ -141,6 +141,8 @@ class RunResults:
                          f"{unseen['nearest_psnr_median']:.2f} dB{_alone(unseen)})"))
         if v.get("mix"):
             rows.append(("the cache's answer", mix_words(v["mix"], v.get("corrected", False))))
+        if v.get("correction_check"):
+            rows.append(("the blend's correction", correction_words(v["correction_check"])))
         verdict = cache_verdict(self.voxel)
         if verdict:
             rows.append(("model or stored SIRENs?", verdict))
@@ -425,6 +427,16 @@ def mix_words(mix: dict, corrected: bool = False) -> str:
     if corrected:
         blend += ", corrected by the blend's correction (correction.pt)"
     return f"{share:g} x the diffusion model's SIREN + {1 - share:g} x {blend} (mix.model_share {how}; both are kept)"
+
+
+def correction_words(check: dict) -> str:
+    """The blend correction's held-out check in words (voxel_metrics.json's `correction_check`)."""
+    sets = [f"{check[k]['corrected_psnr_median']:.2f} dB at {k} points (plain {check[k]['plain_psnr_median']:.2f}, "
+            f"better on {check[k]['better']})" for k in ("box", "visible") if k in check]
+    on = f"on its {check['lights']} held-out lights the corrected blend scores {' and '.join(sets)}"
+    if check["kept"]:
+        return f"kept: {on}"
+    return f"declined: {on}, not above the plain blend at every point set, so the plain blend answers"
 
 
 AGAINST_COUNT = "Against the light count: docs/performance.md, \"Scaling with the light count\""

@@ -39,7 +39,7 @@ def truth_at(lights: np.ndarray, points: torch.Tensor) -> torch.Tensor:
 
 def config(**kw) -> corr.CorrectionConfig:
     base = dict(steps=400, lights=256, points=64, batch_lights=16, batch_points=64, visible_fraction=0.5, hidden=32,
-                light_freqs=2, lr=3e-3, seed=0)
+                light_freqs=2, lr=3e-3, seed=0, held_out=32)
     return corr.CorrectionConfig(**{**base, **kw})
 
 
@@ -48,12 +48,11 @@ def store() -> SimpleNamespace:
                            extinction=None)
 
 
-def synthetic_lights(volume, tf, train, center, cfg, *, k, weighting, log=print,
+def synthetic_lights(volume, tf, train, lights, cfg, *, k, weighting, point_seed,
                      between_steps=None) -> corr.CorrectionLights:
     """correction_lights' stand-in: the truth SIRENs' values at random points (the "visible" ones in a corner of
     the box), not a marched shadow."""
-    lights = unseen_directions(train, center, cfg.lights, seed=[cfg.seed, 99])
-    points = torch.rand(len(lights), 2 * cfg.points, 3, generator=torch.Generator().manual_seed(2))
+    points = torch.rand(len(lights), 2 * cfg.points, 3, generator=torch.Generator().manual_seed(point_seed + 2))
     points[:, cfg.points:] *= 0.5
     idx, mix = blend_weights(train, lights, k, weighting)
     pool = PoolLights(torch.as_tensor(lights), points, truth_at(lights, points).detach(), torch.as_tensor(idx),
@@ -248,3 +247,65 @@ def test_bad_settings_are_named():
     assert corr.CorrectionConfig.from_config({}).steps > 0  # the defaults fit one
     with pytest.raises(corr.CorrectionError, match="correction.steps is 0"):
         corr.fit_correction(store(), None, None, TRAIN, CENTER, config(steps=0), k=4, weighting="triangle")
+
+
+def test_the_fit_checks_itself_on_lights_it_never_fitted(monkeypatch, tmp_path):
+    """The held-out record says what the correction does at its held-out lights: recomputed from the saved
+    correction's own delta there, the same medians; kept, as it betters both point sets here."""
+    from diffshadow.lights import unseen_directions as draw
+    from diffshadow.metrics import psnr
+    from diffshadow.sampling import CORRECTION_HELD_OUT_SEED, LightStream
+
+    monkeypatch.setattr(corr, "correction_lights", synthetic_lights)
+    said = []
+    fix = corr.fit_correction(store(), None, None, TRAIN, CENTER, config(), k=4, weighting="triangle",
+                              log=said.append)
+    check = fix.record["held_out"]
+    assert check["lights"] == 32 and check["kept"] and not fix.declined
+    assert sum("held out: box" in m for m in said) == 10 and said[-1].endswith("kept")
+    extra = CORRECTION_HELD_OUT_SEED
+    held = synthetic_lights(None, None, TRAIN, draw(TRAIN, CENTER, 32, seed=[extra, LightStream.CORRECTION]),
+                            config(), k=4, weighting="triangle", point_seed=extra)
+    idx, mix = held.pool.neighbours.numpy(), held.pool.blend.numpy()
+    plain = blend_rows(store().weights, idx, mix)
+    path = tmp_path / "correction.pt"
+    corr.save_correction(path, fix)
+    back = corr.load_correction(path, TRAIN, store().weights)
+    x = box_to_siren(held.pool.points, EXTENT)
+    for weights, key in ((plain, "plain_psnr_median"), (plain + back.delta(held.pool.lights.numpy(), idx, mix),
+                                                        "corrected_psnr_median")):
+        pred = BatchedSiren(torch.as_tensor(weights, dtype=torch.float32), LAYOUT, SIREN.blocks)(x).detach()
+        for name, at in (("box", slice(0, 64)), ("visible", slice(64, None))):
+            want = float(psnr(pred[:, at], held.pool.values[:, at], dim=1).median())
+            assert check[name][key] == pytest.approx(want, abs=1e-3), (name, key)
+    assert check["box"]["corrected_psnr_median"] > check["box"]["plain_psnr_median"] + 1
+
+
+def test_the_check_changes_no_byte_of_the_fit(monkeypatch):
+    monkeypatch.setattr(corr, "correction_lights", synthetic_lights)
+    fits = [corr.fit_correction(store(), None, None, TRAIN, CENTER, config(steps=30, held_out=n), k=4,
+                                weighting="triangle", log=lambda m: None) for n in (0, 32)]
+    for a, b in zip(fits[0].net.parameters(), fits[1].net.parameters(), strict=True):
+        assert torch.equal(a, b)
+    assert "held_out" not in fits[0].record and "held_out" in fits[1].record
+
+
+def test_a_correction_no_better_than_the_plain_blend_is_declined(monkeypatch, tmp_path):
+    """One Adam step of lr 1 moves every output weight by about 1: a correction that ruins the blend. Its file
+    records the check, loading it gives None, and the blend it would have corrected answers plain. Unchecked
+    (held_out 0), the same correction is kept."""
+    monkeypatch.setattr(corr, "correction_lights", synthetic_lights)
+    said = []
+    bad = corr.fit_correction(store(), None, None, TRAIN, CENTER, config(steps=1, lr=1.0), k=4,
+                              weighting="triangle", log=said.append)
+    check = bad.record["held_out"]
+    assert bad.declined and not check["kept"]
+    assert check["box"]["corrected_psnr_median"] < check["box"]["plain_psnr_median"]
+    assert said[-1].endswith("declined, not above the plain blend at every point set: the plain blend answers")
+    path = tmp_path / "correction.pt"
+    corr.save_correction(path, bad)
+    assert corr.load_correction(path, TRAIN, store().weights) is None
+    unchecked = corr.fit_correction(store(), None, None, TRAIN, CENTER, config(steps=1, lr=1.0, held_out=0), k=4,
+                                    weighting="triangle", log=lambda m: None)
+    corr.save_correction(path, unchecked)
+    assert corr.load_correction(path, TRAIN, store().weights) is not None

@@ -304,3 +304,22 @@ def test_a_damaged_metrics_file_is_named(tmp_path, damage):
     with pytest.raises(StoreError, match=r"^\S*image_metrics.json: (unreadable \(\w+: .+\)|holds a JSON list, not an "
                                          r"object); expected the image metrics of evaluate_images$"):
         RunResults(tmp_path, "blob")
+
+
+def test_the_report_says_whether_the_blends_correction_was_kept_and_why():
+    """voxel_metrics' `correction_check` in words: kept with its held-out figures, or declined and why (the plain
+    blend then answers); without a visible set, the box alone."""
+    from diffshadow.summary import correction_words
+
+    check = {"lights": 64, "kept": True,
+             "box": {"plain_psnr_median": 49.03, "corrected_psnr_median": 50.8, "better": 60},
+             "visible": {"plain_psnr_median": 49.86, "corrected_psnr_median": 51.1, "better": 58}}
+    assert correction_words(check) == ("kept: on its 64 held-out lights the corrected blend scores 50.80 dB at box "
+                                       "points (plain 49.03, better on 60) and 51.10 dB at visible points (plain "
+                                       "49.86, better on 58)")
+    check.update(kept=False, visible={"plain_psnr_median": 45.9, "corrected_psnr_median": 45.5, "better": 20})
+    assert correction_words(check).startswith("declined: on its 64 held-out lights")
+    assert correction_words(check).endswith("45.50 dB at visible points (plain 45.90, better on 20), not above the "
+                                            "plain blend at every point set, so the plain blend answers")
+    del check["visible"]
+    assert "visible" not in correction_words(check)

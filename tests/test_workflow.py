@@ -36,7 +36,8 @@ TINY = {
     "finetune": {"views": 1, "image_size": 16, "pixels": 4, "epochs": 2, "batch_size": 4, "nproc": 2,
                  "checkpoint_every": 1, "val_lights": 4, "val_points": 1024},
     "mix": {"val_lights": 8, "val_points": 128},
-    "correction": {"steps": 20, "lights": 64, "points": 32, "batch_lights": 8, "batch_points": 32, "hidden": 16},
+    "correction": {"steps": 20, "lights": 64, "points": 32, "batch_lights": 8, "batch_points": 32, "hidden": 16,
+                   "held_out": 16},
     "evaluate": {"wide_lights": 16, "wide_points": 128},
     "data_inr": {"width": 8, "blocks": 1, "steps": 20, "points": 512, "target_psnr": 0.0},
     "render": {"image_size": 16, "views": 1, "lights_per_set": 1, "bench_sizes": [8], "bench_repeats": 1,
@@ -143,6 +144,8 @@ def test_stage2_outputs(finished):
     # the blend it mixes in is corrected by fit_correction's correction.pt (TINY's 20 steps), and says so
     assert mix["correction"] == {"path": "results/nucleon/correction.pt", "config": mix["correction"]["config"]}
     assert mix["correction"]["config"]["steps"] == 20 and metrics["corrected"] is True
+    check = metrics["correction_check"]  # its fit's held-out check (TINY's 16 lights), which kept it
+    assert check["lights"] == 16 and check["kept"] and set(check) == {"lights", "kept", "box", "visible"}
     assert np.isfinite(metrics["seen"]["model_alone_psnr_median"])
     assert np.isfinite(metrics["unseen"]["model_alone_psnr_median"])
     # the further test lights: the same comparison at the run's share, with its own draw and counts

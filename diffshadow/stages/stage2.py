@@ -434,6 +434,11 @@ def evaluate_voxels(checkpoint: Path | None, weights_path: Path, generated_path:
                            curve_checkpoint=out.with_name(out.name + ".ckpt"))
     if correction is not None:  # the cache keeps it beside the stored SIRENs (fp32)
         result["storage_bytes"]["correction"] = correction.nbytes
+    if correction_path is not None:  # its fit's held-out check, whether it kept the correction or declined it
+        from diffshadow.correction import fit_check
+
+        if (check := fit_check(correction_path)) is not None:
+            result["correction_check"] = check
     if wide_lights != 0:  # negative: wide_comparison says what it expects
         t0 = time.perf_counter()
         share = float((result.get("mix") or {}).get("model_share", 1.0))
