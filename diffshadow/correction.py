@@ -91,12 +91,20 @@ class CorrectionConfig:
         return section(cls, "correction", d)
 
 
+def corner_rows(idx: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """The training lights that blends with corners `idx` (Q, k, on the CPU) use, once each in ascending order, and
+    where each corner sits among them (Q, k). Made by numpy on the host: on a GPU, torch.unique's size is a wait for
+    the device, one a step."""
+    used, where = np.unique(idx.numpy(), return_inverse=True)
+    return torch.from_numpy(used), torch.from_numpy(where.reshape(idx.shape))
+
+
 def corrected_delta(net: torch.nn.Sequential, features: torch.Tensor, corner_features: torch.Tensor,
-                    idx: torch.Tensor, mix: torch.Tensor, sigma: torch.Tensor) -> torch.Tensor:
-    """sigma * (net(l) - sum_i w_i net(l_i)) for lights of `features` (Q, F) whose blends take training lights
-    `idx` (Q, k) with weights `mix` (Q, k); `corner_features` (N, F) of every training light, of which only the
-    corners named are evaluated (at the paper's 2,000 lights all of them would be a 2,000-row output a call)."""
-    used, where = torch.unique(idx, return_inverse=True)
+                    used: torch.Tensor, where: torch.Tensor, mix: torch.Tensor, sigma: torch.Tensor) -> torch.Tensor:
+    """sigma * (net(l) - sum_i w_i net(l_i)) for lights of `features` (Q, F) whose blends take the training lights
+    `used[where]` (`corner_rows`: (Q, k)) with weights `mix` (Q, k); `corner_features` (N, F) of every training
+    light, of which only those used are evaluated (at the paper's 2,000 lights all of them would be a 2,000-row
+    output a call)."""
     at = net(corner_features[used])
     # index_select, not at[where]: its backward adds the rows in index order on any thread count, where indexing's
     # accumulating index_put splits them between threads (docs/numerics.md, defect 12)
@@ -135,8 +143,8 @@ class BlendCorrection:
         if len(lights) == 0:
             return np.zeros((0, len(self.sigma)))
         with torch.no_grad():
-            d = corrected_delta(self.net, self._features(lights), self._corners,
-                                torch.as_tensor(idx), torch.as_tensor(mix, dtype=torch.float32), self.sigma)
+            d = corrected_delta(self.net, self._features(lights), self._corners, *corner_rows(torch.as_tensor(idx)),
+                                torch.as_tensor(mix, dtype=torch.float32), self.sigma)
             return d.double().numpy()
 
     @property
@@ -285,6 +293,57 @@ def check_words(check: dict) -> str:
                      for key in ("box", "visible") if key in check)
 
 
+class CorrectionFit:
+    """The correction's fit a step at a time (`fit_correction` drives it, `bench stages` times its step): the
+    network, Adam and the draws' generator on `device`, fitted to `data` (`CorrectionLights`) as corrections of
+    the blends of `weights` (N, n_params) at the training lights `train`. A step reads nothing from the device:
+    its draws, and the corners its blends use, are made on the host."""
+
+    def __init__(self, weights: torch.Tensor, data: CorrectionLights, train: np.ndarray, layout: WeightLayout,
+                 siren: SirenConfig, cfg: CorrectionConfig, device: torch.device | str = "cpu"):
+        self.cfg, self.layout, self.siren, self.device = cfg, layout, siren, torch.device(device)
+        self.box, self.host_neighbours = data.box, data.pool.neighbours
+        self.stored = weights.to(self.device)
+        self.sigma = (weights.std(0) + 1e-6).to(self.device)  # its scale per weight: the stored SIRENs' spread
+        self.pool, self.extent = data.pool.to(self.device), data.extent.to(self.device)
+        torch.manual_seed(cfg.seed)
+        self.net = make_net(weights.shape[1], cfg.hidden, cfg.light_freqs).to(self.device)
+        self.features = light_encoding(self.pool.lights.float(), cfg.light_freqs)
+        self.corners = light_encoding(torch.as_tensor(np.asarray(train, dtype=np.float64), dtype=torch.float32),
+                                      cfg.light_freqs).to(self.device)
+        self.opt = Adam(self.net.parameters(), cfg.lr)
+        self.gen = seeded(cfg.seed, LightStream.CORRECTION)
+
+    def step(self, step: int) -> torch.Tensor:
+        """Adam step `step` of `cfg.steps` (cosine decay); its loss, on the device."""
+        cfg, device = self.cfg, self.device
+        set_lr(self.opt, cfg.lr * 0.5 * (1 + math.cos(math.pi * step / cfg.steps)))
+        j_host = torch.randint(0, len(self.host_neighbours), (cfg.batch_lights,), generator=self.gen)
+        pick = to_device(draw_points(self.box, self.pool.points.shape[1], cfg, self.gen), device)
+        used, where = (to_device(t, device) for t in corner_rows(self.host_neighbours[j_host]))
+        j = to_device(j_host, device)
+        delta = corrected_delta(self.net, self.features[j], self.corners, used, where, self.pool.blend[j], self.sigma)
+        # the step's blends made here, not all lights' at once (4,096 x the SIREN's weights: 1.1 GB at the paper's)
+        pts, truth = self.pool.samples(j, pick)
+        pred = BatchedSiren(self.pool.x0(self.stored, j) + delta, self.layout, self.siren.blocks)(
+            box_to_siren(pts, self.extent))
+        loss = ((pred - truth) ** 2).mean()
+        self.opt.zero_grad(set_to_none=True)
+        loss.backward()
+        self.opt.step()
+        return loss.detach()
+
+    def check(self, held: CorrectionLights, plain: dict[str, torch.Tensor]) -> dict:
+        """The held-out check of the network as it stands against the plain blend's `plain` (`held_out_psnr`) at
+        `held` (on this fit's device): no gradient and no draw, so it changes no byte of the fit."""
+        used, where = (t.to(self.device) for t in corner_rows(held.pool.neighbours.cpu()))
+        x0 = held.pool.x0(self.stored, torch.arange(len(held.pool.lights), device=self.device))
+        with torch.no_grad():
+            delta = corrected_delta(self.net, light_encoding(held.pool.lights.float(), self.cfg.light_freqs),
+                                    self.corners, used, where, held.pool.blend, self.sigma)
+        return held_out_check(plain, held_out_psnr(held, x0 + delta, self.layout, self.siren))
+
+
 def fit_correction(store: WeightStore, volume: Volume, tf: TransferFunction, train: np.ndarray, center: np.ndarray,
                    cfg: CorrectionConfig, *, k: int, weighting: str, device: torch.device | str = "cpu",
                    log: Callable[[str], None] = print, between_steps: Callable[[], None] | None = None,
@@ -294,12 +353,13 @@ def fit_correction(store: WeightStore, volume: Volume, tf: TransferFunction, tra
     cosine decay on `device`; the correction comes back on the CPU. `between_steps` is called after each chunk
     of the march and each step (runtime.SpareThreads.poll: the threads change no byte). With `checkpoint` it
     saves there at every log line and on SIGTERM / SIGINT, and resumes from it (the march is made again: it is
-    deterministic); `stop_after_step` stops there as a kill would (tests use it)."""
+    deterministic); `stop_after_step` stops there as a kill would (tests use it). With `cfg.held_out` it checks
+    itself on that many lights it never fits (module docstring) and records the check (`record["held_out"]`),
+    declined where the corrected blend is not above the plain one at both point sets."""
     if cfg.steps < 1:
         raise CorrectionError("correction.steps is 0: there is no correction to fit")
     device = torch.device(device)
     weights = torch.as_tensor(np.asarray(store.weights, dtype=np.float32))
-    layout, siren = store.layout, store.siren
     digest = weights_digest(store.weights)
     fingerprint = hashlib.sha256(json.dumps([asdict(cfg), k, weighting, digest, store.extinction,
                                              np.asarray(train, dtype=np.float64).tolist()]).encode()).hexdigest()
@@ -316,74 +376,45 @@ def fit_correction(store: WeightStore, volume: Volume, tf: TransferFunction, tra
                                  cfg, k=k, weighting=weighting, point_seed=extra, between_steps=between_steps)
     log(f"correction: exact shadows of {cfg.lights} lights (and {cfg.held_out} held out) at {cfg.points} points "
         f"each in the box and around visible voxels ({time.perf_counter() - t0:.1f} s)")
-    stored = weights.to(device)
-    sigma = (weights.std(0) + 1e-6).to(device)  # the correction's scale per weight: the stored SIRENs' spread there
-    pool, extent = data.pool.to(device), data.extent.to(device)
-    torch.manual_seed(cfg.seed)
-    net = make_net(weights.shape[1], cfg.hidden, cfg.light_freqs).to(device)
-    features = light_encoding(pool.lights.float(), cfg.light_freqs)
-    corners = light_encoding(torch.as_tensor(np.asarray(train, dtype=np.float64), dtype=torch.float32),
-                             cfg.light_freqs).to(device)
-    opt = Adam(net.parameters(), cfg.lr)
-    gen = seeded(cfg.seed, LightStream.CORRECTION)
-    n, t0, window, start = len(pool.lights), time.perf_counter(), [], 0
-    log(f"correction: an MLP of {sum(p.numel() for p in net.parameters()):,} parameters (width {cfg.hidden}) "
+    fit = CorrectionFit(weights, data, train, store.layout, store.siren, cfg, device)
+    t0, window, start = time.perf_counter(), [], 0
+    log(f"correction: an MLP of {sum(p.numel() for p in fit.net.parameters()):,} parameters (width {cfg.hidden}) "
         f"fitted for {cfg.steps} steps of {cfg.batch_lights} lights x {cfg.batch_points} points on {device}")
     if state := resume(checkpoint, fingerprint, log=log, map_location=device):
-        net.load_state_dict(state["net"])
-        opt.load_state_dict(state["optimizer"])
-        gen.set_state(state["generator"])
+        fit.net.load_state_dict(state["net"])
+        fit.opt.load_state_dict(state["optimizer"])
+        fit.gen.set_state(state["generator"])
         start = int(state["step"])
         log(f"resuming from {checkpoint} at step {start}/{cfg.steps}")
     every = max(1, cfg.steps // 10)
     if held is not None:
         held = CorrectionLights(held.pool.to(device), held.extent.to(device), held.box)
-        held_x0 = held.pool.x0(stored, torch.arange(cfg.held_out, device=device))
-        held_features = light_encoding(held.pool.lights.float(), cfg.light_freqs)
-        plain = held_out_psnr(held, held_x0, layout, siren)
+        plain = held_out_psnr(held, held.pool.x0(fit.stored, torch.arange(cfg.held_out, device=device)),
+                              store.layout, store.siren)
 
     def check() -> dict | None:
-        """The held-out check of the network as it stands (no gradient, no draw: it changes no byte of the fit)."""
-        if held is None:
-            return None
-        with torch.no_grad():
-            delta = corrected_delta(net, held_features, corners, held.pool.neighbours, held.pool.blend, sigma)
-        return held_out_check(plain, held_out_psnr(held, held_x0 + delta, layout, siren))
-
-    def _step(step: int) -> None:
-        set_lr(opt, cfg.lr * 0.5 * (1 + math.cos(math.pi * step / cfg.steps)))
-        j = to_device(torch.randint(0, n, (cfg.batch_lights,), generator=gen), device)
-        pick = to_device(draw_points(data.box, pool.points.shape[1], cfg, gen), device)
-        delta = corrected_delta(net, features[j], corners, pool.neighbours[j], pool.blend[j], sigma)
-        # the step's blends made here, not all lights' at once (4,096 x the SIREN's weights: 1.1 GB at the paper's)
-        pts, truth = pool.samples(j, pick)
-        pred = BatchedSiren(pool.x0(stored, j) + delta, layout, siren.blocks)(box_to_siren(pts, extent))
-        loss = ((pred - truth) ** 2).mean()
-        opt.zero_grad(set_to_none=True)
-        loss.backward()
-        opt.step()
-        if between_steps is not None:
-            between_steps()
-        window.append(loss.detach())
-        if (step + 1) % every == 0 or step + 1 == cfg.steps:
-            mse = float(torch.stack(window).mean())
-            window.clear()
-            if not math.isfinite(mse):
-                raise CorrectionError(f"correction: the loss became {mse} at step {step + 1}; lower correction.lr "
-                                      f"(now {cfg.lr})")
-            said = check()
-            held_words = f"  held out: {check_words(said)}" if said else ""
-            log(f"step {step + 1}/{cfg.steps}  geometry {mse:.3e} ({-10 * math.log10(max(mse, 1e-30)):.1f} dB)"
-                f"{held_words}  {eta(step + 1, cfg.steps, t0, start=start)}")
+        return None if held is None else fit.check(held, plain)
 
     with stop_signals(checkpoint is not None) as stop:
         for step in range(start, cfg.steps):
-            _step(step)
+            window.append(fit.step(step))
+            if between_steps is not None:
+                between_steps()
             done = step + 1
+            if done % every == 0 or done == cfg.steps:
+                mse = float(torch.stack(window).mean())
+                window.clear()
+                if not math.isfinite(mse):
+                    raise CorrectionError(f"correction: the loss became {mse} at step {done}; lower correction.lr "
+                                          f"(now {cfg.lr})")
+                said = check()
+                held_words = f"  held out: {check_words(said)}" if said else ""
+                log(f"step {done}/{cfg.steps}  geometry {mse:.3e} ({-10 * math.log10(max(mse, 1e-30)):.1f} dB)"
+                    f"{held_words}  {eta(done, cfg.steps, t0, start=start)}")
             stopping = (stop.requested or done == stop_after_step) and done < cfg.steps
             if checkpoint is not None and (done % every == 0 and done < cfg.steps or stopping):
-                atomic_torch_save(checkpoint, {"fingerprint": fingerprint, "step": done, "net": net.state_dict(),
-                                               "optimizer": opt.state_dict(), "generator": gen.get_state()})
+                atomic_torch_save(checkpoint, {"fingerprint": fingerprint, "step": done, "net": fit.net.state_dict(),
+                                               "optimizer": fit.opt.state_dict(), "generator": fit.gen.get_state()})
             if stopping:
                 raise stop.stopped(f"at step {done}/{cfg.steps}", checkpoint)
     if checkpoint is not None and checkpoint.exists():
@@ -395,5 +426,4 @@ def fit_correction(store: WeightStore, volume: Volume, tf: TransferFunction, tra
         log(f"held out, {cfg.held_out} lights: the corrected blend {check_words(said)}: "
             + ("kept" if said["kept"] else "declined, not above the plain blend at every point set: the plain "
                "blend answers"))
-    return BlendCorrection(net.cpu(), sigma.cpu(), train, cfg.light_freqs, record)
-
+    return BlendCorrection(fit.net.cpu(), fit.sigma.cpu(), train, cfg.light_freqs, record)

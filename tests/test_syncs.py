@@ -13,7 +13,7 @@ from diffshadow.bench.stages import BUILDERS, bench_stages
 from diffshadow.config import merge, run_config, scene_config
 
 REPO = Path(__file__).resolve().parents[1]
-TRAINING = ("fit_siren", "preoptimize", "train_data_inr", "train_diffusion", "finetune_render")
+TRAINING = ("fit_siren", "preoptimize", "train_data_inr", "train_diffusion", "fit_correction", "finetune_render")
 TINY = {"lights": {"count": 6, "unseen": 2}, "subset_size": 6,
         "fit": {"points": 64, "blend_per_light": 2, "blend_points": 32},
         "diffusion": {"presample_points": 64, "pool_lights": 4, "pool_points": 32, "geometry_points": 16,

@@ -40,8 +40,8 @@ if TYPE_CHECKING:  # the stages import what they time inside themselves
     from diffshadow.transfer import TransferFunction
     from diffshadow.volume import Volume
 
-STAGES = ("fit_siren", "preoptimize", "train_data_inr", "train_diffusion", "finetune_render", "sample_shadows",
-          "eval_truth")
+STAGES = ("fit_siren", "preoptimize", "train_data_inr", "train_diffusion", "fit_correction", "finetune_render",
+          "sample_shadows", "eval_truth")
 
 
 def _rss() -> int:
@@ -333,6 +333,25 @@ def sample_shadows(cfg: dict, device: torch.device, volume: Volume, tf: Transfer
                  + f" in batches of {batch}", batch)
 
 
+def fit_correction(cfg: dict, device: torch.device, volume: Volume, tf: TransferFunction) -> Timed:
+    """A step of the blend's correction: the config's stored SIRENs (near a common init) corrected at synthetic
+    lights of the config's shapes (`_pool`: a step's cost depends on the shapes, not on the values)."""
+    from diffshadow.correction import CorrectionConfig, CorrectionFit, CorrectionLights
+    from diffshadow.siren import SirenConfig, WeightLayout, init_siren
+
+    ccfg = CorrectionConfig.from_config(cfg.get("correction"))
+    siren = SirenConfig.from_config(cfg["siren"])
+    layout = WeightLayout.for_siren(siren)
+    n, g = int(cfg["lights"]["count"]), torch.Generator().manual_seed(4)
+    weights = layout.flatten(init_siren(siren, g)) + 0.01 * torch.randn(n, layout.n_params, generator=g)
+    pool = _pool(max(1, ccfg.lights), 2 * max(1, ccfg.points), n, cfg, volume, seed=4)
+    train = _lights(n, cfg["lights"]["center"], np.random.default_rng(4))
+    fit = CorrectionFit(weights, CorrectionLights(pool, torch.as_tensor(volume.extent, dtype=torch.float32),
+                                                  max(1, ccfg.points)), train, layout, siren, ccfg, device)
+    return Timed(fit.step, f"step of {ccfg.batch_lights} lights x {ccfg.batch_points} points", ccfg.steps,
+                 f"{ccfg.steps} steps (the march of its {ccfg.lights} lights and the held-out checks not counted)")
+
+
 def eval_truth(cfg: dict, device: torch.device, volume: Volume, tf: TransferFunction) -> Timed:
     from diffshadow.shadow import ShadowField, transmittance_per_light
 
@@ -349,7 +368,7 @@ def eval_truth(cfg: dict, device: torch.device, volume: Volume, tf: TransferFunc
 
 BUILDERS = {"fit_siren": fit_siren, "preoptimize": lambda c, d, v, t: fit_siren(c, d, v, t, subset=False),
             "train_data_inr": train_data_inr, "train_diffusion": train_diffusion, "finetune_render": finetune_render,
-            "sample_shadows": sample_shadows, "eval_truth": eval_truth}
+            "fit_correction": fit_correction, "sample_shadows": sample_shadows, "eval_truth": eval_truth}
 
 
 def measure(timed: Timed, device: torch.device, *, warmup: int, budget_s: float, max_steps: int) -> dict:
