@@ -67,6 +67,7 @@ def test_bench_stages_measures_and_projects_every_stage(tiny, tmp_path):
     stages = result["stages"]
     assert stages["fit_siren"]["steps"] == tiny["fit"]["steps"]
     assert stages["train_diffusion"]["steps"] == 2 * 3  # 6 lights in batches of 4, 3 epochs
+    assert stages["fit_correction"]["steps"] == tiny["correction"]["steps"]
     # per light, over the 8 training and unseen lights, and for the mix's choice (model share auto) its validation
     # lights as well
     val = tiny["mix"]["val_lights"]
@@ -79,6 +80,15 @@ def test_bench_stages_measures_and_projects_every_stage(tiny, tmp_path):
     assert row["seconds_per_unit"] * 8 == pytest.approx(row["projected_s"])  # the model alone: no choice to make
     with pytest.raises(ValueError, match="bench stages: unknown stage 'fit'"):
         bench_stages(tiny, out, device=torch.device("cpu"), stages=["fit"])
+
+
+def test_the_bench_help_names_every_stage(capsys):
+    from diffshadow.bench.stages import STAGES
+    from diffshadow.cli import main
+
+    with pytest.raises(SystemExit):
+        main(["bench", "stages", "--help"])
+    assert f"default: all ({' '.join(STAGES)})" in " ".join(capsys.readouterr().out.split())
 
 
 def test_sampling_reads_the_host_once_per_batch_not_per_step():

@@ -171,7 +171,7 @@ def add_bench_parsers(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--scene", help="the scene whose file and volume to use (default: the config's first)")
     p.add_argument("--scenes-dir", default="config/scenes")
     p.add_argument("--stages", nargs="+", help="default: all (fit_siren preoptimize train_data_inr train_diffusion "
-                   "finetune_render sample_shadows eval_truth)")
+                   "fit_correction finetune_render sample_shadows eval_truth)")
     p.add_argument("--budget", type=at_least(0, float), default=2.0,
                    help="seconds of timed steps per stage (at least 2 steps)")
     p.add_argument("--max-steps", type=int, default=50, help="timed steps per stage at most")
