@@ -104,12 +104,16 @@ def corrected_delta(net: torch.nn.Sequential, features: torch.Tensor, corner_fea
     """sigma * (net(l) - sum_i w_i net(l_i)) for lights of `features` (Q, F) whose blends take the training lights
     `used[where]` (`corner_rows`: (Q, k)) with weights `mix` (Q, k); `corner_features` (N, F) of every training
     light, of which only those used are evaluated (at the paper's 2,000 lights all of them would be a 2,000-row
-    output a call)."""
-    at = net(corner_features[used])
+    output a call). The last layer is linear, so it is applied once to the hidden features' difference,
+    W (h(l) - sum_i w_i h(l_i)) + b (1 - sum_i w_i): one row a light through the widest product (hidden x the
+    SIREN's weights), not one for the light and one for each corner (a step at config/paper.yaml's sizes 0.6x the
+    time, docs/performance.md)."""
+    body, last = net[:-1], net[-1]
+    at = body(corner_features[used])
     # index_select, not at[where]: its backward adds the rows in index order on any thread count, where indexing's
     # accumulating index_put splits them between threads (docs/numerics.md, defect 12)
     corners = at.index_select(0, where.reshape(-1)).view(*where.shape, -1)
-    return sigma * (net(features) - (corners * mix[..., None]).sum(1))
+    return sigma * (last(body(features) - (corners * mix[..., None]).sum(1)) - last.bias * mix.sum(1, keepdim=True))
 
 
 def make_net(n_params: int, hidden: int, light_freqs: int) -> torch.nn.Sequential:
