@@ -16,9 +16,9 @@ exact shadows at random points, half in the box and half around visible voxels (
 empty box and left the visible shadows, which the images show, as they were: tooth -0.47 dB there).
 
 The fit checks itself on `held_out` lights of its own stream, never fitted on: the plain and the corrected blend
-at their exact shadows, at each log line. Where at the end the corrected blend's median is not above the plain
-one's at either point set, the correction is declined: its file records the check, and the plain blend answers
-(`load_correction` gives None).
+at their exact shadows, at each log line. Where at the end a sign test does not find the corrected blend better
+at one point set at least, or finds it worse at one, the correction is declined: its file records the check, and
+the plain blend answers (`load_correction` gives None).
 """
 
 from __future__ import annotations
@@ -50,6 +50,8 @@ from diffshadow.transfer import TransferFunction
 from diffshadow.volume import Volume
 
 CHUNK_LIGHTS = 64  # the exact shadows are marched this many lights at a time, each chunk at points of its own
+SIGN_TEST_ALPHA = 0.05  # the held-out check's one-sided sign test: a gain or a loss counts where chance gives it < 5 %
+MIN_HELD_OUT = 5  # the fewest held-out lights on which that test can find anything (1/32 < 0.05)
 
 
 class CorrectionError(ValueError):
@@ -81,6 +83,9 @@ class CorrectionConfig:
                               "when steps is over 0")
         if not 0 <= self.visible_fraction <= 1:
             raise ConfigError(f"correction.visible_fraction: expected 0 to 1, got {self.visible_fraction}")
+        if self.steps and 0 < self.held_out < MIN_HELD_OUT:
+            raise ConfigError(f"correction.held_out: expected 0 (no check) or at least {MIN_HELD_OUT}, got "
+                              f"{self.held_out}: on fewer lights the check's sign test can find nothing")
         if self.steps and self.batch_points > 2 * self.points:
             raise ConfigError(f"correction.batch_points ({self.batch_points}) is more than twice correction.points "
                               f"({self.points}), the points each light has in its two sets")
@@ -279,22 +284,40 @@ def held_out_psnr(lights: CorrectionLights, x: torch.Tensor, layout: WeightLayou
     return {key: psnr(pred[:, at], lights.pool.values[:, at], dim=1) for key, at in sets.items()}
 
 
+def sign_test_count(n: int, alpha: float = SIGN_TEST_ALPHA) -> int:
+    """The fewest of `n` lights on which one blend must beat the other for chance alone (each light a fair coin)
+    to give as many or more with probability at most `alpha`; n + 1 where no count does."""
+    tail = 0.0
+    for k in range(n, -1, -1):
+        tail += math.comb(n, k) / 2**n
+        if tail > alpha:
+            break
+    return k + 1
+
+
 def held_out_check(plain: dict[str, torch.Tensor], corrected: dict[str, torch.Tensor]) -> dict:
     """The record of the check: per point set the plain and the corrected blend's median PSNR and on how many
-    lights the corrected one is better; `kept` where its median is above the plain one's at every set."""
-    out: dict = {"lights": len(next(iter(plain.values())))}
+    lights the corrected one is better and worse. `kept` where a sign test (`sign_test_count`: 40 of 64) finds it
+    better at one set at least and worse at none: a median's move of a few hundredths of a dB is no finding (the
+    README run's correction is better on 62 and 64 of 64; neghip's on 43 at box points and a coin's 30 at visible
+    ones, its medians there 41.14 against 41.15 dB)."""
+    n = len(next(iter(plain.values())))
+    out: dict = {"lights": n, "significant": sign_test_count(n)}
     for key in plain:
         out[key] = {"plain_psnr_median": float(plain[key].median()),
                     "corrected_psnr_median": float(corrected[key].median()),
-                    "better": int((corrected[key] > plain[key]).sum())}
-    out["kept"] = all(out[key]["corrected_psnr_median"] > out[key]["plain_psnr_median"] for key in plain)
+                    "better": int((corrected[key] > plain[key]).sum()),
+                    "worse": int((corrected[key] < plain[key]).sum())}
+    sets = [out[key] for key in plain]
+    out["kept"] = (any(s["better"] >= out["significant"] for s in sets)
+                   and all(s["worse"] < out["significant"] for s in sets))
     return out
 
 
 def check_words(check: dict) -> str:
-    """"box 50.12 dB (plain 49.03), visible ..." for a log line."""
-    return ", ".join(f"{key} {check[key]['corrected_psnr_median']:.2f} dB (plain {check[key]['plain_psnr_median']:.2f})"
-                     for key in ("box", "visible") if key in check)
+    """"box 50.12 dB (plain 49.03, better on 60 of 64), visible ..." for a log line."""
+    return ", ".join(f"{key} {c['corrected_psnr_median']:.2f} dB (plain {c['plain_psnr_median']:.2f}, better on "
+                     f"{c['better']} of {check['lights']})" for key in ("box", "visible") if (c := check.get(key)))
 
 
 class CorrectionFit:
@@ -358,8 +381,8 @@ def fit_correction(store: WeightStore, volume: Volume, tf: TransferFunction, tra
     of the march and each step (runtime.SpareThreads.poll: the threads change no byte). With `checkpoint` it
     saves there at every log line and on SIGTERM / SIGINT, and resumes from it (the march is made again: it is
     deterministic); `stop_after_step` stops there as a kill would (tests use it). With `cfg.held_out` it checks
-    itself on that many lights it never fits (module docstring) and records the check (`record["held_out"]`),
-    declined where the corrected blend is not above the plain one at both point sets."""
+    itself on that many lights it never fits (module docstring) and records the check (`record["held_out"]`,
+    `held_out_check`), declined where it does not find the corrected blend better."""
     if cfg.steps < 1:
         raise CorrectionError("correction.steps is 0: there is no correction to fit")
     device = torch.device(device)
@@ -428,6 +451,6 @@ def fit_correction(store: WeightStore, volume: Volume, tf: TransferFunction, tra
     if (said := check()) is not None:
         record["held_out"] = said
         log(f"held out, {cfg.held_out} lights: the corrected blend {check_words(said)}: "
-            + ("kept" if said["kept"] else "declined, not above the plain blend at every point set: the plain "
-               "blend answers"))
+            + ("kept" if said["kept"] else f"declined, not better on {said['significant']} of them at one point set "
+               f"and worse at none (a sign test at {SIGN_TEST_ALPHA:.0%}): the plain blend answers"))
     return BlendCorrection(fit.net.cpu(), fit.sigma.cpu(), train, cfg.light_freqs, record)

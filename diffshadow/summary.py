@@ -431,12 +431,14 @@ def mix_words(mix: dict, corrected: bool = False) -> str:
 
 def correction_words(check: dict) -> str:
     """The blend correction's held-out check in words (voxel_metrics.json's `correction_check`)."""
-    sets = [f"{check[k]['corrected_psnr_median']:.2f} dB at {k} points (plain {check[k]['plain_psnr_median']:.2f}, "
-            f"better on {check[k]['better']})" for k in ("box", "visible") if k in check]
+    sets = [f"{c['corrected_psnr_median']:.2f} dB at {k} points (plain {c['plain_psnr_median']:.2f}; better on "
+            f"{c['better']}, worse on {c['worse']})" for k in ("box", "visible") if (c := check.get(k))]
     on = f"on its {check['lights']} held-out lights the corrected blend scores {' and '.join(sets)}"
+    test = f"a sign test ({check['significant']} of {check['lights']} lights, 5 %)"
     if check["kept"]:
-        return f"kept: {on}"
-    return f"declined: {on}, not above the plain blend at every point set, so the plain blend answers"
+        return f"kept: {on}; {test} finds it better at one point set at least and worse at none"
+    return f"declined: {on}; {test} does not find it better at one point set, or finds it worse at one, so the plain " \
+           f"blend answers"
 
 
 AGAINST_COUNT = "Against the light count: docs/performance.md, \"Scaling with the light count\""

@@ -261,7 +261,7 @@ def test_the_fit_checks_itself_on_lights_it_never_fitted(monkeypatch, tmp_path):
     fix = corr.fit_correction(store(), None, None, TRAIN, CENTER, config(), k=4, weighting="triangle",
                               log=said.append)
     check = fix.record["held_out"]
-    assert check["lights"] == 32 and check["kept"] and not fix.declined
+    assert check["lights"] == 32 and check["significant"] == 22 and check["kept"] and not fix.declined
     assert sum("held out: box" in m for m in said) == 10 and said[-1].endswith("kept")
     extra = CORRECTION_HELD_OUT_SEED
     held = synthetic_lights(None, None, TRAIN, draw(TRAIN, CENTER, 32, seed=[extra, LightStream.CORRECTION]),
@@ -301,11 +301,51 @@ def test_a_correction_no_better_than_the_plain_blend_is_declined(monkeypatch, tm
     check = bad.record["held_out"]
     assert bad.declined and not check["kept"]
     assert check["box"]["corrected_psnr_median"] < check["box"]["plain_psnr_median"]
-    assert said[-1].endswith("declined, not above the plain blend at every point set: the plain blend answers")
+    assert said[-1].endswith("declined, not better on 22 of them at one point set and worse at none (a sign test at "
+                             "5%): the plain blend answers")
     path = tmp_path / "correction.pt"
     corr.save_correction(path, bad)
     assert corr.load_correction(path, TRAIN, store().weights) is None
+    from diffshadow.stages.stage2 import _correction  # what every stage that blends reads: the plain blend
+    assert _correction(path, store(), "triangle") is None and _correction(path, store(), "inverse-angle") is None
     unchecked = corr.fit_correction(store(), None, None, TRAIN, CENTER, config(steps=1, lr=1.0, held_out=0), k=4,
                                     weighting="triangle", log=lambda m: None)
     corr.save_correction(path, unchecked)
     assert corr.load_correction(path, TRAIN, store().weights) is not None
+
+
+def test_the_sign_test_counts_what_chance_gives_under_five_percent():
+    """sign_test_count(n) is the fewest wins of n fair coins with P(as many or more) <= 5 %: 5 of 5 (1/32), 7 of 8
+    (9/256), 40 of 64; one fewer is over 5 %."""
+    from math import comb
+
+    def tail(n: int, k: int) -> float:
+        return sum(comb(n, i) for i in range(k, n + 1)) / 2**n
+
+    assert [corr.sign_test_count(n) for n in (4, 5, 8, 64)] == [5, 5, 7, 40]
+    for n in (5, 8, 16, 64, 200):
+        k = corr.sign_test_count(n)
+        assert tail(n, k) <= 0.05 < tail(n, k - 1), n
+
+
+def test_a_gain_at_one_set_and_a_coin_at_the_other_is_kept_a_loss_at_either_declined():
+    """neghip's case: better on 43 of 64 lights at box points, 30 at visible ones (its median there 0.01 dB under the
+    plain blend's): kept. Worse on 40 at one set: declined whatever the other gains; better on 39 at best: declined."""
+    def check(box_better: int, visible_better: int) -> dict:
+        def wins(k: int) -> torch.Tensor:
+            return torch.cat([torch.ones(k), -torch.ones(64 - k)]).double()
+        plain = {"box": torch.zeros(64, dtype=torch.float64), "visible": torch.zeros(64, dtype=torch.float64)}
+        return corr.held_out_check(plain, {"box": wins(box_better), "visible": wins(visible_better)})
+
+    assert check(43, 30)["kept"] and check(40, 25)["kept"]
+    assert not check(64, 24)["kept"]  # worse on 40 of 64 at visible points
+    assert not check(39, 39)["kept"]  # better, but not on 40 of 64 anywhere
+    assert check(43, 30)["visible"] == {"plain_psnr_median": 0.0, "corrected_psnr_median": -1.0, "better": 30,
+                                        "worse": 34}
+
+
+def test_a_held_out_set_too_small_to_decide_is_refused():
+    with pytest.raises(ConfigError, match=r"correction.held_out: expected 0 \(no check\) or at least 5, got 4: on "
+                                          r"fewer lights the check's sign test can find nothing"):
+        config(held_out=4)
+    config(held_out=0), config(held_out=5)

@@ -311,15 +311,18 @@ def test_the_report_says_whether_the_blends_correction_was_kept_and_why():
     blend then answers); without a visible set, the box alone."""
     from diffshadow.summary import correction_words
 
-    check = {"lights": 64, "kept": True,
-             "box": {"plain_psnr_median": 49.03, "corrected_psnr_median": 50.8, "better": 60},
-             "visible": {"plain_psnr_median": 49.86, "corrected_psnr_median": 51.1, "better": 58}}
-    assert correction_words(check) == ("kept: on its 64 held-out lights the corrected blend scores 50.80 dB at box "
-                                       "points (plain 49.03, better on 60) and 51.10 dB at visible points (plain "
-                                       "49.86, better on 58)")
-    check.update(kept=False, visible={"plain_psnr_median": 45.9, "corrected_psnr_median": 45.5, "better": 20})
+    check = {"lights": 64, "significant": 40, "kept": True,
+             "box": {"plain_psnr_median": 38.57, "corrected_psnr_median": 39.55, "better": 43, "worse": 21},
+             "visible": {"plain_psnr_median": 41.15, "corrected_psnr_median": 41.14, "better": 30, "worse": 34}}
+    assert correction_words(check) == (
+        "kept: on its 64 held-out lights the corrected blend scores 39.55 dB at box points (plain 38.57; better on "
+        "43, worse on 21) and 41.14 dB at visible points (plain 41.15; better on 30, worse on 34); a sign test (40 of "
+        "64 lights, 5 %) finds it better at one point set at least and worse at none")
+    check.update(kept=False, visible={"plain_psnr_median": 45.9, "corrected_psnr_median": 45.5, "better": 20,
+                                      "worse": 44})
     assert correction_words(check).startswith("declined: on its 64 held-out lights")
-    assert correction_words(check).endswith("45.50 dB at visible points (plain 45.90, better on 20), not above the "
-                                            "plain blend at every point set, so the plain blend answers")
+    assert correction_words(check).endswith("45.50 dB at visible points (plain 45.90; better on 20, worse on 44); a "
+                                            "sign test (40 of 64 lights, 5 %) does not find it better at one point "
+                                            "set, or finds it worse at one, so the plain blend answers")
     del check["visible"]
     assert "visible" not in correction_words(check)

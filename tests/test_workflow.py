@@ -145,7 +145,7 @@ def test_stage2_outputs(finished):
     assert mix["correction"] == {"path": "results/nucleon/correction.pt", "config": mix["correction"]["config"]}
     assert mix["correction"]["config"]["steps"] == 20 and metrics["corrected"] is True
     check = metrics["correction_check"]  # its fit's held-out check (TINY's 16 lights), which kept it
-    assert check["lights"] == 16 and check["kept"] and set(check) == {"lights", "kept", "box", "visible"}
+    assert check["lights"] == 16 and check["kept"] and set(check) == {"lights", "significant", "kept", "box", "visible"}
     assert np.isfinite(metrics["seen"]["model_alone_psnr_median"])
     assert np.isfinite(metrics["unseen"]["model_alone_psnr_median"])
     # the further test lights: the same comparison at the run's share, with its own draw and counts

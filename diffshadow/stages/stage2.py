@@ -214,13 +214,14 @@ def sample_shadows(checkpoint: Path, truth_path: Path, lights_path: Path, out: P
 
 def _correction(path: Path | None, stage1: WeightStore, weighting: str):
     """fit_correction's correction of the blend, checked to be for these stored SIRENs and blends; None without a
-    path."""
+    path, or where its fit's held-out check declined it."""
     from diffshadow.correction import load_correction
 
     if path is None:
         return None
     correction = load_correction(path, stage1.lights, stage1.weights)
-    correction.check_weighting(weighting)
+    if correction is not None:
+        correction.check_weighting(weighting)
     return correction
 
 
