@@ -151,10 +151,19 @@ class BlendCorrection:
         `lights` (Q, 3)."""
         if len(lights) == 0:
             return np.zeros((0, len(self.sigma)))
-        with torch.no_grad():
-            d = corrected_delta(self.net, self._features(lights), self._corners, *corner_rows(torch.as_tensor(idx)),
-                                torch.as_tensor(mix, dtype=torch.float32), self.sigma)
-            return d.double().numpy()
+        # on one thread: MKL rounded a small product (the corners' first layer, 4 x 21 by 21 x 16) by the thread
+        # count on an AMD EPYC even in its strict mode, so a -j1 and a -j2 run blended other bytes (docs/numerics.md,
+        # defect 14); these products are small, one thread costs little
+        threads = torch.get_num_threads()
+        torch.set_num_threads(1)
+        try:
+            with torch.no_grad():
+                d = corrected_delta(self.net, self._features(lights), self._corners,
+                                    *corner_rows(torch.as_tensor(idx)), torch.as_tensor(mix, dtype=torch.float32),
+                                    self.sigma)
+                return d.double().numpy()
+        finally:
+            torch.set_num_threads(threads)
 
     @property
     def declined(self) -> bool:

@@ -349,3 +349,28 @@ def test_a_held_out_set_too_small_to_decide_is_refused():
                                           r"fewer lights the check's sign test can find nothing"):
         config(held_out=4)
     config(held_out=0), config(held_out=5)
+
+
+def test_a_delta_is_the_same_bytes_on_one_thread_and_on_two():
+    """Every job that blends (sample_shadows, the evaluations, caches) asks the correction for its deltas on the
+    threads it has; MKL's small products (here the 4 corners' first layer) round by the thread count on some CPUs
+    (an AMD EPYC: a -j1 and a -j2 run wrote other bytes), so delta runs on one."""
+    sets = make_light_sets(16, 4, [0.0, 0.0, 1.0], 0)
+    train, center = np.asarray(sets["train"]["cartesian"]), np.asarray(sets["center"])
+    net = corr.make_net(185, 16, 3)
+    with torch.no_grad():
+        for i, p in enumerate(net.parameters()):
+            p.copy_(torch.randn(p.shape, generator=torch.Generator().manual_seed(i)))
+    fix = corr.BlendCorrection(net, torch.full((185,), 0.1), train, 3)
+    q = unseen_directions(train, center, 2, seed=1)
+    idx, mix = blend_weights(train, q, 4, "triangle")
+    threads = torch.get_num_threads()
+    try:
+        out = []
+        for n in (1, 2, 1):
+            torch.set_num_threads(n)
+            out.append(fix.delta(q, idx, mix))
+    finally:
+        torch.set_num_threads(threads)
+    assert np.array_equal(out[0], out[1]) and np.array_equal(out[0], out[2])
+    assert torch.get_num_threads() == threads

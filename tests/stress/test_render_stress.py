@@ -41,7 +41,8 @@ def test_images_are_finite_and_background_where_nothing_is_hit(data, vol, tf, li
         img = scene.render(mode, cam, light=light, scalar="grid", phong=mode == "noshadow")
         assert img.rgb.shape == (cam.height, cam.width, 3)
         assert torch.isfinite(img.rgb).all() and torch.isfinite(img.alpha).all()
-        assert float(img.rgb.min()) >= 0 and float(img.rgb.max()) <= 1 + 1e-6
+        # composited in float32: each sample's rounding may lift a pixel past 1 (179 samples gave 1 + 1.3e-6)
+        assert float(img.rgb.min()) >= 0 and float(img.rgb.max()) <= 1 + img.counters.primary_samples * 2**-23
         assert float(img.alpha.min()) >= 0 and float(img.alpha.max()) <= 1 + 1e-6
         if kind == "miss" or tf.density_scale == 0:
             assert torch.all(img.alpha == 0) and torch.all(img.rgb == 1.0)
