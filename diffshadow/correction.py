@@ -336,7 +336,8 @@ class CorrectionFit:
     its draws, and the corners its blends use, are made on the host."""
 
     def __init__(self, weights: torch.Tensor, data: CorrectionLights, train: np.ndarray, layout: WeightLayout,
-                 siren: SirenConfig, cfg: CorrectionConfig, device: torch.device | str = "cpu"):
+                 siren: SirenConfig, cfg: CorrectionConfig, device: torch.device | str = "cpu",
+                 held: CorrectionLights | None = None):
         self.cfg, self.layout, self.siren, self.device = cfg, layout, siren, torch.device(device)
         self.box, self.host_neighbours = data.box, data.pool.neighbours
         self.stored = weights.to(self.device)
@@ -349,6 +350,13 @@ class CorrectionFit:
                                       cfg.light_freqs).to(self.device)
         self.opt = Adam(self.net.parameters(), cfg.lr)
         self.gen = seeded(cfg.seed, LightStream.CORRECTION)
+        self.held = None
+        if held is not None:  # what the check reads at every log line, made once: its lights, corners and plain blend
+            corners = tuple(t.to(self.device) for t in corner_rows(held.pool.neighbours))
+            held = CorrectionLights(held.pool.to(self.device), held.extent.to(self.device), held.box)
+            x0 = held.pool.x0(self.stored, torch.arange(len(held.pool.lights), device=self.device))
+            self.held = (held, x0, light_encoding(held.pool.lights.float(), cfg.light_freqs), corners,
+                         held_out_psnr(held, x0, layout, siren))
 
     def step(self, step: int) -> torch.Tensor:
         """Adam step `step` of `cfg.steps` (cosine decay); its loss, on the device."""
@@ -369,14 +377,14 @@ class CorrectionFit:
         self.opt.step()
         return loss.detach()
 
-    def check(self, held: CorrectionLights, plain: dict[str, torch.Tensor]) -> dict:
-        """The held-out check of the network as it stands against the plain blend's `plain` (`held_out_psnr`) at
-        `held` (on this fit's device): no gradient and no draw, so it changes no byte of the fit."""
-        used, where = (t.to(self.device) for t in corner_rows(held.pool.neighbours.cpu()))
-        x0 = held.pool.x0(self.stored, torch.arange(len(held.pool.lights), device=self.device))
+    def check(self) -> dict | None:
+        """The held-out check (`held_out_check`) of the network as it stands against the plain blend at the held-out
+        lights; None without them. No gradient and no draw: it changes no byte of the fit."""
+        if self.held is None:
+            return None
+        held, x0, features, (used, where), plain = self.held
         with torch.no_grad():
-            delta = corrected_delta(self.net, light_encoding(held.pool.lights.float(), self.cfg.light_freqs),
-                                    self.corners, used, where, held.pool.blend, self.sigma)
+            delta = corrected_delta(self.net, features, self.corners, used, where, held.pool.blend, self.sigma)
         return held_out_check(plain, held_out_psnr(held, x0 + delta, self.layout, self.siren))
 
 
@@ -412,7 +420,7 @@ def fit_correction(store: WeightStore, volume: Volume, tf: TransferFunction, tra
                                  cfg, k=k, weighting=weighting, point_seed=extra, between_steps=between_steps)
     log(f"correction: exact shadows of {cfg.lights} lights (and {cfg.held_out} held out) at {cfg.points} points "
         f"each in the box and around visible voxels ({time.perf_counter() - t0:.1f} s)")
-    fit = CorrectionFit(weights, data, train, store.layout, store.siren, cfg, device)
+    fit = CorrectionFit(weights, data, train, store.layout, store.siren, cfg, device, held)
     t0, window, start = time.perf_counter(), [], 0
     log(f"correction: an MLP of {sum(p.numel() for p in fit.net.parameters()):,} parameters (width {cfg.hidden}) "
         f"fitted for {cfg.steps} steps of {cfg.batch_lights} lights x {cfg.batch_points} points on {device}")
@@ -423,14 +431,6 @@ def fit_correction(store: WeightStore, volume: Volume, tf: TransferFunction, tra
         start = int(state["step"])
         log(f"resuming from {checkpoint} at step {start}/{cfg.steps}")
     every = max(1, cfg.steps // 10)
-    if held is not None:
-        held = CorrectionLights(held.pool.to(device), held.extent.to(device), held.box)
-        plain = held_out_psnr(held, held.pool.x0(fit.stored, torch.arange(cfg.held_out, device=device)),
-                              store.layout, store.siren)
-
-    def check() -> dict | None:
-        return None if held is None else fit.check(held, plain)
-
     with stop_signals(checkpoint is not None) as stop:
         for step in range(start, cfg.steps):
             window.append(fit.step(step))
@@ -443,7 +443,7 @@ def fit_correction(store: WeightStore, volume: Volume, tf: TransferFunction, tra
                 if not math.isfinite(mse):
                     raise CorrectionError(f"correction: the loss became {mse} at step {done}; lower correction.lr "
                                           f"(now {cfg.lr})")
-                said = check()
+                said = fit.check()
                 held_words = f"  held out: {check_words(said)}" if said else ""
                 log(f"step {done}/{cfg.steps}  geometry {mse:.3e} ({-10 * math.log10(max(mse, 1e-30)):.1f} dB)"
                     f"{held_words}  {eta(done, cfg.steps, t0, start=start)}")
@@ -457,7 +457,7 @@ def fit_correction(store: WeightStore, volume: Volume, tf: TransferFunction, tra
         checkpoint.unlink()
     record = {"config": asdict(cfg), "blend_k": k, "blend_weights": weighting, "weights_sha256": digest,
               "extinction": store.extinction}
-    if (said := check()) is not None:
+    if (said := fit.check()) is not None:
         record["held_out"] = said
         log(f"held out, {cfg.held_out} lights: the corrected blend {check_words(said)}: "
             + ("kept" if said["kept"] else f"declined, not better on {said['significant']} of them at one point set "
