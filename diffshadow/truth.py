@@ -16,7 +16,7 @@ from numpy.typing import ArrayLike
 from diffshadow.metrics import psnr
 from diffshadow.progress import eta
 from diffshadow.sampling import PointSampler, Stream, seeded
-from diffshadow.shadow import ShadowField, transmittance_per_light
+from diffshadow.shadow import CPU_CHUNK, SAMPLES_PER_ITER, ShadowField, transmittance_per_light
 from diffshadow.siren import BatchedSiren, SirenConfig, WeightLayout, box_to_siren, passes
 from diffshadow.transfer import TransferFunction
 from diffshadow.volume import Volume
@@ -32,6 +32,12 @@ def presample(volume: Volume, tf: TransferFunction, lights: np.ndarray, n_points
     values = transmittance_per_light(field, tf, lights, pts).cpu()
     return pts, values
 
+
+# Rays one march of TruthPoints.truth takes at least: a CPU chunk's (shadow.CPU_CHUNK samples, SAMPLES_PER_ITER a
+# ray). Smaller marches are bound by their per-iteration ops, not by the samples, and leave a second thread idle:
+# the blend's correction marched its 64-light chunks 6 lights and one point set (3,072 rays) at a time, 2.4x the
+# time of 65,536 at two threads (docs/performance.md, "The exact march"). Rays are independent: the same values.
+MIN_RAYS_PER_MARCH = CPU_CHUNK // SAMPLES_PER_ITER
 
 CHECK_POINTS = 4096  # held-out points per scene at which the seen-light gap is measured (diffusion.target_gap)
 CHECK_LIGHTS = 64  # training lights (evenly spaced rows) whose gap is measured: all of the default run's
@@ -74,14 +80,20 @@ class TruthPoints:
     def truth(self, lights: np.ndarray, log: Callable[[str], None] | None = None,
               what: str = "lights") -> dict[str, torch.Tensor]:
         """True shadow (L, P) per point set, by the exact march; progress every ~10% when `log` is given."""
-        out = {k: [] for k in self.sets}
-        start, every, n = time.perf_counter(), max(1, len(lights) // 10), len(lights)
-        for a in range(0, n, every):  # ~10 groups of lights, each marched together
-            for k, p in self.sets.items():
-                out[k].append(transmittance_per_light(self.field, self.tf, lights[a:a + every], p).cpu())
+        sets = list(self.sets.values())
+        points = torch.cat(sets) if sets else torch.zeros(0, 3)
+        start, n = time.perf_counter(), len(lights)
+        # ~10 groups of lights, each marched together with every set's points, and none under MIN_RAYS_PER_MARCH
+        every = max(1, n // 10, -(-MIN_RAYS_PER_MARCH // max(1, len(points))))
+        out = []
+        for a in range(0, n, every):
+            out.append(transmittance_per_light(self.field, self.tf, lights[a:a + every], points).cpu())
             if log:
                 log(f"ground truth, {what}: {min(a + every, n)}/{n} ({eta(min(a + every, n), n, start)})")
-        return {k: torch.cat(v) if v else torch.zeros(0, len(self.sets[k])) for k, v in out.items()}
+        values = torch.cat(out) if out else torch.zeros(0, len(points))
+        # each set's own tensor, not a view of the whole: a saved view would carry every set's storage
+        parts = values.split([len(p) for p in sets], dim=1)
+        return {k: v.contiguous() for k, v in zip(self.sets, parts, strict=True)}
 
     def sirens(self, weights: np.ndarray, layout: WeightLayout, siren: SirenConfig) -> dict[str, torch.Tensor]:
         return _siren_values(self.sets, self.extent, weights, layout, siren)

@@ -42,6 +42,40 @@ def test_eval_truth_is_the_exact_march_and_survives_a_round_trip(tmp_path):
     assert torch.equal(box.points["box"], truth.points["box"]) and torch.equal(box.values["box"], truth.values["box"])
 
 
+def test_a_truth_marches_its_sets_together_in_groups_of_at_least_a_cpu_chunks_rays(monkeypatch):
+    # small marches are bound by their per-iteration ops: 64 lights at 512 points a set were 22 marches of
+    # 3,072 rays, and are now one; the values are each light's own march (rays are independent)
+    import diffshadow.truth as truth_mod
+
+    marched = []
+    real = truth_mod.transmittance_per_light
+
+    def counting(field, tf, lights, points, **kw):
+        marched.append(len(lights) * len(points))
+        return real(field, tf, lights, points, **kw)
+
+    monkeypatch.setattr(truth_mod, "transmittance_per_light", counting)
+    volume, tf = _blob(), identity_tf()
+    points = TruthPoints(volume, tf, 512, seed=1)
+    assert set(points.sets) == {"box", "visible"}
+    lights = fibonacci_sphere(64)
+    values = points.truth(lights)
+    assert marched == [64 * 1024]
+    for name, pts in points.sets.items():
+        assert values[name].shape == (64, 512) and values[name].is_contiguous()
+        for i in (0, 37, 63):
+            assert torch.equal(values[name][i], transmittance(volume, tf, lights[i], pts))
+    marched.clear()
+    lines = []
+    points.truth(fibonacci_sphere(200), lines.append)  # 64 lights of 1,024 points a march at least
+    assert truth_mod.MIN_RAYS_PER_MARCH == 64 * 1024
+    assert marched == [64 * 1024] * 3 + [8 * 1024] and len(lines) == 4 and "200/200" in lines[-1]
+    marched.clear()
+    lines.clear()
+    points.truth(fibonacci_sphere(700), lines.append)  # ~10 groups where each has the rays, a line after each
+    assert marched == [70 * 1024] * 10 and len(lines) == 10 and lines[0].startswith("ground truth, lights: 70/700")
+
+
 def test_eval_truth_rows_follow_the_lights_asked_for_and_a_missing_light_is_named():
     volume, tf = _blob(), identity_tf()
     lights = fibonacci_sphere(5)
