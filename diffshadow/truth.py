@@ -80,20 +80,19 @@ class TruthPoints:
     def truth(self, lights: np.ndarray, log: Callable[[str], None] | None = None,
               what: str = "lights") -> dict[str, torch.Tensor]:
         """True shadow (L, P) per point set, by the exact march; progress every ~10% when `log` is given."""
-        sets = list(self.sets.values())
-        points = torch.cat(sets) if sets else torch.zeros(0, 3)
+        sizes = [len(p) for p in self.sets.values()]
+        points = torch.cat(list(self.sets.values()))
         start, n = time.perf_counter(), len(lights)
         # ~10 groups of lights, each marched together with every set's points, and none under MIN_RAYS_PER_MARCH
         every = max(1, n // 10, -(-MIN_RAYS_PER_MARCH // max(1, len(points))))
-        out = []
+        out = {k: [] for k in self.sets}
         for a in range(0, n, every):
-            out.append(transmittance_per_light(self.field, self.tf, lights[a:a + every], points).cpu())
+            marched = transmittance_per_light(self.field, self.tf, lights[a:a + every], points).cpu()
+            for k, part in zip(self.sets, marched.split(sizes, dim=1), strict=True):
+                out[k].append(part)  # a view: the set's torch.cat below copies it into a tensor of its own
             if log:
                 log(f"ground truth, {what}: {min(a + every, n)}/{n} ({eta(min(a + every, n), n, start)})")
-        values = torch.cat(out) if out else torch.zeros(0, len(points))
-        # each set's own tensor, not a view of the whole: a saved view would carry every set's storage
-        parts = values.split([len(p) for p in sets], dim=1)
-        return {k: v.contiguous() for k, v in zip(self.sets, parts, strict=True)}
+        return {k: torch.cat(v) if v else torch.zeros(0, len(self.sets[k])) for k, v in out.items()}
 
     def sirens(self, weights: np.ndarray, layout: WeightLayout, siren: SirenConfig) -> dict[str, torch.Tensor]:
         return _siren_values(self.sets, self.extent, weights, layout, siren)
