@@ -22,7 +22,7 @@ from diffshadow.io import atomic_torch_save, resume
 from diffshadow.lights import OLD_WEIGHTING, across_subsets, blend_weights, n_subsets, nearest, pick, wide_test_lights
 from diffshadow.progress import Ticker
 from diffshadow.sampling import Stream, seeded
-from diffshadow.store import blend_rows
+from diffshadow.store import BlendSampler, blend_rows
 from diffshadow.truth import EvalTruth, median, p10, psnr_per_light
 
 if TYPE_CHECKING:
@@ -385,7 +385,11 @@ def image_evaluation(scene: RenderScene, light_sets: dict, stage1: WeightStore, 
     (secondary rays through the data INR: it carries the data INR's error; training lights only, since it
     does not depend on which lights the model saw) and `noshadow` (the same shading
     without the shadow term, so its error is what the shadow adds). `phong` lights every mode, gt included.
-    `naive`: the naive images by tag (`naive_images`), rendered here when not given.
+    `naive`: the naive images by tag (`naive_images`), rendered here when not given. `inr_weight_blend` (unseen
+    lights, where `generated` records the blend it mixed: `stored_blend`): stage 1's plain weight blend on the raw
+    scalar field, the baseline the voxel evaluation sets beside the answer; `weight_blend_images` compares the two
+    image by image (the images' word on the correction and the model's share: neghip's voxels gained 0.25 dB where
+    its images did not).
     """
     from pathlib import Path
 
@@ -401,10 +405,11 @@ def image_evaluation(scene: RenderScene, light_sets: dict, stage1: WeightStore, 
         naive = naive_images(scene, light_sets, views, step=step, lights_per_set=lights_per_set,
                              naive_views=naive_views, naive_lights=naive_lights, phong=phong,
                              log=log) if have_inr else {}
-    gen_rows = {}
+    gen_rows, plain = {}, None
     if generated is not None:
         seen = generated.seen
         gen_rows = {"train": np.flatnonzero(seen), "unseen": np.flatnonzero(~seen)}
+        plain = stored_blend(generated, stage1)
     per_image, sums = [], {}
     for set_name in ("train", "unseen"):
         for i in pick(len(light_sets[set_name]), lights_per_set):
@@ -423,6 +428,10 @@ def image_evaluation(scene: RenderScene, light_sets: dict, stage1: WeightStore, 
                     if have_inr:
                         modes["inr_generated_data_inr"] = {"mode": "inr", "scalar": "inr",
                                                            "siren": (w, layout, blocks)}
+                    blend = plain(light) if set_name == "unseen" and plain is not None else None
+                    if blend is not None and not np.array_equal(blend, w):  # the plain blend is not the answer
+                        modes["inr_weight_blend"] = {"mode": "inr", "scalar": "grid",
+                                                     "siren": (blend, layout, blocks)}
                 if tag in naive:
                     modes["naive"] = {"image": naive[tag]}
                 modes["noshadow"] = {"mode": "noshadow", "scalar": "grid"}
@@ -442,7 +451,30 @@ def image_evaluation(scene: RenderScene, light_sets: dict, stage1: WeightStore, 
         by_set.setdefault(set_name, {})[name] = _mean_metrics(rows)
     for name in dict.fromkeys(n for _, n in sums):  # first-seen order: a set's order changes run to run
         overall[name] = _mean_metrics([r for (s, n), rows in sums.items() if n == name for r in rows])
-    return {"modes": overall, "by_set": by_set, "images": per_image}
+    out = {"modes": overall, "by_set": by_set, "images": per_image}
+    if pairs := _paired(per_image, "inr_generated", "inr_weight_blend"):
+        out["weight_blend_images"] = pairs
+    return out
+
+
+def stored_blend(generated: WeightStore, stage1: WeightStore) -> BlendSampler | None:
+    """Stage 1's plain weight blend as `generated` recorded it (a diffusion run's `mix`, a blend cache's own
+    record), or None where it records none (a store written before it did)."""
+    record = (generated.config or {}).get("mix") or generated.config or {}
+    if "blend_weights" not in record or "blend_k" not in record:
+        return None
+    return BlendSampler(stage1, min(int(record["blend_k"]), len(stage1.weights)), record["blend_weights"])
+
+
+def _paired(rows: list[dict], a: str, b: str) -> dict | None:
+    """Mode `a` against mode `b` over the images both were scored on: mean PSNRs and in how many `a` is better."""
+    by = {(r["set"], r["light"], r["view"], r["mode"]): r["psnr"] for r in rows}
+    keys = sorted(k[:3] for k in by if k[3] == a and (*k[:3], b) in by)
+    if not keys:
+        return None
+    x, y = (np.array([by[(*k, m)] for k in keys], dtype=np.float64) for m in (a, b))
+    return {"images": len(keys), f"{a}_psnr_mean": float(x.mean()), f"{b}_psnr_mean": float(y.mean()),
+            "better": int((x > y).sum())}
 
 
 def _mean_metrics(rows: list[dict]) -> dict:

@@ -339,7 +339,8 @@ class RunResults:
             f"{im.get('shading', 'unlit')}; reference: {im['reference']}; MS-SSIM {im.get('ms_ssim', 'n/a')}; "
             f"LPIPS {im['lpips']}. inr_stage1 and "
             "inr_generated use the raw scalar field (only the shadow's error shows); inr_generated_data_inr is "
-            "the deployed path; naive marches secondary rays through the data INR; noshadow drops the shadow."))
+            "the deployed path; naive marches secondary rays through the data INR; noshadow drops the shadow."
+            + _blend_images(im.get("weight_blend_images"))))
         if self.bench and self.bench.get("sizes"):
             header, rows = renderer_rows(self.bench)
             where = self.bench.get("device", "device n/a")
@@ -503,6 +504,16 @@ def critical_words(costs: list[dict]) -> str:
     return (f"; the critical path (the timeline's framed jobs) {float(elapsed['critical_s']) / 60:.1f} min: {named}"
             + (f", and {between / 60:.1f} min between its jobs while others ran (a batch queue's waits)"
                if between >= 60 else ""))
+
+
+def _blend_images(pairs: dict | None) -> str:
+    """The images table's word on the answer against stage 1's plain weight blend (image_metrics.json's
+    `weight_blend_images`), or nothing where the run scored no such pair."""
+    if not pairs:
+        return ""
+    return (f" inr_weight_blend is stage 1's plain weight blend on the raw scalar field, unseen lights only: on those "
+            f"{pairs['images']} images inr_generated {pairs['inr_generated_psnr_mean']:.2f} dB against "
+            f"{pairs['inr_weight_blend_psnr_mean']:.2f}, better in {pairs['better']} of {pairs['images']}.")
 
 
 def _png_uri(png: bytes) -> str:

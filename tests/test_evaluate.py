@@ -212,6 +212,51 @@ def test_naive_images_made_apart_give_evaluate_images_the_same_metrics_and_pngs(
         read_naive_images(tmp_path / "naive.zarr", lights["train"], views[::-1])
 
 
+def test_unseen_images_score_the_plain_weight_blend_beside_the_answer_where_they_differ(tmp_path):
+    """An unseen light's images get `inr_weight_blend`, stage 1's plain weight blend as the generated store
+    recorded it (here inverse-angle, k 2), where the answer is not that blend; `weight_blend_images` pairs the two
+    over those images. A store that records no blend, or answers with the plain blend itself, gets neither."""
+    from diffshadow.evaluate import image_evaluation, stored_blend
+    from diffshadow.render import Camera, RenderScene
+    from diffshadow.store import BlendSampler, WeightStore
+
+    vol, siren = _blob(16), SirenConfig(8, 1)
+    layout = WeightLayout.for_siren(siren)
+    scene = RenderScene(vol, identity_tf())
+    views = [Camera.orbit(vol.extent, azimuth=a, elevation=20, size=12) for a in (30, 150)]
+    sphere = fibonacci_sphere(40)
+    lights = {"train": sphere[:3], "unseen": sphere[3:5]}
+    weights = np.stack([layout.flatten(init_siren(siren, torch.Generator().manual_seed(i))).numpy()
+                        for i in range(3)])
+    ones = np.ones(3)
+    stage1 = WeightStore(weights, lights["train"], ones, ones, layout, siren, {})
+    plain = BlendSampler(stage1, 2, "inverse-angle").many(lights["unseen"])
+    answer = plain.copy()
+    answer[0] += 0.05 * np.random.default_rng(0).standard_normal(answer.shape[1]).astype(np.float32)
+
+    def generated(unseen, config):
+        return WeightStore(np.concatenate([weights, unseen]), sphere[:5], np.ones(5), np.ones(5), layout, siren,
+                           config, seen=np.array([True] * 3 + [False] * 2))
+
+    record = {"mix": {"blend_weights": "inverse-angle", "blend_k": 2, "model_share": 0.5}}
+    out = image_evaluation(scene, lights, stage1, generated(answer, record), views, step=1.0,
+                           out_dir=tmp_path / "a", log=lambda m: None)
+    rows = {(r["set"], r["light"], r["view"], r["mode"]): r["psnr"] for r in out["images"]}
+    blended = sorted(k[:3] for k in rows if k[3] == "inr_weight_blend")
+    assert blended == [("unseen", 0, 0), ("unseen", 0, 1)]  # light 1's answer is the plain blend: not again
+    pairs = out["weight_blend_images"]
+    assert pairs["images"] == 2 and pairs["better"] == sum(rows[(*k, "inr_generated")] > rows[(*k, "inr_weight_blend")]
+                                                           for k in blended)
+    assert pairs["inr_weight_blend_psnr_mean"] == pytest.approx(np.mean([rows[(*k, "inr_weight_blend")]
+                                                                         for k in blended]))
+    # its PNG beside the others of the image
+    assert (tmp_path / "a" / "unseen0_view0_inr_weight_blend.png").exists()
+    assert stored_blend(generated(answer, {}), stage1) is None
+    same = image_evaluation(scene, lights, stage1, generated(plain, record), views, step=1.0,
+                            out_dir=tmp_path / "b", log=lambda m: None)
+    assert "weight_blend_images" not in same and "inr_weight_blend" not in same["modes"]
+
+
 def test_a_slow_naive_frame_says_it_is_alive_and_is_the_same_frame(monkeypatch):
     """`naive_images` gives each frame a ticker as its `interrupt` (here one that logs at every ask), and the frame
     is the same bytes as one rendered without it."""

@@ -326,3 +326,12 @@ def test_the_report_says_whether_the_blends_correction_was_kept_and_why():
                                             "set, or finds it worse at one, so the plain blend answers")
     del check["visible"]
     assert "visible" not in correction_words(check)
+
+
+def test_the_images_table_sets_the_answer_beside_the_plain_blend_on_the_same_images():
+    from diffshadow.summary import _blend_images
+
+    said = _blend_images({"images": 4, "inr_generated_psnr_mean": 48.123, "inr_weight_blend_psnr_mean": 48.567,
+                          "better": 1})
+    assert "on those 4 images inr_generated 48.12 dB against 48.57, better in 1 of 4." in said
+    assert _blend_images(None) == "" and _blend_images({}) == ""

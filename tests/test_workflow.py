@@ -459,8 +459,10 @@ def test_render_outputs(finished):
     for mode in ("inr_stage1", "inr_generated", "inr_generated_data_inr", "naive", "noshadow"):
         assert np.isfinite(images["modes"][mode]["psnr"]) and 0 < images["modes"][mode]["ssim"] <= 1
     assert images["lpips"].startswith(("available", "unavailable"))
-    # training light: gt, stage 1, generated, generated + data INR, naive, noshadow; unseen: no stage 1, no naive
-    assert len(list((res / "images").glob("*.png"))) == 6 + 4
+    # training light: gt, stage 1, generated, generated + data INR, naive, noshadow; unseen: no stage 1, no naive,
+    # and the plain weight blend beside the answer (the corrected blend)
+    assert len(list((res / "images").glob("*.png"))) == 6 + 5
+    assert images["weight_blend_images"]["images"] == images["modes"]["inr_weight_blend"]["count"] == 1
     assert not list((res / "images").glob("unseen*_naive.png"))
     bench = json.loads((res / "bench.json").read_text())
     row = bench["sizes"]["8"]
