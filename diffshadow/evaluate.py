@@ -414,6 +414,10 @@ def image_evaluation(scene: RenderScene, light_sets: dict, stage1: WeightStore, 
     for set_name in ("train", "unseen"):
         for i in pick(len(light_sets[set_name]), lights_per_set):
             light = light_sets[set_name][i]
+            # an unseen light's plain blend, where it is not the answer: once a light, for every view
+            blend = plain(light) if set_name == "unseen" and plain is not None else None
+            if blend is not None and np.array_equal(blend, generated.weights[gen_rows[set_name][i]]):
+                blend = None
             for v, cam in enumerate(views):
                 tag = f"{set_name}{i}_view{v}"
                 gt = scene.render(REFERENCES[reference][0], cam, light=light, scalar="grid", phong=phong, step=step)
@@ -428,8 +432,7 @@ def image_evaluation(scene: RenderScene, light_sets: dict, stage1: WeightStore, 
                     if have_inr:
                         modes["inr_generated_data_inr"] = {"mode": "inr", "scalar": "inr",
                                                            "siren": (w, layout, blocks)}
-                    blend = plain(light) if set_name == "unseen" and plain is not None else None
-                    if blend is not None and not np.array_equal(blend, w):  # the plain blend is not the answer
+                    if blend is not None:
                         modes["inr_weight_blend"] = {"mode": "inr", "scalar": "grid",
                                                      "siren": (blend, layout, blocks)}
                 if tag in naive:
@@ -461,9 +464,11 @@ def stored_blend(generated: WeightStore, stage1: WeightStore) -> BlendSampler | 
     """Stage 1's plain weight blend as `generated` recorded it (a diffusion run's `mix`, a blend cache's own
     record), or None where it records none (a store written before it did)."""
     record = (generated.config or {}).get("mix") or generated.config or {}
-    if "blend_weights" not in record or "blend_k" not in record:
+    if "blend_k" not in record:
         return None
-    return BlendSampler(stage1, min(int(record["blend_k"]), len(stage1.weights)), record["blend_weights"])
+    # a record without blend_weights is from before the key: the weighting then was OLD_WEIGHTING (as the viewer reads)
+    return BlendSampler(stage1, min(int(record["blend_k"]), len(stage1.weights)),
+                        record.get("blend_weights", OLD_WEIGHTING))
 
 
 def _paired(rows: list[dict], a: str, b: str) -> dict | None:
