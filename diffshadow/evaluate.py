@@ -22,7 +22,7 @@ from diffshadow.io import atomic_torch_save, resume
 from diffshadow.lights import OLD_WEIGHTING, across_subsets, blend_weights, n_subsets, nearest, pick, wide_test_lights
 from diffshadow.progress import Ticker
 from diffshadow.sampling import Stream, seeded
-from diffshadow.store import BlendSampler, blend_rows
+from diffshadow.store import BlendSampler, blend_record, blend_rows
 from diffshadow.truth import EvalTruth, median, p10, psnr_per_light
 
 if TYPE_CHECKING:
@@ -386,10 +386,10 @@ def image_evaluation(scene: RenderScene, light_sets: dict, stage1: WeightStore, 
     does not depend on which lights the model saw) and `noshadow` (the same shading
     without the shadow term, so its error is what the shadow adds). `phong` lights every mode, gt included.
     `naive`: the naive images by tag (`naive_images`), rendered here when not given. `inr_weight_blend` (unseen
-    lights, where `generated` records the blend it mixed: `stored_blend`): stage 1's plain weight blend on the raw
-    scalar field, the baseline the voxel evaluation sets beside the answer; `weight_blend_images` compares the two
-    image by image (the images' word on the correction and the model's share: neghip's voxels gained 0.25 dB where
-    its images did not).
+    lights, where `generated` records the blend it answers with: `store.blend_record`): stage 1's plain weight blend
+    on the raw scalar field, the baseline the voxel evaluation sets beside the answer; `weight_blend_images` compares
+    the two image by image (the images' word on the correction and the model's share: neghip's voxels gained 0.25 dB
+    where its images did not).
     """
     from pathlib import Path
 
@@ -409,7 +409,7 @@ def image_evaluation(scene: RenderScene, light_sets: dict, stage1: WeightStore, 
     if generated is not None:
         seen = generated.seen
         gen_rows = {"train": np.flatnonzero(seen), "unseen": np.flatnonzero(~seen)}
-        plain = stored_blend(generated, stage1)
+        plain = BlendSampler.recorded(stage1, record) if (record := blend_record(generated)) else None
     per_image, sums = [], {}
     for set_name in ("train", "unseen"):
         for i in pick(len(light_sets[set_name]), lights_per_set):
@@ -458,17 +458,6 @@ def image_evaluation(scene: RenderScene, light_sets: dict, stage1: WeightStore, 
     if pairs := _paired(per_image, "inr_generated", "inr_weight_blend"):
         out["weight_blend_images"] = pairs
     return out
-
-
-def stored_blend(generated: WeightStore, stage1: WeightStore) -> BlendSampler | None:
-    """Stage 1's plain weight blend as `generated` recorded it (a diffusion run's `mix`, a blend cache's own
-    record), or None where it records none (a store written before it did)."""
-    record = (generated.config or {}).get("mix") or generated.config or {}
-    if "blend_k" not in record:
-        return None
-    # a record without blend_weights is from before the key: the weighting then was OLD_WEIGHTING (as the viewer reads)
-    return BlendSampler(stage1, min(int(record["blend_k"]), len(stage1.weights)),
-                        record.get("blend_weights", OLD_WEIGHTING))
 
 
 def _paired(rows: list[dict], a: str, b: str) -> dict | None:

@@ -19,7 +19,7 @@ from numpy.typing import ArrayLike
 
 from diffshadow.io import StoreError, VerifiedGroup, atomic_save, error_line, write_zarr_group
 from diffshadow.layout import SirenConfig, WeightLayout
-from diffshadow.lights import LightRegion, as_direction, blend_finder
+from diffshadow.lights import OLD_WEIGHTING, LightRegion, as_direction, blend_finder
 from diffshadow.phases import timed
 from diffshadow.volume import check_extinction
 
@@ -87,6 +87,12 @@ class BlendSampler:
         if correction is not None:
             correction.check_weighting(weighting)
 
+    @classmethod
+    def recorded(cls, store: WeightStore, record: dict, correction: Correction | None = None) -> BlendSampler:
+        """The blend that a generated store's `record` names (`blend_record`) over `store`'s SIRENs; a record
+        without `blend_weights` is from before the key, when the weighting was OLD_WEIGHTING."""
+        return cls(store, int(record["blend_k"]), record.get("blend_weights", OLD_WEIGHTING), correction)
+
     def rows(self, lights: np.ndarray) -> np.ndarray:
         """The blended SIRENs (Q, P) in float64 of `lights` (Q, 3), corrected where a correction is given."""
         lights = np.asarray(lights, dtype=np.float64)
@@ -98,6 +104,15 @@ class BlendSampler:
 
     def __call__(self, light: ArrayLike) -> np.ndarray:
         return self.many(as_direction(light)[None])[0]
+
+
+def blend_record(generated: WeightStore) -> dict | None:
+    """The record of the weight blend a generated store answers with: its `mix` (sample_shadows mixed the model's
+    SIRENs with the blend) or its own config (a blend cache, `blend-shadows`); None where it has none (the model
+    alone, or a store written before the record)."""
+    config = generated.config or {}
+    record = config.get("mix") or config
+    return record if "blend_k" in record else None
 
 
 def write_subset(path: str | Path, *, weights: ArrayLike, light_index: ArrayLike, lights: ArrayLike, psnr: ArrayLike,

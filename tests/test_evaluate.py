@@ -216,9 +216,9 @@ def test_unseen_images_score_the_plain_weight_blend_beside_the_answer_where_they
     """An unseen light's images get `inr_weight_blend`, stage 1's plain weight blend as the generated store
     recorded it (here inverse-angle, k 2), where the answer is not that blend; `weight_blend_images` pairs the two
     over those images. A store that records no blend, or answers with the plain blend itself, gets neither."""
-    from diffshadow.evaluate import image_evaluation, stored_blend
+    from diffshadow.evaluate import image_evaluation
     from diffshadow.render import Camera, RenderScene
-    from diffshadow.store import BlendSampler, WeightStore
+    from diffshadow.store import BlendSampler, WeightStore, blend_record
 
     vol, siren = _blob(16), SirenConfig(8, 1)
     layout = WeightLayout.for_siren(siren)
@@ -251,7 +251,7 @@ def test_unseen_images_score_the_plain_weight_blend_beside_the_answer_where_they
                                                                          for k in blended]))
     # its PNG beside the others of the image
     assert (tmp_path / "a" / "unseen0_view0_inr_weight_blend.png").exists()
-    assert stored_blend(generated(answer, {}), stage1) is None
+    assert blend_record(generated(answer, {})) is None
     same = image_evaluation(scene, lights, stage1, generated(plain, record), views, step=1.0,
                             out_dir=tmp_path / "b", log=lambda m: None)
     assert "weight_blend_images" not in same and "inr_weight_blend" not in same["modes"]

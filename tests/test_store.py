@@ -333,6 +333,28 @@ def test_a_blend_takes_between_one_and_every_stored_siren(tmp_path):
         assert np.array_equal(BlendSampler(store, k, "triangle")(LIGHTS[2]), store.weights[2])
 
 
+def test_a_generated_stores_blend_record_is_its_mix_or_its_own_and_an_old_one_reads_as_inverse_angle(tmp_path):
+    """`blend_record` finds the blend a generated store answers with where it lives: a mixed model's `mix`, a blend
+    cache's own config; the model alone has none. `BlendSampler.recorded` blends as the record says, and a record
+    from before `blend_weights` existed as the weighting of that time (OLD_WEIGHTING, inverse-angle)."""
+    from dataclasses import replace
+
+    from diffshadow.store import BlendSampler, blend_record
+
+    store = open_store(stored(tmp_path))
+    mix = {"blend_k": 2, "blend_weights": "triangle", "model_share": 0.5}
+    assert blend_record(replace(store, config={"cache": "model", "mix": mix})) is mix
+    cache = {"cache": "blend", "blend_k": 3, "blend_weights": "inverse-angle"}
+    assert blend_record(replace(store, config=cache)) is cache
+    assert blend_record(replace(store, config={"cache": "model"})) is None
+    assert blend_record(replace(store, config=None)) is None
+    light = np.array([0.48, 0.6, 0.64])
+    old = BlendSampler.recorded(store, {"blend_k": 2})
+    assert (old.k, old.weighting) == (2, "inverse-angle")
+    assert np.array_equal(old(light), BlendSampler(store, 2, "inverse-angle")(light))
+    assert not np.array_equal(BlendSampler.recorded(store, mix)(light), old(light))
+
+
 def test_a_loaded_checkpoint_outlives_the_next_one_written_over_it(tmp_path):
     """load_checkpoint maps the file (a sampler reads its EMA weights, not the optimizer's moments): the state
     keeps its values when training writes the next checkpoint to the same path, and when the caller changes its

@@ -19,7 +19,7 @@ from numpy.typing import ArrayLike
 from diffshadow.artifacts import load_checkpoint, load_render_scene, load_scene_file
 from diffshadow.diffusion.mix import MixedSampler
 from diffshadow.io import did_you_mean
-from diffshadow.lights import OLD_WEIGHTING, LightRegion, RegionCheck, as_direction, nearest, read_lights
+from diffshadow.lights import LightRegion, RegionCheck, as_direction, nearest, read_lights
 from diffshadow.render import Camera, RenderScene
 from diffshadow.render.scene import KEEP_SAMPLES_BYTES
 from diffshadow.report import label_image as label
@@ -133,9 +133,8 @@ class ViewerScene:
         source = cache_source(results, generated)
         if generated.config.get("cache") == "blend":  # no model: new directions blend the stored SIRENs
             stored_store = open_store(source)
-            blend = BlendSampler(stored_store, int(generated.config["blend_k"]),
-                                 generated.config.get("blend_weights", OLD_WEIGHTING),
-                                 _correction(results, generated.config, stored_store))
+            blend = BlendSampler.recorded(stored_store, generated.config,
+                                          _correction(results, generated.config, stored_store))
             same_scene(blend.extinction, source)
             return cls(scene, name=results.name, lights=lights, generated=generated, sampler=blend, results=results,
                        checkpoint=source)
@@ -154,10 +153,8 @@ class ViewerScene:
                 raise ViewerError(f"{stored}: missing, the stored SIRENs that generated.zarr's SIRENs were mixed "
                                   f"with (made by the rule `collect_weights`: {remake(results, stored.name)})")
             stored_store = open_store(stored)
-            blend = BlendSampler(stored_store, int(mix["blend_k"]), mix.get("blend_weights", OLD_WEIGHTING),
-                                 _correction(results, mix, stored_store))
-            sampler = MixedSampler(sampler, blend,
-                                   float(mix["model_share"]))
+            blend = BlendSampler.recorded(stored_store, mix, _correction(results, mix, stored_store))
+            sampler = MixedSampler(sampler, blend, float(mix["model_share"]))
         return cls(scene, name=results.name, lights=lights, generated=generated, sampler=sampler, results=results,
                    checkpoint=source, stored=stored)
 
