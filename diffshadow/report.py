@@ -4,6 +4,7 @@ user asks of a finished scene. Each is computed from the scene's results; nothin
 from __future__ import annotations
 
 import json
+import re
 from pathlib import Path
 from typing import TYPE_CHECKING
 
@@ -126,12 +127,44 @@ def diff_range(diffs: list[np.ndarray]) -> float:
     return float(next(m * power for m in (1, 2, 5, 10) if m * power >= top))
 
 
+# the image grid's rows of one light set: the default run's 2 lights x 2 views each; a run that renders more
+# (render.lights_per_set: 32 makes 128 rows, a PNG 30,000 px high) shows some, and every image stays in images/
+GRID_ROWS_PER_SET = 4
+_IMAGE_TAG = re.compile(r"(train|unseen)(\d+)_view(\d+)")
+
+
+def grid_rows(tags: list[str], keep: set[str] | frozenset[str] = frozenset(),
+              per_set: int = GRID_ROWS_PER_SET) -> list[str]:
+    """The image tags (`<set><light>_view<view>`) the image grid shows, training lights then unseen, each in light
+    order: all of a set's where it has at most `per_set`, else those in `keep` (the naive baseline's) and lights
+    spread evenly over the rest, one view each (the next light the next view), filled up from what is left."""
+    keys = {}
+    for tag in tags:
+        m = _IMAGE_TAG.fullmatch(tag)
+        keys[(m[1], int(m[2]), int(m[3])) if m else (tag, 0, 0)] = tag
+    shown = []
+    for name in sorted({k[0] for k in keys}):
+        rows = sorted(k for k in keys if k[0] == name)
+        if len(rows) > per_set:
+            chosen = [k for k in rows if keys[k] in keep][:per_set]
+            views: dict[int, list] = {}
+            for k in rows:
+                views.setdefault(k[1], []).append(k)
+            others = [light for light in views if light not in {k[1] for k in chosen}]
+            if (n := per_set - len(chosen)) > 0 and others:
+                picks = np.unique(np.linspace(0, len(others) - 1, n).round().astype(int))
+                chosen += [views[others[i]][(j + len(chosen)) % len(views[others[i]])] for j, i in enumerate(picks)]
+            chosen += [k for k in rows if k not in chosen][:per_set - len(chosen)]
+            rows = sorted(chosen)
+        shown += [keys[k] for k in rows]
+    return shown
+
+
 def image_grid_figure(images_dir: Path, lights: dict, out: Path,
                       modes: tuple[str, ...] = ("gt", "inr_generated", "naive", "noshadow")) -> None:
-    """Rows: (light, view) pairs with every mode rendered, labelled with the light's direction; columns:
-    gt / ours / naive / no shadow, then |ours - gt| and |no shadow - gt| (what the shadow term adds)."""
-    import re
-
+    """Rows: (light, view) pairs with every mode rendered (`grid_rows`: at most GRID_ROWS_PER_SET a light set),
+    labelled with the light's direction; columns: gt / ours / naive / no shadow, then |ours - gt| and
+    |no shadow - gt| (what the shadow term adds)."""
     from PIL import Image
 
     plt = pyplot()
@@ -141,6 +174,8 @@ def image_grid_figure(images_dir: Path, lights: dict, out: Path,
     tags = [t for t in tags if all((images_dir / f"{t}_{m}.png").exists() for m in needed)]
     if not tags:
         raise ValueError(f"{images_dir}: no light/view with all of {needed} rendered")
+    rendered = len(tags)
+    tags = grid_rows(tags, keep={t for t in tags if (images_dir / f"{t}_naive.png").exists()})
     titles = {"gt": "ground truth", "inr_generated": "ours (generated)",
               "naive": "naive secondary rays\n(rows it was rendered for)", "noshadow": "no shadow"}
     diffs = [("inr_generated", "|ours - gt|"), ("noshadow", "|no shadow - gt|")]
@@ -166,7 +201,7 @@ def image_grid_figure(images_dir: Path, lights: dict, out: Path,
         for a in axes[r]:
             a.set_xticks([])
             a.set_yticks([])
-        m = re.fullmatch(r"(train|unseen)(\d+)_view(\d+)", tag)
+        m = _IMAGE_TAG.fullmatch(tag)
         if m:
             x, y, z = lights[m[1]][int(m[2])]
             kind = "training" if m[1] == "train" else "unseen"
@@ -174,7 +209,12 @@ def image_grid_figure(images_dir: Path, lights: dict, out: Path,
         else:
             label = tag
         axes[r, 0].set_ylabel(label, fontsize=8)
-    fig.tight_layout(rect=(0, 0, 0.93, 1))
+    top = 1.0
+    if len(tags) < rendered:
+        top = 1 - 0.35 / fig.get_figheight()
+        fig.suptitle(f"{len(tags)} of the {rendered} renderings, at most {GRID_ROWS_PER_SET} a light set (every one "
+                     f"is in {images_dir.name}/)", fontsize=9, y=0.995, va="top")
+    fig.tight_layout(rect=(0, 0, 0.93, top))
     bar = fig.colorbar(shown, ax=axes[:, -2:].ravel().tolist(), fraction=0.04, pad=0.02, extend="max")
     bar.set_label(f"max over RGB of the difference, 0 to {vmax:g} of full scale (|ours - gt|'s 99.5th "
                   "percentile; larger saturates)", fontsize=7)

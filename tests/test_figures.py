@@ -55,3 +55,46 @@ def test_labels_and_points_must_pair():
     with pytest.raises(ValueError):
         label_points(ax, [(0.0, 0.0), (1.0, 1.0)], ["one"])
     fig.clf()
+
+
+def test_the_image_grid_shows_every_row_of_a_small_run_and_a_few_lights_spread_over_a_large_one():
+    """`grid_rows`: the default run's 2 lights x 2 views a set all, in light order (10 after 2); 32 lights x 2 views
+    a set GRID_ROWS_PER_SET each, the naive baseline's row kept, the rest spread from the first light to the last
+    and alternating views."""
+    from diffshadow.report import GRID_ROWS_PER_SET, grid_rows
+
+    small = [f"{s}{i}_view{v}" for s in ("unseen", "train") for i in (10, 2) for v in (1, 0)]
+    assert grid_rows(small) == [f"{s}{i}_view{v}" for s in ("train", "unseen") for i in (2, 10) for v in (0, 1)]
+    large = [f"{s}{i}_view{v}" for s in ("train", "unseen") for i in range(0, 64, 2) for v in (0, 1)]
+    shown = grid_rows(large, keep={"train30_view0"})
+    train, unseen = shown[:GRID_ROWS_PER_SET], shown[GRID_ROWS_PER_SET:]
+    assert len(unseen) == GRID_ROWS_PER_SET and all(t.startswith("unseen") for t in unseen)
+    assert "train30_view0" in train and len({t.split("_")[0] for t in train}) == GRID_ROWS_PER_SET
+    assert unseen[0].startswith("unseen0_") and unseen[-1].startswith("unseen62_")
+    assert {t[-1] for t in unseen} == {"0", "1"}
+    assert [int(t[6:].split("_")[0]) for t in unseen] == sorted(int(t[6:].split("_")[0]) for t in unseen)
+
+
+def test_a_large_runs_image_grid_stays_a_page_and_says_how_many_it_leaves_out(tmp_path, monkeypatch):
+    """32 lights x 2 views a set render 128 rows of images; the figure shows 2 x GRID_ROWS_PER_SET of them, as high
+    as the default run's figure, and says so in its title."""
+    from PIL import Image
+
+    import diffshadow.report as report
+    from diffshadow.report import GRID_ROWS_PER_SET, image_grid_figure
+
+    titles, save = [], report.save_figure
+    monkeypatch.setattr(report, "save_figure", lambda path, fig: (titles.append(fig.get_suptitle()), save(path, fig)))
+
+    images = tmp_path / "images"
+    images.mkdir()
+    rng = np.random.default_rng(0)
+    tags = [f"{s}{i}_view{v}" for s in ("train", "unseen") for i in range(32) for v in (0, 1)]
+    for tag in tags:
+        for mode in ("gt", "inr_generated", "noshadow") + (("naive",) if tag == "train0_view0" else ()):
+            Image.fromarray(rng.integers(0, 255, (12, 12, 3), dtype=np.uint8)).save(images / f"{tag}_{mode}.png")
+    lights = {s: rng.standard_normal((32, 3)) for s in ("train", "unseen")}
+    image_grid_figure(images, lights, tmp_path / "grid.png")
+    assert Image.open(tmp_path / "grid.png").height == 2 * GRID_ROWS_PER_SET * 240  # 2.4 inches a row at 100 dpi
+    assert titles == [f"{2 * GRID_ROWS_PER_SET} of the 128 renderings, at most {GRID_ROWS_PER_SET} a light set "
+                      "(every one is in images/)"]

@@ -1124,6 +1124,8 @@ def test_report_embeds_every_figure(finished):
         assert name in html, f"{name} is not in the report"
     for name in figures[:-1]:
         assert (finished / "results/nucleon/report" / name).stat().st_size > 100
+    # the image grid's caption names the run's reference (render.reference: exact), not the shadow grid's
+    assert "the shadow marched from every sample through it" in html and "marched shadow grid" not in html
 
 
 def test_report_front_page_has_the_runs_numbers(finished):

@@ -321,7 +321,7 @@ def caption_values(scene):
     lights, render = cfg["lights"], cfg["render"]
     return {"scene": scene, "train": lights["count"], "unseen": lights["unseen"], "eval_points": cfg["fit"]["eval_points"],
             "ddim_steps": cfg["diffusion"]["ddim_steps"], "image_size": render["image_size"], "views": render["views"],
-            "lights_per_set": render["lights_per_set"], "step": render["step"],
+            "lights_per_set": render["lights_per_set"], "step": render["step"], "reference": render["reference"],
             "shading": _shading_name(bool(render.get("phong")))}
 
 
