@@ -56,13 +56,25 @@ def seconds_per_inr(model: WeightTransformer, std: Standardizer, light: ArrayLik
     return best
 
 
+def _interval95(statistic: Callable[[np.ndarray], np.ndarray], n: int, resamples: int) -> list[float]:
+    """The 95 % bootstrap interval of `statistic` (of (resamples, n) row picks) over n lights, from a fixed stream
+    (the same interval every run)."""
+    idx = torch.randint(n, (resamples, n), generator=seeded(Stream.BOOTSTRAP)).numpy()
+    return [float(x) for x in np.percentile(statistic(idx), [2.5, 97.5])]
+
+
 def median_gap_interval(a: np.ndarray, b: np.ndarray, *, resamples: int = 2000) -> list[float]:
     """The 95 % bootstrap interval of median(a) - median(b) over the lights, resampled with their two figures
-    paired, from a fixed stream (the same interval every run): how far the gap would move with other test lights."""
+    paired: how far the gap would move with other test lights."""
     a, b = np.asarray(a, dtype=np.float64), np.asarray(b, dtype=np.float64)
-    idx = torch.randint(len(a), (resamples, len(a)), generator=seeded(Stream.BOOTSTRAP)).numpy()
-    gaps = np.median(a[idx], axis=1) - np.median(b[idx], axis=1)
-    return [float(x) for x in np.percentile(gaps, [2.5, 97.5])]
+    return _interval95(lambda i: np.median(a[i], axis=1) - np.median(b[i], axis=1), len(a), resamples)
+
+
+def mean_gap_interval(gaps: np.ndarray, *, resamples: int = 2000) -> list[float]:
+    """The 95 % bootstrap interval of the mean of `gaps`, one a light (its images' mean: a light's views are not
+    independent images, so lights are what is resampled)."""
+    gaps = np.asarray(gaps, dtype=np.float64)
+    return _interval95(lambda i: gaps[i].mean(axis=1), len(gaps), resamples)
 
 
 def wide_comparison(state: dict | None, stage1: WeightStore, light_sets: dict, volume: Volume, tf: TransferFunction, *,
@@ -460,15 +472,24 @@ def image_evaluation(scene: RenderScene, light_sets: dict, stage1: WeightStore, 
     return out
 
 
+PAIRED_INTERVAL_LIGHTS = 8  # the fewest lights whose images' gap gets a bootstrap interval (the default run has 2)
+
+
 def _paired(rows: list[dict], a: str, b: str) -> dict | None:
-    """Mode `a` against mode `b` over the images both were scored on: mean PSNRs and in how many `a` is better."""
+    """Mode `a` against mode `b` over the images both were scored on: mean PSNRs, in how many `a` is better, and
+    from PAIRED_INTERVAL_LIGHTS lights the mean gap's 95 % interval over the lights (`mean_gap_interval`)."""
     by = {(r["set"], r["light"], r["view"], r["mode"]): r["psnr"] for r in rows}
     keys = sorted(k[:3] for k in by if k[3] == a and (*k[:3], b) in by)
     if not keys:
         return None
     x, y = (np.array([by[(*k, m)] for k in keys], dtype=np.float64) for m in (a, b))
-    return {"images": len(keys), f"{a}_psnr_mean": float(x.mean()), f"{b}_psnr_mean": float(y.mean()),
-            "better": int((x > y).sum())}
+    out = {"images": len(keys), f"{a}_psnr_mean": float(x.mean()), f"{b}_psnr_mean": float(y.mean()),
+           "better": int((x > y).sum())}
+    lights = sorted({k[:2] for k in keys})
+    if len(lights) >= PAIRED_INTERVAL_LIGHTS:
+        per_light = [np.mean([g for k, g in zip(keys, x - y, strict=True) if k[:2] == light]) for light in lights]
+        out.update(lights=len(lights), gap_interval95_db=mean_gap_interval(np.array(per_light)))
+    return out
 
 
 def _mean_metrics(rows: list[dict]) -> dict:

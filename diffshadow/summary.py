@@ -511,9 +511,12 @@ def _blend_images(pairs: dict | None) -> str:
     `weight_blend_images`), or nothing where the run scored no such pair."""
     if not pairs:
         return ""
+    lo, hi = pairs.get("gap_interval95_db") or (None, None)  # from PAIRED_INTERVAL_LIGHTS lights
+    spread = "" if lo is None else (f" (the gap's 95 % interval over the {pairs['lights']} lights {lo:+.2f} to "
+                                    f"{hi:+.2f} dB)")
     return (f" inr_weight_blend is stage 1's plain weight blend on the raw scalar field, unseen lights only: on those "
             f"{pairs['images']} images inr_generated {pairs['inr_generated_psnr_mean']:.2f} dB against "
-            f"{pairs['inr_weight_blend_psnr_mean']:.2f}, better in {pairs['better']} of {pairs['images']}.")
+            f"{pairs['inr_weight_blend_psnr_mean']:.2f}{spread}, better in {pairs['better']} of {pairs['images']}.")
 
 
 def _png_uri(png: bytes) -> str:

@@ -251,6 +251,7 @@ def test_unseen_images_score_the_plain_weight_blend_beside_the_answer_where_they
                                                                          for k in blended]))
     # its PNG beside the others of the image
     assert (tmp_path / "a" / "unseen0_view0_inr_weight_blend.png").exists()
+    assert "gap_interval95_db" not in pairs  # one light: no interval
     assert blend_record(generated(answer, {})) is None
     same = image_evaluation(scene, lights, stage1, generated(plain, record), views, step=1.0,
                             out_dir=tmp_path / "b", log=lambda m: None)
@@ -377,3 +378,21 @@ def test_an_unknown_image_reference_is_refused_naming_the_key(tmp_path):
 
     with pytest.raises(ValueError, match=r"^render.reference: expected one of exact, grid, got 'march'$"):
         image_evaluation(None, {}, None, None, [], step=0.5, out_dir=tmp_path, reference="march")
+
+
+def test_the_images_gap_interval_resamples_lights_not_their_views():
+    """`_paired`'s interval of the mean gap: each light's views share its blend, so lights are resampled. Lights
+    whose two views' gaps are g - 5 and g + 5 (g from -0.2 to +0.2) give an interval as narrow as the g's own, not
+    the images' spread of 10 dB; under PAIRED_INTERVAL_LIGHTS lights, none."""
+    from diffshadow.evaluate import PAIRED_INTERVAL_LIGHTS, _paired, mean_gap_interval
+
+    g = np.linspace(-0.2, 0.2, 12)
+    rows = [r for i, gap in enumerate(g) for v, d in enumerate((-5.0, 5.0))
+            for r in ({"set": "unseen", "light": i, "view": v, "mode": "a", "psnr": 40.0 + gap + d},
+                      {"set": "unseen", "light": i, "view": v, "mode": "b", "psnr": 40.0})]
+    out = _paired(rows, "a", "b")
+    lo, hi = out["gap_interval95_db"]
+    assert out["lights"] == 12 and out["images"] == 24 and out["better"] == 12
+    assert -0.2 < lo < 0 < hi < 0.2 and out["gap_interval95_db"] == pytest.approx(mean_gap_interval(g))
+    few = [r for r in rows if r["light"] < PAIRED_INTERVAL_LIGHTS - 1]
+    assert "gap_interval95_db" not in _paired(few, "a", "b")

@@ -334,4 +334,8 @@ def test_the_images_table_sets_the_answer_beside_the_plain_blend_on_the_same_ima
     said = _blend_images({"images": 4, "inr_generated_psnr_mean": 48.123, "inr_weight_blend_psnr_mean": 48.567,
                           "better": 1})
     assert "on those 4 images inr_generated 48.12 dB against 48.57, better in 1 of 4." in said
+    wide = _blend_images({"images": 64, "inr_generated_psnr_mean": 39.5, "inr_weight_blend_psnr_mean": 39.6,
+                          "better": 25, "lights": 32, "gap_interval95_db": [-0.456, 0.204]})
+    assert ("39.50 dB against 39.60 (the gap's 95 % interval over the 32 lights -0.46 to +0.20 dB), better in 25 of "
+            "64.") in wide
     assert _blend_images(None) == "" and _blend_images({}) == ""
