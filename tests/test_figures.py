@@ -98,3 +98,15 @@ def test_a_large_runs_image_grid_stays_a_page_and_says_how_many_it_leaves_out(tm
     assert Image.open(tmp_path / "grid.png").height == 2 * GRID_ROWS_PER_SET * 240  # 2.4 inches a row at 100 dpi
     assert titles == [f"{2 * GRID_ROWS_PER_SET} of the 128 renderings, at most {GRID_ROWS_PER_SET} a light set "
                       "(every one is in images/)"]
+
+
+def test_the_image_grid_caption_states_the_figures_row_cap():
+    """The report's caption (workflow/report/image_grid.rst) says how many rows a light set the figure shows: the
+    figure's own GRID_ROWS_PER_SET, so that the two cannot drift apart."""
+    import re
+    from pathlib import Path
+
+    from diffshadow.report import GRID_ROWS_PER_SET
+
+    caption = (Path(__file__).parents[1] / "workflow/report/image_grid.rst").read_text()
+    assert re.findall(r"at most (\d+) rows a light set", caption) == [str(GRID_ROWS_PER_SET)]
