@@ -26,7 +26,7 @@ from diffshadow.evaluate import blend_baseline
 from diffshadow.grid import trilinear
 from diffshadow.hpc import device_name
 from diffshadow.io import atomic_torch_save, resume
-from diffshadow.lights import OLD_WEIGHTING, blend_finder, blend_weights, describe_blend
+from diffshadow.lights import blend_finder, blend_weights, describe_blend, recorded_weighting
 from diffshadow.metrics import psnr
 from diffshadow.shadow import shadow_grid
 from diffshadow.store import blend_rows, corrected_blend
@@ -310,7 +310,7 @@ def _model_rows(state: dict, generated: WeightStore, train, unseen, scored, *, s
                      **psnrs, "answer_s": answer, "device": device_name(device)})
     if mixed:
         share, k = float(mixed["model_share"]), min(int(mixed["blend_k"]), n)
-        weighting = mixed.get("blend_weights", OLD_WEIGHTING)
+        weighting = recorded_weighting(mixed)
         fp16 = codec_named("fp16")
         enc = fp16.encode(stored, layout)
         stored16 = fp16.decode(enc, layout)

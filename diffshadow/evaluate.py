@@ -19,7 +19,15 @@ from diffshadow.diffusion.mix import mix_weights
 from diffshadow.diffusion.sample import generate, load_sampler
 from diffshadow.hpc import device_name
 from diffshadow.io import atomic_torch_save, resume
-from diffshadow.lights import OLD_WEIGHTING, across_subsets, blend_weights, n_subsets, nearest, pick, wide_test_lights
+from diffshadow.lights import (
+    across_subsets,
+    blend_weights,
+    n_subsets,
+    nearest,
+    pick,
+    recorded_weighting,
+    wide_test_lights,
+)
 from diffshadow.progress import Ticker
 from diffshadow.sampling import Stream, seeded
 from diffshadow.store import BlendSampler, blend_record, blend_rows
@@ -212,7 +220,7 @@ def voxel_metrics(state: dict | None, stage1: WeightStore, generated: WeightStor
         result["corrected"] = True
     if mixed:
         result["mix"] = {k: mixed[k] for k in ("model_share", "chosen", "blend_k")}
-        result["mix"]["blend_weights"] = mixed.get("blend_weights", OLD_WEIGHTING)
+        result["mix"]["blend_weights"] = recorded_weighting(mixed)
         result["seen"]["model_alone_psnr_median"] = median(alone_seen)
     if len(unseen):
         idx, mix = blend_weights(train, unseen, blend_k, weighting)

@@ -197,6 +197,12 @@ WEIGHTINGS = ("triangle", "inverse-angle")  # evaluate.blend_weights: how a ligh
 OLD_WEIGHTING = "inverse-angle"  # what a store or metrics file made before evaluate.blend_weights used
 
 
+def recorded_weighting(record: dict) -> str:
+    """The weighting a store's or a metrics file's blend record names; a record made before the key existed was
+    blended by OLD_WEIGHTING."""
+    return record.get("blend_weights", OLD_WEIGHTING)
+
+
 def check_weighting(weighting: str, key: str = "evaluate.blend_weights") -> str:
     """`weighting` if it names a blend (WEIGHTINGS), else a LightError naming the config `key`."""
     if weighting not in WEIGHTINGS:
@@ -229,7 +235,7 @@ def blend_finder(train: np.ndarray, k: int,
 def blend_label(record: dict) -> str:
     """"triangle blend of the" or "blend of k nearest", for a metrics record's `blend_weights` and `blend_k` (a
     record made before the key: inverse-angle)."""
-    if record.get("blend_weights", OLD_WEIGHTING) == "triangle":
+    if recorded_weighting(record) == "triangle":
         return "triangle blend of the"
     return f"blend of {record['blend_k']} nearest"
 

@@ -19,7 +19,7 @@ from numpy.typing import ArrayLike
 
 from diffshadow.io import StoreError, VerifiedGroup, atomic_save, error_line, write_zarr_group
 from diffshadow.layout import SirenConfig, WeightLayout
-from diffshadow.lights import OLD_WEIGHTING, LightRegion, as_direction, blend_finder
+from diffshadow.lights import LightRegion, as_direction, blend_finder, recorded_weighting
 from diffshadow.phases import timed
 from diffshadow.volume import check_extinction
 
@@ -89,9 +89,9 @@ class BlendSampler:
 
     @classmethod
     def recorded(cls, store: WeightStore, record: dict, correction: Correction | None = None) -> BlendSampler:
-        """The blend that a generated store's `record` names (`blend_record`) over `store`'s SIRENs; a record
-        without `blend_weights` is from before the key, when the weighting was OLD_WEIGHTING."""
-        return cls(store, int(record["blend_k"]), record.get("blend_weights", OLD_WEIGHTING), correction)
+        """The blend that a generated store's `record` names (`blend_record`) over `store`'s SIRENs (an old
+        record's weighting: `recorded_weighting`)."""
+        return cls(store, int(record["blend_k"]), recorded_weighting(record), correction)
 
     def rows(self, lights: np.ndarray) -> np.ndarray:
         """The blended SIRENs (Q, P) in float64 of `lights` (Q, 3), corrected where a correction is given."""

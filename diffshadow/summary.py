@@ -11,7 +11,7 @@ import numpy as np
 
 from diffshadow.capacity import size_text, steps_text
 from diffshadow.io import atomic_write_text, read_json
-from diffshadow.lights import OLD_WEIGHTING, blend_label, describe_blend
+from diffshadow.lights import blend_label, describe_blend, recorded_weighting
 from diffshadow.report import ELAPSED_ROW, PHASE_COLUMNS, label_image, mixed_runtimes
 
 MIB = 2**20
@@ -424,7 +424,7 @@ def mix_words(mix: dict, corrected: bool = False) -> str:
     """The cache's answer for a light in words (voxel_metrics.json's `mix`, and whether its blend was corrected)."""
     share = float(mix["model_share"])
     how = "chosen on validation lights" if mix.get("chosen") == "validation lights" else "set in the config"
-    blend = describe_blend(mix.get("blend_weights", OLD_WEIGHTING), mix["blend_k"])
+    blend = describe_blend(recorded_weighting(mix), mix["blend_k"])
     if corrected:
         blend += ", corrected by the blend's correction (correction.pt)"
     return f"{share:g} x the diffusion model's SIREN + {1 - share:g} x {blend} (mix.model_share {how}; both are kept)"
