@@ -493,10 +493,12 @@ def _paired(rows: list[dict], a: str, b: str) -> dict | None:
     x, y = (np.array([by[(*k, m)] for k in keys], dtype=np.float64) for m in (a, b))
     out = {"images": len(keys), f"{a}_psnr_mean": float(x.mean()), f"{b}_psnr_mean": float(y.mean()),
            "better": int((x > y).sum())}
-    lights = sorted({k[:2] for k in keys})
-    if len(lights) >= PAIRED_INTERVAL_LIGHTS:
-        per_light = [np.mean([g for k, g in zip(keys, x - y, strict=True) if k[:2] == light]) for light in lights]
-        out.update(lights=len(lights), gap_interval95_db=mean_gap_interval(np.array(per_light)))
+    by_light: dict[tuple, list[float]] = {}
+    for k, gap in zip(keys, x - y, strict=True):
+        by_light.setdefault(k[:2], []).append(gap)
+    if len(by_light) >= PAIRED_INTERVAL_LIGHTS:
+        per_light = np.array([np.mean(gaps) for gaps in by_light.values()])  # keys sorted: lights in order
+        out.update(lights=len(by_light), gap_interval95_db=mean_gap_interval(per_light))
     return out
 
 
